@@ -1,0 +1,168 @@
+"""Typed config schemas (pydantic), validated at the edge with file+field errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+CONFIG_ROOT = Path(__file__).resolve().parent
+
+M = TypeVar("M", bound=BaseModel)
+
+
+class ConfigError(ValueError):
+    """A config that cannot be used. ``str()`` names file, field and expectation."""
+
+    def __init__(self, file: str | Path | None, problems: list[tuple[str, str]]):
+        self.file = str(file) if file is not None else "<inline>"
+        self.problems = problems
+        lines = [f"{self.file}: {fld or '<root>'}: {msg}" for fld, msg in problems]
+        super().__init__("invalid config\n  " + "\n  ".join(lines))
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class BusConfig(Strict):
+    """Zenoh session. Default: peer-to-peer on loopback, no multicast scouting.
+
+    A lab spreads nodes over hosts by setting ``mode: client`` and ``connect`` to a
+    router endpoint (``tcp/10.0.0.2:7447``)."""
+
+    mode: Literal["peer", "client"] = "peer"
+    listen: list[str] = Field(default_factory=list)
+    connect: list[str] = Field(default_factory=list)
+    multicast_scouting: bool = False
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        for e in v:
+            if "/" not in e:
+                raise ValueError(f"endpoint {e!r} must look like 'tcp/127.0.0.1:7447'")
+        return v
+
+
+class RobotConfig(BaseModel):
+    """One robot. ``params`` are validated by the robot's own settings class."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    robot: str
+    backend: Literal["real", "emulated", "sim"] = "sim"
+    #: robot-specific parameters (sim model, port, limits...), checked by the robot package
+    params: dict[str, Any] = Field(default_factory=dict)
+    #: the file it came from, for error messages
+    source: str | None = None
+
+
+class RigRobot(Strict):
+    config: str
+    backend: Literal["real", "emulated", "sim"] | None = None
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class RigConfig(Strict):
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    robots: dict[str, RigRobot]
+    bus: BusConfig = BusConfig()
+    #: a driver node stops its robot when no command arrived for this many periods
+    watchdog_periods: float = Field(3.0, gt=0)
+    #: sim rigs: "realtime" paces on the wall clock, "lockstep" steps when a command arrives
+    pace: Literal["realtime", "lockstep"] = "realtime"
+    source: str | None = None
+
+
+class TaskConfig(BaseModel):
+    model_config = ConfigDict(extra="allow", frozen=True)
+    task: str
+    source: str | None = None
+
+
+def _format_loc(loc: tuple[Any, ...]) -> str:
+    out = ""
+    for p in loc:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out
+
+
+def parse_model(model: type[M], data: Any, file: str | Path | None = None) -> M:
+    """Validate ``data`` into ``model``; raise ConfigError naming file and field."""
+    if not isinstance(data, dict):
+        raise ConfigError(file, [("", f"expected a mapping at top level, got {type(data).__name__}")])
+    if "source" in model.model_fields and file is not None:
+        data = {**data, "source": str(file)}
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        problems = []
+        for err in e.errors():
+            msg = err["msg"]
+            if err["type"] == "extra_forbidden":
+                allowed = sorted(k for k in model.model_fields if k != "source")
+                msg = f"unknown field (allowed here: {allowed})" if len(err["loc"]) == 1 else "unknown field"
+            elif "input" in err and err["type"] != "missing":
+                msg = f"{msg} (got {err['input']!r})"
+            problems.append((_format_loc(err["loc"]), msg))
+        raise ConfigError(file, problems) from None
+
+
+def read_yaml(path: str | Path) -> Any:
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(p, [("", "file not found")])
+    try:
+        return yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(p, [(where, f"not valid YAML: {getattr(e, 'problem', e)}")]) from None
+
+
+def load_yaml_model(path: str | Path, model: type[M]) -> M:
+    return parse_model(model, read_yaml(path), path)
+
+
+def config_path(kind: str, name_or_path: str | Path, base: Path | None = None) -> Path:
+    """Resolve a config by name (``configs/<kind>/<name>.yaml``) or by path."""
+    p = Path(name_or_path)
+    candidates = [p] if p.suffix in (".yaml", ".yml") else []
+    if base is not None and not p.is_absolute():
+        candidates.insert(0, base / p)
+    candidates.append(CONFIG_ROOT / kind / f"{p.name if p.suffix else p.name + '.yaml'}")
+    for c in candidates:
+        if c.is_file():
+            return c
+    known = sorted(x.stem for x in (CONFIG_ROOT / kind).glob("*.yaml"))
+    raise ConfigError(str(name_or_path), [("", f"no such {kind[:-1]} config; known: {known}")])
+
+
+def load_robot(name_or_path: str | Path, **overrides: Any) -> RobotConfig:
+    """Load a robot config; ``backend=``/``params=`` override the file."""
+    path = config_path("robots", name_or_path)
+    data = dict(read_yaml(path))
+    if overrides.get("backend"):
+        data["backend"] = overrides["backend"]
+    if overrides.get("params"):
+        data["params"] = {**data.get("params", {}), **overrides["params"]}
+    return parse_model(RobotConfig, data, path)
+
+
+def load_rig(name_or_path: str | Path) -> RigConfig:
+    return load_yaml_model(config_path("rigs", name_or_path), RigConfig)
+
+
+def load_task(name_or_path: str | Path) -> TaskConfig:
+    return load_yaml_model(config_path("tasks", name_or_path), TaskConfig)
+
+
+def rig_robot_config(rig: RigConfig, key: str) -> RobotConfig:
+    """The robot config of one rig entry, with the rig's overrides applied."""
+    entry = rig.robots[key]
+    base = Path(rig.source).parent if rig.source else None
+    path = config_path("robots", entry.config, base)
+    return load_robot(path, backend=entry.backend, params=entry.params)

@@ -1,0 +1,60 @@
+"""Backend registry: ``backend: real | emulated | sim`` in a robot config picks the class.
+
+Entries are import strings so that choosing a backend imports only what it needs
+(the sim backend pulls MuJoCo, the real one pyserial...). A backend class takes the
+validated :class:`configs.RobotConfig` in ``from_config``.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+from configs.schema import ConfigError, RobotConfig, load_robot
+
+if TYPE_CHECKING:
+    from drivers.base import Driver
+
+#: (robot, backend) -> "module:Class"
+BACKENDS: dict[tuple[str, str], str] = {
+    ("pointmass", "sim"): "sim_backends.pointmass:PointMassSim",
+    ("velociroach", "sim"): "sim_backends.velociroach.backend:VelociRoachSim",
+    ("velociroach", "emulated"): "drivers.velociroach.driver:VelociRoachDriver",
+    ("velociroach", "real"): "drivers.velociroach.driver:VelociRoachDriver",
+}
+
+
+def register_backend(robot: str, backend: str, target: str) -> None:
+    """Add a backend (``target`` is ``"package.module:Class"``)."""
+    BACKENDS[(robot, backend)] = target
+
+
+def backends_of(robot: str) -> list[str]:
+    return sorted(b for r, b in BACKENDS if r == robot)
+
+
+def robots() -> list[str]:
+    return sorted({r for r, _ in BACKENDS})
+
+
+def resolve(robot: str, backend: str) -> type[Driver]:
+    key = (robot, backend)
+    if key not in BACKENDS:
+        if robot not in robots():
+            raise ConfigError(None, [("robot", f"unknown robot {robot!r}; known: {robots()}")])
+        raise ConfigError(None, [("backend", f"robot {robot!r} has no {backend!r} backend; has {backends_of(robot)}")])
+    mod, _, cls = BACKENDS[key].partition(":")
+    return getattr(importlib.import_module(mod), cls)
+
+
+def make_driver(cfg: RobotConfig | str, backend: str | None = None, **params: object) -> Driver:
+    """Build an (unconfigured) driver from a config, a config name or a path."""
+    if not isinstance(cfg, RobotConfig):
+        cfg = load_robot(cfg, backend=backend, params=params or None)
+    elif backend or params:
+        cfg = cfg.model_copy(update={"backend": backend or cfg.backend, "params": {**cfg.params, **params}})
+    try:
+        cls = resolve(cfg.robot, cfg.backend)
+    except ConfigError as e:
+        raise ConfigError(cfg.source, e.problems) from None
+    return cls.from_config(cfg)

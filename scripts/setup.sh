@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# One-shot setup: Debian packages (Mesa for offscreen MuJoCo, socat), .venv/, hilstack + deps.
+# Idempotent: re-running only installs what is missing.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+
+debs=(libegl1 libgl1-mesa-dri libosmesa6 socat)
+missing=()
+for d in "${debs[@]}"; do dpkg -s "$d" >/dev/null 2>&1 || missing+=("$d"); done
+if [ "${#missing[@]}" -gt 0 ]; then
+  if [ "$(id -u)" = 0 ]; then
+    echo "[setup] apt-get install ${missing[*]}"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null
+  else
+    echo "[setup] warning: missing Debian packages ${missing[*]} (run as root or: sudo apt-get install ${missing[*]})" >&2
+  fi
+fi
+
+py="${PYTHON:-python3}"
+[ -x .venv/bin/python ] || "$py" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+# torch is pinned for these machines (a local CPU wheel); the package itself only asks for a range.
+.venv/bin/python -m pip install -q "torch==${HIL_TORCH_VERSION:-2.13.0}"
+.venv/bin/python -m pip install -q -e ".[dev]"
+echo "[setup] done: $(.venv/bin/hil --version 2>/dev/null || echo 'hil installed at .venv/bin/hil')"

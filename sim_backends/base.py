@@ -1,0 +1,58 @@
+"""Shared pieces of MuJoCo sim backends: lockstep time, params validation."""
+
+from __future__ import annotations
+
+from typing import Any, TypeVar
+
+from pydantic import BaseModel, ConfigDict
+
+from configs.schema import ConfigError, RobotConfig, parse_model
+from drivers.base import Driver
+
+P = TypeVar("P", bound=BaseModel)
+
+
+class Params(BaseModel):
+    """Base of robot-specific ``params`` sections: unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+def parse_params(cfg: RobotConfig, model: type[P]) -> P:
+    """Validate ``cfg.params``; errors name the file and ``params.<field>``."""
+    try:
+        return parse_model(model, dict(cfg.params), cfg.source)
+    except ConfigError as e:
+        raise ConfigError(cfg.source, [(f"params.{f}" if f else "params", m) for f, m in e.problems]) from None
+
+
+class LockstepSim(Driver):
+    """A simulated backend whose clock advances only in ``tick()``.
+
+    Subclasses implement ``_advance(duration_s)`` to integrate physics with the held
+    command and ``sim_time_s``.
+    """
+
+    backend = "sim"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.steps = 0
+
+    def now(self) -> float:
+        return self.sim_time_s
+
+    @property
+    def sim_time_s(self) -> float:
+        raise NotImplementedError
+
+    def tick(self) -> None:
+        self._advance(self.spec.period_s)
+        self.steps += 1
+
+    def _advance(self, duration_s: float) -> None:
+        raise NotImplementedError
+
+    def reset(self, **kwargs: Any) -> None:
+        """Put the simulated robot back to its initial state (sim-only convenience)."""
+        raise NotImplementedError

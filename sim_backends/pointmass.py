@@ -1,0 +1,109 @@
+"""A MuJoCo point mass on a plane: the small sample robot that proves the platform.
+
+State: x, y [m], vx, vy [m/s]. Action: force fx, fy [N]. Viscous floor drag.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from pydantic import Field
+
+from configs.schema import RobotConfig
+from drivers.base import Health, Observation, RobotSpec, Space
+from sim_backends.base import LockstepSim, Params, parse_params
+
+_XML = """
+<mujoco model="pointmass">
+  <option timestep="{dt}" integrator="implicitfast"/>
+  <worldbody>
+    <geom type="plane" size="2 2 0.1" rgba=".8 .8 .8 1"/>
+    <body name="mass" pos="0 0 0.05">
+      <joint name="x" type="slide" axis="1 0 0" damping="{damping}"/>
+      <joint name="y" type="slide" axis="0 1 0" damping="{damping}"/>
+      <geom type="sphere" size="0.05" mass="{mass}" rgba=".2 .4 .8 1" contype="0" conaffinity="0"/>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor name="fx" joint="x" gear="1"/>
+    <motor name="fy" joint="y" gear="1"/>
+  </actuator>
+</mujoco>
+"""
+
+
+class PointMassParams(Params):
+    mass_kg: float = Field(0.5, gt=0)
+    damping_ns_per_m: float = Field(0.5, ge=0)
+    max_force_n: float = Field(2.0, gt=0)
+    max_force_rate_n_per_s: float = Field(40.0, gt=0)
+    period_s: float = Field(0.02, gt=0)
+    physics_dt_s: float = Field(0.002, gt=0)
+    arena_m: float = Field(2.0, gt=0)
+
+
+class PointMassSim(LockstepSim):
+    def __init__(self, params: PointMassParams | None = None):
+        super().__init__()
+        self.params = p = params or PointMassParams()
+        f = p.max_force_n
+        self.spec = RobotSpec(
+            name="pointmass",
+            state=Space.build([
+                ("x", "m", -p.arena_m, p.arena_m),
+                ("y", "m", -p.arena_m, p.arena_m),
+                ("vx", "m/s", -np.inf, np.inf),
+                ("vy", "m/s", -np.inf, np.inf),
+            ]),
+            action=Space.build([("fx", "N", -f, f), ("fy", "N", -f, f)]),
+            period_s=p.period_s,
+            action_rate_per_s=np.full(2, p.max_force_rate_n_per_s),
+            safe_action=np.zeros(2),
+            description="MuJoCo point mass on a plane (sample robot)",
+        )
+        self.model: mujoco.MjModel | None = None
+        self.data: mujoco.MjData | None = None
+        self._seq = 0
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> PointMassSim:
+        return cls(parse_params(cfg, PointMassParams))
+
+    @property
+    def sim_time_s(self) -> float:
+        return 0.0 if self.data is None else float(self.data.time)
+
+    def _on_configure(self) -> None:
+        p = self.params
+        xml = _XML.format(dt=p.physics_dt_s, damping=p.damping_ns_per_m, mass=p.mass_kg)
+        self.model = mujoco.MjModel.from_xml_string(xml)
+        self.data = mujoco.MjData(self.model)
+        self._substeps = max(1, round(p.period_s / p.physics_dt_s))
+
+    def _on_cleanup(self) -> None:
+        self.model = self.data = None
+
+    def reset(self, x: float = 0.0, y: float = 0.0) -> None:
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:] = (x, y)
+        mujoco.mj_forward(self.model, self.data)
+
+    def _read(self) -> Observation:
+        d = self.data
+        self._seq += 1
+        state = np.array([d.qpos[0], d.qpos[1], d.qvel[0], d.qvel[1]])
+        return Observation(t_s=float(d.time), state=state, seq=self._seq)
+
+    def _write(self, action: np.ndarray) -> None:
+        self.data.ctrl[:] = action
+
+    def _stop(self) -> None:
+        if self.data is not None:
+            self.data.ctrl[:] = 0.0
+
+    def _advance(self, duration_s: float) -> None:
+        n = max(1, round(duration_s / self.params.physics_dt_s))
+        mujoco.mj_step(self.model, self.data, nstep=n)
+
+    def _health(self) -> Health:
+        return Health(ok=self.data is not None, extra={"sim_time_s": self.sim_time_s})

@@ -1,0 +1,37 @@
+"""The `hil` command line. Each verb lives in its own module `tools/cmd_<verb>.py`
+exposing `register(app)`, so features land without touching this file."""
+
+from __future__ import annotations
+
+import importlib
+
+import typer
+
+app = typer.Typer(
+    help="hilstack: hardware-in-the-loop robot stack for model-based learning and control.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+# Order is the order `hil --help` lists them.
+_VERB_MODULES = [
+    "tools.cmd_demo",
+    "tools.cmd_drive",
+    "tools.cmd_record",
+    "tools.cmd_viz",
+    "tools.cmd_calibrate",
+    "tools.cmd_bench",
+    "tools.cmd_misc",
+]
+
+for _mod in _VERB_MODULES:
+    try:
+        importlib.import_module(_mod).register(app)
+    except ModuleNotFoundError as e:  # a verb module not written yet
+        if e.name != _mod:
+            raise
+
+
+def main() -> None:
+    app()
