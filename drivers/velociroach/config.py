@@ -1,0 +1,74 @@
+"""VelociRoACH settings and spec, shared by every backend (real, emulated, sim).
+
+State: the 24-D state of Nagabandi's thesis (ch. 3). Action: leg-velocity setpoints
+[rev/s of the crank] or direct PWM duty [-1, 1], chosen by ``action_mode``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from drivers.base import RobotSpec, Space
+from sim_backends.base import Params
+
+STATE_CHANNELS: list[tuple[str, str]] = [
+    ("x", "m"), ("y", "m"), ("z", "m"),
+    ("vx", "m/s"), ("vy", "m/s"), ("vz", "m/s"),
+    ("cos_roll", "1"), ("sin_roll", "1"),
+    ("cos_pitch", "1"), ("sin_pitch", "1"),
+    ("cos_yaw", "1"), ("sin_yaw", "1"),
+    ("wx", "rad/s"), ("wy", "rad/s"), ("wz", "rad/s"),
+    ("cos_crank_l", "1"), ("sin_crank_l", "1"),
+    ("cos_crank_r", "1"), ("sin_crank_r", "1"),
+    ("crank_vel_l", "rev/s"), ("crank_vel_r", "rev/s"),
+    ("bemf_l", "V"), ("bemf_r", "V"),
+    ("vbat", "V"),
+]
+STATE_NAMES = tuple(n for n, _ in STATE_CHANNELS)
+
+
+class VelociRoachParams(Params):
+    """Everything configurable about the robot and its link. Units in names."""
+
+    action_mode: Literal["leg_velocity", "pwm"] = "leg_velocity"
+    max_leg_vel_rps: float = Field(15.0, gt=0, description="crank rev/s at action +1")
+    max_leg_accel_rps2: float = Field(150.0, gt=0, description="rate limit on leg-velocity commands")
+    period_s: float = Field(0.1, gt=0, description="control period (thesis: 10 Hz)")
+    # link (real/emulated)
+    port: str | None = Field(None, description="serial port of the base-station XBee, e.g. /dev/ttyUSB0")
+    baudrate: int = Field(230400, gt=0)
+    robot_addr64: str = Field("0013A20040A1B2C3", pattern=r"^[0-9A-Fa-f]{16}$")
+    telemetry_hz: float = Field(100.0, gt=0)
+    firmware_watchdog_s: float = Field(0.5, gt=0)
+    tlog: str | None = Field(None, description="write every MAVLink frame to this .tlog")
+    # sim (ignored by the real driver); the sim backend reads the rest from here too
+    sim: dict = Field(default_factory=dict, description="sim backend settings (terrain, motor, battery...)")
+    emulator: dict = Field(default_factory=dict, description="emulator settings (realtime factor...)")
+
+
+def velociroach_spec(p: VelociRoachParams) -> RobotSpec:
+    lo = np.full(len(STATE_CHANNELS), -np.inf)
+    hi = np.full(len(STATE_CHANNELS), np.inf)
+    for i, (n, _) in enumerate(STATE_CHANNELS):
+        if n.startswith(("cos_", "sin_")):
+            lo[i], hi[i] = -1.0, 1.0
+    state = Space(STATE_NAMES, tuple(u for _, u in STATE_CHANNELS), lo, hi)
+    if p.action_mode == "leg_velocity":
+        m = p.max_leg_vel_rps
+        action = Space.build([("leg_vel_l", "rev/s", -m, m), ("leg_vel_r", "rev/s", -m, m)])
+        rate = np.full(2, p.max_leg_accel_rps2)
+    else:
+        action = Space.build([("duty_l", "1", -1.0, 1.0), ("duty_r", "1", -1.0, 1.0)])
+        rate = np.full(2, p.max_leg_accel_rps2 / p.max_leg_vel_rps)
+    return RobotSpec(
+        name="velociroach",
+        state=state,
+        action=action,
+        period_s=p.period_s,
+        action_rate_per_s=rate,
+        safe_action=np.zeros(2),
+        description="VelociRoACH hexapod, 2 motors driving 3 legs each",
+    )
