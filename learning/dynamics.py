@@ -1,0 +1,566 @@
+"""Neural-network dynamics: an MLP (or a bootstrap ensemble of MLPs) predicting Δs.
+
+Model (Nagabandi et al.; thesis defaults): for each ensemble member ``e``
+
+    x  = ([s_t, a_t] - μ_x) / σ_x                      input normalization
+    y  = MLP_e(x)          2 hidden layers of 500, ReLU
+    ŝ_{t+1} = s_t + σ_Δ · y + μ_Δ                       output de-normalization
+
+trained with Adam (lr 1e-3) on the MSE between ``y`` and the normalized true delta
+``(Δs - μ_Δ) / σ_Δ``. Optional Gaussian noise of std ``input_noise_std`` (in normalized
+units) is added to ``x`` during training only.
+
+Ensembles are ONE batched computation: layer ``l`` has weights ``[E, in, out]`` and biases
+``[E, 1, out]`` applied with ``torch.baddbmm``; there is no Python loop over members. Each
+member starts from its own random init and, when ``bootstrap`` is on (default for E > 1),
+trains on its own bootstrap resample (N indices drawn with replacement) of the data.
+
+Warm start: calling :meth:`EnsembleDynamics.fit` again continues from the current weights
+and optimizer. Normalization rule (``norm_update``):
+
+* ``"refit"`` (default): statistics are recomputed from the dataset passed to this ``fit``
+  (in the MBRL loop: the aggregated dataset) and the first and last layers are rescaled so
+  the network computes exactly the same function as before the update; training then
+  continues in the new normalized coordinates. Adam's moment estimates are reset because
+  they refer to the old coordinates.
+* ``"freeze"``: statistics from the first ``fit`` are kept forever.
+
+Inference (:meth:`predict` without autograd) uses a fused copy of the weights with the
+normalization folded into the first and last layers, splits the batch into equal chunks so
+the batched matmul keeps every thread busy, and optionally runs in bfloat16
+(``inference_dtype``; see :func:`cpu_bf16_support`). Training is always float32.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from learning.datasets import Episode, NormStats, TransitionDataset
+
+__all__ = ["EnsembleDynamics", "cpu_bf16_support", "h_step_windows", "h_step_error"]
+
+_CHECKPOINT_FORMAT = "hilstack.EnsembleDynamics"
+_CHECKPOINT_VERSION = 1
+
+
+def cpu_bf16_support(cpuinfo: str | Path = "/proc/cpuinfo") -> str | None:
+    """Which native bfloat16 matmul the CPU has: ``"amx"``, ``"avx512"`` or ``None``.
+
+    Reads the ``flags`` line of ``/proc/cpuinfo`` (``amx_bf16``, ``avx512_bf16``). Returns
+    ``None`` when the file cannot be read (non-Linux) so callers fall back to float32.
+    """
+    try:
+        text = Path(cpuinfo).read_text()
+    except OSError:
+        return None
+    flags: set[str] = set()
+    for line in text.splitlines():
+        if line.startswith("flags"):
+            flags.update(line.split(":", 1)[1].split())
+    if "amx_bf16" in flags:
+        return "amx"
+    if "avx512_bf16" in flags:
+        return "avx512"
+    return None
+
+
+def _resolve_inference_dtype(choice: str) -> torch.dtype:
+    """``"fp32"`` / ``"bf16"`` / ``"auto"``.
+
+    ``"auto"`` picks bfloat16 only with AMX: on a CPU with AVX512-BF16 but no AMX, bf16
+    batched matmuls measured *slower* than fp32 (``tools/bench_plan.py`` reports both), while
+    with AMX the platform notes measured a 2.8x speed-up for this very model.
+    ``"bf16"`` forces bfloat16 whenever the CPU has any native bf16 support, else fp32.
+    """
+    if choice in ("fp32", "float32"):
+        return torch.float32
+    support = cpu_bf16_support()
+    if choice in ("bf16", "bfloat16"):
+        return torch.bfloat16 if support else torch.float32
+    if choice == "auto":
+        return torch.bfloat16 if support == "amx" else torch.float32
+    raise ValueError(f"inference_dtype must be 'fp32', 'bf16' or 'auto', got {choice!r}")
+
+
+# -- H-step open-loop validation (thesis Eqn 2.2) ---------------------------------------------
+def h_step_windows(
+    episodes: Sequence[Episode], horizon: int, max_starts: int | None = 1024, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All start points ``t`` with ``t + H <= T`` of every episode, as batched windows.
+
+    Returns ``(start [P,S], actions [P,H,A], truth [P,H,S])`` where ``truth[p, h-1]`` is the
+    logged state ``h`` steps after the start. At most ``max_starts`` start points are kept
+    (a seeded random subset) so validation stays cheap on long logs.
+    """
+    starts, acts, truth = [], [], []
+    for ep in episodes:
+        T = len(ep)
+        if T < horizon:
+            continue
+        idx = np.arange(T - horizon + 1)
+        win = idx[:, None] + np.arange(horizon)[None, :]
+        starts.append(ep.states[idx])
+        acts.append(ep.actions[win])
+        truth.append(ep.states[win + 1])
+    if not starts:
+        raise ValueError(f"no episode is long enough for a {horizon}-step validation window")
+    s, a, y = np.concatenate(starts), np.concatenate(acts), np.concatenate(truth)
+    if max_starts is not None and s.shape[0] > max_starts:
+        keep = np.sort(np.random.default_rng(seed).choice(s.shape[0], max_starts, replace=False))
+        s, a, y = s[keep], a[keep], y[keep]
+    return s, a, y
+
+
+class EnsembleDynamics(nn.Module):
+    """Bootstrap ensemble of MLPs predicting the state delta. See the module docstring.
+
+    Args:
+        state_dim, action_dim: S and A.
+        ensemble: number of members E (1 = a single model, no bootstrap).
+        hidden: hidden layer widths.
+        lr, weight_decay: Adam settings.
+        input_noise_std: std of Gaussian noise added to the normalized inputs while training.
+        bootstrap: resample training data per member; default ``ensemble > 1``.
+        norm_update: ``"refit"`` or ``"freeze"`` (see module docstring).
+        inference_dtype: ``"fp32"`` (default), ``"bf16"`` or ``"auto"``.
+        state_names, action_names, state_units, action_units: carried in checkpoints.
+        seed: seeds the weight init and the training data order.
+    """
+
+    def __init__(
+        self,
+        state_dim: int,
+        action_dim: int,
+        ensemble: int = 1,
+        hidden: Sequence[int] = (500, 500),
+        *,
+        lr: float = 1e-3,
+        weight_decay: float = 0.0,
+        input_noise_std: float = 0.0,
+        bootstrap: bool | None = None,
+        norm_update: str = "refit",
+        inference_dtype: str = "fp32",
+        state_names: Sequence[str] | None = None,
+        action_names: Sequence[str] | None = None,
+        state_units: Sequence[str] | None = None,
+        action_units: Sequence[str] | None = None,
+        seed: int | None = 0,
+    ) -> None:
+        super().__init__()
+        if norm_update not in ("refit", "freeze"):
+            raise ValueError(f"norm_update must be 'refit' or 'freeze', got {norm_update!r}")
+        self.config = dict(
+            state_dim=int(state_dim),
+            action_dim=int(action_dim),
+            ensemble=int(ensemble),
+            hidden=[int(h) for h in hidden],
+            lr=float(lr),
+            weight_decay=float(weight_decay),
+            input_noise_std=float(input_noise_std),
+            bootstrap=bool(ensemble > 1) if bootstrap is None else bool(bootstrap),
+            norm_update=norm_update,
+            inference_dtype=inference_dtype,
+            seed=seed,
+        )
+        self.state_names = list(state_names) if state_names is not None else None
+        self.action_names = list(action_names) if action_names is not None else None
+        self.state_units = list(state_units) if state_units is not None else None
+        self.action_units = list(action_units) if action_units is not None else None
+        S, A, E = self.state_dim, self.action_dim, self.ensemble
+        sizes = [S + A, *self.config["hidden"], S]
+        gen = torch.Generator().manual_seed(0 if seed is None else int(seed))
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for fan_in, fan_out in zip(sizes[:-1], sizes[1:], strict=True):
+            # nn.Linear's default init, drawn independently for every member
+            bound = 1.0 / math.sqrt(fan_in)
+            w = (torch.rand(E, fan_in, fan_out, generator=gen) * 2 - 1) * bound
+            b = (torch.rand(E, 1, fan_out, generator=gen) * 2 - 1) * bound
+            self.weights.append(nn.Parameter(w))
+            self.biases.append(nn.Parameter(b))
+        # normalization statistics (identity until the first fit)
+        self.register_buffer("input_mean", torch.zeros(S + A))
+        self.register_buffer("input_std", torch.ones(S + A))
+        self.register_buffer("delta_mean", torch.zeros(S))
+        self.register_buffer("delta_std", torch.ones(S))
+        self.register_buffer("state_std", torch.ones(S))
+        self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
+        self.history: list[dict] = []
+        self._optimizer: torch.optim.Optimizer | None = None
+        self._gen = torch.Generator().manual_seed(1 + (0 if seed is None else int(seed)))
+        self._fast: dict | None = None  # fused inference weights, rebuilt lazily
+        self._inference_dtype = _resolve_inference_dtype(inference_dtype)
+
+    # -- sizes ---------------------------------------------------------------------------
+    @property
+    def state_dim(self) -> int:
+        return self.config["state_dim"]
+
+    @property
+    def action_dim(self) -> int:
+        return self.config["action_dim"]
+
+    @property
+    def ensemble(self) -> int:
+        return self.config["ensemble"]
+
+    @property
+    def inference_dtype(self) -> torch.dtype:
+        return self._inference_dtype
+
+    def set_inference_dtype(self, choice: str) -> torch.dtype:
+        """Switch inference precision (``"fp32"``, ``"bf16"``, ``"auto"``); returns the dtype used."""
+        self._inference_dtype = _resolve_inference_dtype(choice)
+        self.config["inference_dtype"] = choice
+        self._fast = None
+        return self._inference_dtype
+
+    # -- differentiable forward in normalized coordinates -----------------------------------
+    def forward_normalized(self, x: torch.Tensor) -> torch.Tensor:
+        """``[E, B, S+A]`` normalized inputs → ``[E, B, S]`` normalized deltas."""
+        h = x
+        n = len(self.weights)
+        for i, (w, b) in enumerate(zip(self.weights, self.biases, strict=True)):
+            h = torch.baddbmm(b, h, w)
+            if i < n - 1:
+                h = torch.relu(h)
+        return h
+
+    def _as_ensemble(self, x: torch.Tensor, name: str) -> torch.Tensor:
+        if x.dim() == 2:
+            return x.unsqueeze(0).expand(self.ensemble, -1, -1)
+        if x.dim() == 3 and x.shape[0] == self.ensemble:
+            return x
+        raise ValueError(f"{name} must be [B,dim] or [E={self.ensemble},B,dim], got {tuple(x.shape)}")
+
+    def _predict_diff(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Differentiable prediction: same contract as :meth:`predict`."""
+        s = self._as_ensemble(state, "state")
+        a = self._as_ensemble(action, "action")
+        x = (torch.cat([s, a], dim=-1) - self.input_mean) / self.input_std
+        y = self.forward_normalized(x)
+        return s + y * self.delta_std + self.delta_mean
+
+    # -- fast inference ------------------------------------------------------------------
+    def _fused(self) -> dict:
+        """Weights with normalization folded in, split into state/action parts, cast once."""
+        if self._fast is not None:
+            return self._fast
+        S = self.state_dim
+        with torch.no_grad():
+            ws = [w.detach() for w in self.weights]
+            bs = [b.detach() for b in self.biases]
+            # first layer: ((x - μ)/σ) W + b = x (W/σ) + (b - (μ/σ) W)
+            w0 = ws[0] / self.input_std[None, :, None]
+            b0 = bs[0] - torch.einsum("i,eio->eo", self.input_mean / self.input_std, ws[0]).unsqueeze(1)
+            # last layer: (h W + b) σ_Δ + μ_Δ
+            wl = ws[-1] * self.delta_std
+            bl = bs[-1] * self.delta_std + self.delta_mean
+            ws = [w0, *ws[1:-1], wl] if len(ws) > 1 else [w0 * self.delta_std]
+            bs = [b0, *bs[1:-1], bl] if len(bs) > 1 else [b0 * self.delta_std + self.delta_mean]
+            dt = self._inference_dtype
+            self._fast = {
+                "w_s": ws[0][:, :S].to(dt).contiguous(),
+                "w_a": ws[0][:, S:].to(dt).contiguous(),
+                "ws": [w.to(dt).contiguous() for w in ws[1:]],
+                "bs": [b.to(dt).contiguous() for b in bs],
+                "chunked": {},
+            }
+        return self._fast
+
+    def _chunk_weights(self, k: int) -> dict:
+        """Weights repeated ``k`` times along the member axis (member-major), cached."""
+        fast = self._fused()
+        if k not in fast["chunked"]:
+            rep = lambda t: t.repeat_interleave(k, dim=0).contiguous()  # noqa: E731
+            fast["chunked"][k] = {
+                "w_s": rep(fast["w_s"]),
+                "w_a": rep(fast["w_a"]),
+                "ws": [rep(w) for w in fast["ws"]],
+                "bs": [rep(b) for b in fast["bs"]],
+            }
+        return fast["chunked"][k]
+
+    @staticmethod
+    def _chunks_for(batch: int) -> int:
+        # A batched matmul parallelizes over its batch axis; E=3 members on 2 threads leaves one
+        # idle a third of the time. Splitting the samples into k equal chunks (a free view)
+        # gives E*k balanced work items (measured 4.8 -> 3.5 ms per 500x500 layer, E=3, B=700).
+        for k in (4, 2):
+            if batch % k == 0 and batch // k >= 64:
+                return k
+        return 1
+
+    def predict(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Predict the next state.
+
+        Args:
+            state: ``[B, S]`` (the same state for every member) or ``[E, B, S]``.
+            action: ``[B, A]`` or ``[E, B, A]``.
+        Returns:
+            ``[E, B, S]`` float32 next states (always with the member axis).
+
+        With autograd enabled this is the differentiable :meth:`forward`; under
+        ``torch.no_grad``/``torch.inference_mode`` (as planners call it) it runs the fused
+        inference path in :attr:`inference_dtype`.
+        """
+        if torch.is_grad_enabled():
+            return self._predict_diff(state, action)
+        E, S = self.ensemble, self.state_dim
+        B = state.shape[-2]
+        k = self._chunks_for(B)
+        w = self._chunk_weights(k)
+        dt = self._inference_dtype
+        s3 = self._as_ensemble(state, "state")
+        a3 = self._as_ensemble(action, "action")
+        # [E, B, .] -> [E*k, B/k, .]: a view when contiguous, a small copy when broadcast
+        s_c = s3.reshape(E * k, B // k, S).to(dt)
+        a_c = a3.reshape(E * k, B // k, a3.shape[-1]).to(dt)
+        h = torch.baddbmm(w["bs"][0], s_c, w["w_s"])
+        h.baddbmm_(a_c, w["w_a"])
+        for wi, bi in zip(w["ws"], w["bs"][1:], strict=True):
+            h = torch.baddbmm(bi, h.relu_(), wi)
+        delta = h.reshape(E, B, S)
+        if dt != torch.float32:
+            delta = delta.float()
+        return s3 + delta
+
+    def forward(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``model(state, action)`` is :meth:`predict`."""
+        return self.predict(state, action)
+
+    def dynamics(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Alias of :meth:`predict` with the planner's ``dynamics(state, action)`` signature."""
+        return self.predict(state, action)
+
+    # -- normalization ---------------------------------------------------------------------
+    def _set_stats(self, st: NormStats) -> None:
+        """Install new statistics, rescaling the first/last layer so the function is unchanged."""
+        t = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+        mu_x, sd_x, mu_d, sd_d = t(st.input_mean), t(st.input_std), t(st.delta_mean), t(st.delta_std)
+        with torch.no_grad():
+            if bool(self.fitted):
+                w0, b0 = self.weights[0], self.biases[0]
+                # ((x-μo)/σo) W = ((x-μn)/σn) (σn/σo) W + ((μn-μo)/σo) W
+                shift = torch.einsum("i,eio->eo", (mu_x - self.input_mean) / self.input_std, w0).unsqueeze(1)
+                b0.add_(shift)
+                w0.mul_((sd_x / self.input_std)[None, :, None])
+                wl, bl = self.weights[-1], self.biases[-1]
+                # y_o σo + μo = y_n σn + μn  =>  y_n = (y_o σo + μo - μn) / σn
+                wl.mul_(self.delta_std / sd_d)
+                bl.mul_(self.delta_std).add_(self.delta_mean - mu_d).div_(sd_d)
+            self.input_mean.copy_(mu_x)
+            self.input_std.copy_(sd_x)
+            self.delta_mean.copy_(mu_d)
+            self.delta_std.copy_(sd_d)
+            self.state_std.copy_(t(st.state_std))
+            self.fitted.fill_(True)
+        self._fast = None
+
+    # -- training --------------------------------------------------------------------------
+    def fit(
+        self,
+        dataset: TransitionDataset | Sequence[Episode],
+        epochs: int = 50,
+        batch_size: int = 512,
+        progress: bool = True,
+        val: TransitionDataset | Sequence[Episode] | None = None,
+        horizon: int = 10,
+        max_val_starts: int = 1024,
+    ) -> list[dict]:
+        """Train (or continue training) on ``dataset``.
+
+        Args:
+            dataset: training transitions (episodes are wrapped in a TransitionDataset).
+            epochs: passes over the (per-member bootstrap) data.
+            batch_size: transitions per member per gradient step.
+            progress: show a tqdm bar with the latest losses.
+            val: held-out episodes; when given, every epoch records the one-step and the
+                ``horizon``-step open-loop validation error (:func:`h_step_error`).
+            horizon: H of the open-loop validation error.
+            max_val_starts: cap on validation start points.
+        Returns:
+            the history entries of this call (also appended to :attr:`history`); each has
+            ``epoch, train_loss, time_s`` and, with ``val``, ``val_1step``, ``val_h``,
+            ``val_h_raw`` and ``horizon``.
+        """
+        if not isinstance(dataset, TransitionDataset):
+            dataset = TransitionDataset(dataset)
+        if val is not None and not isinstance(val, TransitionDataset):
+            val = TransitionDataset(val)
+        if (dataset.state_dim, dataset.action_dim) != (self.state_dim, self.action_dim):
+            raise ValueError(
+                f"dataset has S={dataset.state_dim}, A={dataset.action_dim}; model expects "
+                f"S={self.state_dim}, A={self.action_dim}"
+            )
+        for attr in ("state_names", "action_names", "state_units", "action_units"):
+            if getattr(self, attr) is None and getattr(dataset, attr) is not None:
+                setattr(self, attr, list(getattr(dataset, attr)))
+        if not bool(self.fitted) or self.config["norm_update"] == "refit":
+            renorm = bool(self.fitted)
+            self._set_stats(dataset.stats())
+            if renorm and self._optimizer is not None:
+                self._optimizer.state.clear()  # moments refer to the old coordinates
+        if self._optimizer is None:
+            self._optimizer = torch.optim.Adam(
+                self.parameters(), lr=self.config["lr"], weight_decay=self.config["weight_decay"]
+            )
+        opt = self._optimizer
+        E, N = self.ensemble, len(dataset)
+        x_all = torch.from_numpy(np.concatenate([dataset.states, dataset.actions], axis=1))
+        x_all = (x_all - self.input_mean) / self.input_std
+        y_all = (torch.from_numpy(dataset.deltas) - self.delta_mean) / self.delta_std
+        if self.config["bootstrap"]:
+            boot = torch.randint(0, N, (E, N), generator=self._gen)
+        else:
+            boot = torch.arange(N).expand(E, N)
+        windows = None
+        if val is not None:
+            windows = h_step_windows(val.episodes, horizon, max_val_starts)
+        noise = self.config["input_noise_std"]
+        start_epoch = self.history[-1]["epoch"] + 1 if self.history else 0
+        entries: list[dict] = []
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm  # noqa: PLC0415
+
+            bar = tqdm(total=epochs, desc="fit", leave=False)
+        n_batches = max(1, math.ceil(N / batch_size))
+        for ep in range(epochs):
+            t0 = time.perf_counter()
+            self.train()
+            # each member sees its own bootstrap sample in its own order
+            perm = torch.argsort(torch.rand(E, N, generator=self._gen), dim=1)
+            order = torch.gather(boot, 1, perm)
+            total = 0.0
+            for bi in range(n_batches):
+                idx = order[:, bi * batch_size : (bi + 1) * batch_size]  # [E, b]
+                xb, yb = x_all[idx], y_all[idx]  # [E, b, S+A], [E, b, S]
+                if noise > 0:
+                    xb = xb + noise * torch.randn(xb.shape, generator=self._gen)
+                pred = self.forward_normalized(xb)
+                # sum over members of each member's mean loss: members train independently
+                loss = ((pred - yb) ** 2).mean(dim=(1, 2)).sum()
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                total += loss.item() / E
+            self._fast = None
+            entry = {"epoch": start_epoch + ep, "train_loss": total / n_batches}
+            if windows is not None:
+                entry.update(self.evaluate(val, horizon=horizon, windows=windows))
+            entry["time_s"] = time.perf_counter() - t0
+            entries.append(entry)
+            self.history.append(entry)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix({k: f"{v:.4g}" for k, v in entry.items() if k in ("train_loss", "val_h")})
+        if bar is not None:
+            bar.close()
+        self.eval()
+        return entries
+
+    # -- validation ------------------------------------------------------------------------
+    def evaluate(
+        self,
+        val: TransitionDataset | Sequence[Episode],
+        horizon: int = 10,
+        windows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ) -> dict:
+        """One-step and H-step validation errors (see :func:`h_step_error`)."""
+        if not isinstance(val, TransitionDataset):
+            val = TransitionDataset(val)
+        with torch.inference_mode():
+            x = (torch.from_numpy(np.concatenate([val.states, val.actions], 1)) - self.input_mean) / self.input_std
+            y = (torch.from_numpy(val.deltas) - self.delta_mean) / self.delta_std
+            pred = self.forward_normalized(x.unsqueeze(0).expand(self.ensemble, -1, -1))
+            one = float(((pred - y) ** 2).mean())
+        if windows is None:
+            windows = h_step_windows(val.episodes, horizon)
+        h_norm, h_raw = h_step_error(self, *windows)
+        return {"val_1step": one, "val_h": h_norm, "val_h_raw": h_raw, "horizon": horizon}
+
+    # -- checkpoints -----------------------------------------------------------------------
+    def save(self, path: str | Path) -> None:
+        """``torch.save`` of a plain dict: config, names/units, weights, normalization, history."""
+        torch.save(
+            {
+                "format": _CHECKPOINT_FORMAT,
+                "version": _CHECKPOINT_VERSION,
+                "config": dict(self.config),
+                "state_names": self.state_names,
+                "action_names": self.action_names,
+                "state_units": self.state_units,
+                "action_units": self.action_units,
+                "state_dict": {k: v.detach().clone() for k, v in self.state_dict().items()},
+                "history": list(self.history),
+            },
+            Path(path),
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> EnsembleDynamics:
+        """Rebuild a model saved by :meth:`save` (weights-only unpickling: safe to load)."""
+        ckpt = torch.load(Path(path), map_location="cpu", weights_only=True)
+        if ckpt.get("format") != _CHECKPOINT_FORMAT:
+            raise ValueError(f"{path}: not an EnsembleDynamics checkpoint (format={ckpt.get('format')!r})")
+        cfg = dict(ckpt["config"])
+        model = cls(
+            cfg.pop("state_dim"),
+            cfg.pop("action_dim"),
+            cfg.pop("ensemble"),
+            cfg.pop("hidden"),
+            state_names=ckpt["state_names"],
+            action_names=ckpt["action_names"],
+            state_units=ckpt["state_units"],
+            action_units=ckpt["action_units"],
+            **cfg,
+        )
+        model.load_state_dict(ckpt["state_dict"])
+        model.history = list(ckpt["history"])
+        model.eval()
+        return model
+
+    def load_state_dict(self, *args, **kwargs):  # noqa: D102 - invalidate the fused copy
+        self._fast = None
+        return super().load_state_dict(*args, **kwargs)
+
+
+def h_step_error(
+    model: EnsembleDynamics, start: np.ndarray, actions: np.ndarray, truth: np.ndarray
+) -> tuple[float, float]:
+    """Open-loop H-step prediction error (thesis Eqn 2.2).
+
+    From each start state ``s_t`` the model is rolled out H steps replaying the logged actions
+    (``ŝ_t = s_t``, ``ŝ_{t+h} = model(ŝ_{t+h-1}, a_{t+h-1})``), and
+
+        E = 1/P Σ_t 1/H Σ_{h=1..H} ½ ‖ (s_{t+h} - ŝ_{t+h}) / σ_s ‖²
+
+    averaged over ensemble members, with ``σ_s`` the per-channel state std of the training
+    data (so channels in different units weigh alike). Returns ``(E_normalized, E_raw)``,
+    ``E_raw`` being the same with ``σ_s = 1`` (in squared state units).
+
+    Args:
+        start ``[P,S]``, actions ``[P,H,A]``, truth ``[P,H,S]``: from :func:`h_step_windows`.
+    """
+    with torch.inference_mode():
+        s = torch.from_numpy(np.ascontiguousarray(start))
+        a = torch.from_numpy(np.ascontiguousarray(actions))
+        y = torch.from_numpy(np.ascontiguousarray(truth))
+        H = a.shape[1]
+        err_n = torch.zeros(())
+        err_r = torch.zeros(())
+        cur = s
+        for h in range(H):
+            cur = model.predict(cur, a[:, h])  # [E, P, S]
+            d = cur - y[:, h]
+            err_r = err_r + 0.5 * (d**2).sum(-1).mean()
+            err_n = err_n + 0.5 * ((d / model.state_std) ** 2).sum(-1).mean()
+        return float(err_n / H), float(err_r / H)
