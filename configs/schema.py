@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
@@ -28,23 +29,38 @@ class Strict(BaseModel):
 
 
 class BusConfig(Strict):
-    """Zenoh session. Default: peer-to-peer on loopback, no multicast scouting.
+    """Zenoh session. Default: peer-to-peer on loopback, no router, no multicast.
 
-    A lab spreads nodes over hosts by setting ``mode: client`` and ``connect`` to a
-    router endpoint (``tcp/10.0.0.2:7447``)."""
+    Every node tries to listen on ``endpoint`` and also connects to it: the first node
+    of a rig to start owns the port, the others connect to it and find each other by
+    gossip over that link (gossip is not multicast: it only uses established links).
+    A lab spreads nodes over hosts with ``mode: client`` and ``connect`` set to a
+    Zenoh router (``tcp/10.0.0.2:7447``)."""
 
     mode: Literal["peer", "client"] = "peer"
+    endpoint: str = "tcp/127.0.0.1:7447"
     listen: list[str] = Field(default_factory=list)
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
+    gossip: bool = True
 
     @field_validator("listen", "connect")
     @classmethod
     def _endpoints(cls, v: list[str]) -> list[str]:
         for e in v:
-            if "/" not in e:
-                raise ValueError(f"endpoint {e!r} must look like 'tcp/127.0.0.1:7447'")
+            _check_endpoint(e)
         return v
+
+    @field_validator("endpoint")
+    @classmethod
+    def _endpoint(cls, v: str) -> str:
+        return _check_endpoint(v)
+
+
+def _check_endpoint(e: str) -> str:
+    if not re.match(r"^(tcp|udp|tls|quic|unixsock-stream|ws)/.+", e):
+        raise ValueError(f"endpoint {e!r} must look like 'tcp/127.0.0.1:7447'")
+    return e
 
 
 class RobotConfig(BaseModel):

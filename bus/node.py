@@ -1,0 +1,223 @@
+"""Node base: a Zenoh session, a liveliness token, typed publishers and subscribers.
+
+No work runs in Zenoh callbacks: typed subscriptions use Zenoh's own latest-value
+ring channel (``RingChannel(1)``, held in Rust) or a FIFO channel; payloads are
+decoded in the node's thread when it asks for them, and malformed ones are counted
+and dropped without disturbing the node.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Generic, TypeVar
+
+import zenoh
+
+from bus import keys
+from bus.schemas import MalformedMessage, Msg, decode, encode
+from bus.session import open_session
+from configs.schema import BusConfig
+
+T = TypeVar("T", bound=Msg)
+
+
+class Publisher(Generic[T]):
+    """Stamps (wall clock) and numbers each message, encodes, puts."""
+
+    def __init__(self, session: zenoh.Session, key: str, typ: type[T], express: bool = True):
+        self.key = key
+        self.type = typ
+        self._pub = session.declare_publisher(key, express=express)
+        self.seq = 0
+
+    def put(self, msg: T) -> T:
+        self.seq += 1
+        msg.seq = self.seq
+        msg.stamp_s = time.time()
+        self._pub.put(encode(msg))
+        return msg
+
+    def close(self) -> None:
+        self._pub.undeclare()
+
+
+class Subscription(Generic[T]):
+    """Typed subscription.
+
+    ``latest=True`` (default): a latest-value queue; ``poll()`` returns the newest
+    unseen message or None, ``wait(timeout_s)`` blocks for a new one. ``latest=False``:
+    a FIFO of ``capacity`` messages, drained with ``drain()`` (recorders, logs).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        typ: Any,
+        latest: bool = True,
+        capacity: int = 4096,
+    ):
+        self.key = key
+        self.type = typ
+        handler = zenoh.handlers.RingChannel(1) if latest else zenoh.handlers.FifoChannel(capacity)
+        self._sub = session.declare_subscriber(key, handler)
+        self.last: T | None = None
+        self.last_key: str | None = None
+        #: monotonic time at which ``last`` was taken from the queue
+        self.last_rx_s: float | None = None
+        self.received = 0
+        self.malformed = 0
+        self.last_error: str | None = None
+
+    def _decode(self, sample: zenoh.Sample) -> T | None:
+        try:
+            msg = decode(sample.payload.to_bytes(), self.type)
+        except MalformedMessage as e:
+            self.malformed += 1
+            self.last_error = f"{sample.key_expr}: {e}"
+            return None
+        self.received += 1
+        self.last = msg
+        self.last_key = str(sample.key_expr)
+        self.last_rx_s = time.monotonic()
+        return msg
+
+    def poll(self) -> T | None:
+        """Newest message not seen yet, or None (never blocks)."""
+        newest = None
+        while (s := self._sub.try_recv()) is not None:
+            m = self._decode(s)
+            if m is not None:
+                newest = m
+        return newest
+
+    def wait(self, timeout_s: float | None = None) -> T | None:
+        """Block until a new valid message arrives or ``timeout_s`` passes."""
+        if timeout_s is None:
+            while True:
+                m = self._decode(self._sub.recv())
+                if m is not None:
+                    return m
+        deadline = time.monotonic() + timeout_s
+        while True:
+            m = self.poll()
+            if m is not None:
+                return m
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            time.sleep(min(2e-4, left))
+
+    def drain(self, max_items: int | None = None) -> list[tuple[str, bytes]]:
+        """FIFO mode: raw (key, payload) pairs, undecoded (for recorders)."""
+        out: list[tuple[str, bytes]] = []
+        while (max_items is None or len(out) < max_items) and (s := self._sub.try_recv()) is not None:
+            out.append((str(s.key_expr), s.payload.to_bytes()))
+        return out
+
+    def age_s(self) -> float:
+        return float("inf") if self.last_rx_s is None else time.monotonic() - self.last_rx_s
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+class Node:
+    """Base of every process on the bus.
+
+    Declares the liveliness token ``hil/<rig>/alive/<name>``; SIGINT/SIGTERM set
+    ``stop_event`` (when created in the main thread) so ``run()`` loops end cleanly
+    and ``close()`` runs.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        rig: str,
+        bus: BusConfig | None = None,
+        session: zenoh.Session | None = None,
+        handle_signals: bool = True,
+    ):
+        self.name = name
+        self.rig = rig
+        self._own_session = session is None
+        self.session = session if session is not None else open_session(bus)
+        self.stop_event = threading.Event()
+        self._token = self.session.liveliness().declare_token(keys.alive(rig, name))
+        self._closeables: list[Any] = []
+        self._closed = False
+        if handle_signals and threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, self._on_signal)
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self.stop_event.set()
+
+    # -------------------------------------------------------------- pub/sub
+    def publisher(self, key: str, typ: type[T]) -> Publisher[T]:
+        p = Publisher(self.session, key, typ)
+        self._closeables.append(p)
+        return p
+
+    def subscribe(self, key: str, typ: Any, latest: bool = True, capacity: int = 4096) -> Subscription:
+        s = Subscription(self.session, key, typ, latest=latest, capacity=capacity)
+        self._closeables.append(s)
+        return s
+
+    def malformed_count(self) -> int:
+        return sum(s.malformed for s in self._closeables if isinstance(s, Subscription))
+
+    # -------------------------------------------------------------- loop
+    def run(self, step: Callable[[], None], period_s: float, max_steps: int | None = None) -> int:
+        """Call ``step`` every ``period_s`` (wall clock) until stopped; returns steps run.
+
+        A late step does not cause a burst of catch-up calls: the schedule resynchronises.
+        """
+        n = 0
+        next_t = time.monotonic()
+        while not self.stop_event.is_set() and (max_steps is None or n < max_steps):
+            step()
+            n += 1
+            next_t += period_s
+            delay = next_t - time.monotonic()
+            if delay < -period_s:
+                next_t = time.monotonic()
+            elif delay > 0:
+                self.stop_event.wait(delay)
+        return n
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.stop_event.set()
+        for c in reversed(self._closeables):
+            try:
+                c.close()
+            except Exception:
+                pass
+        try:
+            self._token.undeclare()
+        except Exception:
+            pass
+        if self._own_session:
+            self.session.close()
+
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def alive_nodes(session: zenoh.Session, rig: str, timeout_s: float = 1.0) -> list[str]:
+    """Names of nodes whose liveliness token is present on the rig."""
+    replies = session.liveliness().get(keys.alive_all(rig), timeout=timeout_s)
+    out = []
+    for r in replies:
+        if r.ok is not None:
+            out.append(str(r.ok.key_expr).rsplit("/", 1)[-1])
+    return sorted(out)

@@ -1,0 +1,36 @@
+"""Open a Zenoh session from a :class:`configs.BusConfig`."""
+
+from __future__ import annotations
+
+import json
+
+import zenoh
+
+from configs.schema import BusConfig
+
+
+def zenoh_config(bus: BusConfig | None = None) -> zenoh.Config:
+    bus = bus or BusConfig()
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(bus.mode))
+    c.insert_json5("scouting/multicast/enabled", json.dumps(bus.multicast_scouting))
+    c.insert_json5("scouting/gossip/enabled", json.dumps(bus.gossip))
+    listen = list(bus.listen)
+    connect = list(bus.connect)
+    if bus.mode == "peer":
+        # the first node owns the rendezvous port; the others connect to it
+        listen = [bus.endpoint, *listen]
+        connect = [bus.endpoint, *connect]
+        c.insert_json5("listen/exit_on_failure", "false")
+    elif not connect:
+        connect = [bus.endpoint]
+    c.insert_json5("listen/endpoints", json.dumps(listen))
+    c.insert_json5("connect/endpoints", json.dumps(connect))
+    # never block start-up on an absent peer/router: connect in the background
+    c.insert_json5("connect/exit_on_failure", "false")
+    c.insert_json5("connect/timeout_ms", "0")
+    return c
+
+
+def open_session(bus: BusConfig | None = None) -> zenoh.Session:
+    return zenoh.open(zenoh_config(bus))

@@ -1,0 +1,202 @@
+"""The driver bridge node: any contract robot on the bus.
+
+Each period: take the e-stop (latched), take the newest command, apply it or hold the
+safe action, read, publish the state. Safety is local: the robot is stopped when
+commands go stale (``watchdog_periods`` control periods without a new command,
+default 3), when an e-stop arrives, or when a command is invalid, whatever other
+nodes do.
+
+Pacing: wall-clock backends (real, emulated) and sim backends in ``realtime`` pace
+run on the wall clock. In ``lockstep`` pace (sim only) the simulation advances one
+period when the command answering the last published state arrives, so a whole rig
+runs faster than real time with the same nodes; staleness is then counted in
+published states without an answer.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bus import keys
+from bus.node import Node
+from bus.schemas import Command, EStop, RobotState, SpecMsg
+from configs.schema import BusConfig
+from drivers.base import CommandError, Driver, LinkError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class BridgeStats:
+    steps: int = 0
+    commands_applied: int = 0
+    commands_rejected: int = 0
+    stale_stops: int = 0
+    estops: int = 0
+    lockstep_timeouts: int = 0
+    last_reject: str = ""
+    extra: dict = field(default_factory=dict)
+
+
+class DriverNode(Node):
+    def __init__(
+        self,
+        driver: Driver,
+        rig: str,
+        robot: str,
+        bus: BusConfig | None = None,
+        watchdog_periods: float = 3.0,
+        pace: str = "realtime",
+        lockstep_timeout_s: float = 5.0,
+        **node_kw,
+    ):
+        super().__init__(f"driver-{robot}", rig, bus, **node_kw)
+        if pace == "lockstep" and driver.backend != "sim":
+            raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
+        self.driver = driver
+        self.robot = robot
+        self.pace = pace
+        self.watchdog_s = watchdog_periods * driver.spec.period_s
+        self.lockstep_timeout_s = lockstep_timeout_s
+        self.stats = BridgeStats()
+        self.estopped = False
+        self.stopped_reason = "waiting"
+        self._state_pub = self.publisher(keys.state(rig, robot), RobotState)
+        self._spec_pub = self.publisher(keys.spec(rig, robot), SpecMsg)
+        self._cmd = self.subscribe(keys.cmd(rig, robot), Command)
+        self._estop = self.subscribe(keys.estop(rig), EStop)
+        self._last_cmd_t: float | None = None  # node clock when the last command was applied
+        self._last_state: RobotState | None = None
+
+    # ------------------------------------------------------------------ pieces
+    def _clock(self) -> float:
+        # lockstep staleness is measured in robot time, realtime in wall time
+        return self.driver.now() if self.pace == "lockstep" else time.monotonic()
+
+    def _handle_estop(self) -> None:
+        m = self._estop.poll()
+        if m is None:
+            return
+        if m.engaged and not self.estopped:
+            self.estopped = True
+            self.stats.estops += 1
+            log.warning("e-stop from %s: %s", m.source or "?", m.reason)
+            self.driver.stop()
+            self.driver.deactivate()
+            self.stopped_reason = "estop"
+        elif not m.engaged and self.estopped:
+            # release: re-activate holding the measured state; commands must come anew
+            self.estopped = False
+            self.driver.activate()
+            self._last_cmd_t = None
+            self.stopped_reason = "waiting"
+
+    def _apply(self, cmd: Command | None) -> None:
+        if self.estopped:
+            return
+        if cmd is not None:
+            try:
+                self.driver.write(np.asarray(cmd.action, dtype=np.float64))
+            except CommandError as e:
+                self.stats.commands_rejected += 1
+                self.stats.last_reject = str(e)
+                log.warning("rejected command: %s", e)
+                self.driver.stop()
+                self.stopped_reason = "bad_command"
+                return
+            self.stats.commands_applied += 1
+            self._last_cmd_t = self._clock()
+            self.stopped_reason = ""
+            return
+        stale = self._last_cmd_t is None or self._clock() - self._last_cmd_t > self.watchdog_s
+        if stale and self.stopped_reason == "":
+            self.stats.stale_stops += 1
+            self.driver.stop()
+            self.stopped_reason = "stale"
+
+    def publish_state(self) -> RobotState:
+        obs = self.driver.read()
+        h = self.driver.health()
+        held = self.driver.held_command
+        msg = RobotState(
+            robot=self.robot,
+            t_s=obs.t_s,
+            state=obs.state.tolist(),
+            obs_seq=obs.seq,
+            ok=obs.ok and h.ok,
+            active=self.driver.active,
+            stopped_reason=self.stopped_reason,
+            action=[] if held is None else held.tolist(),
+            health=h.to_dict(),
+        )
+        self._last_state = self._state_pub.put(msg)
+        return msg
+
+    def publish_spec(self) -> None:
+        self._spec_pub.put(SpecMsg(robot=self.robot, spec=self.driver.spec.to_dict()))
+
+    # ------------------------------------------------------------------ loops
+    def step(self) -> None:
+        """One realtime period."""
+        self._handle_estop()
+        self._apply(self._cmd.poll())
+        if self.driver.backend == "sim":
+            self.driver.tick()
+        self.publish_state()
+        self.stats.steps += 1
+        if self.stats.steps % 50 == 1:
+            self.publish_spec()
+
+    def step_lockstep(self) -> None:
+        """Publish state, wait for its answer, apply, advance one period."""
+        if self._last_state is None:
+            self.publish_state()
+        want = self._last_state.seq
+        cmd = None
+        deadline = time.monotonic() + self.lockstep_timeout_s
+        while not self.stop_event.is_set():
+            self._handle_estop()
+            m = self._cmd.wait(min(0.05, max(0.0, deadline - time.monotonic())))
+            if m is not None and m.state_seq >= want:
+                cmd = m
+                break
+            if time.monotonic() >= deadline:
+                self.stats.lockstep_timeouts += 1
+                break
+        self._apply(cmd)
+        self.driver.tick()
+        self.publish_state()
+        self.stats.steps += 1
+        if self.stats.steps % 50 == 1:
+            self.publish_spec()
+
+    def serve(self, max_steps: int | None = None) -> BridgeStats:
+        """Run until stopped (signal, ``stop_event``) or ``max_steps``. Always stops the robot."""
+        d = self.driver
+        try:
+            d.configure()
+            d.activate()
+            d.stop()  # nothing moves until the first command
+            self.publish_spec()
+            if self.pace == "lockstep":
+                n = 0
+                while not self.stop_event.is_set() and (max_steps is None or n < max_steps):
+                    self.step_lockstep()
+                    n += 1
+            else:
+                self.run(self.step, d.spec.period_s, max_steps)
+        except LinkError as e:
+            log.error("link failure on %s: %s", self.robot, e)
+            d.fail(e)
+            raise
+        finally:
+            try:
+                if d.active:
+                    d.stop()
+            finally:
+                d.cleanup()
+        return self.stats
