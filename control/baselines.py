@@ -1,0 +1,75 @@
+"""Hand-designed baselines for comparison with MPC.
+
+Differential-drive path follower (the thesis' VelociRoACH baseline): steer toward the
+closest segment's direction, corrected by the signed perpendicular error, and drive the
+two leg sets at ``ω_nom ± d``:
+
+    e_ψ   = wrap(θ_seg − ψ)                 heading error to the closest segment (rad)
+    e_⊥   = t̂ × (p − p_closest)             signed lateral offset, >0 = robot left of path (m)
+    d     = clip(k_ψ e_ψ − k_⊥ e_⊥, −d_max, d_max)
+    left  = ω_nom − d,   right = ω_nom + d  (clipped to [−1, 1])
+
+A positive ``d`` turns the robot left (right legs faster). Actions are normalized leg
+speed commands in [−1, 1] (the driver maps them to rad/s).
+
+Default gains (normalized action per unit error): ``omega_nom = 0.6``, ``k_heading = 0.8``
+per rad, ``k_perp = 4.0`` per m, ``d_max = 0.4``: at 10 cm lateral error the correction
+equals ~0.5 rad of heading error, and ``d`` never exceeds what still leaves both leg sets
+moving forward at ``omega_nom``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from control.costs import closest_segment, state_index
+
+__all__ = ["DifferentialDriveController"]
+
+
+class DifferentialDriveController:
+    """``controller(state [S]) -> action [2]`` (left, right) in [−1, 1]. See module docstring."""
+
+    def __init__(
+        self,
+        waypoints,
+        state_names: Sequence[str],
+        omega_nom: float = 0.6,
+        k_heading: float = 0.8,
+        k_perp: float = 4.0,
+        d_max: float = 0.4,
+        *,
+        x: str = "x",
+        y: str = "y",
+        cos_yaw: str = "cos_yaw",
+        sin_yaw: str = "sin_yaw",
+    ) -> None:
+        wp = torch.as_tensor(np.asarray(waypoints, dtype=np.float32))
+        self.seg_start, self.seg_vec = wp[:-1], wp[1:] - wp[:-1]
+        self.omega_nom, self.k_heading, self.k_perp, self.d_max = omega_nom, k_heading, k_perp, d_max
+        self.ix = state_index(state_names, x)
+        self.iy = state_index(state_names, y)
+        self.ic = state_index(state_names, cos_yaw)
+        self.is_ = state_index(state_names, sin_yaw)
+
+    def errors(self, state) -> tuple[float, float]:
+        """``(heading error rad, signed lateral offset m)`` for one state ``[S]``."""
+        s = torch.as_tensor(np.asarray(state, dtype=np.float32))
+        p = s[[self.ix, self.iy]]
+        idx, _, unit = closest_segment(p, self.seg_start, self.seg_vec)
+        a, d = self.seg_start[idx], self.seg_vec[idx]
+        t = ((p - a) @ d / (d @ d).clamp_min(1e-12)).clamp(0, 1)
+        off = p - (a + t * d)
+        lateral = float(unit[0] * off[1] - unit[1] * off[0])
+        c, sn = float(s[self.ic]), float(s[self.is_])
+        ux, uy = float(unit[0]), float(unit[1])
+        heading = float(np.arctan2(c * uy - sn * ux, c * ux + sn * uy))  # wrap(θ − ψ)
+        return heading, lateral
+
+    def __call__(self, state) -> np.ndarray:
+        e_h, e_p = self.errors(state)
+        d = float(np.clip(self.k_heading * e_h - self.k_perp * e_p, -self.d_max, self.d_max))
+        return np.clip(np.array([self.omega_nom - d, self.omega_nom + d], dtype=np.float32), -1.0, 1.0)

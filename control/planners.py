@@ -1,0 +1,372 @@
+"""Sampling-based MPC planners over a learned (ensemble) dynamics model.
+
+Three planners share one rollout-and-score core, all batched in torch over
+samples (N) × ensemble members (E) × horizon (H):
+
+* :class:`RandomShooting`: N action sequences uniform in the bounds; execute the first
+  action of the cheapest one (Nagabandi et al. 2018; VelociRoACH: N=500, H=4).
+* :class:`CEM`: cross-entropy method; Gaussian over sequences refit to the ``elites``
+  cheapest samples for ``iterations`` rounds.
+* :class:`PDDM`: Nagabandi et al. 2019. Temporally filtered noise around a mean sequence
+  and a reward-weighted mean (Shadow Hand Baoding balls: N=700, H=7, γ=20, β=0.7, E=3).
+
+Usage (the whole API)::
+
+    planner = PDDM(action_low=-1, action_high=1, horizon=7, samples=700, gamma=20, beta=0.7)
+    action = planner(dynamics, cost, state)          # numpy [A], inside the bounds
+
+with the two user functions
+
+    dynamics(state, action) -> next_state
+        state:  [N, S] (first step: the current state broadcast to every sample) or
+                [E, N, S] (later steps: what the previous call returned)
+        action: [N, A]
+        returns [E, N, S] for an ensemble of E models, or [N, S] for a single model
+        (then E = 1 and later calls also get [N, S]).
+        ``learning.dynamics.EnsembleDynamics`` (or its ``.predict``) fits as is.
+    cost(states, actions) -> [E, N]   (or [N] when the cost ignores the member)
+        states:  [E, N, H+1, S], states[:, :, 0] is the current state and states[:, :, h]
+                 the prediction after h actions
+        actions: [N, H, A], the candidate action sequences (already clipped)
+        Lower is better. Both tensors are buffers reused by the next call: read them,
+        do not keep references.
+
+Every candidate's cost is averaged over the ensemble members (all members see the same
+action sequence); ``risk_k > 0`` adds ``risk_k · std`` over members (pessimism where the
+models disagree). After a call the planner keeps ``last_plan`` ([H, A] torch, the sequence
+whose first action was returned), ``last_predicted_states`` ([E, H+1, S] torch, the
+predictions of the best-scoring sample, for visualization) and ``last_costs`` ([N]).
+CEM and PDDM warm start: the mean is shifted one step and the last action repeated, ready
+for the next control step. ``reset()`` forgets that (call it between episodes).
+
+Everything runs under ``torch.inference_mode`` with buffers allocated once per shape;
+the only host round trip per call is the returned numpy action.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+
+__all__ = ["Planner", "RandomShooting", "CEM", "PDDM", "filtered_noise", "reward_weighted_mean"]
+
+DynamicsFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+CostFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+def _vec(x, dim: int | None, name: str) -> torch.Tensor:
+    t = torch.as_tensor(np.asarray(x, dtype=np.float32))
+    if t.dim() == 0 and dim is not None:
+        t = t.expand(dim).clone()
+    if t.dim() != 1:
+        raise ValueError(f"{name} must be a scalar or a 1-D sequence, got shape {tuple(t.shape)}")
+    if dim is not None and t.shape[0] != dim:
+        if t.shape[0] != 1:
+            raise ValueError(f"{name} has {t.shape[0]} entries, the action has {dim} (set action_dim?)")
+        t = t.expand(dim).clone()
+    return t
+
+
+# -- the reference math, as pure functions ---------------------------------------------------
+def filtered_noise(u: torch.Tensor, beta: float) -> torch.Tensor:
+    """PDDM's temporally correlated noise along the horizon axis (dim -2).
+
+    ``n_0 = β u_0``, ``n_t = β u_t + (1-β) n_{t-1}``. For white ``u ~ N(0, σ²)`` the variance
+    is ``Var n_t = β² σ² Σ_{k=0..t} (1-β)^{2k}`` → ``σ² β / (2 - β)`` as t grows.
+    ``u``: ``[..., H, A]``; returns a new tensor of the same shape.
+    """
+    n = torch.empty_like(u)
+    prev = torch.zeros_like(u[..., 0, :])
+    for t in range(u.shape[-2]):  # H is small (4-30); a scan would not pay off
+        prev = beta * u[..., t, :] + (1.0 - beta) * prev
+        n[..., t, :] = prev
+    return n
+
+
+def reward_weighted_mean(actions: torch.Tensor, rewards: torch.Tensor, gamma: float) -> torch.Tensor:
+    """``Σ_k w_k a_k / Σ_k w_k`` with ``w_k = exp(γ (R_k - max R))``.
+
+    Subtracting ``max R`` does not change the result (it cancels in the ratio) but keeps
+    ``exp`` from overflowing. ``actions``: ``[N, H, A]``, ``rewards``: ``[N]`` → ``[H, A]``.
+    """
+    w = torch.exp(gamma * (rewards - rewards.max()))
+    return torch.einsum("n,nha->ha", w, actions) / w.sum()
+
+
+class Planner:
+    """Common configuration, rollout and scoring. Subclasses implement :meth:`_plan`.
+
+    Args:
+        action_low, action_high: bounds, scalars or ``[A]`` (actions are always clipped).
+        horizon: H, steps per candidate sequence.
+        samples: N, candidate sequences per iteration.
+        iterations: refinement rounds per call (CEM, PDDM).
+        risk_k: cost = mean over members + ``risk_k`` · std over members.
+        seed: seeds the planner's own ``torch.Generator`` (``None``: nondeterministic).
+        action_dim: A, needed only when both bounds are scalars.
+    """
+
+    name = "planner"
+
+    def __init__(
+        self,
+        action_low: float | Sequence[float] = -1.0,
+        action_high: float | Sequence[float] = 1.0,
+        horizon: int = 10,
+        samples: int = 500,
+        *,
+        iterations: int = 1,
+        risk_k: float = 0.0,
+        seed: int | None = 0,
+        action_dim: int | None = None,
+    ) -> None:
+        low = np.asarray(action_low, dtype=np.float32)
+        high = np.asarray(action_high, dtype=np.float32)
+        dim = action_dim or max(low.size, high.size)
+        self.action_low = _vec(low, dim, "action_low")
+        self.action_high = _vec(high, dim, "action_high")
+        if self.action_low.shape != self.action_high.shape:
+            raise ValueError("action_low and action_high have different lengths")
+        if bool((self.action_low > self.action_high).any()):
+            raise ValueError("action_low must be <= action_high")
+        self.action_dim = self.action_low.shape[0]
+        self.horizon = int(horizon)
+        self.samples = int(samples)
+        self.iterations = int(iterations)
+        self.risk_k = float(risk_k)
+        self.seed = seed
+        self.generator = torch.Generator()
+        self._buffers: dict[str, torch.Tensor] = {}
+        self.reset()
+
+    # -- lifecycle -----------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the warm start and the last plan; re-seed the generator."""
+        if self.seed is None:
+            self.generator.seed()
+        else:
+            self.generator.manual_seed(int(self.seed))
+        self.last_plan: torch.Tensor | None = None
+        self.last_predicted_states: torch.Tensor | None = None
+        self.last_costs: torch.Tensor | None = None
+        self._reset_distribution()
+
+    def _reset_distribution(self) -> None:
+        pass
+
+    def config(self) -> dict:
+        """The planner's settings as plain Python values."""
+        return {
+            "planner": self.name,
+            "horizon": self.horizon,
+            "samples": self.samples,
+            "iterations": self.iterations,
+            "action_low": self.action_low.tolist(),
+            "action_high": self.action_high.tolist(),
+            "risk_k": self.risk_k,
+            "seed": self.seed,
+        }
+
+    def _buffer(self, key: str, shape: tuple[int, ...]) -> torch.Tensor:
+        buf = self._buffers.get(key)
+        if buf is None or buf.shape != shape:
+            buf = torch.empty(shape)
+            self._buffers[key] = buf
+        return buf
+
+    # -- the user-facing call ------------------------------------------------------------
+    def __call__(self, dynamics: DynamicsFn, cost: CostFn, state) -> np.ndarray:
+        """Plan from ``state`` ([S], numpy or torch) and return the action to apply now ([A] numpy)."""
+        with torch.inference_mode():
+            s0 = torch.as_tensor(state, dtype=torch.float32).reshape(-1)
+            plan = self._plan(dynamics, cost, s0)
+            self.last_plan = plan.clone()
+            return plan[0].numpy().copy()
+
+    def _plan(self, dynamics: DynamicsFn, cost: CostFn, s0: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    # -- shared core: roll out N sequences through E models and score them ----------------
+    def rollout(self, dynamics: DynamicsFn, s0: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Predicted states ``[E, N, H+1, S]`` of ``actions`` ``[N, H, A]`` from ``s0`` ``[S]``.
+
+        The returned tensor is a reused buffer (valid until the next rollout).
+        """
+        N, H, _ = actions.shape
+        S = s0.shape[0]
+        nxt = dynamics(s0.expand(N, S), actions[:, 0])
+        single = nxt.dim() == 2  # a single model returning [N, S]
+        nxt3 = nxt.unsqueeze(0) if single else nxt
+        E = nxt3.shape[0]
+        states = self._buffer("states", (E, N, H + 1, S))
+        states[:, :, 0] = s0
+        states[:, :, 1] = nxt3
+        for t in range(1, H):
+            nxt = dynamics(nxt, actions[:, t])
+            states[:, :, t + 1] = nxt.unsqueeze(0) if single else nxt
+        return states
+
+    def score(self, cost: CostFn, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Cost per candidate ``[N]``: mean over members (+ ``risk_k`` · std over members)."""
+        c = cost(states, actions)
+        if c.dim() == 1:
+            return c
+        if c.dim() != 2 or c.shape[1] != actions.shape[0]:
+            raise ValueError(f"cost must return [E, N] or [N], got {tuple(c.shape)}")
+        total = c.mean(dim=0)
+        if self.risk_k and c.shape[0] > 1:
+            total = total + self.risk_k * c.std(dim=0, unbiased=False)
+        return total
+
+    def _evaluate(self, dynamics: DynamicsFn, cost: CostFn, s0: torch.Tensor, actions: torch.Tensor):
+        states = self.rollout(dynamics, s0, actions)
+        total = self.score(cost, states, actions)
+        best = int(torch.argmin(total))
+        self.last_costs = total
+        self.last_predicted_states = states[:, best].clone()
+        return total, best
+
+    def _clip(self, actions: torch.Tensor) -> torch.Tensor:
+        return torch.maximum(torch.minimum(actions, self.action_high), self.action_low, out=actions)
+
+    def _shift(self, seq: torch.Tensor) -> torch.Tensor:
+        """Warm start: drop the executed step, repeat the last one."""
+        return torch.cat([seq[1:], seq[-1:]], dim=0)
+
+
+class RandomShooting(Planner):
+    """Uniform random sequences in the bounds; the first action of the cheapest one.
+
+    ``a_{n,h} ~ U(low, high)``, ``n* = argmin_n cost_n``, returns ``a_{n*,0}``.
+    No warm start (each call is independent).
+    """
+
+    name = "random_shooting"
+
+    def _plan(self, dynamics, cost, s0):
+        N, H, A = self.samples, self.horizon, self.action_dim
+        actions = self._buffer("actions", (N, H, A))
+        actions.uniform_(0.0, 1.0, generator=self.generator)
+        actions.mul_(self.action_high - self.action_low).add_(self.action_low)
+        _, best = self._evaluate(dynamics, cost, s0, actions)
+        return actions[best]
+
+
+class CEM(Planner):
+    """Cross-entropy method over action sequences.
+
+    For ``iterations`` rounds: sample ``a = clip(μ + σ ε)``, ``ε ~ N(0, I)`` ([N, H, A]),
+    take the ``elites`` cheapest, and refit ``μ, σ`` to their mean and (population) std,
+    smoothed by ``alpha`` (``μ ← α μ + (1-α) mean_elites``). Returns ``μ_0``. Warm start:
+    ``μ`` is shifted one step; ``σ`` restarts at ``sigma`` each call.
+
+    Args (beyond :class:`Planner`):
+        elites: number of elite samples (≤ samples).
+        sigma: initial std, scalar or ``[A]``; default a quarter of the action range.
+        alpha: smoothing of the refit (0 = no memory).
+    """
+
+    name = "cem"
+
+    def __init__(self, *args, elites: int = 50, sigma: float | Sequence[float] | None = None,
+                 alpha: float = 0.0, iterations: int = 5, **kwargs) -> None:
+        self.elites = int(elites)
+        self._sigma_arg = sigma
+        self.alpha = float(alpha)
+        super().__init__(*args, iterations=iterations, **kwargs)
+        if not 1 <= self.elites <= self.samples:
+            raise ValueError(f"elites must be in [1, samples={self.samples}], got {self.elites}")
+
+    def _reset_distribution(self) -> None:
+        rng = self.action_high - self.action_low
+        self.sigma = (rng / 4) if self._sigma_arg is None else _vec(self._sigma_arg, self.action_dim, "sigma")
+        self.mean = ((self.action_low + self.action_high) / 2).expand(self.horizon, -1).clone()
+
+    def config(self) -> dict:
+        return {**super().config(), "elites": self.elites, "sigma": self.sigma.tolist(), "alpha": self.alpha}
+
+    def _plan(self, dynamics, cost, s0):
+        N, H, A = self.samples, self.horizon, self.action_dim
+        mean = self.mean
+        std = self.sigma.expand(H, A).clone()
+        actions = self._buffer("actions", (N, H, A))
+        for _ in range(self.iterations):
+            torch.randn(actions.shape, generator=self.generator, out=actions)
+            self._clip(actions.mul_(std).add_(mean))
+            total, _ = self._evaluate(dynamics, cost, s0, actions)
+            elite = actions[torch.topk(total, self.elites, largest=False).indices]  # [K, H, A]
+            mean = self.alpha * mean + (1 - self.alpha) * elite.mean(dim=0)
+            std = self.alpha * std + (1 - self.alpha) * elite.std(dim=0, unbiased=False)
+        plan = mean.clone()
+        self.mean = self._shift(mean)
+        return plan
+
+
+class PDDM(Planner):
+    """PDDM (Nagabandi et al. 2019): filtered-noise sampling and a reward-weighted mean.
+
+    For ``iterations`` rounds (1 in the paper):
+
+        u_{n,t} ~ N(0, σ²)                                  white noise [N, H, A]
+        n_{n,t} = β u_{n,t} + (1-β) n_{n,t-1},  n_{n,-1}=0  smooth along the horizon
+        a_n     = clip(μ + n_n)
+        R_n     = -cost_n
+        μ      ← Σ_n e^{γ (R_n - max R)} a_n / Σ_n e^{γ (R_n - max R)}
+
+    Returns ``μ_0``; warm start shifts ``μ`` one step and repeats the last action.
+
+    Args (beyond :class:`Planner`):
+        gamma: reward-weighting sharpness γ (large → best sample only, 0 → plain mean).
+        beta: filter coefficient β in (0, 1] (1 → white noise).
+        sigma: std of ``u``, scalar or ``[A]``; default a quarter of the action range.
+        init_mean: first mean action ``[A]`` (default: middle of the bounds).
+    """
+
+    name = "pddm"
+
+    def __init__(self, *args, gamma: float = 20.0, beta: float = 0.7,
+                 sigma: float | Sequence[float] | None = None,
+                 init_mean: Sequence[float] | None = None, **kwargs) -> None:
+        if not 0.0 < beta <= 1.0:
+            raise ValueError(f"beta must be in (0, 1], got {beta}")
+        self.gamma = float(gamma)
+        self.beta = float(beta)
+        self._sigma_arg = sigma
+        self._init_mean = init_mean
+        super().__init__(*args, **kwargs)
+
+    def _reset_distribution(self) -> None:
+        rng = self.action_high - self.action_low
+        self.sigma = (rng / 4) if self._sigma_arg is None else _vec(self._sigma_arg, self.action_dim, "sigma")
+        init = (self.action_low + self.action_high) / 2 if self._init_mean is None else _vec(
+            self._init_mean, self.action_dim, "init_mean")
+        self.mean = init.expand(self.horizon, -1).clone()
+
+    def config(self) -> dict:
+        return {**super().config(), "gamma": self.gamma, "beta": self.beta, "sigma": self.sigma.tolist()}
+
+    def sample(self, mean: torch.Tensor) -> torch.Tensor:
+        """Candidate sequences ``[N, H, A]`` around ``mean`` (a reused buffer)."""
+        N, H, A = self.samples, self.horizon, self.action_dim
+        u = self._buffer("noise", (N, H, A))
+        torch.randn(u.shape, generator=self.generator, out=u)
+        u.mul_(self.sigma)
+        actions = self._buffer("actions", (N, H, A))
+        # filtered noise written straight into the action buffer, then shifted by the mean
+        prev = torch.zeros(N, A)
+        for t in range(H):
+            prev = self.beta * u[:, t] + (1.0 - self.beta) * prev
+            actions[:, t] = prev
+        return self._clip(actions.add_(mean))
+
+    def _plan(self, dynamics, cost, s0):
+        mean = self.mean
+        for _ in range(self.iterations):
+            actions = self.sample(mean)
+            total, _ = self._evaluate(dynamics, cost, s0, actions)
+            mean = reward_weighted_mean(actions, -total, self.gamma)
+        plan = self._clip(mean.clone())
+        self.mean = self._shift(plan)
+        return plan
