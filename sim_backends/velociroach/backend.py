@@ -1,0 +1,527 @@
+"""VelociRoACH MuJoCo backend: the driver contract in-process, in lockstep.
+
+Each ``tick()`` advances one control period (0.1 s): 1 kHz firmware ticks
+(:mod:`.firmware`), each followed by one MuJoCo step (``physics_dt_s`` = 1 ms) with the
+motor voltage from the DC-motor/battery model. See docs/velociroach.md "Simulation".
+
+Frames: world x/y on the ground (+x uphill on a slope), z up; body x forward, y left.
+Quaternions are (w, x, y, z). The state is ``STATE_NAMES`` of drivers/velociroach/config.py:
+pose (x, y, z and orientation) from the simulated mocap stream (rate, latency, noise,
+dropout: the last good sample is held), world-frame velocity and body rates from the
+simulator, crank angles/velocities from the (14-bit) encoders, back-EMF and battery voltage.
+
+Public API for the emulator: ``VelociRoachSim(params)``, ``configure()``, ``reset()``,
+``firmware``, ``advance(duration_s)``, ``telemetry()``, ``mocap_pose()``, ``sim_time_s``,
+``set_perturbation(name, value)``.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from typing import Any, Literal
+
+import mujoco
+import numpy as np
+from pydantic import Field
+
+from configs.schema import ConfigError, RobotConfig, parse_model
+from drivers.base import Health, Observation
+from drivers.velociroach.config import VelociRoachParams, velociroach_spec
+from sim_backends.base import LockstepSim, Params, parse_params
+from sim_backends.velociroach.firmware import TICK_S, Firmware, FirmwareConfig, default_ff_v_per_rps
+from sim_backends.velociroach.model import (
+    LEG_NAMES,
+    Geometry,
+    build_mjcf,
+    heightfield,
+    initial_crank_angles_rad,
+)
+
+TWO_PI = 2.0 * math.pi
+ENCODER_COUNTS = 1 << 14  # 14-bit magnetic crank encoders
+
+#: terrain presets: Coulomb friction, contact softness (solref time constant [s], damping ratio),
+#: roughness (RMS height [m] of a seeded heightfield, 0 = plane) and its correlation length [m]
+TERRAINS: dict[str, dict[str, Any]] = {
+    "carpet": {"friction": 1.0, "solref": (0.004, 1.0), "roughness_m": 0.0, "correlation_m": 0.0},
+    "styrofoam": {"friction": 0.45, "solref": (0.015, 1.0), "roughness_m": 0.0, "correlation_m": 0.0},
+    "gravel": {"friction": 0.8, "solref": (0.006, 1.0), "roughness_m": 0.003, "correlation_m": 0.01},
+    "turf": {"friction": 0.9, "solref": (0.02, 0.7), "roughness_m": 0.002, "correlation_m": 0.02},
+}
+
+PERTURBATIONS = ("missing_leg", "payload_kg", "mocap_offset_m", "slope_deg")
+
+
+class SimParams(Params):
+    """``params.sim`` of the VelociRoACH sim backend (units in names; sources in docs)."""
+
+    seed: int = 0
+    physics_dt_s: float = Field(0.001, gt=0, le=0.002, description="MuJoCo timestep; firmware runs at 1 kHz")
+    # terrain
+    terrain: Literal["carpet", "styrofoam", "gravel", "turf"] = "carpet"
+    friction: float | None = Field(None, gt=0, description="override the preset's friction")
+    solref: tuple[float, float] | None = Field(None, description="override the preset's contact solref")
+    roughness_m: float | None = Field(None, ge=0, description="override the preset's RMS roughness")
+    slope_deg: float = Field(0.0, ge=-30, le=30, description="ground slope, + is uphill along world +x")
+    terrain_half_size_m: float = Field(2.0, gt=0)
+    terrain_cell_m: float = Field(0.005, gt=0)
+    # body
+    chassis_mass_kg: float = Field(0.030, gt=0)
+    leg_mass_kg: float = Field(0.001, gt=0)
+    leg_arc_m: float = Field(0.011, gt=0, description="radius of the C-leg's half circle")
+    phase_lr_deg: float = Field(180.0, description="right crank minus left crank at reset (180: alternating tripod)")
+    # motor (per side)
+    motor_resistance_ohm: float = Field(3.6, gt=0)
+    motor_k_v_s_per_rad: float = Field(1.5e-3, gt=0, description="back-EMF constant = torque constant [N·m/A]")
+    gear_ratio: float = Field(21.3, gt=0)
+    gear_efficiency: float = Field(0.8, gt=0, le=1)
+    rotor_inertia_kgm2: float = Field(1.0e-9, ge=0)
+    current_limit_a: float = Field(1.5, gt=0, description="H-bridge current limit (crank torque limit)")
+    # battery (1-cell LiPo)
+    battery_full_v: float = Field(4.2, gt=0)
+    battery_empty_v: float = Field(3.5, gt=0)
+    battery_capacity_mah: float = Field(300.0, gt=0)
+    battery_resistance_ohm: float = Field(0.4, ge=0)
+    battery_soc: float = Field(0.9, ge=0, le=1, description="state of charge at reset")
+    idle_current_a: float = Field(0.08, ge=0, description="board + radio draw")
+    # firmware
+    kp_duty_per_rps: float = Field(0.05, ge=0)
+    ki_duty_per_rev: float = Field(1.5, ge=0)
+    kd_duty_per_rps2: float = Field(0.0, ge=0)
+    ff_v_per_rps: float | None = Field(None, description="back-EMF feed-forward; default k·G·2π")
+    max_duty: float = Field(1.0, gt=0, le=1)
+    low_battery_v: float = Field(3.4, gt=0)
+    overcurrent_a: float = Field(1.4, gt=0)
+    # sensors
+    mocap_rate_hz: float = Field(120.0, gt=0)
+    mocap_latency_s: float = Field(0.005, ge=0)
+    mocap_noise_m: float = Field(0.0003, ge=0)
+    mocap_noise_rad: float = Field(0.002, ge=0)
+    mocap_dropout: float = Field(0.0, ge=0, lt=1, description="probability a mocap sample is lost")
+    gyro_noise_rps: float = Field(0.01, ge=0, description="rad/s, per telemetry sample")
+    accel_noise_mps2: float = Field(0.05, ge=0)
+    bemf_noise_v: float = Field(0.005, ge=0)
+    vbat_noise_v: float = Field(0.002, ge=0)
+    # payload towed behind the robot
+    payload_friction: float = Field(0.5, ge=0, description="sliding friction of a towed payload")
+
+
+def parse_sim_params(sim: dict, source: str | None) -> SimParams:
+    """Validate ``params.sim``; errors name ``params.sim.<field>`` and the file."""
+    try:
+        return parse_model(SimParams, dict(sim), source)
+    except ConfigError as e:
+        raise ConfigError(source, [(f"params.sim.{f}" if f else "params.sim", m) for f, m in e.problems]) from None
+
+
+def quat_to_rpy(q: np.ndarray) -> tuple[float, float, float]:
+    """(w, x, y, z) → roll, pitch, yaw [rad] (ZYX Euler)."""
+    w, x, y, z = (float(v) for v in q)
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+class VelociRoachSim(LockstepSim):
+    """The VelociRoACH in MuJoCo behind the driver contract."""
+
+    def __init__(self, params: VelociRoachParams | None = None, source: str | None = None):
+        super().__init__()
+        self.params = p = params or VelociRoachParams()
+        self.sim = parse_sim_params(p.sim, source)
+        self.spec = velociroach_spec(p)
+        s = self.sim
+        self.firmware = Firmware(
+            FirmwareConfig(
+                kp_duty_per_rps=s.kp_duty_per_rps,
+                ki_duty_per_rev=s.ki_duty_per_rev,
+                kd_duty_per_rps2=s.kd_duty_per_rps2,
+                ff_v_per_rps=s.ff_v_per_rps
+                if s.ff_v_per_rps is not None
+                else default_ff_v_per_rps(s.motor_k_v_s_per_rad, s.gear_ratio),
+                max_duty=s.max_duty,
+                watchdog_s=p.firmware_watchdog_s,
+                low_battery_v=s.low_battery_v,
+                overcurrent_a=s.overcurrent_a,
+            )
+        )
+        self.model: mujoco.MjModel | None = None
+        self.data: mujoco.MjData | None = None
+        self.perturbations: dict[str, Any] = {
+            "missing_leg": None,
+            "payload_kg": 0.0,
+            "mocap_offset_m": np.zeros(3),
+            "slope_deg": s.slope_deg,
+        }
+        self._seq = 0
+        self.mocap_samples = 0
+        self.mocap_dropped = 0
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> VelociRoachSim:
+        return cls(parse_params(cfg, VelociRoachParams), source=cfg.source)
+
+    # ------------------------------------------------------------------ model
+    @property
+    def sim_time_s(self) -> float:
+        return 0.0 if self.data is None else float(self.data.time)
+
+    def terrain(self) -> dict[str, Any]:
+        """The effective terrain settings (preset with overrides)."""
+        s = self.sim
+        t = dict(TERRAINS[s.terrain])
+        if s.friction is not None:
+            t["friction"] = s.friction
+        if s.solref is not None:
+            t["solref"] = tuple(s.solref)
+        if s.roughness_m is not None:
+            t["roughness_m"] = s.roughness_m
+        return t
+
+    def _on_configure(self) -> None:
+        s = self.sim
+        k, gr, eta, r = s.motor_k_v_s_per_rad, s.gear_ratio, s.gear_efficiency, s.motor_resistance_ohm
+        # crank torque = gain·V − damping·ω_crank (the DC motor through the gearbox)
+        self._gain_nm_per_v = k * gr * eta / r
+        self._damping_nms = k * k * gr * gr * eta / r
+        self._bemf_v_per_rad_s = k * gr  # motor back-EMF per crank rad/s
+        terr = self.terrain()
+        hf = None
+        if terr["roughness_m"] > 0:
+            n = int(round(2 * s.terrain_half_size_m / s.terrain_cell_m)) + 1
+            # heights in [0, 1] scaled by zmax; RMS of a filtered Gaussian field ≈ zmax/6
+            hf = (n, s.terrain_half_size_m, 6.0 * terr["roughness_m"])
+        geom = Geometry(chassis_mass_kg=s.chassis_mass_kg, leg_mass_kg=s.leg_mass_kg, leg_arc_m=s.leg_arc_m,
+                        armature_kgm2=s.rotor_inertia_kgm2 * gr * gr)
+        self._geometry = geom
+        xml = build_mjcf(
+            timestep_s=s.physics_dt_s,
+            motor_gain_nm_per_v=self._gain_nm_per_v,
+            motor_damping_nms=self._damping_nms,
+            torque_limit_nm=k * gr * eta * s.current_limit_a,
+            friction=terr["friction"],
+            solref=terr["solref"],
+            solimp=(0.9, 0.95, 0.001),
+            slope_deg=self.perturbations["slope_deg"],
+            hfield=hf,
+            geometry=geom,
+        )
+        m = mujoco.MjModel.from_xml_string(xml)
+        if hf is not None:
+            z = heightfield(hf[0], 1.0, terr["correlation_m"] / s.terrain_cell_m, s.seed)
+            m.hfield_data[:] = z.ravel().astype(np.float32)
+            self._hfield_zmax = hf[2]
+        else:
+            self._hfield_zmax = 0.0
+        self.model = m
+        self.data = mujoco.MjData(m)
+        self._q_l = [m.joint(f"hip_l{o}").qposadr[0] for o in "fma"]
+        self._q_r = [m.joint(f"hip_r{o}").qposadr[0] for o in "fma"]
+        self._v_l = m.joint("hip_lm").dofadr[0]
+        self._v_r = m.joint("hip_rm").dofadr[0]
+        self._chassis = m.body("chassis").id
+        self._leg_geoms = {n: [g for g in range(m.ngeom) if m.geom(g).name.startswith(n + "_")] for n in LEG_NAMES}
+        self._leg_contype = {g: int(m.geom_contype[g]) for gs in self._leg_geoms.values() for g in gs}
+        self._sensor_flag = int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
+        m.opt.disableflags |= self._sensor_flag  # sensors are evaluated on demand in telemetry()
+        self._apply_missing_leg()
+        self.reset()
+
+    def _on_cleanup(self) -> None:
+        self.model = self.data = None
+
+    def reset(self, x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> None:
+        """Robot at (x, y) [m] heading ``yaw`` [rad], legs in tripod stance, battery at its
+        initial charge, firmware rebooted, sensor noise streams reseeded."""
+        m, d, s = self.model, self.data, self.sim
+        mujoco.mj_resetData(m, d)
+        ql, qr = initial_crank_angles_rad(math.radians(s.phase_lr_deg))
+        for a in self._q_l:
+            d.qpos[a] = ql
+        for a in self._q_r:
+            d.qpos[a] = qr
+        # standing on the tripod pointing down: 2·arc + leg radius above the ground
+        z0 = 2 * self._geometry.leg_arc_m + self._geometry.leg_radius_m + 0.001 + self._hfield_zmax
+        d.qpos[0:3] = (x, y, z0)
+        d.qpos[3:7] = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+        mujoco.mj_forward(m, d)
+        self.firmware.reset()
+        ss = np.random.SeedSequence(s.seed)
+        self._rng_mocap, self._rng_telem = (np.random.default_rng(c) for c in ss.spawn(2))
+        self._soc = s.battery_soc
+        self._i_l = self._i_r = 0.0
+        self._vbat = self._ocv()
+        self._t = 0.0
+        self._mocap_period = 1.0 / s.mocap_rate_hz
+        self._mocap_next_t = 0.0
+        self._mocap_queue: collections.deque = collections.deque()
+        self._mocap_latest: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._mocap_latest_ok = False
+        self._mocap_sample()
+        self._mocap_next_t = self._mocap_period
+        self._deliver_mocap(0.0 + s.mocap_latency_s)
+        self._seq = 0
+
+    def _ocv(self) -> float:
+        s = self.sim
+        return s.battery_empty_v + (s.battery_full_v - s.battery_empty_v) * self._soc
+
+    # ------------------------------------------------------------------ perturbations
+    def set_perturbation(self, name: str, value: Any) -> None:
+        """Switch a perturbation mid-run.
+
+        * ``missing_leg``: a leg name (``lf lm la rf rm ra``), a list of them, or None.
+        * ``payload_kg``: mass [kg] towed behind the robot (sliding friction ``payload_friction``).
+        * ``mocap_offset_m``: a bias added to the mocap position (float: along x, or 3 floats).
+        * ``slope_deg``: ground slope, + uphill along world +x (tilts gravity).
+        """
+        if name not in PERTURBATIONS:
+            raise KeyError(f"unknown perturbation {name!r}; known: {list(PERTURBATIONS)}")
+        if name == "missing_leg":
+            legs = [] if value in (None, "", []) else ([value] if isinstance(value, str) else list(value))
+            bad = [n for n in legs if n not in LEG_NAMES]
+            if bad:
+                raise ValueError(f"unknown leg(s) {bad}; legs are {list(LEG_NAMES)}")
+            self.perturbations[name] = legs or None
+            self._apply_missing_leg()
+        elif name == "payload_kg":
+            if not (float(value) >= 0):
+                raise ValueError(f"payload_kg must be >= 0, got {value!r}")
+            self.perturbations[name] = float(value)
+            if self.data is not None and value == 0:
+                self.data.xfrc_applied[self._chassis] = 0.0
+        elif name == "mocap_offset_m":
+            v = np.asarray(value, dtype=float)
+            self.perturbations[name] = np.array([float(v), 0.0, 0.0]) if v.ndim == 0 else v.reshape(3).copy()
+        elif name == "slope_deg":
+            self.perturbations[name] = float(value)
+            if self.model is not None:
+                a = math.radians(float(value))
+                self.model.opt.gravity[:] = (-9.81 * math.sin(a), 0.0, -9.81 * math.cos(a))
+
+    def _apply_missing_leg(self) -> None:
+        m = self.model
+        if m is None:
+            return
+        missing = self.perturbations["missing_leg"] or []
+        for n, gs in self._leg_geoms.items():
+            for g in gs:
+                m.geom_contype[g] = 0 if n in missing else self._leg_contype[g]
+                m.geom_rgba[g, 3] = 0.15 if n in missing else 1.0
+
+    # ------------------------------------------------------------------ integration
+    def advance(self, duration_s: float) -> None:
+        """Integrate physics and the 1 kHz firmware for ``duration_s`` [s] of sim time."""
+        self._advance(duration_s)
+
+    def _advance(self, duration_s: float) -> None:
+        m, d, s, fw = self.model, self.data, self.sim, self.firmware
+        n = max(1, round(duration_s / TICK_S))
+        substeps = max(1, round(TICK_S / s.physics_dt_s))
+        # hot loop: locals, scalar floats (see tools/bench_sim.py for the profile)
+        qvel, ctrl = d.qvel, d.ctrl
+        vl_i, vr_i = self._v_l, self._v_r
+        r_m = s.motor_resistance_ohm
+        ke = self._bemf_v_per_rad_s
+        i_max = s.current_limit_a
+        r_b = s.battery_resistance_ohm
+        cap_as = s.battery_capacity_mah * 3.6
+        idle = s.idle_current_a
+        v_empty, v_span = s.battery_empty_v, s.battery_full_v - s.battery_empty_v
+        payload = self.perturbations["payload_kg"]
+        soc, vbat = self._soc, self._vbat
+        i_l, i_r = self._i_l, self._i_r
+        step = mujoco.mj_step
+        tick = fw.tick
+        inv2pi = 1.0 / TWO_PI
+        t = self._t
+        for _ in range(n):
+            wl = qvel[vl_i]
+            wr = qvel[vr_i]
+            dl, dr = tick(t, wl * inv2pi, wr * inv2pi, vbat, i_l, i_r)
+            # battery: open-circuit voltage minus the IR drop of the last tick's draw
+            # (a 1 ms lag instead of solving the algebraic loop; the drop is small)
+            i_tot = abs(i_l) + abs(i_r) + idle
+            soc -= i_tot * TICK_S / cap_as
+            if soc < 0.0:
+                soc = 0.0
+            vbat = v_empty + v_span * soc - r_b * i_tot
+            vl, vr = dl * vbat, dr * vbat
+            i_l = (vl - ke * wl) / r_m
+            i_r = (vr - ke * wr) / r_m
+            i_l = i_max if i_l > i_max else (-i_max if i_l < -i_max else i_l)
+            i_r = i_max if i_r > i_max else (-i_max if i_r < -i_max else i_r)
+            ctrl[0] = vl
+            ctrl[1] = vr
+            if payload > 0.0:
+                self._tow(payload)
+            step(m, d, substeps)
+            t += TICK_S
+            if t >= self._mocap_next_t - 1e-9:
+                self._t = t
+                self._mocap_sample()
+                self._mocap_next_t += self._mocap_period
+        self._t = t
+        self._soc, self._vbat, self._i_l, self._i_r = soc, vbat, i_l, i_r
+
+    def _tow(self, payload_kg: float) -> None:
+        """Sliding friction of a towed payload, applied at the rear of the chassis (world frame)."""
+        d = self.data
+        v = d.qvel[0:2]
+        speed = math.hypot(v[0], v[1])
+        # tanh regularizes Coulomb friction at standstill (no chatter, no stiction)
+        f = self.sim.payload_friction * payload_kg * 9.81 * math.tanh(speed / 0.02)
+        if speed > 1e-9:
+            fx, fy = -f * v[0] / speed, -f * v[1] / speed
+        else:
+            fx = fy = 0.0
+        # lever arm: tow point at the rear of the chassis
+        rm = d.xmat[self._chassis].reshape(3, 3)
+        rx, ry, _ = rm @ np.array([-self._geometry.chassis_half_m[0], 0.0, 0.0])
+        x = d.xfrc_applied[self._chassis]
+        x[0], x[1], x[2] = fx, fy, 0.0
+        x[3], x[4], x[5] = 0.0, 0.0, rx * fy - ry * fx
+
+    # ------------------------------------------------------------------ sensors
+    def _mocap_sample(self) -> None:
+        """Take one mocap sample now; it is delivered ``mocap_latency_s`` later."""
+        s, d, rng = self.sim, self.data, self._rng_mocap
+        self.mocap_samples += 1
+        # draw every random number whether or not the sample drops, so that changing the
+        # dropout probability does not change the noise sequence
+        u = rng.random()
+        noise_p = rng.standard_normal(3) * s.mocap_noise_m
+        noise_r = rng.standard_normal(3) * s.mocap_noise_rad
+        ok = u >= s.mocap_dropout
+        if not ok:
+            self.mocap_dropped += 1
+        pos = d.qpos[0:3] + self.perturbations["mocap_offset_m"] + noise_p
+        q = d.qpos[3:7].copy()
+        if s.mocap_noise_rad > 0:
+            dq = np.empty(4)
+            mujoco.mju_axisAngle2Quat(dq, noise_r / (np.linalg.norm(noise_r) + 1e-300), float(np.linalg.norm(noise_r)))
+            out = np.empty(4)
+            mujoco.mju_mulQuat(out, dq, q)
+            q = out
+        self._mocap_queue.append((self._t + s.mocap_latency_s, self._t, pos, q, ok))
+
+    def _deliver_mocap(self, now_s: float) -> None:
+        qd = self._mocap_queue
+        while qd and qd[0][0] <= now_s + 1e-9:
+            _, ts, pos, q, ok = qd.popleft()
+            self._mocap_latest_ok = ok
+            if ok:
+                self._mocap_latest = (ts, pos, q)
+
+    def mocap_pose(self) -> tuple[float, np.ndarray, np.ndarray] | None:
+        """The newest delivered mocap sample: (t_s sample time, position [m] world,
+        quaternion wxyz), or None when the newest sample was dropped (or none yet)."""
+        self._deliver_mocap(self.sim_time_s)
+        if not self._mocap_latest_ok or self._mocap_latest is None:
+            return None
+        ts, pos, q = self._mocap_latest
+        return ts, pos.copy(), q.copy()
+
+    def _crank_angles(self) -> tuple[float, float]:
+        """Encoder readings [rad] in [0, 2π), quantized to 14 bits (fore-leg hinge = crank)."""
+        d = self.data
+        res = TWO_PI / ENCODER_COUNTS
+        out = []
+        for a in (self._q_l[0], self._q_r[0]):
+            out.append((math.floor((d.qpos[a] % TWO_PI) / res)) * res)
+        return out[0], out[1]
+
+    def telemetry(self) -> dict:
+        """One telemetry packet as the firmware would send it (body-frame IMU, SI units)."""
+        m, d, s = self.model, self.data, self.sim
+        rng = self._rng_telem
+        m.opt.disableflags &= ~self._sensor_flag
+        mujoco.mj_forward(m, d)
+        m.opt.disableflags |= self._sensor_flag
+        gyro = d.sensordata[0:3] + rng.standard_normal(3) * s.gyro_noise_rps
+        accel = d.sensordata[3:6] + rng.standard_normal(3) * s.accel_noise_mps2
+        wl, wr = float(d.qvel[self._v_l]), float(d.qvel[self._v_r])
+        bemf = np.array([wl, wr]) * self._bemf_v_per_rad_s + rng.standard_normal(2) * s.bemf_noise_v
+        fw = self.firmware.snapshot()
+        return {
+            "t_fw_ms": fw["t_fw_ms"],
+            "gyro_rps": [float(v) for v in gyro],
+            "accel_mps2": [float(v) for v in accel],
+            "crank_angle_rad": list(self._crank_angles()),
+            "crank_vel_rps": [wl / TWO_PI, wr / TWO_PI],
+            "bemf_v": [float(v) for v in bemf],
+            "vbat_v": float(self._vbat + rng.standard_normal() * s.vbat_noise_v),
+            "duty": [float(v) for v in fw["duty"]],
+            "faults": fw["faults"],
+            "current_a": [self._i_l, self._i_r],
+        }
+
+    # ------------------------------------------------------------------ contract
+    def _state(self) -> np.ndarray:
+        d = self.data
+        self._deliver_mocap(self.sim_time_s)
+        if self._mocap_latest is None:
+            pos, q = d.qpos[0:3], d.qpos[3:7]
+        else:
+            _, pos, q = self._mocap_latest
+        roll, pitch, yaw = quat_to_rpy(q)
+        cl, cr = self._crank_angles()
+        wl, wr = float(d.qvel[self._v_l]), float(d.qvel[self._v_r])
+        k = self._bemf_v_per_rad_s
+        return np.array([
+            pos[0], pos[1], pos[2],
+            d.qvel[0], d.qvel[1], d.qvel[2],
+            math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw),
+            d.qvel[3], d.qvel[4], d.qvel[5],
+            math.cos(cl), math.sin(cl), math.cos(cr), math.sin(cr),
+            wl / TWO_PI, wr / TWO_PI,
+            k * wl, k * wr,
+            self._vbat,
+        ], dtype=np.float64)
+
+    def _read(self) -> Observation:
+        self._seq += 1
+        fw = self.firmware
+        flags = {
+            "mocap_fresh": bool(self._mocap_latest_ok),
+            "watchdog": bool(fw.faults & 1),
+            "low_battery": bool(fw.faults & 2),
+            "overcurrent": bool(fw.faults & 4),
+        }
+        return Observation(t_s=self.sim_time_s, state=self._state(), seq=self._seq, flags=flags,
+                           extras={"duty": (fw.duty_l, fw.duty_r), "t_fw_ms": fw.t_fw_ms})
+
+    def _hold_command(self, obs: Observation) -> np.ndarray:
+        if self.params.action_mode == "leg_velocity":
+            i = self.spec.state.index("crank_vel_l")
+            v = obs.state[i:i + 2]
+        else:
+            v = np.array([self.firmware.duty_l, self.firmware.duty_r])
+        return np.clip(v, self.spec.action.low, self.spec.action.high)
+
+    def _write(self, action: np.ndarray) -> None:
+        if self.params.action_mode == "leg_velocity":
+            self.firmware.set_leg_velocity(action[0], action[1], self.sim_time_s)
+        else:
+            self.firmware.set_pwm(action[0], action[1], self.sim_time_s)
+
+    def _stop(self) -> None:
+        if self.data is None:
+            return
+        if self.params.action_mode == "leg_velocity":
+            self.firmware.set_leg_velocity(0.0, 0.0, self.sim_time_s)
+        else:
+            self.firmware.set_pwm(0.0, 0.0, self.sim_time_s)
+
+    def _health(self) -> Health:
+        ok = self.data is not None
+        n = max(1, self.mocap_samples)
+        return Health(
+            ok=ok,
+            link_quality=1.0 - self.mocap_dropped / n,
+            dropped_frames=self.mocap_dropped,
+            last_error=self.last_error,
+            extra={"sim_time_s": self.sim_time_s, "faults": self.firmware.faults},
+        )

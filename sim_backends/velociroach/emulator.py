@@ -1,0 +1,367 @@
+"""VelociRoACH firmware emulator: a process that behaves like the robot on the radio link.
+
+It owns one end of a serial link (a pty it creates with ``--print-pty``, or an existing
+device with ``--pty PATH``) and stands in for "base-station XBee + air + robot XBee +
+dsPIC firmware": it receives the PC's XBee TX64 requests, answers with RX64 frames, and
+runs the firmware (1 kHz PID, watchdog, telemetry; ``firmware.py`` of the sim backend)
+on the MuJoCo model in real time. The robot's mocap pose is served over UDP
+(``drivers.mocap.udp.PoseStreamServer``) like a motion-capture system would.
+
+    python -m sim_backends.velociroach.emulator --print-pty --pose-port 0 --config '{"telemetry_hz": 100}'
+
+On start it prints one JSON line on stdout, ``{"pty": ..., "pose_port": ..., "pid": ...}``,
+then stays quiet on stdout (logs go to stderr). It stops on SIGTERM/SIGINT or when
+``--parent-pid`` dies.
+
+Fault injection (for tests of the driver's fault handling), as flags or in the config's
+``emulator`` section: ``--corrupt-every N`` (every N-th frame sent is broken, alternating
+a bad XBee checksum and a bad MAVLink CRC), ``--garbage`` (noise bytes between frames),
+``--silence-after S`` (stop transmitting S seconds after the first command; the firmware
+keeps running, so its watchdog stops the motors).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import math
+import os
+import random
+import signal
+import sys
+import time
+import tty
+from pathlib import Path
+from typing import Any
+
+from drivers.velociroach.config import VelociRoachParams
+from drivers.velociroach.link import FdPort, RadioLink, open_serial, xbee_rx64
+from drivers.velociroach.mavlink import ROBOT_COMPID, ROBOT_SYSID, EncodeError, MavEncoder, mav
+
+DEFAULT_PHYSICS = "sim_backends.velociroach.backend:VelociRoachSim"
+#: firmware PID rate: physics advances in whole milliseconds
+FW_DT_S = 0.001
+#: never integrate more than this per loop: if the CPU falls behind, sim time slips
+#: instead of the loop spiralling (reported as ``realtime_slip_s``)
+MAX_CATCHUP_S = 0.05
+
+FAULT_WATCHDOG = mav.ROACH_FAULT_WATCHDOG
+FAULT_RX_CORRUPT = mav.ROACH_FAULT_RX_CORRUPT
+
+
+def log(msg: str) -> None:
+    print(f"[velociroach-emulator {os.getpid()}] {msg}", file=sys.stderr, flush=True)
+
+
+def load_physics(target: str, params: VelociRoachParams):
+    mod, _, cls = target.partition(":")
+    return getattr(importlib.import_module(mod), cls)(params)
+
+
+class Emulator:
+    def __init__(self, params: VelociRoachParams, link: RadioLink, physics: Any, pose_server: Any = None,
+                 *, corrupt_every: int = 0, garbage: bool = False, silence_after_s: float | None = None,
+                 realtime_factor: float = 1.0, pose_hz: float = 100.0, seed: int = 0):
+        self.p = params
+        self.link = link
+        self.sim = physics
+        self.pose_server = pose_server
+        self.enc = MavEncoder(ROBOT_SYSID, ROBOT_COMPID)
+        self.corrupt_every = int(corrupt_every)
+        self.garbage = garbage
+        self.silence_after_s = silence_after_s
+        self.rtf = realtime_factor
+        self.pose_period_s = 1.0 / pose_hz
+        self.rng = random.Random(seed)
+        self.running = True
+        self.last_cmd_seq = 0
+        self.last_cmd_t: float | None = None
+        self.first_cmd_t: float | None = None
+        self.watchdog_tripped = True  # at boot the motors are off until a command arrives
+        self.rx_corrupt_reported = 0
+        self.frames_out = 0
+        self.injected_corrupt = 0
+        self.injected_garbage = 0
+        self.realtime_slip_s = 0.0
+        self.mode = "leg_velocity"
+
+    # ------------------------------------------------------------------ tx
+    @property
+    def silent(self) -> bool:
+        return (self.silence_after_s is not None and self.first_cmd_t is not None
+                and time.monotonic() - self.first_cmd_t > self.silence_after_s)
+
+    def send(self, frame: bytes) -> None:
+        if self.silent:
+            return
+        self.frames_out += 1
+        if self.garbage and self.frames_out % 7 == 0:
+            # noise as a radio would produce it between frames (no start delimiter in it,
+            # so each burst is exactly one "garbage" event on the other side)
+            noise = bytes(self.rng.choice([b for b in range(256) if b != 0x7E]) for _ in range(self.rng.randint(1, 9)))
+            self.link.send_raw(noise)
+            self.injected_garbage += 1
+        if self.corrupt_every and self.frames_out % self.corrupt_every == 0:
+            self.injected_corrupt += 1
+            if self.injected_corrupt % 2:
+                raw = bytearray(xbee_rx64(self.link.robot_addr, frame))
+                raw[-1] ^= 0x5A  # bad XBee checksum
+            else:
+                bad = bytearray(frame)
+                bad[-3] ^= 0x01  # payload bit flip: valid XBee frame, bad MAVLink CRC
+                raw = bytearray(xbee_rx64(self.link.robot_addr, bytes(bad)))
+            self.link.send_raw(bytes(raw))
+            return
+        self.link.send(frame)
+
+    # ------------------------------------------------------------------ rx
+    def handle(self, m: Any, now: float) -> None:
+        t = m.get_type()
+        fw = self.sim.firmware
+        if t in ("ROACH_LEG_VELOCITY_CMD", "ROACH_PWM_CMD"):
+            if t == "ROACH_LEG_VELOCITY_CMD":
+                lim, a, b = self.p.max_leg_vel_rps, m.left_rps, m.right_rps
+            else:
+                lim, a, b = 1.0, m.duty_left, m.duty_right
+            if not (math.isfinite(a) and math.isfinite(b) and abs(a) <= lim * 1.0001 and abs(b) <= lim * 1.0001):
+                # the firmware never trusts the wire: out of range means ignored, and said so
+                self.send(self.enc.status_text(mav.ROACH_SEVERITY_ERROR, self.faults(),
+                                               f"rejected {t[6:]} {a:.3g},{b:.3g}"))
+                return
+            if t == "ROACH_LEG_VELOCITY_CMD":
+                fw.set_leg_velocity(a, b, self.sim.sim_time_s)
+                self.mode = "leg_velocity"
+            else:
+                fw.set_pwm(a, b, self.sim.sim_time_s)
+                self.mode = "pwm"
+            self.last_cmd_seq = m.cmd_seq
+            self.last_cmd_t = now
+            if self.first_cmd_t is None:
+                self.first_cmd_t = now
+            if self.watchdog_tripped:
+                self.watchdog_tripped = False
+        elif t == "ROACH_PID_GAINS_SET":
+            ok = all(math.isfinite(v) and v >= 0 for v in (m.kp, m.ki, m.kd))
+            if ok:
+                fw.set_gains(m.kp, m.ki, m.kd)
+            kp, ki, kd = self.gains()
+            res = mav.ROACH_RESULT_ACCEPTED if ok else mav.ROACH_RESULT_REJECTED
+            self.send(self.enc.pid_gains(m.request_id, kp, ki, kd, res))
+        elif t == "ROACH_PID_GAINS_GET":
+            kp, ki, kd = self.gains()
+            self.send(self.enc.pid_gains(m.request_id, kp, ki, kd, mav.ROACH_RESULT_CURRENT))
+        # HEARTBEAT from the base: nothing to do (the firmware's watchdog is on commands)
+
+    def gains(self) -> tuple[float, float, float]:
+        fw = self.sim.firmware
+        g = getattr(fw, "gains", None)
+        if callable(g):
+            g = g()
+        if isinstance(g, dict):
+            return float(g["kp"]), float(g["ki"]), float(g["kd"])
+        if g is not None:
+            kp, ki, kd = g
+            return float(kp), float(ki), float(kd)
+        return tuple(float(getattr(fw, k, math.nan)) for k in ("kp", "ki", "kd"))  # type: ignore[return-value]
+
+    # ------------------------------------------------------------------ state
+    def faults(self, tel: dict | None = None) -> int:
+        bits = 0
+        if tel is not None:
+            bits |= int(tel.get("faults", 0))
+        if self.watchdog_tripped and self.last_cmd_t is not None:
+            bits |= FAULT_WATCHDOG
+        if self.link.corrupt_frames > self.rx_corrupt_reported:
+            bits |= FAULT_RX_CORRUPT
+        return bits
+
+    def check_watchdog(self, now: float) -> None:
+        if self.last_cmd_t is None or self.watchdog_tripped:
+            return
+        silent_s = now - self.last_cmd_t
+        if silent_s > self.p.firmware_watchdog_s:
+            self.watchdog_tripped = True
+            self.sim.firmware.set_leg_velocity(0.0, 0.0, self.sim.sim_time_s)
+            self.send(self.enc.status_text(mav.ROACH_SEVERITY_WARNING, self.faults(),
+                                           f"watchdog: no command for {silent_s:.2f}s, motors stopped"))
+            log(f"watchdog tripped after {silent_s:.3f} s without command")
+
+    def send_telemetry(self) -> None:
+        tel = self.sim.telemetry()
+        faults = self.faults(tel)
+        tel = {**tel, "faults": faults}
+        try:
+            frame = self.enc.telemetry(tel, last_cmd_seq=self.last_cmd_seq,
+                                       rx_good=self.link.frames_received, rx_corrupt=self.link.corrupt_frames)
+        except EncodeError as e:
+            log(f"telemetry not encodable: {e}")
+            return
+        self.rx_corrupt_reported = self.link.corrupt_frames
+        self.send(frame)
+
+    def send_pose(self) -> None:
+        if self.pose_server is None or self.silent:
+            return
+        pose = self.sim.mocap_pose()
+        if pose is not None:
+            t_s, pos, quat = pose
+            self.pose_server.send(t_s, pos, quat)
+
+    # ------------------------------------------------------------------ loop
+    def run(self, parent_pid: int | None = None) -> None:
+        t0 = time.monotonic()
+        sim_t0 = self.sim.sim_time_s
+        tel_period = 1.0 / self.p.telemetry_hz
+        next_tel = next_hb = next_pose = t0
+        next_parent_check = t0 + 0.5
+        while self.running:
+            now = time.monotonic()
+            wait = max(0.0, min(next_tel, next_pose, now + FW_DT_S) - now)
+            for m in self.link.receive(timeout_s=wait):
+                self.handle(m, time.monotonic())
+            now = time.monotonic()
+            self.check_watchdog(now)
+            # real time: bring sim time up to the wall clock in whole firmware ticks
+            target = sim_t0 + (now - t0) * self.rtf
+            lag = target - self.sim.sim_time_s
+            if lag > MAX_CATCHUP_S:
+                slip = lag - MAX_CATCHUP_S
+                sim_t0 -= slip
+                self.realtime_slip_s += slip
+                lag = MAX_CATCHUP_S
+            n = int(lag / FW_DT_S + 1e-9)
+            if n > 0:
+                self.sim.advance(n * FW_DT_S)
+            now = time.monotonic()
+            if now >= next_tel:
+                self.send_telemetry()
+                next_tel = next_tel + tel_period if now - next_tel < tel_period else now + tel_period
+            if now >= next_pose:
+                self.send_pose()
+                next_pose = next_pose + self.pose_period_s if now - next_pose < self.pose_period_s \
+                    else now + self.pose_period_s
+            if now >= next_hb:
+                self.send(self.enc.heartbeat(robot=True, faults=self.faults()))
+                next_hb = now + 1.0
+            if parent_pid and now >= next_parent_check:
+                next_parent_check = now + 0.5
+                if os.getppid() != parent_pid:
+                    log("parent process is gone: exiting")
+                    break
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "frames_out": self.frames_out,
+            "injected_corrupt": self.injected_corrupt,
+            "injected_garbage": self.injected_garbage,
+            "rx_good": self.link.frames_received,
+            "rx_corrupt": self.link.corrupt_frames,
+            "realtime_slip_s": round(self.realtime_slip_s, 4),
+            "sim_time_s": round(self.sim.sim_time_s, 3),
+        }
+
+
+def _load_config(arg: str | None) -> dict:
+    if not arg:
+        return {}
+    if arg.lstrip().startswith("{"):
+        return json.loads(arg)
+    path = Path(arg)
+    text = path.read_text()
+    if path.suffix in (".yaml", ".yml"):
+        import yaml
+
+        data = yaml.safe_load(text) or {}
+        return data.get("params", data) if "robot" in data else data
+    return json.loads(text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m sim_backends.velociroach.emulator", description=__doc__.split("\n")[0])
+    where = ap.add_mutually_exclusive_group(required=True)
+    where.add_argument("--pty", help="serial device to serve (e.g. one end of a socat pty pair)")
+    where.add_argument("--print-pty", action="store_true", help="create a pty and print its path")
+    ap.add_argument("--pose-port", type=int, default=None, help="serve mocap pose on this UDP port (0: any free)")
+    ap.add_argument("--pose-host", default="127.0.0.1")
+    ap.add_argument("--config", help="VelociRoachParams as inline JSON or a JSON/YAML file")
+    ap.add_argument("--physics", default=None, help=f"module:Class of the physics (default {DEFAULT_PHYSICS})")
+    ap.add_argument("--corrupt-every", type=int, default=None, help="break every N-th frame sent")
+    ap.add_argument("--garbage", action="store_true", default=None, help="noise bytes between frames")
+    ap.add_argument("--silence-after", type=float, default=None, help="stop transmitting S s after the first command")
+    ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
+    args = ap.parse_args(argv)
+
+    params = VelociRoachParams(**_load_config(args.config))
+    emu = dict(params.emulator)
+
+    def opt(cli: Any, key: str, default: Any) -> Any:
+        return cli if cli is not None else emu.get(key, default)
+
+    physics = load_physics(opt(args.physics, "physics", DEFAULT_PHYSICS), params)
+    physics.configure()
+    try:
+        physics.reset(0.0, 0.0, 0.0)
+    except TypeError:
+        physics.reset()
+
+    if args.print_pty:
+        master, slave = os.openpty()
+        # raw before anyone writes: a cooked pty would echo and translate bytes
+        tty.setraw(slave)
+        tty.setraw(master)
+        path = os.ttyname(slave)
+        port: Any = FdPort(master, name=path)
+        # keep the slave open so reads on the master do not fail before the driver opens it
+        keep_slave = slave
+    else:
+        path = args.pty
+        port = open_serial(path, params.baudrate)
+        keep_slave = None
+    link = RadioLink(port, role="robot", robot_addr64=params.robot_addr64, name=path)
+
+    pose_server = None
+    pose_port = None
+    if args.pose_port is not None:
+        from drivers.mocap.udp import PoseStreamServer
+
+        pose_server = PoseStreamServer(args.pose_host, args.pose_port)
+        pose_port = pose_server.port
+
+    em = Emulator(
+        params, link, physics, pose_server,
+        corrupt_every=int(opt(args.corrupt_every, "corrupt_every", 0) or 0),
+        garbage=bool(opt(args.garbage, "garbage", False)),
+        silence_after_s=opt(args.silence_after, "silence_after_s", None),
+        realtime_factor=float(emu.get("realtime_factor", 1.0)),
+        pose_hz=float(emu.get("pose_hz", 100.0)),
+        seed=int(emu.get("seed", 0)),
+    )
+
+    def _stop(signum, frame):  # noqa: ARG001
+        em.running = False
+
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
+    print(json.dumps({"pty": path, "pose_port": pose_port, "pid": os.getpid()}), flush=True)
+    log(f"serving {path}, pose udp port {pose_port}, telemetry {params.telemetry_hz} Hz, "
+        f"watchdog {params.firmware_watchdog_s} s")
+    try:
+        em.run(parent_pid=args.parent_pid)
+    except Exception as e:  # a LinkError here means the pty is gone: nothing left to serve
+        log(f"stopped: {type(e).__name__}: {e}")
+    finally:
+        log(f"summary {json.dumps(em.summary())}")
+        link.close()
+        if pose_server is not None:
+            pose_server.close()
+        if keep_slave is not None:
+            try:
+                os.close(keep_slave)
+            except OSError:
+                pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

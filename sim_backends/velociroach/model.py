@@ -1,0 +1,213 @@
+"""VelociRoACH MJCF model: chassis, two crank transmissions driving six C-legs, ground.
+
+Geometry (body frame: x forward, y left, z up; SI units):
+
+* chassis: a box 10 cm x 4 cm x 1.6 cm (the real robot is ~10 cm long, 30-55 g).
+* legs: six C-shaped legs (RHex-like), each a half-circle of radius ``leg_arc_m`` drawn
+  as ``_ARC_SEGMENTS`` capsules from the hip; each leg has its own hinge about the
+  body's y axis at its hip. The three hinges of one side are tied to each other by
+  ``<equality joint>`` constraints (q_fore = q_mid = q_aft): this is the crank
+  linkage of one motor. The 180° phase between fore/aft and middle legs is built
+  into the geometry (the middle leg's arc is drawn rotated by π), so one joint angle
+  per side is the *crank angle*. The left/right phase (alternating tripod when the
+  sides are π apart) is an initial condition set in :func:`initial_crank_angles_rad`.
+* transmission: a fixed tendon per side averaging its three hinges; the motor acts on
+  it with ``gear=1`` so the tendon force is the crank torque [N·m] and the tendon
+  velocity is the crank velocity [rad/s]. Rotor inertia reflected through the gear
+  (J_rotor·G²) is the hinge ``armature``.
+* motor: a ``<general>`` actuator whose control is the terminal voltage V = duty·vbat
+  [V] and whose bias is the back-EMF damping, so that MuJoCo integrates the DC-motor
+  torque τ = k_t·G·η·(V − k_e·G·ω_crank)/R implicitly (``implicitfast``): the
+  electrical damping is stiff at 1 ms. ``forcerange`` is the crank torque limit
+  (current limit of the H-bridge).
+* ground: a plane for flat terrains or a heightfield generated from a seed for rough
+  ones; slope is applied by tilting gravity (the world frame stays level with the
+  ground, +x uphill), which keeps the heightfield and the mocap frame unchanged.
+
+Contact filtering: legs and chassis collide with the ground only (contype/conaffinity).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: legs: name, side (+1 left, -1 right), hip x [m], phase offset [rad] of the drawn arc
+LEGS: tuple[tuple[str, int, float, float], ...] = (
+    ("lf", +1, +1, 0.0),
+    ("lm", +1, 0, math.pi),
+    ("la", +1, -1, 0.0),
+    ("rf", -1, +1, 0.0),
+    ("rm", -1, 0, math.pi),
+    ("ra", -1, -1, 0.0),
+)
+LEG_NAMES = tuple(n for n, *_ in LEGS)
+_ARC_SEGMENTS = 3
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Dimensions and masses (SI). Defaults approximate the VelociRoACH (Haldane et al. 2013)."""
+
+    chassis_half_m: tuple[float, float, float] = (0.05, 0.02, 0.008)
+    chassis_mass_kg: float = 0.030
+    leg_mass_kg: float = 0.001
+    hip_spacing_m: float = 0.035
+    hip_y_m: float = 0.027
+    leg_arc_m: float = 0.011
+    leg_radius_m: float = 0.002
+    #: +1: the C opens backwards (convex side forward when the leg points down), -1: mirrored
+    leg_bulge: float = 1.0
+    armature_kgm2: float = 5e-7
+    hinge_damping_nms: float = 1e-5
+
+
+def _fmt(v) -> str:
+    return " ".join(f"{float(x):.6g}" for x in np.ravel(v))
+
+
+def _leg_xml(name: str, side: int, xsign: float, phase: float, g: Geometry) -> str:
+    a = g.leg_arc_m
+    # half circle from the hip (0,0,0) to the tip (0,0,-2a), bulging towards +x of the
+    # leg frame; the middle leg's arc is rotated by π about the hinge axis.
+    pts = []
+    for k in range(_ARC_SEGMENTS + 1):
+        phi = math.pi * k / _ARC_SEGMENTS
+        px, pz = g.leg_bulge * a * math.sin(phi), -a + a * math.cos(phi)
+        c, s = math.cos(phase), math.sin(phase)
+        # rotation about +y by `phase`: x' = c x + s z, z' = -s x + c z
+        pts.append((c * px + s * pz, 0.0, -s * px + c * pz))
+    geoms = "\n".join(
+        f'        <geom name="{name}_{k}" type="capsule" size="{g.leg_radius_m}" '
+        f'fromto="{_fmt(pts[k])} {_fmt(pts[k + 1])}" mass="{g.leg_mass_kg / _ARC_SEGMENTS:.6g}" '
+        f'class="leg"/>'
+        for k in range(_ARC_SEGMENTS)
+    )
+    pos = (xsign * g.hip_spacing_m, side * g.hip_y_m, 0.0)
+    return (
+        f'      <body name="leg_{name}" pos="{_fmt(pos)}">\n'
+        f'        <joint name="hip_{name}" type="hinge" axis="0 1 0" armature="{g.armature_kgm2 / 3:.6g}" '
+        f'damping="{g.hinge_damping_nms:.6g}"/>\n{geoms}\n      </body>'
+    )
+
+
+def build_mjcf(
+    *,
+    timestep_s: float,
+    motor_gain_nm_per_v: float,
+    motor_damping_nms: float,
+    torque_limit_nm: float,
+    friction: float,
+    solref: tuple[float, float],
+    solimp: tuple[float, float, float],
+    slope_deg: float,
+    hfield: tuple[int, float, float] | None,
+    geometry: Geometry | None = None,
+) -> str:
+    """The MJCF string.
+
+    ``motor_gain_nm_per_v`` = k_t·G·η/R (crank torque per terminal volt),
+    ``motor_damping_nms`` = k_t·k_e·G²·η/R (back-EMF damping at the crank),
+    ``hfield`` = (n, half size [m], max height [m]) or None for a plane.
+    """
+    g = geometry or Geometry()
+    slope = math.radians(slope_deg)
+    grav = (-9.81 * math.sin(slope), 0.0, -9.81 * math.cos(slope))
+    legs = "\n".join(_leg_xml(n, s, xs, ph, g) for n, s, xs, ph in LEGS)
+    eqs = "\n".join(
+        f'    <joint joint1="hip_{side}{o}" joint2="hip_{side}m" polycoef="0 1 0 0 0" '
+        f'solref="0.004 1"/>'
+        for side in "lr"
+        for o in "fa"
+    )
+    tendons = "\n".join(
+        f'    <fixed name="crank_{side}">' + "".join(
+            f'<joint joint="hip_{side}{o}" coef="{1 / 3:.9f}"/>' for o in "fma"
+        ) + "</fixed>"
+        for side in "lr"
+    )
+    acts = "\n".join(
+        f'    <general name="motor_{side}" tendon="crank_{side}" gaintype="fixed" biastype="affine" '
+        f'gainprm="{motor_gain_nm_per_v:.9g}" biasprm="0 0 {-motor_damping_nms:.9g}" '
+        f'forcelimited="true" forcerange="{-torque_limit_nm:.9g} {torque_limit_nm:.9g}" '
+        f'ctrllimited="false"/>'
+        for side in "lr"
+    )
+    if hfield is None:
+        ground_asset = ""
+        ground = '<geom name="ground" type="plane" size="0 0 0.05" class="ground"/>'
+    else:
+        n, half, zmax = hfield
+        ground_asset = (
+            f'<hfield name="terrain" nrow="{n}" ncol="{n}" size="{half:.6g} {half:.6g} {zmax:.6g} 0.005"/>'
+        )
+        ground = '<geom name="ground" type="hfield" hfield="terrain" class="ground"/>'
+    hx, hy, hz = g.chassis_half_m
+    return f"""
+<mujoco model="velociroach">
+  <compiler angle="radian" autolimits="true"/>
+  <option timestep="{timestep_s:.6g}" integrator="implicitfast" gravity="{_fmt(grav)}"
+          cone="pyramidal" solver="Newton" iterations="20" ls_iterations="8">
+    <flag energy="disable" filterparent="enable"/>
+  </option>
+  <size memory="2M"/>
+  <default>
+    <default class="ground">
+      <geom contype="1" conaffinity="1" friction="{friction:.6g} 0.005 0.0001"
+            solref="{solref[0]:.6g} {solref[1]:.6g}" solimp="{_fmt(solimp)}"/>
+    </default>
+    <default class="leg">
+      <geom contype="1" conaffinity="0" condim="3" friction="{friction:.6g} 0.005 0.0001"
+            solref="{solref[0]:.6g} {solref[1]:.6g}" solimp="{_fmt(solimp)}" rgba=".2 .2 .2 1"/>
+    </default>
+  </default>
+  <asset>{ground_asset}</asset>
+  <worldbody>
+    {ground}
+    <body name="chassis" pos="0 0 0.03">
+      <freejoint name="root"/>
+      <geom name="chassis" type="box" size="{hx} {hy} {hz}" mass="{g.chassis_mass_kg}"
+            contype="1" conaffinity="0" friction="0.3 0.005 0.0001" rgba=".8 .5 .1 1"/>
+      <site name="imu" pos="0 0 0"/>
+{legs}
+    </body>
+  </worldbody>
+  <tendon>
+{tendons}
+  </tendon>
+  <equality>
+{eqs}
+  </equality>
+  <actuator>
+{acts}
+  </actuator>
+  <sensor>
+    <gyro name="gyro" site="imu"/>
+    <accelerometer name="accel" site="imu"/>
+  </sensor>
+</mujoco>
+"""
+
+
+def heightfield(n: int, rms_m: float, correlation_cells: float, seed: int) -> np.ndarray:
+    """A smooth random height map in [0, 1] (n x n, MuJoCo hfield_data layout).
+
+    Gaussian noise low-pass filtered with a Gaussian kernel of ``correlation_cells``;
+    the caller scales it by the hfield's max height (``rms_m`` sets that scale).
+    """
+    rng = np.random.default_rng(seed)
+    z = rng.standard_normal((n, n))
+    if correlation_cells > 0:
+        from scipy.ndimage import gaussian_filter
+
+        z = gaussian_filter(z, correlation_cells, mode="wrap")
+    z -= z.min()
+    peak = z.max()
+    return (z / peak) if peak > 0 else z
+
+
+def initial_crank_angles_rad(phase_lr_rad: float) -> tuple[float, float]:
+    """Left and right crank angles at reset: right = left + phase (π: alternating tripod)."""
+    return 0.0, phase_lr_rad
