@@ -1,0 +1,160 @@
+"""Path-following cost, paths and the differential-drive baseline."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from control.baselines import DifferentialDriveController
+from control.costs import PathCost, closest_segment, evaluate_path_following
+from control.paths import PATHS, make_path, path_length
+from control.planners import RandomShooting
+
+ROACH_NAMES = [
+    "x", "y", "z", "vx", "vy", "vz", "cos_roll", "sin_roll", "cos_pitch", "sin_pitch",
+    "cos_yaw", "sin_yaw", "wx", "wy", "wz", "cos_left_crank", "sin_left_crank",
+    "cos_right_crank", "sin_right_crank", "left_crank_vel", "right_crank_vel",
+    "left_bemf", "right_bemf", "vbat",
+]
+IX, IY, IC, IS = (ROACH_NAMES.index(n) for n in ("x", "y", "cos_yaw", "sin_yaw"))
+
+
+def roach_state(x, y, yaw):
+    s = torch.zeros(24)
+    s[IX], s[IY], s[IC], s[IS] = x, y, math.cos(yaw), math.sin(yaw)
+    return s
+
+
+def unicycle(state, action, dt=0.1, v_max=0.5, w_max=3.0):
+    """Kinematic stand-in for the roach: mean leg speed drives forward, difference turns."""
+    left, right = action[..., 0], action[..., 1]
+    yaw = torch.atan2(state[..., IS], state[..., IC])
+    v = v_max * 0.5 * (left + right)
+    yaw2 = yaw + dt * w_max * 0.5 * (right - left)
+    out = state.clone()
+    out[..., IX] = state[..., IX] + dt * v * torch.cos(yaw)
+    out[..., IY] = state[..., IY] + dt * v * torch.sin(yaw)
+    out[..., IC], out[..., IS] = torch.cos(yaw2), torch.sin(yaw2)
+    return out
+
+
+# -- paths -----------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", sorted(PATHS))
+def test_paths_start_at_origin_and_scale(name):
+    p1 = make_path(name)
+    p2 = make_path(name, scale=2.0)
+    assert p1.shape[1] == 2 and p1.shape[0] >= 3 or name == "straight"
+    np.testing.assert_allclose(p1[0], [0, 0], atol=1e-6)
+    np.testing.assert_allclose(p2, 2 * p1, rtol=1e-5, atol=1e-6)
+    # sized for a 10 cm robot at 0.3-1 m/s: a few seconds to a minute of driving
+    assert 1.0 < path_length(p1) < 10.0
+    assert np.all(np.linalg.norm(np.diff(p1, axis=0), axis=1) > 0)
+
+
+def test_left_turns_left_and_right_mirrors_it():
+    left, right = make_path("left"), make_path("right")
+    assert left[-1, 1] > 0.5 and right[-1, 1] < -0.5
+    np.testing.assert_allclose(left[:, 0], right[:, 0])
+    np.testing.assert_allclose(left[:, 1], -right[:, 1])
+    assert make_path("figure-8").shape == make_path("figure8").shape
+    with pytest.raises(KeyError):
+        make_path("spiral")
+
+
+# -- cost ------------------------------------------------------------------------------------------
+def test_closest_segment_distance_and_direction():
+    wp = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]])
+    a, d = wp[:-1], wp[1:] - wp[:-1]
+    idx, dist, unit = closest_segment(torch.tensor([[0.5, 0.2], [1.3, 0.8], [-1.0, 0.0]]), a, d)
+    assert idx.tolist() == [0, 1, 0]
+    assert torch.allclose(dist, torch.tensor([0.2, 0.3, 1.0]))
+    assert torch.allclose(unit[1], torch.tensor([0.0, 1.0]))
+
+
+def test_path_cost_terms_on_hand_built_states():
+    cost = PathCost(make_path("straight"), ROACH_NAMES)  # thesis weights 50 / 5 / 10
+    # two steps: from (0, 0.1) heading +x to (0.2, 0.1), then to (0.3, 0.1) heading 90° left
+    st = torch.stack([roach_state(0.0, 0.1, 0.0), roach_state(0.2, 0.1, 0.0), roach_state(0.3, 0.1, math.pi / 2)])
+    t = cost.terms(st)
+    assert torch.allclose(t["perp_m"], torch.tensor([0.1, 0.1]), atol=1e-6)
+    assert torch.allclose(t["progress_m"], torch.tensor([0.2, 0.1]), atol=1e-6)
+    assert torch.allclose(t["heading_rad"], torch.tensor([0.0, math.pi / 2]), atol=1e-6)
+    expected = 50 * 0.2 + 5 * math.pi / 2 - 10 * 0.3
+    assert cost(st[None, None]).item() == pytest.approx(expected, rel=1e-5)
+
+
+def test_path_cost_uses_state_names_not_fixed_indices():
+    names = list(reversed(ROACH_NAMES))
+    st = torch.stack([roach_state(0.0, 0.1, 0.0), roach_state(0.2, 0.1, 0.3)])
+    cost_a = PathCost(make_path("straight"), ROACH_NAMES)
+    cost_b = PathCost(make_path("straight"), names)
+    assert cost_a(st[None, None]).item() == pytest.approx(cost_b(st.flip(-1)[None, None]).item())
+    with pytest.raises(KeyError):
+        PathCost(make_path("straight"), ["a", "b"])
+
+
+def test_path_cost_is_vectorized_over_ensemble_samples_horizon():
+    cost = PathCost(make_path("zigzag"), ROACH_NAMES)
+    E, N, H = 3, 7, 5
+    states = torch.randn(E, N, H + 1, 24)
+    out = cost(states, torch.zeros(N, H, 2))
+    assert out.shape == (E, N)
+    one = cost(states[1, 4][None, None])
+    assert out[1, 4].item() == pytest.approx(one.item(), rel=1e-5)
+
+
+def test_heading_error_wraps():
+    cost = PathCost(make_path("straight"), ROACH_NAMES)
+    st = torch.stack([roach_state(0, 0, 0), roach_state(0.0, 0.0, math.pi - 0.1)])
+    st2 = torch.stack([roach_state(0, 0, 0), roach_state(0.0, 0.0, -math.pi + 0.1)])
+    assert cost.terms(st)["heading_rad"].item() == pytest.approx(math.pi - 0.1, abs=1e-5)
+    assert cost.terms(st2)["heading_rad"].item() == pytest.approx(math.pi - 0.1, abs=1e-5)
+
+
+# -- baseline --------------------------------------------------------------------------------------
+def test_baseline_steers_back_to_the_path():
+    ctl = DifferentialDriveController(make_path("straight"), ROACH_NAMES)
+    on = ctl(roach_state(0.5, 0.0, 0.0).numpy())
+    assert on[0] == pytest.approx(on[1]) and on[0] == pytest.approx(ctl.omega_nom)
+    left_of_path = ctl(roach_state(0.5, 0.2, 0.0).numpy())
+    assert left_of_path[0] > left_of_path[1]  # turn right: left legs faster
+    right_of_path = ctl(roach_state(0.5, -0.2, 0.0).numpy())
+    assert right_of_path[1] > right_of_path[0]
+    pointing_left = ctl(roach_state(0.5, 0.0, 0.5).numpy())
+    assert pointing_left[0] > pointing_left[1]
+    assert np.all(np.abs(ctl(roach_state(0.5, 5.0, 3.0).numpy())) <= 1)
+
+
+def drive(controller, path, steps=60, start=(0.0, 0.05, 0.0)):
+    s = roach_state(*start)
+    traj = [s]
+    for _ in range(steps):
+        a = torch.as_tensor(controller(s))
+        s = unicycle(s, a)
+        traj.append(s)
+    return torch.stack(traj)
+
+
+# zigzag has 90° corners the turn-rate-limited follower cuts, hence its looser bound
+@pytest.mark.parametrize(("name", "max_perp_m"), [("straight", 0.06), ("left", 0.06), ("zigzag", 0.15)])
+def test_baseline_follows_paths_on_a_unicycle(name, max_perp_m):
+    path = make_path(name)
+    cost = PathCost(path, ROACH_NAMES)
+    traj = drive(DifferentialDriveController(path, ROACH_NAMES), path)
+    m = evaluate_path_following(traj, cost)
+    assert m["perp_mean_m"] < max_perp_m
+    assert m["progress_m"] > 1.0
+
+
+def test_mpc_follows_left_path_and_beats_standing_still():
+    path = make_path("left")
+    cost = PathCost(path, ROACH_NAMES)
+    planner = RandomShooting(-1.0, 1.0, horizon=4, samples=500, action_dim=2, seed=0)
+    traj = drive(lambda s: planner(unicycle, cost, s), path, steps=50)
+    m = evaluate_path_following(traj, cost)
+    assert m["perp_mean_m"] < 0.06
+    assert m["progress_m"] > 0.8
+    still = evaluate_path_following(drive(lambda s: np.zeros(2), path, steps=50), cost)
+    assert m["cost"] < still["cost"]
+    assert planner.last_predicted_states.shape == (1, 5, 24)

@@ -1,0 +1,110 @@
+"""Episodes, transition datasets and tabular loading."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from learning.datasets import Episode, TransitionDataset, episodes_from_table, load_episodes
+
+
+def make_episode(T, offset, name=""):
+    s = offset + np.arange((T + 1) * 2, dtype=np.float32).reshape(T + 1, 2)
+    a = np.full((T, 1), offset, dtype=np.float32)
+    return Episode(s, a, times=np.arange(T + 1) * 0.1, name=name)
+
+
+def test_episode_validates_shapes():
+    with pytest.raises(ValueError):
+        Episode(np.zeros((5, 2)), np.zeros((5, 1)))
+    with pytest.raises(ValueError):
+        Episode(np.zeros((5, 2)), np.zeros((4, 1)), times=np.zeros(4))
+    assert len(make_episode(4, 0.0)) == 4
+
+
+def test_transitions_and_deltas():
+    ds = TransitionDataset([make_episode(3, 0.0, "a"), make_episode(2, 100.0, "b")])
+    assert len(ds) == 5
+    np.testing.assert_array_equal(ds.episode_index, [0, 0, 0, 1, 1])
+    np.testing.assert_allclose(ds.deltas, np.full((5, 2), 2.0))
+    np.testing.assert_allclose(ds.states[3], [100.0, 101.0])
+    np.testing.assert_allclose(ds.actions[:, 0], [0, 0, 0, 100, 100])
+
+
+def test_stats_are_from_data_and_safe_for_constant_channels():
+    ds = TransitionDataset([make_episode(3, 0.0), make_episode(3, 10.0)])
+    st = ds.stats()
+    x = np.concatenate([ds.states, ds.actions], 1)
+    np.testing.assert_allclose(st.input_mean, x.mean(0), rtol=1e-6)
+    np.testing.assert_allclose(st.input_std, x.std(0), rtol=1e-6)
+    np.testing.assert_allclose(st.delta_std, [1.0, 1.0])  # constant deltas: std replaced by 1
+    np.testing.assert_allclose(st.delta_mean, [2.0, 2.0])
+
+
+def test_split_is_by_whole_episode_and_reproducible():
+    eps = [make_episode(5, 10.0 * i, f"e{i}") for i in range(10)]
+    ds = TransitionDataset(eps)
+    tr, va = ds.split(0.3, seed=1)
+    names_tr = {e.name for e in tr.episodes}
+    names_va = {e.name for e in va.episodes}
+    assert len(names_va) == 3 and not names_tr & names_va and len(names_tr | names_va) == 10
+    assert len(tr) + len(va) == len(ds)
+    tr2, va2 = ds.split(0.3, seed=1)
+    assert [e.name for e in va2.episodes] == [e.name for e in va.episodes]
+    with pytest.raises(ValueError):
+        TransitionDataset(eps[:1]).split()
+
+
+def test_aggregation():
+    a = TransitionDataset([make_episode(3, 0.0)], state_names=["p", "v"], action_names=["u"])
+    b = a.extend([make_episode(2, 5.0)])
+    assert len(b) == 5 and len(a) == 3 and b.state_names == ["p", "v"]
+    c = a + b
+    assert len(c) == 8 and len(c.episodes) == 3
+    assert len(TransitionDataset.concatenate([a, b, c])) == 16
+    with pytest.raises(ValueError):
+        TransitionDataset([make_episode(3, 0.0)], state_names=["p"])
+
+
+def _table():
+    rows = []
+    for ep in ("run1", "run2"):
+        for t in range(4):
+            rows.append({"run": ep, "t": 0.1 * t, "px": t, "pv": 2 * t, "u": t + 0.5, "junk": 9})
+    return pd.DataFrame(rows)
+
+
+def test_episodes_from_table_with_column_map():
+    eps = episodes_from_table(_table(), state=["px", "pv"], action=["u"], episode="run", time="t")
+    assert [e.name for e in eps] == ["run1", "run2"]
+    assert eps[0].states.shape == (4, 2) and eps[0].actions.shape == (3, 1)
+    np.testing.assert_allclose(eps[0].actions[:, 0], [0.5, 1.5, 2.5])  # last row's action unused
+    np.testing.assert_allclose(eps[0].times, [0, 0.1, 0.2, 0.3])
+    ds = TransitionDataset(eps)
+    assert ds.state_names == ["px", "pv"] and ds.action_names == ["u"]
+    with pytest.raises(KeyError, match="nope"):
+        episodes_from_table(_table(), state=["nope"], action=["u"])
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_load_episodes_from_files(tmp_path, suffix):
+    path = tmp_path / f"log{suffix}"
+    t = _table()
+    t.to_csv(path, index=False) if suffix == ".csv" else t.to_parquet(path)
+    eps = load_episodes(path, state=["px", "pv"], action=["u"], episode="run")
+    assert len(eps) == 2 and eps[1].states.shape == (4, 2)
+
+
+def test_load_episodes_errors(tmp_path):
+    with pytest.raises(ValueError, match="unknown"):
+        load_episodes(tmp_path / "x.txt", state=["a"], action=["b"])
+    (tmp_path / "x.csv").write_text("a,b\n1,2\n3,4\n")
+    with pytest.raises(TypeError):
+        load_episodes(tmp_path / "x.csv")
+
+
+def test_mcap_dispatch_has_a_clear_error_or_delegates(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "bus.recording", None)  # make the import fail
+    with pytest.raises(NotImplementedError, match="bus.recording"):
+        load_episodes(tmp_path / "session.mcap", state=["a"], action=["b"])

@@ -1,0 +1,200 @@
+"""EnsembleDynamics: batching, normalization, training, validation, checkpoints."""
+
+import numpy as np
+import pytest
+import torch
+
+from learning.datasets import Episode, TransitionDataset
+from learning.dynamics import EnsembleDynamics, cpu_bf16_support, h_step_error, h_step_windows
+
+A_TRUE = np.array([[0.95, 0.1], [-0.1, 0.9]], dtype=np.float32)
+B_TRUE = np.array([[0.0], [0.5]], dtype=np.float32)
+
+
+def linear_episodes(n, T=40, seed=0, scale=1.0):
+    """x' = A x + B u + c, with states far from zero mean/unit scale (normalization matters)."""
+    rng = np.random.default_rng(seed)
+    eps = []
+    for i in range(n):
+        s = np.zeros((T + 1, 2), np.float32)
+        s[0] = rng.normal(size=2)
+        a = rng.uniform(-1, 1, (T, 1)).astype(np.float32)
+        for t in range(T):
+            s[t + 1] = A_TRUE @ s[t] + B_TRUE @ a[t] + 0.02
+        eps.append(Episode(scale * s + np.float32(5.0), a, name=f"ep{i}"))
+    return eps
+
+
+@pytest.fixture(scope="module")
+def data():
+    ds = TransitionDataset(linear_episodes(24), state_names=["p", "v"], action_names=["u"],
+                           state_units=["m", "m/s"], action_units=["1"])
+    return ds.split(0.25, seed=0)
+
+
+def test_ensemble_is_one_batched_computation_equal_to_per_member_mlps():
+    m = EnsembleDynamics(3, 2, ensemble=4, hidden=(8, 6), seed=1)
+    x = torch.randn(4, 5, 5)
+    out = m.forward_normalized(x)
+    for e in range(4):
+        h = x[e]
+        for i, (w, b) in enumerate(zip(m.weights, m.biases, strict=True)):
+            h = h @ w[e] + b[e]
+            if i < 2:
+                h = torch.relu(h)
+        assert torch.allclose(out[e], h, atol=1e-6)
+    assert m.weights[1].shape == (4, 8, 6)
+    # members start from different weights
+    assert not torch.allclose(m.weights[0][0], m.weights[0][1])
+
+
+def test_predict_shapes_and_fast_path_matches_differentiable_path():
+    m = EnsembleDynamics(3, 2, ensemble=3, hidden=(16, 16), seed=2)
+    with torch.no_grad():  # non-trivial normalization so folding it into the weights is exercised
+        m.input_mean.copy_(torch.tensor([1.0, -2.0, 0.5, 0.1, 0.2]))
+        m.input_std.copy_(torch.tensor([2.0, 0.5, 1.0, 3.0, 0.2]))
+        m.delta_mean.copy_(torch.tensor([0.1, 0.0, -0.3]))
+        m.delta_std.copy_(torch.tensor([0.5, 2.0, 1.0]))
+        m._fast = None
+    for B in (5, 256):  # 256 exercises the chunked batch layout
+        s, a = torch.randn(B, 3), torch.randn(B, 2)
+        ref = m.predict(s, a).detach()  # grad enabled: differentiable path
+        assert ref.shape == (3, B, 3)
+        with torch.inference_mode():
+            fast = m.predict(s, a)
+            fast3 = m.predict(s.expand(3, B, 3), a)
+        assert torch.allclose(fast, ref, atol=1e-5)
+        assert torch.allclose(fast3, ref, atol=1e-5)
+    with pytest.raises(ValueError):
+        m.predict(torch.randn(2, 4, 3), torch.randn(4, 2))
+
+
+def test_bf16_inference_is_close_when_available():
+    m = EnsembleDynamics(4, 2, ensemble=2, hidden=(32, 32), seed=3)
+    s, a = torch.randn(10, 4), torch.randn(10, 2)
+    with torch.inference_mode():
+        ref = m.predict(s, a)
+        dt = m.set_inference_dtype("bf16")
+        out = m.predict(s, a)
+    assert out.dtype == torch.float32
+    assert dt == (torch.bfloat16 if cpu_bf16_support() else torch.float32)
+    assert torch.allclose(out, ref, atol=0.05)
+
+
+def test_cpu_flag_detection(tmp_path):
+    f = tmp_path / "cpuinfo"
+    f.write_text("processor: 0\nflags\t\t: fpu sse avx512f avx512_bf16\n")
+    assert cpu_bf16_support(f) == "avx512"
+    f.write_text("flags: fpu amx_bf16 amx_tile avx512_bf16\n")
+    assert cpu_bf16_support(f) == "amx"
+    f.write_text("flags: fpu sse2\n")
+    assert cpu_bf16_support(f) is None
+    assert cpu_bf16_support(tmp_path / "missing") is None
+
+
+def test_fit_learns_linear_system_and_tracks_validation(data):
+    train, val = data
+    m = EnsembleDynamics(2, 1, ensemble=2, hidden=(64, 64), seed=0)
+    hist = m.fit(train, epochs=25, batch_size=64, progress=False, val=val, horizon=5)
+    assert len(hist) == 25 and [h["epoch"] for h in hist] == list(range(25))
+    assert hist[-1]["train_loss"] < 0.2 * hist[0]["train_loss"]
+    assert hist[-1]["val_h"] < 0.2 * hist[0]["val_h"]
+    assert hist[-1]["val_1step"] < hist[0]["val_1step"]
+    assert {"val_1step", "val_h", "val_h_raw", "horizon", "time_s"} <= set(hist[-1])
+    # normalization statistics come from the data
+    x = np.concatenate([train.states, train.actions], 1)
+    np.testing.assert_allclose(m.input_mean.numpy(), x.mean(0), rtol=1e-5)
+    assert m.state_names == ["p", "v"] and m.state_units == ["m", "m/s"]
+
+
+def test_h_step_error_is_eqn_2_2():
+    eps = linear_episodes(2, T=8)
+    m = EnsembleDynamics(2, 1, ensemble=2, hidden=(4,), seed=5)
+    s, a, y = h_step_windows(eps, 3, max_starts=None)
+    assert s.shape == (2 * 6, 2) and a.shape == (12, 3, 1) and y.shape == (12, 3, 2)
+    np.testing.assert_allclose(y[1, 2], eps[0].states[4])
+    norm, raw = h_step_error(m, s, a, y)
+    # hand computation: roll each member out open loop, replaying the logged actions
+    with torch.inference_mode():
+        cur = torch.from_numpy(s)
+        errs = []
+        for h in range(3):
+            cur = m.predict(cur, torch.from_numpy(a[:, h]))
+            errs.append(0.5 * ((cur - torch.from_numpy(y[:, h])) ** 2).sum(-1))  # [E, P]
+        hand = torch.stack(errs).mean().item()
+    assert raw == pytest.approx(hand, rel=1e-5)
+    assert norm == pytest.approx(raw, rel=1e-5)  # unfitted model: state std is 1
+
+
+def test_warm_start_continues_and_refit_preserves_function(data):
+    train, val = data
+    m = EnsembleDynamics(2, 1, ensemble=2, hidden=(32, 32), seed=0)
+    m.fit(train, epochs=3, batch_size=64, progress=False)
+    s, a = torch.randn(16, 2) + 5, torch.randn(16, 1)
+    with torch.inference_mode():
+        before = m.predict(s, a).clone()
+    # new data with other statistics: refit moves the stats but not the function
+    more = TransitionDataset(linear_episodes(6, seed=7, scale=3.0))
+    agg = train.extend(more.episodes)
+    m._set_stats(agg.stats())
+    with torch.inference_mode():
+        after = m.predict(s, a)
+    assert not torch.allclose(m.input_std, torch.from_numpy(train.stats().input_std))
+    assert torch.allclose(before, after, atol=1e-4)
+    h2 = m.fit(agg, epochs=2, batch_size=64, progress=False)
+    assert [h["epoch"] for h in h2] == [3, 4] and len(m.history) == 5
+
+
+def test_freeze_keeps_first_statistics(data):
+    train, _ = data
+    m = EnsembleDynamics(2, 1, hidden=(8,), norm_update="freeze", seed=0)
+    m.fit(train, epochs=1, progress=False)
+    mean0 = m.input_mean.clone()
+    m.fit(TransitionDataset(linear_episodes(3, seed=9, scale=4.0)), epochs=1, progress=False)
+    assert torch.equal(m.input_mean, mean0)
+
+
+def test_bootstrap_members_see_different_data(data):
+    train, _ = data
+    m = EnsembleDynamics(2, 1, ensemble=3, hidden=(8,), seed=0)
+    assert m.config["bootstrap"] and not EnsembleDynamics(2, 1).config["bootstrap"]
+    m.fit(train, epochs=1, progress=False)
+    w = m.weights[0]
+    assert not torch.allclose(w[0], w[1])
+
+
+def test_input_noise_option_trains(data):
+    train, _ = data
+    m = EnsembleDynamics(2, 1, hidden=(16,), input_noise_std=0.1, seed=0)
+    h = m.fit(train, epochs=3, batch_size=64, progress=False)
+    assert all(np.isfinite(e["train_loss"]) for e in h)
+
+
+def test_save_load_roundtrip(tmp_path, data):
+    train, val = data
+    m = EnsembleDynamics(2, 1, ensemble=2, hidden=(16, 16), input_noise_std=0.01, seed=0)
+    m.fit(train, epochs=2, batch_size=64, progress=False, val=val, horizon=3)
+    path = tmp_path / "model.pt"
+    m.save(path)
+    raw = torch.load(path, weights_only=True)
+    assert raw["config"]["ensemble"] == 2 and raw["state_names"] == ["p", "v"]
+    m2 = EnsembleDynamics.load(path)
+    assert m2.history == m.history and m2.config == m.config
+    assert m2.action_units == ["1"]
+    s, a = torch.randn(9, 2), torch.randn(9, 1)
+    with torch.inference_mode():
+        assert torch.allclose(m.predict(s, a), m2.predict(s, a))
+    m2.fit(train, epochs=1, progress=False)  # a loaded model warm-starts too
+    assert m2.history[-1]["epoch"] == 2
+    torch.save({"format": "other"}, tmp_path / "bad.pt")
+    with pytest.raises(ValueError):
+        EnsembleDynamics.load(tmp_path / "bad.pt")
+
+
+def test_model_plugs_into_planner():
+    from control.planners import PDDM
+
+    m = EnsembleDynamics(2, 1, ensemble=3, hidden=(16,), seed=0)
+    p = PDDM(-1.0, 1.0, horizon=4, samples=32, action_dim=1)
+    a = p(m, lambda st, ac: st[..., -1, 0] ** 2, np.zeros(2, np.float32))
+    assert a.shape == (1,) and p.last_predicted_states.shape == (3, 5, 2)
