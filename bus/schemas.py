@@ -94,8 +94,14 @@ class ResetEvent(Msg, tag="hil.ResetEvent/1"):
     detail: str = ""
 
 
-ALL_TYPES: tuple[type[Msg], ...] = (RobotState, Command, EStop, Plan, Image, SpecMsg, ModelUpdate, ResetEvent)
-AnyMsg = RobotState | Command | EStop | Plan | Image | SpecMsg | ModelUpdate | ResetEvent
+class Ping(Msg, tag="hil.Ping/1"):
+    """Benchmarks and link checks."""
+
+    data: bytes = b""
+
+
+ALL_TYPES: tuple[type[Msg], ...] = (RobotState, Command, EStop, Plan, Image, SpecMsg, ModelUpdate, ResetEvent, Ping)
+AnyMsg = RobotState | Command | EStop | Plan | Image | SpecMsg | ModelUpdate | ResetEvent | Ping
 
 T = TypeVar("T", bound=Msg)
 

@@ -131,7 +131,12 @@ class DriverNode(Node):
             active=self.driver.active,
             stopped_reason=self.stopped_reason,
             action=[] if held is None else held.tolist(),
-            health=h.to_dict(),
+            health={
+                **h.to_dict(),
+                "bus_malformed": self.malformed_count(),
+                "commands_rejected": self.stats.commands_rejected,
+                "stale_stops": self.stats.stale_stops,
+            },
         )
         self._last_state = self._state_pub.put(msg)
         return msg

@@ -35,3 +35,7 @@ for _mod in _VERB_MODULES:
 
 def main() -> None:
     app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,52 @@
+"""rerun logging (read back from the .rrd) and the bus benchmark's output shape."""
+
+from __future__ import annotations
+
+import json
+
+from bus import keys
+from bus.recording import McapLog
+from bus.schemas import Command, Image, Plan, RobotState, SpecMsg
+
+
+def _entities(rrd) -> set[str]:
+    import rerun as rr
+
+    return {str(c.entity_path) for c in rr.chunk.RrdReader(str(rrd)).stream().to_chunks()}
+
+
+def test_viz_recording_to_rrd_with_layout(tmp_path):
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    mc = tmp_path / "a.mcap"
+    spec = {"state": {"names": ["x", "y", "vx", "vy"]}, "action": {"names": ["fx", "fy"]}}
+    with McapLog(mc) as log:
+        log.write(keys.spec("r", "pm"), SpecMsg(robot="pm", spec=spec))
+        for i in range(20):
+            log.write(keys.state("r", "pm"), RobotState(robot="pm", t_s=i * 0.1, state=[i * 0.1, 0.0, 1.0, 0.0]))
+            log.write(keys.cmd("r", "pm"), Command(robot="pm", action=[1.0, 0.0]))
+        log.write(keys.plan("r"), Plan(robot="pm", actions=[[1.0, 0.0]], states=[[0, 0, 0, 0], [0.1, 0, 0, 0]]))
+        log.write(keys.image("r", "cam"), Image(camera="cam", t_s=0.0, width=2, height=2, data=bytes(12)))
+    rrd = tmp_path / "a.rrd"
+    r = CliRunner().invoke(app, ["viz", "--recording", str(mc), "--save", str(rrd)])
+    assert r.exit_code == 0, r.output
+    ents = _entities(rrd)
+    for e in ("/state/pm/x", "/cmd/pm/fx", "/world/pm/path", "/world/pm/plan", "/camera/cam"):
+        assert e in ents, (e, ents)
+
+
+def test_bench_bus_prints_json_with_ratio():
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    r = CliRunner().invoke(app, ["bench", "bus", "--n", "100", "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    for size in ("64B", "4096B"):
+        row = out[size]
+        assert row["raw"]["p50_us"] > 0 and row["node"]["p99_us"] >= row["node"]["p50_us"]
+        assert row["ratio_p50"] == row["node"]["p50_us"] / row["raw"]["p50_us"]
+    assert "ratio_p50" in out

@@ -1,0 +1,57 @@
+"""hil bench bus | plan | sim: speed goals as ratios against a peer in the same run."""
+
+from __future__ import annotations
+
+import json
+
+import typer
+
+from tools.common import echo_json, user_errors
+
+bench_app = typer.Typer(help="Benchmarks (ratios against a peer in the same run).", no_args_is_help=True)
+
+
+@bench_app.command("bus")
+@user_errors
+def bench_bus(
+    n: int = typer.Option(2000, "--n", help="round trips per payload size"),
+    json_out: bool = typer.Option(False, "--json"),
+) -> None:
+    """Ping-pong latency: hilstack node layer vs raw zenoh-python (64 B and 4 KB)."""
+    from tools.bench_bus import run_bench_bus
+
+    r = run_bench_bus(n=n)
+    if json_out:
+        echo_json(r)
+    else:
+        typer.echo(json.dumps(r, indent=2))
+
+
+@bench_app.command("plan")
+@user_errors
+def bench_plan(
+    calls: int = typer.Option(50, "--calls"),
+    json_out: bool = typer.Option(False, "--json"),
+) -> None:
+    """Planner timing on workloads A and B vs pytorch-mppi's MPPI on the same model."""
+    from tools.bench_plan import run_bench_plan
+
+    r = run_bench_plan(calls=calls)
+    echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
+
+
+@bench_app.command("sim")
+@user_errors
+def bench_sim(
+    seconds: float = typer.Option(60.0, "--seconds", help="robot seconds to simulate"),
+    json_out: bool = typer.Option(False, "--json"),
+) -> None:
+    """VelociRoACH sim speed in lockstep vs raw mj_step on the same model."""
+    from tools.bench_sim import run_bench_sim
+
+    r = run_bench_sim(seconds_of_robot_time=seconds)
+    echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(bench_app, name="bench")

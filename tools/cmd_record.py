@@ -1,0 +1,70 @@
+"""hil record / replay / inspect."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import typer
+
+from tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    @user_errors
+    def record(
+        rig: str = typer.Option(..., "--rig", help="rig name (key prefix hil/<rig>/)"),
+        out: Path = typer.Option(None, "--out", help="MCAP file (default recordings/<rig>-<time>.mcap)"),
+        seconds: float = typer.Option(None, "--seconds", help="stop after this long (default: until Ctrl-C)"),
+        endpoint: str = EndpointOpt,
+    ) -> None:
+        """Record every message of a rig to one MCAP file (crash-safe chunks)."""
+        from bus.recording import Recorder
+
+        out = out or Path("recordings") / f"{rig}-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
+        rec = Recorder(rig, out, bus_config(endpoint))
+        typer.echo(f"recording hil/{rig}/** to {out} (Ctrl-C to stop)", err=True)
+        try:
+            n = rec.record(seconds)
+        finally:
+            rec.close()
+        typer.echo(f"wrote {n} messages to {out} ({rec.malformed} malformed payloads skipped)", err=True)
+
+    @app.command()
+    @user_errors
+    def replay(
+        path: Path = typer.Argument(..., exists=True, dir_okay=False, help="MCAP recording"),
+        speed: float = typer.Option(1.0, "--speed", help="playback speed factor; 0 = as fast as possible"),
+        rig: str = typer.Option(None, "--rig", help="publish under hil/<rig>/ instead of the recorded rig"),
+        endpoint: str = EndpointOpt,
+    ) -> None:
+        """Play a recording back onto the bus at 1x or scaled speed."""
+        from bus.recording import replay as do_replay
+
+        if speed < 0:
+            raise UserError("--speed must be >= 0")
+        n = do_replay(path, bus_config(endpoint), speed=speed, rig=rig)
+        typer.echo(f"replayed {n} messages from {path}", err=True)
+
+    @app.command()
+    @user_errors
+    def inspect(
+        path: Path = typer.Argument(..., exists=True, dir_okay=False, help="MCAP recording"),
+        json_out: bool = typer.Option(False, "--json", help="one JSON object on stdout"),
+    ) -> None:
+        """Summarise a recording: channels, counts, rates, gaps."""
+        from bus.recording import summarize
+
+        s = summarize(path)
+        if json_out:
+            echo_json(s)
+            return
+        typer.echo(f"{s['path']}: {s['messages']} messages over {s['duration_s']:.2f} s")
+        if s["truncated"]:
+            typer.echo(f"  warning: file is truncated ({s['error']}); messages up to the damage are shown")
+        typer.echo(f"  {'channel':40s} {'type':22s} {'count':>7s} {'rate_hz':>8s} {'max_gap_s':>9s} gaps")
+        for topic, c in s["channels"].items():
+            typer.echo(
+                f"  {topic:40s} {c['type']:22s} {c['count']:7d} {c['rate_hz']:8.1f} {c['max_gap_s']:9.3f} {c['gaps']}"
+            )
