@@ -44,6 +44,8 @@ class VelociRoachParams(Params):
     telemetry_hz: float = Field(100.0, gt=0)
     firmware_watchdog_s: float = Field(0.5, gt=0)
     tlog: str | None = Field(None, description="write every MAVLink frame to this .tlog")
+    mocap_udp_port: int | None = Field(
+        None, ge=0, le=65535, description="real: receive the robot's mocap pose here (drivers.mocap.udp stream)")
     # sim (ignored by the real driver); the sim backend reads the rest from here too
     sim: dict = Field(default_factory=dict, description="sim backend settings (terrain, motor, battery...)")
     emulator: dict = Field(default_factory=dict, description="emulator settings (realtime factor...)")

@@ -95,6 +95,8 @@ class XBeeDeframer:
         self.garbage = 0
         self.bad_length = 0
         self.last_error: str | None = None
+        #: skipping the body of a frame already counted as bad: its bytes are not "garbage"
+        self._resync = False
 
     def feed(self, data: bytes, now_s: float | None = None) -> list[XBeeFrame]:
         now_s = time.monotonic() if now_s is None else now_s
@@ -108,14 +110,19 @@ class XBeeDeframer:
                 i = buf.find(START)
                 n = len(buf) if i < 0 else i
                 del buf[:n]
-                self._bad("garbage", f"{n} garbage byte(s) between frames")
+                if self._resync:
+                    self._resync = i < 0  # the rest of a frame already counted as bad
+                else:
+                    self._bad("garbage", f"{n} garbage byte(s) between frames")
                 continue
+            self._resync = False
             if len(buf) < 3:
                 break
             length = (buf[1] << 8) | buf[2]
             if length == 0 or length > MAX_FRAME_LEN:
                 del buf[:1]
                 self._bad("bad_length", f"impossible XBee frame length {length}")
+                self._resync = True
                 continue
             total = length + 4
             if len(buf) < total:
@@ -134,6 +141,7 @@ class XBeeDeframer:
                 kind = "truncated" if j is not None and j < total else "bad_checksum"
                 del buf[:1]
                 self._bad(kind, f"XBee {kind.replace('_', ' ')} (frame type 0x{frame[3]:02X})")
+                self._resync = True
                 continue
             del buf[:total]
             f = self._parse(frame)

@@ -78,7 +78,7 @@ class Emulator:
         self.last_cmd_seq = 0
         self.last_cmd_t: float | None = None
         self.first_cmd_t: float | None = None
-        self.watchdog_tripped = True  # at boot the motors are off until a command arrives
+        self.watchdog_tripped = False
         self.rx_corrupt_reported = 0
         self.frames_out = 0
         self.injected_corrupt = 0
@@ -139,8 +139,6 @@ class Emulator:
             self.last_cmd_t = now
             if self.first_cmd_t is None:
                 self.first_cmd_t = now
-            if self.watchdog_tripped:
-                self.watchdog_tripped = False
         elif t == "ROACH_PID_GAINS_SET":
             ok = all(math.isfinite(v) and v >= 0 for v in (m.kp, m.ki, m.kd))
             if ok:
@@ -154,38 +152,29 @@ class Emulator:
         # HEARTBEAT from the base: nothing to do (the firmware's watchdog is on commands)
 
     def gains(self) -> tuple[float, float, float]:
-        fw = self.sim.firmware
-        g = getattr(fw, "gains", None)
-        if callable(g):
-            g = g()
-        if isinstance(g, dict):
-            return float(g["kp"]), float(g["ki"]), float(g["kd"])
-        if g is not None:
-            kp, ki, kd = g
-            return float(kp), float(ki), float(kd)
-        return tuple(float(getattr(fw, k, math.nan)) for k in ("kp", "ki", "kd"))  # type: ignore[return-value]
+        c = self.sim.firmware.config
+        return c.kp_duty_per_rps, c.ki_duty_per_rev, c.kd_duty_per_rps2
 
     # ------------------------------------------------------------------ state
     def faults(self, tel: dict | None = None) -> int:
-        bits = 0
-        if tel is not None:
-            bits |= int(tel.get("faults", 0))
-        if self.watchdog_tripped and self.last_cmd_t is not None:
+        fw = self.sim.firmware
+        bits = int(fw.faults) if tel is None else int(tel.get("faults", 0))
+        if fw.watchdog_tripped:
             bits |= FAULT_WATCHDOG
         if self.link.corrupt_frames > self.rx_corrupt_reported:
             bits |= FAULT_RX_CORRUPT
         return bits
 
     def check_watchdog(self, now: float) -> None:
-        if self.last_cmd_t is None or self.watchdog_tripped:
-            return
-        silent_s = now - self.last_cmd_t
-        if silent_s > self.p.firmware_watchdog_s:
-            self.watchdog_tripped = True
-            self.sim.firmware.set_leg_velocity(0.0, 0.0, self.sim.sim_time_s)
+        """The firmware's watchdog runs on sim time inside ``advance``; here we only tell
+        the base station when it trips (a real firmware sends the same status text)."""
+        tripped = bool(self.sim.firmware.watchdog_tripped)
+        if tripped and not self.watchdog_tripped and self.last_cmd_t is not None:
+            silent_s = now - self.last_cmd_t
             self.send(self.enc.status_text(mav.ROACH_SEVERITY_WARNING, self.faults(),
                                            f"watchdog: no command for {silent_s:.2f}s, motors stopped"))
-            log(f"watchdog tripped after {silent_s:.3f} s without command")
+            log(f"watchdog tripped {silent_s:.3f} s after the last command")
+        self.watchdog_tripped = tripped
 
     def send_telemetry(self) -> None:
         tel = self.sim.telemetry()
@@ -282,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     where = ap.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", help="serial device to serve (e.g. one end of a socat pty pair)")
     where.add_argument("--print-pty", action="store_true", help="create a pty and print its path")
-    ap.add_argument("--pose-port", type=int, default=None, help="serve mocap pose on this UDP port (0: any free)")
+    ap.add_argument("--pose-port", type=int, default=None, help="send the mocap pose to this UDP port (drivers.mocap.udp)")
     ap.add_argument("--pose-host", default="127.0.0.1")
     ap.add_argument("--config", help="VelociRoachParams as inline JSON or a JSON/YAML file")
     ap.add_argument("--physics", default=None, help=f"module:Class of the physics (default {DEFAULT_PHYSICS})")
@@ -326,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         from drivers.mocap.udp import PoseStreamServer
 
         pose_server = PoseStreamServer(args.pose_host, args.pose_port)
-        pose_port = pose_server.port
+        pose_port = args.pose_port
 
     em = Emulator(
         params, link, physics, pose_server,

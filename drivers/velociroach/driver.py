@@ -1,0 +1,416 @@
+"""VelociRoACH driver: the driver contract over the XBee/MAVLink radio link.
+
+backend "real": the base-station XBee on ``params.port`` (API mode 1, ``params.baudrate``).
+backend "emulated": the same code against the firmware emulator
+(``python -m sim_backends.velociroach.emulator``), started here as a separate process on a
+pty it creates; its mocap pose arrives over UDP like a motion-capture stream would.
+
+Threads: a reader thread drains the port, keeps the latest telemetry and pose, and sends
+the heartbeat (1 Hz); ``read()`` only copies that under a lock, so it never blocks on I/O.
+``write()`` packs and sends one command frame from the caller's thread.
+
+State (24-D, see ``config.STATE_CHANNELS``): position and orientation from the mocap pose,
+linear velocity by differencing the pose (low-pass filtered), angular velocity from the
+gyro, crank angles/velocities, back-EMFs and battery voltage from telemetry.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import select
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from configs.schema import ConfigError, RobotConfig
+from drivers.base import Driver, Health, LinkError, Observation
+from drivers.velociroach.config import VelociRoachParams, velociroach_spec
+from drivers.velociroach.link import RadioLink
+from drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, EncodeError, MavEncoder
+from sim_backends.base import parse_params
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+#: the base station's heartbeat rate (MAVLink convention: 1 Hz)
+HEARTBEAT_PERIOD_S = 1.0
+#: time for the emulator to import MuJoCo, build the model and print its pty
+EMULATOR_START_TIMEOUT_S = 30.0
+#: link is "ok" while telemetry is younger than this many telemetry periods (and >= 0.3 s)
+STALE_TELEMETRY_PERIODS = 10
+#: velocity low-pass: time constant of the pose differencing filter
+VEL_FILTER_TAU_S = 0.05
+
+
+def quat_to_rpy(q_wxyz: np.ndarray) -> tuple[float, float, float]:
+    """ZYX Euler angles (roll, pitch, yaw) [rad] of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = (float(v) for v in q_wxyz)
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+class PoseFilter:
+    """Mocap pose -> position, filtered world-frame velocity, roll/pitch/yaw."""
+
+    def __init__(self, tau_s: float = VEL_FILTER_TAU_S):
+        self.tau_s = tau_s
+        self.t_s: float | None = None
+        self.pos = np.zeros(3)
+        self.vel = np.zeros(3)
+        self.rpy = (0.0, 0.0, 0.0)
+
+    def update(self, t_s: float, pos: Any, quat_wxyz: Any) -> None:
+        p = np.asarray(pos, dtype=np.float64).reshape(3)
+        q = np.asarray(quat_wxyz, dtype=np.float64).reshape(4)
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))) or np.linalg.norm(q) < 1e-6:
+            return  # a mocap dropout (NaN/zero quaternion) is skipped, not propagated
+        if self.t_s is not None:
+            dt = t_s - self.t_s
+            if dt <= 0:
+                return  # duplicate or reordered sample
+            raw = (p - self.pos) / dt
+            a = dt / (self.tau_s + dt)
+            self.vel = self.vel + a * (raw - self.vel)
+        self.t_s = t_s
+        self.pos = p
+        self.rpy = quat_to_rpy(q / np.linalg.norm(q))
+
+
+class VelociRoachDriver(Driver):
+    def __init__(self, params: VelociRoachParams | None = None, backend: str = "real", source: str | None = None):
+        super().__init__()
+        self.params = params or VelociRoachParams()
+        self.backend = backend
+        self.source = source
+        self.spec = velociroach_spec(self.params)
+        self.link: RadioLink | None = None
+        self.enc = MavEncoder(BASE_SYSID, BASE_COMPID)
+        self._lock = threading.Lock()
+        self._stop_evt = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._proc: subprocess.Popen | None = None
+        self._emu_log: Path | None = None
+        self._pose_client: Any = None
+        self._pose = PoseFilter()
+        self._tel: Any = None
+        self._tel_t: float | None = None
+        self._hb_t: float | None = None
+        self._robot_faults = 0
+        self._status: list[str] = []
+        self._gains_reply: dict[int, Any] = {}
+        self._cmd_seq = 0
+        self._cmd_sent_t: dict[int, float] = {}
+        self._latency_s: float | None = None
+        self._reader_error: str | None = None
+        self._seq = 0
+        self._rid = 0
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> VelociRoachDriver:
+        return cls(parse_params(cfg, VelociRoachParams), backend=cfg.backend, source=cfg.source)
+
+    # ------------------------------------------------------------------ lifecycle
+    def _on_configure(self) -> None:
+        p = self.params
+        if self.backend != "emulated" and not p.port:
+            raise ConfigError(self.source, [(
+                "params.port", "no serial port: set params.port or pass --port; `hil find-port` lists candidates")])
+        # the pose: the emulator streams its sim's mocap here; a real rig points a mocap
+        # bridge at params.mocap_udp_port
+        pose_port = p.mocap_udp_port
+        if self.backend == "emulated" and self.params.emulator.get("pose", True):
+            pose_port = 0
+        if pose_port is not None:
+            from drivers.mocap.udp import UdpPoseClient
+
+            self._pose_client = UdpPoseClient("127.0.0.1" if self.backend == "emulated" else "0.0.0.0", pose_port)
+        url = self._start_emulator() if self.backend == "emulated" else p.port
+        self.link = RadioLink.open(url, p.baudrate, role="base", robot_addr64=p.robot_addr64, tlog=p.tlog)
+        self._stop_evt.clear()
+        self._reader_error = None
+        self._thread = threading.Thread(target=self._reader, name="velociroach-link", daemon=True)
+        self._thread.start()
+        self._wait_first_contact()
+
+    def _start_emulator(self) -> str:
+        cfg = self.params.model_dump(mode="json")
+        cfg["port"] = None
+        cfg["tlog"] = None  # the driver writes the log, not the robot
+        fd, log_path = tempfile.mkstemp(prefix="velociroach-emulator-", suffix=".log")
+        os.close(fd)
+        self._emu_log = Path(log_path)
+        cmd = [sys.executable, "-m", "sim_backends.velociroach.emulator", "--print-pty",
+               "--config", json.dumps(cfg), "--parent-pid", str(os.getpid())]
+        if self._pose_client is not None:
+            cmd += ["--pose-port", str(self._pose_client.port)]
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), *filter(None, [env.get("PYTHONPATH")])])
+        with open(self._emu_log, "wb") as errf:
+            self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=errf, stdin=subprocess.DEVNULL,
+                                          cwd=str(REPO_ROOT), env=env)
+        assert self._proc.stdout is not None
+        deadline = time.monotonic() + float(self.params.emulator.get("start_timeout_s", EMULATOR_START_TIMEOUT_S))
+        line = b""
+        while not line.endswith(b"\n"):
+            left = deadline - time.monotonic()
+            if self._proc.poll() is not None:
+                raise LinkError(f"emulator exited with code {self._proc.returncode} before it was ready:\n"
+                                f"{self._emu_tail()}")
+            if left <= 0:
+                raise LinkError(f"emulator did not start within {EMULATOR_START_TIMEOUT_S:.0f} s:\n{self._emu_tail()}")
+            r, _, _ = select.select([self._proc.stdout], [], [], min(left, 0.1))
+            if r:
+                ch = os.read(self._proc.stdout.fileno(), 1)
+                if not ch:
+                    continue
+                line += ch
+        return json.loads(line)["pty"]
+
+    def _emu_tail(self, n: int = 15) -> str:
+        if self._emu_log is None or not self._emu_log.exists():
+            return "(no emulator log)"
+        lines = self._emu_log.read_text(errors="replace").splitlines()
+        return "\n".join(lines[-n:]) or "(emulator log empty)"
+
+    def _wait_first_contact(self) -> None:
+        """Heartbeat and telemetry from the robot, or a LinkError that says what to check."""
+        timeout_s = float(self.params.emulator.get("connect_timeout_s", 10.0)) if self.backend == "emulated" \
+            else 5.0
+        deadline = time.monotonic() + timeout_s
+        self._send(self.enc.heartbeat())
+        while time.monotonic() < deadline:
+            with self._lock:
+                if self._reader_error:
+                    raise LinkError(self._reader_error)
+                if self._hb_t is not None and self._tel is not None:
+                    return
+            time.sleep(0.01)
+        what = "heartbeat" if self._hb_t is None else "telemetry"
+        hint = (f"emulator log:\n{self._emu_tail()}" if self.backend == "emulated" else
+                f"is the robot on, and the base-station XBee on {self.params.port} in API mode 1 at "
+                f"{self.params.baudrate} baud, talking to {self.params.robot_addr64}?")
+        raise LinkError(f"no {what} from the robot within {timeout_s:.0f} s; {hint}")
+
+    def _on_cleanup(self) -> None:
+        self._stop_evt.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=1.0)
+        self._thread = None
+        if self.link is not None:
+            self.link.close()
+        if self._pose_client is not None:
+            try:
+                self._pose_client.close()
+            except Exception:
+                pass
+            self._pose_client = None
+        if self._proc is not None:
+            if self._proc.poll() is None:
+                self._proc.terminate()
+                try:
+                    self._proc.wait(timeout=3.0)
+                except subprocess.TimeoutExpired:
+                    self._proc.kill()
+                    self._proc.wait(timeout=3.0)
+            if self._proc.stdout is not None:
+                self._proc.stdout.close()
+            self._proc = None
+        if self._emu_log is not None and not self.params.emulator.get("keep_log", False):
+            self._emu_log.unlink(missing_ok=True)
+            self._emu_log = None
+
+    # ------------------------------------------------------------------ reader thread
+    def _reader(self) -> None:
+        link = self.link
+        assert link is not None
+        next_hb = time.monotonic() + HEARTBEAT_PERIOD_S
+        while not self._stop_evt.is_set():
+            try:
+                msgs = link.receive(timeout_s=0.01)
+                now = time.monotonic()
+                for m in msgs:
+                    self._handle(m, now)
+                if self._pose_client is not None:
+                    self._poll_pose()
+                if now >= next_hb:
+                    next_hb = now + HEARTBEAT_PERIOD_S
+                    self._send(self.enc.heartbeat())
+            except LinkError as e:
+                with self._lock:
+                    self._reader_error = str(e)
+                return
+            except Exception as e:  # a bug here must show up in health, not kill the link silently
+                with self._lock:
+                    self._reader_error = f"link reader crashed: {type(e).__name__}: {e}"
+                return
+
+    def _handle(self, m: Any, now: float) -> None:
+        t = m.get_type()
+        with self._lock:
+            if t == "ROACH_TELEMETRY":
+                self._tel = m
+                self._tel_t = now
+                self._robot_faults = m.faults
+                sent = self._cmd_sent_t.pop(m.last_cmd_seq, None)
+                if sent is not None:
+                    self._latency_s = now - sent
+                    # anything older than the acknowledged command will not be echoed any more
+                    for s in [s for s in self._cmd_sent_t if s < m.last_cmd_seq]:
+                        del self._cmd_sent_t[s]
+            elif t == "HEARTBEAT":
+                self._hb_t = now
+            elif t == "ROACH_STATUS_TEXT":
+                self._status = (self._status + [m.text])[-10:]
+            elif t == "ROACH_PID_GAINS":
+                self._gains_reply[m.request_id] = m
+
+    def _poll_pose(self) -> None:
+        sample = self._pose_client.latest()
+        if sample is not None and sample.t_s != self._pose.t_s:
+            with self._lock:
+                self._pose.update(sample.t_s, sample.position_m, sample.quaternion_wxyz)
+
+    def _send(self, frame: bytes) -> None:
+        if self.link is None:
+            raise LinkError("link not open")
+        self.link.send(frame)
+
+    # ------------------------------------------------------------------ contract hooks
+    def _check_link(self) -> None:
+        with self._lock:
+            err = self._reader_error
+        if err:
+            raise LinkError(err)
+
+    def _read(self) -> Observation:
+        self._check_link()
+        with self._lock:
+            tel, tel_t = self._tel, self._tel_t
+            pose = self._pose
+            pos, vel, (roll, pitch, yaw) = pose.pos.copy(), pose.vel.copy(), pose.rpy
+            pose_t = pose.t_s
+        s = np.zeros(self.spec.state.dim)
+        s[0:3] = pos
+        s[3:6] = vel
+        s[6:12] = [math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)]
+        if tel is not None:
+            s[12:15] = tel.gyro
+            al, ar = tel.crank_angle
+            s[15:19] = [math.cos(al), math.sin(al), math.cos(ar), math.sin(ar)]
+            s[19:21] = tel.crank_vel
+            s[21:23] = tel.bemf
+            s[23] = tel.vbat
+        else:
+            s[15], s[17] = 1.0, 1.0
+        now = time.monotonic()
+        fresh = tel_t is not None and now - tel_t < self._stale_s()
+        self._seq += 1
+        return Observation(
+            t_s=tel_t if tel_t is not None else now,
+            state=np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0),
+            seq=self._seq,
+            ok=fresh,
+            flags={"telemetry_fresh": fresh, "pose_valid": pose_t is not None,
+                   "watchdog": bool(self._robot_faults & 1)},
+            extras={"faults": self._robot_faults, "t_fw_ms": None if tel is None else tel.time_fw_ms,
+                    "duty": None if tel is None else list(tel.duty), "pose_t_s": pose_t},
+        )
+
+    def _stale_s(self) -> float:
+        return max(0.3, STALE_TELEMETRY_PERIODS / self.params.telemetry_hz)
+
+    def _write(self, action: np.ndarray) -> None:
+        self._check_link()
+        self._cmd_seq += 1
+        seq = self._cmd_seq
+        a, b = float(action[0]), float(action[1])
+        try:
+            if self.params.action_mode == "leg_velocity":
+                frame = self.enc.leg_velocity(seq, a, b, self.params.max_leg_vel_rps)
+            else:
+                frame = self.enc.pwm(seq, a, b)
+        except EncodeError as e:
+            # the base class validated already; reaching this is a bug upstream, never a send
+            raise LinkError(f"refused to send a bad command: {e}") from None
+        with self._lock:
+            self._cmd_sent_t[seq] = time.monotonic()
+            if len(self._cmd_sent_t) > 256:  # never acknowledged (radio loss): forget the oldest
+                del self._cmd_sent_t[min(self._cmd_sent_t)]
+        self._send(frame)
+
+    def _stop(self) -> None:
+        if self.link is None or self.link.closed or self.link.dead:
+            return
+        self._write(np.zeros(2))
+
+    def _health(self) -> Health:
+        link = self.link
+        now = time.monotonic()
+        with self._lock:
+            err = self._reader_error
+            tel, tel_t, hb_t = self._tel, self._tel_t, self._hb_t
+            status = list(self._status)
+            latency = self._latency_s
+        if link is None:
+            return Health(ok=False, link_quality=0.0, last_error=self.last_error or err)
+        st = link.stats()
+        fresh = tel_t is not None and now - tel_t < self._stale_s()
+        extra = {k: v for k, v in st.items() if k not in ("frames_sent", "frames_received", "corrupt_frames",
+                                                          "dropped_frames")}
+        extra.update({
+            "telemetry_age_s": None if tel_t is None else now - tel_t,
+            "robot_faults": self._robot_faults,
+            "robot_rx_good": None if tel is None else tel.rx_good,
+            "robot_rx_corrupt": None if tel is None else tel.rx_corrupt,
+            "status_text": status,
+            "backend": self.backend,
+        })
+        return Health(
+            ok=bool(fresh and err is None and not link.dead),
+            link_quality=link.quality(self.params.telemetry_hz, now),
+            frames_sent=st["frames_sent"],
+            frames_received=st["frames_received"],
+            corrupt_frames=st["corrupt_frames"],
+            dropped_frames=st["dropped_frames"],
+            latency_s=latency,
+            last_heartbeat_s=None if hb_t is None else now - hb_t,
+            last_error=err or link.last_error or self.last_error,
+            extra=extra,
+        )
+
+    # ------------------------------------------------------------------ extras
+    def set_pid_gains(self, kp: float, ki: float, kd: float, timeout_s: float = 1.0) -> tuple[float, float, float]:
+        """Set the firmware's crank PID gains; returns the gains the robot reports."""
+        self._rid = (self._rid + 1) % 65536
+        self._send(self.enc.pid_set(self._rid, kp, ki, kd))
+        return self._await_gains(self._rid, timeout_s)
+
+    def get_pid_gains(self, timeout_s: float = 1.0) -> tuple[float, float, float]:
+        self._rid = (self._rid + 1) % 65536
+        self._send(self.enc.pid_get(self._rid))
+        return self._await_gains(self._rid, timeout_s)
+
+    def _await_gains(self, rid: int, timeout_s: float) -> tuple[float, float, float]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            self._check_link()
+            with self._lock:
+                m = self._gains_reply.pop(rid, None)
+            if m is not None:
+                if m.result == 1:
+                    raise ValueError(f"robot rejected the PID gains; it keeps {m.kp}, {m.ki}, {m.kd}")
+                return m.kp, m.ki, m.kd
+            time.sleep(0.005)
+        raise LinkError(f"no PID gains answer from the robot within {timeout_s} s")
+
+    @property
+    def emulator_log(self) -> Path | None:
+        return self._emu_log
