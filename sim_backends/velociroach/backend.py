@@ -44,10 +44,10 @@ ENCODER_COUNTS = 1 << 14  # 14-bit magnetic crank encoders
 #: terrain presets: Coulomb friction, contact softness (solref time constant [s], damping ratio),
 #: roughness (RMS height [m] of a seeded heightfield, 0 = plane) and its correlation length [m]
 TERRAINS: dict[str, dict[str, Any]] = {
-    "carpet": {"friction": 1.0, "solref": (0.004, 1.0), "roughness_m": 0.0, "correlation_m": 0.0},
-    "styrofoam": {"friction": 0.45, "solref": (0.015, 1.0), "roughness_m": 0.0, "correlation_m": 0.0},
-    "gravel": {"friction": 0.8, "solref": (0.006, 1.0), "roughness_m": 0.003, "correlation_m": 0.01},
-    "turf": {"friction": 0.9, "solref": (0.02, 0.7), "roughness_m": 0.002, "correlation_m": 0.02},
+    "carpet": {"friction": 1.0, "solref": (0.02, 1.0), "roughness_m": 0.0, "correlation_m": 0.0},
+    "styrofoam": {"friction": 0.6, "solref": (0.005, 1.0), "roughness_m": 0.0, "correlation_m": 0.0},
+    "gravel": {"friction": 0.8, "solref": (0.006, 1.0), "roughness_m": 0.003, "correlation_m": 0.02},
+    "turf": {"friction": 0.9, "solref": (0.015, 1.0), "roughness_m": 0.002, "correlation_m": 0.03},
 }
 
 PERTURBATIONS = ("missing_leg", "payload_kg", "mocap_offset_m", "slope_deg")
@@ -65,11 +65,12 @@ class SimParams(Params):
     roughness_m: float | None = Field(None, ge=0, description="override the preset's RMS roughness")
     slope_deg: float = Field(0.0, ge=-30, le=30, description="ground slope, + is uphill along world +x")
     terrain_half_size_m: float = Field(2.0, gt=0)
-    terrain_cell_m: float = Field(0.005, gt=0)
+    terrain_cell_m: float = Field(0.01, gt=0)
     # body
     chassis_mass_kg: float = Field(0.030, gt=0)
     leg_mass_kg: float = Field(0.001, gt=0)
-    leg_arc_m: float = Field(0.011, gt=0, description="radius of the C-leg's half circle")
+    leg_length_m: float = Field(0.010, gt=0, description="hip to foot centre (the crank's eccentricity)")
+    foot_radius_m: float = Field(0.008, gt=0)
     phase_lr_deg: float = Field(180.0, description="right crank minus left crank at reset (180: alternating tripod)")
     # motor (per side)
     motor_resistance_ohm: float = Field(3.6, gt=0)
@@ -193,7 +194,8 @@ class VelociRoachSim(LockstepSim):
             n = int(round(2 * s.terrain_half_size_m / s.terrain_cell_m)) + 1
             # heights in [0, 1] scaled by zmax; RMS of a filtered Gaussian field ≈ zmax/6
             hf = (n, s.terrain_half_size_m, 6.0 * terr["roughness_m"])
-        geom = Geometry(chassis_mass_kg=s.chassis_mass_kg, leg_mass_kg=s.leg_mass_kg, leg_arc_m=s.leg_arc_m,
+        geom = Geometry(chassis_mass_kg=s.chassis_mass_kg, leg_mass_kg=s.leg_mass_kg, leg_length_m=s.leg_length_m,
+                        foot_radius_m=s.foot_radius_m,
                         armature_kgm2=s.rotor_inertia_kgm2 * gr * gr)
         self._geometry = geom
         xml = build_mjcf(
@@ -242,8 +244,9 @@ class VelociRoachSim(LockstepSim):
             d.qpos[a] = ql
         for a in self._q_r:
             d.qpos[a] = qr
-        # standing on the tripod pointing down: 2·arc + leg radius above the ground
-        z0 = 2 * self._geometry.leg_arc_m + self._geometry.leg_radius_m + 0.001 + self._hfield_zmax
+        # standing on the tripod pointing down: hip at spoke + foot radius above the ground
+        g = self._geometry
+        z0 = g.leg_length_m + g.foot_radius_m - g.hip_z_m + 0.001 + self._hfield_zmax
         d.qpos[0:3] = (x, y, z0)
         d.qpos[3:7] = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
         mujoco.mj_forward(m, d)

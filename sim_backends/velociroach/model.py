@@ -2,9 +2,12 @@
 
 Geometry (body frame: x forward, y left, z up; SI units):
 
-* chassis: a box 10 cm x 4 cm x 1.6 cm (the real robot is ~10 cm long, 30-55 g).
-* legs: six C-shaped legs (RHex-like), each a half-circle of radius ``leg_arc_m`` drawn
-  as ``_ARC_SEGMENTS`` capsules from the hip; each leg has its own hinge about the
+* chassis: a box 10 cm x 4 cm x 1.2 cm (the real robot is ~10 cm long, 30-55 g).
+* legs: six legs, each a spoke of length ``leg_length_m`` from its hip ending in a round
+  foot (a sphere of ``foot_radius_m``, the cheapest contact in MuJoCo, also on a
+  heightfield); the foot rolls over the ground like the curved VelociRoACH/RHex legs
+  do, and the support height ρ + e·|cos θ| of two tripods in antiphase keeps the body
+  up through the whole cycle (a straight spoke would drop it at θ = 90°). Each leg has its own hinge about the
   body's y axis at its hip. The three hinges of one side are tied to each other by
   ``<equality joint>`` constraints (q_fore = q_mid = q_aft): this is the crank
   linkage of one motor. The 180° phase between fore/aft and middle legs is built
@@ -44,22 +47,20 @@ LEGS: tuple[tuple[str, int, float, float], ...] = (
     ("ra", -1, -1, 0.0),
 )
 LEG_NAMES = tuple(n for n, *_ in LEGS)
-_ARC_SEGMENTS = 3
 
 
 @dataclass(frozen=True)
 class Geometry:
     """Dimensions and masses (SI). Defaults approximate the VelociRoACH (Haldane et al. 2013)."""
 
-    chassis_half_m: tuple[float, float, float] = (0.05, 0.02, 0.008)
+    chassis_half_m: tuple[float, float, float] = (0.05, 0.02, 0.006)
     chassis_mass_kg: float = 0.030
     leg_mass_kg: float = 0.001
     hip_spacing_m: float = 0.035
     hip_y_m: float = 0.027
-    leg_arc_m: float = 0.011
-    leg_radius_m: float = 0.002
-    #: +1: the C opens backwards (convex side forward when the leg points down), -1: mirrored
-    leg_bulge: float = 1.0
+    hip_z_m: float = -0.003
+    leg_length_m: float = 0.010
+    foot_radius_m: float = 0.008
     armature_kgm2: float = 5e-7
     hinge_damping_nms: float = 1e-5
 
@@ -69,27 +70,22 @@ def _fmt(v) -> str:
 
 
 def _leg_xml(name: str, side: int, xsign: float, phase: float, g: Geometry) -> str:
-    a = g.leg_arc_m
-    # half circle from the hip (0,0,0) to the tip (0,0,-2a), bulging towards +x of the
-    # leg frame; the middle leg's arc is rotated by π about the hinge axis.
-    pts = []
-    for k in range(_ARC_SEGMENTS + 1):
-        phi = math.pi * k / _ARC_SEGMENTS
-        px, pz = g.leg_bulge * a * math.sin(phi), -a + a * math.cos(phi)
-        c, s = math.cos(phase), math.sin(phase)
-        # rotation about +y by `phase`: x' = c x + s z, z' = -s x + c z
-        pts.append((c * px + s * pz, 0.0, -s * px + c * pz))
-    geoms = "\n".join(
-        f'        <geom name="{name}_{k}" type="capsule" size="{g.leg_radius_m}" '
-        f'fromto="{_fmt(pts[k])} {_fmt(pts[k + 1])}" mass="{g.leg_mass_kg / _ARC_SEGMENTS:.6g}" '
-        f'class="leg"/>'
-        for k in range(_ARC_SEGMENTS)
-    )
-    pos = (xsign * g.hip_spacing_m, side * g.hip_y_m, 0.0)
+    # the foot: a sphere of radius ``foot_radius_m`` on a spoke of length ``leg_length_m``
+    # from the hip (the spoke itself is visual only). θ = 0 points the spoke down; the
+    # middle leg is drawn rotated by π about the hinge axis (+y).
+    e, rho = g.leg_length_m, g.foot_radius_m
+    c, s = math.cos(phase), math.sin(phase)
+    foot = (-s * e, 0.0, -c * e)
+    pos = (xsign * g.hip_spacing_m, side * g.hip_y_m, g.hip_z_m)
     return (
         f'      <body name="leg_{name}" pos="{_fmt(pos)}">\n'
         f'        <joint name="hip_{name}" type="hinge" axis="0 1 0" armature="{g.armature_kgm2 / 3:.6g}" '
-        f'damping="{g.hinge_damping_nms:.6g}"/>\n{geoms}\n      </body>'
+        f'damping="{g.hinge_damping_nms:.6g}"/>\n'
+        f'        <geom name="{name}_spoke" type="capsule" size="0.0015" fromto="0 0 0 {_fmt(foot)}" '
+        f'contype="0" conaffinity="0" mass="0" rgba=".3 .3 .3 1"/>\n'
+        f'        <geom name="{name}_foot" type="sphere" size="{rho:.6g}" pos="{_fmt(foot)}" '
+        f'mass="{g.leg_mass_kg:.6g}" class="leg"/>\n'
+        f'      </body>'
     )
 
 
