@@ -1,0 +1,241 @@
+"""VelociRoACH MuJoCo backend: locomotion, firmware, battery, terrains, perturbations, sensors.
+
+Lockstep sim only: no sleeps, no wall clock. Speeds at 9 rev/s (0.6 of max_leg_vel_rps
+= 15 rev/s) on carpet are ~0.8 m/s in this model; tests accept 0.3-1.5 m/s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from configs.schema import ConfigError
+from drivers.registry import make_driver
+from drivers.velociroach.config import STATE_NAMES, VelociRoachParams
+from sim_backends.velociroach.backend import VelociRoachSim
+
+IX = {n: i for i, n in enumerate(STATE_NAMES)}
+
+
+def make(**sim) -> VelociRoachSim:
+    s = VelociRoachSim(VelociRoachParams(sim=sim))
+    s.configure()
+    s.activate()
+    return s
+
+
+def drive(s: VelociRoachSim, left: float, right: float, seconds: float) -> np.ndarray:
+    for _ in range(round(seconds / s.spec.period_s)):
+        s.write([left, right])
+        s.tick()
+    return s.read().state
+
+
+def yaw_of(state: np.ndarray) -> float:
+    return math.atan2(state[IX["sin_yaw"]], state[IX["cos_yaw"]])
+
+
+def speed_mps(seconds: float = 2.0, cmd: float = 9.0, **sim) -> float:
+    """Mean ground speed after a 1 s spin-up."""
+    s = make(**sim)
+    a = drive(s, cmd, cmd, 1.0)
+    b = drive(s, cmd, cmd, seconds)
+    return math.hypot(b[0] - a[0], b[1] - a[1]) / seconds
+
+
+def test_backend_from_registry_and_state_layout():
+    d = make_driver("velociroach", backend="sim")
+    assert isinstance(d, VelociRoachSim)
+    assert d.spec.state.names == STATE_NAMES and d.spec.action.names == ("leg_vel_l", "leg_vel_r")
+    d.configure()
+    st = d.read().state
+    assert st.shape == (24,)
+    assert st[IX["z"]] > 0.01 and st[IX["cos_yaw"]] == pytest.approx(1, abs=0.01)
+    assert 3.7 < st[IX["vbat"]] < 4.2
+    d.cleanup()
+
+
+@pytest.mark.parametrize("yaw0", [0.0, math.pi / 2])
+def test_equal_speeds_walk_forward_in_heading(yaw0):
+    s = make()
+    s.reset(x=0.5, y=-0.5, yaw=yaw0)
+    a = drive(s, 9.0, 9.0, 1.0)
+    b = drive(s, 9.0, 9.0, 2.0)
+    d = b[:2] - a[:2]
+    heading = np.array([math.cos(yaw0), math.sin(yaw0)])
+    forward_mps = float(d @ heading) / 2.0
+    assert 0.3 < forward_mps < 1.5
+    assert abs(float(d @ np.array([-heading[1], heading[0]]))) < 0.5 * abs(float(d @ heading))
+    assert abs(math.remainder(yaw_of(b) - yaw0, 2 * math.pi)) < math.radians(30)
+
+
+def test_unequal_speeds_turn_toward_slower_side():
+    right_slow = drive(make(), 9.0, 4.0, 0.5)
+    left_slow = drive(make(), 4.0, 9.0, 0.5)
+    assert yaw_of(right_slow) < -math.radians(10)  # clockwise: toward the right (slower) side
+    assert yaw_of(left_slow) > math.radians(10)
+
+
+def test_zero_command_stays_still():
+    s = make()
+    a = drive(s, 0.0, 0.0, 0.5)
+    b = drive(s, 0.0, 0.0, 3.0)
+    assert np.linalg.norm(b[:2] - a[:2]) < 0.01
+    assert abs(b[IX["crank_vel_l"]]) < 0.2 and abs(b[IX["crank_vel_r"]]) < 0.2
+
+
+def test_pid_tracks_leg_velocity():
+    s = make()
+    s.firmware.set_leg_velocity(6.0, 6.0, s.sim_time_s)
+    s.advance(1.0)
+    # mean crank speed over 1 s from the unwrapped crank angle (the instantaneous speed
+    # ripples with the stance load, which is physical)
+    t0 = s.telemetry()
+    samples = []
+    for _ in range(100):
+        s.firmware.set_leg_velocity(6.0, 6.0, s.sim_time_s)
+        s.advance(0.01)
+        samples.append(s.telemetry()["crank_vel_rps"])
+    mean = np.mean(samples, axis=0)
+    np.testing.assert_allclose(mean, [6.0, 6.0], rtol=0.04)
+    assert s.telemetry()["t_fw_ms"] - t0["t_fw_ms"] == 1000
+
+
+def test_watchdog_stops_motors():
+    s = make()
+    s.firmware.set_leg_velocity(8.0, 8.0, s.sim_time_s)
+    s.advance(0.45)
+    tel = s.telemetry()
+    assert tel["faults"] & 1 == 0 and min(tel["crank_vel_rps"]) > 4.0
+    s.advance(0.1)  # 0.55 s without a command
+    tel = s.telemetry()
+    assert tel["faults"] & 1 and tel["duty"] == [0.0, 0.0]
+    s.advance(0.5)
+    assert max(abs(v) for v in s.telemetry()["crank_vel_rps"]) < 0.5
+    s.firmware.set_leg_velocity(5.0, 5.0, s.sim_time_s)  # a new command re-arms
+    s.advance(0.2)
+    assert s.telemetry()["faults"] & 1 == 0 and min(s.telemetry()["crank_vel_rps"]) > 2.0
+
+
+def test_pwm_mode_and_battery_sag_under_load():
+    s = VelociRoachSim(VelociRoachParams(action_mode="pwm", sim={"battery_resistance_ohm": 0.5}))
+    s.configure()
+    s.activate()
+    rest = drive(s, 0.0, 0.0, 0.5)[IX["vbat"]]
+    loaded = drive(s, 1.0, 1.0, 1.5)[IX["vbat"]]  # rate limit ramps the duty up
+    assert s.firmware.duty_l == pytest.approx(1.0)
+    assert rest - loaded > 0.1
+    back = drive(s, 0.0, 0.0, 1.0)[IX["vbat"]]
+    assert back > loaded + 0.08
+
+
+def test_terrains_and_slope_change_speed():
+    carpet = speed_mps()
+    assert 0.3 < carpet < 1.5
+    assert speed_mps(terrain="styrofoam") < 0.85 * carpet
+    assert speed_mps(slope_deg=15) < 0.95 * carpet
+    assert speed_mps(slope_deg=-15) > speed_mps(slope_deg=15)
+    gravel = speed_mps(terrain="gravel", seed=1)
+    assert 0.05 < gravel < 1.5
+
+
+def test_payload_perturbation_mid_run_slows():
+    s = make()
+    a = drive(s, 9.0, 9.0, 1.0)
+    b = drive(s, 9.0, 9.0, 1.5)
+    free = np.linalg.norm(b[:2] - a[:2]) / 1.5
+    s.set_perturbation("payload_kg", 0.05)
+    c = drive(s, 9.0, 9.0, 0.5)
+    d = drive(s, 9.0, 9.0, 1.5)
+    towed = np.linalg.norm(d[:2] - c[:2]) / 1.5
+    assert towed < 0.8 * free
+    s.set_perturbation("payload_kg", 0.0)
+    with pytest.raises(KeyError):
+        s.set_perturbation("gremlins", 1)
+
+
+def test_missing_leg_and_mocap_offset():
+    s = make()
+    base = drive(s, 9.0, 9.0, 1.0)
+    s.set_perturbation("missing_leg", "lm")
+    assert all(s.model.geom_contype[g] == 0 for g in s._leg_geoms["lm"])
+    moved = drive(s, 9.0, 9.0, 1.0)
+    assert np.linalg.norm(moved[:2] - base[:2]) > 0.1  # still walks, on five legs
+    s.set_perturbation("missing_leg", None)
+    assert s.model.geom_contype[s._leg_geoms["lm"][-1]] == 1
+    truth = s.data.qpos[0:3].copy()
+    s.set_perturbation("mocap_offset_m", [0.1, -0.2, 0.0])
+    s.advance(0.05)
+    t, pos, _ = s.mocap_pose()
+    np.testing.assert_allclose(pos - s.data.qpos[0:3], [0.1, -0.2, 0.0], atol=0.02)
+    assert np.linalg.norm(truth) > 0
+
+
+def test_bad_sim_key_names_field_and_file():
+    with pytest.raises(ConfigError) as e:
+        make_driver("velociroach", backend="sim", sim={"terain": "carpet"})
+    msg = str(e.value)
+    assert "params.sim.terain" in msg and "velociroach.yaml" in msg
+    with pytest.raises(ConfigError, match=r"params\.sim\.terrain"):
+        make_driver("velociroach", backend="sim", sim={"terrain": "lava"})
+
+
+def test_mocap_latency_dropout_and_noise():
+    s = make(mocap_rate_hz=100, mocap_latency_s=0.03, mocap_dropout=0.3, mocap_noise_m=0.002, seed=3)
+    # legs held still by the PID; past the pose taken at reset (delivered at once, as if
+    # the mocap system ran before the reset) and the settling of the stance
+    s.firmware.stop(s.sim_time_s)
+    s.advance(0.3)
+    poses, nones = [], 0
+    for _ in range(400):
+        s.firmware.stop(s.sim_time_s)
+        s.advance(0.01)
+        p = s.mocap_pose()
+        if p is None:
+            nones += 1
+            continue
+        t, pos, q = p
+        assert s.sim_time_s - 0.03 - 0.0105 <= t <= s.sim_time_s - 0.03 + 1e-9
+        assert q.shape == (4,) and abs(np.linalg.norm(q) - 1) < 1e-9
+        poses.append(pos)
+    assert 0.2 < nones / 400 < 0.4
+    std = np.std(np.array(poses)[:, 0])  # robot at rest: the spread is the noise
+    assert 0.001 < std < 0.004
+    assert s.health().dropped_frames == s.mocap_dropped > 0
+
+
+def test_telemetry_packet():
+    s = make()
+    s.firmware.set_leg_velocity(5.0, 5.0, 0.0)
+    s.advance(0.5)
+    tel = s.telemetry()
+    assert tel["t_fw_ms"] == 500 and isinstance(tel["t_fw_ms"], int)
+    for k, n in (("gyro_rps", 3), ("accel_mps2", 3), ("crank_angle_rad", 2), ("crank_vel_rps", 2),
+                 ("bemf_v", 2), ("duty", 2)):
+        assert len(tel[k]) == n, k
+    assert 3.5 < tel["vbat_v"] < 4.3 and tel["faults"] == 0
+    assert all(0 <= a < 2 * math.pi for a in tel["crank_angle_rad"])
+    # accelerometer at rest-ish reads gravity (specific force, +z up in the body frame)
+    s.firmware.set_leg_velocity(0.0, 0.0, s.sim_time_s)
+    s.advance(1.0)
+    assert 7.0 < s.telemetry()["accel_mps2"][2] < 12.5
+    assert np.mean(s.telemetry()["bemf_v"]) < 0.05
+
+
+def _rollout(seed: int) -> np.ndarray:
+    s = make(seed=seed, terrain="gravel", mocap_dropout=0.1)
+    rng = np.random.default_rng(0)
+    out = []
+    for _ in range(20):
+        s.write(rng.uniform(-15, 15, 2))
+        s.tick()
+        out.append(s.read().state)
+    return np.array(out)
+
+
+def test_deterministic_for_a_seed():
+    a, b = _rollout(4), _rollout(4)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, _rollout(5))
