@@ -123,6 +123,9 @@ class VelociRoachDriver(Driver):
         if self.backend != "emulated" and not p.port:
             raise ConfigError(self.source, [(
                 "params.port", "no serial port: set params.port or pass --port; `hil find-port` lists candidates")])
+        if self.backend != "emulated" and "://" not in p.port and not Path(p.port).exists():
+            raise ConfigError(self.source, [(
+                "params.port", f"{p.port} does not exist (robot radio unplugged?); `hil find-port` lists candidates")])
         # the pose: the emulator streams its sim's mocap here; a real rig points a mocap
         # bridge at params.mocap_udp_port
         pose_port = p.mocap_udp_port
@@ -282,6 +285,19 @@ class VelociRoachDriver(Driver):
         if self.link is None:
             raise LinkError("link not open")
         self.link.send(frame)
+
+    def tick(self) -> None:
+        """Wait for the next period boundary. Unlike the base class, the first call waits a
+        full period too, so N ticks always span N periods (a loop that starts with tick()
+        must not send its second command immediately after the first)."""
+        p = self.spec.period_s
+        now = time.monotonic()
+        if self._next_tick is None:
+            self._next_tick = now + p
+        elif now - self._next_tick > p:
+            self._next_tick = now  # fell behind by more than a period: resynchronize, no burst
+        time.sleep(max(0.0, self._next_tick - now))
+        self._next_tick += p
 
     # ------------------------------------------------------------------ contract hooks
     def _check_link(self) -> None:
