@@ -16,8 +16,9 @@ then stays quiet on stdout (logs go to stderr). It stops on SIGTERM/SIGINT or wh
 Fault injection (for tests of the driver's fault handling), as flags or in the config's
 ``emulator`` section: ``--corrupt-every N`` (every N-th frame sent is broken, alternating
 a bad XBee checksum and a bad MAVLink CRC), ``--garbage`` (noise bytes between frames),
-``--silence-after S`` (stop transmitting S seconds after the first command; the firmware
-keeps running, so its watchdog stops the motors).
+``--silence-after S`` (radio outage S seconds after the first command: nothing is sent or
+received any more; the firmware keeps running, so its watchdog stops the motors, and the
+mocap stream, a separate system, keeps going).
 """
 
 from __future__ import annotations
@@ -190,7 +191,8 @@ class Emulator:
         self.send(frame)
 
     def send_pose(self) -> None:
-        if self.pose_server is None or self.silent:
+        # mocap is its own system: it keeps streaming through a radio outage
+        if self.pose_server is None:
             return
         pose = self.sim.mocap_pose()
         if pose is not None:
@@ -207,8 +209,10 @@ class Emulator:
         while self.running:
             now = time.monotonic()
             wait = max(0.0, min(next_tel, next_pose, now + FW_DT_S) - now)
-            for m in self.link.receive(timeout_s=wait):
-                self.handle(m, time.monotonic())
+            msgs = self.link.receive(timeout_s=wait)
+            if not self.silent:  # radio loss is both ways: the robot hears nothing either
+                for m in msgs:
+                    self.handle(m, time.monotonic())
             now = time.monotonic()
             self.check_watchdog(now)
             # real time: bring sim time up to the wall clock in whole firmware ticks

@@ -1,8 +1,6 @@
 """Radio link unit tests: MAVLink codec, XBee deframer, tlog, command checks, vanished port.
 
 No sleeps and no physics here; the pty tests wait on conditions with short timeouts.
-``StandInSim`` at the bottom is a trivial physics for the emulator (``--physics``), used
-while the MuJoCo backend is being changed, and by tests that only care about the link.
 """
 
 from __future__ import annotations
@@ -268,62 +266,3 @@ def test_vanished_port_raises_link_error_quickly():
 def test_missing_port_is_a_clear_error():
     with pytest.raises(LinkError, match="find-port"):
         open_serial("/dev/ttyNOPE_hilstack", 230400)
-
-
-# --------------------------------------------------------------------------- stand-in physics
-class _StandInFirmware:
-    def __init__(self, watchdog_s: float):
-        from sim_backends.velociroach.firmware import Firmware, FirmwareConfig
-
-        self._fw = Firmware(FirmwareConfig(watchdog_s=watchdog_s))
-
-    def __getattr__(self, name):
-        return getattr(self._fw, name)
-
-
-class StandInSim:
-    """A trivial VelociRoACH: first-order cranks driven by the real firmware, unicycle body."""
-
-    def __init__(self, params: VelociRoachParams):
-        self.params = params
-        self.firmware = _StandInFirmware(params.firmware_watchdog_s)
-        self.reset()
-
-    def configure(self):
-        pass
-
-    def reset(self, x=0.0, y=0.0, yaw=0.0):
-        self.firmware.reset()
-        self.t = 0.0
-        self.x, self.y, self.yaw = x, y, yaw
-        self.w = [0.0, 0.0]
-        self.ang = [0.0, math.pi]
-
-    @property
-    def sim_time_s(self):
-        return self.t
-
-    def advance(self, duration_s):
-        for _ in range(max(1, round(duration_s / 0.001))):
-            dl, dr = self.firmware.tick(self.t, self.w[0], self.w[1], 3.9, 0.0, 0.0)
-            for i, d in enumerate((dl, dr)):
-                # 20 rev/s at full duty, 30 ms time constant
-                self.w[i] += (20.0 * d - self.w[i]) * 0.001 / 0.03
-                self.ang[i] = (self.ang[i] + 2 * math.pi * self.w[i] * 0.001) % (2 * math.pi)
-            v = 0.02 * (self.w[0] + self.w[1]) / 2  # 2 cm per stride
-            self.yaw += 0.2 * (self.w[1] - self.w[0]) * 0.001
-            self.x += v * math.cos(self.yaw) * 0.001
-            self.y += v * math.sin(self.yaw) * 0.001
-            self.t += 0.001
-
-    def telemetry(self):
-        fw = self.firmware.snapshot()
-        return {
-            "t_fw_ms": fw["t_fw_ms"], "gyro_rps": [0.0, 0.0, 0.0], "accel_mps2": [0.0, 0.0, 9.81],
-            "crank_angle_rad": list(self.ang), "crank_vel_rps": list(self.w),
-            "bemf_v": [0.06 * w for w in self.w], "vbat_v": 3.9, "duty": list(fw["duty"]), "faults": fw["faults"],
-        }
-
-    def mocap_pose(self):
-        return self.t, np.array([self.x, self.y, 0.03]), np.array(
-            [math.cos(self.yaw / 2), 0.0, 0.0, math.sin(self.yaw / 2)])
