@@ -36,8 +36,10 @@ class RobotState(Msg, tag="hil.RobotState/1"):
     active: bool = False
     #: why the driver node is holding the safe action: "", "stale", "estop", "error"
     stopped_reason: str = ""
-    #: last applied action
+    #: last applied action (held during the period that ended with this state)
     action: list[float] = []
+    #: incremented by each completed reset; splits recordings into episodes
+    episode: int = 0
     health: dict[str, Any] = {}
 
 
@@ -89,8 +91,14 @@ class ModelUpdate(Msg, tag="hil.ModelUpdate/1"):
 
 
 class ResetEvent(Msg, tag="hil.ResetEvent/1"):
+    """Reset protocol: a controller or the reset supervisor sends ``phase="request"``
+    (``pose``: where to put the robot, when the backend can) on ``reset/request``;
+    the driver node answers on ``reset/done`` with ``"done"`` or ``"unsupported"``."""
+
     robot: str
     phase: str
+    pose: dict[str, float] = {}
+    episode: int = 0
     detail: str = ""
 
 

@@ -18,8 +18,10 @@ def zenoh_config(bus: BusConfig | None = None) -> zenoh.Config:
     listen = list(bus.listen)
     connect = list(bus.connect)
     if bus.mode == "peer":
-        # the first node owns the rendezvous port; the others connect to it
-        listen = [bus.endpoint, *listen]
+        # The first node owns the rendezvous port; the others connect to it. Every node
+        # also listens on an ephemeral port of the same host, so that peers that learn
+        # of each other by gossip can link directly (peers do not route for others).
+        listen = [bus.endpoint, _ephemeral(bus.endpoint), *listen]
         connect = [bus.endpoint, *connect]
         c.insert_json5("listen/exit_on_failure", "false")
     elif not connect:
@@ -30,6 +32,12 @@ def zenoh_config(bus: BusConfig | None = None) -> zenoh.Config:
     c.insert_json5("connect/exit_on_failure", "false")
     c.insert_json5("connect/timeout_ms", "0")
     return c
+
+
+def _ephemeral(endpoint: str) -> str:
+    proto, _, addr = endpoint.partition("/")
+    host = addr.rsplit(":", 1)[0] if ":" in addr else addr
+    return f"{proto}/{host}:0"
 
 
 def open_session(bus: BusConfig | None = None) -> zenoh.Session:

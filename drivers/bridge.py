@@ -23,7 +23,7 @@ import numpy as np
 
 from bus import keys
 from bus.node import Node
-from bus.schemas import Command, EStop, RobotState, SpecMsg
+from bus.schemas import Command, EStop, ResetEvent, RobotState, SpecMsg
 from configs.schema import BusConfig
 from drivers.base import CommandError, Driver, LinkError
 
@@ -69,6 +69,9 @@ class DriverNode(Node):
         self._spec_pub = self.publisher(keys.spec(rig, robot), SpecMsg)
         self._cmd = self.subscribe(keys.cmd(rig, robot), Command)
         self._estop = self.subscribe(keys.estop(rig), EStop)
+        self._reset_req = self.subscribe(keys.reset(rig, "request"), ResetEvent)
+        self._reset_done = self.publisher(keys.reset(rig, "done"), ResetEvent)
+        self.episode = 0
         self._last_cmd_t: float | None = None  # node clock when the last command was applied
         self._last_state: RobotState | None = None
 
@@ -94,6 +97,28 @@ class DriverNode(Node):
             self.driver.activate()
             self._last_cmd_t = None
             self.stopped_reason = "waiting"
+
+    def _handle_reset(self) -> bool:
+        """Serve a reset request; True when the robot was reset (a new episode starts)."""
+        m = self._reset_req.poll()
+        if m is None or m.robot != self.robot:
+            return False
+        reset = getattr(self.driver, "reset", None)
+        self.driver.stop()
+        if reset is None or self.estopped:
+            why = "e-stop engaged" if self.estopped else f"{self.driver.backend} backend cannot reset itself"
+            self._reset_done.put(ResetEvent(robot=self.robot, phase="unsupported", episode=self.episode, detail=why))
+            return False
+        try:
+            reset(**m.pose)
+        except TypeError as e:
+            self._reset_done.put(ResetEvent(robot=self.robot, phase="failed", episode=self.episode, detail=str(e)))
+            return False
+        self.episode += 1
+        self._last_cmd_t = None
+        self.stopped_reason = "waiting"
+        self._reset_done.put(ResetEvent(robot=self.robot, phase="done", episode=self.episode, pose=m.pose))
+        return True
 
     def _apply(self, cmd: Command | None) -> None:
         if self.estopped:
@@ -131,6 +156,7 @@ class DriverNode(Node):
             active=self.driver.active,
             stopped_reason=self.stopped_reason,
             action=[] if held is None else held.tolist(),
+            episode=self.episode,
             health={
                 **h.to_dict(),
                 "bus_malformed": self.malformed_count(),
@@ -148,6 +174,7 @@ class DriverNode(Node):
     def step(self) -> None:
         """One realtime period."""
         self._handle_estop()
+        self._handle_reset()
         self._apply(self._cmd.poll())
         if self.driver.backend == "sim":
             self.driver.tick()
@@ -165,6 +192,10 @@ class DriverNode(Node):
         deadline = time.monotonic() + self.lockstep_timeout_s
         while not self.stop_event.is_set():
             self._handle_estop()
+            if self._handle_reset():
+                self.publish_state()  # the fresh state of the new episode; wait for its answer
+                want = self._last_state.seq
+                deadline = time.monotonic() + self.lockstep_timeout_s
             m = self._cmd.wait(min(0.05, max(0.0, deadline - time.monotonic())))
             if m is not None and m.state_seq >= want:
                 cmd = m

@@ -48,6 +48,7 @@ __all__ = ["EnsembleDynamics", "cpu_bf16_support", "h_step_windows", "h_step_err
 
 _CHECKPOINT_FORMAT = "hilstack.EnsembleDynamics"
 _CHECKPOINT_VERSION = 1
+_IGNORED_STD = 1e12
 
 
 def cpu_bf16_support(cpuinfo: str | Path = "/proc/cpuinfo") -> str | None:
@@ -341,10 +342,32 @@ class EnsembleDynamics(nn.Module):
         return self.predict(state, action)
 
     # -- normalization ---------------------------------------------------------------------
+    def ignore_inputs(self, state_channels: Sequence[int]) -> None:
+        """Make the model blind to these state channels as inputs (they are still predicted).
+
+        E.g. planar position on a robot whose dynamics do not depend on where it is: the
+        learned model is then translation invariant and data from one part of the arena
+        serves everywhere. Implemented through the input normalization (std → 1e12), so
+        the fused inference path and checkpoints need nothing special. Call before ``fit``.
+        """
+        idx = sorted({int(i) for i in state_channels})
+        if any(i < 0 or i >= self.state_dim for i in idx):
+            raise ValueError(f"state channel index out of range 0..{self.state_dim - 1}: {idx}")
+        self.config["ignore_inputs"] = idx
+        with torch.no_grad():
+            self.input_mean[idx] = 0.0
+            self.input_std[idx] = _IGNORED_STD
+        self._fast = None
+
     def _set_stats(self, st: NormStats) -> None:
         """Install new statistics, rescaling the first/last layer so the function is unchanged."""
         t = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
         mu_x, sd_x, mu_d, sd_d = t(st.input_mean), t(st.input_std), t(st.delta_mean), t(st.delta_std)
+        ignored = self.config.get("ignore_inputs") or []
+        if ignored:
+            # an ignored input is normalized to ~0 whatever its value (see ignore_inputs)
+            mu_x[ignored] = 0.0
+            sd_x[ignored] = _IGNORED_STD
         with torch.no_grad():
             if bool(self.fitted):
                 w0, b0 = self.weights[0], self.biases[0]

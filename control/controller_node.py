@@ -1,0 +1,265 @@
+"""Controller node: runs any policy against a robot on the bus.
+
+A policy is ``policy(state [S]) -> action [A]`` in *normalized* units ([-1, 1] of the
+spec's limits, as the research normalizes actions); the node scales to the spec's
+units on the way out. A policy may expose ``last_plan``/``last_predicted_states`` (the
+MPC policy does) and the node publishes them for rerun on ``hil/<rig>/mpc/plan``.
+
+Two timing modes, same node:
+
+* **realtime** (real and emulated robots, or a sim paced on the wall clock): commands go
+  out at a fixed rate whatever the planning time. Planning runs in a worker thread; if
+  the plan for the newest state is not ready by the deadline, the next action of the
+  last good plan (shifted one step) is sent instead and the late plan is counted.
+* **lockstep** (sim rigs with ``pace: lockstep``): the node answers each published state
+  with one command tagged with that state's sequence number, and the sim advances when
+  it arrives, so a rig runs faster than real time with the same nodes.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from bus import keys
+from bus.node import Node
+from bus.schemas import Command, Plan, ResetEvent, RobotState, SpecMsg
+from configs.schema import BusConfig
+
+Policy = Callable[[np.ndarray], np.ndarray]
+
+
+class ActionScale:
+    """Normalized [-1, 1] ↔ spec units, per channel (symmetric about the range centre)."""
+
+    def __init__(self, low, high):
+        self.low = np.asarray(low, dtype=np.float64)
+        self.high = np.asarray(high, dtype=np.float64)
+        self.mid = (self.high + self.low) / 2
+        self.half = (self.high - self.low) / 2
+
+    def to_robot(self, a_norm: np.ndarray) -> np.ndarray:
+        return self.mid + self.half * np.clip(np.asarray(a_norm, dtype=np.float64), -1.0, 1.0)
+
+    def to_norm(self, a: np.ndarray) -> np.ndarray:
+        return (np.asarray(a, dtype=np.float64) - self.mid) / self.half
+
+    @classmethod
+    def from_spec(cls, spec: dict[str, Any]) -> ActionScale:
+        return cls(spec["action"]["low"], spec["action"]["high"])
+
+
+@dataclass
+class EpisodeLog:
+    """What a controller saw and did (robot units for actions, and normalized)."""
+
+    states: list[np.ndarray] = field(default_factory=list)
+    actions: list[np.ndarray] = field(default_factory=list)
+    actions_norm: list[np.ndarray] = field(default_factory=list)
+    times_s: list[float] = field(default_factory=list)
+    episode: int = 0
+    plan_times_s: list[float] = field(default_factory=list)
+    late_plans: int = 0
+    timeouts: int = 0
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.array(self.states), np.array(self.actions_norm)
+
+
+class ControllerNode(Node):
+    def __init__(
+        self,
+        rig: str,
+        robot: str,
+        bus: BusConfig | None = None,
+        name: str = "controller",
+        state_timeout_s: float = 5.0,
+        **kw: Any,
+    ):
+        super().__init__(name, rig, bus, **kw)
+        self.robot = robot
+        self.state_timeout_s = state_timeout_s
+        self._state = self.subscribe(keys.state(rig, robot), RobotState)
+        self._spec = self.subscribe(keys.spec(rig, robot), SpecMsg)
+        self._cmd = self.publisher(keys.cmd(rig, robot), Command)
+        self._plan = self.publisher(keys.plan(rig), Plan)
+        self._reset_req = self.publisher(keys.reset(rig, "request"), ResetEvent)
+        self._reset_done = self.subscribe(keys.reset(rig, "done"), ResetEvent)
+        self.spec: dict[str, Any] | None = None
+        self.scale: ActionScale | None = None
+        self.late_count = 0
+
+    # ------------------------------------------------------------------ plumbing
+    def wait_ready(self, timeout_s: float = 20.0) -> dict[str, Any]:
+        """Wait for the robot's spec (published by its driver node)."""
+        deadline = time.monotonic() + timeout_s
+        while self.spec is None:
+            m = self._spec.wait(0.1)
+            if m is not None:
+                self.spec = m.spec
+                self.scale = ActionScale.from_spec(m.spec)
+            elif time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"no spec from {keys.spec(self.rig, self.robot)} within {timeout_s} s: is the driver node up?"
+                )
+        return self.spec
+
+    def state_names(self) -> tuple[str, ...]:
+        return tuple(self.wait_ready()["state"]["names"])
+
+    def next_state(self, after_seq: int = -1, timeout_s: float | None = None) -> RobotState:
+        """The newest state with a sequence number above ``after_seq``."""
+        timeout_s = self.state_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout_s
+        last = self._state.last
+        if last is not None and last.seq > after_seq:
+            m = self._state.poll()
+            return m if m is not None else last
+        while True:
+            m = self._state.wait(max(0.0, deadline - time.monotonic()))
+            if m is not None and m.seq > after_seq:
+                return m
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"no new state from {self.robot} within {timeout_s} s")
+
+    def send(self, action_norm: np.ndarray, state_seq: int) -> np.ndarray:
+        a = self.scale.to_robot(action_norm)
+        self._cmd.put(Command(robot=self.robot, action=a.tolist(), state_seq=state_seq, source=self.name))
+        return a
+
+    def reset(self, timeout_s: float = 10.0, **pose: float) -> RobotState:
+        """Ask the driver node to reset the robot (sim) and return the first state of the new episode."""
+        self.wait_ready()
+        self._reset_done.poll()
+        self._reset_req.put(ResetEvent(robot=self.robot, phase="request", pose={k: float(v) for k, v in pose.items()}))
+        deadline = time.monotonic() + timeout_s
+        while True:
+            m = self._reset_done.wait(max(0.0, deadline - time.monotonic()))
+            if m is not None and m.robot == self.robot:
+                if m.phase != "done":
+                    raise RuntimeError(f"reset of {self.robot} {m.phase}: {m.detail}")
+                break
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"no reset answer from {self.robot} within {timeout_s} s")
+        while True:
+            s = self.next_state(timeout_s=timeout_s)
+            if s.episode >= m.episode:
+                return s
+
+    def publish_plan(self, policy: Any, plan_time_s: float, late: bool) -> None:
+        plan = getattr(policy, "last_plan", None)
+        if plan is None:
+            return
+        states = getattr(policy, "last_predicted_states", None)
+        st = [] if states is None else np.asarray(states).reshape(-1, np.asarray(states).shape[-1]).tolist()
+        self._plan.put(
+            Plan(
+                robot=self.robot,
+                actions=np.asarray(plan).tolist(),
+                states=st,
+                cost=float(getattr(policy, "last_cost", 0.0)),
+                plan_time_s=plan_time_s,
+                late=late,
+                late_count=self.late_count,
+            )
+        )
+
+    # ------------------------------------------------------------------ episodes
+    def run_lockstep(self, policy: Policy, steps: int, first: RobotState | None = None,
+                     stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
+        """Answer ``steps`` states with ``policy``; the sim advances on each answer."""
+        self.wait_ready()
+        log = EpisodeLog()
+        s = first or self.next_state()
+        log.episode = s.episode
+        for _ in range(steps):
+            x = np.asarray(s.state)
+            t0 = time.perf_counter()
+            a_norm = np.asarray(policy(x), dtype=np.float64)
+            dt = time.perf_counter() - t0
+            a = self.send(a_norm, s.seq)
+            self.publish_plan(policy, dt, False)
+            log.states.append(x)
+            log.actions.append(a)
+            log.actions_norm.append(self.scale.to_norm(a))
+            log.times_s.append(s.t_s)
+            log.plan_times_s.append(dt)
+            s = self.next_state(after_seq=s.seq)
+            if stop_if is not None and stop_if(np.asarray(s.state)):
+                break
+        log.states.append(np.asarray(s.state))
+        log.times_s.append(s.t_s)
+        return log
+
+    def run_realtime(self, policy: Policy, steps: int, period_s: float | None = None,
+                     deadline_frac: float = 0.8) -> EpisodeLog:
+        """Fixed-rate commands; planning in a worker with a deadline of ``deadline_frac`` periods."""
+        spec = self.wait_ready()
+        period = period_s or spec["period_s"]
+        log = EpisodeLog()
+        job: dict[str, Any] = {}
+        done = threading.Event()
+        ready = threading.Event()
+        go = threading.Event()
+
+        def worker() -> None:
+            while not done.is_set():
+                if not go.wait(0.1):
+                    continue
+                go.clear()
+                t0 = time.perf_counter()
+                a = np.asarray(policy(job["x"]), dtype=np.float64)
+                plan = getattr(policy, "last_plan", None)
+                job["result"] = (a, None if plan is None else np.array(plan), time.perf_counter() - t0, job["seq"])
+                ready.set()
+
+        th = threading.Thread(target=worker, daemon=True, name="planner")
+        th.start()
+        fallback: list[np.ndarray] = []  # remaining actions of the last good plan
+        busy = False
+        next_t = time.monotonic()
+        try:
+            for _ in range(steps):
+                if self.stop_event.is_set():
+                    break
+                s = self.next_state()
+                x = np.asarray(s.state)
+                if not busy:
+                    job["x"], job["seq"] = x, s.seq
+                    ready.clear()
+                    go.set()
+                    busy = True
+                got = ready.wait(max(0.0, next_t + deadline_frac * period - time.monotonic()))
+                if got:
+                    a, plan, dt, _ = job["result"]
+                    busy = False
+                    fallback = [] if plan is None else [np.asarray(p) for p in plan[1:]]
+                    self.publish_plan(policy, dt, False)
+                    log.plan_times_s.append(dt)
+                else:
+                    self.late_count += 1
+                    log.late_plans += 1
+                    a = fallback.pop(0) if fallback else np.zeros(len(spec["action"]["names"]))
+                a_sent = self.send(a, s.seq)
+                log.states.append(x)
+                log.actions.append(a_sent)
+                log.actions_norm.append(self.scale.to_norm(a_sent))
+                log.times_s.append(s.t_s)
+                next_t += period
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    self.stop_event.wait(delay)
+                else:
+                    next_t = time.monotonic()
+        finally:
+            done.set()
+            th.join(1.0)
+        s = self.next_state()
+        log.states.append(np.asarray(s.state))
+        log.times_s.append(s.t_s)
+        return log

@@ -1,0 +1,100 @@
+"""Policies for the controller node: ``policy(state [S]) -> normalized action [A]``.
+
+* :class:`SafeRandomPolicy`: the MBRL loop's random data collection, with the safety
+  override of the thesis (keep the robot in the arena: when it nears the edge heading
+  out, turn it back toward the centre).
+* :class:`MpcPolicy`: a learned dynamics model + a sampling planner + a cost.
+* :class:`BaselinePolicy`: wraps a hand-designed controller (differential drive).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from control.costs import state_index
+
+
+class SafeRandomPolicy:
+    """Uniform random normalized actions, held for ``hold_steps`` steps, inside an arena.
+
+    Outside ``0.8·arena_radius_m`` while heading away from the centre, a differential
+    turn toward the centre replaces the random action (differential-drive robots:
+    action = (left, right)).
+    """
+
+    def __init__(
+        self,
+        state_names: Sequence[str],
+        action_dim: int,
+        arena_radius_m: float = 3.0,
+        hold_steps: int = 1,
+        low: float = -1.0,
+        high: float = 1.0,
+        seed: int = 0,
+    ):
+        self.ix = state_index(state_names, "x")
+        self.iy = state_index(state_names, "y")
+        self.ic = state_index(state_names, "cos_yaw")
+        self.is_ = state_index(state_names, "sin_yaw")
+        self.action_dim = action_dim
+        self.arena = arena_radius_m
+        self.hold = max(1, hold_steps)
+        self.low, self.high = low, high
+        self.rng = np.random.default_rng(seed)
+        self._k = 0
+        self._a = np.zeros(action_dim)
+        self.overrides = 0
+
+    def __call__(self, state: np.ndarray) -> np.ndarray:
+        p = np.array([state[self.ix], state[self.iy]])
+        r = float(np.linalg.norm(p))
+        heading = np.array([state[self.ic], state[self.is_]])
+        if r > 0.8 * self.arena and float(heading @ p) > 0:
+            self.overrides += 1
+            to_centre = -p / max(r, 1e-9)
+            cross = heading[0] * to_centre[1] - heading[1] * to_centre[0]
+            turn = 0.6 if cross >= 0 else -0.6  # >0: centre is to the left → right legs faster
+            return np.clip(np.array([0.3 - turn, 0.3 + turn]), -1, 1)
+        if self._k % self.hold == 0:
+            self._a = self.rng.uniform(self.low, self.high, self.action_dim)
+        self._k += 1
+        return self._a.copy()
+
+
+class MpcPolicy:
+    """``planner(dynamics, cost, state)`` with a learned model over normalized actions."""
+
+    def __init__(self, model: Any, planner: Any, cost: Callable[..., torch.Tensor]):
+        self.model = model
+        self.planner = planner
+        self.cost = cost
+        self.last_plan: np.ndarray | None = None
+        self.last_predicted_states: np.ndarray | None = None
+        self.last_cost = 0.0
+
+    def reset(self) -> None:
+        self.planner.reset()
+
+    def __call__(self, state: np.ndarray) -> np.ndarray:
+        a = self.planner(self.model.predict, self.cost, state)
+        self.last_plan = self.planner.last_plan.numpy()
+        pred = self.planner.last_predicted_states
+        self.last_predicted_states = None if pred is None else pred.mean(0).numpy()
+        costs = self.planner.last_costs
+        self.last_cost = float(costs.min()) if costs is not None else 0.0
+        return a
+
+
+class BaselinePolicy:
+    def __init__(self, controller: Callable[[np.ndarray], np.ndarray]):
+        self.controller = controller
+
+    def reset(self) -> None:
+        pass
+
+    def __call__(self, state: np.ndarray) -> np.ndarray:
+        return np.asarray(self.controller(state), dtype=np.float64)

@@ -1,0 +1,81 @@
+"""Episodes from MCAP recordings of a rig.
+
+A driver node publishes one ``RobotState`` per control period carrying the measured
+state, the action held during the period that ended with it, and an ``episode``
+counter incremented by each reset. So transition t of an episode is
+``(states[t], states[t+1].action, states[t+1])``. Actions are returned normalized to
+[-1, 1] of the robot's spec (recorded on ``.../spec``) unless ``normalize=False``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bus.recording import iter_messages
+from bus.schemas import RobotState, SpecMsg
+from learning.datasets import Episode
+
+
+def episodes_from_mcap(
+    path: str | Path,
+    robot: str | None = None,
+    normalize: bool = True,
+    min_steps: int = 2,
+    episodes: set[int] | None = None,
+) -> list[Episode]:
+    """Split a recording into episodes of one robot (the only one, or ``robot``)."""
+    states: dict[tuple[str, int], list[RobotState]] = {}
+    specs: dict[str, dict] = {}
+    for rm in iter_messages(path):
+        m = rm.msg
+        if isinstance(m, SpecMsg):
+            specs.setdefault(m.robot, m.spec)
+        elif isinstance(m, RobotState) and m.state:
+            states.setdefault((m.robot, m.episode), []).append(m)
+    robots = sorted({r for r, _ in states})
+    if robot is None:
+        if len(robots) != 1:
+            raise ValueError(f"{path}: recording has robots {robots}; say which one")
+        robot = robots[0]
+    if robot not in robots:
+        raise ValueError(f"{path}: no states of robot {robot!r}; robots are {robots}")
+    spec = specs.get(robot)
+    if normalize and spec is None:
+        raise ValueError(f"{path}: no spec message for {robot!r}, cannot normalize actions")
+    if spec is not None:
+        lo = np.array(spec["action"]["low"])
+        hi = np.array(spec["action"]["high"])
+    out = []
+    for (r, ep), msgs in sorted(states.items()):
+        if r != robot or (episodes is not None and ep not in episodes):
+            continue
+        msgs.sort(key=lambda m: m.seq)
+        # consecutive duplicates (a state re-published without a step) carry no transition
+        uniq = [msgs[0]]
+        for m in msgs[1:]:
+            if m.t_s > uniq[-1].t_s:
+                uniq.append(m)
+        if len(uniq) < min_steps + 1 or any(len(m.action) == 0 for m in uniq[1:]):
+            continue
+        st = np.array([m.state for m in uniq])
+        act = np.array([m.action for m in uniq[1:]])
+        if normalize:
+            act = (act - (hi + lo) / 2) / ((hi - lo) / 2)
+        out.append(
+            Episode(
+                states=st,
+                actions=act,
+                times=np.array([m.t_s for m in uniq]),
+                name=f"{Path(path).stem}:{robot}:{ep}",
+                meta={
+                    "robot": robot,
+                    "episode": ep,
+                    "state_names": None if spec is None else spec["state"]["names"],
+                    "action_names": None if spec is None else spec["action"]["names"],
+                    "actions_normalized": normalize,
+                },
+            )
+        )
+    return out

@@ -1,0 +1,32 @@
+"""hil demo: the README's main job."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from tools.common import user_errors
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    @user_errors
+    def demo(
+        out: Path = typer.Option(Path("out/demo"), "--out", help="output directory"),
+        quick: bool = typer.Option(False, "--quick", help="smaller run (< 10 min on 2 cores)"),
+        seed: int = typer.Option(0, "--seed"),
+        planner: str = typer.Option("random_shooting", "--planner", help="random_shooting | cem | pddm"),
+    ) -> None:
+        """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
+
+        Collects random data through the driver bridge, trains a dynamics model, runs MPC
+        and the differential-drive baseline on five paths at a low and a high speed."""
+        from tools.demo import run_demo
+
+        r = run_demo(out, quick=quick, seed=seed, planner=planner)
+        for s in ("low_speed", "high_speed"):
+            if s in r:
+                typer.echo(f"{s}: mpc_cost {r[s]['mpc_cost']:.1f}  differential_drive_cost "
+                           f"{r[s]['differential_drive_cost']:.1f}")
+        typer.echo(f"report: {out / 'report.md'}")
