@@ -50,6 +50,9 @@ TERRAINS: dict[str, dict[str, Any]] = {
     "turf": {"friction": 0.9, "solref": (0.015, 1.0), "roughness_m": 0.002, "correlation_m": 0.03},
 }
 
+#: rough terrain: map beyond ±period/2 so the robot (±7 cm) always stands on it
+_WRAP_MARGIN_M = 0.25
+
 PERTURBATIONS = ("missing_leg", "payload_kg", "mocap_offset_m", "slope_deg")
 
 
@@ -64,7 +67,7 @@ class SimParams(Params):
     solref: tuple[float, float] | None = Field(None, description="override the preset's contact solref")
     roughness_m: float | None = Field(None, ge=0, description="override the preset's RMS roughness")
     slope_deg: float = Field(0.0, ge=-30, le=30, description="ground slope, + is uphill along world +x")
-    terrain_half_size_m: float = Field(2.0, gt=0)
+    terrain_half_size_m: float = Field(2.0, gt=0, description="rough terrains: half the period of the (endless) map")
     terrain_cell_m: float = Field(0.01, gt=0)
     # body
     chassis_mass_kg: float = Field(0.030, gt=0)
@@ -191,9 +194,14 @@ class VelociRoachSim(LockstepSim):
         terr = self.terrain()
         hf = None
         if terr["roughness_m"] > 0:
-            n = int(round(2 * s.terrain_half_size_m / s.terrain_cell_m)) + 1
+            # a periodic map of period 2·terrain_half_size_m plus a margin on every side
+            self._period_cells = int(round(2 * s.terrain_half_size_m / s.terrain_cell_m))
+            self._margin_cells = int(math.ceil(_WRAP_MARGIN_M / s.terrain_cell_m))
+            self._period_m = self._period_cells * s.terrain_cell_m
+            n = self._period_cells + 2 * self._margin_cells + 1
+            half = 0.5 * (n - 1) * s.terrain_cell_m
             # heights in [0, 1] scaled by zmax; RMS of a filtered Gaussian field ≈ zmax/6
-            hf = (n, s.terrain_half_size_m, 6.0 * terr["roughness_m"])
+            hf = (n, half, 6.0 * terr["roughness_m"])
         geom = Geometry(chassis_mass_kg=s.chassis_mass_kg, leg_mass_kg=s.leg_mass_kg, leg_length_m=s.leg_length_m,
                         foot_radius_m=s.foot_radius_m,
                         armature_kgm2=s.rotor_inertia_kgm2 * gr * gr)
@@ -212,7 +220,7 @@ class VelociRoachSim(LockstepSim):
         )
         m = mujoco.MjModel.from_xml_string(xml)
         if hf is not None:
-            z = heightfield(hf[0], 1.0, terr["correlation_m"] / s.terrain_cell_m, s.seed)
+            z = heightfield(self._period_cells, self._margin_cells, terr["correlation_m"] / s.terrain_cell_m, s.seed)
             m.hfield_data[:] = z.ravel().astype(np.float32)
             self._hfield_zmax = hf[2]
         else:
@@ -249,6 +257,8 @@ class VelociRoachSim(LockstepSim):
         z0 = g.leg_length_m + g.foot_radius_m - g.hip_z_m + 0.001 + self._hfield_zmax
         d.qpos[0:3] = (x, y, z0)
         d.qpos[3:7] = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+        self._tile_offset = np.zeros(3)
+        self._wrap()
         mujoco.mj_forward(m, d)
         self.firmware.reset()
         ss = np.random.SeedSequence(s.seed)
@@ -266,6 +276,25 @@ class VelociRoachSim(LockstepSim):
         self._mocap_next_t = self._mocap_period
         self._deliver_mocap(0.0 + s.mocap_latency_s)
         self._seq = 0
+
+    def _wrap(self) -> None:
+        """On a (periodic) heightfield, move the robot back by one terrain period when it
+        nears an edge; ``_tile_offset`` keeps reported positions continuous."""
+        if self._hfield_zmax <= 0.0:
+            return  # an infinite plane
+        period = self._period_m
+        qpos = self.data.qpos
+        for i in (0, 1):
+            if qpos[i] > 0.5 * period:
+                qpos[i] -= period
+                self._tile_offset[i] += period
+            elif qpos[i] < -0.5 * period:
+                qpos[i] += period
+                self._tile_offset[i] -= period
+
+    def true_position_m(self) -> np.ndarray:
+        """Ground-truth chassis position [m] in the world frame (continuous across wraps)."""
+        return self.data.qpos[0:3] + self._tile_offset
 
     def _ocv(self) -> float:
         s = self.sim
@@ -364,6 +393,7 @@ class VelociRoachSim(LockstepSim):
             t += TICK_S
             if t >= self._mocap_next_t - 1e-9:
                 self._t = t
+                self._wrap()
                 self._mocap_sample()
                 self._mocap_next_t += self._mocap_period
         self._t = t
@@ -402,7 +432,7 @@ class VelociRoachSim(LockstepSim):
         ok = u >= s.mocap_dropout
         if not ok:
             self.mocap_dropped += 1
-        off = self.perturbations["mocap_offset_m"]
+        off = self.perturbations["mocap_offset_m"] + self._tile_offset
         sp, sr = s.mocap_noise_m, s.mocap_noise_rad
         pos = np.array([qpos[0] + off[0] + sp * n[0], qpos[1] + off[1] + sp * n[1], qpos[2] + off[2] + sp * n[2]])
         w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
@@ -476,7 +506,7 @@ class VelociRoachSim(LockstepSim):
         d = self.data
         self._deliver_mocap(self.sim_time_s)
         if self._mocap_latest is None:
-            pos, q = d.qpos[0:3], d.qpos[3:7]
+            pos, q = self.true_position_m(), d.qpos[3:7]
         else:
             _, pos, q = self._mocap_latest
         roll, pitch, yaw = quat_to_rpy(q)

@@ -26,6 +26,8 @@ Geometry (body frame: x forward, y left, z up; SI units):
 * ground: a plane for flat terrains or a heightfield generated from a seed for rough
   ones; slope is applied by tilting gravity (the world frame stays level with the
   ground, +x uphill), which keeps the heightfield and the mocap frame unchanged.
+  The heightfield is periodic: the backend moves the robot by one period when it nears
+  an edge and adds the shift back to every reported position (an endless terrain).
 
 Contact filtering: legs and chassis collide with the ground only (contype/conaffinity).
 """
@@ -187,18 +189,23 @@ def build_mjcf(
 """
 
 
-def heightfield(n: int, rms_m: float, correlation_cells: float, seed: int) -> np.ndarray:
-    """A smooth random height map in [0, 1] (n x n, MuJoCo hfield_data layout).
+def heightfield(n_period: int, margin: int, correlation_cells: float, seed: int) -> np.ndarray:
+    """A smooth random height map in [0, 1], periodic with ``n_period`` cells.
 
-    Gaussian noise low-pass filtered with a Gaussian kernel of ``correlation_cells``;
-    the caller scales it by the hfield's max height (``rms_m`` sets that scale).
+    Gaussian noise low-pass filtered (Gaussian kernel of ``correlation_cells``) with
+    wrap-around on n_period x n_period cells, then wrap-padded by ``margin`` cells on each
+    side (+1 for the closing sample): shape (n_period + 2·margin + 1)². Positions x and
+    x + period see the same ground, so a robot crossing ±period/2 can be moved by one
+    period and still stand on the map (see ``VelociRoachSim._wrap``). The caller scales
+    it by the hfield's max height.
     """
     rng = np.random.default_rng(seed)
-    z = rng.standard_normal((n, n))
+    z = rng.standard_normal((n_period, n_period))
     if correlation_cells > 0:
         from scipy.ndimage import gaussian_filter
 
         z = gaussian_filter(z, correlation_cells, mode="wrap")
+    z = np.pad(z, ((margin, margin + 1), (margin, margin + 1)), mode="wrap")
     z -= z.min()
     peak = z.max()
     return (z / peak) if peak > 0 else z

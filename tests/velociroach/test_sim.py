@@ -239,3 +239,16 @@ def test_deterministic_for_a_seed():
     a, b = _rollout(4), _rollout(4)
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, _rollout(5))
+
+
+def test_rough_terrain_is_endless_and_positions_continuous():
+    s = make(terrain="gravel", terrain_half_size_m=0.2, seed=2)
+    s.reset(x=0.15, y=0.0)
+    xy = []
+    for _ in range(30):
+        xy.append(drive(s, 12.0, 12.0, 0.1)[:2])
+    true = s.true_position_m()
+    assert np.any(s._tile_offset != 0)  # crossed the edge of the 0.4 m map at least once
+    assert np.linalg.norm(true[:2] - s.read().state[:2]) < 0.05  # mocap reports the continuous position
+    assert np.max(np.linalg.norm(np.diff(xy, axis=0), axis=1)) < 0.2  # no jumps at the wraps
+    assert np.all(np.abs(s.data.qpos[0:2]) <= 0.2 + 0.05) and s.data.qpos[2] > 0
