@@ -323,9 +323,11 @@ class RadioLink:
             raw = xbee_tx64(self.robot_addr, mav_frame)
         else:
             raw = xbee_rx64(self.robot_addr, mav_frame)
-        self.send_raw(raw)
         if self.tlog:
+            # logged before the write: the reply can arrive (and be logged by the reader
+            # thread) before a write call returns, and the log must keep cause before effect
             self.tlog.write(mav_frame)
+        self.send_raw(raw)
 
     def send_raw(self, raw: bytes) -> None:
         """Write bytes as they are (fault injection uses this to send broken frames)."""

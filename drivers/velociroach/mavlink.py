@@ -251,3 +251,31 @@ class MavDecoder:
     def _fail(self, why: str) -> None:
         self.corrupt += 1
         self.last_error = why
+
+
+def _main(argv: list[str]) -> int:
+    """``python -m drivers.velociroach.mavlink path`` prints the generated module;
+    ``... mavlogdump [args] LOG.tlog`` runs pymavlink's mavlogdump with this dialect loaded
+    (a separate mavlogdump process cannot find a dialect generated into a cache)."""
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_main.__doc__)
+        return 0
+    if argv[0] == "path":
+        print(mav.__file__)
+        return 0
+    if argv[0] in ("mavlogdump", "mavlogdump.py"):
+        import runpy
+
+        script = shutil.which("mavlogdump.py") or str(Path(sys.executable).parent / "mavlogdump.py")
+        rest = argv[1:]
+        if "--dialect" not in rest:
+            rest = ["--dialect", DIALECT_NAME, *rest]
+        sys.argv = [script, *rest]
+        runpy.run_path(script, run_name="__main__")
+        return 0
+    print(f"unknown command {argv[0]!r}; try --help", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))
