@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from configs.schema import ConfigError, RobotConfig
-from drivers.base import Driver, Health, LinkError, Observation
+from drivers.base import Driver, Health, Lifecycle, LinkError, Observation
 from drivers.velociroach.config import VelociRoachParams, velociroach_spec
 from drivers.velociroach.link import RadioLink
 from drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, EncodeError, MavEncoder
@@ -110,6 +110,7 @@ class VelociRoachDriver(Driver):
         self._cmd_sent_t: dict[int, float] = {}
         self._latency_s: float | None = None
         self._reader_error: str | None = None
+        self._failing = False
         self._seq = 0
         self._rid = 0
 
@@ -304,6 +305,13 @@ class VelociRoachDriver(Driver):
         with self._lock:
             err = self._reader_error
         if err:
+            if not self._failing and self.lifecycle is not Lifecycle.UNCONFIGURED:
+                # the contract's error path: stop (best effort), close, go UNCONFIGURED
+                self._failing = True
+                try:
+                    self.fail(err)
+                finally:
+                    self._failing = False
             raise LinkError(err)
 
     def _read(self) -> Observation:

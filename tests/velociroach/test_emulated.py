@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.base import LinkError
+from drivers.base import Lifecycle, LinkError
 from drivers.velociroach.config import STATE_NAMES, VelociRoachParams
 from drivers.velociroach.driver import VelociRoachDriver
 from drivers.velociroach.link import addr64, xbee_tx64
@@ -134,6 +134,7 @@ def test_corrupt_frames_both_ways_and_emulator_death():
             wait_for(lambda: drv.read() is None, 2.0, "a LinkError")
         assert time.monotonic() - t0 < 1.5
         assert drv.health().ok is False
+        assert drv.lifecycle is Lifecycle.UNCONFIGURED and "unplugged" in drv.last_error
 
 
 def test_radio_silence_shows_in_health_and_the_watchdog_stops_the_robot():
