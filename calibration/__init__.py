@@ -1,0 +1,21 @@
+"""hilstack calibration: residual → effect → augmented model → before/after report.
+
+Entry points: :func:`run_calibration` (the whole pipeline, also ``hil calibrate``),
+:func:`load_episodes` (CSV/Parquet/MCAP with a column map) and :func:`load_model`
+(the augmented model saved as ``model.json``). See docs/calibration.md.
+"""
+
+from calibration.data import DataError, Episode, load_episodes
+from calibration.models import ModelNotAvailable, UnknownModel, get_model, load_model
+from calibration.report import run_calibration
+
+__all__ = [
+    "DataError",
+    "Episode",
+    "ModelNotAvailable",
+    "UnknownModel",
+    "get_model",
+    "load_episodes",
+    "load_model",
+    "run_calibration",
+]

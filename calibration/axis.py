@@ -1,0 +1,648 @@
+"""The ``axis`` nominal model: a single-axis drive, identified in normalized form.
+
+Physics: J·dv/dt = k_u·u − b·v, dx/dt = v. Without a known force, J cannot be separated
+from k_u (scaling both leaves the motion unchanged), so the model is identified as
+
+    dv/dt = g·(a·ũ − c·v − fc·sgn(v) − fs·exp(−(v/vs)²)·sgn(v) + d) + s_g
+
+with a = k_u/J [x/s² per u], c = b/J [1/s], fc, fs, d forces over J [x/s²], s_g a gravity
+acceleration (slope), g = 1/(1 + mu·m) the payload factor and ũ the command after the
+input-side effects (delay → saturation → deadband → backlash → battery scaling → lag).
+When the caller knows k_u (e.g. EMPS: gtau = 35.15 N/V), physical values are reported too:
+J = k_u/a, b = c·J, Fc = fc·J, offset = d·J.
+
+Identification is equation error on the sampled velocity: y_k = (v_{k+1} − v_k)/Δt against
+the features at k. All coefficients (a, c, fc, fs, d, s_g, battery gain) enter linearly; the
+remaining effect parameters (delay, lag, deadband width, ...) are found by a grid search
+with linear least squares inside, refined by a bounded scalar search. The nominal a and c
+are refit with every candidate effect, so a mistuned gain or viscous term is never
+reported as an effect. When velocity is derived from position with the Savitzky-Golay
+derivative, the command features are passed through the same zero-phase kernel so that the
+smoothing is not mistaken for a lag.
+
+Discretization: ZOH commands; ũ_k is the average force over [t_k, t_k+1) (exact for delay and
+lag); the simulator integrates friction implicitly (stick when |v + Δt·F| ≤ Δt·f_fric), so
+it holds still under Coulomb friction without chattering.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import lfilter
+
+from calibration.data import Episode, default_sg_window, sg_velocity, sg_velocity_kernel
+from calibration.effects import CATALOGUE
+
+#: Hyper-parameters (nonlinear) per effect, and linear coefficients per effect.
+HYPER_OF: dict[str, str] = {
+    "delay": "delay_s",
+    "actuator_lag": "tau_s",
+    "deadband": "width_u",
+    "backlash": "halfwidth_u",
+    "saturation": "limit_u",
+    "stribeck_friction": "vs",
+    "payload_mass": "mu_per_unit",
+}
+COEF_OF: dict[str, str] = {
+    "coulomb_friction": "fc_acc",
+    "stribeck_friction": "fs_extra_acc",
+    "force_offset": "offset_acc",
+    "slope": "gravity_acc",
+    "battery_sag": "kb",
+}
+NOMINAL_COEFS = ("a", "c_per_s")
+SENSOR_EFFECTS = ("sensor_bias", "sensor_scale")
+HYPER_NO_EFFECT = {
+    "delay_s": 0.0,
+    "tau_s": 0.0,
+    "width_u": 0.0,
+    "halfwidth_u": 0.0,
+    "limit_u": math.inf,
+    "vs": 1.0,
+    "mu_per_unit": 0.0,
+}
+
+
+# ----------------------------------------------------------------------------- prepared data
+
+
+@dataclass
+class Prepared:
+    """An episode with the derived signals the axis model needs (computed once)."""
+
+    ep: Episode
+    period_s: float
+    v_obs: np.ndarray  # the observed velocity channel [x/s]: measured, or SG-derived from x
+    v_from_x: np.ndarray  # SG derivative of position [x/s] (reference for velocity sensor checks)
+    kernel: np.ndarray | None  # zero-phase kernel applied by the velocity estimate (None: measured)
+    margin: int  # samples dropped at both ends (filter edges, longest delay tested)
+    window: int  # Savitzky-Golay window [samples]
+    moving: np.ndarray  # bool per sample: regression rows (the axis moves; see moving_mask)
+    v_min: float  # velocity [x/s] below which the axis counts as stopped
+
+    @property
+    def n(self) -> int:
+        return self.ep.n
+
+
+def prepare(episodes: list[Episode], sg_window: int | None = None, max_delay_s: float | None = None) -> list[Prepared]:
+    """Derive velocities for all episodes (same SG window for all: they share a period)."""
+    period_s = float(np.median([e.period_s for e in episodes]))
+    window = sg_window or default_sg_window(period_s)
+    max_delay = max_delay_samples(period_s) if max_delay_s is None else int(math.ceil(max_delay_s / period_s))
+    kernel = sg_velocity_kernel(window)
+    out = []
+    for e in episodes:
+        v_x = sg_velocity(e.x, period_s, window)
+        measured = e.v_meas is not None
+        out.append(
+            Prepared(
+                ep=e,
+                period_s=period_s,
+                v_obs=e.v_meas if measured else v_x,
+                v_from_x=v_x,
+                kernel=None if measured else kernel,
+                margin=window // 2 + max_delay + 2,
+                window=window,
+                moving=(mv := moving_mask(e, e.v_meas if measured else v_x, period_s, window))[0],
+                v_min=mv[1],
+            )
+        )
+    return out
+
+
+def velocity_noise(e: Episode, period_s: float, window: int, measured: bool) -> float:
+    """Noise std [x/s] of the velocity channel: from the SG residual of the logged signal."""
+    from scipy.signal import savgol_coeffs, savgol_filter
+
+    sig = e.v_meas if measured else e.x
+    r = sig - savgol_filter(sig, window, 2, mode="interp")
+    sigma = float(np.std(r)) * math.sqrt(window / max(window - 3, 1))
+    if measured:
+        return sigma
+    d = savgol_coeffs(window, 2, deriv=1, delta=period_s, use="dot")
+    return sigma * float(np.linalg.norm(d))
+
+
+def moving_mask(e: Episode, v: np.ndarray, period_s: float, window: int) -> tuple[np.ndarray, float]:
+    """Samples used as regression rows: the axis moves, away from stops by a smoothing window.
+
+    While the axis sticks, Coulomb friction is whatever balances the other forces, so an
+    equation-error row there says nothing about the friction level; around a stop the
+    smoothed velocity is smeared over the window. Both are left out of the regression (for
+    every candidate alike: the mask depends on data only); the simulator still covers them.
+    """
+    v_min = 3.0 * velocity_noise(e, period_s, window, e.v_meas is not None) + 1e-3 * float(np.sqrt(np.mean(v**2)))
+    slow = np.abs(v) < v_min
+    # A fast reversal can jump over the threshold between two samples: mark sign changes too.
+    flip = np.signbit(v[1:]) != np.signbit(v[:-1])
+    slow[:-1] |= flip
+    slow[1:] |= flip
+    m = window // 2 + 1
+    if slow.any():
+        slow = np.convolve(slow.astype(float), np.ones(2 * m + 1), mode="same") > 0
+    return ~slow, v_min
+
+
+def max_delay_samples(period_s: float) -> int:
+    """Longest delay searched [samples]: 150 ms, at least 8 and at most 60 samples."""
+    return int(min(60, max(8, round(0.15 / period_s))))
+
+
+def _smooth(p: Prepared, a: np.ndarray) -> np.ndarray:
+    if p.kernel is None:
+        return a
+    m = len(p.kernel) // 2
+    padded = np.concatenate([np.full(m, a[0]), a, np.full(m, a[-1])])
+    return np.convolve(padded, p.kernel, mode="valid")
+
+
+# ----------------------------------------------------------------------------- input chain
+
+
+def backlash_play(u: np.ndarray, halfwidth: float) -> np.ndarray:
+    """Play (backlash) operator: output follows u only once u moved ``halfwidth`` past it."""
+    if halfwidth <= 0:
+        return u.copy()
+    # Pure-python floats: ~20x faster than indexing numpy scalars in a sequential loop.
+    out = []
+    prev = float(u[0])
+    for uk in u.tolist():
+        lo, hi = uk - halfwidth, uk + halfwidth
+        prev = lo if prev < lo else (hi if prev > hi else prev)
+        out.append(prev)
+    y = np.asarray(out)
+    return y
+
+
+def input_chain(u: np.ndarray, period_s: float, hp: dict[str, float],
+                scale: np.ndarray | None = None) -> np.ndarray:
+    """Command → average force per interval (in command units), all input-side effects applied.
+
+    Args:
+        u: command per sample (ZOH).
+        period_s: sample period [s].
+        hp: hyper-parameters present (delay_s, limit_u, width_u, halfwidth_u, tau_s).
+        scale: optional per-sample multiplier applied before the lag (battery term).
+    """
+    w = np.asarray(u, dtype=float)
+    delay_s = hp.get("delay_s", 0.0)
+    if delay_s > 0:
+        # Interval average of a ZOH signal delayed by (n + f) periods.
+        q = delay_s / period_s
+        n, f = int(math.floor(q)), q - math.floor(q)
+        shifted = np.concatenate([np.full(n + 1, w[0]), w])[: w.shape[0] + 1]
+        w = (1 - f) * shifted[1:] + f * shifted[:-1]
+    limit = hp.get("limit_u", math.inf)
+    if math.isfinite(limit):
+        w = np.clip(w, -limit, limit)
+    width = hp.get("width_u", 0.0)
+    if width > 0:
+        w = np.sign(w) * np.maximum(np.abs(w) - width, 0.0)
+    hw = hp.get("halfwidth_u", 0.0)
+    if hw > 0:
+        w = backlash_play(w, hw)
+    if scale is not None:
+        w = w * scale
+    tau_s = hp.get("tau_s", 0.0)
+    if tau_s > 0:
+        # Exact ZOH first-order lag y' = (w - y)/tau; return the interval average of y.
+        alpha = math.exp(-period_s / tau_s)
+        y0 = w[0]
+        y, _ = lfilter([0.0, 1 - alpha], [1.0, -alpha], w, zi=[alpha * y0])
+        y[0] = y0
+        w = w + (y - w) * (tau_s / period_s) * (1 - alpha)
+    return w
+
+
+# ----------------------------------------------------------------------------- parameters
+
+
+@dataclass
+class AxisParams:
+    """Everything needed to simulate: coefficients, effect hyper-parameters, sensor model."""
+
+    effects: list[str]
+    coef: dict[str, float]
+    hyper: dict[str, float]
+    sensor: dict[str, float] = field(default_factory=lambda: {"bias_v": 0.0, "scale_v": 1.0})
+    eps_v: float = 1e-3  # velocity [x/s] below which friction's sign is smoothed in regressions
+    vbat_ref_v: float = 1.0
+    period_s: float = 0.01
+    sg_window: int = 7
+    k_u: float | None = None  # known actuator gain (force per command unit), if given
+
+    def effect_params(self, name: str) -> dict[str, float]:
+        """The parameters reported for one effect, in the catalogue's units."""
+        if name in HYPER_OF and name != "stribeck_friction":
+            return {HYPER_OF[name]: self.hyper[HYPER_OF[name]]}
+        if name == "stribeck_friction":
+            return {"fs_extra_acc": self.coef["fs_extra_acc"], "vs": self.hyper["vs"]}
+        if name == "battery_sag":
+            return {"gain_per_rel_v": self.coef["kb"] / self.coef["a"], "vbat_ref_v": self.vbat_ref_v}
+        if name in COEF_OF:
+            return {COEF_OF[name]: self.coef[COEF_OF[name]]}
+        if name == "sensor_bias":
+            return {"bias_v": self.sensor["bias_v"]}
+        if name == "sensor_scale":
+            return {"scale_v": self.sensor["scale_v"]}
+        raise KeyError(name)
+
+    def primary(self, name: str) -> float:
+        spec = CATALOGUE[name]
+        return float(self.effect_params(name)[spec.primary])
+
+    def physical(self) -> dict[str, float] | None:
+        """Physical parameters when k_u (force per command unit) is known."""
+        if not self.k_u:
+            return None
+        j = self.k_u / self.coef["a"]
+        out = {"k_u": self.k_u, "J": j, "b": self.coef["c_per_s"] * j}
+        names = {"fc_acc": "Fc", "fs_extra_acc": "Fs_minus_Fc", "offset_acc": "offset_force", "gravity_acc": "gravity_force"}
+        for k, phys in names.items():
+            if k in self.coef:
+                out[phys] = self.coef[k] * j
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "effects": list(self.effects),
+            "coef": dict(self.coef),
+            "hyper": {k: (None if not math.isfinite(v) else v) for k, v in self.hyper.items()},
+            "sensor": dict(self.sensor),
+            "eps_v": self.eps_v,
+            "vbat_ref_v": self.vbat_ref_v,
+            "period_s": self.period_s,
+            "sg_window": self.sg_window,
+            "k_u": self.k_u,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> AxisParams:
+        hyper = {k: (math.inf if v is None else float(v)) for k, v in d["hyper"].items()}
+        return cls(effects=list(d["effects"]), coef={k: float(v) for k, v in d["coef"].items()}, hyper=hyper,
+                   sensor={k: float(v) for k, v in d["sensor"].items()}, eps_v=float(d["eps_v"]),
+                   vbat_ref_v=float(d["vbat_ref_v"]), period_s=float(d["period_s"]),
+                   sg_window=int(d["sg_window"]), k_u=d.get("k_u"))
+
+
+# ----------------------------------------------------------------------------- features
+
+
+def state_velocity(p: Prepared, sensor: dict[str, float]) -> np.ndarray:
+    """True-units velocity from the observed channel through the inverse sensor model."""
+    return (p.v_obs - sensor["bias_v"]) / sensor["scale_v"]
+
+
+def _payload_factor(p: Prepared, hyper: dict[str, float]) -> np.ndarray | None:
+    mu = hyper.get("mu_per_unit", 0.0)
+    if mu == 0.0 or p.ep.payload is None:
+        return None
+    return 1.0 / np.maximum(1.0 + mu * p.ep.payload, 1e-3)
+
+
+def _rel_vbat(p: Prepared, vbat_ref_v: float) -> np.ndarray:
+    return (p.ep.vbat_v - vbat_ref_v) / vbat_ref_v
+
+
+def coef_names(effects: list[str]) -> list[str]:
+    names = list(NOMINAL_COEFS)
+    for e in effects:
+        if e in COEF_OF:
+            names.append(COEF_OF[e])
+    return names
+
+
+def raw_features(p: Prepared, params: AxisParams, v: np.ndarray, smooth: bool) -> dict[str, np.ndarray]:
+    """Per-sample features (acceleration per unit coefficient), length N.
+
+    ``smooth`` applies the velocity estimator's kernel to the command-side features (for
+    regression against an SG-derived velocity); simulation uses the raw features.
+    """
+    hp, eff = params.hyper, params.effects
+    g = _payload_factor(p, hp)
+    one = np.ones(p.n) if g is None else g
+    sm = (lambda a: _smooth(p, a)) if smooth else (lambda a: a)
+    feats: dict[str, np.ndarray] = {}
+    fu = input_chain(p.ep.u, p.period_s, hp)
+    feats["a"] = sm(fu * one)
+    if "battery_sag" in eff:
+        pre_lag = {k: v for k, v in hp.items() if k != "tau_s"}
+        w = input_chain(p.ep.u, p.period_s, pre_lag) * _rel_vbat(p, params.vbat_ref_v)
+        fb = input_chain(w, p.period_s, {"tau_s": hp.get("tau_s", 0.0)})
+        feats["kb"] = sm(fb * one)
+    feats["c_per_s"] = -v * one
+    sgn = np.tanh(v / params.eps_v)
+    if "coulomb_friction" in eff:
+        feats["fc_acc"] = -sgn * one
+    if "stribeck_friction" in eff:
+        feats["fs_extra_acc"] = -np.exp(-((v / hp["vs"]) ** 2)) * sgn * one
+    if "force_offset" in eff:
+        feats["offset_acc"] = sm(one.copy())
+    if "slope" in eff:
+        feats["gravity_acc"] = np.ones(p.n)
+    return feats
+
+
+def design(p: Prepared, params: AxisParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Regression design on the valid samples: (X [n, p], y [n] in x/s², index k of each row)."""
+    v = state_velocity(p, params.sensor)
+    feats = raw_features(p, params, v, smooth=True)
+    names = coef_names(params.effects)
+    k = np.arange(p.margin, p.n - p.margin - 1)
+    k = k[p.moving[k]]
+    X = np.stack([feats[nm][k] for nm in names], axis=1)
+    y = (v[k + 1] - v[k]) / p.period_s
+    return X, y, k
+
+
+@dataclass
+class Stats:
+    """Sufficient statistics of one episode's regression: X'X, X'y, y'y, n."""
+
+    xtx: np.ndarray
+    xty: np.ndarray
+    yty: float
+    n: int
+
+
+def episode_stats(preps: list[Prepared], params: AxisParams) -> list[Stats]:
+    out = []
+    for p in preps:
+        X, y, _ = design(p, params)
+        out.append(Stats(X.T @ X, X.T @ y, float(y @ y), int(y.shape[0])))
+    return out
+
+
+def solve(stats: list[Stats], weights: np.ndarray | None = None) -> tuple[np.ndarray, float, int]:
+    """Weighted least squares from per-episode statistics: (theta, SSE, n)."""
+    w = np.ones(len(stats)) if weights is None else weights
+    xtx = sum(wi * s.xtx for wi, s in zip(w, stats, strict=True) if wi)
+    xty = sum(wi * s.xty for wi, s in zip(w, stats, strict=True) if wi)
+    yty = sum(wi * s.yty for wi, s in zip(w, stats, strict=True) if wi)
+    n = int(sum(wi * s.n for wi, s in zip(w, stats, strict=True)))
+    ridge = 1e-10 * (np.trace(xtx) / xtx.shape[0] + 1e-30)
+    theta = np.linalg.solve(xtx + ridge * np.eye(xtx.shape[0]), xty)
+    sse = float(yty - 2 * theta @ xty + theta @ xtx @ theta)
+    return theta, max(sse, 0.0), n
+
+
+def sse_of(stats: list[Stats], theta: np.ndarray, idx) -> float:
+    return float(sum(stats[i].yty - 2 * theta @ stats[i].xty + theta @ stats[i].xtx @ theta for i in idx))
+
+
+# ----------------------------------------------------------------------------- grids
+
+
+def hyper_grid(name: str, preps: list[Prepared]) -> np.ndarray:
+    """Search grid of one hyper-parameter, scaled to the data."""
+    dt = preps[0].period_s
+    au = np.abs(np.concatenate([p.ep.u for p in preps]))
+    if name == "delay_s":
+        mx = max_delay_samples(dt)
+        steps = np.unique(np.concatenate([np.arange(0, 4.01, 0.5), np.geomspace(5, mx, 10).round()]))
+        return steps[steps <= mx] * dt
+    if name == "tau_s":
+        return np.concatenate([[0.0], np.geomspace(0.3 * dt, max(0.3, 30 * dt), 18)])
+    if name == "width_u":
+        return np.linspace(0, np.quantile(au, 0.6), 21)
+    if name == "halfwidth_u":
+        return np.linspace(0, 0.5 * np.quantile(au, 0.9), 21)
+    if name == "limit_u":
+        return np.concatenate([np.quantile(au, np.linspace(0.4, 0.995, 20)), [math.inf]])
+    if name == "vs":
+        vr = float(np.sqrt(np.mean(np.concatenate([p.v_obs for p in preps]) ** 2)))
+        return np.geomspace(0.01, 1.0, 14) * vr
+    if name == "mu_per_unit":
+        pm = np.concatenate([p.ep.payload for p in preps])
+        span = float(np.max(np.abs(pm))) or 1.0
+        return np.linspace(-0.5, 3.0, 36) / span
+    raise KeyError(name)
+
+
+# ----------------------------------------------------------------------------- fitting
+
+
+def initial_params(preps: list[Prepared], effects: list[str], k_u: float | None = None) -> AxisParams:
+    v = np.concatenate([p.v_obs for p in preps])
+    vbat = [p.ep.vbat_v for p in preps if p.ep.vbat_v is not None]
+    hyper = {}
+    for e in effects:
+        if e in HYPER_OF:
+            h = HYPER_OF[e]
+            hyper[h] = {"vs": 0.1 * float(np.sqrt(np.mean(v**2)))}.get(h, HYPER_NO_EFFECT[h])
+    window = preps[0].window
+    return AxisParams(
+        effects=list(effects),
+        coef={},
+        hyper=hyper,
+        # Friction's sign is smoothed only below the stop threshold (rows there are masked anyway).
+        eps_v=max(1e-9, 0.3 * float(np.median([p.v_min for p in preps]))),
+        vbat_ref_v=float(np.mean(np.concatenate(vbat))) if vbat else 1.0,
+        period_s=preps[0].period_s,
+        sg_window=window,
+        k_u=k_u,
+    )
+
+
+def fit_sensor(preps: list[Prepared], effects: list[str], weights: np.ndarray | None = None) -> dict[str, float]:
+    """Velocity sensor bias/scale against the SG derivative of position (same kernel both sides)."""
+    if not any(e in effects for e in SENSOR_EFFECTS):
+        return {"bias_v": 0.0, "scale_v": 1.0}
+    kernel = sg_velocity_kernel(preps[0].window)
+    ws = np.ones(len(preps)) if weights is None else weights
+    rows_x, rows_y, rows_w = [], [], []
+    for wi, p in zip(ws, preps, strict=True):
+        if not wi:
+            continue
+        m = len(kernel) // 2
+        vm = np.convolve(np.concatenate([np.full(m, p.v_obs[0]), p.v_obs, np.full(m, p.v_obs[-1])]), kernel, "valid")
+        k = slice(p.margin, p.n - p.margin)
+        rows_x.append(p.v_from_x[k])
+        rows_y.append(vm[k])
+        rows_w.append(np.full(rows_x[-1].shape, wi))
+    vx, vm, w = np.concatenate(rows_x), np.concatenate(rows_y), np.concatenate(rows_w)
+    fit_bias, fit_scale = "sensor_bias" in effects, "sensor_scale" in effects
+    if fit_bias and fit_scale:
+        A = np.stack([vx, np.ones_like(vx)], 1)
+        s, b = np.linalg.lstsq(A * w[:, None] ** 0.5, vm * w**0.5, rcond=None)[0]
+    elif fit_scale:
+        s, b = float(np.sum(w * vx * vm) / np.sum(w * vx * vx)), 0.0
+    else:
+        s, b = 1.0, float(np.sum(w * (vm - vx)) / np.sum(w))
+    return {"bias_v": float(b), "scale_v": float(s)}
+
+
+def _parabola_min(x, y) -> float:
+    """Vertex of the parabola through three points (grid refinement without extra fits)."""
+    x0, x1, x2 = map(float, x)
+    y0, y1, y2 = map(float, y)
+    den = (x0 - x1) * (x0 - x2) * (x1 - x2)
+    if den == 0:
+        return x1
+    a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
+    b = (x2**2 * (y0 - y1) + x1**2 * (y2 - y0) + x0**2 * (y1 - y2)) / den
+    if a <= 0:
+        return x1
+    return float(min(max(-b / (2 * a), x0), x2))
+
+
+def _sse_for(preps, params, weights):
+    stats = episode_stats(preps, params)
+    theta, sse, _ = solve(stats, weights)
+    return sse, theta
+
+
+def fit_axis(preps: list[Prepared], effects: list[str], weights: np.ndarray | None = None,
+             refine: bool = True, k_u: float | None = None, start: AxisParams | None = None,
+             passes: int = 2, search: list[str] | None = None) -> AxisParams:
+    """Grey-box fit of the axis model with the given effects on (weighted) episodes.
+
+    Hyper-parameters by coordinate search (grid, then bounded refinement); a and c and all
+    linear effect coefficients by least squares inside every evaluation. ``search`` limits the
+    search to the hyper-parameters of these effects (the others keep their ``start`` values).
+    """
+    effects = [e for e in effects if CATALOGUE[e].absorbed_by_nominal == ""]
+    params = initial_params(preps, effects, k_u)
+    if start is not None:
+        for h in params.hyper:
+            if h in start.hyper:
+                params.hyper[h] = start.hyper[h]
+    params.sensor = fit_sensor(preps, effects, weights)
+    hyper_names = list(params.hyper)
+    if search is not None:
+        hyper_names = [HYPER_OF[e] for e in search if e in HYPER_OF and HYPER_OF[e] in params.hyper]
+    for _ in range(passes if len(hyper_names) > 1 else 1):
+        for h in hyper_names:
+            grid = hyper_grid(h, preps)
+            sses = []
+            for val in grid:
+                params.hyper[h] = float(val)
+                sses.append(_sse_for(preps, params, weights)[0])
+            i = int(np.argmin(sses))
+            params.hyper[h] = float(grid[i])
+            if not refine and 0 < i < len(grid) - 1 and math.isfinite(grid[i + 1]):
+                params.hyper[h] = _parabola_min(grid[i - 1 : i + 2], sses[i - 1 : i + 2])
+            if refine and math.isfinite(grid[i]):
+                lo = grid[max(i - 1, 0)]
+                hi = grid[min(i + 1, len(grid) - 1)]
+                if not math.isfinite(hi):
+                    hi = grid[i] * 1.5
+                if hi > lo:
+                    from scipy.optimize import minimize_scalar
+
+                    def f(val, h=h):
+                        params.hyper[h] = float(val)
+                        return _sse_for(preps, params, weights)[0]
+
+                    r = minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": (hi - lo) * 1e-3})
+                    params.hyper[h] = float(r.x) if r.fun <= sses[i] else float(grid[i])
+    _, theta = _sse_for(preps, params, weights)
+    params.coef = dict(zip(coef_names(effects), map(float, theta), strict=True))
+    return params
+
+
+# ----------------------------------------------------------------------------- prediction
+
+
+@dataclass
+class Scores:
+    """Squared errors of one episode: one-step and multi-step, per channel (x, v)."""
+
+    one_sse: dict[str, float]
+    one_n: int
+    multi_sse: dict[str, float]
+    multi_n: int
+
+
+def predict_one_step(p: Prepared, params: AxisParams) -> dict[str, np.ndarray]:
+    """One-step predictions of the observed channels at k+1 from measured state at k."""
+    X, _, k = design(p, params)
+    theta = np.array([params.coef[n] for n in coef_names(params.effects)])
+    v = state_velocity(p, params.sensor)
+    v_next = v[k] + p.period_s * (X @ theta)
+    x_next = p.ep.x[k] + p.period_s * 0.5 * (v[k] + v_next)
+    s, b = params.sensor["scale_v"], params.sensor["bias_v"]
+    return {
+        "k": k,
+        "x_pred": x_next,
+        "x_true": p.ep.x[k + 1],
+        "x_prev": p.ep.x[k],
+        "v_pred": s * v_next + b,
+        "v_true": p.v_obs[k + 1],
+        "v_prev": p.v_obs[k],
+    }
+
+
+def window_starts(p: Prepared, horizon: int) -> np.ndarray:
+    last = p.n - p.margin - horizon - 1
+    if last < p.margin:
+        return np.array([p.margin], dtype=int)
+    stride = max(1, horizon // 2)
+    return np.arange(p.margin, last + 1, stride, dtype=int)
+
+
+def simulate_windows(p: Prepared, params: AxisParams, horizon: int,
+                     starts: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Open-loop simulation of H-step windows, replaying the logged commands.
+
+    Each window starts from the measured position and velocity at its start index.
+    Returns x/v predictions and measurements, shape (windows, H).
+    """
+    horizon = min(horizon, p.n - 2 * p.margin - 2)
+    horizon = max(horizon, 1)
+    if starts is None:
+        starts = window_starts(p, horizon)
+    v_true = state_velocity(p, params.sensor)
+    feats = raw_features(p, params, v_true, smooth=False)  # only command-side columns used below
+    c = params.coef
+    hp = params.hyper
+    g = _payload_factor(p, hp)
+    g = np.ones(p.n) if g is None else g
+    force_in = c["a"] * feats["a"]
+    if "kb" in feats:
+        force_in = force_in + c["kb"] * feats["kb"]
+    # Command-side terms were multiplied by g in raw_features; offset/friction get g below.
+    drive = force_in + c.get("offset_acc", 0.0) * g + c.get("gravity_acc", 0.0)
+    fc, fs = c.get("fc_acc", 0.0), c.get("fs_extra_acc", 0.0)
+    vs = hp.get("vs", 1.0)
+    dt = p.period_s
+    x = p.ep.x[starts].astype(float).copy()
+    v = v_true[starts].astype(float).copy()
+    xs = np.empty((starts.size, horizon))
+    vs_out = np.empty((starts.size, horizon))
+    idx = starts.copy()
+    for h in range(horizon):
+        gk = g[idx]
+        v_pred = v + dt * (drive[idx] - c["c_per_s"] * gk * v)
+        if fc or fs:
+            step = dt * gk * (fc + (fs * np.exp(-((v / vs) ** 2)) if fs else 0.0))
+            # Implicit (Moreau) friction: stick when the other forces cannot overcome it. A negative
+            # fitted friction (no friction in the data, noise) is applied explicitly instead.
+            stick = (step > 0) & (np.abs(v_pred) <= step)
+            sgn = np.where(step > 0, np.sign(v_pred), np.sign(v))
+            v_new = np.where(stick, 0.0, v_pred - step * sgn)
+        else:
+            v_new = v_pred
+        x = x + dt * 0.5 * (v + v_new)
+        v = v_new
+        idx = idx + 1
+        xs[:, h] = x
+        vs_out[:, h] = v
+    ks = starts[:, None] + 1 + np.arange(horizon)[None, :]
+    s, b = params.sensor["scale_v"], params.sensor["bias_v"]
+    return {"x_pred": xs, "x_true": p.ep.x[ks], "v_pred": s * vs_out + b, "v_true": p.v_obs[ks], "k": ks}
+
+
+def score(p: Prepared, params: AxisParams, horizon: int) -> Scores:
+    one = predict_one_step(p, params)
+    ms = simulate_windows(p, params, horizon)
+    return Scores(
+        one_sse={ch: float(np.sum((one[f"{ch}_pred"] - one[f"{ch}_true"]) ** 2)) for ch in ("x", "v")},
+        one_n=int(one["k"].size),
+        multi_sse={ch: float(np.sum((ms[f"{ch}_pred"] - ms[f"{ch}_true"]) ** 2)) for ch in ("x", "v")},
+        multi_n=int(ms["k"].size),
+    )

@@ -1,0 +1,342 @@
+"""run_calibration: data → selection → augmented model → before/after report (JSON, Markdown, PNG)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calibration import axis
+from calibration.data import Episode, load_episodes, segment_episodes, summarize
+from calibration.effects import CATALOGUE
+from calibration.models import get_model, save_model
+from calibration.selection import (
+    SelectionConfig,
+    blackbox_check,
+    detection_limits,
+    select_effects,
+)
+
+
+def _nrmse_table(scores: list[axis.Scores], preps: list[axis.Prepared], n_boot: int, seed: int) -> dict:
+    """NRMSE on a set of episodes, per channel and mean, with episode-bootstrap 95 % intervals.
+
+    one-step: RMSE of the predicted sample at k+1 over std of the channel's increment;
+    multi-step: RMSE of H-step open-loop windows over std of the channel.
+    """
+    dx = np.concatenate([np.diff(p.ep.x) for p in preps])
+    dv = np.concatenate([np.diff(p.v_obs) for p in preps])
+    sd = {
+        "one": {"x": float(np.std(dx)) + 1e-300, "v": float(np.std(dv)) + 1e-300},
+        "multi": {"x": float(np.std(np.concatenate([p.ep.x for p in preps]))) + 1e-300,
+                  "v": float(np.std(np.concatenate([p.v_obs for p in preps]))) + 1e-300},
+    }
+
+    def table(idx: np.ndarray) -> dict:
+        out = {}
+        for kind in ("one", "multi"):
+            per = {}
+            for ch in ("x", "v"):
+                sse = sum(getattr(scores[i], f"{kind}_sse")[ch] for i in idx)
+                n = sum(getattr(scores[i], f"{kind}_n") for i in idx)
+                per[ch] = math.sqrt(sse / max(n, 1)) / sd[kind][ch]
+            out[kind] = {"per_channel": per, "mean": float(np.mean(list(per.values())))}
+        return out
+
+    idx_all = np.arange(len(scores))
+    point = table(idx_all)
+    rng = np.random.default_rng(seed + 104729)
+    boots = [table(rng.integers(0, len(scores), len(scores))) for _ in range(n_boot)] if len(scores) > 1 else []
+
+    def interval(kind, key, ch=None):
+        if not boots:
+            return None
+        vals = [b[kind]["mean"] if ch is None else b[kind]["per_channel"][ch] for b in boots]
+        return [float(np.percentile(vals, 2.5)), float(np.percentile(vals, 97.5))]
+
+    res = {}
+    for kind, label in (("one", "one_step_nrmse"), ("multi", "multi_step_nrmse")):
+        res[label] = {
+            "mean": point[kind]["mean"],
+            "mean_interval": interval(kind, "mean"),
+            "per_channel": point[kind]["per_channel"],
+            "per_channel_interval": {ch: interval(kind, "pc", ch) for ch in ("x", "v")},
+        }
+    return res
+
+
+def _clean(o):
+    """JSON-safe (inf → null, numpy → python)."""
+    if isinstance(o, dict):
+        return {str(k): _clean(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_clean(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _clean(o.tolist())
+    if isinstance(o, np.integer | np.bool_):
+        return o.item()
+    if isinstance(o, float | np.floating):
+        f = float(o)
+        return f if math.isfinite(f) else None
+    return o
+
+
+def run_calibration(
+    data_path: str | Path | list[Episode],
+    model: str = "axis",
+    column_map: str | dict | Path | None = None,
+    out_dir: str | Path = "calibration_out",
+    seed: int = 0,
+    progress: bool = True,
+    k_u: float | None = None,
+    config: SelectionConfig | None = None,
+    sg_window: int | None = None,
+    plots: bool = True,
+) -> dict:
+    """Calibrate a nominal model against measured episodes and write the report.
+
+    Args:
+        data_path: CSV/Parquet file, directory, .mcap, or a list of Episodes.
+        model: nominal model name (``axis``; ``velociroach``/``checkpoint`` when available).
+        column_map: ``t=time,u=volts,x=position[,v=..,vbat=..,m=..]`` or a YAML path/dict.
+        out_dir: where report.json, report.md, model.json and the PNGs go.
+        seed: seed of the episode split and bootstraps.
+        progress: print progress to stderr.
+        k_u: known actuator gain (force per command unit, e.g. N/V) for physical parameters.
+        config: statistical settings.
+        sg_window: Savitzky-Golay window [samples] for derived velocity (default ≈ 30 ms).
+        plots: write PNG plots.
+
+    Returns:
+        The report dict (also written to ``out_dir/report.json``).
+    """
+    t0 = time.time()
+    cfg = config or SelectionConfig()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def log(msg: str) -> None:
+        if progress:
+            print(f"[calibrate {time.time() - t0:6.1f}s] {msg}", file=sys.stderr, flush=True)
+
+    nominal_model = get_model(model, k_u=k_u, sg_window=sg_window)
+    episodes = list(data_path) if isinstance(data_path, list) else load_episodes(data_path, column_map)
+    source = "episodes" if isinstance(data_path, list) else str(data_path)
+    log(f"loaded {len(episodes)} episode(s) from {source}")
+    min_len = max(200, int(round(1.2 * cfg.horizon_s / episodes[0].period_s)))
+    episodes, segmented = segment_episodes(episodes, cfg.min_episodes, min_len)
+    if segmented:
+        log(f"too few episodes for folds: split into {len(episodes)} contiguous segments")
+    preps = nominal_model.prepare(episodes)
+
+    sel = select_effects(nominal_model, preps, cfg, seed=seed, log=log)
+    pool_idx = np.concatenate(sel.folds)
+    pool = [preps[i] for i in pool_idx]
+    test = [preps[i] for i in sel.test_idx]
+    log("scoring the locked test set")
+    before_scores = [axis.score(p, sel.nominal.params, sel.horizon) for p in test]
+    after_scores = [axis.score(p, sel.final.params, sel.horizon) for p in test]
+    before = _nrmse_table(before_scores, test, 500, seed)
+    after = _nrmse_table(after_scores, test, 500, seed)
+    log("black-box check of the remaining residual")
+    bb = blackbox_check(preps, sel.folds, sel.final, cfg, seed)
+    candidates, _ = nominal_model.candidate_effects(preps)
+    det = detection_limits(pool, sel.final, candidates, sel.skipped, cfg)
+
+    effects_doc = []
+    amb_names = {n for a in sel.ambiguous for n in a["effects"]}
+    for r in sel.accepted:
+        spec = CATALOGUE[r.name]
+        effects_doc.append({
+            "name": r.name,
+            "description": spec.description,
+            "params": sel.final.params.effect_params(r.name),
+            "primary": spec.primary,
+            "unit": spec.unit,
+            "no_effect": spec.no_effect,
+            "interval": r.interval,
+            "heldout_gain": r.gain,
+            "p_value": r.p_value,
+            "stability": r.stability,
+            "ambiguous": r.name in amb_names,
+        })
+    report = {
+        "model": model,
+        "data": {**summarize(episodes), "segmented": segmented,
+                 "segmentation_note": (
+                     "long recordings were split into contiguous segments treated as episodes; neighbouring "
+                     "segments are correlated, so p-values are somewhat optimistic") if segmented else None,
+                 "velocity_source": "measured" if preps[0].kernel is None else
+                 f"Savitzky-Golay derivative of position (quadratic, window {preps[0].window} samples)"},
+        "folds": {"k": len(sel.folds), "test_episodes": [episodes[i].name for i in sel.test_idx],
+                  "fold_episodes": [[episodes[i].name for i in f] for f in sel.folds],
+                  "horizon_steps": sel.horizon, "horizon_s": sel.horizon * preps[0].period_s},
+        "config": cfg.__dict__,
+        "seed": seed,
+        "verdict": "found" if sel.accepted else "none",
+        "effects": effects_doc,
+        "ambiguous": sel.ambiguous,
+        "unexplained_structure": bb["unexplained_structure"],
+        "blackbox": bb,
+        "detection_limit": det,
+        "before": before,
+        "after": after,
+        "nominal_params": sel.nominal.params.coef,
+        "final_params": sel.final.params.to_dict(),
+        "physical_params": {"before": sel.nominal.params.physical(), "after": sel.final.params.physical()},
+        "not_tested": sel.skipped,
+        "rounds": sel.rounds,
+        "elapsed_s": time.time() - t0,
+    }
+    report = _clean(report)
+    save_model(sel.final, out / "model.json", extra={"source": source, "verdict": report["verdict"]})
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    if plots:
+        log("plots")
+        _plots(out, sel, preps, pool, test)
+    (out / "report.md").write_text(render_markdown(report))
+    log(f"done: verdict {report['verdict']}, multi-step NRMSE {before['multi_step_nrmse']['mean']:.3f} -> "
+        f"{after['multi_step_nrmse']['mean']:.3f}")
+    return report
+
+
+def _fmt_iv(iv) -> str:
+    return "" if not iv else f" [{iv[0]:.3g}, {iv[1]:.3g}]"
+
+
+def render_markdown(r: dict) -> str:
+    lines = [f"# Calibration report: model `{r['model']}`", ""]
+    d = r["data"]
+    lines += [f"Data: {d['n_episodes']} episodes, {d['n_samples']} samples at {d['period_s']:.4g} s "
+              f"({d['duration_s']:.1f} s); velocity: {d['velocity_source']}."]
+    if d.get("segmentation_note"):
+        lines += ["", f"Note: {d['segmentation_note']}."]
+    lines += ["", f"**Verdict: {r['verdict']}**" + ("" if r["effects"] else " (nothing found)"), ""]
+    if r["effects"]:
+        lines += ["| effect | parameters | 95% interval (primary) | held-out gain | p-value | stability |",
+                  "|---|---|---|---|---|---|"]
+        for e in r["effects"]:
+            ps = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items() if v is not None)
+            lines.append(f"| {e['name']}{' (ambiguous)' if e['ambiguous'] else ''} | {ps} | "
+                         f"{e['primary']}{_fmt_iv(e['interval'])} | {e['heldout_gain']:.3f} | {e['p_value']:.2g} | "
+                         f"{e['stability']:.2f} |")
+    if r["ambiguous"]:
+        lines += ["", "Ambiguous (look-alikes the data cannot separate):"]
+        for a in r["ambiguous"]:
+            lines.append(f"- {a['effects'][0]} vs {a['effects'][1]} (chose {a['chosen']}, separation p="
+                         f"{a['p_value_separation']:.2g}); to separate: {a['excitation']}")
+    lines += ["", "Locked test set (NRMSE, 95% episode-bootstrap interval):", "",
+              "| | one-step mean | multi-step mean | multi-step x | multi-step v |", "|---|---|---|---|---|"]
+    for k in ("before", "after"):
+        t = r[k]
+        lines.append(f"| {k} | {t['one_step_nrmse']['mean']:.4f}{_fmt_iv(t['one_step_nrmse']['mean_interval'])} | "
+                     f"{t['multi_step_nrmse']['mean']:.4f}{_fmt_iv(t['multi_step_nrmse']['mean_interval'])} | "
+                     f"{t['multi_step_nrmse']['per_channel']['x']:.4f} | {t['multi_step_nrmse']['per_channel']['v']:.4f} |")
+    bb = r["blackbox"]
+    lines += ["", f"Unexplained structure: **{r['unexplained_structure']}** (black-box held-out R² "
+              f"{bb['heldout_r2']:.3f}, p={bb['p_value']:.2g}; thresholds R² ≥ {bb['threshold_r2']}, p < {bb['alpha']})."]
+    lines += ["", "Detection limits (smallest primary-parameter value the data could have revealed):", ""]
+    for name, e in r["detection_limit"]["per_effect"].items():
+        val = "n/a" if e["value"] is None else f"{e['value']:.3g} {e['unit']}"
+        lines.append(f"- {name} ({e['param']}): {val} — {e.get('note', '')}")
+    if r["physical_params"]["after"]:
+        lines += ["", "Physical parameters (k_u given):", ""]
+        for k in ("before", "after"):
+            lines.append(f"- {k}: " + ", ".join(f"{n}={v:.4g}" for n, v in r["physical_params"][k].items()))
+    lines += ["", "Not tested: " + "; ".join(f"{k}: {v}" for k, v in r["not_tested"].items()), ""]
+    lines += ["Plots: residual_before_after.png, diagnostics.png, candidates.png", ""]
+    return "\n".join(lines)
+
+
+def _plots(out: Path, sel, preps, pool, test) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    nom, fin = sel.nominal.params, sel.final.params
+    p = test[0] if test else pool[0]
+    fig, ax = plt.subplots(3, 1, figsize=(9, 8), sharex=False)
+    for params, label in ((nom, "before (nominal)"), (fin, "after (augmented)")):
+        one = axis.predict_one_step(p, params)
+        ax[0].plot(p.ep.t_s[one["k"]], one["v_true"] - one["v_pred"], lw=0.7, label=label)
+        h = min(p.n - 2 * p.margin - 2, max(sel.horizon * 4, sel.horizon))
+        sim = axis.simulate_windows(p, params, h, starts=np.array([p.margin]))
+        ax[1].plot(p.ep.t_s[sim["k"][0]], sim["x_pred"][0], lw=1.0, label=label)
+        ax[2].plot(p.ep.t_s[sim["k"][0]], sim["x_true"][0] - sim["x_pred"][0], lw=1.0, label=label)
+    ax[1].plot(p.ep.t_s[sim["k"][0]], sim["x_true"][0], "k", lw=0.8, label="measured")
+    ax[0].set_ylabel("one-step v residual")
+    ax[1].set_ylabel("x, open loop")
+    ax[2].set_ylabel("x error, open loop")
+    ax[2].set_xlabel("t [s]")
+    for a in ax:
+        a.legend(fontsize=7)
+    ax[0].set_title(f"test episode {p.ep.name}")
+    fig.tight_layout()
+    fig.savefig(out / "residual_before_after.png", dpi=90)
+    plt.close(fig)
+
+    # Diagnostics on the nominal residual of the training pool.
+    V, U, R, DU, VB = [], [], [], [], []
+    for q in pool:
+        X, y, k = axis.design(q, nom)
+        theta = np.array([nom.coef[n] for n in axis.coef_names(nom.effects)])
+        R.append(y - X @ theta)
+        V.append(q.v_obs[k])
+        U.append(q.ep.u[k])
+        DU.append(np.diff(q.ep.u, prepend=q.ep.u[0])[k])
+        if q.ep.vbat_v is not None:
+            VB.append(q.ep.vbat_v[k])
+    R, V, U = np.concatenate(R), np.concatenate(V), np.concatenate(U)
+    n_pan = 4 if VB else 3
+    fig, ax = plt.subplots(1, n_pan, figsize=(4 * n_pan, 3.4))
+
+    def binned(a, xv, yv, label):
+        edges = np.quantile(xv, np.linspace(0, 1, 41))
+        mids, means = [], []
+        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+            m = (xv >= lo) & (xv <= hi)
+            if m.any():
+                mids.append(0.5 * (lo + hi))
+                means.append(yv[m].mean())
+        a.plot(mids, means, ".-")
+        a.axhline(0, color="k", lw=0.5)
+        a.set_xlabel(label)
+        a.set_ylabel("mean nominal residual [x/s²]")
+
+    binned(ax[0], V, R, "velocity (coulomb/stribeck/viscous)")
+    binned(ax[1], U, R, "command (deadband/saturation)")
+    # Cross-correlation with the command rate: a peak at positive lag means delay/lag.
+    du = np.concatenate(DU)
+    lags = np.arange(-10, 31)
+    cc = []
+    for lg in lags:  # residual at k+lg against the command change at k
+        r_part, d_part = (R[lg:], du[: du.size - lg]) if lg >= 0 else (R[:lg], du[-lg:])
+        cc.append(np.corrcoef(r_part, d_part)[0, 1])
+    ax[2].stem(lags, cc)
+    ax[2].set_xlabel("lag [samples] (residual after command change)")
+    ax[2].set_ylabel("corr(residual, Δu)")
+    if VB:
+        binned(ax[3], np.concatenate(VB), R, "battery voltage (battery_sag)")
+    fig.tight_layout()
+    fig.savefig(out / "diagnostics.png", dpi=90)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    width = 0.8 / max(1, len(sel.rounds))
+    names = [c["name"] for c in sel.rounds[0]["candidates"]] if sel.rounds else []
+    for i, rd in enumerate(sel.rounds):
+        gains = {c["name"]: c["heldout_gain"] for c in rd["candidates"]}
+        ax.bar(np.arange(len(names)) + i * width, [gains.get(n, 0.0) for n in names], width, label=f"round {rd['round']}")
+    ax.set_xticks(np.arange(len(names)))
+    ax.set_xticklabels(names, rotation=45, ha="right", fontsize=7)
+    ax.set_ylabel("held-out gain")
+    ax.axhline(0, color="k", lw=0.5)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "candidates.png", dpi=90)
+    plt.close(fig)

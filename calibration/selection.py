@@ -1,0 +1,462 @@
+"""Effect selection: folds, locked test set, paired tests, bootstrap, look-alikes, black box.
+
+Procedure (see docs/calibration.md):
+
+1. Whole episodes are split into a locked test set (never used for any decision) and a
+   training pool, which is split into K folds.
+2. Each round, every remaining candidate is added to the accepted set; model + candidate are
+   fit on K−1 folds and scored on the held-out fold (one-step and multi-step open-loop), so
+   every training episode gets a held-out loss with and without the candidate.
+3. A candidate is accepted when (a) a one-sided Wilcoxon signed-rank test over held-out
+   episodes says it lowers the loss, at α / (number of candidates in the round); (b) the
+   relative held-out gain is at least ``min_gain``; (c) the 95 % episode-bootstrap interval
+   of its primary parameter excludes the no-effect value; (d) it improves the out-of-bag loss
+   in at least ``min_stability`` of the bootstrap replicates. The best such candidate is
+   accepted, its look-alikes that explain the data about as well are reported as ambiguous,
+   and the round repeats until nothing passes.
+4. A black-box regressor on the remaining one-step residual (random Fourier features, ridge)
+   checks for structure the catalogue cannot explain (held-out R² with a paired test).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats as st
+
+from calibration import axis
+from calibration.effects import CATALOGUE, is_look_alike, separating_excitation
+from calibration.models import AxisModel, FittedAxis
+
+
+@dataclass(frozen=True)
+class SelectionConfig:
+    """Statistical settings (defaults are those used in docs/calibration.md)."""
+
+    k_folds: int = 5
+    test_fraction: float = 0.2
+    alpha: float = 0.05
+    min_gain: float = 0.02  # relative reduction of the held-out loss
+    n_boot: int = 40
+    min_stability: float = 0.8
+    horizon_s: float = 1.0
+    min_episodes: int = 20
+    max_rounds: int = 6
+    bb_alpha: float = 0.01
+    bb_min_r2: float = 0.05
+    power: float = 0.8
+
+
+@dataclass
+class Norms:
+    """Normalizers (variances) so channels are comparable: fixed from the training pool."""
+
+    one_x: float
+    one_v: float
+    multi_x: float
+    multi_v: float
+
+
+def compute_norms(preps: list[axis.Prepared]) -> Norms:
+    dx = np.concatenate([np.diff(p.ep.x) for p in preps])
+    dv = np.concatenate([np.diff(p.v_obs) for p in preps])
+    x = np.concatenate([p.ep.x for p in preps])
+    v = np.concatenate([p.v_obs for p in preps])
+    tiny = 1e-300
+    return Norms(float(np.var(dx)) + tiny, float(np.var(dv)) + tiny, float(np.var(x)) + tiny, float(np.var(v)) + tiny)
+
+
+def episode_loss(s: axis.Scores, nm: Norms) -> float:
+    """Selection loss of one episode: mean of one-step v NMSE and multi-step x and v NMSE."""
+    return float(
+        (s.one_sse["v"] / s.one_n / nm.one_v + s.multi_sse["x"] / s.multi_n / nm.multi_x
+         + s.multi_sse["v"] / s.multi_n / nm.multi_v) / 3.0
+    )
+
+
+def split_episodes(n: int, cfg: SelectionConfig, seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(locked test indices, list of K fold index arrays over the training pool)."""
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(n)
+    n_test = max(1, int(round(cfg.test_fraction * n))) if n >= 4 else 0
+    test = np.sort(order[:n_test])
+    pool = order[n_test:]
+    k = max(2, min(cfg.k_folds, pool.size))
+    folds = [np.sort(pool[i::k]) for i in range(k)]
+    return test, folds
+
+
+def paired_p(base: np.ndarray, cand: np.ndarray) -> float:
+    """One-sided Wilcoxon signed-rank p-value that ``cand`` losses are lower than ``base``."""
+    d = base - cand
+    if np.all(np.abs(d) <= 1e-12 * (np.abs(base) + 1e-300)):
+        return 1.0
+    try:
+        return float(st.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue)
+    except ValueError:
+        return 1.0
+
+
+@dataclass
+class CandidateResult:
+    name: str
+    losses: np.ndarray  # held-out loss per training-pool episode (pool order)
+    gain: float
+    p_value: float
+    fitted: FittedAxis | None = None
+    interval: list[float] | None = None
+    stability: float | None = None
+    boot_values: list[float] = field(default_factory=list)
+    verdict: str = ""
+
+
+def crossval_losses(model: AxisModel, preps, folds, effects, nm: Norms, horizon: int,
+                    start: FittedAxis | None, search: list[str] | None) -> np.ndarray:
+    """Held-out loss of every training-pool episode (pool order = concatenated folds)."""
+    out = []
+    for i, held in enumerate(folds):
+        train = [preps[j] for f, fold in enumerate(folds) if f != i for j in fold]
+        fitted = model.fit(train, effects, refine=False, start=start, search=search)
+        out.extend(episode_loss(axis.score(preps[j], fitted.params, horizon), nm) for j in held)
+    return np.asarray(out)
+
+
+def _excludes(interval: list[float], no_effect: float) -> bool:
+    lo, hi = interval
+    if math.isinf(no_effect):
+        return math.isfinite(hi)
+    return lo > no_effect or hi < no_effect
+
+
+def bootstrap_effect(model: AxisModel, preps, pool_idx: np.ndarray, base: FittedAxis, effects: list[str],
+                     name: str, n_boot: int, seed: int, nm: Norms) -> tuple[list[float], float, list[float]]:
+    """Episode bootstrap of the candidate's primary parameter and its out-of-bag stability.
+
+    Returns (95 % interval, fraction of replicates whose out-of-bag one-step loss improves, values).
+    """
+    rng = np.random.default_rng(seed + 7919)
+    pool = [preps[i] for i in pool_idx]
+    vals, wins, tried = [], 0, 0
+    for _ in range(n_boot):
+        counts = np.bincount(rng.integers(0, len(pool), len(pool)), minlength=len(pool)).astype(float)
+        b = model.fit(pool, effects, weights=counts, refine=False, start=base, search=[])
+        c = model.fit(pool, effects + [name], weights=counts, refine=False, start=base, search=[name])
+        vals.append(c.params.primary(name))
+        oob = np.flatnonzero(counts == 0)
+        if oob.size:
+            tried += 1
+            lb = sum(_one_step_sse(pool[i], b.params) for i in oob)
+            lc = sum(_one_step_sse(pool[i], c.params) for i in oob)
+            wins += lc < lb
+    arr = np.asarray(vals, float)
+    interval = [float(np.nanpercentile(arr, 2.5)), float(np.nanpercentile(arr, 97.5))]
+    return interval, (wins / tried if tried else 0.0), [float(v) for v in arr]
+
+
+def _one_step_sse(p: axis.Prepared, params: axis.AxisParams) -> float:
+    one = axis.predict_one_step(p, params)
+    return float(np.sum((one["v_pred"] - one["v_true"]) ** 2))
+
+
+@dataclass
+class SelectionResult:
+    accepted: list[CandidateResult]
+    ambiguous: list[dict]
+    rounds: list[dict]
+    final: FittedAxis
+    nominal: FittedAxis
+    skipped: dict[str, str]
+    test_idx: np.ndarray
+    folds: list[np.ndarray]
+    norms: Norms
+    horizon: int
+
+
+def select_effects(model: AxisModel, preps: list[axis.Prepared], cfg: SelectionConfig, seed: int = 0,
+                   log: Callable[[str], None] = lambda s: None) -> SelectionResult:
+    """Greedy forward selection of effects with held-out evidence (see module docstring)."""
+    test_idx, folds = split_episodes(len(preps), cfg, seed)
+    pool_idx = np.concatenate(folds)
+    pool = [preps[i] for i in pool_idx]
+    nm = compute_norms(pool)
+    horizon = max(2, int(round(cfg.horizon_s / preps[0].period_s)))
+    candidates, skipped = model.candidate_effects(preps)
+    log(f"{len(preps)} episodes: {test_idx.size} locked for test, {pool_idx.size} in {len(folds)} folds; "
+        f"{len(candidates)} candidate effects")
+
+    nominal = model.fit(pool, [])
+    current = nominal
+    accepted: list[CandidateResult] = []
+    ambiguous: list[dict] = []
+    rounds: list[dict] = []
+    # Fold indices into `preps` order; losses come out in pool order.
+    for rnd in range(cfg.max_rounds):
+        effects = list(current.effects)
+        candidates, skipped = model.candidate_effects(preps, tuple(effects))
+        remaining = [c for c in candidates if c not in effects]
+        if not remaining:
+            break
+        base_loss = crossval_losses(model, preps, folds, effects, nm, horizon, current, [])
+        alpha_round = cfg.alpha / len(remaining)
+        results = []
+        for name in remaining:
+            losses = crossval_losses(model, preps, folds, effects + [name], nm, horizon, current, [name])
+            gain = float(1.0 - losses.mean() / base_loss.mean())
+            r = CandidateResult(name, losses, gain, paired_p(base_loss, losses))
+            results.append(r)
+            log(f"  round {rnd + 1}: {name:18s} held-out gain {gain:+.3f}  p={r.p_value:.2g}")
+        results.sort(key=lambda r: -r.gain)
+        passing = [r for r in results if r.p_value < alpha_round and r.gain >= cfg.min_gain]
+        round_doc = {
+            "round": rnd + 1,
+            "base_effects": effects,
+            "base_heldout_loss": float(base_loss.mean()),
+            "alpha": alpha_round,
+            "candidates": [{"name": r.name, "heldout_gain": r.gain, "p_value": r.p_value} for r in results],
+        }
+        winner = None
+        for r in passing:
+            r.interval, r.stability, r.boot_values = bootstrap_effect(
+                model, preps, pool_idx, current, effects, r.name, cfg.n_boot, seed + rnd, nm)
+            ok_int = _excludes(r.interval, CATALOGUE[r.name].no_effect)
+            ok_stab = r.stability >= cfg.min_stability
+            r.verdict = "accepted" if ok_int and ok_stab else (
+                "rejected: bootstrap interval includes the no-effect value" if not ok_int
+                else f"rejected: unstable under episode bootstrap ({r.stability:.2f})")
+            log(f"  round {rnd + 1}: {r.name}: interval {r.interval}, stability {r.stability:.2f} -> {r.verdict}")
+            if r.verdict == "accepted":
+                winner = r
+                break
+        round_doc["decisions"] = [
+            {"name": r.name, "verdict": r.verdict, "interval": r.interval, "stability": r.stability}
+            for r in passing if r.verdict
+        ]
+        rounds.append(round_doc)
+        if winner is None:
+            break
+        # Look-alikes that explain the held-out data about as well as the winner.
+        for r in passing:
+            if r is winner or not is_look_alike(winner.name, r.name):
+                continue
+            p_sep = paired_p(r.losses, winner.losses)
+            if p_sep >= cfg.alpha:
+                ambiguous.append({
+                    "effects": [winner.name, r.name],
+                    "chosen": winner.name,
+                    "heldout_gain": {winner.name: winner.gain, r.name: r.gain},
+                    "p_value_separation": p_sep,
+                    "excitation": separating_excitation(winner.name, r.name),
+                })
+                log(f"  ambiguous: {winner.name} vs {r.name} (p={p_sep:.2g}); "
+                    f"separate with {separating_excitation(winner.name, r.name)}")
+        current = model.fit(pool, effects + [winner.name], refine=True, start=current)
+        winner.fitted = current
+        accepted.append(winner)
+        log(f"accepted {winner.name}: {current.params.effect_params(winner.name)}")
+    if not accepted:
+        log("no effect passed the tests")
+    return SelectionResult(accepted, ambiguous, rounds, current, nominal, skipped, test_idx, folds, nm, horizon)
+
+
+# ----------------------------------------------------------------------------- black box
+
+
+def _bb_features(p: axis.Prepared, k: np.ndarray, v: np.ndarray) -> np.ndarray:
+    u = p.ep.u
+    cols = [p.ep.x[k], v[k]]
+    for lag in (0, 1, 2, 4, 8):
+        cols.append(u[np.maximum(k - lag, 0)])
+    if p.ep.vbat_v is not None:
+        cols.append(p.ep.vbat_v[k])
+    if p.ep.payload is not None:
+        cols.append(p.ep.payload[k])
+    return np.stack(cols, axis=1)
+
+
+def _rff(z: np.ndarray, rng_seed: int) -> np.ndarray:
+    """Random Fourier features: additive 1-D ones over a wide frequency range plus joint ones."""
+    rng = np.random.default_rng(rng_seed)
+    n, d = z.shape
+    parts = [z]
+    for j in range(d):
+        w = np.exp(rng.uniform(np.log(0.2), np.log(60.0), 24))
+        b = rng.uniform(0, 2 * np.pi, 24)
+        parts.append(np.cos(z[:, j : j + 1] * w[None, :] + b[None, :]))
+    W = rng.standard_normal((d, 120)) / np.exp(rng.uniform(np.log(0.3), np.log(3.0), 120))[None, :]
+    parts.append(np.cos(z @ W + rng.uniform(0, 2 * np.pi, 120)[None, :]))
+    return np.concatenate(parts, axis=1)
+
+
+def _ridge_gcv(F: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Ridge with the penalty chosen by generalized cross-validation (on training rows only)."""
+    mu, sd = F.mean(0), F.std(0) + 1e-12
+    Fs = (F - mu) / sd
+    # Eigen-decomposition of the Gram matrix: the same spectrum as an SVD, much cheaper for n >> p.
+    evals, V = np.linalg.eigh(Fs.T @ Fs)
+    s = np.sqrt(np.maximum(evals, 0.0))
+    keep = s > 1e-8 * s.max()
+    s, V = s[keep], V[:, keep]
+    Vt = V.T
+    Ur = (Vt @ (Fs.T @ (r - r.mean()))) / s
+    n = F.shape[0]
+    best = None
+    for lam in np.geomspace(1e-3, 1e4, 22) * n / 100:
+        f = s**2 / (s**2 + lam)
+        resid = np.sum(((1 - f) * Ur) ** 2) + np.sum((r - r.mean()) ** 2) - np.sum(Ur**2)
+        gcv = resid / (1 - f.sum() / n) ** 2
+        if best is None or gcv < best[0]:
+            best = (gcv, lam)
+    lam = best[1]
+    beta = Vt.T @ (s / (s**2 + lam) * Ur)
+    return beta / sd, mu, float(r.mean())
+
+
+def blackbox_check(preps, pool_idx_folds: list[np.ndarray], fitted: FittedAxis, cfg: SelectionConfig,
+                   seed: int = 0) -> dict:
+    """Held-out R² of a flexible regressor on the final model's one-step residual.
+
+    Cross-fitted over the folds. ``unexplained_structure`` is set when the pooled held-out R²
+    is at least ``bb_min_r2`` and a Wilcoxon test over held-out episodes (squared error
+    against the training mean vs the regressor) gives p < ``bb_alpha``.
+    """
+    rows = {}
+    for fold in pool_idx_folds:
+        for j in fold:
+            p = preps[j]
+            X, y, k = axis.design(p, fitted.params)
+            theta = np.array([fitted.params.coef[n] for n in axis.coef_names(fitted.params.effects)])
+            v = axis.state_velocity(p, fitted.params.sensor)
+            rows[j] = (_bb_features(p, k, v), y - X @ theta)
+    allz = np.concatenate([z for z, _ in rows.values()])
+    zmu, zsd = allz.mean(0), allz.std(0) + 1e-12
+    sse_null, sse_bb = [], []
+    for i, held in enumerate(pool_idx_folds):
+        train = [j for f, fold in enumerate(pool_idx_folds) if f != i for j in fold]
+        Z = np.concatenate([rows[j][0] for j in train])
+        R = np.concatenate([rows[j][1] for j in train])
+        stride = max(1, Z.shape[0] // 4000)  # bound the cost on long 1 kHz logs
+        F = _rff((Z[::stride] - zmu) / zsd, seed)
+        beta, fmu, rmean = _ridge_gcv(F, R[::stride])
+        for j in held:
+            z, r = rows[j]
+            pred = rmean + (_rff((z - zmu) / zsd, seed) - fmu) @ beta
+            sse_null.append(float(np.sum((r - rmean) ** 2)))
+            sse_bb.append(float(np.sum((r - pred) ** 2)))
+    sse_null, sse_bb = np.asarray(sse_null), np.asarray(sse_bb)
+    r2 = float(1.0 - sse_bb.sum() / sse_null.sum())
+    p = paired_p(sse_null, sse_bb)
+    return {
+        "method": "random Fourier features + ridge (GCV) on lagged command, position, velocity; cross-fitted",
+        "heldout_r2": r2,
+        "p_value": p,
+        "threshold_r2": cfg.bb_min_r2,
+        "alpha": cfg.bb_alpha,
+        "unexplained_structure": bool(r2 >= cfg.bb_min_r2 and p < cfg.bb_alpha),
+    }
+
+
+# ----------------------------------------------------------------------------- detection limit
+
+
+def _autocorr_inflation(r: np.ndarray, max_lag: int) -> float:
+    """Long-run variance factor 1 + 2·Σρ_k (Bartlett weights) of a residual series, ≥ 1."""
+    r = r - r.mean()
+    var = float(r @ r) / r.size
+    if var <= 0:
+        return 1.0
+    tot = 1.0
+    for k in range(1, max_lag + 1):
+        rho = float(r[:-k] @ r[k:]) / (r.size * var)
+        tot += 2 * (1 - k / (max_lag + 1)) * rho
+    return max(1.0, tot)
+
+
+def detection_limits(preps_pool: list[axis.Prepared], fitted: FittedAxis, candidates: list[str],
+                     skipped: dict[str, str], cfg: SelectionConfig) -> dict:
+    """Smallest value of each effect's primary parameter the data could have revealed.
+
+    The effect's regressor (its column, or for nonlinear effects the derivative of the model
+    acceleration with respect to its parameter at the no-effect value) is projected off the
+    model's own regressors (the nominal refit would absorb that part), and
+    limit = (z_{1−α/(2m)} + z_power) · σ_eff / ‖projected regressor‖, with σ_eff the residual
+    standard deviation inflated for autocorrelation (long-run variance).
+    """
+    params = fitted.params
+    names = axis.coef_names(params.effects)
+    theta = np.array([params.coef[n] for n in names])
+    Xs, res = [], []
+    for p in preps_pool:
+        X, y, _ = axis.design(p, params)
+        Xs.append(X)
+        res.append(y - X @ theta)
+    X0 = np.concatenate(Xs)
+    r = np.concatenate(res)
+    infl = _autocorr_inflation(res[0] if len(res[0]) > 50 else r, 2 * preps_pool[0].window)
+    sigma = float(np.std(r)) * math.sqrt(infl)
+    m = max(1, len(candidates))
+    z = st.norm.ppf(1 - cfg.alpha / (2 * m)) + st.norm.ppf(cfg.power)
+    Q, _ = np.linalg.qr(X0)
+    out: dict[str, dict] = {}
+    for name in list(candidates) + [s for s in skipped if s not in candidates]:
+        spec = CATALOGUE[name]
+        entry = {"param": spec.primary, "unit": spec.unit, "value": None}
+        if name in skipped:
+            entry["note"] = skipped[name]
+            out[name] = entry
+            continue
+        if name in params.effects:
+            entry["note"] = "accepted; see its bootstrap interval"
+            out[name] = entry
+            continue
+        col, note = _sensitivity(preps_pool, params, name)
+        if col is None:
+            entry["note"] = note
+            out[name] = entry
+            continue
+        resid = col - Q @ (Q.T @ col)
+        nrm = float(np.linalg.norm(resid))
+        if nrm < 1e-12 * (np.linalg.norm(col) + 1e-300):
+            entry["note"] = "not separable from the nominal parameters with this data"
+        else:
+            entry["value"] = float(z * sigma / nrm)
+            entry["note"] = note
+        out[name] = entry
+    return {"per_effect": out, "sigma_eff": sigma, "autocorr_inflation": infl, "z": float(z)}
+
+
+def _sensitivity(preps, params: axis.AxisParams, name: str) -> tuple[np.ndarray | None, str]:
+    """d(model acceleration)/d(primary parameter) at the no-effect value, stacked over episodes."""
+    import copy
+
+    spec = CATALOGUE[name]
+    if name in ("sensor_bias", "sensor_scale"):
+        return None, "velocity-sensor effects are estimated by direct regression; see sensor fit"
+    if name == "saturation":
+        return None, "a clip above the largest logged |u| is invisible; see the command range in data"
+    cols = []
+    for p in preps:
+        X0, _, _ = axis.design(p, params)
+        theta = np.array([params.coef[n] for n in axis.coef_names(params.effects)])
+        if name in axis.COEF_OF or name == "stribeck_friction":
+            q = copy.deepcopy(params)
+            q.effects = params.effects + [name]
+            if name == "stribeck_friction":
+                q.hyper["vs"] = float(np.sqrt(np.mean(p.v_obs**2))) * 0.1
+            X1, _, _ = axis.design(p, q)
+            col = X1[:, -1] if name != "battery_sag" else X1[:, axis.coef_names(q.effects).index("kb")] * params.coef["a"]
+            cols.append(col)
+            continue
+        h = axis.HYPER_OF[name]
+        q = copy.deepcopy(params)
+        q.effects = params.effects + [name]
+        step = {"delay_s": 0.25 * p.period_s, "tau_s": 0.25 * p.period_s}.get(h)
+        if step is None:
+            au = np.abs(p.ep.u)
+            step = 0.01 * float(np.quantile(au, 0.9)) if h != "mu_per_unit" else 0.01
+        q.hyper[h] = spec.no_effect + step
+        X1, _, _ = axis.design(p, q)
+        cols.append((X1[:, : X0.shape[1]] @ theta - X0 @ theta) / step)
+    return np.concatenate(cols), "first-order (local) estimate at the no-effect value"
