@@ -36,6 +36,8 @@ class SynthConfig:
         v_noise_mps: velocity noise std [m/s] (measured velocity only).
         measure_velocity: log a velocity channel.
         effects: hidden effects, name -> parameters (see :data:`DEFAULTS`).
+        excitation: "steps" (random steps and chirps) or "sine" (slow zero-mean sines: velocity
+            keeps the sign of the command, which makes Coulomb friction and a deadband look alike).
         seed: random seed.
     """
 
@@ -50,6 +52,7 @@ class SynthConfig:
     v_noise_mps: float = 0.005
     measure_velocity: bool = False
     effects: dict[str, dict[str, float]] = field(default_factory=dict)
+    excitation: str = "steps"
     seed: int = 0
 
 
@@ -79,8 +82,11 @@ def truth(name: str, cfg: SynthConfig | None = None) -> dict[str, float]:
     return dict(DEFAULTS[name])
 
 
-def _commands(rng: np.random.Generator, n: int, period_s: float, u_max: float) -> np.ndarray:
+def _commands(rng: np.random.Generator, n: int, period_s: float, u_max: float, kind: str = "steps") -> np.ndarray:
     """Random steps (hold 0.1-0.5 s) mixed with short chirps: rich in level and in frequency."""
+    if kind == "sine":
+        t = np.arange(n) * period_s
+        return rng.uniform(0.5, 1.0) * u_max * np.sin(2 * np.pi * rng.uniform(0.2, 0.5) * t + rng.uniform(0, 6.3))
     u = np.empty(n)
     k = 0
     while k < n:
@@ -105,7 +111,7 @@ def generate(cfg: SynthConfig) -> list[Episode]:
     E, S = cfg.n_episodes, cfg.substeps
     dts = cfg.period_s / S
     eff = {k: truth(k, cfg) for k in cfg.effects}
-    u = np.stack([_commands(rng, n, cfg.period_s, cfg.u_max) for _ in range(E)])  # (E, n)
+    u = np.stack([_commands(rng, n, cfg.period_s, cfg.u_max, cfg.excitation) for _ in range(E)])  # (E, n)
 
     # Battery: each episode starts at a random charge and sags while driving.
     vbat = None

@@ -1,0 +1,97 @@
+"""Loading logs through a column map: formats, derived velocity, clear errors."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from calibration.data import (
+    DataError,
+    load_episodes,
+    parse_column_map,
+    segment_episodes,
+    sg_velocity,
+    sg_velocity_kernel,
+)
+from calibration.synthetic import SynthConfig, generate, write_csv
+
+
+def _frame(n=200, period_s=0.01):
+    t = np.arange(n) * period_s
+    return pd.DataFrame({"time": t, "volts": np.sin(t), "position": np.cos(t)})
+
+
+def test_column_map_string_and_yaml(tmp_path):
+    assert parse_column_map("t=time, u=volts,x=position,vbat=bat") == {
+        "t": "time", "u": "volts", "x": "position", "vbat": "bat"}
+    y = tmp_path / "map.yaml"
+    y.write_text("t: time\nu: volts\nx: position\n")
+    assert parse_column_map(y)["u"] == "volts"
+    with pytest.raises(DataError, match="unknown column map key"):
+        parse_column_map("t=time,u=volts,x=position,q=foo")
+    with pytest.raises(DataError, match="required"):
+        parse_column_map("t=time,u=volts")
+
+
+def test_csv_parquet_dir_and_episode_column(tmp_path):
+    eps = generate(SynthConfig(n_episodes=3, duration_s=1.0, seed=0, measure_velocity=True))
+    csv = write_csv(eps, tmp_path / "log.csv")
+    loaded = load_episodes(csv, "t=time,u=volts,x=position,v=velocity")
+    assert len(loaded) == 3
+    assert np.allclose(loaded[1].x, eps[1].x)
+    assert loaded[0].v_meas is not None and loaded[0].period_s == pytest.approx(0.01)
+    d = tmp_path / "dir"
+    d.mkdir()
+    _frame().to_parquet(d / "a.parquet")
+    _frame().to_csv(d / "b.csv", index=False)
+    assert len(load_episodes(d, "t=time,u=volts,x=position")) == 2
+
+
+def test_missing_column_names_column_and_file(tmp_path):
+    p = tmp_path / "log.csv"
+    _frame().to_csv(p, index=False)
+    with pytest.raises(DataError) as e:
+        load_episodes(p, "t=time,u=voltage,x=position")
+    assert "'voltage'" in str(e.value) and str(p) in str(e.value)
+
+
+def test_nan_names_file_column_and_row(tmp_path):
+    p = tmp_path / "log.csv"
+    df = _frame()
+    df.loc[57, "position"] = np.nan
+    df.to_csv(p, index=False)
+    with pytest.raises(DataError) as e:
+        load_episodes(p, "t=time,u=volts,x=position")
+    msg = str(e.value)
+    assert str(p) in msg and "'position'" in msg and "row 57" in msg
+
+
+def test_mcap_needs_bus_recording(tmp_path, monkeypatch):
+    p = tmp_path / "session.mcap"
+    p.write_bytes(b"")
+    monkeypatch.setitem(sys.modules, "bus.recording", None)  # import fails as if absent
+    with pytest.raises(DataError, match="MCAP input needs bus.recording"):
+        load_episodes(p, "t=time,u=volts,x=position")
+
+
+def test_sg_velocity_kernel_matches_derivative():
+    """The SG derivative of position equals the known zero-phase kernel applied to velocity."""
+    eps = generate(SynthConfig(n_episodes=1, duration_s=3.0, x_noise_m=0.0, measure_velocity=True,
+                               v_noise_mps=0.0, seed=3))
+    e = eps[0]
+    for w in (7, 11):
+        vh = sg_velocity(e.x, e.period_s, w)
+        vl = np.convolve(e.v_meas, sg_velocity_kernel(w), mode="same")
+        err = np.std((vh - vl)[w:-w])
+        assert err < 0.05 * np.std(vh - e.v_meas) + 1e-3
+
+
+def test_segmenting_long_recordings():
+    eps = generate(SynthConfig(n_episodes=1, duration_s=10.0, seed=0))
+    segs, did = segment_episodes(eps, min_episodes=10, min_len=50)
+    assert did and len(segs) == 10
+    assert sum(s.n for s in segs) == eps[0].n
+    assert np.array_equal(np.concatenate([s.x for s in segs]), eps[0].x)

@@ -1,0 +1,40 @@
+"""EMPS real data (Janot et al. 2019): Coulomb friction and offset are found, error halves."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from calibration import run_calibration
+from calibration.emps import EMPS_GTAU_N_PER_V, EMPS_REFERENCE, emps_to_csv
+
+# <clone>/tests/calibration/this file -> parents[2] is the repo root; shared/ sits beside it.
+EMPS_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "emps"
+
+
+@pytest.fixture(scope="module")
+def emps_report(tmp_path_factory):
+    mat = EMPS_DIR / "DATA_EMPS.mat"
+    if not mat.exists():
+        pytest.skip(f"EMPS data folder absent: {EMPS_DIR} (shared/ is expected beside the repo)")
+    tmp = tmp_path_factory.mktemp("emps")
+    csv = emps_to_csv(mat, tmp / "emps.csv")
+    return run_calibration(csv, column_map="t=time,u=volts,x=position", out_dir=tmp / "out", seed=0,
+                           progress=False, k_u=EMPS_GTAU_N_PER_V, plots=False)
+
+
+def test_emps_finds_coulomb_friction_and_halves_the_error(emps_report):
+    r = emps_report
+    names = [e["name"] for e in r["effects"]]
+    assert r["verdict"] == "found" and "coulomb_friction" in names
+    assert r["data"]["segmented"] is True  # one long recording -> contiguous segments
+    assert r["after"]["multi_step_nrmse"]["mean"] <= 0.5 * r["before"]["multi_step_nrmse"]["mean"]
+
+
+def test_emps_physical_parameters_near_published(emps_report):
+    """With gtau known, mass, viscous and Coulomb friction land near the published values."""
+    phys = emps_report["physical_params"]["after"]
+    assert phys["J"] == pytest.approx(EMPS_REFERENCE["M_kg"], rel=0.1)
+    assert phys["Fc"] == pytest.approx(EMPS_REFERENCE["Fc_N"], rel=0.2)
+    assert phys["b"] == pytest.approx(EMPS_REFERENCE["Fv_Nspm"], rel=0.2)

@@ -1,0 +1,64 @@
+"""`hil calibrate`: find what the nominal model lacks in measured data (see docs/calibration.md)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("calibrate")
+    def calibrate(
+        data: Path = typer.Option(..., "--data", help="CSV/Parquet file, a directory of them, or an .mcap recording"),
+        model: str = typer.Option("axis", "--model", help="nominal model: axis (velociroach, checkpoint: not yet)"),
+        column_map: str = typer.Option(
+            "t=time,u=volts,x=position", "--map",
+            help="column map t=..,u=..,x=..[,v=..,vbat=..,m=..,episode=..] or a YAML file with these keys"),
+        out: Path = typer.Option(Path("calibration_out"), "--out", help="output directory for the report"),
+        seed: int = typer.Option(0, "--seed", help="seed of the episode split and bootstraps"),
+        ku: float | None = typer.Option(None, "--ku", help="known actuator gain (force per command unit, e.g. N/V)"),
+        sg_window: int | None = typer.Option(None, "--sg-window", help="Savitzky-Golay window [samples] for velocity"),
+        as_json: bool = typer.Option(False, "--json", help="print one JSON line instead of a summary"),
+        quiet: bool = typer.Option(False, "--quiet", help="no progress on stderr"),
+    ) -> None:
+        """Replay measured commands through the model, test the effect catalogue, report before/after."""
+        from calibration import DataError, ModelNotAvailable, UnknownModel, run_calibration
+
+        if sg_window is not None and (sg_window < 5 or sg_window % 2 == 0):
+            _fail("--sg-window must be an odd number of samples >= 5")
+        try:
+            report = run_calibration(data, model=model, column_map=column_map, out_dir=out, seed=seed,
+                                     progress=not quiet, k_u=ku, sg_window=sg_window)
+        except (DataError, UnknownModel, ModelNotAvailable) as e:
+            _fail(str(e))
+        summary = {
+            "verdict": report["verdict"],
+            "effects": [{"name": e["name"], "params": e["params"], "heldout_gain": e["heldout_gain"],
+                         "p_value": e["p_value"]} for e in report["effects"]],
+            "ambiguous": [a["effects"] for a in report["ambiguous"]],
+            "unexplained_structure": report["unexplained_structure"],
+            "before_multi_step_nrmse": report["before"]["multi_step_nrmse"]["mean"],
+            "after_multi_step_nrmse": report["after"]["multi_step_nrmse"]["mean"],
+            "report": str(Path(out) / "report.json"),
+        }
+        if as_json:
+            typer.echo(json.dumps(summary))
+            return
+        typer.echo(f"verdict: {summary['verdict']}" + ("" if report["effects"] else " (nothing found)"))
+        for e in report["effects"]:
+            ps = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items() if v is not None)
+            typer.echo(f"  {e['name']}: {ps} (held-out gain {e['heldout_gain']:.3f}, p={e['p_value']:.2g})")
+        for a in report["ambiguous"]:
+            typer.echo(f"  ambiguous: {' vs '.join(a['effects'])} -> {a['excitation']}")
+        typer.echo(f"unexplained structure: {summary['unexplained_structure']}")
+        typer.echo(f"multi-step NRMSE (locked test set): before {summary['before_multi_step_nrmse']:.4f}, "
+                   f"after {summary['after_multi_step_nrmse']:.4f}")
+        typer.echo(f"report: {out}/report.md")
+
+
+def _fail(msg: str) -> None:
+    print(f"error: {msg}", file=sys.stderr)
+    raise typer.Exit(code=2)
