@@ -351,11 +351,12 @@ class Driver(ABC):
         """Wait until the next control period boundary (wall clock)."""
         p = self.spec.period_s
         now = time.monotonic()
-        if self._next_tick is None or now - self._next_tick > p:
-            self._next_tick = now + p  # first call, or we fell behind: resynchronize
-        else:
-            time.sleep(max(0.0, self._next_tick - now))
-            self._next_tick += p
+        if self._next_tick is None:
+            self._next_tick = now + p  # the first call waits a full period too: N ticks span N periods
+        elif now - self._next_tick > p:
+            self._next_tick = now  # fell behind by more than a period: resynchronize, no burst
+        time.sleep(max(0.0, self._next_tick - now))
+        self._next_tick += p
 
     # ------------------------------------------------------------------ hooks
     def _on_configure(self) -> None:  # noqa: B027 - optional hook

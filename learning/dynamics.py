@@ -535,6 +535,12 @@ class EnsembleDynamics(nn.Module):
         if ckpt.get("format") != _CHECKPOINT_FORMAT:
             raise ValueError(f"{path}: not an EnsembleDynamics checkpoint (format={ckpt.get('format')!r})")
         cfg = dict(ckpt["config"])
+        ignored = cfg.pop("ignore_inputs", None)
+        # keys set by wrappers (e.g. body_frame) are carried, not constructor arguments
+        import inspect
+
+        init_args = set(inspect.signature(cls.__init__).parameters)
+        extra = {k: cfg.pop(k) for k in list(cfg) if k not in init_args}
         model = cls(
             cfg.pop("state_dim"),
             cfg.pop("action_dim"),
@@ -546,6 +552,9 @@ class EnsembleDynamics(nn.Module):
             action_units=ckpt["action_units"],
             **cfg,
         )
+        model.config.update(extra)
+        if ignored:
+            model.ignore_inputs(ignored)
         model.load_state_dict(ckpt["state_dict"])
         model.history = list(ckpt["history"])
         model.eval()

@@ -39,6 +39,7 @@ from control.planners import CEM, PDDM, RandomShooting
 from control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from learning.datasets import Episode
 from learning.dynamics import EnsembleDynamics
+from learning.frames import BodyFrameDynamics
 from learning.recordings import episodes_from_mcap
 
 
@@ -59,10 +60,12 @@ class MbrlConfig:
     batch_size: int = 512
     input_noise_std: float = 0.01
     val_fraction: float = 0.1
-    #: inputs the model ignores (planar translation invariance)
+    #: learn in the robot's body frame (translation and heading invariance; learning.frames)
+    body_frame: bool = True
+    #: otherwise: inputs the model ignores (planar translation invariance)
     invariant_inputs: tuple[str, ...] = ("x", "y")
-    # planner (thesis: random shooting, N=500, H=4)
-    planner: str = "random_shooting"
+    # planner (thesis: random shooting, N=500, H=4; CEM by default here: see docs/mbrl.md)
+    planner: str = "cem"
     samples: int = 500
     horizon: int = 4
     # MBRL iterations: on-policy MPC rollouts on the paths, aggregated, warm-start retrain
@@ -71,14 +74,14 @@ class MbrlConfig:
     paths: tuple[str, ...] = ("straight", "left", "right", "zigzag", "figure8")
     path_scale: float = 1.5
     speeds: dict[str, float] = field(default_factory=lambda: {"low_speed": 0.5, "high_speed": 1.0})
-    eval_steps: int = 60
+    eval_steps: int = 100
     # Table 3.1: MPC cost vs amount of random data (subsets of the random rollouts)
     data_sizes: tuple[int, ...] = ()
     progress: bool = True
 
     @classmethod
     def quick(cls, **kw: Any) -> MbrlConfig:
-        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, eval_steps=50, data_sizes=(15, 60))
+        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, eval_steps=80, data_sizes=(15, 60))
         base.update(kw)
         return cls(**base)
 
@@ -132,8 +135,36 @@ def path_start_pose(waypoints: np.ndarray) -> dict[str, float]:
     return {"x": float(waypoints[0, 0]), "y": float(waypoints[0, 1]), "yaw": float(np.arctan2(d[1], d[0]))}
 
 
+class PathEnd:
+    """Episode end for path following: the robot has travelled 3/4 of the path
+    length (closed paths pass their end point half way) and passed the final waypoint."""
+
+    def __init__(self, waypoints: np.ndarray, state_names: list[str]):
+        self.wp = np.asarray(waypoints)
+        self.ix, self.iy = state_names.index("x"), state_names.index("y")
+        self.min_travel = 0.75 * float(np.linalg.norm(np.diff(self.wp, axis=0), axis=1).sum())
+        self.travelled = 0.0
+        self.last: np.ndarray | None = None
+
+    def __call__(self, state: np.ndarray) -> bool:
+        p = np.array([state[self.ix], state[self.iy]])
+        if self.last is not None:
+            self.travelled += float(np.linalg.norm(p - self.last))
+        self.last = p
+        return self.travelled > self.min_travel and past_end(p, self.wp)
+
+
+def past_end(p_xy: np.ndarray, waypoints: np.ndarray, tol_m: float = 0.05) -> bool:
+    """True once the robot has passed the end of the path (beyond the last waypoint
+    along the last segment, or within ``tol_m`` of it): the episode is over."""
+    a, b = waypoints[-2], waypoints[-1]
+    d = b - a
+    along = float((p_xy - a) @ d / max(float(d @ d), 1e-12))
+    return along >= 1.0 or float(np.linalg.norm(p_xy - b)) < tol_m
+
+
 # ---------------------------------------------------------------------------- model
-def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str]) -> EnsembleDynamics:
+def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str]):
     model = EnsembleDynamics(
         len(state_names),
         len(action_names),
@@ -144,6 +175,8 @@ def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str])
         action_names=action_names,
         seed=cfg.seed,
     )
+    if cfg.body_frame:
+        return BodyFrameDynamics(model, state_names)
     ignore = [state_names.index(n) for n in cfg.invariant_inputs if n in state_names]
     if ignore:
         model.ignore_inputs(ignore)
@@ -209,7 +242,8 @@ class MbrlRun:
         for name in self.cfg.paths:
             wp = make_path(name, scale=self.cfg.path_scale)
             cost = PathCost(wp, self.state_names)
-            log = self.episode(policy_for(wp, cost, speed), steps, path_start_pose(wp))
+            log = self.episode(policy_for(wp, cost, speed), steps, path_start_pose(wp),
+                               stop_if=PathEnd(wp, self.state_names))
             states = np.array(log.states)
             m = evaluate_path_following(states, cost)
             m["plan_ms_p50"] = float(np.percentile(log.plan_times_s, 50) * 1e3) if log.plan_times_s else 0.0
@@ -219,7 +253,7 @@ class MbrlRun:
             out[name] = m
         return out
 
-    def mpc_for(self, model: EnsembleDynamics):
+    def mpc_for(self, model):
         def make(wp, cost, speed):
             return MpcPolicy(model, make_planner(self.cfg, speed, len(self.action_names)), cost)
         return make
@@ -233,7 +267,7 @@ class MbrlRun:
         return make
 
     # -- training --------------------------------------------------------------------------
-    def train(self, model: EnsembleDynamics, eps: list[Episode], epochs: int) -> dict[str, float]:
+    def train(self, model, eps: list[Episode], epochs: int) -> dict[str, float]:
         train, val = split_episodes(eps, self.cfg.val_fraction, self.cfg.seed)
         hist = model.fit(train, epochs=epochs, batch_size=self.cfg.batch_size, val=val or None,
                          horizon=self.cfg.horizon, progress=self.cfg.progress)

@@ -16,7 +16,7 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("out/demo"), "--out", help="output directory"),
         quick: bool = typer.Option(False, "--quick", help="smaller run (< 10 min on 2 cores)"),
         seed: int = typer.Option(0, "--seed"),
-        planner: str = typer.Option("random_shooting", "--planner", help="random_shooting | cem | pddm"),
+        planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
     ) -> None:
         """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
 

@@ -287,19 +287,6 @@ class VelociRoachDriver(Driver):
             raise LinkError("link not open")
         self.link.send(frame)
 
-    def tick(self) -> None:
-        """Wait for the next period boundary. Unlike the base class, the first call waits a
-        full period too, so N ticks always span N periods (a loop that starts with tick()
-        must not send its second command immediately after the first)."""
-        p = self.spec.period_s
-        now = time.monotonic()
-        if self._next_tick is None:
-            self._next_tick = now + p
-        elif now - self._next_tick > p:
-            self._next_tick = now  # fell behind by more than a period: resynchronize, no burst
-        time.sleep(max(0.0, self._next_tick - now))
-        self._next_tick += p
-
     # ------------------------------------------------------------------ contract hooks
     def _check_link(self) -> None:
         with self._lock:

@@ -1,0 +1,142 @@
+"""Body-frame dynamics for planar mobile robots.
+
+A legged or wheeled robot on flat ground moves the same way wherever it is and
+whichever way it faces. Learning in the world frame wastes data on re-learning that
+for every position and heading. :class:`BodyFrameDynamics` wraps a dynamics model so
+the network only ever sees the state in the robot's own frame at time t:
+
+    x, y        → 0                        (position relative to itself)
+    vx, vy      → R(ψ)ᵀ (vx, vy)           (body-frame velocity)
+    cos ψ, sin ψ → 1, 0                    (heading relative to itself)
+
+and the next state in that same frame (displacement and heading change since t).
+Predictions are mapped back to the world frame. Other channels pass through.
+Channels are found by name (x, y, vx, vy, cos_yaw, sin_yaw).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from learning.datasets import Episode
+from learning.dynamics import EnsembleDynamics
+
+
+class PlanarFrame:
+    def __init__(self, state_names: Sequence[str]):
+        names = list(state_names)
+        try:
+            self.ix, self.iy = names.index("x"), names.index("y")
+            self.ivx, self.ivy = names.index("vx"), names.index("vy")
+            self.ic, self.is_ = names.index("cos_yaw"), names.index("sin_yaw")
+        except ValueError as e:
+            raise ValueError(f"body-frame dynamics need x, y, vx, vy, cos_yaw, sin_yaw channels: {e}") from None
+
+    def _cs(self, ref):
+        c, s = ref[..., self.ic], ref[..., self.is_]
+        n = torch.sqrt(c * c + s * s).clamp_min(1e-6) if isinstance(ref, torch.Tensor) else np.maximum(np.hypot(c, s), 1e-6)
+        return c / n, s / n
+
+    def to_body(self, state, ref):
+        """``state`` expressed in the frame of ``ref`` (same leading shape)."""
+        c, s = self._cs(ref)
+        out = state.clone() if isinstance(state, torch.Tensor) else state.copy()
+        dx = state[..., self.ix] - ref[..., self.ix]
+        dy = state[..., self.iy] - ref[..., self.iy]
+        out[..., self.ix] = c * dx + s * dy
+        out[..., self.iy] = -s * dx + c * dy
+        vx, vy = state[..., self.ivx], state[..., self.ivy]
+        out[..., self.ivx] = c * vx + s * vy
+        out[..., self.ivy] = -s * vx + c * vy
+        qc, qs = state[..., self.ic], state[..., self.is_]
+        out[..., self.ic] = c * qc + s * qs  # cos(ψ − ψ_ref)
+        out[..., self.is_] = c * qs - s * qc  # sin(ψ − ψ_ref)
+        return out
+
+    def to_world(self, body, ref):
+        """Inverse of :meth:`to_body`."""
+        c, s = self._cs(ref)
+        out = body.clone() if isinstance(body, torch.Tensor) else body.copy()
+        bx, by = body[..., self.ix], body[..., self.iy]
+        out[..., self.ix] = ref[..., self.ix] + c * bx - s * by
+        out[..., self.iy] = ref[..., self.iy] + s * bx + c * by
+        vx, vy = body[..., self.ivx], body[..., self.ivy]
+        out[..., self.ivx] = c * vx - s * vy
+        out[..., self.ivy] = s * vx + c * vy
+        qc, qs = body[..., self.ic], body[..., self.is_]
+        out[..., self.ic] = c * qc - s * qs  # cos(ψ_ref + δ)
+        out[..., self.is_] = s * qc + c * qs
+        return out
+
+
+class BodyFrameDynamics:
+    """``predict(state, action)`` like :class:`EnsembleDynamics`, learned in the body frame."""
+
+    def __init__(self, model: EnsembleDynamics, state_names: Sequence[str]):
+        self.model = model
+        self.frame = PlanarFrame(state_names)
+        self.state_names = list(state_names)
+        model.config["body_frame"] = True
+
+    @property
+    def history(self) -> list[dict]:
+        return self.model.history
+
+    def body_episodes(self, episodes: Sequence[Episode]) -> list[Episode]:
+        """Each transition as a one-step episode in the frame of its first state."""
+        out = []
+        for ep in episodes:
+            s = ep.states.astype(np.float64)
+            cur = self.frame.to_body(s[:-1], s[:-1])
+            nxt = self.frame.to_body(s[1:], s[:-1])
+            for t in range(len(ep)):
+                out.append(Episode(np.stack([cur[t], nxt[t]]), ep.actions[t : t + 1], name=f"{ep.name}#{t}"))
+        return out
+
+    def fit(self, episodes: Sequence[Episode], val: Sequence[Episode] | None = None, **kw) -> list[dict]:
+        horizon = kw.pop("horizon", 4)
+        hist = self.model.fit(self.body_episodes(episodes), val=self.body_episodes(val) if val else None,
+                              horizon=1, **kw)
+        if val and hist:
+            hist[-1]["val_h_xy_mse_m2"] = self.h_step_error(val, horizon)
+            hist[-1]["horizon"] = horizon
+        return hist
+
+    def predict(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        body = self.frame.to_body(state, state)
+        nxt = self.model.predict(body, action)  # [E, B, S]
+        ref = state if state.dim() == 3 else state.unsqueeze(0).expand_as(nxt)
+        return self.frame.to_world(nxt, ref)
+
+    def h_step_error(self, episodes: Sequence[Episode], horizon: int = 4) -> float:
+        """Mean squared open-loop error after ``horizon`` steps in x, y [m²], world frame."""
+        errs = []
+        with torch.inference_mode():
+            for ep in episodes:
+                T = len(ep)
+                if T < horizon:
+                    continue
+                starts = np.arange(0, T - horizon + 1)
+                s = torch.as_tensor(ep.states[starts], dtype=torch.float32)
+                for h in range(horizon):
+                    a = torch.as_tensor(ep.actions[starts + h], dtype=torch.float32)
+                    s = self.predict(s, a).mean(0)
+                true = ep.states[starts + horizon]
+                d = s.numpy()[:, [self.frame.ix, self.frame.iy]] - true[:, [self.frame.ix, self.frame.iy]]
+                errs.append((d**2).sum(-1))
+        return float(np.concatenate(errs).mean()) if errs else float("nan")
+
+    def save(self, path: str | Path) -> None:
+        self.model.save(path)
+
+
+def load_dynamics(path: str | Path):
+    """Load a checkpoint; body-frame models come back wrapped."""
+    m = EnsembleDynamics.load(path)
+    if m.config.get("body_frame"):
+        return BodyFrameDynamics(m, m.state_names)
+    return m
