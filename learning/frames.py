@@ -80,6 +80,8 @@ class BodyFrameDynamics:
         self.model = model
         self.frame = PlanarFrame(state_names)
         self.state_names = list(state_names)
+        if model.state_names is None:
+            model.state_names = list(state_names)  # the checkpoint needs them to rebuild the frame
         model.config["body_frame"] = True
 
     @property

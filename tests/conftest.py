@@ -17,3 +17,31 @@ except ImportError:  # pragma: no cover
 @pytest.fixture
 def tmp_out(tmp_path):
     return tmp_path
+
+
+@pytest.fixture
+def bus():
+    """A private Zenoh rendezvous endpoint per test: tests never hear each other."""
+    from configs.schema import BusConfig
+    from tests.helpers import free_port
+
+    return BusConfig(endpoint=f"tcp/127.0.0.1:{free_port()}")
+
+
+@pytest.fixture
+def spawn():
+    """Start `hil ...` subprocesses; killed at teardown if still running."""
+    from tests.helpers import Proc
+
+    procs = []
+
+    def _spawn(*args: str):
+        pr = Proc(list(args))
+        procs.append(pr)
+        return pr
+
+    yield _spawn
+    for pr in procs:
+        if pr.p.poll() is None:
+            pr.p.kill()
+            pr.p.wait()

@@ -9,7 +9,7 @@ import pytest
 from bus import keys
 from bus.node import Node, alive_nodes
 from bus.schemas import Command, EStop, RobotState
-from tests.bus.conftest import wait_for
+from tests.helpers import wait_for
 
 RIG = "pointmass_sim"
 PERIOD_S = 0.02  # configs/robots/pointmass.yaml

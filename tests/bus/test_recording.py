@@ -50,7 +50,7 @@ def test_mcap_log_readable_by_mcap_reader_and_back(tmp_path):
         n = 0
         for schema, channel, message in reader.iter_messages():
             obj = json.loads(message.data)
-            assert obj["type"] == schema.name
+            assert obj["type"] == schema.name and channel.message_encoding == "json"
             n += 1
         assert n == len(msgs)
 

@@ -1,3 +1,5 @@
+"""Test helpers: free ports, `hil` subprocesses, waiting on conditions."""
+
 import os
 import signal
 import socket
@@ -6,22 +8,13 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
-
-from configs.schema import BusConfig
-
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-@pytest.fixture
-def bus() -> BusConfig:
-    return BusConfig(endpoint=f"tcp/127.0.0.1:{free_port()}")
 
 
 class Proc:
@@ -43,22 +36,6 @@ class Proc:
         except subprocess.TimeoutExpired:
             self.p.kill()
             raise
-
-
-@pytest.fixture
-def spawn():
-    procs: list[Proc] = []
-
-    def _spawn(*args: str) -> Proc:
-        pr = Proc(list(args))
-        procs.append(pr)
-        return pr
-
-    yield _spawn
-    for pr in procs:
-        if pr.p.poll() is None:
-            pr.p.kill()
-            pr.p.wait()
 
 
 def wait_for(cond, timeout_s: float = 10.0, what: str = "condition"):
