@@ -18,6 +18,7 @@ app = typer.Typer(
 _VERB_MODULES = [
     "tools.cmd_demo",
     "tools.cmd_drive",
+    "tools.cmd_mpc",
     "tools.cmd_record",
     "tools.cmd_viz",
     "tools.cmd_calibrate",

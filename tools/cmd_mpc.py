@@ -1,0 +1,70 @@
+"""hil mpc: the MPC node on any rig (lockstep sims, or realtime on real/emulated robots)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    @user_errors
+    def mpc(
+        rig: str = typer.Argument(..., help="rig config (its driver node must be up: `hil up RIG`)"),
+        model: Path = typer.Option(..., "--model", exists=True, dir_okay=False, help="dynamics checkpoint (model.pt)"),
+        path: str = typer.Option("straight", "--path", help="straight | left | right | zigzag | figure8"),
+        path_scale: float = typer.Option(1.5, "--path-scale"),
+        speed: float = typer.Option(1.0, "--speed", help="bound on normalized commands, (0, 1]"),
+        steps: int = typer.Option(100, "--steps"),
+        planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
+        robot: str = typer.Option(None, "--robot", help="robot key in the rig (default: the only one)"),
+        reset: bool = typer.Option(True, "--reset/--no-reset", help="ask the driver to reset to the path start (sim)"),
+        json_out: bool = typer.Option(False, "--json"),
+        endpoint: str = EndpointOpt,
+    ) -> None:
+        """Follow a path with MPC over the bus; prints the path cost.
+
+        Commands are published at the control rate; on realtime rigs late plans are
+        replaced by the shifted last plan and counted."""
+        import numpy as np
+
+        from configs.schema import load_rig
+        from control.controller_node import ControllerNode
+        from control.costs import PathCost, evaluate_path_following
+        from control.paths import make_path
+        from control.policies import MpcPolicy
+        from learning.frames import load_dynamics
+        from learning.mbrl import MbrlConfig, PathEnd, make_planner, path_start_pose
+
+        if not 0 < speed <= 1:
+            raise UserError("--speed must be in (0, 1]")
+        cfg = load_rig(rig)
+        robot = robot or next(iter(cfg.robots))
+        if robot not in cfg.robots:
+            raise UserError(f"rig {cfg.name} has no robot {robot!r}")
+        try:
+            wp = make_path(path, scale=path_scale)
+        except (KeyError, ValueError) as e:
+            raise UserError(str(e)) from None
+        dyn = load_dynamics(model)
+        bus = bus_config(endpoint) if endpoint else cfg.bus
+        with ControllerNode(cfg.name, robot, bus, name="mpc", state_timeout_s=10.0) as ctl:
+            spec = ctl.wait_ready()
+            names = list(spec["state"]["names"])
+            cost = PathCost(wp, names)
+            pol = MpcPolicy(dyn, make_planner(MbrlConfig(planner=planner), speed, len(spec["action"]["names"])), cost)
+            first = ctl.reset(**path_start_pose(wp)) if reset else None
+            if cfg.pace == "lockstep":
+                log = ctl.run_lockstep(pol, steps, first, stop_if=PathEnd(wp, names))
+            else:
+                log = ctl.run_realtime(pol, steps)
+        m = evaluate_path_following(np.array(log.states), cost)
+        m.update(late_plans=log.late_plans, plan_ms_p50=float(np.percentile(log.plan_times_s, 50) * 1e3)
+                 if log.plan_times_s else None)
+        if json_out:
+            echo_json(m)
+        else:
+            typer.echo(" ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in m.items()))
