@@ -346,7 +346,7 @@ def blackbox_check(preps, pool_idx_folds: list[np.ndarray], fitted: FittedAxis, 
         Zs = (Z[::stride] - zmu) / zsd
         # Position gets fine bins (position-dependent forces such as cogging are the typical
         # out-of-catalogue effect), velocity medium, command lags and the rest coarse.
-        n_bins = [120, 40] + [24] * (Zs.shape[1] - 2)
+        n_bins = ([120, 40] + [24] * Zs.shape[1])[: Zs.shape[1]]
         edges = [np.unique(np.quantile(Zs[:, j], np.linspace(0, 1, nb + 1)[1:-1]))
                  for j, nb in enumerate(n_bins)]
         F = _bb_basis(Zs, edges, seed)
@@ -431,7 +431,7 @@ def detection_limits(preps_pool: list[axis.Prepared], fitted: FittedAxis, candid
         resid = col - Q @ (Q.T @ col)
         nrm = float(np.linalg.norm(resid))
         if nrm < 1e-12 * (np.linalg.norm(col) + 1e-300):
-            entry["note"] = "not separable from the nominal parameters with this data"
+            entry["note"] = "not separable from the terms already in the model with this data (a look-alike is accepted)"
         else:
             entry["value"] = float(z * sigma / nrm)
             entry["note"] = note
