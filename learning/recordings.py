@@ -57,25 +57,34 @@ def episodes_from_mcap(
         for m in msgs[1:]:
             if m.t_s > uniq[-1].t_s:
                 uniq.append(m)
-        if len(uniq) < min_steps + 1 or any(len(m.action) == 0 for m in uniq[1:]):
-            continue
-        st = np.array([m.state for m in uniq])
-        act = np.array([m.action for m in uniq[1:]])
-        if normalize:
-            act = (act - (hi + lo) / 2) / ((hi - lo) / 2)
-        out.append(
-            Episode(
-                states=st,
-                actions=act,
-                times=np.array([m.t_s for m in uniq]),
-                name=f"{Path(path).stem}:{robot}:{ep}",
-                meta={
-                    "robot": robot,
-                    "episode": ep,
-                    "state_names": None if spec is None else spec["state"]["names"],
-                    "action_names": None if spec is None else spec["action"]["names"],
-                    "actions_normalized": normalize,
-                },
+        # a reading flagged not ok (link trouble, sim blow-up) ends a segment: transitions
+        # into or out of it are not trustworthy
+        segments: list[list[RobotState]] = [[]]
+        for m in uniq:
+            if m.ok:
+                segments[-1].append(m)
+            elif segments[-1]:
+                segments.append([])
+        for k, seg in enumerate(s for s in segments if len(s) >= min_steps + 1):
+            if any(len(m.action) == 0 for m in seg[1:]):
+                continue
+            st = np.array([m.state for m in seg])
+            act = np.array([m.action for m in seg[1:]])
+            if normalize:
+                act = (act - (hi + lo) / 2) / ((hi - lo) / 2)
+            out.append(
+                Episode(
+                    states=st,
+                    actions=act,
+                    times=np.array([m.t_s for m in seg]),
+                    name=f"{Path(path).stem}:{robot}:{ep}" + (f".{k}" if k else ""),
+                    meta={
+                        "robot": robot,
+                        "episode": ep,
+                        "state_names": None if spec is None else spec["state"]["names"],
+                        "action_names": None if spec is None else spec["action"]["names"],
+                        "actions_normalized": normalize,
+                    },
+                )
             )
-        )
     return out

@@ -162,6 +162,9 @@ class VelociRoachSim(LockstepSim):
         self._seq = 0
         self.mocap_samples = 0
         self.mocap_dropped = 0
+        self.divergences = 0  # MuJoCo integration blow-ups (it resets itself; readings flagged)
+        self._badqacc_seen = 0
+        self._diverged_pending = False
 
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> VelociRoachSim:
@@ -247,6 +250,7 @@ class VelociRoachSim(LockstepSim):
         initial charge, firmware rebooted, sensor noise streams reseeded."""
         m, d, s = self.model, self.data, self.sim
         mujoco.mj_resetData(m, d)
+        self._badqacc_seen = 0  # mj_resetData clears MuJoCo's warning counters
         ql, qr = initial_crank_angles_rad(math.radians(s.phase_lr_deg))
         for a in self._q_l:
             d.qpos[a] = ql
@@ -398,6 +402,14 @@ class VelociRoachSim(LockstepSim):
                 self._mocap_next_t += self._mocap_period
         self._t = t
         self._soc, self._vbat, self._i_l, self._i_r = soc, vbat, i_l, i_r
+        # MuJoCo resets the state itself when the integration blows up; a reading taken
+        # across such a reset is not physics. Count it and flag the readings (ok=False) so
+        # recordings and datasets can drop those transitions instead of learning a teleport.
+        bad = int(d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)
+        if bad > self._badqacc_seen:
+            self._badqacc_seen = bad
+            self.divergences += 1
+            self._diverged_pending = True
 
     def _tow(self, payload_kg: float) -> None:
         """Sliding friction of a towed payload, applied at the rear of the chassis (world frame)."""
@@ -527,13 +539,15 @@ class VelociRoachSim(LockstepSim):
     def _read(self) -> Observation:
         self._seq += 1
         fw = self.firmware
+        diverged, self._diverged_pending = self._diverged_pending, False
         flags = {
+            "sim_diverged": diverged,
             "mocap_fresh": bool(self._mocap_latest_ok),
             "watchdog": bool(fw.faults & 1),
             "low_battery": bool(fw.faults & 2),
             "overcurrent": bool(fw.faults & 4),
         }
-        return Observation(t_s=self.sim_time_s, state=self._state(), seq=self._seq, flags=flags,
+        return Observation(t_s=self.sim_time_s, state=self._state(), seq=self._seq, flags=flags, ok=not diverged,
                            extras={"duty": (fw.duty_l, fw.duty_r), "t_fw_ms": fw.t_fw_ms})
 
     def _hold_command(self, obs: Observation) -> np.ndarray:
@@ -566,5 +580,5 @@ class VelociRoachSim(LockstepSim):
             link_quality=1.0 - self.mocap_dropped / n,
             dropped_frames=self.mocap_dropped,
             last_error=self.last_error,
-            extra={"sim_time_s": self.sim_time_s, "faults": self.firmware.faults},
+            extra={"sim_time_s": self.sim_time_s, "faults": self.firmware.faults, "sim_divergences": self.divergences},
         )
