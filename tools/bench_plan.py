@@ -23,6 +23,7 @@ after ``warmup`` calls. Use it through ``hil bench plan --json`` or
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections.abc import Callable
 
@@ -190,6 +191,13 @@ def bench_workload(name: str, calls: int = 50, warmup: int = 5, inference_dtype:
     return result
 
 
+def _loadavg() -> float | None:
+    try:
+        return float(open("/proc/loadavg").read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def run_bench_plan(calls: int = 50, warmup: int = 5, threads: int | None = None,
                    inference_dtype: str = "auto") -> dict:
     """Benchmark workloads A and B. Returns ``{"A": {...}, "B": {...}, "env": {...}}``.
@@ -206,6 +214,10 @@ def run_bench_plan(calls: int = 50, warmup: int = 5, threads: int | None = None,
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "cpu_bf16": cpu_bf16_support(),
+        # with the default (active) OpenMP wait policy, 2 threads on 2 shared cores collapse
+        # under load from other processes; PASSIVE (set before torch loads) avoids that
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+        "loadavg_1min": _loadavg(),
         "calls": calls,
         "warmup": warmup,
     }
