@@ -5,6 +5,13 @@ An *episode* is one contiguous recording of a single-axis drive: time ``t_s``, c
 ``vbat_v`` and a payload indicator ``payload``. Files are CSV or Parquet, one file per
 episode or several episodes in one file told apart by an ``episode`` column.
 
+MCAP recordings of a rig (``bus/recording.py``) are read through
+:func:`learning.recordings.episodes_from_mcap` with ``normalize=False``, so commands stay in
+robot units (e.g. rev/s of the VelociRoACH cranks: the units the sim backend is commanded
+in). Such an episode also keeps the full state and action arrays (``states``, ``actions``)
+with their channel names, which multi-channel nominal models (``velociroach``) use; the
+single-axis view (``u``, ``x``) is picked by channel name through the column map.
+
 Velocity, when not logged, is derived from position with a Savitzky-Golay derivative
 (local quadratic fit, window ``sg_window`` samples, see :func:`sg_velocity`). The exact
 linear filter that this derivative applies to the true velocity is known
@@ -58,6 +65,13 @@ class Episode:
     vbat_v: np.ndarray | None = None
     payload: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
+    #: multi-channel recordings (MCAP): states [N, S] in robot units, and actions [N, A] where
+    #: ``actions[k]`` is the command held from t_k to t_{k+1} (the last row repeats the one
+    #: before: nothing was recorded after the last state).
+    states: np.ndarray | None = None
+    actions: np.ndarray | None = None
+    state_names: tuple[str, ...] = ()
+    action_names: tuple[str, ...] = ()
 
     @property
     def n(self) -> int:
@@ -85,6 +99,8 @@ class Episode:
             v_meas=cut(self.v_meas),
             vbat_v=cut(self.vbat_v),
             payload=cut(self.payload),
+            states=cut(self.states),
+            actions=cut(self.actions),
             meta={**self.meta, "segment_of": self.name, "segment_start": start},
         )
 
@@ -92,14 +108,15 @@ class Episode:
 # ----------------------------------------------------------------------------- column map
 
 
-def parse_column_map(spec: str | dict | Path | None) -> dict[str, str]:
+def parse_column_map(spec: str | dict | Path | None, required: tuple[str, ...] = REQUIRED_KEYS) -> dict[str, str]:
     """Parse ``t=time,u=volts,x=position[,v=..,vbat=..,m=..,episode=..]`` or a YAML file/dict.
 
     Returns a dict from our keys (t, u, x, v, vbat, m, episode) to the file's column names.
-    Raises DataError for unknown keys or missing required keys.
+    Raises DataError for unknown keys or missing ``required`` keys (none for MCAP: channel
+    names come from the recorded spec).
     """
     if spec is None:
-        mapping: dict[str, str] = {k: k for k in REQUIRED_KEYS}
+        mapping: dict[str, str] = {k: k for k in required}
     elif isinstance(spec, dict):
         mapping = {str(k): str(v) for k, v in spec.items()}
     else:
@@ -128,7 +145,7 @@ def parse_column_map(spec: str | dict | Path | None) -> dict[str, str]:
     if unknown:
         known = ", ".join(f"{k} ({d})" for k, d in COLUMN_KEYS.items())
         raise DataError(f"unknown column map key(s) {unknown}; known keys: {known}")
-    missing = [k for k in REQUIRED_KEYS if k not in mapping]
+    missing = [k for k in required if k not in mapping]
     if missing:
         raise DataError(f"column map lacks required key(s) {missing} (need t=..., u=..., x=...)")
     return mapping
@@ -201,26 +218,31 @@ def _make_episode(name: str, arrays: dict[str, np.ndarray], path: Path | str) ->
     )
 
 
-def load_episodes(path: str | Path, column_map: str | dict | Path | None = None) -> list[Episode]:
+def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
+                  robot: str | None = None) -> list[Episode]:
     """Load episodes from a .csv/.parquet file, a directory of those, or an .mcap recording.
 
     Args:
         path: file or directory.
-        column_map: see :func:`parse_column_map`.
+        column_map: see :func:`parse_column_map`. For MCAP it is optional: keys name state or
+            action channels of the recording (``u=leg_vel_l,x=x``); by default u is the first
+            action channel, x the channel named ``x`` (else the first state channel), and vbat
+            the state channel ``vbat`` when there is one.
+        robot: MCAP only: which robot's states, when the recording holds several.
 
     Raises:
         DataError: missing file/column, NaNs, bad time stamps (message names file, column, row).
     """
     p = Path(path)
-    mapping = parse_column_map(column_map)
     if not p.exists():
         raise DataError(f"data path not found: {p}")
+    if p.is_file() and p.suffix.lower() == ".mcap":
+        return _load_mcap(p, parse_column_map(column_map, required=()), robot)
+    mapping = parse_column_map(column_map)
     if p.is_dir():
         files = sorted(f for f in p.iterdir() if f.suffix.lower() in (".csv", ".parquet", ".pq"))
         if not files:
             raise DataError(f"no .csv or .parquet files in directory {p}")
-    elif p.suffix.lower() == ".mcap":
-        return _load_mcap(p, mapping)
     else:
         files = [p]
     episodes: list[Episode] = []
@@ -229,22 +251,68 @@ def load_episodes(path: str | Path, column_map: str | dict | Path | None = None)
     return episodes
 
 
-def _load_mcap(path: Path, mapping: dict[str, str]) -> list[Episode]:
-    """MCAP input goes through the bus recorder (owned by the platform work)."""
+def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None) -> list[Episode]:
+    """Episodes of one robot from an MCAP recording (learning.recordings.episodes_from_mcap).
+
+    Actions stay in robot units (``normalize=False``): the nominal models replay them as
+    commands, and a sim backend is commanded in robot units, not in [-1, 1].
+    """
+    from learning.recordings import episodes_from_mcap
+
     try:
-        from bus import recording  # noqa: F401  (lazy: the bus package is optional here)
-    except ImportError as e:
-        raise DataError(
-            f"MCAP input needs bus.recording, which is not available ({e}); "
-            "export the recording to CSV/Parquet or install the bus recorder"
-        ) from e
-    loader = getattr(recording, "load_episodes_mcap", None)
-    if loader is None:
-        raise DataError("MCAP input needs bus.recording.load_episodes_mcap, which does not exist yet")
-    tables = loader(path, mapping)
+        raw = episodes_from_mcap(path, robot=robot, normalize=False)
+    except ValueError as e:
+        raise DataError(str(e)) from e
+    if not raw:
+        raise DataError(f"{path}: no episode with at least 2 transitions and recorded actions")
     out = []
-    for i, arrays in enumerate(tables):
-        out.append(_make_episode(f"{path.name}#episode={i}", {k: np.asarray(v, float) for k, v in arrays.items()}, path))
+    for le in raw:
+        snames = tuple(le.meta.get("state_names") or [f"s{i}" for i in range(le.states.shape[1])])
+        anames = tuple(le.meta.get("action_names") or [f"a{i}" for i in range(le.actions.shape[1])])
+        states = np.asarray(le.states, dtype=float)
+        acts = np.asarray(le.actions, dtype=float)
+        # actions[k] is held from t_k to t_{k+1}; nothing is known after the last state
+        actions = np.concatenate([acts, acts[-1:]], axis=0)
+        if le.times is None:
+            raise DataError(f"{path}: episode {le.name} has no time stamps")
+        t = np.asarray(le.times, dtype=float)
+
+        def channel(key: str, default: str | None, snames=snames, anames=anames, states=states,
+                    actions=actions) -> np.ndarray | None:
+            name = mapping.get(key, default)
+            if name is None:
+                return None
+            if name in snames:
+                return states[:, snames.index(name)]
+            if name in anames:
+                return actions[:, anames.index(name)]
+            raise DataError(f"{path}: channel {name!r} (map key {key!r}) not in the recording; "
+                            f"state channels {list(snames)}, action channels {list(anames)}")
+
+        bad = np.argwhere(~np.isfinite(states))
+        if bad.size:
+            i, j = bad[0]
+            raise DataError(f"{path}: non-finite value in episode {le.name}, state channel {snames[j]!r}, "
+                            f"step {int(i)}")
+        dt = np.diff(t)
+        if np.any(dt <= 0):
+            raise DataError(f"{path}: time stamps not strictly increasing in episode {le.name} "
+                            f"at step {int(np.flatnonzero(dt <= 0)[0]) + 1}")
+        out.append(Episode(
+            name=le.name,
+            t_s=t,
+            u=channel("u", anames[0]),
+            x=channel("x", "x" if "x" in snames else snames[0]),
+            v_meas=channel("v", None),
+            vbat_v=channel("vbat", "vbat" if "vbat" in snames else None),
+            payload=channel("m", None),
+            meta={"source": str(path), "robot": le.meta.get("robot"), "episode": le.meta.get("episode"),
+                  "actions_normalized": False},
+            states=states,
+            actions=actions,
+            state_names=snames,
+            action_names=anames,
+        ))
     return out
 
 

@@ -105,10 +105,10 @@ LOOK_ALIKES: dict[frozenset, str] = {
 GENERIC_EXCITATION = "richer excitation: steps and chirps over the full command range, both directions"
 
 
-def separating_excitation(a: str, b: str) -> str:
-    """The excitation that would separate effects ``a`` and ``b``."""
-    return LOOK_ALIKES.get(frozenset({a, b}), GENERIC_EXCITATION)
+def separating_excitation(a: str, b: str, table: dict[frozenset, str] | None = None) -> str:
+    """The excitation that would separate effects ``a`` and ``b`` (``table``: a model's own pairs)."""
+    return (LOOK_ALIKES if table is None else table).get(frozenset({a, b}), GENERIC_EXCITATION)
 
 
-def is_look_alike(a: str, b: str) -> bool:
-    return frozenset({a, b}) in LOOK_ALIKES
+def is_look_alike(a: str, b: str, table: dict[frozenset, str] | None = None) -> bool:
+    return frozenset({a, b}) in (LOOK_ALIKES if table is None else table)

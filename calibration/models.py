@@ -1,17 +1,18 @@
 """Nominal models for calibration: a small protocol and a registry.
 
 A nominal model is refit together with each candidate effect (grey box), replays logged
-commands open loop (``simulate``) and predicts one step ahead (``predict_one_step``). The
-selection code only talks to this protocol, so a MuJoCo-backed model (``velociroach``,
-sim_backends/velociroach) or a learned dynamics checkpoint can plug in by implementing it.
+commands open loop and predicts one step ahead. The selection code
+(:mod:`calibration.selection`) only talks to the :class:`Model` / :class:`FittedModel`
+protocol: fitting on (weighted) episodes, a per-episode held-out loss, a cheap out-of-bag
+loss, the model's effect catalogue and look-alike table.
 
-Only ``axis`` is implemented. ``velociroach`` and ``checkpoint`` are registered but raise
-:class:`ModelNotAvailable` until their backends exist; they are not faked.
+Registered: ``axis`` (:mod:`calibration.axis`), ``velociroach`` (the MuJoCo backend,
+:mod:`calibration.velociroach`). ``checkpoint`` (a learned dynamics model) is registered
+but raises :class:`ModelNotAvailable`: it is not built yet, and not faked.
 """
 
 from __future__ import annotations
 
-import importlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from calibration import axis
 from calibration.data import Episode
+from calibration.effects import CATALOGUE, LOOK_ALIKES
 
 
 class ModelNotAvailable(RuntimeError):
@@ -35,18 +37,31 @@ class FittedModel(Protocol):
 
     effects: list[str]
 
-    def predict_one_step(self, episode: Any) -> dict: ...
+    def primary(self, name: str) -> float:
+        """Value of effect ``name``'s primary parameter (catalogue units)."""
+        ...
 
-    def simulate(self, episode: Any, horizon: int) -> dict: ...
+    def effect_params(self, name: str) -> dict[str, float]: ...
 
     def to_dict(self) -> dict: ...
 
 
 @runtime_checkable
 class Model(Protocol):
-    """A nominal model family: prepares data, fits parameters together with effects."""
+    """A nominal model family: prepares data, fits parameters together with effects.
+
+    ``fit(episodes, effects, weights=None, refine=True, start=None, search=None)``: weights
+    are per-episode (bootstrap counts); ``start`` a fitted model whose values are kept for
+    effects not in ``search`` (None: search all). ``norms`` returns the normalizers that
+    ``episode_loss`` (the selection loss of one held-out episode) and ``oob_loss`` (a cheap
+    loss for the bootstrap's out-of-bag check) use; ``score`` returns per-channel squared
+    errors (:class:`calibration.axis.Scores`) and ``channel_sd`` their report normalizers.
+    """
 
     name: str
+    catalogue: dict
+    look_alikes: dict
+    segmentable: bool
 
     def prepare(self, episodes: list[Episode]) -> list: ...
 
@@ -54,6 +69,16 @@ class Model(Protocol):
 
     def candidate_effects(self, episodes: list, accepted: tuple[str, ...] = ()
                           ) -> tuple[list[str], dict[str, str]]: ...
+
+    def norms(self, pool: list) -> Any: ...
+
+    def episode_loss(self, prep: Any, fitted: FittedModel, horizon: int, nm: Any) -> float: ...
+
+    def oob_loss(self, prep: Any, fitted: FittedModel, nm: Any) -> float: ...
+
+    def score(self, prep: Any, fitted: FittedModel, horizon: int) -> axis.Scores: ...
+
+    def channel_sd(self, preps: list) -> dict[str, dict[str, float]]: ...
 
 
 @dataclass
@@ -65,6 +90,12 @@ class FittedAxis:
     @property
     def effects(self) -> list[str]:
         return self.params.effects
+
+    def primary(self, name: str) -> float:
+        return self.params.primary(name)
+
+    def effect_params(self, name: str) -> dict[str, float]:
+        return self.params.effect_params(name)
 
     def predict_one_step(self, episode: axis.Prepared | Episode) -> dict:
         p = episode if isinstance(episode, axis.Prepared) else self._prep(episode)
@@ -91,10 +122,47 @@ class AxisModel:
     """Single-axis drive J·dv/dt = k_u·u − b·v, identified as dv/dt = a·u − c·v + effects."""
 
     name = "axis"
+    catalogue = CATALOGUE
+    look_alikes = LOOK_ALIKES
+    #: long recordings may be cut into contiguous segments (windows start from measured states)
+    segmentable = True
 
     def __init__(self, k_u: float | None = None, sg_window: int | None = None):
         self.k_u = k_u
         self.sg_window = sg_window
+
+    def norms(self, pool: list[axis.Prepared]):
+        from calibration.selection import compute_norms
+
+        return compute_norms(pool)
+
+    def episode_loss(self, prep: axis.Prepared, fitted: FittedAxis, horizon: int, nm) -> float:
+        from calibration.selection import episode_loss
+
+        return episode_loss(axis.score(prep, fitted.params, horizon), nm)
+
+    def oob_loss(self, prep: axis.Prepared, fitted: FittedAxis, nm) -> float:
+        """One-step NMSE of x and v (no simulation): cheap enough for every bootstrap replicate."""
+        import numpy as np
+
+        one = axis.predict_one_step(prep, fitted.params)
+        return float(np.sum((one["x_pred"] - one["x_true"]) ** 2) / nm.one_x
+                     + np.sum((one["v_pred"] - one["v_true"]) ** 2) / nm.one_v)
+
+    def score(self, prep: axis.Prepared, fitted: FittedAxis, horizon: int) -> axis.Scores:
+        return axis.score(prep, fitted.params, horizon)
+
+    def channel_sd(self, preps: list[axis.Prepared]) -> dict[str, dict[str, float]]:
+        """Report normalizers: std of the one-step increment and of the channel itself."""
+        import numpy as np
+
+        dx = np.concatenate([np.diff(p.ep.x) for p in preps])
+        dv = np.concatenate([np.diff(p.v_obs) for p in preps])
+        return {
+            "one": {"x": float(np.std(dx)) + 1e-300, "v": float(np.std(dv)) + 1e-300},
+            "multi": {"x": float(np.std(np.concatenate([p.ep.x for p in preps]))) + 1e-300,
+                      "v": float(np.std(np.concatenate([p.v_obs for p in preps]))) + 1e-300},
+        }
 
     def prepare(self, episodes: list[Episode]) -> list[axis.Prepared]:
         return axis.prepare(episodes, sg_window=self.sg_window)
@@ -107,8 +175,6 @@ class AxisModel:
     def candidate_effects(self, episodes: list[axis.Prepared], accepted: tuple[str, ...] = ()
                           ) -> tuple[list[str], dict[str, str]]:
         """(testable effects given the already accepted ones, {skipped effect: reason})."""
-        from calibration.effects import CATALOGUE
-
         has = {
             "v": all(p.ep.v_meas is not None for p in episodes),
             "vbat": all(p.ep.vbat_v is not None for p in episodes),
@@ -133,19 +199,10 @@ class AxisModel:
 
 def _mujoco_model(**kw):
     try:
-        mod = importlib.import_module("sim_backends.velociroach")
-    except ImportError as e:
-        raise ModelNotAvailable(
-            "model 'velociroach' needs the MuJoCo backend sim_backends.velociroach, which is not available "
-            f"yet ({e}); use --model axis for now"
-        ) from e
-    factory = getattr(mod, "calibration_model", None)
-    if factory is None:
-        raise ModelNotAvailable(
-            "model 'velociroach': sim_backends.velociroach exists but does not expose calibration_model() "
-            "(the grey-box adapter for calibration is not written yet); use --model axis for now"
-        )
-    return factory(**kw)
+        from calibration.velociroach import VelociRoachModel
+    except ImportError as e:  # mujoco or the sim backend missing from this install
+        raise ModelNotAvailable(f"model 'velociroach' needs MuJoCo and sim_backends.velociroach ({e})") from e
+    return VelociRoachModel(**kw)
 
 
 def _checkpoint_model(**kw):
@@ -163,13 +220,13 @@ MODELS = {
 
 
 def get_model(name: str, **kw) -> Model:
-    """Instantiate a registered nominal model by name."""
+    """Instantiate a registered nominal model by name (options that are None are dropped)."""
     if name not in MODELS:
         raise UnknownModel(f"unknown model {name!r}; known models: {', '.join(sorted(MODELS))}")
-    return MODELS[name](**kw)
+    return MODELS[name](**{k: v for k, v in kw.items() if v is not None})
 
 
-def save_model(fitted: FittedAxis, path: str | Path, extra: dict | None = None) -> Path:
+def save_model(fitted: FittedModel, path: str | Path, extra: dict | None = None) -> Path:
     path = Path(path)
     doc = fitted.to_dict()
     if extra:
@@ -178,9 +235,13 @@ def save_model(fitted: FittedAxis, path: str | Path, extra: dict | None = None) 
     return path
 
 
-def load_model(path: str | Path) -> FittedAxis:
+def load_model(path: str | Path) -> FittedModel:
     """Load an augmented model written by :func:`run_calibration` (``model.json``)."""
     doc = json.loads(Path(path).read_text())
+    if doc.get("model") == "velociroach":
+        from calibration.velociroach import FittedVelociRoach
+
+        return FittedVelociRoach.from_dict(doc)
     if doc.get("model") != "axis":
-        raise UnknownModel(f"{path}: model {doc.get('model')!r} cannot be loaded (known: axis)")
+        raise UnknownModel(f"{path}: model {doc.get('model')!r} cannot be loaded (known: axis, velociroach)")
     return FittedAxis(axis.AxisParams.from_dict(doc["params"]))

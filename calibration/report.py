@@ -12,8 +12,7 @@ import numpy as np
 
 from calibration import axis
 from calibration.data import Episode, load_episodes, segment_episodes, summarize
-from calibration.effects import CATALOGUE
-from calibration.models import get_model, save_model
+from calibration.models import FittedAxis, get_model, save_model
 from calibration.selection import (
     SelectionConfig,
     blackbox_check,
@@ -22,25 +21,20 @@ from calibration.selection import (
 )
 
 
-def _nrmse_table(scores: list[axis.Scores], preps: list[axis.Prepared], n_boot: int, seed: int) -> dict:
+def _nrmse_table(scores: list[axis.Scores], sd: dict[str, dict[str, float]], n_boot: int, seed: int) -> dict:
     """NRMSE on a set of episodes, per channel and mean, with episode-bootstrap 95 % intervals.
 
-    one-step: RMSE of the predicted sample at k+1 over std of the channel's increment;
-    multi-step: RMSE of H-step open-loop windows over std of the channel.
+    ``sd`` (from the model's ``channel_sd``): for the axis, one-step is the RMSE of the
+    predicted sample at k+1 over the std of the channel's increment, multi-step the RMSE of
+    H-step open-loop windows over the std of the channel.
     """
-    dx = np.concatenate([np.diff(p.ep.x) for p in preps])
-    dv = np.concatenate([np.diff(p.v_obs) for p in preps])
-    sd = {
-        "one": {"x": float(np.std(dx)) + 1e-300, "v": float(np.std(dv)) + 1e-300},
-        "multi": {"x": float(np.std(np.concatenate([p.ep.x for p in preps]))) + 1e-300,
-                  "v": float(np.std(np.concatenate([p.v_obs for p in preps]))) + 1e-300},
-    }
+    channels = list(sd["one"])
 
     def table(idx: np.ndarray) -> dict:
         out = {}
         for kind in ("one", "multi"):
             per = {}
-            for ch in ("x", "v"):
+            for ch in channels:
                 sse = sum(getattr(scores[i], f"{kind}_sse")[ch] for i in idx)
                 n = sum(getattr(scores[i], f"{kind}_n") for i in idx)
                 per[ch] = math.sqrt(sse / max(n, 1)) / sd[kind][ch]
@@ -64,7 +58,7 @@ def _nrmse_table(scores: list[axis.Scores], preps: list[axis.Prepared], n_boot: 
             "mean": point[kind]["mean"],
             "mean_interval": interval(kind, "mean"),
             "per_channel": point[kind]["per_channel"],
-            "per_channel_interval": {ch: interval(kind, "pc", ch) for ch in ("x", "v")},
+            "per_channel_interval": {ch: interval(kind, "pc", ch) for ch in channels},
         }
     return res
 
@@ -96,12 +90,14 @@ def run_calibration(
     config: SelectionConfig | None = None,
     sg_window: int | None = None,
     plots: bool = True,
+    model_options: dict | None = None,
+    robot: str | None = None,
 ) -> dict:
     """Calibrate a nominal model against measured episodes and write the report.
 
     Args:
         data_path: CSV/Parquet file, directory, .mcap, or a list of Episodes.
-        model: nominal model name (``axis``; ``velociroach``/``checkpoint`` when available).
+        model: nominal model name (``axis``, ``velociroach``; ``checkpoint`` is not built yet).
         column_map: ``t=time,u=volts,x=position[,v=..,vbat=..,m=..]`` or a YAML path/dict.
         out_dir: where report.json, report.md, model.json and the PNGs go.
         seed: seed of the episode split and bootstraps.
@@ -110,6 +106,9 @@ def run_calibration(
         config: statistical settings.
         sg_window: Savitzky-Golay window [samples] for derived velocity (default ≈ 30 ms).
         plots: write PNG plots.
+        model_options: extra keyword arguments of the model (velociroach: ``nominal``, a robot
+            config YAML or a dict of VelociRoachParams fields).
+        robot: MCAP input: which robot's states, when the recording holds several.
 
     Returns:
         The report dict (also written to ``out_dir/report.json``).
@@ -123,38 +122,47 @@ def run_calibration(
         if progress:
             print(f"[calibrate {time.time() - t0:6.1f}s] {msg}", file=sys.stderr, flush=True)
 
-    nominal_model = get_model(model, k_u=k_u, sg_window=sg_window)
-    episodes = list(data_path) if isinstance(data_path, list) else load_episodes(data_path, column_map)
+    opts = {"k_u": k_u, "sg_window": sg_window} if model == "axis" else {}
+    opts.update(model_options or {})
+    nominal_model = get_model(model, **opts)
+    episodes = list(data_path) if isinstance(data_path, list) else load_episodes(data_path, column_map, robot=robot)
     source = "episodes" if isinstance(data_path, list) else str(data_path)
     log(f"loaded {len(episodes)} episode(s) from {source}")
-    min_len = max(200, int(round(1.2 * cfg.horizon_s / episodes[0].period_s)))
-    episodes, segmented = segment_episodes(episodes, cfg.min_episodes, min_len)
-    if segmented:
-        log(f"too few episodes for folds: split into {len(episodes)} contiguous segments")
+    segmented = False
+    if nominal_model.segmentable:
+        min_len = max(200, int(round(1.2 * cfg.horizon_s / episodes[0].period_s)))
+        episodes, segmented = segment_episodes(episodes, cfg.min_episodes, min_len)
+        if segmented:
+            log(f"too few episodes for folds: split into {len(episodes)} contiguous segments")
     preps = nominal_model.prepare(episodes)
 
     sel = select_effects(nominal_model, preps, cfg, seed=seed, log=log)
+    is_axis = isinstance(sel.final, FittedAxis)
     pool_idx = np.concatenate(sel.folds)
     pool = [preps[i] for i in pool_idx]
     test = [preps[i] for i in sel.test_idx]
     log("scoring the locked test set")
-    before_scores = [axis.score(p, sel.nominal.params, sel.horizon) for p in test]
-    after_scores = [axis.score(p, sel.final.params, sel.horizon) for p in test]
-    before = _nrmse_table(before_scores, test, 500, seed)
-    after = _nrmse_table(after_scores, test, 500, seed)
+    before_scores = [nominal_model.score(p, sel.nominal, sel.horizon) for p in test]
+    after_scores = [nominal_model.score(p, sel.final, sel.horizon) for p in test]
+    sd = nominal_model.channel_sd(test)
+    before = _nrmse_table(before_scores, sd, 500, seed)
+    after = _nrmse_table(after_scores, sd, 500, seed)
     log("black-box check of the remaining residual")
-    bb = blackbox_check(preps, sel.folds, sel.final, cfg, seed)
+    bb = blackbox_check(preps, sel.folds, sel.final, cfg, seed, model=nominal_model)
     candidates, _ = nominal_model.candidate_effects(preps)
-    det = detection_limits(pool, sel.final, candidates, sel.skipped, cfg)
+    if hasattr(nominal_model, "detection_limits"):
+        det = nominal_model.detection_limits(pool, sel.final, candidates, sel.skipped, cfg)
+    else:
+        det = detection_limits(pool, sel.final, candidates, sel.skipped, cfg)
 
     effects_doc = []
     amb_names = {n for a in sel.ambiguous for n in a["effects"]}
     for r in sel.accepted:
-        spec = CATALOGUE[r.name]
+        spec = nominal_model.catalogue[r.name]
         effects_doc.append({
             "name": r.name,
             "description": spec.description,
-            "params": sel.final.params.effect_params(r.name),
+            "params": sel.final.effect_params(r.name),
             "primary": spec.primary,
             "unit": spec.unit,
             "no_effect": spec.no_effect,
@@ -170,8 +178,7 @@ def run_calibration(
                  "segmentation_note": (
                      "long recordings were split into contiguous segments treated as episodes; neighbouring "
                      "segments are correlated, so p-values are somewhat optimistic") if segmented else None,
-                 "velocity_source": "measured" if preps[0].kernel is None else
-                 f"Savitzky-Golay derivative of position (quadratic, window {preps[0].window} samples)"},
+                 "velocity_source": _velocity_source(preps[0])},
         "folds": {"k": len(sel.folds), "test_episodes": [episodes[i].name for i in sel.test_idx],
                   "fold_episodes": [[episodes[i].name for i in f] for f in sel.folds],
                   "horizon_steps": sel.horizon, "horizon_s": sel.horizon * preps[0].period_s},
@@ -185,23 +192,43 @@ def run_calibration(
         "detection_limit": det,
         "before": before,
         "after": after,
-        "nominal_params": sel.nominal.params.coef,
-        "final_params": sel.final.params.to_dict(),
-        "physical_params": {"before": sel.nominal.params.physical(), "after": sel.final.params.physical()},
+        "nominal_params": sel.nominal.params.coef if is_axis else sel.nominal.to_dict(),
+        "final_params": sel.final.params.to_dict() if is_axis else sel.final.to_dict(),
+        "physical_params": ({"before": sel.nominal.params.physical(), "after": sel.final.params.physical()}
+                            if is_axis else {"before": None, "after": None}),
+        "channels": {"one_step": "per-period increment" if not is_axis else "one-step prediction",
+                     "multi_step": "whole-episode open-loop replay" if not is_axis
+                     else f"{sel.horizon}-step open-loop windows"},
         "not_tested": sel.skipped,
         "rounds": sel.rounds,
         "elapsed_s": time.time() - t0,
     }
+    if hasattr(nominal_model, "export"):
+        report["closing_the_loop"] = nominal_model.export(out, sel.final, report)
+    if hasattr(nominal_model, "n_rollouts"):
+        report["sim_rollouts"] = nominal_model.n_rollouts
     report = _clean(report)
     save_model(sel.final, out / "model.json", extra={"source": source, "verdict": report["verdict"]})
     (out / "report.json").write_text(json.dumps(report, indent=2))
     if plots:
         log("plots")
-        _plots(out, sel, preps, pool, test)
+        if hasattr(nominal_model, "plots"):
+            nominal_model.plots(out, sel, preps, pool, test)
+            _candidate_plot(out, sel)
+        else:
+            _plots(out, sel, preps, pool, test)
     (out / "report.md").write_text(render_markdown(report))
     log(f"done: verdict {report['verdict']}, multi-step NRMSE {before['multi_step_nrmse']['mean']:.3f} -> "
         f"{after['multi_step_nrmse']['mean']:.3f}")
     return report
+
+
+def _velocity_source(p) -> str:
+    if not isinstance(p, axis.Prepared):
+        return "recorded state (world velocity rotated into the body frame; crank encoders)"
+    if p.kernel is None:
+        return "measured"
+    return f"Savitzky-Golay derivative of position (quadratic, window {p.window} samples)"
 
 
 def _fmt_iv(iv) -> str:
@@ -229,13 +256,15 @@ def render_markdown(r: dict) -> str:
         for a in r["ambiguous"]:
             lines.append(f"- {a['effects'][0]} vs {a['effects'][1]} (chose {a['chosen']}, separation p="
                          f"{a['p_value_separation']:.2g}); to separate: {a['excitation']}")
+    chans = list(r["before"]["multi_step_nrmse"]["per_channel"])
     lines += ["", "Locked test set (NRMSE, 95% episode-bootstrap interval):", "",
-              "| | one-step mean | multi-step mean | multi-step x | multi-step v |", "|---|---|---|---|---|"]
+              "| | one-step mean | multi-step mean | " + " | ".join(f"multi-step {c}" for c in chans) + " |",
+              "|---|---|---|" + "---|" * len(chans)]
     for k in ("before", "after"):
         t = r[k]
         lines.append(f"| {k} | {t['one_step_nrmse']['mean']:.4f}{_fmt_iv(t['one_step_nrmse']['mean_interval'])} | "
                      f"{t['multi_step_nrmse']['mean']:.4f}{_fmt_iv(t['multi_step_nrmse']['mean_interval'])} | "
-                     f"{t['multi_step_nrmse']['per_channel']['x']:.4f} | {t['multi_step_nrmse']['per_channel']['v']:.4f} |")
+                     + " | ".join(f"{t['multi_step_nrmse']['per_channel'][c]:.4f}" for c in chans) + " |")
     bb = r["blackbox"]
     lines += ["", f"Unexplained structure: **{r['unexplained_structure']}** (black-box held-out R² "
               f"{bb['heldout_r2']:.3f}, p={bb['p_value']:.2g}; thresholds R² ≥ {bb['threshold_r2']}, p < {bb['alpha']})."]
@@ -243,6 +272,10 @@ def render_markdown(r: dict) -> str:
     for name, e in r["detection_limit"]["per_effect"].items():
         val = "n/a" if e["value"] is None else f"{e['value']:.3g} {e['unit']}"
         lines.append(f"- {name} ({e['param']}): {val} — {e.get('note', '')}")
+    if r.get("closing_the_loop"):
+        c = r["closing_the_loop"]
+        lines += ["", f"Closing the loop: calibrated sim config `{c['sim_params_yaml']}` (params.sim overrides "
+                  f"{c['sim_overrides']}; not sim settings: {c['not_sim_settings'] or 'none'})."]
     if r["physical_params"]["after"]:
         lines += ["", "Physical parameters (k_u given):", ""]
         for k in ("before", "after"):
@@ -325,6 +358,16 @@ def _plots(out: Path, sel, preps, pool, test) -> None:
     fig.tight_layout()
     fig.savefig(out / "diagnostics.png", dpi=90)
     plt.close(fig)
+
+    _candidate_plot(out, sel)
+
+
+def _candidate_plot(out: Path, sel) -> None:
+    """Held-out gain of every candidate, per round."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(9, 3.5))
     width = 0.8 / max(1, len(sel.rounds))

@@ -29,7 +29,7 @@ from scipy import stats as st
 
 from calibration import axis
 from calibration.effects import CATALOGUE, is_look_alike, separating_excitation
-from calibration.models import AxisModel, FittedAxis
+from calibration.models import FittedAxis, FittedModel, Model
 
 
 @dataclass(frozen=True)
@@ -106,21 +106,21 @@ class CandidateResult:
     losses: np.ndarray  # held-out loss per training-pool episode (pool order)
     gain: float
     p_value: float
-    fitted: FittedAxis | None = None
+    fitted: FittedModel | None = None
     interval: list[float] | None = None
     stability: float | None = None
     boot_values: list[float] = field(default_factory=list)
     verdict: str = ""
 
 
-def crossval_losses(model: AxisModel, preps, folds, effects, nm: Norms, horizon: int,
-                    start: FittedAxis | None, search: list[str] | None) -> np.ndarray:
+def crossval_losses(model: Model, preps, folds, effects, nm, horizon: int,
+                    start: FittedModel | None, search: list[str] | None) -> np.ndarray:
     """Held-out loss of every training-pool episode (pool order = concatenated folds)."""
     out = []
     for i, held in enumerate(folds):
         train = [preps[j] for f, fold in enumerate(folds) if f != i for j in fold]
         fitted = model.fit(train, effects, refine=False, start=start, search=search)
-        out.extend(episode_loss(axis.score(preps[j], fitted.params, horizon), nm) for j in held)
+        out.extend(model.episode_loss(preps[j], fitted, horizon, nm) for j in held)
     return np.asarray(out)
 
 
@@ -131,8 +131,8 @@ def _excludes(interval: list[float], no_effect: float) -> bool:
     return lo > no_effect or hi < no_effect
 
 
-def bootstrap_effect(model: AxisModel, preps, pool_idx: np.ndarray, base: FittedAxis, effects: list[str],
-                     name: str, n_boot: int, seed: int, nm: Norms) -> tuple[list[float], float, list[float]]:
+def bootstrap_effect(model: Model, preps, pool_idx: np.ndarray, base: FittedModel, effects: list[str],
+                     name: str, n_boot: int, seed: int, nm) -> tuple[list[float], float, list[float]]:
     """Episode bootstrap of the candidate's primary parameter and its out-of-bag stability.
 
     Returns (95 % interval, fraction of replicates whose out-of-bag one-step loss improves, values).
@@ -144,23 +144,16 @@ def bootstrap_effect(model: AxisModel, preps, pool_idx: np.ndarray, base: Fitted
         counts = np.bincount(rng.integers(0, len(pool), len(pool)), minlength=len(pool)).astype(float)
         b = model.fit(pool, effects, weights=counts, refine=False, start=base, search=[])
         c = model.fit(pool, effects + [name], weights=counts, refine=False, start=base, search=[name])
-        vals.append(c.params.primary(name))
+        vals.append(c.primary(name))
         oob = np.flatnonzero(counts == 0)
         if oob.size:
             tried += 1
-            lb = sum(_one_step_loss(pool[i], b.params, nm) for i in oob)
-            lc = sum(_one_step_loss(pool[i], c.params, nm) for i in oob)
+            lb = sum(model.oob_loss(pool[i], b, nm) for i in oob)
+            lc = sum(model.oob_loss(pool[i], c, nm) for i in oob)
             wins += lc < lb
     arr = np.asarray(vals, float)
     interval = [float(np.nanpercentile(arr, 2.5)), float(np.nanpercentile(arr, 97.5))]
     return interval, (wins / tried if tried else 0.0), [float(v) for v in arr]
-
-
-def _one_step_loss(p: axis.Prepared, params: axis.AxisParams, nm: Norms) -> float:
-    """Cheap out-of-bag loss: one-step NMSE of x and v (no simulation)."""
-    one = axis.predict_one_step(p, params)
-    return float(np.sum((one["x_pred"] - one["x_true"]) ** 2) / nm.one_x
-                 + np.sum((one["v_pred"] - one["v_true"]) ** 2) / nm.one_v)
 
 
 @dataclass
@@ -168,8 +161,8 @@ class SelectionResult:
     accepted: list[CandidateResult]
     ambiguous: list[dict]
     rounds: list[dict]
-    final: FittedAxis
-    nominal: FittedAxis
+    final: FittedModel
+    nominal: FittedModel
     skipped: dict[str, str]
     test_idx: np.ndarray
     folds: list[np.ndarray]
@@ -177,13 +170,13 @@ class SelectionResult:
     horizon: int
 
 
-def select_effects(model: AxisModel, preps: list[axis.Prepared], cfg: SelectionConfig, seed: int = 0,
+def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfig, seed: int = 0,
                    log: Callable[[str], None] = lambda s: None) -> SelectionResult:
     """Greedy forward selection of effects with held-out evidence (see module docstring)."""
     test_idx, folds = split_episodes(len(preps), cfg, seed)
     pool_idx = np.concatenate(folds)
     pool = [preps[i] for i in pool_idx]
-    nm = compute_norms(pool)
+    nm = model.norms(pool)
     horizon = max(2, int(round(cfg.horizon_s / preps[0].period_s)))
     candidates, skipped = model.candidate_effects(preps)
     log(f"{len(preps)} episodes: {test_idx.size} locked for test, {pool_idx.size} in {len(folds)} folds; "
@@ -223,7 +216,7 @@ def select_effects(model: AxisModel, preps: list[axis.Prepared], cfg: SelectionC
         for r in passing:
             r.interval, r.stability, r.boot_values = bootstrap_effect(
                 model, preps, pool_idx, current, effects, r.name, cfg.n_boot, seed + rnd, nm)
-            ok_int = _excludes(r.interval, CATALOGUE[r.name].no_effect)
+            ok_int = _excludes(r.interval, model.catalogue[r.name].no_effect)
             ok_stab = r.stability >= cfg.min_stability
             r.verdict = "accepted" if ok_int and ok_stab else (
                 "rejected: bootstrap interval includes the no-effect value" if not ok_int
@@ -240,24 +233,25 @@ def select_effects(model: AxisModel, preps: list[axis.Prepared], cfg: SelectionC
         if winner is None:
             break
         # Look-alikes that explain the held-out data about as well as the winner.
+        table = model.look_alikes
         for r in passing:
-            if r is winner or not is_look_alike(winner.name, r.name):
+            if r is winner or not is_look_alike(winner.name, r.name, table):
                 continue
             p_sep = paired_p(r.losses, winner.losses)
             if p_sep >= cfg.alpha:
+                excitation = separating_excitation(winner.name, r.name, table)
                 ambiguous.append({
                     "effects": [winner.name, r.name],
                     "chosen": winner.name,
                     "heldout_gain": {winner.name: winner.gain, r.name: r.gain},
                     "p_value_separation": p_sep,
-                    "excitation": separating_excitation(winner.name, r.name),
+                    "excitation": excitation,
                 })
-                log(f"  ambiguous: {winner.name} vs {r.name} (p={p_sep:.2g}); "
-                    f"separate with {separating_excitation(winner.name, r.name)}")
+                log(f"  ambiguous: {winner.name} vs {r.name} (p={p_sep:.2g}); separate with {excitation}")
         current = model.fit(pool, effects + [winner.name], refine=True, start=current)
         winner.fitted = current
         accepted.append(winner)
-        log(f"accepted {winner.name}: {current.params.effect_params(winner.name)}")
+        log(f"accepted {winner.name}: {current.effect_params(winner.name)}")
     if not accepted:
         log("no effect passed the tests")
     return SelectionResult(accepted, ambiguous, rounds, current, nominal, skipped, test_idx, folds, nm, horizon)
@@ -319,22 +313,33 @@ def _ridge_gcv(F: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, fl
     return beta / sd, mu, float(r.mean())
 
 
-def blackbox_check(preps, pool_idx_folds: list[np.ndarray], fitted: FittedAxis, cfg: SelectionConfig,
-                   seed: int = 0) -> dict:
+def blackbox_check(preps, pool_idx_folds: list[np.ndarray], fitted: FittedModel, cfg: SelectionConfig,
+                   seed: int = 0, model: Model | None = None) -> dict:
     """Held-out R² of a flexible regressor on the final model's one-step residual.
 
     Cross-fitted over the folds. ``unexplained_structure`` is set when the pooled held-out R²
     is at least ``bb_min_r2`` and a Wilcoxon test over held-out episodes (squared error
-    against the training mean vs the regressor) gives p < ``bb_alpha``.
+    against the training mean vs the regressor) gives p < ``bb_alpha``. A model with
+    ``residual_rows(prep, fitted) -> (features, residual)`` supplies its own rows; otherwise
+    the axis model's equation-error residual is used.
     """
     rows = {}
+    custom = model is not None and hasattr(model, "residual_rows")
     for fold in pool_idx_folds:
         for j in fold:
             p = preps[j]
+            if custom:
+                rows[j] = model.residual_rows(p, fitted)
+                continue
             X, y, k = axis.design(p, fitted.params)
             theta = np.array([fitted.params.coef[n] for n in axis.coef_names(fitted.params.effects)])
             v = axis.state_velocity(p, fitted.params.sensor)
             rows[j] = (_bb_features(p, k, v), y - X @ theta)
+    # Axis: position gets fine bins (position-dependent forces such as cogging are the typical
+    # out-of-catalogue effect), velocity medium, command lags and the rest coarse. Short
+    # multi-channel episodes (a few hundred rows in all): coarse bins everywhere.
+    d = next(iter(rows.values()))[0].shape[1]
+    n_bins = [8] * d if custom else ([120, 40] + [24] * d)[:d]
     allz = np.concatenate([z for z, _ in rows.values()])
     zmu, zsd = allz.mean(0), allz.std(0) + 1e-12
     sse_null, sse_bb = [], []
@@ -344,9 +349,6 @@ def blackbox_check(preps, pool_idx_folds: list[np.ndarray], fitted: FittedAxis, 
         R = np.concatenate([rows[j][1] for j in train])
         stride = max(1, Z.shape[0] // 3000)  # bound the cost on long 1 kHz logs
         Zs = (Z[::stride] - zmu) / zsd
-        # Position gets fine bins (position-dependent forces such as cogging are the typical
-        # out-of-catalogue effect), velocity medium, command lags and the rest coarse.
-        n_bins = ([120, 40] + [24] * Zs.shape[1])[: Zs.shape[1]]
         edges = [np.unique(np.quantile(Zs[:, j], np.linspace(0, 1, nb + 1)[1:-1]))
                  for j, nb in enumerate(n_bins)]
         F = _bb_basis(Zs, edges, seed)
@@ -360,8 +362,10 @@ def blackbox_check(preps, pool_idx_folds: list[np.ndarray], fitted: FittedAxis, 
     r2 = float(1.0 - sse_bb.sum() / sse_null.sum())
     p = paired_p(sse_null, sse_bb)
     return {
-        "method": "ridge (GCV) on per-input quantile-bin indicators + random Fourier features of lagged "
-                  "command, position, velocity; cross-fitted over the folds",
+        "method": "ridge (GCV) on per-input quantile-bin indicators + random Fourier features of "
+                  + ("commands (now, one period before) and the replay's predicted speeds; target: one-step "
+                     "increment residual of v_fwd and crank velocities" if custom else
+                     "lagged command, position, velocity") + "; cross-fitted over the folds",
         "heldout_r2": r2,
         "p_value": p,
         "threshold_r2": cfg.bb_min_r2,

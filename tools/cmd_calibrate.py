@@ -13,10 +13,16 @@ def register(app: typer.Typer) -> None:
     @app.command("calibrate")
     def calibrate(
         data: Path = typer.Option(..., "--data", help="CSV/Parquet file, a directory of them, or an .mcap recording"),
-        model: str = typer.Option("axis", "--model", help="nominal model: axis (velociroach, checkpoint: not yet)"),
-        column_map: str = typer.Option(
-            "t=time,u=volts,x=position", "--map",
-            help="column map t=..,u=..,x=..[,v=..,vbat=..,m=..,episode=..] or a YAML file with these keys"),
+        model: str = typer.Option("axis", "--model",
+                                  help="nominal model: axis, velociroach (MuJoCo sim; needs .mcap or full-state "
+                                       "episodes); checkpoint: not built yet"),
+        column_map: str | None = typer.Option(
+            None, "--map",
+            help="column map t=..,u=..,x=..[,v=..,vbat=..,m=..,episode=..] or a YAML file with these keys "
+                 "(CSV/Parquet default: t=time,u=volts,x=position; MCAP: optional, names recorded channels)"),
+        nominal: Path | None = typer.Option(
+            None, "--nominal", help="velociroach: nominal robot config YAML (default: the backend's defaults)"),
+        robot: str | None = typer.Option(None, "--robot", help="MCAP: which robot, when the recording has several"),
         out: Path = typer.Option(Path("calibration_out"), "--out", help="output directory for the report"),
         seed: int = typer.Option(0, "--seed", help="seed of the episode split and bootstraps"),
         ku: float | None = typer.Option(None, "--ku", help="known actuator gain (force per command unit, e.g. N/V)"),
@@ -29,9 +35,13 @@ def register(app: typer.Typer) -> None:
 
         if sg_window is not None and (sg_window < 5 or sg_window % 2 == 0):
             _fail("--sg-window must be an odd number of samples >= 5")
+        if column_map is None and data.suffix.lower() != ".mcap":
+            column_map = "t=time,u=volts,x=position"
+        opts = {"nominal": str(nominal)} if nominal is not None else None
         try:
             report = run_calibration(data, model=model, column_map=column_map, out_dir=out, seed=seed,
-                                     progress=not quiet, k_u=ku, sg_window=sg_window)
+                                     progress=not quiet, k_u=ku, sg_window=sg_window, model_options=opts,
+                                     robot=robot)
         except (DataError, UnknownModel, ModelNotAvailable) as e:
             _fail(str(e))
         summary = {
@@ -56,6 +66,8 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"unexplained structure: {summary['unexplained_structure']}")
         typer.echo(f"multi-step NRMSE (locked test set): before {summary['before_multi_step_nrmse']:.4f}, "
                    f"after {summary['after_multi_step_nrmse']:.4f}")
+        if report.get("closing_the_loop"):
+            typer.echo(f"calibrated sim config: {report['closing_the_loop']['sim_params_yaml']}")
         typer.echo(f"report: {out}/report.md")
 
 

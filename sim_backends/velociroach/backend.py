@@ -109,6 +109,9 @@ class SimParams(Params):
     vbat_noise_v: float = Field(0.002, ge=0)
     # payload towed behind the robot
     payload_friction: float = Field(0.5, ge=0, description="sliding friction of a towed payload")
+    # calibration hook (hil calibrate writes it into sim_params.yaml, docs/calibration.md):
+    # the initial value of the payload_kg perturbation, so a calibrated payload loads by config
+    payload_kg: float = Field(0.0, ge=0, description="towed payload at start [kg] (perturbation payload_kg)")
 
 
 def parse_sim_params(sim: dict, source: str | None) -> SimParams:
@@ -155,7 +158,7 @@ class VelociRoachSim(LockstepSim):
         self.data: mujoco.MjData | None = None
         self.perturbations: dict[str, Any] = {
             "missing_leg": None,
-            "payload_kg": 0.0,
+            "payload_kg": s.payload_kg,
             "mocap_offset_m": np.zeros(3),
             "slope_deg": s.slope_deg,
         }

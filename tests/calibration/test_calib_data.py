@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 import pandas as pd
 import pytest
@@ -69,12 +67,41 @@ def test_nan_names_file_column_and_row(tmp_path):
     assert str(p) in msg and "'position'" in msg and "row 57" in msg
 
 
-def test_mcap_needs_bus_recording(tmp_path, monkeypatch):
-    p = tmp_path / "session.mcap"
-    p.write_bytes(b"")
-    monkeypatch.setitem(sys.modules, "bus.recording", None)  # import fails as if absent
-    with pytest.raises(DataError, match="MCAP input needs bus.recording"):
-        load_episodes(p, "t=time,u=volts,x=position")
+def test_mcap_recording_loads_as_episodes(tmp_path):
+    """A rig recording (spec + RobotState per period, episode counter) loads through
+    learning.recordings: one Episode per recorded episode, commands in robot units, the
+    action of state k+1 held from t_k to t_{k+1}, channel names from the recorded spec."""
+    from calibration.synthetic_velociroach import RoachSynthConfig, write_mcap
+    from calibration.synthetic_velociroach import generate as roach_generate
+
+    src = roach_generate(RoachSynthConfig(n_episodes=2, duration_s=1.0, seed=5))
+    path = write_mcap(src, tmp_path / "rec.mcap")
+    eps = load_episodes(path)
+    assert len(eps) == len(src)
+    for got, want in zip(eps, src, strict=True):
+        assert got.state_names == want.state_names and got.action_names == ("leg_vel_l", "leg_vel_r")
+        np.testing.assert_allclose(got.states, want.states, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(got.actions[:-1], want.actions[:-1], rtol=1e-6)
+        assert np.max(np.abs(got.actions)) > 1.5  # rev/s, not normalized to [-1, 1]
+        np.testing.assert_allclose(np.diff(got.t_s), 0.1, atol=1e-6)
+        np.testing.assert_allclose(got.x, want.states[:, 0], rtol=1e-6)  # default x: the 'x' channel
+        np.testing.assert_allclose(got.u, got.actions[:, 0])  # default u: the first action channel
+        assert got.vbat_v is not None  # the recording has a 'vbat' state channel
+    picked = load_episodes(path, "u=leg_vel_r,x=y")
+    np.testing.assert_allclose(picked[0].u, eps[0].actions[:, 1])
+    np.testing.assert_allclose(picked[0].x, eps[0].states[:, 1])
+    with pytest.raises(DataError, match="'nope'.*not in the recording"):
+        load_episodes(path, "x=nope")
+
+
+def test_mcap_without_states_is_a_data_error(tmp_path):
+    from bus.recording import McapLog
+
+    p = tmp_path / "empty.mcap"
+    with McapLog(p):
+        pass
+    with pytest.raises(DataError, match="robots"):
+        load_episodes(p)
 
 
 def test_sg_velocity_kernel_matches_derivative():
