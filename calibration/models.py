@@ -207,8 +207,9 @@ def _mujoco_model(**kw):
 
 def _checkpoint_model(**kw):
     raise ModelNotAvailable(
-        "model 'checkpoint' (a learned dynamics model as nominal) is not available yet: learning/ does not "
-        "expose a loadable dynamics checkpoint with a one-step/rollout API; use --model axis for now"
+        "model 'checkpoint' (a learned dynamics checkpoint as nominal, where an effect is a missing input such "
+        "as battery voltage or the lagged action, added and the model retrained) is not built yet; "
+        "use --model axis or --model velociroach"
     )
 
 

@@ -281,7 +281,9 @@ def render_markdown(r: dict) -> str:
         for k in ("before", "after"):
             lines.append(f"- {k}: " + ", ".join(f"{n}={v:.4g}" for n, v in r["physical_params"][k].items()))
     lines += ["", "Not tested: " + "; ".join(f"{k}: {v}" for k, v in r["not_tested"].items()), ""]
-    lines += ["Plots: residual_before_after.png, diagnostics.png, candidates.png", ""]
+    plots = ("residual_before_after.png, candidates.png" if r.get("closing_the_loop")
+             else "residual_before_after.png, diagnostics.png, candidates.png")
+    lines += [f"Plots: {plots}", ""]
     return "\n".join(lines)
 
 

@@ -248,7 +248,15 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
                     "excitation": excitation,
                 })
                 log(f"  ambiguous: {winner.name} vs {r.name} (p={p_sep:.2g}); separate with {excitation}")
+        prev = current
         current = model.fit(pool, effects + [winner.name], refine=True, start=current)
+        if getattr(model, "shift_interval_to_refined", False):
+            # The bootstrap re-fits on the cached grid (no new replays); the refined pool fit
+            # replays off-grid. Centre the percentile interval on the refined estimate: shift it
+            # by (refined − grid estimate on the same pool), the grid's interpolation bias.
+            plain = model.fit(pool, effects + [winner.name], refine=False, start=prev, search=[winner.name])
+            delta = current.primary(winner.name) - plain.primary(winner.name)
+            winner.interval = [winner.interval[0] + delta, winner.interval[1] + delta]
         winner.fitted = current
         accepted.append(winner)
         log(f"accepted {winner.name}: {current.effect_params(winner.name)}")

@@ -296,6 +296,8 @@ class VelociRoachModel:
     look_alikes = VR_LOOK_ALIKES
     #: episodes must start from rest (the replay starts at the backend's reset state)
     segmentable = False
+    #: bootstrap fits use the cached grid; the reported interval is centred on the refined fit
+    shift_interval_to_refined = True
 
     def __init__(self, nominal: str | Path | dict | None = None, refine_iters: int = 6, workers: int | None = None):
         """``nominal``: a robot config YAML (e.g. configs/robots/velociroach.yaml or a previous
