@@ -280,19 +280,25 @@ def load_episodes(path: str | Path, **column_map) -> list[Episode]:
 
     ``.csv`` and ``.parquet``/``.pq`` take the column map of :func:`episodes_from_table`
     (``state=[...], action=[...], episode=col, time=col``). ``.mcap`` recordings are read
-    by ``bus.recording.load_episodes(path, **column_map)`` when that module exists.
+    by ``learning.recordings.episodes_from_mcap(path, **kwargs)`` (``robot=``,
+    ``normalize=``, ...), which needs ``bus.recording``; without it a clear
+    ``NotImplementedError`` is raised.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".mcap":
+        import importlib  # noqa: PLC0415
+
         try:
-            from bus import recording  # noqa: PLC0415 - optional, provided by the platform
+            importlib.import_module("bus.recording")  # the MCAP reader, provided by the platform
+            recordings = importlib.import_module("learning.recordings")
         except ImportError as e:
             raise NotImplementedError(
                 f"{path}: MCAP episodes need bus.recording (not available: {e}); "
                 "export the session to CSV/Parquet or install the platform's recorder"
             ) from e
-        return recording.load_episodes(path, **column_map)
+        # column maps do not apply: a recording names its own channels (robot=, normalize=, ...)
+        return recordings.episodes_from_mcap(path, **column_map)
     import pandas as pd  # noqa: PLC0415 - keep import cost off the planner path
 
     if suffix == ".csv":

@@ -105,6 +105,12 @@ def test_load_episodes_errors(tmp_path):
 def test_mcap_dispatch_has_a_clear_error_or_delegates(tmp_path, monkeypatch):
     import sys
 
+    import learning.recordings
+
+    calls = []
+    monkeypatch.setattr(learning.recordings, "episodes_from_mcap", lambda p, **kw: calls.append((p, kw)) or [])
+    assert load_episodes(tmp_path / "session.mcap", robot="roach") == []
+    assert calls == [(tmp_path / "session.mcap", {"robot": "roach"})]
     monkeypatch.setitem(sys.modules, "bus.recording", None)  # make the import fail
     with pytest.raises(NotImplementedError, match="bus.recording"):
-        load_episodes(tmp_path / "session.mcap", state=["a"], action=["b"])
+        load_episodes(tmp_path / "session.mcap", robot="roach")
