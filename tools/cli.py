@@ -4,8 +4,14 @@ exposing `register(app)`, so features land without touching this file."""
 from __future__ import annotations
 
 import importlib
+import os
 
 import typer
+
+# On a shared 2-core machine OpenMP's default busy-wait collapses torch's threads when
+# another process (the sim, a driver node) is busy: planner p99 went from ~100 ms to
+# 400-800 ms in `hil bench plan`. Must be set before torch is imported.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 app = typer.Typer(
     help="hilstack: hardware-in-the-loop robot stack for model-based learning and control.",

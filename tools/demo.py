@@ -27,7 +27,7 @@ def free_endpoint() -> str:
 def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, **overrides: Any) -> dict[str, Any]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = MbrlConfig.quick(**overrides) if quick else MbrlConfig(data_sizes=(50, 200, 400),
+    cfg = MbrlConfig.quick(**overrides) if quick else MbrlConfig(data_sizes=(10, 50, 200, 400),
                                                                  random_rollouts=400, **overrides)
     # a private rendezvous port: a demo never talks to another rig by accident
     bus = bus or BusConfig(endpoint=free_endpoint())
