@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -39,7 +39,6 @@ class BridgeStats:
     estops: int = 0
     lockstep_timeouts: int = 0
     last_reject: str = ""
-    extra: dict = field(default_factory=dict)
 
 
 class DriverNode(Node):

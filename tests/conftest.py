@@ -15,11 +15,6 @@ except ImportError:  # pragma: no cover
 
 
 @pytest.fixture
-def tmp_out(tmp_path):
-    return tmp_path
-
-
-@pytest.fixture
 def bus():
     """A private Zenoh rendezvous endpoint per test: tests never hear each other."""
     from configs.schema import BusConfig

@@ -6,6 +6,7 @@ State: the 24-D state of Nagabandi's thesis (ch. 3). Action: leg-velocity setpoi
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import numpy as np
@@ -74,3 +75,13 @@ def velociroach_spec(p: VelociRoachParams) -> RobotSpec:
         safe_action=np.zeros(2),
         description="VelociRoACH hexapod, 2 motors driving 3 legs each",
     )
+
+
+def quat_to_rpy(q_wxyz) -> tuple[float, float, float]:
+    """ZYX Euler angles (roll, pitch, yaw) [rad] of a unit quaternion (w, x, y, z): how
+    every backend turns a pose into the state's orientation channels."""
+    w, x, y, z = (float(v) for v in q_wxyz)
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw

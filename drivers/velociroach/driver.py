@@ -32,7 +32,7 @@ import numpy as np
 
 from configs.schema import ConfigError, RobotConfig
 from drivers.base import Driver, Health, Lifecycle, LinkError, Observation
-from drivers.velociroach.config import VelociRoachParams, velociroach_spec
+from drivers.velociroach.config import VelociRoachParams, quat_to_rpy, velociroach_spec
 from drivers.velociroach.link import RadioLink
 from drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, EncodeError, MavEncoder
 from sim_backends.base import parse_params
@@ -46,15 +46,6 @@ EMULATOR_START_TIMEOUT_S = 30.0
 STALE_TELEMETRY_PERIODS = 10
 #: velocity low-pass: time constant of the pose differencing filter
 VEL_FILTER_TAU_S = 0.05
-
-
-def quat_to_rpy(q_wxyz: np.ndarray) -> tuple[float, float, float]:
-    """ZYX Euler angles (roll, pitch, yaw) [rad] of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = (float(v) for v in q_wxyz)
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return roll, pitch, yaw
 
 
 class PoseFilter:

@@ -27,7 +27,7 @@ from pydantic import Field
 
 from configs.schema import ConfigError, RobotConfig, parse_model
 from drivers.base import Health, Observation
-from drivers.velociroach.config import VelociRoachParams, velociroach_spec
+from drivers.velociroach.config import VelociRoachParams, quat_to_rpy, velociroach_spec
 from sim_backends.base import LockstepSim, Params, parse_params
 from sim_backends.velociroach.firmware import TICK_S, Firmware, FirmwareConfig, default_ff_v_per_rps
 from sim_backends.velociroach.model import (
@@ -120,15 +120,6 @@ def parse_sim_params(sim: dict, source: str | None) -> SimParams:
         return parse_model(SimParams, dict(sim), source)
     except ConfigError as e:
         raise ConfigError(source, [(f"params.sim.{f}" if f else "params.sim", m) for f, m in e.problems]) from None
-
-
-def quat_to_rpy(q: np.ndarray) -> tuple[float, float, float]:
-    """(w, x, y, z) → roll, pitch, yaw [rad] (ZYX Euler)."""
-    w, x, y, z = (float(v) for v in q)
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return roll, pitch, yaw
 
 
 class VelociRoachSim(LockstepSim):
