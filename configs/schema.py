@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, ClassVar, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -65,6 +65,7 @@ def _check_endpoint(e: str) -> str:
 
 class RobotConfig(BaseModel):
     """One robot. ``params`` are validated by the robot's own settings class."""
+    RECORDS_SOURCE: ClassVar[bool] = True  # parse_model fills ``source`` with the file path
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -83,6 +84,7 @@ class RigRobot(Strict):
 
 
 class RigConfig(Strict):
+    RECORDS_SOURCE: ClassVar[bool] = True  # parse_model fills ``source`` with the file path
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
     robots: dict[str, RigRobot]
     bus: BusConfig = BusConfig()
@@ -94,6 +96,7 @@ class RigConfig(Strict):
 
 
 class TaskConfig(BaseModel):
+    RECORDS_SOURCE: ClassVar[bool] = True  # parse_model fills ``source`` with the file path
     model_config = ConfigDict(extra="allow", frozen=True)
     task: str
     source: str | None = None
@@ -110,7 +113,7 @@ def parse_model(model: type[M], data: Any, file: str | Path | None = None) -> M:
     """Validate ``data`` into ``model``; raise ConfigError naming file and field."""
     if not isinstance(data, dict):
         raise ConfigError(file, [("", f"expected a mapping at top level, got {type(data).__name__}")])
-    if "source" in model.model_fields and file is not None:
+    if getattr(model, "RECORDS_SOURCE", False) and file is not None:
         data = {**data, "source": str(file)}
     try:
         return model.model_validate(data)

@@ -21,6 +21,7 @@ BACKENDS: dict[tuple[str, str], str] = {
     ("velociroach", "sim"): "sim_backends.velociroach.backend:VelociRoachSim",
     ("velociroach", "emulated"): "drivers.velociroach.driver:VelociRoachDriver",
     ("velociroach", "real"): "drivers.velociroach.driver:VelociRoachDriver",
+    ("mocap", "real"): "drivers.mocap.driver:MocapDriver",
 }
 
 

@@ -6,25 +6,48 @@ driver from config alone (``backend: ...``) and must pass every test here.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
 from drivers.base import CommandError, Lifecycle, LifecycleError
 from drivers.registry import make_driver
+from tests.helpers import free_port
 
 # (robot config, backend, param overrides)
 CONTRACT_BACKENDS = [
     ("pointmass", "sim", {}),
     ("velociroach", "sim", {}),
     ("velociroach", "emulated", {}),
+    ("mocap", "real", {"source": "udp"}),  # the real UDP client, fed by a pose stream below
 ]
+
+
+def _pose_stream(port: int, stop: threading.Event) -> None:
+    """A mocap system on loopback: a rigid body moving along x, 500 Hz, stamped on its clock."""
+    import time
+
+    from drivers.mocap.udp import PoseStreamServer
+
+    t0 = time.monotonic()
+    with PoseStreamServer("127.0.0.1", port, body_id=1) as srv:
+        while not stop.wait(0.002):
+            t = time.monotonic() - t0
+            srv.send(t, [0.1 * t, 0.0, 0.05], [1.0, 0.0, 0.0, 0.0])
 
 
 @pytest.fixture(params=CONTRACT_BACKENDS, ids=lambda p: f"{p[0]}-{p[1]}")
 def driver(request):
     robot, backend, params = request.param
+    stop = threading.Event()
+    if robot == "mocap":
+        port = free_port()
+        params = {**params, "port": port}
+        threading.Thread(target=_pose_stream, args=(port, stop), daemon=True).start()
     d = make_driver(robot, backend=backend, **params)
     yield d
+    stop.set()
     d.cleanup()
 
 
@@ -32,7 +55,8 @@ def test_spec_readable_before_connecting(driver):
     sp = driver.spec
     assert driver.lifecycle is Lifecycle.UNCONFIGURED
     assert sp.state.dim == len(sp.state.names) == len(sp.state.units) > 0
-    assert sp.action.dim > 0 and np.all(np.isfinite(sp.action.low)) and np.all(np.isfinite(sp.action.high))
+    # sensors (mocap, cameras) have no action channels; actuators have finite limits
+    assert np.all(np.isfinite(sp.action.low)) and np.all(np.isfinite(sp.action.high))
     assert sp.period_s > 0
 
 
@@ -62,6 +86,9 @@ def test_write_validates_clamps_and_rate_limits(driver):
         n = sp.action.dim
         with pytest.raises(CommandError, match="shape"):
             driver.write(np.zeros(n + 1))
+        if n == 0:  # a sensor: the empty action is the only valid one
+            assert driver.write(np.zeros(0)).shape == (0,)
+            return
         bad = np.zeros(n)
         bad[0] = np.nan
         with pytest.raises(CommandError, match=sp.action.names[0]):
@@ -89,7 +116,7 @@ def test_activation_holds_measured_command(driver):
 
 def test_stop_and_context_manager_cleanup(driver):
     with driver:
-        driver.write(driver.spec.action.high)
+        driver.write(driver.spec.action.high)  # the limit itself (empty for sensors)
         driver.tick()
         driver.stop()
         if driver.spec.safe_action is not None:
@@ -108,6 +135,10 @@ def test_time_advances_with_tick(driver):
 
 def test_health(driver):
     with driver:
+        for _ in range(20):  # a streamed sensor is healthy once its first samples arrived
+            if driver.health().ok:
+                break
+            driver.tick()
         h = driver.health()
         assert h.ok
         assert h.corrupt_frames == 0

@@ -1,0 +1,127 @@
+"""Motion capture behind the driver contract: a sensor (no action channels).
+
+State: x, y, z [m], qw, qx, qy, qz (body → world), in the mocap world frame (z up).
+``params.source`` picks the stream: ``natnet`` (OptiTrack Motive, the real lab setup)
+or ``udp`` (hilstack's pose stream, served by the VelociRoACH emulator). ``read()`` returns
+the newest pose without blocking, stamped with its arrival time on the local monotonic
+clock (the mocap system's own stamp is in ``extras["source_t_s"]``); ``ok`` is False until a pose arrived and while the
+newest one is older than ``stale_after_s``. ``write()`` accepts only the empty action.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from configs.schema import RobotConfig
+from drivers.base import Driver, Health, Observation, RobotSpec, Space
+from drivers.mocap.base import PoseSource
+from sim_backends.base import Params, parse_params
+
+
+class MocapParams(Params):
+    source: Literal["natnet", "udp"] = "udp"
+    rigid_body_id: int = Field(1, ge=0)
+    period_s: float = Field(0.01, gt=0, description="how often consumers should read (100 Hz)")
+    stale_after_s: float = Field(0.1, gt=0, description="a pose older than this is not ok")
+    # udp
+    host: str = "127.0.0.1"
+    port: int = Field(0, ge=0, le=65535, description="UDP port to listen on (0: ephemeral)")
+    # natnet
+    server_ip: str = "127.0.0.1"
+    local_ip: str = "127.0.0.1"
+    multicast: bool = True
+    up_axis: Literal["y", "z"] = "y"
+
+
+def mocap_spec(p: MocapParams) -> RobotSpec:
+    chans = [("x", "m"), ("y", "m"), ("z", "m"), ("qw", "1"), ("qx", "1"), ("qy", "1"), ("qz", "1")]
+    lo = [-np.inf] * 3 + [-1.0] * 4
+    hi = [np.inf] * 3 + [1.0] * 4
+    return RobotSpec(
+        name="mocap",
+        state=Space.build([(n, u, a, b) for (n, u), a, b in zip(chans, lo, hi, strict=True)]),
+        action=Space.build([]),
+        period_s=p.period_s,
+        description=f"rigid body {p.rigid_body_id} from a {p.source} pose stream",
+    )
+
+
+class MocapDriver(Driver):
+    backend = "real"
+
+    def __init__(self, params: MocapParams | None = None):
+        super().__init__()
+        self.params = params or MocapParams()
+        self.spec = mocap_spec(self.params)
+        self.source: PoseSource | None = None
+        self._seq = 0
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> MocapDriver:
+        d = cls(parse_params(cfg, MocapParams))
+        d.backend = cfg.backend
+        return d
+
+    def _on_configure(self) -> None:
+        p = self.params
+        if p.source == "udp":
+            from drivers.mocap.udp import UdpPoseClient
+
+            self.source = UdpPoseClient(p.host, p.port, body_id=p.rigid_body_id)
+        else:
+            from drivers.mocap.natnet_client import NatNetPoseSource
+
+            src = NatNetPoseSource(p.server_ip, p.local_ip, p.rigid_body_id, use_multicast=p.multicast,
+                                   up_axis=p.up_axis)
+            src.connect()
+            self.source = src
+
+    def _on_cleanup(self) -> None:
+        if self.source is not None:
+            self.source.close()
+            self.source = None
+
+    @property
+    def port(self) -> int | None:
+        """The UDP port actually bound (useful with ``port: 0``)."""
+        return getattr(self.source, "port", None)
+
+    def _read(self) -> Observation:
+        self._seq += 1
+        s = self.source.latest()
+        if s is None:
+            return Observation(time.monotonic(), np.array([0, 0, 0, 1, 0, 0, 0], float), self._seq, ok=False,
+                               flags={"no_pose": True})
+        age = time.monotonic() - s.received_s if s.received_s is not None else 0.0
+        fresh = age <= self.params.stale_after_s
+        state = np.concatenate([s.position_m, s.quaternion_wxyz]).astype(np.float64)
+        # t_s on the local monotonic clock (arrival), like every wall-clock backend; the
+        # mocap system's own stamp is kept in extras (its clock has an unknown offset)
+        t_local = s.received_s if s.received_s is not None else time.monotonic()
+        return Observation(t_local, state, self._seq, ok=fresh, flags={"stale": not fresh},
+                           extras={"age_s": age, "frame_id": s.frame_id, "source_t_s": s.t_s})
+
+    def _write(self, action: np.ndarray) -> None:
+        pass  # a sensor: nothing to command (validation already refused anything non-empty)
+
+    def _stop(self) -> None:
+        pass
+
+    def _health(self) -> Health:
+        st = self.source.stats() if hasattr(self.source, "stats") else {}
+        s = self.source.latest() if self.source is not None else None
+        age = None if s is None or s.received_s is None else time.monotonic() - s.received_s
+        n = max(1, st.get("received", 0) + st.get("dropped", 0))
+        return Health(
+            ok=s is not None and (age or 0.0) <= self.params.stale_after_s,
+            link_quality=st.get("received", 0) / n if st else (1.0 if s is not None else 0.0),
+            frames_received=st.get("received", getattr(self.source, "frames", 0)),
+            corrupt_frames=st.get("corrupt", 0),
+            dropped_frames=st.get("dropped", getattr(self.source, "dropped", 0)),
+            latency_s=age,
+            last_error=self.last_error,
+        )

@@ -1,0 +1,38 @@
+"""The mocap sensor driver over a real UDP pose stream on loopback."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from configs.schema import ConfigError
+from drivers.base import CommandError
+from drivers.mocap.udp import PoseStreamServer
+from drivers.registry import make_driver
+from tests.helpers import free_port, wait_for
+
+
+def test_pose_health_staleness_and_corruption():
+    port = free_port()
+    with make_driver("mocap", port=port, stale_after_s=0.05) as d, PoseStreamServer("127.0.0.1", port) as srv:
+        assert not d.read().ok  # nothing yet
+        srv.send(1.0, [0.5, -0.25, 0.1], [0.0, 0.0, 0.0, 1.0])
+        obs = wait_for(lambda: (o := d.read()).ok and o, 2.0, "first pose")
+        np.testing.assert_allclose(obs.state, [0.5, -0.25, 0.1, 0.0, 0.0, 0.0, 1.0])
+        assert obs.extras["source_t_s"] == 1.0
+        srv.send_raw(b"\x00" * 10)  # corrupt datagram
+        srv.skip(3)  # three lost samples
+        srv.send(1.1, [0.6, -0.25, 0.1], [0.0, 0.0, 0.0, 1.0])
+        wait_for(lambda: d.health().corrupt_frames == 1 and d.health().dropped_frames == 3, 2.0, "counters")
+        time.sleep(0.1)  # no new pose: stale
+        assert not d.read().ok and d.read().flags["stale"]
+        assert not d.health().ok
+        with pytest.raises(CommandError, match="shape"):
+            d.write([0.0])
+
+
+def test_bad_source_is_a_config_error():
+    with pytest.raises(ConfigError, match="params.source"):
+        make_driver("mocap", source="vicon")
