@@ -197,7 +197,8 @@ class ControllerNode(Node):
         return log
 
     def run_realtime(self, policy: Policy, steps: int, period_s: float | None = None,
-                     deadline_frac: float = 0.8) -> EpisodeLog:
+                     deadline_frac: float = 0.8,
+                     stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
         """Fixed-rate commands; planning in a worker with a deadline of ``deadline_frac`` periods."""
         spec = self.wait_ready()
         period = period_s or spec["period_s"]
@@ -229,6 +230,8 @@ class ControllerNode(Node):
                     break
                 s = self.next_state()
                 x = np.asarray(s.state)
+                if stop_if is not None and log.states and stop_if(x):
+                    break
                 if not busy:
                     job["x"], job["seq"] = x, s.seq
                     ready.clear()

@@ -73,6 +73,7 @@ class DriverNode(Node):
         self.episode = 0
         self._last_cmd_t: float | None = None  # node clock when the last command was applied
         self._last_state: RobotState | None = None
+        self._spec_t = 0.0
 
     # ------------------------------------------------------------------ pieces
     def _clock(self) -> float:
@@ -168,6 +169,13 @@ class DriverNode(Node):
 
     def publish_spec(self) -> None:
         self._spec_pub.put(SpecMsg(robot=self.robot, spec=self.driver.spec.to_dict()))
+        self._spec_t = time.monotonic()
+
+    def _maybe_publish_spec(self) -> None:
+        # repeated (1 Hz wall clock, and every 50 steps) so that late joiners and every
+        # recording, however short, get it
+        if self.stats.steps % 50 == 1 or time.monotonic() - self._spec_t > 1.0:
+            self.publish_spec()
 
     # ------------------------------------------------------------------ loops
     def step(self) -> None:
@@ -179,8 +187,7 @@ class DriverNode(Node):
             self.driver.tick()
         self.publish_state()
         self.stats.steps += 1
-        if self.stats.steps % 50 == 1:
-            self.publish_spec()
+        self._maybe_publish_spec()
 
     def step_lockstep(self) -> None:
         """Publish state, wait for its answer, apply, advance one period."""
@@ -206,8 +213,7 @@ class DriverNode(Node):
         self.driver.tick()
         self.publish_state()
         self.stats.steps += 1
-        if self.stats.steps % 50 == 1:
-            self.publish_spec()
+        self._maybe_publish_spec()
 
     def serve(self, max_steps: int | None = None) -> BridgeStats:
         """Run until stopped (signal, ``stop_event``) or ``max_steps``. Always stops the robot."""

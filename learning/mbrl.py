@@ -78,6 +78,8 @@ class MbrlConfig:
     # Table 3.1: MPC cost vs amount of random data (subsets of the random rollouts)
     data_sizes: tuple[int, ...] = ()
     progress: bool = True
+    #: real rigs: when the driver cannot reset itself, ask an operator on the terminal
+    operator_resets: bool = False
 
     @classmethod
     def quick(cls, **kw: Any) -> MbrlConfig:
@@ -219,10 +221,24 @@ class MbrlRun:
 
     # -- episodes over the bus ------------------------------------------------------------
     def episode(self, policy: Any, steps: int, pose: dict[str, float], stop_if=None) -> EpisodeLog:
-        first = self.ctl.reset(**pose)
+        """Reset (the sim puts the robot at ``pose``; a real robot is placed by an operator)
+        and run one episode: lockstep on sim rigs, on the wall clock otherwise."""
+        first = self.reset(pose)
         if hasattr(policy, "reset"):
             policy.reset()
-        return self.ctl.run_lockstep(policy, steps, first, stop_if=stop_if)
+        if self.rig.pace == "lockstep":
+            return self.ctl.run_lockstep(policy, steps, first, stop_if=stop_if)
+        return self.ctl.run_realtime(policy, steps, stop_if=stop_if)
+
+    def reset(self, pose: dict[str, float]):
+        try:
+            return self.ctl.reset(**pose)
+        except RuntimeError as e:
+            if "unsupported" not in str(e) or not self.cfg.operator_resets:
+                raise
+        # a real robot: the operator places it (an automated reset node would answer instead)
+        input(f"place the robot at x={pose['x']:.2f} y={pose['y']:.2f} yaw={pose['yaw']:.2f}, then press Enter ")
+        return self.ctl.next_state()
 
     def collect_random(self, n: int, name: str) -> Path:
         path = self.rec_dir / f"{name}.mcap"

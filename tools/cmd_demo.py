@@ -17,6 +17,9 @@ def register(app: typer.Typer) -> None:
         quick: bool = typer.Option(False, "--quick", help="smaller run (< 10 min on 2 cores)"),
         seed: int = typer.Option(0, "--seed"),
         planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
+        rig: str = typer.Option("roach_sim", "--rig", help="rig config: roach_sim (lockstep), roach_emulated, roach_real"),
+        operator_resets: bool = typer.Option(False, "--operator-resets",
+                                             help="real rigs: prompt an operator to place the robot"),
     ) -> None:
         """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
 
@@ -24,7 +27,7 @@ def register(app: typer.Typer) -> None:
         and the differential-drive baseline on five paths at a low and a high speed."""
         from tools.demo import run_demo
 
-        r = run_demo(out, quick=quick, seed=seed, planner=planner)
+        r = run_demo(out, quick=quick, seed=seed, planner=planner, rig=rig, operator_resets=operator_resets)
         for s in ("low_speed", "high_speed"):
             if s in r:
                 typer.echo(f"{s}: mpc_cost {r[s]['mpc_cost']:.1f}  differential_drive_cost "
