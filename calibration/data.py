@@ -219,7 +219,7 @@ def _make_episode(name: str, arrays: dict[str, np.ndarray], path: Path | str) ->
 
 
 def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
-                  robot: str | None = None) -> list[Episode]:
+                  robot: str | None = None, normalize_actions: bool = False) -> list[Episode]:
     """Load episodes from a .csv/.parquet file, a directory of those, or an .mcap recording.
 
     Args:
@@ -229,6 +229,8 @@ def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
             action channel, x the channel named ``x`` (else the first state channel), and vbat
             the state channel ``vbat`` when there is one.
         robot: MCAP only: which robot's states, when the recording holds several.
+        normalize_actions: MCAP only: actions in [-1, 1] of the robot's spec (what a learned
+            checkpoint trained by ``learning.mbrl`` sees) instead of robot units.
 
     Raises:
         DataError: missing file/column, NaNs, bad time stamps (message names file, column, row).
@@ -237,7 +239,7 @@ def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
     if not p.exists():
         raise DataError(f"data path not found: {p}")
     if p.is_file() and p.suffix.lower() == ".mcap":
-        return _load_mcap(p, parse_column_map(column_map, required=()), robot)
+        return _load_mcap(p, parse_column_map(column_map, required=()), robot, normalize_actions)
     mapping = parse_column_map(column_map)
     if p.is_dir():
         files = sorted(f for f in p.iterdir() if f.suffix.lower() in (".csv", ".parquet", ".pq"))
@@ -251,16 +253,18 @@ def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
     return episodes
 
 
-def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None) -> list[Episode]:
+def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None,
+               normalize_actions: bool = False) -> list[Episode]:
     """Episodes of one robot from an MCAP recording (learning.recordings.episodes_from_mcap).
 
     Actions stay in robot units (``normalize=False``): the nominal models replay them as
-    commands, and a sim backend is commanded in robot units, not in [-1, 1].
+    commands, and a sim backend is commanded in robot units, not in [-1, 1]. A learned
+    checkpoint sees what it was trained on (``normalize_actions=True``: learning.mbrl's default).
     """
     from learning.recordings import episodes_from_mcap
 
     try:
-        raw = episodes_from_mcap(path, robot=robot, normalize=False)
+        raw = episodes_from_mcap(path, robot=robot, normalize=normalize_actions)
     except ValueError as e:
         raise DataError(str(e)) from e
     if not raw:
@@ -307,7 +311,7 @@ def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None) ->
             vbat_v=channel("vbat", "vbat" if "vbat" in snames else None),
             payload=channel("m", None),
             meta={"source": str(path), "robot": le.meta.get("robot"), "episode": le.meta.get("episode"),
-                  "actions_normalized": False},
+                  "actions_normalized": normalize_actions},
             states=states,
             actions=actions,
             state_names=snames,

@@ -7,8 +7,9 @@ protocol: fitting on (weighted) episodes, a per-episode held-out loss, a cheap o
 loss, the model's effect catalogue and look-alike table.
 
 Registered: ``axis`` (:mod:`calibration.axis`), ``velociroach`` (the MuJoCo backend,
-:mod:`calibration.velociroach`). ``checkpoint`` (a learned dynamics model) is registered
-but raises :class:`ModelNotAvailable`: it is not built yet, and not faked.
+:mod:`calibration.velociroach`), ``checkpoint`` (a learned dynamics checkpoint, where an
+effect is a missing input: :mod:`calibration.learned`; needs ``checkpoint=PATH``, or pass
+the ``.pt`` path as the model name).
 """
 
 from __future__ import annotations
@@ -205,12 +206,16 @@ def _mujoco_model(**kw):
     return VelociRoachModel(**kw)
 
 
-def _checkpoint_model(**kw):
-    raise ModelNotAvailable(
-        "model 'checkpoint' (a learned dynamics checkpoint as nominal, where an effect is a missing input such "
-        "as battery voltage or the lagged action, added and the model retrained) is not built yet; "
-        "use --model axis or --model velociroach"
-    )
+def _checkpoint_model(checkpoint: str | Path | None = None, **kw):
+    if checkpoint is None:
+        raise ModelNotAvailable(
+            "model 'checkpoint' (a learned dynamics checkpoint as nominal, where an effect is a missing input) is "
+            "not available without a checkpoint file: pass --model path/to/model.pt "
+            "(or --model checkpoint --checkpoint PATH)"
+        )
+    from calibration.learned import CheckpointModel
+
+    return CheckpointModel(checkpoint, **kw)
 
 
 MODELS = {
@@ -221,7 +226,14 @@ MODELS = {
 
 
 def get_model(name: str, **kw) -> Model:
-    """Instantiate a registered nominal model by name (options that are None are dropped)."""
+    """Instantiate a registered nominal model by name (options that are None are dropped).
+
+    A name ending in ``.pt`` is a learned dynamics checkpoint: ``get_model("m.pt")`` is
+    ``get_model("checkpoint", checkpoint="m.pt")``.
+    """
+    if str(name).endswith(".pt"):
+        kw = {**kw, "checkpoint": name}
+        name = "checkpoint"
     if name not in MODELS:
         raise UnknownModel(f"unknown model {name!r}; known models: {', '.join(sorted(MODELS))}")
     return MODELS[name](**{k: v for k, v in kw.items() if v is not None})
@@ -239,10 +251,16 @@ def save_model(fitted: FittedModel, path: str | Path, extra: dict | None = None)
 def load_model(path: str | Path) -> FittedModel:
     """Load an augmented model written by :func:`run_calibration` (``model.json``)."""
     doc = json.loads(Path(path).read_text())
+    if doc.get("model") == "checkpoint":
+        from calibration.learned import load_augmented
+
+        # the network is in model_augmented.pt next to model.json
+        return load_augmented(Path(path).with_name("model_augmented.pt"))
     if doc.get("model") == "velociroach":
         from calibration.velociroach import FittedVelociRoach
 
         return FittedVelociRoach.from_dict(doc)
     if doc.get("model") != "axis":
-        raise UnknownModel(f"{path}: model {doc.get('model')!r} cannot be loaded (known: axis, velociroach)")
+        raise UnknownModel(f"{path}: model {doc.get('model')!r} cannot be loaded (known: axis, velociroach, "
+                           "checkpoint)")
     return FittedAxis(axis.AxisParams.from_dict(doc["params"]))

@@ -97,7 +97,8 @@ def run_calibration(
 
     Args:
         data_path: CSV/Parquet file, directory, .mcap, or a list of Episodes.
-        model: nominal model name (``axis``, ``velociroach``; ``checkpoint`` is not built yet).
+        model: nominal model name (``axis``, ``velociroach``, ``checkpoint`` with
+            ``model_options={"checkpoint": PATH}``) or the path of a learned checkpoint (``.pt``).
         column_map: ``t=time,u=volts,x=position[,v=..,vbat=..,m=..]`` or a YAML path/dict.
         out_dir: where report.json, report.md, model.json and the PNGs go.
         seed: seed of the episode split and bootstraps.
@@ -125,7 +126,12 @@ def run_calibration(
     opts = {"k_u": k_u, "sg_window": sg_window} if model == "axis" else {}
     opts.update(model_options or {})
     nominal_model = get_model(model, **opts)
-    episodes = list(data_path) if isinstance(data_path, list) else load_episodes(data_path, column_map, robot=robot)
+    if isinstance(data_path, list):
+        episodes = list(data_path)
+    elif hasattr(nominal_model, "load_episodes"):  # the model knows its channels (checkpoint)
+        episodes = nominal_model.load_episodes(data_path, column_map, robot=robot)
+    else:
+        episodes = load_episodes(data_path, column_map, robot=robot)
     source = "episodes" if isinstance(data_path, list) else str(data_path)
     log(f"loaded {len(episodes)} episode(s) from {source}")
     segmented = False
@@ -178,7 +184,7 @@ def run_calibration(
                  "segmentation_note": (
                      "long recordings were split into contiguous segments treated as episodes; neighbouring "
                      "segments are correlated, so p-values are somewhat optimistic") if segmented else None,
-                 "velocity_source": _velocity_source(preps[0])},
+                 "velocity_source": getattr(nominal_model, "velocity_source", None) or _velocity_source(preps[0])},
         "folds": {"k": len(sel.folds), "test_episodes": [episodes[i].name for i in sel.test_idx],
                   "fold_episodes": [[episodes[i].name for i in f] for f in sel.folds],
                   "horizon_steps": sel.horizon, "horizon_s": sel.horizon * preps[0].period_s},
@@ -203,6 +209,10 @@ def run_calibration(
         "rounds": sel.rounds,
         "elapsed_s": time.time() - t0,
     }
+    if hasattr(nominal_model, "export_augmented"):
+        report["augmented_model"] = nominal_model.export_augmented(out, sel.final, report, test)
+        report["channels"] = {"one_step": "one-step prediction from the logged state",
+                              "multi_step": f"{sel.horizon}-step open-loop windows (logged actions replayed)"}
     if hasattr(nominal_model, "export"):
         report["closing_the_loop"] = nominal_model.export(out, sel.final, report)
     if hasattr(nominal_model, "n_rollouts"):
@@ -276,12 +286,21 @@ def render_markdown(r: dict) -> str:
         c = r["closing_the_loop"]
         lines += ["", f"Closing the loop: calibrated sim config `{c['sim_params_yaml']}` (params.sim overrides "
                   f"{c['sim_overrides']}; not sim settings: {c['not_sim_settings'] or 'none'})."]
+    if r.get("augmented_model"):
+        a = r["augmented_model"]
+        extras = ", ".join(f"{e['name']} (columns {e['columns']})" for e in a["extra_inputs"]) or "none"
+        lines += ["", f"Augmented model: `{a['path']}` (checkpoint `{a['checkpoint']}` retrained with extra inputs: "
+                  f"{extras}; {a['retrained']['epochs']} epochs from {a['retrained']['init']})."]
+        if a.get("checkpoint_as_is"):
+            c = a["checkpoint_as_is"]
+            lines.append(f"The checkpoint as given (not retrained) on the locked test set: one-step NRMSE "
+                         f"{c['one_step_nrmse']['mean']:.4f}, multi-step {c['multi_step_nrmse']['mean']:.4f}.")
     if r["physical_params"]["after"]:
         lines += ["", "Physical parameters (k_u given):", ""]
         for k in ("before", "after"):
             lines.append(f"- {k}: " + ", ".join(f"{n}={v:.4g}" for n, v in r["physical_params"][k].items()))
     lines += ["", "Not tested: " + "; ".join(f"{k}: {v}" for k, v in r["not_tested"].items()), ""]
-    plots = ("residual_before_after.png, candidates.png" if r.get("closing_the_loop")
+    plots = ("residual_before_after.png, candidates.png" if r.get("closing_the_loop") or r.get("augmented_model")
              else "residual_before_after.png, diagnostics.png, candidates.png")
     lines += [f"Plots: {plots}", ""]
     return "\n".join(lines)

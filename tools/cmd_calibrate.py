@@ -15,11 +15,20 @@ def register(app: typer.Typer) -> None:
         data: Path = typer.Option(..., "--data", help="CSV/Parquet file, a directory of them, or an .mcap recording"),
         model: str = typer.Option("axis", "--model",
                                   help="nominal model: axis, velociroach (MuJoCo sim; needs .mcap or full-state "
-                                       "episodes); checkpoint: not built yet"),
+                                       "episodes), or a learned dynamics checkpoint PATH.pt (same as --model "
+                                       "checkpoint --checkpoint PATH.pt): an effect is then a missing input"),
+        checkpoint: Path | None = typer.Option(None, "--checkpoint",
+                                               help="--model checkpoint: the EnsembleDynamics .pt file"),
+        epochs: int | None = typer.Option(None, "--epochs",
+                                          help="checkpoint: training epochs of every retrain (default 40)"),
+        actions: str | None = typer.Option(
+            None, "--actions", help="checkpoint + .mcap: actions 'normalized' to [-1, 1] of the spec (learning.mbrl, "
+                                    "default) or 'raw' robot units, as the checkpoint was trained"),
         column_map: str | None = typer.Option(
             None, "--map",
             help="column map t=..,u=..,x=..[,v=..,vbat=..,m=..,episode=..] or a YAML file with these keys "
-                 "(CSV/Parquet default: t=time,u=volts,x=position; MCAP: optional, names recorded channels)"),
+                 "(CSV/Parquet default: t=time,u=volts,x=position; MCAP: optional, names recorded channels); "
+                 "checkpoint + CSV: NAME=column for the checkpoint's state/action names, t=, episode=, vbat="),
         nominal: Path | None = typer.Option(
             None, "--nominal", help="velociroach: nominal robot config YAML (default: the backend's defaults)"),
         robot: str | None = typer.Option(None, "--robot", help="MCAP: which robot, when the recording has several"),
@@ -35,9 +44,19 @@ def register(app: typer.Typer) -> None:
 
         if sg_window is not None and (sg_window < 5 or sg_window % 2 == 0):
             _fail("--sg-window must be an odd number of samples >= 5")
-        if column_map is None and data.suffix.lower() != ".mcap":
+        learned = model == "checkpoint" or model.endswith(".pt")
+        if column_map is None and data.suffix.lower() != ".mcap" and not learned:
             column_map = "t=time,u=volts,x=position"
         opts = {"nominal": str(nominal)} if nominal is not None else None
+        if learned:
+            if model == "checkpoint" and checkpoint is None:
+                _fail("--model checkpoint needs --checkpoint PATH (or pass the .pt path as --model)")
+            if actions not in (None, "normalized", "raw"):
+                _fail("--actions must be 'normalized' or 'raw'")
+            opts = {"checkpoint": str(checkpoint if model == "checkpoint" else model), "epochs": epochs,
+                    "normalized_actions": None if actions is None else actions == "normalized"}
+            opts = {k: v for k, v in opts.items() if v is not None}
+            model = "checkpoint"
         try:
             report = run_calibration(data, model=model, column_map=column_map, out_dir=out, seed=seed,
                                      progress=not quiet, k_u=ku, sg_window=sg_window, model_options=opts,
@@ -54,6 +73,8 @@ def register(app: typer.Typer) -> None:
             "after_multi_step_nrmse": report["after"]["multi_step_nrmse"]["mean"],
             "report": str(Path(out) / "report.json"),
         }
+        if report.get("augmented_model"):
+            summary["augmented_model"] = report["augmented_model"]["path"]
         if as_json:
             typer.echo(json.dumps(summary))
             return
@@ -66,6 +87,10 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"unexplained structure: {summary['unexplained_structure']}")
         typer.echo(f"multi-step NRMSE (locked test set): before {summary['before_multi_step_nrmse']:.4f}, "
                    f"after {summary['after_multi_step_nrmse']:.4f}")
+        if report.get("augmented_model"):
+            am = report["augmented_model"]
+            typer.echo(f"augmented model: {am['path']} (extra inputs: "
+                       f"{', '.join(e['name'] for e in am['extra_inputs']) or 'none'})")
         if report.get("closing_the_loop"):
             typer.echo(f"calibrated sim config: {report['closing_the_loop']['sim_params_yaml']}")
         typer.echo(f"report: {out}/report.md")
