@@ -152,3 +152,41 @@ def test_errors_python_api(ckpt, tmp_path):
     renamed = [type(e)(**{**e.__dict__, "state_names": ("pos", "v")}) for e in eps]
     with pytest.raises(DataError, match=r"state channels \['x'\]"):
         run_calibration(renamed, model=str(ckpt), out_dir=tmp_path, progress=False, plots=False)
+
+
+def _write_mcap(episodes, path, high: float):
+    from bus import keys
+    from bus.recording import McapLog
+    from bus.schemas import RobotState, SpecMsg
+
+    spec = {"state": {"names": ["x", "v", "vbat"]}, "action": {"names": ["u"], "low": [-high], "high": [high]}}
+    seq, t_base = 0, 0.0
+    with McapLog(path) as log:
+        log.write(keys.spec("calib", "mass"), SpecMsg(robot="mass", spec=spec, seq=1))
+        for i, e in enumerate(episodes):
+            for k in range(e.n):
+                seq += 1
+                t = t_base + float(e.t_s[k])
+                log.write(keys.state("calib", "mass"), RobotState(
+                    robot="mass", t_s=t, state=[*map(float, e.states[k]), float(e.vbat_v[k])],
+                    action=[] if k == 0 else [float(e.actions[k - 1, 0])], episode=i, seq=seq, stamp_s=1000.0 + t,
+                    active=True))
+            t_base += float(e.t_s[-1]) + 1.0
+    return path
+
+
+def test_mcap_channels_matched_by_name_and_actions_normalized(ckpt, tmp_path):
+    """An MCAP recording: channels by name (the extra 'vbat' state becomes the vbat candidate),
+    actions normalized to [-1, 1] of the recorded spec unless --actions raw."""
+    eps = generate(12, 40, hidden="none", seed=6)
+    path = _write_mcap(eps, tmp_path / "rec.mcap", high=2.0)
+    model = get_model(str(ckpt))
+    preps = model.prepare(model.load_episodes(path))
+    assert len(preps) == 12 and preps[0].states.shape == (41, 2)
+    np.testing.assert_allclose(preps[0].actions[:, 0], eps[0].actions[:-1, 0] / 2.0, rtol=1e-5)
+    np.testing.assert_allclose(preps[0].features["vbat"][:, 0], eps[0].vbat_v[:-1], rtol=1e-5)
+    names, skipped = model.candidate_effects(preps)
+    assert "vbat" in names and "action_lag2" in skipped
+    raw = get_model(str(ckpt), normalized_actions=False)
+    np.testing.assert_allclose(raw.prepare(raw.load_episodes(path))[0].actions[:, 0], eps[0].actions[:-1, 0],
+                               rtol=1e-5)
