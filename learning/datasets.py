@@ -281,24 +281,14 @@ def load_episodes(path: str | Path, **column_map) -> list[Episode]:
     ``.csv`` and ``.parquet``/``.pq`` take the column map of :func:`episodes_from_table`
     (``state=[...], action=[...], episode=col, time=col``). ``.mcap`` recordings are read
     by ``learning.recordings.episodes_from_mcap(path, **kwargs)`` (``robot=``,
-    ``normalize=``, ...), which needs ``bus.recording``; without it a clear
-    ``NotImplementedError`` is raised.
+    ``normalize=``, ...): a recording names its own channels, so no column map applies.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".mcap":
-        import importlib  # noqa: PLC0415
+        from learning.recordings import episodes_from_mcap  # noqa: PLC0415 - pulls in the bus
 
-        try:
-            importlib.import_module("bus.recording")  # the MCAP reader, provided by the platform
-            recordings = importlib.import_module("learning.recordings")
-        except ImportError as e:
-            raise NotImplementedError(
-                f"{path}: MCAP episodes need bus.recording (not available: {e}); "
-                "export the session to CSV/Parquet or install the platform's recorder"
-            ) from e
-        # column maps do not apply: a recording names its own channels (robot=, normalize=, ...)
-        return recordings.episodes_from_mcap(path, **column_map)
+        return episodes_from_mcap(path, **column_map)
     import pandas as pd  # noqa: PLC0415 - keep import cost off the planner path
 
     if suffix == ".csv":

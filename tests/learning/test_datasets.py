@@ -102,15 +102,17 @@ def test_load_episodes_errors(tmp_path):
         load_episodes(tmp_path / "x.csv")
 
 
-def test_mcap_dispatch_has_a_clear_error_or_delegates(tmp_path, monkeypatch):
-    import sys
+def test_mcap_recordings_load_through_the_same_entry_point(tmp_path):
+    from bus import keys
+    from bus.recording import McapLog
+    from bus.schemas import RobotState, SpecMsg
 
-    import learning.recordings
-
-    calls = []
-    monkeypatch.setattr(learning.recordings, "episodes_from_mcap", lambda p, **kw: calls.append((p, kw)) or [])
-    assert load_episodes(tmp_path / "session.mcap", robot="roach") == []
-    assert calls == [(tmp_path / "session.mcap", {"robot": "roach"})]
-    monkeypatch.setitem(sys.modules, "bus.recording", None)  # make the import fail
-    with pytest.raises(NotImplementedError, match="bus.recording"):
-        load_episodes(tmp_path / "session.mcap", robot="roach")
+    spec = {"state": {"names": ["x"]}, "action": {"names": ["u"], "low": [-1.0], "high": [1.0]}}
+    with McapLog(tmp_path / "session.mcap") as log:
+        log.write(keys.spec("r", "roach"), SpecMsg(robot="roach", spec=spec))
+        for i in range(5):
+            log.write(keys.state("r", "roach"),
+                      RobotState(robot="roach", t_s=0.1 * i, state=[float(i)], action=[0.5], seq=i + 1))
+    (ep,) = load_episodes(tmp_path / "session.mcap", robot="roach")
+    np.testing.assert_allclose(ep.states[:, 0], np.arange(5))
+    np.testing.assert_allclose(ep.actions[:, 0], 0.5)
