@@ -43,6 +43,11 @@ from learning.frames import BodyFrameDynamics
 from learning.recordings import episodes_from_mcap
 
 
+class RigError(RuntimeError):
+    """The rig stopped answering (driver node crashed or link lost); the robot's own
+    watchdogs have stopped it. Recordings written so far are complete up to that point."""
+
+
 @dataclass
 class MbrlConfig:
     rig: str = "roach_sim"
@@ -78,6 +83,8 @@ class MbrlConfig:
     # Table 3.1: MPC cost vs amount of random data (subsets of the random rollouts)
     data_sizes: tuple[int, ...] = ()
     progress: bool = True
+    #: how long to wait for the driver node to come up (emulator start, radio link)
+    rig_timeout_s: float = 60.0
     #: real rigs: when the driver cannot reset itself, ask an operator on the terminal
     operator_resets: bool = False
 
@@ -296,11 +303,18 @@ class MbrlRun:
         torch.manual_seed(cfg.seed)
         t0 = time.monotonic()
         report: dict[str, Any] = {"config": _jsonable(asdict(cfg)), "rig": self.rig.name}
-        with rig_processes(self.rig.name, self.bus, self.out / "logs"), \
+        try:
+            return self._run(report, t0)
+        except TimeoutError as e:
+            raise RigError(f"{e} (driver log: {self.out / 'logs' / 'driver.log'})") from None
+
+    def _run(self, report: dict[str, Any], t0: float) -> dict[str, Any]:
+        cfg = self.cfg
+        with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs"), \
                 ControllerNode(self.rig.name, cfg.robot, self.bus, name="mbrl-controller",
                                handle_signals=False, state_timeout_s=20.0) as ctl:
             self.ctl = ctl
-            spec = ctl.wait_ready(timeout_s=60.0)
+            spec = ctl.wait_ready(timeout_s=cfg.rig_timeout_s)
             self.state_names = list(spec["state"]["names"])
             self.action_names = list(spec["action"]["names"])
 

@@ -25,9 +25,14 @@ def register(app: typer.Typer) -> None:
 
         Collects random data through the driver bridge, trains a dynamics model, runs MPC
         and the differential-drive baseline on five paths at a low and a high speed."""
+        from learning.mbrl import RigError
         from tools.demo import run_demo
 
-        r = run_demo(out, quick=quick, seed=seed, planner=planner, rig=rig, operator_resets=operator_resets)
+        try:
+            r = run_demo(out, quick=quick, seed=seed, planner=planner, rig=rig, operator_resets=operator_resets)
+        except RigError as e:
+            typer.echo(f"error: {e}", err=True)
+            raise typer.Exit(1) from None
         for s in ("low_speed", "high_speed"):
             if s in r:
                 typer.echo(f"{s}: mpc_cost {r[s]['mpc_cost']:.1f}  differential_drive_cost "

@@ -34,3 +34,20 @@ def test_tiny_demo_writes_a_complete_report(tmp_path):
         assert (tmp_path / f).is_file(), f
     assert "MPC vs differential drive" in (tmp_path / "report.md").read_text()
     assert r["wall_s"] > 0
+
+
+def test_a_rig_that_never_comes_up_is_a_clear_error(tmp_path):
+    import pytest
+
+    from learning.mbrl import RigError
+
+    rig = tmp_path / "broken.yaml"
+    rig.write_text(
+        "name: broken\nrobots:\n  roach:\n    config: velociroach\n    backend: real\n"
+        "    params: {port: /dev/hilstack-no-such-port}\npace: realtime\n"
+    )
+    with pytest.raises(RigError, match="driver log") as e:
+        run_demo(tmp_path / "out", quick=True, rig=str(rig), rig_timeout_s=4.0, progress=False)
+    log = (tmp_path / "out" / "logs" / "driver.log").read_text()
+    assert "hilstack-no-such-port" in log  # the driver said what was wrong
+    assert "no spec" in str(e.value)
