@@ -60,7 +60,7 @@ def test_realtime_mode_counts_late_plans_and_keeps_rate(bus, spawn):
     spawn("up", "pointmass_sim", "--endpoint", bus.endpoint)
 
     class SlowPlanner:
-        """Every other call takes 3 periods; exposes a plan whose tail is the fallback."""
+        """Every other call takes ~2 periods; exposes a plan whose 3-step tail is the fallback."""
 
         def __init__(self):
             self.calls = 0
@@ -69,7 +69,7 @@ def test_realtime_mode_counts_late_plans_and_keeps_rate(bus, spawn):
         def __call__(self, s):
             self.calls += 1
             if self.calls % 2 == 0:
-                time.sleep(0.06)
+                time.sleep(0.045)
             self.last_plan = np.array([[0.2, 0.0], [0.3, 0.0], [0.4, 0.0], [0.5, 0.0]])
             return self.last_plan[0]
 
