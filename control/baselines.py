@@ -25,7 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from control.costs import closest_segment, state_index
+from control.costs import PathCost, closest_segment
 
 __all__ = ["DifferentialDriveController"]
 
@@ -47,13 +47,11 @@ class DifferentialDriveController:
         cos_yaw: str = "cos_yaw",
         sin_yaw: str = "sin_yaw",
     ) -> None:
-        wp = torch.as_tensor(np.asarray(waypoints, dtype=np.float32))
-        self.seg_start, self.seg_vec = wp[:-1], wp[1:] - wp[:-1]
+        # the path geometry and channel lookup are the cost's: both see the same path
+        path = PathCost(waypoints, state_names, x=x, y=y, cos_yaw=cos_yaw, sin_yaw=sin_yaw)
+        self.seg_start, self.seg_vec = path.seg_start, path.seg_vec
+        self.ix, self.iy, self.ic, self.is_ = path.ix, path.iy, path.ic, path.is_
         self.omega_nom, self.k_heading, self.k_perp, self.d_max = omega_nom, k_heading, k_perp, d_max
-        self.ix = state_index(state_names, x)
-        self.iy = state_index(state_names, y)
-        self.ic = state_index(state_names, cos_yaw)
-        self.is_ = state_index(state_names, sin_yaw)
 
     def errors(self, state) -> tuple[float, float]:
         """``(heading error rad, signed lateral offset m)`` for one state ``[S]``."""

@@ -18,7 +18,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from bus import keys
-from bus.schemas import AnyMsg, Command, Image, Msg, Plan, RobotState, SpecMsg
+from bus.schemas import AnyMsg, Command, Image, MalformedMessage, Msg, Plan, RobotState, SpecMsg, decode
 
 
 def blueprint(has_images: bool = True) -> rrb.Blueprint:
@@ -127,16 +127,14 @@ def viz_live(rig: str, bus: Any = None, seconds: float | None = None, **viz_kw: 
     v = RigVisualizer(rig, **viz_kw)
     node = Node("viz", rig, bus)
     sub = node.subscribe(keys.all_of(rig), AnyMsg, latest=False, capacity=1 << 14)
-    from bus.schemas import decode
-
     t_end = None if seconds is None else time.monotonic() + seconds
     try:
         while not node.stop_event.is_set() and (t_end is None or time.monotonic() < t_end):
             for key, payload in sub.drain():
                 try:
                     v.log(key, decode(payload, AnyMsg))
-                except ValueError:
-                    continue  # malformed: counted by nobody here; the recorder counts
+                except MalformedMessage:
+                    continue  # the recorder and the driver nodes count malformed payloads
             node.stop_event.wait(0.02)
     finally:
         node.close()
