@@ -3,19 +3,21 @@
 One file per session; one channel per key expression; one schema per message type
 (JSON Schema generated from the msgspec definition), messages JSON-encoded so any
 MCAP tool (the ``mcap`` reader, Foxglove, rerun's MCAP importer) decodes them.
-Chunks are small and the file is flushed after each one, so a crash loses at most
-the last chunk; :func:`read_messages` reads a truncated file up to the damage.
+Chunks are closed, flushed and fsync'ed by time (every ``FLUSH_PERIOD_S``), so a crash
+loses at most that much data; :func:`read_messages` reads a truncated file up to the
+damage.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import msgspec
 from mcap.exceptions import McapError
@@ -31,45 +33,56 @@ _BY_TAG: dict[str, type[Msg]] = {type_name(t): t for t in ALL_TYPES}
 _json_enc = msgspec.json.Encoder()
 
 
-class _FlushingFile:
-    """File wrapper that flushes after every write of a chunk-sized block."""
+class RecordingClosed(RuntimeError):
+    """A write to a recording that is already closed (the message is not in the file)."""
 
-    def __init__(self, f: IO[bytes], flush_over: int):
-        self._f = f
-        self._flush_over = flush_over
 
-    def write(self, b: bytes) -> int:
-        n = self._f.write(b)
-        if len(b) >= self._flush_over:
-            self._f.flush()
-        return n
-
-    def tell(self) -> int:
-        return self._f.tell()
-
-    def flush(self) -> None:
-        self._f.flush()
+#: default bound on what a crash can lose: buffered messages are written out (chunk
+#: closed, file flushed and fsync'ed) once the oldest of them is this old [s]
+FLUSH_PERIOD_S = 0.5
 
 
 class McapLog:
-    """Write typed messages to an MCAP file (thread-compatible: one writer thread)."""
+    """Write typed messages to an MCAP file (thread-compatible: one writer thread).
 
-    def __init__(self, path: str | Path, chunk_size: int = 64 * 1024, metadata: dict[str, str] | None = None):
+    Durability is bounded by time, not by size: the mcap ``Writer`` keeps messages in
+    an open chunk until ``chunk_size`` bytes; :meth:`flush_if_due` (called by every
+    :meth:`write`, and by the recorder's loop when nothing arrives) closes the chunk,
+    flushes and fsyncs the file once ``flush_period_s`` passed since the last flush.
+    A crash (SIGKILL, power loss) therefore loses at most the messages written during
+    the last ``flush_period_s`` plus the caller's polling delay; readers recover
+    everything before the damage (:func:`read_messages`).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        chunk_size: int = 64 * 1024,
+        metadata: dict[str, str] | None = None,
+        flush_period_s: float = FLUSH_PERIOD_S,
+    ):
+        if not flush_period_s > 0:
+            raise ValueError(f"flush_period_s must be > 0, got {flush_period_s}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.flush_period_s = flush_period_s
         self._f = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._w = Writer(
-            _FlushingFile(self._f, flush_over=min(chunk_size // 2, 4096)),
-            chunk_size=chunk_size,
-            compression=CompressionType.ZSTD,
-        )
+        self._w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self._w.start(profile="", library="hilstack")
         if metadata:
             self._w.add_metadata("hilstack", {k: str(v) for k, v in metadata.items()})
         self._schemas: dict[type[Msg], int] = {}
         self._channels: dict[str, int] = {}
         self.count = 0
+        #: messages written since the last flush (in the open chunk, not on disk yet)
+        self.pending = 0
+        self._last_flush_s = time.monotonic()
         self._closed = False
+        self.flush()  # header and metadata on disk before the first message
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
 
     def _channel(self, topic: str, typ: type[Msg]) -> int:
         cid = self._channels.get(topic)
@@ -85,18 +98,47 @@ class McapLog:
         return cid
 
     def write(self, topic: str, msg: Msg, log_time_ns: int | None = None) -> None:
+        """Append one message (``log_time_ns``: receive time, ns since the epoch; default now).
+
+        Raises :class:`RecordingClosed` after :meth:`close`: nothing is written then."""
+        if self._closed:
+            raise RecordingClosed(f"{self.path} is closed: {type_name(type(msg))} on {topic} not recorded")
         cid = self._channel(topic, type(msg))
         log_ns = time.time_ns() if log_time_ns is None else log_time_ns
         pub_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
         self._w.add_message(cid, log_time=log_ns, data=_json_enc.encode(msg), publish_time=pub_ns, sequence=msg.seq)
         self.count += 1
+        self.pending += 1
+        self.flush_if_due()
+
+    def flush_if_due(self) -> bool:
+        """Flush (see :meth:`flush`) if ``flush_period_s`` passed since the last one and
+        messages are pending; returns whether it flushed."""
+        if self._closed or self.pending == 0 or time.monotonic() - self._last_flush_s < self.flush_period_s:
+            return False
+        self.flush()
+        return True
+
+    def flush(self) -> None:
+        """Close the open chunk, write it out and fsync: everything written so far survives a crash."""
+        if self._closed:
+            raise RecordingClosed(f"{self.path} is closed: nothing to flush")
+        self._w.flush()
+        # page cache survives a killed process; fsync makes it survive a power cut too
+        os.fsync(self._f.fileno())
+        self.pending = 0
+        self._last_flush_s = time.monotonic()
 
     def close(self) -> None:
         if self._closed:
             return
         self._closed = True
-        self._w.finish()
-        self._f.close()
+        try:
+            self._w.finish()
+            self._f.flush()
+            os.fsync(self._f.fileno())
+        finally:
+            self._f.close()
 
     def __enter__(self) -> McapLog:
         return self
@@ -153,11 +195,29 @@ def read_messages(path: str | Path) -> ReadResult:
 
 
 class Recorder(Node):
-    """Records every message under ``hil/<rig>/**`` to one MCAP file."""
+    """Records every message under ``hil/<rig>/**`` to one MCAP file.
 
-    def __init__(self, rig: str, path: str | Path, bus: BusConfig | None = None, **kw: Any):
+    Use :meth:`record` (blocks until a signal, ``stop_event`` or ``seconds``) or call
+    :meth:`pump` yourself; :meth:`close` writes what is still queued, finishes the file
+    and stops listening. Nothing is written after that (``pump`` then raises
+    :class:`RecordingClosed`). A crash loses at most ``flush_period_s`` of messages
+    plus one polling period (see :class:`McapLog`).
+    """
+
+    def __init__(
+        self,
+        rig: str,
+        path: str | Path,
+        bus: BusConfig | None = None,
+        flush_period_s: float = FLUSH_PERIOD_S,
+        **kw: Any,
+    ):
         super().__init__("recorder", rig, bus, **kw)
-        self.log = McapLog(path, metadata={"rig": rig, "started": time.strftime("%Y-%m-%dT%H:%M:%S")})
+        self.log = McapLog(
+            path,
+            metadata={"rig": rig, "started": time.strftime("%Y-%m-%dT%H:%M:%S")},
+            flush_period_s=flush_period_s,
+        )
         self._sub = self.subscribe(keys.all_of(rig), AnyMsg, latest=False, capacity=1 << 16)
         self.malformed = 0
         self._lock = threading.Lock()
@@ -166,6 +226,8 @@ class Recorder(Node):
         """Move everything queued into the file; returns how many were written."""
         n = 0
         with self._lock:
+            if self.log.closed:
+                raise RecordingClosed(f"recorder of {self.rig} is closed: {self.log.path} is finished")
             for key, payload in self._sub.drain():
                 try:
                     msg = decode(payload, AnyMsg)
@@ -174,23 +236,30 @@ class Recorder(Node):
                     continue
                 self.log.write(key, msg)
                 n += 1
+            # a quiet bus still gets the last messages onto disk in time
+            self.log.flush_if_due()
         return n
 
     def record(self, seconds: float | None = None, poll_s: float = 0.01) -> int:
-        """Record until stopped (signal) or ``seconds`` pass; always closes the file."""
+        """Record until stopped (signal, ``stop_event``) or ``seconds`` pass; always
+        finishes the file (:meth:`close`). Returns the number of messages written."""
         t_end = None if seconds is None else time.monotonic() + seconds
         try:
             while not self.stop_event.is_set() and (t_end is None or time.monotonic() < t_end):
                 self.pump()
                 self.stop_event.wait(poll_s)
-            self.pump()
         finally:
-            self.log.close()
+            self.close()
         return self.log.count
 
     def close(self) -> None:
+        """Stop listening, write what is still queued, finish the file; idempotent."""
+        with self._lock:
+            if self.log.closed:
+                super().close()
+                return
         try:
-            self.pump()
+            self.pump()  # what arrived before close() is recorded; what comes later is not
         finally:
             self.log.close()
             super().close()

@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
         seconds: float = typer.Option(None, "--seconds", help="stop after this long (default: until Ctrl-C)"),
         endpoint: str = EndpointOpt,
     ) -> None:
-        """Record every message of a rig to one MCAP file (crash-safe chunks)."""
+        """Record every message of a rig to one MCAP file (a crash loses at most the last 0.5 s)."""
         from bus.recording import Recorder
 
         out = out or Path("recordings") / f"{rig}-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
