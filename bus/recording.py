@@ -1,8 +1,10 @@
 """MCAP recording, replay and inspection of everything a rig says.
 
 One file per session; one channel per key expression; one schema per message type
-(JSON Schema generated from the msgspec definition), messages JSON-encoded so any
-MCAP tool (the ``mcap`` reader, Foxglove, rerun's MCAP importer) decodes them.
+(JSON Schema generated from the msgspec definition, in the subset Foxglove parses),
+messages JSON-encoded so any MCAP tool (the ``mcap`` reader, Foxglove, rerun's MCAP
+importer) decodes them. Robot poses are also written on Foxglove's well-known
+``PoseInFrame``/``FrameTransform`` schemas (derived channels, not replayed).
 Chunks are closed, flushed and fsync'ed by time (every ``FLUSH_PERIOD_S``), so a crash
 loses at most that much data; :func:`read_messages` reads a truncated file up to the
 damage.
@@ -11,6 +13,7 @@ damage.
 from __future__ import annotations
 
 import json
+import math
 import os
 import threading
 import time
@@ -19,18 +22,116 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import msgspec
+import foxglove.messages as fg
 from mcap.exceptions import McapError
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from bus import keys
 from bus.node import Node
-from bus.schemas import ALL_TYPES, AnyMsg, MalformedMessage, Msg, decode, encode, json_schema, type_name
+from bus.schemas import (
+    ALL_TYPES,
+    AnyMsg,
+    MalformedMessage,
+    Msg,
+    RobotState,
+    SpecMsg,
+    decode,
+    decode_json,
+    encode,
+    encode_json,
+    json_schema,
+    type_name,
+)
 from configs.schema import BusConfig
 
 _BY_TAG: dict[str, type[Msg]] = {type_name(t): t for t in ALL_TYPES}
-_json_enc = msgspec.json.Encoder()
+
+#: parent frame of every robot pose in the Foxglove channels
+WORLD_FRAME = "world"
+
+
+def foxglove_pose_topic(rig: str, robot: str) -> str:
+    """Channel of a robot's ``foxglove.PoseInFrame`` (beside ``hil/<rig>/<robot>/state``)."""
+    return f"{keys.root(rig)}/foxglove/{robot}/pose"
+
+
+def foxglove_tf_topic(rig: str) -> str:
+    """Channel of the ``foxglove.FrameTransform`` world -> robot of every robot of the rig."""
+    return f"{keys.root(rig)}/foxglove/tf"
+
+
+def planar_pose(names: tuple[str, ...] | list[str], state: list[float]) -> tuple[float, float, float, float] | None:
+    """(x, y, z [m], yaw [rad]) from a state vector with channels named ``x``, ``y``
+    (optionally ``z``) and ``yaw`` or ``cos_yaw``/``sin_yaw``; None if it has no x/y."""
+    idx = {n: i for i, n in enumerate(names)}
+    if "x" not in idx or "y" not in idx or max(idx["x"], idx["y"]) >= len(state):
+        return None
+
+    def get(n: str, default: float = 0.0) -> float:
+        i = idx.get(n)
+        return float(state[i]) if i is not None and i < len(state) else default
+
+    if "yaw" in idx:
+        yaw = get("yaw")
+    elif "cos_yaw" in idx and "sin_yaw" in idx:
+        yaw = math.atan2(get("sin_yaw"), get("cos_yaw"))
+    else:
+        yaw = 0.0
+    return get("x"), get("y"), get("z"), yaw
+
+
+class _FoxglovePoses:
+    """Robot poses on Foxglove's well-known schemas, so its 3D panel shows the robots.
+
+    For each ``RobotState`` of a robot whose spec (``SpecMsg``) names x/y(/yaw) channels:
+    a ``foxglove.PoseInFrame`` in ``world`` and a ``foxglove.FrameTransform`` world ->
+    <robot>, protobuf-encoded by foxglove-sdk (schemas from its ``get_schema()``), on
+    extra channels under ``hil/<rig>/foxglove/``. Our readers skip them."""
+
+    def __init__(self, writer: Writer):
+        self._w = writer
+        self._names: dict[str, tuple[str, ...]] = {}
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+
+    def _channel(self, topic: str, cls: Any) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            sch = cls.get_schema()
+            sid = self._schemas.get(sch.name)
+            if sid is None:
+                sid = self._schemas[sch.name] = self._w.register_schema(sch.name, sch.encoding, bytes(sch.data))
+            cid = self._channels[topic] = self._w.register_channel(topic, "protobuf", sid)
+        return cid
+
+    def on_message(self, topic: str, msg: Msg, log_ns: int) -> int:
+        """Write the Foxglove messages derived from ``msg``; returns how many."""
+        if isinstance(msg, SpecMsg):
+            try:
+                self._names[msg.robot] = tuple(msg.spec["state"]["names"])
+            except (KeyError, TypeError):
+                pass  # a spec without state names: no pose for this robot
+            return 0
+        if not isinstance(msg, RobotState) or msg.robot not in self._names:
+            return 0
+        pose = planar_pose(self._names[msg.robot], msg.state)
+        if pose is None or not all(math.isfinite(v) for v in pose):
+            return 0
+        x, y, z, yaw = pose
+        parts = topic.split("/")
+        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+        stamp_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+        ts = fg.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+        pos = fg.Vector3(x=x, y=y, z=z)
+        q = fg.Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+        pim = fg.PoseInFrame(timestamp=ts, frame_id=WORLD_FRAME, pose=fg.Pose(position=pos, orientation=q))
+        tf = fg.FrameTransform(timestamp=ts, parent_frame_id=WORLD_FRAME, child_frame_id=msg.robot,
+                               translation=pos, rotation=q)
+        for t, cls, m in ((foxglove_pose_topic(rig, msg.robot), fg.PoseInFrame, pim),
+                          (foxglove_tf_topic(rig), fg.FrameTransform, tf)):
+            self._w.add_message(self._channel(t, cls), log_time=log_ns, data=m.encode(), publish_time=stamp_ns)
+        return 2
 
 
 class RecordingClosed(RuntimeError):
@@ -60,6 +161,7 @@ class McapLog:
         chunk_size: int = 64 * 1024,
         metadata: dict[str, str] | None = None,
         flush_period_s: float = FLUSH_PERIOD_S,
+        foxglove: bool = True,
     ):
         if not flush_period_s > 0:
             raise ValueError(f"flush_period_s must be > 0, got {flush_period_s}")
@@ -73,6 +175,8 @@ class McapLog:
             self._w.add_metadata("hilstack", {k: str(v) for k, v in metadata.items()})
         self._schemas: dict[type[Msg], int] = {}
         self._channels: dict[str, int] = {}
+        self._fox = _FoxglovePoses(self._w) if foxglove else None
+        #: hil messages written (the derived Foxglove messages are not counted)
         self.count = 0
         #: messages written since the last flush (in the open chunk, not on disk yet)
         self.pending = 0
@@ -106,9 +210,11 @@ class McapLog:
         cid = self._channel(topic, type(msg))
         log_ns = time.time_ns() if log_time_ns is None else log_time_ns
         pub_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
-        self._w.add_message(cid, log_time=log_ns, data=_json_enc.encode(msg), publish_time=pub_ns, sequence=msg.seq)
+        self._w.add_message(cid, log_time=log_ns, data=encode_json(msg), publish_time=pub_ns, sequence=msg.seq)
         self.count += 1
         self.pending += 1
+        if self._fox is not None:
+            self.pending += self._fox.on_message(topic, msg, log_ns)
         self.flush_if_due()
 
     def flush_if_due(self) -> bool:
@@ -160,10 +266,19 @@ class ReadResult:
     messages: list[RecordedMessage] = field(default_factory=list)
     truncated: bool = False
     error: str | None = None
+    #: messages of hil types that did not decode (skipped, reading went on)
+    undecodable: int = 0
+    #: first such decode error, "topic: why"
+    undecodable_error: str | None = None
+    #: channels of other schemas (the Foxglove poses...): topic -> {"schema", "count"}
+    foreign: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterator[RecordedMessage]:
-    """Stream messages in file order; stops quietly at a truncated tail (sets ``result.truncated``)."""
+    """Stream our messages in file order; stops quietly at a truncated tail (sets
+    ``result.truncated``). A single undecodable message is skipped and counted
+    (``result.undecodable``); channels of other schemas are counted in ``result.foreign``."""
+    res = result if result is not None else ReadResult()
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, int]] = {}
     with open(path, "rb") as f:
@@ -178,14 +293,19 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
                     topic, sid = channels[rec.channel_id]
                     typ = _BY_TAG.get(schemas.get(sid, ""))
                     if typ is None:
+                        other = res.foreign.setdefault(topic, {"schema": schemas.get(sid, ""), "count": 0})
+                        other["count"] += 1
                         continue
-                    yield RecordedMessage(
-                        topic, rec.log_time, rec.publish_time, msgspec.json.decode(rec.data, type=typ)
-                    )
+                    try:
+                        msg = decode_json(rec.data, typ)
+                    except MalformedMessage as e:
+                        res.undecodable += 1
+                        res.undecodable_error = res.undecodable_error or f"{topic}: {e}"
+                        continue
+                    yield RecordedMessage(topic, rec.log_time, rec.publish_time, msg)
         except (McapError, EOFError, ValueError, KeyError, OSError) as e:
-            if result is not None:
-                result.truncated = True
-                result.error = f"{type(e).__name__}: {e}"
+            res.truncated = True
+            res.error = f"{type(e).__name__}: {e}"
 
 
 def read_messages(path: str | Path) -> ReadResult:
@@ -342,5 +462,9 @@ def summarize(path: str | Path, gap_factor: float = 3.0) -> dict[str, Any]:
         "duration_s": (max(t_all) - min(t_all)) / 1e9 if t_all else 0.0,
         "truncated": res.truncated,
         "error": res.error,
+        "undecodable": res.undecodable,
+        "undecodable_error": res.undecodable_error,
         "channels": chans,
+        # derived channels of other schemas (Foxglove poses): not replayed, not in "messages"
+        "other_channels": dict(sorted(res.foreign.items())),
     }

@@ -63,8 +63,13 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"{s['path']}: {s['messages']} messages over {s['duration_s']:.2f} s")
         if s["truncated"]:
             typer.echo(f"  warning: file is truncated ({s['error']}); messages up to the damage are shown")
+        if s["undecodable"]:
+            typer.echo(f"  warning: {s['undecodable']} message(s) did not decode and were skipped "
+                       f"(first: {s['undecodable_error']})")
         typer.echo(f"  {'channel':40s} {'type':22s} {'count':>7s} {'rate_hz':>8s} {'max_gap_s':>9s} gaps")
         for topic, c in s["channels"].items():
             typer.echo(
                 f"  {topic:40s} {c['type']:22s} {c['count']:7d} {c['rate_hz']:8.1f} {c['max_gap_s']:9.3f} {c['gaps']}"
             )
+        for topic, c in s["other_channels"].items():
+            typer.echo(f"  {topic:40s} {c['schema']:22s} {c['count']:7d}  (derived, not replayed)")

@@ -1,0 +1,251 @@
+"""Recordings in third-party tools: Foxglove's schema rules, protobuf well-known schemas,
+rerun's MCAP importer, and our own readers beside the extra channels."""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+
+import msgspec
+import pytest
+from mcap.reader import make_reader
+
+from bus import keys
+from bus.recording import (
+    McapLog,
+    foxglove_pose_topic,
+    foxglove_tf_topic,
+    read_messages,
+    summarize,
+)
+from bus.schemas import ALL_TYPES, Command, Image, Plan, RobotState, SpecMsg, json_schema, type_name
+
+RIG = "fox"
+NAMES = ["x", "y", "cos_yaw", "sin_yaw", "v"]
+SPEC = {"name": "bot", "state": {"names": NAMES, "units": ["m", "m", "1", "1", "m/s"]},
+        "action": {"names": ["u"], "low": [-1.0], "high": [1.0]}}
+
+
+# --------------------------------------------------------------------------- Foxglove's rules
+class FoxgloveSchemaError(ValueError):
+    pass
+
+
+def foxglove_parse_json_schema(schema: dict, type_name_: str) -> dict[str, list[dict]]:
+    """A Python port of Foxglove's ``parseJsonSchema`` (foxglove/studio,
+    packages/mcap-support/src/parseJsonSchema.ts): the JSON-schema -> message datatypes
+    step Foxglove runs on every ``jsonschema`` channel. Returns {type name: fields};
+    raises where the TypeScript throws (including the TypeError of
+    ``Object.entries(undefined)`` on an object without ``properties``)."""
+    datatypes: dict[str, list[dict]] = {}
+
+    def add(sch: dict, tname: str, key_path: list[str]) -> None:
+        if not isinstance(sch, dict) or sch.get("type") != "object":
+            got = sch.get("type") if isinstance(sch, dict) else sch
+            raise FoxgloveSchemaError(f'Expected "type": "object" for schema {tname}, got {json.dumps(got)}')
+        props = sch.get("properties")
+        if not isinstance(props, dict):
+            raise FoxgloveSchemaError(f"TypeError: Cannot convert undefined or null to object ({tname})")
+        fields: list[dict] = []
+        for name, fs in props.items():
+            where = ".".join([*key_path, name])
+            if isinstance(fs.get("oneOf"), list):
+                if all(isinstance(alt.get("const"), (int, float)) for alt in fs["oneOf"]):
+                    fields += [{"name": alt.get("title"), "type": "uint32", "isConstant": True} for alt in fs["oneOf"]]
+                    fields.append({"name": name, "type": "uint32"})
+                    continue
+                raise FoxgloveSchemaError(f"Unsupported type for {where}: oneOf alternatives must have number values")
+            t = fs.get("type")
+            if t == "boolean":
+                fields.append({"name": name, "type": "bool"})
+            elif t == "string":
+                enc = fs.get("contentEncoding")
+                if enc is None:
+                    fields.append({"name": name, "type": "string"})
+                elif enc == "base64":
+                    fields.append({"name": name, "type": "uint8", "isArray": True, "base64": True})
+                else:
+                    raise FoxgloveSchemaError(f"Unsupported contentEncoding {json.dumps(enc)} in {where}")
+            elif t == "number":
+                fields.append({"name": name, "type": "float64"})
+            elif t == "integer":
+                fields.append({"name": name, "type": "uint32"})
+            elif t == "object":
+                nested = f"{tname}.{name}"
+                add(fs, nested, [*key_path, name])
+                fields.append({"name": name, "type": nested, "isComplex": True})
+            elif t == "array":
+                items = fs.get("items")
+                it = items.get("type") if isinstance(items, dict) else None
+                if it == "boolean":
+                    fields.append({"name": name, "type": "bool", "isArray": True})
+                elif it == "string":
+                    if items.get("contentEncoding") is not None:
+                        raise FoxgloveSchemaError(f"Unsupported contentEncoding for array item {where}")
+                    fields.append({"name": name, "type": "string", "isArray": True})
+                elif it == "number":
+                    fields.append({"name": name, "type": "float64", "isArray": True})
+                elif it == "integer":
+                    fields.append({"name": name, "type": "uint32", "isArray": True})
+                elif it == "object":
+                    nested = f"{tname}.{name}"
+                    add(items, nested, [*key_path, name])
+                    fields.append({"name": name, "type": nested, "isComplex": True, "isArray": True})
+                else:
+                    raise FoxgloveSchemaError(f"Unsupported type {json.dumps(it)} for array item {where}")
+            else:
+                raise FoxgloveSchemaError(f"Unsupported type {json.dumps(t)} for {where}")
+        datatypes[tname] = fields
+
+    add(schema, type_name_, [])
+    return datatypes
+
+
+def conforms(value: object, tname: str, datatypes: dict[str, list[dict]], where: str = "") -> None:
+    """The recorded JSON value has the shape the parsed datatypes promise (fields Foxglove
+    knows are of the declared kind; null stands for a non-finite float64)."""
+    assert isinstance(value, dict), f"{where or tname}: expected an object, got {value!r}"
+    kinds = {"bool": bool, "string": str, "float64": (int, float, type(None)), "uint32": int}
+    for f in datatypes[tname]:
+        if f.get("isConstant") or f["name"] not in value:
+            continue
+        v, here = value[f["name"]], f"{where}.{f['name']}"
+        if f.get("base64"):
+            assert isinstance(v, str), here
+            base64.b64decode(v, validate=True)
+            continue
+        vals = v if f.get("isArray") else [v]
+        if f.get("isArray"):
+            assert isinstance(v, list), f"{here}: expected an array, got {v!r}"
+        for x in vals:
+            if f.get("isComplex"):
+                conforms(x, f["type"], datatypes, here)
+            else:
+                assert isinstance(x, kinds[f["type"]]) and not (f["type"] == "uint32" and isinstance(x, bool)), \
+                    f"{here}: {x!r} is not {f['type']}"
+                if f["type"] == "uint32":
+                    assert 0 <= x < 2**32, f"{here}: {x} outside uint32"
+
+
+def test_checker_rejects_what_foxglove_rejects():
+    """The port fails on the four defects of msgspec's raw schemas named in the issue."""
+    raw = {t: msgspec.json.schema(t) for t in ALL_TYPES}
+    with pytest.raises(FoxgloveSchemaError, match='Expected "type": "object"'):  # root is a $ref
+        foxglove_parse_json_schema(raw[Command], "hil.Command/1")
+    inner = {t: r["$defs"][t.__name__] for t, r in raw.items()}
+    with pytest.raises(FoxgloveSchemaError, match='Unsupported type undefined|Unsupported type null'):
+        foxglove_parse_json_schema(inner[Command], "c")  # tag: enum without a type
+    no_tag = {k: v for k, v in inner[SpecMsg]["properties"].items() if k != "type"}
+    with pytest.raises(FoxgloveSchemaError, match="Cannot convert undefined"):  # spec: object, no properties
+        foxglove_parse_json_schema({**inner[SpecMsg], "properties": no_tag}, "s")
+    no_tag = {k: v for k, v in inner[Plan]["properties"].items() if k != "type"}
+    with pytest.raises(FoxgloveSchemaError, match="for array item actions"):  # array of arrays
+        foxglove_parse_json_schema({**inner[Plan], "properties": no_tag}, "p")
+
+
+@pytest.mark.parametrize("typ", ALL_TYPES, ids=lambda t: t.__name__)
+def test_every_recorded_schema_passes_foxglove_rules(typ):
+    dt = foxglove_parse_json_schema(json_schema(typ), type_name(typ))
+    fields = {f["name"]: f for f in dt[type_name(typ)]}
+    assert fields["type"]["type"] == "string" and fields["seq"]["type"] == "uint32"
+    assert set(fields) == set(typ.__struct_fields__) | {"type"}
+
+
+def _recording(path, n=20):
+    """A rig session: spec, states moving along a quarter circle, commands, a plan, an image."""
+    msgs = [(keys.spec(RIG, "bot"), SpecMsg(robot="bot", spec=SPEC, seq=1, stamp_s=1000.0))]
+    for i in range(n):
+        yaw = i * math.pi / 2 / (n - 1)
+        st = [math.cos(yaw), math.sin(yaw), math.cos(yaw + math.pi / 2), math.sin(yaw + math.pi / 2), 0.1]
+        msgs.append((keys.state(RIG, "bot"), RobotState(robot="bot", t_s=0.1 * i, state=st, action=[0.5],
+                                                       seq=i + 1, stamp_s=1000.0 + 0.1 * i, health={"ok": True})))
+        msgs.append((keys.cmd(RIG, "bot"), Command(robot="bot", action=[0.5], seq=i + 1, stamp_s=1000.0 + 0.1 * i)))
+    msgs.append((keys.plan(RIG), Plan(robot="bot", actions=[[0.1], [0.2]], states=[[0.0] * 5] * 3, seq=1,
+                                      stamp_s=1001.0)))
+    msgs.append((keys.image(RIG, "cam"), Image(camera="cam", t_s=1.0, width=2, height=1, data=bytes(range(6)),
+                                               seq=1, stamp_s=1001.0)))
+    with McapLog(path) as log:
+        for i, (t, m) in enumerate(msgs):
+            log.write(t, m, log_time_ns=int(1000e9) + i * 1_000_000)
+    return msgs
+
+
+def test_recording_opens_under_foxglove_rules_with_robot_poses(tmp_path):
+    """Every jsonschema channel parses under Foxglove's rules and each message conforms;
+    the robot pose is on Foxglove's well-known PoseInFrame/FrameTransform (protobuf),
+    decoded here from the schema stored in the file (mcap-protobuf-support)."""
+    from mcap_protobuf.decoder import DecoderFactory
+
+    path = tmp_path / "fox.mcap"
+    msgs = _recording(path)
+    seen: dict[str, int] = {}
+    poses, tfs = [], []
+    with open(path, "rb") as f:
+        protobuf = DecoderFactory()
+        for schema, channel, message in make_reader(f).iter_messages():
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            if schema.encoding == "jsonschema":
+                assert channel.message_encoding == "json"
+                dt = foxglove_parse_json_schema(json.loads(schema.data), schema.name)
+                conforms(json.loads(message.data), schema.name, dt)
+            else:
+                assert (schema.encoding, channel.message_encoding) == ("protobuf", "protobuf")
+                decoded = protobuf.decoder_for(channel.message_encoding, schema)(message.data)
+                (poses if schema.name == "foxglove.PoseInFrame" else tfs).append(decoded)
+    n_states = sum(isinstance(m, RobotState) for _, m in msgs)
+    assert seen[foxglove_pose_topic(RIG, "bot")] == n_states
+    assert seen[foxglove_tf_topic(RIG)] == n_states
+    assert len(poses) == len(tfs) == n_states
+    last = poses[-1]
+    assert last.frame_id == "world"
+    assert (last.pose.position.x, last.pose.position.y) == pytest.approx((0.0, 1.0), abs=1e-9)
+    # the state's heading is 180 deg at the end: quaternion about z
+    q = last.pose.orientation
+    assert (q.x, q.y, abs(q.z), q.w) == pytest.approx((0.0, 0.0, 1.0, 0.0), abs=1e-9)
+    assert (tfs[0].parent_frame_id, tfs[0].child_frame_id) == ("world", "bot")
+    assert tfs[0].timestamp.seconds == 1000 and tfs[1].timestamp.nanos == pytest.approx(1e8, abs=1e3)
+
+
+def test_our_readers_ignore_the_foxglove_channels(tmp_path, bus):
+    from bus.recording import replay
+    from learning.recordings import episodes_from_mcap
+
+    path = tmp_path / "ours.mcap"
+    msgs = _recording(path)
+    back = read_messages(path)
+    assert not back.truncated and back.undecodable == 0
+    assert [(r.topic, r.msg) for r in back.messages] == msgs  # nested arrays, bytes: as written
+    s = summarize(path)
+    assert s["messages"] == len(msgs)
+    assert s["other_channels"][foxglove_pose_topic(RIG, "bot")] == {"schema": "foxglove.PoseInFrame", "count": 20}
+    eps = episodes_from_mcap(path)
+    assert len(eps) == 1 and eps[0].states.shape == (20, 5)
+    assert replay(path, bus, speed=0) == len(msgs)
+
+
+def test_rerun_loads_the_recording(tmp_path):
+    """Done-when of the issue: the recording opens in rerun (its MCAP importer)."""
+    import rerun as rr
+
+    path = tmp_path / "rr.mcap"
+    _recording(path)
+    paths = {str(c.entity_path) for c in rr.chunk.McapReader(str(path)).stream().to_chunks()}
+    for topic in (keys.state(RIG, "bot"), keys.cmd(RIG, "bot"), keys.plan(RIG), foxglove_pose_topic(RIG, "bot")):
+        assert any(topic in p for p in paths), (topic, sorted(paths))
+
+
+def test_nan_state_survives_and_a_bad_message_does_not_end_reading(tmp_path):
+    """JSON has no NaN (it is recorded as null): it reads back as NaN. A message that does
+    not decode is skipped and counted; the messages after it are still read."""
+    path = tmp_path / "nan.mcap"
+    with McapLog(path) as log:
+        log.write(keys.state(RIG, "bot"), RobotState(robot="bot", t_s=0.0, state=[math.nan, 1.0], seq=1))
+        cid = log._channel(keys.cmd(RIG, "bot"), Command)
+        log._w.add_message(cid, log_time=1, data=b'{"type":"hil.Command/1","robot":3}', publish_time=1)
+        log.write(keys.cmd(RIG, "bot"), Command(robot="bot", action=[1.0], seq=2))
+    back = read_messages(path)
+    assert [r.msg.seq for r in back.messages] == [1, 2]
+    assert math.isnan(back.messages[0].msg.state[0]) and back.messages[0].msg.state[1] == 1.0
+    assert back.undecodable == 1 and "hil/fox/bot/cmd" in back.undecodable_error
+    assert not back.truncated
