@@ -366,7 +366,10 @@ class Recorder(Node):
         t_end = None if seconds is None else time.monotonic() + seconds
         try:
             while not self.stop_event.is_set() and (t_end is None or time.monotonic() < t_end):
-                self.pump()
+                try:
+                    self.pump()
+                except RecordingClosed:
+                    break  # close() from another thread: it wrote the rest
                 self.stop_event.wait(poll_s)
         finally:
             self.close()

@@ -267,3 +267,40 @@ def test_sigkill_loses_at_most_one_second(tmp_path, bus, spawn):
     seqs = [r.msg.seq for r in back.messages if isinstance(r.msg, Command)]
     assert seqs == list(range(1, len(seqs) + 1))  # in order, nothing lost in the middle
     assert n_sent - len(seqs) <= rate_hz * 1.0, f"lost {n_sent - len(seqs)} of {n_sent} messages at {rate_hz} Hz"
+
+
+def test_close_from_another_thread_ends_record_cleanly(tmp_path, bus):
+    from bus.schemas import encode
+
+    path = tmp_path / "threaded.mcap"
+    rec = Recorder(RIG, path, bus, handle_signals=False)
+    pub = Node("pub", RIG, bus, handle_signals=False)
+    errors: list[BaseException] = []
+    finish = rec.log.close
+
+    def slow_finish() -> None:  # the recording thread polls while close() is still busy
+        finish()
+        time.sleep(0.2)
+
+    rec.log.close = slow_finish
+
+    def run() -> None:
+        try:
+            rec.record()
+        except BaseException as e:  # noqa: BLE001 - the test reports it
+            errors.append(e)
+
+    th = threading.Thread(target=run)
+    th.start()
+    try:
+        time.sleep(0.5)  # discovery
+        for i in range(200):
+            pub.session.put(keys.cmd(RIG, "pm"), encode(Command(robot="pm", action=[float(i)], seq=i + 1)))
+        time.sleep(0.3)
+        rec.close()
+        th.join(10)
+    finally:
+        pub.close()
+    assert not th.is_alive() and errors == []
+    back = read_messages(path)
+    assert not back.truncated and [r.msg.seq for r in back.messages] == list(range(1, 201))
