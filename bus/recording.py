@@ -81,17 +81,56 @@ def planar_pose(names: tuple[str, ...] | list[str], state: list[float]) -> tuple
     return get("x"), get("y"), get("z"), yaw
 
 
-class _FoxglovePoses:
+class FoxglovePoses:
     """Robot poses on Foxglove's well-known schemas, so its 3D panel shows the robots.
 
-    For each ``RobotState`` of a robot whose spec (``SpecMsg``) names x/y(/yaw) channels:
-    a ``foxglove.PoseInFrame`` in ``world`` and a ``foxglove.FrameTransform`` world ->
-    <robot>, protobuf-encoded by foxglove-sdk (schemas from its ``get_schema()``), on
-    extra channels under ``hil/<rig>/foxglove/``. Our readers skip them."""
+    Feed every message to :meth:`derive`: it remembers each robot's state names from its
+    ``SpecMsg``, and for a ``RobotState`` of a robot whose names include x/y(/yaw) it
+    returns a ``foxglove.PoseInFrame`` in ``world`` (on :func:`foxglove_pose_topic`) and a
+    ``foxglove.FrameTransform`` world -> <robot> (on :func:`foxglove_tf_topic`), stamped
+    with the state's ``stamp_s`` (else ``log_ns``). Messages are foxglove-sdk's classes
+    (protobuf: ``.encode()``, schema from ``type(m).get_schema()``)."""
+
+    def __init__(self) -> None:
+        self._names: dict[str, tuple[str, ...]] = {}
+
+    def derive(self, topic: str, msg: Msg, log_ns: int) -> list[tuple[str, Any, int]]:
+        """[(topic, foxglove message, its stamp [ns since the epoch])] derived from ``msg``."""
+        if isinstance(msg, SpecMsg):
+            try:
+                self._names[msg.robot] = tuple(msg.spec["state"]["names"])
+            except (KeyError, TypeError):
+                pass  # a spec without state names: no pose for this robot
+            return []
+        if not isinstance(msg, RobotState) or msg.robot not in self._names:
+            return []
+        pose = planar_pose(self._names[msg.robot], msg.state)
+        if pose is None or not all(math.isfinite(v) for v in pose):
+            return []
+        x, y, z, yaw = pose
+        parts = topic.split("/")
+        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+        stamp_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+        ts = fg.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+        pos = fg.Vector3(x=x, y=y, z=z)
+        q = fg.Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+        return [
+            (foxglove_pose_topic(rig, msg.robot),
+             fg.PoseInFrame(timestamp=ts, frame_id=WORLD_FRAME, pose=fg.Pose(position=pos, orientation=q)),
+             stamp_ns),
+            (foxglove_tf_topic(rig),
+             fg.FrameTransform(timestamp=ts, parent_frame_id=WORLD_FRAME, child_frame_id=msg.robot,
+                               translation=pos, rotation=q),
+             stamp_ns),
+        ]
+
+
+class _McapFoxglovePoses:
+    """Writes :class:`FoxglovePoses` messages to an mcap ``Writer`` (protobuf channels)."""
 
     def __init__(self, writer: Writer):
         self._w = writer
-        self._names: dict[str, tuple[str, ...]] = {}
+        self._poses = FoxglovePoses()
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
 
@@ -107,31 +146,10 @@ class _FoxglovePoses:
 
     def on_message(self, topic: str, msg: Msg, log_ns: int) -> int:
         """Write the Foxglove messages derived from ``msg``; returns how many."""
-        if isinstance(msg, SpecMsg):
-            try:
-                self._names[msg.robot] = tuple(msg.spec["state"]["names"])
-            except (KeyError, TypeError):
-                pass  # a spec without state names: no pose for this robot
-            return 0
-        if not isinstance(msg, RobotState) or msg.robot not in self._names:
-            return 0
-        pose = planar_pose(self._names[msg.robot], msg.state)
-        if pose is None or not all(math.isfinite(v) for v in pose):
-            return 0
-        x, y, z, yaw = pose
-        parts = topic.split("/")
-        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
-        stamp_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
-        ts = fg.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
-        pos = fg.Vector3(x=x, y=y, z=z)
-        q = fg.Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
-        pim = fg.PoseInFrame(timestamp=ts, frame_id=WORLD_FRAME, pose=fg.Pose(position=pos, orientation=q))
-        tf = fg.FrameTransform(timestamp=ts, parent_frame_id=WORLD_FRAME, child_frame_id=msg.robot,
-                               translation=pos, rotation=q)
-        for t, cls, m in ((foxglove_pose_topic(rig, msg.robot), fg.PoseInFrame, pim),
-                          (foxglove_tf_topic(rig), fg.FrameTransform, tf)):
-            self._w.add_message(self._channel(t, cls), log_time=log_ns, data=m.encode(), publish_time=stamp_ns)
-        return 2
+        out = self._poses.derive(topic, msg, log_ns)
+        for t, m, stamp_ns in out:
+            self._w.add_message(self._channel(t, type(m)), log_time=log_ns, data=m.encode(), publish_time=stamp_ns)
+        return len(out)
 
 
 class RecordingClosed(RuntimeError):
@@ -175,7 +193,7 @@ class McapLog:
             self._w.add_metadata("hilstack", {k: str(v) for k, v in metadata.items()})
         self._schemas: dict[type[Msg], int] = {}
         self._channels: dict[str, int] = {}
-        self._fox = _FoxglovePoses(self._w) if foxglove else None
+        self._fox = _McapFoxglovePoses(self._w) if foxglove else None
         #: hil messages written (the derived Foxglove messages are not counted)
         self.count = 0
         #: messages written since the last flush (in the open chunk, not on disk yet)

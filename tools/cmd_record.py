@@ -1,4 +1,4 @@
-"""hil record / replay / inspect."""
+"""hil record / replay / inspect / foxglove."""
 
 from __future__ import annotations
 
@@ -30,6 +30,29 @@ def register(app: typer.Typer) -> None:
         finally:
             rec.close()
         typer.echo(f"wrote {n} messages to {out} ({rec.malformed} malformed payloads skipped)", err=True)
+
+    @app.command()
+    @user_errors
+    def foxglove(
+        rig: str = typer.Option(..., "--rig", help="rig name (key prefix hil/<rig>/)"),
+        host: str = typer.Option("127.0.0.1", "--host", help="address to serve on (0.0.0.0: every interface)"),
+        port: int = typer.Option(8765, "--port", help="WebSocket port (Foxglove's default is 8765)"),
+        seconds: float = typer.Option(None, "--seconds", help="stop after this long (default: until Ctrl-C)"),
+        endpoint: str = EndpointOpt,
+    ) -> None:
+        """Live view of a rig in Foxglove (WebSocket server; robots in the 3D panel)."""
+        from tools.foxglove_live import FoxgloveLive
+
+        if not 0 <= port <= 65535:
+            raise UserError(f"--port {port}: expected 0..65535")
+        try:
+            live = FoxgloveLive(rig, bus_config(endpoint), host=host, port=port)
+        except RuntimeError as e:
+            raise UserError(str(e)) from None
+        typer.echo(f"serving hil/{rig}/** to Foxglove at {live.url} "
+                   "(Foxglove: Open connection -> Foxglove WebSocket; Ctrl-C to stop)", err=True)
+        n = live.serve(seconds)
+        typer.echo(f"forwarded {n} messages ({live.malformed} malformed payloads skipped)", err=True)
 
     @app.command()
     @user_errors

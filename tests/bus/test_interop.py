@@ -314,3 +314,91 @@ def test_tlog_errors_are_one_line(tmp_path):
     p = subprocess.run([sys.executable, "-m", "drivers.velociroach.mavlink", "dump", str(tmp_path / "none.tlog")],
                        cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert p.returncode == 2 and p.stderr.strip() == f"error: no such log file: {tmp_path / 'none.tlog'}"
+
+
+# --------------------------------------------------------------------------- live Foxglove
+def test_live_foxglove_websocket_serves_the_rig(bus):
+    """`hil foxglove`'s node: a WebSocket client speaking Foxglove's protocol sees our
+    channels advertised with schemas that pass Foxglove's rules, and receives the rig's
+    states (JSON) and the robot's PoseInFrame (protobuf, decoded from the advertised schema)."""
+    import struct
+
+    from mcap.records import Schema
+    from mcap_protobuf.decoder import DecoderFactory
+    from websockets.sync.client import connect
+
+    from bus.node import Node
+    from bus.schemas import encode
+    from tests.helpers import wait_for
+    from tools.foxglove_live import FoxgloveLive
+
+    live = FoxgloveLive(RIG, bus, port=0, handle_signals=False)
+    pub = Node("pub", RIG, bus, handle_signals=False)
+    state_topic, pose_topic = keys.state(RIG, "bot"), foxglove_pose_topic(RIG, "bot")
+    try:
+        with connect(live.url, subprotocols=["foxglove.sdk.v1"], open_timeout=10) as ws:
+            channels: dict[str, dict] = {}
+            subscribed: dict[int, str] = {}
+            got: dict[str, list[bytes]] = {}
+            i = 0
+
+            def step() -> bool:
+                nonlocal i
+                i += 1
+                if i == 1 or i % 20 == 0:
+                    pub.session.put(keys.spec(RIG, "bot"), encode(SpecMsg(robot="bot", spec=SPEC, seq=i)))
+                st = RobotState(robot="bot", t_s=0.01 * i, state=[1.0, 2.0, 0.0, 1.0, 0.1], seq=i, stamp_s=1000.0 + i)
+                pub.session.put(state_topic, encode(st))
+                live.pump()
+                try:
+                    while True:
+                        frame = ws.recv(timeout=0.02)
+                        if isinstance(frame, str):
+                            op = json.loads(frame)
+                            if op["op"] == "advertise":
+                                for ch in op["channels"]:
+                                    channels[ch["topic"]] = ch
+                                    if ch["topic"] in (state_topic, pose_topic):
+                                        subscribed[ch["id"]] = ch["topic"]
+                                        ws.send(json.dumps({"op": "subscribe",
+                                                            "subscriptions": [{"id": ch["id"], "channelId": ch["id"]}]}))
+                        elif frame[0] == 0x01:  # message data: sub id u32, log time u64, payload
+                            (sub_id,) = struct.unpack_from("<I", frame, 1)
+                            got.setdefault(subscribed[sub_id], []).append(bytes(frame[13:]))
+                except TimeoutError:
+                    pass
+                return state_topic in got and pose_topic in got
+
+            wait_for(step, timeout_s=20.0, what="a state and a pose over the Foxglove WebSocket")
+    finally:
+        pub.close()
+        live.close()
+    ch = channels[state_topic]
+    assert (ch["encoding"], ch["schemaEncoding"], ch["schemaName"]) == ("json", "jsonschema", "hil.RobotState/1")
+    foxglove_parse_json_schema(json.loads(ch["schema"]), ch["schemaName"])
+    state = json.loads(got[state_topic][-1])
+    assert state["robot"] == "bot" and state["state"] == [1.0, 2.0, 0.0, 1.0, 0.1]
+    pch = channels[pose_topic]
+    assert (pch["encoding"], pch["schemaName"]) == ("protobuf", "foxglove.PoseInFrame")
+    schema = Schema(id=1, name=pch["schemaName"], encoding="protobuf", data=base64.b64decode(pch["schema"]))
+    pose = DecoderFactory().decoder_for("protobuf", schema)(got[pose_topic][-1])
+    assert (pose.frame_id, pose.pose.position.x, pose.pose.position.y) == ("world", 1.0, 2.0)
+    assert pose.pose.orientation.z == pytest.approx(math.sin(math.pi / 4))  # yaw 90 deg
+    assert foxglove_tf_topic(RIG) in channels
+
+
+def test_live_foxglove_busy_port_is_a_one_line_error(bus):
+    import socket
+
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = CliRunner().invoke(app, ["foxglove", "--rig", RIG, "--port", str(port), "--seconds", "0.1",
+                                     "--endpoint", bus.endpoint])
+    assert r.exit_code == 2 and f"cannot serve Foxglove on 127.0.0.1:{port}" in r.output
+    assert "Traceback" not in r.output
