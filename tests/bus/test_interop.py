@@ -233,6 +233,16 @@ def test_rerun_loads_the_recording(tmp_path):
     paths = {str(c.entity_path) for c in rr.chunk.McapReader(str(path)).stream().to_chunks()}
     for topic in (keys.state(RIG, "bot"), keys.cmd(RIG, "bot"), keys.plan(RIG), foxglove_pose_topic(RIG, "bot")):
         assert any(topic in p for p in paths), (topic, sorted(paths))
+    # and the viewer's own checker (`rerun mcap check --full`) decodes every channel
+    import os
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-m", "rerun", "mcap", "check", "--full", str(path)], capture_output=True,
+                       text=True, timeout=120, env={**os.environ, "RERUN_ANALYTICS": "off"})
+    assert p.returncode == 0, p.stderr
+    status = {line.split()[-2]: line.split()[0] for line in p.stdout.splitlines() if "/hil/" in line}
+    assert len(status) == 7 and set(status.values()) == {"ok"}, p.stdout
 
 
 def test_nan_state_survives_and_a_bad_message_does_not_end_reading(tmp_path):
