@@ -326,6 +326,53 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
             res.error = f"{type(e).__name__}: {e}"
 
 
+@dataclass
+class RepairResult:
+    messages: int
+    channels: int
+    #: the source had no valid end (crash): everything up to the damage was copied
+    truncated: bool
+    error: str | None = None
+
+
+def repair(src: str | Path, dst: str | Path) -> RepairResult:
+    """Copy a recording, crashed or not, into a finished MCAP file (summary, indexes).
+
+    Tools that need the summary (rerun, ``mcap.reader.make_reader``) refuse a file cut
+    by a crash. Every schema, channel, message and metadata record up to the damage is
+    copied byte for byte (also the Foxglove channels), through the ``mcap`` package."""
+    src, dst = Path(src), Path(dst)
+    if src.resolve() == dst.resolve():
+        raise ValueError(f"repair: {dst} is the source; write the repaired copy to another file")
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    n = 0
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    truncated, error = False, None
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        w = Writer(out, compression=CompressionType.ZSTD)
+        w.start(profile="", library="hilstack repair")
+        try:
+            for rec in StreamReader(f, skip_magic=False).records:
+                kind = type(rec).__name__
+                if kind == "Schema" and rec.id not in schema_ids:
+                    schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+                elif kind == "Channel" and rec.id not in channel_ids:
+                    channel_ids[rec.id] = w.register_channel(
+                        rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), rec.metadata
+                    )
+                elif kind == "Message" and rec.channel_id in channel_ids:
+                    w.add_message(channel_ids[rec.channel_id], rec.log_time, rec.data,
+                                  rec.publish_time, rec.sequence)
+                    n += 1
+                elif kind == "Metadata":
+                    w.add_metadata(rec.name, rec.metadata)
+        except (McapError, EOFError, ValueError, KeyError, OSError) as e:
+            truncated, error = True, f"{type(e).__name__}: {e}"
+        w.finish()
+    return RepairResult(messages=n, channels=len(channel_ids), truncated=truncated, error=error)
+
+
 def read_messages(path: str | Path) -> ReadResult:
     res = ReadResult()
     res.messages = list(iter_messages(path, res))

@@ -72,6 +72,21 @@ def register(app: typer.Typer) -> None:
 
     @app.command()
     @user_errors
+    def repair(
+        path: Path = typer.Argument(..., exists=True, dir_okay=False, help="MCAP recording, e.g. cut by a crash"),
+        out: Path = typer.Option(..., "--out", help="the repaired copy (a new file)"),
+    ) -> None:
+        """Copy a crashed recording into a finished MCAP file that every tool opens."""
+        from bus.recording import repair as do_repair
+
+        if out.exists() and out.resolve() == path.resolve():
+            raise UserError(f"--out {out} is the recording itself; write the repaired copy to another file")
+        r = do_repair(path, out)
+        cut = f"; the source was cut ({r.error}): everything before the damage was kept" if r.truncated else ""
+        typer.echo(f"wrote {r.messages} messages on {r.channels} channels to {out}{cut}", err=True)
+
+    @app.command()
+    @user_errors
     def inspect(
         path: Path = typer.Argument(..., exists=True, dir_okay=False, help="MCAP recording"),
         json_out: bool = typer.Option(False, "--json", help="one JSON object on stdout"),

@@ -304,3 +304,34 @@ def test_close_from_another_thread_ends_record_cleanly(tmp_path, bus):
     assert not th.is_alive() and errors == []
     back = read_messages(path)
     assert not back.truncated and [r.msg.seq for r in back.messages] == list(range(1, 201))
+
+
+def test_repair_turns_a_crashed_file_into_a_finished_one(tmp_path):
+    """rerun and the indexed mcap reader refuse a file without its end; `hil repair` copies
+    everything up to the damage into a finished file."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    crashed = tmp_path / "crashed.mcap"
+    log = McapLog(crashed)
+    msgs = _sample_messages()
+    for t, m in msgs:
+        log.write(t, m)
+    log.flush()  # on disk, like a SIGKILL right after a periodic flush: no summary, no end magic
+    with open(crashed, "rb") as f, pytest.raises(McapError):
+        make_reader(f).get_summary()
+    fixed = tmp_path / "fixed.mcap"
+    r = CliRunner().invoke(app, ["repair", str(crashed), "--out", str(fixed)])
+    assert r.exit_code == 0, r.output
+    assert f"wrote {len(msgs)} messages on 4 channels" in r.output and "the source was cut" in r.output
+    with open(fixed, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary.statistics.message_count == len(msgs)
+    back = read_messages(fixed)
+    assert not back.truncated and [(x.topic, x.msg) for x in back.messages] == msgs
+    log.close()
+    r = CliRunner().invoke(app, ["repair", str(crashed), "--out", str(crashed)])
+    assert r.exit_code == 2 and "is the recording itself" in r.output
