@@ -156,8 +156,8 @@ class RecordingClosed(RuntimeError):
     """A write to a recording that is already closed (the message is not in the file)."""
 
 
-#: default bound on what a crash can lose: buffered messages are written out (chunk
-#: closed, file flushed and fsync'ed) once the oldest of them is this old [s]
+#: default bound on what a crash can lose: waiting messages are written out (chunk
+#: closed, file flushed and fsync'ed) at most this long after the previous flush [s]
 FLUSH_PERIOD_S = 0.5
 
 
