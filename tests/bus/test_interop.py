@@ -222,6 +222,15 @@ def test_our_readers_ignore_the_foxglove_channels(tmp_path, bus):
     eps = episodes_from_mcap(path)
     assert len(eps) == 1 and eps[0].states.shape == (20, 5)
     assert replay(path, bus, speed=0) == len(msgs)
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    r = CliRunner().invoke(app, ["inspect", str(path)])
+    assert r.exit_code == 0, r.output
+    assert f"{len(msgs)} messages" in r.output
+    derived = [line for line in r.output.splitlines() if "(derived, not replayed)" in line]
+    assert len(derived) == 2 and any("foxglove.PoseInFrame" in line and " 20 " in line for line in derived)
 
 
 def test_rerun_loads_the_recording(tmp_path):
