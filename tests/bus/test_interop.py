@@ -421,3 +421,14 @@ def test_live_foxglove_busy_port_is_a_one_line_error(bus):
                                      "--endpoint", bus.endpoint])
     assert r.exit_code == 2 and f"cannot serve Foxglove on 127.0.0.1:{port}" in r.output
     assert "Traceback" not in r.output
+
+
+def test_recordings_made_before_the_row_format_still_read(tmp_path):
+    """Files written before this change hold Plan.actions as plain nested lists."""
+    path = tmp_path / "old.mcap"
+    plan = Plan(robot="bot", actions=[[0.1, 0.2], [0.3, 0.4]], states=[[1.0], [2.0], [3.0]], seq=7)
+    with McapLog(path) as log:
+        cid = log._channel(keys.plan(RIG), Plan)
+        log._w.add_message(cid, log_time=1, data=msgspec.json.encode(plan), publish_time=1)
+    back = read_messages(path)
+    assert [r.msg for r in back.messages] == [plan] and back.undecodable == 0
