@@ -1,75 +1,210 @@
 """MCAP recording, replay and inspection of everything a rig says.
 
 One file per session; one channel per key expression; one schema per message type
-(JSON Schema generated from the msgspec definition), messages JSON-encoded so any
-MCAP tool (the ``mcap`` reader, Foxglove, rerun's MCAP importer) decodes them.
-Chunks are small and the file is flushed after each one, so a crash loses at most
-the last chunk; :func:`read_messages` reads a truncated file up to the damage.
+(JSON Schema generated from the msgspec definition, in the subset Foxglove parses),
+messages JSON-encoded so any MCAP tool (the ``mcap`` reader, Foxglove, rerun's MCAP
+importer) decodes them. Robot poses are also written on Foxglove's well-known
+``PoseInFrame``/``FrameTransform`` schemas (derived channels, not replayed).
+Chunks are closed, flushed and fsync'ed by time (every ``FLUSH_PERIOD_S``), so a crash
+loses at most that much data; :func:`read_messages` reads a truncated file up to the
+damage.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import os
 import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
-import msgspec
+import foxglove.messages as fg
 from mcap.exceptions import McapError
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from bus import keys
 from bus.node import Node
-from bus.schemas import ALL_TYPES, AnyMsg, MalformedMessage, Msg, decode, encode, json_schema, type_name
+from bus.schemas import (
+    ALL_TYPES,
+    AnyMsg,
+    MalformedMessage,
+    Msg,
+    RobotState,
+    SpecMsg,
+    decode,
+    decode_json,
+    encode,
+    encode_json,
+    json_schema,
+    type_name,
+)
 from configs.schema import BusConfig
 
 _BY_TAG: dict[str, type[Msg]] = {type_name(t): t for t in ALL_TYPES}
-_json_enc = msgspec.json.Encoder()
+
+#: parent frame of every robot pose in the Foxglove channels
+WORLD_FRAME = "world"
 
 
-class _FlushingFile:
-    """File wrapper that flushes after every write of a chunk-sized block."""
+def foxglove_pose_topic(rig: str, robot: str) -> str:
+    """Channel of a robot's ``foxglove.PoseInFrame`` (beside ``hil/<rig>/<robot>/state``)."""
+    return f"{keys.root(rig)}/foxglove/{robot}/pose"
 
-    def __init__(self, f: IO[bytes], flush_over: int):
-        self._f = f
-        self._flush_over = flush_over
 
-    def write(self, b: bytes) -> int:
-        n = self._f.write(b)
-        if len(b) >= self._flush_over:
-            self._f.flush()
-        return n
+def foxglove_tf_topic(rig: str) -> str:
+    """Channel of the ``foxglove.FrameTransform`` world -> robot of every robot of the rig."""
+    return f"{keys.root(rig)}/foxglove/tf"
 
-    def tell(self) -> int:
-        return self._f.tell()
 
-    def flush(self) -> None:
-        self._f.flush()
+def planar_pose(names: tuple[str, ...] | list[str], state: list[float]) -> tuple[float, float, float, float] | None:
+    """(x, y, z [m], yaw [rad]) from a state vector with channels named ``x``, ``y``
+    (optionally ``z``) and ``yaw`` or ``cos_yaw``/``sin_yaw``; None if it has no x/y."""
+    idx = {n: i for i, n in enumerate(names)}
+    if "x" not in idx or "y" not in idx or max(idx["x"], idx["y"]) >= len(state):
+        return None
+
+    def get(n: str, default: float = 0.0) -> float:
+        i = idx.get(n)
+        return float(state[i]) if i is not None and i < len(state) else default
+
+    if "yaw" in idx:
+        yaw = get("yaw")
+    elif "cos_yaw" in idx and "sin_yaw" in idx:
+        yaw = math.atan2(get("sin_yaw"), get("cos_yaw"))
+    else:
+        yaw = 0.0
+    return get("x"), get("y"), get("z"), yaw
+
+
+class FoxglovePoses:
+    """Robot poses on Foxglove's well-known schemas, so its 3D panel shows the robots.
+
+    Feed every message to :meth:`derive`: it remembers each robot's state names from its
+    ``SpecMsg``, and for a ``RobotState`` of a robot whose names include x/y(/yaw) it
+    returns a ``foxglove.PoseInFrame`` in ``world`` (on :func:`foxglove_pose_topic`) and a
+    ``foxglove.FrameTransform`` world -> <robot> (on :func:`foxglove_tf_topic`), stamped
+    with the state's ``stamp_s`` (else ``log_ns``). Messages are foxglove-sdk's classes
+    (protobuf: ``.encode()``, schema from ``type(m).get_schema()``)."""
+
+    def __init__(self) -> None:
+        self._names: dict[str, tuple[str, ...]] = {}
+
+    def derive(self, topic: str, msg: Msg, log_ns: int) -> list[tuple[str, Any, int]]:
+        """[(topic, foxglove message, its stamp [ns since the epoch])] derived from ``msg``."""
+        if isinstance(msg, SpecMsg):
+            try:
+                self._names[msg.robot] = tuple(msg.spec["state"]["names"])
+            except (KeyError, TypeError):
+                pass  # a spec without state names: no pose for this robot
+            return []
+        if not isinstance(msg, RobotState) or msg.robot not in self._names:
+            return []
+        pose = planar_pose(self._names[msg.robot], msg.state)
+        if pose is None or not all(math.isfinite(v) for v in pose):
+            return []
+        x, y, z, yaw = pose
+        parts = topic.split("/")
+        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+        stamp_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+        ts = fg.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+        pos = fg.Vector3(x=x, y=y, z=z)
+        q = fg.Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+        return [
+            (foxglove_pose_topic(rig, msg.robot),
+             fg.PoseInFrame(timestamp=ts, frame_id=WORLD_FRAME, pose=fg.Pose(position=pos, orientation=q)),
+             stamp_ns),
+            (foxglove_tf_topic(rig),
+             fg.FrameTransform(timestamp=ts, parent_frame_id=WORLD_FRAME, child_frame_id=msg.robot,
+                               translation=pos, rotation=q),
+             stamp_ns),
+        ]
+
+
+class _McapFoxglovePoses:
+    """Writes :class:`FoxglovePoses` messages to an mcap ``Writer`` (protobuf channels)."""
+
+    def __init__(self, writer: Writer):
+        self._w = writer
+        self._poses = FoxglovePoses()
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+
+    def _channel(self, topic: str, cls: Any) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            sch = cls.get_schema()
+            sid = self._schemas.get(sch.name)
+            if sid is None:
+                sid = self._schemas[sch.name] = self._w.register_schema(sch.name, sch.encoding, bytes(sch.data))
+            cid = self._channels[topic] = self._w.register_channel(topic, "protobuf", sid)
+        return cid
+
+    def on_message(self, topic: str, msg: Msg, log_ns: int) -> int:
+        """Write the Foxglove messages derived from ``msg``; returns how many."""
+        out = self._poses.derive(topic, msg, log_ns)
+        for t, m, stamp_ns in out:
+            self._w.add_message(self._channel(t, type(m)), log_time=log_ns, data=m.encode(), publish_time=stamp_ns)
+        return len(out)
+
+
+class RecordingClosed(RuntimeError):
+    """A write to a recording that is already closed (the message is not in the file)."""
+
+
+#: default bound on what a crash can lose: waiting messages are written out (chunk
+#: closed, file flushed and fsync'ed) at most this long after the previous flush [s]
+FLUSH_PERIOD_S = 0.5
 
 
 class McapLog:
-    """Write typed messages to an MCAP file (thread-compatible: one writer thread)."""
+    """Write typed messages to an MCAP file (thread-compatible: one writer thread).
 
-    def __init__(self, path: str | Path, chunk_size: int = 64 * 1024, metadata: dict[str, str] | None = None):
+    Durability is bounded by time, not by size: the mcap ``Writer`` keeps messages in
+    an open chunk until ``chunk_size`` bytes; :meth:`flush_if_due` (called by every
+    :meth:`write`, and by the recorder's loop when nothing arrives) closes the chunk,
+    flushes and fsyncs the file once ``flush_period_s`` passed since the last flush.
+    A crash (SIGKILL, power loss) therefore loses at most the messages written during
+    the last ``flush_period_s`` plus the caller's polling delay; readers recover
+    everything before the damage (:func:`read_messages`).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        chunk_size: int = 64 * 1024,
+        metadata: dict[str, str] | None = None,
+        flush_period_s: float = FLUSH_PERIOD_S,
+        foxglove: bool = True,
+    ):
+        if not flush_period_s > 0:
+            raise ValueError(f"flush_period_s must be > 0, got {flush_period_s}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.flush_period_s = flush_period_s
         self._f = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._w = Writer(
-            _FlushingFile(self._f, flush_over=min(chunk_size // 2, 4096)),
-            chunk_size=chunk_size,
-            compression=CompressionType.ZSTD,
-        )
+        self._w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self._w.start(profile="", library="hilstack")
         if metadata:
             self._w.add_metadata("hilstack", {k: str(v) for k, v in metadata.items()})
         self._schemas: dict[type[Msg], int] = {}
         self._channels: dict[str, int] = {}
+        self._fox = _McapFoxglovePoses(self._w) if foxglove else None
+        #: hil messages written (the derived Foxglove messages are not counted)
         self.count = 0
+        #: messages written since the last flush (in the open chunk, not on disk yet)
+        self.pending = 0
+        self._last_flush_s = time.monotonic()
         self._closed = False
+        self.flush()  # header and metadata on disk before the first message
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
 
     def _channel(self, topic: str, typ: type[Msg]) -> int:
         cid = self._channels.get(topic)
@@ -85,18 +220,49 @@ class McapLog:
         return cid
 
     def write(self, topic: str, msg: Msg, log_time_ns: int | None = None) -> None:
+        """Append one message (``log_time_ns``: receive time, ns since the epoch; default now).
+
+        Raises :class:`RecordingClosed` after :meth:`close`: nothing is written then."""
+        if self._closed:
+            raise RecordingClosed(f"{self.path} is closed: {type_name(type(msg))} on {topic} not recorded")
         cid = self._channel(topic, type(msg))
         log_ns = time.time_ns() if log_time_ns is None else log_time_ns
         pub_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
-        self._w.add_message(cid, log_time=log_ns, data=_json_enc.encode(msg), publish_time=pub_ns, sequence=msg.seq)
+        self._w.add_message(cid, log_time=log_ns, data=encode_json(msg), publish_time=pub_ns, sequence=msg.seq)
         self.count += 1
+        self.pending += 1
+        if self._fox is not None:
+            self.pending += self._fox.on_message(topic, msg, log_ns)
+        self.flush_if_due()
+
+    def flush_if_due(self) -> bool:
+        """Flush (see :meth:`flush`) if ``flush_period_s`` passed since the last one and
+        messages are pending; returns whether it flushed."""
+        if self._closed or self.pending == 0 or time.monotonic() - self._last_flush_s < self.flush_period_s:
+            return False
+        self.flush()
+        return True
+
+    def flush(self) -> None:
+        """Close the open chunk, write it out and fsync: everything written so far survives a crash."""
+        if self._closed:
+            raise RecordingClosed(f"{self.path} is closed: nothing to flush")
+        self._w.flush()
+        # page cache survives a killed process; fsync makes it survive a power cut too
+        os.fsync(self._f.fileno())
+        self.pending = 0
+        self._last_flush_s = time.monotonic()
 
     def close(self) -> None:
         if self._closed:
             return
         self._closed = True
-        self._w.finish()
-        self._f.close()
+        try:
+            self._w.finish()
+            self._f.flush()
+            os.fsync(self._f.fileno())
+        finally:
+            self._f.close()
 
     def __enter__(self) -> McapLog:
         return self
@@ -118,10 +284,19 @@ class ReadResult:
     messages: list[RecordedMessage] = field(default_factory=list)
     truncated: bool = False
     error: str | None = None
+    #: messages of hil types that did not decode (skipped, reading went on)
+    undecodable: int = 0
+    #: first such decode error, "topic: why"
+    undecodable_error: str | None = None
+    #: channels of other schemas (the Foxglove poses...): topic -> {"schema", "count"}
+    foreign: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterator[RecordedMessage]:
-    """Stream messages in file order; stops quietly at a truncated tail (sets ``result.truncated``)."""
+    """Stream our messages in file order; stops quietly at a truncated tail (sets
+    ``result.truncated``). A single undecodable message is skipped and counted
+    (``result.undecodable``); channels of other schemas are counted in ``result.foreign``."""
+    res = result if result is not None else ReadResult()
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, int]] = {}
     with open(path, "rb") as f:
@@ -136,14 +311,66 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
                     topic, sid = channels[rec.channel_id]
                     typ = _BY_TAG.get(schemas.get(sid, ""))
                     if typ is None:
+                        other = res.foreign.setdefault(topic, {"schema": schemas.get(sid, ""), "count": 0})
+                        other["count"] += 1
                         continue
-                    yield RecordedMessage(
-                        topic, rec.log_time, rec.publish_time, msgspec.json.decode(rec.data, type=typ)
-                    )
+                    try:
+                        msg = decode_json(rec.data, typ)
+                    except MalformedMessage as e:
+                        res.undecodable += 1
+                        res.undecodable_error = res.undecodable_error or f"{topic}: {e}"
+                        continue
+                    yield RecordedMessage(topic, rec.log_time, rec.publish_time, msg)
         except (McapError, EOFError, ValueError, KeyError, OSError) as e:
-            if result is not None:
-                result.truncated = True
-                result.error = f"{type(e).__name__}: {e}"
+            res.truncated = True
+            res.error = f"{type(e).__name__}: {e}"
+
+
+@dataclass
+class RepairResult:
+    messages: int
+    channels: int
+    #: the source had no valid end (crash): everything up to the damage was copied
+    truncated: bool
+    error: str | None = None
+
+
+def repair(src: str | Path, dst: str | Path) -> RepairResult:
+    """Copy a recording, crashed or not, into a finished MCAP file (summary, indexes).
+
+    Tools that need the summary (rerun, ``mcap.reader.make_reader``) refuse a file cut
+    by a crash. Every schema, channel, message and metadata record up to the damage is
+    copied byte for byte (also the Foxglove channels), through the ``mcap`` package."""
+    src, dst = Path(src), Path(dst)
+    if src.resolve() == dst.resolve():
+        raise ValueError(f"repair: {dst} is the source; write the repaired copy to another file")
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    n = 0
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    truncated, error = False, None
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        w = Writer(out, compression=CompressionType.ZSTD)
+        w.start(profile="", library="hilstack repair")
+        try:
+            for rec in StreamReader(f, skip_magic=False).records:
+                kind = type(rec).__name__
+                if kind == "Schema" and rec.id not in schema_ids:
+                    schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+                elif kind == "Channel" and rec.id not in channel_ids:
+                    channel_ids[rec.id] = w.register_channel(
+                        rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), rec.metadata
+                    )
+                elif kind == "Message" and rec.channel_id in channel_ids:
+                    w.add_message(channel_ids[rec.channel_id], rec.log_time, rec.data,
+                                  rec.publish_time, rec.sequence)
+                    n += 1
+                elif kind == "Metadata":
+                    w.add_metadata(rec.name, rec.metadata)
+        except (McapError, EOFError, ValueError, KeyError, OSError) as e:
+            truncated, error = True, f"{type(e).__name__}: {e}"
+        w.finish()
+    return RepairResult(messages=n, channels=len(channel_ids), truncated=truncated, error=error)
 
 
 def read_messages(path: str | Path) -> ReadResult:
@@ -153,11 +380,29 @@ def read_messages(path: str | Path) -> ReadResult:
 
 
 class Recorder(Node):
-    """Records every message under ``hil/<rig>/**`` to one MCAP file."""
+    """Records every message under ``hil/<rig>/**`` to one MCAP file.
 
-    def __init__(self, rig: str, path: str | Path, bus: BusConfig | None = None, **kw: Any):
+    Use :meth:`record` (blocks until a signal, ``stop_event`` or ``seconds``) or call
+    :meth:`pump` yourself; :meth:`close` writes what is still queued, finishes the file
+    and stops listening. Nothing is written after that (``pump`` then raises
+    :class:`RecordingClosed`). A crash loses at most ``flush_period_s`` of messages
+    plus one polling period (see :class:`McapLog`).
+    """
+
+    def __init__(
+        self,
+        rig: str,
+        path: str | Path,
+        bus: BusConfig | None = None,
+        flush_period_s: float = FLUSH_PERIOD_S,
+        **kw: Any,
+    ):
         super().__init__("recorder", rig, bus, **kw)
-        self.log = McapLog(path, metadata={"rig": rig, "started": time.strftime("%Y-%m-%dT%H:%M:%S")})
+        self.log = McapLog(
+            path,
+            metadata={"rig": rig, "started": time.strftime("%Y-%m-%dT%H:%M:%S")},
+            flush_period_s=flush_period_s,
+        )
         self._sub = self.subscribe(keys.all_of(rig), AnyMsg, latest=False, capacity=1 << 16)
         self.malformed = 0
         self._lock = threading.Lock()
@@ -166,6 +411,8 @@ class Recorder(Node):
         """Move everything queued into the file; returns how many were written."""
         n = 0
         with self._lock:
+            if self.log.closed:
+                raise RecordingClosed(f"recorder of {self.rig} is closed: {self.log.path} is finished")
             for key, payload in self._sub.drain():
                 try:
                     msg = decode(payload, AnyMsg)
@@ -174,23 +421,33 @@ class Recorder(Node):
                     continue
                 self.log.write(key, msg)
                 n += 1
+            # a quiet bus still gets the last messages onto disk in time
+            self.log.flush_if_due()
         return n
 
     def record(self, seconds: float | None = None, poll_s: float = 0.01) -> int:
-        """Record until stopped (signal) or ``seconds`` pass; always closes the file."""
+        """Record until stopped (signal, ``stop_event``) or ``seconds`` pass; always
+        finishes the file (:meth:`close`). Returns the number of messages written."""
         t_end = None if seconds is None else time.monotonic() + seconds
         try:
             while not self.stop_event.is_set() and (t_end is None or time.monotonic() < t_end):
-                self.pump()
+                try:
+                    self.pump()
+                except RecordingClosed:
+                    break  # close() from another thread: it wrote the rest
                 self.stop_event.wait(poll_s)
-            self.pump()
         finally:
-            self.log.close()
+            self.close()
         return self.log.count
 
     def close(self) -> None:
+        """Stop listening, write what is still queued, finish the file; idempotent."""
+        with self._lock:
+            if self.log.closed:
+                super().close()
+                return
         try:
-            self.pump()
+            self.pump()  # what arrived before close() is recorded; what comes later is not
         finally:
             self.log.close()
             super().close()
@@ -273,5 +530,9 @@ def summarize(path: str | Path, gap_factor: float = 3.0) -> dict[str, Any]:
         "duration_s": (max(t_all) - min(t_all)) / 1e9 if t_all else 0.0,
         "truncated": res.truncated,
         "error": res.error,
+        "undecodable": res.undecodable,
+        "undecodable_error": res.undecodable_error,
         "channels": chans,
+        # derived channels of other schemas (Foxglove poses): not replayed, not in "messages"
+        "other_channels": dict(sorted(res.foreign.items())),
     }

@@ -8,6 +8,7 @@ the version in the tag.
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any, TypeVar
 
@@ -136,8 +137,148 @@ def type_name(typ: type[Msg]) -> str:
     return typ.__struct_config__.tag
 
 
+# --------------------------------------------------------------------------- JSON (MCAP)
+# Recordings store messages as JSON with a JSON Schema per type. The schema is written
+# in the subset Foxglove's JSON-schema parser accepts (studio
+# packages/mcap-support/src/parseJsonSchema.ts): a root {"type": "object",
+# "properties": ...}, a "type" on every field (an enum gets the type of its values),
+# "properties" on every object (free-form dicts get an empty one) and no array directly
+# inside an array. Such a nested array (Plan.actions [H][A]) is recorded as an array of
+# row objects {"values": [...]}; the schema drives both the wrapping and the unwrapping.
+
+#: a row of a list-of-lists field, as recorded: {"values": [...]}
+ROW_KEY = "values"
+_ROW_MARK = "x-hil-row"
+_JSON_TYPE_OF = {str: "string", bool: "boolean", int: "integer", float: "number"}
+_SCALARS = {"string", "number", "integer", "boolean"}
+
+
+class _Codec:
+    """The recorded JSON form of one message type: its schema and (de)serialisation."""
+
+    def __init__(self, typ: type[Msg]):
+        self.typ = typ
+        self.schema = _foxglove_schema(msgspec.json.schema(typ), type_name(typ))
+        # messages without nested arrays encode directly (the fast, common path)
+        self.wraps = _has_rows(self.schema)
+
+    def encode(self, msg: Msg) -> bytes:
+        if not self.wraps:
+            return _json_encoder.encode(msg)
+        return _json_encoder.encode(_wrap_rows(msgspec.to_builtins(msg), self.schema))
+
+    def decode(self, data: bytes) -> Msg:
+        if not self.wraps:
+            try:
+                return msgspec.json.decode(data, type=self.typ)
+            except msgspec.ValidationError:
+                pass  # e.g. a NaN recorded as null: restore below
+        try:
+            obj = msgspec.json.decode(data)
+            return msgspec.convert(_restore(obj, self.schema), self.typ)
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            raise MalformedMessage(f"not a valid recorded {type_name(self.typ)}: {e}") from None
+
+
+def _foxglove_schema(node: dict[str, Any], where: str, defs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """msgspec's JSON Schema rewritten into the subset Foxglove parses (see above)."""
+    if defs is None:
+        defs = node.get("$defs", {})
+    if "$ref" in node:
+        target = defs[node["$ref"].rsplit("/", 1)[-1]]
+        node = {**target, **{k: v for k, v in node.items() if k not in ("$ref", "$defs")}}
+    out = {k: v for k, v in node.items() if k in ("title", "description", "required", "default", "contentEncoding")}
+    typ = node.get("type")
+    if "enum" in node:
+        kinds = {_JSON_TYPE_OF.get(type(v)) for v in node["enum"]}
+        if len(kinds) != 1 or None in kinds:
+            raise ValueError(f"{where}: enum {node['enum']} mixes types; Foxglove needs one")
+        typ = kinds.pop()
+        out["enum"] = node["enum"]
+    if typ in _SCALARS:
+        out["type"] = typ
+    elif typ == "object":
+        props = node.get("properties", {})
+        out["type"] = "object"
+        out["properties"] = {k: _foxglove_schema(v, f"{where}.{k}", defs) for k, v in props.items()}
+        extra = node.get("additionalProperties")
+        if isinstance(extra, dict) and extra.get("type") in _SCALARS:
+            out["additionalProperties"] = {"type": extra["type"]}
+    elif typ == "array":
+        items = _foxglove_schema(node.get("items", {}), f"{where}[]", defs)
+        if items.get("type") == "array":
+            items = {"type": "object", _ROW_MARK: True, "properties": {ROW_KEY: items}, "required": [ROW_KEY]}
+        out["type"] = "array"
+        out["items"] = items
+    else:
+        raise ValueError(f"{where}: JSON Schema {node} has no single type; Foxglove cannot parse it")
+    return out
+
+
+def _has_rows(schema: dict[str, Any]) -> bool:
+    if schema.get(_ROW_MARK):
+        return True
+    return any(_has_rows(v) for v in schema.get("properties", {}).values()) or (
+        "items" in schema and _has_rows(schema["items"])
+    )
+
+
+def _wrap_rows(obj: Any, schema: dict[str, Any]) -> Any:
+    t = schema.get("type")
+    if t == "object" and isinstance(obj, dict):
+        props = schema["properties"]
+        return {k: _wrap_rows(v, props[k]) if k in props else v for k, v in obj.items()}
+    if t == "array" and isinstance(obj, list):
+        items = schema["items"]
+        if items.get(_ROW_MARK):
+            inner = items["properties"][ROW_KEY]
+            return [{ROW_KEY: _wrap_rows(row, inner)} for row in obj]
+        return [_wrap_rows(v, items) for v in obj]
+    return obj
+
+
+def _restore(obj: Any, schema: dict[str, Any]) -> Any:
+    """Undo :func:`_wrap_rows` (plain nested lists of older files pass through) and turn
+    the ``null`` that JSON makes of NaN/inf back into NaN where a number is expected."""
+    t = schema.get("type")
+    if t == "number" and obj is None:
+        return math.nan
+    if t == "object" and isinstance(obj, dict):
+        props = schema["properties"]
+        return {k: _restore(v, props[k]) if k in props else v for k, v in obj.items()}
+    if t == "array" and isinstance(obj, list):
+        items = schema["items"]
+        if items.get(_ROW_MARK):
+            inner = items["properties"][ROW_KEY]
+            return [_restore(row[ROW_KEY] if isinstance(row, dict) else row, inner) for row in obj]
+        return [_restore(v, items) for v in obj]
+    return obj
+
+
+_json_encoder = msgspec.json.Encoder()
+_codecs: dict[type[Msg], _Codec] = {}
+
+
+def _codec(typ: type[Msg]) -> _Codec:
+    c = _codecs.get(typ)
+    if c is None:
+        c = _codecs[typ] = _Codec(typ)
+    return c
+
+
 def json_schema(typ: type[Msg]) -> dict[str, Any]:
-    return msgspec.json.schema(typ)
+    """JSON Schema of ``typ`` as recorded in MCAP (jsonschema encoding, Foxglove-parsable)."""
+    return _codec(typ).schema
+
+
+def encode_json(msg: Msg) -> bytes:
+    """The recorded JSON form of ``msg`` (matches :func:`json_schema`)."""
+    return _codec(type(msg)).encode(msg)
+
+
+def decode_json(data: bytes, typ: type[T]) -> T:
+    """Inverse of :func:`encode_json`; raises :class:`MalformedMessage` on bad data."""
+    return _codec(typ).decode(data)  # type: ignore[return-value]
 
 
 def now_s() -> float:

@@ -2,6 +2,7 @@
 
     hil drive velociroach --backend emulated --action 0.6,0.6 --seconds 3 --json
     hil drive velociroach --backend real --port /dev/ttyUSB0 --action 0.3,0.3 --seconds 2
+    hil drive velociroach --backend emulated --action 0.5,0.5 --tlog runs/roach.tlog
     hil drive pointmass --backend sim --action 0.5,0 --seconds 2
     hil find-port
 
@@ -77,8 +78,11 @@ def _pose(names: tuple[str, ...], s: Any) -> dict[str, float | None]:
 
 
 def drive_run(robot: str, backend: str, action: str, seconds: float, port: str | None = None,
-              config: str | None = None) -> dict[str, Any]:
-    """Drive open loop; returns the summary printed by `hil drive --json`."""
+              config: str | None = None, tlog: str | None = None) -> dict[str, Any]:
+    """Drive open loop; returns the summary printed by `hil drive --json`.
+
+    ``tlog``: append every MAVLink frame of the radio link to this file (real and
+    emulated backends of a MAVLink robot; the sim backend has no link)."""
     import numpy as np
 
     from drivers.registry import make_driver
@@ -88,6 +92,11 @@ def drive_run(robot: str, backend: str, action: str, seconds: float, port: str |
     params: dict[str, Any] = {}
     if port:
         params["port"] = port
+    if tlog:
+        if backend == "sim":
+            raise UserError(f"--tlog {tlog}: the sim backend has no radio link to log; "
+                            "use --backend emulated or real")
+        params["tlog"] = str(tlog)
     drv = make_driver(config or robot, backend=backend, **params)
     sp = drv.spec
     a_norm = np.array(parse_action(action, sp.action.dim, sp.action.names))
@@ -123,6 +132,8 @@ def drive_run(robot: str, backend: str, action: str, seconds: float, port: str |
     out["start_pose"] = start
     out["final_pose"] = end
     out["link"] = health
+    if tlog:
+        out["tlog"] = str(tlog)
     return out
 
 
@@ -135,12 +146,14 @@ def register(app: typer.Typer) -> None:
         action: str = typer.Option(..., "--action", help="normalized action per channel in [-1, 1], e.g. 0.6,0.6"),
         seconds: float = typer.Option(3.0, "--seconds", help="how long to drive [s] (sim: simulated seconds)"),
         port: str = typer.Option(None, "--port", help="serial port of the radio (real backend), e.g. /dev/ttyUSB0"),
+        tlog: str = typer.Option(None, "--tlog", help="append every MAVLink frame to this .tlog "
+                                 "(emulated/real backends; read it with `python -m drivers.velociroach.mavlink dump`)"),
         json_out: bool = typer.Option(False, "--json", help="print one JSON line"),
     ) -> None:
         """Drive a robot open loop and report distance, final pose and link statistics."""
         if backend not in ("sim", "emulated", "real"):
             raise UserError(f"--backend {backend!r}: expected sim, emulated or real")
-        res = drive_run(robot, backend, action, seconds, port=port)
+        res = drive_run(robot, backend, action, seconds, port=port, tlog=tlog)
         if json_out:
             echo_json(res)
             return
@@ -156,6 +169,8 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"  link ok={lk['ok']} quality={lk['link_quality']:.2f} sent={lk['frames_sent']} "
                    f"received={lk['frames_received']} corrupt={lk['corrupt_frames']} "
                    f"dropped={lk['dropped_frames']} latency={lat}")
+        if tlog:
+            typer.echo(f"  MAVLink log: {tlog}")
 
     @app.command("find-port")
     @_errors

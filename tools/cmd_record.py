@@ -1,4 +1,4 @@
-"""hil record / replay / inspect."""
+"""hil record / replay / inspect / foxglove."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
         seconds: float = typer.Option(None, "--seconds", help="stop after this long (default: until Ctrl-C)"),
         endpoint: str = EndpointOpt,
     ) -> None:
-        """Record every message of a rig to one MCAP file (crash-safe chunks)."""
+        """Record every message of a rig to one MCAP file (a crash loses at most the last 0.5 s)."""
         from bus.recording import Recorder
 
         out = out or Path("recordings") / f"{rig}-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
@@ -30,6 +30,29 @@ def register(app: typer.Typer) -> None:
         finally:
             rec.close()
         typer.echo(f"wrote {n} messages to {out} ({rec.malformed} malformed payloads skipped)", err=True)
+
+    @app.command()
+    @user_errors
+    def foxglove(
+        rig: str = typer.Option(..., "--rig", help="rig name (key prefix hil/<rig>/)"),
+        host: str = typer.Option("127.0.0.1", "--host", help="address to serve on (0.0.0.0: every interface)"),
+        port: int = typer.Option(8765, "--port", help="WebSocket port (Foxglove's default is 8765)"),
+        seconds: float = typer.Option(None, "--seconds", help="stop after this long (default: until Ctrl-C)"),
+        endpoint: str = EndpointOpt,
+    ) -> None:
+        """Live view of a rig in Foxglove (WebSocket server; robots in the 3D panel)."""
+        from tools.foxglove_live import FoxgloveLive
+
+        if not 0 <= port <= 65535:
+            raise UserError(f"--port {port}: expected 0..65535")
+        try:
+            live = FoxgloveLive(rig, bus_config(endpoint), host=host, port=port)
+        except RuntimeError as e:
+            raise UserError(str(e)) from None
+        typer.echo(f"serving hil/{rig}/** to Foxglove at {live.url} "
+                   "(Foxglove: Open connection -> Foxglove WebSocket; Ctrl-C to stop)", err=True)
+        n = live.serve(seconds)
+        typer.echo(f"forwarded {n} messages ({live.malformed} malformed payloads skipped)", err=True)
 
     @app.command()
     @user_errors
@@ -49,6 +72,21 @@ def register(app: typer.Typer) -> None:
 
     @app.command()
     @user_errors
+    def repair(
+        path: Path = typer.Argument(..., exists=True, dir_okay=False, help="MCAP recording, e.g. cut by a crash"),
+        out: Path = typer.Option(..., "--out", help="the repaired copy (a new file)"),
+    ) -> None:
+        """Copy a crashed recording into a finished MCAP file that every tool opens."""
+        from bus.recording import repair as do_repair
+
+        if out.exists() and out.resolve() == path.resolve():
+            raise UserError(f"--out {out} is the recording itself; write the repaired copy to another file")
+        r = do_repair(path, out)
+        cut = f"; the source was cut ({r.error}): everything before the damage was kept" if r.truncated else ""
+        typer.echo(f"wrote {r.messages} messages on {r.channels} channels to {out}{cut}", err=True)
+
+    @app.command()
+    @user_errors
     def inspect(
         path: Path = typer.Argument(..., exists=True, dir_okay=False, help="MCAP recording"),
         json_out: bool = typer.Option(False, "--json", help="one JSON object on stdout"),
@@ -63,8 +101,13 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"{s['path']}: {s['messages']} messages over {s['duration_s']:.2f} s")
         if s["truncated"]:
             typer.echo(f"  warning: file is truncated ({s['error']}); messages up to the damage are shown")
+        if s["undecodable"]:
+            typer.echo(f"  warning: {s['undecodable']} message(s) did not decode and were skipped "
+                       f"(first: {s['undecodable_error']})")
         typer.echo(f"  {'channel':40s} {'type':22s} {'count':>7s} {'rate_hz':>8s} {'max_gap_s':>9s} gaps")
         for topic, c in s["channels"].items():
             typer.echo(
                 f"  {topic:40s} {c['type']:22s} {c['count']:7d} {c['rate_hz']:8.1f} {c['max_gap_s']:9.3f} {c['gaps']}"
             )
+        for topic, c in s["other_channels"].items():
+            typer.echo(f"  {topic:40s} {c['schema']:22s} {c['count']:7d}  (derived, not replayed)")

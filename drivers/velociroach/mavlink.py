@@ -4,9 +4,14 @@ The XML is the single definition of the wire messages. The Python module is gene
 with pymavlink's mavgen into a cache directory keyed by the hash of the XML (plus the
 included ``minimal.xml`` and the pymavlink version), so a fresh clone needs no network and
 no generated file in git. The module is registered as ``pymavlink.dialects.v20.velociroach``
-so ``mavutil.mavlink_connection(..., dialect="velociroach")`` and mavlogdump can load it
-(mavlogdump: ``--dialect velociroach`` after ``import drivers.velociroach.mavlink``, or
-point ``MAVLINK_DIALECT`` at the cache; see docs/velociroach.md).
+in this process (``sys.modules``), so ``mavutil.mavlink_connection(..., dialect="velociroach")``
+works after ``import drivers.velociroach.mavlink``. Stock tools started on their own
+(``mavlogdump.py --dialect velociroach``) cannot find it: mavutil imports dialects only
+from the ``pymavlink.dialects.v20`` package directory, and ``MAVLINK_DIALECT`` only picks
+a name there. Decode a ``.tlog`` with the wrapper, which loads the dialect and then runs
+pymavlink's own mavlogdump with any of its options (see docs/velociroach.md)::
+
+    python -m drivers.velociroach.mavlink dump --types ROACH_TELEMETRY runs/roach.tlog
 
 Also here: encoders with a last range check (nothing non-finite or out of range is ever
 packed), and :class:`MavDecoder` which decodes one frame at a time and counts sequence gaps.
@@ -254,24 +259,36 @@ class MavDecoder:
 
 
 def _main(argv: list[str]) -> int:
-    """``python -m drivers.velociroach.mavlink path`` prints the generated module;
-    ``... mavlogdump [args] LOG.tlog`` runs pymavlink's mavlogdump with this dialect loaded
-    (a separate mavlogdump process cannot find a dialect generated into a cache)."""
+    """Usage:
+    python -m drivers.velociroach.mavlink dump [mavlogdump options] LOG.tlog
+        decode a .tlog with pymavlink's mavlogdump, this dialect loaded (``mavlogdump``
+        is accepted as an alias of ``dump``; ``dump --help`` lists mavlogdump's options)
+    python -m drivers.velociroach.mavlink path
+        print where the generated dialect module lives"""
     if not argv or argv[0] in ("-h", "--help"):
         print(_main.__doc__)
         return 0
     if argv[0] == "path":
         print(mav.__file__)
         return 0
-    if argv[0] in ("mavlogdump", "mavlogdump.py"):
+    if argv[0] in ("dump", "mavlogdump", "mavlogdump.py"):
         import runpy
 
-        script = shutil.which("mavlogdump.py") or str(Path(sys.executable).parent / "mavlogdump.py")
         rest = argv[1:]
+        if "-h" not in rest and "--help" not in rest:
+            if not rest or rest[-1].startswith("-"):
+                print("error: dump needs a .tlog file as its last argument", file=sys.stderr)
+                return 2
+            if not Path(rest[-1]).is_file():
+                print(f"error: no such log file: {rest[-1]}", file=sys.stderr)
+                return 2
         if "--dialect" not in rest:
             rest = ["--dialect", DIALECT_NAME, *rest]
-        sys.argv = [script, *rest]
-        runpy.run_path(script, run_name="__main__")
+        sys.argv = ["mavlogdump.py", *rest]
+        try:
+            runpy.run_module("pymavlink.tools.mavlogdump", run_name="__main__", alter_sys=True)
+        except SystemExit as e:
+            return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
         return 0
     print(f"unknown command {argv[0]!r}; try --help", file=sys.stderr)
     return 2

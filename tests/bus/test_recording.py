@@ -116,19 +116,39 @@ def test_record_replay_round_trip_equality(tmp_path, bus):
     assert [(r.topic, r.msg) for r in rec2_msgs] == [(r.topic, r.msg) for r in rec1]
 
 
-def test_replay_speed_scales_timing(tmp_path, bus):
+class _FakeClock:
+    """Stands in for the ``time`` module inside bus.recording: ``sleep`` advances the
+    clock instead of waiting, so the replay schedule is checked without wall-clock timing."""
+
+    def __init__(self):
+        self.now_s = 100.0
+        self.sleeps: list[float] = []
+
+    def monotonic(self) -> float:
+        return self.now_s
+
+    def sleep(self, s: float) -> None:
+        self.sleeps.append(s)
+        self.now_s += s
+
+    def __getattr__(self, name):
+        return getattr(time, name)
+
+
+@pytest.mark.parametrize("speed", [1.0, 5.0])
+def test_replay_speed_scales_timing(tmp_path, bus, monkeypatch, speed):
+    import bus.recording as recording
+
     path = tmp_path / "d.mcap"
     with McapLog(path) as log:
         for i in range(11):
             log.write(keys.cmd(RIG, "pm"), Command(robot="pm", action=[float(i)]), log_time_ns=int(i * 0.05e9))
-    t = time.monotonic()
-    replay(path, bus, speed=1.0)
-    t1 = time.monotonic() - t
-    t = time.monotonic()
-    replay(path, bus, speed=5.0)
-    t5 = time.monotonic() - t
-    assert t1 >= 0.5 * 0.95  # 0.5 s of log time at 1x
-    assert t5 < t1
+    clock = _FakeClock()
+    monkeypatch.setattr(recording, "time", clock)
+    assert replay(path, bus, speed=speed) == 11
+    # one wait per message after the first, each 50 ms of log time / speed
+    assert clock.sleeps == pytest.approx([0.05 / speed] * 10)
+    assert clock.now_s - 100.0 == pytest.approx(0.5 / speed)
 
 
 def test_inspect_cli(tmp_path):
@@ -149,3 +169,169 @@ def test_inspect_cli(tmp_path):
     assert s["channels"][keys.state(RIG, "pm")]["rate_hz"] == pytest.approx(50, rel=0.05)
     r = CliRunner().invoke(app, ["inspect", str(tmp_path / "missing.mcap")])
     assert r.exit_code == 2
+
+
+def test_write_after_close_is_refused_and_file_unchanged(tmp_path):
+    from bus.recording import RecordingClosed
+
+    path = tmp_path / "closed.mcap"
+    log = McapLog(path)
+    log.write(keys.cmd(RIG, "pm"), Command(robot="pm", action=[1.0], seq=1))
+    log.close()
+    size = path.stat().st_size
+    with pytest.raises(RecordingClosed, match=r"closed\.mcap is closed: hil\.Command/1 on hil/rec_test/pm/cmd"):
+        log.write(keys.cmd(RIG, "pm"), Command(robot="pm", action=[2.0], seq=2))
+    assert log.count == 1 and path.stat().st_size == size
+    assert [r.msg.seq for r in read_messages(path).messages] == [1]
+
+
+def test_recorder_close_after_record_writes_nothing_more(tmp_path, bus):
+    """`hil record` calls record() (which finishes the file) and then close(): messages
+    arriving in between must not be 'written' into the finished file."""
+    from bus.recording import RecordingClosed
+    from bus.schemas import encode
+
+    path = tmp_path / "rec.mcap"
+    rec = Recorder(RIG, path, bus, handle_signals=False)
+    pub = Node("pub", RIG, bus, handle_signals=False)
+    try:
+        time.sleep(0.5)  # discovery
+        pub.session.put(keys.cmd(RIG, "pm"), encode(Command(robot="pm", action=[1.0], seq=1)))
+        rec.record(seconds=0.3)
+        n_recorded = rec.log.count
+        assert n_recorded == 1
+        pub.session.put(keys.cmd(RIG, "pm"), encode(Command(robot="pm", action=[2.0], seq=2)))
+        time.sleep(0.2)  # the late message reaches the recorder's queue
+        rec.close()
+        assert rec.log.count == n_recorded
+        with pytest.raises(RecordingClosed, match="is closed"):
+            rec.pump()
+    finally:
+        rec.close()
+        pub.close()
+    back = read_messages(path)
+    assert not back.truncated and [r.msg.seq for r in back.messages] == [1]
+
+
+def test_quiet_log_reaches_disk_within_flush_period(tmp_path):
+    """A few small messages (far below a chunk) are on disk once the flush period passed,
+    even with no further writes, when the owner polls flush_if_due()."""
+    path = tmp_path / "quiet.mcap"
+    log = McapLog(path, flush_period_s=0.05)
+    try:
+        for i in range(3):
+            log.write(keys.cmd(RIG, "pm"), Command(robot="pm", action=[float(i)], seq=i + 1))
+        time.sleep(0.06)
+        assert log.flush_if_due()
+        assert not log.flush_if_due()  # nothing pending: no empty flush
+        back = read_messages(path)  # the file is unfinished: a crash now keeps all three
+        assert [r.msg.seq for r in back.messages] == [1, 2, 3]
+    finally:
+        log.close()
+
+
+def test_sigkill_loses_at_most_one_second(tmp_path, bus, spawn):
+    """`hil record` in a child process, fed at a known rate, killed with SIGKILL: the file
+    holds a gap-free prefix of what was sent, missing at most one second's worth of it."""
+    import signal
+
+    from bus.schemas import Ping, encode
+    from tests.helpers import wait_for
+
+    rate_hz = 100
+    path = tmp_path / "killed.mcap"
+    child = spawn("record", "--rig", RIG, "--out", str(path), "--endpoint", bus.endpoint)
+    pub = Node("pub", RIG, bus, handle_signals=False)
+    try:
+        # warm up until the recorder is subscribed *and* its data is on disk: proves the
+        # time-based flush (64 KiB chunks would keep these few pings in memory)
+        n_ping = 0
+
+        def recorded_a_ping() -> bool:
+            nonlocal n_ping
+            n_ping += 1
+            pub.session.put(keys.root(RIG) + "/ping", encode(Ping(seq=n_ping)))
+            return path.exists() and any(isinstance(r.msg, Ping) for r in read_messages(path).messages)
+
+        wait_for(recorded_a_ping, timeout_s=20.0, what="the first recorded message on disk")
+        n_sent = 300  # 3 s of data
+        for i in range(n_sent):
+            pub.session.put(keys.cmd(RIG, "pm"), encode(Command(robot="pm", action=[float(i)], seq=i + 1)))
+            time.sleep(1.0 / rate_hz)
+        child.p.send_signal(signal.SIGKILL)
+        child.p.wait(10)
+    finally:
+        pub.close()
+    back = read_messages(path)
+    assert back.truncated  # killed: no footer
+    seqs = [r.msg.seq for r in back.messages if isinstance(r.msg, Command)]
+    assert seqs == list(range(1, len(seqs) + 1))  # in order, nothing lost in the middle
+    assert n_sent - len(seqs) <= rate_hz * 1.0, f"lost {n_sent - len(seqs)} of {n_sent} messages at {rate_hz} Hz"
+
+
+def test_close_from_another_thread_ends_record_cleanly(tmp_path, bus):
+    from bus.schemas import encode
+
+    path = tmp_path / "threaded.mcap"
+    rec = Recorder(RIG, path, bus, handle_signals=False)
+    pub = Node("pub", RIG, bus, handle_signals=False)
+    errors: list[BaseException] = []
+    finish = rec.log.close
+
+    def slow_finish() -> None:  # the recording thread polls while close() is still busy
+        finish()
+        time.sleep(0.2)
+
+    rec.log.close = slow_finish
+
+    def run() -> None:
+        try:
+            rec.record()
+        except BaseException as e:  # noqa: BLE001 - the test reports it
+            errors.append(e)
+
+    th = threading.Thread(target=run)
+    th.start()
+    try:
+        time.sleep(0.5)  # discovery
+        for i in range(200):
+            pub.session.put(keys.cmd(RIG, "pm"), encode(Command(robot="pm", action=[float(i)], seq=i + 1)))
+        time.sleep(0.3)
+        rec.close()
+        th.join(10)
+    finally:
+        pub.close()
+    assert not th.is_alive() and errors == []
+    back = read_messages(path)
+    assert not back.truncated and [r.msg.seq for r in back.messages] == list(range(1, 201))
+
+
+def test_repair_turns_a_crashed_file_into_a_finished_one(tmp_path):
+    """rerun and the indexed mcap reader refuse a file without its end; `hil repair` copies
+    everything up to the damage into a finished file."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    crashed = tmp_path / "crashed.mcap"
+    log = McapLog(crashed)
+    msgs = _sample_messages()
+    for t, m in msgs:
+        log.write(t, m)
+    log.flush()  # on disk, like a SIGKILL right after a periodic flush: no summary, no end magic
+    with open(crashed, "rb") as f, pytest.raises(McapError):
+        make_reader(f).get_summary()
+    fixed = tmp_path / "fixed.mcap"
+    r = CliRunner().invoke(app, ["repair", str(crashed), "--out", str(fixed)])
+    assert r.exit_code == 0, r.output
+    assert f"wrote {len(msgs)} messages on 4 channels" in r.output and "the source was cut" in r.output
+    with open(fixed, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary.statistics.message_count == len(msgs)
+    back = read_messages(fixed)
+    assert not back.truncated and [(x.topic, x.msg) for x in back.messages] == msgs
+    log.close()
+    r = CliRunner().invoke(app, ["repair", str(crashed), "--out", str(crashed)])
+    assert r.exit_code == 2 and "is the recording itself" in r.output
