@@ -1,16 +1,18 @@
 """Node base: a Zenoh session, a liveliness token, typed publishers and subscribers.
 
-No work runs in Zenoh callbacks: typed subscriptions use Zenoh's own latest-value
-ring channel (``RingChannel(1)``, held in Rust) or a FIFO channel; payloads are
-decoded in the node's thread when it asks for them, and malformed ones are counted
-and dropped without disturbing the node.
+No work runs in Zenoh callbacks: a subscription's callback only queues the sample
+(latest value, or a bounded FIFO) and wakes the node's thread; payloads are decoded
+in the node's thread when it asks for them, and malformed ones are counted and
+dropped without disturbing the node.
 """
 
 from __future__ import annotations
 
+import queue
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
@@ -45,12 +47,64 @@ class Publisher(Generic[T]):
         self._pub.undeclare()
 
 
+class _Inbox:
+    """Hands samples from Zenoh's callback thread to the node's thread.
+
+    The callback only appends to a bounded deque (when full the oldest sample is
+    dropped and counted in ``overflow``) and, when the node's thread is blocked in
+    :meth:`wait`, rings a doorbell (a ``queue.SimpleQueue``) that wakes it. No
+    decoding and no Python-level locking run in the callback: both calls are atomic
+    C operations.
+    """
+
+    def __init__(self, capacity: int):
+        self._q: deque[zenoh.Sample] = deque(maxlen=capacity)
+        self._bell: queue.SimpleQueue[None] = queue.SimpleQueue()
+        self._waiting = False
+        self.overflow = 0
+
+    def push(self, sample: zenoh.Sample) -> None:
+        if len(self._q) == self._q.maxlen:
+            self.overflow += 1
+        self._q.append(sample)
+        if self._waiting:
+            self._bell.put(None)
+
+    def pop(self) -> zenoh.Sample | None:
+        try:
+            return self._q.popleft()
+        except IndexError:
+            return None
+
+    def wait(self, timeout_s: float | None) -> bool:
+        """Block until something is queued (True) or ``timeout_s`` passes (False)."""
+        # announce the wait before looking, so a push after the look rings the bell
+        self._waiting = True
+        try:
+            if self._q:
+                return True
+            try:
+                self._bell.get(timeout=timeout_s)
+            except queue.Empty:
+                return bool(self._q)
+            return True
+        finally:
+            self._waiting = False
+            while True:  # rings that came after we woke: drop them (no spurious wakeups later)
+                try:
+                    self._bell.get_nowait()
+                except queue.Empty:
+                    break
+
+
 class Subscription(Generic[T]):
     """Typed subscription.
 
     ``latest=True`` (default): a latest-value queue; ``poll()`` returns the newest
-    unseen message or None, ``wait(timeout_s)`` blocks for a new one. ``latest=False``:
-    a FIFO of ``capacity`` messages, drained with ``drain()`` (recorders, logs).
+    unseen message or None, ``wait(timeout_s)`` blocks (no polling) for a new one.
+    ``latest=False``: a FIFO of ``capacity`` messages, drained with ``drain()``
+    (recorders, logs); when it overflows the oldest are dropped and counted in
+    ``dropped``.
     """
 
     def __init__(
@@ -63,8 +117,10 @@ class Subscription(Generic[T]):
     ):
         self.key = key
         self.type = typ
-        handler = zenoh.handlers.RingChannel(1) if latest else zenoh.handlers.FifoChannel(capacity)
-        self._sub = session.declare_subscriber(key, handler)
+        self._inbox = _Inbox(1 if latest else capacity)
+        # Zenoh runs the callback on its own Python thread (indirect callback), so the
+        # network threads never wait for the GIL; the callback only queues the sample
+        self._sub = session.declare_subscriber(key, self._inbox.push)
         self.last: T | None = None
         self.last_key: str | None = None
         #: monotonic time at which ``last`` was taken from the queue
@@ -72,6 +128,11 @@ class Subscription(Generic[T]):
         self.received = 0
         self.malformed = 0
         self.last_error: str | None = None
+
+    @property
+    def dropped(self) -> int:
+        """FIFO mode: samples lost because the queue was full (latest mode: superseded values)."""
+        return self._inbox.overflow
 
     def _decode(self, sample: zenoh.Sample) -> T | None:
         try:
@@ -89,34 +150,33 @@ class Subscription(Generic[T]):
     def poll(self) -> T | None:
         """Newest message not seen yet, or None (never blocks)."""
         newest = None
-        while (s := self._sub.try_recv()) is not None:
-            m = self._decode(s)
+        while (smp := self._inbox.pop()) is not None:
+            m = self._decode(smp)
             if m is not None:
                 newest = m
         return newest
 
     def wait(self, timeout_s: float | None = None) -> T | None:
-        """Block until a new valid message arrives or ``timeout_s`` passes."""
-        if timeout_s is None:
-            while True:
-                m = self._decode(self._sub.recv())
-                if m is not None:
-                    return m
-        deadline = time.monotonic() + timeout_s
+        """Block until a new valid message arrives or ``timeout_s`` passes (None: forever).
+
+        Sleeps on a condition the Zenoh callback notifies: no polling.
+        """
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             m = self.poll()
             if m is not None:
                 return m
-            left = deadline - time.monotonic()
-            if left <= 0:
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
                 return None
-            time.sleep(min(2e-4, left))
+            if not self._inbox.wait(left):
+                return None
 
     def drain(self, max_items: int | None = None) -> list[tuple[str, bytes]]:
         """FIFO mode: raw (key, payload) pairs, undecoded (for recorders)."""
         out: list[tuple[str, bytes]] = []
-        while (max_items is None or len(out) < max_items) and (s := self._sub.try_recv()) is not None:
-            out.append((str(s.key_expr), s.payload.to_bytes()))
+        while (max_items is None or len(out) < max_items) and (smp := self._inbox.pop()) is not None:
+            out.append((str(smp.key_expr), smp.payload.to_bytes()))
         return out
 
     def age_s(self) -> float:
