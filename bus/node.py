@@ -20,6 +20,7 @@ import zenoh
 
 from bus import keys
 from bus.cycle import CycleTimer
+from bus.estop import EStopLatch
 from bus.schemas import MalformedMessage, Msg, decode, encode
 from bus.session import open_session
 from configs.schema import BusConfig
@@ -172,6 +173,10 @@ class Subscription(Generic[T]):
             if not self._inbox.wait(left):
                 return None
 
+    def wait_queued(self, timeout_s: float | None) -> bool:
+        """Block until a sample is queued, without taking it (True), or ``timeout_s`` passes."""
+        return self._inbox.wait(timeout_s)
+
     def drain(self, max_items: int | None = None) -> list[tuple[str, bytes]]:
         """FIFO mode: raw (key, payload) pairs, undecoded (for recorders)."""
         out: list[tuple[str, bytes]] = []
@@ -189,7 +194,9 @@ class Subscription(Generic[T]):
 class Node:
     """Base of every process on the bus.
 
-    Declares the liveliness token ``hil/<rig>/alive/<name>``; SIGINT/SIGTERM set
+    Declares the liveliness token ``hil/<rig>/alive/<name>`` and holds the rig's
+    e-stop latch (``self.estop``, :class:`bus.estop.EStopLatch`: every node remembers
+    the last e-stop command and tells late driver nodes); SIGINT/SIGTERM set
     ``stop_event`` (when created in the main thread) so ``run()`` loops end cleanly
     and ``close()`` runs.
     """
@@ -210,6 +217,8 @@ class Node:
         self._token = self.session.liveliness().declare_token(keys.alive(rig, name))
         self._closeables: list[Any] = []
         self._closed = False
+        self.estop = EStopLatch(self.session, rig, name)
+        self._closeables.append(self.estop)
         #: the timer of the last ``run()`` (timing summary)
         self.cycle: CycleTimer | None = None
         if handle_signals and threading.current_thread() is threading.main_thread():
@@ -277,11 +286,19 @@ class Node:
         self.close()
 
 
-def alive_nodes(session: zenoh.Session, rig: str, timeout_s: float = 1.0) -> list[str]:
-    """Names of nodes whose liveliness token is present on the rig."""
-    replies = session.liveliness().get(keys.alive_all(rig), timeout=timeout_s)
-    out = []
-    for r in replies:
-        if r.ok is not None:
-            out.append(str(r.ok.key_expr).rsplit("/", 1)[-1])
-    return sorted(out)
+def alive_nodes(session: zenoh.Session, rig: str, timeout_s: float = 1.0, window_s: float = 0.0) -> list[str]:
+    """Names of nodes whose liveliness token is present on the rig.
+
+    ``window_s`` > 0: keep asking for that long and return every name seen (a session
+    opened a moment ago may not have found its peers yet).
+    """
+    deadline = time.monotonic() + window_s
+    out: set[str] = set()
+    while True:
+        for r in session.liveliness().get(keys.alive_all(rig), timeout=timeout_s):
+            if r.ok is not None:
+                out.add(str(r.ok.key_expr).rsplit("/", 1)[-1])
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return sorted(out)
+        time.sleep(min(0.1, left))
