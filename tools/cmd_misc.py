@@ -63,6 +63,8 @@ def register(app: typer.Typer) -> None:
         finally:
             node.close()
         typer.echo(f"{n} down: {stats}", err=True)
+        if node.cycle is not None:
+            typer.echo(f"{n} timing: {node.cycle.format_summary()}", err=True)
 
     @app.command()
     @user_errors
