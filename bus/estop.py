@@ -104,20 +104,14 @@ class EStopLatch:
         deadline = time.monotonic() + window_s
         while True:
             left = deadline - time.monotonic()
-            for reply in self._session.get(
-                keys.estop_latch_all(self.rig), timeout=max(0.05, min(query_timeout_s, left))
-            ):
-                if reply.ok is None or str(reply.ok.key_expr).endswith(f"/{self.node}"):
-                    continue
-                try:
-                    msg = decode(reply.ok.payload.to_bytes(), EStop)
-                except MalformedMessage:
-                    continue
-                if msg.engaged:
-                    with self._lock:
-                        if self._latched is None or not self._latched.engaged:
-                            self._latched = msg
-                    return msg
+            latches = query_latches(self._session, self.rig, max(0.05, min(query_timeout_s, left)))
+            latches.pop(self.node, None)
+            engaged = next((m for m in latches.values() if m.engaged), None)
+            if engaged is not None:
+                with self._lock:
+                    if self._latched is None or not self._latched.engaged:
+                        self._latched = engaged
+                return engaged
             if self.engaged:  # heard a live engage meanwhile
                 return self.latched
             if time.monotonic() >= deadline:
@@ -127,6 +121,19 @@ class EStopLatch:
     def close(self) -> None:
         self._queryable.undeclare()
         self._sub.undeclare()
+
+
+def query_latches(session: zenoh.Session, rig: str, timeout_s: float = 0.5) -> dict[str, EStop]:
+    """Node name → the last e-stop command that node heard (nodes that heard none are absent)."""
+    out: dict[str, EStop] = {}
+    for reply in session.get(keys.estop_latch_all(rig), timeout=timeout_s):
+        if reply.ok is None:
+            continue
+        try:
+            out[str(reply.ok.key_expr).rsplit("/", 1)[-1]] = decode(reply.ok.payload.to_bytes(), EStop)
+        except MalformedMessage:
+            continue
+    return out
 
 
 @dataclass

@@ -118,16 +118,31 @@ def register(app: typer.Typer) -> None:
         json_out: bool = typer.Option(False, "--json"),
         endpoint: str = EndpointOpt,
     ) -> None:
-        """List the nodes alive on a rig (liveliness tokens)."""
+        """List the nodes alive on a rig (liveliness tokens) and the e-stop each one holds."""
+        from bus.estop import query_latches
         from bus.node import Node, alive_nodes
 
         node = Node("nodes-cli", rig, bus_config(endpoint), handle_signals=False)
         try:
             # a fresh session finds its peers over the first few hundred ms: keep asking
             names = [n for n in alive_nodes(node.session, rig, window_s=0.5) if n != "nodes-cli"]
+            latches = query_latches(node.session, rig)
         finally:
             node.close()
+        rows = []
+        for n in names:
+            m = latches.get(n)
+            rows.append({
+                "node": n,
+                "estop": "none heard" if m is None else ("engaged" if m.engaged else "released"),
+                "reason": "" if m is None else m.reason,
+                "source": "" if m is None else m.source,
+            })
         if json_out:
-            echo_json(names)
-        else:
-            typer.echo("\n".join(names) if names else "(no nodes)")
+            echo_json(rows)
+            return
+        if not rows:
+            typer.echo("(no nodes)")
+        for r in rows:
+            why = f" ({r['reason'] or '-'}, from {r['source'] or '?'})" if r["estop"] == "engaged" else ""
+            typer.echo(f"{r['node']:24s} e-stop {r['estop']}{why}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 
 import pytest
@@ -110,6 +111,12 @@ def test_a_late_driver_adopts_an_engaged_latch_from_any_peer(bus):
         wait_for(lambda: drv.node.stats.steps > 0, 15, "driver running")
         assert drv.node.estopped and not drv.node.driver.active
         assert drv.node.estop.engaged  # and it now answers engaged to later drivers
+        # the latched state is retrievable by anyone: `hil nodes` shows it per node
+        r = CliRunner().invoke(app, ["nodes", RIG, "--json", "--endpoint", bus.endpoint])
+        assert r.exit_code == 0, r.output
+        rows = {row["node"]: row for row in json.loads(r.stdout)}
+        assert rows["driver-pm"]["estop"] == "engaged" and rows["viz"]["estop"] == "engaged"
+        assert rows["viz"]["reason"] == "test"
     finally:
         drv.stop()
         holder.close()
