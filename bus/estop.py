@@ -71,8 +71,8 @@ class EStopLatch:
     def _on_query(self, query: zenoh.Query) -> None:
         with self._lock:
             msg = self._latched
-        if msg is not None:
-            query.reply(keys.estop_latch(self.rig, self.node), encode(msg))
+        # always answer (empty: no e-stop heard), so a starting driver knows who replied
+        query.reply(keys.estop_latch(self.rig, self.node), b"" if msg is None else encode(msg))
 
     # ------------------------------------------------------------------ owner side
     @property
@@ -93,20 +93,22 @@ class EStopLatch:
             self._pending.clear()
         return out
 
-    def sync_from_peers(self, window_s: float, query_timeout_s: float = 0.25) -> EStop | None:
-        """Ask every node of the rig for its latch for up to ``window_s`` seconds.
+    def sync_from_peers(self, window_s: float, min_window_s: float = 0.2, query_timeout_s: float = 0.25) -> EStop | None:
+        """Ask every node of the rig for its latch; return the first engaged one, or None.
 
-        Returns the first engaged latch found (and adopts it, so this node answers
-        engaged too), or None when no peer answered engaged within the window. The
-        whole window is used unless an engaged latch turns up: a fresh session finds
-        its peers over the first few hundred milliseconds.
+        An engaged latch found is adopted, so this node answers engaged too. Asks for
+        at least ``min_window_s`` (a fresh session meets its peers within milliseconds
+        on one host, a little later across hosts) and at most ``window_s`` seconds; in
+        between it stops as soon as every node alive on the rig has answered.
         """
-        deadline = time.monotonic() + window_s
+        from bus.node import alive_nodes
+
+        t0 = time.monotonic()
         while True:
-            left = deadline - time.monotonic()
+            left = t0 + window_s - time.monotonic()
             latches = query_latches(self._session, self.rig, max(0.05, min(query_timeout_s, left)))
             latches.pop(self.node, None)
-            engaged = next((m for m in latches.values() if m.engaged), None)
+            engaged = next((m for m in latches.values() if m is not None and m.engaged), None)
             if engaged is not None:
                 with self._lock:
                     if self._latched is None or not self._latched.engaged:
@@ -114,23 +116,30 @@ class EStopLatch:
                 return engaged
             if self.engaged:  # heard a live engage meanwhile
                 return self.latched
-            if time.monotonic() >= deadline:
+            elapsed = time.monotonic() - t0
+            if elapsed >= window_s:
                 return None
-            time.sleep(min(0.05, max(0.0, deadline - time.monotonic())))
+            if elapsed >= min_window_s:
+                alive = set(alive_nodes(self._session, self.rig, timeout_s=0.2)) - {self.node}
+                if alive <= set(latches):
+                    return None
+            time.sleep(0.02)
 
     def close(self) -> None:
         self._queryable.undeclare()
         self._sub.undeclare()
 
 
-def query_latches(session: zenoh.Session, rig: str, timeout_s: float = 0.5) -> dict[str, EStop]:
-    """Node name → the last e-stop command that node heard (nodes that heard none are absent)."""
-    out: dict[str, EStop] = {}
+def query_latches(session: zenoh.Session, rig: str, timeout_s: float = 0.5) -> dict[str, EStop | None]:
+    """Node name → the last e-stop command that node heard (None: it heard none)."""
+    out: dict[str, EStop | None] = {}
     for reply in session.get(keys.estop_latch_all(rig), timeout=timeout_s):
         if reply.ok is None:
             continue
+        name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
+        data = reply.ok.payload.to_bytes()
         try:
-            out[str(reply.ok.key_expr).rsplit("/", 1)[-1]] = decode(reply.ok.payload.to_bytes(), EStop)
+            out[name] = decode(data, EStop) if data else None
         except MalformedMessage:
             continue
     return out

@@ -10,6 +10,7 @@ the last chunk; :func:`read_messages` reads a truncated file up to the damage.
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -39,6 +40,8 @@ from bus.schemas import (
     type_name,
 )
 from configs.schema import BusConfig
+
+log = logging.getLogger(__name__)
 
 _BY_TAG: dict[str, type[Msg]] = {type_name(t): t for t in ALL_TYPES}
 _json_enc = msgspec.json.Encoder()
@@ -269,7 +272,7 @@ def replay(
 
     Before the first message to a rig, its liveliness tokens are checked for
     ``live_check_s``: if a driver node is alive there, :class:`ReplayRefused` is
-    raised (nothing is published to it) unless ``force``. Messages are re-sent
+    raised (nothing is published to it) unless ``force`` (then a warning is logged). Messages are re-sent
     byte-identical to what was recorded (same stamps and sequence numbers).
     """
     from bus.node import alive_nodes
@@ -297,16 +300,19 @@ def replay(
                 topic = f"hil/{rig}/{parts[2]}"
                 parts = topic.split("/", 2)
             target = parts[1] if len(parts) == 3 else None
-            if target is not None and target not in checked_rigs and not force:
+            if target is not None and target not in checked_rigs:
+                # (also gives a fresh session time to meet its listeners before the first put)
                 live = [
                     n for n in alive_nodes(s, target, timeout_s=0.2, window_s=live_check_s)
                     if n.startswith(keys.DRIVER_NODE_PREFIX)
                 ]
-                if live:
+                if live and not force:
                     raise ReplayRefused(
                         f"rig {target!r} has live driver nodes ({', '.join(live)}): replaying onto it would mix "
                         "recorded and live data; stop them, replay under another --rig, or pass --force"
                     )
+                if live:
+                    log.warning("forced: replaying onto rig %r with live driver nodes (%s)", target, ", ".join(live))
                 checked_rigs.add(target)
             if t0_log is None:
                 t0_log = rm.log_time_ns
