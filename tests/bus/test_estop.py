@@ -138,3 +138,33 @@ def test_a_malformed_estop_never_replaces_the_latch(bus):
 def test_bad_timeout_is_a_user_error(bus, bad):
     r = CliRunner().invoke(app, ["estop", RIG, "--endpoint", bus.endpoint, "--timeout-s", bad])
     assert r.exit_code == 2 and "--timeout-s" in r.output
+
+
+def test_a_release_the_driver_cannot_honour_is_acknowledged_as_still_engaged(bus):
+    from bus.estop import command_estop
+    from tests.test_driver_base import Fake
+
+    drv = Fake()
+    node = DriverNode(drv, "relrig", "fake", bus, handle_signals=False, estop_sync_s=0.3)
+    stop = threading.Event()
+
+    def loop():  # the bridge's e-stop handling each period, without the rest of serve()
+        while not stop.wait(0.01):
+            node._handle_estop()
+
+    drv.configure()
+    drv.activate()
+    th = threading.Thread(target=loop)
+    th.start()
+    try:
+        with Node("op", "relrig", bus, handle_signals=False) as op:
+            assert command_estop(op, engaged=True, timeout_s=3).ok
+            assert node.estopped and not drv.active
+            drv.fail_read = True  # the link is gone: activate() cannot read the measured state
+            res = command_estop(op, engaged=False, timeout_s=1)
+        assert not res.ok and res.acked == {"driver-fake": True} and res.missing == ["driver-fake"]
+        assert node.estopped and node.stopped_reason == "estop"
+    finally:
+        stop.set()
+        th.join()
+        node.close()
