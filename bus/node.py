@@ -105,7 +105,7 @@ class Subscription(Generic[T]):
     unseen message or None, ``wait(timeout_s)`` blocks (no polling) for a new one.
     ``latest=False``: a FIFO of ``capacity`` messages, drained with ``drain()``
     (recorders, logs); when it overflows the oldest are dropped and counted in
-    ``dropped``.
+    ``dropped``. One consumer thread per subscription.
     """
 
     def __init__(

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -208,13 +209,17 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------------ loops
     def step(self) -> None:
-        """One realtime period."""
-        self._handle_estop()
-        self._handle_reset()
-        self._apply(self._cmd.poll())
+        """One realtime period (sections timed by the cycle timer of ``run()``: ``hil up`` prints them)."""
+        timer = self.cycle
+        with timer.section("control") if timer else nullcontext():
+            self._handle_estop()
+            self._handle_reset()
+            self._apply(self._cmd.poll())
         if self.driver.backend == "sim":
-            self.driver.tick()
-        self.publish_state()
+            with timer.section("sim_tick") if timer else nullcontext():
+                self.driver.tick()
+        with timer.section("read_publish") if timer else nullcontext():
+            self.publish_state()
         self.stats.steps += 1
         self._maybe_publish_spec()
 

@@ -110,6 +110,8 @@ def test_a_late_driver_adopts_an_engaged_latch_from_any_peer(bus):
     try:
         wait_for(lambda: drv.node.stats.steps > 0, 15, "driver running")
         assert drv.node.estopped and not drv.node.driver.active
+        # the bridge's loop is paced and timed by the cycle timer, section by section
+        assert {"control", "sim_tick", "read_publish", "step"} <= set(drv.node.cycle.summary())
         assert drv.node.estop.engaged  # and it now answers engaged to later drivers
         # the latched state is retrievable by anyone: `hil nodes` shows it per node
         r = CliRunner().invoke(app, ["nodes", RIG, "--json", "--endpoint", bus.endpoint])
