@@ -2,6 +2,9 @@
 
 Data under ``hil/<rig>/<robot>/...``, rig-wide control (e-stop, plan, model updates,
 reset) beside it, and presence (liveliness tokens) under ``hil/<rig>/alive/<node>``.
+The e-stop has three keys: commands on ``hil/<rig>/estop``, driver acknowledgements
+on ``hil/<rig>/estop/ack`` and every node's latched state as a queryable under
+``hil/<rig>/estop/latch/<node>``.
 """
 
 from __future__ import annotations
@@ -47,7 +50,23 @@ def image(rig: str, camera: str) -> str:
 
 
 def estop(rig: str) -> str:
+    """E-stop commands (``EStop``: engage or release), from ``hil estop`` or any node."""
     return f"{root(rig)}/estop"
+
+
+def estop_ack(rig: str) -> str:
+    """Driver nodes' acknowledgements of e-stop commands (``EStopAck``)."""
+    return f"{root(rig)}/estop/ack"
+
+
+def estop_latch(rig: str, node: str) -> str:
+    """Queryable of one node's latched e-stop (the last ``EStop`` it heard)."""
+    _check(node)
+    return f"{root(rig)}/estop/latch/{node}"
+
+
+def estop_latch_all(rig: str) -> str:
+    return f"{root(rig)}/estop/latch/*"
 
 
 def plan(rig: str) -> str:
@@ -61,6 +80,15 @@ def model_update(rig: str) -> str:
 def reset(rig: str, what: str) -> str:
     _check(what)
     return f"{root(rig)}/reset/{what}"
+
+
+#: driver bridge nodes are named ``driver-<robot>``; e-stop acks and replay refusal look for them
+DRIVER_NODE_PREFIX = "driver-"
+
+
+def driver_node(robot: str) -> str:
+    _check(robot)
+    return f"{DRIVER_NODE_PREFIX}{robot}"
 
 
 def alive(rig: str, node: str) -> str:

@@ -1,22 +1,26 @@
 """Node base: a Zenoh session, a liveliness token, typed publishers and subscribers.
 
-No work runs in Zenoh callbacks: typed subscriptions use Zenoh's own latest-value
-ring channel (``RingChannel(1)``, held in Rust) or a FIFO channel; payloads are
-decoded in the node's thread when it asks for them, and malformed ones are counted
-and dropped without disturbing the node.
+No work runs in Zenoh callbacks: a subscription's callback only queues the sample
+(latest value, or a bounded FIFO) and wakes the node's thread; payloads are decoded
+in the node's thread when it asks for them, and malformed ones are counted and
+dropped without disturbing the node.
 """
 
 from __future__ import annotations
 
+import queue
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
 import zenoh
 
 from bus import keys
+from bus.cycle import CycleTimer
+from bus.estop import EStopLatch
 from bus.schemas import MalformedMessage, Msg, decode, encode
 from bus.session import open_session
 from configs.schema import BusConfig
@@ -44,12 +48,64 @@ class Publisher(Generic[T]):
         self._pub.undeclare()
 
 
+class _Inbox:
+    """Hands samples from Zenoh's callback thread to the node's thread.
+
+    The callback only appends to a bounded deque (when full the oldest sample is
+    dropped and counted in ``overflow``) and, when the node's thread is blocked in
+    :meth:`wait`, rings a doorbell (a ``queue.SimpleQueue``) that wakes it. No
+    decoding and no Python-level locking run in the callback: both calls are atomic
+    C operations.
+    """
+
+    def __init__(self, capacity: int):
+        self._q: deque[zenoh.Sample] = deque(maxlen=capacity)
+        self._bell: queue.SimpleQueue[None] = queue.SimpleQueue()
+        self._waiting = False
+        self.overflow = 0
+
+    def push(self, sample: zenoh.Sample) -> None:
+        if len(self._q) == self._q.maxlen:
+            self.overflow += 1
+        self._q.append(sample)
+        if self._waiting:
+            self._bell.put(None)
+
+    def pop(self) -> zenoh.Sample | None:
+        try:
+            return self._q.popleft()
+        except IndexError:
+            return None
+
+    def wait(self, timeout_s: float | None) -> bool:
+        """Block until something is queued (True) or ``timeout_s`` passes (False)."""
+        # announce the wait before looking, so a push after the look rings the bell
+        self._waiting = True
+        try:
+            if self._q:
+                return True
+            try:
+                self._bell.get(timeout=timeout_s)
+            except queue.Empty:
+                return bool(self._q)
+            return True
+        finally:
+            self._waiting = False
+            while True:  # rings that came after we woke: drop them (no spurious wakeups later)
+                try:
+                    self._bell.get_nowait()
+                except queue.Empty:
+                    break
+
+
 class Subscription(Generic[T]):
     """Typed subscription.
 
     ``latest=True`` (default): a latest-value queue; ``poll()`` returns the newest
-    unseen message or None, ``wait(timeout_s)`` blocks for a new one. ``latest=False``:
-    a FIFO of ``capacity`` messages, drained with ``drain()`` (recorders, logs).
+    unseen message or None, ``wait(timeout_s)`` blocks (no polling) for a new one.
+    ``latest=False``: a FIFO of ``capacity`` messages, drained with ``drain()``
+    (recorders, logs); when it overflows the oldest are dropped and counted in
+    ``dropped``. One consumer thread per subscription.
     """
 
     def __init__(
@@ -62,8 +118,10 @@ class Subscription(Generic[T]):
     ):
         self.key = key
         self.type = typ
-        handler = zenoh.handlers.RingChannel(1) if latest else zenoh.handlers.FifoChannel(capacity)
-        self._sub = session.declare_subscriber(key, handler)
+        self._inbox = _Inbox(1 if latest else capacity)
+        # Zenoh runs the callback on its own Python thread (indirect callback), so the
+        # network threads never wait for the GIL; the callback only queues the sample
+        self._sub = session.declare_subscriber(key, self._inbox.push)
         self.last: T | None = None
         self.last_key: str | None = None
         #: monotonic time at which ``last`` was taken from the queue
@@ -71,6 +129,11 @@ class Subscription(Generic[T]):
         self.received = 0
         self.malformed = 0
         self.last_error: str | None = None
+
+    @property
+    def dropped(self) -> int:
+        """FIFO mode: samples lost because the queue was full (latest mode: superseded values)."""
+        return self._inbox.overflow
 
     def _decode(self, sample: zenoh.Sample) -> T | None:
         try:
@@ -88,34 +151,37 @@ class Subscription(Generic[T]):
     def poll(self) -> T | None:
         """Newest message not seen yet, or None (never blocks)."""
         newest = None
-        while (s := self._sub.try_recv()) is not None:
-            m = self._decode(s)
+        while (smp := self._inbox.pop()) is not None:
+            m = self._decode(smp)
             if m is not None:
                 newest = m
         return newest
 
     def wait(self, timeout_s: float | None = None) -> T | None:
-        """Block until a new valid message arrives or ``timeout_s`` passes."""
-        if timeout_s is None:
-            while True:
-                m = self._decode(self._sub.recv())
-                if m is not None:
-                    return m
-        deadline = time.monotonic() + timeout_s
+        """Block until a new valid message arrives or ``timeout_s`` passes (None: forever).
+
+        Sleeps on a condition the Zenoh callback notifies: no polling.
+        """
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             m = self.poll()
             if m is not None:
                 return m
-            left = deadline - time.monotonic()
-            if left <= 0:
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
                 return None
-            time.sleep(min(2e-4, left))
+            if not self._inbox.wait(left):
+                return None
+
+    def wait_queued(self, timeout_s: float | None) -> bool:
+        """Block until a sample is queued, without taking it (True), or ``timeout_s`` passes."""
+        return self._inbox.wait(timeout_s)
 
     def drain(self, max_items: int | None = None) -> list[tuple[str, bytes]]:
         """FIFO mode: raw (key, payload) pairs, undecoded (for recorders)."""
         out: list[tuple[str, bytes]] = []
-        while (max_items is None or len(out) < max_items) and (s := self._sub.try_recv()) is not None:
-            out.append((str(s.key_expr), s.payload.to_bytes()))
+        while (max_items is None or len(out) < max_items) and (smp := self._inbox.pop()) is not None:
+            out.append((str(smp.key_expr), smp.payload.to_bytes()))
         return out
 
     def age_s(self) -> float:
@@ -128,7 +194,9 @@ class Subscription(Generic[T]):
 class Node:
     """Base of every process on the bus.
 
-    Declares the liveliness token ``hil/<rig>/alive/<name>``; SIGINT/SIGTERM set
+    Declares the liveliness token ``hil/<rig>/alive/<name>`` and holds the rig's
+    e-stop latch (``self.estop``, :class:`bus.estop.EStopLatch`: every node remembers
+    the last e-stop command and tells late driver nodes); SIGINT/SIGTERM set
     ``stop_event`` (when created in the main thread) so ``run()`` loops end cleanly
     and ``close()`` runs.
     """
@@ -149,6 +217,10 @@ class Node:
         self._token = self.session.liveliness().declare_token(keys.alive(rig, name))
         self._closeables: list[Any] = []
         self._closed = False
+        self.estop = EStopLatch(self.session, rig, name)
+        self._closeables.append(self.estop)
+        #: the timer of the last ``run()`` (timing summary)
+        self.cycle: CycleTimer | None = None
         if handle_signals and threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, self._on_signal)
@@ -174,19 +246,20 @@ class Node:
     def run(self, step: Callable[[], None], period_s: float, max_steps: int | None = None) -> int:
         """Call ``step`` every ``period_s`` (wall clock) until stopped; returns steps run.
 
-        A late step does not cause a burst of catch-up calls: the schedule resynchronises.
+        Paced by :class:`bus.cycle.CycleTimer` (``self.cycle`` after the call: its
+        catch-up rule, late/missed counts and the p50/p99 of ``step``); a stop request
+        interrupts the sleep between steps.
         """
+        timer = self.cycle = CycleTimer(period_s, sleep=self.stop_event.wait)
+        timer.start()
         n = 0
-        next_t = time.monotonic()
         while not self.stop_event.is_set() and (max_steps is None or n < max_steps):
-            step()
+            with timer.section("step"):
+                step()
             n += 1
-            next_t += period_s
-            delay = next_t - time.monotonic()
-            if delay < -period_s:
-                next_t = time.monotonic()
-            elif delay > 0:
-                self.stop_event.wait(delay)
+            if max_steps is not None and n >= max_steps:
+                break
+            timer.wait()
         return n
 
     def close(self) -> None:
@@ -213,11 +286,19 @@ class Node:
         self.close()
 
 
-def alive_nodes(session: zenoh.Session, rig: str, timeout_s: float = 1.0) -> list[str]:
-    """Names of nodes whose liveliness token is present on the rig."""
-    replies = session.liveliness().get(keys.alive_all(rig), timeout=timeout_s)
-    out = []
-    for r in replies:
-        if r.ok is not None:
-            out.append(str(r.ok.key_expr).rsplit("/", 1)[-1])
-    return sorted(out)
+def alive_nodes(session: zenoh.Session, rig: str, timeout_s: float = 1.0, window_s: float = 0.0) -> list[str]:
+    """Names of nodes whose liveliness token is present on the rig.
+
+    ``window_s`` > 0: keep asking for that long and return every name seen (a session
+    opened a moment ago may not have found its peers yet).
+    """
+    deadline = time.monotonic() + window_s
+    out: set[str] = set()
+    while True:
+        for r in session.liveliness().get(keys.alive_all(rig), timeout=timeout_s):
+            if r.ok is not None:
+                out.add(str(r.ok.key_expr).rsplit("/", 1)[-1])
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return sorted(out)
+        time.sleep(min(0.1, left))

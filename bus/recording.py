@@ -13,16 +13,18 @@ damage.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import foxglove.messages as fg
+import zenoh
 from mcap.exceptions import McapError
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -32,6 +34,7 @@ from bus.node import Node
 from bus.schemas import (
     ALL_TYPES,
     AnyMsg,
+    Image,
     MalformedMessage,
     Msg,
     RobotState,
@@ -44,6 +47,8 @@ from bus.schemas import (
     type_name,
 )
 from configs.schema import BusConfig
+
+log = logging.getLogger(__name__)
 
 _BY_TAG: dict[str, type[Msg]] = {type_name(t): t for t in ALL_TYPES}
 
@@ -453,6 +458,45 @@ class Recorder(Node):
             super().close()
 
 
+#: Message types :func:`replay` publishes by default: what sensors and driver nodes
+#: report. Everything else (e-stop commands and acks, robot commands, reset requests,
+#: MPC plans, model updates, pings) can change what a live rig does and needs
+#: ``include_commands``. A new sensor message type must be added here to replay by default.
+REPLAY_DATA_TYPES: tuple[type[Msg], ...] = (RobotState, SpecMsg, Image)
+
+
+class ReplayRefused(RuntimeError):
+    """Replay would publish onto a rig that has live driver nodes."""
+
+
+@dataclass
+class ReplayStats:
+    """What :func:`replay` did: messages published, and what it left out and why."""
+
+    published: int = 0
+    #: topic → messages not published because they are commands (``include_commands`` off)
+    skipped_commands: dict[str, int] = field(default_factory=dict)
+    #: messages left out by the ``topics`` filter
+    skipped_by_filter: int = 0
+
+
+def topic_filter(patterns: list[str] | None) -> Callable[[str], bool]:
+    """A predicate from Zenoh key-expression patterns (``*`` one segment, ``**`` any).
+
+    None or empty: every topic. A malformed pattern raises ValueError naming it.
+    """
+    if not patterns:
+        return lambda topic: True
+    exprs = []
+    for p in patterns:
+        try:
+            exprs.append(zenoh.KeyExpr(p))
+        except Exception as e:  # zenoh raises ZError; say which pattern is wrong
+            why = str(e).split(" at /", 1)[0]  # drop the Rust source location
+            raise ValueError(f"bad topic pattern {p!r}: {why}") from None
+    return lambda topic: any(e.intersects(zenoh.KeyExpr(topic)) for e in exprs)
+
+
 def replay(
     path: str | Path,
     bus: BusConfig | None = None,
@@ -460,23 +504,62 @@ def replay(
     rig: str | None = None,
     session: Any = None,
     topics: list[str] | None = None,
-) -> int:
+    include_commands: bool = False,
+    force: bool = False,
+    live_check_s: float = 0.5,
+) -> ReplayStats:
     """Publish a recording back onto the bus, timed by log time / ``speed`` (0: as fast as possible).
 
-    ``rig`` remaps ``hil/<old>/...`` keys to ``hil/<rig>/...``. Messages are re-sent
-    byte-identical to what was recorded (same stamps and sequence numbers)."""
+    By default only sensor and state messages (:data:`REPLAY_DATA_TYPES`) are
+    published; ``include_commands`` adds commands, e-stops, resets, plans and model
+    updates. ``topics``: Zenoh key-expression patterns matched against the recorded
+    topics (``hil/*/pm/state``, ``hil/**/image``). ``rig`` remaps ``hil/<old>/...``
+    keys to ``hil/<rig>/...``.
+
+    Before the first message to a rig, its liveliness tokens are checked for
+    ``live_check_s``: if a driver node is alive there, :class:`ReplayRefused` is
+    raised (nothing is published to it) unless ``force`` (then a warning is logged). Messages are re-sent
+    byte-identical to what was recorded (same stamps and sequence numbers).
+    """
+    from bus.node import alive_nodes
     from bus.session import open_session
 
+    wanted = topic_filter(topics)
     own = session is None
     s = session if session is not None else open_session(bus)
     pubs: dict[str, Any] = {}
-    n = 0
+    checked_rigs: set[str] = set()
+    stats = ReplayStats()
     t0_log = None
     t0_wall = time.monotonic()
     try:
         for rm in iter_messages(path):
-            if topics and rm.topic not in topics:
+            if not wanted(rm.topic):
+                stats.skipped_by_filter += 1
                 continue
+            if not include_commands and not isinstance(rm.msg, REPLAY_DATA_TYPES):
+                stats.skipped_commands[rm.topic] = stats.skipped_commands.get(rm.topic, 0) + 1
+                continue
+            topic = rm.topic
+            parts = topic.split("/", 2)
+            if rig is not None and len(parts) == 3:
+                topic = f"hil/{rig}/{parts[2]}"
+                parts = topic.split("/", 2)
+            target = parts[1] if len(parts) == 3 else None
+            if target is not None and target not in checked_rigs:
+                # (also gives a fresh session time to meet its listeners before the first put)
+                live = [
+                    n for n in alive_nodes(s, target, timeout_s=0.2, window_s=live_check_s)
+                    if n.startswith(keys.DRIVER_NODE_PREFIX)
+                ]
+                if live and not force:
+                    raise ReplayRefused(
+                        f"rig {target!r} has live driver nodes ({', '.join(live)}): replaying onto it would mix "
+                        "recorded and live data; stop them, replay under another --rig, or pass --force"
+                    )
+                if live:
+                    log.warning("forced: replaying onto rig %r with live driver nodes (%s)", target, ", ".join(live))
+                checked_rigs.add(target)
             if t0_log is None:
                 t0_log = rm.log_time_ns
             if speed > 0:
@@ -484,21 +567,17 @@ def replay(
                 delay = due - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            topic = rm.topic
-            if rig is not None:
-                parts = topic.split("/", 2)
-                topic = f"hil/{rig}/{parts[2]}" if len(parts) == 3 else topic
             p = pubs.get(topic)
             if p is None:
                 p = pubs[topic] = s.declare_publisher(topic)
             p.put(encode(rm.msg))
-            n += 1
+            stats.published += 1
     finally:
         for p in pubs.values():
             p.undeclare()
         if own:
             s.close()
-    return n
+    return stats
 
 
 def summarize(path: str | Path, gap_factor: float = 3.0) -> dict[str, Any]:

@@ -53,9 +53,26 @@ class Command(Msg, tag="hil.Command/1"):
 
 
 class EStop(Msg, tag="hil.EStop/1"):
+    """Engage (``engaged=True``) or release the rig's latched e-stop."""
+
     engaged: bool = True
     reason: str = ""
     source: str = ""
+    #: unique id of this command (repeats of one command share it); acks quote it
+    id: str = ""
+
+
+class EStopAck(Msg, tag="hil.EStopAck/1"):
+    """A driver node's answer to an ``EStop``: the state its robot is now in."""
+
+    #: the driver node's name (``driver-<robot>``)
+    node: str
+    robot: str
+    #: True: stopped and refusing commands; False: released (active again)
+    engaged: bool
+    #: ``EStop.id`` of the command answered
+    estop_id: str = ""
+    detail: str = ""
 
 
 class Plan(Msg, tag="hil.Plan/1"):
@@ -109,8 +126,10 @@ class Ping(Msg, tag="hil.Ping/1"):
     data: bytes = b""
 
 
-ALL_TYPES: tuple[type[Msg], ...] = (RobotState, Command, EStop, Plan, Image, SpecMsg, ModelUpdate, ResetEvent, Ping)
-AnyMsg = RobotState | Command | EStop | Plan | Image | SpecMsg | ModelUpdate | ResetEvent | Ping
+ALL_TYPES: tuple[type[Msg], ...] = (
+    RobotState, Command, EStop, EStopAck, Plan, Image, SpecMsg, ModelUpdate, ResetEvent, Ping
+)
+AnyMsg = RobotState | Command | EStop | EStopAck | Plan | Image | SpecMsg | ModelUpdate | ResetEvent | Ping
 
 T = TypeVar("T", bound=Msg)
 

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from bus import keys
+from bus.cycle import CycleTimer
 from bus.node import Node
 from bus.schemas import Command, Plan, ResetEvent, RobotState, SpecMsg
 from configs.schema import BusConfig
@@ -66,6 +67,8 @@ class EpisodeLog:
     plan_times_s: list[float] = field(default_factory=list)
     late_plans: int = 0
     timeouts: int = 0
+    #: realtime mode: the cycle timer's summary (late/missed periods, p50/p99 per section)
+    timing: dict[str, Any] = field(default_factory=dict)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         return np.array(self.states), np.array(self.actions_norm)
@@ -199,7 +202,11 @@ class ControllerNode(Node):
     def run_realtime(self, policy: Policy, steps: int, period_s: float | None = None,
                      deadline_frac: float = 0.8,
                      stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
-        """Fixed-rate commands; planning in a worker with a deadline of ``deadline_frac`` periods."""
+        """Fixed-rate commands; planning in a worker with a deadline of ``deadline_frac`` periods.
+
+        Paced by :class:`bus.cycle.CycleTimer` (``self.cycle`` afterwards: late and
+        missed periods, p50/p99 of the wait for the plan); ``log.timing`` holds its summary.
+        """
         spec = self.wait_ready()
         period = period_s or spec["period_s"]
         log = EpisodeLog()
@@ -223,9 +230,12 @@ class ControllerNode(Node):
         th.start()
         fallback: list[np.ndarray] = []  # remaining actions of the last good plan
         busy = False
-        next_t = time.monotonic()
+        timer = self.cycle = CycleTimer(period, sleep=self.stop_event.wait)
+        timer.start()
         try:
-            for _ in range(steps):
+            for i in range(steps):
+                if i:
+                    timer.wait()
                 if self.stop_event.is_set():
                     break
                 s = self.next_state()
@@ -237,7 +247,8 @@ class ControllerNode(Node):
                     ready.clear()
                     go.set()
                     busy = True
-                got = ready.wait(max(0.0, next_t + deadline_frac * period - time.monotonic()))
+                with timer.section("plan_wait"):
+                    got = ready.wait(max(0.0, timer.deadline_s(deadline_frac) - time.monotonic()))
                 if got:
                     a, plan, dt, _ = job["result"]
                     busy = False
@@ -253,15 +264,10 @@ class ControllerNode(Node):
                 log.actions.append(a_sent)
                 log.actions_norm.append(self.scale.to_norm(a_sent))
                 log.times_s.append(s.t_s)
-                next_t += period
-                delay = next_t - time.monotonic()
-                if delay > 0:
-                    self.stop_event.wait(delay)
-                else:
-                    next_t = time.monotonic()
         finally:
             done.set()
             th.join(1.0)
+            log.timing = timer.summary()
         s = self.next_state()
         log.states.append(np.asarray(s.state))
         log.times_s.append(s.t_s)

@@ -33,6 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from bus.cycle import CycleTimer
+
 
 class LifecycleError(RuntimeError):
     """A call that is not allowed in the driver's current lifecycle state."""
@@ -191,7 +193,7 @@ class Driver(ABC):
         self._lifecycle = Lifecycle.UNCONFIGURED
         self._held: np.ndarray | None = None
         self._last_write_t: float | None = None
-        self._next_tick: float | None = None
+        self._cycle: CycleTimer | None = None  # paces tick() on the wall clock
         self.last_error: str | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -348,15 +350,15 @@ class Driver(ABC):
         return time.monotonic()
 
     def tick(self) -> None:
-        """Wait until the next control period boundary (wall clock)."""
-        p = self.spec.period_s
-        now = time.monotonic()
-        if self._next_tick is None:
-            self._next_tick = now + p  # the first call waits a full period too: N ticks span N periods
-        elif now - self._next_tick > p:
-            self._next_tick = now  # fell behind by more than a period: resynchronize, no burst
-        time.sleep(max(0.0, self._next_tick - now))
-        self._next_tick += p
+        """Wait until the next control period boundary (wall clock).
+
+        Paced by :class:`bus.cycle.CycleTimer`: the first call waits a full period (N
+        ticks span N periods); after an overrun the late tick returns at once and
+        further missed periods are skipped and counted, never made up in a burst.
+        """
+        if self._cycle is None:
+            self._cycle = CycleTimer(self.spec.period_s)
+        self._cycle.wait()
 
     # ------------------------------------------------------------------ hooks
     def _on_configure(self) -> None:  # noqa: B027 - optional hook

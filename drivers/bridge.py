@@ -1,10 +1,12 @@
 """The driver bridge node: any contract robot on the bus.
 
-Each period: take the e-stop (latched), take the newest command, apply it or hold the
-safe action, read, publish the state. Safety is local: the robot is stopped when
-commands go stale (``watchdog_periods`` control periods without a new command,
-default 3), when an e-stop arrives, or when a command is invalid, whatever other
-nodes do.
+Each period: take the e-stop commands (latched; each acknowledged on
+``hil/<rig>/estop/ack``), take the newest command, apply it or hold the safe action,
+read, publish the state. Safety is local: the robot is stopped when commands go stale
+(``watchdog_periods`` control periods without a new command, default 3), when an
+e-stop arrives, or when a command is invalid, whatever other nodes do. At start the
+node asks the rig's other nodes for a latched e-stop (``estop_sync_s``) and, when one
+is engaged, starts stopped and refuses commands until a release (bus/estop.py).
 
 Pacing: wall-clock backends (real, emulated) and sim backends in ``realtime`` pace
 run on the wall clock. In ``lockstep`` pace (sim only) the simulation advances one
@@ -17,13 +19,14 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
 
 from bus import keys
 from bus.node import Node
-from bus.schemas import Command, EStop, ResetEvent, RobotState, SpecMsg
+from bus.schemas import Command, EStop, EStopAck, ResetEvent, RobotState, SpecMsg
 from configs.schema import BusConfig
 from drivers.base import CommandError, Driver, LinkError
 
@@ -37,6 +40,8 @@ class BridgeStats:
     commands_rejected: int = 0
     stale_stops: int = 0
     estops: int = 0
+    #: commands ignored because the e-stop is engaged
+    estop_refused: int = 0
     lockstep_timeouts: int = 0
     last_reject: str = ""
 
@@ -51,9 +56,10 @@ class DriverNode(Node):
         watchdog_periods: float = 3.0,
         pace: str = "realtime",
         lockstep_timeout_s: float = 5.0,
+        estop_sync_s: float = 1.0,
         **node_kw,
     ):
-        super().__init__(f"driver-{robot}", rig, bus, **node_kw)
+        super().__init__(keys.driver_node(robot), rig, bus, **node_kw)
         if pace == "lockstep" and driver.backend != "sim":
             raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
         self.driver = driver
@@ -61,13 +67,15 @@ class DriverNode(Node):
         self.pace = pace
         self.watchdog_s = watchdog_periods * driver.spec.period_s
         self.lockstep_timeout_s = lockstep_timeout_s
+        #: how long a starting node asks its peers for a latched e-stop [s]
+        self.estop_sync_s = estop_sync_s
         self.stats = BridgeStats()
         self.estopped = False
         self.stopped_reason = "waiting"
         self._state_pub = self.publisher(keys.state(rig, robot), RobotState)
         self._spec_pub = self.publisher(keys.spec(rig, robot), SpecMsg)
         self._cmd = self.subscribe(keys.cmd(rig, robot), Command)
-        self._estop = self.subscribe(keys.estop(rig), EStop)
+        self._estop_ack = self.publisher(keys.estop_ack(rig), EStopAck)
         self._reset_req = self.subscribe(keys.reset(rig, "request"), ResetEvent)
         self._reset_done = self.publisher(keys.reset(rig, "done"), ResetEvent)
         self.episode = 0
@@ -80,23 +88,42 @@ class DriverNode(Node):
         # lockstep staleness is measured in robot time, realtime in wall time
         return self.driver.now() if self.pace == "lockstep" else time.monotonic()
 
-    def _handle_estop(self) -> None:
-        m = self._estop.poll()
-        if m is None:
+    def _engage(self, m: EStop) -> None:
+        if self.estopped:
             return
-        if m.engaged and not self.estopped:
-            self.estopped = True
-            self.stats.estops += 1
-            log.warning("e-stop from %s: %s", m.source or "?", m.reason)
-            self.driver.stop()
-            self.driver.deactivate()
-            self.stopped_reason = "estop"
-        elif not m.engaged and self.estopped:
-            # release: re-activate holding the measured state; commands must come anew
-            self.estopped = False
+        self.estopped = True
+        self.stats.estops += 1
+        log.warning("e-stop from %s: %s", m.source or "?", m.reason)
+        self.driver.stop()
+        self.driver.deactivate()
+        self.stopped_reason = "estop"
+
+    def _release(self, m: EStop) -> str:
+        """Re-activate holding the measured state; commands must come anew. '' or why not."""
+        if not self.estopped:
+            return ""
+        try:
             self.driver.activate()
-            self._last_cmd_t = None
-            self.stopped_reason = "waiting"
+        except Exception as e:  # the link may be down: stay stopped, say why in the ack
+            log.error("e-stop release from %s failed: %s", m.source or "?", e)
+            return f"release failed: {e}"
+        log.warning("e-stop released by %s", m.source or "?")
+        self.estopped = False
+        self._last_cmd_t = None
+        self.stopped_reason = "waiting"
+        return ""
+
+    def _handle_estop(self) -> None:
+        """Apply every e-stop command heard since the last period and acknowledge each."""
+        for m in self.estop.take():
+            detail = ""
+            if m.engaged:
+                self._engage(m)
+            else:
+                detail = self._release(m)
+            self._estop_ack.put(
+                EStopAck(node=self.name, robot=self.robot, engaged=self.estopped, estop_id=m.id, detail=detail)
+            )
 
     def _handle_reset(self) -> bool:
         """Serve a reset request; True when the robot was reset (a new episode starts)."""
@@ -122,6 +149,8 @@ class DriverNode(Node):
 
     def _apply(self, cmd: Command | None) -> None:
         if self.estopped:
+            if cmd is not None:
+                self.stats.estop_refused += 1
             return
         if cmd is not None:
             try:
@@ -162,6 +191,7 @@ class DriverNode(Node):
                 "bus_malformed": self.malformed_count(),
                 "commands_rejected": self.stats.commands_rejected,
                 "stale_stops": self.stats.stale_stops,
+                "estop_refused": self.stats.estop_refused,
             },
         )
         self._last_state = self._state_pub.put(msg)
@@ -179,13 +209,17 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------------ loops
     def step(self) -> None:
-        """One realtime period."""
-        self._handle_estop()
-        self._handle_reset()
-        self._apply(self._cmd.poll())
+        """One realtime period (sections timed by the cycle timer of ``run()``: ``hil up`` prints them)."""
+        timer = self.cycle
+        with timer.section("control") if timer else nullcontext():
+            self._handle_estop()
+            self._handle_reset()
+            self._apply(self._cmd.poll())
         if self.driver.backend == "sim":
-            self.driver.tick()
-        self.publish_state()
+            with timer.section("sim_tick") if timer else nullcontext():
+                self.driver.tick()
+        with timer.section("read_publish") if timer else nullcontext():
+            self.publish_state()
         self.stats.steps += 1
         self._maybe_publish_spec()
 
@@ -220,7 +254,14 @@ class DriverNode(Node):
         d = self.driver
         try:
             d.configure()
-            d.activate()
+            latched = self.estop.sync_from_peers(self.estop_sync_s)
+            if latched is not None:
+                # a late (or restarted) driver: the rig's e-stop is engaged, start stopped
+                self.estopped = True
+                self.stopped_reason = "estop"
+                log.warning("starting with the rig's e-stop engaged (%s: %s)", latched.source or "?", latched.reason)
+            else:
+                d.activate()
             d.stop()  # nothing moves until the first command
             self.publish_spec()
             if self.pace == "lockstep":

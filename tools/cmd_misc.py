@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 
 import typer
 
@@ -64,6 +63,8 @@ def register(app: typer.Typer) -> None:
         finally:
             node.close()
         typer.echo(f"{n} down: {stats}", err=True)
+        if node.cycle is not None:
+            typer.echo(f"{n} timing: {node.cycle.format_summary()}", err=True)
 
     @app.command()
     @user_errors
@@ -71,21 +72,44 @@ def register(app: typer.Typer) -> None:
         rig: str = typer.Argument(..., help="rig name"),
         release: bool = typer.Option(False, "--release", help="release a latched e-stop"),
         reason: str = typer.Option("operator", "--reason"),
+        timeout_s: float = typer.Option(
+            2.0, "--timeout-s", help="how long to wait for every driver node's acknowledgement [s]"
+        ),
         endpoint: str = EndpointOpt,
     ) -> None:
-        """Engage (latched) or release the rig's e-stop."""
-        from bus import keys
-        from bus.node import Node
-        from bus.schemas import EStop
+        """Engage (latched) or release the rig's e-stop; waits for every driver node to acknowledge.
 
-        node = Node("estop-cli", rig, bus_config(endpoint))
-        pub = node.publisher(keys.estop(rig), EStop)
-        # repeat briefly so a node that just connected still gets it
-        for _ in range(5):
-            pub.put(EStop(engaged=not release, reason=reason, source="hil estop"))
-            time.sleep(0.02)
-        node.close()
-        typer.echo(("released" if release else "ENGAGED") + f" e-stop on {rig}", err=True)
+        Exit 0: every driver node alive on the rig acknowledged. Exit 1: none did, or
+        some did not, within --timeout-s (the message names the rig and the nodes).
+        """
+        from bus.estop import command_estop
+        from bus.node import Node
+
+        if not timeout_s > 0:
+            raise UserError("--timeout-s must be > 0")
+        node = Node("estop-cli", rig, bus_config(endpoint), handle_signals=False)
+        try:
+            res = command_estop(node, engaged=not release, reason=reason, timeout_s=timeout_s)
+        finally:
+            node.close()
+        what = "release" if release else "e-stop"
+        if res.ok:
+            state = "released" if release else "ENGAGED"
+            typer.echo(f"{state} e-stop on rig {rig}: acknowledged by {', '.join(res.confirmed)}", err=True)
+            return
+        if not res.confirmed:
+            typer.echo(
+                f"error: {what} on rig {rig} NOT acknowledged: no driver node answered within {timeout_s:g} s"
+                + (f" (alive but silent: {', '.join(res.missing)})" if res.missing else " (no driver node alive)"),
+                err=True,
+            )
+        else:
+            typer.echo(
+                f"error: {what} on rig {rig} acknowledged by {', '.join(res.confirmed)} but NOT by "
+                f"{', '.join(res.missing)} within {timeout_s:g} s",
+                err=True,
+            )
+        raise typer.Exit(1)
 
     @app.command()
     @user_errors
@@ -94,14 +118,31 @@ def register(app: typer.Typer) -> None:
         json_out: bool = typer.Option(False, "--json"),
         endpoint: str = EndpointOpt,
     ) -> None:
-        """List the nodes alive on a rig (liveliness tokens)."""
+        """List the nodes alive on a rig (liveliness tokens) and the e-stop each one holds."""
+        from bus.estop import query_latches
         from bus.node import Node, alive_nodes
 
         node = Node("nodes-cli", rig, bus_config(endpoint), handle_signals=False)
-        time.sleep(0.3)
-        names = [n for n in alive_nodes(node.session, rig) if n != "nodes-cli"]
-        node.close()
+        try:
+            # a fresh session finds its peers over the first few hundred ms: keep asking
+            names = [n for n in alive_nodes(node.session, rig, window_s=0.5) if n != "nodes-cli"]
+            latches = query_latches(node.session, rig)
+        finally:
+            node.close()
+        rows = []
+        for n in names:
+            m = latches.get(n)
+            rows.append({
+                "node": n,
+                "estop": "none heard" if m is None else ("engaged" if m.engaged else "released"),
+                "reason": "" if m is None else m.reason,
+                "source": "" if m is None else m.source,
+            })
         if json_out:
-            echo_json(names)
-        else:
-            typer.echo("\n".join(names) if names else "(no nodes)")
+            echo_json(rows)
+            return
+        if not rows:
+            typer.echo("(no nodes)")
+        for r in rows:
+            why = f" ({r['reason'] or '-'}, from {r['source'] or '?'})" if r["estop"] == "engaged" else ""
+            typer.echo(f"{r['node']:24s} e-stop {r['estop']}{why}")

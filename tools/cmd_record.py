@@ -60,15 +60,45 @@ def register(app: typer.Typer) -> None:
         path: Path = typer.Argument(..., exists=True, dir_okay=False, help="MCAP recording"),
         speed: float = typer.Option(1.0, "--speed", help="playback speed factor; 0 = as fast as possible"),
         rig: str = typer.Option(None, "--rig", help="publish under hil/<rig>/ instead of the recorded rig"),
+        topics: list[str] = typer.Option(
+            None, "--topics", help="only recorded topics matching these key expressions (e.g. 'hil/*/pm/state'); repeatable"
+        ),
+        include_commands: bool = typer.Option(
+            False, "--include-commands", help="also publish commands, e-stops, resets, plans and model updates"
+        ),
+        force: bool = typer.Option(False, "--force", help="replay even onto a rig with live driver nodes"),
         endpoint: str = EndpointOpt,
     ) -> None:
-        """Play a recording back onto the bus at 1x or scaled speed."""
+        """Play a recording back onto the bus (sensor and state topics only, unless --include-commands).
+
+        Refuses when the target rig has live driver nodes, unless --force.
+        """
+        from bus.recording import ReplayRefused, topic_filter
         from bus.recording import replay as do_replay
 
         if speed < 0:
             raise UserError("--speed must be >= 0")
-        n = do_replay(path, bus_config(endpoint), speed=speed, rig=rig)
-        typer.echo(f"replayed {n} messages from {path}", err=True)
+        try:
+            topic_filter(topics)
+        except ValueError as e:
+            raise UserError(f"--topics: {e}") from None
+        try:
+            st = do_replay(
+                path, bus_config(endpoint), speed=speed, rig=rig, topics=topics,
+                include_commands=include_commands, force=force,
+            )
+        except ReplayRefused as e:
+            raise UserError(str(e)) from None
+        typer.echo(f"replayed {st.published} messages from {path}", err=True)
+        if st.skipped_commands:
+            n = sum(st.skipped_commands.values())
+            typer.echo(
+                f"  not replayed: {n} command messages on {', '.join(sorted(st.skipped_commands))} "
+                "(--include-commands to replay them)",
+                err=True,
+            )
+        if st.skipped_by_filter:
+            typer.echo(f"  left out by --topics: {st.skipped_by_filter} messages", err=True)
 
     @app.command()
     @user_errors

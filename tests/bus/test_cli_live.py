@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+from bus import keys
+from bus.node import Node
 from bus.recording import summarize
+from bus.schemas import RobotState
 from tests.bus.test_viz_and_bench import _entities
 
 
 def test_record_and_viz_a_live_rig(bus, spawn, tmp_path):
     ep = bus.endpoint
     up = spawn("up", "pointmass_sim", "--endpoint", ep)
+    # record only once the driver node publishes (its start-up, imports included, varies with load)
+    with Node("test-wait", "pointmass_sim", bus, handle_signals=False) as n:
+        st = n.subscribe(keys.state("pointmass_sim", "pm"), RobotState)
+        assert st.wait(60) is not None, "no state from the driver node"
     rec = spawn("record", "--rig", "pointmass_sim", "--seconds", "3", "--out", str(tmp_path / "s.mcap"),
                 "--endpoint", ep)
     viz = spawn("viz", "--rig", "pointmass_sim", "--seconds", "3", "--save", str(tmp_path / "s.rrd"),

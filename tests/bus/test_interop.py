@@ -221,7 +221,7 @@ def test_our_readers_ignore_the_foxglove_channels(tmp_path, bus):
     assert s["other_channels"][foxglove_pose_topic(RIG, "bot")] == {"schema": "foxglove.PoseInFrame", "count": 20}
     eps = episodes_from_mcap(path)
     assert len(eps) == 1 and eps[0].states.shape == (20, 5)
-    assert replay(path, bus, speed=0) == len(msgs)
+    assert replay(path, bus, speed=0, include_commands=True).published == len(msgs)
     from typer.testing import CliRunner
 
     from tools.cli import app

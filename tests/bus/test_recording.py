@@ -9,8 +9,8 @@ import pytest
 
 from bus import keys
 from bus.node import Node
-from bus.recording import McapLog, Recorder, read_messages, replay, summarize
-from bus.schemas import Command, Image, Plan, RobotState
+from bus.recording import McapLog, Recorder, ReplayRefused, read_messages, replay, summarize
+from bus.schemas import AnyMsg, Command, EStop, Image, Plan, ResetEvent, RobotState, decode
 
 RIG = "rec_test"
 
@@ -108,7 +108,7 @@ def test_record_replay_round_trip_equality(tmp_path, bus):
     th = threading.Thread(target=rec2.record, kwargs={"seconds": 3.0})
     th.start()
     time.sleep(0.5)
-    n = replay(first, bus, speed=0)
+    n = replay(first, bus, speed=0, include_commands=True).published
     th.join()
     rec2.close()
     assert n == len(msgs)
@@ -142,10 +142,11 @@ def test_replay_speed_scales_timing(tmp_path, bus, monkeypatch, speed):
     path = tmp_path / "d.mcap"
     with McapLog(path) as log:
         for i in range(11):
-            log.write(keys.cmd(RIG, "pm"), Command(robot="pm", action=[float(i)]), log_time_ns=int(i * 0.05e9))
+            log.write(keys.state(RIG, "pm"), RobotState(robot="pm", t_s=i * 0.05, state=[float(i)]),
+                      log_time_ns=int(i * 0.05e9))
     clock = _FakeClock()
     monkeypatch.setattr(recording, "time", clock)
-    assert replay(path, bus, speed=speed) == 11
+    assert replay(path, bus, speed=speed, live_check_s=0.0).published == 11
     # one wait per message after the first, each 50 ms of log time / speed
     assert clock.sleeps == pytest.approx([0.05 / speed] * 10)
     assert clock.now_s - 100.0 == pytest.approx(0.5 / speed)
@@ -335,3 +336,87 @@ def test_repair_turns_a_crashed_file_into_a_finished_one(tmp_path):
     log.close()
     r = CliRunner().invoke(app, ["repair", str(crashed), "--out", str(crashed)])
     assert r.exit_code == 2 and "is the recording itself" in r.output
+def _mixed_recording(path, n: int = 20):
+    """States interleaved with the commands a live rig must never get from a replay."""
+    with McapLog(path) as log:
+        for i in range(n):
+            t = int(i * 1e6)
+            log.write(keys.state(RIG, "pm"), RobotState(robot="pm", t_s=i * 0.02, state=[float(i)]), log_time_ns=t)
+            log.write(keys.cmd(RIG, "pm"), Command(robot="pm", action=[9.0, 9.0]), log_time_ns=t + 1)
+            log.write(keys.estop(RIG), EStop(engaged=i % 2 == 0), log_time_ns=t + 2)
+            log.write(keys.reset(RIG, "request"), ResetEvent(robot="pm", phase="request"), log_time_ns=t + 3)
+            log.write(keys.plan(RIG), Plan(robot="pm", actions=[[0.0, 0.0]]), log_time_ns=t + 4)
+            log.write(keys.image(RIG, "cam"), Image(camera="cam", t_s=0.0, width=1, height=1, data=b"abc"),
+                      log_time_ns=t + 5)
+
+
+class _Listener:
+    def __init__(self, bus, rig=RIG):
+        self.node = Node("listener", rig, bus, handle_signals=False)
+        self.sub = self.node.subscribe(keys.all_of(rig), AnyMsg, latest=False)
+        self.got: list[tuple[str, object]] = []
+
+    def collect(self, until, timeout_s: float = 10.0):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            self.got += [(k, decode(p)) for k, p in self.sub.drain()]
+            if until(self.got):
+                break
+            self.sub.wait_queued(0.1)
+        return self.got
+
+    def topics(self) -> set[str]:
+        return {k for k, _ in self.got}
+
+
+def test_replay_publishes_only_sensor_and_state_topics_by_default(tmp_path, bus):
+    path = tmp_path / "mixed.mcap"
+    _mixed_recording(path)
+    lis = _Listener(bus)
+    try:
+        st = replay(path, bus, speed=0)
+        lis.collect(lambda g: sum(isinstance(m, RobotState) for _, m in g) >= 20 and
+                    sum(isinstance(m, Image) for _, m in g) >= 20)
+        time.sleep(0.2)  # anything else in flight would arrive now
+        lis.collect(lambda g: False, 0.1)
+    finally:
+        lis.node.close()
+    assert lis.topics() == {keys.state(RIG, "pm"), keys.image(RIG, "cam")}
+    assert st.published == 40
+    assert st.skipped_commands == {keys.cmd(RIG, "pm"): 20, keys.estop(RIG): 20,
+                                   keys.reset(RIG, "request"): 20, keys.plan(RIG): 20}
+
+
+def test_replay_include_commands_and_topic_patterns(tmp_path, bus):
+    path = tmp_path / "mixed.mcap"
+    _mixed_recording(path, n=5)
+    lis = _Listener(bus)
+    try:
+        st = replay(path, bus, speed=0, include_commands=True, topics=["hil/*/pm/*", "hil/*/estop"])
+        lis.collect(lambda g: len(g) >= 15)
+    finally:
+        lis.node.close()
+    assert lis.topics() == {keys.state(RIG, "pm"), keys.cmd(RIG, "pm"), keys.estop(RIG)}
+    assert st.published == 15 and st.skipped_by_filter == 15 and not st.skipped_commands
+    with pytest.raises(ValueError, match="bad topic pattern 'hil//x'"):
+        replay(path, bus, topics=["hil//x"])
+
+
+def test_replay_refuses_a_rig_with_live_driver_nodes_unless_forced(tmp_path, bus):
+    path = tmp_path / "mixed.mcap"
+    _mixed_recording(path, n=5)
+    driver = Node(keys.driver_node("pm"), "live_rig", bus, handle_signals=False)
+    lis = _Listener(bus, rig="live_rig")
+    try:
+        with pytest.raises(ReplayRefused, match="rig 'live_rig' has live driver nodes \\(driver-pm\\)"):
+            replay(path, bus, speed=0, rig="live_rig")
+        time.sleep(0.2)
+        assert lis.collect(lambda g: False, 0.2) == []  # nothing was published
+        # another rig name is free; --force overrides
+        assert replay(path, bus, speed=0, rig="other_rig").published == 10
+        assert replay(path, bus, speed=0, rig="live_rig", force=True).published == 10
+        lis.collect(lambda g: len(g) >= 10)
+        assert lis.topics() == {keys.state("live_rig", "pm"), keys.image("live_rig", "cam")}
+    finally:
+        lis.node.close()
+        driver.close()

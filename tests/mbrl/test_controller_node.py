@@ -81,6 +81,8 @@ def test_realtime_mode_counts_late_plans_and_keeps_rate(bus, spawn):
         wall = time.monotonic() - t0
     assert log.late_plans >= 5
     assert len(log.actions) == 40
+    # paced by the cycle timer: 39 waits between 40 commands, the plan wait timed per cycle
+    assert log.timing["cycles"] == 39 and log.timing["plan_wait"]["n"] == 40
     # commands went out at the fixed rate despite the slow planner (generous bound: CI load)
     assert wall < 40 * 0.02 * 2.5
     sent = np.array(log.actions_norm)
