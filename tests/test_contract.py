@@ -110,9 +110,9 @@ def rate_of(sp) -> np.ndarray:
 
 
 def test_rate_limit_holds_for_bursts_of_writes_and_across_periods(driver):
-    """Several writes per period, alternating extremes: the applied command moves by at most
-    one period's worth per period (writes at one instant together included), and by at most
-    r·(T + p) between any two writes T apart, on the backend's own clock."""
+    """Several writes per period toward one extreme, then the other: the applied command moves
+    by at most one period's worth per period (writes at one instant together included), and
+    by at most r·(T + p) between any two writes T apart, on the backend's own clock."""
     sp = driver.spec
     n = sp.action.dim
     with driver:
@@ -121,8 +121,8 @@ def test_rate_limit_holds_for_bursts_of_writes_and_across_periods(driver):
         assert sp.action_rate_per_s is not None, "an actuated robot needs a rate limit"
         r, p = sp.action_rate_per_s, sp.period_s
         hist = [(driver.now(), driver.now(), driver.held_command)]
-        for k in range(3):
-            for target in (sp.action.high, sp.action.low, sp.action.high, sp.action.low, sp.action.high):
+        for k, target in enumerate((sp.action.high, sp.action.low, sp.action.high)):
+            for _ in range(5):
                 t0 = driver.now()
                 a = driver.write(target)
                 hist.append((t0, driver.now(), a))
