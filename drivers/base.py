@@ -16,11 +16,11 @@ Shape (after ros2_control's hardware lifecycle and LeRobot's robot base):
 * ``write(action)`` is refused unless ACTIVE, rejects wrong shapes and non-finite values
   with :class:`CommandError`, clamps to limits and the rate limit, and returns the
   action actually applied. The rate limit bounds the applied command over time: between
-  any two applied values (the held command at activation included) the change is at
-  most ``action_rate_per_s * (T + period_s)`` for T seconds apart, so several writes at
-  one instant together move it by at most one period's worth. On activation the held
-  command is what the device is running, from the measured state (``_hold_command``),
-  so nothing jumps.
+  any two applied values T seconds apart (the held command at activation included) the
+  change is at most ``action_rate_per_s * max(T, period_s)``, so several writes at one
+  instant together move it by at most one period's worth (see :meth:`Driver.limit`). On
+  activation the held command is what the device is running (``_hold_command``, from the
+  measured state and what the backend knows of the device), so nothing jumps.
 * ``stop()`` brings the robot to its safe state (the spec's ``safe_action``).
 * ``tick()`` waits for the next control period: wall-clock backends sleep until the
   next period boundary; the sim backend advances physics by one period. A loop written
@@ -115,7 +115,7 @@ class Freshness:
 
     def update(self, t_s: float, finite: bool = True) -> None:
         if finite:
-            self.last_t_s = t_s
+            self.last_t_s = t_s if self.last_t_s is None else max(self.last_t_s, t_s)
         self.nonfinite = not finite
 
     def age_s(self, now_s: float) -> float | None:

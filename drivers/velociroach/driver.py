@@ -453,12 +453,11 @@ class VelociRoachDriver(Driver):
             tel, hb_t = self._tel, self._hb_t
             status = list(self._status)
             latency = self._latency_s
+            inputs_ok, _ = self.inputs.assess(now)
+            ages = self.inputs.ages(now)
         if link is None:
             return Health(ok=False, link_quality=0.0, last_error=self.last_error or err)
         st = link.stats()
-        with self._lock:
-            inputs_ok, _ = self.inputs.assess(now)
-            ages = self.inputs.ages(now)
         extra = {k: v for k, v in st.items() if k not in ("frames_sent", "frames_received", "corrupt_frames",
                                                           "dropped_frames")}
         extra.update({

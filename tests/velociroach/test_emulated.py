@@ -264,7 +264,12 @@ def test_stale_pose_and_nan_telemetry_are_flagged_not_hidden():
         h = drv.health()
         assert h.ok is False and h.extra["pose_age_s"] > drv.params.pose_deadline_s
         assert h.extra["telemetry_age_s"] < drv.params.telemetry_deadline_s
-        assert stale.state[I_X] != first.state[I_X] or stale.state[I_X] == drv.read().state[I_X]
+        for _ in range(3):
+            drive()
+        later = drv.read()
+        # the robot walks on (cranks turning, telemetry fresh) while x stays frozen, flagged
+        assert later.state[I_X] == stale.state[I_X] != first.state[I_X]
+        assert later.flags["stale_pose"] and not later.ok and min(later.state[[I_VEL_L, I_VEL_R]]) > 3.0
         assert drv.lifecycle is Lifecycle.ACTIVE  # a stale pose is not a dead robot
 
 
