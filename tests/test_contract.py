@@ -225,6 +225,11 @@ def test_health(driver):
         for i in inputs:
             assert d[f"{i.name}_age_s"] is not None and d[f"{i.name}_age_s"] <= i.deadline_s, i.name
         obs = driver.read()
+        for _ in range(20):  # a loaded machine can delay a sample past its deadline: retry
+            if obs.ok:
+                break
+            driver.tick()
+            obs = driver.read()
         assert obs.ok and not any(obs.flags.get(i.stale_flag.value, False) for i in inputs)
         assert set(obs.flags) <= FLAG_NAMES
 
