@@ -69,7 +69,7 @@ class Flag(enum.StrEnum):
     STALE_TELEMETRY = "stale_telemetry"
     #: the camera frame is older than its deadline (camera backends)
     STALE_IMAGE = "stale_image"
-    #: the newest sample of an input had NaN/inf (it was not used), or the state has NaN/inf
+    #: a sample with NaN/inf arrived since the last read (it was not used), or the state has NaN/inf
     NONFINITE_INPUT = "nonfinite_input"
     #: the device's own command watchdog stopped it (no command for too long)
     WATCHDOG = "watchdog"
@@ -94,10 +94,11 @@ class Freshness:
 
     Times are on the backend clock [s] (``Driver.now()``: monotonic wall clock for
     real/emulated backends, sim time for sim backends). ``last_t_s`` is the arrival time of
-    the newest *usable* (finite) sample: a non-finite sample is not used, sets
-    ``nonfinite`` and does not refresh the input, so an input that only delivers NaN goes
-    stale. ``fail_after_s`` (optional): an input this old means the device is gone (a
-    frozen robot); the backend takes the error path.
+    the newest *usable* (finite) sample: a non-finite sample is not used and does not
+    refresh the input (an input that only delivers NaN goes stale); it sets ``nonfinite``,
+    which stays set until ``read()`` has reported it (a NaN between two reads is never
+    lost), and counts in ``nonfinite_samples``. ``fail_after_s`` (optional): an input this
+    old means the device is gone (a frozen robot); the backend takes the error path.
     """
 
     name: str
@@ -108,15 +109,19 @@ class Freshness:
     since_t_s: float | None = None
     last_t_s: float | None = None
     nonfinite: bool = False
+    nonfinite_samples: int = 0
 
     def start(self, now_s: float) -> None:
         """Forget every sample; age counts from ``now_s`` for the error deadline."""
-        self.since_t_s, self.last_t_s, self.nonfinite = now_s, None, False
+        self.since_t_s, self.last_t_s, self.nonfinite, self.nonfinite_samples = now_s, None, False, 0
 
     def update(self, t_s: float, finite: bool = True) -> None:
+        """One sample arrived at ``t_s``; ``finite`` False: it had NaN/inf and was not used."""
         if finite:
             self.last_t_s = t_s if self.last_t_s is None else max(self.last_t_s, t_s)
-        self.nonfinite = not finite
+        else:
+            self.nonfinite = True
+            self.nonfinite_samples += 1
 
     def age_s(self, now_s: float) -> float | None:
         """Seconds since the newest usable sample; None before the first."""
@@ -150,16 +155,25 @@ class Inputs:
         for i in self:
             i.start(now_s)
 
-    def assess(self, now_s: float) -> tuple[bool, dict[str, bool]]:
-        """(ok, flags): each input's stale flag, and ``nonfinite_input`` if any newest sample
-        was non-finite; ok is False when any flag is set."""
+    def assess(self, now_s: float, report: bool = False) -> tuple[bool, dict[str, bool]]:
+        """(ok, flags): each input's stale flag, and ``nonfinite_input`` if a non-finite
+        sample arrived since the last report; ok is False when any flag is set. ``read()``
+        passes ``report=True``, which clears the non-finite marks it reports."""
         flags = {i.stale_flag.value: i.stale(now_s) for i in self}
         flags[Flag.NONFINITE_INPUT.value] = any(i.nonfinite for i in self)
+        if report:
+            for i in self:
+                i.nonfinite = False
         return not any(flags.values()), flags
 
     def ages(self, now_s: float) -> dict[str, float | None]:
-        """``{"<input>_age_s": seconds since its newest usable sample (None: none yet)}``."""
-        return {f"{i.name}_age_s": i.age_s(now_s) for i in self}
+        """``{"<input>_age_s": seconds since its newest usable sample (None: none yet),
+        "<input>_nonfinite_samples": samples dropped for NaN/inf since configure}``."""
+        out: dict[str, float | None] = {}
+        for i in self:
+            out[f"{i.name}_age_s"] = i.age_s(now_s)
+            out[f"{i.name}_nonfinite_samples"] = i.nonfinite_samples
+        return out
 
     def expired(self, now_s: float) -> Freshness | None:
         """The first input past its error deadline, if any."""

@@ -142,17 +142,23 @@ def test_freshness_deadlines_and_ages():
     ins.start(10.0)
     ok, flags = ins.assess(10.0)
     assert not ok and flags == {"stale_pose": True, "stale_telemetry": True, "nonfinite_input": False}
-    assert ins.ages(10.0) == {"pose_age_s": None, "telemetry_age_s": None}
+    assert ins.ages(10.0) == {"pose_age_s": None, "pose_nonfinite_samples": 0, "telemetry_age_s": None,
+                              "telemetry_nonfinite_samples": 0}
     assert ins.expired(10.9) is None and ins.expired(11.1) is pose  # never arrived counts from start
     pose.update(11.0)
     tel.update(11.0)
     assert ins.assess(11.2) == (True, {"stale_pose": False, "stale_telemetry": False, "nonfinite_input": False})
     pose.update(11.1, finite=False)  # a NaN sample: flagged, and it does not refresh the pose
+    pose.update(11.12)  # a good one right after: the NaN is still reported once
     ok, flags = ins.assess(11.15)
     assert not ok and flags["nonfinite_input"] and not flags["stale_pose"]
-    assert ins.ages(11.15)["pose_age_s"] == pytest.approx(0.15)
-    assert ins.assess(11.25)[1]["stale_pose"]  # the deadline counts from the last usable one
-    assert ins.expired(12.05) is pose
+    assert ins.assess(11.15, report=True)[1]["nonfinite_input"]  # read() reports it ...
+    assert ins.assess(11.15) == (True, {"stale_pose": False, "stale_telemetry": False, "nonfinite_input": False})
+    assert ins.ages(11.15)["pose_age_s"] == pytest.approx(0.03) and ins.ages(11.15)["pose_nonfinite_samples"] == 1
+    pose.update(11.16, finite=False)
+    assert ins.ages(11.2)["pose_age_s"] == pytest.approx(0.08)  # ... and the NaN did not refresh it
+    assert ins.assess(11.35)[1]["stale_pose"]  # the deadline counts from the last usable one
+    assert ins.expired(12.1) is None and ins.expired(12.15) is pose  # 1 s after the last usable sample
 
 
 def test_failing_stop_is_reported_in_last_error():

@@ -8,7 +8,8 @@ clock (the mocap system's own stamp is in ``extras["source_t_s"]``). The pose is
 driver's one input (:class:`drivers.base.Freshness`, deadline ``stale_after_s``): ``ok`` is
 False and ``flags["stale_pose"]`` True until a pose arrived and while the newest usable one
 is older than the deadline; a pose with NaN/inf is not used (the last finite one is kept)
-and sets ``flags["nonfinite_input"]``. ``health().extra["pose_age_s"]`` is its age.
+and the next read reports ``flags["nonfinite_input"]``. ``health().extra["pose_age_s"]`` is
+its age.
 ``write()`` accepts only the empty action.
 """
 
@@ -114,7 +115,7 @@ class MocapDriver(Driver):
     def _read(self) -> Observation:
         self._seq += 1
         now = self._poll()
-        ok, flags = self.inputs.assess(now)
+        ok, flags = self.inputs.assess(now, report=True)
         s = self._pose
         if s is None:
             return Observation(now, np.array([0, 0, 0, 1, 0, 0, 0], float), self._seq, ok=False, flags=flags)

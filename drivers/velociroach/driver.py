@@ -15,8 +15,8 @@ gyro, crank angles/velocities, back-EMFs and battery voltage from telemetry.
 
 Inputs and their deadlines (:class:`drivers.base.Freshness`, local monotonic clock at
 arrival): the pose (``pose_deadline_s``) and the telemetry (``telemetry_deadline_s``). A
-stale input, or a newest sample with NaN/inf (not used: the last finite one is kept), makes
-``ok`` False with ``stale_pose`` / ``stale_telemetry`` / ``nonfinite_input``; the firmware's
+stale input, or a sample with NaN/inf since the last read (not used: the last finite one is
+kept), makes ``ok`` False with ``stale_pose`` / ``stale_telemetry`` / ``nonfinite_input``; the firmware's
 fault bits are the flags of ``config.fault_flags``. No usable telemetry for
 ``link_timeout_periods`` control periods while the link is open (a frozen robot) takes the
 error path: the stop is sent, the link closed, ``last_error`` says why.
@@ -352,7 +352,7 @@ class VelociRoachDriver(Driver):
             pose = self._pose
             pos, vel, (roll, pitch, yaw) = pose.pos.copy(), pose.vel.copy(), pose.rpy
             pose_t = pose.t_s
-            ok, flags = self.inputs.assess(now)
+            ok, flags = self.inputs.assess(now, report=True)
             faults, last_seq = self._robot_faults, self._last_cmd_seq
         s = np.zeros(self.spec.state.dim)
         s[0:3] = pos

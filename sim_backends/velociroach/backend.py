@@ -548,7 +548,7 @@ class VelociRoachSim(LockstepSim):
         # telemetry is computed on demand in the sim: fresh, unless the physics produced NaN
         tel = self.spec.state.index("wx")
         self.inputs["telemetry"].update(now, bool(np.all(np.isfinite(state[tel:]))))
-        ok, flags = self.inputs.assess(now)
+        ok, flags = self.inputs.assess(now, report=True)
         diverged, self._diverged_pending = self._diverged_pending, False
         flags[Flag.SIM_DIVERGED.value] = diverged
         flags.update(fault_flags(fw.faults))

@@ -45,7 +45,7 @@ def test_nonfinite_pose_is_flagged_and_not_used():
         assert obs.ok is False and not obs.flags["stale_pose"]
         np.testing.assert_allclose(obs.state, [0.5, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0])  # the last finite pose
         assert obs.extras["source_t_s"] == 1.0
-        assert not d.health().ok
+        assert d.health().extra["pose_nonfinite_samples"] == 1
         srv.send(1.02, [0.6, 0.0, 0.1], [1.0, 0.0, 0.0, 0.0])
         obs = wait_for(lambda: (o := d.read()).ok and o, 2.0, "a finite pose again")
         assert obs.state[0] == pytest.approx(0.6) and not obs.flags["nonfinite_input"]

@@ -266,6 +266,7 @@ def test_stale_pose_and_nan_telemetry_are_flagged_not_hidden():
         nan_obs = wait_for(lambda: (o := drv.read()).flags["nonfinite_input"] and o, 3.0, "a NaN telemetry",
                            step=drive)
         assert nan_obs.ok is False and np.all(np.isfinite(nan_obs.state))
+        assert drv.health().extra["telemetry_nonfinite_samples"] > 0
         # the mocap stream stops while the robot drives: x freezes, and says so (the
         # telemetry stays fresh: conditions, not single readings, tolerate a loaded machine)
         stale = wait_for(lambda: (o := drv.read()).flags["stale_pose"] and not o.flags["stale_telemetry"] and o,
