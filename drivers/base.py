@@ -594,10 +594,16 @@ class Driver(ABC):
     def _hold_command(self, obs: Observation) -> np.ndarray:
         """The command the device is running now (from the measurement ``obs`` and what the
         backend knows of the device), so that activation changes nothing. The default, the
-        safe action, is right only for devices that run it whenever they are not commanded."""
+        safe action, is right only for devices that run it whenever they are not commanded;
+        a device without one (position control: "hold where you are") must say what it runs,
+        since zeros would command a jump."""
         if self.spec.safe_action is not None:
             return self.spec.safe_action
-        return np.zeros(self.spec.action.dim)
+        if self.spec.action.dim == 0:
+            return np.zeros(0)  # a sensor
+        raise NotImplementedError(
+            f"{self.spec.name}: no safe action, so _hold_command must return what the device runs "
+            "(e.g. the measured joint positions)")
 
     @abstractmethod
     def _read(self) -> Observation: ...

@@ -161,6 +161,17 @@ def test_freshness_deadlines_and_ages():
     assert ins.expired(12.1) is None and ins.expired(12.15) is pose  # 1 s after the last usable sample
 
 
+def test_a_robot_without_safe_action_must_say_what_it_holds():
+    class NoHold(Fake):
+        _hold_command = Driver._hold_command
+
+    d = NoHold()
+    d.configure()
+    with pytest.raises(NotImplementedError, match="_hold_command"):
+        d.activate()  # never a silent hold of zeros (a jump for position control)
+    assert d.lifecycle is Lifecycle.UNCONFIGURED and d.held_command is None
+
+
 def test_failing_stop_is_reported_in_last_error():
     class BrokenStop(Fake):
         def _stop(self):
