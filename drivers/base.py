@@ -10,10 +10,17 @@ Shape (after ros2_control's hardware lifecycle and LeRobot's robot base):
   with ``last_error`` set. ``with driver:`` configures and activates, and always stops
   and cleans up on exit.
 * ``read()`` returns a timestamped :class:`Observation`; never blocks longer than one period.
+  ``ok`` is False when any fused input is stale or non-finite; ``flags`` uses the one
+  vocabulary :class:`Flag` (every backend, every robot); each input's freshness is a
+  :class:`Freshness` record and ``health().extra`` carries ``<input>_age_s``.
 * ``write(action)`` is refused unless ACTIVE, rejects wrong shapes and non-finite values
   with :class:`CommandError`, clamps to limits and the rate limit, and returns the
-  action actually applied. On activation the held command is the measured state
-  (``_hold_command``) so nothing jumps.
+  action actually applied. The rate limit bounds the applied command over time: between
+  any two applied values T seconds apart (the held command at activation included) the
+  change is at most ``action_rate_per_s * max(T, period_s)``, so several writes at one
+  instant together move it by at most one period's worth (see :meth:`Driver.limit`). On
+  activation the held command is what the device is running (``_hold_command``, from the
+  measured state and what the backend knows of the device), so nothing jumps.
 * ``stop()`` brings the robot to its safe state (the spec's ``safe_action``).
 * ``tick()`` waits for the next control period: wall-clock backends sleep until the
   next period boundary; the sim backend advances physics by one period. A loop written
@@ -24,6 +31,7 @@ Subclasses implement the underscore hooks; the public methods hold the checks.
 
 from __future__ import annotations
 
+import collections
 import enum
 import math
 import time
@@ -46,6 +54,132 @@ class CommandError(ValueError):
 
 class LinkError(RuntimeError):
     """The link to the device is gone or unusable (port vanished, no reply...)."""
+
+
+class Flag(enum.StrEnum):
+    """The one vocabulary of ``Observation.flags``, shared by every backend of every robot.
+
+    A backend reports the flags that apply to it (each True or False); a name outside this
+    vocabulary is refused by :class:`Observation`. Stale and non-finite inputs also make
+    ``ok`` False; device faults (watchdog, battery, motor...) are reported but the reading
+    itself stays valid data.
+    """
+
+    #: the pose (mocap) is older than its deadline, or none arrived yet
+    STALE_POSE = "stale_pose"
+    #: the robot's telemetry is older than its deadline, or none arrived yet
+    STALE_TELEMETRY = "stale_telemetry"
+    #: the camera frame is older than its deadline (camera backends)
+    STALE_IMAGE = "stale_image"
+    #: a sample with NaN/inf arrived since the last read (it was not used), or the state has NaN/inf
+    NONFINITE_INPUT = "nonfinite_input"
+    #: the device's own command watchdog stopped it (no command for too long)
+    WATCHDOG = "watchdog"
+    #: battery below the device's cut-off
+    LOW_BATTERY = "low_battery"
+    #: motor stall or over-current
+    MOTOR_FAULT = "motor_fault"
+    #: the device rejected corrupt frames since its last report
+    RX_CORRUPT = "rx_corrupt"
+    #: the device's own sensor (IMU, encoder) failed to read
+    SENSOR_FAULT = "sensor_fault"
+    #: the simulation diverged and was reset by the physics engine: the reading is not physics
+    SIM_DIVERGED = "sim_diverged"
+
+
+FLAG_NAMES: frozenset[str] = frozenset(f.value for f in Flag)
+
+
+@dataclass
+class Freshness:
+    """One input a backend fuses (pose, telemetry, camera frame) and its freshness deadline.
+
+    Times are on the backend clock [s] (``Driver.now()``: monotonic wall clock for
+    real/emulated backends, sim time for sim backends). ``last_t_s`` is the arrival time of
+    the newest *usable* (finite) sample: a non-finite sample is not used and does not
+    refresh the input (an input that only delivers NaN goes stale); it sets ``nonfinite``,
+    which stays set until ``read()`` has reported it (a NaN between two reads is never
+    lost), and counts in ``nonfinite_samples``. ``fail_after_s`` (optional): an input this
+    old means the device is gone (a frozen robot); the backend takes the error path.
+    """
+
+    name: str
+    deadline_s: float
+    stale_flag: Flag
+    fail_after_s: float | None = None
+    #: the clock value when the backend started waiting for this input (configure)
+    since_t_s: float | None = None
+    last_t_s: float | None = None
+    nonfinite: bool = False
+    nonfinite_samples: int = 0
+
+    def start(self, now_s: float) -> None:
+        """Forget every sample; age counts from ``now_s`` for the error deadline."""
+        self.since_t_s, self.last_t_s, self.nonfinite, self.nonfinite_samples = now_s, None, False, 0
+
+    def update(self, t_s: float, finite: bool = True) -> None:
+        """One sample arrived at ``t_s``; ``finite`` False: it had NaN/inf and was not used."""
+        if finite:
+            self.last_t_s = t_s if self.last_t_s is None else max(self.last_t_s, t_s)
+        else:
+            self.nonfinite = True
+            self.nonfinite_samples += 1
+
+    def age_s(self, now_s: float) -> float | None:
+        """Seconds since the newest usable sample; None before the first."""
+        return None if self.last_t_s is None else max(0.0, now_s - self.last_t_s)
+
+    def stale(self, now_s: float) -> bool:
+        age = self.age_s(now_s)
+        return age is None or age > self.deadline_s
+
+    def expired(self, now_s: float) -> bool:
+        """Older than ``fail_after_s`` (counting from ``start`` when nothing arrived yet)."""
+        if self.fail_after_s is None:
+            return False
+        ref = self.last_t_s if self.last_t_s is not None else self.since_t_s
+        return ref is not None and now_s - ref > self.fail_after_s
+
+
+class Inputs:
+    """The inputs a backend fuses, assessed together for ``read()`` and ``health()``."""
+
+    def __init__(self, *inputs: Freshness):
+        self._inputs = {i.name: i for i in inputs}
+
+    def __getitem__(self, name: str) -> Freshness:
+        return self._inputs[name]
+
+    def __iter__(self):
+        return iter(self._inputs.values())
+
+    def start(self, now_s: float) -> None:
+        for i in self:
+            i.start(now_s)
+
+    def assess(self, now_s: float, report: bool = False) -> tuple[bool, dict[str, bool]]:
+        """(ok, flags): each input's stale flag, and ``nonfinite_input`` if a non-finite
+        sample arrived since the last report; ok is False when any flag is set. ``read()``
+        passes ``report=True``, which clears the non-finite marks it reports."""
+        flags = {i.stale_flag.value: i.stale(now_s) for i in self}
+        flags[Flag.NONFINITE_INPUT.value] = any(i.nonfinite for i in self)
+        if report:
+            for i in self:
+                i.nonfinite = False
+        return not any(flags.values()), flags
+
+    def ages(self, now_s: float) -> dict[str, float | None]:
+        """``{"<input>_age_s": seconds since its newest usable sample (None: none yet),
+        "<input>_nonfinite_samples": samples dropped for NaN/inf since configure}``."""
+        out: dict[str, float | None] = {}
+        for i in self:
+            out[f"{i.name}_age_s"] = i.age_s(now_s)
+            out[f"{i.name}_nonfinite_samples"] = i.nonfinite_samples
+        return out
+
+    def expired(self, now_s: float) -> Freshness | None:
+        """The first input past its error deadline, if any."""
+        return next((i for i in self if i.expired(now_s)), None)
 
 
 class Lifecycle(enum.Enum):
@@ -153,6 +287,18 @@ class Observation:
     #: extra sensor data: images (H×W×3 uint8), raw IMU, mocap pose...
     extras: dict[str, Any] = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.flags) - FLAG_NAMES)
+        if unknown:
+            raise ValueError(f"observation flags {unknown} are not in the contract's vocabulary "
+                             f"(drivers.base.Flag): {sorted(FLAG_NAMES)}")
+        # plain str keys (not Flag members): they serialize the same everywhere
+        self.flags = {str(k): bool(v) for k, v in self.flags.items()}
+
+    def flag(self, name: Flag | str) -> bool:
+        """The flag's value; False when this backend does not report it."""
+        return self.flags.get(str(name), False)
+
 
 @dataclass
 class Health:
@@ -192,7 +338,14 @@ class Driver(ABC):
     def __init__(self) -> None:
         self._lifecycle = Lifecycle.UNCONFIGURED
         self._held: np.ndarray | None = None
-        self._last_write_t: float | None = None
+        # rate-limit references (see ``limit``): anchor time, applied values of the last
+        # period as (t, value), and per channel min of a(s) - r·(s - t0) and max of
+        # a(s) + r·(s - t0) over the older ones
+        self._rate_t0_s: float | None = None
+        self._rate_last_t_s: float | None = None
+        self._rate_recent: collections.deque[tuple[float, np.ndarray]] = collections.deque()
+        self._rate_min: np.ndarray | None = None
+        self._rate_max: np.ndarray | None = None
         self._cycle: CycleTimer | None = None  # paces tick() on the wall clock
         self.last_error: str | None = None
 
@@ -220,8 +373,7 @@ class Driver(ABC):
         self._require(Lifecycle.CONFIGURED, "activate")
         try:
             obs = self.read()
-            self._held = np.asarray(self._hold_command(obs), dtype=np.float64).copy()
-            self._last_write_t = None
+            self._anchor(np.asarray(self._hold_command(obs), dtype=np.float64), self.now())
             self._on_activate()
         except Exception as e:
             self.fail(e)
@@ -250,12 +402,15 @@ class Driver(ABC):
             self._lifecycle = Lifecycle.UNCONFIGURED
 
     def fail(self, error: BaseException | str) -> None:
-        """The error path: stop the robot (best effort), close, go UNCONFIGURED."""
+        """The error path: stop the robot (best effort), close, go UNCONFIGURED.
+
+        ``_stop`` must send the stop whenever the port is still open, whatever failed
+        (a crashed reader thread, a frozen robot): only a dead link excuses it."""
         self.last_error = str(error)
         try:
             self._stop()
-        except Exception:
-            pass  # the link may be the thing that failed; keep going to cleanup
+        except Exception as e:  # the link may be the thing that failed; keep going to cleanup
+            self.last_error = f"{self.last_error}; the stop was not sent: {type(e).__name__}: {e}"
         try:
             self._on_cleanup()
         except Exception:
@@ -280,7 +435,12 @@ class Driver(ABC):
     def read(self) -> Observation:
         if self._lifecycle is Lifecycle.UNCONFIGURED:
             raise LifecycleError(f"{self.spec.name}: read() needs configure() first")
-        return self._read()
+        obs = self._read()
+        if not np.all(np.isfinite(obs.state)):
+            # whatever the backend missed: NaN/inf in the state is never a healthy reading
+            obs.ok = False
+            obs.flags[Flag.NONFINITE_INPUT.value] = True
+        return obs
 
     def validate(self, action: Any) -> np.ndarray:
         """Shape and finiteness check; returns a float64 vector. Raises CommandError."""
@@ -300,17 +460,76 @@ class Driver(ABC):
         return a
 
     def limit(self, a: np.ndarray, now_s: float) -> np.ndarray:
-        """Clamp to the spec's limits and rate limit relative to the held command."""
+        """Clamp to the spec's limits and to the rate limit; ``now_s`` on the backend clock.
+
+        The rate limit is a property of the applied command over time, not of one write:
+        with r = ``action_rate_per_s`` and p = ``period_s``, every applied value a(t) keeps
+        |a(t) - a(s)| <= r·max(t - s, p) against every earlier applied value a(s) since the
+        last anchor (activation, stop, or the clock going back on a sim reset). Writes
+        within one period therefore move it by at most r·p together, one write after
+        another at the control rate by r·p each, and over T seconds by at most
+        r·max(T, p) <= r·(T + p).
+
+        References younger than p are kept as they are (bound r·p); older ones are folded
+        into two running extremes per channel, because r·(t - s) is linear in t:
+        min_s(a(s) - r·s) and max_s(a(s) + r·s), with s relative to the anchor time.
+        """
         sp = self.spec
         a = np.clip(a, sp.action.low, sp.action.high)
         rate = sp.action_rate_per_s
-        if rate is not None and self._held is not None:
-            dt = sp.period_s if self._last_write_t is None else max(now_s - self._last_write_t, 0.0)
-            # at least one period's worth: a late write must not be frozen by a tiny dt
-            dt = max(dt, sp.period_s)
-            step = rate * dt
-            a = np.clip(a, self._held - step, self._held + step)
-        return a
+        if rate is None or self._held is None:
+            return a
+        if self._rate_t0_s is None or now_s < self._rate_last_t_s:
+            self._anchor(self._held, now_s)  # the clock went back (sim reset): restart from the held command
+        self._fold_references(now_s)
+        lim = np.isfinite(rate)
+        r = rate[lim]
+        step = r * sp.period_s
+        hi = self._rate_min[lim] + r * (now_s - self._rate_t0_s)
+        lo = self._rate_max[lim] - r * (now_s - self._rate_t0_s)
+        if self._rate_recent:
+            recent = np.array([v[lim] for _, v in self._rate_recent])
+            hi = np.minimum(hi, recent.min(axis=0) + step)
+            lo = np.maximum(lo, recent.max(axis=0) - step)
+        # the held command lies in [lo, hi] by construction; min/max keep that under rounding
+        held = self._held[lim]
+        a[lim] = np.minimum(np.maximum(a[lim], np.minimum(lo, held)), np.maximum(hi, held))
+        return np.clip(a, sp.action.low, sp.action.high)
+
+    #: more references than this within one period (a tight write loop): the oldest are
+    #: folded early, which only makes the limit stricter
+    _MAX_RECENT_REFERENCES = 256
+
+    def _fold_references(self, now_s: float) -> None:
+        rate = self.spec.action_rate_per_s
+        p = self.spec.period_s
+        q = self._rate_recent
+        while q and (now_s - q[0][0] >= p or len(q) > self._MAX_RECENT_REFERENCES):
+            s, v = q.popleft()
+            ds = np.where(np.isfinite(rate), rate, 0.0) * (s - self._rate_t0_s)
+            self._rate_min = np.minimum(self._rate_min, v - ds)
+            self._rate_max = np.maximum(self._rate_max, v + ds)
+
+    def _anchor(self, value: np.ndarray, now_s: float) -> None:
+        """Make ``value`` the held command and the only rate-limit reference.
+
+        The reference is dated one period before ``now_s``, as if the held command had
+        been applied in the period that just ended: the first write may then move one
+        step, the next one period later a second step. Dated ``now_s`` it would share an
+        instant with the first write and stall a ramp for one period."""
+        self._held = np.array(value, dtype=np.float64)
+        t0 = now_s - self.spec.period_s
+        self._rate_t0_s = t0
+        self._rate_last_t_s = now_s
+        self._rate_recent = collections.deque([(t0, self._held.copy())])
+        self._rate_min = np.full(self._held.shape, np.inf)
+        self._rate_max = np.full(self._held.shape, -np.inf)
+
+    def _record_applied(self, a: np.ndarray, now_s: float) -> None:
+        self._held = a.copy()
+        if self.spec.action_rate_per_s is not None and self._rate_t0_s is not None:
+            self._rate_recent.append((now_s, a.copy()))
+            self._rate_last_t_s = now_s
 
     def write(self, action: Any) -> np.ndarray:
         """Validate, clamp, send. Returns the action actually applied."""
@@ -322,17 +541,25 @@ class Driver(ABC):
         now = self.now()
         a = self.limit(a, now)
         self._write(a)
-        self._held = a
-        self._last_write_t = now
+        self._record_applied(a, now)
         return a.copy()
 
     def stop(self) -> None:
-        """Bring the robot to its safe state. Allowed in any state with a link."""
+        """Bring the robot to its safe state. Allowed in any state with a link.
+
+        The stop is not rate limited (safety first); the rate limit restarts from the safe
+        action."""
         if self._lifecycle is Lifecycle.UNCONFIGURED:
             return
         self._stop()
         if self.spec.safe_action is not None:
-            self._held = self.spec.safe_action.copy()
+            self._anchor(self.spec.safe_action, self.now())
+
+    def _rehold(self) -> None:
+        """After the device's state was changed behind the contract (a sim reset), hold what
+        it now runs, anchored at the current time. No-op unless ACTIVE."""
+        if self._lifecycle is Lifecycle.ACTIVE:
+            self._anchor(np.asarray(self._hold_command(self._read()), dtype=np.float64), self.now())
 
     def health(self) -> Health:
         h = self._health()
@@ -374,10 +601,18 @@ class Driver(ABC):
         pass
 
     def _hold_command(self, obs: Observation) -> np.ndarray:
-        """The command that keeps the robot where it is, from a measurement."""
+        """The command the device is running now (from the measurement ``obs`` and what the
+        backend knows of the device), so that activation changes nothing. The default, the
+        safe action, is right only for devices that run it whenever they are not commanded;
+        a device without one (position control: "hold where you are") must say what it runs,
+        since zeros would command a jump."""
         if self.spec.safe_action is not None:
             return self.spec.safe_action
-        return np.zeros(self.spec.action.dim)
+        if self.spec.action.dim == 0:
+            return np.zeros(0)  # a sensor
+        raise NotImplementedError(
+            f"{self.spec.name}: no safe action, so _hold_command must return what the device runs "
+            "(e.g. the measured joint positions)")
 
     @abstractmethod
     def _read(self) -> Observation: ...

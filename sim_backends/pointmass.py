@@ -87,12 +87,17 @@ class PointMassSim(LockstepSim):
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = (x, y)
         mujoco.mj_forward(self.model, self.data)
+        self._rehold()  # mj_resetData zeroed the force: hold that
 
     def _read(self) -> Observation:
         d = self.data
         self._seq += 1
         state = np.array([d.qpos[0], d.qpos[1], d.qvel[0], d.qvel[1]])
         return Observation(t_s=float(d.time), state=state, seq=self._seq)
+
+    def _hold_command(self, obs: Observation) -> np.ndarray:
+        """The force the actuators apply now (what the "device" runs)."""
+        return self.data.ctrl.copy()
 
     def _write(self, action: np.ndarray) -> None:
         self.data.ctrl[:] = action

@@ -5,20 +5,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.base import Driver, Lifecycle, Observation, RobotSpec, Space
+from drivers.base import Driver, Flag, Freshness, Inputs, Lifecycle, Observation, RobotSpec, Space
 
 
 class Fake(Driver):
     backend = "sim"
 
-    def __init__(self, fail_read=False):
+    def __init__(self, fail_read=False, rate=1.0, limit=1.0):
         super().__init__()
         self.spec = RobotSpec(
             name="fake",
             state=Space.build([("q", "rad", -1, 1)]),
-            action=Space.build([("q_cmd", "rad", -1, 1)]),
+            action=Space.build([("q_cmd", "rad", -limit, limit)]),
             period_s=0.1,
-            action_rate_per_s=np.array([1.0]),
+            action_rate_per_s=np.array([rate]),
+            safe_action=None,
         )
         self.q = 0.3
         self.sent = []
@@ -56,6 +57,143 @@ def test_activation_holds_measured_state_and_rate_limits_from_there():
         d.tick()
         assert d.write([-1.0]) == pytest.approx([0.3])
     assert d.lifecycle is Lifecycle.UNCONFIGURED and d.stopped >= 1
+
+
+def test_writes_at_one_instant_cannot_add_up_to_more_than_one_period():
+    # the review's case: held -15, rate·period = 15; the old limiter let -15 -> 0 -> 15
+    d = Fake(rate=150.0, limit=15.0)
+    d.q = -15.0
+    with d:
+        assert d.held_command == pytest.approx([-15.0])
+        got = [d.write([15.0])[0] for _ in range(5)]
+        assert got == pytest.approx([0.0] * 5)
+        # and back down at the same instant: still within one period's worth of every value
+        assert d.write([-15.0]) == pytest.approx([-15.0])
+        assert d.write([15.0]) == pytest.approx([0.0])
+
+
+def test_applied_command_change_is_bounded_over_any_interval():
+    """Random write bursts and clock steps: every pair of applied values (t_i, a_i), (t_j, a_j)
+    satisfies |a_j - a_i| <= r·(|t_j - t_i| + p) (the issue's bound), and
+    the command still reaches its target."""
+    rng = np.random.default_rng(0)
+    r, p = 2.0, 0.1
+    d = Fake(rate=r, limit=1.0)
+    with d:
+        hist = [(d.t, d.held_command[0])]
+        for _ in range(300):
+            d.t += float(rng.choice([0.0, 0.0, 0.01, 0.05, 0.1, 0.3]))
+            hist.append((d.t, d.write([rng.uniform(-3, 3)])[0]))
+        t = np.array([h[0] for h in hist])
+        a = np.array([h[1] for h in hist])
+        bound = r * (np.abs(t[:, None] - t[None, :]) + p)
+        assert np.all(np.abs(a[:, None] - a[None, :]) <= bound + 1e-9)
+        # a held target is reached at the rate, not faster: from the last value to -1
+        start = a[-1]
+        steps = 0
+        while d.write([-1.0])[0] > -1.0 + 1e-12:
+            d.t += p
+            steps += 1
+        assert steps <= int(np.ceil((start + 1.0) / (r * p)))
+
+
+def test_a_ramp_from_activation_moves_one_step_every_period():
+    """One write per period from the held command (0.3): r·p per period, no stall after activation
+    (the held command and the first write share an instant)."""
+    d = Fake(rate=1.0, limit=1.0)
+    with d:
+        got = []
+        for _ in range(5):
+            got.append(d.write([1.0])[0])
+            d.t += 0.1
+        assert got == pytest.approx([0.4, 0.5, 0.6, 0.7, 0.8])  # from the held 0.3
+
+
+def test_clock_going_back_restarts_the_limit_from_the_held_command():
+    d = Fake(rate=1.0)
+    with d:
+        d.t = 5.0
+        assert d.write([1.0]) == pytest.approx([1.0])
+        d.t = 0.0  # a sim reset: time starts again; the limit restarts from the held 1.0
+        assert d.write([-1.0]) == pytest.approx([0.9])
+        assert d.write([-1.0]) == pytest.approx([0.9])
+
+
+def test_stop_reanchors_the_limit_at_the_safe_action():
+    d = Fake(rate=1.0)
+    d.spec = RobotSpec(name="fake", state=d.spec.state, action=d.spec.action, period_s=0.1,
+                       action_rate_per_s=np.array([1.0]), safe_action=np.array([0.0]))
+    with d:
+        d.write([1.0])
+        d.stop()
+        assert d.held_command == pytest.approx([0.0])
+        assert d.write([-1.0]) == pytest.approx([-0.1])
+
+
+def test_flag_vocabulary_is_enforced():
+    Observation(0.0, np.zeros(1), 0, flags={Flag.STALE_POSE: True, "watchdog": False})
+    with pytest.raises(ValueError, match="vocabulary"):
+        Observation(0.0, np.zeros(1), 0, flags={"telemetry_fresh": True})
+    o = Observation(0.0, np.zeros(1), 0, flags={Flag.SIM_DIVERGED: True})
+    assert o.flag(Flag.SIM_DIVERGED) and not o.flag(Flag.STALE_POSE)
+    assert all(type(k) is str for k in o.flags)
+
+
+def test_nonfinite_state_is_never_ok():
+    d = Fake()
+    with d:
+        d.q = float("nan")
+        o = d.read()
+        assert o.ok is False and o.flags["nonfinite_input"]
+
+
+def test_freshness_deadlines_and_ages():
+    pose = Freshness("pose", deadline_s=0.2, stale_flag=Flag.STALE_POSE, fail_after_s=1.0)
+    tel = Freshness("telemetry", deadline_s=0.3, stale_flag=Flag.STALE_TELEMETRY)
+    ins = Inputs(pose, tel)
+    ins.start(10.0)
+    ok, flags = ins.assess(10.0)
+    assert not ok and flags == {"stale_pose": True, "stale_telemetry": True, "nonfinite_input": False}
+    assert ins.ages(10.0) == {"pose_age_s": None, "pose_nonfinite_samples": 0, "telemetry_age_s": None,
+                              "telemetry_nonfinite_samples": 0}
+    assert ins.expired(10.9) is None and ins.expired(11.1) is pose  # never arrived counts from start
+    pose.update(11.0)
+    tel.update(11.0)
+    assert ins.assess(11.2) == (True, {"stale_pose": False, "stale_telemetry": False, "nonfinite_input": False})
+    pose.update(11.1, finite=False)  # a NaN sample: flagged, and it does not refresh the pose
+    pose.update(11.12)  # a good one right after: the NaN is still reported once
+    ok, flags = ins.assess(11.15)
+    assert not ok and flags["nonfinite_input"] and not flags["stale_pose"]
+    assert ins.assess(11.15, report=True)[1]["nonfinite_input"]  # read() reports it ...
+    assert ins.assess(11.15) == (True, {"stale_pose": False, "stale_telemetry": False, "nonfinite_input": False})
+    assert ins.ages(11.15)["pose_age_s"] == pytest.approx(0.03) and ins.ages(11.15)["pose_nonfinite_samples"] == 1
+    pose.update(11.16, finite=False)
+    assert ins.ages(11.2)["pose_age_s"] == pytest.approx(0.08)  # ... and the NaN did not refresh it
+    assert ins.assess(11.35)[1]["stale_pose"]  # the deadline counts from the last usable one
+    assert ins.expired(12.1) is None and ins.expired(12.15) is pose  # 1 s after the last usable sample
+
+
+def test_a_robot_without_safe_action_must_say_what_it_holds():
+    class NoHold(Fake):
+        _hold_command = Driver._hold_command
+
+    d = NoHold()
+    d.configure()
+    with pytest.raises(NotImplementedError, match="_hold_command"):
+        d.activate()  # never a silent hold of zeros (a jump for position control)
+    assert d.lifecycle is Lifecycle.UNCONFIGURED and d.held_command is None
+
+
+def test_failing_stop_is_reported_in_last_error():
+    class BrokenStop(Fake):
+        def _stop(self):
+            raise OSError("port gone")
+
+    d = BrokenStop()
+    d.configure()
+    d.fail("reader crashed")
+    assert d.lifecycle is Lifecycle.UNCONFIGURED
+    assert "reader crashed" in d.last_error and "stop was not sent" in d.last_error
 
 
 def test_nothing_reaches_the_wire_on_bad_input():

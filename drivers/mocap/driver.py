@@ -4,8 +4,13 @@ State: x, y, z [m], qw, qx, qy, qz (body → world), in the mocap world frame (z
 ``params.source`` picks the stream: ``natnet`` (OptiTrack Motive, the real lab setup)
 or ``udp`` (hilstack's pose stream, served by the VelociRoACH emulator). ``read()`` returns
 the newest pose without blocking, stamped with its arrival time on the local monotonic
-clock (the mocap system's own stamp is in ``extras["source_t_s"]``); ``ok`` is False until a pose arrived and while the
-newest one is older than ``stale_after_s``. ``write()`` accepts only the empty action.
+clock (the mocap system's own stamp is in ``extras["source_t_s"]``). The pose is the
+driver's one input (:class:`drivers.base.Freshness`, deadline ``stale_after_s``): ``ok`` is
+False and ``flags["stale_pose"]`` True until a pose arrived and while the newest usable one
+is older than the deadline; a pose with NaN/inf is not used (the last finite one is kept)
+and the next read reports ``flags["nonfinite_input"]``. ``health().extra["pose_age_s"]`` is
+its age.
+``write()`` accepts only the empty action.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ import numpy as np
 from pydantic import Field
 
 from configs.schema import RobotConfig
-from drivers.base import Driver, Health, Observation, RobotSpec, Space
+from drivers.base import Driver, Flag, Freshness, Health, Inputs, Observation, RobotSpec, Space
 from drivers.mocap.base import PoseSource
 from sim_backends.base import Params, parse_params
 
@@ -59,6 +64,9 @@ class MocapDriver(Driver):
         self.spec = mocap_spec(self.params)
         self.source: PoseSource | None = None
         self._seq = 0
+        self.inputs = Inputs(Freshness("pose", self.params.stale_after_s, Flag.STALE_POSE))
+        self._pose = None  # the newest finite sample
+        self._seen = None  # the newest sample looked at (finite or not)
 
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> MocapDriver:
@@ -68,6 +76,8 @@ class MocapDriver(Driver):
 
     def _on_configure(self) -> None:
         p = self.params
+        self.inputs.start(time.monotonic())
+        self._pose = self._seen = None
         if p.source == "udp":
             from drivers.mocap.udp import UdpPoseClient
 
@@ -90,20 +100,32 @@ class MocapDriver(Driver):
         """The UDP port actually bound (useful with ``port: 0``)."""
         return getattr(self.source, "port", None)
 
+    def _poll(self) -> float:
+        """Take the source's newest sample into the freshness record; returns now [s]."""
+        s = self.source.latest() if self.source is not None else None
+        now = time.monotonic()
+        if s is not None and s is not self._seen:
+            self._seen = s
+            finite = bool(np.all(np.isfinite(s.position_m)) and np.all(np.isfinite(s.quaternion_wxyz)))
+            self.inputs["pose"].update(s.received_s if s.received_s is not None else now, finite)
+            if finite:
+                self._pose = s
+        return now
+
     def _read(self) -> Observation:
         self._seq += 1
-        s = self.source.latest()
+        now = self._poll()
+        ok, flags = self.inputs.assess(now, report=True)
+        s = self._pose
         if s is None:
-            return Observation(time.monotonic(), np.array([0, 0, 0, 1, 0, 0, 0], float), self._seq, ok=False,
-                               flags={"no_pose": True})
-        age = time.monotonic() - s.received_s if s.received_s is not None else 0.0
-        fresh = age <= self.params.stale_after_s
+            return Observation(now, np.array([0, 0, 0, 1, 0, 0, 0], float), self._seq, ok=False, flags=flags)
         state = np.concatenate([s.position_m, s.quaternion_wxyz]).astype(np.float64)
         # t_s on the local monotonic clock (arrival), like every wall-clock backend; the
         # mocap system's own stamp is kept in extras (its clock has an unknown offset)
-        t_local = s.received_s if s.received_s is not None else time.monotonic()
-        return Observation(t_local, state, self._seq, ok=fresh, flags={"stale": not fresh},
-                           extras={"age_s": age, "frame_id": s.frame_id, "source_t_s": s.t_s})
+        t_local = s.received_s if s.received_s is not None else now
+        return Observation(t_local, state, self._seq, ok=ok, flags=flags,
+                           extras={"age_s": self.inputs["pose"].age_s(now), "frame_id": s.frame_id,
+                                   "source_t_s": s.t_s})
 
     def _write(self, action: np.ndarray) -> None:
         pass  # a sensor: nothing to command (validation already refused anything non-empty)
@@ -113,15 +135,17 @@ class MocapDriver(Driver):
 
     def _health(self) -> Health:
         st = self.source.stats() if hasattr(self.source, "stats") else {}
-        s = self.source.latest() if self.source is not None else None
-        age = None if s is None or s.received_s is None else time.monotonic() - s.received_s
+        now = self._poll()
+        ok, _ = self.inputs.assess(now)
+        age = self.inputs["pose"].age_s(now)
         n = max(1, st.get("received", 0) + st.get("dropped", 0))
         return Health(
-            ok=s is not None and (age or 0.0) <= self.params.stale_after_s,
-            link_quality=st.get("received", 0) / n if st else (1.0 if s is not None else 0.0),
+            ok=ok and self.source is not None,
+            link_quality=st.get("received", 0) / n if st else (1.0 if self._pose is not None else 0.0),
             frames_received=st.get("received", getattr(self.source, "frames", 0)),
             corrupt_frames=st.get("corrupt", 0),
             dropped_frames=st.get("dropped", getattr(self.source, "dropped", 0)),
             latency_s=age,
             last_error=self.last_error,
+            extra=self.inputs.ages(now),
         )

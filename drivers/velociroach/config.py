@@ -12,7 +12,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from drivers.base import RobotSpec, Space
+from drivers.base import Flag, RobotSpec, Space
+from drivers.velociroach.mavlink import mav
 from sim_backends.base import Params
 
 STATE_CHANNELS: list[tuple[str, str]] = [
@@ -31,25 +32,73 @@ STATE_CHANNELS: list[tuple[str, str]] = [
 STATE_NAMES = tuple(n for n, _ in STATE_CHANNELS)
 
 
+#: the firmware's fault bits (defined once: the ROACH_FAULT enum of dialect/velociroach.xml)
+#: as the contract's flags; every backend reports all of them
+FAULT_FLAGS: dict[int, Flag] = {
+    mav.ROACH_FAULT_WATCHDOG: Flag.WATCHDOG,
+    mav.ROACH_FAULT_LOW_BATTERY: Flag.LOW_BATTERY,
+    mav.ROACH_FAULT_MOTOR: Flag.MOTOR_FAULT,
+    mav.ROACH_FAULT_RX_CORRUPT: Flag.RX_CORRUPT,
+    mav.ROACH_FAULT_SENSOR: Flag.SENSOR_FAULT,
+}
+
+
+def fault_flags(bits: int) -> dict[str, bool]:
+    """The firmware's fault bitmask as contract flags (all five, each True or False)."""
+    return {f.value: bool(bits & bit) for bit, f in FAULT_FLAGS.items()}
+
+
+class EmulatorParams(Params):
+    """``params.emulator``: how the driver starts the firmware emulator (backend emulated)
+    and the faults it injects. Unknown keys are errors."""
+
+    pose: bool = Field(True, description="stream the sim's mocap pose to the driver over UDP")
+    start_timeout_s: float = Field(30.0, gt=0, description="time to import MuJoCo, build the model, print the pty")
+    connect_timeout_s: float = Field(10.0, gt=0, description="time for the first heartbeat and telemetry")
+    keep_log: bool = Field(False, description="keep the emulator's log after cleanup (always kept on failure)")
+    realtime_factor: float = Field(1.0, gt=0, description="sim seconds per wall-clock second")
+    pose_hz: float = Field(100.0, gt=0, description="rate of the UDP pose stream")
+    seed: int = Field(0, description="seed of the fault injection's noise")
+    physics: str | None = Field(None, pattern=r"^[\w.]+:\w+$", description="module:Class of the physics")
+    # fault injection
+    corrupt_every: int = Field(0, ge=0, description="break every N-th frame sent (0: never)")
+    garbage: bool = Field(False, description="noise bytes between frames")
+    silence_after_s: float | None = Field(
+        None, ge=0, description="radio outage both ways S s after the first command (the mocap keeps streaming)")
+    pose_silence_after_s: float | None = Field(
+        None, ge=0, description="mocap outage: the pose stream stops S s after the first command")
+    nonfinite_telemetry_every: int = Field(0, ge=0, description="every N-th telemetry carries NaN sensor values")
+
+
 class VelociRoachParams(Params):
     """Everything configurable about the robot and its link. Units in names."""
 
     action_mode: Literal["leg_velocity", "pwm"] = "leg_velocity"
     max_leg_vel_rps: float = Field(15.0, gt=0, description="crank rev/s at action +1")
-    max_leg_accel_rps2: float = Field(150.0, gt=0, description="rate limit on leg-velocity commands")
+    max_leg_accel_rps2: float = Field(
+        120.0, gt=0,
+        description="rate limit on leg-velocity commands [rev/s²]; one period's worth (12 rev/s at 10 Hz) is the "
+                    "largest setpoint step the firmware PID turns into a current spike below the over-current "
+                    "fault (docs/velociroach.md, 'Rate limit')")
     period_s: float = Field(0.1, gt=0, description="control period (thesis: 10 Hz)")
     # link (real/emulated)
     port: str | None = Field(None, description="serial port of the base-station XBee, e.g. /dev/ttyUSB0")
     baudrate: int = Field(230400, gt=0)
     robot_addr64: str = Field("0013A20040A1B2C3", pattern=r"^[0-9A-Fa-f]{16}$")
     telemetry_hz: float = Field(100.0, gt=0)
+    telemetry_deadline_s: float = Field(
+        0.3, gt=0, description="telemetry older than this is stale: ok=False, flags.stale_telemetry")
+    link_timeout_periods: int = Field(
+        10, ge=1, description="no usable telemetry for this many control periods with the link open: error path")
+    pose_deadline_s: float = Field(
+        0.25, gt=0, description="a mocap pose older than this is stale: ok=False, flags.stale_pose (mocap >= 10 Hz)")
     firmware_watchdog_s: float = Field(0.5, gt=0)
     tlog: str | None = Field(None, description="write every MAVLink frame to this .tlog")
     mocap_udp_port: int | None = Field(
         None, ge=0, le=65535, description="real: receive the robot's mocap pose here (drivers.mocap.udp stream)")
     # sim (ignored by the real driver); the sim backend reads the rest from here too
     sim: dict = Field(default_factory=dict, description="sim backend settings (terrain, motor, battery...)")
-    emulator: dict = Field(default_factory=dict, description="emulator settings (realtime factor...)")
+    emulator: EmulatorParams = Field(default_factory=EmulatorParams, description="emulator settings and fault injection")
 
 
 def velociroach_spec(p: VelociRoachParams) -> RobotSpec:

@@ -12,6 +12,14 @@ the heartbeat (1 Hz); ``read()`` only copies that under a lock, so it never bloc
 State (24-D, see ``config.STATE_CHANNELS``): position and orientation from the mocap pose,
 linear velocity by differencing the pose (low-pass filtered), angular velocity from the
 gyro, crank angles/velocities, back-EMFs and battery voltage from telemetry.
+
+Inputs and their deadlines (:class:`drivers.base.Freshness`, local monotonic clock at
+arrival): the pose (``pose_deadline_s``) and the telemetry (``telemetry_deadline_s``). A
+stale input, or a sample with NaN/inf since the last read (not used: the last finite one is
+kept), makes ``ok`` False with ``stale_pose`` / ``stale_telemetry`` / ``nonfinite_input``; the firmware's
+fault bits are the flags of ``config.fault_flags``. No usable telemetry for
+``link_timeout_periods`` control periods while the link is open (a frozen robot) takes the
+error path: the stop is sent, the link closed, ``last_error`` says why.
 """
 
 from __future__ import annotations
@@ -31,19 +39,19 @@ from typing import Any
 import numpy as np
 
 from configs.schema import ConfigError, RobotConfig
-from drivers.base import Driver, Health, Lifecycle, LinkError, Observation
-from drivers.velociroach.config import VelociRoachParams, quat_to_rpy, velociroach_spec
+from drivers.base import Driver, Flag, Freshness, Health, Inputs, Lifecycle, LinkError, Observation
+from drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
 from drivers.velociroach.link import RadioLink
-from drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, EncodeError, MavEncoder
+from drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, EncodeError, MavEncoder, mav
 from sim_backends.base import parse_params
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 #: the base station's heartbeat rate (MAVLink convention: 1 Hz)
 HEARTBEAT_PERIOD_S = 1.0
-#: time for the emulator to import MuJoCo, build the model and print its pty
-EMULATOR_START_TIMEOUT_S = 30.0
-#: link is "ok" while telemetry is younger than this many telemetry periods (and >= 0.3 s)
-STALE_TELEMETRY_PERIODS = 10
+#: lines of the emulator's log shown in an error
+EMULATOR_LOG_TAIL_LINES = 3
+#: how many of the last commands sent are remembered (by cmd_seq) to know what the firmware runs
+CMD_MEMORY = 256
 #: velocity low-pass: time constant of the pose differencing filter
 VEL_FILTER_TAU_S = 0.05
 
@@ -58,21 +66,23 @@ class PoseFilter:
         self.vel = np.zeros(3)
         self.rpy = (0.0, 0.0, 0.0)
 
-    def update(self, t_s: float, pos: Any, quat_wxyz: Any) -> None:
+    def update(self, t_s: float, pos: Any, quat_wxyz: Any) -> bool:
+        """Fuse one sample; False when it is unusable (NaN/inf, zero quaternion) and skipped."""
         p = np.asarray(pos, dtype=np.float64).reshape(3)
         q = np.asarray(quat_wxyz, dtype=np.float64).reshape(4)
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))) or np.linalg.norm(q) < 1e-6:
-            return  # a mocap dropout (NaN/zero quaternion) is skipped, not propagated
+            return False  # a mocap dropout (NaN/zero quaternion) is skipped, not propagated
         if self.t_s is not None:
             dt = t_s - self.t_s
             if dt <= 0:
-                return  # duplicate or reordered sample
+                return True  # duplicate or reordered sample: nothing new, nothing wrong
             raw = (p - self.pos) / dt
             a = dt / (self.tau_s + dt)
             self.vel = self.vel + a * (raw - self.vel)
         self.t_s = t_s
         self.pos = p
         self.rpy = quat_to_rpy(q / np.linalg.norm(q))
+        return True
 
 
 class VelociRoachDriver(Driver):
@@ -89,16 +99,26 @@ class VelociRoachDriver(Driver):
         self._thread: threading.Thread | None = None
         self._proc: subprocess.Popen | None = None
         self._emu_log: Path | None = None
+        self._keep_emu_log = False  # set when the log explains a failure
         self._pose_client: Any = None
         self._pose = PoseFilter()
-        self._tel: Any = None
+        self._pose_seen: Any = None  # the newest pose sample taken from the client
+        self._tel: Any = None  # the newest telemetry with finite sensor values
         self._tel_t: float | None = None
+        self._last_cmd_seq: int | None = None  # the firmware's echo of the last command it applied
+        self.inputs = Inputs(
+            Freshness("pose", self.params.pose_deadline_s, Flag.STALE_POSE),
+            Freshness("telemetry", self.params.telemetry_deadline_s, Flag.STALE_TELEMETRY,
+                      fail_after_s=self.params.link_timeout_periods * self.params.period_s),
+        )
         self._hb_t: float | None = None
         self._robot_faults = 0
         self._status: list[str] = []
         self._gains_reply: dict[int, Any] = {}
         self._cmd_seq = 0
         self._cmd_sent_t: dict[int, float] = {}
+        #: cmd_seq -> (mode, left, right) of the last CMD_MEMORY commands sent
+        self._cmd_values: dict[int, tuple[str, float, float]] = {}
         self._latency_s: float | None = None
         self._reader_error: str | None = None
         self._failing = False
@@ -121,8 +141,13 @@ class VelociRoachDriver(Driver):
         # the pose: the emulator streams its sim's mocap here; a real rig points a mocap
         # bridge at params.mocap_udp_port
         pose_port = p.mocap_udp_port
-        if self.backend == "emulated" and self.params.emulator.get("pose", True):
+        if self.backend == "emulated" and self.params.emulator.pose:
             pose_port = 0
+        with self._lock:
+            self.inputs.start(time.monotonic())
+            self._tel = self._tel_t = self._last_cmd_seq = None
+            self._pose = PoseFilter()
+            self._pose_seen = None
         if pose_port is not None:
             from drivers.mocap.udp import UdpPoseClient
 
@@ -142,6 +167,7 @@ class VelociRoachDriver(Driver):
         fd, log_path = tempfile.mkstemp(prefix="velociroach-emulator-", suffix=".log")
         os.close(fd)
         self._emu_log = Path(log_path)
+        self._keep_emu_log = False
         cmd = [sys.executable, "-m", "sim_backends.velociroach.emulator", "--print-pty",
                "--config", json.dumps(cfg), "--parent-pid", str(os.getpid())]
         if self._pose_client is not None:
@@ -152,15 +178,16 @@ class VelociRoachDriver(Driver):
             self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=errf, stdin=subprocess.DEVNULL,
                                           cwd=str(REPO_ROOT), env=env)
         assert self._proc.stdout is not None
-        deadline = time.monotonic() + float(self.params.emulator.get("start_timeout_s", EMULATOR_START_TIMEOUT_S))
+        timeout_s = self.params.emulator.start_timeout_s
+        deadline = time.monotonic() + timeout_s
         line = b""
         while not line.endswith(b"\n"):
             left = deadline - time.monotonic()
             if self._proc.poll() is not None:
-                raise LinkError(f"emulator exited with code {self._proc.returncode} before it was ready:\n"
-                                f"{self._emu_tail()}")
+                raise LinkError(self._emu_failure(f"emulator exited with code {self._proc.returncode} before it "
+                                                  "was ready"))
             if left <= 0:
-                raise LinkError(f"emulator did not start within {EMULATOR_START_TIMEOUT_S:.0f} s:\n{self._emu_tail()}")
+                raise LinkError(self._emu_failure(f"emulator did not start within {timeout_s:g} s"))
             r, _, _ = select.select([self._proc.stdout], [], [], min(left, 0.1))
             if r:
                 ch = os.read(self._proc.stdout.fileno(), 1)
@@ -169,16 +196,23 @@ class VelociRoachDriver(Driver):
                 line += ch
         return json.loads(line)["pty"]
 
-    def _emu_tail(self, n: int = 15) -> str:
+    def _emu_tail(self, n: int = EMULATOR_LOG_TAIL_LINES) -> list[str]:
+        """The last ``n`` non-empty lines of the emulator's log."""
         if self._emu_log is None or not self._emu_log.exists():
-            return "(no emulator log)"
-        lines = self._emu_log.read_text(errors="replace").splitlines()
-        return "\n".join(lines[-n:]) or "(emulator log empty)"
+            return []
+        lines = [ln.strip() for ln in self._emu_log.read_text(errors="replace").splitlines() if ln.strip()]
+        return lines[-n:]
+
+    def _emu_failure(self, what: str) -> str:
+        """One line for the user: what happened, the log's last lines, where the whole log is
+        (kept: ``cleanup`` does not delete a log that explains a failure)."""
+        self._keep_emu_log = True
+        tail = " | ".join(self._emu_tail()) or "(the log is empty)"
+        return f"{what}: {tail} (full log: {self._emu_log})"
 
     def _wait_first_contact(self) -> None:
         """Heartbeat and telemetry from the robot, or a LinkError that says what to check."""
-        timeout_s = float(self.params.emulator.get("connect_timeout_s", 10.0)) if self.backend == "emulated" \
-            else 5.0
+        timeout_s = self.params.emulator.connect_timeout_s if self.backend == "emulated" else 5.0
         deadline = time.monotonic() + timeout_s
         self._send(self.enc.heartbeat())
         while time.monotonic() < deadline:
@@ -188,11 +222,11 @@ class VelociRoachDriver(Driver):
                 if self._hb_t is not None and self._tel is not None:
                     return
             time.sleep(0.01)
-        what = "heartbeat" if self._hb_t is None else "telemetry"
-        hint = (f"emulator log:\n{self._emu_tail()}" if self.backend == "emulated" else
-                f"is the robot on, and the base-station XBee on {self.params.port} in API mode 1 at "
-                f"{self.params.baudrate} baud, talking to {self.params.robot_addr64}?")
-        raise LinkError(f"no {what} from the robot within {timeout_s:.0f} s; {hint}")
+        what = f"no {'heartbeat' if self._hb_t is None else 'telemetry'} from the robot within {timeout_s:g} s"
+        if self.backend == "emulated":
+            raise LinkError(self._emu_failure(what))
+        raise LinkError(f"{what}; is the robot on, and the base-station XBee on {self.params.port} in API mode 1 at "
+                        f"{self.params.baudrate} baud, talking to {self.params.robot_addr64}?")
 
     def _on_cleanup(self) -> None:
         self._stop_evt.set()
@@ -218,7 +252,7 @@ class VelociRoachDriver(Driver):
             if self._proc.stdout is not None:
                 self._proc.stdout.close()
             self._proc = None
-        if self._emu_log is not None and not self.params.emulator.get("keep_log", False):
+        if self._emu_log is not None and not (self.params.emulator.keep_log or self._keep_emu_log):
             self._emu_log.unlink(missing_ok=True)
             self._emu_log = None
 
@@ -251,9 +285,14 @@ class VelociRoachDriver(Driver):
         t = m.get_type()
         with self._lock:
             if t == "ROACH_TELEMETRY":
-                self._tel = m
-                self._tel_t = now
+                finite = all(math.isfinite(v) for v in (*m.gyro, *m.accel, *m.crank_angle, *m.crank_vel, *m.bemf,
+                                                        m.vbat, *m.duty))
+                self.inputs["telemetry"].update(now, finite)
+                if finite:  # a NaN packet is flagged and not used: the state keeps the last finite one
+                    self._tel = m
+                    self._tel_t = now
                 self._robot_faults = m.faults
+                self._last_cmd_seq = m.last_cmd_seq
                 sent = self._cmd_sent_t.pop(m.last_cmd_seq, None)
                 if sent is not None:
                     self._latency_s = now - sent
@@ -269,9 +308,12 @@ class VelociRoachDriver(Driver):
 
     def _poll_pose(self) -> None:
         sample = self._pose_client.latest()
-        if sample is not None and sample.t_s != self._pose.t_s:
+        if sample is not None and sample is not self._pose_seen:
+            self._pose_seen = sample
+            arrival = sample.received_s if sample.received_s is not None else time.monotonic()
             with self._lock:
-                self._pose.update(sample.t_s, sample.position_m, sample.quaternion_wxyz)
+                usable = self._pose.update(sample.t_s, sample.position_m, sample.quaternion_wxyz)
+                self.inputs["pose"].update(arrival, usable)
 
     def _send(self, frame: bytes) -> None:
         if self.link is None:
@@ -280,11 +322,21 @@ class VelociRoachDriver(Driver):
 
     # ------------------------------------------------------------------ contract hooks
     def _check_link(self) -> None:
+        """Raise LinkError (after taking the error path) if the reader thread failed or the
+        robot froze: no usable telemetry for ``link_timeout_periods`` with the link open."""
+        now = time.monotonic()
         with self._lock:
             err = self._reader_error
+            gone = self.inputs.expired(now) if err is None else None
+        if gone is not None:
+            age = gone.age_s(now)
+            since = "since the link came up" if age is None else f"for {age:.2f} s"
+            err = (f"no usable {gone.name} from the robot {since} (limit: {self.params.link_timeout_periods} "
+                   f"control periods of {self.params.period_s:g} s) while the link is open: robot frozen, "
+                   "switched off or out of radio range")
         if err:
             if not self._failing and self.lifecycle is not Lifecycle.UNCONFIGURED:
-                # the contract's error path: stop (best effort), close, go UNCONFIGURED
+                # the contract's error path: stop (sent while the port is open), close, UNCONFIGURED
                 self._failing = True
                 try:
                     self.fail(err)
@@ -294,11 +346,14 @@ class VelociRoachDriver(Driver):
 
     def _read(self) -> Observation:
         self._check_link()
+        now = time.monotonic()
         with self._lock:
             tel, tel_t = self._tel, self._tel_t
             pose = self._pose
             pos, vel, (roll, pitch, yaw) = pose.pos.copy(), pose.vel.copy(), pose.rpy
             pose_t = pose.t_s
+            ok, flags = self.inputs.assess(now, report=True)
+            faults, last_seq = self._robot_faults, self._last_cmd_seq
         s = np.zeros(self.spec.state.dim)
         s[0:3] = pos
         s[3:6] = vel
@@ -312,30 +367,62 @@ class VelociRoachDriver(Driver):
             s[23] = tel.vbat
         else:
             s[15], s[17] = 1.0, 1.0
-        now = time.monotonic()
-        fresh = tel_t is not None and now - tel_t < self._stale_s()
+        flags.update(fault_flags(faults))
         self._seq += 1
         return Observation(
             t_s=tel_t if tel_t is not None else now,
-            state=np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0),
+            state=s,
             seq=self._seq,
-            ok=fresh,
-            flags={"telemetry_fresh": fresh, "pose_valid": pose_t is not None,
-                   "watchdog": bool(self._robot_faults & 1)},
-            extras={"faults": self._robot_faults, "t_fw_ms": None if tel is None else tel.time_fw_ms,
+            ok=ok,
+            flags=flags,
+            extras={"faults": faults, "t_fw_ms": None if tel is None else tel.time_fw_ms,
+                    # the command the firmware last applied (its echo) and the last one sent
+                    "last_cmd_seq": last_seq, "cmd_seq_sent": self._cmd_seq,
                     "duty": None if tel is None else list(tel.duty), "pose_t_s": pose_t},
         )
 
-    def _stale_s(self) -> float:
-        return max(0.3, STALE_TELEMETRY_PERIODS / self.params.telemetry_hz)
+    def _hold_command(self, obs: Observation) -> np.ndarray:
+        """What the firmware runs now, from its telemetry: PWM mode reports its applied duty;
+        in leg-velocity mode the setpoint is zero after a watchdog trip or before any
+        command, and the value of the command it echoes (``last_cmd_seq``) when this driver
+        sent it; otherwise (another session's command) the measured crank velocity."""
+        sp = self.spec
+        # a command still in flight (the stop of a deactivate just before) is what the
+        # firmware runs a few ms from now: wait up to one period for its echo
+        deadline = time.monotonic() + sp.period_s
+        while True:
+            with self._lock:
+                tel, last_seq, faults = self._tel, self._last_cmd_seq, self._robot_faults
+                sent = self._cmd_values.get(last_seq) if last_seq is not None else None
+            if self._cmd_seq == 0 or last_seq == self._cmd_seq or time.monotonic() >= deadline:
+                break
+            time.sleep(0.005)
+        if tel is None:
+            return np.zeros(sp.action.dim)
+        mode = self.params.action_mode
+        if mode == "pwm":
+            v = np.array(tel.duty, dtype=np.float64)
+        elif faults & mav.ROACH_FAULT_WATCHDOG or last_seq == 0:
+            v = np.zeros(2)
+        elif sent is not None and sent[0] == mode:
+            v = np.array(sent[1:])
+        else:
+            i = sp.state.index("crank_vel_l")
+            v = obs.state[i:i + 2]
+        return np.clip(v, sp.action.low, sp.action.high)
 
     def _write(self, action: np.ndarray) -> None:
         self._check_link()
+        self._send_command(action)
+
+    def _send_command(self, action: np.ndarray) -> None:
+        """Pack and send one command frame; no health check (the error path uses it too)."""
         self._cmd_seq += 1
         seq = self._cmd_seq
         a, b = float(action[0]), float(action[1])
+        mode = self.params.action_mode
         try:
-            if self.params.action_mode == "leg_velocity":
+            if mode == "leg_velocity":
                 frame = self.enc.leg_velocity(seq, a, b, self.params.max_leg_vel_rps)
             else:
                 frame = self.enc.pwm(seq, a, b)
@@ -344,31 +431,37 @@ class VelociRoachDriver(Driver):
             raise LinkError(f"refused to send a bad command: {e}") from None
         with self._lock:
             self._cmd_sent_t[seq] = time.monotonic()
-            if len(self._cmd_sent_t) > 256:  # never acknowledged (radio loss): forget the oldest
+            if len(self._cmd_sent_t) > CMD_MEMORY:  # never acknowledged (radio loss): forget the oldest
                 del self._cmd_sent_t[min(self._cmd_sent_t)]
+            self._cmd_values[seq] = (mode, a, b)
+            if len(self._cmd_values) > CMD_MEMORY:
+                del self._cmd_values[min(self._cmd_values)]
         self._send(frame)
 
     def _stop(self) -> None:
+        """Send zero: whenever the port is open, also on the error path after a reader crash
+        or a frozen robot (only a dead or closed port excuses it)."""
         if self.link is None or self.link.closed or self.link.dead:
             return
-        self._write(np.zeros(2))
+        self._send_command(np.zeros(2))
 
     def _health(self) -> Health:
         link = self.link
         now = time.monotonic()
         with self._lock:
             err = self._reader_error
-            tel, tel_t, hb_t = self._tel, self._tel_t, self._hb_t
+            tel, hb_t = self._tel, self._hb_t
             status = list(self._status)
             latency = self._latency_s
+            inputs_ok, _ = self.inputs.assess(now)
+            ages = self.inputs.ages(now)
         if link is None:
             return Health(ok=False, link_quality=0.0, last_error=self.last_error or err)
         st = link.stats()
-        fresh = tel_t is not None and now - tel_t < self._stale_s()
         extra = {k: v for k, v in st.items() if k not in ("frames_sent", "frames_received", "corrupt_frames",
                                                           "dropped_frames")}
         extra.update({
-            "telemetry_age_s": None if tel_t is None else now - tel_t,
+            **ages,
             "robot_faults": self._robot_faults,
             "robot_rx_good": None if tel is None else tel.rx_good,
             "robot_rx_corrupt": None if tel is None else tel.rx_corrupt,
@@ -376,7 +469,7 @@ class VelociRoachDriver(Driver):
             "backend": self.backend,
         })
         return Health(
-            ok=bool(fresh and err is None and not link.dead),
+            ok=bool(inputs_ok and err is None and not link.dead),
             link_quality=link.quality(self.params.telemetry_hz, now),
             frames_sent=st["frames_sent"],
             frames_received=st["frames_received"],

@@ -26,8 +26,8 @@ import numpy as np
 from pydantic import Field
 
 from configs.schema import ConfigError, RobotConfig, parse_model
-from drivers.base import Health, Observation
-from drivers.velociroach.config import VelociRoachParams, quat_to_rpy, velociroach_spec
+from drivers.base import Flag, Freshness, Health, Inputs, Observation
+from drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
 from sim_backends.base import LockstepSim, Params, parse_params
 from sim_backends.velociroach.firmware import TICK_S, Firmware, FirmwareConfig, default_ff_v_per_rps
 from sim_backends.velociroach.model import (
@@ -159,6 +159,11 @@ class VelociRoachSim(LockstepSim):
         self.divergences = 0  # MuJoCo integration blow-ups (it resets itself; readings flagged)
         self._badqacc_seen = 0
         self._diverged_pending = False
+        # the inputs the state fuses, on sim time, with the same deadlines as the radio driver
+        self.inputs = Inputs(
+            Freshness("pose", p.pose_deadline_s, Flag.STALE_POSE),
+            Freshness("telemetry", p.telemetry_deadline_s, Flag.STALE_TELEMETRY),
+        )
 
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> VelociRoachSim:
@@ -270,10 +275,12 @@ class VelociRoachSim(LockstepSim):
         self._mocap_queue: collections.deque = collections.deque()
         self._mocap_latest: tuple[float, np.ndarray, np.ndarray] | None = None
         self._mocap_latest_ok = False
+        self.inputs.start(self.sim_time_s)
         self._mocap_sample()
         self._mocap_next_t = self._mocap_period
         self._deliver_mocap(0.0 + s.mocap_latency_s)
         self._seq = 0
+        self._rehold()  # the firmware rebooted: hold what it runs now (zero)
 
     def _wrap(self) -> None:
         """On a (periodic) heightfield, move the robot back by one terrain period when it
@@ -459,10 +466,13 @@ class VelociRoachSim(LockstepSim):
     def _deliver_mocap(self, now_s: float) -> None:
         qd = self._mocap_queue
         while qd and qd[0][0] <= now_s + 1e-9:
-            _, ts, pos, q, ok = qd.popleft()
+            t_arrive, ts, pos, q, ok = qd.popleft()
             self._mocap_latest_ok = ok
             if ok:
-                self._mocap_latest = (ts, pos, q)
+                finite = bool(np.all(np.isfinite(pos)) and np.all(np.isfinite(q)))
+                self.inputs["pose"].update(min(t_arrive, now_s), finite)
+                if finite:
+                    self._mocap_latest = (ts, pos, q)
 
     def mocap_pose(self) -> tuple[float, np.ndarray, np.ndarray] | None:
         """The newest delivered mocap sample: (t_s sample time, position [m] world,
@@ -533,23 +543,30 @@ class VelociRoachSim(LockstepSim):
     def _read(self) -> Observation:
         self._seq += 1
         fw = self.firmware
+        now = self.sim_time_s
+        state = self._state()
+        # telemetry is computed on demand in the sim: fresh, unless the physics produced NaN
+        tel = self.spec.state.index("wx")
+        self.inputs["telemetry"].update(now, bool(np.all(np.isfinite(state[tel:]))))
+        ok, flags = self.inputs.assess(now, report=True)
         diverged, self._diverged_pending = self._diverged_pending, False
-        flags = {
-            "sim_diverged": diverged,
-            "mocap_fresh": bool(self._mocap_latest_ok),
-            "watchdog": bool(fw.faults & 1),
-            "low_battery": bool(fw.faults & 2),
-            "overcurrent": bool(fw.faults & 4),
-        }
-        return Observation(t_s=self.sim_time_s, state=self._state(), seq=self._seq, flags=flags, ok=not diverged,
+        flags[Flag.SIM_DIVERGED.value] = diverged
+        flags.update(fault_flags(fw.faults))
+        return Observation(t_s=now, state=state, seq=self._seq, flags=flags, ok=ok and not diverged,
                            extras={"duty": (fw.duty_l, fw.duty_r), "t_fw_ms": fw.t_fw_ms})
 
     def _hold_command(self, obs: Observation) -> np.ndarray:
-        if self.params.action_mode == "leg_velocity":
+        """What the firmware runs now: its setpoint (zero after a watchdog trip or a reboot)
+        in leg-velocity mode, its applied duty in PWM mode; the measured crank velocity
+        only if the firmware runs PWM while the driver commands leg velocity."""
+        fw = self.firmware
+        if self.params.action_mode == "pwm":
+            v = np.array([fw.duty_l, fw.duty_r])
+        elif fw.mode == "leg_velocity":
+            v = np.array([fw.setpoint_l, fw.setpoint_r])
+        else:
             i = self.spec.state.index("crank_vel_l")
             v = obs.state[i:i + 2]
-        else:
-            v = np.array([self.firmware.duty_l, self.firmware.duty_r])
         return np.clip(v, self.spec.action.low, self.spec.action.high)
 
     def _write(self, action: np.ndarray) -> None:
@@ -569,10 +586,14 @@ class VelociRoachSim(LockstepSim):
     def _health(self) -> Health:
         ok = self.data is not None
         n = max(1, self.mocap_samples)
+        if ok:
+            self._deliver_mocap(self.sim_time_s)
+        inputs_ok = ok and self.inputs.assess(self.sim_time_s)[0]
         return Health(
-            ok=ok,
+            ok=inputs_ok,
             link_quality=1.0 - self.mocap_dropped / n,
             dropped_frames=self.mocap_dropped,
             last_error=self.last_error,
-            extra={"sim_time_s": self.sim_time_s, "faults": self.firmware.faults, "sim_divergences": self.divergences},
+            extra={"sim_time_s": self.sim_time_s, "faults": self.firmware.faults, "sim_divergences": self.divergences,
+                   **self.inputs.ages(self.sim_time_s)},
         )

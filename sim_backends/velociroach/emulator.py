@@ -18,7 +18,10 @@ Fault injection (for tests of the driver's fault handling), as flags or in the c
 a bad XBee checksum and a bad MAVLink CRC), ``--garbage`` (noise bytes between frames),
 ``--silence-after S`` (radio outage S seconds after the first command: nothing is sent or
 received any more; the firmware keeps running, so its watchdog stops the motors, and the
-mocap stream, a separate system, keeps going).
+mocap stream, a separate system, keeps going). Only in the config's ``emulator`` section
+(:class:`drivers.velociroach.config.EmulatorParams`): ``pose_silence_after_s`` (the mocap
+stream stops S seconds after the first command, the radio keeps going) and
+``nonfinite_telemetry_every`` (every N-th telemetry packet carries NaN sensor values).
 """
 
 from __future__ import annotations
@@ -63,7 +66,8 @@ def load_physics(target: str, params: VelociRoachParams):
 class Emulator:
     def __init__(self, params: VelociRoachParams, link: RadioLink, physics: Any, pose_server: Any = None,
                  *, corrupt_every: int = 0, garbage: bool = False, silence_after_s: float | None = None,
-                 realtime_factor: float = 1.0, pose_hz: float = 100.0, seed: int = 0):
+                 realtime_factor: float = 1.0, pose_hz: float = 100.0, seed: int = 0,
+                 pose_silence_after_s: float | None = None, nonfinite_telemetry_every: int = 0):
         self.p = params
         self.link = link
         self.sim = physics
@@ -72,6 +76,9 @@ class Emulator:
         self.corrupt_every = int(corrupt_every)
         self.garbage = garbage
         self.silence_after_s = silence_after_s
+        self.pose_silence_after_s = pose_silence_after_s
+        self.nonfinite_telemetry_every = int(nonfinite_telemetry_every)
+        self.telemetry_sent = 0
         self.rtf = realtime_factor
         self.pose_period_s = 1.0 / pose_hz
         self.rng = random.Random(seed)
@@ -88,10 +95,13 @@ class Emulator:
         self.mode = "leg_velocity"
 
     # ------------------------------------------------------------------ tx
+    def _after_first_cmd(self, delay_s: float | None) -> bool:
+        return (delay_s is not None and self.first_cmd_t is not None
+                and time.monotonic() - self.first_cmd_t > delay_s)
+
     @property
     def silent(self) -> bool:
-        return (self.silence_after_s is not None and self.first_cmd_t is not None
-                and time.monotonic() - self.first_cmd_t > self.silence_after_s)
+        return self._after_first_cmd(self.silence_after_s)
 
     def send(self, frame: bytes) -> None:
         if self.silent:
@@ -181,6 +191,10 @@ class Emulator:
         tel = self.sim.telemetry()
         faults = self.faults(tel)
         tel = {**tel, "faults": faults}
+        self.telemetry_sent += 1
+        if self.nonfinite_telemetry_every and self.telemetry_sent % self.nonfinite_telemetry_every == 0:
+            # a sensor glitch as a broken board would send it: a valid frame with NaN in it
+            tel = {**tel, "gyro_rps": [math.nan] * 3, "crank_vel_rps": [math.nan, tel["crank_vel_rps"][1]]}
         try:
             frame = self.enc.telemetry(tel, last_cmd_seq=self.last_cmd_seq,
                                        rx_good=self.link.frames_received, rx_corrupt=self.link.corrupt_frames)
@@ -192,7 +206,7 @@ class Emulator:
 
     def send_pose(self) -> None:
         # mocap is its own system: it keeps streaming through a radio outage
-        if self.pose_server is None:
+        if self.pose_server is None or self._after_first_cmd(self.pose_silence_after_s):
             return
         pose = self.sim.mocap_pose()
         if pose is not None:
@@ -286,12 +300,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     params = VelociRoachParams(**_load_config(args.config))
-    emu = dict(params.emulator)
+    emu = params.emulator
 
-    def opt(cli: Any, key: str, default: Any) -> Any:
-        return cli if cli is not None else emu.get(key, default)
+    def opt(cli: Any, key: str) -> Any:
+        return cli if cli is not None else getattr(emu, key)
 
-    physics = load_physics(opt(args.physics, "physics", DEFAULT_PHYSICS), params)
+    physics = load_physics(opt(args.physics, "physics") or DEFAULT_PHYSICS, params)
     physics.configure()
     try:
         physics.reset(0.0, 0.0, 0.0)
@@ -323,12 +337,14 @@ def main(argv: list[str] | None = None) -> int:
 
     em = Emulator(
         params, link, physics, pose_server,
-        corrupt_every=int(opt(args.corrupt_every, "corrupt_every", 0) or 0),
-        garbage=bool(opt(args.garbage, "garbage", False)),
-        silence_after_s=opt(args.silence_after, "silence_after_s", None),
-        realtime_factor=float(emu.get("realtime_factor", 1.0)),
-        pose_hz=float(emu.get("pose_hz", 100.0)),
-        seed=int(emu.get("seed", 0)),
+        corrupt_every=int(opt(args.corrupt_every, "corrupt_every") or 0),
+        garbage=bool(opt(args.garbage, "garbage")),
+        silence_after_s=opt(args.silence_after, "silence_after_s"),
+        realtime_factor=emu.realtime_factor,
+        pose_hz=emu.pose_hz,
+        seed=emu.seed,
+        pose_silence_after_s=emu.pose_silence_after_s,
+        nonfinite_telemetry_every=emu.nonfinite_telemetry_every,
     )
 
     def _stop(signum, frame):  # noqa: ARG001

@@ -28,13 +28,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from drivers.velociroach.mavlink import mav
+
 TICK_S = 0.001
 TICK_HZ = 1000
 
-#: fault bits reported in telemetry
-FAULT_WATCHDOG = 1
-FAULT_LOW_BATTERY = 2
-FAULT_OVERCURRENT = 4
+#: fault bits reported in telemetry: the dialect XML's ROACH_FAULT enum is their one definition
+FAULT_WATCHDOG = mav.ROACH_FAULT_WATCHDOG
+FAULT_LOW_BATTERY = mav.ROACH_FAULT_LOW_BATTERY
+FAULT_MOTOR = mav.ROACH_FAULT_MOTOR  # stall or over-current
 
 
 @dataclass
@@ -149,7 +151,7 @@ class Firmware:
         if vbat_v < c.low_battery_v:
             faults |= FAULT_LOW_BATTERY
         if abs(current_l_a) > c.overcurrent_a or abs(current_r_a) > c.overcurrent_a:
-            faults |= FAULT_OVERCURRENT
+            faults |= FAULT_MOTOR
         self.faults = faults
         return self.duty_l, self.duty_r
 

@@ -17,7 +17,8 @@ from tests.helpers import free_port, wait_for
 def test_pose_health_staleness_and_corruption():
     port = free_port()
     with make_driver("mocap", port=port, stale_after_s=0.05) as d, PoseStreamServer("127.0.0.1", port) as srv:
-        assert not d.read().ok  # nothing yet
+        first = d.read()  # nothing yet
+        assert not first.ok and first.flags["stale_pose"] and d.health().extra["pose_age_s"] is None
         srv.send(1.0, [0.5, -0.25, 0.1], [0.0, 0.0, 0.0, 1.0])
         obs = wait_for(lambda: (o := d.read()).ok and o, 2.0, "first pose")
         np.testing.assert_allclose(obs.state, [0.5, -0.25, 0.1, 0.0, 0.0, 0.0, 1.0])
@@ -27,10 +28,27 @@ def test_pose_health_staleness_and_corruption():
         srv.send(1.1, [0.6, -0.25, 0.1], [0.0, 0.0, 0.0, 1.0])
         wait_for(lambda: d.health().corrupt_frames == 1 and d.health().dropped_frames == 3, 2.0, "counters")
         time.sleep(0.1)  # no new pose: stale
-        assert not d.read().ok and d.read().flags["stale"]
-        assert not d.health().ok
+        obs = d.read()
+        assert not obs.ok and obs.flags["stale_pose"] and not obs.flags["nonfinite_input"]
+        assert not d.health().ok and d.health().extra["pose_age_s"] > 0.05
         with pytest.raises(CommandError, match="shape"):
             d.write([0.0])
+
+
+def test_nonfinite_pose_is_flagged_and_not_used():
+    port = free_port()
+    with make_driver("mocap", port=port, stale_after_s=0.5) as d, PoseStreamServer("127.0.0.1", port) as srv:
+        srv.send(1.0, [0.5, 0.0, 0.1], [1.0, 0.0, 0.0, 0.0])
+        wait_for(lambda: d.read().ok, 2.0, "first pose")
+        srv.send(1.01, [float("nan"), 0.0, 0.1], [1.0, 0.0, 0.0, 0.0])
+        obs = wait_for(lambda: (o := d.read()).flags["nonfinite_input"] and o, 2.0, "the NaN pose")
+        assert obs.ok is False and not obs.flags["stale_pose"]
+        np.testing.assert_allclose(obs.state, [0.5, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0])  # the last finite pose
+        assert obs.extras["source_t_s"] == 1.0
+        assert d.health().extra["pose_nonfinite_samples"] == 1
+        srv.send(1.02, [0.6, 0.0, 0.1], [1.0, 0.0, 0.0, 0.0])
+        obs = wait_for(lambda: (o := d.read()).ok and o, 2.0, "a finite pose again")
+        assert obs.state[0] == pytest.approx(0.6) and not obs.flags["nonfinite_input"]
 
 
 def test_bad_source_is_a_config_error():
