@@ -78,8 +78,12 @@ class MpcPolicy:
 
     def reset(self) -> None:
         self.planner.reset()
+        if hasattr(self.cost, "reset"):
+            self.cost.reset()
 
     def __call__(self, state: np.ndarray) -> np.ndarray:
+        if hasattr(self.cost, "observe"):
+            self.cost.observe(state)  # a path cost tracks the robot's place on the path
         a = self.planner(self.model.predict, self.cost, state)
         self.last_plan = self.planner.last_plan.numpy()
         pred = self.planner.last_predicted_states
@@ -94,7 +98,8 @@ class BaselinePolicy:
         self.controller = controller
 
     def reset(self) -> None:
-        pass
+        if hasattr(self.controller, "reset"):
+            self.controller.reset()
 
     def __call__(self, state: np.ndarray) -> np.ndarray:
         return np.asarray(self.controller(state), dtype=np.float64)

@@ -33,8 +33,8 @@ from bus.recording import Recorder
 from configs.schema import BusConfig, load_rig
 from control.baselines import DifferentialDriveController
 from control.controller_node import ControllerNode, EpisodeLog
-from control.costs import PathCost, evaluate_path_following
-from control.paths import make_path
+from control.costs import PathCost, evaluate_path_following, rank_key, summarize_paths
+from control.paths import make_path, path_length
 from control.planners import CEM, PDDM, RandomShooting
 from control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from learning.datasets import Episode
@@ -79,7 +79,14 @@ class MbrlConfig:
     paths: tuple[str, ...] = ("straight", "left", "right", "zigzag", "figure8")
     path_scale: float = 1.5
     speeds: dict[str, float] = field(default_factory=lambda: {"low_speed": 0.5, "high_speed": 1.0})
-    eval_steps: int = 100
+    #: time limit of an evaluation episode = path length / this speed (m/s): long enough for
+    #: a slow but correct controller (the sim walks ~0.68 m/s at command 0.5, docs/mbrl.md)
+    time_limit_speed_mps: float = 0.15
+    # the differential-drive baseline is tuned per speed by a random search (Latin hypercube)
+    # on tuning paths that are not the evaluation paths (other shapes and scale)
+    baseline_candidates: int = 24
+    tune_paths: tuple[str, ...] = ("left", "zigzag", "figure8")
+    tune_path_scale: float = 1.0
     # Table 3.1: MPC cost vs amount of random data (subsets of the random rollouts)
     data_sizes: tuple[int, ...] = ()
     progress: bool = True
@@ -90,7 +97,7 @@ class MbrlConfig:
 
     @classmethod
     def quick(cls, **kw: Any) -> MbrlConfig:
-        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, eval_steps=80, data_sizes=(15, 60))
+        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, data_sizes=(15, 60), baseline_candidates=20)
         base.update(kw)
         return cls(**base)
 
@@ -145,31 +152,17 @@ def path_start_pose(waypoints: np.ndarray) -> dict[str, float]:
 
 
 class PathEnd:
-    """Episode end for path following: the robot has travelled 3/4 of the path
-    length (closed paths pass their end point half way) and passed the final waypoint."""
+    """Episode end for path following: the robot has passed the end of the path, its
+    place on the path tracked with the cost's progress window (so a closed path such as
+    the figure-8, which starts where it ends, ends only after a full lap)."""
 
-    def __init__(self, waypoints: np.ndarray, state_names: list[str]):
-        self.wp = np.asarray(waypoints)
-        self.ix, self.iy = state_names.index("x"), state_names.index("y")
-        self.min_travel = 0.75 * float(np.linalg.norm(np.diff(self.wp, axis=0), axis=1).sum())
-        self.travelled = 0.0
-        self.last: np.ndarray | None = None
+    def __init__(self, path: PathCost):
+        self.path = path
+        self.path.reset()
 
     def __call__(self, state: np.ndarray) -> bool:
-        p = np.array([state[self.ix], state[self.iy]])
-        if self.last is not None:
-            self.travelled += float(np.linalg.norm(p - self.last))
-        self.last = p
-        return self.travelled > self.min_travel and past_end(p, self.wp)
-
-
-def past_end(p_xy: np.ndarray, waypoints: np.ndarray, tol_m: float = 0.05) -> bool:
-    """True once the robot has passed the end of the path (beyond the last waypoint
-    along the last segment, or within ``tol_m`` of it): the episode is over."""
-    a, b = waypoints[-2], waypoints[-1]
-    d = b - a
-    along = float((p_xy - a) @ d / max(float(d @ d), 1e-12))
-    return along >= 1.0 or float(np.linalg.norm(p_xy - b)) < tol_m
+        self.path.observe(state)
+        return self.path.at_end(np.asarray(state)[[self.path.ix, self.path.iy]])
 
 
 # ---------------------------------------------------------------------------- model
@@ -192,11 +185,59 @@ def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str])
     return model
 
 
-def split_episodes(eps: list[Episode], val_fraction: float, seed: int) -> tuple[list[Episode], list[Episode]]:
-    rng = np.random.default_rng(seed)
-    idx = rng.permutation(len(eps))
-    n_val = max(1, int(round(val_fraction * len(eps)))) if len(eps) > 1 else 0
-    return [eps[i] for i in idx[n_val:]], [eps[i] for i in idx[:n_val]]
+def split_episodes(eps: list[Episode], val_fraction: float, rng: np.random.Generator,
+                   assigned: dict[str, bool]) -> tuple[list[Episode], list[Episode]]:
+    """Train and validation episodes; each episode is assigned once, for good.
+
+    ``assigned`` maps episode name → ``True`` (validation) and is updated in place: only
+    episodes not seen before are drawn (``val_fraction`` of them, at least one when more
+    than one is new), so a validation episode never becomes training data when the list
+    grows between MBRL iterations, and vice versa.
+    """
+    new = [e.name for e in eps if e.name not in assigned]
+    if len(set(new)) != len(new):
+        raise ValueError("episode names must be unique to keep the validation split fixed")
+    n_val = max(1, int(round(val_fraction * len(new)))) if len(new) > 1 else 0
+    val_idx = set(rng.permutation(len(new))[:n_val].tolist())
+    for i, name in enumerate(new):
+        assigned[name] = i in val_idx
+    return [e for e in eps if not assigned[e.name]], [e for e in eps if assigned[e.name]]
+
+
+#: differential-drive search space: (low, high, scaled by the speed setting?). Gains in
+#: normalized action per rad (k_heading) and per m (k_perp); omega_nom and d_max are
+#: fractions of the speed setting, which also clips the commands (the bound MPC plans in).
+BASELINE_SEARCH: dict[str, tuple[float, float, bool]] = {
+    "omega_nom": (0.4, 1.0, True),
+    "k_heading": (0.2, 3.0, False),
+    "k_perp": (0.0, 10.0, False),
+    "d_max": (0.2, 1.0, True),
+}
+
+
+def default_baseline_params(speed: float) -> dict[str, float]:
+    """The untuned starting point: ω_nom = 0.7·speed, d_max = 0.4·speed, k_ψ = 0.8, k_⊥ = 4."""
+    return {"omega_nom": 0.7 * speed, "k_heading": 0.8, "k_perp": 4.0, "d_max": 0.4 * speed}
+
+
+def baseline_candidates(n: int, speed: float, seed: int = 0) -> list[dict[str, float]]:
+    """``n`` gain sets: the default first, then a Latin hypercube over :data:`BASELINE_SEARCH`
+    (``scipy.stats.qmc``: every gain's range is covered evenly even with few candidates)."""
+    from scipy.stats import qmc
+
+    if n < 1:
+        raise ValueError(f"baseline_candidates must be >= 1, got {n}")
+    names = list(BASELINE_SEARCH)
+    out = [default_baseline_params(speed)]
+    if n > 1:
+        u = qmc.LatinHypercube(d=len(names), seed=seed).random(n - 1)
+        for row in u:
+            p = {}
+            for k, x in zip(names, row, strict=True):
+                lo, hi, scaled = BASELINE_SEARCH[k]
+                p[k] = float((lo + x * (hi - lo)) * (speed if scaled else 1.0))
+            out.append(p)
+    return out
 
 
 def make_planner(cfg: MbrlConfig, speed: float, action_dim: int):
@@ -225,6 +266,9 @@ class MbrlRun:
         self.action_names: list[str] = []
         self.recordings: list[str] = []
         self.rng = np.random.default_rng(cfg.seed)
+        self.split_rng = np.random.default_rng([cfg.seed, 1])
+        self.val_assigned: dict[str, bool] = {}
+        self.period_s = 0.1
 
     # -- episodes over the bus ------------------------------------------------------------
     def episode(self, policy: Any, steps: int, pose: dict[str, float], stop_if=None) -> EpisodeLog:
@@ -259,16 +303,25 @@ class MbrlRun:
         self.recordings.append(str(path))
         return path
 
-    def run_paths(self, policy_for, speed: float, steps: int) -> dict[str, dict[str, Any]]:
-        """One episode per path; returns per-path metrics and trajectories."""
+    def time_limit_s(self, waypoints: np.ndarray) -> float:
+        """Evaluation time limit (s) for a path: its length at ``time_limit_speed_mps``."""
+        return path_length(waypoints) / self.cfg.time_limit_speed_mps
+
+    def run_paths(self, policy_for, speed: float, paths: tuple[str, ...] | None = None,
+                  path_scale: float | None = None) -> dict[str, dict[str, Any]]:
+        """One episode per path (default: the config's), each until the robot passes the
+        path's end or the time limit; returns per-path metrics and trajectories."""
         out = {}
-        for name in self.cfg.paths:
-            wp = make_path(name, scale=self.cfg.path_scale)
+        for name in paths or self.cfg.paths:
+            wp = make_path(name, scale=path_scale or self.cfg.path_scale)
             cost = PathCost(wp, self.state_names)
+            limit_s = self.time_limit_s(wp)
+            steps = int(np.ceil(limit_s / self.period_s - 1e-9))
             log = self.episode(policy_for(wp, cost, speed), steps, path_start_pose(wp),
-                               stop_if=PathEnd(wp, self.state_names))
+                               stop_if=PathEnd(PathCost(wp, self.state_names)))
             states = np.array(log.states)
-            m = evaluate_path_following(states, cost)
+            m = evaluate_path_following(states, cost, period_s=self.period_s, time_limit_s=limit_s)
+            m["time_limit_s"] = limit_s
             m["plan_ms_p50"] = float(np.percentile(log.plan_times_s, 50) * 1e3) if log.plan_times_s else 0.0
             m["plan_ms_p99"] = float(np.percentile(log.plan_times_s, 99) * 1e3) if log.plan_times_s else 0.0
             m["xy"] = states[:, [self.state_names.index("x"), self.state_names.index("y")]].tolist()
@@ -281,17 +334,43 @@ class MbrlRun:
             return MpcPolicy(model, make_planner(self.cfg, speed, len(self.action_names)), cost)
         return make
 
-    @staticmethod
-    def baseline_for(state_names):
+    def baseline_for(self, params: dict[str, float] | None = None):
+        """Differential drive with ``params`` (gains; default: the untuned defaults scaled to the speed)."""
         def make(wp, cost, speed):
-            return BaselinePolicy(
-                DifferentialDriveController(wp, state_names, omega_nom=0.7 * speed, d_max=0.4 * speed)
-            )
+            p = params or default_baseline_params(speed)
+            return BaselinePolicy(DifferentialDriveController(wp, self.state_names, max_action=speed, **p))
         return make
+
+    def tune_baseline(self, speed: float) -> dict[str, Any]:
+        """Random search over the differential-drive gains at ``speed`` on the tuning paths;
+        candidates are ranked like the evaluation (completions, then cost per metre)."""
+        cfg = self.cfg
+        cands = baseline_candidates(cfg.baseline_candidates, speed, cfg.seed)
+        scored = []
+        for p in _progress(cands, cfg, f"tuning differential drive at {speed:.2f}"):
+            res = self.run_paths(self.baseline_for(p), speed, paths=cfg.tune_paths, path_scale=cfg.tune_path_scale)
+            scored.append({"params": p, **summarize_paths(res)})
+        best = min(scored, key=rank_key)
+        return {"best_params": best["params"], "best": {k: best[k] for k in ("completed", "cost", "cost_per_m")},
+                "default": {k: scored[0][k] for k in ("completed", "cost", "cost_per_m")}, "candidates": scored}
+
+    def compare(self, speed: float, model, baseline_params: dict[str, float] | None) -> dict[str, Any]:
+        """MPC and the differential drive on the evaluation paths at ``speed``."""
+        mpc = self.run_paths(self.mpc_for(model), speed)
+        dd = self.run_paths(self.baseline_for(baseline_params), speed)
+        sm, sd = summarize_paths(mpc), summarize_paths(dd)
+        return {
+            "speed": speed,
+            "mpc_cost": sm["cost"], "differential_drive_cost": sd["cost"],
+            "mpc_completed": sm["completed"], "differential_drive_completed": sd["completed"],
+            "mpc_cost_per_m": sm["cost_per_m"], "differential_drive_cost_per_m": sd["cost_per_m"],
+            "mpc_better": rank_key(sm) < rank_key(sd),
+            "paths": {p: {"mpc": mpc[p], "differential_drive": dd[p]} for p in mpc},
+        }
 
     # -- training --------------------------------------------------------------------------
     def train(self, model, eps: list[Episode], epochs: int) -> dict[str, float]:
-        train, val = split_episodes(eps, self.cfg.val_fraction, self.cfg.seed)
+        train, val = split_episodes(eps, self.cfg.val_fraction, self.split_rng, self.val_assigned)
         hist = model.fit(train, epochs=epochs, batch_size=self.cfg.batch_size, val=val or None,
                          horizon=self.cfg.horizon, progress=self.cfg.progress)
         last = hist[-1] if hist else {}
@@ -317,6 +396,7 @@ class MbrlRun:
             spec = ctl.wait_ready(timeout_s=cfg.rig_timeout_s)
             self.state_names = list(spec["state"]["names"])
             self.action_names = list(spec["action"]["names"])
+            self.period_s = float(spec["period_s"])
 
             _log(cfg, f"collecting {cfg.random_rollouts} random rollouts x {cfg.rollout_steps} steps")
             rand_path = self.collect_random(cfg.random_rollouts, "000-random")
@@ -332,7 +412,7 @@ class MbrlRun:
                 path = self.rec_dir / f"{it:03d}-mpc.mcap"
                 with recording(self.rig.name, path, self.bus):
                     for speed in cfg.speeds.values():
-                        self.run_paths(self.mpc_for(model), speed, cfg.eval_steps)
+                        self.run_paths(self.mpc_for(model), speed)
                 self.recordings.append(str(path))
                 new = episodes_from_mcap(path, cfg.robot)
                 data += new
@@ -342,20 +422,24 @@ class MbrlRun:
             model.save(self.out / "model.pt")
 
             results: dict[str, Any] = {}
+            tuning: dict[str, Any] = {}
+            tune_path = self.rec_dir / "800-tune-baseline.mcap"
+            with recording(self.rig.name, tune_path, self.bus):
+                for label, speed in cfg.speeds.items():
+                    _log(cfg, f"tuning the differential drive at {label} ({speed:.2f}): "
+                              f"{cfg.baseline_candidates} candidates on {list(cfg.tune_paths)}")
+                    tuning[label] = self.tune_baseline(speed)
+                    _log(cfg, f"{label}: default {tuning[label]['default']} → best {tuning[label]['best']}")
+            self.recordings.append(str(tune_path))
+
             eval_path = self.rec_dir / "900-eval.mcap"
             with recording(self.rig.name, eval_path, self.bus):
                 for label, speed in cfg.speeds.items():
                     _log(cfg, f"evaluating MPC and differential drive at {label} ({speed:.2f})")
-                    mpc = self.run_paths(self.mpc_for(model), speed, cfg.eval_steps)
-                    dd = self.run_paths(self.baseline_for(self.state_names), speed, cfg.eval_steps)
-                    results[label] = {
-                        "speed": speed,
-                        "mpc_cost": float(np.mean([m["cost"] for m in mpc.values()])),
-                        "differential_drive_cost": float(np.mean([m["cost"] for m in dd.values()])),
-                        "paths": {p: {"mpc": mpc[p], "differential_drive": dd[p]} for p in cfg.paths},
-                    }
-                    _log(cfg, f"{label}: mpc {results[label]['mpc_cost']:.1f} "
-                              f"vs differential drive {results[label]['differential_drive_cost']:.1f}")
+                    results[label] = r = self.compare(speed, model, tuning[label]["best_params"])
+                    _log(cfg, f"{label}: completed mpc {r['mpc_completed']}/{len(r['paths'])} "
+                              f"dd {r['differential_drive_completed']}/{len(r['paths'])}; cost/m mpc "
+                              f"{r['mpc_cost_per_m']:.1f} dd {r['differential_drive_cost_per_m']:.1f}")
             self.recordings.append(str(eval_path))
 
             data_curve = []
@@ -364,10 +448,20 @@ class MbrlRun:
                 m = make_model(cfg, self.state_names, self.action_names)
                 self.train(m, random_eps[:n], cfg.epochs)
                 speed = cfg.speeds.get("high_speed", max(cfg.speeds.values()))
-                r = self.run_paths(self.mpc_for(m), speed, cfg.eval_steps)
-                data_curve.append({"random_rollouts": n, "mpc_cost": float(np.mean([x["cost"] for x in r.values()]))})
-                _log(cfg, f"data size {n} rollouts: mpc cost {data_curve[-1]['mpc_cost']:.1f}")
+                sm = summarize_paths(self.run_paths(self.mpc_for(m), speed))
+                data_curve.append({"random_rollouts": n, "mpc_cost": sm["cost"], "mpc_completed": sm["completed"],
+                                   "mpc_cost_per_m": sm["cost_per_m"]})
+                _log(cfg, f"data size {n} rollouts: {data_curve[-1]}")
 
+        report["baseline_tuning"] = {
+            "method": "random search (Latin hypercube, scipy.stats.qmc) over "
+                      + ", ".join(f"{k} in [{lo}, {hi}]{'·speed' if sc else ''}" for k, (lo, hi, sc) in BASELINE_SEARCH.items())
+                      + "; the untuned default is candidate 0; ranked by paths completed, then cost per metre",
+            "candidates": cfg.baseline_candidates,
+            "tuning_paths": [f"{p} (scale {cfg.tune_path_scale})" for p in cfg.tune_paths],
+            "best_params": {k: v["best_params"] for k, v in tuning.items()},
+            "per_speed": tuning,
+        }
         report.update(results)
         report["training"] = training
         report["data_size_curve"] = data_curve

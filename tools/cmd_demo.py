@@ -35,6 +35,8 @@ def register(app: typer.Typer) -> None:
             raise typer.Exit(1) from None
         for s in ("low_speed", "high_speed"):
             if s in r:
-                typer.echo(f"{s}: mpc_cost {r[s]['mpc_cost']:.1f}  differential_drive_cost "
-                           f"{r[s]['differential_drive_cost']:.1f}")
+                v, n = r[s], len(r[s]["paths"])
+                typer.echo(f"{s}: completed mpc {v['mpc_completed']}/{n} differential_drive "
+                           f"{v['differential_drive_completed']}/{n}; cost_per_m mpc {v['mpc_cost_per_m']:.1f} "
+                           f"differential_drive {v['differential_drive_cost_per_m']:.1f} (tuned)")
         typer.echo(f"report: {out / 'report.md'}")

@@ -63,11 +63,12 @@ def write_plots(report: dict[str, Any], out: Path) -> list[str]:
             ax.plot(wp[:, 0], wp[:, 1], "k--", lw=1, label="path")
             for who, style in (("mpc", "C0"), ("differential_drive", "C1")):
                 xy = np.array(res[who]["xy"])
-                ax.plot(xy[:, 0], xy[:, 1], style, label=f"{who} ({res[who]['cost']:.0f})")
+                done = "done" if res[who]["completed"] else f"stopped at {res[who]['progress_m']:.1f} m"
+                ax.plot(xy[:, 0], xy[:, 1], style, label=f"{who} ({res[who]['cost_per_m']:.0f}/m, {done})")
             ax.set_title(name)
             ax.set_aspect("equal", adjustable="datalim")
             ax.legend(fontsize=7)
-        fig.suptitle(f"{label}: trajectories (cost in legend, lower is better)")
+        fig.suptitle(f"{label}: trajectories (cost per metre in legend, lower is better)")
         f = out / f"trajectories_{label}.png"
         fig.tight_layout()
         fig.savefig(f, dpi=80)
@@ -75,10 +76,11 @@ def write_plots(report: dict[str, Any], out: Path) -> list[str]:
         files.append(f.name)
     fig, ax = plt.subplots(figsize=(5, 3.5))
     x = np.arange(len(speeds))
-    ax.bar(x - 0.2, [report[s]["mpc_cost"] for s in speeds], 0.4, label="MPC")
-    ax.bar(x + 0.2, [report[s]["differential_drive_cost"] for s in speeds], 0.4, label="differential drive")
-    ax.set_xticks(x, speeds)
-    ax.set_ylabel("mean path cost (lower is better)")
+    ax.bar(x - 0.2, [report[s]["mpc_cost_per_m"] for s in speeds], 0.4, label="MPC")
+    ax.bar(x + 0.2, [report[s]["differential_drive_cost_per_m"] for s in speeds], 0.4, label="tuned differential drive")
+    ax.set_xticks(x, [f"{s}\n(done {report[s]['mpc_completed']} vs {report[s]['differential_drive_completed']})"
+                      for s in speeds])
+    ax.set_ylabel("cost per metre of progress (lower is better)")
     ax.legend()
     fig.tight_layout()
     fig.savefig(out / "costs.png", dpi=80)
@@ -87,9 +89,9 @@ def write_plots(report: dict[str, Any], out: Path) -> list[str]:
     if report.get("data_size_curve"):
         d = report["data_size_curve"]
         fig, ax = plt.subplots(figsize=(5, 3.5))
-        ax.plot([r["random_rollouts"] for r in d], [r["mpc_cost"] for r in d], "o-")
+        ax.plot([r["random_rollouts"] for r in d], [r["mpc_cost_per_m"] for r in d], "o-")
         ax.set_xlabel("random rollouts used for training")
-        ax.set_ylabel("MPC mean path cost (high speed)")
+        ax.set_ylabel("MPC cost per metre (high speed)")
         fig.tight_layout()
         fig.savefig(out / "data_size.png", dpi=80)
         plt.close(fig)
@@ -108,30 +110,49 @@ def report_markdown(r: dict[str, Any]) -> str:
         f"{cfg['ensemble']}x MLP {cfg['hidden']}; planner {cfg['planner']} N={cfg['samples']} H={cfg['horizon']}; "
         f"{cfg['iterations']} on-policy iteration(s).",
         "",
-        "## Path following: MPC vs differential drive",
+        "## Path following: MPC vs tuned differential drive",
         "",
-        "Cost per episode (summed over steps): 50·perpendicular distance + 5·heading error − 10·forward progress;"
-        " lower is better. Both controllers are scored with the same function on the same paths.",
+        "Cost (summed over steps): 50·perpendicular distance + 5·heading error − 10·forward progress;"
+        " lower is better. An episode ends at the path's end or at the time limit (path length at "
+        f"{cfg['time_limit_speed_mps']} m/s). Controllers are ranked by paths completed, then cost per metre of"
+        " progress: a controller that stops never beats one that finishes. Both are scored with the same"
+        " function on the same paths.",
         "",
-        "| speed | MPC cost | differential drive cost | MPC better |",
-        "|---|---|---|---|",
+        "| speed | MPC completed | diff. drive completed | MPC cost/m | diff. drive cost/m | MPC better |",
+        "|---|---|---|---|---|---|",
     ]
     speeds = [k for k in r if k.endswith("_speed")]
     for s in speeds:
-        m, d = r[s]["mpc_cost"], r[s]["differential_drive_cost"]
-        lines.append(f"| {s} ({r[s]['speed']:.2f}) | {m:.1f} | {d:.1f} | {'yes' if m < d else 'no'} |")
-    lines += ["", "Per path:", "", "| speed | path | MPC | diff. drive | MPC perp. error (m) | plan p50/p99 (ms) |",
-              "|---|---|---|---|---|---|"]
+        v = r[s]
+        n = len(v["paths"])
+        lines.append(f"| {s} ({v['speed']:.2f}) | {v['mpc_completed']}/{n} | {v['differential_drive_completed']}/{n} | "
+                     f"{v['mpc_cost_per_m']:.1f} | {v['differential_drive_cost_per_m']:.1f} | "
+                     f"{'yes' if v['mpc_better'] else 'no'} |")
+    lines += ["", "Per path (cost, progress, time; ✓ = completed):", "",
+              "| speed | path | MPC | diff. drive | MPC plan p50/p99 (ms) |", "|---|---|---|---|---|"]
+
+    def cell(m: dict[str, Any]) -> str:
+        return (f"{'✓' if m['completed'] else '✗'} {m['cost']:.1f} ({m['cost_per_m']:.1f}/m), "
+                f"{m['progress_m']:.2f} m in {m['time_s']:.1f} s")
+
     for s in speeds:
         for p, v in r[s]["paths"].items():
-            lines.append(
-                f"| {s} | {p} | {v['mpc']['cost']:.1f} | {v['differential_drive']['cost']:.1f} | "
-                f"{v['mpc']['perp_mean_m']:.3f} | {v['mpc']['plan_ms_p50']:.1f}/{v['mpc']['plan_ms_p99']:.1f} |"
-            )
+            lines.append(f"| {s} | {p} | {cell(v['mpc'])} | {cell(v['differential_drive'])} | "
+                         f"{v['mpc']['plan_ms_p50']:.1f}/{v['mpc']['plan_ms_p99']:.1f} |")
+    if r.get("baseline_tuning"):
+        bt = r["baseline_tuning"]
+        lines += ["", "## Baseline tuning", "", f"{bt['method']}. {bt['candidates']} candidates per speed on "
+                  f"{', '.join(bt['tuning_paths'])} (not the evaluation paths).", "",
+                  "| speed | default: completed, cost/m | tuned: completed, cost/m | tuned gains |", "|---|---|---|---|"]
+        for s, t in bt["per_speed"].items():
+            gains = ", ".join(f"{k} {v:.2f}" for k, v in t["best_params"].items())
+            lines.append(f"| {s} | {t['default']['completed']}, {t['default']['cost_per_m']:.1f} | "
+                         f"{t['best']['completed']}, {t['best']['cost_per_m']:.1f} | {gains} |")
     if r.get("data_size_curve"):
-        lines += ["", "## Cost vs amount of random data (thesis Table 3.1 shape)", "",
-                  "| random rollouts | MPC cost (high speed) |", "|---|---|"]
-        lines += [f"| {d['random_rollouts']} | {d['mpc_cost']:.1f} |" for d in r["data_size_curve"]]
+        lines += ["", "## Cost vs amount of random data (one seed)", "",
+                  "| random rollouts | MPC completed (high speed) | MPC cost/m |", "|---|---|---|"]
+        lines += [f"| {d['random_rollouts']} | {d['mpc_completed']} | {d['mpc_cost_per_m']:.1f} |"
+                  for d in r["data_size_curve"]]
     lines += ["", "## Training", "", "| iteration | episodes | train loss | val 1-step | val H-step |", "|---|---|---|---|---|"]
     for t in r["training"]:
         lines.append(f"| {t['iteration']} | {t['episodes']} | {t.get('train_loss', float('nan')):.4f} | "

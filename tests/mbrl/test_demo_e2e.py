@@ -15,24 +15,41 @@ def test_tiny_demo_writes_a_complete_report(tmp_path):
         rollout_steps=20,
         epochs=3,
         retrain_epochs=1,
-        eval_steps=8,
         samples=64,
         paths=("straight", "left"),
+        path_scale=0.25,
+        time_limit_speed_mps=0.4,
+        tune_paths=("right",),
+        tune_path_scale=0.25,
+        baseline_candidates=3,
         data_sizes=(3,),
         progress=False,
     )
     rep = json.loads((tmp_path / "report.json").read_text())
     for speed in ("low_speed", "high_speed"):
-        assert set(rep[speed]["paths"]) == {"straight", "left"}
-        costs = [rep[speed]["paths"][p]["mpc"]["cost"] for p in ("straight", "left")]
-        assert rep[speed]["mpc_cost"] == sum(costs) / 2
-        assert isinstance(rep[speed]["differential_drive_cost"], float)
+        v = rep[speed]
+        assert set(v["paths"]) == {"straight", "left"}
+        costs = [v["paths"][p]["mpc"]["cost"] for p in ("straight", "left")]
+        assert v["mpc_cost"] == sum(costs) / 2
+        assert isinstance(v["differential_drive_cost"], float)
+        for who in ("mpc", "differential_drive"):
+            done = [v["paths"][p][who]["completed"] for p in ("straight", "left")]
+            assert v[f"{who}_completed"] == sum(done)
+            per = [v["paths"][p][who] for p in ("straight", "left")]
+            assert v[f"{who}_cost_per_m"] == sum(m["cost"] for m in per) / max(sum(m["progress_m"] for m in per), 0.01)
+            for m in per:
+                assert set(m) >= {"cost", "completed", "progress_m", "cost_per_m", "time_s"}
+                assert m["time_s"] <= m["time_limit_s"] + 0.1 + 1e-9
+    bt = rep["baseline_tuning"]
+    assert bt["candidates"] == 3 and set(bt["best_params"]) == {"low_speed", "high_speed"}
+    assert set(bt["best_params"]["low_speed"]) == {"omega_nom", "k_heading", "k_perp", "d_max"}
+    assert len(bt["per_speed"]["high_speed"]["candidates"]) == 3
     assert rep["training"][0]["episodes"] == 6
     assert rep["training"][1]["episodes"] > 6  # aggregated on-policy data
     assert rep["data_size_curve"][0]["random_rollouts"] == 3
     for f in ("report.md", "costs.png", "trajectories_high_speed.png", "demo.rrd", "model.pt"):
         assert (tmp_path / f).is_file(), f
-    assert "MPC vs differential drive" in (tmp_path / "report.md").read_text()
+    assert "MPC vs tuned differential drive" in (tmp_path / "report.md").read_text()
     assert r["wall_s"] > 0
 
 
