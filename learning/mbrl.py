@@ -57,6 +57,11 @@ class MbrlConfig:
     random_rollouts: int = 200
     rollout_steps: int = 50
     arena_radius_m: float = 3.0
+    #: random data: each random command is held 1..random_hold_steps steps, and this fraction
+    #: of them are forward commands (control.policies.SafeRandomPolicy) so the data covers
+    #: the speeds the evaluation asks for; 1 and 0.0 give the thesis' uniform steps
+    random_hold_steps: int = 6
+    random_forward_fraction: float = 0.6
     # model (thesis: 2x500 ReLU MLP, Adam 1e-3)
     hidden: tuple[int, ...] = (500, 500)
     ensemble: int = 1
@@ -73,6 +78,10 @@ class MbrlConfig:
     planner: str = "cem"
     samples: int = 500
     horizon: int = 4
+    #: random shooting samples within the actuator's reachable set (the rig's rate limit
+    #: times the period, :class:`control.planners.RandomShooting` ``max_step``); False: the
+    #: thesis' independent uniform steps
+    reachable_set: bool = True
     # MBRL iterations: on-policy MPC rollouts on the paths, aggregated, warm-start retrain
     iterations: int = 1
     # tasks
@@ -215,6 +224,16 @@ BASELINE_SEARCH: dict[str, tuple[float, float, bool]] = {
 }
 
 
+def speed_coverage(episodes: list[Episode], state_names: list[str]) -> dict[str, float]:
+    """How fast the robot went in ``episodes``: ground-speed percentiles (m/s, from the
+    world-frame vx, vy channels) and the fraction of steps at or above 0.5 and 0.9 m/s."""
+    ivx, ivy = state_names.index("vx"), state_names.index("vy")
+    v = np.concatenate([np.hypot(e.states[:, ivx], e.states[:, ivy]) for e in episodes])
+    p50, p90, p99 = np.percentile(v, [50, 90, 99])
+    return {"speed_p50_mps": float(p50), "speed_p90_mps": float(p90), "speed_p99_mps": float(p99),
+            "fraction_ge_0.5_mps": float((v >= 0.5).mean()), "fraction_ge_0.9_mps": float((v >= 0.9).mean())}
+
+
 def default_baseline_params(speed: float) -> dict[str, float]:
     """The untuned starting point: ω_nom = 0.7·speed, d_max = 0.4·speed, k_ψ = 0.8, k_⊥ = 4."""
     return {"omega_nom": 0.7 * speed, "k_heading": 0.8, "k_perp": 4.0, "d_max": 0.4 * speed}
@@ -240,16 +259,28 @@ def baseline_candidates(n: int, speed: float, seed: int = 0) -> list[dict[str, f
     return out
 
 
-def make_planner(cfg: MbrlConfig, speed: float, action_dim: int):
+def make_planner(cfg: MbrlConfig, speed: float, action_dim: int, max_step: np.ndarray | None = None):
+    """The configured planner within ±``speed`` (normalized actions). ``max_step``: the
+    rig's per-step rate limit in normalized units (random shooting's reachable set)."""
     kw = dict(action_low=-speed, action_high=speed, horizon=cfg.horizon, samples=cfg.samples,
               seed=cfg.seed, action_dim=action_dim)
     if cfg.planner == "random_shooting":
-        return RandomShooting(**kw)
+        return RandomShooting(**kw, max_step=max_step if cfg.reachable_set else None)
     if cfg.planner == "cem":
         return CEM(**kw, iterations=3)
     if cfg.planner == "pddm":
         return PDDM(**kw)
     raise ValueError(f"unknown planner {cfg.planner!r}: random_shooting | cem | pddm")
+
+
+def max_step_normalized(spec: dict[str, Any]) -> np.ndarray | None:
+    """The spec's action rate limit as the largest change per control period in normalized
+    action units ([-1, 1] spans the action range), or None when the robot has none."""
+    rate = spec.get("action_rate_per_s")
+    if rate is None:
+        return None
+    low, high = np.asarray(spec["action"]["low"], float), np.asarray(spec["action"]["high"], float)
+    return np.asarray(rate, float) * float(spec["period_s"]) / ((high - low) / 2)
 
 
 # ---------------------------------------------------------------------------- the loop
@@ -269,6 +300,7 @@ class MbrlRun:
         self.split_rng = np.random.default_rng([cfg.seed, 1])
         self.val_assigned: dict[str, bool] = {}
         self.period_s = 0.1
+        self.max_step: np.ndarray | None = None
 
     # -- episodes over the bus ------------------------------------------------------------
     def episode(self, policy: Any, steps: int, pose: dict[str, float], stop_if=None) -> EpisodeLog:
@@ -294,7 +326,8 @@ class MbrlRun:
     def collect_random(self, n: int, name: str) -> Path:
         path = self.rec_dir / f"{name}.mcap"
         pol = SafeRandomPolicy(self.state_names, len(self.action_names), self.cfg.arena_radius_m,
-                               seed=self.cfg.seed)
+                               hold_steps=self.cfg.random_hold_steps,
+                               forward_fraction=self.cfg.random_forward_fraction, seed=self.cfg.seed)
         with recording(self.rig.name, path, self.bus):
             for i in _progress(range(n), self.cfg, f"random rollouts → {path.name}"):
                 yaw = float(self.rng.uniform(-np.pi, np.pi))
@@ -331,7 +364,7 @@ class MbrlRun:
 
     def mpc_for(self, model):
         def make(wp, cost, speed):
-            return MpcPolicy(model, make_planner(self.cfg, speed, len(self.action_names)), cost)
+            return MpcPolicy(model, make_planner(self.cfg, speed, len(self.action_names), self.max_step), cost)
         return make
 
     def baseline_for(self, params: dict[str, float] | None = None):
@@ -397,11 +430,13 @@ class MbrlRun:
             self.state_names = list(spec["state"]["names"])
             self.action_names = list(spec["action"]["names"])
             self.period_s = float(spec["period_s"])
+            self.max_step = max_step_normalized(spec)
 
             _log(cfg, f"collecting {cfg.random_rollouts} random rollouts x {cfg.rollout_steps} steps")
             rand_path = self.collect_random(cfg.random_rollouts, "000-random")
             random_eps = episodes_from_mcap(rand_path, cfg.robot)
             data = list(random_eps)
+            report["random_data"] = speed_coverage(random_eps, self.state_names)
             _log(cfg, f"{len(data)} episodes, {sum(len(e) for e in data)} transitions from {rand_path.name}")
 
             model = make_model(cfg, self.state_names, self.action_names)

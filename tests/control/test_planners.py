@@ -335,3 +335,32 @@ def test_cem_refits_sigma_to_the_elites_every_iteration():
         assert torch.allclose(nxt.mean(0), mu, atol=0.05 * sd.max().item() + 1e-3)
     # σ really shrinks: the elites of a quadratic bowl are much tighter than the prior
     assert seen[2].std(0).max() < 0.5
+
+
+def test_random_shooting_samples_within_the_reachable_set():
+    r = torch.tensor([0.2, 0.5])
+    p = RandomShooting(-1.0, 1.0, horizon=4, samples=3000, action_dim=2, seed=3, max_step=r)
+    seen = []
+
+    def cost(states, actions):
+        seen.append(actions.clone())
+        return -actions[:, :, 0].sum(1).unsqueeze(0)  # prefers the largest first leg command
+
+    a0 = p(identity_dynamics, cost, np.zeros(1))
+    first = seen[0]
+    # after reset the first step may be anywhere in the bounds, later steps move at most r
+    assert first[:, 0].min() < -0.9 and first[:, 0].max() > 0.9
+    steps = (first[:, 1:] - first[:, :-1]).abs()
+    assert torch.all(steps <= r + 1e-6)
+    # each step is uniform on [prev - r, prev + r] ∩ bounds: it uses the whole interval
+    assert torch.all(steps.reshape(-1, 2).max(0).values > 0.95 * r)
+    a1 = p(identity_dynamics, cost, np.zeros(1))
+    second = seen[1]
+    assert torch.all((second[:, 0] - torch.as_tensor(a0)).abs() <= r + 1e-6)
+    assert a1[0] > a0[0]  # it climbs toward the preferred command at the rate limit
+    assert torch.all(second >= -1.0) and torch.all(second <= 1.0)
+    p.reset()
+    p(identity_dynamics, cost, np.zeros(1))
+    assert seen[2][:, 0, 0].min() < -0.9  # reset forgets the previous action
+    with pytest.raises(ValueError, match="max_step"):
+        RandomShooting(-1.0, 1.0, action_dim=2, max_step=0.0)

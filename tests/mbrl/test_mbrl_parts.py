@@ -46,3 +46,48 @@ def test_baseline_candidates_start_at_the_default_and_cover_the_ranges():
     assert baseline_candidates(20, 0.5, seed=0) == c
     with pytest.raises(ValueError):
         baseline_candidates(0, 0.5)
+
+
+def test_rate_limit_in_normalized_units_per_step():
+    from drivers.velociroach.config import VelociRoachParams, velociroach_spec
+    from learning.mbrl import MbrlConfig, make_planner, max_step_normalized
+
+    spec = velociroach_spec(VelociRoachParams(max_leg_accel_rps2=60.0, max_leg_vel_rps=15.0)).to_dict()
+    # 60 rev/s² for 0.1 s is 6 rev/s, and [-1, 1] spans ±15 rev/s
+    np.testing.assert_allclose(max_step_normalized(spec), [0.4, 0.4])
+    spec["action_rate_per_s"] = None
+    assert max_step_normalized(spec) is None
+    rs = make_planner(MbrlConfig(planner="random_shooting"), 0.5, 2, np.array([0.4, 0.4]))
+    np.testing.assert_allclose(rs.max_step.numpy(), [0.4, 0.4])
+    assert make_planner(MbrlConfig(planner="random_shooting", reachable_set=False), 0.5, 2,
+                        np.array([0.4, 0.4])).max_step is None
+
+
+def test_random_policy_holds_commands_and_drives_forward_when_asked():
+    from control.policies import SafeRandomPolicy
+
+    names = ["x", "y", "cos_yaw", "sin_yaw"]
+    state = np.array([0.0, 0.0, 1.0, 0.0])
+    thesis = SafeRandomPolicy(names, 2, seed=0)
+    a = np.array([thesis(state) for _ in range(4000)])
+    assert np.all(np.abs(np.diff(a, axis=0)).sum(1) > 0)  # a new command every step
+    assert a.mean(0) == pytest.approx([0, 0], abs=0.05)
+    fwd = SafeRandomPolicy(names, 2, hold_steps=6, forward_fraction=1.0, turn=0.5, seed=0)
+    b = np.array([fwd(state) for _ in range(4000)])
+    changes = np.flatnonzero(np.abs(np.diff(b, axis=0)).sum(1) > 0)
+    runs = np.diff(changes)
+    assert runs.min() >= 1 and runs.max() <= 6 and 3.0 < runs.mean() < 4.0  # U{1..6}: mean 3.5
+    assert np.all(b.mean(1) >= -1e-9) and np.all(np.abs(b[:, 1] - b[:, 0]) <= 0.5 + 1e-9)
+    assert (b.mean(1) > 0.8).mean() > 0.15  # fast forward commands are common
+    with pytest.raises(ValueError):
+        SafeRandomPolicy(names, 3, forward_fraction=0.5)
+
+
+def test_speed_coverage():
+    from learning.mbrl import speed_coverage
+
+    st = np.zeros((5, 2))
+    st[:, 0] = [0.0, 0.3, 0.6, 1.0, 1.2]
+    c = speed_coverage([Episode(st, np.zeros((4, 1)), name="e")], ["vx", "vy"])
+    assert c["fraction_ge_0.5_mps"] == pytest.approx(0.6) and c["fraction_ge_0.9_mps"] == pytest.approx(0.4)
+    assert c["speed_p50_mps"] == pytest.approx(0.6)
