@@ -98,11 +98,27 @@ class MbrlConfig:
     tune_path_scale: float = 1.0
     # Table 3.1: MPC cost vs amount of random data (subsets of the random rollouts)
     data_sizes: tuple[int, ...] = ()
+    # the thesis' experiments with statistics (`hil demo --full`, learning.experiments):
+    # any of "table_3_1", "speed_sweep", "table_3_2", each repeated for every seed in seeds
+    experiments: tuple[str, ...] = ()
+    seeds: tuple[int, ...] = (0, 1, 2)
+    table_sizes: tuple[int, ...] = (50, 200, 400)
+    table_paths: tuple[str, ...] = ("straight", "left", "right")
+    sweep_speeds: tuple[float, ...] = (0.4, 0.6, 0.8, 1.0)
+    terrains: tuple[str, str] = ("carpet", "styrofoam")
+    terrain_rollouts: int = 200
     progress: bool = True
     #: how long to wait for the driver node to come up (emulator start, radio link)
     rig_timeout_s: float = 60.0
     #: real rigs: when the driver cannot reset itself, ask an operator on the terminal
     operator_resets: bool = False
+
+    @classmethod
+    def full(cls, **kw: Any) -> MbrlConfig:
+        """`hil demo --full`: the thesis' data sizes and every experiment over three seeds."""
+        base = dict(random_rollouts=400, data_sizes=(), experiments=("table_3_1", "speed_sweep", "table_3_2"))
+        base.update(kw)
+        return cls(**base)
 
     @classmethod
     def quick(cls, **kw: Any) -> MbrlConfig:
@@ -302,6 +318,24 @@ class MbrlRun:
         self.period_s = 0.1
         self.max_step: np.ndarray | None = None
 
+    @contextlib.contextmanager
+    def session(self) -> Iterator[ControllerNode]:
+        """The rig's driver node (own process) and this loop's controller node, up until exit."""
+        cfg = self.cfg
+        with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs"), \
+                ControllerNode(self.rig.name, cfg.robot, self.bus, name="mbrl-controller",
+                               handle_signals=False, state_timeout_s=20.0) as ctl:
+            self.ctl = ctl
+            spec = ctl.wait_ready(timeout_s=cfg.rig_timeout_s)
+            self.state_names = list(spec["state"]["names"])
+            self.action_names = list(spec["action"]["names"])
+            self.period_s = float(spec["period_s"])
+            self.max_step = max_step_normalized(spec)
+            try:
+                yield ctl
+            finally:
+                self.ctl = None
+
     # -- episodes over the bus ------------------------------------------------------------
     def episode(self, policy: Any, steps: int, pose: dict[str, float], stop_if=None) -> EpisodeLog:
         """Reset (the sim puts the robot at ``pose``; a real robot is placed by an operator)
@@ -323,14 +357,18 @@ class MbrlRun:
         input(f"place the robot at x={pose['x']:.2f} y={pose['y']:.2f} yaw={pose['yaw']:.2f}, then press Enter ")
         return self.ctl.next_state()
 
-    def collect_random(self, n: int, name: str) -> Path:
+    def collect_random(self, n: int, name: str, seed: int | None = None) -> Path:
+        """``n`` random rollouts recorded to ``rec_dir/name.mcap`` (``seed``: the policy's,
+        default the config's)."""
         path = self.rec_dir / f"{name}.mcap"
         pol = SafeRandomPolicy(self.state_names, len(self.action_names), self.cfg.arena_radius_m,
                                hold_steps=self.cfg.random_hold_steps,
-                               forward_fraction=self.cfg.random_forward_fraction, seed=self.cfg.seed)
+                               forward_fraction=self.cfg.random_forward_fraction,
+                               seed=self.cfg.seed if seed is None else seed)
+        rng = self.rng if seed is None else np.random.default_rng([seed, 2])
         with recording(self.rig.name, path, self.bus):
             for i in _progress(range(n), self.cfg, f"random rollouts → {path.name}"):
-                yaw = float(self.rng.uniform(-np.pi, np.pi))
+                yaw = float(rng.uniform(-np.pi, np.pi))
                 self.episode(pol, self.cfg.rollout_steps, {"x": 0.0, "y": 0.0, "yaw": yaw})
                 del i
         self.recordings.append(str(path))
@@ -422,16 +460,7 @@ class MbrlRun:
 
     def _run(self, report: dict[str, Any], t0: float) -> dict[str, Any]:
         cfg = self.cfg
-        with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs"), \
-                ControllerNode(self.rig.name, cfg.robot, self.bus, name="mbrl-controller",
-                               handle_signals=False, state_timeout_s=20.0) as ctl:
-            self.ctl = ctl
-            spec = ctl.wait_ready(timeout_s=cfg.rig_timeout_s)
-            self.state_names = list(spec["state"]["names"])
-            self.action_names = list(spec["action"]["names"])
-            self.period_s = float(spec["period_s"])
-            self.max_step = max_step_normalized(spec)
-
+        with self.session():
             _log(cfg, f"collecting {cfg.random_rollouts} random rollouts x {cfg.rollout_steps} steps")
             rand_path = self.collect_random(cfg.random_rollouts, "000-random")
             random_eps = episodes_from_mcap(rand_path, cfg.robot)
@@ -487,6 +516,17 @@ class MbrlRun:
                 data_curve.append({"random_rollouts": n, "mpc_cost": sm["cost"], "mpc_completed": sm["completed"],
                                    "mpc_cost_per_m": sm["cost_per_m"]})
                 _log(cfg, f"data size {n} rollouts: {data_curve[-1]}")
+
+            if cfg.experiments:
+                from learning.experiments import run_experiments
+
+                report.update(run_experiments(self))
+
+        if "table_3_2" in cfg.experiments:
+            from learning.experiments import table_3_2
+
+            high = cfg.speeds.get("high_speed", max(cfg.speeds.values()))
+            report["table_3_2"] = table_3_2(self, cfg.seeds, cfg.terrains, cfg.terrain_rollouts, high)
 
         report["baseline_tuning"] = {
             "method": "random search (Latin hypercube, scipy.stats.qmc) over "

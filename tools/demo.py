@@ -24,15 +24,25 @@ def free_endpoint() -> str:
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
-def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, **overrides: Any) -> dict[str, Any]:
+def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full: bool = False,
+             **overrides: Any) -> dict[str, Any]:
+    """Run the MBRL loop (``quick``: the README's few-minute run; ``full``: also the thesis'
+    experiments over seeds, :mod:`learning.experiments`) and write the report to ``out``."""
+    if quick and full:
+        raise ValueError("choose --quick or --full, not both")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = MbrlConfig.quick(**overrides) if quick else MbrlConfig(data_sizes=(10, 50, 200, 400),
-                                                                 random_rollouts=400, **overrides)
+    if quick:
+        cfg = MbrlConfig.quick(**overrides)
+    elif full:
+        cfg = MbrlConfig.full(**overrides)
+    else:
+        cfg = MbrlConfig(**{"data_sizes": (10, 50, 200, 400), "random_rollouts": 400, **overrides})
     # a private rendezvous port: a demo never talks to another rig by accident
     bus = bus or BusConfig(endpoint=free_endpoint())
     report = MbrlRun(cfg, out, bus).run()
     report["quick"] = quick
+    report["full"] = full
     report["created"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     plots = write_plots(report, out)
     report["plots"] = plots
@@ -86,6 +96,7 @@ def write_plots(report: dict[str, Any], out: Path) -> list[str]:
     fig.savefig(out / "costs.png", dpi=80)
     plt.close(fig)
     files.append("costs.png")
+    files += experiment_plots(report, out, plt)
     if report.get("data_size_curve"):
         d = report["data_size_curve"]
         fig, ax = plt.subplots(figsize=(5, 3.5))
@@ -99,12 +110,113 @@ def write_plots(report: dict[str, Any], out: Path) -> list[str]:
     return files
 
 
+def _ms(cell: dict[str, Any]) -> str:
+    return f"{cell['mean']:.1f} ± {cell['std']:.1f}"
+
+
+def experiment_plots(report: dict[str, Any], out: Path, plt) -> list[str]:
+    """Error-bar plots (mean ± std over seeds) of the full run's experiments."""
+    files = []
+    t31 = report.get("table_3_1")
+    if t31:
+        fig, ax = plt.subplots(figsize=(6, 3.8))
+        rows = list(t31["rows"])
+        x = np.arange(len(rows))
+        for i, p in enumerate(t31["paths"]):
+            m = [t31["rows"][r]["paths"][p]["cost_per_m"] for r in rows]
+            ax.errorbar(x + 0.1 * (i - 1), [c["mean"] for c in m], yerr=[c["std"] for c in m], fmt="o-", capsize=3, label=p)
+        ax.set_xticks(x, rows)
+        ax.set_xlabel("random rollouts used for training")
+        ax.set_ylabel("MPC cost per metre (mean ± std)")
+        ax.set_title(f"Table 3.1: {len(t31['seeds'])} seeds, speed {t31['speed']}")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "table_3_1.png", dpi=80)
+        plt.close(fig)
+        files.append("table_3_1.png")
+    sw = report.get("speed_sweep")
+    if sw:
+        fig, ax = plt.subplots(figsize=(5.5, 3.8))
+        sp = [r["speed"] for r in sw["rows"]]
+        for who, label in (("mpc", "MPC"), ("differential_drive", "tuned differential drive")):
+            c = [r[who]["cost_per_m"] for r in sw["rows"]]
+            ax.errorbar(sp, [v["mean"] for v in c], yerr=[v["std"] for v in c], fmt="o-", capsize=3, label=label)
+        ax.set_xlabel("commanded speed (normalized leg command bound)")
+        ax.set_ylabel("cost per metre, all paths (mean ± std)")
+        ax.set_title("Fig. 3.8: MPC vs tuned differential drive")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "speed_sweep.png", dpi=80)
+        plt.close(fig)
+        files.append("speed_sweep.png")
+    t32 = report.get("table_3_2")
+    if t32:
+        fig, ax = plt.subplots(figsize=(6, 3.8))
+        rows = list(t32["matrix"])
+        x = np.arange(len(rows))
+        for i, t in enumerate(t32["terrains"]):
+            c = [t32["matrix"][r][t]["summary"]["cost_per_m"] for r in rows]
+            ax.bar(x + 0.4 * i - 0.2, [v["mean"] for v in c], 0.4, yerr=[v["std"] for v in c], capsize=3,
+                   label=f"evaluated on {t}")
+        ax.set_xticks(x, [r.replace(" (tuned per terrain)", "") for r in rows], fontsize=7)
+        ax.set_ylabel("straight-line cost per metre (mean ± std)")
+        ax.set_title("Table 3.2: terrains")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "table_3_2.png", dpi=80)
+        plt.close(fig)
+        files.append("table_3_2.png")
+    return files
+
+
+def experiments_markdown(r: dict[str, Any]) -> list[str]:
+    """Tables of the full run: mean ± std over seeds, completions as done/runs."""
+    lines: list[str] = []
+    t31 = r.get("table_3_1")
+    if t31:
+        lines += ["", f"## Table 3.1: MPC cost vs random data ({len(t31['seeds'])} seeds, speed {t31['speed']})", "",
+                  "Cost (summed) and cost per metre, mean ± std over seeds; completed runs of all runs.", "",
+                  "| rollouts | " + " | ".join(t31["paths"]) + " |", "|---|" + "---|" * len(t31["paths"])]
+        for row, v in t31["rows"].items():
+            cells = [f"{_ms(v['paths'][p]['cost'])} ({_ms(v['paths'][p]['cost_per_m'])}/m), "
+                     f"{v['paths'][p]['completed']}/{v['paths'][p]['runs']}" for p in t31["paths"]]
+            lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    sw = r.get("speed_sweep")
+    if sw:
+        n_paths = sw["rows"][0]["mpc"]["paths"] if sw["rows"] else 0
+        lines += ["", f"## Fig. 3.8: MPC vs tuned differential drive over speeds ({len(sw['seeds'])} seeds)", "",
+                  "Cost per metre over all paths and paths completed (of "
+                  f"{n_paths}), mean ± std over seeds. The lockstep sim is deterministic for a fixed controller, "
+                  "so the baseline runs once per speed (std 0).", "",
+                  "| speed | MPC cost/m | MPC completed | diff. drive cost/m | diff. drive completed |",
+                  "|---|---|---|---|---|"]
+        for row in sw["rows"]:
+            m, d = row["mpc"], row["differential_drive"]
+            lines.append(f"| {row['speed']:.2f} | {_ms(m['cost_per_m'])} | {_ms(m['completed'])} | "
+                         f"{_ms(d['cost_per_m'])} | {_ms(d['completed'])} |")
+    t32 = r.get("table_3_2")
+    if t32:
+        lines += ["", f"## Table 3.2: terrains ({len(t32['seeds'])} seeds, {t32['rollouts_per_terrain']} random "
+                  f"rollouts per terrain, {', '.join(t32['paths'])} at speed {t32['speed']})", "",
+                  "| controller | " + " | ".join(f"on {t}: cost/m, completed" for t in t32["terrains"]) + " |",
+                  "|---|" + "---|" * len(t32["terrains"])]
+        for row, per in t32["matrix"].items():
+            cells = []
+            for t in t32["terrains"]:
+                p = per[t]["paths"]
+                done = sum(c["completed"] for c in p.values())
+                runs = sum(c["runs"] for c in p.values())
+                cells.append(f"{_ms(per[t]['summary']['cost_per_m'])}, {done}/{runs}")
+            lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def report_markdown(r: dict[str, Any]) -> str:
     cfg = r["config"]
     lines = [
         "# hilstack demo: model-based RL on the simulated VelociRoACH",
         "",
-        f"Rig `{r['rig']}`, {'quick' if r.get('quick') else 'full'} run, {r['wall_s']:.0f} s wall clock, "
+        f"Rig `{r['rig']}`, {'quick' if r.get('quick') else 'full' if r.get('full') else 'default'} run, {r['wall_s']:.0f} s wall clock, "
         f"created {r.get('created', '')}.",
         f"Random data: {cfg['random_rollouts']} rollouts x {cfg['rollout_steps']} steps; model "
         f"{cfg['ensemble']}x MLP {cfg['hidden']}; planner {cfg['planner']} N={cfg['samples']} H={cfg['horizon']}; "
@@ -153,6 +265,13 @@ def report_markdown(r: dict[str, Any]) -> str:
                   "| random rollouts | MPC completed (high speed) | MPC cost/m |", "|---|---|---|"]
         lines += [f"| {d['random_rollouts']} | {d['mpc_completed']} | {d['mpc_cost_per_m']:.1f} |"
                   for d in r["data_size_curve"]]
+    lines += experiments_markdown(r)
+    if r.get("random_data"):
+        c = r["random_data"]
+        lines += ["", "## Random data coverage", "",
+                  f"Ground speed p50/p90/p99 {c['speed_p50_mps']:.2f}/{c['speed_p90_mps']:.2f}/{c['speed_p99_mps']:.2f}"
+                  f" m/s; {100 * c['fraction_ge_0.5_mps']:.1f} % of steps at ≥ 0.5 m/s, "
+                  f"{100 * c['fraction_ge_0.9_mps']:.1f} % at ≥ 0.9 m/s."]
     lines += ["", "## Training", "",
               f"Validation episodes are drawn once and stay validation data. H = {cfg['horizon']}-step open-loop "
               "errors (thesis Eqn 2.2, normalized per channel) in the world frame and in the body frame of each "

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 from tools.demo import run_demo
 
 
@@ -68,3 +70,36 @@ def test_a_rig_that_never_comes_up_is_a_clear_error(tmp_path):
     log = (tmp_path / "out" / "logs" / "driver.log").read_text()
     assert "hilstack-no-such-port" in log  # the driver said what was wrong
     assert "no spec" in str(e.value)
+
+
+def test_tiny_full_run_writes_the_thesis_tables_with_statistics(tmp_path):
+    """`hil demo --full` on a tiny configuration: Table 3.1, the speed sweep and Table 3.2
+    over two seeds, with mean ± std, per-seed values and error-bar plots."""
+    rep = run_demo(
+        # 2 rollouts x 30 steps: every recording spans > 50 steps, so it holds a spec message
+        tmp_path, full=True, random_rollouts=3, rollout_steps=30, epochs=2, retrain_epochs=1, samples=64,
+        paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.4, tune_paths=("right",),
+        tune_path_scale=0.2, baseline_candidates=2, seeds=(0, 1), table_sizes=(2,), table_paths=("straight",),
+        sweep_speeds=(1.0,), terrain_rollouts=2, progress=False,
+    )
+    t31 = rep["table_3_1"]
+    assert list(t31["rows"]) == ["2", "2+on-policy"] and t31["seeds"] == [0, 1]
+    cell = t31["rows"]["2"]["paths"]["straight"]["cost"]
+    assert cell["n"] == 2 and cell["mean"] == sum(cell["values"]) / 2
+    assert cell["std"] == float(np.std(cell["values"], ddof=1))
+    sw = rep["speed_sweep"]["rows"]
+    assert [r["speed"] for r in sw] == [1.0] and sw[0]["mpc"]["cost_per_m"]["n"] == 2
+    t32 = rep["table_3_2"]
+    assert t32["terrains"] == ["carpet", "styrofoam"]
+    assert set(t32["matrix"]) == {"mpc trained on carpet", "mpc trained on styrofoam", "mpc trained on both",
+                                  "differential drive (tuned per terrain)"}
+    for row in t32["matrix"].values():
+        assert set(row) == {"carpet", "styrofoam"}
+    # the styrofoam rig really is another terrain
+    assert "styrofoam" in (tmp_path / "rigs" / "roach_sim_styrofoam.yaml").read_text()
+    md = (tmp_path / "report.md").read_text()
+    for title in ("Table 3.1", "Fig. 3.8", "Table 3.2"):
+        assert title in md
+    assert " ± " in md
+    for f in ("table_3_1.png", "speed_sweep.png", "table_3_2.png"):
+        assert (tmp_path / f).is_file(), f
