@@ -122,7 +122,7 @@ class MbrlConfig:
 
     @classmethod
     def quick(cls, **kw: Any) -> MbrlConfig:
-        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, data_sizes=(15, 60), baseline_candidates=20)
+        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, data_sizes=(), baseline_candidates=20)
         base.update(kw)
         return cls(**base)
 
