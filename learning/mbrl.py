@@ -34,7 +34,7 @@ from configs.schema import BusConfig, load_rig
 from control.baselines import DifferentialDriveController
 from control.controller_node import ControllerNode, EpisodeLog
 from control.costs import PathCost, evaluate_path_following, rank_key, summarize_paths
-from control.paths import make_path, path_length
+from control.paths import fillet, make_path, path_length
 from control.planners import CEM, PDDM, RandomShooting
 from control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from learning.datasets import Episode
@@ -88,6 +88,10 @@ class MbrlConfig:
     paths: tuple[str, ...] = ("straight", "left", "right", "zigzag", "figure8")
     path_scale: float = 1.5
     speeds: dict[str, float] = field(default_factory=lambda: {"low_speed": 0.5, "high_speed": 1.0})
+    #: the controllers track the path with its corners rounded to this radius (m,
+    #: control.paths.fillet): at a polyline's sharp corner the H-step MPC parks (docs/mbrl.md);
+    #: episodes are scored on the original path. 0: track the polyline itself
+    reference_corner_radius_m: float = 0.2
     #: time limit of an evaluation episode = path length / this speed (m/s): long enough for
     #: a slow but correct controller (the sim walks ~0.68 m/s at command 0.5, docs/mbrl.md)
     time_limit_speed_mps: float = 0.15
@@ -386,9 +390,10 @@ class MbrlRun:
         for name in paths or self.cfg.paths:
             wp = make_path(name, scale=path_scale or self.cfg.path_scale)
             cost = PathCost(wp, self.state_names)
+            ref = fillet(wp, self.cfg.reference_corner_radius_m)  # what the controllers track
             limit_s = self.time_limit_s(wp)
             steps = int(np.ceil(limit_s / self.period_s - 1e-9))
-            log = self.episode(policy_for(wp, cost, speed), steps, path_start_pose(wp),
+            log = self.episode(policy_for(ref, PathCost(ref, self.state_names), speed), steps, path_start_pose(wp),
                                stop_if=PathEnd(PathCost(wp, self.state_names)))
             states = np.array(log.states)
             m = evaluate_path_following(states, cost, period_s=self.period_s, time_limit_s=limit_s)

@@ -9,8 +9,8 @@ import torch
 
 from control.baselines import DifferentialDriveController
 from control.costs import PathCost, closest_segment, evaluate_path_following, rank_key, summarize_paths
-from control.paths import PATHS, make_path, path_length
-from control.planners import RandomShooting
+from control.paths import PATHS, fillet, make_path, path_length
+from control.planners import CEM, RandomShooting
 from control.policies import BaselinePolicy, MpcPolicy
 
 ROACH_NAMES = [
@@ -273,3 +273,53 @@ def test_baseline_completes_corners_and_crossings_on_a_unicycle(name):
     m = evaluate_path_following(torch.stack(traj), cost, period_s=0.1)
     assert m["completed"], m
     assert m["perp_mean_m"] < 0.1
+
+
+# -- corners: the MPC parks at a polyline's sharp corner, not at a rounded one ------------------------
+def test_fillet_rounds_corners_with_tangent_arcs():
+    wp = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]])  # one 90° left corner
+    f = fillet(wp, 0.2, max_step_rad=0.1)
+    np.testing.assert_allclose(f[0], wp[0])
+    np.testing.assert_allclose(f[-1], wp[-1])
+    arc = f[1:-1]
+    # every arc point is 0.2 m from the centre (0.8, 0.2); the arc starts and ends on the segments
+    np.testing.assert_allclose(np.linalg.norm(arc - [0.8, 0.2], axis=1), 0.2, atol=1e-9)
+    np.testing.assert_allclose(arc[0], [0.8, 0.0], atol=1e-9)
+    np.testing.assert_allclose(arc[-1], [1.0, 0.2], atol=1e-9)
+    assert path_length(f) == pytest.approx(2.0 - 0.4 + 0.2 * math.pi / 2, rel=1e-3)
+    np.testing.assert_allclose(fillet(make_path("straight"), 0.2), make_path("straight"), atol=1e-6)
+    np.testing.assert_allclose(fillet(wp, 0.0), wp)
+    # the radius shrinks where segments are short (tangent length at most half a segment)
+    short = fillet(np.array([[0.0, 0.0], [0.1, 0.0], [0.1, 0.1]]), 1.0)
+    assert np.linalg.norm(short[1] - [0.05, 0.0]) < 1e-9
+
+
+def mpc_on_unicycle(path, reference, steps=300):
+    """CEM (H=4) with the thesis cost on ``reference``, driving a unicycle; scored on ``path``."""
+    cost = PathCost(reference, ROACH_NAMES)
+    end = PathCost(path, ROACH_NAMES)
+    planner = CEM(-0.5, 0.5, horizon=4, samples=300, iterations=3, action_dim=2, seed=0)
+    pol = MpcPolicy(SimpleNamespace(predict=lambda s, a: unicycle(s, a, v_max=1.4, w_max=6.0)), planner, cost)
+    pol.reset()
+    s = roach_state(0.0, 0.0, math.atan2(path[1, 1], path[1, 0]))
+    traj = [s]
+    for _ in range(steps):
+        s = unicycle(s, torch.as_tensor(pol(s.numpy()), dtype=torch.float32), v_max=1.4, w_max=6.0)
+        traj.append(s)
+        end.observe(s.numpy())
+        if end.at_end(s[[IX, IY]].numpy()):
+            break
+    return evaluate_path_following(torch.stack(traj), PathCost(path, ROACH_NAMES), period_s=0.1)
+
+
+def test_mpc_parks_at_sharp_corners_and_finishes_with_rounded_ones():
+    """The thesis cost over H = 4 steps: turning through the zigzag's 72° corner costs more
+    heading and distance error than the progress it earns within the horizon, so standing
+    still before the vertex (zero cost per step) wins. Tracking the path with its corners
+    rounded (0.2 m) removes the trap; the result is scored on the original path."""
+    path = make_path("zigzag", scale=1.5)
+    sharp = mpc_on_unicycle(path, path)
+    assert not sharp["completed"] and sharp["progress_m"] < 0.9
+    round_ = mpc_on_unicycle(path, fillet(path, 0.2))
+    assert round_["completed"] and round_["perp_mean_m"] < 0.05
+    assert rank_key(summarize_paths({"z": round_})) < rank_key(summarize_paths({"z": sharp}))
