@@ -18,7 +18,7 @@ Default gains (normalized action per unit error): ``omega_nom = 0.6``, ``k_headi
 per rad, ``k_perp = 4.0`` per m, ``d_max = 0.4``: at 10 cm lateral error the correction
 equals ~0.5 rad of heading error, and ``d`` never exceeds what still leaves both leg sets
 moving forward at ``omega_nom``. These are starting points, not tuned values: `hil demo`
-tunes them per speed (:func:`tune_differential_drive` in :mod:`learning.mbrl`).
+tunes them per speed (:meth:`learning.mbrl.MbrlRun.tune_baseline`).
 """
 
 from __future__ import annotations
