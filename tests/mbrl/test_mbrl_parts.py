@@ -91,3 +91,21 @@ def test_speed_coverage():
     c = speed_coverage([Episode(st, np.zeros((4, 1)), name="e")], ["vx", "vy"])
     assert c["fraction_ge_0.5_mps"] == pytest.approx(0.6) and c["fraction_ge_0.9_mps"] == pytest.approx(0.4)
     assert c["speed_p50_mps"] == pytest.approx(0.6)
+
+
+def test_quick_and_full_are_exclusive(tmp_path):
+    from tools.demo import run_demo
+
+    with pytest.raises(ValueError, match="--quick or --full"):
+        run_demo(tmp_path, quick=True, full=True)
+    assert not (tmp_path / "logs").exists()  # refused before any rig process started
+
+
+def test_full_config_runs_every_experiment_over_three_seeds():
+    from learning.experiments import EXPERIMENTS
+    from learning.mbrl import MbrlConfig
+
+    cfg = MbrlConfig.full()
+    assert set(cfg.experiments) == set(EXPERIMENTS) and len(cfg.seeds) >= 3
+    assert cfg.table_sizes == (50, 200, 400) and cfg.random_rollouts >= max(cfg.table_sizes)
+    assert len(cfg.sweep_speeds) >= 4 and cfg.terrains == ("carpet", "styrofoam")
