@@ -1,8 +1,10 @@
 """The model-based RL loop (Nagabandi et al., Alg. 1) with every node on the bus.
 
     random data (safe random policy) → train dynamics → MPC collects on-policy rollouts
-    → aggregate → retrain (warm start) → ... → evaluate MPC vs the differential-drive
-    baseline on the paths at a low and a high commanded speed.
+    → aggregate → retrain (warm start) → ... → tune the differential-drive baseline per
+    speed on separate tuning paths → evaluate MPC vs the tuned baseline on the paths at a
+    low and a high commanded speed (paths completed, then cost per metre; docs/mbrl.md)
+    → with ``experiments``, the thesis' tables over seeds (:mod:`learning.experiments`).
 
 The rig is real nodes over a real Zenoh session: the driver bridge runs in its own
 process (``hil up <rig>``), the controller node (random policy, MPC, baseline) and the
