@@ -50,6 +50,10 @@ class RigError(RuntimeError):
     watchdogs have stopped it. Recordings written so far are complete up to that point."""
 
 
+#: the thesis' experiments `hil demo --full` runs (learning.experiments)
+EXPERIMENTS = ("table_3_1", "speed_sweep", "table_3_2")
+
+
 @dataclass
 class MbrlConfig:
     rig: str = "roach_sim"
@@ -119,10 +123,29 @@ class MbrlConfig:
     #: real rigs: when the driver cannot reset itself, ask an operator on the terminal
     operator_resets: bool = False
 
+    def __post_init__(self) -> None:
+        # refuse a bad setting before any rig process starts, naming the field
+        problems = []
+        if set(self.experiments) - set(EXPERIMENTS):
+            problems.append(f"experiments: unknown {sorted(set(self.experiments) - set(EXPERIMENTS))}, "
+                            f"choose from {list(EXPERIMENTS)}")
+        if self.time_limit_speed_mps <= 0:
+            problems.append(f"time_limit_speed_mps must be > 0, got {self.time_limit_speed_mps}")
+        if self.baseline_candidates < 1:
+            problems.append(f"baseline_candidates must be >= 1, got {self.baseline_candidates}")
+        if not 0.0 <= self.random_forward_fraction <= 1.0:
+            problems.append(f"random_forward_fraction must be in [0, 1], got {self.random_forward_fraction}")
+        if self.reference_corner_radius_m < 0:
+            problems.append(f"reference_corner_radius_m must be >= 0, got {self.reference_corner_radius_m}")
+        if self.experiments and not self.seeds:
+            problems.append("seeds: the experiments need at least one seed")
+        if problems:
+            raise ValueError("MbrlConfig: " + "; ".join(problems))
+
     @classmethod
     def full(cls, **kw: Any) -> MbrlConfig:
         """`hil demo --full`: the thesis' data sizes and every experiment over three seeds."""
-        base = dict(random_rollouts=400, data_sizes=(), experiments=("table_3_1", "speed_sweep", "table_3_2"))
+        base = dict(random_rollouts=400, data_sizes=(), experiments=EXPERIMENTS)
         base.update(kw)
         return cls(**base)
 

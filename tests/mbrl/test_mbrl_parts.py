@@ -109,3 +109,14 @@ def test_full_config_runs_every_experiment_over_three_seeds():
     assert set(cfg.experiments) == set(EXPERIMENTS) and len(cfg.seeds) >= 3
     assert cfg.table_sizes == (50, 200, 400) and cfg.random_rollouts >= max(cfg.table_sizes)
     assert len(cfg.sweep_speeds) >= 4 and cfg.terrains == ("carpet", "styrofoam")
+
+
+@pytest.mark.parametrize(("field", "value"), [("experiments", ("table_9",)), ("time_limit_speed_mps", 0.0),
+                                              ("baseline_candidates", 0), ("random_forward_fraction", 1.5),
+                                              ("reference_corner_radius_m", -0.1)])
+def test_bad_config_is_one_clear_error_naming_the_field(field, value):
+    from learning.mbrl import MbrlConfig
+
+    with pytest.raises(ValueError, match=field) as e:
+        MbrlConfig(**{field: value})
+    assert "\n" not in str(e.value)
