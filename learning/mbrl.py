@@ -106,8 +106,6 @@ class MbrlConfig:
     baseline_candidates: int = 24
     tune_paths: tuple[str, ...] = ("left", "zigzag", "figure8")
     tune_path_scale: float = 1.0
-    # Table 3.1: MPC cost vs amount of random data (subsets of the random rollouts)
-    data_sizes: tuple[int, ...] = ()
     # the thesis' experiments with statistics (`hil demo --full`, learning.experiments):
     # any of "table_3_1", "speed_sweep", "table_3_2", each repeated for every seed in seeds
     experiments: tuple[str, ...] = ()
@@ -145,13 +143,13 @@ class MbrlConfig:
     @classmethod
     def full(cls, **kw: Any) -> MbrlConfig:
         """`hil demo --full`: the thesis' data sizes and every experiment over three seeds."""
-        base = dict(random_rollouts=400, data_sizes=(), experiments=EXPERIMENTS)
+        base = dict(random_rollouts=400, experiments=EXPERIMENTS)
         base.update(kw)
         return cls(**base)
 
     @classmethod
     def quick(cls, **kw: Any) -> MbrlConfig:
-        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, data_sizes=(), baseline_candidates=20)
+        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, baseline_candidates=20)
         base.update(kw)
         return cls(**base)
 
@@ -536,17 +534,6 @@ class MbrlRun:
                               f"{r['mpc_cost_per_m']:.1f} dd {r['differential_drive_cost_per_m']:.1f}")
             self.recordings.append(str(eval_path))
 
-            data_curve = []
-            for n in cfg.data_sizes:
-                n = min(n, len(random_eps))
-                m = make_model(cfg, self.state_names, self.action_names)
-                self.train(m, random_eps[:n], cfg.epochs)
-                speed = cfg.speeds.get("high_speed", max(cfg.speeds.values()))
-                sm = summarize_paths(self.run_paths(self.mpc_for(m), speed))
-                data_curve.append({"random_rollouts": n, "mpc_cost": sm["cost"], "mpc_completed": sm["completed"],
-                                   "mpc_cost_per_m": sm["cost_per_m"]})
-                _log(cfg, f"data size {n} rollouts: {data_curve[-1]}")
-
             if cfg.experiments:
                 from learning.experiments import run_experiments
 
@@ -569,7 +556,6 @@ class MbrlRun:
         }
         report.update(results)
         report["training"] = training
-        report["data_size_curve"] = data_curve
         report["recordings"] = self.recordings
         report["model"] = str(self.out / "model.pt")
         report["wall_s"] = time.monotonic() - t0

@@ -37,7 +37,7 @@ def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full:
     elif full:
         cfg = MbrlConfig.full(**overrides)
     else:
-        cfg = MbrlConfig(**{"data_sizes": (10, 50, 200, 400), "random_rollouts": 400, **overrides})
+        cfg = MbrlConfig(**{"random_rollouts": 400, **overrides})
     # a private rendezvous port: a demo never talks to another rig by accident
     bus = bus or BusConfig(endpoint=free_endpoint())
     report = MbrlRun(cfg, out, bus).run()
@@ -97,16 +97,6 @@ def write_plots(report: dict[str, Any], out: Path) -> list[str]:
     plt.close(fig)
     files.append("costs.png")
     files += experiment_plots(report, out, plt)
-    if report.get("data_size_curve"):
-        d = report["data_size_curve"]
-        fig, ax = plt.subplots(figsize=(5, 3.5))
-        ax.plot([r["random_rollouts"] for r in d], [r["mpc_cost_per_m"] for r in d], "o-")
-        ax.set_xlabel("random rollouts used for training")
-        ax.set_ylabel("MPC cost per metre (high speed)")
-        fig.tight_layout()
-        fig.savefig(out / "data_size.png", dpi=80)
-        plt.close(fig)
-        files.append("data_size.png")
     return files
 
 
@@ -260,11 +250,6 @@ def report_markdown(r: dict[str, Any]) -> str:
             gains = ", ".join(f"{k} {v:.2f}" for k, v in t["best_params"].items())
             lines.append(f"| {s} | {t['default']['completed']}, {t['default']['cost_per_m']:.1f} | "
                          f"{t['best']['completed']}, {t['best']['cost_per_m']:.1f} | {gains} |")
-    if r.get("data_size_curve"):
-        lines += ["", "## Cost vs amount of random data (one seed)", "",
-                  "| random rollouts | MPC completed (high speed) | MPC cost/m |", "|---|---|---|"]
-        lines += [f"| {d['random_rollouts']} | {d['mpc_completed']} | {d['mpc_cost_per_m']:.1f} |"
-                  for d in r["data_size_curve"]]
     lines += experiments_markdown(r)
     if r.get("random_data"):
         c = r["random_data"]
