@@ -120,3 +120,30 @@ def test_bad_config_is_one_clear_error_naming_the_field(field, value):
     with pytest.raises(ValueError, match=field) as e:
         MbrlConfig(**{field: value})
     assert "\n" not in str(e.value)
+
+
+def test_demo_flags_select_the_variants(monkeypatch, tmp_path):
+    """--world-frame and --thesis-sampling reach the loop's config; a bad combination is
+    one line on stderr and exit code 1."""
+    from typer.testing import CliRunner
+
+    import tools.demo
+    from learning.mbrl import MbrlConfig
+    from tools.cli import app
+
+    seen = {}
+
+    def fake_run_demo(out, quick=False, full=False, **kw):
+        seen.update(kw)
+        MbrlConfig(**{k: v for k, v in kw.items() if k in MbrlConfig.__dataclass_fields__})
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(tools.demo, "run_demo", fake_run_demo)
+    r = CliRunner().invoke(app, ["demo", "--quick", "--world-frame", "--thesis-sampling", "--out", str(tmp_path)])
+    assert r.exit_code == 1 and "stop here" in r.output
+    assert seen["body_frame"] is False
+    assert seen["random_hold_steps"] == 1 and seen["random_forward_fraction"] == 0.0 and seen["reachable_set"] is False
+    monkeypatch.undo()
+    r = CliRunner().invoke(app, ["demo", "--quick", "--full", "--out", str(tmp_path / "x")])
+    assert r.exit_code == 1 and "choose --quick or --full" in r.output
+    assert len(r.output.strip().splitlines()) == 1
