@@ -20,7 +20,9 @@ spread. Completion counts are summed over seeds (``completed`` of ``runs``).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +67,15 @@ def fit_model(run: MbrlRun, episodes: list[Episode], seed: int, epochs: int | No
     return model
 
 
+@contextlib.contextmanager
+def _recorded(run: MbrlRun, name: str) -> Iterator[None]:
+    """Record everything the rig says meanwhile to ``run.rec_dir/name.mcap``."""
+    path = run.rec_dir / f"{name}.mcap"
+    with recording(run.rig.name, path, run.bus):
+        yield
+    run.recordings.append(str(path))
+
+
 def random_episodes(run: MbrlRun, n: int, name: str, seed: int) -> list[Episode]:
     path = run.collect_random(n, name, seed=seed)
     return episodes_from_mcap(path, run.cfg.robot)
@@ -79,10 +90,11 @@ def table_3_1(run: MbrlRun, seeds, sizes, paths, speed: float) -> tuple[dict[str
     for seed in seeds:
         eps = random_episodes(run, max(sizes), f"310-random-seed{seed}", seed)
         model = None
-        for n in sizes:
-            model = fit_model(run, eps[:n], seed)
-            rows.setdefault(str(n), []).append(run.run_paths(run.mpc_for(model), speed, paths=paths))
-            _log(cfg, f"table 3.1 seed {seed}: {n} rollouts {summarize_paths(rows[str(n)][-1])}")
+        with _recorded(run, f"312-eval-seed{seed}"):
+            for n in sizes:
+                model = fit_model(run, eps[:n], seed)
+                rows.setdefault(str(n), []).append(run.run_paths(run.mpc_for(model), speed, paths=paths))
+                _log(cfg, f"table 3.1 seed {seed}: {n} rollouts {summarize_paths(rows[str(n)][-1])}")
         # one on-policy iteration on the largest model: MPC rollouts on the evaluation
         # paths at every speed, aggregated, warm-start retrain
         onp = run.rec_dir / f"311-onpolicy-seed{seed}.mcap"
@@ -92,7 +104,8 @@ def table_3_1(run: MbrlRun, seeds, sizes, paths, speed: float) -> tuple[dict[str
         run.recordings.append(str(onp))
         run.train(model, eps + episodes_from_mcap(onp, cfg.robot), cfg.retrain_epochs)
         key = f"{max(sizes)}+on-policy"
-        rows.setdefault(key, []).append(run.run_paths(run.mpc_for(model), speed, paths=paths))
+        with _recorded(run, f"313-eval-onpolicy-seed{seed}"):
+            rows.setdefault(key, []).append(run.run_paths(run.mpc_for(model), speed, paths=paths))
         models[seed] = model
     table = {"speed": speed, "paths": list(paths), "seeds": list(seeds),
              "rows": {k: {"paths": _cells(v), "summary": _summary(v)} for k, v in rows.items()}}
@@ -103,16 +116,22 @@ def speed_sweep(run: MbrlRun, models: dict[int, Any], speeds) -> dict[str, Any]:
     """MPC (each seed's model) vs the differential drive tuned at each speed, all paths."""
     rows = []
     for speed in speeds:
-        tuning = run.tune_baseline(speed)
-        mpc = [run.run_paths(run.mpc_for(m), speed) for m in models.values()]
-        # the lockstep sim is deterministic for a fixed controller: one baseline run per speed
-        dd = [run.run_paths(run.baseline_for(tuning["best_params"]), speed)]
-        rows.append({"speed": speed, "mpc": _summary(mpc), "differential_drive": _summary(dd),
-                     "mpc_paths": _cells(mpc), "differential_drive_paths": _cells(dd),
-                     "baseline_params": tuning["best_params"]})
-        _log(run.cfg, f"speed sweep {speed:.2f}: mpc {rows[-1]['mpc']['cost_per_m']['mean']:.1f}/m "
-                      f"dd {rows[-1]['differential_drive']['cost_per_m']['mean']:.1f}/m")
+        with _recorded(run, f"330-sweep-{speed:.2f}"):
+            rows.append(_sweep_row(run, models, speed))
     return {"seeds": list(models), "rows": rows}
+
+
+def _sweep_row(run: MbrlRun, models: dict[int, Any], speed: float) -> dict[str, Any]:
+    tuning = run.tune_baseline(speed)
+    mpc = [run.run_paths(run.mpc_for(m), speed) for m in models.values()]
+    # the lockstep sim is deterministic for a fixed controller: one baseline run per speed
+    dd = [run.run_paths(run.baseline_for(tuning["best_params"]), speed)]
+    row = {"speed": speed, "mpc": _summary(mpc), "differential_drive": _summary(dd),
+           "mpc_paths": _cells(mpc), "differential_drive_paths": _cells(dd),
+           "baseline_params": tuning["best_params"]}
+    _log(run.cfg, f"speed sweep {speed:.2f}: mpc {row['mpc']['cost_per_m']['mean']:.1f}/m "
+                  f"dd {row['differential_drive']['cost_per_m']['mean']:.1f}/m")
+    return row
 
 
 def terrain_rig(run: MbrlRun, terrain: str, out: Path) -> Path:
@@ -153,7 +172,8 @@ def table_3_2(run: MbrlRun, seeds, terrains: tuple[str, str], rollouts: int, spe
         with r.session():
             for seed in seeds:
                 data[t][seed] = random_episodes(r, rollouts, f"320-random-{t}-seed{seed}", seed)
-            baseline[t] = r.tune_baseline(speed)["best_params"]
+            with _recorded(r, f"321-tune-baseline-{t}"):
+                baseline[t] = r.tune_baseline(speed)["best_params"]
     trained = {}
     with runs[b].session():  # any rig gives the state and action names
         r = runs[b]
@@ -164,7 +184,7 @@ def table_3_2(run: MbrlRun, seeds, terrains: tuple[str, str], rollouts: int, spe
     matrix: dict[str, dict[str, Any]] = {}
     for t in terrains:
         r = runs[t]
-        with r.session():
+        with r.session(), _recorded(r, f"322-eval-{t}"):
             for src in (a, b, "both"):
                 res = [r.run_paths(r.mpc_for(trained[(src, seed)]), speed, paths=paths) for seed in seeds]
                 matrix.setdefault(f"mpc trained on {src}", {})[t] = {"paths": _cells(res), "summary": _summary(res)}

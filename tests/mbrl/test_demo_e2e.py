@@ -102,3 +102,7 @@ def test_tiny_full_run_writes_the_thesis_tables_with_statistics(tmp_path):
     assert " ± " in md
     for f in ("table_3_1.png", "speed_sweep.png", "table_3_2.png"):
         assert (tmp_path / f).is_file(), f
+    # every experiment episode is recorded
+    for f in ("recordings/312-eval-seed1.mcap", "recordings/330-sweep-1.00.mcap",
+              "terrain_styrofoam/recordings/322-eval-styrofoam.mcap"):
+        assert (tmp_path / f).is_file() and str(tmp_path / f) in rep["recordings"], f
