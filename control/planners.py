@@ -3,8 +3,9 @@
 Three planners share one rollout-and-score core, all batched in torch over
 samples (N) × ensemble members (E) × horizon (H):
 
-* :class:`RandomShooting`: N action sequences uniform in the bounds; execute the first
-  action of the cheapest one (Nagabandi et al. 2018; VelociRoACH: N=500, H=4).
+* :class:`RandomShooting`: N action sequences uniform in the bounds (optionally within
+  the actuator's reachable set, ``max_step``); execute the first action of the cheapest
+  one (Nagabandi et al. 2018; VelociRoACH: N=500, H=4).
 * :class:`CEM`: cross-entropy method; Gaussian over sequences refit to the ``elites``
   cheapest samples for ``iterations`` rounds.
 * :class:`PDDM`: Nagabandi et al. 2019. Temporally filtered noise around a mean sequence
