@@ -53,6 +53,22 @@ def test_tiny_demo_writes_a_complete_report(tmp_path):
     assert "MPC vs tuned differential drive" in (tmp_path / "report.md").read_text()
     assert r["wall_s"] > 0
 
+    # the trained model drives `hil mpc` on a fresh rig, scored with the same metrics
+    from typer.testing import CliRunner
+
+    from configs.schema import BusConfig
+    from learning.mbrl import rig_processes
+    from tools.cli import app
+    from tools.demo import free_endpoint
+
+    bus = BusConfig(endpoint=free_endpoint())
+    with rig_processes("roach_sim", bus, tmp_path / "mpc_logs"):
+        out = CliRunner().invoke(app, ["mpc", "roach_sim", "--model", str(tmp_path / "model.pt"), "--path", "left",
+                                       "--path-scale", "0.25", "--steps", "15", "--json", "--endpoint", bus.endpoint])
+    assert out.exit_code == 0, out.output
+    m = json.loads(out.output)
+    assert {"completed", "progress_m", "cost_per_m", "time_s"} <= set(m) and 0 < m["steps"] <= 15
+
 
 def test_a_rig_that_never_comes_up_is_a_clear_error(tmp_path):
     import pytest
