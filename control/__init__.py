@@ -15,7 +15,10 @@ _EXPORTS = {
     "PDDM": "control.planners",
     "PathCost": "control.costs",
     "evaluate_path_following": "control.costs",
+    "summarize_paths": "control.costs",
+    "rank_key": "control.costs",
     "make_path": "control.paths",
+    "fillet": "control.paths",
     "PATHS": "control.paths",
     "DifferentialDriveController": "control.baselines",
 }

@@ -1,21 +1,36 @@
-"""Task costs for MPC, vectorized in torch over [E, N, H].
+"""Task costs for MPC, vectorized in torch over [E, N, H], and the metrics that compare
+controllers on a path.
 
 Path following (Nagabandi et al. 2018, VelociRoACH). For each predicted state ``s_h``
 (h = 1..H) of a candidate, with ``p_h`` the (x, y) position and ``ψ_h`` the yaw:
 
-* the closest segment of the waypoint polyline to ``p_h`` (unit direction ``t̂``, angle θ),
+* the closest segment of the waypoint polyline to ``p_h`` *within the progress window*
+  (unit direction ``t̂``, angle θ),
 * ``perp_h``     = distance from ``p_h`` to that segment (m),
 * ``heading_h``  = |wrap(ψ_h − θ)| (rad),
 * ``progress_h`` = (p_h − p_{h−1}) · t̂ (m, forward motion along that segment),
 
     c = Σ_h  f_p · perp_h + f_h · heading_h − f_f · progress_h
 
-with the thesis weights f_p = 50, f_f = 10, f_h = 5. The same function scores an executed
-trajectory (:func:`evaluate_path_following`), so MPC and baselines are compared with one
-metric.
+with the thesis weights f_p = 50, f_f = 10, f_h = 5.
 
-Limitation: the closest segment is the global one, so on self-crossing paths (figure-8)
-a state at the crossing may be matched to either branch.
+**Progress window.** The thesis matches each state to the globally closest segment; on a
+self-crossing path (figure-8) a state at the crossing then jumps to the other branch, and
+a robot near a corner can be matched to a segment it has not reached. Here the robot's
+place on the path is tracked: :meth:`PathCost.observe` moves the current segment ``k``
+forward to the closest segment among those starting less than ``window_m`` of arc length
+after segment ``k`` ends, never backward; the planner's predicted states are matched
+within the same window. The controller calls ``observe`` once per control step (the
+baseline and :class:`~control.policies.MpcPolicy` do), and the evaluation replays the
+same tracking over the executed trajectory.
+
+**Metrics** (:func:`evaluate_path_following`): the summed cost alone rewards a robot that
+parks on the line (no perpendicular error, no cost) over one that finishes with some
+error. Every episode therefore also reports ``completed`` (reached the end of the path
+within the time limit), ``progress_m`` (arc length along the path reached at the end) and
+``cost_per_m`` (cost per metre of progress). Controllers are ranked by completions first,
+then ``cost_per_m`` (:func:`rank_key`): a controller that stops never beats one that
+finishes.
 """
 
 from __future__ import annotations
@@ -25,7 +40,12 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-__all__ = ["PathCost", "closest_segment", "evaluate_path_following", "state_index"]
+__all__ = ["PathCost", "closest_segment", "evaluate_path_following", "rank_key", "state_index",
+           "summarize_paths", "MIN_PROGRESS_M"]
+
+#: ``cost_per_m`` divides by at least this much progress (m), so a robot that never moved
+#: gets a large finite cost per metre rather than a division by zero.
+MIN_PROGRESS_M = 0.01
 
 
 def state_index(state_names: Sequence[str], *candidates: str) -> int:
@@ -43,7 +63,8 @@ def closest_segment(p: torch.Tensor, a: torch.Tensor, d: torch.Tensor):
     Args:
         p: ``[..., 2]`` points; ``a``: ``[G, 2]`` segment starts; ``d``: ``[G, 2]`` segment vectors.
     Returns:
-        ``(index [...], distance [...], unit direction [..., 2])`` of the closest segment.
+        ``(index [...], distance [...], unit direction [..., 2])`` of the closest segment
+        (ties go to the lower index).
     """
     rel = p.unsqueeze(-2) - a  # [..., G, 2]
     len2 = (d * d).sum(-1).clamp_min(1e-12)  # [G]
@@ -59,12 +80,19 @@ class PathCost:
     """Path-following cost ``cost(states [E,N,H+1,S], actions [N,H,A]) -> [E,N]``.
 
     Args:
-        waypoints: ``[P, 2]`` polyline in metres (see :mod:`control.paths`).
+        waypoints: ``[P, 2]`` polyline in metres, world frame (see :mod:`control.paths`).
         state_names: names of the S state channels; the x, y, cos(yaw), sin(yaw) channels are
             looked up by name (``x``/``y``/``cos_yaw``/``sin_yaw`` by default, override with
             ``x=``, ``y=``, ``cos_yaw=``, ``sin_yaw=``).
         f_p, f_h, f_f: weights of perpendicular distance (1/m), heading error (1/rad) and
             forward progress (1/m).
+        window_m: arc length (m) past the end of the current segment within which states
+            are matched to segments (see the module docstring). ``None``: the globally
+            closest segment (the thesis' definition; wrong at self-crossings).
+        end_tol_m: the path counts as completed once the robot is past the last waypoint
+            along the last segment or within this distance (m) of it.
+
+    The object is stateful (the tracked segment): use one per episode, or :meth:`reset`.
     """
 
     def __init__(
@@ -75,6 +103,8 @@ class PathCost:
         f_h: float = 5.0,
         f_f: float = 10.0,
         *,
+        window_m: float | None = 0.5,
+        end_tol_m: float = 0.05,
         x: str = "x",
         y: str = "y",
         cos_yaw: str = "cos_yaw",
@@ -83,28 +113,104 @@ class PathCost:
         wp = torch.as_tensor(np.asarray(waypoints, dtype=np.float32))
         if wp.dim() != 2 or wp.shape[1] != 2 or wp.shape[0] < 2:
             raise ValueError(f"waypoints must be [P>=2, 2], got {tuple(wp.shape)}")
+        if window_m is not None and window_m < 0:
+            raise ValueError(f"window_m must be >= 0 or None, got {window_m}")
         self.waypoints = wp
         self.seg_start = wp[:-1]
         self.seg_vec = wp[1:] - wp[:-1]
+        seg_len = self.seg_vec.norm(dim=-1).double()
+        self.seg_len_m = seg_len.numpy()
+        #: arc length (m) at the start of each segment, and the path's total length
+        self.seg_s0_m = np.concatenate([[0.0], np.cumsum(self.seg_len_m)[:-1]])
+        self.length_m = float(seg_len.sum())
+        self.window_m = window_m
+        self.end_tol_m = float(end_tol_m)
         self.f_p, self.f_h, self.f_f = float(f_p), float(f_h), float(f_f)
         self.ix = state_index(state_names, x)
         self.iy = state_index(state_names, y)
         self.ic = state_index(state_names, cos_yaw, "cos yaw", "yaw_cos")
         self.is_ = state_index(state_names, sin_yaw, "sin yaw", "yaw_sin")
+        self.segment = 0
 
-    def terms(self, states: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Per-step terms for ``states [..., H+1, S]``: each ``[..., H]`` (steps 1..H)."""
+    # -- tracking the robot's place on the path ---------------------------------------------
+    def reset(self) -> None:
+        """Back to the first segment (a new episode)."""
+        self.segment = 0
+
+    def window(self, k: int | None = None) -> slice:
+        """Segments a state may be matched to while the robot is on segment ``k``."""
+        G = self.seg_start.shape[0]
+        if self.window_m is None:
+            return slice(0, G)
+        k = self.segment if k is None else k
+        end_k = self.seg_s0_m[k] + self.seg_len_m[k]
+        last = int(np.searchsorted(self.seg_s0_m, end_k + self.window_m, side="left"))
+        return slice(k, max(k + 1, min(G, last)))
+
+    def _match(self, p: torch.Tensor, k: int | None = None):
+        w = self.window(k)
+        idx, dist, unit = closest_segment(p, self.seg_start[w], self.seg_vec[w])
+        return idx + w.start, dist, unit
+
+    def observe(self, state) -> int:
+        """Advance the tracked segment for the robot's measured ``state [S]``; returns it."""
+        s = torch.as_tensor(np.asarray(state, dtype=np.float32))
+        idx, _, _ = self._match(s[[self.ix, self.iy]])
+        self.segment = max(self.segment, int(idx)) if self.window_m is not None else int(idx)
+        return self.segment
+
+    def arc_length(self, p_xy, k: int | None = None) -> float:
+        """Arc length (m) along the path of ``p_xy`` projected on segment ``k`` (default: tracked)."""
+        k = self.segment if k is None else k
+        a, d = self.seg_start[k].double().numpy(), self.seg_vec[k].double().numpy()
+        t = float(np.clip((np.asarray(p_xy, dtype=np.float64) - a) @ d / max(float(d @ d), 1e-12), 0.0, 1.0))
+        return float(self.seg_s0_m[k] + t * self.seg_len_m[k])
+
+    def at_end(self, p_xy, k: int | None = None) -> bool:
+        """True once the robot on segment ``k`` has passed the end of the path."""
+        k = self.segment if k is None else k
+        G = self.seg_start.shape[0]
+        if k != G - 1:
+            return False
+        p = np.asarray(p_xy, dtype=np.float64)
+        a, d = self.seg_start[k].double().numpy(), self.seg_vec[k].double().numpy()
+        along = float((p - a) @ d / max(float(d @ d), 1e-12))
+        return along >= 1.0 or float(np.linalg.norm(p - (a + d))) < self.end_tol_m
+
+    def track(self, states) -> np.ndarray:
+        """Replay :meth:`observe` over a trajectory ``[T, S]`` from the first segment:
+        the tracked segment index after each state ``[T]``. Leaves ``self`` reset."""
+        s = np.asarray(states, dtype=np.float32)
+        self.reset()
+        out = np.array([self.observe(x) for x in s], dtype=np.int64)
+        self.reset()
+        return out
+
+    # -- the cost -----------------------------------------------------------------------------
+    def terms(self, states: torch.Tensor, segments: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Per-step terms for ``states [..., H+1, S]``: each ``[..., H]`` (steps 1..H).
+
+        ``segments [..., H]`` fixes the segment of each step (an executed trajectory's
+        tracked segments); otherwise each state is matched within the current window.
+        """
         p = states[..., [self.ix, self.iy]]  # [..., H+1, 2]
-        _, perp, unit = closest_segment(p[..., 1:, :], self.seg_start, self.seg_vec)
+        if segments is None:
+            _, perp, unit = self._match(p[..., 1:, :])
+        else:
+            a, d = self.seg_start[segments], self.seg_vec[segments]
+            rel = p[..., 1:, :] - a
+            t = ((rel * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
+            perp = (rel - t.unsqueeze(-1) * d).norm(dim=-1)
+            unit = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         progress = ((p[..., 1:, :] - p[..., :-1, :]) * unit).sum(-1)
         c, s = states[..., 1:, self.ic], states[..., 1:, self.is_]
         # angle between the heading (c, s) and the segment direction, without unwrapping
         heading = torch.atan2(c * unit[..., 1] - s * unit[..., 0], c * unit[..., 0] + s * unit[..., 1]).abs()
         return {"perp_m": perp, "heading_rad": heading, "progress_m": progress}
 
-    def step_cost(self, states: torch.Tensor) -> torch.Tensor:
+    def step_cost(self, states: torch.Tensor, segments: torch.Tensor | None = None) -> torch.Tensor:
         """Cost of each step ``[..., H]`` for ``states [..., H+1, S]``."""
-        t = self.terms(states)
+        t = self.terms(states, segments)
         return self.f_p * t["perp_m"] + self.f_h * t["heading_rad"] - self.f_f * t["progress_m"]
 
     def __call__(self, states: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
@@ -112,21 +218,58 @@ class PathCost:
         return self.step_cost(states).sum(-1)
 
 
-def evaluate_path_following(states, cost: PathCost) -> dict[str, float]:
+def evaluate_path_following(states, cost: PathCost, period_s: float | None = None,
+                            time_limit_s: float | None = None) -> dict[str, float]:
     """Score an executed trajectory ``states [T+1, S]`` with the planner's own cost.
 
-    Returns ``cost`` (the summed path cost: lower is better, comparable between MPC and
-    baselines on the same path and duration), the mean perpendicular error (m), the mean
-    heading error (rad) and the total forward progress (m).
+    The robot's place on the path is tracked from the first segment as during the
+    episode (:meth:`PathCost.track`). Returns:
+
+    * ``cost``: the summed path cost (lower is better);
+    * ``completed``: the robot reached the end of the path (:meth:`PathCost.at_end`)
+      within ``time_limit_s`` (when given);
+    * ``progress_m``: arc length along the path (m) reached at the end of the episode;
+    * ``cost_per_m``: ``cost / max(progress_m, MIN_PROGRESS_M)``;
+    * ``time_s``: episode duration, ``T · period_s`` (when ``period_s`` is given);
+    * ``perp_mean_m``, ``heading_mean_rad``, ``steps``.
     """
     s = torch.as_tensor(np.asarray(states, dtype=np.float32))
     if s.dim() != 2 or s.shape[0] < 2:
         raise ValueError(f"states must be [T+1>=2, S], got {tuple(s.shape)}")
-    t = cost.terms(s)
+    seg = torch.as_tensor(cost.track(s.numpy()))
+    t = cost.terms(s, seg[1:])
+    xy = s[:, [cost.ix, cost.iy]].double().numpy()
+    reached = [i for i in range(len(xy)) if cost.at_end(xy[i], int(seg[i]))]
+    steps = int(s.shape[0] - 1)
+    time_s = steps * period_s if period_s is not None else float("nan")
+    completed = bool(reached) and (time_limit_s is None or period_s is None
+                                   or reached[0] * period_s <= time_limit_s + 1e-9)
+    progress = cost.length_m if reached else cost.arc_length(xy[-1], int(seg[-1]))
+    total = float(cost.step_cost(s, seg[1:]).sum())
     return {
-        "cost": float(cost.step_cost(s).sum()),
+        "cost": total,
+        "completed": completed,
+        "progress_m": float(progress),
+        "cost_per_m": total / max(float(progress), MIN_PROGRESS_M),
+        "time_s": float(time_s),
         "perp_mean_m": float(t["perp_m"].mean()),
         "heading_mean_rad": float(t["heading_rad"].mean()),
-        "progress_m": float(t["progress_m"].sum()),
-        "steps": int(s.shape[0] - 1),
+        "steps": steps,
     }
+
+
+def summarize_paths(per_path: dict[str, dict]) -> dict[str, float]:
+    """Over paths: ``completed`` (count), ``cost`` (mean) and ``cost_per_m`` (total cost over
+    total progress, so a path with almost no progress does not dominate a mean of ratios)."""
+    total_cost = sum(m["cost"] for m in per_path.values())
+    total_progress = sum(max(m["progress_m"], 0.0) for m in per_path.values())
+    return {
+        "completed": int(sum(bool(m["completed"]) for m in per_path.values())),
+        "cost": total_cost / max(len(per_path), 1),
+        "cost_per_m": total_cost / max(total_progress, MIN_PROGRESS_M),
+    }
+
+
+def rank_key(summary: dict[str, float]) -> tuple[int, float]:
+    """Sort key (lower is better): more completed paths first, then lower ``cost_per_m``."""
+    return (-int(summary["completed"]), float(summary["cost_per_m"]))

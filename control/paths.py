@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["PATHS", "straight", "left", "right", "zigzag", "figure8", "make_path", "path_length"]
+__all__ = ["PATHS", "straight", "left", "right", "zigzag", "figure8", "make_path", "path_length", "fillet"]
 
 
 def straight(scale: float = 1.0, length_m: float = 2.0, points: int = 9) -> np.ndarray:
@@ -74,3 +74,40 @@ def make_path(name: str, scale: float = 1.0, **kwargs) -> np.ndarray:
 def path_length(waypoints: np.ndarray) -> float:
     """Total polyline length in metres."""
     return float(np.linalg.norm(np.diff(np.asarray(waypoints), axis=0), axis=1).sum())
+
+
+def fillet(waypoints: np.ndarray, radius_m: float, max_step_rad: float = 0.2) -> np.ndarray:
+    """The polyline with every corner replaced by a circular arc of ``radius_m`` tangent to
+    both segments (``[Q, 2]`` m, same start and end). A robot with a bounded turn rate
+    cannot follow a corner exactly; the arc is the feasible reference near it. The arc's
+    tangent length ``r·tan(θ/2)`` is capped at half of each adjacent segment (the radius
+    shrinks where segments are short); arcs are sampled every ``max_step_rad`` of turn.
+    Corners turning less than 1e-3 rad are kept as they are.
+    """
+    wp = np.asarray(waypoints, dtype=np.float64)
+    if radius_m <= 0 or len(wp) < 3:
+        return wp.copy()
+    out = [wp[0]]
+    for i in range(1, len(wp) - 1):
+        a, b, c = wp[i - 1], wp[i], wp[i + 1]
+        u_in, u_out = b - a, c - b
+        l_in, l_out = float(np.linalg.norm(u_in)), float(np.linalg.norm(u_out))
+        u_in, u_out = u_in / l_in, u_out / l_out
+        cross = u_in[0] * u_out[1] - u_in[1] * u_out[0]
+        theta = float(np.arctan2(cross, float(u_in @ u_out)))  # signed turn, >0 = left
+        if abs(theta) < 1e-3:
+            out.append(b)
+            continue
+        d = min(radius_m * np.tan(abs(theta) / 2), l_in / 2, l_out / 2)
+        r = d / np.tan(abs(theta) / 2)
+        start = b - d * u_in
+        normal = np.array([-u_in[1], u_in[0]]) * np.sign(theta)  # toward the arc's centre
+        centre = start + r * normal
+        n = max(2, int(np.ceil(abs(theta) / max_step_rad)) + 1)
+        phi0 = np.arctan2(start[1] - centre[1], start[0] - centre[0])
+        for phi in phi0 + np.sign(theta) * np.linspace(0.0, abs(theta), n):
+            out.append(centre + r * np.array([np.cos(phi), np.sin(phi)]))
+    out.append(wp[-1])
+    pts = np.array(out)
+    keep = np.r_[True, np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-9]
+    return pts[keep].astype(np.asarray(waypoints).dtype)

@@ -3,8 +3,9 @@
 Three planners share one rollout-and-score core, all batched in torch over
 samples (N) × ensemble members (E) × horizon (H):
 
-* :class:`RandomShooting`: N action sequences uniform in the bounds; execute the first
-  action of the cheapest one (Nagabandi et al. 2018; VelociRoACH: N=500, H=4).
+* :class:`RandomShooting`: N action sequences uniform in the bounds (optionally within
+  the actuator's reachable set, ``max_step``); execute the first action of the cheapest
+  one (Nagabandi et al. 2018; VelociRoACH: N=500, H=4).
 * :class:`CEM`: cross-entropy method; Gaussian over sequences refit to the ``elites``
   cheapest samples for ``iterations`` rounds.
 * :class:`PDDM`: Nagabandi et al. 2019. Temporally filtered noise around a mean sequence
@@ -240,18 +241,53 @@ class RandomShooting(Planner):
     """Uniform random sequences in the bounds; the first action of the cheapest one.
 
     ``a_{n,h} ~ U(low, high)``, ``n* = argmin_n cost_n``, returns ``a_{n*,0}``.
-    No warm start (each call is independent).
+
+    With ``max_step`` (per-step change bound ``r``, scalar or ``[A]``, in action units per
+    control step: the actuator's rate limit times the period) the sequences are drawn
+    from the actuator's reachable set instead: each step is uniform within ``±r`` of the
+    step before, the first within ``±r`` of the previously returned action (anywhere in
+    the bounds after :meth:`reset`), all clipped to the bounds:
+
+        a_{n,h} ~ U(max(low, a_{n,h-1} − r), min(high, a_{n,h-1} + r))
+
+    so no candidate scores a jump the rate limit would not let the robot make.
     """
 
     name = "random_shooting"
+
+    def __init__(self, *args, max_step: float | Sequence[float] | None = None, **kwargs) -> None:
+        self._max_step_arg = max_step
+        super().__init__(*args, **kwargs)
+        self.max_step = None if max_step is None else _vec(max_step, self.action_dim, "max_step")
+        if self.max_step is not None and bool((self.max_step <= 0).any()):
+            raise ValueError(f"max_step must be > 0, got {self.max_step.tolist()}")
+
+    def _reset_distribution(self) -> None:
+        self.previous: torch.Tensor | None = None
+
+    def config(self) -> dict:
+        return {**super().config(), "max_step": None if self.max_step is None else self.max_step.tolist()}
 
     def _plan(self, dynamics, cost, s0):
         N, H, A = self.samples, self.horizon, self.action_dim
         actions = self._buffer("actions", (N, H, A))
         actions.uniform_(0.0, 1.0, generator=self.generator)
-        actions.mul_(self.action_high - self.action_low).add_(self.action_low)
+        if self.max_step is None:
+            actions.mul_(self.action_high - self.action_low).add_(self.action_low)
+        else:
+            prev = None if self.previous is None else self.previous.expand(N, A)
+            for h in range(H):
+                if prev is None:
+                    lo, hi = self.action_low, self.action_high
+                else:
+                    lo = torch.maximum(prev - self.max_step, self.action_low)
+                    hi = torch.minimum(prev + self.max_step, self.action_high)
+                actions[:, h].mul_(hi - lo).add_(lo)
+                prev = actions[:, h]
         _, best = self._evaluate(dynamics, cost, s0, actions)
-        return actions[best]
+        plan = actions[best].clone()
+        self.previous = plan[0].clone()
+        return plan
 
 
 class CEM(Planner):

@@ -19,7 +19,14 @@ from control.costs import state_index
 
 
 class SafeRandomPolicy:
-    """Uniform random normalized actions, held for ``hold_steps`` steps, inside an arena.
+    """Random normalized actions, each held for a random number of steps, inside an arena.
+
+    Each held segment (``1..hold_steps`` steps, uniform) is, with probability
+    ``1 − forward_fraction``, uniform over the action box (the thesis' random data) and
+    otherwise a *forward* command for two-legged-set robots: mean leg command
+    ``m ~ U(0, high)`` and difference ``d ~ U(−turn, turn)``, legs ``m ∓ d/2``. Uniform
+    independent steps average out to a slow, wobbling gait: the data then barely covers
+    the speeds path following asks for (docs/mbrl.md gives the measured coverage).
 
     Outside ``0.8·arena_radius_m`` while heading away from the centre, a differential
     turn toward the centre replaces the random action (differential-drive robots:
@@ -35,7 +42,13 @@ class SafeRandomPolicy:
         low: float = -1.0,
         high: float = 1.0,
         seed: int = 0,
+        forward_fraction: float = 0.0,
+        turn: float = 0.5,
     ):
+        if not 0.0 <= forward_fraction <= 1.0:
+            raise ValueError(f"forward_fraction must be in [0, 1], got {forward_fraction}")
+        if forward_fraction > 0 and action_dim != 2:
+            raise ValueError("forward commands need a two-channel (left, right) action")
         self.ix = state_index(state_names, "x")
         self.iy = state_index(state_names, "y")
         self.ic = state_index(state_names, "cos_yaw")
@@ -44,10 +57,19 @@ class SafeRandomPolicy:
         self.arena = arena_radius_m
         self.hold = max(1, hold_steps)
         self.low, self.high = low, high
+        self.forward_fraction = float(forward_fraction)
+        self.turn = float(turn)
         self.rng = np.random.default_rng(seed)
-        self._k = 0
+        self._left = 0
         self._a = np.zeros(action_dim)
         self.overrides = 0
+
+    def _draw(self) -> np.ndarray:
+        if self.rng.uniform() < self.forward_fraction:
+            m = self.rng.uniform(0.0, self.high)
+            d = self.rng.uniform(-self.turn, self.turn)
+            return np.clip(np.array([m - d / 2, m + d / 2]), self.low, self.high)
+        return self.rng.uniform(self.low, self.high, self.action_dim)
 
     def __call__(self, state: np.ndarray) -> np.ndarray:
         p = np.array([state[self.ix], state[self.iy]])
@@ -59,9 +81,10 @@ class SafeRandomPolicy:
             cross = heading[0] * to_centre[1] - heading[1] * to_centre[0]
             turn = 0.6 if cross >= 0 else -0.6  # >0: centre is to the left → right legs faster
             return np.clip(np.array([0.3 - turn, 0.3 + turn]), -1, 1)
-        if self._k % self.hold == 0:
-            self._a = self.rng.uniform(self.low, self.high, self.action_dim)
-        self._k += 1
+        if self._left <= 0:
+            self._a = self._draw()
+            self._left = int(self.rng.integers(1, self.hold + 1))
+        self._left -= 1
         return self._a.copy()
 
 
@@ -78,8 +101,12 @@ class MpcPolicy:
 
     def reset(self) -> None:
         self.planner.reset()
+        if hasattr(self.cost, "reset"):
+            self.cost.reset()
 
     def __call__(self, state: np.ndarray) -> np.ndarray:
+        if hasattr(self.cost, "observe"):
+            self.cost.observe(state)  # a path cost tracks the robot's place on the path
         a = self.planner(self.model.predict, self.cost, state)
         self.last_plan = self.planner.last_plan.numpy()
         pred = self.planner.last_predicted_states
@@ -94,7 +121,8 @@ class BaselinePolicy:
         self.controller = controller
 
     def reset(self) -> None:
-        pass
+        if hasattr(self.controller, "reset"):
+            self.controller.reset()
 
     def __call__(self, state: np.ndarray) -> np.ndarray:
         return np.asarray(self.controller(state), dtype=np.float64)

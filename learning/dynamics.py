@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -566,7 +566,8 @@ class EnsembleDynamics(nn.Module):
 
 
 def h_step_error(
-    model: EnsembleDynamics, start: np.ndarray, actions: np.ndarray, truth: np.ndarray
+    model, start: np.ndarray, actions: np.ndarray, truth: np.ndarray,
+    state_std: torch.Tensor | None = None, frame: Callable | None = None,
 ) -> tuple[float, float]:
     """Open-loop H-step prediction error (thesis Eqn 2.2).
 
@@ -580,19 +581,27 @@ def h_step_error(
     ``E_raw`` being the same with ``σ_s = 1`` (in squared state units).
 
     Args:
+        model: anything with ``predict(state, action) -> [E, P, S]``.
         start ``[P,S]``, actions ``[P,H,A]``, truth ``[P,H,S]``: from :func:`h_step_windows`.
+        state_std: ``σ_s`` (default ``model.state_std``).
+        frame: ``frame(states [..., P, S], start [P, S])``: compare predictions and truth in
+            another frame, e.g. the body frame of each window's start state.
     """
     with torch.inference_mode():
-        s = torch.from_numpy(np.ascontiguousarray(start))
-        a = torch.from_numpy(np.ascontiguousarray(actions))
-        y = torch.from_numpy(np.ascontiguousarray(truth))
+        s = torch.from_numpy(np.ascontiguousarray(start)).float()
+        a = torch.from_numpy(np.ascontiguousarray(actions)).float()
+        y = torch.from_numpy(np.ascontiguousarray(truth)).float()
+        std = model.state_std if state_std is None else state_std
         H = a.shape[1]
         err_n = torch.zeros(())
         err_r = torch.zeros(())
         cur = s
         for h in range(H):
             cur = model.predict(cur, a[:, h])  # [E, P, S]
-            d = cur - y[:, h]
+            if frame is None:
+                d = cur - y[:, h]
+            else:
+                d = frame(cur, s.expand_as(cur)) - frame(y[:, h], s)
             err_r = err_r + 0.5 * (d**2).sum(-1).mean()
-            err_n = err_n + 0.5 * ((d / model.state_std) ** 2).sum(-1).mean()
+            err_n = err_n + 0.5 * ((d / std) ** 2).sum(-1).mean()
         return float(err_n / H), float(err_r / H)

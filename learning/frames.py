@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from learning.datasets import Episode
-from learning.dynamics import EnsembleDynamics
+from learning.dynamics import EnsembleDynamics, h_step_error, h_step_windows
 
 
 class PlanarFrame:
@@ -100,13 +100,39 @@ class BodyFrameDynamics:
         return out
 
     def fit(self, episodes: Sequence[Episode], val: Sequence[Episode] | None = None, **kw) -> list[dict]:
+        """Train the wrapped model on one-step body-frame transitions.
+
+        With ``val``, the last history entry gets the real ``horizon``-step open-loop error
+        (thesis Eqn 2.2, :func:`learning.dynamics.h_step_error`) of this world-frame model on
+        the validation episodes, in two frames:
+
+        * ``val_h`` (and ``val_h_raw``): world frame, normalized by the per-channel std of
+          the training states;
+        * ``val_h_body``: predictions and truth expressed in the body frame of each
+          window's start state, normalized by the std of the training states in the frame
+          of the state before them;
+        * ``val_h_xy_mse_m2``: squared position error [m²] after the ``horizon`` steps.
+
+        ``val_1step`` stays the wrapped model's one-step loss (body frame, normalized).
+        """
         horizon = kw.pop("horizon", 4)
         hist = self.model.fit(self.body_episodes(episodes), val=self.body_episodes(val) if val else None,
                               horizon=1, **kw)
         if val and hist:
-            hist[-1]["val_h_xy_mse_m2"] = self.h_step_error(val, horizon)
-            hist[-1]["horizon"] = horizon
+            hist[-1].update(self.validation_errors(episodes, val, horizon))
         return hist
+
+    def validation_errors(self, train: Sequence[Episode], val: Sequence[Episode], horizon: int) -> dict[str, float]:
+        """The open-loop errors :meth:`fit` reports (see there)."""
+        windows = h_step_windows(val, horizon)
+        st = np.concatenate([e.states for e in train]).astype(np.float32)
+        world_std = torch.as_tensor(st.std(0)).clamp_min(1e-6)
+        body = np.concatenate([self.frame.to_body(e.states[1:], e.states[:-1]) for e in train]).astype(np.float32)
+        body_std = torch.as_tensor(body.std(0)).clamp_min(1e-6)
+        val_h, val_h_raw = h_step_error(self, *windows, state_std=world_std)
+        val_h_body, _ = h_step_error(self, *windows, state_std=body_std, frame=self.frame.to_body)
+        return {"val_h": val_h, "val_h_raw": val_h_raw, "val_h_body": val_h_body,
+                "val_h_xy_mse_m2": self.h_step_xy_error(val, horizon), "horizon": horizon}
 
     def predict(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         body = self.frame.to_body(state, state)
@@ -114,7 +140,7 @@ class BodyFrameDynamics:
         ref = state if state.dim() == 3 else state.unsqueeze(0).expand_as(nxt)
         return self.frame.to_world(nxt, ref)
 
-    def h_step_error(self, episodes: Sequence[Episode], horizon: int = 4) -> float:
+    def h_step_xy_error(self, episodes: Sequence[Episode], horizon: int = 4) -> float:
         """Mean squared open-loop error after ``horizon`` steps in x, y [m²], world frame."""
         errs = []
         with torch.inference_mode():

@@ -1,8 +1,10 @@
 """The model-based RL loop (Nagabandi et al., Alg. 1) with every node on the bus.
 
     random data (safe random policy) → train dynamics → MPC collects on-policy rollouts
-    → aggregate → retrain (warm start) → ... → evaluate MPC vs the differential-drive
-    baseline on the paths at a low and a high commanded speed.
+    → aggregate → retrain (warm start) → ... → tune the differential-drive baseline per
+    speed on separate tuning paths → evaluate MPC vs the tuned baseline on the paths at a
+    low and a high commanded speed (paths completed, then cost per metre; docs/mbrl.md)
+    → with ``experiments``, the thesis' tables over seeds (:mod:`learning.experiments`).
 
 The rig is real nodes over a real Zenoh session: the driver bridge runs in its own
 process (``hil up <rig>``), the controller node (random policy, MPC, baseline) and the
@@ -33,8 +35,8 @@ from bus.recording import Recorder
 from configs.schema import BusConfig, load_rig
 from control.baselines import DifferentialDriveController
 from control.controller_node import ControllerNode, EpisodeLog
-from control.costs import PathCost, evaluate_path_following
-from control.paths import make_path
+from control.costs import PathCost, evaluate_path_following, rank_key, summarize_paths
+from control.paths import fillet, make_path, path_length
 from control.planners import CEM, PDDM, RandomShooting
 from control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from learning.datasets import Episode
@@ -48,6 +50,10 @@ class RigError(RuntimeError):
     watchdogs have stopped it. Recordings written so far are complete up to that point."""
 
 
+#: the thesis' experiments `hil demo --full` runs (learning.experiments)
+EXPERIMENTS = ("table_3_1", "speed_sweep", "table_3_2")
+
+
 @dataclass
 class MbrlConfig:
     rig: str = "roach_sim"
@@ -57,6 +63,11 @@ class MbrlConfig:
     random_rollouts: int = 200
     rollout_steps: int = 50
     arena_radius_m: float = 3.0
+    #: random data: each random command is held 1..random_hold_steps steps, and this fraction
+    #: of them are forward commands (control.policies.SafeRandomPolicy) so the data covers
+    #: the speeds the evaluation asks for; 1 and 0.0 give the thesis' uniform steps
+    random_hold_steps: int = 6
+    random_forward_fraction: float = 0.6
     # model (thesis: 2x500 ReLU MLP, Adam 1e-3)
     hidden: tuple[int, ...] = (500, 500)
     ensemble: int = 1
@@ -73,24 +84,72 @@ class MbrlConfig:
     planner: str = "cem"
     samples: int = 500
     horizon: int = 4
+    #: random shooting samples within the actuator's reachable set (the rig's rate limit
+    #: times the period, :class:`control.planners.RandomShooting` ``max_step``); False: the
+    #: thesis' independent uniform steps
+    reachable_set: bool = True
     # MBRL iterations: on-policy MPC rollouts on the paths, aggregated, warm-start retrain
     iterations: int = 1
     # tasks
     paths: tuple[str, ...] = ("straight", "left", "right", "zigzag", "figure8")
     path_scale: float = 1.5
     speeds: dict[str, float] = field(default_factory=lambda: {"low_speed": 0.5, "high_speed": 1.0})
-    eval_steps: int = 100
-    # Table 3.1: MPC cost vs amount of random data (subsets of the random rollouts)
-    data_sizes: tuple[int, ...] = ()
+    #: the controllers track the path with its corners rounded to this radius (m,
+    #: control.paths.fillet): at a polyline's sharp corner the H-step MPC parks (docs/mbrl.md);
+    #: episodes are scored on the original path. 0: track the polyline itself
+    reference_corner_radius_m: float = 0.2
+    #: time limit of an evaluation episode = path length / this speed (m/s): long enough for
+    #: a slow but correct controller (the sim walks ~0.68 m/s at command 0.5, docs/mbrl.md)
+    time_limit_speed_mps: float = 0.15
+    # the differential-drive baseline is tuned per speed by a random search (Latin hypercube)
+    # on tuning paths that are not the evaluation paths (other shapes and scale)
+    baseline_candidates: int = 24
+    tune_paths: tuple[str, ...] = ("left", "zigzag", "figure8")
+    tune_path_scale: float = 1.0
+    # the thesis' experiments with statistics (`hil demo --full`, learning.experiments):
+    # any of "table_3_1", "speed_sweep", "table_3_2", each repeated for every seed in seeds
+    experiments: tuple[str, ...] = ()
+    seeds: tuple[int, ...] = (0, 1, 2)
+    table_sizes: tuple[int, ...] = (50, 200, 400)
+    table_paths: tuple[str, ...] = ("straight", "left", "right")
+    sweep_speeds: tuple[float, ...] = (0.4, 0.6, 0.8, 1.0)
+    terrains: tuple[str, str] = ("carpet", "styrofoam")
+    terrain_rollouts: int = 200
     progress: bool = True
     #: how long to wait for the driver node to come up (emulator start, radio link)
     rig_timeout_s: float = 60.0
     #: real rigs: when the driver cannot reset itself, ask an operator on the terminal
     operator_resets: bool = False
 
+    def __post_init__(self) -> None:
+        # refuse a bad setting before any rig process starts, naming the field
+        problems = []
+        if set(self.experiments) - set(EXPERIMENTS):
+            problems.append(f"experiments: unknown {sorted(set(self.experiments) - set(EXPERIMENTS))}, "
+                            f"choose from {list(EXPERIMENTS)}")
+        if self.time_limit_speed_mps <= 0:
+            problems.append(f"time_limit_speed_mps must be > 0, got {self.time_limit_speed_mps}")
+        if self.baseline_candidates < 1:
+            problems.append(f"baseline_candidates must be >= 1, got {self.baseline_candidates}")
+        if not 0.0 <= self.random_forward_fraction <= 1.0:
+            problems.append(f"random_forward_fraction must be in [0, 1], got {self.random_forward_fraction}")
+        if self.reference_corner_radius_m < 0:
+            problems.append(f"reference_corner_radius_m must be >= 0, got {self.reference_corner_radius_m}")
+        if self.experiments and not self.seeds:
+            problems.append("seeds: the experiments need at least one seed")
+        if problems:
+            raise ValueError("MbrlConfig: " + "; ".join(problems))
+
+    @classmethod
+    def full(cls, **kw: Any) -> MbrlConfig:
+        """`hil demo --full`: the thesis' data sizes and every experiment over three seeds."""
+        base = dict(random_rollouts=400, experiments=EXPERIMENTS)
+        base.update(kw)
+        return cls(**base)
+
     @classmethod
     def quick(cls, **kw: Any) -> MbrlConfig:
-        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, eval_steps=80, data_sizes=(15, 60))
+        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, baseline_candidates=20)
         base.update(kw)
         return cls(**base)
 
@@ -145,31 +204,17 @@ def path_start_pose(waypoints: np.ndarray) -> dict[str, float]:
 
 
 class PathEnd:
-    """Episode end for path following: the robot has travelled 3/4 of the path
-    length (closed paths pass their end point half way) and passed the final waypoint."""
+    """Episode end for path following: the robot has passed the end of the path, its
+    place on the path tracked with the cost's progress window (so a closed path such as
+    the figure-8, which starts where it ends, ends only after a full lap)."""
 
-    def __init__(self, waypoints: np.ndarray, state_names: list[str]):
-        self.wp = np.asarray(waypoints)
-        self.ix, self.iy = state_names.index("x"), state_names.index("y")
-        self.min_travel = 0.75 * float(np.linalg.norm(np.diff(self.wp, axis=0), axis=1).sum())
-        self.travelled = 0.0
-        self.last: np.ndarray | None = None
+    def __init__(self, path: PathCost):
+        self.path = path
+        self.path.reset()
 
     def __call__(self, state: np.ndarray) -> bool:
-        p = np.array([state[self.ix], state[self.iy]])
-        if self.last is not None:
-            self.travelled += float(np.linalg.norm(p - self.last))
-        self.last = p
-        return self.travelled > self.min_travel and past_end(p, self.wp)
-
-
-def past_end(p_xy: np.ndarray, waypoints: np.ndarray, tol_m: float = 0.05) -> bool:
-    """True once the robot has passed the end of the path (beyond the last waypoint
-    along the last segment, or within ``tol_m`` of it): the episode is over."""
-    a, b = waypoints[-2], waypoints[-1]
-    d = b - a
-    along = float((p_xy - a) @ d / max(float(d @ d), 1e-12))
-    return along >= 1.0 or float(np.linalg.norm(p_xy - b)) < tol_m
+        self.path.observe(state)
+        return self.path.at_end(np.asarray(state)[[self.path.ix, self.path.iy]])
 
 
 # ---------------------------------------------------------------------------- model
@@ -192,23 +237,93 @@ def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str])
     return model
 
 
-def split_episodes(eps: list[Episode], val_fraction: float, seed: int) -> tuple[list[Episode], list[Episode]]:
-    rng = np.random.default_rng(seed)
-    idx = rng.permutation(len(eps))
-    n_val = max(1, int(round(val_fraction * len(eps)))) if len(eps) > 1 else 0
-    return [eps[i] for i in idx[n_val:]], [eps[i] for i in idx[:n_val]]
+def split_episodes(eps: list[Episode], val_fraction: float, rng: np.random.Generator,
+                   assigned: dict[str, bool]) -> tuple[list[Episode], list[Episode]]:
+    """Train and validation episodes; each episode is assigned once, for good.
+
+    ``assigned`` maps episode name → ``True`` (validation) and is updated in place: only
+    episodes not seen before are drawn (``val_fraction`` of them, at least one when more
+    than one is new), so a validation episode never becomes training data when the list
+    grows between MBRL iterations, and vice versa.
+    """
+    new = [e.name for e in eps if e.name not in assigned]
+    if len(set(new)) != len(new):
+        raise ValueError("episode names must be unique to keep the validation split fixed")
+    n_val = max(1, int(round(val_fraction * len(new)))) if len(new) > 1 else 0
+    val_idx = set(rng.permutation(len(new))[:n_val].tolist())
+    for i, name in enumerate(new):
+        assigned[name] = i in val_idx
+    return [e for e in eps if not assigned[e.name]], [e for e in eps if assigned[e.name]]
 
 
-def make_planner(cfg: MbrlConfig, speed: float, action_dim: int):
+#: differential-drive search space: (low, high, scaled by the speed setting?). Gains in
+#: normalized action per rad (k_heading) and per m (k_perp); omega_nom and d_max are
+#: fractions of the speed setting, which also clips the commands (the bound MPC plans in).
+BASELINE_SEARCH: dict[str, tuple[float, float, bool]] = {
+    "omega_nom": (0.4, 1.0, True),
+    "k_heading": (0.2, 3.0, False),
+    "k_perp": (0.0, 10.0, False),
+    "d_max": (0.2, 1.0, True),
+}
+
+
+def speed_coverage(episodes: list[Episode], state_names: list[str]) -> dict[str, float]:
+    """How fast the robot went in ``episodes``: ground-speed percentiles (m/s, from the
+    world-frame vx, vy channels) and the fraction of steps at or above 0.5 and 0.9 m/s."""
+    ivx, ivy = state_names.index("vx"), state_names.index("vy")
+    v = np.concatenate([np.hypot(e.states[:, ivx], e.states[:, ivy]) for e in episodes])
+    p50, p90, p99 = np.percentile(v, [50, 90, 99])
+    return {"speed_p50_mps": float(p50), "speed_p90_mps": float(p90), "speed_p99_mps": float(p99),
+            "fraction_ge_0.5_mps": float((v >= 0.5).mean()), "fraction_ge_0.9_mps": float((v >= 0.9).mean())}
+
+
+def default_baseline_params(speed: float) -> dict[str, float]:
+    """The untuned starting point: ω_nom = 0.7·speed, d_max = 0.4·speed, k_ψ = 0.8, k_⊥ = 4."""
+    return {"omega_nom": 0.7 * speed, "k_heading": 0.8, "k_perp": 4.0, "d_max": 0.4 * speed}
+
+
+def baseline_candidates(n: int, speed: float, seed: int = 0) -> list[dict[str, float]]:
+    """``n`` gain sets: the default first, then a Latin hypercube over :data:`BASELINE_SEARCH`
+    (``scipy.stats.qmc``: every gain's range is covered evenly even with few candidates)."""
+    from scipy.stats import qmc
+
+    if n < 1:
+        raise ValueError(f"baseline_candidates must be >= 1, got {n}")
+    names = list(BASELINE_SEARCH)
+    out = [default_baseline_params(speed)]
+    if n > 1:
+        u = qmc.LatinHypercube(d=len(names), seed=seed).random(n - 1)
+        for row in u:
+            p = {}
+            for k, x in zip(names, row, strict=True):
+                lo, hi, scaled = BASELINE_SEARCH[k]
+                p[k] = float((lo + x * (hi - lo)) * (speed if scaled else 1.0))
+            out.append(p)
+    return out
+
+
+def make_planner(cfg: MbrlConfig, speed: float, action_dim: int, max_step: np.ndarray | None = None):
+    """The configured planner within ±``speed`` (normalized actions). ``max_step``: the
+    rig's per-step rate limit in normalized units (random shooting's reachable set)."""
     kw = dict(action_low=-speed, action_high=speed, horizon=cfg.horizon, samples=cfg.samples,
               seed=cfg.seed, action_dim=action_dim)
     if cfg.planner == "random_shooting":
-        return RandomShooting(**kw)
+        return RandomShooting(**kw, max_step=max_step if cfg.reachable_set else None)
     if cfg.planner == "cem":
         return CEM(**kw, iterations=3)
     if cfg.planner == "pddm":
         return PDDM(**kw)
     raise ValueError(f"unknown planner {cfg.planner!r}: random_shooting | cem | pddm")
+
+
+def max_step_normalized(spec: dict[str, Any]) -> np.ndarray | None:
+    """The spec's action rate limit as the largest change per control period in normalized
+    action units ([-1, 1] spans the action range), or None when the robot has none."""
+    rate = spec.get("action_rate_per_s")
+    if rate is None:
+        return None
+    low, high = np.asarray(spec["action"]["low"], float), np.asarray(spec["action"]["high"], float)
+    return np.asarray(rate, float) * float(spec["period_s"]) / ((high - low) / 2)
 
 
 # ---------------------------------------------------------------------------- the loop
@@ -225,6 +340,28 @@ class MbrlRun:
         self.action_names: list[str] = []
         self.recordings: list[str] = []
         self.rng = np.random.default_rng(cfg.seed)
+        self.split_rng = np.random.default_rng([cfg.seed, 1])
+        self.val_assigned: dict[str, bool] = {}
+        self.period_s = 0.1
+        self.max_step: np.ndarray | None = None
+
+    @contextlib.contextmanager
+    def session(self) -> Iterator[ControllerNode]:
+        """The rig's driver node (own process) and this loop's controller node, up until exit."""
+        cfg = self.cfg
+        with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs"), \
+                ControllerNode(self.rig.name, cfg.robot, self.bus, name="mbrl-controller",
+                               handle_signals=False, state_timeout_s=20.0) as ctl:
+            self.ctl = ctl
+            spec = ctl.wait_ready(timeout_s=cfg.rig_timeout_s)
+            self.state_names = list(spec["state"]["names"])
+            self.action_names = list(spec["action"]["names"])
+            self.period_s = float(spec["period_s"])
+            self.max_step = max_step_normalized(spec)
+            try:
+                yield ctl
+            finally:
+                self.ctl = None
 
     # -- episodes over the bus ------------------------------------------------------------
     def episode(self, policy: Any, steps: int, pose: dict[str, float], stop_if=None) -> EpisodeLog:
@@ -247,28 +384,43 @@ class MbrlRun:
         input(f"place the robot at x={pose['x']:.2f} y={pose['y']:.2f} yaw={pose['yaw']:.2f}, then press Enter ")
         return self.ctl.next_state()
 
-    def collect_random(self, n: int, name: str) -> Path:
+    def collect_random(self, n: int, name: str, seed: int | None = None) -> Path:
+        """``n`` random rollouts recorded to ``rec_dir/name.mcap`` (``seed``: the policy's,
+        default the config's)."""
         path = self.rec_dir / f"{name}.mcap"
         pol = SafeRandomPolicy(self.state_names, len(self.action_names), self.cfg.arena_radius_m,
-                               seed=self.cfg.seed)
+                               hold_steps=self.cfg.random_hold_steps,
+                               forward_fraction=self.cfg.random_forward_fraction,
+                               seed=self.cfg.seed if seed is None else seed)
+        rng = self.rng if seed is None else np.random.default_rng([seed, 2])
         with recording(self.rig.name, path, self.bus):
             for i in _progress(range(n), self.cfg, f"random rollouts → {path.name}"):
-                yaw = float(self.rng.uniform(-np.pi, np.pi))
+                yaw = float(rng.uniform(-np.pi, np.pi))
                 self.episode(pol, self.cfg.rollout_steps, {"x": 0.0, "y": 0.0, "yaw": yaw})
                 del i
         self.recordings.append(str(path))
         return path
 
-    def run_paths(self, policy_for, speed: float, steps: int) -> dict[str, dict[str, Any]]:
-        """One episode per path; returns per-path metrics and trajectories."""
+    def time_limit_s(self, waypoints: np.ndarray) -> float:
+        """Evaluation time limit (s) for a path: its length at ``time_limit_speed_mps``."""
+        return path_length(waypoints) / self.cfg.time_limit_speed_mps
+
+    def run_paths(self, policy_for, speed: float, paths: tuple[str, ...] | None = None,
+                  path_scale: float | None = None) -> dict[str, dict[str, Any]]:
+        """One episode per path (default: the config's), each until the robot passes the
+        path's end or the time limit; returns per-path metrics and trajectories."""
         out = {}
-        for name in self.cfg.paths:
-            wp = make_path(name, scale=self.cfg.path_scale)
+        for name in paths or self.cfg.paths:
+            wp = make_path(name, scale=path_scale or self.cfg.path_scale)
             cost = PathCost(wp, self.state_names)
-            log = self.episode(policy_for(wp, cost, speed), steps, path_start_pose(wp),
-                               stop_if=PathEnd(wp, self.state_names))
+            ref = fillet(wp, self.cfg.reference_corner_radius_m)  # what the controllers track
+            limit_s = self.time_limit_s(wp)
+            steps = int(np.ceil(limit_s / self.period_s - 1e-9))
+            log = self.episode(policy_for(ref, PathCost(ref, self.state_names), speed), steps, path_start_pose(wp),
+                               stop_if=PathEnd(PathCost(wp, self.state_names)))
             states = np.array(log.states)
-            m = evaluate_path_following(states, cost)
+            m = evaluate_path_following(states, cost, period_s=self.period_s, time_limit_s=limit_s)
+            m["time_limit_s"] = limit_s
             m["plan_ms_p50"] = float(np.percentile(log.plan_times_s, 50) * 1e3) if log.plan_times_s else 0.0
             m["plan_ms_p99"] = float(np.percentile(log.plan_times_s, 99) * 1e3) if log.plan_times_s else 0.0
             m["xy"] = states[:, [self.state_names.index("x"), self.state_names.index("y")]].tolist()
@@ -278,20 +430,46 @@ class MbrlRun:
 
     def mpc_for(self, model):
         def make(wp, cost, speed):
-            return MpcPolicy(model, make_planner(self.cfg, speed, len(self.action_names)), cost)
+            return MpcPolicy(model, make_planner(self.cfg, speed, len(self.action_names), self.max_step), cost)
         return make
 
-    @staticmethod
-    def baseline_for(state_names):
+    def baseline_for(self, params: dict[str, float] | None = None):
+        """Differential drive with ``params`` (gains; default: the untuned defaults scaled to the speed)."""
         def make(wp, cost, speed):
-            return BaselinePolicy(
-                DifferentialDriveController(wp, state_names, omega_nom=0.7 * speed, d_max=0.4 * speed)
-            )
+            p = params or default_baseline_params(speed)
+            return BaselinePolicy(DifferentialDriveController(wp, self.state_names, max_action=speed, **p))
         return make
+
+    def tune_baseline(self, speed: float) -> dict[str, Any]:
+        """Random search over the differential-drive gains at ``speed`` on the tuning paths;
+        candidates are ranked like the evaluation (completions, then cost per metre)."""
+        cfg = self.cfg
+        cands = baseline_candidates(cfg.baseline_candidates, speed, cfg.seed)
+        scored = []
+        for p in _progress(cands, cfg, f"tuning differential drive at {speed:.2f}"):
+            res = self.run_paths(self.baseline_for(p), speed, paths=cfg.tune_paths, path_scale=cfg.tune_path_scale)
+            scored.append({"params": p, **summarize_paths(res)})
+        best = min(scored, key=rank_key)
+        return {"best_params": best["params"], "best": {k: best[k] for k in ("completed", "cost", "cost_per_m")},
+                "default": {k: scored[0][k] for k in ("completed", "cost", "cost_per_m")}, "candidates": scored}
+
+    def compare(self, speed: float, model, baseline_params: dict[str, float] | None) -> dict[str, Any]:
+        """MPC and the differential drive on the evaluation paths at ``speed``."""
+        mpc = self.run_paths(self.mpc_for(model), speed)
+        dd = self.run_paths(self.baseline_for(baseline_params), speed)
+        sm, sd = summarize_paths(mpc), summarize_paths(dd)
+        return {
+            "speed": speed,
+            "mpc_cost": sm["cost"], "differential_drive_cost": sd["cost"],
+            "mpc_completed": sm["completed"], "differential_drive_completed": sd["completed"],
+            "mpc_cost_per_m": sm["cost_per_m"], "differential_drive_cost_per_m": sd["cost_per_m"],
+            "mpc_better": rank_key(sm) < rank_key(sd),
+            "paths": {p: {"mpc": mpc[p], "differential_drive": dd[p]} for p in mpc},
+        }
 
     # -- training --------------------------------------------------------------------------
     def train(self, model, eps: list[Episode], epochs: int) -> dict[str, float]:
-        train, val = split_episodes(eps, self.cfg.val_fraction, self.cfg.seed)
+        train, val = split_episodes(eps, self.cfg.val_fraction, self.split_rng, self.val_assigned)
         hist = model.fit(train, epochs=epochs, batch_size=self.cfg.batch_size, val=val or None,
                          horizon=self.cfg.horizon, progress=self.cfg.progress)
         last = hist[-1] if hist else {}
@@ -310,18 +488,12 @@ class MbrlRun:
 
     def _run(self, report: dict[str, Any], t0: float) -> dict[str, Any]:
         cfg = self.cfg
-        with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs"), \
-                ControllerNode(self.rig.name, cfg.robot, self.bus, name="mbrl-controller",
-                               handle_signals=False, state_timeout_s=20.0) as ctl:
-            self.ctl = ctl
-            spec = ctl.wait_ready(timeout_s=cfg.rig_timeout_s)
-            self.state_names = list(spec["state"]["names"])
-            self.action_names = list(spec["action"]["names"])
-
+        with self.session():
             _log(cfg, f"collecting {cfg.random_rollouts} random rollouts x {cfg.rollout_steps} steps")
             rand_path = self.collect_random(cfg.random_rollouts, "000-random")
             random_eps = episodes_from_mcap(rand_path, cfg.robot)
             data = list(random_eps)
+            report["random_data"] = speed_coverage(random_eps, self.state_names)
             _log(cfg, f"{len(data)} episodes, {sum(len(e) for e in data)} transitions from {rand_path.name}")
 
             model = make_model(cfg, self.state_names, self.action_names)
@@ -332,7 +504,7 @@ class MbrlRun:
                 path = self.rec_dir / f"{it:03d}-mpc.mcap"
                 with recording(self.rig.name, path, self.bus):
                     for speed in cfg.speeds.values():
-                        self.run_paths(self.mpc_for(model), speed, cfg.eval_steps)
+                        self.run_paths(self.mpc_for(model), speed)
                 self.recordings.append(str(path))
                 new = episodes_from_mcap(path, cfg.robot)
                 data += new
@@ -342,35 +514,48 @@ class MbrlRun:
             model.save(self.out / "model.pt")
 
             results: dict[str, Any] = {}
+            tuning: dict[str, Any] = {}
+            tune_path = self.rec_dir / "800-tune-baseline.mcap"
+            with recording(self.rig.name, tune_path, self.bus):
+                for label, speed in cfg.speeds.items():
+                    _log(cfg, f"tuning the differential drive at {label} ({speed:.2f}): "
+                              f"{cfg.baseline_candidates} candidates on {list(cfg.tune_paths)}")
+                    tuning[label] = self.tune_baseline(speed)
+                    _log(cfg, f"{label}: default {tuning[label]['default']} → best {tuning[label]['best']}")
+            self.recordings.append(str(tune_path))
+
             eval_path = self.rec_dir / "900-eval.mcap"
             with recording(self.rig.name, eval_path, self.bus):
                 for label, speed in cfg.speeds.items():
                     _log(cfg, f"evaluating MPC and differential drive at {label} ({speed:.2f})")
-                    mpc = self.run_paths(self.mpc_for(model), speed, cfg.eval_steps)
-                    dd = self.run_paths(self.baseline_for(self.state_names), speed, cfg.eval_steps)
-                    results[label] = {
-                        "speed": speed,
-                        "mpc_cost": float(np.mean([m["cost"] for m in mpc.values()])),
-                        "differential_drive_cost": float(np.mean([m["cost"] for m in dd.values()])),
-                        "paths": {p: {"mpc": mpc[p], "differential_drive": dd[p]} for p in cfg.paths},
-                    }
-                    _log(cfg, f"{label}: mpc {results[label]['mpc_cost']:.1f} "
-                              f"vs differential drive {results[label]['differential_drive_cost']:.1f}")
+                    results[label] = r = self.compare(speed, model, tuning[label]["best_params"])
+                    _log(cfg, f"{label}: completed mpc {r['mpc_completed']}/{len(r['paths'])} "
+                              f"dd {r['differential_drive_completed']}/{len(r['paths'])}; cost/m mpc "
+                              f"{r['mpc_cost_per_m']:.1f} dd {r['differential_drive_cost_per_m']:.1f}")
             self.recordings.append(str(eval_path))
 
-            data_curve = []
-            for n in cfg.data_sizes:
-                n = min(n, len(random_eps))
-                m = make_model(cfg, self.state_names, self.action_names)
-                self.train(m, random_eps[:n], cfg.epochs)
-                speed = cfg.speeds.get("high_speed", max(cfg.speeds.values()))
-                r = self.run_paths(self.mpc_for(m), speed, cfg.eval_steps)
-                data_curve.append({"random_rollouts": n, "mpc_cost": float(np.mean([x["cost"] for x in r.values()]))})
-                _log(cfg, f"data size {n} rollouts: mpc cost {data_curve[-1]['mpc_cost']:.1f}")
+            if cfg.experiments:
+                from learning.experiments import run_experiments
 
+                report.update(run_experiments(self))
+
+        if "table_3_2" in cfg.experiments:
+            from learning.experiments import table_3_2
+
+            high = cfg.speeds.get("high_speed", max(cfg.speeds.values()))
+            report["table_3_2"] = table_3_2(self, cfg.seeds, cfg.terrains, cfg.terrain_rollouts, high)
+
+        report["baseline_tuning"] = {
+            "method": "random search (Latin hypercube, scipy.stats.qmc) over "
+                      + ", ".join(f"{k} in [{lo}, {hi}]{'·speed' if sc else ''}" for k, (lo, hi, sc) in BASELINE_SEARCH.items())
+                      + "; the untuned default is candidate 0; ranked by paths completed, then cost per metre",
+            "candidates": cfg.baseline_candidates,
+            "tuning_paths": [f"{p} (scale {cfg.tune_path_scale})" for p in cfg.tune_paths],
+            "best_params": {k: v["best_params"] for k, v in tuning.items()},
+            "per_speed": tuning,
+        }
         report.update(results)
         report["training"] = training
-        report["data_size_curve"] = data_curve
         report["recordings"] = self.recordings
         report["model"] = str(self.out / "model.pt")
         report["wall_s"] = time.monotonic() - t0

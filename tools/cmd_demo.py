@@ -15,6 +15,13 @@ def register(app: typer.Typer) -> None:
     def demo(
         out: Path = typer.Option(Path("out/demo"), "--out", help="output directory"),
         quick: bool = typer.Option(False, "--quick", help="smaller run (< 10 min on 2 cores)"),
+        full: bool = typer.Option(False, "--full", help="also the thesis' Table 3.1, Fig. 3.8 speed sweep and "
+                                  "Table 3.2 over 3 seeds (hours on 2 cores)"),
+        world_frame: bool = typer.Option(False, "--world-frame",
+                                         help="learn in the world frame (x, y ignored) instead of the body frame"),
+        thesis_sampling: bool = typer.Option(False, "--thesis-sampling",
+                                             help="random data and random shooting as in the thesis: independent "
+                                                  "uniform steps (no holds, no forward commands, no rate limit)"),
         seed: int = typer.Option(0, "--seed"),
         planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
         rig: str = typer.Option("roach_sim", "--rig", help="rig config: roach_sim (lockstep), roach_emulated, roach_real"),
@@ -28,13 +35,21 @@ def register(app: typer.Typer) -> None:
         from learning.mbrl import RigError
         from tools.demo import run_demo
 
+        variant: dict = {}
+        if world_frame:
+            variant["body_frame"] = False
+        if thesis_sampling:
+            variant.update(random_hold_steps=1, random_forward_fraction=0.0, reachable_set=False)
         try:
-            r = run_demo(out, quick=quick, seed=seed, planner=planner, rig=rig, operator_resets=operator_resets)
-        except RigError as e:
+            r = run_demo(out, quick=quick, full=full, seed=seed, planner=planner, rig=rig,
+                         operator_resets=operator_resets, **variant)
+        except (RigError, ValueError) as e:
             typer.echo(f"error: {e}", err=True)
             raise typer.Exit(1) from None
         for s in ("low_speed", "high_speed"):
             if s in r:
-                typer.echo(f"{s}: mpc_cost {r[s]['mpc_cost']:.1f}  differential_drive_cost "
-                           f"{r[s]['differential_drive_cost']:.1f}")
+                v, n = r[s], len(r[s]["paths"])
+                typer.echo(f"{s}: completed mpc {v['mpc_completed']}/{n} differential_drive "
+                           f"{v['differential_drive_completed']}/{n}; cost_per_m mpc {v['mpc_cost_per_m']:.1f} "
+                           f"differential_drive {v['differential_drive_cost_per_m']:.1f} (tuned)")
         typer.echo(f"report: {out / 'report.md'}")

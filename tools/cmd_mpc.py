@@ -34,10 +34,10 @@ def register(app: typer.Typer) -> None:
         from configs.schema import load_rig
         from control.controller_node import ControllerNode
         from control.costs import PathCost, evaluate_path_following
-        from control.paths import make_path
+        from control.paths import fillet, make_path
         from control.policies import MpcPolicy
         from learning.frames import load_dynamics
-        from learning.mbrl import MbrlConfig, PathEnd, make_planner, path_start_pose
+        from learning.mbrl import MbrlConfig, PathEnd, make_planner, max_step_normalized, path_start_pose
 
         if not 0 < speed <= 1:
             raise UserError("--speed must be in (0, 1]")
@@ -55,13 +55,17 @@ def register(app: typer.Typer) -> None:
             spec = ctl.wait_ready()
             names = list(spec["state"]["names"])
             cost = PathCost(wp, names)
-            pol = MpcPolicy(dyn, make_planner(MbrlConfig(planner=planner), speed, len(spec["action"]["names"])), cost)
+            # as in `hil demo`: track the path with rounded corners, score on the path itself
+            mcfg = MbrlConfig(planner=planner)
+            ref = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
+            planner_ = make_planner(mcfg, speed, len(spec["action"]["names"]), max_step_normalized(spec))
+            pol = MpcPolicy(dyn, planner_, ref)
             first = ctl.reset(**path_start_pose(wp)) if reset else None
             if cfg.pace == "lockstep":
-                log = ctl.run_lockstep(pol, steps, first, stop_if=PathEnd(wp, names))
+                log = ctl.run_lockstep(pol, steps, first, stop_if=PathEnd(PathCost(wp, names)))
             else:
                 log = ctl.run_realtime(pol, steps)
-        m = evaluate_path_following(np.array(log.states), cost)
+        m = evaluate_path_following(np.array(log.states), cost, period_s=float(spec["period_s"]))
         m.update(late_plans=log.late_plans, plan_ms_p50=float(np.percentile(log.plan_times_s, 50) * 1e3)
                  if log.plan_times_s else None)
         if json_out:

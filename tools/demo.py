@@ -24,15 +24,25 @@ def free_endpoint() -> str:
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
-def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, **overrides: Any) -> dict[str, Any]:
+def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full: bool = False,
+             **overrides: Any) -> dict[str, Any]:
+    """Run the MBRL loop (``quick``: the README's few-minute run; ``full``: also the thesis'
+    experiments over seeds, :mod:`learning.experiments`) and write the report to ``out``."""
+    if quick and full:
+        raise ValueError("choose --quick or --full, not both")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = MbrlConfig.quick(**overrides) if quick else MbrlConfig(data_sizes=(10, 50, 200, 400),
-                                                                 random_rollouts=400, **overrides)
+    if quick:
+        cfg = MbrlConfig.quick(**overrides)
+    elif full:
+        cfg = MbrlConfig.full(**overrides)
+    else:
+        cfg = MbrlConfig(**{"random_rollouts": 400, **overrides})
     # a private rendezvous port: a demo never talks to another rig by accident
     bus = bus or BusConfig(endpoint=free_endpoint())
     report = MbrlRun(cfg, out, bus).run()
     report["quick"] = quick
+    report["full"] = full
     report["created"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     plots = write_plots(report, out)
     report["plots"] = plots
@@ -63,11 +73,12 @@ def write_plots(report: dict[str, Any], out: Path) -> list[str]:
             ax.plot(wp[:, 0], wp[:, 1], "k--", lw=1, label="path")
             for who, style in (("mpc", "C0"), ("differential_drive", "C1")):
                 xy = np.array(res[who]["xy"])
-                ax.plot(xy[:, 0], xy[:, 1], style, label=f"{who} ({res[who]['cost']:.0f})")
+                done = "done" if res[who]["completed"] else f"stopped at {res[who]['progress_m']:.1f} m"
+                ax.plot(xy[:, 0], xy[:, 1], style, label=f"{who} ({res[who]['cost_per_m']:.0f}/m, {done})")
             ax.set_title(name)
             ax.set_aspect("equal", adjustable="datalim")
             ax.legend(fontsize=7)
-        fig.suptitle(f"{label}: trajectories (cost in legend, lower is better)")
+        fig.suptitle(f"{label}: trajectories (cost per metre in legend, lower is better)")
         f = out / f"trajectories_{label}.png"
         fig.tight_layout()
         fig.savefig(f, dpi=80)
@@ -75,26 +86,119 @@ def write_plots(report: dict[str, Any], out: Path) -> list[str]:
         files.append(f.name)
     fig, ax = plt.subplots(figsize=(5, 3.5))
     x = np.arange(len(speeds))
-    ax.bar(x - 0.2, [report[s]["mpc_cost"] for s in speeds], 0.4, label="MPC")
-    ax.bar(x + 0.2, [report[s]["differential_drive_cost"] for s in speeds], 0.4, label="differential drive")
-    ax.set_xticks(x, speeds)
-    ax.set_ylabel("mean path cost (lower is better)")
+    ax.bar(x - 0.2, [report[s]["mpc_cost_per_m"] for s in speeds], 0.4, label="MPC")
+    ax.bar(x + 0.2, [report[s]["differential_drive_cost_per_m"] for s in speeds], 0.4, label="tuned differential drive")
+    ax.set_xticks(x, [f"{s}\n(done {report[s]['mpc_completed']} vs {report[s]['differential_drive_completed']})"
+                      for s in speeds])
+    ax.set_ylabel("cost per metre of progress (lower is better)")
     ax.legend()
     fig.tight_layout()
     fig.savefig(out / "costs.png", dpi=80)
     plt.close(fig)
     files.append("costs.png")
-    if report.get("data_size_curve"):
-        d = report["data_size_curve"]
-        fig, ax = plt.subplots(figsize=(5, 3.5))
-        ax.plot([r["random_rollouts"] for r in d], [r["mpc_cost"] for r in d], "o-")
-        ax.set_xlabel("random rollouts used for training")
-        ax.set_ylabel("MPC mean path cost (high speed)")
-        fig.tight_layout()
-        fig.savefig(out / "data_size.png", dpi=80)
-        plt.close(fig)
-        files.append("data_size.png")
+    files += experiment_plots(report, out, plt)
     return files
+
+
+def _ms(cell: dict[str, Any]) -> str:
+    return f"{cell['mean']:.1f} ± {cell['std']:.1f}"
+
+
+def experiment_plots(report: dict[str, Any], out: Path, plt) -> list[str]:
+    """Error-bar plots (mean ± std over seeds) of the full run's experiments."""
+    files = []
+    t31 = report.get("table_3_1")
+    if t31:
+        fig, ax = plt.subplots(figsize=(6, 3.8))
+        rows = list(t31["rows"])
+        x = np.arange(len(rows))
+        for i, p in enumerate(t31["paths"]):
+            m = [t31["rows"][r]["paths"][p]["cost_per_m"] for r in rows]
+            ax.errorbar(x + 0.1 * (i - 1), [c["mean"] for c in m], yerr=[c["std"] for c in m], fmt="o-", capsize=3, label=p)
+        ax.set_xticks(x, rows)
+        ax.set_xlabel("random rollouts used for training")
+        ax.set_ylabel("MPC cost per metre (mean ± std)")
+        ax.set_title(f"Table 3.1: {len(t31['seeds'])} seeds, speed {t31['speed']}")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "table_3_1.png", dpi=80)
+        plt.close(fig)
+        files.append("table_3_1.png")
+    sw = report.get("speed_sweep")
+    if sw:
+        fig, ax = plt.subplots(figsize=(5.5, 3.8))
+        sp = [r["speed"] for r in sw["rows"]]
+        for who, label in (("mpc", "MPC"), ("differential_drive", "tuned differential drive")):
+            c = [r[who]["cost_per_m"] for r in sw["rows"]]
+            ax.errorbar(sp, [v["mean"] for v in c], yerr=[v["std"] for v in c], fmt="o-", capsize=3, label=label)
+        ax.set_xlabel("commanded speed (normalized leg command bound)")
+        ax.set_ylabel("cost per metre, all paths (mean ± std)")
+        ax.set_title("Fig. 3.8: MPC vs tuned differential drive")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "speed_sweep.png", dpi=80)
+        plt.close(fig)
+        files.append("speed_sweep.png")
+    t32 = report.get("table_3_2")
+    if t32:
+        fig, ax = plt.subplots(figsize=(6, 3.8))
+        rows = list(t32["matrix"])
+        x = np.arange(len(rows))
+        for i, t in enumerate(t32["terrains"]):
+            c = [t32["matrix"][r][t]["summary"]["cost_per_m"] for r in rows]
+            ax.bar(x + 0.4 * i - 0.2, [v["mean"] for v in c], 0.4, yerr=[v["std"] for v in c], capsize=3,
+                   label=f"evaluated on {t}")
+        ax.set_xticks(x, [r.replace(" (tuned per terrain)", "") for r in rows], fontsize=7)
+        ax.set_ylabel("straight-line cost per metre (mean ± std)")
+        ax.set_title("Table 3.2: terrains")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "table_3_2.png", dpi=80)
+        plt.close(fig)
+        files.append("table_3_2.png")
+    return files
+
+
+def experiments_markdown(r: dict[str, Any]) -> list[str]:
+    """Tables of the full run: mean ± std over seeds, completions as done/runs."""
+    lines: list[str] = []
+    t31 = r.get("table_3_1")
+    if t31:
+        lines += ["", f"## Table 3.1: MPC cost vs random data ({len(t31['seeds'])} seeds, speed {t31['speed']})", "",
+                  "Cost (summed) and cost per metre, mean ± std over seeds; completed runs of all runs.", "",
+                  "| rollouts | " + " | ".join(t31["paths"]) + " |", "|---|" + "---|" * len(t31["paths"])]
+        for row, v in t31["rows"].items():
+            cells = [f"{_ms(v['paths'][p]['cost'])} ({_ms(v['paths'][p]['cost_per_m'])}/m), "
+                     f"{v['paths'][p]['completed']}/{v['paths'][p]['runs']}" for p in t31["paths"]]
+            lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    sw = r.get("speed_sweep")
+    if sw:
+        n_paths = sw["rows"][0]["mpc"]["paths"] if sw["rows"] else 0
+        lines += ["", f"## Fig. 3.8: MPC vs tuned differential drive over speeds ({len(sw['seeds'])} seeds)", "",
+                  "Cost per metre over all paths and paths completed (of "
+                  f"{n_paths}), mean ± std over seeds. The lockstep sim is deterministic for a fixed controller, "
+                  "so the baseline runs once per speed (std 0).", "",
+                  "| speed | MPC cost/m | MPC completed | diff. drive cost/m | diff. drive completed |",
+                  "|---|---|---|---|---|"]
+        for row in sw["rows"]:
+            m, d = row["mpc"], row["differential_drive"]
+            lines.append(f"| {row['speed']:.2f} | {_ms(m['cost_per_m'])} | {_ms(m['completed'])} | "
+                         f"{_ms(d['cost_per_m'])} | {_ms(d['completed'])} |")
+    t32 = r.get("table_3_2")
+    if t32:
+        lines += ["", f"## Table 3.2: terrains ({len(t32['seeds'])} seeds, {t32['rollouts_per_terrain']} random "
+                  f"rollouts per terrain, {', '.join(t32['paths'])} at speed {t32['speed']})", "",
+                  "| controller | " + " | ".join(f"on {t}: cost/m, completed" for t in t32["terrains"]) + " |",
+                  "|---|" + "---|" * len(t32["terrains"])]
+        for row, per in t32["matrix"].items():
+            cells = []
+            for t in t32["terrains"]:
+                p = per[t]["paths"]
+                done = sum(c["completed"] for c in p.values())
+                runs = sum(c["runs"] for c in p.values())
+                cells.append(f"{_ms(per[t]['summary']['cost_per_m'])}, {done}/{runs}")
+            lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def report_markdown(r: dict[str, Any]) -> str:
@@ -102,40 +206,68 @@ def report_markdown(r: dict[str, Any]) -> str:
     lines = [
         "# hilstack demo: model-based RL on the simulated VelociRoACH",
         "",
-        f"Rig `{r['rig']}`, {'quick' if r.get('quick') else 'full'} run, {r['wall_s']:.0f} s wall clock, "
+        f"Rig `{r['rig']}`, {'quick' if r.get('quick') else 'full' if r.get('full') else 'default'} run, {r['wall_s']:.0f} s wall clock, "
         f"created {r.get('created', '')}.",
         f"Random data: {cfg['random_rollouts']} rollouts x {cfg['rollout_steps']} steps; model "
         f"{cfg['ensemble']}x MLP {cfg['hidden']}; planner {cfg['planner']} N={cfg['samples']} H={cfg['horizon']}; "
         f"{cfg['iterations']} on-policy iteration(s).",
         "",
-        "## Path following: MPC vs differential drive",
+        "## Path following: MPC vs tuned differential drive",
         "",
-        "Cost per episode (summed over steps): 50·perpendicular distance + 5·heading error − 10·forward progress;"
-        " lower is better. Both controllers are scored with the same function on the same paths.",
+        "Cost (summed over steps): 50·perpendicular distance + 5·heading error − 10·forward progress;"
+        " lower is better. An episode ends at the path's end or at the time limit (path length at "
+        f"{cfg['time_limit_speed_mps']} m/s). Controllers are ranked by paths completed, then cost per metre of"
+        " progress: a controller that stops never beats one that finishes. Both are scored with the same"
+        " function on the same paths.",
         "",
-        "| speed | MPC cost | differential drive cost | MPC better |",
-        "|---|---|---|---|",
+        "| speed | MPC completed | diff. drive completed | MPC cost/m | diff. drive cost/m | MPC better |",
+        "|---|---|---|---|---|---|",
     ]
     speeds = [k for k in r if k.endswith("_speed")]
     for s in speeds:
-        m, d = r[s]["mpc_cost"], r[s]["differential_drive_cost"]
-        lines.append(f"| {s} ({r[s]['speed']:.2f}) | {m:.1f} | {d:.1f} | {'yes' if m < d else 'no'} |")
-    lines += ["", "Per path:", "", "| speed | path | MPC | diff. drive | MPC perp. error (m) | plan p50/p99 (ms) |",
-              "|---|---|---|---|---|---|"]
+        v = r[s]
+        n = len(v["paths"])
+        lines.append(f"| {s} ({v['speed']:.2f}) | {v['mpc_completed']}/{n} | {v['differential_drive_completed']}/{n} | "
+                     f"{v['mpc_cost_per_m']:.1f} | {v['differential_drive_cost_per_m']:.1f} | "
+                     f"{'yes' if v['mpc_better'] else 'no'} |")
+    lines += ["", "Per path (cost, progress, time; ✓ = completed):", "",
+              "| speed | path | MPC | diff. drive | MPC plan p50/p99 (ms) |", "|---|---|---|---|---|"]
+
+    def cell(m: dict[str, Any]) -> str:
+        return (f"{'✓' if m['completed'] else '✗'} {m['cost']:.1f} ({m['cost_per_m']:.1f}/m), "
+                f"{m['progress_m']:.2f} m in {m['time_s']:.1f} s")
+
     for s in speeds:
         for p, v in r[s]["paths"].items():
-            lines.append(
-                f"| {s} | {p} | {v['mpc']['cost']:.1f} | {v['differential_drive']['cost']:.1f} | "
-                f"{v['mpc']['perp_mean_m']:.3f} | {v['mpc']['plan_ms_p50']:.1f}/{v['mpc']['plan_ms_p99']:.1f} |"
-            )
-    if r.get("data_size_curve"):
-        lines += ["", "## Cost vs amount of random data (thesis Table 3.1 shape)", "",
-                  "| random rollouts | MPC cost (high speed) |", "|---|---|"]
-        lines += [f"| {d['random_rollouts']} | {d['mpc_cost']:.1f} |" for d in r["data_size_curve"]]
-    lines += ["", "## Training", "", "| iteration | episodes | train loss | val 1-step | val H-step |", "|---|---|---|---|---|"]
+            lines.append(f"| {s} | {p} | {cell(v['mpc'])} | {cell(v['differential_drive'])} | "
+                         f"{v['mpc']['plan_ms_p50']:.1f}/{v['mpc']['plan_ms_p99']:.1f} |")
+    if r.get("baseline_tuning"):
+        bt = r["baseline_tuning"]
+        lines += ["", "## Baseline tuning", "", f"{bt['method']}. {bt['candidates']} candidates per speed on "
+                  f"{', '.join(bt['tuning_paths'])} (not the evaluation paths).", "",
+                  "| speed | default: completed, cost/m | tuned: completed, cost/m | tuned gains |", "|---|---|---|---|"]
+        for s, t in bt["per_speed"].items():
+            gains = ", ".join(f"{k} {v:.2f}" for k, v in t["best_params"].items())
+            lines.append(f"| {s} | {t['default']['completed']}, {t['default']['cost_per_m']:.1f} | "
+                         f"{t['best']['completed']}, {t['best']['cost_per_m']:.1f} | {gains} |")
+    lines += experiments_markdown(r)
+    if r.get("random_data"):
+        c = r["random_data"]
+        lines += ["", "## Random data coverage", "",
+                  f"Ground speed p50/p90/p99 {c['speed_p50_mps']:.2f}/{c['speed_p90_mps']:.2f}/{c['speed_p99_mps']:.2f}"
+                  f" m/s; {100 * c['fraction_ge_0.5_mps']:.1f} % of steps at ≥ 0.5 m/s, "
+                  f"{100 * c['fraction_ge_0.9_mps']:.1f} % at ≥ 0.9 m/s."]
+    lines += ["", "## Training", "",
+              f"Validation episodes are drawn once and stay validation data. H = {cfg['horizon']}-step open-loop "
+              "errors (thesis Eqn 2.2, normalized per channel) in the world frame and in the body frame of each "
+              "window's start; the position error after H steps in m².", "",
+              "| iteration | episodes | train loss | val 1-step | val H-step world | val H-step body | xy after H (m²) |",
+              "|---|---|---|---|---|---|---|"]
+    nan = float("nan")
     for t in r["training"]:
-        lines.append(f"| {t['iteration']} | {t['episodes']} | {t.get('train_loss', float('nan')):.4f} | "
-                     f"{t.get('val_1step', float('nan')):.4f} | {t.get('val_h', float('nan')):.4f} |")
+        lines.append(f"| {t['iteration']} | {t['episodes']} | {t.get('train_loss', nan):.4f} | "
+                     f"{t.get('val_1step', nan):.4f} | {t.get('val_h', nan):.4f} | {t.get('val_h_body', nan):.4f} | "
+                     f"{t.get('val_h_xy_mse_m2', nan):.5f} |")
     lines += ["", "## Files", ""]
     lines += [f"- ![{p}]({p})" for p in r.get("plots", [])]
     lines += [f"- recording: `{p}`" for p in r["recordings"]]

@@ -1,15 +1,17 @@
 """Path-following cost, paths and the differential-drive baseline."""
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
 from control.baselines import DifferentialDriveController
-from control.costs import PathCost, closest_segment, evaluate_path_following
-from control.paths import PATHS, make_path, path_length
-from control.planners import RandomShooting
+from control.costs import PathCost, closest_segment, evaluate_path_following, rank_key, summarize_paths
+from control.paths import PATHS, fillet, make_path, path_length
+from control.planners import CEM, RandomShooting
+from control.policies import BaselinePolicy, MpcPolicy
 
 ROACH_NAMES = [
     "x", "y", "z", "vx", "vy", "vz", "cos_roll", "sin_roll", "cos_pitch", "sin_pitch",
@@ -151,10 +153,173 @@ def test_mpc_follows_left_path_and_beats_standing_still():
     path = make_path("left")
     cost = PathCost(path, ROACH_NAMES)
     planner = RandomShooting(-1.0, 1.0, horizon=4, samples=500, action_dim=2, seed=0)
-    traj = drive(lambda s: planner(unicycle, cost, s), path, steps=50)
+    traj = drive(MpcPolicy(SimpleNamespace(predict=unicycle), planner, cost), path, steps=50)
     m = evaluate_path_following(traj, cost)
     assert m["perp_mean_m"] < 0.06
     assert m["progress_m"] > 0.8
     still = evaluate_path_following(drive(lambda s: np.zeros(2), path, steps=50), cost)
     assert m["cost"] < still["cost"]
     assert planner.last_predicted_states.shape == (1, 5, 24)
+
+
+# -- completion-aware metrics and the progress window ------------------------------------------
+def states_along(xy, yaw=None):
+    """States at the points ``xy [T, 2]``, heading along the direction of travel."""
+    xy = np.asarray(xy, dtype=np.float64)
+    if yaw is None:
+        d = np.diff(xy, axis=0)
+        yaw = np.arctan2(d[:, 1], d[:, 0])
+        yaw = np.append(yaw, yaw[-1])
+    return torch.stack([roach_state(float(x), float(y), float(a)) for (x, y), a in zip(xy, yaw, strict=True)])
+
+
+def resample(path, step_m):
+    """Points every ``step_m`` of arc length along a polyline (exactly on it)."""
+    seg = np.diff(path, axis=0)
+    s0 = np.concatenate([[0.0], np.cumsum(np.linalg.norm(seg, axis=1))])
+    s = np.arange(0.0, s0[-1], step_m)
+    s = np.append(s, s0[-1])
+    return np.stack([np.interp(s, s0, path[:, 0]), np.interp(s, s0, path[:, 1])], axis=1)
+
+
+def test_a_robot_that_parks_never_beats_one_that_finishes():
+    path = make_path("zigzag", scale=1.5)
+    pts = resample(path, 0.05)
+    stop = int(np.searchsorted(np.cumsum(np.r_[0, np.linalg.norm(np.diff(pts, axis=0), axis=1)]), 0.8))
+    # parks exactly on the line at 0.8 m and waits for the rest of the time limit
+    parked = states_along(np.concatenate([pts[:stop], np.repeat(pts[stop - 1:stop], 60, axis=0)]))
+    # finishes, 8 cm off the line the whole way (a lot of perpendicular cost)
+    off = pts + np.array([0.0, 0.08])
+    off[0] = pts[0]
+    off[-1] = pts[-1] + np.array([0.02, 0.0])
+    finished = states_along(off)
+    cost = PathCost(path, ROACH_NAMES)
+    mp = evaluate_path_following(parked, cost, period_s=0.1, time_limit_s=20.0)
+    mf = evaluate_path_following(finished, cost, period_s=0.1, time_limit_s=20.0)
+    assert mp["cost"] < mf["cost"]  # the summed cost alone prefers the parked robot ...
+    assert not mp["completed"] and mf["completed"]
+    assert mp["progress_m"] == pytest.approx(0.8, abs=0.06)
+    assert mf["progress_m"] == pytest.approx(cost.length_m)
+    assert mp["time_s"] == pytest.approx(0.1 * (len(parked) - 1))
+    assert mf["cost_per_m"] == pytest.approx(mf["cost"] / mf["progress_m"])
+    # ... the ranking does not
+    assert rank_key(summarize_paths({"z": mf})) < rank_key(summarize_paths({"z": mp}))
+
+
+def test_completion_needs_the_time_limit():
+    path = make_path("straight")
+    traj = states_along(resample(path, 0.1))
+    cost = PathCost(path, ROACH_NAMES)
+    n = len(traj) - 1
+    assert evaluate_path_following(traj, cost, period_s=0.1, time_limit_s=0.1 * n)["completed"]
+    assert not evaluate_path_following(traj, cost, period_s=0.1, time_limit_s=0.1 * (n - 1))["completed"]
+
+
+def test_summary_counts_completions_and_pools_cost_per_metre():
+    per = {"a": {"cost": 10.0, "completed": True, "progress_m": 2.0},
+           "b": {"cost": 5.0, "completed": False, "progress_m": 0.0}}
+    s = summarize_paths(per)
+    assert s["completed"] == 1 and s["cost"] == 7.5 and s["cost_per_m"] == pytest.approx(15.0 / 2.0)
+    # more completions wins even at a worse cost per metre
+    assert rank_key({"completed": 2, "cost_per_m": 100.0}) < rank_key({"completed": 1, "cost_per_m": -10.0})
+
+
+def test_figure8_crossing_stays_on_its_branch():
+    path = make_path("figure8", scale=1.5)
+    traj = states_along(resample(path, 0.05))
+    windowed = PathCost(path, ROACH_NAMES)
+    segs = windowed.track(traj.numpy())
+    assert np.all(np.diff(segs) >= 0) and segs[-1] == len(path) - 2
+    m = evaluate_path_following(traj, windowed, period_s=0.1)
+    assert m["completed"] and m["progress_m"] == pytest.approx(windowed.length_m, rel=1e-3)
+    # 3 cm to the side of the path, the crossing branch (at 90°) is closer than the
+    # robot's own: the globally closest segment gives a ~90° heading error there
+    pts = resample(path, 0.05)
+    d = np.gradient(pts, axis=0)
+    normal = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.linalg.norm(d, axis=1, keepdims=True)
+    side = states_along(pts + 0.03 * normal)
+    glob = PathCost(path, ROACH_NAMES, window_m=None)
+    g = glob.terms(side)["heading_rad"].max().item()
+    w = windowed.terms(side, torch.as_tensor(windowed.track(side.numpy())[1:]))["heading_rad"].max().item()
+    assert w < 0.5 < 1.2 < g
+
+
+def test_planner_cost_matches_within_the_window_only():
+    path = make_path("figure8", scale=1.5)
+    cost = PathCost(path, ROACH_NAMES)
+    # a state on the far side of the crossing's other branch is not matched while on segment 0
+    far = torch.as_tensor(path[len(path) // 2 + 3], dtype=torch.float32)
+    cost.observe(roach_state(0.0, 0.0, math.pi / 4).numpy())
+    assert cost.segment == 0
+    st = torch.stack([roach_state(0.0, 0.0, math.pi / 4), roach_state(float(far[0]), float(far[1]), 0.0)])
+    assert cost.terms(st)["perp_m"].item() > 0.1
+    assert PathCost(path, ROACH_NAMES, window_m=None).terms(st)["perp_m"].item() < 1e-3
+
+
+@pytest.mark.parametrize("name", ["zigzag", "figure8"])
+def test_baseline_completes_corners_and_crossings_on_a_unicycle(name):
+    path = make_path(name, scale=1.5)
+    ctl = DifferentialDriveController(path, ROACH_NAMES, omega_nom=0.6, k_heading=2.0, k_perp=6.0, d_max=0.6)
+    pol = BaselinePolicy(ctl)
+    pol.reset()
+    cost = PathCost(path, ROACH_NAMES)
+    s = roach_state(0.0, 0.0, math.atan2(path[1, 1], path[1, 0]))
+    traj = [s]
+    for _ in range(400):
+        s = unicycle(s, torch.as_tensor(pol(s.numpy()), dtype=torch.float32))
+        traj.append(s)
+        if cost.at_end(s[[IX, IY]].numpy(), ctl.path.segment):
+            break
+    m = evaluate_path_following(torch.stack(traj), cost, period_s=0.1)
+    assert m["completed"], m
+    assert m["perp_mean_m"] < 0.1
+
+
+# -- corners: the MPC parks at a polyline's sharp corner, not at a rounded one ------------------------
+def test_fillet_rounds_corners_with_tangent_arcs():
+    wp = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]])  # one 90° left corner
+    f = fillet(wp, 0.2, max_step_rad=0.1)
+    np.testing.assert_allclose(f[0], wp[0])
+    np.testing.assert_allclose(f[-1], wp[-1])
+    arc = f[1:-1]
+    # every arc point is 0.2 m from the centre (0.8, 0.2); the arc starts and ends on the segments
+    np.testing.assert_allclose(np.linalg.norm(arc - [0.8, 0.2], axis=1), 0.2, atol=1e-9)
+    np.testing.assert_allclose(arc[0], [0.8, 0.0], atol=1e-9)
+    np.testing.assert_allclose(arc[-1], [1.0, 0.2], atol=1e-9)
+    assert path_length(f) == pytest.approx(2.0 - 0.4 + 0.2 * math.pi / 2, rel=1e-3)
+    np.testing.assert_allclose(fillet(make_path("straight"), 0.2), make_path("straight"), atol=1e-6)
+    np.testing.assert_allclose(fillet(wp, 0.0), wp)
+    # the radius shrinks where segments are short (tangent length at most half a segment)
+    short = fillet(np.array([[0.0, 0.0], [0.1, 0.0], [0.1, 0.1]]), 1.0)
+    assert np.linalg.norm(short[1] - [0.05, 0.0]) < 1e-9
+
+
+def mpc_on_unicycle(path, reference, steps=300):
+    """CEM (H=4) with the thesis cost on ``reference``, driving a unicycle; scored on ``path``."""
+    cost = PathCost(reference, ROACH_NAMES)
+    end = PathCost(path, ROACH_NAMES)
+    planner = CEM(-0.5, 0.5, horizon=4, samples=300, iterations=3, action_dim=2, seed=0)
+    pol = MpcPolicy(SimpleNamespace(predict=lambda s, a: unicycle(s, a, v_max=1.4, w_max=6.0)), planner, cost)
+    pol.reset()
+    s = roach_state(0.0, 0.0, math.atan2(path[1, 1], path[1, 0]))
+    traj = [s]
+    for _ in range(steps):
+        s = unicycle(s, torch.as_tensor(pol(s.numpy()), dtype=torch.float32), v_max=1.4, w_max=6.0)
+        traj.append(s)
+        end.observe(s.numpy())
+        if end.at_end(s[[IX, IY]].numpy()):
+            break
+    return evaluate_path_following(torch.stack(traj), PathCost(path, ROACH_NAMES), period_s=0.1)
+
+
+def test_mpc_parks_at_sharp_corners_and_finishes_with_rounded_ones():
+    """The thesis cost over H = 4 steps: turning through the zigzag's 72° corner costs more
+    heading and distance error than the progress it earns within the horizon, so standing
+    still before the vertex (zero cost per step) wins. Tracking the path with its corners
+    rounded (0.2 m) removes the trap; the result is scored on the original path."""
+    path = make_path("zigzag", scale=1.5)
+    sharp = mpc_on_unicycle(path, path)
+    assert not sharp["completed"] and sharp["progress_m"] < 0.9
+    round_ = mpc_on_unicycle(path, fillet(path, 0.2))
+    assert round_["completed"] and round_["perp_mean_m"] < 0.05
+    assert rank_key(summarize_paths({"z": round_})) < rank_key(summarize_paths({"z": sharp}))

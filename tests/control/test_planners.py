@@ -268,3 +268,99 @@ def test_point_mass_reaches_goal(make):
         state = point_mass(torch.from_numpy(state), torch.from_numpy(a)).numpy()
     assert abs(state[0] - 1.0) < 0.1
     assert abs(state[1]) < 0.2
+
+
+# -- wrong versions the tests above let through ----------------------------------------------------
+def member_drift_dynamics(drift):
+    """An ensemble whose member e moves by ``a + drift[e]`` per step, with a member-specific
+    nonlinearity (squared state) so that averaging members changes the result."""
+    E = drift.shape[0]
+
+    def dyn(state, action):
+        st = state if state.dim() == 3 else state.expand(E, -1, -1)
+        return st + action + drift.view(E, 1, 1) + 0.1 * drift.view(E, 1, 1) * st**2
+    return dyn
+
+
+@pytest.mark.parametrize("cls", [RandomShooting, CEM, PDDM])
+def test_each_member_is_rolled_out_on_its_own_over_the_horizon(cls):
+    """Members never see each other's predictions: collapsing the ensemble to its mean
+    after each step would agree with this only at h = 1."""
+    drift = torch.tensor([-0.5, 0.1, 0.9])
+    dyn = member_drift_dynamics(drift)
+    H, N = 4, 6
+    p = cls(-1.0, 1.0, horizon=H, samples=N, action_dim=1, seed=0, **({"elites": 2} if cls is CEM else {}))
+    actions = torch.rand(N, H, 1, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    with torch.inference_mode():
+        st = p.rollout(dyn, torch.zeros(1), actions)
+    for e in range(3):
+        s = torch.zeros(N, 1)
+        for h in range(H):
+            s = s + actions[:, h] + drift[e] + 0.1 * drift[e] * s**2
+            assert torch.allclose(st[e, :, h + 1], s, atol=1e-6), (e, h)
+    # the planner scores those independent rollouts: cost averaged over members
+    seen = {}
+
+    def cost(states, acts):
+        seen["states"] = states.clone()
+        return states[..., -1, 0] ** 2
+
+    p.reset()
+    p(dyn, cost, np.zeros(1))
+    final = seen["states"][:, :, -1, 0]
+    assert final.std(dim=0).min() > 0.5  # the members stay apart at h = H
+
+
+def test_cem_refits_sigma_to_the_elites_every_iteration():
+    """Reference math on a horizon-4, 2-D case: the samples of iteration i+1 have the
+    (population) std and mean of the elites of iteration i, per step and dimension."""
+    H, N, K = 4, 20000, 1000
+    target = torch.tensor([[0.3, -0.2], [0.1, 0.4], [-0.3, 0.0], [0.2, 0.2]])
+    seen = []
+
+    def cost(states, actions):
+        seen.append(actions.clone())
+        return ((actions - target) ** 2).sum(dim=(1, 2)).unsqueeze(0)
+
+    p = CEM(-100.0, 100.0, horizon=H, samples=N, elites=K, iterations=3, sigma=1.0, action_dim=2, seed=5)
+    p(identity_dynamics, cost, np.zeros(1))
+    assert len(seen) == 3
+    for i in range(2):
+        a = seen[i]
+        c = ((a - target) ** 2).sum(dim=(1, 2))
+        elite = a[torch.topk(c, K, largest=False).indices]
+        mu, sd = elite.mean(0), elite.std(0, unbiased=False)
+        nxt = seen[i + 1]
+        assert torch.allclose(nxt.std(0), sd, rtol=0.05), (i, nxt.std(0), sd)
+        assert torch.allclose(nxt.mean(0), mu, atol=0.05 * sd.max().item() + 1e-3)
+    # σ really shrinks: the elites of a quadratic bowl are much tighter than the prior
+    assert seen[2].std(0).max() < 0.5
+
+
+def test_random_shooting_samples_within_the_reachable_set():
+    r = torch.tensor([0.2, 0.5])
+    p = RandomShooting(-1.0, 1.0, horizon=4, samples=3000, action_dim=2, seed=3, max_step=r)
+    seen = []
+
+    def cost(states, actions):
+        seen.append(actions.clone())
+        return -actions[:, :, 0].sum(1).unsqueeze(0)  # prefers the largest first leg command
+
+    a0 = p(identity_dynamics, cost, np.zeros(1))
+    first = seen[0]
+    # after reset the first step may be anywhere in the bounds, later steps move at most r
+    assert first[:, 0].min() < -0.9 and first[:, 0].max() > 0.9
+    steps = (first[:, 1:] - first[:, :-1]).abs()
+    assert torch.all(steps <= r + 1e-6)
+    # each step is uniform on [prev - r, prev + r] ∩ bounds: it uses the whole interval
+    assert torch.all(steps.reshape(-1, 2).max(0).values > 0.95 * r)
+    a1 = p(identity_dynamics, cost, np.zeros(1))
+    second = seen[1]
+    assert torch.all((second[:, 0] - torch.as_tensor(a0)).abs() <= r + 1e-6)
+    assert a1[0] > a0[0]  # it climbs toward the preferred command at the rate limit
+    assert torch.all(second >= -1.0) and torch.all(second <= 1.0)
+    p.reset()
+    p(identity_dynamics, cost, np.zeros(1))
+    assert seen[2][:, 0, 0].min() < -0.9  # reset forgets the previous action
+    with pytest.raises(ValueError, match="max_step"):
+        RandomShooting(-1.0, 1.0, action_dim=2, max_step=0.0)

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from learning.datasets import Episode
-from learning.dynamics import EnsembleDynamics
+from learning.dynamics import EnsembleDynamics, h_step_error, h_step_windows
 from learning.frames import BodyFrameDynamics, PlanarFrame, load_dynamics
 
 NAMES = ["x", "y", "vx", "vy", "cos_yaw", "sin_yaw", "w"]
@@ -71,3 +72,24 @@ def test_body_frame_model_is_translation_and_rotation_invariant(tmp_path):
         np.testing.assert_allclose(
             back.predict(torch.tensor(s2[None], dtype=torch.float32), a)[0, 0].numpy(), p2, atol=1e-5
         )
+
+
+def test_body_frame_validation_reports_the_real_h_step_error():
+    """val_h is the H-step open-loop error, not the one-step loss the wrapped model sees."""
+    torch.manual_seed(0)
+    rng = np.random.default_rng(1)
+    train, val = _episodes(20, 20, rng), _episodes(4, 20, rng)
+    model = BodyFrameDynamics(EnsembleDynamics(7, 2, hidden=(32, 32), seed=0), NAMES)
+    last = model.fit(train, val=val, epochs=5, progress=False, horizon=4)[-1]
+    assert last["horizon"] == 4
+    errs = {h: model.validation_errors(train, val, h) for h in (1, 4)}
+    assert errs[4]["val_h"] == pytest.approx(last["val_h"])
+    # open-loop errors grow with the horizon, in both frames
+    assert errs[4]["val_h"] > errs[1]["val_h"] and errs[4]["val_h_body"] > errs[1]["val_h_body"]
+    assert errs[4]["val_h_xy_mse_m2"] > errs[1]["val_h_xy_mse_m2"]
+    # position error has the same size in both frames (a rotation), the heading error too:
+    # raw body-frame error of x, y, cos, sin equals the world-frame one
+    windows = h_step_windows(val, 4)
+    _, raw_world = h_step_error(model, *windows, state_std=torch.ones(7))
+    _, raw_body = h_step_error(model, *windows, state_std=torch.ones(7), frame=model.frame.to_body)
+    assert raw_body == pytest.approx(raw_world, rel=1e-4)

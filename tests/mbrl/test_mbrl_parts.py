@@ -1,0 +1,149 @@
+"""Pieces of the MBRL loop that need no rig: the validation split and the baseline search."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from learning.datasets import Episode
+from learning.mbrl import BASELINE_SEARCH, baseline_candidates, default_baseline_params, split_episodes
+
+
+def eps(names):
+    return [Episode(np.zeros((3, 2)), np.zeros((2, 1)), name=n) for n in names]
+
+
+def test_validation_split_is_fixed_for_good_as_the_data_grows():
+    rng, assigned = np.random.default_rng(0), {}
+    first = eps([f"random:{i}" for i in range(70)])
+    tr0, va0 = split_episodes(first, 0.1, rng, assigned)
+    assert len(va0) == 7 and len(tr0) == 63
+    grown = first + eps([f"mpc1:{i}" for i in range(10)])
+    tr1, va1 = split_episodes(grown, 0.1, rng, assigned)
+    tr0n, va0n = {e.name for e in tr0}, {e.name for e in va0}
+    # no training episode of iteration 0 is validation data later, and the reverse
+    assert not tr0n & {e.name for e in va1}
+    assert va0n <= {e.name for e in va1} and not va0n & {e.name for e in tr1}
+    # the new episodes are split too
+    assert sum(e.name.startswith("mpc1") for e in va1) == 1
+    assert len(tr1) + len(va1) == 80
+
+
+def test_validation_split_needs_unique_names():
+    with pytest.raises(ValueError, match="unique"):
+        split_episodes(eps(["a", "a", "b"]), 0.5, np.random.default_rng(0), {})
+
+
+def test_baseline_candidates_start_at_the_default_and_cover_the_ranges():
+    c = baseline_candidates(20, 0.5, seed=0)
+    assert len(c) == 20 and c[0] == default_baseline_params(0.5)
+    for k, (lo, hi, scaled) in BASELINE_SEARCH.items():
+        v = np.array([p[k] for p in c[1:]]) / (0.5 if scaled else 1.0)
+        assert v.min() >= lo and v.max() <= hi
+        # Latin hypercube: one candidate in each of the 19 equal bins of every gain's range
+        bins = np.floor((v - lo) / (hi - lo) * 19).astype(int)
+        assert sorted(bins.tolist()) == list(range(19))
+    assert baseline_candidates(20, 0.5, seed=0) == c
+    with pytest.raises(ValueError):
+        baseline_candidates(0, 0.5)
+
+
+def test_rate_limit_in_normalized_units_per_step():
+    from drivers.velociroach.config import VelociRoachParams, velociroach_spec
+    from learning.mbrl import MbrlConfig, make_planner, max_step_normalized
+
+    spec = velociroach_spec(VelociRoachParams(max_leg_accel_rps2=60.0, max_leg_vel_rps=15.0)).to_dict()
+    # 60 rev/s² for 0.1 s is 6 rev/s, and [-1, 1] spans ±15 rev/s
+    np.testing.assert_allclose(max_step_normalized(spec), [0.4, 0.4])
+    spec["action_rate_per_s"] = None
+    assert max_step_normalized(spec) is None
+    rs = make_planner(MbrlConfig(planner="random_shooting"), 0.5, 2, np.array([0.4, 0.4]))
+    np.testing.assert_allclose(rs.max_step.numpy(), [0.4, 0.4])
+    assert make_planner(MbrlConfig(planner="random_shooting", reachable_set=False), 0.5, 2,
+                        np.array([0.4, 0.4])).max_step is None
+
+
+def test_random_policy_holds_commands_and_drives_forward_when_asked():
+    from control.policies import SafeRandomPolicy
+
+    names = ["x", "y", "cos_yaw", "sin_yaw"]
+    state = np.array([0.0, 0.0, 1.0, 0.0])
+    thesis = SafeRandomPolicy(names, 2, seed=0)
+    a = np.array([thesis(state) for _ in range(4000)])
+    assert np.all(np.abs(np.diff(a, axis=0)).sum(1) > 0)  # a new command every step
+    assert a.mean(0) == pytest.approx([0, 0], abs=0.05)
+    fwd = SafeRandomPolicy(names, 2, hold_steps=6, forward_fraction=1.0, turn=0.5, seed=0)
+    b = np.array([fwd(state) for _ in range(4000)])
+    changes = np.flatnonzero(np.abs(np.diff(b, axis=0)).sum(1) > 0)
+    runs = np.diff(changes)
+    assert runs.min() >= 1 and runs.max() <= 6 and 3.0 < runs.mean() < 4.0  # U{1..6}: mean 3.5
+    assert np.all(b.mean(1) >= -1e-9) and np.all(np.abs(b[:, 1] - b[:, 0]) <= 0.5 + 1e-9)
+    assert (b.mean(1) > 0.8).mean() > 0.15  # fast forward commands are common
+    with pytest.raises(ValueError):
+        SafeRandomPolicy(names, 3, forward_fraction=0.5)
+
+
+def test_speed_coverage():
+    from learning.mbrl import speed_coverage
+
+    st = np.zeros((5, 2))
+    st[:, 0] = [0.0, 0.3, 0.6, 1.0, 1.2]
+    c = speed_coverage([Episode(st, np.zeros((4, 1)), name="e")], ["vx", "vy"])
+    assert c["fraction_ge_0.5_mps"] == pytest.approx(0.6) and c["fraction_ge_0.9_mps"] == pytest.approx(0.4)
+    assert c["speed_p50_mps"] == pytest.approx(0.6)
+
+
+def test_quick_and_full_are_exclusive(tmp_path):
+    from tools.demo import run_demo
+
+    with pytest.raises(ValueError, match="--quick or --full"):
+        run_demo(tmp_path, quick=True, full=True)
+    assert not (tmp_path / "logs").exists()  # refused before any rig process started
+
+
+def test_full_config_runs_every_experiment_over_three_seeds():
+    from learning.experiments import EXPERIMENTS
+    from learning.mbrl import MbrlConfig
+
+    cfg = MbrlConfig.full()
+    assert set(cfg.experiments) == set(EXPERIMENTS) and len(cfg.seeds) >= 3
+    assert cfg.table_sizes == (50, 200, 400) and cfg.random_rollouts >= max(cfg.table_sizes)
+    assert len(cfg.sweep_speeds) >= 4 and cfg.terrains == ("carpet", "styrofoam")
+
+
+@pytest.mark.parametrize(("field", "value"), [("experiments", ("table_9",)), ("time_limit_speed_mps", 0.0),
+                                              ("baseline_candidates", 0), ("random_forward_fraction", 1.5),
+                                              ("reference_corner_radius_m", -0.1)])
+def test_bad_config_is_one_clear_error_naming_the_field(field, value):
+    from learning.mbrl import MbrlConfig
+
+    with pytest.raises(ValueError, match=field) as e:
+        MbrlConfig(**{field: value})
+    assert "\n" not in str(e.value)
+
+
+def test_demo_flags_select_the_variants(monkeypatch, tmp_path):
+    """--world-frame and --thesis-sampling reach the loop's config; a bad combination is
+    one line on stderr and exit code 1."""
+    from typer.testing import CliRunner
+
+    import tools.demo
+    from learning.mbrl import MbrlConfig
+    from tools.cli import app
+
+    seen = {}
+
+    def fake_run_demo(out, quick=False, full=False, **kw):
+        seen.update(kw)
+        MbrlConfig(**{k: v for k, v in kw.items() if k in MbrlConfig.__dataclass_fields__})
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(tools.demo, "run_demo", fake_run_demo)
+    r = CliRunner().invoke(app, ["demo", "--quick", "--world-frame", "--thesis-sampling", "--out", str(tmp_path)])
+    assert r.exit_code == 1 and "stop here" in r.output
+    assert seen["body_frame"] is False
+    assert seen["random_hold_steps"] == 1 and seen["random_forward_fraction"] == 0.0 and seen["reachable_set"] is False
+    monkeypatch.undo()
+    r = CliRunner().invoke(app, ["demo", "--quick", "--full", "--out", str(tmp_path / "x")])
+    assert r.exit_code == 1 and "choose --quick or --full" in r.output
+    assert len(r.output.strip().splitlines()) == 1
