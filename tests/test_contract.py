@@ -20,7 +20,10 @@ CONTRACT_BACKENDS = [
     ("pointmass", "sim", {}),
     ("velociroach", "sim", {}),
     ("velociroach", "emulated", {}),
-    ("mocap", "real", {"source": "udp"}),  # the real UDP client, fed by a pose stream below
+    ("mocap", "real", {"source": "udp"}),
+    ("shadow_hand", "sim", {}),
+    ("shadow_hand", "emulated", {"transport": "slcan"}),
+    ("shadow_hand", "emulated", {"transport": "udp_multicast"}),  # the real UDP client, fed by a pose stream below
 ]
 
 
