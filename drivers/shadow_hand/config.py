@@ -91,7 +91,7 @@ class ShadowHandParams(Params):
     driver_watchdog_s: float = Field(
         1.0, gt=0, description="driver sends stop (hold measured) when the caller has not written for this long")
     telemetry_deadline_s: float = Field(
-        0.05, gt=0, description="telemetry older than this makes a reading stale (ok=False)")
+        0.1, gt=0, description="telemetry older than this makes a reading stale (ok=False)")
     # sim (ignored by the real driver) and emulator settings
     sim: dict = Field(default_factory=dict, description="sim backend settings (palm tilt, gains, seed...)")
     emulator: dict = Field(default_factory=dict, description="emulator settings (fault injection...)")
@@ -133,3 +133,14 @@ def shadow_hand_spec(p: ShadowHandParams) -> RobotSpec:
         safe_action=None,  # stop = hold the measured position
         description="Shadow Dexterous Hand, 24 joints (20 actuated), joint position control",
     )
+
+
+def joint_tracking_error(state: np.ndarray, action: np.ndarray) -> dict:
+    """How far the measured actuated joints are from the commanded targets [rad]:
+    ``max_rad``, ``rms_rad``, ``worst_joint`` and ``per_joint_rad`` (measured − target)."""
+    q = np.asarray(state, dtype=np.float64)[ACT_INDEX]
+    err = q - to_joint_rad(action)
+    k = int(np.argmax(np.abs(err)))
+    return {"max_rad": float(np.abs(err).max()), "rms_rad": float(np.sqrt(np.mean(err ** 2))),
+            "worst_joint": ACTUATED_JOINTS[k],
+            "per_joint_rad": {j: float(e) for j, e in zip(ACTUATED_JOINTS, err, strict=True)}}

@@ -8,7 +8,8 @@ Transports, chosen by ``params.transport`` (python-can interfaces):
   the emulated backend; the bus echoes our own frames, which are filtered out by id.
 
 backend "emulated" starts the firmware emulator (``python -m sim_backends.shadow_hand.
-emulator``) as its own process, on a pty it creates (slcan) or on a free UDP port
+emulator``) as its own process, on a pty it creates (slcan; also when the config
+says socketcan, which needs a kernel CAN interface) or on a free UDP port
 (udp_multicast), unless ``params.emulator.spawn`` is false (then ``channel`` names an
 emulator that is already running).
 
@@ -42,7 +43,14 @@ import numpy as np
 
 from configs.schema import ConfigError, RobotConfig
 from drivers.base import Driver, Health, Lifecycle, LinkError, Observation
-from drivers.shadow_hand.config import ACT_INDEX, ShadowHandParams, shadow_hand_spec, to_action, to_joint_rad
+from drivers.shadow_hand.config import (
+    ACT_INDEX,
+    ShadowHandParams,
+    joint_tracking_error,
+    shadow_hand_spec,
+    to_action,
+    to_joint_rad,
+)
 from drivers.shadow_hand.protocol import (
     HAND_IDS,
     HOST_IDS,
@@ -71,7 +79,11 @@ def free_udp_port() -> int:
 class ShadowHandDriver(Driver):
     def __init__(self, params: ShadowHandParams | None = None, backend: str = "real", source: str | None = None):
         super().__init__()
-        self.params = params or ShadowHandParams()
+        params = params or ShadowHandParams()
+        if backend == "emulated" and params.transport == "socketcan":
+            # no kernel CAN here (no vcan): the emulator stands in for the adapter over SLCAN
+            params = params.model_copy(update={"transport": "slcan"})
+        self.params = params
         self.backend = backend
         self.source = source
         self.spec = shadow_hand_spec(self.params)
@@ -99,6 +111,9 @@ class ShadowHandDriver(Driver):
         self.driver_watchdog_trips = 0
         self.last_corrupt: str | None = None
 
+    #: measured − commanded actuated joint angles (used by `hil drive`)
+    tracking_error = staticmethod(joint_tracking_error)
+
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> ShadowHandDriver:
         return cls(parse_params(cfg, ShadowHandParams), backend=cfg.backend, source=cfg.source)
@@ -107,9 +122,6 @@ class ShadowHandDriver(Driver):
     def _on_configure(self) -> None:
         p = self.params
         spawn = self.backend == "emulated" and p.emulator.get("spawn", True)
-        if self.backend == "emulated" and p.transport == "socketcan":
-            raise ConfigError(self.source, [("params.transport", "the emulated backend speaks slcan or "
-                                             "udp_multicast (SocketCAN needs a kernel CAN interface)")])
         if not spawn and not p.channel:
             raise ConfigError(self.source, [("params.channel", f"no CAN channel for transport {p.transport}: "
                                              "e.g. can0 (socketcan), /dev/ttyACM0 (slcan)")])
@@ -252,8 +264,9 @@ class ShadowHandDriver(Driver):
                     self._heartbeat()
                 self._driver_watchdog(now)
             except (can.CanError, OSError) as e:
+                hint = f"; emulator log: {self._emu_tail(3)}" if self._proc is not None else ""
                 with self._lock:
-                    self._reader_error = f"CAN link lost ({self.params.transport}): {e}"
+                    self._reader_error = f"CAN link lost ({self.params.transport}): {e}{hint}"
                 return
             except Exception as e:  # a bug here must show up in health, not kill the link silently
                 with self._lock:

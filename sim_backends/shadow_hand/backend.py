@@ -27,6 +27,7 @@ from drivers.shadow_hand.config import (
     HOLD_POSE_RAD,
     JOINT_NAMES,
     ShadowHandParams,
+    joint_tracking_error,
     shadow_hand_spec,
     to_action,
     to_joint_rad,
@@ -51,6 +52,8 @@ class SimParams(Params):
     kp_wrist_nm_per_rad: float = Field(5.0, gt=0)
     kp_finger_nm_per_rad: float = Field(1.0, gt=0)
     kd_nms_per_rad: float = Field(0.0, ge=0, description="extra derivative gain of the firmware loop")
+    ki_wrist_nm_per_rad_s: float = Field(20.0, ge=0, description="integral gain (removes the sag under gravity)")
+    ki_finger_nm_per_rad_s: float = Field(4.0, ge=0)
     ball_target_radius_m: float = Field(0.025, gt=0)
     ball_target_rate_rad_s: float = Field(float(np.pi / 5), description="target rotation rate (+: counter-clockwise)")
 
@@ -91,6 +94,9 @@ class ShadowHandSim(LockstepSim):
         self._diverged_pending = False
         self._ticks_per_step = int(round(TICK_S / PHYSICS_DT_S))
 
+    #: measured − commanded actuated joint angles (used by `hil drive`)
+    tracking_error = staticmethod(joint_tracking_error)
+
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> ShadowHandSim:
         return cls(parse_params(cfg, ShadowHandParams), source=cfg.source)
@@ -108,9 +114,12 @@ class ShadowHandSim(LockstepSim):
         n = len(h.act_joint)
         kp = np.full(n, s.kp_finger_nm_per_rad)
         kp[:2] = s.kp_wrist_nm_per_rad  # WRJ1, WRJ0
+        ki = np.full(n, s.ki_finger_nm_per_rad_s)
+        ki[:2] = s.ki_wrist_nm_per_rad_s
         self.firmware = HandFirmware(FirmwareConfig(
             kp_nm_per_rad=kp,
             kd_nms_per_rad=np.full(n, s.kd_nms_per_rad),
+            ki_nm_per_rad_s=ki,
             torque_limit_nm=h.torque_limit_nm.copy(),
             joint_low_rad=h.joint_low[h.act_joint],
             joint_high_rad=h.joint_high[h.act_joint],
@@ -147,6 +156,8 @@ class ShadowHandSim(LockstepSim):
         self.task = BaodingTask(center_m=center, axis=normal, radius_m=self.sim.ball_target_radius_m,
                                 rate_rad_s=self.sim.ball_target_rate_rad_s)
         self.firmware.reset(d.qpos[self._act_qadr].copy())
+        # the hand has been holding this pose: the loops' integrals carry the gravity load
+        self.firmware.preload(d.qfrc_bias[self._act_dadr])
         self._seq = 0
 
     # ------------------------------------------------------------------ physics

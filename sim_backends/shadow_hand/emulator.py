@@ -66,12 +66,20 @@ class SlcanDevice:
         self.buf = bytearray()
         self.open = False
         self.bad_lines = 0
+        self.tx_overflows = 0
 
     def fileno(self) -> int:
         return self.fd
 
     def _reply(self, b: bytes) -> None:
-        os.write(self.fd, b)
+        try:
+            os.write(self.fd, b)
+        except BlockingIOError:
+            # the host is not reading (a starved process): like an adapter's full USB
+            # buffer, the frame is lost; the host sees it as a dropped frame
+            self.tx_overflows += 1
+        except OSError:
+            pass  # EIO: the host closed the port; nothing to deliver to
 
     def recv(self) -> list[tuple[int, bytes]]:
         try:
@@ -110,9 +118,9 @@ class SlcanDevice:
                 mid = int(line[1:4], 16)
                 n = int(line[4])
                 data = bytes.fromhex(line[5:5 + 2 * n])
-                if len(data) != n or len(line) != 5 + 2 * n:
-                    raise ValueError("length")
-            except ValueError:
+                if len(data) != n or len(line) != 5 + 2 * n or mid > 0x7FF or n > 8:
+                    raise ValueError("length or id out of range")
+            except (ValueError, IndexError):  # short, non-hex or inconsistent line
                 self.bad_lines += 1
                 self._reply(b"\a")
                 return None
@@ -302,7 +310,7 @@ class Emulator:
                     break
 
     def summary(self) -> dict[str, Any]:
-        return {"telemetry_frames": self.tel_frames, "injected_corrupt": self.injected_corrupt,
+        return {"telemetry_frames": self.tel_frames, "tx_overflows": getattr(self.dev, "tx_overflows", 0), "injected_corrupt": self.injected_corrupt,
                 "injected_drop": self.injected_drop, "bus_off_events": self.bus_off_events,
                 "rx_error_count": self.rx_error_count, "realtime_slip_s": round(self.realtime_slip_s, 4),
                 "sim_time_s": round(self.sim.sim_time_s, 3)}

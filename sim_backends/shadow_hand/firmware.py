@@ -3,7 +3,13 @@
 Every 1 ms tick it runs one joint position loop per actuated joint (20), with the
 measured joint angle and velocity:
 
-    effort = clip(kp·(target − q) − kd·q̇, −torque_limit, +torque_limit)   [N·m]
+    e = target − q
+    effort = clip(kp·e + ki·∫e dt − kd·q̇, −torque_limit, +torque_limit)   [N·m]
+
+The integral removes the steady-state error a P loop leaves under gravity (the wrist
+sags ~0.1 rad with P alone), which matters because "stop" holds the *measured*
+position: with a P loop every hold would sag a little further. Anti-windup: the
+integral term is clamped to ±torque_limit.
 
 Commands arrive as joint position targets [rad]; the firmware never trusts them: a
 non-finite target is refused, a target outside the joint's range is clamped to it.
@@ -48,6 +54,7 @@ class FirmwareConfig:
 
     kp_nm_per_rad: np.ndarray
     kd_nms_per_rad: np.ndarray
+    ki_nm_per_rad_s: np.ndarray
     torque_limit_nm: np.ndarray
     joint_low_rad: np.ndarray
     joint_high_rad: np.ndarray
@@ -69,6 +76,7 @@ class HandFirmware:
         self.mode = MODE_HOLD
         self.target_rad = np.zeros(self.n) if q_rad is None else np.array(q_rad, dtype=np.float64)
         self.effort_nm = np.zeros(self.n)
+        self.integral_rad_s = np.zeros(self.n)
         self.last_cmd_s: float | None = None
         self.watchdog_tripped = False
         self.estop = False
@@ -78,6 +86,13 @@ class HandFirmware:
         self.commands_received = 0
         self.commands_refused = 0
         self._q = self.target_rad.copy()
+
+    def preload(self, effort_nm: np.ndarray) -> None:
+        """Start as if the hand had been holding its pose: the integral term carries
+        ``effort_nm`` (e.g. the static gravity load at a sim reset), so nothing sags."""
+        ki = self.config.ki_nm_per_rad_s
+        self.integral_rad_s = np.divide(np.asarray(effort_nm, dtype=np.float64), ki,
+                                        out=np.zeros(self.n), where=ki > 0)
 
     # ------------------------------------------------------------------ commands
     def set_targets(self, first: int, targets_rad: np.ndarray, now_s: float) -> bool:
@@ -132,7 +147,11 @@ class HandFirmware:
             self.watchdog_tripped = True
             self.mode = MODE_HOLD
             self.target_rad = np.array(q_rad, dtype=np.float64)
-        e = c.kp_nm_per_rad * (self.target_rad - q_rad) - c.kd_nms_per_rad * qd_rad_s
+        err = self.target_rad - q_rad
+        ki = c.ki_nm_per_rad_s
+        lim_i = np.divide(c.torque_limit_nm, ki, out=np.zeros(self.n), where=ki > 0)
+        self.integral_rad_s = np.clip(self.integral_rad_s + err * TICK_S, -lim_i, lim_i)
+        e = c.kp_nm_per_rad * err + ki * self.integral_rad_s - c.kd_nms_per_rad * qd_rad_s
         np.clip(e, -c.torque_limit_nm, c.torque_limit_nm, out=e)
         if self.motor_fault_mask:
             for i in range(self.n):
