@@ -139,13 +139,13 @@ class ShadowHandDriver(Driver):
         import can
 
         p = self.params
+        if p.transport == "slcan" and "://" not in channel and not Path(channel).exists():
+            raise ConfigError(self.source, [("params.channel", f"{channel} does not exist "
+                                             "(SLCAN adapter unplugged?)")])
         try:
             if p.transport == "socketcan":
                 return can.Bus(interface="socketcan", channel=channel)
             if p.transport == "slcan":
-                if "://" not in channel and not Path(channel).exists():
-                    raise ConfigError(self.source, [("params.channel", f"{channel} does not exist "
-                                                     "(SLCAN adapter unplugged?)")])
                 return can.Bus(interface="slcan", channel=channel, bitrate=p.bitrate)
             return can.Bus(interface="udp_multicast", channel=channel or DEFAULT_UDP_GROUP,
                            port=int(udp_port or 43113), fd=False)
