@@ -155,7 +155,8 @@ def register(app: typer.Typer) -> None:
             echo_json(res)
             return
         fp = res["final_pose"]
-        typer.echo(f"{res['robot']} ({backend}): action {res['action']} for {seconds:g} s ({res['steps']} steps)")
+        act = [round(v, 3) for v in res['action']]
+        typer.echo(f"{res['robot']} ({backend}): action {act} for {seconds:g} s ({res['steps']} steps)")
         if "tracking_error" in res:
             te = res["tracking_error"]
             typer.echo(f"  joint tracking error: max {te['max_rad']:.4f} rad ({te['worst_joint']}), "
