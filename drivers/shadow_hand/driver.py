@@ -28,12 +28,7 @@ which tries to send the stop while the port is still open.
 from __future__ import annotations
 
 import json
-import os
-import select
 import socket
-import subprocess
-import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -43,6 +38,7 @@ import numpy as np
 
 from configs.schema import ConfigError, RobotConfig
 from drivers.base import Driver, Health, Lifecycle, LinkError, Observation
+from drivers.emulator_process import EmulatorProcess
 from drivers.shadow_hand.config import (
     ACT_INDEX,
     ShadowHandParams,
@@ -65,7 +61,6 @@ from drivers.shadow_hand.protocol import (
 from sim_backends.base import parse_params
 from sim_backends.shadow_hand.firmware import FAULT_ESTOP, FAULT_MOTOR, FAULT_WATCHDOG
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 EMULATOR_START_TIMEOUT_S = 30.0
 DEFAULT_UDP_GROUP = "239.74.163.2"
 
@@ -92,8 +87,7 @@ class ShadowHandDriver(Driver):
         self._send_lock = threading.Lock()
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
-        self._proc: subprocess.Popen | None = None
-        self._emu_log: Path | None = None
+        self._emu: EmulatorProcess | None = None
         self._asm = TelemetryAssembler()
         self._tel: Telemetry | None = None
         self._tel_t: float | None = None
@@ -154,44 +148,20 @@ class ShadowHandDriver(Driver):
 
     def _start_emulator(self) -> tuple[str, int | None]:
         p = self.params
-        cfg = p.model_dump(mode="json")
-        fd, log_path = tempfile.mkstemp(prefix="shadow-hand-emulator-", suffix=".log")
-        os.close(fd)
-        self._emu_log = Path(log_path)
-        cmd = [sys.executable, "-m", "sim_backends.shadow_hand.emulator", "--transport", p.transport,
-               "--config", json.dumps(cfg), "--parent-pid", str(os.getpid())]
+        args = ["--transport", p.transport, "--config", json.dumps(p.model_dump(mode="json"))]
         if p.transport == "slcan":
-            cmd.append("--print-pty")
+            args.append("--print-pty")
         else:
-            cmd += ["--channel", p.channel or DEFAULT_UDP_GROUP,
-                    "--udp-port", str(p.emulator.get("udp_port") or free_udp_port())]
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), *filter(None, [env.get("PYTHONPATH")])])
-        with open(self._emu_log, "wb") as errf:
-            self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=errf, stdin=subprocess.DEVNULL,
-                                          cwd=str(REPO_ROOT), env=env)
-        assert self._proc.stdout is not None
-        timeout_s = float(p.emulator.get("start_timeout_s", EMULATOR_START_TIMEOUT_S))
-        deadline = time.monotonic() + timeout_s
-        line = b""
-        while not line.endswith(b"\n"):
-            if self._proc.poll() is not None:
-                raise LinkError(f"emulator exited with code {self._proc.returncode} before it was ready:\n"
-                                f"{self._emu_tail()}")
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise LinkError(f"emulator did not start within {timeout_s:.0f} s:\n{self._emu_tail()}")
-            r, _, _ = select.select([self._proc.stdout], [], [], min(left, 0.1))
-            if r:
-                line += os.read(self._proc.stdout.fileno(), 1)
-        info = json.loads(line)
+            args += ["--channel", p.channel or DEFAULT_UDP_GROUP,
+                     "--udp-port", str(p.emulator.get("udp_port") or free_udp_port())]
+        self._emu = EmulatorProcess("sim_backends.shadow_hand.emulator", args,
+                                    start_timeout_s=float(p.emulator.get("start_timeout_s", EMULATOR_START_TIMEOUT_S)),
+                                    keep_log=bool(p.emulator.get("keep_log", False)))
+        info = self._emu.start()
         return info["channel"], info.get("port")
 
     def _emu_tail(self, n: int = 15) -> str:
-        if self._emu_log is None or not self._emu_log.exists():
-            return "(no emulator log)"
-        lines = self._emu_log.read_text(errors="replace").splitlines()
-        return "\n".join(lines[-n:]) or "(emulator log empty)"
+        return "(no emulator)" if self._emu is None else self._emu.tail(n)
 
     def _wait_first_telemetry(self) -> None:
         timeout_s = float(self.params.emulator.get("connect_timeout_s", 10.0)) if self.backend == "emulated" else 3.0
@@ -226,20 +196,9 @@ class ShadowHandDriver(Driver):
             except Exception:
                 pass  # already gone with its port
             self.bus = None
-        if self._proc is not None:
-            if self._proc.poll() is None:
-                self._proc.terminate()
-                try:
-                    self._proc.wait(timeout=3.0)
-                except subprocess.TimeoutExpired:
-                    self._proc.kill()
-                    self._proc.wait(timeout=3.0)
-            if self._proc.stdout is not None:
-                self._proc.stdout.close()
-            self._proc = None
-        if self._emu_log is not None and not self.params.emulator.get("keep_log", False):
-            self._emu_log.unlink(missing_ok=True)
-            self._emu_log = None
+        if self._emu is not None:
+            self._emu.stop()
+            self._emu = None
 
     # ------------------------------------------------------------------ reader thread
     def _reader(self) -> None:
@@ -264,7 +223,7 @@ class ShadowHandDriver(Driver):
                     self._heartbeat()
                 self._driver_watchdog(now)
             except (can.CanError, OSError) as e:
-                hint = f"; emulator log: {self._emu_tail(3)}" if self._proc is not None else ""
+                hint = f"; emulator log: {self._emu_tail(3)}" if self._emu is not None else ""
                 with self._lock:
                     self._reader_error = f"CAN link lost ({self.params.transport}): {e}{hint}"
                 return
@@ -319,9 +278,10 @@ class ShadowHandDriver(Driver):
         if not self.active or self._last_cmd_t is None or self._wd_fired:
             return
         if now - self._last_cmd_t > self.params.driver_watchdog_s:
-            self._wd_fired = True
-            self.driver_watchdog_trips += 1
             self._hold_measured()
+            # flag after the hold is sent: whoever sees the flag sees the new held command
+            self.driver_watchdog_trips += 1
+            self._wd_fired = True
 
     def _send_targets(self, action: np.ndarray) -> None:
         try:
@@ -438,5 +398,6 @@ class ShadowHandDriver(Driver):
         )
 
     @property
-    def emulator_log(self) -> Path | None:
-        return self._emu_log
+    def emulator(self) -> EmulatorProcess | None:
+        """The emulator process (emulated backend), for its log and for tests."""
+        return self._emu
