@@ -21,8 +21,14 @@ from configs.schema import ConfigError
 from drivers.base import Lifecycle, LinkError
 from drivers.shadow_hand.config import ACT_INDEX, ShadowHandParams, to_action, to_joint_rad
 from drivers.shadow_hand.driver import ShadowHandDriver
-from drivers.shadow_hand.protocol import ID_STATUS, decode, encode_targets
-from sim_backends.shadow_hand.firmware import FAULT_WATCHDOG, MODE_ESTOP, MODE_HOLD, MODE_POSITION
+from drivers.shadow_hand.protocol import ID_STATUS, ID_TARGET, decode, encode_targets
+from sim_backends.shadow_hand.firmware import (
+    FAULT_RX_ERROR,
+    FAULT_WATCHDOG,
+    MODE_ESTOP,
+    MODE_HOLD,
+    MODE_POSITION,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -119,6 +125,11 @@ def test_firmware_watchdog_holds_when_the_host_falls_silent(slcan_emulator):
             assert msg is not None, "no HAND_STATUS from the emulator"
             return decode(msg.arbitration_id, bytes(msg.data))[1]
 
+        # a target frame one byte short is refused by the firmware, and said so
+        n0 = status()["rx_error_count"]
+        bus.send(can.Message(arbitration_id=ID_TARGET[0], data=b"\x00" * 7, is_extended_id=False))
+        st = wait_for(lambda: (s := status())["rx_error_count"] > n0 and s, 2.0, "the refusal")
+        assert int(st["faults"]) & FAULT_RX_ERROR
         q = np.zeros(20)
         for mid, data in encode_targets(to_joint_rad(to_action(q))):
             bus.send(can.Message(arbitration_id=mid, data=data, is_extended_id=False))
