@@ -27,6 +27,7 @@ recovers and reports FAULT_BUS_OFF once), ``motor_fault_after_s`` / ``motor_faul
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import json
 import os
 import select
@@ -359,6 +360,7 @@ def main(argv: list[str] | None = None) -> int:
     def _stop(signum, frame):  # noqa: ARG001
         em.running = False
 
+    faulthandler.register(signal.SIGUSR1)  # `kill -USR1 PID`: where is it stuck (stderr)
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
     print(json.dumps({"transport": args.transport, "channel": channel, "port": port, "pid": os.getpid()}), flush=True)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -44,20 +45,30 @@ def wait_for(cond, timeout_s: float, what: str, step=None):
 
 
 @pytest.fixture(scope="module")
-def slcan_emulator():
+def slcan_emulator(tmp_path_factory):
     """A clean emulator serving SLCAN on a pty; yields the pty path."""
     cfg = json.dumps(ShadowHandParams(transport="slcan").model_dump(mode="json"))
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    p = subprocess.Popen([sys.executable, "-m", "sim_backends.shadow_hand.emulator", "--transport", "slcan",
-                          "--print-pty", "--config", cfg, "--parent-pid", str(os.getpid())],
-                         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=REPO, env=env)
+    log = tmp_path_factory.mktemp("emu") / "emulator.log"
+    with open(log, "wb") as errf:
+        p = subprocess.Popen([sys.executable, "-m", "sim_backends.shadow_hand.emulator", "--transport", "slcan",
+                              "--print-pty", "--config", cfg, "--parent-pid", str(os.getpid())],
+                             stdout=subprocess.PIPE, stderr=errf, cwd=REPO, env=env)
     try:
         info = json.loads(p.stdout.readline())
         yield info["channel"]
     finally:
         p.terminate()
-        p.wait(timeout=5)
-        p.stdout.close()
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            p.send_signal(signal.SIGUSR1)  # faulthandler: the stack of a stuck emulator, into its log
+            time.sleep(0.5)
+            p.kill()
+            p.wait()
+            raise AssertionError(f"the emulator ignored SIGTERM; its log:\n{log.read_text()[-3000:]}") from None
+        finally:
+            p.stdout.close()
 
 
 def shared(channel: str, **params) -> ShadowHandDriver:
