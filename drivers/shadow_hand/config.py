@@ -85,7 +85,7 @@ class ShadowHandParams(Params):
     transport: Transport = Field("socketcan", description="python-can interface of the CAN link")
     channel: str | None = Field(None, description="can0 (socketcan), /dev/ttyACM0 (slcan), 239.74.163.2 (udp_multicast)")
     bitrate: int = Field(1_000_000, gt=0, description="CAN bit rate [bit/s] (classic CAN, 1 Mbit/s)")
-    telemetry_hz: float = Field(100.0, gt=0, le=200, description="hand telemetry rate (docs/shadow_hand.md: bus load)")
+    telemetry_hz: float = Field(50.0, gt=0, le=200, description="hand telemetry rate (docs/shadow_hand.md: bus load)")
     heartbeat_hz: float = Field(10.0, gt=0, description="host heartbeat rate (feeds the firmware watchdog)")
     firmware_watchdog_s: float = Field(0.5, gt=0, description="firmware holds position after this long without commands")
     driver_watchdog_s: float = Field(

@@ -140,7 +140,11 @@ class ShadowHandDriver(Driver):
             if p.transport == "socketcan":
                 return can.Bus(interface="socketcan", channel=channel)
             if p.transport == "slcan":
-                return can.Bus(interface="slcan", channel=channel, bitrate=p.bitrate)
+                # serial read timeout: python-can's 1 ms default wakes the reader 1000 times a
+                # second when the bus is idle; 10 ms is well inside the telemetry deadline.
+                # A pty needs no settling after open (a USB adapter may reset: keep python-can's)
+                extra = {"sleep_after_open": 0.0} if self.backend == "emulated" else {}
+                return can.Bus(interface="slcan", channel=channel, bitrate=p.bitrate, timeout=0.01, **extra)
             return can.Bus(interface="udp_multicast", channel=channel or DEFAULT_UDP_GROUP,
                            port=int(udp_port or 43113), fd=False)
         except (can.CanError, OSError, ValueError) as e:
