@@ -213,12 +213,7 @@ class ShadowHandDriver(Driver):
         next_hb = time.monotonic()
         while not self._stop_evt.is_set():
             try:
-                try:
-                    msg = bus.recv(timeout=0.005)
-                except ValueError as e:
-                    # python-can's slcan parser on a garbled line (bad hex, bad length)
-                    self._count_corrupt(f"unparsable frame from the adapter: {e}")
-                    msg = None
+                msg = self._recv_one(bus, timeout_s=0.005)
                 now = time.monotonic()
                 if msg is not None:
                     self._handle(msg, now)
@@ -235,6 +230,26 @@ class ShadowHandDriver(Driver):
                 with self._lock:
                     self._reader_error = f"CAN reader crashed: {type(e).__name__}: {e}"
                 return
+
+    def _recv_one(self, bus: Any, timeout_s: float) -> Any:
+        """One frame from the bus, or None. A garbled SLCAN line is a corrupt frame, not a
+        dead link: python-can's slcan parser raises ValueError (bad hex, bad digit) or
+        IndexError (a short line) on it, and a CanOperationError caused by a
+        UnicodeDecodeError on non-ASCII bytes, which it also leaves in its line buffer:
+        ``flush()`` clears that buffer, or every later read would fail the same way.
+        Anything else from the bus (the port vanished) is a link failure and propagates."""
+        import can
+
+        try:
+            return bus.recv(timeout=timeout_s)
+        except (ValueError, IndexError) as e:
+            self._count_corrupt(f"unparsable frame from the adapter: {type(e).__name__}: {e}")
+        except can.CanOperationError as e:
+            if not isinstance(e.__cause__, UnicodeDecodeError):
+                raise
+            self._count_corrupt(f"non-ASCII bytes from the adapter: {e.__cause__}")
+            bus.flush()
+        return None
 
     def _count_corrupt(self, why: str) -> None:
         with self._lock:

@@ -14,6 +14,7 @@ from drivers.shadow_hand.config import (
     JOINT_HIGH_RAD,
     JOINT_LOW_RAD,
     JOINT_NAMES,
+    ShadowHandParams,
     joint_tracking_error,
     to_action,
     to_joint_rad,
@@ -187,3 +188,57 @@ def test_fuzz_slcan_device_parser(line):
         assert answer == b"z\r"
     elif line:
         assert answer in (b"\r", b"\a", b"V1013\r", b"F00\r")
+
+
+# ---------------------------------------------------------------------- the driver's SLCAN receive path
+@pytest.fixture(scope="module")
+def loop_bus():
+    """python-can's real slcan interface on pyserial's loop:// (what is written is read back)."""
+    import can
+
+    bus = can.Bus(interface="slcan", channel="loop://", bitrate=1_000_000, sleep_after_open=0, timeout=0.001)
+    yield bus
+    bus.shutdown()
+
+
+def _drain(drv, bus) -> list:
+    got = []
+    for _ in range(64):
+        msg = drv._recv_one(bus, timeout_s=0.001)
+        if msg is None and not bus.serialPortOrig.in_waiting:
+            break
+        if msg is not None:
+            got.append(msg)
+    return got
+
+
+def test_garbled_slcan_lines_are_corrupt_frames_not_a_dead_link(loop_bus):
+    """Regression: a short line (IndexError in python-can) or non-ASCII bytes (left in
+    python-can's buffer, failing every later read) took the whole link down."""
+    from drivers.shadow_hand.driver import ShadowHandDriver
+
+    drv = ShadowHandDriver(ShadowHandParams())
+    loop_bus.serialPortOrig.reset_input_buffer()
+    for junk in (b"t12\r", b"T1\r", b"t2008ZZ\r", b"\xff\xfe\r"):
+        loop_bus.serialPortOrig.write(junk)
+        _drain(drv, loop_bus)
+    assert drv.corrupt_frames == 4
+    mid, data = encode_targets(np.zeros(20))[0]
+    loop_bus.serialPortOrig.write(f"t{mid:03X}8{data.hex().upper()}\r".encode())
+    got = _drain(drv, loop_bus)  # the link still works after all that
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(mid, data)]
+
+
+@settings(max_examples=200, deadline=None)
+@given(junk=st.binary(max_size=30))
+def test_fuzz_driver_slcan_receive(loop_bus, junk):
+    from drivers.shadow_hand.driver import ShadowHandDriver
+
+    drv = ShadowHandDriver(ShadowHandParams())
+    loop_bus.flush()
+    loop_bus.serialPortOrig.write(junk + b"\r")
+    for m in _drain(drv, loop_bus):  # whatever comes out goes through the frame handler too
+        drv._handle(m, 0.0)
+    mid, data = encode_targets(np.zeros(20))[1]
+    loop_bus.serialPortOrig.write(f"t{mid:03X}8{data.hex().upper()}\r".encode())
+    assert (mid, data) in [(m.arbitration_id, bytes(m.data)) for m in _drain(drv, loop_bus)]
