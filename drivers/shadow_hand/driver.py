@@ -102,6 +102,7 @@ class ShadowHandDriver(Driver):
         self.frames_received = 0
         self.corrupt_frames = 0
         self.foreign_frames = 0
+        self.bus_error_frames = 0
         self.driver_watchdog_trips = 0
         self.last_corrupt: str | None = None
 
@@ -257,6 +258,10 @@ class ShadowHandDriver(Driver):
             self.last_corrupt = why
 
     def _handle(self, msg: Any, now: float) -> None:
+        if msg.is_error_frame:
+            with self._lock:
+                self.bus_error_frames += 1  # the controller saw a bus error (socketcan)
+            return
         mid = msg.arbitration_id
         if mid in HOST_IDS:
             return  # our own frame echoed by a multicast bus
@@ -407,6 +412,7 @@ class ShadowHandDriver(Driver):
                 "telemetry_cycles": cycles,
                 "incomplete_cycles": incomplete,
                 "foreign_frames": foreign,
+                "bus_error_frames": self.bus_error_frames,
                 "last_corrupt": last_corrupt,
                 "hand_faults": None if tel is None else tel.faults,
                 "hand_mode": None if tel is None else tel.mode,

@@ -242,3 +242,19 @@ def test_fuzz_driver_slcan_receive(loop_bus, junk):
     mid, data = encode_targets(np.zeros(20))[1]
     loop_bus.serialPortOrig.write(f"t{mid:03X}8{data.hex().upper()}\r".encode())
     assert (mid, data) in [(m.arbitration_id, bytes(m.data)) for m in _drain(drv, loop_bus)]
+
+
+def test_frame_handler_sorts_own_foreign_error_and_corrupt_frames():
+    import can
+
+    from drivers.shadow_hand.driver import ShadowHandDriver
+
+    drv = ShadowHandDriver(ShadowHandParams())
+    mid, data = encode_targets(np.zeros(20))[0]
+    drv._handle(can.Message(arbitration_id=mid, data=data, is_extended_id=False), 0.0)  # our own, echoed
+    drv._handle(can.Message(arbitration_id=0x7E0, data=b"\0" * 8, is_extended_id=False), 0.0)  # another node
+    drv._handle(can.Message(arbitration_id=0x200, data=b"\0" * 3, is_extended_id=False), 0.0)  # short POS frame
+    drv._handle(can.Message(arbitration_id=0x4, is_error_frame=True), 0.0)
+    h = drv.health()  # unconfigured: counters only
+    assert (drv.frames_received, drv.foreign_frames, drv.corrupt_frames, drv.bus_error_frames) == (0, 1, 1, 1)
+    assert "HAND_POS_0" in drv.last_corrupt and not h.ok
