@@ -118,11 +118,10 @@ def hold_pose_action() -> np.ndarray:
 
 
 def shadow_hand_spec(p: ShadowHandParams) -> RobotSpec:
-    pos = [(f"{j}_pos", "rad", lo, hi) for j, lo, hi in zip(JOINT_NAMES, JOINT_LOW_RAD, JOINT_HIGH_RAD, strict=True)]
-    vel = [(f"{j}_vel", "rad/s", -np.inf, np.inf) for j in JOINT_NAMES]
-    # the state's joint ranges are the nominal ones: a real joint may read a little past them
-    state = Space.build(pos + vel)
-    state = Space(state.names, state.units, np.full(48, -np.inf), np.full(48, np.inf))
+    # unbounded on purpose: a real joint may read a little past its nominal range
+    # (JOINT_LOW_RAD/JOINT_HIGH_RAD), and a reading is never clipped
+    state = Space.build([(f"{j}_pos", "rad", -np.inf, np.inf) for j in JOINT_NAMES]
+                        + [(f"{j}_vel", "rad/s", -np.inf, np.inf) for j in JOINT_NAMES])
     action = Space.build([(f"{j}_target", "1", -1.0, 1.0) for j in ACTUATED_JOINTS])
     return RobotSpec(
         name="shadow_hand",

@@ -29,7 +29,7 @@ Pure Python/numpy, no I/O, no threads (the caller owns the clock and the loop).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -59,7 +59,6 @@ class FirmwareConfig:
     joint_low_rad: np.ndarray
     joint_high_rad: np.ndarray
     watchdog_s: float = 0.5
-    extra: dict = field(default_factory=dict)
 
 
 class HandFirmware:
