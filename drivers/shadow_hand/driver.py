@@ -327,6 +327,12 @@ class ShadowHandDriver(Driver):
 
     # ------------------------------------------------------------------ contract hooks
     def _check_link(self) -> None:
+        emu = self._emu
+        if emu is not None and emu.proc is not None and not emu.alive:
+            # over UDP a dead emulator is only silence: say what happened instead of going stale
+            with self._lock:
+                self._reader_error = self._reader_error or (
+                    f"the emulator exited with code {emu.proc.returncode}: {emu.tail(3)}")
         with self._lock:
             err = self._reader_error
         if err:

@@ -213,14 +213,18 @@ def test_bus_off_goes_stale_then_recovers_and_a_motor_fault_is_flagged():
         assert drv.health().extra["motor_fault_mask"] == 1 << 3
 
 
-def test_emulator_death_takes_the_error_path():
-    drv = spawned("slcan")
-    with pytest.raises(LinkError, match="CAN link lost"):
+@pytest.mark.parametrize("transport", ["slcan", "udp_multicast"])
+def test_emulator_death_takes_the_error_path(transport):
+    drv = spawned(transport)
+    # over SLCAN the pty closes under the reader; over UDP the driver sees the process gone
+    match = "CAN link lost" if transport == "slcan" else "the emulator exited"
+    with pytest.raises(LinkError, match=match):
         with drv:
             drv.emulator.kill()
-            wait_for(lambda: drv._reader_error, 3.0, "the reader to notice")
+            drv.emulator.proc.wait(timeout=5)
+            wait_for(lambda: drv._reader_error or transport == "udp_multicast", 3.0, "the reader to notice")
             drv.read()
-    assert drv.lifecycle is Lifecycle.UNCONFIGURED and "CAN link lost" in drv.last_error
+    assert drv.lifecycle is Lifecycle.UNCONFIGURED and match in drv.last_error
 
 
 def test_config_errors_name_the_field(tmp_path):
