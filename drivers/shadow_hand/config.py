@@ -92,6 +92,9 @@ class ShadowHandParams(Params):
         1.0, gt=0, description="driver sends stop (hold measured) when the caller has not written for this long")
     telemetry_deadline_s: float = Field(
         0.1, gt=0, description="telemetry older than this makes a reading stale (ok=False)")
+    ball_tracker_ports: list[int] | None = Field(
+        None, description="real: UDP ports where a ball tracker streams ball 0 and ball 1 (drivers.mocap.udp "
+                          "format); emulated: the emulator streams its sim's balls unless emulator.balls is false")
     # sim (ignored by the real driver) and emulator settings
     sim: dict = Field(default_factory=dict, description="sim backend settings (palm tilt, gains, seed...)")
     emulator: dict = Field(default_factory=dict, description="emulator settings (fault injection...)")

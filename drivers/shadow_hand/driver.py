@@ -88,6 +88,7 @@ class ShadowHandDriver(Driver):
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self._emu: EmulatorProcess | None = None
+        self._balls: list[Any] = []  # UdpPoseClient per ball, when a tracker streams them
         self._asm = TelemetryAssembler()
         self._tel: Telemetry | None = None
         self._tel_t: float | None = None
@@ -121,6 +122,7 @@ class ShadowHandDriver(Driver):
             raise ConfigError(self.source, [("params.channel", f"no CAN channel for transport {p.transport}: "
                                              "e.g. can0 (socketcan), /dev/ttyACM0 (slcan)")])
         channel, udp_port = p.channel, p.emulator.get("udp_port")
+        self._open_ball_tracker(spawn)
         if spawn:
             channel, udp_port = self._start_emulator()
         self.bus = self._open_bus(channel, udp_port)
@@ -129,6 +131,20 @@ class ShadowHandDriver(Driver):
         self._thread = threading.Thread(target=self._reader, name="shadow-hand-can", daemon=True)
         self._thread.start()
         self._wait_first_telemetry()
+
+    def _open_ball_tracker(self, spawn: bool) -> None:
+        """Ball positions come from a tracker, not from the hand: one UDP pose stream per
+        ball (``drivers.mocap.udp``). The emulator streams its sim's balls to ports we pick."""
+        from drivers.mocap.udp import UdpPoseClient
+
+        p = self.params
+        if spawn and p.emulator.get("balls", True):
+            self._balls = [UdpPoseClient("127.0.0.1", 0) for _ in range(2)]
+        elif p.ball_tracker_ports:
+            if len(p.ball_tracker_ports) != 2:
+                raise ConfigError(self.source, [("params.ball_tracker_ports", "expected two ports (ball 0, ball 1), "
+                                                 f"got {p.ball_tracker_ports}")])
+            self._balls = [UdpPoseClient("0.0.0.0", port) for port in p.ball_tracker_ports]
 
     def _open_bus(self, channel: str, udp_port: int | None) -> Any:
         import can
@@ -154,6 +170,8 @@ class ShadowHandDriver(Driver):
     def _start_emulator(self) -> tuple[str, int | None]:
         p = self.params
         args = ["--transport", p.transport, "--config", json.dumps(p.model_dump(mode="json"))]
+        if self._balls:
+            args += ["--ball-ports", ",".join(str(c.port) for c in self._balls)]
         if p.transport == "slcan":
             args.append("--print-pty")
         else:
@@ -204,6 +222,9 @@ class ShadowHandDriver(Driver):
         if self._emu is not None:
             self._emu.stop()
             self._emu = None
+        for c in self._balls:
+            c.close()
+        self._balls = []
 
     # ------------------------------------------------------------------ reader thread
     def _reader(self) -> None:
@@ -359,13 +380,21 @@ class ShadowHandDriver(Driver):
             "motor_fault": bool(tel.faults & FAULT_MOTOR),
             "driver_watchdog": self._wd_fired,
         }
+        extras = {"effort_nm": tel.effort_nm.copy(), "mode": tel.mode, "faults": tel.faults,
+                  "motor_fault_mask": tel.motor_fault_mask, "telemetry_age_s": age, "t_fw_ms": tel.t_fw_ms}
+        if self._balls:
+            samples = [c.latest() for c in self._balls]
+            have = all(smp is not None for smp in samples)
+            extras["balls_m"] = np.stack([smp.position_m for smp in samples]) if have else None
+            ages = [now - smp.received_s for smp in samples] if have else None
+            extras["balls_age_s"] = None if ages is None else max(ages)
+            # a separate sensor: stale balls are flagged, the hand's own reading stays valid
+            flags["balls_fresh"] = bool(have and max(ages) <= self.params.telemetry_deadline_s)
         self._seq += 1
         return Observation(
             t_s=tel_t, state=state, seq=self._seq,
             ok=not (stale or flags["estop"] or flags["motor_fault"]),
-            flags=flags,
-            extras={"effort_nm": tel.effort_nm.copy(), "mode": tel.mode, "faults": tel.faults,
-                    "motor_fault_mask": tel.motor_fault_mask, "telemetry_age_s": age, "t_fw_ms": tel.t_fw_ms},
+            flags=flags, extras=extras,
         )
 
     def _hold_command(self, obs: Observation) -> np.ndarray:

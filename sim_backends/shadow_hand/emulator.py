@@ -12,6 +12,9 @@ hand's CAN database (``drivers/shadow_hand/shadow_hand.dbc``) over one of:
   group, ``--udp-port``). The bus echoes every frame to every member, so the emulator
   keeps only host frames (``protocol.HOST_IDS``).
 
+With ``--ball-ports P0,P1`` it also stands in for the ball tracker: each ball's
+position streams to its UDP port in the ``drivers.mocap.udp`` format at the telemetry rate.
+
 On start it prints one JSON line on stdout (``{"transport", "channel", "port", "pid"}``)
 and then logs to stderr. It stops on SIGTERM/SIGINT or when ``--parent-pid`` dies.
 
@@ -174,8 +177,10 @@ class UdpDevice:
 
 
 class Emulator:
-    def __init__(self, params: ShadowHandParams, device: Any, physics: ShadowHandSim, *, transport: str):
+    def __init__(self, params: ShadowHandParams, device: Any, physics: ShadowHandSim, *, transport: str,
+                 ball_servers: list | None = None):
         self.p = params
+        self.ball_servers = ball_servers or []
         self.dev = device
         self.sim = physics
         self.transport = transport
@@ -251,6 +256,14 @@ class Emulator:
                 continue
             self.dev.send(mid, data)
 
+    def send_balls(self) -> None:
+        """The ball tracker's stand-in: each ball's position [m, world] on its own stream."""
+        if not self.ball_servers:
+            return
+        balls = self.sim.balls_m()
+        for srv, pos in zip(self.ball_servers, balls, strict=True):
+            srv.send(self.sim.sim_time_s, pos, (1.0, 0.0, 0.0, 0.0))
+
     def _send_corrupt(self, mid: int, data: bytes) -> None:
         if self.transport == "slcan" and self.injected_corrupt % 2:
             # a line the adapter garbled: non-hex data digits
@@ -303,6 +316,7 @@ class Emulator:
             if now >= next_tel:
                 if not off:
                     self.send_telemetry()
+                self.send_balls()  # the camera tracker is its own system: bus-off does not stop it
                 next_tel = next_tel + tel_period if now - next_tel < tel_period else now + tel_period
             if parent_pid and now >= next_parent_check:
                 next_parent_check = now + 0.5
@@ -326,6 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--channel", default="239.74.163.2", help="udp_multicast: IPv4 multicast group")
     ap.add_argument("--udp-port", type=int, default=43113, help="udp_multicast: UDP port")
     ap.add_argument("--config", help="ShadowHandParams as inline JSON")
+    ap.add_argument("--ball-ports", help="P0,P1: stream the two ball positions to these UDP ports (drivers.mocap.udp)")
     ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args(argv)
 
@@ -355,7 +370,13 @@ def main(argv: list[str] | None = None) -> int:
         dev = UdpDevice(args.channel, args.udp_port)
         channel, port = args.channel, args.udp_port
 
-    em = Emulator(params, dev, physics, transport=args.transport)
+    ball_servers = []
+    if args.ball_ports:
+        from drivers.mocap.udp import PoseStreamServer
+
+        for i, ball_port in enumerate(args.ball_ports.split(",")):
+            ball_servers.append(PoseStreamServer("127.0.0.1", int(ball_port), body_id=i + 1))
+    em = Emulator(params, dev, physics, transport=args.transport, ball_servers=ball_servers)
 
     def _stop(signum, frame):  # noqa: ARG001
         em.running = False
@@ -370,6 +391,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         log(f"summary {json.dumps(em.summary())}")
         dev.close()
+        for srv in ball_servers:
+            srv.close()
         if keep_slave is not None:
             os.close(keep_slave)
     return 0
