@@ -85,6 +85,14 @@ class Flag(enum.StrEnum):
     SENSOR_FAULT = "sensor_fault"
     #: the simulation diverged and was reset by the physics engine: the reading is not physics
     SIM_DIVERGED = "sim_diverged"
+    #: the device's own e-stop is latched (it holds its safe state until released)
+    ESTOP = "estop"
+    #: the driver's own watchdog (no write for too long) made it hold the measured state
+    DRIVER_WATCHDOG = "driver_watchdog"
+    #: tracked object positions (balls from a tracker) are older than their deadline, or missing
+    STALE_OBJECTS = "stale_objects"
+    #: a manipulated object left the workspace (a dropped ball)
+    OBJECT_DROPPED = "object_dropped"
 
 
 FLAG_NAMES: frozenset[str] = frozenset(f.value for f in Flag)
@@ -551,9 +559,11 @@ class Driver(ABC):
         action."""
         if self._lifecycle is Lifecycle.UNCONFIGURED:
             return
-        self._stop()
-        if self.spec.safe_action is not None:
-            self._anchor(self.spec.safe_action, self.now())
+        held = self._stop()
+        if held is None:
+            held = self.spec.safe_action
+        if held is not None:
+            self._anchor(held, self.now())
 
     def _rehold(self) -> None:
         """After the device's state was changed behind the contract (a sim reset), hold what
@@ -621,7 +631,10 @@ class Driver(ABC):
     def _write(self, action: np.ndarray) -> None: ...
 
     @abstractmethod
-    def _stop(self) -> None: ...
+    def _stop(self) -> np.ndarray | None:
+        """Bring the device to its safe state. Robots without a fixed ``safe_action`` (hold
+        the measured position) return the command they now hold, so the held command and
+        the rate limit restart from it."""
 
     def _health(self) -> Health:
         return Health(ok=self._lifecycle is not Lifecycle.UNCONFIGURED, last_error=self.last_error)

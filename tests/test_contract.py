@@ -20,7 +20,10 @@ CONTRACT_BACKENDS = [
     ("pointmass", "sim", {}),
     ("velociroach", "sim", {}),
     ("velociroach", "emulated", {}),
-    ("mocap", "real", {"source": "udp"}),  # the real UDP client, fed by a pose stream below
+    ("mocap", "real", {"source": "udp"}),
+    ("shadow_hand", "sim", {}),
+    ("shadow_hand", "emulated", {"transport": "slcan"}),
+    ("shadow_hand", "emulated", {"transport": "udp_multicast"}),  # the real UDP client, fed by a pose stream below
 ]
 
 
@@ -115,12 +118,14 @@ def test_rate_limit_holds_for_bursts_of_writes_and_across_periods(driver):
     by at most r·(T + p) between any two writes T apart, on the backend's own clock."""
     sp = driver.spec
     n = sp.action.dim
+    driver.configure()
+    t_activate = driver.now()  # the held command counts as applied from activation on
     with driver:
         if n == 0:
             return
         assert sp.action_rate_per_s is not None, "an actuated robot needs a rate limit"
         r, p = sp.action_rate_per_s, sp.period_s
-        hist = [(driver.now(), driver.now(), driver.held_command)]
+        hist = [(t_activate, driver.now(), driver.held_command)]
         for k, target in enumerate((sp.action.high, sp.action.low, sp.action.high)):
             for _ in range(5):
                 t0 = driver.now()
@@ -166,6 +171,23 @@ def test_activation_holds_what_the_device_runs(driver, request):
     driver.activate()
     if sp.action.dim == 0:
         np.testing.assert_array_equal(driver.held_command, np.zeros(0))
+        return
+    if sp.safe_action is None:
+        # a position-holding robot (hand, arm joints): activation and stop hold the measured
+        # position, so the held command is the measurement mapped to an action (the robot
+        # may settle a little between activation and this reading)
+        def holds_measured():
+            np.testing.assert_allclose(driver.held_command, driver._hold_command(driver.read()), atol=0.02)
+
+        holds_measured()
+        for _ in range(3):
+            driver.write(sp.action.high)
+            driver.tick()
+        driver.deactivate()
+        driver.activate()
+        holds_measured()
+        held = driver.held_command
+        np.testing.assert_allclose(driver.write(held), held)
         return
     # from rest: the device runs its safe action (nothing commanded yet), exactly
     np.testing.assert_array_equal(driver.held_command, sp.safe_action)

@@ -4,6 +4,7 @@
     hil drive velociroach --backend real --port /dev/ttyUSB0 --action 0.3,0.3 --seconds 2
     hil drive velociroach --backend emulated --action 0.5,0.5 --tlog runs/roach.tlog
     hil drive pointmass --backend sim --action 0.5,0 --seconds 2
+    hil drive shadow_hand --backend emulated --seconds 2 --json   # hold the pose, report tracking
     hil find-port
 
 Actions are normalized: -1..1 maps onto each action channel's [low, high] from the spec
@@ -99,9 +100,12 @@ def drive_run(robot: str, backend: str, action: str, seconds: float, port: str |
         params["tlog"] = str(tlog)
     drv = make_driver(config or robot, backend=backend, **params)
     sp = drv.spec
-    a_norm = np.array(parse_action(action, sp.action.dim, sp.action.names))
     lo, hi = sp.action.low, sp.action.high
-    a = (lo + hi) / 2 + a_norm * (hi - lo) / 2
+    if action is None:  # hold the command held at activation (the measured state)
+        a = a_norm = None
+    else:
+        a_norm = np.array(parse_action(action, sp.action.dim, sp.action.names))
+        a = (lo + hi) / 2 + a_norm * (hi - lo) / 2
     n_steps = max(1, round(seconds / sp.period_s))
     with drv:
         first = drv.read()
@@ -114,14 +118,19 @@ def drive_run(robot: str, backend: str, action: str, seconds: float, port: str |
             if p["x"] is not None and prev["x"] is not None:
                 path_m += math.hypot(p["x"] - prev["x"], p["y"] - prev["y"])
             prev = p
-            drv.write(a)
+            applied = drv.write(drv.held_command if a is None else a)
             drv.tick()
-        drv.stop()
         last = drv.read()
+        # a joint-space robot reports how well it tracked the last command (optional hook)
+        tracking = drv.tracking_error(last.state, applied) if hasattr(drv, "tracking_error") else None
+        drv.stop()
         health = drv.health().to_dict()
     end = _pose(sp.state.names, last.state)
     out: dict[str, Any] = {"robot": sp.name, "backend": backend, "seconds": seconds, "steps": n_steps,
-                           "action": a.tolist(), "action_normalized": a_norm.tolist()}
+                           "action": applied.tolist(),
+                           "action_normalized": None if a_norm is None else a_norm.tolist()}
+    if tracking is not None:
+        out["tracking_error"] = tracking
     if start["x"] is not None and end["x"] is not None:
         dx, dy = end["x"] - start["x"], end["y"] - start["y"]
         out["distance_m"] = math.hypot(dx, dy)
@@ -143,7 +152,8 @@ def register(app: typer.Typer) -> None:
     def drive(
         robot: str = typer.Argument(..., help="robot config name or path (configs/robots/), e.g. velociroach"),
         backend: str = typer.Option("sim", "--backend", help="sim | emulated | real"),
-        action: str = typer.Option(..., "--action", help="normalized action per channel in [-1, 1], e.g. 0.6,0.6"),
+        action: str = typer.Option(None, "--action", help="normalized action per channel in [-1, 1], e.g. 0.6,0.6; "
+                                   "omitted: hold the command held at activation (the measured state)"),
         seconds: float = typer.Option(3.0, "--seconds", help="how long to drive [s] (sim: simulated seconds)"),
         port: str = typer.Option(None, "--port", help="serial port of the radio (real backend), e.g. /dev/ttyUSB0"),
         tlog: str = typer.Option(None, "--tlog", help="append every MAVLink frame to this .tlog "
@@ -158,12 +168,18 @@ def register(app: typer.Typer) -> None:
             echo_json(res)
             return
         fp = res["final_pose"]
-        typer.echo(f"{res['robot']} ({backend}): action {res['action']} for {seconds:g} s ({res['steps']} steps)")
+        act = [round(v, 3) for v in res['action']]
+        typer.echo(f"{res['robot']} ({backend}): action {act} for {seconds:g} s ({res['steps']} steps)")
+        if "tracking_error" in res:
+            te = res["tracking_error"]
+            typer.echo(f"  joint tracking error: max {te['max_rad']:.4f} rad ({te['worst_joint']}), "
+                       f"rms {te['rms_rad']:.4f} rad")
         if "distance_m" in res:
             fwd = f", forward {res['forward_m']:+.3f} m" if "forward_m" in res else ""
             typer.echo(f"  distance {res['distance_m']:.3f} m (path {res['path_length_m']:.3f} m){fwd}")
         yaw = "n/a" if fp["yaw"] is None else f"{math.degrees(fp['yaw']):.1f} deg"
-        typer.echo(f"  final pose x={fp['x']:.3f} m y={fp['y']:.3f} m yaw={yaw}")
+        if fp["x"] is not None:
+            typer.echo(f"  final pose x={fp['x']:.3f} m y={fp['y']:.3f} m yaw={yaw}")
         lk = res["link"]
         lat = "n/a" if lk.get("latency_s") is None else f"{lk['latency_s'] * 1e3:.1f} ms"
         typer.echo(f"  link ok={lk['ok']} quality={lk['link_quality']:.2f} sent={lk['frames_sent']} "

@@ -1,0 +1,91 @@
+"""A device emulator in its own process, as the emulated backends start it.
+
+The emulator prints one JSON line on stdout when it is ready (where to connect: a pty
+path, a UDP port...) and logs to stderr, which goes to a temporary file so that a
+failure can quote its tail. ``--parent-pid`` is passed so that it exits with us.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from drivers.base import LinkError
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+class EmulatorProcess:
+    """``python -m <module> <args> --parent-pid <us>``; ``start()`` returns its ready line."""
+
+    def __init__(self, module: str, args: list[str], *, start_timeout_s: float = 30.0, keep_log: bool = False):
+        self.module = module
+        self.args = list(args)
+        self.start_timeout_s = start_timeout_s
+        self.keep_log = keep_log
+        self.proc: subprocess.Popen | None = None
+        self.log_path: Path | None = None
+
+    def start(self) -> dict[str, Any]:
+        fd, log_path = tempfile.mkstemp(prefix=self.module.rsplit(".", 2)[-2] + "-emulator-", suffix=".log")
+        os.close(fd)
+        self.log_path = Path(log_path)
+        cmd = [sys.executable, "-m", self.module, *self.args, "--parent-pid", str(os.getpid())]
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), *filter(None, [env.get("PYTHONPATH")])])
+        with open(self.log_path, "wb") as errf:
+            self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=errf, stdin=subprocess.DEVNULL,
+                                         cwd=str(REPO_ROOT), env=env)
+        assert self.proc.stdout is not None
+        deadline = time.monotonic() + self.start_timeout_s
+        line = b""
+        while not line.endswith(b"\n"):
+            if self.proc.poll() is not None:
+                raise LinkError(f"emulator exited with code {self.proc.returncode} before it was ready:\n"
+                                f"{self.tail()}")
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise LinkError(f"emulator did not start within {self.start_timeout_s:.0f} s:\n{self.tail()}")
+            r, _, _ = select.select([self.proc.stdout], [], [], min(left, 0.1))
+            if r:
+                line += os.read(self.proc.stdout.fileno(), 1)
+        return json.loads(line)
+
+    def tail(self, n: int = 15) -> str:
+        if self.log_path is None or not self.log_path.exists():
+            return "(no emulator log)"
+        lines = self.log_path.read_text(errors="replace").splitlines()
+        return "\n".join(lines[-n:]) or "(emulator log empty)"
+
+    @property
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def kill(self) -> None:
+        """Kill it without cleanup (tests: the device vanishes)."""
+        if self.alive:
+            self.proc.kill()
+
+    def stop(self) -> None:
+        """Terminate (then kill), close the pipe, remove the log unless ``keep_log``."""
+        if self.proc is not None:
+            if self.proc.poll() is None:
+                self.proc.terminate()
+                try:
+                    self.proc.wait(timeout=3.0)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait(timeout=3.0)
+            if self.proc.stdout is not None:
+                self.proc.stdout.close()
+            self.proc = None
+        if self.log_path is not None and not self.keep_log:
+            self.log_path.unlink(missing_ok=True)
+            self.log_path = None

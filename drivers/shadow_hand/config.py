@@ -1,0 +1,148 @@
+"""Shadow Hand settings and spec, shared by every backend (real, emulated, sim).
+
+State (48-D): the 24 joint angles [rad] then the 24 joint velocities [rad/s], in
+``JOINT_NAMES`` order (wrist, first/middle/ring/little finger, thumb; the Shadow
+naming: J0 is the distal joint). The ball positions of the Baoding task come from a
+tracker (sim: the simulator, in ``Observation.extras``), not from the hand.
+
+Action (20-D): one normalized position target in [-1, 1] per actuated joint
+(``ACTUATED_JOINTS``), mapped linearly onto the joint's range: -1 → lower limit,
++1 → upper limit. The distal joints FFJ0/MFJ0/RFJ0/LFJ0 are not actuated: each is
+coupled to its J1 (J0 ≈ 1.14·J1 in the model, one tendon pair on the real hand), so
+the thesis' "24-D action" is 20 independent targets on this hand (docs/shadow_hand.md).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from drivers.base import RobotSpec, Space
+from sim_backends.base import Params
+
+JOINT_NAMES: tuple[str, ...] = (
+    "WRJ1", "WRJ0",
+    "FFJ3", "FFJ2", "FFJ1", "FFJ0",
+    "MFJ3", "MFJ2", "MFJ1", "MFJ0",
+    "RFJ3", "RFJ2", "RFJ1", "RFJ0",
+    "LFJ4", "LFJ3", "LFJ2", "LFJ1", "LFJ0",
+    "THJ4", "THJ3", "THJ2", "THJ1", "THJ0",
+)
+ACTUATED_JOINTS: tuple[str, ...] = (
+    "WRJ1", "WRJ0",
+    "FFJ3", "FFJ2", "FFJ1",
+    "MFJ3", "MFJ2", "MFJ1",
+    "RFJ3", "RFJ2", "RFJ1",
+    "LFJ4", "LFJ3", "LFJ2", "LFJ1",
+    "THJ4", "THJ3", "THJ2", "THJ1", "THJ0",
+)
+#: uncoupled distal joint -> the actuated joint that drives it
+COUPLED_JOINTS: dict[str, str] = {"FFJ0": "FFJ1", "MFJ0": "MFJ1", "RFJ0": "RFJ1", "LFJ0": "LFJ1"}
+#: index into JOINT_NAMES of each actuated joint
+ACT_INDEX = np.array([JOINT_NAMES.index(j) for j in ACTUATED_JOINTS])
+
+#: joint ranges [rad] of the Shadow E-series hand (as in gymnasium-robotics' MJCF, which
+#: takes them from Shadow's description), JOINT_NAMES order
+JOINT_LOW_RAD = np.array([
+    -0.489, -0.698,
+    -0.349, 0.0, 0.0, 0.0,
+    -0.349, 0.0, 0.0, 0.0,
+    -0.349, 0.0, 0.0, 0.0,
+    0.0, -0.349, 0.0, 0.0, 0.0,
+    -1.047, 0.0, -0.209, -0.524, -1.571,
+])
+JOINT_HIGH_RAD = np.array([
+    0.14, 0.489,
+    0.349, 1.571, 1.571, 1.571,
+    0.349, 1.571, 1.571, 1.571,
+    0.349, 1.571, 1.571, 1.571,
+    0.785, 0.349, 1.571, 1.571, 1.571,
+    1.047, 1.222, 0.209, 0.524, 0.0,
+])
+
+#: palm-up cupped hold pose [rad] (actuated joints only; the rest follow): fingers
+#: curled at J2 to make a wall at the fingertips, thumb opposed to close the side. With
+#: the sim's palm tilt (0.15 rad) two balls rest in it > 10 s under a hold
+#: (tests/shadow_hand/test_sim.py).
+HOLD_POSE_RAD: dict[str, float] = {
+    "FFJ2": 0.45, "FFJ1": 0.3, "MFJ2": 0.45, "MFJ1": 0.3, "RFJ2": 0.45, "RFJ1": 0.3,
+    "LFJ4": 0.3, "LFJ2": 0.45, "LFJ1": 0.3,
+    "THJ4": 0.9, "THJ3": 0.9, "THJ1": 0.3, "THJ0": -0.3,
+}
+
+Transport = Literal["socketcan", "slcan", "udp_multicast"]
+
+
+class ShadowHandParams(Params):
+    """Everything configurable about the hand and its CAN link. Units in names."""
+
+    period_s: float = Field(0.1, gt=0, description="control period (thesis: planner at 10 Hz, zero-order hold)")
+    max_action_rate_per_s: float = Field(
+        4.0, gt=0, description="rate limit on the normalized targets [1/s]: 4/s crosses a joint's full range in 0.5 s")
+    # link (real/emulated)
+    transport: Transport = Field("socketcan", description="python-can interface of the CAN link")
+    channel: str | None = Field(None, description="can0 (socketcan), /dev/ttyACM0 (slcan), 239.74.163.2 (udp_multicast)")
+    bitrate: int = Field(1_000_000, gt=0, description="CAN bit rate [bit/s] (classic CAN, 1 Mbit/s)")
+    telemetry_hz: float = Field(50.0, gt=0, le=200, description="hand telemetry rate (docs/shadow_hand.md: bus load)")
+    heartbeat_hz: float = Field(10.0, gt=0, description="host heartbeat rate (feeds the firmware watchdog)")
+    firmware_watchdog_s: float = Field(0.5, gt=0, description="firmware holds position after this long without commands")
+    driver_watchdog_s: float = Field(
+        1.0, gt=0, description="driver sends stop (hold measured) when the caller has not written for this long")
+    telemetry_deadline_s: float = Field(
+        0.1, gt=0, description="telemetry older than this makes a reading stale (ok=False)")
+    ball_tracker_ports: list[int] | None = Field(
+        None, description="real: UDP ports where a ball tracker streams ball 0 and ball 1 (drivers.mocap.udp "
+                          "format); emulated: the emulator streams its sim's balls unless emulator.balls is false")
+    # sim (ignored by the real driver) and emulator settings
+    sim: dict = Field(default_factory=dict, description="sim backend settings (palm tilt, gains, seed...)")
+    emulator: dict = Field(default_factory=dict, description="emulator settings (fault injection...)")
+
+
+def to_joint_rad(action: np.ndarray) -> np.ndarray:
+    """Normalized action [-1, 1] (20,) -> joint position targets [rad] (20,)."""
+    lo, hi = JOINT_LOW_RAD[ACT_INDEX], JOINT_HIGH_RAD[ACT_INDEX]
+    return lo + (np.asarray(action, dtype=np.float64) + 1.0) * 0.5 * (hi - lo)
+
+
+def to_action(q_act_rad: np.ndarray) -> np.ndarray:
+    """Actuated joint angles [rad] (20,) -> normalized action [-1, 1] (clipped)."""
+    lo, hi = JOINT_LOW_RAD[ACT_INDEX], JOINT_HIGH_RAD[ACT_INDEX]
+    return np.clip(2.0 * (np.asarray(q_act_rad, dtype=np.float64) - lo) / (hi - lo) - 1.0, -1.0, 1.0)
+
+
+def hold_pose_action() -> np.ndarray:
+    """The cupped hold pose as a normalized action (20,)."""
+    q = np.zeros(len(ACTUATED_JOINTS))
+    for k, v in HOLD_POSE_RAD.items():
+        q[ACTUATED_JOINTS.index(k)] = v
+    return to_action(q)
+
+
+def shadow_hand_spec(p: ShadowHandParams) -> RobotSpec:
+    # unbounded on purpose: a real joint may read a little past its nominal range
+    # (JOINT_LOW_RAD/JOINT_HIGH_RAD), and a reading is never clipped
+    state = Space.build([(f"{j}_pos", "rad", -np.inf, np.inf) for j in JOINT_NAMES]
+                        + [(f"{j}_vel", "rad/s", -np.inf, np.inf) for j in JOINT_NAMES])
+    action = Space.build([(f"{j}_target", "1", -1.0, 1.0) for j in ACTUATED_JOINTS])
+    return RobotSpec(
+        name="shadow_hand",
+        state=state,
+        action=action,
+        period_s=p.period_s,
+        action_rate_per_s=np.full(action.dim, p.max_action_rate_per_s),
+        safe_action=None,  # stop = hold the measured position
+        description="Shadow Dexterous Hand, 24 joints (20 actuated), joint position control",
+    )
+
+
+def joint_tracking_error(state: np.ndarray, action: np.ndarray) -> dict:
+    """How far the measured actuated joints are from the commanded targets [rad]:
+    ``max_rad``, ``rms_rad``, ``worst_joint`` and ``per_joint_rad`` (measured − target)."""
+    q = np.asarray(state, dtype=np.float64)[ACT_INDEX]
+    err = q - to_joint_rad(action)
+    k = int(np.argmax(np.abs(err)))
+    return {"max_rad": float(np.abs(err).max()), "rms_rad": float(np.sqrt(np.mean(err ** 2))),
+            "worst_joint": ACTUATED_JOINTS[k],
+            "per_joint_rad": {j: float(e) for j, e in zip(ACTUATED_JOINTS, err, strict=True)}}

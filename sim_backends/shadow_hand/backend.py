@@ -1,0 +1,233 @@
+"""Shadow Hand MuJoCo backend: the driver contract in-process, in lockstep.
+
+Each ``tick()`` advances one control period (0.1 s) in 1 ms firmware ticks
+(:mod:`.firmware`: 20 joint position loops, watchdog, e-stop, motor faults), each
+followed by one MuJoCo step of the hand scene (:mod:`.model`). Targets are held
+between writes (zero-order hold), as on the real hand.
+
+State: 24 joint angles [rad] and velocities [rad/s] (``drivers/shadow_hand/config.py``).
+``Observation.extras["balls_m"]`` holds the two ball positions [m, world frame] (the
+camera tracker's job on a real rig) and ``flags["object_dropped"]`` the task's drop test.
+
+Public API for the emulator: ``ShadowHandSim(params)``, ``configure()``, ``reset()``,
+``firmware``, ``advance(duration_s)``, ``joint_state()``, ``sim_time_s``.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from pydantic import Field
+
+from configs.schema import ConfigError, RobotConfig, parse_model
+from drivers.base import Health, Observation
+from drivers.shadow_hand.config import (
+    ACT_INDEX,
+    COUPLED_JOINTS,
+    HOLD_POSE_RAD,
+    JOINT_NAMES,
+    ShadowHandParams,
+    joint_tracking_error,
+    shadow_hand_spec,
+    to_action,
+    to_joint_rad,
+)
+from sim_backends.base import LockstepSim, Params, parse_params
+from sim_backends.shadow_hand.baoding import BaodingTask
+from sim_backends.shadow_hand.firmware import TICK_S, FirmwareConfig, HandFirmware
+from sim_backends.shadow_hand.model import PHYSICS_DT_S, build_scene
+
+#: J0 ≈ this · J1 for the coupled distal joints (tendon coefficients 0.00805 / 0.00705)
+COUPLING_RATIO = 0.00805 / 0.00705
+
+
+class SimParams(Params):
+    """``params.sim`` of the Shadow Hand sim backend (units in names)."""
+
+    seed: int = 0
+    palm_tilt_rad: float = Field(0.15, ge=-0.5, le=0.5, description="mount tilt about world x (+: fingertips up)")
+    balls: bool = Field(True, description="put the two Baoding balls in the palm at reset")
+    # the MJCF's servo gains (OpenAI's model): kp 5 N·m/rad wrist, 1 N·m/rad fingers; the
+    # joints' own damping (0.5 / 0.1 N·m·s/rad) stays in the model
+    kp_wrist_nm_per_rad: float = Field(5.0, gt=0)
+    kp_finger_nm_per_rad: float = Field(1.0, gt=0)
+    kd_nms_per_rad: float = Field(0.0, ge=0, description="extra derivative gain of the firmware loop")
+    ki_wrist_nm_per_rad_s: float = Field(20.0, ge=0, description="integral gain (removes the sag under gravity)")
+    ki_finger_nm_per_rad_s: float = Field(4.0, ge=0)
+    ball_target_radius_m: float = Field(0.025, gt=0)
+    ball_target_rate_rad_s: float = Field(float(np.pi / 5), description="target rotation rate (+: counter-clockwise)")
+
+
+def parse_sim_params(sim: dict, source: str | None) -> SimParams:
+    try:
+        return parse_model(SimParams, dict(sim), source)
+    except ConfigError as e:
+        raise ConfigError(source, [(f"params.sim.{f}" if f else "params.sim", m) for f, m in e.problems]) from None
+
+
+def hold_pose_q() -> np.ndarray:
+    """The cupped hold pose for all 24 joints [rad] (coupled J0 follow their J1)."""
+    q = np.zeros(len(JOINT_NAMES))
+    for k, v in HOLD_POSE_RAD.items():
+        q[JOINT_NAMES.index(k)] = v
+    for c, p in COUPLED_JOINTS.items():
+        q[JOINT_NAMES.index(c)] = COUPLING_RATIO * q[JOINT_NAMES.index(p)]
+    return q
+
+
+class ShadowHandSim(LockstepSim):
+    """The Shadow Hand with two Baoding balls in MuJoCo behind the driver contract."""
+
+    def __init__(self, params: ShadowHandParams | None = None, source: str | None = None):
+        super().__init__()
+        self.params = p = params or ShadowHandParams()
+        self.sim = parse_sim_params(p.sim, source)
+        self.spec = shadow_hand_spec(p)
+        self.hand = None
+        self.model: mujoco.MjModel | None = None
+        self.data: mujoco.MjData | None = None
+        self.firmware: HandFirmware | None = None
+        self.task: BaodingTask | None = None
+        self.divergences = 0
+        self._seq = 0
+        self._badqacc_seen = 0
+        self._diverged_pending = False
+        self._ticks_per_step = int(round(TICK_S / PHYSICS_DT_S))
+
+    #: measured − commanded actuated joint angles (used by `hil drive`)
+    tracking_error = staticmethod(joint_tracking_error)
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> ShadowHandSim:
+        return cls(parse_params(cfg, ShadowHandParams), source=cfg.source)
+
+    @property
+    def sim_time_s(self) -> float:
+        return 0.0 if self.data is None else float(self.data.time)
+
+    # ------------------------------------------------------------------ lifecycle
+    def _on_configure(self) -> None:
+        s = self.sim
+        self.hand = h = build_scene(s.palm_tilt_rad)
+        self.model = h.model
+        self.data = mujoco.MjData(h.model)
+        n = len(h.act_joint)
+        kp = np.full(n, s.kp_finger_nm_per_rad)
+        kp[:2] = s.kp_wrist_nm_per_rad  # WRJ1, WRJ0
+        ki = np.full(n, s.ki_finger_nm_per_rad_s)
+        ki[:2] = s.ki_wrist_nm_per_rad_s
+        self.firmware = HandFirmware(FirmwareConfig(
+            kp_nm_per_rad=kp,
+            kd_nms_per_rad=np.full(n, s.kd_nms_per_rad),
+            ki_nm_per_rad_s=ki,
+            torque_limit_nm=h.torque_limit_nm.copy(),
+            joint_low_rad=h.joint_low[h.act_joint],
+            joint_high_rad=h.joint_high[h.act_joint],
+            watchdog_s=self.params.firmware_watchdog_s,
+        ))
+        self._act_qadr = h.qpos_adr[h.act_joint]
+        self._act_dadr = h.dof_adr[h.act_joint]
+        self._palm = h.model.body("robot0:palm").id
+        self.reset()
+
+    def _on_cleanup(self) -> None:
+        self.model = self.data = None
+
+    def reset(self, q_rad: np.ndarray | None = None) -> None:
+        """Hand at ``q_rad`` (24 joint angles; default: the cupped hold pose), balls at
+        rest in the palm, firmware rebooted holding that pose, task time 0."""
+        m, d, h = self.model, self.data, self.hand
+        mujoco.mj_resetData(m, d)
+        self._badqacc_seen = 0
+        q = hold_pose_q() if q_rad is None else np.asarray(q_rad, dtype=np.float64).reshape(len(JOINT_NAMES))
+        d.qpos[h.qpos_adr] = np.clip(q, h.joint_low, h.joint_high)
+        mujoco.mj_forward(m, d)
+        palm = d.xpos[self._palm].copy()
+        rot = d.xmat[self._palm].reshape(3, 3).copy()
+        normal = -rot[:, 1]  # the palm faces its local -y
+        center = palm + rot @ np.array([0.0, -0.03, 0.05])
+        for i, adr in enumerate(h.ball_qpos_adr):
+            if self.sim.balls:
+                d.qpos[adr:adr + 3] = center + np.array([0.022 * (2 * i - 1), 0.0, 0.0])
+            else:  # parked far below the hand: out of the way, still simulated
+                d.qpos[adr:adr + 3] = (5.0 * (i + 1), 5.0, -1.0)
+            d.qpos[adr + 3:adr + 7] = (1.0, 0.0, 0.0, 0.0)
+        mujoco.mj_forward(m, d)
+        self.task = BaodingTask(center_m=center, axis=normal, radius_m=self.sim.ball_target_radius_m,
+                                rate_rad_s=self.sim.ball_target_rate_rad_s)
+        self.firmware.reset(d.qpos[self._act_qadr].copy())
+        # the hand has been holding this pose: the loops' integrals carry the gravity load
+        self.firmware.preload(d.qfrc_bias[self._act_dadr])
+        self._seq = 0
+
+    # ------------------------------------------------------------------ physics
+    def advance(self, duration_s: float) -> None:
+        """Integrate ``duration_s`` in 1 ms firmware ticks (one MuJoCo step each)."""
+        m, d, fw = self.model, self.data, self.firmware
+        qa, da = self._act_qadr, self._act_dadr
+        n = int(round(duration_s / TICK_S))
+        for _ in range(n):
+            d.ctrl[:] = fw.tick(d.time, d.qpos[qa], d.qvel[da])
+            for _ in range(self._ticks_per_step):
+                mujoco.mj_step(m, d)
+        bad = int(d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)
+        if bad > self._badqacc_seen:
+            # MuJoCo reset the diverged state itself: flag the readings, do not hide it
+            self.divergences += bad - self._badqacc_seen
+            self._diverged_pending = True
+        self._badqacc_seen = bad
+
+    def _advance(self, duration_s: float) -> None:
+        self.advance(duration_s)
+
+    def joint_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(angles [rad] (24,), velocities [rad/s] (24,), motor efforts [N·m] (20,))."""
+        d, h = self.data, self.hand
+        return d.qpos[h.qpos_adr].copy(), d.qvel[h.dof_adr].copy(), self.firmware.effort_nm.copy()
+
+    def balls_m(self) -> np.ndarray:
+        """(2, 3) ball centre positions [m], world frame."""
+        return np.stack([self.data.xpos[b].copy() for b in self.hand.ball_body])
+
+    # ------------------------------------------------------------------ contract
+    def _read(self) -> Observation:
+        self._seq += 1
+        q, qd, eff = self.joint_state()
+        fw = self.firmware
+        balls = self.balls_m()
+        diverged, self._diverged_pending = self._diverged_pending, False
+        dropped = bool(self.sim.balls and self.task.dropped(balls))
+        flags = {
+            "sim_diverged": diverged,
+            "watchdog": fw.watchdog_tripped,
+            "estop": fw.estop,
+            "motor_fault": bool(fw.motor_fault_mask),
+            "object_dropped": dropped,
+        }
+        return Observation(
+            t_s=self.sim_time_s, state=np.concatenate([q, qd]), seq=self._seq, ok=not diverged, flags=flags,
+            extras={"effort_nm": eff, "balls_m": balls, "ball_targets_m": self.task.targets(self.sim_time_s),
+                    "mode": fw.mode, "motor_fault_mask": fw.motor_fault_mask},
+        )
+
+    def _hold_command(self, obs: Observation) -> np.ndarray:
+        return to_action(obs.state[ACT_INDEX])
+
+    def _write(self, action: np.ndarray) -> None:
+        if not self.firmware.set_targets(0, to_joint_rad(action), self.sim_time_s):
+            raise RuntimeError(f"firmware refused the targets (mode {self.firmware.mode}, e-stop {self.firmware.estop})")
+
+    def _stop(self) -> np.ndarray | None:
+        """Hold the measured position (firmware targets = measured angles); returns that action."""
+        if self.data is None:
+            return None
+        q = self.data.qpos[self._act_qadr].copy()
+        self.firmware.set_targets(0, q, self.sim_time_s)
+        return to_action(q)
+
+    def _health(self) -> Health:
+        return Health(
+            ok=self.data is not None, last_error=self.last_error,
+            extra={"sim_time_s": self.sim_time_s, "faults": 0 if self.firmware is None else self.firmware.faults,
+                   "sim_divergences": self.divergences, "backend": "sim"},
+        )
