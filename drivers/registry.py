@@ -22,6 +22,12 @@ BACKENDS: dict[tuple[str, str], str] = {
     ("velociroach", "emulated"): "drivers.velociroach.driver:VelociRoachDriver",
     ("velociroach", "real"): "drivers.velociroach.driver:VelociRoachDriver",
     ("mocap", "real"): "drivers.mocap.driver:MocapDriver",
+    ("widowx", "sim"): "sim_backends.widowx.backend:WidowXSim",
+    ("widowx", "emulated"): "drivers.widowx.driver:WidowXDriver",
+    ("widowx", "real"): "drivers.widowx.driver:WidowXDriver",
+    ("reset_mechanism", "sim"): "sim_backends.widowx.backend:MechanismSim",
+    ("reset_mechanism", "emulated"): "drivers.widowx.driver:MechanismDriver",
+    ("reset_mechanism", "real"): "drivers.widowx.driver:MechanismDriver",
 }
 
 

@@ -21,6 +21,13 @@ CONTRACT_BACKENDS = [
     ("velociroach", "sim", {}),
     ("velociroach", "emulated", {}),
     ("mocap", "real", {"source": "udp"}),  # the real UDP client, fed by a pose stream below
+    # the arm starts held mid-range and moves slowly: 200 periods at the velocity limit must
+    # not reach a joint limit, where the driver's joint-limit guard zeroes the command
+    ("widowx", "sim", {"max_joint_vel_rad_s": 0.05, "sim": {"start_holding": {"shoulder": -0.5, "elbow": 0.5}}}),
+    ("widowx", "emulated", {"max_joint_vel_rad_s": 0.05,
+                            "emulator": {"start_holding": {"shoulder": -0.5, "elbow": 0.5}}}),
+    ("reset_mechanism", "sim", {}),
+    ("reset_mechanism", "emulated", {}),
 ]
 
 

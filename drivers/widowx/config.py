@@ -47,6 +47,8 @@ class BusParams(Params):
     bus_name: str = "widowx"
     latency_timer_ms: int = Field(1, ge=1, le=16, description="USB-serial latency timer (docs/arms.md)")
     telemetry_stale_s: float = Field(0.25, gt=0, description="a reading older than this is not ok")
+    reboot_on_hardware_error: bool = Field(False, description="reboot a servo with a latched hardware error "
+                                           "at configure (after the operator checked why)")
     emulator: dict = Field(default_factory=dict, description="emulator settings (faults, missing IDs...)")
     sim: dict = Field(default_factory=dict, description="sim world settings")
 
@@ -61,8 +63,6 @@ class WidowXParams(BusParams):
     limit_margin_rad: float = Field(0.05, ge=0)
     joint_limits_rad: dict[str, tuple[float, float]] = Field(default_factory=dict,
                                                              description="override the description's limits")
-    reboot_on_hardware_error: bool = Field(False, description="reboot a servo with a latched hardware error "
-                                           "at configure (after the operator checked why)")
 
     @field_validator("ids")
     @classmethod

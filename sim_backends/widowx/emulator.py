@@ -17,7 +17,9 @@ stderr. It stops on SIGTERM/SIGINT or when ``--parent-pid`` dies.
 Fault injection (config keys): ``missing_ids`` (these IDs never answer, as an unplugged
 servo), ``hardware_errors`` ({id: bits}: latched at power-on, cleared by a reboot
 unless ``persistent_errors``), ``corrupt_every`` (every N-th status packet gets a bad
-CRC), ``garbage_every`` (noise bytes before every N-th status packet).
+CRC), ``garbage_every`` (noise bytes before every N-th status packet). ``start_holding``
+({joint: rad}) starts the arm torqued in position mode at that pose instead of limp in
+its sleep pose.
 """
 
 from __future__ import annotations
@@ -183,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args(argv)
     cfg = json.loads(args.config)
-    world = ArmWorld(cfg.get("arm_ids"), cfg.get("mech_ids"))
+    world = ArmWorld(cfg.get("arm_ids"), cfg.get("mech_ids"), start_holding=cfg.get("start_holding"))
     bus = BusEmulator(world, missing_ids=[int(i) for i in cfg.get("missing_ids", [])],
                       hardware_errors={int(k): int(v) for k, v in cfg.get("hardware_errors", {}).items()},
                       persistent_errors=bool(cfg.get("persistent_errors", False)),

@@ -20,13 +20,19 @@ from drivers.widowx.config import JOINTS, MECH_DEFAULT_IDS
 from sim_backends.widowx.firmware import TICK_S, Servo, ServoPhysics
 from sim_backends.widowx.model import WX250S_LINKS, MechanismGeometry, build_spec
 
+#: Interbotix' sleep pose: shoulder and elbow on their limits, so gravity keeps it there
+SLEEP_POSE_RAD = {"shoulder": -1.88, "elbow": 1.60, "wrist_angle": -1.74}
 #: a robot's world stays shared while one of its robots lives (bus name -> world)
 _WORLDS: weakref.WeakValueDictionary[str, ArmWorld] = weakref.WeakValueDictionary()
 
 
 class ArmWorld:
     def __init__(self, arm_ids: dict[str, int] | None = None, mech_ids: dict[str, int] | None = None,
-                 mech: MechanismGeometry | None = None):
+                 mech: MechanismGeometry | None = None, start_holding: dict[str, float] | None = None):
+        """``start_holding``: start with the arm torqued and holding these joint angles
+        [rad] in position mode, as a previous session that was not cleanly shut down
+        leaves it (default: the sleep pose with torque off, as after power-on)."""
+        self.start_holding = dict(start_holding) if start_holding else None
         self.arm_ids = arm_ids or {n: i for n, i, _, _ in JOINTS}
         self.mech_ids = mech_ids or dict(MECH_DEFAULT_IDS)
         self.mech = mech or MechanismGeometry()
@@ -51,15 +57,23 @@ class ArmWorld:
         return float(self.data.time)
 
     def reset(self) -> None:
-        """Arm in its sleep-like pose (shoulder back, elbow folded) at rest, servos powered on."""
+        """Arm in its sleep pose, resting on the shoulder and elbow limits (where a real
+        WidowX rests with torque off), servos powered on with torque off."""
         mujoco.mj_resetData(self.model, self.data)
-        for name, q in (("shoulder", -1.1), ("elbow", 1.2), ("wrist_angle", 0.5)):
+        pose = self.start_holding if self.start_holding is not None else SLEEP_POSE_RAD
+        for name, q in pose.items():
             self.data.joint(name).qpos[0] = q
         mujoco.mj_forward(self.model, self.data)
         for s in self.servos.values():
             s.mem[:] = bytes(len(s.mem))
             s.power_on()
         self._sync_servos()
+        if self.start_holding is not None:
+            for name, dxl_id in self.arm_ids.items():
+                s = self.servos[dxl_id]
+                s.publish()
+                s.set("Goal Position", s.get("Present Position"))
+                s.set("Torque Enable", 1)
 
     def _sync_servos(self) -> None:
         """Present registers from the current state (no torque: used after reset)."""
@@ -89,11 +103,11 @@ class ArmWorld:
 
 
 def shared_world(bus_name: str, arm_ids: dict[str, int] | None = None,
-                 mech_ids: dict[str, int] | None = None) -> ArmWorld:
+                 mech_ids: dict[str, int] | None = None, start_holding: dict[str, float] | None = None) -> ArmWorld:
     """The world of a bus: created by the first robot that asks, shared with the rest."""
     w = _WORLDS.get(bus_name)
     if w is None:
-        w = ArmWorld(arm_ids, mech_ids)
+        w = ArmWorld(arm_ids, mech_ids, start_holding=start_holding)
         _WORLDS[bus_name] = w
     else:
         for name, ids in (("arm", arm_ids), ("mechanism", mech_ids)):
