@@ -59,7 +59,7 @@ class ServoPhysics:
     stall_torque_nm: float = 4.1        # XM430-W350 at 12 V (e-Manual)
     kt_nm_per_a: float = 1.78           # 4.1 N·m / 2.3 A stall current
     vel_kp_nm_s: float = 2.0            # velocity loop
-    vel_ki_nm: float = 30.0
+    vel_ki_nm: float = 120.0          # high enough that a held arm sags < 1° when the loop starts
     pos_kp_nm_per_rad: float = 30.0     # position loop
     pos_ki_nm_per_rad_s: float = 30.0
     pos_kd_nm_s: float = 1.5

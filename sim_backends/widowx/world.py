@@ -69,7 +69,7 @@ class ArmWorld:
             s.power_on()
         self._sync_servos()
         if self.start_holding is not None:
-            for name, dxl_id in self.arm_ids.items():
+            for dxl_id in self.arm_ids.values():
                 s = self.servos[dxl_id]
                 s.publish()
                 s.set("Goal Position", s.get("Present Position"))
