@@ -55,7 +55,6 @@ class BusParams(Params):
 
 class WidowXParams(BusParams):
     ids: dict[str, int] = Field(default_factory=lambda: {n: i for n, i, _, _ in JOINTS})
-    models: dict[str, str] = Field(default_factory=lambda: {n: m for n, _, m, _ in JOINTS})
     period_s: float = Field(0.05, gt=0, description="driver control period (MELD acts at 3.3 Hz above it)")
     max_joint_vel_rad_s: float = Field(1.0, gt=0, le=4.8, description="action limit (XM430 no-load: 4.8 rad/s)")
     max_joint_accel_rad_s2: float = Field(6.0, gt=0, description="rate limit on velocity commands")
