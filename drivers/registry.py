@@ -28,6 +28,9 @@ BACKENDS: dict[tuple[str, str], str] = {
     ("reset_mechanism", "sim"): "sim_backends.widowx.backend:MechanismSim",
     ("reset_mechanism", "emulated"): "drivers.widowx.driver:MechanismDriver",
     ("reset_mechanism", "real"): "drivers.widowx.driver:MechanismDriver",
+    ("sawyer", "sim"): "sim_backends.sawyer.backend:SawyerSim",
+    ("sawyer", "emulated"): "drivers.sawyer.driver:SawyerDriver",
+    ("sawyer", "real"): "drivers.sawyer.driver:SawyerDriver",
 }
 
 

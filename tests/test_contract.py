@@ -28,6 +28,8 @@ CONTRACT_BACKENDS = [
                             "emulator": {"start_holding": {"shoulder": -0.5, "elbow": 0.5}}}),
     ("reset_mechanism", "sim", {}),
     ("reset_mechanism", "emulated", {}),
+    ("sawyer", "sim", {}),
+    ("sawyer", "emulated", {}),
 ]
 
 
