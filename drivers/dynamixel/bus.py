@@ -20,6 +20,7 @@ import select
 import subprocess
 import sys
 import tempfile
+import termios
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -27,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
+from serial import SerialException
 
 from drivers.base import LinkError
 from drivers.dynamixel.control_table import ControlTable, control_table, describe_status_error
@@ -142,13 +144,24 @@ class DynamixelBus:
         if self._closed:
             raise LinkError(f"Dynamixel port {self.port_name} is closed")
 
+    def _io(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """Call the SDK; a failing port (adapter unplugged: EIO) becomes a LinkError,
+        and the SDK's busy flag is cleared so the stop that follows can still try."""
+        try:
+            return fn(*args)
+        except (OSError, SerialException, termios.error) as e:
+            self.port.is_using = False
+            self.stats["tx_errors"] += 1
+            self.last_error = f"Dynamixel port {self.port_name} failed: {e}"
+            raise LinkError(self.last_error) from None
+
     # ------------------------------------------------------------------ single servo
     def ping(self, dxl_id: int) -> tuple[int, int]:
         """(model number, status error byte) of a servo; LinkError if it does not answer."""
         with self.lock:
             self._require_open()
             self.stats["instructions"] += 1
-            model, result, error = self.ph.ping(self.port, dxl_id)
+            model, result, error = self._io(self.ph.ping, self.port, dxl_id)
             self._count(result, error)
             if result != COMM_SUCCESS:
                 msg = f"ping ID {dxl_id}: {self.ph.getTxRxResult(result)}"
@@ -161,7 +174,7 @@ class DynamixelBus:
         with self.lock:
             self._require_open()
             self.stats["instructions"] += 1
-            data, result, error = self.ph.readTxRx(self.port, dxl_id, it.address, it.size)
+            data, result, error = self._io(self.ph.readTxRx, self.port, dxl_id, it.address, it.size)
             self._check(f"read {item}", dxl_id, result, error)
             return it.decode(bytes(data))
 
@@ -170,14 +183,15 @@ class DynamixelBus:
         with self.lock:
             self._require_open()
             self.stats["instructions"] += 1
-            result, error = self.ph.writeTxRx(self.port, dxl_id, it.address, it.size, list(it.encode(value)))
+            result, error = self._io(self.ph.writeTxRx, self.port, dxl_id, it.address, it.size,
+                                     list(it.encode(value)))
             self._check(f"write {item}={value}", dxl_id, result, error)
 
     def reboot(self, dxl_id: int) -> None:
         with self.lock:
             self._require_open()
             self.stats["instructions"] += 1
-            result, error = self.ph.reboot(self.port, dxl_id)
+            result, error = self._io(self.ph.reboot, self.port, dxl_id)
             self._check("reboot", dxl_id, result, error)
 
     # ------------------------------------------------------------------ groups
@@ -190,7 +204,7 @@ class DynamixelBus:
         with self.lock:
             self._require_open()
             self.stats["instructions"] += 1
-            result = self.ph.syncWriteTxOnly(self.port, it.address, it.size, param, len(param))
+            result = self._io(self.ph.syncWriteTxOnly, self.port, it.address, it.size, param, len(param))
             if result != COMM_SUCCESS:
                 self._count(result)
                 msg = f"sync write {item}: {self.ph.getTxRxResult(result)}"
@@ -211,7 +225,7 @@ class DynamixelBus:
             self._require_open()
             self.stats["instructions"] += 1
             t0 = time.monotonic()
-            result = self.ph.syncReadTx(self.port, addr, n, ids, len(ids), False)
+            result = self._io(self.ph.syncReadTx, self.port, addr, n, ids, len(ids), False)
             if result != COMM_SUCCESS:
                 self._count(result)
                 self.last_error = f"sync read: {self.ph.getTxRxResult(result)}"
@@ -219,7 +233,7 @@ class DynamixelBus:
             pending = set(ids)
             corrupt = 0
             while pending:
-                pkt, result = self.ph.rxPacket(self.port, False)
+                pkt, result = self._io(self.ph.rxPacket, self.port, False)
                 if result == COMM_RX_TIMEOUT:
                     break  # counted below, per ID that did not answer
                 self._count(result, pkt[_PKT_ERROR] if result == COMM_SUCCESS else 0)

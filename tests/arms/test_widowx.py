@@ -157,3 +157,18 @@ def test_mechanism_moves_the_switch_in_sim():
         # beyond ±8° / ±1 cm is clamped to the range
         applied = mech.write([1.0, 1.0])
         assert applied[0] <= math.radians(8.0) + 1e-9 and applied[1] <= 0.01 + 1e-12
+
+
+def test_link_loss_takes_the_error_path_with_a_one_line_error():
+    d = make_driver("widowx", backend="emulated", bus_name="t_loss")
+    d.configure()
+    d.activate()
+    d.write(np.full(6, 0.1))
+    emu = d.bus.emulator
+    emu.kill()  # the adapter is gone: the pty reads fail with EIO
+    emu.wait()
+    with pytest.raises(LinkError, match="failed") as ei:
+        d.read()
+    assert "\n" not in str(ei.value)
+    assert d.lifecycle is Lifecycle.UNCONFIGURED and d.last_error
+    d.cleanup()
