@@ -16,8 +16,10 @@ import threading
 from collections.abc import Iterable
 from typing import Any
 
+import numpy as np
+
 from configs.schema import RobotConfig
-from drivers.base import LinkError
+from drivers.base import Lifecycle, LinkError
 from drivers.dynamixel.bus import ServoError
 from drivers.dynamixel.control_table import control_table, describe_status_error
 from drivers.widowx.config import MechanismParams, WidowXParams
@@ -138,11 +140,21 @@ class _SimMixin(LockstepSim):
         self.world.advance(duration_s)
 
     def reset(self, **kwargs: Any) -> None:
-        """Back to the sleep pose, servos power-cycled; the driver goes through configure again."""
+        """This robot's joints back to their start pose, its servos power-cycled, and the
+        driver through configure (and activate) again; the other robots of the bench stay."""
+        if kwargs:
+            raise TypeError(f"{self.spec.name} reset takes no pose, got {sorted(kwargs)}")
         active = self.active
-        self.cleanup()
-        w = shared_world(self.params.bus_name, **self._layout())
-        w.reset()
+        w = self.world
+        if w is None:
+            raise LinkError(f"{self.spec.name}: reset() needs configure() first")
+        self.stop()
+        w.reset_robot(list(self.ids), list(self.ids.values()))
+        self._q[:] = np.nan
+        self._t_joint[:] = -np.inf
+        self._mode = None
+        self._lifecycle = Lifecycle.UNCONFIGURED  # reconfigure on the same (kept) bus
+        self._close_bus()
         self.configure()
         if active:
             self.activate()

@@ -75,6 +75,22 @@ class ArmWorld:
                 s.set("Goal Position", s.get("Present Position"))
                 s.set("Torque Enable", 1)
 
+    def reset_robot(self, names: list[str] | tuple[str, ...], ids: list[int]) -> None:
+        """Put some joints back to their start pose at rest and power-cycle their servos,
+        leaving the rest of the bench as it is (one robot's reset)."""
+        pose = self.start_holding if self.start_holding is not None else SLEEP_POSE_RAD
+        for name in names:
+            j = self.data.joint(name)
+            j.qpos[0] = pose.get(name, 0.0)
+            j.qvel[0] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+        for dxl_id in ids:
+            s = self.servos[dxl_id]
+            s.mem[:] = bytes(len(s.mem))
+            s.power_on()
+            a = self._act[dxl_id]
+            s.tick(float(self.data.actuator_length[a]), float(self.data.actuator_velocity[a]), 0.0)
+
     def _sync_servos(self) -> None:
         """Present registers from the current state (no torque: used after reset)."""
         for i, s in self.servos.items():

@@ -172,3 +172,20 @@ def test_link_loss_takes_the_error_path_with_a_one_line_error():
     assert "\n" not in str(ei.value)
     assert d.lifecycle is Lifecycle.UNCONFIGURED and d.last_error
     d.cleanup()
+
+
+def test_resetting_the_arm_leaves_the_mechanism_working():
+    arm = _sim("t_reset", sim={"start_holding": HELD})
+    mech = make_driver("reset_mechanism", backend="sim", bus_name="t_reset")
+    with arm, mech:
+        for _ in range(10):
+            arm.write(np.full(6, 0.3))
+            mech.write([0.05, 0.004])
+            arm.tick()
+        arm.reset()
+        assert arm.active
+        np.testing.assert_allclose(arm.read().state[1:3], [HELD["shoulder"], HELD["elbow"]], atol=0.02)
+        for _ in range(20):
+            mech.write([0.1, 0.008])
+            mech.tick()
+        assert abs(mech.read().state[1] - 0.008) < 0.001  # its servos were not power-cycled
