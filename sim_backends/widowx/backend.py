@@ -161,9 +161,29 @@ class _SimMixin(LockstepSim):
 
 
 class WidowXSim(_SimMixin, WidowXDriver):
+    """``params.sim.cameras: true`` adds ``extras["image"]``: the fixed and wrist cameras,
+    64×128 RGB (``params.sim.camera_px`` per view), rendered at every read."""
+
     def __init__(self, params: WidowXParams | None = None, source: str | None = None):
         WidowXDriver.__init__(self, params, backend="sim", source=source)
         self.steps = 0
+        self._cameras = None
+
+    def _read(self):
+        obs = super()._read()
+        if self.params.sim.get("cameras") and self.world is not None:
+            if self._cameras is None:
+                from sim_backends.widowx.cameras import BenchCameras
+
+                self._cameras = BenchCameras(self.world.model, int(self.params.sim.get("camera_px", 64)))
+            obs.extras["image"] = self._cameras.render(self.world.data)
+        return obs
+
+    def _close_bus(self) -> None:
+        if self._cameras is not None:
+            self._cameras.close()
+            self._cameras = None
+        super()._close_bus()
 
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> WidowXSim:

@@ -103,7 +103,8 @@ def build_spec(stall_torques_nm: dict[str, float], mech: MechanismGeometry | Non
                           ctrlrange=[-t, t], ctrllimited=mujoco.mjtLimited.mjLIMITED_TRUE)
         parent = body
     parent.add_site(name="ee", pos=[EE_OFFSET_M, 0, 0], size=[0.008, 0, 0], rgba=[1, 0.2, 0.2, 1])
-    parent.add_camera(name="wrist", pos=[0.03, 0, 0.05], xyaxes=[0, -1, 0, 0.5, 0, 0.87])
+    # above the gripper, looking forward and 17° down (camera -z = (0.95, 0, -0.3))
+    parent.add_camera(name="wrist", pos=[0.0, 0, 0.05], xyaxes=[0, -1, 0, 0.3, 0, 0.95], fovy=70)
 
     # --- the task-reset mechanism and the switch
     r = mech.rail_pinion_radius_m
