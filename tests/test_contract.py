@@ -29,7 +29,7 @@ CONTRACT_BACKENDS = [
     ("reset_mechanism", "sim", {}),
     ("reset_mechanism", "emulated", {}),
     ("sawyer", "sim", {}),
-    ("sawyer", "emulated", {}),
+    ("sawyer", "emulated", {"joint_states_stale_s": 0.5}),  # 100 Hz stream from a process on a loaded CPU
 ]
 
 

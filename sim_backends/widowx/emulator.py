@@ -60,6 +60,7 @@ class BusEmulator:
         self.status_sent = 0
         self.instructions = 0
         self.injected_corrupt = 0
+        self.realtime_slip_s = 0.0  # sim time given up because the CPU fell behind
         for dxl_id, bits in (hardware_errors or {}).items():
             self.world.servos[int(dxl_id)].inject_hardware_error(int(bits), persistent=persistent_errors)
 
@@ -145,7 +146,6 @@ def run(bus: BusEmulator, fd: int, parent_pid: int | None, running: list[bool], 
     t0 = time.monotonic()
     sim_t0 = world.time_s
     next_parent_check = t0 + 0.5
-    slip_s = 0.0
     while running[0]:
         now = time.monotonic()
         target = sim_t0 + (now - t0) * rtf
@@ -165,7 +165,7 @@ def run(bus: BusEmulator, fd: int, parent_pid: int | None, running: list[bool], 
         lag = target - world.time_s
         if lag > MAX_CATCHUP_S:
             sim_t0 -= lag - MAX_CATCHUP_S
-            slip_s += lag - MAX_CATCHUP_S
+            bus.realtime_slip_s += lag - MAX_CATCHUP_S
             lag = MAX_CATCHUP_S
         # step one tick at a time, checking the port between ticks: answers stay prompt
         if lag >= TICK_S:
@@ -175,7 +175,6 @@ def run(bus: BusEmulator, fd: int, parent_pid: int | None, running: list[bool], 
             if os.getppid() != parent_pid:
                 log("parent process is gone: exiting")
                 return
-        bus.realtime_slip_s = slip_s
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -190,7 +189,6 @@ def main(argv: list[str] | None = None) -> int:
                       hardware_errors={int(k): int(v) for k, v in cfg.get("hardware_errors", {}).items()},
                       persistent_errors=bool(cfg.get("persistent_errors", False)),
                       corrupt_every=int(cfg.get("corrupt_every", 0)), garbage_every=int(cfg.get("garbage_every", 0)))
-    bus.realtime_slip_s = 0.0
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
