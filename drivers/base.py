@@ -93,6 +93,9 @@ class Flag(enum.StrEnum):
     STALE_OBJECTS = "stale_objects"
     #: a manipulated object left the workspace (a dropped ball)
     OBJECT_DROPPED = "object_dropped"
+    #: the device reports a latched hardware error (Dynamixel: overheating, overload,
+    #: input voltage, electrical shock, encoder); it needs a reboot
+    HARDWARE_ERROR = "hardware_error"
 
 
 FLAG_NAMES: frozenset[str] = frozenset(f.value for f in Flag)

@@ -26,7 +26,7 @@ import numpy as np
 
 from bus import keys
 from bus.node import Node
-from bus.schemas import Command, EStop, EStopAck, ResetEvent, RobotState, SpecMsg
+from bus.schemas import Command, EStop, EStopAck, Image, ResetEvent, RobotState, SpecMsg
 from configs.schema import BusConfig
 from drivers.base import CommandError, Driver, LinkError
 
@@ -78,6 +78,8 @@ class DriverNode(Node):
         self._estop_ack = self.publisher(keys.estop_ack(rig), EStopAck)
         self._reset_req = self.subscribe(keys.reset(rig, "request"), ResetEvent)
         self._reset_done = self.publisher(keys.reset(rig, "done"), ResetEvent)
+        #: a camera image a driver returns in ``extras["image"]`` (H×W×3 uint8), on keys.image(rig, robot)
+        self._image_pub = self.publisher(keys.image(rig, robot), Image)
         self.episode = 0
         self._last_cmd_t: float | None = None  # node clock when the last command was applied
         self._last_state: RobotState | None = None
@@ -195,6 +197,10 @@ class DriverNode(Node):
             },
         )
         self._last_state = self._state_pub.put(msg)
+        img = obs.extras.get("image")
+        if isinstance(img, np.ndarray) and img.ndim == 3 and img.dtype == np.uint8:
+            self._image_pub.put(Image(camera=self.robot, t_s=obs.t_s, width=img.shape[1], height=img.shape[0],
+                                      data=img.tobytes()))
         return msg
 
     def publish_spec(self) -> None:

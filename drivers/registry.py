@@ -25,6 +25,15 @@ BACKENDS: dict[tuple[str, str], str] = {
     ("shadow_hand", "sim"): "sim_backends.shadow_hand.backend:ShadowHandSim",
     ("shadow_hand", "emulated"): "drivers.shadow_hand.driver:ShadowHandDriver",
     ("shadow_hand", "real"): "drivers.shadow_hand.driver:ShadowHandDriver",
+    ("widowx", "sim"): "sim_backends.widowx.backend:WidowXSim",
+    ("widowx", "emulated"): "drivers.widowx.driver:WidowXDriver",
+    ("widowx", "real"): "drivers.widowx.driver:WidowXDriver",
+    ("reset_mechanism", "sim"): "sim_backends.widowx.backend:MechanismSim",
+    ("reset_mechanism", "emulated"): "drivers.widowx.driver:MechanismDriver",
+    ("reset_mechanism", "real"): "drivers.widowx.driver:MechanismDriver",
+    ("sawyer", "sim"): "sim_backends.sawyer.backend:SawyerSim",
+    ("sawyer", "emulated"): "drivers.sawyer.driver:SawyerDriver",
+    ("sawyer", "real"): "drivers.sawyer.driver:SawyerDriver",
 }
 
 

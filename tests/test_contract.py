@@ -24,6 +24,15 @@ CONTRACT_BACKENDS = [
     ("shadow_hand", "sim", {}),
     ("shadow_hand", "emulated", {"transport": "slcan"}),
     ("shadow_hand", "emulated", {"transport": "udp_multicast"}),  # the real UDP client, fed by a pose stream below
+    # the arm starts held mid-range and moves slowly: 200 periods at the velocity limit must
+    # not reach a joint limit, where the driver's joint-limit guard zeroes the command
+    ("widowx", "sim", {"max_joint_vel_rad_s": 0.05, "sim": {"start_holding": {"shoulder": -0.5, "elbow": 0.5}}}),
+    ("widowx", "emulated", {"max_joint_vel_rad_s": 0.05,
+                            "emulator": {"start_holding": {"shoulder": -0.5, "elbow": 0.5}}}),
+    ("reset_mechanism", "sim", {}),
+    ("reset_mechanism", "emulated", {}),
+    ("sawyer", "sim", {}),
+    ("sawyer", "emulated", {"joint_states_stale_s": 0.5}),  # 100 Hz stream from a process on a loaded CPU
 ]
 
 
@@ -138,13 +147,18 @@ def test_rate_limit_holds_for_bursts_of_writes_and_across_periods(driver):
                 span_s = hist[-1][1] - hist[0][0]
                 assert span_s < p
                 assert np.all(np.abs(burst - hist[0][2]) <= r * (span_s + p) + 1e-9)
-                assert np.any(np.abs(burst[1:] - hist[0][2]) > 0.5 * r * p)  # and it did move
+                # and it did move (by a step, or to the limit when the range is smaller)
+                assert np.any(np.abs(burst[1:] - hist[0][2]) > 0.5 * np.minimum(r * p, np.abs(target - hist[0][2])))
             driver.tick()
         for i, (ti_before, _, ai) in enumerate(hist):
             for _, tj_after, aj in hist[i + 1:]:
                 # each write's own clock reading lies between its before/after readings, so
                 # tj_after - ti_before bounds the interval from above
                 assert np.all(np.abs(aj - ai) <= r * (tj_after - ti_before + p) + 1e-9), (i, ai, aj)
+
+
+#: robots whose device can be made to run a command behind the driver's back (below)
+BEHIND_THE_DRIVER = ("pointmass", "velociroach")
 
 
 def _run_behind_the_driver(robot: str, backend: str, driver, action: np.ndarray) -> None:
@@ -189,15 +203,21 @@ def test_activation_holds_what_the_device_runs(driver, request):
         held = driver.held_command
         np.testing.assert_allclose(driver.write(held), held)
         return
-    # from rest: the device runs its safe action (nothing commanded yet), exactly
-    np.testing.assert_array_equal(driver.held_command, sp.safe_action)
+    # from rest: the device runs its safe action (nothing commanded yet). A device that echoes
+    # its setpoint (roach firmware, sims) is held exactly; one whose hold is measured (joint
+    # velocities of an arm) within 1 % of the range
+    exact = robot in BEHIND_THE_DRIVER
+    tol = 0.0 if exact else 0.01 * float(np.max(sp.action.high - sp.action.low))
+    np.testing.assert_allclose(driver.held_command, sp.safe_action, rtol=0, atol=tol)
     # stopped after driving: the device runs the safe action again
     for _ in range(3):
         driver.write(sp.action.high)
         driver.tick()
     driver.deactivate()
     driver.activate()
-    np.testing.assert_array_equal(driver.held_command, sp.safe_action)
+    np.testing.assert_allclose(driver.held_command, sp.safe_action, rtol=0, atol=tol)
+    if not exact:
+        return
     # running something behind the driver's back: activation takes it over, no jump
     driver.deactivate()
     target = 0.3 * sp.action.high

@@ -4,12 +4,16 @@
     hil drive velociroach --backend real --port /dev/ttyUSB0 --action 0.3,0.3 --seconds 2
     hil drive velociroach --backend emulated --action 0.5,0.5 --tlog runs/roach.tlog
     hil drive pointmass --backend sim --action 0.5,0 --seconds 2
+    hil drive widowx --backend emulated --seconds 2 --json
     hil drive shadow_hand --backend emulated --seconds 2 --json   # hold the pose, report tracking
     hil find-port
 
 Actions are normalized: -1..1 maps onto each action channel's [low, high] from the spec
 (for the VelociRoACH: ±max_leg_vel_rps, or ±1 duty in pwm mode). The loop is
 read → write → tick at the control period, so it runs unchanged on every backend.
+Without --action every channel gets 0.3. Where an action channel is also a state channel
+(an arm's joint velocities), the summary reports the tracking error: the RMS of applied
+minus measured over the run.
 """
 
 from __future__ import annotations
@@ -78,7 +82,11 @@ def _pose(names: tuple[str, ...], s: Any) -> dict[str, float | None]:
     return {"x": get("x"), "y": get("y"), "yaw": yaw}
 
 
-def drive_run(robot: str, backend: str, action: str, seconds: float, port: str | None = None,
+#: the normalized action on every channel when --action is not given
+DEFAULT_ACTION = 0.3
+
+
+def drive_run(robot: str, backend: str, action: str | None, seconds: float, port: str | None = None,
               config: str | None = None, tlog: str | None = None) -> dict[str, Any]:
     """Drive open loop; returns the summary printed by `hil drive --json`.
 
@@ -100,12 +108,21 @@ def drive_run(robot: str, backend: str, action: str, seconds: float, port: str |
         params["tlog"] = str(tlog)
     drv = make_driver(config or robot, backend=backend, **params)
     sp = drv.spec
+    # without --action: a robot that holds position (no fixed safe action: the hand) holds
+    # the command held at activation (the measured state); others drive at DEFAULT_ACTION
+    if action is None and sp.safe_action is not None:
+        action = ",".join([str(DEFAULT_ACTION)] * sp.action.dim)
     lo, hi = sp.action.low, sp.action.high
-    if action is None:  # hold the command held at activation (the measured state)
+    if action is None:
         a = a_norm = None
     else:
         a_norm = np.array(parse_action(action, sp.action.dim, sp.action.names))
         a = (lo + hi) / 2 + a_norm * (hi - lo) / 2
+    # action channels that are measured too (joint velocities): tracking error
+    tracked = [(i, sp.state.names.index(n)) for i, n in enumerate(sp.action.names) if n in sp.state.names]
+    sq_err = np.zeros(len(tracked))
+    n_tracked = 0
+    applied = None
     n_steps = max(1, round(seconds / sp.period_s))
     with drv:
         first = drv.read()
@@ -118,6 +135,10 @@ def drive_run(robot: str, backend: str, action: str, seconds: float, port: str |
             if p["x"] is not None and prev["x"] is not None:
                 path_m += math.hypot(p["x"] - prev["x"], p["y"] - prev["y"])
             prev = p
+            if applied is not None and tracked:
+                # what was applied during the period that just ended vs what was measured at its end
+                sq_err += np.array([(applied[i] - obs.state[j]) ** 2 for i, j in tracked])
+                n_tracked += 1
             applied = drv.write(drv.held_command if a is None else a)
             drv.tick()
         last = drv.read()
@@ -138,8 +159,15 @@ def drive_run(robot: str, backend: str, action: str, seconds: float, port: str |
         if start["yaw"] is not None:
             # along the heading at the start: negative means it went backwards
             out["forward_m"] = dx * math.cos(start["yaw"]) + dy * math.sin(start["yaw"])
-    out["start_pose"] = start
-    out["final_pose"] = end
+    if n_tracked:
+        rms = np.sqrt(sq_err / n_tracked)
+        out["tracking_rms"] = {sp.action.names[i]: float(r) for (i, _), r in zip(tracked, rms, strict=True)}
+        out["tracking_rms_units"] = {sp.action.names[i]: sp.action.units[i] for i, _ in tracked}
+    if start["x"] is not None:
+        out["start_pose"] = start
+        out["final_pose"] = end
+    else:
+        out["final_state"] = {n: float(v) for n, v in zip(sp.state.names, last.state, strict=True)}
     out["link"] = health
     if tlog:
         out["tlog"] = str(tlog)
@@ -153,7 +181,8 @@ def register(app: typer.Typer) -> None:
         robot: str = typer.Argument(..., help="robot config name or path (configs/robots/), e.g. velociroach"),
         backend: str = typer.Option("sim", "--backend", help="sim | emulated | real"),
         action: str = typer.Option(None, "--action", help="normalized action per channel in [-1, 1], e.g. 0.6,0.6; "
-                                   "omitted: hold the command held at activation (the measured state)"),
+                                   f"omitted: {DEFAULT_ACTION} on every channel, or, for a robot that holds position "
+                                   "(the hand), hold the measured state"),
         seconds: float = typer.Option(3.0, "--seconds", help="how long to drive [s] (sim: simulated seconds)"),
         port: str = typer.Option(None, "--port", help="serial port of the radio (real backend), e.g. /dev/ttyUSB0"),
         tlog: str = typer.Option(None, "--tlog", help="append every MAVLink frame to this .tlog "
@@ -167,8 +196,7 @@ def register(app: typer.Typer) -> None:
         if json_out:
             echo_json(res)
             return
-        fp = res["final_pose"]
-        act = [round(v, 3) for v in res['action']]
+        act = [round(v, 3) for v in res["action"]]
         typer.echo(f"{res['robot']} ({backend}): action {act} for {seconds:g} s ({res['steps']} steps)")
         if "tracking_error" in res:
             te = res["tracking_error"]
@@ -177,9 +205,12 @@ def register(app: typer.Typer) -> None:
         if "distance_m" in res:
             fwd = f", forward {res['forward_m']:+.3f} m" if "forward_m" in res else ""
             typer.echo(f"  distance {res['distance_m']:.3f} m (path {res['path_length_m']:.3f} m){fwd}")
-        yaw = "n/a" if fp["yaw"] is None else f"{math.degrees(fp['yaw']):.1f} deg"
-        if fp["x"] is not None:
+        if "final_pose" in res:
+            fp = res["final_pose"]
+            yaw = "n/a" if fp["yaw"] is None else f"{math.degrees(fp['yaw']):.1f} deg"
             typer.echo(f"  final pose x={fp['x']:.3f} m y={fp['y']:.3f} m yaw={yaw}")
+        for n, r in res.get("tracking_rms", {}).items():
+            typer.echo(f"  tracking rms {n}: {r:.4f} {res['tracking_rms_units'][n]}")
         lk = res["link"]
         lat = "n/a" if lk.get("latency_s") is None else f"{lk['latency_s'] * 1e3:.1f} ms"
         typer.echo(f"  link ok={lk['ok']} quality={lk['link_quality']:.2f} sent={lk['frames_sent']} "

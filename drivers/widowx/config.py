@@ -1,0 +1,118 @@
+"""WidowX 250 6DOF and task-reset mechanism: settings and specs, shared by every backend.
+
+Both are robots on one Dynamixel bus (one USB-serial adapter): the arm's six joints
+(IDs of Trossen's wx250s defaults; the shoulder and elbow each have a second "shadow"
+servo that follows its master in the servo itself) and the mechanism's two servos.
+
+WidowX state (18): joint positions [rad], velocities [rad/s], currents [A], in joint
+order ``JOINTS``. Action (6): joint velocities [rad/s] sent to the servos' velocity PI
+loops (the thesis' "joint velocities to a low-level PID").
+
+Mechanism state (4): housing rotation [rad] about z, rail offset [m] along world y, and
+their rates. Action (2): target rotation [rad] (±8°) and offset [m] (±1 cm); the
+servos run in position mode.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from drivers.base import RobotSpec, Space
+from sim_backends.base import Params
+
+#: joint, default ID, default servo model, stall torque at the joint [N·m] (2 servos: 2×)
+JOINTS: list[tuple[str, int, str, float]] = [
+    ("waist", 1, "XM430-W350", 4.1),
+    ("shoulder", 2, "XM430-W350", 8.2),
+    ("elbow", 4, "XM430-W350", 8.2),
+    ("forearm_roll", 6, "XM430-W350", 4.1),
+    ("wrist_angle", 7, "XM430-W350", 4.1),
+    ("wrist_rotate", 8, "XM430-W350", 4.1),
+]
+JOINT_NAMES = tuple(j[0] for j in JOINTS)
+#: mechanism servos: rotate the housing, drive the rail pinion
+MECH_JOINTS = ("mech_rotate", "mech_rail")
+MECH_DEFAULT_IDS = {"mech_rotate": 10, "mech_rail": 11}
+
+
+class BusParams(Params):
+    """The Dynamixel bus both robots share (units in names)."""
+
+    port: str | None = Field(None, description="real: the USB-serial adapter, e.g. /dev/ttyUSB0")
+    baudrate: int = Field(1_000_000, gt=0, description="servo Baud Rate register (3 = 1 Mbps)")
+    #: robots built with the same bus name share one port/emulator/sim world in a process
+    bus_name: str = "widowx"
+    latency_timer_ms: int = Field(1, ge=1, le=16, description="USB-serial latency timer (docs/arms.md)")
+    telemetry_stale_s: float = Field(0.25, gt=0, description="a reading older than this is not ok")
+    reboot_on_hardware_error: bool = Field(False, description="reboot a servo with a latched hardware error "
+                                           "at configure (after the operator checked why)")
+    emulator: dict = Field(default_factory=dict, description="emulator settings (faults, missing IDs...)")
+    sim: dict = Field(default_factory=dict, description="sim world settings")
+
+
+class WidowXParams(BusParams):
+    ids: dict[str, int] = Field(default_factory=lambda: {n: i for n, i, _, _ in JOINTS})
+    period_s: float = Field(0.05, gt=0, description="driver control period (MELD acts at 3.3 Hz above it)")
+    max_joint_vel_rad_s: float = Field(1.0, gt=0, le=4.8, description="action limit (XM430 no-load: 4.8 rad/s)")
+    max_joint_accel_rad_s2: float = Field(6.0, gt=0, description="rate limit on velocity commands")
+    #: joints slow to zero when moving towards a limit within this margin
+    limit_margin_rad: float = Field(0.05, ge=0)
+    joint_limits_rad: dict[str, tuple[float, float]] = Field(default_factory=dict,
+                                                             description="override the description's limits")
+
+    @field_validator("ids")
+    @classmethod
+    def _ids(cls, v: dict[str, int]) -> dict[str, int]:
+        missing = [n for n in JOINT_NAMES if n not in v]
+        if missing:
+            raise ValueError(f"ids lacks joints {missing}")
+        if len(set(v.values())) != len(v) or not all(0 <= i <= 252 for i in v.values()):
+            raise ValueError(f"ids must be distinct and within 0..252, got {v}")
+        return v
+
+
+class MechanismParams(BusParams):
+    ids: dict[str, int] = Field(default_factory=lambda: dict(MECH_DEFAULT_IDS))
+    period_s: float = Field(0.05, gt=0)
+    rotate_half_range_deg: float = Field(8.0, gt=0, le=45)
+    rail_half_travel_m: float = Field(0.01, gt=0, le=0.1)
+    rail_pinion_radius_m: float = Field(0.01, gt=0, description="rail offset = pinion radius × servo angle")
+    rotate_rate_rad_s: float = Field(0.5, gt=0, description="rate limit of the rotation target")
+    rail_rate_m_s: float = Field(0.02, gt=0, description="rate limit of the offset target")
+
+
+def joint_limits(p: WidowXParams) -> dict[str, tuple[float, float]]:
+    from sim_backends.widowx.model import WX250S_LINKS
+
+    lim = {name: rng for name, _, _, rng, *_ in WX250S_LINKS}
+    lim.update({k: tuple(v) for k, v in p.joint_limits_rad.items()})
+    return lim
+
+
+def widowx_spec(p: WidowXParams) -> RobotSpec:
+    lim = joint_limits(p)
+    v, big_a = p.max_joint_vel_rad_s, 30.0
+    state = Space.build(
+        [(f"{n}_pos", "rad", lim[n][0], lim[n][1]) for n in JOINT_NAMES]
+        + [(f"{n}_vel", "rad/s", -math.inf, math.inf) for n in JOINT_NAMES]
+        + [(f"{n}_current", "A", -big_a, big_a) for n in JOINT_NAMES])
+    action = Space.build([(f"{n}_vel", "rad/s", -v, v) for n in JOINT_NAMES])
+    return RobotSpec(name="widowx", state=state, action=action, period_s=p.period_s,
+                     action_rate_per_s=np.full(len(JOINT_NAMES), p.max_joint_accel_rad_s2),
+                     safe_action=np.zeros(len(JOINT_NAMES)),
+                     description="Trossen WidowX 250 6DOF, joint velocity control over Dynamixel Protocol 2.0")
+
+
+def mechanism_spec(p: MechanismParams) -> RobotSpec:
+    rot = math.radians(p.rotate_half_range_deg)
+    rail = p.rail_half_travel_m
+    state = Space.build([("rotate", "rad", -rot, rot), ("offset", "m", -rail, rail),
+                         ("rotate_vel", "rad/s", -math.inf, math.inf), ("offset_vel", "m/s", -math.inf, math.inf)])
+    action = Space.build([("rotate", "rad", -rot, rot), ("offset", "m", -rail, rail)])
+    # safe_action None: stop holds the measured pose
+    return RobotSpec(name="reset_mechanism", state=state, action=action, period_s=p.period_s,
+                     action_rate_per_s=np.array([p.rotate_rate_rad_s, p.rail_rate_m_s]),
+                     description="task-reset mechanism: switch housing rotation and rail offset (2 Dynamixels)")

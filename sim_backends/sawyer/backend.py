@@ -1,0 +1,78 @@
+"""Sawyer MuJoCo backend: the contract in-process, in lockstep, on the same vendor
+controller the emulator runs (:mod:`.controller`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from configs.schema import RobotConfig
+from drivers.base import Health, Observation
+from drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
+from drivers.sawyer.ros import POSITION_MODE, VELOCITY_MODE
+from sim_backends.base import LockstepSim, parse_params
+from sim_backends.sawyer.controller import SawyerArm
+
+
+class SawyerSim(LockstepSim):
+    def __init__(self, params: SawyerParams | None = None, source: str | None = None):
+        super().__init__()
+        self.params = params or SawyerParams()
+        #: the controller holds position (after a stop) rather than following a velocity
+        self._position_hold = False
+        self.source = source
+        self.spec = sawyer_spec(self.params)
+        self.arm: SawyerArm | None = None
+        self._seq = 0
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> SawyerSim:
+        return cls(parse_params(cfg, SawyerParams), source=cfg.source)
+
+    @property
+    def sim_time_s(self) -> float:
+        return 0.0 if self.arm is None else self.arm.time_s
+
+    def _on_configure(self) -> None:
+        self.arm = SawyerArm()
+
+    def _on_cleanup(self) -> None:
+        self.arm = None
+
+    def _advance(self, duration_s: float) -> None:
+        self.arm.advance(duration_s)
+
+    def reset(self, **kwargs: Any) -> None:
+        self.arm.reset()
+
+    def _read(self) -> Observation:
+        a = self.arm
+        s = np.concatenate([a.q(), a.qd(), a.effort()])
+        finite = bool(np.all(np.isfinite(s)))
+        self._seq += 1
+        return Observation(t_s=a.time_s, state=s, seq=self._seq, ok=finite, flags={"stale_telemetry": False,
+                           "nonfinite_input": not finite}, extras={"ee_pos_m": a.ee_pos().tolist()})
+
+    def _hold_command(self, obs: Observation) -> np.ndarray:
+        if self._position_hold:  # after a stop the controller holds position: zero velocity
+            return np.zeros(self.spec.action.dim)
+        return np.clip(obs.state[7:14], self.spec.action.low, self.spec.action.high)
+
+    def _on_activate(self) -> None:
+        self.arm.command(VELOCITY_MODE, list(JOINTS), self._held, self.arm.time_s)
+
+    def _write(self, action: np.ndarray) -> None:
+        self.arm.command(VELOCITY_MODE, list(JOINTS), action, self.arm.time_s)
+        self._position_hold = False
+
+    def _stop(self) -> None:
+        if self.arm is None:
+            return
+        self.arm.command(VELOCITY_MODE, list(JOINTS), np.zeros(7), self.arm.time_s)
+        self.arm.command(POSITION_MODE, list(JOINTS), self.arm.q(), self.arm.time_s)
+        self._position_hold = True
+
+    def _health(self) -> Health:
+        return Health(ok=self.arm is not None, extra={"backend": "sim", "command_timeouts":
+                                                      None if self.arm is None else self.arm.timeouts})

@@ -1,0 +1,1 @@
+"""WidowX arm and task-reset mechanism: MuJoCo model, servo firmware model, sim backend, bus emulator."""

@@ -1,0 +1,133 @@
+"""The simulated bench: WidowX + mechanism + switch in MuJoCo, each joint driven by a
+:class:`~sim_backends.widowx.firmware.Servo` at 1 kHz.
+
+Used by the sim backends in-process (lockstep) and by the bus emulator process (real
+time). Servos are addressed by Dynamixel ID, as on the wire.
+
+Several robots built in one process with the same bus name share one world (as they
+share one bus on the bench): ``shared_world(name, ...)`` hands out the same object while
+any robot holds it. Time advances in whole 1 ms servo ticks.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import mujoco
+import numpy as np
+
+from drivers.widowx.config import JOINTS, MECH_DEFAULT_IDS
+from sim_backends.widowx.firmware import TICK_S, Servo, ServoPhysics
+from sim_backends.widowx.model import WX250S_LINKS, MechanismGeometry, build_spec
+
+#: Interbotix' sleep pose: shoulder and elbow on their limits, so gravity keeps it there
+SLEEP_POSE_RAD = {"shoulder": -1.88, "elbow": 1.60, "wrist_angle": -1.74}
+#: a robot's world stays shared while one of its robots lives (bus name -> world)
+_WORLDS: weakref.WeakValueDictionary[str, ArmWorld] = weakref.WeakValueDictionary()
+
+
+class ArmWorld:
+    def __init__(self, arm_ids: dict[str, int] | None = None, mech_ids: dict[str, int] | None = None,
+                 mech: MechanismGeometry | None = None, start_holding: dict[str, float] | None = None):
+        """``start_holding``: start with the arm torqued and holding these joint angles
+        [rad] in position mode, as a previous session that was not cleanly shut down
+        leaves it (default: the sleep pose with torque off, as after power-on)."""
+        self.start_holding = dict(start_holding) if start_holding else None
+        self.arm_ids = arm_ids or {n: i for n, i, _, _ in JOINTS}
+        self.mech_ids = mech_ids or dict(MECH_DEFAULT_IDS)
+        self.mech = mech or MechanismGeometry()
+        torques = {n: t for n, _, _, t in JOINTS}
+        self.model = build_spec(torques, self.mech).compile()
+        self.data = mujoco.MjData(self.model)
+        limits = {name: rng for name, _, _, rng, *_ in WX250S_LINKS}
+        r = self.mech.rail_pinion_radius_m
+        limits["mech_rotate"] = (-self.mech.rotate_half_range_rad, self.mech.rotate_half_range_rad)
+        limits["mech_rail"] = (-self.mech.rail_half_travel_m / r, self.mech.rail_half_travel_m / r)
+        torques.update({"mech_rotate": 4.1, "mech_rail": 4.1})
+        self.servos: dict[int, Servo] = {}
+        self._act: dict[int, int] = {}
+        for name, dxl_id in {**self.arm_ids, **self.mech_ids}.items():
+            phys = ServoPhysics(stall_torque_nm=torques[name])
+            self.servos[dxl_id] = Servo(dxl_id, physics=phys, position_limits_rad=limits[name])
+            self._act[dxl_id] = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_ACTUATOR, name)
+        self.reset()
+
+    @property
+    def time_s(self) -> float:
+        return float(self.data.time)
+
+    def reset(self) -> None:
+        """Arm in its sleep pose, resting on the shoulder and elbow limits (where a real
+        WidowX rests with torque off), servos powered on with torque off."""
+        mujoco.mj_resetData(self.model, self.data)
+        pose = self.start_holding if self.start_holding is not None else SLEEP_POSE_RAD
+        for name, q in pose.items():
+            self.data.joint(name).qpos[0] = q
+        mujoco.mj_forward(self.model, self.data)
+        for s in self.servos.values():
+            s.mem[:] = bytes(len(s.mem))
+            s.power_on()
+        self._sync_servos()
+        if self.start_holding is not None:
+            for dxl_id in self.arm_ids.values():
+                s = self.servos[dxl_id]
+                s.publish()
+                s.set("Goal Position", s.get("Present Position"))
+                s.set("Torque Enable", 1)
+
+    def reset_robot(self, names: list[str] | tuple[str, ...], ids: list[int]) -> None:
+        """Put some joints back to their start pose at rest and power-cycle their servos,
+        leaving the rest of the bench as it is (one robot's reset)."""
+        pose = self.start_holding if self.start_holding is not None else SLEEP_POSE_RAD
+        for name in names:
+            j = self.data.joint(name)
+            j.qpos[0] = pose.get(name, 0.0)
+            j.qvel[0] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+        for dxl_id in ids:
+            s = self.servos[dxl_id]
+            s.mem[:] = bytes(len(s.mem))
+            s.power_on()
+            a = self._act[dxl_id]
+            s.tick(float(self.data.actuator_length[a]), float(self.data.actuator_velocity[a]), 0.0)
+
+    def _sync_servos(self) -> None:
+        """Present registers from the current state (no torque: used after reset)."""
+        for i, s in self.servos.items():
+            a = self._act[i]
+            s.tick(float(self.data.actuator_length[a]), float(self.data.actuator_velocity[a]), 0.0)
+
+    def step(self) -> None:
+        """One 1 ms servo tick on every servo, then one MuJoCo step."""
+        d = self.data
+        for i, s in self.servos.items():
+            a = self._act[i]
+            d.ctrl[a] = s.tick(float(d.actuator_length[a]), float(d.actuator_velocity[a]), TICK_S)
+        mujoco.mj_step(self.model, d)
+
+    def advance(self, duration_s: float) -> None:
+        for _ in range(int(round(duration_s / TICK_S))):
+            self.step()
+
+    # ------------------------------------------------------------------ readouts
+    def ee_pos(self) -> np.ndarray:
+        return self.data.site("ee").xpos.copy()
+
+    def port_pose(self) -> tuple[np.ndarray, float]:
+        """Switch port position [m] in the world and housing yaw [rad]."""
+        return self.data.site("port").xpos.copy(), float(self.data.joint("mech_rotate").qpos[0])
+
+
+def shared_world(bus_name: str, arm_ids: dict[str, int] | None = None,
+                 mech_ids: dict[str, int] | None = None, start_holding: dict[str, float] | None = None) -> ArmWorld:
+    """The world of a bus: created by the first robot that asks, shared with the rest."""
+    w = _WORLDS.get(bus_name)
+    if w is None:
+        w = ArmWorld(arm_ids, mech_ids, start_holding=start_holding)
+        _WORLDS[bus_name] = w
+    else:
+        for name, ids in (("arm", arm_ids), ("mechanism", mech_ids)):
+            have = w.arm_ids if name == "arm" else w.mech_ids
+            if ids is not None and ids != have:
+                raise ValueError(f"bus {bus_name!r} already has {name} IDs {have}, config asks for {ids}")
+    return w
