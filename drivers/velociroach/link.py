@@ -98,8 +98,21 @@ class XBeeDeframer:
         #: skipping the body of a frame already counted as bad: its bytes are not "garbage"
         self._resync = False
 
+    @property
+    def lost_frames(self) -> int:
+        """Corrupt events that each destroyed one frame (all but garbage between frames)."""
+        return self.bad_checksum + self.truncated + self.bad_length
+
     def feed(self, data: bytes, now_s: float | None = None) -> list[XBeeFrame]:
+        """Bytes in (any split), complete checked frames out. ``now_s``: monotonic clock [s].
+
+        Each corrupt run is counted once however the reads split it: a garbage run or the
+        body of a bad frame that continues into the next ``feed`` is not counted again
+        (a pause longer than :data:`STALE_PARTIAL_S` ends a run).
+        """
         now_s = time.monotonic() if now_s is None else now_s
+        if self._last_byte_t is not None and now_s - self._last_byte_t > STALE_PARTIAL_S:
+            self._resync = False
         if data:
             self._buf += data
             self._last_byte_t = now_s
@@ -110,10 +123,11 @@ class XBeeDeframer:
                 i = buf.find(START)
                 n = len(buf) if i < 0 else i
                 del buf[:n]
-                if self._resync:
-                    self._resync = i < 0  # the rest of a frame already counted as bad
-                else:
+                if not self._resync:
                     self._bad("garbage", f"{n} garbage byte(s) between frames")
+                # the run (a garbage run or the rest of a frame already counted as bad)
+                # goes on in the next read when no start delimiter ended it here
+                self._resync = i < 0
                 continue
             self._resync = False
             if len(buf) < 3:
@@ -363,7 +377,11 @@ class RadioLink:
         self.bytes_received += len(data)
         msgs = []
         want = FRAME_RX64 if self.role == "base" else FRAME_TX64
-        for f in self.deframer.feed(data, now):
+        lost_before = self.deframer.lost_frames
+        frames = self.deframer.feed(data, now)
+        # frames broken at the XBee layer used a MAVLink sequence number too
+        self.decoder.note_lost(self.deframer.lost_frames - lost_before)
+        for f in frames:
             if f.frame_type != want:
                 continue  # TX status and friends
             if f.addr64 != self._robot_addr_str:
