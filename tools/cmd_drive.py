@@ -12,43 +12,12 @@ read → write → tick at the control period, so it runs unchanged on every bac
 
 from __future__ import annotations
 
-import functools
 import math
-from collections.abc import Callable
 from typing import Any
 
 import typer
 
-from tools.common import UserError, echo_json
-
-
-def _one_line(e: BaseException) -> str:
-    from configs.schema import ConfigError
-
-    if isinstance(e, ConfigError):
-        return "; ".join(f"{e.file}: {fld or '<root>'}: {msg}" if e.file != "<inline>" else f"{fld}: {msg}"
-                         for fld, msg in e.problems)
-    lines = str(e).strip().splitlines()
-    return lines[0] if lines else type(e).__name__
-
-
-def _errors(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """User errors: one line, exit 2. A link failure: one line, exit 1. No tracebacks."""
-    from configs.schema import ConfigError
-    from drivers.base import CommandError, LinkError
-
-    @functools.wraps(fn)
-    def wrapper(*a: Any, **kw: Any) -> Any:
-        try:
-            return fn(*a, **kw)
-        except (UserError, ConfigError, CommandError) as e:
-            typer.echo(f"error: {_one_line(e)}", err=True)
-            raise typer.Exit(2) from None
-        except LinkError as e:
-            typer.echo(f"link error: {_one_line(e)}", err=True)
-            raise typer.Exit(1) from None
-
-    return wrapper
+from tools.common import UserError, echo_json, user_errors
 
 
 def parse_action(text: str, dim: int, names: tuple[str, ...]) -> list[float]:
@@ -76,9 +45,11 @@ def _pose(names: tuple[str, ...], s: Any) -> dict[str, float | None]:
     return {"x": get("x"), "y": get("y"), "yaw": yaw}
 
 
-def drive_run(robot: str, backend: str, action: str, seconds: float, port: str | None = None,
-              config: str | None = None) -> dict[str, Any]:
-    """Drive open loop; returns the summary printed by `hil drive --json`."""
+def drive_run(robot: str, backend: str | None, action: str, seconds: float,
+              port: str | None = None) -> dict[str, Any]:
+    """Drive open loop; returns the summary printed by `hil drive --json`.
+
+    ``backend`` None: the one the robot config names (``backend:`` in the YAML)."""
     import numpy as np
 
     from drivers.registry import make_driver
@@ -88,7 +59,7 @@ def drive_run(robot: str, backend: str, action: str, seconds: float, port: str |
     params: dict[str, Any] = {}
     if port:
         params["port"] = port
-    drv = make_driver(config or robot, backend=backend, **params)
+    drv = make_driver(robot, backend=backend, **params)
     sp = drv.spec
     a_norm = np.array(parse_action(action, sp.action.dim, sp.action.names))
     lo, hi = sp.action.low, sp.action.high
@@ -111,7 +82,7 @@ def drive_run(robot: str, backend: str, action: str, seconds: float, port: str |
         last = drv.read()
         health = drv.health().to_dict()
     end = _pose(sp.state.names, last.state)
-    out: dict[str, Any] = {"robot": sp.name, "backend": backend, "seconds": seconds, "steps": n_steps,
+    out: dict[str, Any] = {"robot": sp.name, "backend": drv.backend, "seconds": seconds, "steps": n_steps,
                            "action": a.tolist(), "action_normalized": a_norm.tolist()}
     if start["x"] is not None and end["x"] is not None:
         dx, dy = end["x"] - start["x"], end["y"] - start["y"]
@@ -128,24 +99,25 @@ def drive_run(robot: str, backend: str, action: str, seconds: float, port: str |
 
 def register(app: typer.Typer) -> None:
     @app.command()
-    @_errors
+    @user_errors
     def drive(
         robot: str = typer.Argument(..., help="robot config name or path (configs/robots/), e.g. velociroach"),
-        backend: str = typer.Option("sim", "--backend", help="sim | emulated | real"),
+        backend: str = typer.Option(None, "--backend",
+                                    help="sim | emulated | real (default: the config's backend:)"),
         action: str = typer.Option(..., "--action", help="normalized action per channel in [-1, 1], e.g. 0.6,0.6"),
         seconds: float = typer.Option(3.0, "--seconds", help="how long to drive [s] (sim: simulated seconds)"),
         port: str = typer.Option(None, "--port", help="serial port of the radio (real backend), e.g. /dev/ttyUSB0"),
         json_out: bool = typer.Option(False, "--json", help="print one JSON line"),
     ) -> None:
         """Drive a robot open loop and report distance, final pose and link statistics."""
-        if backend not in ("sim", "emulated", "real"):
+        if backend is not None and backend not in ("sim", "emulated", "real"):
             raise UserError(f"--backend {backend!r}: expected sim, emulated or real")
         res = drive_run(robot, backend, action, seconds, port=port)
         if json_out:
             echo_json(res)
             return
         fp = res["final_pose"]
-        typer.echo(f"{res['robot']} ({backend}): action {res['action']} for {seconds:g} s ({res['steps']} steps)")
+        typer.echo(f"{res['robot']} ({res['backend']}): action {res['action']} for {seconds:g} s ({res['steps']} steps)")
         if "distance_m" in res:
             fwd = f", forward {res['forward_m']:+.3f} m" if "forward_m" in res else ""
             typer.echo(f"  distance {res['distance_m']:.3f} m (path {res['path_length_m']:.3f} m){fwd}")
@@ -158,7 +130,7 @@ def register(app: typer.Typer) -> None:
                    f"dropped={lk['dropped_frames']} latency={lat}")
 
     @app.command("find-port")
-    @_errors
+    @user_errors
     def find_port(json_out: bool = typer.Option(False, "--json", help="print one JSON line")) -> None:
         """List serial ports that could be the base-station XBee (USB serial adapters first)."""
         from serial.tools import list_ports
