@@ -22,6 +22,6 @@ py="${PYTHON:-python3}"
 .venv/bin/python -m pip install -q --upgrade pip
 # torch is pinned for these machines (a local CPU wheel); the package itself only asks for a range.
 .venv/bin/python -m pip install -q "torch==${HIL_TORCH_VERSION:-2.13.0}"
-# dev = test tools + the extras the suite exercises (bench: pytorch-mppi, mocap: natnet)
+# dev = test tools + the extras the suite exercises (bench: pytorch-mppi, mocap: natnet, fuzz: atheris)
 .venv/bin/python -m pip install -q -e ".[dev]"
 echo "[setup] done: $(.venv/bin/hil --version 2>/dev/null || echo 'hil installed at .venv/bin/hil')"
