@@ -28,6 +28,7 @@ _VERB_MODULES = [
     "tools.cmd_record",
     "tools.cmd_viz",
     "tools.cmd_calibrate",
+    "tools.cmd_data",
     "tools.cmd_bench",
     "tools.cmd_misc",
 ]
