@@ -70,6 +70,17 @@ def test_link_errors_exit_1_in_up_and_drive_alike(tmp_path):
     assert codes == {"drive": 1, "up": 1}
 
 
+def test_a_rig_whose_robot_fails_exits_like_the_robot(tmp_path):
+    """`hil up` of a multi-robot rig runs one process per robot; a failing one is not hidden."""
+    not_a_tty = tmp_path / "not_a_tty"
+    not_a_tty.write_bytes(b"")
+    robot, _ = real_roach(tmp_path, str(not_a_tty))
+    rig = tmp_path / "two.yaml"
+    rig.write_text(f"name: two\nrobots:\n  a:\n    config: {robot}\n  b:\n    config: {robot}\n")
+    r = CliRunner().invoke(app, ["up", str(rig), "--steps", "1"])
+    assert r.exit_code == 1, r.output
+
+
 def test_config_errors_are_one_line_exit_2(tmp_path):
     bad, rig = real_roach(tmp_path, "/dev/ttyUSB0")
     bad.write_text("robot: velociroach\nbackend: real\nparams:\n  prot: /dev/ttyUSB0\n")
