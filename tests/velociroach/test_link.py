@@ -146,6 +146,28 @@ def test_a_corrupt_run_split_over_reads_counts_once():
         assert d.corrupt == 4, chunk
 
 
+@pytest.mark.parametrize("inner", [
+    b"\x7e\x00\x05\x01\x02\x03\x04\x05\x06",  # a plausible frame start inside the body
+    b"\x7e\x7e\xff",  # an impossible length inside the body
+])
+@pytest.mark.parametrize("chunk", [1, 5, 1000])
+def test_a_start_byte_inside_a_broken_frame_is_not_a_second_error(inner, chunk):
+    """A broken frame counts once, whatever 0x7E bytes its body holds."""
+    good = xbee_rx64(addr64(ADDR), robot_frames()[0])
+    broken = bytearray(xbee_rx64(addr64(ADDR), b"\x01\x02" + inner + b"\x03" * 20))
+    broken[-1] ^= 0x5A
+    for tail_is_start in (False, True):
+        if tail_is_start:
+            broken[-1] = 0x7E  # the broken checksum byte itself looks like a frame start
+        stream = good + bytes(broken) + good + good
+        d = XBeeDeframer()
+        out = []
+        for i in range(0, len(stream), chunk):
+            out += d.feed(stream[i : i + chunk], now_s=0.0)
+        assert len(out) == 3
+        assert (d.corrupt, d.bad_checksum, d.bad_length, d.truncated, d.garbage) == (1, 1, 0, 0, 0)
+
+
 def test_a_pause_ends_a_garbage_run():
     d = XBeeDeframer()
     d.feed(b"\x01\x02", now_s=0.0)
@@ -209,6 +231,51 @@ def test_encoder_sequence_numbers_are_unique_across_threads():
         sys.setswitchinterval(old)
     seqs = Counter(f[4] for f in out[0] + out[1])  # MAVLink v2: the sequence is byte 4
     assert set(seqs.values()) == {2 * per_thread // 256}, seqs.most_common(3)
+
+
+def test_counts_are_exact_over_a_real_pty():
+    """39 injected runs must read as 39 whatever the pty's reads do; no corrupt frame as a drop."""
+    import random
+
+    rng = random.Random(3)
+    enc = vm.MavEncoder(vm.ROBOT_SYSID, vm.ROBOT_COMPID)
+    stream, n_frames, n_garbage, n_bad = [], 300, 0, 0
+    for i in range(n_frames):
+        raw = bytearray(xbee_rx64(addr64(ADDR), enc.heartbeat(robot=True)))
+        if i % 7 == 3:
+            stream.append(bytes(rng.choice([b for b in range(256) if b != 0x7E]) for _ in range(rng.randint(1, 40))))
+            n_garbage += 1
+        if i % 11 == 5:
+            raw[-1] ^= 0x5A  # bad XBee checksum
+            n_bad += 1
+        stream.append(bytes(raw))
+    data = b"".join(stream)
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = RadioLink.open(os.ttyname(slave), 230400, role="base", robot_addr64=ADDR)
+    os.close(slave)
+
+    def write():  # odd-sized writes so frames and runs straddle the reader's reads
+        i = 0
+        while i < len(data):
+            n = rng.randint(1, 97)
+            os.write(master, data[i : i + n])
+            i += n
+
+    w = threading.Thread(target=write)
+    w.start()
+    got = 0
+    deadline = time.monotonic() + 10.0
+    while got < n_frames - n_bad and time.monotonic() < deadline:
+        got += len(link.receive(timeout_s=0.02))
+    w.join()
+    link.close()
+    os.close(master)
+    s = link.stats()
+    assert got == n_frames - n_bad
+    assert (s["garbage_runs"], s["bad_xbee_checksum"], s["truncated_frames"]) == (n_garbage, n_bad, 0)
+    assert link.dropped_frames == 0 and link.corrupt_frames == n_garbage + n_bad, str(s)
 
 
 def test_sequence_gaps_count_as_dropped():
