@@ -129,3 +129,22 @@ def test_required_dependencies_are_imported_somewhere():
     # cantools and msgpack: the Shadow Hand, landing in parallel (kept required on purpose)
     assert set(unused) <= {"pyarrow", "python-can", "cantools", "msgpack"}, unused
     assert "dynamixel-sdk" not in names and "pytorch-mppi" not in names and "natnet" not in names
+
+
+def test_a_link_error_keeps_its_diagnosis_indented_below_the_one_line():
+    import typer
+
+    from drivers.base import LinkError
+    from tools.common import user_errors
+
+    mini = typer.Typer()
+
+    @mini.command()
+    @user_errors
+    def go() -> None:
+        raise LinkError("no heartbeat from the robot within 10 s; emulator log:\nline one\nline two")
+
+    r = CliRunner().invoke(mini, [])
+    assert r.exit_code == 1
+    assert r.output.splitlines() == ["link error: no heartbeat from the robot within 10 s; emulator log:",
+                                     "  line one", "  line two"]

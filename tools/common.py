@@ -20,8 +20,8 @@ class UserError(Exception):
     """A problem the user can fix (bad argument, missing file): one line, exit 2."""
 
 
-#: Exit codes of every `hil` verb (docs/platform.md, "Exit codes").
-EXIT_OK, EXIT_RUNTIME, EXIT_USAGE = 0, 1, 2
+#: Exit codes of every `hil` verb besides 0 (docs/platform.md, "Exit codes").
+EXIT_RUNTIME, EXIT_USAGE = 1, 2
 
 
 def one_line(e: BaseException) -> str:
@@ -49,6 +49,9 @@ def user_errors(fn: F) -> F:
         except (LinkError, LifecycleError) as e:
             what = "link error" if isinstance(e, LinkError) else "error"
             typer.echo(f"{what}: {one_line(e)}", err=True)
+            # what follows the first line (e.g. the emulator's log tail) is diagnosis: indented
+            for ln in str(e).strip().splitlines()[1:]:
+                typer.echo(f"  {ln}", err=True)
             raise typer.Exit(EXIT_RUNTIME) from None
 
     return wrapper  # type: ignore[return-value]
