@@ -147,7 +147,9 @@ def decode(data: bytes, typ: type[T] | Any = AnyMsg) -> T:
         dec = _decoders[typ] = msgspec.msgpack.Decoder(typ)
     try:
         return dec.decode(data)
-    except (msgspec.DecodeError, msgspec.ValidationError) as e:
+    # msgspec lets UnicodeDecodeError out for a string field (the type tag too) that is not
+    # UTF-8 (found by fuzzing, tools/fuzz.py)
+    except (msgspec.DecodeError, msgspec.ValidationError, UnicodeDecodeError) as e:
         name = getattr(typ, "__name__", "message")
         raise MalformedMessage(f"not a valid {name}: {e}") from None
 

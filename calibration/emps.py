@@ -10,11 +10,20 @@ Fv = 203.5 N s/m, Fc = 20.4 N, offset = −3.16 N.
 The converter writes ``time, volts, position`` (+ ``reference`` for information), so the
 generic CSV path of ``hil calibrate`` applies:
 
+    hil data emps --csv emps.csv       # finds or downloads the files (checksummed), converts
     hil calibrate --data emps.csv --map t=time,u=volts,x=position --ku 35.15 --out out/emps
+
+Getting the files (:func:`fetch_emps`): the first directory holding both files with the
+right SHA-256 wins: ``$HIL_DATA/emps`` (or ``$HIL_DATA/real/emps``), the download cache,
+``shared/data/real/emps`` beside the repository (or beside one of its parent folders);
+otherwise pooch downloads them from the public repository they were published in into
+the cache (``$HILSTACK_CACHE/data/emps``, default ``~/.cache/hilstack/data/emps``) and
+checks their SHA-256. Data files are never committed.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +32,90 @@ import numpy as np
 EMPS_GTAU_N_PER_V = 35.15
 #: Published reference values (Janot et al. 2019), in N, kg, N s/m.
 EMPS_REFERENCE = {"M_kg": 95.1, "Fv_Nspm": 203.5, "Fc_N": 20.4, "offset_N": -3.16}
+
+
+#: Where the files were published: forgi86/sysid-neural-continuous (Apache-2.0),
+#: examples/EMPS/data/, at the commit the checksums below were taken from.
+EMPS_BASE_URL = "https://raw.githubusercontent.com/forgi86/sysid-neural-continuous/956aa7e/examples/EMPS/data/"
+#: SHA-256 of each file (of the copies in shared/data/real/emps, from that commit).
+EMPS_SHA256 = {
+    "DATA_EMPS.mat": "6cf6814ae14618795da0101aae2bb97ff0c6351b0501b5492751b02b07facf7e",
+    "DATA_EMPS_PULSES.mat": "0eab75bb1f6b16228ee78791343a88bf9bfd9a51036ac9807d7b5fc11c0e1704",
+}
+
+
+class DataError(RuntimeError):
+    """The data could not be obtained (download failed, checksum mismatch)."""
+
+
+class DataNotFound(DataError):
+    """Offline and no local copy: the user must point ``$HIL_DATA`` at one."""
+
+
+def emps_cache_dir() -> Path:
+    root = os.environ.get("HILSTACK_CACHE")
+    if root:
+        return Path(root) / "data" / "emps"
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "hilstack" / "data" / "emps"
+
+
+def emps_search_dirs() -> list[Path]:
+    """Local copies, in the order they are tried (the cache comes after ``$HIL_DATA``)."""
+    dirs = []
+    if os.environ.get("HIL_DATA"):
+        dirs += [Path(os.environ["HIL_DATA"]) / "emps", Path(os.environ["HIL_DATA"]) / "real" / "emps"]
+    dirs.append(emps_cache_dir())
+    repo = Path(__file__).resolve().parents[1]
+    dirs += [p / "shared" / "data" / "real" / "emps" for p in repo.parents]
+    return dirs
+
+
+def _sha256_ok(path: Path) -> bool:
+    import pooch
+
+    return path.is_file() and pooch.file_hash(str(path), alg="sha256") == EMPS_SHA256[path.name]
+
+
+def fetch_emps(*, base_url: str | None = None, offline: bool = False,
+               search_dirs: list[Path] | None = None, cache_dir: Path | None = None) -> Path:
+    """The directory holding ``DATA_EMPS.mat`` and ``DATA_EMPS_PULSES.mat`` (checked).
+
+    Looks in ``search_dirs`` (default :func:`emps_search_dirs`); then, unless ``offline``,
+    downloads from ``base_url`` (default :data:`EMPS_BASE_URL`) into ``cache_dir`` with
+    pooch, which checks the SHA-256 and keeps nothing that fails it.
+    Raises :class:`DataNotFound` (offline, no copy) or :class:`DataError`.
+    """
+    dirs = emps_search_dirs() if search_dirs is None else search_dirs
+    bad: list[str] = []
+    for d in dirs:
+        files = [d / name for name in EMPS_SHA256]
+        if all(_sha256_ok(f) for f in files):
+            return d
+        bad += [f"{f} (checksum mismatch)" for f in files if f.is_file() and not _sha256_ok(f)]
+    if offline:
+        tried = ", ".join(str(d) for d in dirs) or "nowhere"
+        extra = f"; rejected {', '.join(bad)}" if bad else ""
+        raise DataNotFound(f"EMPS data not found offline (looked in {tried}{extra}); "
+                           "put DATA_EMPS.mat and DATA_EMPS_PULSES.mat in $HIL_DATA/emps")
+    return _download(base_url or EMPS_BASE_URL, cache_dir or emps_cache_dir())
+
+
+def _download(base_url: str, cache: Path) -> Path:
+    import pooch
+    import requests
+
+    cache.mkdir(parents=True, exist_ok=True)
+    for name, sha in EMPS_SHA256.items():
+        url = base_url.rstrip("/") + "/" + name
+        try:
+            pooch.retrieve(url, known_hash=f"sha256:{sha}", fname=name, path=cache, progressbar=False)
+        except ValueError as e:  # pooch: hash mismatch; it has deleted the download
+            raise DataError(f"{name} from {url} failed its checksum, not kept ({str(e).splitlines()[0]})") from None
+        except (requests.RequestException, OSError) as e:
+            raise DataError(f"cannot download {url}: {type(e).__name__}: {e}; offline? "
+                            "put the files in $HIL_DATA/emps") from None
+    return cache
 
 
 def read_emps(mat_path: str | Path) -> dict[str, np.ndarray | float]:

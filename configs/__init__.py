@@ -7,6 +7,7 @@ Errors are :class:`ConfigError` naming the file, the field and what was expected
 from configs.schema import (
     BusConfig,
     ConfigError,
+    Params,
     RigConfig,
     RobotConfig,
     TaskConfig,
@@ -16,11 +17,13 @@ from configs.schema import (
     load_task,
     load_yaml_model,
     parse_model,
+    parse_params,
 )
 
 __all__ = [
     "BusConfig",
     "ConfigError",
+    "Params",
     "RigConfig",
     "RobotConfig",
     "TaskConfig",
@@ -30,4 +33,5 @@ __all__ = [
     "load_task",
     "load_yaml_model",
     "parse_model",
+    "parse_params",
 ]

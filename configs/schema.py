@@ -185,3 +185,24 @@ def rig_robot_config(rig: RigConfig, key: str) -> RobotConfig:
     base = Path(rig.source).parent if rig.source else None
     path = config_path("robots", entry.config, base)
     return load_robot(path, backend=entry.backend, params=entry.params)
+
+
+# ---------------------------------------------------------------- robot-specific params
+P = TypeVar("P", bound=BaseModel)
+
+
+class Params(BaseModel):
+    """Base of robot-specific ``params`` sections: unknown keys are errors.
+
+    Lives here, beside the schemas, so drivers and sim backends both use it without
+    depending on each other."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+def parse_params(cfg: RobotConfig, model: type[P]) -> P:
+    """Validate ``cfg.params``; errors name the file and ``params.<field>``."""
+    try:
+        return parse_model(model, dict(cfg.params), cfg.source)
+    except ConfigError as e:
+        raise ConfigError(cfg.source, [(f"params.{f}" if f else "params", m) for f, m in e.problems]) from None

@@ -43,6 +43,7 @@ import torch
 from torch import nn
 
 from learning.datasets import Episode, NormStats, TransitionDataset
+from learning.progress import progress as progress_output
 
 __all__ = ["EnsembleDynamics", "cpu_bf16_support", "h_step_windows", "h_step_error"]
 
@@ -404,7 +405,7 @@ class EnsembleDynamics(nn.Module):
             dataset: training transitions (episodes are wrapped in a TransitionDataset).
             epochs: passes over the (per-member bootstrap) data.
             batch_size: transitions per member per gradient step.
-            progress: show a tqdm bar with the latest losses.
+            progress: show progress with the latest losses (a tqdm bar on a terminal, lines in a log).
             val: held-out episodes; when given, every epoch records the one-step and the
                 ``horizon``-step open-loop validation error (:func:`h_step_error`).
             horizon: H of the open-loop validation error.
@@ -452,9 +453,7 @@ class EnsembleDynamics(nn.Module):
         entries: list[dict] = []
         bar = None
         if progress:
-            from tqdm.auto import tqdm  # noqa: PLC0415
-
-            bar = tqdm(total=epochs, desc="fit", leave=False)
+            bar = progress_output(total=epochs, desc="fit")  # tqdm on a terminal, plain lines in a log
         n_batches = max(1, math.ceil(N / batch_size))
         for ep in range(epochs):
             t0 = time.perf_counter()
@@ -483,8 +482,9 @@ class EnsembleDynamics(nn.Module):
             entries.append(entry)
             self.history.append(entry)
             if bar is not None:
-                bar.update(1)
+                # postfix first: a plain-line log writes its line in update()
                 bar.set_postfix({k: f"{v:.4g}" for k, v in entry.items() if k in ("train_loss", "val_h")})
+                bar.update(1)
         if bar is not None:
             bar.close()
         self.eval()

@@ -42,6 +42,7 @@ from control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from learning.datasets import Episode
 from learning.dynamics import EnsembleDynamics
 from learning.frames import BodyFrameDynamics
+from learning.progress import progress
 from learning.recordings import episodes_from_mcap
 
 
@@ -565,9 +566,7 @@ class MbrlRun:
 def _progress(it, cfg: MbrlConfig, desc: str):
     if not cfg.progress:
         return it
-    from tqdm import tqdm
-
-    return tqdm(it, desc=desc, file=sys.stderr, leave=False)
+    return progress(it, desc=desc, file=sys.stderr)  # plain lines when stderr is a log file
 
 
 def _jsonable(o: Any) -> Any:

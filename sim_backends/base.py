@@ -1,29 +1,10 @@
-"""Shared pieces of MuJoCo sim backends: lockstep time, params validation."""
+"""Shared pieces of MuJoCo sim backends: lockstep time."""
 
 from __future__ import annotations
 
-from typing import Any, TypeVar
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict
-
-from configs.schema import ConfigError, RobotConfig, parse_model
 from drivers.base import Driver
-
-P = TypeVar("P", bound=BaseModel)
-
-
-class Params(BaseModel):
-    """Base of robot-specific ``params`` sections: unknown keys are errors."""
-
-    model_config = ConfigDict(extra="forbid")
-
-
-def parse_params(cfg: RobotConfig, model: type[P]) -> P:
-    """Validate ``cfg.params``; errors name the file and ``params.<field>``."""
-    try:
-        return parse_model(model, dict(cfg.params), cfg.source)
-    except ConfigError as e:
-        raise ConfigError(cfg.source, [(f"params.{f}" if f else "params", m) for f, m in e.problems]) from None
 
 
 class LockstepSim(Driver):

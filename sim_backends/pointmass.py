@@ -9,9 +9,9 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from configs.schema import RobotConfig
+from configs.schema import Params, RobotConfig, parse_params
 from drivers.base import Health, Observation, RobotSpec, Space
-from sim_backends.base import LockstepSim, Params, parse_params
+from sim_backends.base import LockstepSim
 
 _XML = """
 <mujoco model="pointmass">

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 from typer.testing import CliRunner
 
 from tools.cli import app
@@ -11,7 +13,7 @@ def test_help_lists_the_verbs():
     r = CliRunner().invoke(app, ["--help"])
     assert r.exit_code == 0
     for verb in ("demo", "drive", "record", "replay", "inspect", "viz", "calibrate", "bench", "up", "estop",
-                 "nodes", "mpc", "find-port"):
+                 "nodes", "mpc", "find-port", "data"):
         assert f" {verb} " in r.output, verb
     r = CliRunner().invoke(app, ["bench", "--help"])
     assert all(w in r.output for w in ("bus", "plan", "sim"))
@@ -60,3 +62,127 @@ def test_replay_cli_says_what_it_left_out_and_refuses_a_live_rig(tmp_path, bus):
             app, ["replay", str(path), "--speed", "0", "--force", "--include-commands", "--endpoint", bus.endpoint]
         )
         assert r.exit_code == 0 and "replayed 9 messages" in r.output
+
+
+def test_version_is_the_package_version():
+    from importlib.metadata import version
+
+    r = CliRunner().invoke(app, ["--version"])
+    assert r.exit_code == 0 and r.output.strip() == f"hilstack {version('hilstack')}"
+
+
+def real_roach(tmp_path, port: str):
+    robot = tmp_path / "my_roach.yaml"
+    robot.write_text(f"robot: velociroach\nbackend: real\nparams:\n  port: {port}\n")
+    rig = tmp_path / "my_rig.yaml"
+    rig.write_text(f"name: my_rig\nrobots:\n  roach:\n    config: {robot}\n")
+    return robot, rig
+
+
+def test_drive_uses_the_backend_of_the_config_file(tmp_path):
+    robot, _ = real_roach(tmp_path, "/dev/ttyNOPE_hilstack")
+    # the file says real: the driver looks for its (missing) port instead of driving the sim
+    r = CliRunner().invoke(app, ["drive", str(robot), "--action", "0.1,0.1", "--seconds", "0.2"])
+    assert r.exit_code == 2, r.output
+    assert "params.port: /dev/ttyNOPE_hilstack does not exist" in r.output and "Traceback" not in r.output
+    # --backend still overrides the file
+    r = CliRunner().invoke(app, ["drive", str(robot), "--backend", "sim", "--action", "0.1,0.1",
+                                 "--seconds", "0.2", "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output.strip().splitlines()[-1])["backend"] == "sim"
+
+
+def test_link_errors_exit_1_in_up_and_drive_alike(tmp_path):
+    """One convention for every verb: 2 = fix your input, 1 = the robot or link failed."""
+    not_a_tty = tmp_path / "not_a_tty"
+    not_a_tty.write_bytes(b"")  # exists, but no serial port can be configured on it
+    robot, rig = real_roach(tmp_path, str(not_a_tty))
+    codes = {}
+    for verb, args in (("drive", [str(robot), "--action", "0,0"]), ("up", [str(rig), "--steps", "1"])):
+        r = CliRunner().invoke(app, [verb, *args])
+        codes[verb] = r.exit_code
+        err = [ln for ln in r.output.splitlines() if ln.startswith("link error:")]
+        assert len(err) == 1 and "cannot open serial port" in err[0], r.output
+    assert codes == {"drive": 1, "up": 1}
+
+
+def test_a_rig_whose_robot_fails_exits_like_the_robot(tmp_path):
+    """`hil up` of a multi-robot rig runs one process per robot; a failing one is not hidden."""
+    not_a_tty = tmp_path / "not_a_tty"
+    not_a_tty.write_bytes(b"")
+    robot, _ = real_roach(tmp_path, str(not_a_tty))
+    rig = tmp_path / "two.yaml"
+    rig.write_text(f"name: two\nrobots:\n  a:\n    config: {robot}\n  b:\n    config: {robot}\n")
+    r = CliRunner().invoke(app, ["up", str(rig), "--steps", "1"])
+    assert r.exit_code == 1, r.output
+
+
+def test_config_errors_are_one_line_exit_2(tmp_path):
+    bad, rig = real_roach(tmp_path, "/dev/ttyUSB0")
+    bad.write_text("robot: velociroach\nbackend: real\nparams:\n  prot: /dev/ttyUSB0\n")
+    for verb, args in (("drive", [str(bad), "--action", "0,0"]), ("up", [str(rig), "--steps", "1"])):
+        r = CliRunner().invoke(app, [verb, *args])
+        assert r.exit_code == 2, r.output
+        lines = [ln for ln in r.output.splitlines() if ln.strip()]
+        assert len(lines) == 1 and "params.prot" in lines[0] and str(bad) in lines[0], r.output
+    r = CliRunner().invoke(app, ["drive", "pointmass", "--backend", "warp", "--action", "0,0"])
+    assert r.exit_code == 2 and "--backend 'warp'" in r.output
+
+
+def test_optional_packages_missing_say_which_extra(monkeypatch):
+    """pytorch-mppi and natnet are extras: without them the error names the extra to install."""
+    import sys
+
+    import pytest
+
+    from drivers.mocap.natnet_client import NatNetPoseSource
+    from tools import bench_plan
+
+    monkeypatch.setitem(sys.modules, "natnet", None)  # import natnet -> ImportError
+    monkeypatch.setitem(sys.modules, "pytorch_mppi", None)
+    with pytest.raises(ModuleNotFoundError, match=r"hilstack\[mocap\]"):
+        NatNetPoseSource().connect(timeout_s=0.1)
+    with pytest.raises(ModuleNotFoundError, match=r"hilstack\[bench\]"):
+        bench_plan._make_peer(None, None, next(iter(bench_plan.WORKLOADS.values())), None, None)
+
+
+def test_required_dependencies_are_imported_somewhere():
+    """Every required dependency is used by the code (optional ones live in extras)."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    deps = tomllib.loads((root / "pyproject.toml").read_text())["project"]["dependencies"]
+    names = [re.split(r"[<>=!~\[ ;]", d)[0].lower() for d in deps]
+    import_name = {"eclipse-zenoh": "zenoh", "rerun-sdk": "rerun", "pyserial": "serial", "digi-xbee": "digi",
+                   "python-can": "can", "pyyaml": "yaml", "scipy": "scipy", "pyarrow": "pyarrow",
+                   "foxglove-sdk": "foxglove", "dynamixel-sdk": "dynamixel_sdk"}
+    src = "\n".join(p.read_text() for pkg in ("drivers", "sim_backends", "control", "learning", "calibration",
+                                              "bus", "tools", "configs") for p in (root / pkg).rglob("*.py"))
+    unused = [n for n in names
+              if not re.search(rf"^\s*(import|from)\s+{re.escape(import_name.get(n, n))}\b", src, re.M)]
+    # pyarrow: the Parquet engine behind pandas.read_parquet (data loaders); msgpack: python-can's
+    # udp_multicast bus (the hand's emulated transport) needs it; gymnasium-robotics: only its
+    # assets, located with importlib.util.find_spec (sim_backends/shadow_hand/model.py)
+    assert set(unused) <= {"pyarrow", "msgpack", "gymnasium-robotics"}, unused
+    assert "pytorch-mppi" not in names and "natnet" not in names
+
+
+def test_a_link_error_keeps_its_diagnosis_indented_below_the_one_line():
+    import typer
+
+    from drivers.base import LinkError
+    from tools.common import user_errors
+
+    mini = typer.Typer()
+
+    @mini.command()
+    @user_errors
+    def go() -> None:
+        raise LinkError("no heartbeat from the robot within 10 s; emulator log:\nline one\nline two")
+
+    r = CliRunner().invoke(mini, [])
+    assert r.exit_code == 1
+    assert r.output.splitlines() == ["link error: no heartbeat from the robot within 10 s; emulator log:",
+                                     "  line one", "  line two"]

@@ -89,7 +89,10 @@ def _make_planner(w: dict):
 
 
 def _make_peer(model: EnsembleDynamics, cost, w: dict, s0: torch.Tensor, predict):
-    from pytorch_mppi import MPPI  # noqa: PLC0415 - optional peer
+    try:
+        from pytorch_mppi import MPPI  # noqa: PLC0415 - optional peer
+    except ImportError:
+        raise ModuleNotFoundError("hil bench plan compares with pytorch-mppi: pip install 'hilstack[bench]'") from None
 
     E, S, A = w["ensemble"], w["state_dim"], w["action_dim"]
     K = w["samples"]

@@ -28,9 +28,39 @@ _VERB_MODULES = [
     "tools.cmd_record",
     "tools.cmd_viz",
     "tools.cmd_calibrate",
+    "tools.cmd_data",
     "tools.cmd_bench",
     "tools.cmd_misc",
 ]
+
+def version() -> str:
+    """The installed hilstack version (package metadata), or the source tree's pyproject."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("hilstack")
+    except PackageNotFoundError:  # run from a checkout that was never pip-installed
+        import tomllib
+        from pathlib import Path
+
+        pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+        return tomllib.loads(pyproject.read_text())["project"]["version"]
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"hilstack {version()}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    _version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                  help="print the hilstack version and exit"),
+) -> None:
+    """hilstack: hardware-in-the-loop robot stack for model-based learning and control."""
+
 
 for _mod in _VERB_MODULES:
     importlib.import_module(_mod).register(app)

@@ -1,4 +1,5 @@
-"""hil bench bus | plan | sim: speed goals as ratios against a peer in the same run."""
+"""hil bench bus | plan | sim: speed goals as ratios against a peer in the same run;
+hil bench fuzz: every parser of untrusted bytes under atheris."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import json
 
 import typer
 
-from tools.common import echo_json, user_errors
+from tools.common import UserError, echo_json, user_errors
 
 bench_app = typer.Typer(help="Benchmarks (ratios against a peer in the same run).", no_args_is_help=True)
 
@@ -51,6 +52,35 @@ def bench_sim(
 
     r = run_bench_sim(seconds_of_robot_time=seconds)
     echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
+
+
+@bench_app.command("fuzz")
+@user_errors
+def bench_fuzz(
+    n: int = typer.Option(1_000_000, "--n", help="inputs per parser"),
+    target: list[str] = typer.Option(None, "--target", help="only these parsers (repeatable): xbee, mavlink, bus"),
+    seed: int = typer.Option(1, "--seed", help="libFuzzer seed (same seed, same inputs)"),
+    json_out: bool = typer.Option(False, "--json"),
+) -> None:
+    """Fuzz the XBee deframer, the MAVLink decoder and the bus decoders (atheris); exit 1 on a crash."""
+    from tools.fuzz import TARGETS, run_bench_fuzz
+
+    if n < 1:
+        raise UserError(f"--n must be at least 1, got {n}")
+    bad = [t for t in target or [] if t not in TARGETS]
+    if bad:
+        raise UserError(f"--target {bad[0]!r}: expected one of {sorted(TARGETS)}")
+    r = run_bench_fuzz(n=n, targets=target or None, seed=seed)
+    if json_out:
+        echo_json(r)
+    else:
+        for name, t in r["targets"].items():
+            typer.echo(f"{name}: inputs={t['inputs']} crashes={t['crashes']} inputs/s={t['inputs_per_s']}")
+            if t["crashes"]:
+                typer.echo("\n".join(f"  {ln}" for ln in t["crash"]["exception"] or t["crash"]["log_tail"]))
+                typer.echo(f"  input (hex): {t['crash']['input_hex']}")
+    if r["crashes"]:
+        raise typer.Exit(1)
 
 
 def register(app: typer.Typer) -> None:

@@ -18,43 +18,12 @@ minus measured over the run.
 
 from __future__ import annotations
 
-import functools
 import math
-from collections.abc import Callable
 from typing import Any
 
 import typer
 
-from tools.common import UserError, echo_json
-
-
-def _one_line(e: BaseException) -> str:
-    from configs.schema import ConfigError
-
-    if isinstance(e, ConfigError):
-        return "; ".join(f"{e.file}: {fld or '<root>'}: {msg}" if e.file != "<inline>" else f"{fld}: {msg}"
-                         for fld, msg in e.problems)
-    lines = str(e).strip().splitlines()
-    return lines[0] if lines else type(e).__name__
-
-
-def _errors(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """User errors: one line, exit 2. A link failure: one line, exit 1. No tracebacks."""
-    from configs.schema import ConfigError
-    from drivers.base import CommandError, LinkError
-
-    @functools.wraps(fn)
-    def wrapper(*a: Any, **kw: Any) -> Any:
-        try:
-            return fn(*a, **kw)
-        except (UserError, ConfigError, CommandError) as e:
-            typer.echo(f"error: {_one_line(e)}", err=True)
-            raise typer.Exit(2) from None
-        except LinkError as e:
-            typer.echo(f"link error: {_one_line(e)}", err=True)
-            raise typer.Exit(1) from None
-
-    return wrapper
+from tools.common import UserError, echo_json, user_errors
 
 
 def parse_action(text: str, dim: int, names: tuple[str, ...]) -> list[float]:
@@ -86,10 +55,11 @@ def _pose(names: tuple[str, ...], s: Any) -> dict[str, float | None]:
 DEFAULT_ACTION = 0.3
 
 
-def drive_run(robot: str, backend: str, action: str | None, seconds: float, port: str | None = None,
-              config: str | None = None, tlog: str | None = None) -> dict[str, Any]:
+def drive_run(robot: str, backend: str | None, action: str | None, seconds: float, port: str | None = None,
+              tlog: str | None = None) -> dict[str, Any]:
     """Drive open loop; returns the summary printed by `hil drive --json`.
 
+    ``backend`` None: the one the robot config names (``backend:`` in the YAML).
     ``tlog``: append every MAVLink frame of the radio link to this file (real and
     emulated backends of a MAVLink robot; the sim backend has no link)."""
     import numpy as np
@@ -102,11 +72,11 @@ def drive_run(robot: str, backend: str, action: str | None, seconds: float, port
     if port:
         params["port"] = port
     if tlog:
-        if backend == "sim":
-            raise UserError(f"--tlog {tlog}: the sim backend has no radio link to log; "
-                            "use --backend emulated or real")
         params["tlog"] = str(tlog)
-    drv = make_driver(config or robot, backend=backend, **params)
+    drv = make_driver(robot, backend=backend, **params)
+    if tlog and drv.backend == "sim":
+        raise UserError(f"--tlog {tlog}: the sim backend has no radio link to log; "
+                        "use --backend emulated or real")
     sp = drv.spec
     # without --action: a robot that holds position (no fixed safe action: the hand) holds
     # the command held at activation (the measured state); others drive at DEFAULT_ACTION
@@ -147,7 +117,7 @@ def drive_run(robot: str, backend: str, action: str | None, seconds: float, port
         drv.stop()
         health = drv.health().to_dict()
     end = _pose(sp.state.names, last.state)
-    out: dict[str, Any] = {"robot": sp.name, "backend": backend, "seconds": seconds, "steps": n_steps,
+    out: dict[str, Any] = {"robot": sp.name, "backend": drv.backend, "seconds": seconds, "steps": n_steps,
                            "action": applied.tolist(),
                            "action_normalized": None if a_norm is None else a_norm.tolist()}
     if tracking is not None:
@@ -176,10 +146,11 @@ def drive_run(robot: str, backend: str, action: str | None, seconds: float, port
 
 def register(app: typer.Typer) -> None:
     @app.command()
-    @_errors
+    @user_errors
     def drive(
         robot: str = typer.Argument(..., help="robot config name or path (configs/robots/), e.g. velociroach"),
-        backend: str = typer.Option("sim", "--backend", help="sim | emulated | real"),
+        backend: str = typer.Option(None, "--backend",
+                                    help="sim | emulated | real (default: the config's backend:)"),
         action: str = typer.Option(None, "--action", help="normalized action per channel in [-1, 1], e.g. 0.6,0.6; "
                                    f"omitted: {DEFAULT_ACTION} on every channel, or, for a robot that holds position "
                                    "(the hand), hold the measured state"),
@@ -190,14 +161,14 @@ def register(app: typer.Typer) -> None:
         json_out: bool = typer.Option(False, "--json", help="print one JSON line"),
     ) -> None:
         """Drive a robot open loop and report distance, final pose and link statistics."""
-        if backend not in ("sim", "emulated", "real"):
+        if backend is not None and backend not in ("sim", "emulated", "real"):
             raise UserError(f"--backend {backend!r}: expected sim, emulated or real")
         res = drive_run(robot, backend, action, seconds, port=port, tlog=tlog)
         if json_out:
             echo_json(res)
             return
         act = [round(v, 3) for v in res["action"]]
-        typer.echo(f"{res['robot']} ({backend}): action {act} for {seconds:g} s ({res['steps']} steps)")
+        typer.echo(f"{res['robot']} ({res['backend']}): action {act} for {seconds:g} s ({res['steps']} steps)")
         if "tracking_error" in res:
             te = res["tracking_error"]
             typer.echo(f"  joint tracking error: max {te['max_rad']:.4f} rad ({te['worst_joint']}), "
@@ -220,7 +191,7 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"  MAVLink log: {tlog}")
 
     @app.command("find-port")
-    @_errors
+    @user_errors
     def find_port(json_out: bool = typer.Option(False, "--json", help="print one JSON line")) -> None:
         """List serial ports that could be the base-station XBee (USB serial adapters first)."""
         from serial.tools import list_ports

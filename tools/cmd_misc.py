@@ -47,6 +47,10 @@ def register(app: typer.Typer) -> None:
             except KeyboardInterrupt:
                 for p in procs:
                     p.terminate()
+            # the rig failed if one robot's node did: its exit code (1 link, 2 input) is ours
+            failed = [p.returncode for p in procs if p.returncode not in (0, None)]
+            if failed:
+                raise typer.Exit(1 if 1 in failed else max(failed))
             return
         n = names[0]
         node = DriverNode(

@@ -20,17 +20,39 @@ class UserError(Exception):
     """A problem the user can fix (bad argument, missing file): one line, exit 2."""
 
 
+#: Exit codes of every `hil` verb besides 0 (docs/platform.md, "Exit codes").
+EXIT_RUNTIME, EXIT_USAGE = 1, 2
+
+
+def one_line(e: BaseException) -> str:
+    """An exception as one line; a ConfigError keeps each file: field: problem."""
+    if isinstance(e, ConfigError):
+        return "; ".join(f"{e.file}: {fld or '<root>'}: {msg}" if e.file != "<inline>" else f"{fld}: {msg}"
+                         for fld, msg in e.problems)
+    lines = str(e).strip().splitlines()
+    return lines[0] if lines else type(e).__name__
+
+
 def user_errors(fn: F) -> F:
-    """Turn expected failures into a one-line message and exit code 2 (no traceback)."""
+    """Expected failures as one line on stderr, no traceback. Exit 2: the input is wrong
+    (argument, config, missing file, a command the contract refuses). Exit 1: the robot,
+    its link or the rig failed while running (the robot's safety has stopped it)."""
     from drivers.base import CommandError, LifecycleError, LinkError
 
     @functools.wraps(fn)
     def wrapper(*a: Any, **kw: Any) -> Any:
         try:
             return fn(*a, **kw)
-        except (UserError, ConfigError, CommandError, LinkError, LifecycleError, FileNotFoundError) as e:
-            typer.echo(f"error: {e}", err=True)
-            raise typer.Exit(2) from None
+        except (UserError, ConfigError, CommandError, FileNotFoundError) as e:
+            typer.echo(f"error: {one_line(e)}", err=True)
+            raise typer.Exit(EXIT_USAGE) from None
+        except (LinkError, LifecycleError) as e:
+            what = "link error" if isinstance(e, LinkError) else "error"
+            typer.echo(f"{what}: {one_line(e)}", err=True)
+            # what follows the first line (e.g. the emulator's log tail) is diagnosis: indented
+            for ln in str(e).strip().splitlines()[1:]:
+                typer.echo(f"  {ln}", err=True)
+            raise typer.Exit(EXIT_RUNTIME) from None
 
     return wrapper  # type: ignore[return-value]
 

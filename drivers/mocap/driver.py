@@ -21,10 +21,9 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from configs.schema import RobotConfig
+from configs.schema import Params, RobotConfig, parse_params
 from drivers.base import Driver, Flag, Freshness, Health, Inputs, Observation, RobotSpec, Space
 from drivers.mocap.base import PoseSource
-from sim_backends.base import Params, parse_params
 
 
 class MocapParams(Params):

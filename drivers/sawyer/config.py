@@ -11,8 +11,8 @@ import math
 import numpy as np
 from pydantic import Field
 
+from configs.schema import Params
 from drivers.base import RobotSpec, Space
-from sim_backends.base import Params
 
 JOINTS = tuple(f"right_j{i}" for i in range(7))
 #: Rethink's joint velocity limits [rad/s]

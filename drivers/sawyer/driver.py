@@ -28,11 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from configs.schema import ConfigError, RobotConfig
+from configs.schema import ConfigError, RobotConfig, parse_params
 from drivers.base import Driver, Health, LinkError, Observation
 from drivers.sawyer import ros
 from drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
-from sim_backends.base import parse_params
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 FIRST_STATE_TIMEOUT_S = 10.0

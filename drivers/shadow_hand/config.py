@@ -19,8 +19,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
+from configs.schema import Params
 from drivers.base import RobotSpec, Space
-from sim_backends.base import Params
 
 JOINT_NAMES: tuple[str, ...] = (
     "WRJ1", "WRJ0",

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import ConfigError, RobotConfig
+from configs.schema import ConfigError, RobotConfig, parse_params
 from drivers.base import Driver, Health, Lifecycle, LinkError, Observation
 from drivers.emulator_process import EmulatorProcess
 from drivers.shadow_hand.config import (
@@ -48,6 +48,9 @@ from drivers.shadow_hand.config import (
     to_joint_rad,
 )
 from drivers.shadow_hand.protocol import (
+    FAULT_ESTOP,
+    FAULT_MOTOR,
+    FAULT_WATCHDOG,
     HAND_IDS,
     HOST_IDS,
     HOST_MODE_POSITION,
@@ -58,8 +61,6 @@ from drivers.shadow_hand.protocol import (
     encode,
     encode_targets,
 )
-from sim_backends.base import parse_params
-from sim_backends.shadow_hand.firmware import FAULT_ESTOP, FAULT_MOTOR, FAULT_WATCHDOG
 
 EMULATOR_START_TIMEOUT_S = 30.0
 DEFAULT_UDP_GROUP = "239.74.163.2"

@@ -22,6 +22,18 @@ import numpy as np
 
 from drivers.shadow_hand.config import ACTUATED_JOINTS, JOINT_NAMES
 
+#: modes (``HAND_STATUS.mode`` in the DBC)
+MODE_HOLD = 1  # holding the measured position (boot, watchdog)
+MODE_POSITION = 2  # tracking the host's targets
+MODE_ESTOP = 3  # latched hold until the host releases it
+
+#: fault bits (``HAND_STATUS.faults`` in the DBC)
+FAULT_WATCHDOG = 1
+FAULT_ESTOP = 2
+FAULT_MOTOR = 4  # at least one motor faulted: see motor_fault_mask
+FAULT_RX_ERROR = 8  # a frame was refused (bad target, wrong length)
+FAULT_BUS_OFF = 16  # the CAN controller went bus-off since the last status
+
 DBC_PATH = Path(__file__).with_name("shadow_hand.dbc")
 JOINTS_PER_FRAME = 4
 ID_ESTOP = 0x010

@@ -12,9 +12,9 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
+from configs.schema import Params
 from drivers.base import Flag, RobotSpec, Space
 from drivers.velociroach.mavlink import mav
-from sim_backends.base import Params
 
 STATE_CHANNELS: list[tuple[str, str]] = [
     ("x", "m"), ("y", "m"), ("z", "m"),

@@ -38,12 +38,11 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import ConfigError, RobotConfig
+from configs.schema import ConfigError, RobotConfig, parse_params
 from drivers.base import Driver, Flag, Freshness, Health, Inputs, Lifecycle, LinkError, Observation
 from drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
 from drivers.velociroach.link import RadioLink
 from drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, EncodeError, MavEncoder, mav
-from sim_backends.base import parse_params
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 #: the base station's heartbeat rate (MAVLink convention: 1 Hz)

@@ -95,34 +95,59 @@ class XBeeDeframer:
         self.garbage = 0
         self.bad_length = 0
         self.last_error: str | None = None
-        #: skipping the body of a frame already counted as bad: its bytes are not "garbage"
+        #: the next bytes are the body of a broken frame already counted: a 0x7E in there
+        #: starts no new corrupt event (only a good frame is taken from inside it)
+        self._quiet_b = 0
+        #: the non-frame bytes being skipped continue a corrupt run already counted
+        #: (a garbage run going on in the next read, the bytes after an impossible length)
         self._resync = False
 
+    @property
+    def lost_frames(self) -> int:
+        """Corrupt events that destroyed a frame (all but garbage between frames)."""
+        return self.bad_checksum + self.truncated + self.bad_length
+
     def feed(self, data: bytes, now_s: float | None = None) -> list[XBeeFrame]:
+        """Bytes in (any split), complete checked frames out. ``now_s``: monotonic clock [s].
+
+        Each corrupt event is counted once, however the reads split it: a garbage run, or a
+        broken frame including its body (a start delimiter inside a broken frame's claimed
+        length begins nothing new unless it begins a good frame). A pause longer than
+        :data:`STALE_PARTIAL_S` ends a run; a frame left unfinished by it is truncated.
+        """
         now_s = time.monotonic() if now_s is None else now_s
+        buf = self._buf
+        if self._last_byte_t is not None and now_s - self._last_byte_t > STALE_PARTIAL_S:
+            if buf:
+                if not self._quiet_b:
+                    self._bad("truncated", "truncated XBee frame (stream stopped mid-frame)")
+                buf.clear()
+            self._quiet_b, self._resync = 0, False
         if data:
-            self._buf += data
+            buf += data
             self._last_byte_t = now_s
         out: list[XBeeFrame] = []
-        buf = self._buf
         while buf:
             if buf[0] != START:
                 i = buf.find(START)
                 n = len(buf) if i < 0 else i
-                del buf[:n]
-                if self._resync:
-                    self._resync = i < 0  # the rest of a frame already counted as bad
-                else:
-                    self._bad("garbage", f"{n} garbage byte(s) between frames")
+                excess = n - self._quiet_b  # bytes beyond the body of a broken frame
+                self._consume(n)
+                if excess > 0:
+                    if not self._resync:
+                        self._bad("garbage", f"{excess} garbage byte(s) between frames")
+                    self._resync = i < 0  # no start delimiter ended it: it goes on in the next read
                 continue
             self._resync = False
+            quiet = self._quiet_b > 0  # inside a broken frame: already counted
             if len(buf) < 3:
                 break
             length = (buf[1] << 8) | buf[2]
             if length == 0 or length > MAX_FRAME_LEN:
-                del buf[:1]
-                self._bad("bad_length", f"impossible XBee frame length {length}")
-                self._resync = True
+                self._consume(1)
+                if not quiet:
+                    self._bad("bad_length", f"impossible XBee frame length {length}")
+                    self._resync = True
                 continue
             total = length + 4
             if len(buf) < total:
@@ -131,27 +156,33 @@ class XBeeDeframer:
                 j = self._next_valid_frame(1)
                 if j is None:
                     break
-                del buf[:j]
-                self._bad("truncated", "truncated XBee frame")
+                self._consume(j)
+                if not quiet:
+                    self._bad("truncated", "truncated XBee frame")
                 continue
             frame = bytes(buf[:total])
             if not xbee_checksum_ok(frame):
                 j = self._next_valid_frame(1)
                 # a "bad checksum" that swallowed the start of a valid frame was a truncation
-                kind = "truncated" if j is not None and j < total else "bad_checksum"
-                del buf[:1]
-                self._bad(kind, f"XBee {kind.replace('_', ' ')} (frame type 0x{frame[3]:02X})")
-                self._resync = True
+                truncated = j is not None and j < total
+                self._consume(1)
+                if not quiet:
+                    kind = "truncated" if truncated else "bad_checksum"
+                    self._bad(kind, f"XBee {kind.replace('_', ' ')} (frame type 0x{frame[3]:02X})")
+                    self._quiet_b = (j if truncated and j is not None else total) - 1
                 continue
-            del buf[:total]
+            self._consume(total)
+            self._quiet_b = 0  # a good frame: whatever was broken before it has ended
             f = self._parse(frame)
             if f is not None:
                 self.frames += 1
                 out.append(f)
-        if buf and self._last_byte_t is not None and now_s - self._last_byte_t > STALE_PARTIAL_S:
-            buf.clear()
-            self._bad("truncated", "truncated XBee frame (stream stopped mid-frame)")
         return out
+
+    def _consume(self, n: int) -> None:
+        """Drop ``n`` bytes from the buffer (and from a broken frame's body, if in one)."""
+        del self._buf[:n]
+        self._quiet_b = max(0, self._quiet_b - n)
 
     def _next_valid_frame(self, start: int) -> int | None:
         buf = self._buf
@@ -363,7 +394,11 @@ class RadioLink:
         self.bytes_received += len(data)
         msgs = []
         want = FRAME_RX64 if self.role == "base" else FRAME_TX64
-        for f in self.deframer.feed(data, now):
+        lost_before = self.deframer.lost_frames
+        frames = self.deframer.feed(data, now)
+        # frames broken at the XBee layer used a MAVLink sequence number too
+        self.decoder.note_lost(self.deframer.lost_frames - lost_before)
+        for f in frames:
             if f.frame_type != want:
                 continue  # TX status and friends
             if f.addr64 != self._robot_addr_str:

@@ -28,6 +28,7 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
 from pathlib import Path
 from types import ModuleType
 
@@ -150,14 +151,21 @@ def _check(name: str, value: float, limit: float) -> float:
 
 
 class MavEncoder:
-    """Packs messages from one endpoint (its own sequence counter)."""
+    """Packs messages from one endpoint (its own sequence counter).
+
+    Thread-safe: the driver packs commands on the control thread and heartbeats on its
+    reader thread; packing and bumping the 8-bit sequence number happen under one lock,
+    so no two frames share a sequence number.
+    """
 
     def __init__(self, sysid: int, compid: int):
         self._mav = mav.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        self._lock = threading.Lock()
 
     def pack(self, msg) -> bytes:
-        buf = bytes(msg.pack(self._mav))
-        self._mav.seq = (self._mav.seq + 1) % 256
+        with self._lock:
+            buf = bytes(msg.pack(self._mav))
+            self._mav.seq = (self._mav.seq + 1) % 256
         if len(buf) > XBEE_MAX_PAYLOAD_B:
             raise EncodeError(f"{msg.get_type()} is {len(buf)} bytes, more than one XBee frame ({XBEE_MAX_PAYLOAD_B})")
         return buf
@@ -218,7 +226,13 @@ class MavDecoder:
     """Decodes whole MAVLink frames (one per XBee payload) and tracks sequence gaps.
 
     ``decode`` returns the message, or None after counting the frame as corrupt (bad
-    CRC, bad length, unknown id). Gaps in a sender's 8-bit sequence count as dropped.
+    CRC, bad length, unknown id). Gaps in a sender's 8-bit sequence count as dropped,
+    except the frames already counted as corrupt: a frame that arrived broken still
+    used a sequence number, and it must not be counted twice (corrupt and dropped).
+    Frames destroyed below MAVLink (bad XBee checksum, truncation) are reported with
+    :meth:`note_lost`. Invariant for one sender: ``received + dropped`` plus the frames
+    counted corrupt (here or through ``note_lost``) is the number of frames it sent, up
+    to the frames after the last one received (a gap shows only when the next arrives).
     """
 
     def __init__(self) -> None:
@@ -228,6 +242,12 @@ class MavDecoder:
         self.dropped = 0
         self.received = 0
         self.last_error: str | None = None
+        #: frames counted as corrupt that the next sequence gap has not explained yet
+        self._unexplained_lost = 0
+
+    def note_lost(self, n: int = 1) -> None:
+        """``n`` frames were destroyed before reaching MAVLink (already counted as corrupt there)."""
+        self._unexplained_lost += n
 
     def decode(self, frame: bytes):
         try:
@@ -248,13 +268,18 @@ class MavDecoder:
             gap = (seq - last - 1) % 256
             # a huge "gap" is more likely the sender restarting than 128+ lost frames
             if gap < 128:
-                self.dropped += gap
+                explained = min(gap, self._unexplained_lost)
+                self._unexplained_lost -= explained
+                self.dropped += gap - explained
+            else:
+                self._unexplained_lost = 0
         self._last_seq[key] = seq
         self.received += 1
         return m
 
     def _fail(self, why: str) -> None:
         self.corrupt += 1
+        self._unexplained_lost += 1
         self.last_error = why
 
 

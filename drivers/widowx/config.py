@@ -20,8 +20,9 @@ import math
 import numpy as np
 from pydantic import Field, field_validator
 
+from configs.schema import Params
 from drivers.base import RobotSpec, Space
-from sim_backends.base import Params
+from drivers.widowx.description import WX250S_LINKS
 
 #: joint, default ID, default servo model, stall torque at the joint [N·m] (2 servos: 2×)
 JOINTS: list[tuple[str, int, str, float]] = [
@@ -85,8 +86,6 @@ class MechanismParams(BusParams):
 
 
 def joint_limits(p: WidowXParams) -> dict[str, tuple[float, float]]:
-    from sim_backends.widowx.model import WX250S_LINKS
-
     lim = {name: rng for name, _, _, rng, *_ in WX250S_LINKS}
     lim.update({k: tuple(v) for k, v in p.joint_limits_rad.items()})
     return lim

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from configs.schema import RobotConfig
+from configs.schema import RobotConfig, parse_params
 from drivers.base import Observation
 from drivers.dynamixel.control_table import OPERATING_MODES, pos_counts, vel_counts
 from drivers.dynamixel.robot import DynamixelRobot
@@ -36,7 +36,6 @@ from drivers.widowx.config import (
     mechanism_spec,
     widowx_spec,
 )
-from sim_backends.base import parse_params
 
 VELOCITY = OPERATING_MODES["velocity"]
 

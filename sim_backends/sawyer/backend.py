@@ -7,11 +7,11 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import RobotConfig
+from configs.schema import RobotConfig, parse_params
 from drivers.base import Health, Observation
 from drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
 from drivers.sawyer.ros import POSITION_MODE, VELOCITY_MODE
-from sim_backends.base import LockstepSim, parse_params
+from sim_backends.base import LockstepSim
 from sim_backends.sawyer.controller import SawyerArm
 
 

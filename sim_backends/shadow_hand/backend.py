@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from configs.schema import ConfigError, RobotConfig, parse_model
+from configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
 from drivers.base import Health, Observation
 from drivers.shadow_hand.config import (
     ACT_INDEX,
@@ -32,7 +32,7 @@ from drivers.shadow_hand.config import (
     to_action,
     to_joint_rad,
 )
-from sim_backends.base import LockstepSim, Params, parse_params
+from sim_backends.base import LockstepSim
 from sim_backends.shadow_hand.baoding import BaodingTask
 from sim_backends.shadow_hand.firmware import TICK_S, FirmwareConfig, HandFirmware
 from sim_backends.shadow_hand.model import PHYSICS_DT_S, build_scene

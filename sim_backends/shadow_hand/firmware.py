@@ -33,19 +33,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.shadow_hand.protocol import (  # noqa: F401 - re-exported for the emulator and tests
+    FAULT_BUS_OFF,
+    FAULT_ESTOP,
+    FAULT_MOTOR,
+    FAULT_RX_ERROR,
+    FAULT_WATCHDOG,
+    MODE_ESTOP,
+    MODE_HOLD,
+    MODE_POSITION,
+)
+
 TICK_S = 0.001
 
-#: modes (``HAND_STATUS.mode`` in the DBC)
-MODE_HOLD = 1  # holding the measured position (boot, watchdog)
-MODE_POSITION = 2  # tracking the host's targets
-MODE_ESTOP = 3  # latched hold until the host releases it
-
-#: fault bits (``HAND_STATUS.faults`` in the DBC)
-FAULT_WATCHDOG = 1
-FAULT_ESTOP = 2
-FAULT_MOTOR = 4  # at least one motor faulted: see motor_fault_mask
-FAULT_RX_ERROR = 8  # a frame was refused (bad target, wrong length)
-FAULT_BUS_OFF = 16  # the CAN controller went bus-off since the last status
+# modes and fault bits are the wire protocol's (drivers/shadow_hand/protocol.py)
 
 
 @dataclass

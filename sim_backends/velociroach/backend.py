@@ -25,10 +25,10 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from configs.schema import ConfigError, RobotConfig, parse_model
+from configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
 from drivers.base import Flag, Freshness, Health, Inputs, Observation
 from drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
-from sim_backends.base import LockstepSim, Params, parse_params
+from sim_backends.base import LockstepSim
 from sim_backends.velociroach.firmware import TICK_S, Firmware, FirmwareConfig, default_ff_v_per_rps
 from sim_backends.velociroach.model import (
     LEG_NAMES,

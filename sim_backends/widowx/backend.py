@@ -18,13 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import RobotConfig
+from configs.schema import RobotConfig, parse_params
 from drivers.base import Lifecycle, LinkError
 from drivers.dynamixel.bus import ServoError
 from drivers.dynamixel.control_table import control_table, describe_status_error
 from drivers.widowx.config import MechanismParams, WidowXParams
 from drivers.widowx.driver import MechanismDriver, WidowXDriver
-from sim_backends.base import LockstepSim, parse_params
+from sim_backends.base import LockstepSim
 from sim_backends.widowx.world import ArmWorld, shared_world
 
 

@@ -128,6 +128,156 @@ def test_truncated_frame_at_end_of_stream_is_dropped_when_stale():
     assert len(d.feed(raw, now_s=1.1)) == 1
 
 
+def test_a_corrupt_run_split_over_reads_counts_once():
+    """39 injected runs once became 66: each read that saw part of a run counted it again."""
+    frames = robot_frames()
+    good = [xbee_rx64(addr64(ADDR), f) for f in frames]
+    bad_sum = bytearray(good[1])
+    bad_sum[-1] ^= 0x5A
+    noise = bytes(range(1, 40))  # no 0x7E in it
+    stream = good[0] + noise + good[1] + bytes(bad_sum) + good[2] + noise + good[3] + noise + good[0]
+    for chunk in (1, 3, 7, len(stream)):
+        d = XBeeDeframer()
+        out = []
+        for i in range(0, len(stream), chunk):
+            out += d.feed(stream[i : i + chunk], now_s=0.0)
+        assert len(out) == 5, chunk
+        assert (d.garbage, d.bad_checksum, d.truncated, d.bad_length) == (3, 1, 0, 0), chunk
+        assert d.corrupt == 4, chunk
+
+
+@pytest.mark.parametrize("inner", [
+    b"\x7e\x00\x05\x01\x02\x03\x04\x05\x06",  # a plausible frame start inside the body
+    b"\x7e\x7e\xff",  # an impossible length inside the body
+])
+@pytest.mark.parametrize("chunk", [1, 5, 1000])
+def test_a_start_byte_inside_a_broken_frame_is_not_a_second_error(inner, chunk):
+    """A broken frame counts once, whatever 0x7E bytes its body holds."""
+    good = xbee_rx64(addr64(ADDR), robot_frames()[0])
+    broken = bytearray(xbee_rx64(addr64(ADDR), b"\x01\x02" + inner + b"\x03" * 20))
+    broken[-1] ^= 0x5A
+    for tail_is_start in (False, True):
+        if tail_is_start:
+            broken[-1] = 0x7E  # the broken checksum byte itself looks like a frame start
+        stream = good + bytes(broken) + good + good
+        d = XBeeDeframer()
+        out = []
+        for i in range(0, len(stream), chunk):
+            out += d.feed(stream[i : i + chunk], now_s=0.0)
+        assert len(out) == 3
+        assert (d.corrupt, d.bad_checksum, d.bad_length, d.truncated, d.garbage) == (1, 1, 0, 0, 0)
+
+
+def test_a_pause_ends_a_garbage_run():
+    d = XBeeDeframer()
+    d.feed(b"\x01\x02", now_s=0.0)
+    d.feed(b"\x03", now_s=0.05)  # the same run
+    assert d.garbage == 1
+    d.feed(b"\x04", now_s=1.0)  # a new burst after a silence
+    assert d.garbage == 2
+
+
+def test_corrupt_frames_are_not_counted_again_as_dropped():
+    e = vm.MavEncoder(vm.ROBOT_SYSID, vm.ROBOT_COMPID)
+    frames = [e.heartbeat(robot=True) for _ in range(12)]
+    raws = [xbee_rx64(addr64(ADDR), f) for f in frames]
+    bad_sum = bytearray(raws[3])
+    bad_sum[-1] ^= 0x5A  # XBee layer: bad checksum
+    bad_crc = bytearray(frames[6])
+    bad_crc[-3] ^= 0x01  # MAVLink layer: bad CRC in a valid XBee frame
+    stream = (b"".join(raws[:3]) + bytes(bad_sum) + b"".join(raws[4:6]) + xbee_rx64(addr64(ADDR), bytes(bad_crc))
+              + raws[7] + raws[9] + raws[10] + raws[11])  # frame 8 really lost on the air
+    link = RadioLink(None, role="base", robot_addr64=ADDR)
+    assert len(link.feed(stream)) == 9
+    assert link.corrupt_frames == 2 and link.dropped_frames == 1 and link.frames_received == 9
+    # the invariant: every frame sent is accounted for exactly once
+    assert link.frames_received + link.corrupt_frames + link.dropped_frames == len(frames)
+
+
+def test_corrupt_frame_fed_in_a_later_read_than_its_gap():
+    """The gap and the corrupt frame that explains it may be seen in either order."""
+    e = vm.MavEncoder(vm.ROBOT_SYSID, vm.ROBOT_COMPID)
+    frames = [e.heartbeat(robot=True) for _ in range(4)]
+    bad_crc = bytearray(frames[2])
+    bad_crc[-3] ^= 0x01
+    link = RadioLink(None, role="base", robot_addr64=ADDR)
+    link.feed(wrap_rx([frames[0], frames[1]]))
+    link.feed(wrap_rx([bytes(bad_crc), frames[3]]))
+    assert (link.frames_received, link.corrupt_frames, link.dropped_frames) == (3, 1, 0)
+
+
+def test_encoder_sequence_numbers_are_unique_across_threads():
+    """The driver packs commands and heartbeats on two threads; no sequence number twice."""
+    import sys
+    from collections import Counter
+
+    enc = vm.MavEncoder(vm.BASE_SYSID, vm.BASE_COMPID)
+    per_thread = 1024
+    out: list[list[bytes]] = [[], []]
+
+    def work(k: int) -> None:
+        for _ in range(per_thread):
+            out[k].append(enc.heartbeat())
+
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as possible to provoke the race
+    try:
+        ts = [threading.Thread(target=work, args=(k,)) for k in range(2)]
+        for t in ts:
+            t.start()
+        for t in ts:
+            t.join()
+    finally:
+        sys.setswitchinterval(old)
+    seqs = Counter(f[4] for f in out[0] + out[1])  # MAVLink v2: the sequence is byte 4
+    assert set(seqs.values()) == {2 * per_thread // 256}, seqs.most_common(3)
+
+
+def test_counts_are_exact_over_a_real_pty():
+    """39 injected runs must read as 39 whatever the pty's reads do; no corrupt frame as a drop."""
+    import random
+
+    rng = random.Random(3)
+    enc = vm.MavEncoder(vm.ROBOT_SYSID, vm.ROBOT_COMPID)
+    stream, n_frames, n_garbage, n_bad = [], 300, 0, 0
+    for i in range(n_frames):
+        raw = bytearray(xbee_rx64(addr64(ADDR), enc.heartbeat(robot=True)))
+        if i % 7 == 3:
+            stream.append(bytes(rng.choice([b for b in range(256) if b != 0x7E]) for _ in range(rng.randint(1, 40))))
+            n_garbage += 1
+        if i % 11 == 5:
+            raw[-1] ^= 0x5A  # bad XBee checksum
+            n_bad += 1
+        stream.append(bytes(raw))
+    data = b"".join(stream)
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = RadioLink.open(os.ttyname(slave), 230400, role="base", robot_addr64=ADDR)
+    os.close(slave)
+
+    def write():  # odd-sized writes so frames and runs straddle the reader's reads
+        i = 0
+        while i < len(data):
+            n = rng.randint(1, 97)
+            os.write(master, data[i : i + n])
+            i += n
+
+    w = threading.Thread(target=write)
+    w.start()
+    got = 0
+    deadline = time.monotonic() + 10.0
+    while got < n_frames - n_bad and time.monotonic() < deadline:
+        got += len(link.receive(timeout_s=0.02))
+    w.join()
+    link.close()
+    os.close(master)
+    s = link.stats()
+    assert got == n_frames - n_bad
+    assert (s["garbage_runs"], s["bad_xbee_checksum"], s["truncated_frames"]) == (n_garbage, n_bad, 0)
+    assert link.dropped_frames == 0 and link.corrupt_frames == n_garbage + n_bad, str(s)
+
+
 def test_sequence_gaps_count_as_dropped():
     e = vm.MavEncoder(vm.ROBOT_SYSID, vm.ROBOT_COMPID)
     frames = [e.heartbeat(robot=True) for _ in range(6)]
@@ -167,13 +317,19 @@ def test_bad_commands_never_reach_the_wire(left, right):
     port = open_serial("loop://", 230400)
     link = RadioLink(port, role="base", robot_addr64=ADDR)
     enc = vm.MavEncoder(vm.BASE_SYSID, vm.BASE_COMPID)
-    with pytest.raises(vm.EncodeError):
-        link.send(enc.leg_velocity(1, left, right, 15.0))
-    with pytest.raises(vm.EncodeError):
-        link.send(enc.pwm(2, left / 15.0, right / 15.0) if math.isfinite(left + right) else enc.pwm(2, left, right))
-    assert port.in_waiting == 0 and link.frames_sent == 0
+    bad_writes = [
+        lambda: link.send(enc.leg_velocity(1, left, right, 15.0)),
+        lambda: link.send(enc.pwm(2, left / 15.0, right / 15.0) if math.isfinite(left + right)
+                          else enc.pwm(2, left, right)),
+    ]
+    for bad in bad_writes:
+        sent, waiting = link.frames_sent, port.in_waiting
+        with pytest.raises(vm.EncodeError):
+            bad()
+        assert (link.frames_sent, port.in_waiting) == (sent, waiting)  # this write sent nothing
+    sent = link.frames_sent
     link.send(enc.leg_velocity(3, 15.0, -15.0, 15.0))  # the limit itself is fine
-    assert port.in_waiting > 0
+    assert link.frames_sent == sent + 1 and port.in_waiting > 0
 
 
 class FakeRobot:
@@ -214,21 +370,40 @@ def test_driver_never_sends_nan_or_out_of_range(tmp_path):
     drv = VelociRoachDriver(VelociRoachParams(port=os.ttyname(slave), max_leg_vel_rps=10.0), backend="real")
     try:
         with drv:
-            with pytest.raises(CommandError):
-                drv.write([math.nan, 0.0])
-            with pytest.raises(CommandError):
-                drv.write([0.0, math.inf])
-            for _ in range(5):
+            # every MAVLink frame the driver hands to the link, decoded: the reader thread
+            # sends heartbeats meanwhile, so count the command frames, not all frames
+            sent_types: list[str] = []
+            spy = vm.MavDecoder()
+            send = drv.link.send
+
+            def recording_send(frame: bytes) -> None:
+                sent_types.append(spy.decode(frame).get_type())
+                send(frame)
+
+            drv.link.send = recording_send
+
+            def commands_sent() -> int:
+                return sum(t in ("ROACH_LEG_VELOCITY_CMD", "ROACH_PWM_CMD") for t in list(sent_types))
+
+            bad_writes = [
+                (CommandError, None, lambda: drv.write([math.nan, 0.0])),
+                (CommandError, None, lambda: drv.write([0.0, math.inf])),
+                # bypassing the contract: the encoder refuses
+                (LinkError, "not finite", lambda: drv._write(np.array([math.nan, 1.0]))),
+                (LinkError, "outside", lambda: drv._write(np.array([50.0, 1.0]))),
+            ]
+            for exc, match, bad in bad_writes:
+                n = commands_sent()
+                with pytest.raises(exc, match=match):
+                    bad()
+                assert commands_sent() == n  # this bad write put no command on the wire
+            for i in range(5):
+                n = commands_sent()
                 drv.write([1e9, -1e9])  # clamped by the contract
-            with pytest.raises(LinkError, match="not finite"):
-                drv._write(np.array([math.nan, 1.0]))  # bypassing the contract: the encoder refuses
-            with pytest.raises(LinkError, match="outside"):
-                drv._write(np.array([50.0, 1.0]))
-            n = len(drv.link.stats()) and drv.link.frames_sent
+                assert commands_sent() == n + 1, i
             deadline = time.monotonic() + 2.0
             while len(robot.commands) < 5 and time.monotonic() < deadline:
                 time.sleep(0.005)
-            assert drv.link.frames_sent == n
     finally:
         robot.stop.set()
         robot.t.join(2.0)
