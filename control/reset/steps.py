@@ -1,0 +1,225 @@
+"""Reset steps: the small code behind a reset procedure's data.
+
+A step is started once per attempt (:meth:`ResetStep.start`) and then sees every robot
+state (:meth:`ResetStep.update`) until it returns :data:`DONE`. It drives the robot by
+returning a normalized action ([-1, 1] of the spec's limits, like every policy here)
+or :data:`HOLD` (the supervisor sends the robot's zero action). It fails an attempt by
+raising :class:`StepError`. The supervisor owns timeouts, retries, the e-stop and the
+bus; steps own only their own motion.
+
+Kinds (``reset.steps[].kind`` in a rig config):
+
+- ``drive_to_start``: drive back to the start position with the differential-drive
+  baseline (control/baselines.py). For mobile robots with a pose (mocap).
+- ``turn_to_yaw``: turn in place (leg sets in opposite directions) to the start heading.
+- ``teleport``: ask the driver node to put the robot at the pose (sim backends only).
+- ``task_reset``: run a task-reset mechanism (:class:`TaskResetMechanism`; the WidowX
+  one comes with the arms issue and registers itself with :func:`register_mechanism`).
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+
+from bus.schemas import ResetEvent, RobotState
+from control.baselines import DifferentialDriveController
+from control.reset.config import StepConfig
+
+#: ``update`` results besides an action: the step is over / send the zero action
+DONE = "done"
+HOLD = "hold"
+
+StepResult = np.ndarray | str
+
+
+class StepError(RuntimeError):
+    """This attempt of the step failed (one line saying what); the supervisor may retry."""
+
+
+class StepContext(Protocol):
+    """What the supervisor offers a step."""
+
+    state_names: list[str]
+
+    def request_driver(self, phase: str, pose: dict[str, float]) -> None:
+        """Send the robot's driver node a reset request (``teleport``)."""
+
+    def driver_answer(self) -> ResetEvent | None:
+        """The driver node's answer to the last :meth:`request_driver`, once it came."""
+
+
+class ResetStep(ABC):
+    kind: str = "step"
+
+    def __init__(self, cfg: StepConfig):
+        self.cfg = cfg
+        self.name = cfg.kind
+
+    @abstractmethod
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        """Begin an attempt from ``state`` toward ``pose`` ({x, y, yaw}: m, m, rad)."""
+
+    @abstractmethod
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        """A normalized action, :data:`HOLD` or :data:`DONE`; raise :class:`StepError` to fail."""
+
+
+class DriveToStart(ResetStep):
+    """Drive to the start position with the differential-drive baseline along the
+    straight path here → start (re-planned from where the robot is if it passes the
+    start). The heading is the next step's job (``turn_to_yaw``).
+
+    Params: ``speed`` (nominal normalized leg speed, default 0.6), ``tolerance_m``
+    (done when this close to the start, default 0.1).
+    """
+
+    kind = "drive_to_start"
+
+    def __init__(self, cfg: StepConfig):
+        super().__init__(cfg)
+        p = dict(cfg.params)
+        self.speed = float(p.pop("speed", 0.6))
+        self.tolerance_m = float(p.pop("tolerance_m", 0.1))
+        if p:
+            raise ValueError(f"drive_to_start: unknown params {sorted(p)} (speed, tolerance_m)")
+        self._ctl: DifferentialDriveController | None = None
+        self._goal = np.zeros(2)
+        self._dir = np.array([1.0, 0.0])
+
+    def _plan(self, here: np.ndarray) -> None:
+        self._dir = self._goal - here
+        # the baseline follows a path; it never turns back at its end, so past the start
+        # (below) it gets a new one
+        self._ctl = DifferentialDriveController(np.array([here, self._goal]), self._names,
+                                                omega_nom=self.speed, d_max=0.67 * self.speed)
+
+    def _xy(self, state: RobotState) -> np.ndarray:
+        s = state.state
+        return np.array([s[self._names.index("x")], s[self._names.index("y")]], dtype=np.float64)
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        self._goal = np.array([pose.get("x", 0.0), pose.get("y", 0.0)])
+        self._names = list(ctx.state_names)
+        self._plan(self._xy(state))
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        s = np.asarray(state.state, dtype=np.float64)
+        if not np.all(np.isfinite(s)):
+            raise StepError("drive_to_start: the robot's state is not finite (pose lost?)")
+        p = self._xy(state)
+        off = p - self._goal
+        if np.linalg.norm(off) < self.tolerance_m:
+            return DONE
+        if float(off @ self._dir) > 0.0:
+            self._plan(p)  # passed the start: come back along a new path
+        return np.asarray(self._ctl(s), dtype=np.float64)
+
+
+class TurnToYaw(ResetStep):
+    """Turn in place to the start yaw: leg sets at ``∓k·e_ψ`` (clipped to ``speed``).
+
+    Params: ``speed`` (max normalized leg speed, default 0.5), ``gain`` (per rad,
+    default 1.0), ``tolerance_rad`` (done within this, default 0.3).
+    """
+
+    kind = "turn_to_yaw"
+
+    def __init__(self, cfg: StepConfig):
+        super().__init__(cfg)
+        p = dict(cfg.params)
+        self.speed = float(p.pop("speed", 0.5))
+        self.gain = float(p.pop("gain", 1.0))
+        self.tolerance_rad = float(p.pop("tolerance_rad", 0.3))
+        if p:
+            raise ValueError(f"turn_to_yaw: unknown params {sorted(p)} (speed, gain, tolerance_rad)")
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        self._yaw = float(pose.get("yaw", 0.0))
+        self._ic, self._is = ctx.state_names.index("cos_yaw"), ctx.state_names.index("sin_yaw")
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        yaw = math.atan2(state.state[self._is], state.state[self._ic])
+        e = math.remainder(self._yaw - yaw, math.tau)  # >0: turn left (counter-clockwise)
+        if not math.isfinite(e):
+            raise StepError("turn_to_yaw: the robot's heading is not finite (pose lost?)")
+        if abs(e) < self.tolerance_rad:
+            return DONE
+        d = float(np.clip(self.gain * e, -self.speed, self.speed))
+        return np.array([-d, d])
+
+
+class Teleport(ResetStep):
+    """Sim only: the driver node puts the robot at the pose (the bridge's ``reset``)."""
+
+    kind = "teleport"
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        ctx.request_driver("teleport", pose)
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        ans = ctx.driver_answer()
+        if ans is None:
+            return HOLD
+        if ans.phase != "done":
+            raise StepError(f"teleport {ans.phase}: {ans.detail}")
+        return DONE
+
+
+class TaskResetMechanism(ABC):
+    """A mechanism that resets the task, not the robot: the interface for the WidowX
+    task-reset mechanism of the arms issue (thesis: two motors rotate the fixture 16°
+    and translate it 2 cm). Implementations talk to their own driver on the bus."""
+
+    @abstractmethod
+    def begin(self, pose: dict[str, float]) -> None:
+        """Start moving the task back to its start configuration."""
+
+    @abstractmethod
+    def poll(self) -> bool:
+        """True once the task is in place; raise :class:`StepError` on a fault."""
+
+    def abort(self) -> None:  # noqa: B027 - optional hook
+        """Stop the mechanism (e-stop, timeout)."""
+
+
+MECHANISMS: dict[str, Callable[[dict[str, Any]], TaskResetMechanism]] = {}
+
+
+def register_mechanism(name: str, factory: Callable[[dict[str, Any]], TaskResetMechanism]) -> None:
+    """Make a task-reset mechanism available to ``task_reset`` steps as ``params.mechanism``."""
+    MECHANISMS[name] = factory
+
+
+class TaskReset(ResetStep):
+    """Run a registered :class:`TaskResetMechanism`; the robot holds still meanwhile."""
+
+    kind = "task_reset"
+
+    def __init__(self, cfg: StepConfig):
+        super().__init__(cfg)
+        p = dict(cfg.params)
+        name = p.pop("mechanism", None)
+        if name not in MECHANISMS:
+            raise ValueError(
+                f"task_reset: no mechanism {name!r} registered (known: {sorted(MECHANISMS)}); "
+                "the WidowX mechanism comes with the arms driver"
+            )
+        self.mechanism = MECHANISMS[name](p)
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        self.mechanism.begin(pose)
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        return DONE if self.mechanism.poll() else HOLD
+
+
+STEP_KINDS: dict[str, type[ResetStep]] = {c.kind: c for c in (DriveToStart, TurnToYaw, Teleport, TaskReset)}
+
+
+def make_step(cfg: StepConfig) -> ResetStep:
+    return STEP_KINDS[cfg.kind](cfg)
