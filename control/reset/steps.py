@@ -68,6 +68,10 @@ class ResetStep(ABC):
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
         """A normalized action, :data:`HOLD` or :data:`DONE`; raise :class:`StepError` to fail."""
 
+    def abort(self) -> None:  # noqa: B027 - optional hook
+        """The attempt ends early (timeout, failure, e-stop): stop whatever the step moves
+        besides the robot (the supervisor stops commanding the robot itself)."""
+
 
 class DriveToStart(ResetStep):
     """Drive to the start position with the differential-drive baseline along the
@@ -216,6 +220,9 @@ class TaskReset(ResetStep):
 
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
         return DONE if self.mechanism.poll() else HOLD
+
+    def abort(self) -> None:
+        self.mechanism.abort()
 
 
 STEP_KINDS: dict[str, type[ResetStep]] = {c.kind: c for c in (DriveToStart, TurnToYaw, Teleport, TaskReset)}

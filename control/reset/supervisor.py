@@ -316,8 +316,16 @@ class ResetSupervisor(Node):
         except StepError as e:
             self._attempt_failed(s, str(e))
 
+    def _abort_step(self) -> None:
+        if self.state == "resetting" and self._i < len(self.steps):
+            try:
+                self.steps[self._i].abort()
+            except Exception as e:  # an abort must not stop the supervisor from stopping the rig
+                log.error("reset step %s: abort failed: %s", self.steps[self._i].name, e)
+
     def _attempt_failed(self, s: RobotState, detail: str) -> None:
         step = self.steps[self._i]
+        self._abort_step()
         if self._attempt <= step.cfg.retries:
             self._attempt += 1
             self._begin_step(s, retry_detail=f"{detail}; attempt {self._attempt} of {step.cfg.retries + 1}")
@@ -412,19 +420,22 @@ class ResetSupervisor(Node):
         return ""
 
     def _fail(self, detail: str) -> None:
+        self._abort_step()
         self.last_failure = detail
         self._fire("fail", detail=detail)
         log.error("reset supervisor: %s; engaging the e-stop of rig %s", detail, self.rig)
+        # stop the rig first, then tell the controller (it may act on the answer at once)
+        command_estop(self, True, reason=f"reset failed: {detail}", timeout_s=1.0, settle_s=0.0)
         if self._pending is not None:
             self._answer("failed", detail)
         else:
             self.stats["failed"] += 1
-        command_estop(self, True, reason=f"reset failed: {detail}", timeout_s=1.0, settle_s=0.0)
 
     def _abort_estop(self) -> None:
         m = self.estop.latched
         detail = f"e-stop engaged ({m.source or '?'}: {m.reason})" if m else "e-stop engaged"
         was = self.state
+        self._abort_step()
         self._fire("estop_engaged", detail=detail)
         if self._pending is not None and was != "failed":
             self._answer("failed", f"{detail} during the reset")
