@@ -97,3 +97,26 @@ def load_reset(rig: RigConfig) -> ResetConfig | None:
             if not getattr(d, f):
                 raise ConfigError(rig.source, [(f"reset.detectors[{i}].{f}", f"required for a {d.kind} detector")])
     return cfg
+
+
+class ResetUnavailable(RuntimeError):
+    """A rig whose robot cannot be reset by anything: one line saying what to add."""
+
+
+def require_reset(rig: RigConfig, robot: str, operator_resets: bool = False) -> ResetConfig | None:
+    """The rig's reset procedure for ``robot``; None when the driver resets itself (sim
+    backends teleport) or an operator places the robot. Raises :class:`ResetUnavailable`
+    at start, before anything moves, when nothing can reset the robot."""
+    from configs.schema import rig_robot_config
+
+    cfg = load_reset(rig)
+    if cfg is not None and cfg.robot == robot:
+        return cfg
+    backend = rig_robot_config(rig, robot).backend
+    if backend == "sim" or operator_resets:
+        return None
+    where = rig.source or f"configs/rigs/{rig.name}.yaml"
+    raise ResetUnavailable(
+        f"rig {rig.name}: robot {robot} ({backend} backend) cannot reset itself and the rig has no reset "
+        f"procedure: add a 'reset:' section for {robot} to {where} (docs/reset.md) or pass --operator-resets"
+    )

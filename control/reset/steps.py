@@ -127,8 +127,14 @@ class DriveToStart(ResetStep):
 class TurnToYaw(ResetStep):
     """Turn in place to the start yaw: leg sets at ``∓k·e_ψ`` (clipped to ``speed``).
 
-    Params: ``speed`` (max normalized leg speed, default 0.5), ``gain`` (per rad,
-    default 1.0), ``tolerance_rad`` (done within this, default 0.3).
+    Params: ``speed`` (max normalized leg speed, default 0.1), ``gain`` (per rad,
+    default 0.1), ``tolerance_rad`` (default 0.15), ``settle_s`` (done after holding
+    still within the tolerance this long [s of robot time], default 0.5).
+
+    Why so small: the VelociRoACH emulator turns in place at about 30 rad/s per unit of
+    differential command (0.6 rad/s at 0.02, 1.6 at 0.05, 2.8 at 0.1; measured on
+    this rig, docs/reset.md). At 10 Hz a gain of 0.1/rad corrects ~30 % of the error
+    per period, which stays stable with a period or two of radio and mocap lag.
     """
 
     kind = "turn_to_yaw"
@@ -136,15 +142,18 @@ class TurnToYaw(ResetStep):
     def __init__(self, cfg: StepConfig):
         super().__init__(cfg)
         p = dict(cfg.params)
-        self.speed = float(p.pop("speed", 0.5))
-        self.gain = float(p.pop("gain", 1.0))
-        self.tolerance_rad = float(p.pop("tolerance_rad", 0.3))
+        self.speed = float(p.pop("speed", 0.1))
+        self.gain = float(p.pop("gain", 0.1))
+        self.tolerance_rad = float(p.pop("tolerance_rad", 0.15))
+        self.settle_s = float(p.pop("settle_s", 0.5))
         if p:
-            raise ValueError(f"turn_to_yaw: unknown params {sorted(p)} (speed, gain, tolerance_rad)")
+            raise ValueError(f"turn_to_yaw: unknown params {sorted(p)} (speed, gain, tolerance_rad, settle_s)")
+        self._inside_since_s: float | None = None
 
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
         self._yaw = float(pose.get("yaw", 0.0))
         self._ic, self._is = ctx.state_names.index("cos_yaw"), ctx.state_names.index("sin_yaw")
+        self._inside_since_s = None
 
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
         yaw = math.atan2(state.state[self._is], state.state[self._ic])
@@ -152,7 +161,12 @@ class TurnToYaw(ResetStep):
         if not math.isfinite(e):
             raise StepError("turn_to_yaw: the robot's heading is not finite (pose lost?)")
         if abs(e) < self.tolerance_rad:
-            return DONE
+            # done once it stays there for settle_s: the pose lags the legs (mocap, radio)
+            # and the body coasts, so a first crossing is often an overshoot
+            if self._inside_since_s is None:
+                self._inside_since_s = state.t_s
+            return DONE if state.t_s - self._inside_since_s >= self.settle_s else HOLD
+        self._inside_since_s = None
         d = float(np.clip(self.gain * e, -self.speed, self.speed))
         return np.array([-d, d])
 

@@ -1,0 +1,150 @@
+"""Reset procedures as data: config validation, detectors, steps, the start check, the diagram."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from bus.schemas import RobotState
+from configs.schema import ConfigError, RigConfig, load_rig, parse_model
+from control.reset.config import DetectorConfig, ResetUnavailable, StepConfig, load_reset, require_reset
+from control.reset.detectors import ArenaDetector, DropDetector, TimeoutDetector, make_detector
+from control.reset.steps import (
+    DONE,
+    HOLD,
+    MECHANISMS,
+    TaskReset,
+    TaskResetMechanism,
+    TurnToYaw,
+    register_mechanism,
+)
+from control.reset.supervisor import state_diagram_mermaid
+
+NAMES = ["x", "y", "cos_yaw", "sin_yaw", "ball_z"]
+
+
+def st(t_s=0.0, x=0.0, y=0.0, yaw=0.0, ball_z=0.1) -> RobotState:
+    return RobotState(robot="r", t_s=t_s, state=[x, y, math.cos(yaw), math.sin(yaw), ball_z])
+
+
+def rig(reset, robots=None) -> RigConfig:
+    return parse_model(RigConfig, {"name": "t", "robots": robots or {"roach": {"config": "velociroach",
+                                                                                "backend": "emulated"}},
+                                   "reset": reset}, "t.yaml")
+
+
+def test_timeout_detector_counts_robot_time_from_the_episode_start():
+    d = TimeoutDetector(max_s=2.0)
+    d.bind(NAMES)
+    d.start(st(t_s=10.0))
+    assert d(st(t_s=11.9)) is None
+    assert "timeout" in d(st(t_s=12.0))
+
+
+def test_arena_detector_fires_outside_the_radius_and_ignores_nan():
+    d = ArenaDetector(radius_m=1.0, center_xy_m=(1.0, 0.0))
+    d.bind(NAMES)
+    assert d(st(x=1.9)) is None
+    assert "1.10 m" in d(st(x=1.0, y=1.1))
+    assert d(st(x=float("nan"))) is None
+
+
+def test_drop_detector_watches_named_height_channels():
+    d = make_detector(DetectorConfig(kind="drop", channels=["ball_z"], min_height_m=0.05))
+    d.bind(NAMES)
+    assert d(st(ball_z=0.06)) is None
+    assert "ball_z" in d(st(ball_z=0.01))
+    with pytest.raises(ValueError, match="no channel"):
+        DropDetector(["ball2_z"], 0.05).bind(NAMES)
+
+
+def test_reset_config_errors_name_the_field():
+    with pytest.raises(ConfigError, match=r"reset.steps\[0\].kind.*unknown step 'fly'"):
+        load_reset(rig({"robot": "roach", "steps": [{"kind": "fly"}]}))
+    with pytest.raises(ConfigError, match=r"reset.detectors\[0\].radius_m.*required"):
+        load_reset(rig({"robot": "roach", "detectors": [{"kind": "arena"}], "steps": [{"kind": "drive_to_start"}]}))
+    with pytest.raises(ConfigError, match=r"steps"):
+        load_reset(rig({"robot": "roach", "steps": []}))
+    with pytest.raises(ConfigError, match=r"reset.robot.*not on the rig"):
+        load_reset(rig({"robot": "hand", "steps": [{"kind": "drive_to_start"}]}))
+    with pytest.raises(ConfigError, match=r"timeout_s"):
+        load_reset(rig({"robot": "roach", "steps": [{"kind": "drive_to_start", "timeout_s": -1}]}))
+
+
+def test_a_rig_that_nothing_can_reset_refuses_at_start_with_what_to_add():
+    real = load_rig("roach_real")
+    with pytest.raises(ResetUnavailable) as e:
+        require_reset(real, "roach")
+    msg = str(e.value)
+    assert "\n" not in msg and "add a 'reset:' section" in msg and "--operator-resets" in msg
+    assert require_reset(real, "roach", operator_resets=True) is None
+    assert require_reset(load_rig("roach_sim"), "roach") is None  # the sim teleports
+    emulated = require_reset(load_rig("roach_emulated"), "roach")
+    assert [s.kind for s in emulated.steps] == ["drive_to_start", "turn_to_yaw"]
+    assert {d.kind for d in emulated.detectors} == {"arena", "timeout"}
+
+
+def test_max_duration_covers_every_attempt():
+    cfg = load_reset(rig({"robot": "roach", "steps": [{"kind": "drive_to_start", "timeout_s": 10, "retries": 1},
+                                                      {"kind": "turn_to_yaw", "timeout_s": 5}],
+                          "verify": {"retries": 2}}))
+    assert cfg.max_duration_s() == pytest.approx((2 * 10 + 5) * 3)
+
+
+class _Ctx:
+    state_names = NAMES
+
+
+def test_turn_to_yaw_turns_the_short_way_and_finishes_within_tolerance():
+    t = TurnToYaw(StepConfig(kind="turn_to_yaw", params={"speed": 0.3, "gain": 0.5, "tolerance_rad": 0.1,
+                                                         "settle_s": 0.5}))
+    t.start(_Ctx, st(), {"yaw": 3.0})
+    a = t.update(_Ctx, st(yaw=-3.0))  # 3.0 is 0.28 rad clockwise from -3.0: turn right
+    assert a[0] > 0 > a[1] and a[0] == pytest.approx(0.5 * (2 * math.pi - 6.0))
+    assert t.update(_Ctx, st(t_s=1.0, yaw=2.95)) == HOLD  # inside: hold still, then check it stays
+    assert isinstance(t.update(_Ctx, st(t_s=1.2, yaw=2.7)), type(a))  # coasted out: turn again
+    assert t.update(_Ctx, st(t_s=1.3, yaw=2.95)) == HOLD
+    assert t.update(_Ctx, st(t_s=1.8, yaw=2.96)) == DONE
+    with pytest.raises(ValueError, match="unknown params"):
+        TurnToYaw(StepConfig(kind="turn_to_yaw", params={"sped": 1}))
+
+
+def test_task_reset_runs_a_registered_mechanism_and_says_when_none_is():
+    calls = []
+
+    class Fixture(TaskResetMechanism):
+        def __init__(self, params):
+            self.params, self.n = params, 0
+
+        def begin(self, pose):
+            calls.append(("begin", pose))
+
+        def poll(self):
+            self.n += 1
+            return self.n >= 2
+
+        def abort(self):
+            calls.append(("abort",))
+
+    with pytest.raises(ValueError, match="no mechanism 'widowx' registered.*arms driver"):
+        TaskReset(StepConfig(kind="task_reset", params={"mechanism": "widowx"}))
+    register_mechanism("fixture", Fixture)
+    try:
+        step = TaskReset(StepConfig(kind="task_reset", params={"mechanism": "fixture", "rotate_deg": 16}))
+        assert step.mechanism.params == {"rotate_deg": 16}
+        step.start(_Ctx, st(), {"x": 0.0})
+        assert step.update(_Ctx, st()) == HOLD
+        assert step.update(_Ctx, st()) == DONE
+        step.abort()
+        assert calls == [("begin", {"x": 0.0}), ("abort",)]
+    finally:
+        MECHANISMS.pop("fixture")
+
+
+def test_docs_draw_the_machine_as_defined():
+    """docs/reset.md carries the diagram generated from the machine's definition."""
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "reset.md").read_text()
+    assert state_diagram_mermaid() in doc
+    assert "running --> episode_end: end_episode" in state_diagram_mermaid()
