@@ -59,7 +59,7 @@ from bus.node import Node
 from bus.schemas import Command, MalformedMessage, ResetEvent, ResetTransition, RobotState, SpecMsg, decode
 from configs.schema import BusConfig
 from control.controller_node import ActionScale
-from control.reset.config import ResetConfig
+from control.reset.config import ResetConfig, VerifyConfig
 from control.reset.detectors import EpisodeEndDetector, make_detector
 from control.reset.steps import DONE, HOLD, ResetStep, StepError, make_step
 
@@ -93,6 +93,24 @@ def state_diagram_mermaid() -> str:
     # drop the styling lines (classDef/Class): they mark the current state, not the design
     return "\n".join(ln.rstrip() for ln in src.splitlines()
                      if ln.strip() and not ln.strip().startswith(("classDef", "Class "))) + "\n"
+
+
+def pose_error(names: list[str], s: RobotState, pose: dict[str, float], verify: VerifyConfig) -> str:
+    """Why ``s`` is not at ``pose`` ({x, y, yaw}: m, m, rad; world frame) within the
+    tolerances of ``verify``; '' when it is. Heading error wraps at ±π."""
+    v = s.state
+    if not s.ok:
+        return "robot reports a bad reading"
+    err_m = math.hypot(v[names.index("x")] - pose.get("x", 0.0), v[names.index("y")] - pose.get("y", 0.0))
+    if not err_m <= verify.position_tol_m:  # NaN fails too
+        return f"{err_m:.2f} m from the start (tolerance {verify.position_tol_m:g} m)"
+    tol = verify.yaw_tol_rad
+    if tol is not None and "cos_yaw" in names:
+        yaw = math.atan2(v[names.index("sin_yaw")], v[names.index("cos_yaw")])
+        e = abs(math.remainder(yaw - pose.get("yaw", 0.0), math.tau))
+        if not e <= tol:
+            return f"heading {e:.2f} rad off the start yaw (tolerance {tol:g} rad)"
+    return ""
 
 
 class _Fsm:
@@ -362,19 +380,7 @@ class ResetSupervisor(Node):
 
     def check_pose(self, s: RobotState) -> str:
         """Why ``s`` is not at the start pose ('' when it is)."""
-        v, n = s.state, self.state_names
-        if not s.ok:
-            return "robot reports a bad reading"
-        err_m = math.hypot(v[n.index("x")] - self._pose.get("x", 0.0), v[n.index("y")] - self._pose.get("y", 0.0))
-        if not err_m <= self.cfg.verify.position_tol_m:
-            return f"{err_m:.2f} m from the start (tolerance {self.cfg.verify.position_tol_m:g} m)"
-        tol = self.cfg.verify.yaw_tol_rad
-        if tol is not None and "cos_yaw" in n:
-            yaw = math.atan2(v[n.index("sin_yaw")], v[n.index("cos_yaw")])
-            e = abs(math.remainder(yaw - self._pose.get("yaw", 0.0), math.tau))
-            if not e <= tol:
-                return f"heading {e:.2f} rad off the start yaw (tolerance {tol:g} rad)"
-        return ""
+        return pose_error(self.state_names, s, self._pose, self.cfg.verify)
 
     def _verifying(self, s: RobotState) -> None:
         self._send(s, None)

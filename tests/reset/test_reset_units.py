@@ -9,7 +9,14 @@ import pytest
 
 from bus.schemas import RobotState
 from configs.schema import ConfigError, RigConfig, load_rig, parse_model
-from control.reset.config import DetectorConfig, ResetUnavailable, StepConfig, load_reset, require_reset
+from control.reset.config import (
+    DetectorConfig,
+    ResetUnavailable,
+    StepConfig,
+    VerifyConfig,
+    load_reset,
+    require_reset,
+)
 from control.reset.detectors import ArenaDetector, DropDetector, TimeoutDetector, make_detector
 from control.reset.steps import (
     DONE,
@@ -20,7 +27,7 @@ from control.reset.steps import (
     TurnToYaw,
     register_mechanism,
 )
-from control.reset.supervisor import state_diagram_mermaid
+from control.reset.supervisor import pose_error, state_diagram_mermaid
 
 NAMES = ["x", "y", "cos_yaw", "sin_yaw", "ball_z"]
 
@@ -148,3 +155,15 @@ def test_docs_draw_the_machine_as_defined():
     doc = (Path(__file__).resolve().parents[2] / "docs" / "reset.md").read_text()
     assert state_diagram_mermaid() in doc
     assert "running --> episode_end: end_episode" in state_diagram_mermaid()
+
+
+def test_pose_verification_wraps_heading_and_rejects_bad_readings():
+    v = VerifyConfig(position_tol_m=0.2, yaw_tol_rad=0.3)
+    assert pose_error(NAMES, st(x=0.1, yaw=-3.1), {"x": 0.0, "y": 0.0, "yaw": 3.1}, v) == ""  # 0.08 rad apart
+    assert "heading 0.50 rad" in pose_error(NAMES, st(yaw=0.5), {"yaw": 0.0}, v)
+    assert "0.25 m from the start" in pose_error(NAMES, st(x=0.25), {"x": 0.0}, v)
+    assert "m from the start" in pose_error(NAMES, st(x=float("nan")), {"x": 0.0}, v)
+    bad = st()
+    bad.ok = False
+    assert "bad reading" in pose_error(NAMES, bad, {}, v)
+    assert pose_error(NAMES, st(yaw=2.0), {"yaw": 0.0}, VerifyConfig(position_tol_m=0.2)) == ""  # no yaw check
