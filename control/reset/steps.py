@@ -73,13 +73,28 @@ class ResetStep(ABC):
         besides the robot (the supervisor stops commanding the robot itself)."""
 
 
+def turn_in_place(e_rad: float, gain: float, speed: float) -> np.ndarray:
+    """Normalized (left, right) leg commands turning toward a heading error ``e_rad``
+    (>0: turn left, counter-clockwise): the leg sets at ``∓clip(gain·e, ±speed)``."""
+    d = float(np.clip(gain * e_rad, -speed, speed))
+    return np.array([-d, d])
+
+
 class DriveToStart(ResetStep):
-    """Drive to the start position with the differential-drive baseline along the
-    straight path here → start (re-planned from where the robot is if it passes the
-    start). The heading is the next step's job (``turn_to_yaw``).
+    """Drive to the start position: turn in place toward it while the heading error is
+    above ``turn_above_rad``, then follow the straight path here → start with the
+    differential-drive baseline (re-planned from where the robot is if it passes the
+    start: a path follower does not turn back at the end of its path). The start
+    heading is the next step's job (``turn_to_yaw``).
 
     Params: ``speed`` (nominal normalized leg speed, default 0.6), ``tolerance_m``
-    (done when this close to the start, default 0.1).
+    (done when this close to the start, default 0.1), ``k_heading`` (per rad, default
+    0.1), ``k_perp`` (per m, default 0.5), ``d_max`` (default 0.1), ``turn_above_rad``
+    (default 0.6).
+
+    Why gains this low (the baseline's defaults are 0.8/rad, 4/m, 0.4): the VelociRoACH
+    emulator turns at about 30 rad/s per unit of differential command (docs/reset.md);
+    at 10 Hz with a period of lag the default gains make it spin in place.
     """
 
     kind = "drive_to_start"
@@ -89,18 +104,21 @@ class DriveToStart(ResetStep):
         p = dict(cfg.params)
         self.speed = float(p.pop("speed", 0.6))
         self.tolerance_m = float(p.pop("tolerance_m", 0.1))
+        self.k_heading = float(p.pop("k_heading", 0.1))
+        self.k_perp = float(p.pop("k_perp", 0.5))
+        self.d_max = float(p.pop("d_max", 0.1))
+        self.turn_above_rad = float(p.pop("turn_above_rad", 0.6))
         if p:
-            raise ValueError(f"drive_to_start: unknown params {sorted(p)} (speed, tolerance_m)")
+            raise ValueError(f"drive_to_start: unknown params {sorted(p)} "
+                             "(speed, tolerance_m, k_heading, k_perp, d_max, turn_above_rad)")
         self._ctl: DifferentialDriveController | None = None
         self._goal = np.zeros(2)
         self._dir = np.array([1.0, 0.0])
 
     def _plan(self, here: np.ndarray) -> None:
         self._dir = self._goal - here
-        # the baseline follows a path; it never turns back at its end, so past the start
-        # (below) it gets a new one
-        self._ctl = DifferentialDriveController(np.array([here, self._goal]), self._names,
-                                                omega_nom=self.speed, d_max=0.67 * self.speed)
+        self._ctl = DifferentialDriveController(np.array([here, self._goal]), self._names, omega_nom=self.speed,
+                                                k_heading=self.k_heading, k_perp=self.k_perp, d_max=self.d_max)
 
     def _xy(self, state: RobotState) -> np.ndarray:
         s = state.state
@@ -115,12 +133,19 @@ class DriveToStart(ResetStep):
         s = np.asarray(state.state, dtype=np.float64)
         if not np.all(np.isfinite(s)):
             raise StepError("drive_to_start: the robot's state is not finite (pose lost?)")
+        for tilt in ("cos_roll", "cos_pitch"):
+            if tilt in self._names and s[self._names.index(tilt)] < 0.5:
+                # on its side or back: driving the legs will not bring it back
+                raise StepError(f"drive_to_start: the robot is not upright ({tilt} {s[self._names.index(tilt)]:.2f})")
         p = self._xy(state)
         off = p - self._goal
         if np.linalg.norm(off) < self.tolerance_m:
             return DONE
         if float(off @ self._dir) > 0.0:
             self._plan(p)  # passed the start: come back along a new path
+        e_heading, _ = self._ctl.errors(s)
+        if abs(e_heading) > self.turn_above_rad:
+            return turn_in_place(e_heading, self.k_heading, self.d_max)
         return np.asarray(self._ctl(s), dtype=np.float64)
 
 
@@ -167,8 +192,7 @@ class TurnToYaw(ResetStep):
                 self._inside_since_s = state.t_s
             return DONE if state.t_s - self._inside_since_s >= self.settle_s else HOLD
         self._inside_since_s = None
-        d = float(np.clip(self.gain * e, -self.speed, self.speed))
-        return np.array([-d, d])
+        return turn_in_place(e, self.gain, self.speed)
 
 
 class Teleport(ResetStep):

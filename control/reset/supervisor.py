@@ -289,10 +289,12 @@ class ResetSupervisor(Node):
                 why = self.last_failure if self.state == "failed" else "e-stop engaged"
                 self._answer("failed", f"rig stopped: {why}; release the e-stop after fixing it")
                 continue
-            if self._pending is None:
+            if self._pending is None and self.state in ("running", "episode_end"):
                 self._reset_t0_wall = time.monotonic()
+                self._pose = {**self.cfg.start_pose, **m.pose}
+            # a repeated request during a reset (a controller that asked again) is answered
+            # with the reset under way; the pose being driven to does not change mid-reset
             self._pending = m
-            self._pose = {**self.cfg.start_pose, **m.pose}
 
     def _answer(self, phase: str, detail: str = "", episode: int | None = None) -> None:
         ep = episode if episode is not None else (self._last.episode if self._last else 0)

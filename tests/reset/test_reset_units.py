@@ -22,6 +22,8 @@ from control.reset.steps import (
     DONE,
     HOLD,
     MECHANISMS,
+    DriveToStart,
+    StepError,
     TaskReset,
     TaskResetMechanism,
     TurnToYaw,
@@ -167,3 +169,33 @@ def test_pose_verification_wraps_heading_and_rejects_bad_readings():
     bad.ok = False
     assert "bad reading" in pose_error(NAMES, bad, {}, v)
     assert pose_error(NAMES, st(yaw=2.0), {"yaw": 0.0}, VerifyConfig(position_tol_m=0.2)) == ""  # no yaw check
+
+
+ROACH = ["x", "y", "cos_roll", "cos_pitch", "cos_yaw", "sin_yaw"]
+
+
+class _RoachCtx:
+    state_names = ROACH
+
+
+def roach(x=0.0, y=0.0, yaw=0.0, cos_roll=1.0) -> RobotState:
+    return RobotState(robot="r", t_s=0.0, state=[x, y, cos_roll, 1.0, math.cos(yaw), math.sin(yaw)])
+
+
+def test_drive_to_start_turns_in_place_first_then_drives_and_refuses_a_flipped_robot():
+    step = DriveToStart(StepConfig(kind="drive_to_start"))
+    step.start(_RoachCtx, roach(x=1.0), {"x": 0.0, "y": 0.0})
+    # facing away from the start (+x, start is at -x): turn in place, slowly
+    a = step.update(_RoachCtx, roach(x=1.0, yaw=0.0))
+    assert a[0] == pytest.approx(-a[1]) and abs(a[0]) == pytest.approx(step.d_max)
+    # facing the start: both leg sets forward
+    a = step.update(_RoachCtx, roach(x=1.0, yaw=math.pi))
+    assert a[0] > 0.4 and a[1] > 0.4
+    # passed the start: a new path from here back to it (heading now points back: turn)
+    a = step.update(_RoachCtx, roach(x=-0.5, yaw=math.pi))
+    assert a[0] == pytest.approx(-a[1])
+    assert step.update(_RoachCtx, roach(x=0.05, yaw=0.0)) == DONE
+    with pytest.raises(StepError, match="not upright"):
+        step.update(_RoachCtx, roach(x=1.0, cos_roll=-0.6))
+    with pytest.raises(StepError, match="not finite"):
+        step.update(_RoachCtx, roach(x=float("nan")))
