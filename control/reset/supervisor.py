@@ -232,7 +232,14 @@ class ResetSupervisor(Node):
         """Run until ``stop_event`` (signal or close)."""
         self.wait_ready(ready_timeout_s)
         while not self.stop_event.is_set():
-            self.spin_once()
+            try:
+                self.spin_once()
+            except Exception as e:
+                # a bug in a step must not leave a robot half-way through a reset
+                log.exception("reset supervisor crashed")
+                if self.state in _RESETTING:
+                    self._fail(f"reset supervisor error: {type(e).__name__}: {e}")
+                raise
 
     def spin_once(self, wait_s: float = 0.05) -> None:
         if self.scale is None:

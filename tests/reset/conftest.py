@@ -28,7 +28,9 @@ def rig_config(**reset_overrides) -> RigConfig:
 
 
 class SupervisedRig:
-    def __init__(self, bus, rig: RigConfig):
+    def __init__(self, bus, rig: RigConfig, serve: bool = False):
+        """``serve``: run the supervisor's own ``serve()`` loop (it re-raises what crashes it)
+        instead of the test's spin loop."""
         self.rig = rig
         self.driver = DriverNode(make_driver(rig_robot_config(rig, "roach")), rig.name, "roach", bus,
                                  pace="lockstep", handle_signals=False, estop_sync_s=0.3)
@@ -36,10 +38,17 @@ class SupervisedRig:
         self._dt.start()
         self.sup = ResetSupervisor(rig.name, load_reset(rig), bus, handle_signals=False)
         self.sup.wait_ready(20)
-        self._st = threading.Thread(target=self._spin, daemon=True, name="supervisor")
+        self.crash: list[BaseException] = []
+        self._st = threading.Thread(target=self._serve if serve else self._spin, daemon=True, name="supervisor")
         self._st.start()
         self.ctl = ControllerNode(rig.name, "roach", bus, handle_signals=False, state_timeout_s=10)
         self.ctl.wait_ready(20)
+
+    def _serve(self):
+        try:
+            self.sup.serve()
+        except Exception as e:  # the test inspects it
+            self.crash.append(e)
 
     def _spin(self):
         while not self.sup.stop_event.is_set():

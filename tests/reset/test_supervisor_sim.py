@@ -182,3 +182,34 @@ def _catch(fn):
     except Exception as e:  # the thread hands the error to the test
         return e
     return None
+
+
+class Broken(TaskResetMechanism):
+    def __init__(self, params):
+        pass
+
+    def begin(self, pose):
+        pass
+
+    def poll(self) -> bool:
+        raise KeyError("bug in the mechanism")
+
+
+def test_a_crashing_step_still_stops_the_rig_and_tells_the_controller(bus):
+    from tests.reset.conftest import SupervisedRig, rig_config
+
+    register_mechanism("test-broken", Broken)
+    try:
+        rig = SupervisedRig(bus, rig_config(steps=[{"kind": "task_reset", "params": {"mechanism": "test-broken"}}]),
+                            serve=True)
+        try:
+            drive_out(rig, steps=5)
+            with pytest.raises(RuntimeError, match="reset supervisor error: KeyError"):
+                rig.ctl.reset(timeout_s=20)
+            wait_for(lambda: rig.driver.estopped, 10, "driver e-stopped")
+            wait_for(lambda: rig.crash, 10, "supervisor loop re-raised")
+            assert isinstance(rig.crash[0], KeyError)
+        finally:
+            rig.close()
+    finally:
+        MECHANISMS.pop("test-broken", None)
