@@ -283,7 +283,7 @@ class MbrlRun:
                 raise RigError(str(e)) from None
             if "unsupported" not in str(e) or not self.cfg.operator_resets:
                 raise
-        # a real robot: the operator places it (an automated reset node would answer instead)
+        # a rig without a reset procedure: the operator places the robot
         input(f"place the robot at x={pose['x']:.2f} y={pose['y']:.2f} yaw={pose['yaw']:.2f}, then press Enter ")
         return self.ctl.next_state()
 
