@@ -213,3 +213,12 @@ def test_a_crashing_step_still_stops_the_rig_and_tells_the_controller(bus):
             rig.close()
     finally:
         MECHANISMS.pop("test-broken", None)
+
+
+def test_teleport_step_puts_the_sim_robot_at_the_pose_through_the_driver_node(supervised_rig):
+    rig = supervised_rig(steps=[{"kind": "teleport", "timeout_s": 5}], detectors=[])
+    drive_out(rig, steps=20)
+    first = rig.ctl.reset(timeout_s=30, x=0.4, y=-0.2, yaw=0.3)
+    assert first.episode == 1  # one new episode, from the supervisor's "episode" request only
+    assert first.state[0] == pytest.approx(0.4, abs=0.05) and first.state[1] == pytest.approx(-0.2, abs=0.05)
+    assert rig.dests() == FULL_CYCLE
