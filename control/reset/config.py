@@ -29,12 +29,14 @@ from configs.schema import ConfigError, RigConfig, Strict, parse_model
 class DetectorConfig(Strict):
     """One episode-end detector (control/reset/detectors.py)."""
 
-    kind: Literal["timeout", "arena", "drop"]
+    kind: Literal["timeout", "arena", "tipped", "drop"]
     #: timeout: episode length [s of robot time]
     max_s: float | None = Field(None, gt=0)
     #: arena: radius [m] around ``center_xy_m`` (world frame, the mocap's)
     radius_m: float | None = Field(None, gt=0)
     center_xy_m: tuple[float, float] = (0.0, 0.0)
+    #: tipped: cos_roll or cos_pitch below this ends the episode
+    min_cos: float = Field(0.5, ge=-1, le=1)
     #: drop: state channels holding heights [m] (e.g. each ball's z in the hand frame)
     channels: list[str] = Field(default_factory=list)
     #: drop: a channel below this height [m] means a drop
@@ -92,7 +94,7 @@ def load_reset(rig: RigConfig) -> ResetConfig | None:
         if s.kind not in STEP_KINDS:
             raise ConfigError(rig.source, [(f"reset.steps[{i}].kind", f"unknown step {s.kind!r}; known: {sorted(STEP_KINDS)}")])
     for i, d in enumerate(cfg.detectors):
-        need = {"timeout": ("max_s",), "arena": ("radius_m",), "drop": ("channels", "min_height_m")}[d.kind]
+        need = {"timeout": ("max_s",), "arena": ("radius_m",), "tipped": (), "drop": ("channels", "min_height_m")}[d.kind]
         for f in need:
             if not getattr(d, f):
                 raise ConfigError(rig.source, [(f"reset.detectors[{i}].{f}", f"required for a {d.kind} detector")])

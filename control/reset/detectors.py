@@ -8,6 +8,7 @@ supervisor calls :meth:`EpisodeEndDetector.start` when a new episode begins.
   (the thesis ends a Baoding episode after 10 s).
 - :class:`ArenaDetector`: the robot left a circle in the world plane (VelociRoACH: mocap
   x, y).
+- :class:`TippedDetector`: the robot is on its side or back (roll or pitch).
 - :class:`DropDetector`: an object fell; the hand implements it on its state or the
   camera tracker's ball heights. The generic rule here watches named height channels.
 """
@@ -104,9 +105,33 @@ class DropDetector(EpisodeEndDetector):
         return None
 
 
+class TippedDetector(EpisodeEndDetector):
+    """The robot tipped over: ``cos_roll`` or ``cos_pitch`` below ``min_cos`` (data
+    after a flip is not the task's; a ``self_right`` reset step can recover it)."""
+
+    name = "tipped"
+
+    def __init__(self, min_cos: float = 0.5):
+        self.min_cos = float(min_cos)
+        self._idx: list[tuple[str, int]] = []
+
+    def bind(self, state_names: Sequence[str]) -> None:
+        self._idx = [(c, list(state_names).index(c)) for c in ("cos_roll", "cos_pitch") if c in state_names]
+        if not self._idx:
+            raise ValueError(f"tipped detector: state has neither cos_roll nor cos_pitch; has {list(state_names)}")
+
+    def __call__(self, state: RobotState) -> str | None:
+        for c, i in self._idx:
+            if state.state[i] < self.min_cos:
+                return f"tipped: {c} = {state.state[i]:.2f} (below {self.min_cos:g})"
+        return None
+
+
 def make_detector(cfg: DetectorConfig) -> EpisodeEndDetector:
     if cfg.kind == "timeout":
         return TimeoutDetector(cfg.max_s)
     if cfg.kind == "arena":
         return ArenaDetector(cfg.radius_m, cfg.center_xy_m)
+    if cfg.kind == "tipped":
+        return TippedDetector(cfg.min_cos)
     return DropDetector(cfg.channels, cfg.min_height_m)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bus.schemas import RobotState
@@ -23,6 +24,7 @@ from control.reset.steps import (
     HOLD,
     MECHANISMS,
     DriveToStart,
+    SelfRight,
     StepError,
     TaskReset,
     TaskResetMechanism,
@@ -91,8 +93,8 @@ def test_a_rig_that_nothing_can_reset_refuses_at_start_with_what_to_add():
     assert require_reset(real, "roach", operator_resets=True) is None
     assert require_reset(load_rig("roach_sim"), "roach") is None  # the sim teleports
     emulated = require_reset(load_rig("roach_emulated"), "roach")
-    assert [s.kind for s in emulated.steps] == ["drive_to_start", "turn_to_yaw"]
-    assert {d.kind for d in emulated.detectors} == {"arena", "timeout"}
+    assert [s.kind for s in emulated.steps] == ["self_right", "drive_to_start", "turn_to_yaw"]
+    assert {d.kind for d in emulated.detectors} == {"arena", "timeout", "tipped"}
 
 
 def test_max_duration_covers_every_attempt():
@@ -199,3 +201,19 @@ def test_drive_to_start_turns_in_place_first_then_drives_and_refuses_a_flipped_r
         step.update(_RoachCtx, roach(x=1.0, cos_roll=-0.6))
     with pytest.raises(StepError, match="not finite"):
         step.update(_RoachCtx, roach(x=float("nan")))
+
+
+def test_tipped_detector_and_self_right_step():
+    d = make_detector(DetectorConfig(kind="tipped", min_cos=0.5))
+    d.bind(ROACH)
+    assert d(roach()) is None
+    assert "tipped: cos_roll = -0.60" in d(roach(cos_roll=-0.6))
+    step = SelfRight(StepConfig(kind="self_right", params={"settle_s": 0.5}))
+    step.start(_RoachCtx, roach(cos_roll=-0.9), {})
+    kicks = [step.update(_RoachCtx, roach(cos_roll=-0.9)) for _ in range(20)]
+    assert all(isinstance(k, np.ndarray) and np.all(np.abs(k) <= 1.0) for k in kicks)
+    assert np.std(np.array(kicks)) > 0.3  # random kicks, not a fixed pattern
+    up = roach()
+    assert step.update(_RoachCtx, up) == HOLD  # upright: hold still and see that it stays so
+    up.t_s = 0.6
+    assert step.update(_RoachCtx, up) == DONE
