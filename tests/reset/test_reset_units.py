@@ -208,9 +208,12 @@ def test_tipped_detector_and_self_right_step():
     d.bind(ROACH)
     assert d(roach()) is None
     assert "tipped: cos_roll = -0.60" in d(roach(cos_roll=-0.6))
-    step = SelfRight(StepConfig(kind="self_right", params={"settle_s": 0.5}))
+    step = SelfRight(StepConfig(kind="self_right", params={"settle_s": 0.5, "hold_first_s": 1.0}))
     step.start(_RoachCtx, roach(cos_roll=-0.9), {})
-    kicks = [step.update(_RoachCtx, roach(cos_roll=-0.9)) for _ in range(20)]
+    assert step.update(_RoachCtx, roach(cos_roll=-0.9)) == HOLD  # first: legs still, it may fall back
+    tipped = roach(cos_roll=-0.9)
+    tipped.t_s = 1.0
+    kicks = [step.update(_RoachCtx, tipped) for _ in range(20)]
     assert all(isinstance(k, np.ndarray) and np.all(np.abs(k) <= 1.0) for k in kicks)
     assert np.std(np.array(kicks)) > 0.3  # random kicks, not a fixed pattern
     up = roach()
