@@ -47,6 +47,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -158,6 +159,7 @@ class ResetSupervisor(Node):
         self._alive_sub = self.session.liveliness().declare_subscriber(
             keys.alive(rig, keys.driver_node(self.robot)), self._on_driver_alive, history=True
         )
+        self._closeables.append(SimpleNamespace(close=self._alive_sub.undeclare))
         self.state_names: list[str] = []
         self.scale: ActionScale | None = None
         self._zero: np.ndarray | None = None
@@ -220,7 +222,6 @@ class ResetSupervisor(Node):
     # StepContext
     def request_driver(self, phase: str, pose: dict[str, float]) -> None:
         self._from_driver.poll()  # forget earlier answers
-        self._from_driver.last = None
         self._to_driver.put(ResetEvent(robot=self.robot, phase=phase, pose=dict(pose)))
 
     def driver_answer(self) -> ResetEvent | None:
