@@ -82,6 +82,24 @@ def reset(rig: str, what: str) -> str:
     return f"{root(rig)}/reset/{what}"
 
 
+def reset_transition(rig: str) -> str:
+    """The reset supervisor's state-machine transitions (``ResetTransition``)."""
+    return reset(rig, "transition")
+
+
+def reset_driver(rig: str) -> str:
+    """Reset supervisor → driver node (``ResetEvent`` phase ``teleport`` or ``episode``)."""
+    return reset(rig, "driver")
+
+
+def reset_driver_done(rig: str) -> str:
+    """Driver node → reset supervisor: the answer to a ``reset_driver`` request."""
+    return reset(rig, "driver_done")
+
+
+#: the reset supervisor's node name; a driver node leaves controller reset requests to it while it is alive
+RESET_SUPERVISOR_NODE = "reset-supervisor"
+
 #: driver bridge nodes are named ``driver-<robot>``; e-stop acks and replay refusal look for them
 DRIVER_NODE_PREFIX = "driver-"
 

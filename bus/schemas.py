@@ -120,6 +120,27 @@ class ResetEvent(Msg, tag="hil.ResetEvent/1"):
     detail: str = ""
 
 
+class ResetTransition(Msg, tag="hil.ResetTransition/1"):
+    """One transition of the reset supervisor's state machine (control/reset), published
+    on ``reset/transition`` and recorded, so a recording says why each episode ended and
+    how its reset went."""
+
+    robot: str
+    #: the machine's trigger (``end_episode``, ``pause``, ``begin``, ``retry``, ``fail``, ``estop``...)
+    trigger: str
+    source: str
+    dest: str
+    #: why the episode ended (detector name or ``request``), for the transitions of one reset
+    reason: str = ""
+    #: the reset step running (``drive_to_start``...), and its attempt (1 = first)
+    step: str = ""
+    attempt: int = 0
+    #: the robot's episode counter when the transition happened
+    episode: int = 0
+    #: what failed, for the operator (one line)
+    detail: str = ""
+
+
 class Ping(Msg, tag="hil.Ping/1"):
     """Benchmarks and link checks."""
 
@@ -127,9 +148,12 @@ class Ping(Msg, tag="hil.Ping/1"):
 
 
 ALL_TYPES: tuple[type[Msg], ...] = (
-    RobotState, Command, EStop, EStopAck, Plan, Image, SpecMsg, ModelUpdate, ResetEvent, Ping
+    RobotState, Command, EStop, EStopAck, Plan, Image, SpecMsg, ModelUpdate, ResetEvent, ResetTransition, Ping
 )
-AnyMsg = RobotState | Command | EStop | EStopAck | Plan | Image | SpecMsg | ModelUpdate | ResetEvent | Ping
+AnyMsg = (
+    RobotState | Command | EStop | EStopAck | Plan | Image | SpecMsg | ModelUpdate | ResetEvent | ResetTransition
+    | Ping
+)
 
 T = TypeVar("T", bound=Msg)
 

@@ -23,10 +23,21 @@ from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
+import zenoh
 
 from bus import keys
 from bus.node import Node
-from bus.schemas import Command, EStop, EStopAck, Image, ResetEvent, RobotState, SpecMsg
+from bus.schemas import (
+    Command,
+    EStop,
+    EStopAck,
+    Image,
+    MalformedMessage,
+    ResetEvent,
+    RobotState,
+    SpecMsg,
+    decode,
+)
 from configs.schema import BusConfig
 from drivers.base import CommandError, Driver, LinkError
 
@@ -44,6 +55,16 @@ class BridgeStats:
     estop_refused: int = 0
     lockstep_timeouts: int = 0
     last_reject: str = ""
+
+
+class _Undeclare:
+    """``close()`` for a Zenoh declaration (Node.close closes what it holds)."""
+
+    def __init__(self, decl):
+        self._decl = decl
+
+    def close(self) -> None:
+        self._decl.undeclare()
 
 
 class DriverNode(Node):
@@ -80,6 +101,15 @@ class DriverNode(Node):
         self._reset_done = self.publisher(keys.reset(rig, "done"), ResetEvent)
         #: a camera image a driver returns in ``extras["image"]`` (H×W×3 uint8), on keys.image(rig, robot)
         self._image_pub = self.publisher(keys.image(rig, robot), Image)
+        # the reset supervisor (control/reset) drives resets when it is alive: the node then
+        # leaves controllers' requests to it and serves its teleport / new-episode requests
+        self._sup_req = self.subscribe(keys.reset_driver(rig), ResetEvent, latest=False, capacity=16)
+        self._sup_done = self.publisher(keys.reset_driver_done(rig), ResetEvent)
+        self.supervisor_alive = False
+        self._sup_token = self.session.liveliness().declare_subscriber(
+            keys.alive(rig, keys.RESET_SUPERVISOR_NODE), self._on_supervisor, history=True
+        )
+        self._closeables.append(_Undeclare(self._sup_token))
         self.episode = 0
         self._last_cmd_t: float | None = None  # node clock when the last command was applied
         self._last_state: RobotState | None = None
@@ -127,17 +157,61 @@ class DriverNode(Node):
                 EStopAck(node=self.name, robot=self.robot, engaged=self.estopped, estop_id=m.id, detail=detail)
             )
 
+    def _on_supervisor(self, sample) -> None:
+        # Zenoh callback: one attribute store, no work
+        self.supervisor_alive = sample.kind == zenoh.SampleKind.PUT
+
+    def _handle_supervisor(self) -> bool:
+        """Serve the reset supervisor: ``teleport`` (sim backends: put the robot at the pose)
+        and ``episode`` (its reset was verified: a new episode starts). True when the state
+        jumped (teleport or new episode): lockstep publishes it at once."""
+        jumped = False
+        for _, payload in self._sup_req.drain():
+            try:
+                m = decode(payload, ResetEvent)
+            except MalformedMessage:
+                continue
+            if m.robot != self.robot:
+                continue
+            reset = getattr(self.driver, "reset", None)
+            if self.estopped:
+                ans = ResetEvent(robot=self.robot, phase="failed", detail="e-stop engaged")
+            elif m.phase == "teleport" and reset is not None:
+                self.driver.stop()
+                reset(**m.pose)
+                self._last_cmd_t = None
+                self.stopped_reason = "waiting"
+                jumped = True
+                ans = ResetEvent(robot=self.robot, phase="done", pose=m.pose)
+            elif m.phase == "teleport":
+                ans = ResetEvent(robot=self.robot, phase="unsupported",
+                                 detail=f"{self.driver.backend} backend cannot teleport")
+            elif m.phase == "episode":
+                self.episode += 1
+                jumped = True
+                ans = ResetEvent(robot=self.robot, phase="done", pose=m.pose)
+            else:
+                ans = ResetEvent(robot=self.robot, phase="failed", detail=f"unknown phase {m.phase!r}")
+            ans.episode = self.episode
+            ans.detail = ans.detail or m.detail
+            self._sup_done.put(ans)
+        return jumped
+
     def _handle_reset(self) -> bool:
         """Serve a reset request; True when the robot was reset (a new episode starts)."""
+        jumped = self._handle_supervisor()
         m = self._reset_req.poll()
-        if m is None or m.robot != self.robot:
-            return False
+        if m is None or m.robot != self.robot or self.supervisor_alive:
+            return jumped
         reset = getattr(self.driver, "reset", None)
         self.driver.stop()
         if reset is None or self.estopped:
-            why = "e-stop engaged" if self.estopped else f"{self.driver.backend} backend cannot reset itself"
+            why = "e-stop engaged" if self.estopped else (
+                f"{self.driver.backend} backend cannot reset itself and no reset supervisor is running "
+                "(add a reset: section to the rig config, docs/reset.md)"
+            )
             self._reset_done.put(ResetEvent(robot=self.robot, phase="unsupported", episode=self.episode, detail=why))
-            return False
+            return jumped
         try:
             reset(**m.pose)
         except TypeError as e:

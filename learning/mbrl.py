@@ -31,7 +31,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from bus import keys
 from bus.recording import Recorder
+from bus.schemas import ResetTransition, decode
 from configs.schema import BusConfig, load_rig
 from control.baselines import DifferentialDriveController
 from control.controller_node import ControllerNode, EpisodeLog
@@ -39,6 +41,8 @@ from control.costs import PathCost, evaluate_path_following, rank_key, summarize
 from control.paths import fillet, make_path, path_length
 from control.planners import CEM, PDDM, RandomShooting
 from control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
+from control.reset.config import ResetConfig, ResetUnavailable, require_reset
+from control.reset.supervisor import ResetSupervisor
 from learning.datasets import Episode
 from learning.dynamics import EnsembleDynamics
 from learning.frames import BodyFrameDynamics
@@ -345,15 +349,24 @@ class MbrlRun:
         self.val_assigned: dict[str, bool] = {}
         self.period_s = 0.1
         self.max_step: np.ndarray | None = None
+        self.supervisor: ResetSupervisor | None = None
+        self.reset_timeout_s = 10.0
 
     @contextlib.contextmanager
     def session(self) -> Iterator[ControllerNode]:
         """The rig's driver node (own process) and this loop's controller node, up until exit."""
         cfg = self.cfg
+        try:  # refuse before anything starts when nothing can reset the robot
+            reset_cfg = require_reset(self.rig, cfg.robot, cfg.operator_resets)
+        except ResetUnavailable as e:
+            raise RigError(str(e)) from None
         with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs"), \
                 ControllerNode(self.rig.name, cfg.robot, self.bus, name="mbrl-controller",
-                               handle_signals=False, state_timeout_s=20.0) as ctl:
+                               handle_signals=False, state_timeout_s=20.0) as ctl, \
+                self._supervised(reset_cfg):
             self.ctl = ctl
+            self._transitions = ctl.subscribe(keys.reset_transition(self.rig.name), ResetTransition,
+                                              latest=False, capacity=256)
             spec = ctl.wait_ready(timeout_s=cfg.rig_timeout_s)
             self.state_names = list(spec["state"]["names"])
             self.action_names = list(spec["action"]["names"])
@@ -369,19 +382,53 @@ class MbrlRun:
         """Reset (the sim puts the robot at ``pose``; a real robot is placed by an operator)
         and run one episode: lockstep on sim rigs, on the wall clock otherwise."""
         first = self.reset(pose)
+        if self.supervisor is not None:
+            self._transitions.drain()  # transitions of the reset just done
         if hasattr(policy, "reset"):
             policy.reset()
+        if self.supervisor is not None:  # the supervisor's detectors end episodes too
+            stop_if = _or_stop(stop_if, self._episode_ended)
         if self.rig.pace == "lockstep":
             return self.ctl.run_lockstep(policy, steps, first, stop_if=stop_if)
         return self.ctl.run_realtime(policy, steps, stop_if=stop_if)
 
+    def _episode_ended(self, state) -> bool:
+        """The reset supervisor's detectors ended the episode (arena left, timeout...)."""
+        ended = False
+        for _, p in self._transitions.drain():
+            t = decode(p, ResetTransition)
+            # "request": the end of an episode this loop asked for itself (an earlier one)
+            ended |= t.dest == "episode_end" and t.reason != "request"
+        return ended
+
+    @contextlib.contextmanager
+    def _supervised(self, reset_cfg: ResetConfig | None) -> Iterator[None]:
+        """The rig's reset supervisor node, when it has a reset procedure (docs/reset.md)."""
+        if reset_cfg is None:
+            yield
+            return
+        sup = ResetSupervisor(self.rig.name, reset_cfg, self.bus, handle_signals=False)
+        th = threading.Thread(target=sup.serve, kwargs={"ready_timeout_s": self.cfg.rig_timeout_s},
+                              name="reset-supervisor", daemon=True)
+        th.start()
+        self.supervisor = sup
+        self.reset_timeout_s = 1.5 * reset_cfg.max_duration_s() + 10.0
+        try:
+            yield
+        finally:
+            sup.stop_event.set()
+            th.join(10)
+            sup.close()
+
     def reset(self, pose: dict[str, float]):
         try:
-            return self.ctl.reset(**pose)
+            return self.ctl.reset(timeout_s=self.reset_timeout_s, **pose)
         except RuntimeError as e:
+            if self.supervisor is not None:  # the supervisor stopped the rig and says why
+                raise RigError(str(e)) from None
             if "unsupported" not in str(e) or not self.cfg.operator_resets:
                 raise
-        # a real robot: the operator places it (an automated reset node would answer instead)
+        # a rig without a reset procedure: the operator places the robot
         input(f"place the robot at x={pose['x']:.2f} y={pose['y']:.2f} yaw={pose['yaw']:.2f}, then press Enter ")
         return self.ctl.next_state()
 
@@ -559,8 +606,17 @@ class MbrlRun:
         report["training"] = training
         report["recordings"] = self.recordings
         report["model"] = str(self.out / "model.pt")
+        if self.supervisor is not None:
+            sup = self.supervisor
+            report["resets"] = {**sup.stats, "mean_duration_s": float(np.mean(sup.durations_s)) if sup.durations_s else 0.0}
         report["wall_s"] = time.monotonic() - t0
         return report
+
+
+def _or_stop(a, b):
+    if a is None:
+        return b
+    return lambda state: bool(a(state)) or bool(b(state))
 
 
 def _progress(it, cfg: MbrlConfig, desc: str):

@@ -26,7 +26,7 @@ def register(app: typer.Typer) -> None:
         planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
         rig: str = typer.Option("roach_sim", "--rig", help="rig config: roach_sim (lockstep), roach_emulated, roach_real"),
         operator_resets: bool = typer.Option(False, "--operator-resets",
-                                             help="real rigs: prompt an operator to place the robot"),
+                                             help="rigs without a reset: section (docs/reset.md): prompt an operator to place the robot"),
     ) -> None:
         """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
 

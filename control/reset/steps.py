@@ -1,0 +1,326 @@
+"""Reset steps: the small code behind a reset procedure's data.
+
+A step is started once per attempt (:meth:`ResetStep.start`) and then sees every robot
+state (:meth:`ResetStep.update`) until it returns :data:`DONE`. It drives the robot by
+returning a normalized action ([-1, 1] of the spec's limits, like every policy here)
+or :data:`HOLD` (the supervisor sends the robot's zero action). It fails an attempt by
+raising :class:`StepError`. The supervisor owns timeouts, retries, the e-stop and the
+bus; steps own only their own motion.
+
+Kinds (``reset.steps[].kind`` in a rig config):
+
+- ``self_right``: kick the legs at random until the robot is upright again.
+- ``drive_to_start``: drive back to the start position with the differential-drive
+  baseline (control/baselines.py). For mobile robots with a pose (mocap).
+- ``turn_to_yaw``: turn in place (leg sets in opposite directions) to the start heading.
+- ``teleport``: ask the driver node to put the robot at the pose (sim backends only).
+- ``task_reset``: run a task-reset mechanism (:class:`TaskResetMechanism`; the WidowX
+  one comes with the arms issue and registers itself with :func:`register_mechanism`).
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+import numpy as np
+
+from bus.schemas import ResetEvent, RobotState
+from control.baselines import DifferentialDriveController
+from control.reset.config import StepConfig
+
+#: ``update`` results besides an action: the step is over / send the zero action
+DONE = "done"
+HOLD = "hold"
+
+StepResult = np.ndarray | str
+
+
+class StepError(RuntimeError):
+    """This attempt of the step failed (one line saying what); the supervisor may retry."""
+
+
+class StepContext(Protocol):
+    """What the supervisor offers a step."""
+
+    state_names: list[str]
+
+    def request_driver(self, phase: str, pose: dict[str, float]) -> None:
+        """Send the robot's driver node a reset request (``teleport``)."""
+
+    def driver_answer(self) -> ResetEvent | None:
+        """The driver node's answer to the last :meth:`request_driver`, once it came."""
+
+
+class ResetStep(ABC):
+    kind: str = "step"
+
+    def __init__(self, cfg: StepConfig):
+        self.cfg = cfg
+        self.name = cfg.kind
+
+    @abstractmethod
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        """Begin an attempt from ``state`` toward ``pose`` ({x, y, yaw}: m, m, rad)."""
+
+    @abstractmethod
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        """A normalized action, :data:`HOLD` or :data:`DONE`; raise :class:`StepError` to fail."""
+
+    def abort(self) -> None:  # noqa: B027 - optional hook
+        """The attempt ends early (timeout, failure, e-stop): stop whatever the step moves
+        besides the robot (the supervisor stops commanding the robot itself)."""
+
+
+def turn_in_place(e_rad: float, gain: float, speed: float) -> np.ndarray:
+    """Normalized (left, right) leg commands turning toward a heading error ``e_rad``
+    (>0: turn left, counter-clockwise): the leg sets at ``∓clip(gain·e, ±speed)``."""
+    d = float(np.clip(gain * e_rad, -speed, speed))
+    return np.array([-d, d])
+
+
+class DriveToStart(ResetStep):
+    """Drive to the start position: turn in place toward it while the heading error is
+    above ``turn_above_rad``, then follow the straight path here → start with the
+    differential-drive baseline (re-planned from where the robot is if it passes the
+    start: a path follower does not turn back at the end of its path). The start
+    heading is the next step's job (``turn_to_yaw``).
+
+    Params: ``speed`` (nominal normalized leg speed, default 0.6), ``tolerance_m``
+    (done when this close to the start, default 0.1), ``k_heading`` (per rad, default
+    0.1), ``k_perp`` (per m, default 0.5), ``d_max`` (default 0.1), ``turn_above_rad``
+    (default 0.6).
+
+    Why gains this low (the baseline's defaults are 0.8/rad, 4/m, 0.4): the VelociRoACH
+    emulator turns at about 30 rad/s per unit of differential command (docs/reset.md);
+    at 10 Hz with a period of lag the default gains make it spin in place.
+    """
+
+    kind = "drive_to_start"
+
+    def __init__(self, cfg: StepConfig):
+        super().__init__(cfg)
+        p = dict(cfg.params)
+        self.speed = float(p.pop("speed", 0.6))
+        self.tolerance_m = float(p.pop("tolerance_m", 0.1))
+        self.k_heading = float(p.pop("k_heading", 0.1))
+        self.k_perp = float(p.pop("k_perp", 0.5))
+        self.d_max = float(p.pop("d_max", 0.1))
+        self.turn_above_rad = float(p.pop("turn_above_rad", 0.6))
+        if p:
+            raise ValueError(f"drive_to_start: unknown params {sorted(p)} "
+                             "(speed, tolerance_m, k_heading, k_perp, d_max, turn_above_rad)")
+        self._ctl: DifferentialDriveController | None = None
+        self._goal = np.zeros(2)
+        self._dir = np.array([1.0, 0.0])
+
+    def _plan(self, here: np.ndarray) -> None:
+        self._dir = self._goal - here
+        self._ctl = DifferentialDriveController(np.array([here, self._goal]), self._names, omega_nom=self.speed,
+                                                k_heading=self.k_heading, k_perp=self.k_perp, d_max=self.d_max)
+
+    def _xy(self, state: RobotState) -> np.ndarray:
+        s = state.state
+        return np.array([s[self._names.index("x")], s[self._names.index("y")]], dtype=np.float64)
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        self._goal = np.array([pose.get("x", 0.0), pose.get("y", 0.0)])
+        self._names = list(ctx.state_names)
+        self._plan(self._xy(state))
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        s = np.asarray(state.state, dtype=np.float64)
+        if not np.all(np.isfinite(s)):
+            raise StepError("drive_to_start: the robot's state is not finite (pose lost?)")
+        if not upright(self._names, s, 0.5):
+            # on its side or back: driving will not bring it back (a self_right step may)
+            raise StepError("drive_to_start: the robot is not upright")
+        p = self._xy(state)
+        off = p - self._goal
+        if np.linalg.norm(off) < self.tolerance_m:
+            return DONE
+        if float(off @ self._dir) > 0.0:
+            self._plan(p)  # passed the start: come back along a new path
+        e_heading, _ = self._ctl.errors(s)
+        if abs(e_heading) > self.turn_above_rad:
+            return turn_in_place(e_heading, self.k_heading, self.d_max)
+        return np.asarray(self._ctl(s), dtype=np.float64)
+
+
+def upright(names: Sequence[str], state: Sequence[float], min_cos: float) -> bool:
+    """Roll and pitch both within ``acos(min_cos)`` of level (robots with ``cos_roll``,
+    ``cos_pitch`` channels; others count as upright)."""
+    return all(state[names.index(c)] >= min_cos for c in ("cos_roll", "cos_pitch") if c in names)
+
+
+class SelfRight(ResetStep):
+    """Right a robot that lies on its side or back by kicking its legs at random
+    (uniform in ±``speed``, a new draw every control period). Done when it has stayed
+    upright (``cos_roll`` and ``cos_pitch`` ≥ ``upright_above``) for ``settle_s``
+    [s of robot time]; already upright at the start: done at once.
+
+    First it holds the legs still for ``hold_first_s``: on the VelociRoACH MuJoCo model
+    a robot caught tipping (``cos_pitch`` or ``cos_roll`` below 0.7) and stopped fell
+    back onto its legs in 8 of 10 trials. Then random kicks: on the model they righted
+    robots lying on their side (8 of 8 within 0.4 s; fixed patterns 3-7 of 8 within
+    20 s) but not one lying on its back (docs/reset.md). Then the attempts run out, the
+    rig stops and the operator is told.
+
+    Params: ``speed`` (default 1.0), ``upright_above`` (default 0.8), ``settle_s``
+    (default 0.5), ``hold_first_s`` (default 1.0), ``seed`` (default 0).
+    """
+
+    kind = "self_right"
+
+    def __init__(self, cfg: StepConfig):
+        super().__init__(cfg)
+        p = dict(cfg.params)
+        self.speed = float(p.pop("speed", 1.0))
+        self.upright_above = float(p.pop("upright_above", 0.8))
+        self.settle_s = float(p.pop("settle_s", 0.5))
+        self.hold_first_s = float(p.pop("hold_first_s", 1.0))
+        self.rng = np.random.default_rng(int(p.pop("seed", 0)))
+        if p:
+            raise ValueError(
+                f"self_right: unknown params {sorted(p)} (speed, upright_above, settle_s, hold_first_s, seed)"
+            )
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        self._names = list(ctx.state_names)
+        self._upright_since_s: float | None = None
+        self._t0_s = state.t_s
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        if upright(self._names, state.state, self.upright_above):
+            if self._upright_since_s is None:
+                self._upright_since_s = state.t_s
+            return DONE if state.t_s - self._upright_since_s >= self.settle_s else HOLD
+        self._upright_since_s = None
+        if state.t_s - self._t0_s < self.hold_first_s:
+            return HOLD  # a robot caught mid-tip mostly falls back onto its legs when they stop
+        return self.rng.uniform(-self.speed, self.speed, 2)
+
+
+class TurnToYaw(ResetStep):
+    """Turn in place to the start yaw: leg sets at ``∓k·e_ψ`` (clipped to ``speed``).
+
+    Params: ``speed`` (max normalized leg speed, default 0.1), ``gain`` (per rad,
+    default 0.1), ``tolerance_rad`` (default 0.15), ``settle_s`` (done after holding
+    still within the tolerance this long [s of robot time], default 0.5).
+
+    Why so small: the VelociRoACH emulator turns in place at about 30 rad/s per unit of
+    differential command (0.6 rad/s at 0.02, 1.6 at 0.05, 2.8 at 0.1; measured on
+    this rig, docs/reset.md). At 10 Hz a gain of 0.1/rad corrects ~30 % of the error
+    per period, which stays stable with a period or two of radio and mocap lag.
+    """
+
+    kind = "turn_to_yaw"
+
+    def __init__(self, cfg: StepConfig):
+        super().__init__(cfg)
+        p = dict(cfg.params)
+        self.speed = float(p.pop("speed", 0.1))
+        self.gain = float(p.pop("gain", 0.1))
+        self.tolerance_rad = float(p.pop("tolerance_rad", 0.15))
+        self.settle_s = float(p.pop("settle_s", 0.5))
+        if p:
+            raise ValueError(f"turn_to_yaw: unknown params {sorted(p)} (speed, gain, tolerance_rad, settle_s)")
+        self._inside_since_s: float | None = None
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        self._yaw = float(pose.get("yaw", 0.0))
+        self._ic, self._is = ctx.state_names.index("cos_yaw"), ctx.state_names.index("sin_yaw")
+        self._inside_since_s = None
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        yaw = math.atan2(state.state[self._is], state.state[self._ic])
+        e = math.remainder(self._yaw - yaw, math.tau)  # >0: turn left (counter-clockwise)
+        if not math.isfinite(e):
+            raise StepError("turn_to_yaw: the robot's heading is not finite (pose lost?)")
+        if abs(e) < self.tolerance_rad:
+            # done once it stays there for settle_s: the pose lags the legs (mocap, radio)
+            # and the body coasts, so a first crossing is often an overshoot
+            if self._inside_since_s is None:
+                self._inside_since_s = state.t_s
+            return DONE if state.t_s - self._inside_since_s >= self.settle_s else HOLD
+        self._inside_since_s = None
+        return turn_in_place(e, self.gain, self.speed)
+
+
+class Teleport(ResetStep):
+    """Sim only: the driver node puts the robot at the pose (the bridge's ``reset``)."""
+
+    kind = "teleport"
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        ctx.request_driver("teleport", pose)
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        ans = ctx.driver_answer()
+        if ans is None:
+            return HOLD
+        if ans.phase != "done":
+            raise StepError(f"teleport {ans.phase}: {ans.detail}")
+        return DONE
+
+
+class TaskResetMechanism(ABC):
+    """A mechanism that resets the task, not the robot: the interface for the WidowX
+    task-reset mechanism of the arms issue (thesis: two motors rotate the fixture 16°
+    and translate it 2 cm). Implementations talk to their own driver on the bus."""
+
+    @abstractmethod
+    def begin(self, pose: dict[str, float]) -> None:
+        """Start moving the task back to its start configuration."""
+
+    @abstractmethod
+    def poll(self) -> bool:
+        """True once the task is in place; raise :class:`StepError` on a fault."""
+
+    def abort(self) -> None:  # noqa: B027 - optional hook
+        """Stop the mechanism (e-stop, timeout)."""
+
+
+MECHANISMS: dict[str, Callable[[dict[str, Any]], TaskResetMechanism]] = {}
+
+
+def register_mechanism(name: str, factory: Callable[[dict[str, Any]], TaskResetMechanism]) -> None:
+    """Make a task-reset mechanism available to ``task_reset`` steps as ``params.mechanism``."""
+    MECHANISMS[name] = factory
+
+
+class TaskReset(ResetStep):
+    """Run a registered :class:`TaskResetMechanism`; the robot holds still meanwhile."""
+
+    kind = "task_reset"
+
+    def __init__(self, cfg: StepConfig):
+        super().__init__(cfg)
+        p = dict(cfg.params)
+        name = p.pop("mechanism", None)
+        if name not in MECHANISMS:
+            raise ValueError(
+                f"task_reset: no mechanism {name!r} registered (known: {sorted(MECHANISMS)}); "
+                "the WidowX mechanism comes with the arms driver"
+            )
+        self.mechanism = MECHANISMS[name](p)
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        self.mechanism.begin(pose)
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        return DONE if self.mechanism.poll() else HOLD
+
+    def abort(self) -> None:
+        self.mechanism.abort()
+
+
+STEP_KINDS: dict[str, type[ResetStep]] = {
+    c.kind: c for c in (SelfRight, DriveToStart, TurnToYaw, Teleport, TaskReset)
+}
+
+
+def make_step(cfg: StepConfig) -> ResetStep:
+    return STEP_KINDS[cfg.kind](cfg)

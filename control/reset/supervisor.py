@@ -1,0 +1,461 @@
+"""The automated-reset supervisor node: an explicit state machine on the bus.
+
+::
+
+    running ─end_episode→ episode_end ─pause→ paused ─begin→ resetting ─steps_done→ verifying
+       ↑                                                   ↑   └retry┘           │ └retry→ resetting
+       └──────────────resume── resumed ←──verified─────────┘                     │
+    any reset state ─fail→ failed (e-stop engaged, operator told)
+    any state ─estop_engaged→ estopped ─estop_released→ running
+
+The machine is `transitions` (pytransitions): states and transitions are data
+(:data:`STATES`, :data:`TRANSITIONS`), invalid triggers raise, and the diagram in
+docs/reset.md is generated from the same definition (:func:`state_diagram_mermaid`).
+
+Protocol (keys in bus/keys.py):
+
+- ``running``: the supervisor runs the episode-end detectors on each state of the robot
+  while commands flow (driver node active, not stopped). When one fires it publishes
+  ``end_episode``; controllers stop commanding on it (the MBRL loop does) and ask for a
+  reset.
+- A controller's ``reset/request`` is the pause: it has stopped commanding. (A request
+  while ``running`` is an episode that ended at the controller: length, path end.)
+  The driver node leaves requests to the supervisor while its liveliness token
+  ``hil/<rig>/alive/reset-supervisor`` is present.
+- ``resetting``: the procedure's steps (control/reset/steps.py) run one after the other,
+  each answering every state with one command (lockstep rigs advance on it), each with a
+  timeout in robot time and a number of retries.
+- ``verifying``: the robot holds still for ``settle_s`` and its pose is checked against
+  the start pose. Failing: the steps run again (``verify.retries``) or the reset fails.
+- ``resumed``: the supervisor asks the driver node to start a new episode
+  (``reset/driver`` phase ``episode``: ``RobotState.episode`` is bumped there, so
+  recordings split), then answers the controller on ``reset/done``; ``resume`` → running.
+- ``failed``: a step ran out of attempts, the verification failed, the driver node
+  disappeared or went silent. The supervisor engages the rig's e-stop
+  (bus/estop.py :func:`~bus.estop.command_estop`), answers the controller ``failed`` with
+  the reason, logs it and publishes it; the e-stop latch then moves it to ``estopped``.
+- The e-stop wins: whenever the node's latch is engaged the machine goes to
+  ``estopped`` from any state, stops commanding, and answers a pending request
+  ``failed``. Releasing the e-stop returns it to ``running``.
+
+Every transition is published as a :class:`~bus.schemas.ResetTransition` on
+``hil/<rig>/reset/transition`` (recorded with the rest of the rig).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import zenoh
+from transitions import EventData, Machine
+
+from bus import keys
+from bus.estop import command_estop
+from bus.node import Node
+from bus.schemas import Command, MalformedMessage, ResetEvent, ResetTransition, RobotState, SpecMsg, decode
+from configs.schema import BusConfig
+from control.controller_node import ActionScale
+from control.reset.config import ResetConfig, VerifyConfig
+from control.reset.detectors import EpisodeEndDetector, make_detector
+from control.reset.steps import DONE, HOLD, ResetStep, StepError, make_step
+
+log = logging.getLogger(__name__)
+logging.getLogger("transitions").setLevel(logging.WARNING)  # it logs every callback at INFO
+
+STATES = ["running", "episode_end", "paused", "resetting", "verifying", "resumed", "failed", "estopped"]
+_RESETTING = ["episode_end", "paused", "resetting", "verifying", "resumed"]
+TRANSITIONS: list[dict[str, Any]] = [
+    {"trigger": "end_episode", "source": "running", "dest": "episode_end"},
+    {"trigger": "pause", "source": "episode_end", "dest": "paused"},
+    {"trigger": "begin", "source": "paused", "dest": "resetting"},
+    {"trigger": "retry", "source": ["resetting", "verifying"], "dest": "resetting"},
+    {"trigger": "steps_done", "source": "resetting", "dest": "verifying"},
+    {"trigger": "verified", "source": "verifying", "dest": "resumed"},
+    {"trigger": "resume", "source": "resumed", "dest": "running"},
+    {"trigger": "fail", "source": _RESETTING, "dest": "failed"},
+    {"trigger": "estop_engaged", "source": [s for s in STATES if s != "estopped"], "dest": "estopped"},
+    {"trigger": "estop_released", "source": "estopped", "dest": "running"},
+]
+
+
+def state_diagram_mermaid() -> str:
+    """The machine as a mermaid ``stateDiagram-v2`` (transitions' own graph export)."""
+    from transitions.extensions import GraphMachine
+
+    m = _Fsm()
+    GraphMachine(m, states=STATES, transitions=TRANSITIONS, initial="running", auto_transitions=False,
+                 graph_engine="mermaid", title="reset supervisor")
+    src = m.get_graph().draw(None)
+    # drop the styling lines (classDef/Class): they mark the current state, not the design
+    return "\n".join(ln.rstrip() for ln in src.splitlines()
+                     if ln.strip() and not ln.strip().startswith(("classDef", "Class "))) + "\n"
+
+
+def pose_error(names: list[str], s: RobotState, pose: dict[str, float], verify: VerifyConfig) -> str:
+    """Why ``s`` is not at ``pose`` ({x, y, yaw}: m, m, rad; world frame) within the
+    tolerances of ``verify``; '' when it is. Heading error wraps at ±π."""
+    v = s.state
+    if not s.ok:
+        return "robot reports a bad reading"
+    err_m = math.hypot(v[names.index("x")] - pose.get("x", 0.0), v[names.index("y")] - pose.get("y", 0.0))
+    if not err_m <= verify.position_tol_m:  # NaN fails too
+        return f"{err_m:.2f} m from the start (tolerance {verify.position_tol_m:g} m)"
+    tol = verify.yaw_tol_rad
+    if tol is not None and "cos_yaw" in names:
+        yaw = math.atan2(v[names.index("sin_yaw")], v[names.index("cos_yaw")])
+        e = abs(math.remainder(yaw - pose.get("yaw", 0.0), math.tau))
+        if not e <= tol:
+            return f"heading {e:.2f} rad off the start yaw (tolerance {tol:g} rad)"
+    return ""
+
+
+class _Fsm:
+    """The machine's model (kept apart from the Node so trigger names cannot clash)."""
+
+    state: str
+
+
+class ResetSupervisor(Node):
+    """Runs one robot's reset procedure (:class:`~control.reset.config.ResetConfig`).
+
+    ``serve()`` runs until stopped; ``spin_once()`` is one iteration (tests drive it).
+    Times in steps and detectors are robot time (``RobotState.t_s``); ``settle_s`` too.
+    """
+
+    def __init__(
+        self,
+        rig: str,
+        cfg: ResetConfig,
+        bus: BusConfig | None = None,
+        settle_s: float = 0.3,
+        detectors: list[EpisodeEndDetector] | None = None,
+        steps: list[ResetStep] | None = None,
+        **node_kw: Any,
+    ):
+        super().__init__(keys.RESET_SUPERVISOR_NODE, rig, bus, **node_kw)
+        self.cfg = cfg
+        self.robot = cfg.robot
+        self.settle_s = settle_s
+        self.detectors = detectors if detectors is not None else [make_detector(d) for d in cfg.detectors]
+        self.steps = steps if steps is not None else [make_step(s) for s in cfg.steps]
+        self.fsm = _Fsm()
+        self.machine = Machine(self.fsm, states=STATES, transitions=TRANSITIONS, initial="running",
+                               auto_transitions=False, send_event=True, after_state_change=self._on_transition)
+        self._state = self.subscribe(keys.state(rig, self.robot), RobotState)
+        self._spec = self.subscribe(keys.spec(rig, self.robot), SpecMsg)
+        self._requests = self.subscribe(keys.reset(rig, "request"), ResetEvent, latest=False, capacity=64)
+        self._done = self.publisher(keys.reset(rig, "done"), ResetEvent)
+        self._cmd = self.publisher(keys.cmd(rig, self.robot), Command)
+        self._to_driver = self.publisher(keys.reset_driver(rig), ResetEvent)
+        self._from_driver = self.subscribe(keys.reset_driver_done(rig), ResetEvent)
+        self._transitions = self.publisher(keys.reset_transition(rig), ResetTransition)
+        #: driver node liveliness: None until first seen, then True/False (Zenoh callback sets it)
+        self.driver_alive: bool | None = None
+        self._alive_sub = self.session.liveliness().declare_subscriber(
+            keys.alive(rig, keys.driver_node(self.robot)), self._on_driver_alive, history=True
+        )
+        self._closeables.append(SimpleNamespace(close=self._alive_sub.undeclare))
+        self.state_names: list[str] = []
+        self.scale: ActionScale | None = None
+        self._zero: np.ndarray | None = None
+        #: what the operator was told on the last failure
+        self.last_failure = ""
+        self.history: list[ResetTransition] = []
+        self.stats = {"requested": 0, "completed": 0, "failed": 0}
+        self.durations_s: list[float] = []
+        self._reset_t0_wall = 0.0
+        self._pending: ResetEvent | None = None
+        self._pose: dict[str, float] = dict(cfg.start_pose)
+        self._reason = ""
+        self._episode = -1
+        self._last: RobotState | None = None
+        self._last_rx_wall = time.monotonic()
+        self._i = 0
+        self._attempt = 0
+        self._verify_attempt = 0
+        self._t0_s = 0.0
+        self._answer_wait_s = 0.0
+
+    # ------------------------------------------------------------------ plumbing
+    @property
+    def state(self) -> str:
+        return self.fsm.state
+
+    def _on_driver_alive(self, sample: zenoh.Sample) -> None:
+        self.driver_alive = sample.kind == zenoh.SampleKind.PUT  # one store: no work in callbacks
+
+    def _on_transition(self, ev: EventData) -> None:
+        step = self.steps[self._i].name if self.state in ("resetting",) and self._i < len(self.steps) else ""
+        msg = ResetTransition(
+            robot=self.robot, trigger=ev.event.name, source=ev.transition.source, dest=ev.transition.dest,
+            reason=self._reason, step=step, attempt=self._attempt if step else 0,
+            episode=self._last.episode if self._last else 0, detail=str(ev.kwargs.get("detail", "")),
+        )
+        self.history.append(self._transitions.put(msg))
+        (log.error if msg.dest == "failed" else log.info)(
+            "reset %s: %s → %s%s", self.robot, msg.source, msg.dest, f" ({msg.detail})" if msg.detail else ""
+        )
+
+    def _bind_spec(self, spec: dict[str, Any]) -> None:
+        self.state_names = list(spec["state"]["names"])
+        self.scale = ActionScale.from_spec(spec)
+        self._zero = np.clip(np.zeros(len(self.scale.low)), self.scale.low, self.scale.high)
+        for d in self.detectors:
+            d.bind(self.state_names)
+
+    def wait_ready(self, timeout_s: float = 20.0) -> None:
+        """Wait for the robot's spec (its driver node publishes it)."""
+        m = self._spec.wait(timeout_s)
+        if m is None:
+            raise TimeoutError(f"reset supervisor: no spec from {keys.spec(self.rig, self.robot)} within {timeout_s} s")
+        self._bind_spec(m.spec)
+
+    def _send(self, s: RobotState, action_norm: np.ndarray | None) -> None:
+        a = self._zero if action_norm is None else self.scale.to_robot(action_norm)
+        self._cmd.put(Command(robot=self.robot, action=a.tolist(), state_seq=s.seq, source=self.name))
+
+    # StepContext
+    def request_driver(self, phase: str, pose: dict[str, float]) -> None:
+        self._from_driver.poll()  # forget earlier answers
+        self._to_driver.put(ResetEvent(robot=self.robot, phase=phase, pose=dict(pose)))
+
+    def driver_answer(self) -> ResetEvent | None:
+        m = self._from_driver.poll()
+        return m if m is not None and m.robot == self.robot else None
+
+    # ------------------------------------------------------------------ loop
+    def serve(self, ready_timeout_s: float = 60.0) -> None:
+        """Run until ``stop_event`` (signal or close)."""
+        self.wait_ready(ready_timeout_s)
+        while not self.stop_event.is_set():
+            try:
+                self.spin_once()
+            except Exception as e:
+                # a bug in a step must not leave a robot half-way through a reset
+                log.exception("reset supervisor crashed")
+                if self.state in _RESETTING:
+                    self._fail(f"reset supervisor error: {type(e).__name__}: {e}")
+                raise
+
+    def spin_once(self, wait_s: float = 0.05) -> None:
+        if self.scale is None:
+            m = self._spec.poll()
+            if m is not None:
+                self._bind_spec(m.spec)
+        s = self._state.wait(wait_s)
+        if s is not None:
+            self._last, self._last_rx_wall = s, time.monotonic()
+        self._take_requests()
+        # the e-stop wins over everything
+        if self.estop.engaged:
+            if self.state != "estopped":
+                self._abort_estop()
+            return
+        if self.state == "estopped":
+            self._fire("estop_released")
+            return
+        if self.state == "failed" or self.scale is None:
+            return
+        if self.state == "running":
+            self._running(s)
+        if self.state == "episode_end" and self._pending is not None:
+            self._fire("pause")
+        if self.state == "paused" and self._last is not None:
+            self._i = self._verify_attempt = 0
+            self._begin_step(self._last, first=True)
+            # a lockstep rig waits for an answer to the state the controller left unanswered
+            s = s or self._last
+        if self.state in ("paused", "resetting", "verifying", "resumed"):
+            why = self._lost()
+            if why:
+                self._fail(why)
+                return
+        if s is None:
+            return
+        if self.state == "resetting":
+            self._resetting(s)
+        elif self.state == "verifying":
+            self._verifying(s)
+        elif self.state == "resumed":
+            self._resumed(s)
+
+    def _take_requests(self) -> None:
+        for _, payload in self._requests.drain():
+            try:
+                m = decode(payload, ResetEvent)
+            except MalformedMessage:
+                continue
+            if m.robot != self.robot or m.phase != "request":
+                continue
+            self.stats["requested"] += 1
+            if self.state in ("failed", "estopped"):
+                why = self.last_failure if self.state == "failed" else "e-stop engaged"
+                self._answer("failed", f"rig stopped: {why}; release the e-stop after fixing it")
+                continue
+            if self._pending is None and self.state in ("running", "episode_end"):
+                self._reset_t0_wall = time.monotonic()
+                self._pose = {**self.cfg.start_pose, **m.pose}
+            # a repeated request during a reset (a controller that asked again) is answered
+            # with the reset under way; the pose being driven to does not change mid-reset
+            self._pending = m
+
+    def _answer(self, phase: str, detail: str = "", episode: int | None = None) -> None:
+        ep = episode if episode is not None else (self._last.episode if self._last else 0)
+        self._done.put(ResetEvent(robot=self.robot, phase=phase, pose=dict(self._pose), episode=ep, detail=detail))
+        if phase == "failed":
+            self.stats["failed"] += 1
+        self._pending = None
+
+    def _running(self, s: RobotState | None) -> None:
+        if self._pending is not None:
+            self._reason = "request"
+            self._fire("end_episode")
+            return
+        if s is None:
+            return
+        if s.episode != self._episode:
+            self._episode = s.episode
+            for d in self.detectors:
+                d.start(s)
+        if not (s.active and s.stopped_reason == ""):
+            return  # nothing is driving the robot: no episode is running
+        for d in self.detectors:
+            why = d(s)
+            if why:
+                self._reason = why
+                self._fire("end_episode", detail=why)
+                return
+
+    def _begin_step(self, s: RobotState, first: bool = False, retry_detail: str = "") -> None:
+        self._t0_s = s.t_s
+        step = self.steps[self._i]
+        if first:
+            self._attempt = 1
+            self._fire("begin")
+        if retry_detail:
+            self._fire("retry", detail=retry_detail)
+        try:
+            step.start(self, s, self._pose)
+        except StepError as e:
+            self._attempt_failed(s, str(e))
+
+    def _abort_step(self) -> None:
+        if self.state == "resetting" and self._i < len(self.steps):
+            try:
+                self.steps[self._i].abort()
+            except Exception as e:  # an abort must not stop the supervisor from stopping the rig
+                log.error("reset step %s: abort failed: %s", self.steps[self._i].name, e)
+
+    def _attempt_failed(self, s: RobotState, detail: str) -> None:
+        step = self.steps[self._i]
+        self._abort_step()
+        if self._attempt <= step.cfg.retries:
+            self._attempt += 1
+            self._begin_step(s, retry_detail=f"{detail}; attempt {self._attempt} of {step.cfg.retries + 1}")
+        else:
+            n = step.cfg.retries + 1
+            self._fail(f"reset step {step.name} failed after {n} attempt{'s' if n > 1 else ''}: {detail}")
+
+    def _resetting(self, s: RobotState) -> None:
+        step = self.steps[self._i]
+        if s.t_s - self._t0_s > step.cfg.timeout_s:
+            self._send(s, None)
+            self._attempt_failed(s, f"timed out after {step.cfg.timeout_s:g} s")
+            return
+        try:
+            r = step.update(self, s)
+        except StepError as e:
+            self._send(s, None)
+            self._attempt_failed(s, str(e))
+            return
+        if isinstance(r, str):
+            self._send(s, None)
+            if r == DONE:
+                self._i += 1
+                if self._i < len(self.steps):
+                    self._attempt = 1
+                    self._begin_step(s)
+                else:
+                    self._t0_s = s.t_s
+                    self._fire("steps_done")
+            elif r != HOLD:
+                raise ValueError(f"reset step {step.name} returned {r!r}")
+        else:
+            self._send(s, r)
+
+    def check_pose(self, s: RobotState) -> str:
+        """Why ``s`` is not at the start pose ('' when it is)."""
+        return pose_error(self.state_names, s, self._pose, self.cfg.verify)
+
+    def _verifying(self, s: RobotState) -> None:
+        self._send(s, None)
+        if s.t_s - self._t0_s < self.settle_s:
+            return
+        why = self.check_pose(s)
+        if not why:
+            self._fire("verified")
+            self.request_driver("episode", self._pose)
+            self._answer_wait_s = time.monotonic()
+            return
+        if self._verify_attempt < self.cfg.verify.retries:
+            self._verify_attempt += 1
+            self._i = 0
+            self._attempt = 1
+            self._begin_step(s, retry_detail=f"verification failed: {why}")
+        else:
+            self._fail(f"reset of {self.robot} failed verification: {why}")
+
+    def _resumed(self, s: RobotState) -> None:
+        ans = self.driver_answer()
+        if ans is None:
+            self._send(s, None)  # lockstep: keep the sim stepping until the driver answers
+            if time.monotonic() - self._answer_wait_s > self.cfg.state_timeout_s:
+                self._fail(f"driver node {keys.driver_node(self.robot)} did not start the new episode")
+            return
+        if ans.phase != "done":
+            self._fail(f"driver node refused the new episode: {ans.phase} {ans.detail}")
+            return
+        self.stats["completed"] += 1
+        self.durations_s.append(time.monotonic() - self._reset_t0_wall)
+        self._reason = ""
+        self._fire("resume")
+        if self._pending is not None:
+            self._answer("done", episode=ans.episode)
+
+    def _lost(self) -> str:
+        if self.driver_alive is False:
+            return f"driver node {keys.driver_node(self.robot)} disappeared (liveliness lost)"
+        age = time.monotonic() - self._last_rx_wall
+        if age > self.cfg.state_timeout_s:
+            return f"no state from {self.robot} for {age:.1f} s"
+        return ""
+
+    def _fail(self, detail: str) -> None:
+        self._abort_step()
+        self.last_failure = detail
+        self._fire("fail", detail=detail)
+        log.error("reset supervisor: %s; engaging the e-stop of rig %s", detail, self.rig)
+        # stop the rig first, then tell the controller (it may act on the answer at once)
+        command_estop(self, True, reason=f"reset failed: {detail}", timeout_s=1.0, settle_s=0.0)
+        if self._pending is not None:
+            self._answer("failed", detail)
+        else:
+            self.stats["failed"] += 1
+
+    def _abort_estop(self) -> None:
+        m = self.estop.latched
+        detail = f"e-stop engaged ({m.source or '?'}: {m.reason})" if m else "e-stop engaged"
+        was = self.state
+        self._abort_step()
+        self._fire("estop_engaged", detail=detail)
+        if self._pending is not None and was != "failed":
+            self._answer("failed", f"{detail} during the reset")
+
+    def _fire(self, trigger: str, **kw: Any) -> None:
+        """Fire a machine trigger (``MachineError`` if the current state does not allow it)."""
+        self.fsm.trigger(trigger, **kw)
