@@ -3,6 +3,9 @@
 The emulator prints one JSON line on stdout when it is ready (where to connect: a pty
 path, a UDP port...) and logs to stderr, which goes to a temporary file so that a
 failure can quote its tail. ``--parent-pid`` is passed so that it exits with us.
+
+A failure is one line for the user (what happened, the log's last lines, where the whole
+log is), and a log that explains a failure is kept when the process is stopped.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from typing import Any
 from drivers.base import LinkError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+#: how many of the log's last lines a failure message quotes
+FAILURE_TAIL_LINES = 3
 
 
 class EmulatorProcess:
@@ -32,6 +37,7 @@ class EmulatorProcess:
         self.keep_log = keep_log
         self.proc: subprocess.Popen | None = None
         self.log_path: Path | None = None
+        self._explains_failure = False  # keep the log: a failure message points at it
 
     def start(self) -> dict[str, Any]:
         fd, log_path = tempfile.mkstemp(prefix=self.module.rsplit(".", 2)[-2] + "-emulator-", suffix=".log")
@@ -48,15 +54,21 @@ class EmulatorProcess:
         line = b""
         while not line.endswith(b"\n"):
             if self.proc.poll() is not None:
-                raise LinkError(f"emulator exited with code {self.proc.returncode} before it was ready:\n"
-                                f"{self.tail()}")
+                raise LinkError(self.failure(f"emulator exited with code {self.proc.returncode} before it was ready"))
             left = deadline - time.monotonic()
             if left <= 0:
-                raise LinkError(f"emulator did not start within {self.start_timeout_s:.0f} s:\n{self.tail()}")
+                raise LinkError(self.failure(f"emulator did not start within {self.start_timeout_s:g} s"))
             r, _, _ = select.select([self.proc.stdout], [], [], min(left, 0.1))
             if r:
                 line += os.read(self.proc.stdout.fileno(), 1)
         return json.loads(line)
+
+    def failure(self, what: str) -> str:
+        """One line for the user: ``what``, the log's last lines, where the whole log is
+        (kept by :meth:`stop`)."""
+        self._explains_failure = True
+        lines = [ln.strip() for ln in self.tail(FAILURE_TAIL_LINES).splitlines() if ln.strip()]
+        return f"{what}: {' | '.join(lines)} (full log: {self.log_path})"
 
     def tail(self, n: int = 15) -> str:
         if self.log_path is None or not self.log_path.exists():
@@ -74,7 +86,8 @@ class EmulatorProcess:
             self.proc.kill()
 
     def stop(self) -> None:
-        """Terminate (then kill), close the pipe, remove the log unless ``keep_log``."""
+        """Terminate (then kill), close the pipe, remove the log unless ``keep_log`` or it
+        explains a failure."""
         if self.proc is not None:
             if self.proc.poll() is None:
                 self.proc.terminate()
@@ -86,6 +99,6 @@ class EmulatorProcess:
             if self.proc.stdout is not None:
                 self.proc.stdout.close()
             self.proc = None
-        if self.log_path is not None and not self.keep_log:
+        if self.log_path is not None and not (self.keep_log or self._explains_failure):
             self.log_path.unlink(missing_ok=True)
             self.log_path = None

@@ -15,16 +15,10 @@ makes each transaction atomic between them.
 from __future__ import annotations
 
 import json
-import os
-import select
-import subprocess
-import sys
-import tempfile
 import termios
 import threading
 import time
 from collections.abc import Callable, Iterable
-from pathlib import Path
 from typing import Any
 
 from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
@@ -32,8 +26,8 @@ from serial import SerialException
 
 from drivers.base import LinkError
 from drivers.dynamixel.control_table import ControlTable, control_table, describe_status_error
+from drivers.emulator_process import EmulatorProcess
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 EMULATOR_START_TIMEOUT_S = 30.0
 # dynamixel-sdk packet layout offsets (status packet: ... INST ERROR PARAMS)
 _PKT_ID, _PKT_ERROR, _PKT_PARAM = 4, 8, 9
@@ -73,8 +67,7 @@ class DynamixelBus:
                       "tx_errors": 0, "servo_errors": 0}
         self.last_rtt_s: float | None = None
         self.last_error: str | None = None
-        self.emulator: subprocess.Popen | None = None
-        self.emulator_log: Path | None = None
+        self.emulator: EmulatorProcess | None = None
         self._refs = 0
         self._closed = True
 
@@ -96,15 +89,7 @@ class DynamixelBus:
                 pass
             self._closed = True
         if self.emulator is not None:
-            if self.emulator.poll() is None:
-                self.emulator.terminate()
-                try:
-                    self.emulator.wait(timeout=3.0)
-                except subprocess.TimeoutExpired:
-                    self.emulator.kill()
-                    self.emulator.wait(timeout=3.0)
-            if self.emulator.stdout is not None:
-                self.emulator.stdout.close()
+            self.emulator.stop()
             self.emulator = None
 
     @property
@@ -112,9 +97,7 @@ class DynamixelBus:
         return self._closed
 
     def emulator_tail(self, n: int = 10) -> str:
-        if self.emulator_log is None or not self.emulator_log.exists():
-            return ""
-        return "\n".join(self.emulator_log.read_text(errors="replace").splitlines()[-n:])
+        return "(no emulator)" if self.emulator is None else self.emulator.tail(n)
 
     # ------------------------------------------------------------------ bookkeeping
     def _count(self, result: int, error: int = 0) -> None:
@@ -299,33 +282,10 @@ def start_emulator(config: dict[str, Any], baudrate: int, start_timeout_s: float
                    module: str = "sim_backends.widowx.emulator",
                    timeout_margin_ms: float = EMULATED_TIMEOUT_MARGIN_MS) -> DynamixelBus:
     """Start the bus emulator process on a pty and open a bus on it."""
-    fd, log_path = tempfile.mkstemp(prefix="dynamixel-emulator-", suffix=".log")
-    os.close(fd)
-    cmd = [sys.executable, "-m", module, "--print-pty", "--config", json.dumps(config),
-           "--parent-pid", str(os.getpid())]
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), *filter(None, [env.get("PYTHONPATH")])])
-    with open(log_path, "wb") as errf:
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=errf, stdin=subprocess.DEVNULL,
-                                cwd=str(REPO_ROOT), env=env)
-    assert proc.stdout is not None
-    deadline = time.monotonic() + start_timeout_s
-    line = b""
-    while not line.endswith(b"\n"):
-        if proc.poll() is not None:
-            tail = Path(log_path).read_text(errors="replace")[-2000:]
-            raise LinkError(f"Dynamixel emulator exited with code {proc.returncode} before it was ready:\n{tail}")
-        left = deadline - time.monotonic()
-        if left <= 0:
-            proc.kill()
-            raise LinkError(f"Dynamixel emulator did not start within {start_timeout_s:.0f} s")
-        if select.select([proc.stdout], [], [], min(left, 0.1))[0]:
-            ch = os.read(proc.stdout.fileno(), 1)
-            line += ch
-    info = json.loads(line)
+    emu = EmulatorProcess(module, ["--print-pty", "--config", json.dumps(config)], start_timeout_s=start_timeout_s)
+    info = emu.start()
     bus = DynamixelBus(info["pty"], baudrate, timeout_margin_ms=timeout_margin_ms)
-    bus.emulator = proc
-    bus.emulator_log = Path(log_path)
+    bus.emulator = emu
     try:
         bus.open()
     except Exception:

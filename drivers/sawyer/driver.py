@@ -17,23 +17,17 @@ than 0.2 s apart.
 from __future__ import annotations
 
 import json
-import os
-import select
-import subprocess
-import sys
-import tempfile
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
 from configs.schema import ConfigError, RobotConfig, parse_params
 from drivers.base import Driver, Health, LinkError, Observation
+from drivers.emulator_process import EmulatorProcess
 from drivers.sawyer import ros
 from drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 FIRST_STATE_TIMEOUT_S = 10.0
 
 
@@ -54,8 +48,7 @@ class SawyerDriver(Driver):
         self._session = None
         self._pub = None
         self._sub = None
-        self._proc: subprocess.Popen | None = None
-        self._log: Path | None = None
+        self._emu: EmulatorProcess | None = None
         self._state = np.full(21, np.nan)
         self._state_t: float | None = None
         self._stamp_s: float | None = None
@@ -93,8 +86,8 @@ class SawyerDriver(Driver):
             with self._lock:
                 if self._latest is not None:
                     break
-            if self._proc is not None and self._proc.poll() is not None:
-                raise LinkError(f"Sawyer emulator exited with code {self._proc.returncode}: {self._tail()}")
+            if self._emu is not None and not self._emu.alive:
+                raise LinkError(self._emu.failure(f"Sawyer emulator exited with code {self._emu.proc.returncode}"))
             time.sleep(0.01)
         else:
             where = "the emulator" if self.backend == "emulated" else f"{connect}"
@@ -109,33 +102,13 @@ class SawyerDriver(Driver):
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         endpoint = f"tcp/127.0.0.1:{port}"
-        fd, log = tempfile.mkstemp(prefix="sawyer-emulator-", suffix=".log")
-        os.close(fd)
-        self._log = Path(log)
         cfg = {**self.params.emulator, "namespace": self.params.namespace,
                "joint_states_topic": self.params.joint_states_topic,
                "joint_command_topic": self.params.joint_command_topic}
-        cmd = [sys.executable, "-m", "sim_backends.sawyer.emulator", "--listen", endpoint,
-               "--config", json.dumps(cfg), "--parent-pid", str(os.getpid())]
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), *filter(None, [env.get("PYTHONPATH")])])
-        with open(self._log, "wb") as errf:
-            self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=errf, stdin=subprocess.DEVNULL,
-                                          cwd=str(REPO_ROOT), env=env)
-        assert self._proc.stdout is not None
-        deadline = time.monotonic() + 30.0
-        line = b""
-        while not line.endswith(b"\n"):
-            if self._proc.poll() is not None or time.monotonic() > deadline:
-                raise LinkError(f"Sawyer emulator did not start: {self._tail()}")
-            if select.select([self._proc.stdout], [], [], 0.1)[0]:
-                line += os.read(self._proc.stdout.fileno(), 1)
+        self._emu = EmulatorProcess("sim_backends.sawyer.emulator",
+                                    ["--listen", endpoint, "--config", json.dumps(cfg)])
+        self._emu.start()
         return endpoint
-
-    def _tail(self) -> str:
-        if self._log is None or not self._log.exists():
-            return ""
-        return " | ".join(self._log.read_text(errors="replace").splitlines()[-5:])
 
     def _on_cleanup(self) -> None:
         for obj in (self._sub, self._pub):
@@ -151,20 +124,9 @@ class SawyerDriver(Driver):
             except Exception:
                 pass
             self._session = None
-        if self._proc is not None:
-            if self._proc.poll() is None:
-                self._proc.terminate()
-                try:
-                    self._proc.wait(timeout=3.0)
-                except subprocess.TimeoutExpired:
-                    self._proc.kill()
-                    self._proc.wait(timeout=3.0)
-            if self._proc.stdout is not None:
-                self._proc.stdout.close()
-            self._proc = None
-        if self._log is not None:
-            self._log.unlink(missing_ok=True)
-            self._log = None
+        if self._emu is not None:
+            self._emu.stop()
+            self._emu = None
 
     # ------------------------------------------------------------------ transport
     def _on_sample(self, sample) -> None:

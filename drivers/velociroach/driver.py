@@ -26,11 +26,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import select
-import subprocess
-import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -40,15 +35,13 @@ import numpy as np
 
 from configs.schema import ConfigError, RobotConfig, parse_params
 from drivers.base import Driver, Flag, Freshness, Health, Inputs, Lifecycle, LinkError, Observation
+from drivers.emulator_process import EmulatorProcess
 from drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
 from drivers.velociroach.link import RadioLink
 from drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, EncodeError, MavEncoder, mav
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 #: the base station's heartbeat rate (MAVLink convention: 1 Hz)
 HEARTBEAT_PERIOD_S = 1.0
-#: lines of the emulator's log shown in an error
-EMULATOR_LOG_TAIL_LINES = 3
 #: how many of the last commands sent are remembered (by cmd_seq) to know what the firmware runs
 CMD_MEMORY = 256
 #: velocity low-pass: time constant of the pose differencing filter
@@ -96,9 +89,7 @@ class VelociRoachDriver(Driver):
         self._lock = threading.Lock()
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
-        self._proc: subprocess.Popen | None = None
-        self._emu_log: Path | None = None
-        self._keep_emu_log = False  # set when the log explains a failure
+        self._emu: EmulatorProcess | None = None
         self._pose_client: Any = None
         self._pose = PoseFilter()
         self._pose_seen: Any = None  # the newest pose sample taken from the client
@@ -163,51 +154,13 @@ class VelociRoachDriver(Driver):
         cfg = self.params.model_dump(mode="json")
         cfg["port"] = None
         cfg["tlog"] = None  # the driver writes the log, not the robot
-        fd, log_path = tempfile.mkstemp(prefix="velociroach-emulator-", suffix=".log")
-        os.close(fd)
-        self._emu_log = Path(log_path)
-        self._keep_emu_log = False
-        cmd = [sys.executable, "-m", "sim_backends.velociroach.emulator", "--print-pty",
-               "--config", json.dumps(cfg), "--parent-pid", str(os.getpid())]
+        args = ["--print-pty", "--config", json.dumps(cfg)]
         if self._pose_client is not None:
-            cmd += ["--pose-port", str(self._pose_client.port)]
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), *filter(None, [env.get("PYTHONPATH")])])
-        with open(self._emu_log, "wb") as errf:
-            self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=errf, stdin=subprocess.DEVNULL,
-                                          cwd=str(REPO_ROOT), env=env)
-        assert self._proc.stdout is not None
-        timeout_s = self.params.emulator.start_timeout_s
-        deadline = time.monotonic() + timeout_s
-        line = b""
-        while not line.endswith(b"\n"):
-            left = deadline - time.monotonic()
-            if self._proc.poll() is not None:
-                raise LinkError(self._emu_failure(f"emulator exited with code {self._proc.returncode} before it "
-                                                  "was ready"))
-            if left <= 0:
-                raise LinkError(self._emu_failure(f"emulator did not start within {timeout_s:g} s"))
-            r, _, _ = select.select([self._proc.stdout], [], [], min(left, 0.1))
-            if r:
-                ch = os.read(self._proc.stdout.fileno(), 1)
-                if not ch:
-                    continue
-                line += ch
-        return json.loads(line)["pty"]
-
-    def _emu_tail(self, n: int = EMULATOR_LOG_TAIL_LINES) -> list[str]:
-        """The last ``n`` non-empty lines of the emulator's log."""
-        if self._emu_log is None or not self._emu_log.exists():
-            return []
-        lines = [ln.strip() for ln in self._emu_log.read_text(errors="replace").splitlines() if ln.strip()]
-        return lines[-n:]
-
-    def _emu_failure(self, what: str) -> str:
-        """One line for the user: what happened, the log's last lines, where the whole log is
-        (kept: ``cleanup`` does not delete a log that explains a failure)."""
-        self._keep_emu_log = True
-        tail = " | ".join(self._emu_tail()) or "(the log is empty)"
-        return f"{what}: {tail} (full log: {self._emu_log})"
+            args += ["--pose-port", str(self._pose_client.port)]
+        self._emu = EmulatorProcess("sim_backends.velociroach.emulator", args,
+                                    start_timeout_s=self.params.emulator.start_timeout_s,
+                                    keep_log=self.params.emulator.keep_log)
+        return self._emu.start()["pty"]
 
     def _wait_first_contact(self) -> None:
         """Heartbeat and telemetry from the robot, or a LinkError that says what to check."""
@@ -222,8 +175,8 @@ class VelociRoachDriver(Driver):
                     return
             time.sleep(0.01)
         what = f"no {'heartbeat' if self._hb_t is None else 'telemetry'} from the robot within {timeout_s:g} s"
-        if self.backend == "emulated":
-            raise LinkError(self._emu_failure(what))
+        if self._emu is not None:
+            raise LinkError(self._emu.failure(what))
         raise LinkError(f"{what}; is the robot on, and the base-station XBee on {self.params.port} in API mode 1 at "
                         f"{self.params.baudrate} baud, talking to {self.params.robot_addr64}?")
 
@@ -240,20 +193,9 @@ class VelociRoachDriver(Driver):
             except Exception:
                 pass
             self._pose_client = None
-        if self._proc is not None:
-            if self._proc.poll() is None:
-                self._proc.terminate()
-                try:
-                    self._proc.wait(timeout=3.0)
-                except subprocess.TimeoutExpired:
-                    self._proc.kill()
-                    self._proc.wait(timeout=3.0)
-            if self._proc.stdout is not None:
-                self._proc.stdout.close()
-            self._proc = None
-        if self._emu_log is not None and not (self.params.emulator.keep_log or self._keep_emu_log):
-            self._emu_log.unlink(missing_ok=True)
-            self._emu_log = None
+        if self._emu is not None:
+            self._emu.stop()
+            self._emu = None
 
     # ------------------------------------------------------------------ reader thread
     def _reader(self) -> None:
@@ -507,4 +449,4 @@ class VelociRoachDriver(Driver):
 
     @property
     def emulator_log(self) -> Path | None:
-        return self._emu_log
+        return None if self._emu is None else self._emu.log_path

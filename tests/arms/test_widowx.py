@@ -166,7 +166,7 @@ def test_link_loss_takes_the_error_path_with_a_one_line_error():
     d.write(np.full(6, 0.1))
     emu = d.bus.emulator
     emu.kill()  # the adapter is gone: the pty reads fail with EIO
-    emu.wait()
+    emu.proc.wait()
     with pytest.raises(LinkError, match="failed") as ei:
         d.read()
     assert "\n" not in str(ei.value)
