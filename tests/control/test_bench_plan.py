@@ -2,18 +2,81 @@
 
 import math
 
-from tools.bench_plan import WORKLOADS, run_bench_plan
+import numpy as np
+import pytest
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from control.planners import BAODING_PDDM
+from learning.dynamics import EnsembleDynamics
+from tools.bench_plan import WORKLOADS, PlainEnsemble, _make_planner, plan_flops, run_bench_plan
 
 
-def test_run_bench_plan_reports_both_workloads():
-    out = run_bench_plan(calls=2, warmup=1)
+def _finite_pos(x):
+    return x is not None and math.isfinite(x) and x > 0
+
+
+def test_run_bench_plan_reports_all_workloads_and_levers():
+    out = run_bench_plan(calls=2, warmup=1, quality_seeds=1)
     for name in WORKLOADS:
         r = out[name]
-        assert r["planner"] in ("random_shooting", "pddm")
-        for key in ("p50_ms", "p99_ms", "peer_p50_ms", "peer_p99_ms"):
-            assert r[key] is not None and math.isfinite(r[key]) and r[key] > 0
+        for key in ("p50_ms", "p99_ms", "peer_p50_ms", "peer_p99_ms", "peer_plain_model_p50_ms",
+                    "gflops", "matmul_gflops", "gflop_per_plan"):
+            assert _finite_pos(r[key]), (name, key, r[key])
         assert r["p99_ms"] >= r["p50_ms"]
         assert r["dtype"] in ("float32", "bfloat16")
+        # achieved rate is the FLOP count over our p50 (not a copy of the matmul rate)
+        assert r["gflops"] == pytest.approx(r["gflop_per_plan"] / (r["p50_ms"] / 1e3))
     assert out["B"]["ensemble"] == 3 and out["B"]["samples"] == 700 and out["B"]["horizon"] == 7
     assert out["A"]["state_dim"] == 24 and out["A"]["samples"] == 500 and out["A"]["horizon"] == 4
-    assert out["env"]["calls"] == 2
+    b = out["baoding"]
+    assert (b["state_dim"], b["action_dim"], b["ensemble"], b["samples"], b["horizon"]) == (54, 20, 3, 700, 7)
+    assert b["gflop_per_plan"] == pytest.approx(plan_flops(3, 700, 7, [74, 500, 500, 54]) / 1e9)
+    assert b["p99_within_budget"] == (b["p99_ms"] < 100.0)
+    assert b["within_half_plain_peer"] == (b["p50_ms"] <= 0.5 * b["peer_plain_model_p50_ms"])
+    lev = b["levers"]
+    assert _finite_pos(lev["samples_350"]["p50_ms"]) and _finite_pos(lev["hidden_2x250"]["p99_ms"])
+    assert _finite_pos(lev["samples_350"]["plan_cost_ratio"])
+    assert lev["hidden_2x250"]["plan_cost_ratio"] is None  # another model: not comparable
+    assert ("skipped" in lev["bf16"]) == (out["env"]["cpu_bf16"] is None)
+    env = out["env"]
+    assert env["calls"] == 2 and len(env["loadavg"]) == 3 and len(env["loadavg_start"]) == 3
+
+
+def test_plan_flops_formula_on_a_tiny_case():
+    # by hand: layers 8->7->5 are 56 + 35 = 91 multiply-adds per input; 2 members x 64
+    # samples x 4 steps x 2 FLOP
+    assert plan_flops(2, 64, 4, [8, 7, 5]) == 2 * 2 * 64 * 4 * 91 == 93184
+    # and torch's own FLOP counter agrees on a real rollout of both models
+    m = EnsembleDynamics(5, 3, ensemble=2, hidden=(7,), seed=0).eval()
+    for predict in (m._predict_diff, PlainEnsemble(m)):
+        with torch.inference_mode(), FlopCounterMode(display=False) as fc:
+            s = torch.randn(64, 5)
+            for _ in range(4):
+                s = predict(s, torch.randn(64, 3))
+        assert fc.get_total_flops() == plan_flops(2, 64, 4, [8, 7, 5])
+
+
+def test_plain_sequential_ensemble_is_the_same_function():
+    """The plain-model peer must time the same network, or the comparison means nothing."""
+    m = EnsembleDynamics(6, 2, ensemble=3, hidden=(16, 16), seed=1).eval()
+    rng = np.random.default_rng(0)
+    with torch.no_grad():  # non-trivial normalization so it is exercised too
+        m.input_mean.copy_(torch.from_numpy(rng.normal(size=8).astype(np.float32)))
+        m.input_std.copy_(torch.from_numpy(rng.uniform(0.5, 2, size=8).astype(np.float32)))
+        m.delta_mean.copy_(torch.from_numpy(rng.normal(size=6).astype(np.float32)))
+        m.delta_std.copy_(torch.from_numpy(rng.uniform(0.5, 2, size=6).astype(np.float32)))
+    plain = PlainEnsemble(m)
+    s, a = torch.randn(3, 40, 6), torch.randn(40, 2)
+    with torch.inference_mode():
+        torch.testing.assert_close(plain(s, a), m.predict(s, a), rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(plain(s[0], a), m.predict(s[0], a), rtol=1e-4, atol=1e-5)
+
+
+def test_baoding_workload_is_the_one_baoding_config():
+    w = WORKLOADS["baoding"]
+    assert _make_planner(w).config() == BAODING_PDDM.planner(seed=0).config()
+    assert {k: w[k] for k in ("state_dim", "action_dim", "ensemble", "hidden")} == BAODING_PDDM.model_kwargs()
+    assert (w["samples"], w["horizon"]) == (BAODING_PDDM.samples, BAODING_PDDM.horizon)
+    c = BAODING_PDDM
+    assert (c.horizon, c.samples, c.gamma, c.beta, c.ensemble, c.hidden) == (7, 700, 20.0, 0.7, 3, (500, 500))
