@@ -294,6 +294,8 @@ def bench_baoding_levers(calls: int = 50, warmup: int = 5, quality_seeds: int = 
     """Speed levers on the Baoding planner, timed interleaved with the configuration itself.
 
     * ``samples_350``: half the samples (K=350), same model: half the FLOPs.
+    * ``tuned_chunks``: the same weights with the batch split measured fastest on this
+      machine (:meth:`EnsembleDynamics.tune_inference`); ``chunks`` says which.
     * ``bf16``: the same weights in bfloat16, only when the CPU has native bf16
       (:func:`cpu_bf16_support`); otherwise reported as ``{"skipped": ...}``.
     * ``hidden_2x250``: the public reference code's 2x250 network. A different model, so its
@@ -322,6 +324,10 @@ def bench_baoding_levers(calls: int = 50, warmup: int = 5, quality_seeds: int = 
         variants["bf16"] = (bf, lambda seed: cfg.planner(seed))
     else:
         out["bf16"] = {"skipped": "no native bf16 on this CPU (no amx_bf16/avx512_bf16 flag)"}
+    tuned = EnsembleDynamics(**cfg.model_kwargs(), seed=0, inference_dtype="fp32").eval()
+    out["tuned_chunks"] = {"chunks": tuned.tune_inference(cfg.samples),
+                           "default_chunks": EnsembleDynamics._chunks_for(cfg.samples)}
+    variants["tuned_chunks"] = (tuned, lambda seed: cfg.planner(seed))
     small = replace(cfg, hidden=(250, 250))
     small_model = EnsembleDynamics(**small.model_kwargs(), seed=0).eval()
     timed = {**variants, "hidden_2x250": (small_model, lambda seed: small.planner(seed))}
@@ -335,7 +341,7 @@ def bench_baoding_levers(calls: int = 50, warmup: int = 5, quality_seeds: int = 
         if k == "configured":
             continue
         p = _percentiles(times[k])
-        out[k] = {**p, "ratio_p50_vs_configured": p["p50_ms"] / base["p50_ms"]}
+        out[k] = {**out.get(k, {}), **p, "ratio_p50_vs_configured": p["p50_ms"] / base["p50_ms"]}
     for k, (model, make) in variants.items():
         if k == "configured":
             continue

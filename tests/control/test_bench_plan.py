@@ -80,3 +80,30 @@ def test_baoding_workload_is_the_one_baoding_config():
     assert (w["samples"], w["horizon"]) == (BAODING_PDDM.samples, BAODING_PDDM.horizon)
     c = BAODING_PDDM
     assert (c.horizon, c.samples, c.gamma, c.beta, c.ensemble, c.hidden) == (7, 700, 20.0, 0.7, 3, (500, 500))
+
+
+def test_tune_inference_pins_a_measured_chunk_count_without_changing_the_function():
+    m = EnsembleDynamics(6, 2, ensemble=3, hidden=(32, 32), seed=0).eval()
+    s, a = torch.randn(3, 256, 6), torch.randn(256, 2)
+    assert EnsembleDynamics._chunks_for(256) == 4
+    with torch.inference_mode():
+        ref = m.predict(s, a)  # default split
+    # candidates without the default, so predict can only use k if it honours the pin
+    k = m.tune_inference(256, candidates=(1, 2, 3), reps=2)
+    assert k in (1, 2)  # 3 does not divide 256
+    used = []
+    orig = m._chunk_weights
+    m._chunk_weights = lambda n: used.append(n) or orig(n)
+    with torch.inference_mode():
+        out = m.predict(s, a)
+        m.predict(s[:, :60], a[:60])  # another batch size keeps the default split
+    assert used == [k, EnsembleDynamics._chunks_for(60)]
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+    for forced in (1, 2, 4):  # whatever tuning picks, the function is the same
+        m._chunks_pinned[256] = forced
+        with torch.inference_mode():
+            torch.testing.assert_close(m.predict(s, a), ref, rtol=1e-5, atol=1e-5)
+    m.set_inference_dtype("fp32")  # a new precision forgets measurements of the old one
+    assert m._chunks_pinned == {}
+    with pytest.raises(ValueError, match="divides batch=256"):
+        m.tune_inference(256, candidates=(3, 7))
