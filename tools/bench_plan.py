@@ -334,14 +334,27 @@ def bench_baoding_levers(calls: int = 50, warmup: int = 5, quality_seeds: int = 
 
     planners = {k: make(0) for k, (_, make) in timed.items()}
     fns = {k: (lambda k=k: planners[k](timed[k][0], cost, state)) for k in timed}
+    try:  # the plain-model peer again, in this run, so every lever has its ratio to it
+        peer = _make_peer(cost, WORKLOADS["baoding"], s0, PlainEnsemble(base_model), float(planners["configured"].sigma[0]))
+
+        def peer_call():
+            with torch.inference_mode():
+                return peer.command(torch.from_numpy(state)).numpy()
+
+        fns["peer_plain"] = peer_call
+    except ImportError:  # the peer is optional
+        pass
     times = _time_interleaved(fns, calls, warmup)
     base = _percentiles(times["configured"])
+    plain = _percentiles(times["peer_plain"])["p50_ms"] if "peer_plain" in times else None
     evaluator = cfg.planner(0)
     for k in timed:
         if k == "configured":
             continue
         p = _percentiles(times[k])
-        out[k] = {**out.get(k, {}), **p, "ratio_p50_vs_configured": p["p50_ms"] / base["p50_ms"]}
+        out[k] = {**out.get(k, {}), **p, "ratio_p50_vs_configured": p["p50_ms"] / base["p50_ms"],
+                  "ratio_p50_vs_plain_model": None if plain is None else p["p50_ms"] / plain}
+    out["configured_p50_ms"], out["peer_plain_model_p50_ms"] = base["p50_ms"], plain
     for k, (model, make) in variants.items():
         if k == "configured":
             continue

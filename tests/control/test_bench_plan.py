@@ -38,6 +38,11 @@ def test_run_bench_plan_reports_all_workloads_and_levers():
     assert _finite_pos(lev["samples_350"]["p50_ms"]) and _finite_pos(lev["hidden_2x250"]["p99_ms"])
     assert _finite_pos(lev["samples_350"]["plan_cost_ratio"])
     assert lev["hidden_2x250"]["plan_cost_ratio"] is None  # another model: not comparable
+    assert lev["tuned_chunks"]["chunks"] in (1, 2, 4) and lev["tuned_chunks"]["default_chunks"] == 4
+    for name in ("samples_350", "tuned_chunks", "hidden_2x250"):
+        r = lev[name]
+        assert r["ratio_p50_vs_plain_model"] == pytest.approx(r["p50_ms"] / lev["peer_plain_model_p50_ms"])
+        assert r["ratio_p50_vs_configured"] == pytest.approx(r["p50_ms"] / lev["configured_p50_ms"])
     assert ("skipped" in lev["bf16"]) == (out["env"]["cpu_bf16"] is None)
     env = out["env"]
     assert env["calls"] == 2 and len(env["loadavg"]) == 3 and len(env["loadavg_start"]) == 3
