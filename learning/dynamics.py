@@ -27,7 +27,8 @@ and optimizer. Normalization rule (``norm_update``):
 
 Inference (:meth:`predict` without autograd) uses a fused copy of the weights with the
 normalization folded into the first and last layers, splits the batch into equal chunks so
-the batched matmul keeps every thread busy, and optionally runs in bfloat16
+the batched matmul keeps every thread busy (a fixed rule, or the split measured fastest on
+this machine by :meth:`EnsembleDynamics.tune_inference`), and optionally runs in bfloat16
 (``inference_dtype``; see :func:`cpu_bf16_support`). Training is always float32.
 """
 
