@@ -355,17 +355,20 @@ def bench_baoding_levers(calls: int = 50, warmup: int = 5, quality_seeds: int = 
         out[k] = {**out.get(k, {}), **p, "ratio_p50_vs_configured": p["p50_ms"] / base["p50_ms"],
                   "ratio_p50_vs_plain_model": None if plain is None else p["p50_ms"] / plain}
     out["configured_p50_ms"], out["peer_plain_model_p50_ms"] = base["p50_ms"], plain
-    for k, (model, make) in variants.items():
-        if k == "configured":
-            continue
-        base_costs, lever_costs = [], []
+
+    def mean_plan_cost(model: EnsembleDynamics, make: Callable[[int], PDDM]) -> float:
+        costs = []
         for seed in range(quality_seeds):
-            for costs, (m, mk) in ((base_costs, variants["configured"]), (lever_costs, (model, make))):
-                pl = mk(seed)
-                pl(m, cost, state)
-                costs.append(_plan_cost(evaluator, base_model, cost, s0, pl.last_plan))
-        out[k]["plan_cost_ratio"] = float(np.mean(lever_costs) / np.mean(base_costs))
-        out[k]["quality_seeds"] = quality_seeds
+            pl = make(seed)
+            pl(model, cost, state)
+            costs.append(_plan_cost(evaluator, base_model, cost, s0, pl.last_plan))
+        return float(np.mean(costs))
+
+    base_cost = mean_plan_cost(*variants["configured"])
+    for k, (model, make) in variants.items():
+        if k != "configured":
+            out[k]["plan_cost_ratio"] = mean_plan_cost(model, make) / base_cost
+            out[k]["quality_seeds"] = quality_seeds
     out["hidden_2x250"]["plan_cost_ratio"] = None  # a different model: see the docstring
     return out
 

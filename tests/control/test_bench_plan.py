@@ -112,3 +112,23 @@ def test_tune_inference_pins_a_measured_chunk_count_without_changing_the_functio
     assert m._chunks_pinned == {}
     with pytest.raises(ValueError, match="divides batch=256"):
         m.tune_inference(256, candidates=(3, 7))
+
+
+def test_plan_cost_measure_ranks_a_planned_sequence_above_random_ones():
+    """The quality measure of the levers: a PDDM plan must score better than random plans."""
+    from dataclasses import replace
+
+    from tools.bench_plan import _cost_for, _plan_cost
+
+    cfg = replace(BAODING_PDDM, hidden=(32, 32), samples=200)
+    model = EnsembleDynamics(**cfg.model_kwargs(), seed=0).eval()
+    cost = _cost_for("baoding", cfg.state_dim)
+    s0 = torch.from_numpy(np.random.default_rng(0).normal(size=cfg.state_dim).astype(np.float32))
+    planner, evaluator = cfg.planner(0), cfg.planner(0)
+    for _ in range(3):  # a few warm-started iterations from the same state
+        planner(model, cost, s0)
+    planned = _plan_cost(evaluator, model, cost, s0, planner.last_plan)
+    g = torch.Generator().manual_seed(1)
+    random = [_plan_cost(evaluator, model, cost, s0, torch.rand(cfg.horizon, cfg.action_dim, generator=g) * 2 - 1)
+              for _ in range(20)]
+    assert planned < float(np.mean(random))
