@@ -47,11 +47,15 @@ the only host round trip per call is the returned numpy action.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-__all__ = ["Planner", "RandomShooting", "CEM", "PDDM", "filtered_noise", "reward_weighted_mean"]
+__all__ = [
+    "Planner", "RandomShooting", "CEM", "PDDM", "PddmConfig", "BAODING_PDDM",
+    "filtered_noise", "reward_weighted_mean",
+]
 
 DynamicsFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 CostFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -406,3 +410,45 @@ class PDDM(Planner):
         plan = self._clip(mean.clone())
         self.mean = self._shift(plan)
         return plan
+
+
+@dataclass(frozen=True)
+class PddmConfig:
+    """A PDDM planner and the size of the ensemble it plans through, in one place.
+
+    ``planner()`` builds the :class:`PDDM`; ``model_kwargs()`` are the
+    ``learning.dynamics.EnsembleDynamics`` arguments (``state_dim, action_dim, ensemble,
+    hidden``). Actions are normalized to ``[action_low, action_high]`` (unitless; the hand
+    maps [-1, 1] to each joint's range). ``sigma=None`` keeps PDDM's default (a quarter of
+    the action range).
+    """
+
+    horizon: int
+    samples: int
+    gamma: float
+    beta: float
+    ensemble: int
+    hidden: tuple[int, ...]
+    state_dim: int
+    action_dim: int
+    sigma: float | None = None
+    action_low: float = -1.0
+    action_high: float = 1.0
+
+    def planner(self, seed: int | None = 0) -> PDDM:
+        return PDDM(self.action_low, self.action_high, horizon=self.horizon, samples=self.samples,
+                    gamma=self.gamma, beta=self.beta, sigma=self.sigma, action_dim=self.action_dim,
+                    seed=seed)
+
+    def model_kwargs(self) -> dict:
+        return {"state_dim": self.state_dim, "action_dim": self.action_dim,
+                "ensemble": self.ensemble, "hidden": self.hidden}
+
+
+#: PDDM on the Shadow Hand Baoding balls: the thesis settings (H=7, K=700, γ=20, β=0.7, an
+#: ensemble of 3 ReLU MLPs of 2x500; the public reference code used 2x250 and β=0.6) on our
+#: hand sim's state (24 joint angles + 24 velocities + 2 balls x 3 = 54) and action (20
+#: position targets). The single definition used by ``hil bench plan`` (its ``baoding``
+#: entry) and meant for ``hil demo baoding``.
+BAODING_PDDM = PddmConfig(horizon=7, samples=700, gamma=20.0, beta=0.7, ensemble=3,
+                          hidden=(500, 500), state_dim=54, action_dim=20)

@@ -27,7 +27,8 @@ and optimizer. Normalization rule (``norm_update``):
 
 Inference (:meth:`predict` without autograd) uses a fused copy of the weights with the
 normalization folded into the first and last layers, splits the batch into equal chunks so
-the batched matmul keeps every thread busy, and optionally runs in bfloat16
+the batched matmul keeps every thread busy (a fixed rule, or the split measured fastest on
+this machine by :meth:`EnsembleDynamics.tune_inference`), and optionally runs in bfloat16
 (``inference_dtype``; see :func:`cpu_bf16_support`). Training is always float32.
 """
 
@@ -198,6 +199,7 @@ class EnsembleDynamics(nn.Module):
         self._optimizer: torch.optim.Optimizer | None = None
         self._gen = torch.Generator().manual_seed(1 + (0 if seed is None else int(seed)))
         self._fast: dict | None = None  # fused inference weights, rebuilt lazily
+        self._chunks_pinned: dict[int, int] = {}  # batch size -> chunk count (tune_inference)
         self._inference_dtype = _resolve_inference_dtype(inference_dtype)
 
     # -- sizes ---------------------------------------------------------------------------
@@ -222,6 +224,7 @@ class EnsembleDynamics(nn.Module):
         self._inference_dtype = _resolve_inference_dtype(choice)
         self.config["inference_dtype"] = choice
         self._fast = None
+        self._chunks_pinned.clear()  # measured for the old precision
         return self._inference_dtype
 
     # -- differentiable forward in normalized coordinates -----------------------------------
@@ -300,6 +303,36 @@ class EnsembleDynamics(nn.Module):
                 return k
         return 1
 
+    def tune_inference(self, batch: int, candidates: Sequence[int] = (1, 2, 4), reps: int = 5) -> int:
+        """Measure which chunk count is fastest for ``batch`` inputs per member on this machine
+        and use it from now on (for this batch size; not saved in checkpoints).
+
+        The default split (:meth:`_chunks_for`, 4 chunks at the planner's 700 samples) was
+        measured on an AVX-512 machine; on an AVX2 machine the same split was ~1.4x slower
+        than one chunk (``hil bench plan``, ``baoding.levers.tuned_chunks``). The result is
+        the same function whatever the choice (only the summation order of the batched
+        matmuls changes), so tuning can only change speed. Times ``reps`` calls per
+        candidate, interleaved so load from other processes hits all alike, after one
+        warm-up round; picks the lowest median. Returns the chunk count chosen.
+        """
+        valid = [int(k) for k in candidates if int(k) >= 1 and batch % int(k) == 0]
+        if not valid:
+            raise ValueError(f"no chunk count in {list(candidates)} divides batch={batch}")
+        s = torch.zeros(self.ensemble, batch, self.state_dim)
+        a = torch.zeros(batch, self.action_dim)
+        times: dict[int, list[float]] = {k: [] for k in valid}
+        with torch.inference_mode():
+            for r in range(reps + 1):
+                for k in valid:
+                    self._chunks_pinned[batch] = k
+                    t0 = time.perf_counter()
+                    self.predict(s, a)
+                    if r:  # round 0 warms up (and builds the chunked weights)
+                        times[k].append(time.perf_counter() - t0)
+        best = min(valid, key=lambda k: float(np.median(times[k])))
+        self._chunks_pinned[batch] = best
+        return best
+
     def predict(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Predict the next state.
 
@@ -317,7 +350,7 @@ class EnsembleDynamics(nn.Module):
             return self._predict_diff(state, action)
         E, S = self.ensemble, self.state_dim
         B = state.shape[-2]
-        k = self._chunks_for(B)
+        k = self._chunks_pinned.get(B) or self._chunks_for(B)
         w = self._chunk_weights(k)
         dt = self._inference_dtype
         s3 = self._as_ensemble(state, "state")

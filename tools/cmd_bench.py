@@ -34,7 +34,7 @@ def bench_plan(
     calls: int = typer.Option(50, "--calls"),
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
-    """Planner timing on workloads A and B vs pytorch-mppi's MPPI on the same model."""
+    """Planner timing on workloads A, B and baoding vs pytorch-mppi's MPPI (our model and a plain nn.Sequential one)."""
     from tools.bench_plan import run_bench_plan
 
     r = run_bench_plan(calls=calls)

@@ -450,3 +450,8 @@ class VelociRoachDriver(Driver):
     @property
     def emulator_log(self) -> Path | None:
         return None if self._emu is None else self._emu.log_path
+
+    @property
+    def emulator(self) -> EmulatorProcess | None:
+        """The emulator process of an emulated backend (tests kill it to simulate a lost device)."""
+        return self._emu

@@ -142,7 +142,7 @@ def test_corrupt_frames_both_ways_and_emulator_death():
         wait_for(lambda: (drv.health().extra["robot_rx_corrupt"] or 0) >= 3, 2.0, "the robot to count 3 bad frames")
 
         # the emulator process dies (device unplugged): LinkError (within the bounded wait), never a hang
-        drv._proc.kill()
+        drv.emulator.kill()
         with pytest.raises(LinkError, match="unplugged"):
             wait_for(lambda: drv.read() is None, 2.0, "a LinkError")
         assert drv.health().ok is False
