@@ -130,3 +130,67 @@ def first_minutes(r: Rollouts, minutes: float) -> Rollouts:
     per_ep = r.actions.shape[1] * 0.1 / 60.0
     n = max(1, int(round(minutes / per_ep)))
     return Rollouts(r.states[:n], r.actions[:n], r.patches[:n])
+
+
+@dataclass(frozen=True)
+class SidmExperiment:
+    """The SIDM sweep on the VelociRoACH pairs (docs/transfer.md lists what each run used)."""
+
+    expert_minutes: float = 20.0
+    novice_minutes: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0, 15.0, 30.0, 60.0, 120.0)
+    validation_minutes: float = 5.0
+    trials: int = 3
+    p_e: tuple[tuple[str, float], ...] = (("similar", 0.75), ("dissimilar", 0.5))  # the paper's values
+    drift_steps: int = 25
+    episode_s: float = 10.0
+    seed: int = 0
+
+
+def run_sidm(exp: SidmExperiment, cfg, log=print) -> dict:
+    """For each pair: validation error (normalised MSE of Δs on separate novice data) against
+    novice minutes with and without SIDM (median and interquartile range over trials), the data
+    multiplier, and the 25-step open-loop drift [m]. ``cfg`` is the ``SidmConfig`` (p_e is set
+    per pair). Trials differ in the training seed and in which novice episodes form each size."""
+    from dataclasses import replace
+
+    from learning.transfer.sidm import data_multiplier, open_loop_drift, train_sidm, validation_mse
+
+    expert_r = collect(EXPERT, exp.expert_minutes, exp.seed, exp.episode_s)
+    expert = transitions(expert_r)
+    log(f"sidm: expert {expert_r.minutes():.1f} min")
+    out: dict = {"pairs": {}}
+    for pi, (pair, p_e) in enumerate(exp.p_e):
+        ov = PAIRS[pair]
+        nov_all = collect(ov, max(exp.novice_minutes), exp.seed + 100 + pi, exp.episode_s)
+        val_r = collect(ov, exp.validation_minutes, exp.seed + 200 + pi, exp.episode_s)
+        val = transitions(val_r)
+        curve = []
+        for minutes in exp.novice_minutes:
+            runs: dict[str, list[float]] = {"with_sidm": [], "without_sidm": [], "drift_with_m": [], "drift_without_m": []}
+            for trial in range(exp.trials):
+                perm = np.random.default_rng(exp.seed + trial).permutation(len(nov_all.actions))
+                shuffled = Rollouts(nov_all.states[perm], nov_all.actions[perm], nov_all.patches[perm])
+                nov = transitions(first_minutes(shuffled, minutes))
+                c = replace(cfg, p_e=p_e, seed=exp.seed + trial)
+                for key, expert_data in (("with_sidm", expert), ("without_sidm", None)):
+                    model = train_sidm(nov, c, expert_data)
+                    runs[key].append(validation_mse(model, val))
+                    drift = np.mean([open_loop_drift(model, extras(val_r)[e], val_r.states[e], features,
+                                                     exp.drift_steps) for e in range(len(val_r.states))])
+                    runs["drift_with_m" if key == "with_sidm" else "drift_without_m"].append(float(drift))
+            row = {"minutes": minutes}
+            for k, v in runs.items():
+                row[k] = float(np.median(v))
+                row[k + "_iqr"] = [float(np.percentile(v, 25)), float(np.percentile(v, 75))]
+            log(f"sidm {pair}: {minutes:g} min novice: val MSE with {row['with_sidm']:.4f} "
+                f"without {row['without_sidm']:.4f}; 25-step drift with {row['drift_with_m']:.3f} m "
+                f"without {row['drift_without_m']:.3f} m")
+            curve.append(row)
+        mult = data_multiplier([r["minutes"] for r in curve], [r["with_sidm"] for r in curve],
+                               [r["without_sidm"] for r in curve])
+        no_model_drift = float(np.mean([open_loop_drift(None, extras(val_r)[e], val_r.states[e], features,
+                                                        exp.drift_steps) for e in range(len(val_r.states))]))
+        out["pairs"][pair] = {"curve": curve, "data_multiplier": mult, "p_e": p_e,
+                              "drift_no_motion_m": no_model_drift, "overrides": ov}
+    out["expert_minutes"] = expert_r.minutes()
+    return out
