@@ -111,3 +111,20 @@ def test_bad_inputs_are_refused():
         Transitions(np.array([[np.nan, 1.0]]), np.zeros((1, 1)))
     with pytest.raises(ValueError, match="p_e"):
         SidmConfig(p_e=1.5)
+
+
+def test_open_loop_drift_is_the_position_error_after_the_horizon():
+    from learning.transfer.sidm import open_loop_drift
+
+    t = np.arange(51.0)
+    states = np.stack([0.1 * t, 0.0 * t, np.ones_like(t)], 1)  # moving 0.1 m per step along x
+    extra = np.zeros((50, 1))
+    # no model: the robot stays put, so the error is the distance travelled over the horizon
+    assert open_loop_drift(None, extra, states, None, horizon=25) == pytest.approx(2.5)
+    assert open_loop_drift(None, extra, states, None, horizon=10) == pytest.approx(1.0)
+
+    class Exact:  # predicts the true step: no drift
+        def predict(self, system, x):
+            return np.array([[0.1, 0.0, 0.0]])
+
+    assert open_loop_drift(Exact(), extra, states, lambda s, e: s, horizon=25) == pytest.approx(0.0, abs=1e-12)
