@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from typer.testing import CliRunner
 
 from tools.cli import app
 
 
+@pytest.mark.slow
 def test_demo_transfer_writes_the_report_and_plots(tmp_path, monkeypatch):
     monkeypatch.setenv("HIL_TRANSFER_PRESET", "tiny")
     r = CliRunner().invoke(app, ["demo", "transfer", "--out", str(tmp_path)])

@@ -77,6 +77,7 @@ def test_discriminator_separates_source_from_target_transitions():
     assert d.reward(tgt).mean() > d.reward(src).mean() + 0.5
 
 
+@pytest.mark.slow
 def test_garat_grounds_the_source_towards_the_target():
     tgt, val = rollouts(target, 2000, 0), rollouts(target, 200, 2)
     cfg = GaratConfig(total_timesteps=6144, n_steps=512, batch_size=128, n_epochs=5, log_std_init=-1.0,

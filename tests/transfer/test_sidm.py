@@ -80,6 +80,7 @@ def test_adversarial_steps_pull_novice_latents_onto_the_expert_ones():
     assert all(torch.equal(a, b) for a, b in zip(expert_before, model.enc["expert"].parameters(), strict=True))
 
 
+@pytest.mark.slow
 def test_sidm_beats_novice_only_baseline_with_little_novice_data():
     expert, novice, val = pair(4000, 48)
     with_sidm = validation_mse(train_sidm(novice, TINY, expert), val)
