@@ -30,7 +30,7 @@ PRESETS: dict[str, dict] = {
         "sidm": SidmConfig(latent_dim=128, width=128, max_rounds=30, patience_rounds=5),
         "pendulum": PendulumConfig(agent_timesteps=20000, target_sizes=(500, 3000), source_transitions=5000,
                                    validation_transitions=500, gat_fit_steps=1500,
-                                   garat=GaratConfig(total_timesteps=16384)),
+                                   garat=GaratConfig(total_timesteps=49152)),
     },
     "tiny": {
         "sidm_exp": SidmExperiment(expert_minutes=0.1, novice_minutes=(0.05, 0.1), validation_minutes=0.05,
