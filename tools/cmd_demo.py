@@ -6,13 +6,14 @@ from pathlib import Path
 
 import typer
 
-from tools.common import user_errors
+from tools.common import UserError, user_errors
 
 
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def demo(
+        what: str = typer.Argument("roach", help="roach (MBRL) | transfer (SIDM, GAT/GARAT: docs/transfer.md)"),
         out: Path = typer.Option(Path("out/demo"), "--out", help="output directory"),
         quick: bool = typer.Option(False, "--quick", help="smaller run (< 10 min on 2 cores)"),
         full: bool = typer.Option(False, "--full", help="also the thesis' Table 3.1, Fig. 3.8 speed sweep and "
@@ -31,7 +32,14 @@ def register(app: typer.Typer) -> None:
         """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
 
         Collects random data through the driver bridge, trains a dynamics model, runs MPC
-        and the differential-drive baseline on five paths at a low and a high speed."""
+        and the differential-drive baseline on five paths at a low and a high speed.
+        `hil demo transfer` runs SIDM and GAT/GARAT instead (tools/demo_transfer.py)."""
+        if what == "transfer":
+            from tools.demo_transfer import cli_transfer
+
+            return cli_transfer(out, quick=quick, seed=seed)
+        if what != "roach":
+            raise UserError(f"hil demo: unknown demo {what!r} (roach | transfer)")
         from learning.mbrl import RigError
         from tools.demo import run_demo
 

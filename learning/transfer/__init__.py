@@ -1,0 +1,1 @@
+"""Transfer between systems: SIDM domain adaptation, GAT and GARAT grounding (docs/transfer.md)."""

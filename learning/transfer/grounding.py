@@ -1,0 +1,281 @@
+"""Grounding a source simulator to a target system by an action transformer π_g(ã | s, a).
+
+* GAT (Hanna & Stone): π_g(s, a) = g_src(s, f_tgt(s, a)), an inverse source model (which
+  action takes s to s' in the source) composed with a forward target model (where the
+  target goes from s under a). Both are small MLPs fitted by regression (``fit_mlp``).
+* GARAT (Desai et al.): π_g is a stochastic policy trained with PPO
+  (stable-baselines3) in the source simulator on the reward −log D(s, a, s'), where D is a
+  GAIfO-style discriminator giving the probability that a transition (s, a, s') came from
+  the grounded source rather than from the target. D is updated once per π_g update
+  (after each PPO rollout, ``disc_steps`` minibatch steps on that rollout against target
+  data).
+
+Everything here is generic over a source step function ``step(s, a) -> s'`` that can start
+from any state (MuJoCo ``set_state``), so the per-step transition error of a grounding is
+measured on held-out target transitions: ‖step(s, π_g(s, a)) − s'_target‖.
+
+Units are the environment's (InvertedPendulum: cart position m, pole angle rad, their rates;
+force command in the env's action units).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import nn
+
+StepFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass
+class TransitionSet:
+    """Transitions (s [N, n], a [N, m], s' [N, n])."""
+
+    s: np.ndarray
+    a: np.ndarray
+    s1: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.s, self.a, self.s1 = (np.asarray(v, np.float64) for v in (self.s, self.a, self.s1))
+        if not (len(self.s) == len(self.a) == len(self.s1)):
+            raise ValueError(f"TransitionSet: s {self.s.shape}, a {self.a.shape}, s' {self.s1.shape} differ in length")
+        if not all(np.isfinite(v).all() for v in (self.s, self.a, self.s1)):
+            raise ValueError("TransitionSet: NaN or inf in the transitions")
+
+    def __len__(self) -> int:
+        return len(self.s)
+
+    def head(self, n: int) -> TransitionSet:
+        return TransitionSet(self.s[:n], self.a[:n], self.s1[:n])
+
+
+class Mlp(nn.Module):
+    """y = MLP((x − μ)/σ)·σ_y + μ_y, normalisation from the training data."""
+
+    def __init__(self, x: np.ndarray, y: np.ndarray, width: int, layers: int):
+        super().__init__()
+        mods: list[nn.Module] = []
+        d = x.shape[1]
+        for _ in range(layers):
+            mods += [nn.Linear(d, width), nn.SiLU()]
+            d = width
+        mods.append(nn.Linear(d, y.shape[1]))
+        self.net = nn.Sequential(*mods)
+        for name, v in (("xm", x.mean(0)), ("xs", x.std(0) + 1e-6), ("ym", y.mean(0)), ("ys", y.std(0) + 1e-6)):
+            self.register_buffer(name, torch.as_tensor(v, dtype=torch.float32))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net((x - self.xm) / self.xs) * self.ys + self.ym
+
+    @torch.no_grad()
+    def __call__(self, x: np.ndarray) -> np.ndarray:  # type: ignore[override]
+        return self.forward(torch.as_tensor(np.asarray(x, np.float32))).numpy().astype(np.float64)
+
+
+def fit_mlp(x: np.ndarray, y: np.ndarray, width: int = 64, layers: int = 2, steps: int = 2000,
+            lr: float = 3e-3, batch: int = 256, seed: int = 0) -> Mlp:
+    """Least-squares MLP regression (Adam, cosine-decayed learning rate)."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    m = Mlp(x, y, width, layers)
+    xt, yt = torch.as_tensor(x, dtype=torch.float32), torch.as_tensor(y, dtype=torch.float32)
+    opt = torch.optim.Adam(m.net.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
+    for _ in range(steps):
+        i = rng.integers(0, len(x), min(batch, len(x)))
+        loss = (((m.forward(xt[i]) - yt[i]) / m.ys) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+    return m
+
+
+class Gat:
+    """GAT's action transformer: inverse source model ∘ forward target model."""
+
+    def __init__(self, source: TransitionSet, target: TransitionSet, a_low: np.ndarray, a_high: np.ndarray,
+                 width: int = 64, layers: int = 2, steps: int = 2000, seed: int = 0):
+        # forward target model: Δs = f(s, a); inverse source model: a = g(s, Δs)
+        self.fwd = fit_mlp(np.hstack([target.s, target.a]), target.s1 - target.s, width, layers, steps, seed=seed)
+        self.inv = fit_mlp(np.hstack([source.s, source.s1 - source.s]), source.a, width, layers, steps, seed=seed)
+        self.a_low, self.a_high = np.asarray(a_low, float), np.asarray(a_high, float)
+
+    def __call__(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
+        s, a = np.atleast_2d(s), np.atleast_2d(a)
+        ds_target = self.fwd(np.hstack([s, a]))
+        return np.clip(self.inv(np.hstack([s, ds_target])), self.a_low, self.a_high)
+
+
+def transition_error(step: StepFn, data: TransitionSet, transform: Callable | None = None) -> float:
+    """Mean ‖step(s, π_g(s, a)) − s'‖ over ``data`` (π_g = identity when ``transform`` is None)."""
+    errs = []
+    for s, a, s1 in zip(data.s, data.a, data.s1, strict=True):
+        at = a if transform is None else np.asarray(transform(s[None], a[None]))[0]
+        errs.append(np.linalg.norm(step(s, at) - s1))
+    return float(np.mean(errs))
+
+
+class Discriminator(nn.Module):
+    """Logit of "this (s, a, s') came from the grounded source" (GAIfO-style, with the action)."""
+
+    def __init__(self, target: TransitionSet, width: int = 64):
+        super().__init__()
+        x = self.inputs(target)
+        self.register_buffer("xm", torch.as_tensor(x.mean(0), dtype=torch.float32))
+        self.register_buffer("xs", torch.as_tensor(x.std(0) + 1e-6, dtype=torch.float32))
+        self.net = nn.Sequential(nn.Linear(x.shape[1], width), nn.Tanh(), nn.Linear(width, width), nn.Tanh(),
+                                 nn.Linear(width, 1))
+
+    @staticmethod
+    def inputs(t: TransitionSet) -> np.ndarray:
+        return np.hstack([t.s, t.a, t.s1 - t.s]).astype(np.float32)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net((x - self.xm) / self.xs)
+
+    @torch.no_grad()
+    def reward(self, t: TransitionSet) -> np.ndarray:
+        """−log D(s, a, s') = softplus(−logit): high where the transition looks like the target's."""
+        return nn.functional.softplus(-self.forward(torch.as_tensor(self.inputs(t)))).numpy()[:, 0]
+
+
+def discriminator_update(disc: Discriminator, opt: torch.optim.Optimizer, grounded: TransitionSet,
+                         target: TransitionSet, steps: int, rng: np.random.Generator, batch: int = 256) -> float:
+    """``steps`` minibatch steps of binary cross-entropy: grounded source 1, target 0."""
+    bce = nn.functional.binary_cross_entropy_with_logits
+    xg, xt = torch.as_tensor(disc.inputs(grounded)), torch.as_tensor(disc.inputs(target))
+    loss = torch.zeros(())
+    for _ in range(steps):
+        ig = rng.integers(0, len(xg), min(batch, len(xg)))
+        it = rng.integers(0, len(xt), min(batch, len(xt)))
+        loss = bce(disc(xg[ig]), torch.ones(len(ig), 1)) + bce(disc(xt[it]), torch.zeros(len(it), 1))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return float(loss.detach())
+
+
+class GroundingEnv(gym.Env):
+    """The source simulator seen by π_g: observation (s, a) with a from the agent's policy,
+    action δ ∈ [-1, 1]^m, ã = clip(a + δ·(high − low)/2), reward −log D(s, a, s').
+
+    ``reset_state(rng)`` draws a start state, ``agent(s, rng)`` the agent's (noisy) action,
+    ``done(s)`` ends an episode (the same rule as in the target data), ``max_steps`` truncates.
+    Transitions are kept in ``buffer`` for the discriminator update."""
+
+    def __init__(self, step: StepFn, reset_state: Callable, agent: Callable, done: Callable[[np.ndarray], bool],
+                 disc: Discriminator, a_low: np.ndarray, a_high: np.ndarray, n_state: int, max_steps: int,
+                 seed: int = 0):
+        super().__init__()
+        self._step, self._reset_state, self._agent, self._done = step, reset_state, agent, done
+        self.disc = disc
+        self.a_low, self.a_high = np.asarray(a_low, float), np.asarray(a_high, float)
+        m = len(self.a_low)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (n_state + m,), np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (m,), np.float32)
+        self.max_steps = max_steps
+        self.rng = np.random.default_rng(seed)
+        self.buffer: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._s = self._a = None
+        self._t = 0
+
+    def transform(self, a: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        return np.clip(a + np.clip(delta, -1, 1) * 0.5 * (self.a_high - self.a_low), self.a_low, self.a_high)
+
+    def _obs(self) -> np.ndarray:
+        return np.concatenate([self._s, self._a]).astype(np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+        self._s = np.asarray(self._reset_state(self.rng), float)
+        self._a = np.asarray(self._agent(self._s, self.rng), float)
+        self._t = 0
+        return self._obs(), {}
+
+    def step(self, action):
+        s, a = self._s, self._a
+        s1 = np.asarray(self._step(s, self.transform(a, np.asarray(action, float))), float)
+        self.buffer.append((s, a, s1))
+        r = float(self.disc.reward(TransitionSet(s[None], a[None], s1[None]))[0])
+        self._t += 1
+        self._s = s1
+        self._a = np.asarray(self._agent(s1, self.rng), float)
+        return self._obs(), r, bool(self._done(s1)), self._t >= self.max_steps, {}
+
+
+@dataclass(frozen=True)
+class GaratConfig:
+    """PPO and discriminator settings (the paper gives none; ours are documented in docs/transfer.md)."""
+
+    total_timesteps: int = 49152
+    n_steps: int = 1024  # PPO rollout length = transitions per discriminator update
+    batch_size: int = 128
+    n_epochs: int = 5
+    learning_rate: float = 3e-4
+    gamma: float = 0.5  # a short horizon: the reward judges single transitions (0.9 grounded worse, docs)
+    log_std_init: float = -1.5  # start near the identity transform (ã ≈ a)
+    disc_steps: int = 50  # minibatch steps of the once-per-update discriminator update
+    disc_lr: float = 1e-3
+    width: int = 64
+    seed: int = 0
+
+
+class _DiscCallback:
+    """Built lazily so that importing this module does not import stable-baselines3."""
+
+    @staticmethod
+    def make(env: GroundingEnv, target: TransitionSet, cfg: GaratConfig):
+        from stable_baselines3.common.callbacks import BaseCallback
+
+        class DiscUpdate(BaseCallback):
+            def __init__(self):
+                super().__init__()
+                self.opt = torch.optim.Adam(env.disc.parameters(), lr=cfg.disc_lr)
+                self.rng = np.random.default_rng(cfg.seed)
+                self.updates = 0
+
+            def _on_step(self) -> bool:
+                return True
+
+            def _on_rollout_end(self) -> None:  # once per π_g update
+                s, a, s1 = (np.asarray(v) for v in zip(*env.buffer, strict=True))
+                env.buffer.clear()
+                discriminator_update(env.disc, self.opt, TransitionSet(s, a, s1), target, cfg.disc_steps, self.rng)
+                self.updates += 1
+
+        return DiscUpdate()
+
+
+class Garat:
+    """GARAT's action transformer: the deterministic (mean) action of the trained PPO policy."""
+
+    def __init__(self, env: GroundingEnv, model, disc_updates: int):
+        self.env, self.model, self.disc_updates = env, model, disc_updates
+
+    def __call__(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
+        s, a = np.atleast_2d(s), np.atleast_2d(a)
+        delta, _ = self.model.predict(np.hstack([s, a]).astype(np.float32), deterministic=True)
+        return self.env.transform(a, delta)
+
+
+def train_garat(step: StepFn, target: TransitionSet, reset_state: Callable, agent: Callable,
+                done: Callable[[np.ndarray], bool], a_low, a_high, max_steps: int, cfg: GaratConfig) -> Garat:
+    """Train π_g with PPO against a discriminator updated once per PPO update."""
+    from stable_baselines3 import PPO
+
+    torch.manual_seed(cfg.seed)
+    disc = Discriminator(target, cfg.width)
+    env = GroundingEnv(step, reset_state, agent, done, disc, a_low, a_high, target.s.shape[1], max_steps, cfg.seed)
+    cb = _DiscCallback.make(env, target, cfg)
+    model = PPO("MlpPolicy", env, n_steps=cfg.n_steps, batch_size=cfg.batch_size, n_epochs=cfg.n_epochs,
+                learning_rate=cfg.learning_rate, gamma=cfg.gamma, seed=cfg.seed, device="cpu", verbose=0,
+                policy_kwargs={"log_std_init": cfg.log_std_init, "net_arch": [cfg.width, cfg.width]})
+    model.learn(cfg.total_timesteps, callback=cb)
+    return Garat(env, model, cb.updates)

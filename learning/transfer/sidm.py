@@ -1,0 +1,285 @@
+"""SIDM: a System Invariant Dynamics Model shared by an expert and a novice system.
+
+After Wang & Johnson (SIDM): each system ``k`` has its own encoder ``E_k(s, a) → z``
+(latent of ``latent_dim``, 128 in the paper) and decoder ``D_k(h) → Δs``; one dynamics
+network ``F(z) → h`` is shared. Training alternates
+
+* ``pred_iters`` (100) prediction iterations: each minibatch comes from the expert with
+  probability ``p_e`` and from the novice otherwise; the loss is the MSE of the decoded
+  (normalised) state change, through that system's encoder and decoder and the shared F;
+* ``match_iters`` (20) distribution-matching iterations: a discriminator on latents learns
+  to tell expert latents (label 1) from novice ones (label 0), then the novice encoder is
+  updated to make its latents look like the expert's (non-saturating GAN loss).
+
+The baseline is the same network trained on novice data only (``p_e = 0``, no matching).
+
+Sizes are options (``SidmConfig``). The paper's SIDM is 4 LSTM layers of 1024 over
+sequences; ours is an MLP (``dyn_layers`` x ``width``) on single transitions, because the
+state here is Markov (pose, velocities, crank phase, a local heightfield patch) and the CPU
+budget is two shared cores (docs/transfer.md).
+
+Units: inputs and targets are whatever the caller gives (SI for the VelociRoACH); each
+system normalises its own inputs and targets (mean/std of its training data), so a
+system's units never leak into the shared network.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+
+@dataclass(frozen=True)
+class SidmConfig:
+    """Sizes and the training schedule. Paper: latent 128, 4 x 1024 LSTM, 100/20 iterations."""
+
+    latent_dim: int = 128
+    width: int = 256
+    enc_layers: int = 1  # hidden layers of each encoder / decoder
+    dyn_layers: int = 2  # hidden layers of the shared dynamics network
+    pred_iters: int = 100
+    match_iters: int = 20
+    p_e: float = 0.75  # paper: 0.75 similar pair, 0.5 dissimilar pair
+    batch: int = 128
+    lr: float = 1e-3
+    disc_lr: float = 5e-4
+    adv_weight: float = 0.1  # weight of the novice encoder's fooling loss
+    max_rounds: int = 40  # one round = pred_iters + match_iters
+    patience_rounds: int = 6  # early stopping on the novice test split
+    test_fraction: float = 0.25  # paper: 75/25 train/test split
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.p_e <= 1.0:
+            raise ValueError(f"SidmConfig.p_e must be in [0, 1], got {self.p_e}")
+        for n in ("latent_dim", "width", "batch", "max_rounds"):
+            if getattr(self, n) < 1:
+                raise ValueError(f"SidmConfig.{n} must be >= 1, got {getattr(self, n)}")
+
+
+def _mlp(n_in: int, n_out: int, width: int, layers: int) -> nn.Sequential:
+    mods: list[nn.Module] = []
+    d = n_in
+    for _ in range(layers):
+        mods += [nn.Linear(d, width), nn.SiLU()]
+        d = width
+    mods.append(nn.Linear(d, n_out))
+    return nn.Sequential(*mods)
+
+
+@dataclass
+class Transitions:
+    """One system's data: inputs ``x`` [N, n_in] (state features and action) and targets
+    ``y`` [N, n_out] (state change over one control period)."""
+
+    x: np.ndarray
+    y: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.x = np.asarray(self.x, dtype=np.float32)
+        self.y = np.asarray(self.y, dtype=np.float32)
+        if self.x.ndim != 2 or self.y.ndim != 2 or len(self.x) != len(self.y):
+            raise ValueError(f"Transitions: x {self.x.shape} and y {self.y.shape} must be 2-D with equal rows")
+        if not (np.isfinite(self.x).all() and np.isfinite(self.y).all()):
+            raise ValueError("Transitions: x or y contains NaN or inf")
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def subset(self, idx: np.ndarray) -> Transitions:
+        return Transitions(self.x[idx], self.y[idx])
+
+
+class _Norm(nn.Module):
+    """Fixed affine normalisation from a system's training data (std floored at 1e-6)."""
+
+    def __init__(self, data: np.ndarray):
+        super().__init__()
+        self.register_buffer("mu", torch.as_tensor(data.mean(0), dtype=torch.float32))
+        self.register_buffer("sd", torch.as_tensor(np.maximum(data.std(0), 1e-6), dtype=torch.float32))
+
+
+class Sidm(nn.Module):
+    """Per-system encoders and decoders around one shared dynamics network."""
+
+    def __init__(self, n_in: int, n_out: int, systems: tuple[str, ...], cfg: SidmConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.systems = systems
+        self.enc = nn.ModuleDict({k: _mlp(n_in, cfg.latent_dim, cfg.width, cfg.enc_layers) for k in systems})
+        self.dec = nn.ModuleDict({k: _mlp(cfg.latent_dim, n_out, cfg.width, cfg.enc_layers) for k in systems})
+        self.dyn = _mlp(cfg.latent_dim, cfg.latent_dim, cfg.width, cfg.dyn_layers)
+        self.xn = nn.ModuleDict()
+        self.yn = nn.ModuleDict()
+
+    def set_norm(self, system: str, data: Transitions) -> None:
+        self.xn[system] = _Norm(data.x)
+        self.yn[system] = _Norm(data.y)
+
+    def encode(self, system: str, x: torch.Tensor) -> torch.Tensor:
+        n = self.xn[system]
+        return self.enc[system]((x - n.mu) / n.sd)
+
+    def predict_norm(self, system: str, x: torch.Tensor) -> torch.Tensor:
+        """The normalised state change for inputs ``x`` (raw units)."""
+        return self.dec[system](self.dyn(self.encode(system, x)))
+
+    @torch.no_grad()
+    def predict(self, system: str, x: np.ndarray) -> np.ndarray:
+        """State change in the caller's units for inputs ``x`` [N, n_in]."""
+        n = self.yn[system]
+        y = self.predict_norm(system, torch.as_tensor(np.asarray(x, np.float32))) * n.sd + n.mu
+        return y.numpy()
+
+    def loss(self, system: str, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        n = self.yn[system]
+        return ((self.predict_norm(system, x) - (y - n.mu) / n.sd) ** 2).mean()
+
+
+def discriminator(latent_dim: int, width: int = 128) -> nn.Sequential:
+    """Logit of "this latent came from the expert"."""
+    return _mlp(latent_dim, 1, width, 2)
+
+
+def adversarial_step(model: Sidm, disc: nn.Module, opt_d: torch.optim.Optimizer, opt_enc: torch.optim.Optimizer,
+                     xe: torch.Tensor, xn: torch.Tensor, adv_weight: float = 1.0,
+                     expert: str = "expert", novice: str = "novice") -> tuple[float, float]:
+    """One distribution-matching iteration: a discriminator step on detached latents (expert 1,
+    novice 0), then a novice-encoder step on the non-saturating loss −log D(E_n(x)).
+    Returns (discriminator loss, novice fooling loss)."""
+    bce = nn.functional.binary_cross_entropy_with_logits
+    ze = model.encode(expert, xe).detach()
+    zn = model.encode(novice, xn)
+    ld = bce(disc(ze), torch.ones(len(ze), 1)) + bce(disc(zn.detach()), torch.zeros(len(zn), 1))
+    opt_d.zero_grad()
+    ld.backward()
+    opt_d.step()
+    lg = bce(disc(zn), torch.ones(len(zn), 1))
+    opt_enc.zero_grad()
+    (adv_weight * lg).backward()
+    opt_enc.step()
+    return float(ld.detach()), float(lg.detach())
+
+
+def split(data: Transitions, test_fraction: float, rng: np.random.Generator) -> tuple[Transitions, Transitions]:
+    """Random train/test split (paper: 75/25) with at least one sample on each side."""
+    idx = rng.permutation(len(data))
+    n_test = min(max(1, int(round(test_fraction * len(data)))), len(data) - 1)
+    return data.subset(idx[n_test:]), data.subset(idx[:n_test])
+
+
+def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None = None) -> Sidm:
+    """Train SIDM (``expert`` given, ``p_e`` > 0) or the novice-only baseline
+    (``expert`` None or ``p_e`` == 0: no expert batches and no matching). Early stopping on
+    the novice test split; the best model is returned."""
+    if len(novice) < 2:
+        raise ValueError(f"train_sidm: need at least 2 novice transitions, got {len(novice)}")
+    use_expert = expert is not None and cfg.p_e > 0
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    n_train, n_test = split(novice, cfg.test_fraction, rng)
+    systems = ("expert", "novice") if use_expert else ("novice",)
+    model = Sidm(novice.x.shape[1], novice.y.shape[1], systems, cfg)
+    model.set_norm("novice", n_train)
+    if use_expert:
+        model.set_norm("expert", expert)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    disc = discriminator(cfg.latent_dim)
+    opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.disc_lr)
+    opt_enc = torch.optim.Adam(model.enc["novice"].parameters(), lr=cfg.lr)
+    data = {"novice": n_train, "expert": expert}
+    tx, ty = torch.as_tensor(n_test.x), torch.as_tensor(n_test.y)
+
+    def batch(system: str) -> tuple[torch.Tensor, torch.Tensor]:
+        d = data[system]
+        i = rng.integers(0, len(d), size=min(cfg.batch, len(d)))
+        return torch.as_tensor(d.x[i]), torch.as_tensor(d.y[i])
+
+    best, best_state, stale = math.inf, copy.deepcopy(model.state_dict()), 0
+    for _ in range(cfg.max_rounds):
+        model.train()
+        for _ in range(cfg.pred_iters):
+            system = "expert" if use_expert and rng.random() < cfg.p_e else "novice"
+            x, y = batch(system)
+            loss = model.loss(system, x, y)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        if use_expert:
+            for _ in range(cfg.match_iters):
+                adversarial_step(model, disc, opt_d, opt_enc, batch("expert")[0], batch("novice")[0], cfg.adv_weight)
+        with torch.no_grad():
+            test = float(model.loss("novice", tx, ty))
+        if test < best - 1e-6:
+            best, best_state, stale = test, copy.deepcopy(model.state_dict()), 0
+        else:
+            stale += 1
+            if stale >= cfg.patience_rounds:
+                break
+    model.load_state_dict(best_state)
+    model.eval()
+    return model
+
+
+def validation_mse(model: Sidm, data: Transitions, system: str = "novice") -> float:
+    """Mean squared error of the normalised state change (the system's own target scale)."""
+    with torch.no_grad():
+        return float(model.loss(system, torch.as_tensor(data.x), torch.as_tensor(data.y)))
+
+
+def latent_mean_distance(model: Sidm, xe: np.ndarray, xn: np.ndarray) -> float:
+    """‖mean E_e(xe) − mean E_n(xn)‖ / latent RMS: a cheap distance between latent distributions."""
+    with torch.no_grad():
+        ze = model.encode("expert", torch.as_tensor(np.asarray(xe, np.float32)))
+        zn = model.encode("novice", torch.as_tensor(np.asarray(xn, np.float32)))
+        scale = torch.cat([ze, zn]).std(0).pow(2).sum().sqrt().clamp_min(1e-9)
+        return float((ze.mean(0) - zn.mean(0)).norm() / scale)
+
+
+def data_multiplier(minutes: list[float], with_sidm: list[float], without_sidm: list[float]) -> float | None:
+    """How much more novice data the baseline needs to reach SIDM's error, the median over the
+    sizes where that is measurable.
+
+    For each size m_i, the baseline's error curve (made monotone by a running minimum,
+    interpolated linearly in log error vs log minutes) is inverted at SIDM's error e_i; the
+    multiplier is m_needed / m_i. Sizes where SIDM's error is below the baseline's best are
+    counted at the largest size measured (a lower bound); sizes where SIDM is worse than the
+    baseline at the smallest size give m_needed < m_i (a multiplier below 1 is reported as is).
+    Returns None if nothing is measurable."""
+    m = np.log(np.asarray(minutes, float))
+    b = np.minimum.accumulate(np.log(np.asarray(without_sidm, float)))
+    out = []
+    for mi, e in zip(m, np.log(np.asarray(with_sidm, float)), strict=True):
+        if e <= b[-1]:
+            need = m[-1]
+        elif e >= b[0]:
+            need = m[0]
+        else:
+            j = int(np.argmax(b <= e))  # first size where the baseline reaches e
+            t = (e - b[j - 1]) / (b[j] - b[j - 1]) if b[j] != b[j - 1] else 1.0
+            need = m[j - 1] + t * (m[j] - m[j - 1])
+        out.append(math.exp(need - mi))
+    return float(np.median(out)) if out else None
+
+
+def open_loop_drift(model: Sidm | None, x0_seq: np.ndarray, s_seq: np.ndarray, features, horizon: int,
+                    system: str = "novice") -> float:
+    """Mean position error [m] after ``horizon`` open-loop steps.
+
+    ``s_seq`` [T+1, n_state] are the measured states, ``x0_seq`` [T, n_extra] the per-step
+    inputs that are not predicted (actions, the terrain patch under the measured path), and
+    ``features(s, extra) -> x`` builds the model input. Rollouts start every ``horizon``
+    steps; the position is channels 0 and 1 of the state. ``model`` None predicts no change."""
+    errs = []
+    for t0 in range(0, len(x0_seq) - horizon + 1, horizon):
+        s = s_seq[t0].copy()
+        for t in range(t0, t0 + horizon):
+            if model is not None:
+                s = s + model.predict(system, features(s[None], x0_seq[t][None]))[0]
+        errs.append(float(np.linalg.norm(s[:2] - s_seq[t0 + horizon][:2])))
+    return float(np.mean(errs)) if errs else math.nan

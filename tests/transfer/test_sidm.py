@@ -1,0 +1,131 @@
+"""SIDM on tiny synthetic systems: the adversarial pieces and the data multiplier."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from learning.transfer.sidm import (
+    Sidm,
+    SidmConfig,
+    Transitions,
+    adversarial_step,
+    data_multiplier,
+    discriminator,
+    latent_mean_distance,
+    train_sidm,
+    validation_mse,
+)
+
+
+def pair(n_expert: int, n_novice: int, seed: int = 0) -> tuple[Transitions, Transitions, Transitions]:
+    """Expert and novice share nonlinear dynamics Δs = f(s, a) but see them through different
+    linear sensors/actuators: x_n = M x_e, Δs_n = P Δs_e (a "different calibration" pair)."""
+    rng = np.random.default_rng(seed)
+
+    def f(x):
+        s, a = x[:, :3], x[:, 3:]
+        return np.stack([np.sin(2 * s[:, 1]) + a[:, 0], s[:, 0] * a[:, 1], np.cos(s[:, 2] + s[:, 0]) * a[:, 0]], 1)
+
+    m = np.eye(5) + 0.3 * rng.standard_normal((5, 5))
+    p = np.diag([2.0, -1.0, 0.5])
+    xe = rng.uniform(-1.5, 1.5, (n_expert, 5))
+    xn = rng.uniform(-1.5, 1.5, (2 * n_novice + 400, 5))
+    nov = Transitions(xn @ m.T, f(xn) @ p.T)
+    return Transitions(xe, f(xe)), nov.subset(np.arange(n_novice)), nov.subset(np.arange(n_novice, len(nov)))
+
+
+TINY = SidmConfig(latent_dim=16, width=32, enc_layers=0, pred_iters=100, match_iters=20, batch=64, max_rounds=15,
+                  patience_rounds=15, p_e=0.75, seed=0)
+
+
+def test_discriminator_separates_two_latent_distributions():
+    torch.manual_seed(0)
+    d = discriminator(4, 32)
+    opt = torch.optim.Adam(d.parameters(), lr=1e-2)
+    a, b = torch.randn(512, 4) + 1.5, torch.randn(512, 4) - 1.5
+    bce = torch.nn.functional.binary_cross_entropy_with_logits
+    for _ in range(100):
+        loss = bce(d(a), torch.ones(512, 1)) + bce(d(b), torch.zeros(512, 1))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        acc = ((d(a) > 0).float().mean() + (d(b) < 0).float().mean()) / 2
+    assert acc > 0.95
+
+
+def test_adversarial_steps_pull_novice_latents_onto_the_expert_ones():
+    """Only the novice encoder moves, and the latent distributions get closer."""
+    torch.manual_seed(0)
+    cfg = SidmConfig(latent_dim=8, width=32)
+    rng = np.random.default_rng(0)
+    xe = rng.normal(0, 1, (256, 3)).astype(np.float32)
+    xn = (rng.normal(0, 1, (256, 3)) * 3 + 5).astype(np.float32)
+    model = Sidm(3, 2, ("expert", "novice"), cfg)
+    model.set_norm("expert", Transitions(xe, np.zeros((256, 2))))
+    model.set_norm("novice", Transitions(xn, np.zeros((256, 2))))
+    with torch.no_grad():  # start the novice encoder far away from the expert's
+        model.enc["novice"][-1].bias += 3.0
+    expert_before = [p.clone() for p in model.enc["expert"].parameters()]
+    before = latent_mean_distance(model, xe, xn)
+    disc = discriminator(8, 32)
+    opt_d = torch.optim.Adam(disc.parameters(), lr=5e-4)
+    opt_enc = torch.optim.Adam(model.enc["novice"].parameters(), lr=1e-3)
+    for _ in range(150):
+        adversarial_step(model, disc, opt_d, opt_enc, torch.as_tensor(xe), torch.as_tensor(xn))
+    after = latent_mean_distance(model, xe, xn)
+    assert after < 0.6 * before
+    assert all(torch.equal(a, b) for a, b in zip(expert_before, model.enc["expert"].parameters(), strict=True))
+
+
+@pytest.mark.slow
+def test_sidm_beats_novice_only_baseline_with_little_novice_data():
+    expert, novice, val = pair(4000, 48)
+    with_sidm = validation_mse(train_sidm(novice, TINY, expert), val)
+    baseline = validation_mse(train_sidm(novice, TINY, None), val)
+    assert with_sidm < 0.85 * baseline
+
+
+def test_baseline_ignores_expert_data_when_p_e_is_zero():
+    expert, novice, val = pair(500, 40)
+    cfg = SidmConfig(**{**TINY.__dict__, "p_e": 0.0, "max_rounds": 3})
+    a = validation_mse(train_sidm(novice, cfg, expert), val)
+    b = validation_mse(train_sidm(novice, cfg, None), val)
+    assert a == pytest.approx(b, rel=1e-6)
+
+
+def test_data_multiplier_on_known_curves():
+    minutes = [1.0, 2.0, 4.0, 8.0]
+    baseline = [8.0, 4.0, 2.0, 1.0]  # error halves per doubling
+    # SIDM reaches at m what the baseline reaches at 4m
+    assert data_multiplier(minutes, [4.0, 2.0, 1.0, 1.0], baseline) == pytest.approx(2.0, rel=1e-6)
+    assert data_multiplier(minutes, baseline, baseline) == pytest.approx(1.0)
+    # between grid points: error 2*sqrt(2) is reached at 2*sqrt(2) minutes
+    assert data_multiplier([1.0, 2.0, 4.0], [2 * np.sqrt(2)] * 3, [8.0, 4.0, 2.0]) == pytest.approx(
+        np.sqrt(2), rel=1e-6)
+
+
+def test_bad_inputs_are_refused():
+    with pytest.raises(ValueError, match="NaN"):
+        Transitions(np.array([[np.nan, 1.0]]), np.zeros((1, 1)))
+    with pytest.raises(ValueError, match="p_e"):
+        SidmConfig(p_e=1.5)
+
+
+def test_open_loop_drift_is_the_position_error_after_the_horizon():
+    from learning.transfer.sidm import open_loop_drift
+
+    t = np.arange(51.0)
+    states = np.stack([0.1 * t, 0.0 * t, np.ones_like(t)], 1)  # moving 0.1 m per step along x
+    extra = np.zeros((50, 1))
+    # no model: the robot stays put, so the error is the distance travelled over the horizon
+    assert open_loop_drift(None, extra, states, None, horizon=25) == pytest.approx(2.5)
+    assert open_loop_drift(None, extra, states, None, horizon=10) == pytest.approx(1.0)
+
+    class Exact:  # predicts the true step: no drift
+        def predict(self, system, x):
+            return np.array([[0.1, 0.0, 0.0]])
+
+    assert open_loop_drift(Exact(), extra, states, lambda s, e: s, horizon=25) == pytest.approx(0.0, abs=1e-12)
