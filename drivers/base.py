@@ -37,7 +37,7 @@ import math
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -348,6 +348,7 @@ class Driver(ABC):
 
     def __init__(self) -> None:
         self._lifecycle = Lifecycle.UNCONFIGURED
+        self._failing = False  # inside fail_link(): the stop it sends must not re-enter
         self._held: np.ndarray | None = None
         # rate-limit references (see ``limit``): anchor time, applied values of the last
         # period as (t, value), and per channel min of a(s) - r·(s - t0) and max of
@@ -411,6 +412,19 @@ class Driver(ABC):
             self._on_cleanup()
         finally:
             self._lifecycle = Lifecycle.UNCONFIGURED
+
+    def fail_link(self, error: BaseException | str) -> NoReturn:
+        """A backend found its link or device unusable: take the error path once (re-entry
+        from the stop it sends is guarded), then raise :class:`LinkError` with ``error``."""
+        if not self._failing and self._lifecycle is not Lifecycle.UNCONFIGURED:
+            self._failing = True
+            try:
+                self.fail(error)
+            finally:
+                self._failing = False
+        if isinstance(error, LinkError):
+            raise error
+        raise LinkError(str(error))
 
     def fail(self, error: BaseException | str) -> None:
         """The error path: stop the robot (best effort), close, go UNCONFIGURED.

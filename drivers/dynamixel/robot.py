@@ -66,7 +66,6 @@ class DynamixelRobot(Driver):
         self._hw_errors: dict[str, str] = {}
         self._mode: int | None = None
         self._seq = 0
-        self._failing = False
 
     # ------------------------------------------------------------------ bus
     def _emulator_config(self) -> dict[str, Any]:
@@ -186,15 +185,9 @@ class DynamixelRobot(Driver):
 
     def _check_hw(self) -> None:
         if self._hw_errors and self.lifecycle is not Lifecycle.UNCONFIGURED and not self._failing:
-            msg = f"{self.spec.name}: hardware error, " + "; ".join(
-                f"{n} (ID {self.ids[n]}): {w}" for n, w in self._hw_errors.items()) + \
-                " — its torque is off; the others were stopped"
-            self._failing = True
-            try:
-                self.fail(msg)
-            finally:
-                self._failing = False
-            raise LinkError(msg)
+            self.fail_link(f"{self.spec.name}: hardware error, " + "; ".join(
+                f"{n} (ID {self.ids[n]}): {w}" for n, w in self._hw_errors.items()) +
+                " — its torque is off; the others were stopped")
 
     def telemetry_age_s(self) -> float:
         return float(self.now() - np.min(self._t_joint))
@@ -215,13 +208,9 @@ class DynamixelRobot(Driver):
             self._sync_read()
         except LinkError as e:
             # the port itself failed (unplugged adapter): the error path, then say so
-            if not self._failing:
-                self._failing = True
-                try:
-                    self.fail(e)
-                finally:
-                    self._failing = False
-            raise
+            if self._failing:
+                raise
+            self.fail_link(e)
         self._check_hw()
 
     # ------------------------------------------------------------------ health

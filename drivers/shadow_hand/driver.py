@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from configs.schema import ConfigError, RobotConfig, parse_params
-from drivers.base import Driver, Health, Lifecycle, LinkError, Observation
+from drivers.base import Driver, Health, LinkError, Observation
 from drivers.emulator_process import EmulatorProcess
 from drivers.shadow_hand.config import (
     ACT_INDEX,
@@ -94,7 +94,6 @@ class ShadowHandDriver(Driver):
         self._tel: Telemetry | None = None
         self._tel_t: float | None = None
         self._reader_error: str | None = None
-        self._failing = False
         self._seq = 0
         self._hb_counter = 0
         self._estop_counter = 0
@@ -361,13 +360,7 @@ class ShadowHandDriver(Driver):
         with self._lock:
             err = self._reader_error
         if err:
-            if not self._failing and self.lifecycle is not Lifecycle.UNCONFIGURED:
-                self._failing = True
-                try:
-                    self.fail(err)  # tries the stop while the port is open, then closes
-                finally:
-                    self._failing = False
-            raise LinkError(err)
+            self.fail_link(err)  # tries the stop while the port is open, then closes
 
     def _read(self) -> Observation:
         self._check_link()

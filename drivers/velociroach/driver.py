@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from configs.schema import ConfigError, RobotConfig, parse_params
-from drivers.base import Driver, Flag, Freshness, Health, Inputs, Lifecycle, LinkError, Observation
+from drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
 from drivers.emulator_process import EmulatorProcess
 from drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
 from drivers.velociroach.link import RadioLink
@@ -111,7 +111,6 @@ class VelociRoachDriver(Driver):
         self._cmd_values: dict[int, tuple[str, float, float]] = {}
         self._latency_s: float | None = None
         self._reader_error: str | None = None
-        self._failing = False
         self._seq = 0
         self._rid = 0
 
@@ -276,14 +275,7 @@ class VelociRoachDriver(Driver):
                    f"control periods of {self.params.period_s:g} s) while the link is open: robot frozen, "
                    "switched off or out of radio range")
         if err:
-            if not self._failing and self.lifecycle is not Lifecycle.UNCONFIGURED:
-                # the contract's error path: stop (sent while the port is open), close, UNCONFIGURED
-                self._failing = True
-                try:
-                    self.fail(err)
-                finally:
-                    self._failing = False
-            raise LinkError(err)
+            self.fail_link(err)  # stop (sent while the port is open), close, UNCONFIGURED, raise
 
     def _read(self) -> Observation:
         self._check_link()
