@@ -98,20 +98,35 @@ def prepare(episodes: list[Episode], sg_window: int | None = None, max_delay_s: 
     for e in episodes:
         v_x = sg_velocity(e.x, period_s, window)
         measured = e.v_meas is not None
+        v_obs = e.v_meas if measured else v_x
+        moving, v_min = moving_mask(e, v_obs, period_s, window)
+        # The command before the first sample is unknown; the input chain assumes it equals the
+        # first one. That holds for an episode that starts at rest with a steady command, so such an
+        # episode keeps its first samples (the step-from-rest response shows delay and lag); a
+        # segment cut from a longer recording, or an episode already moving, loses the longest
+        # delay tested at its start.
+        cut = "segment_of" in e.meta or bool(np.any(np.abs(v_obs[: window]) > v_min)) \
+            or bool(np.ptp(e.u[: window]) > 0)
         out.append(
             Prepared(
                 ep=e,
                 period_s=period_s,
-                v_obs=e.v_meas if measured else v_x,
+                v_obs=v_obs,
                 v_from_x=v_x,
                 kernel=None if measured else kernel,
-                margin=window // 2 + max_delay + 2,
+                margin=window // 2 + 2 + (max_delay if cut else 0),
                 window=window,
-                moving=(mv := moving_mask(e, e.v_meas if measured else v_x, period_s, window))[0],
-                v_min=mv[1],
+                moving=moving,
+                v_min=v_min,
             )
         )
     return out
+
+
+def segment_margin(period_s: float, sg_window: int | None = None) -> int:
+    """Samples a segment of a long recording loses at each end (see :func:`prepare`)."""
+    window = sg_window or default_sg_window(period_s)
+    return window // 2 + 2 + max_delay_samples(period_s)
 
 
 def velocity_noise(e: Episode, period_s: float, window: int, measured: bool) -> float:

@@ -6,12 +6,13 @@ import json
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from calibration import axis
-from calibration.data import Episode, load_episodes, segment_episodes, summarize
+from calibration.data import DataError, Episode, harmonize_rates, load_episodes, segment_episodes, summarize
 from calibration.models import FittedAxis, get_model, save_model
 from calibration.selection import (
     SelectionConfig,
@@ -123,6 +124,12 @@ def run_calibration(
         if progress:
             print(f"[calibrate {time.time() - t0:6.1f}s] {msg}", file=sys.stderr, flush=True)
 
+    warnings: list[str] = []
+
+    def warn(msg: str) -> None:
+        warnings.append(msg)
+        log(f"warning: {msg}")
+
     opts = {"k_u": k_u, "sg_window": sg_window} if model == "axis" else {}
     opts.update(model_options or {})
     nominal_model = get_model(model, **opts)
@@ -131,15 +138,26 @@ def run_calibration(
     elif hasattr(nominal_model, "load_episodes"):  # the model knows its channels (checkpoint)
         episodes = nominal_model.load_episodes(data_path, column_map, robot=robot)
     else:
-        episodes = load_episodes(data_path, column_map, robot=robot)
+        episodes = load_episodes(data_path, column_map, robot=robot, warn=warn)
+    if not episodes:
+        raise DataError("no episode to calibrate on")
     source = "episodes" if isinstance(data_path, list) else str(data_path)
     log(f"loaded {len(episodes)} episode(s) from {source}")
-    segmented = False
+    plan = None
     if nominal_model.segmentable:
-        min_len = max(200, int(round(1.2 * cfg.horizon_s / episodes[0].period_s)))
-        episodes, segmented = segment_episodes(episodes, cfg.min_episodes, min_len)
-        if segmented:
-            log(f"too few episodes for folds: split into {len(episodes)} contiguous segments")
+        episodes = harmonize_rates(episodes, warn)
+        episodes = _drop_motionless(nominal_model, episodes, warn)
+        period = episodes[0].period_s
+        h_steps = max(2, int(round(cfg.horizon_s / period)))
+        episodes, plan = segment_episodes(episodes, cfg.min_episodes, h_steps,
+                                          axis.segment_margin(period, sg_window), cfg.test_fraction)
+        if plan.segmented:
+            log(plan.note)
+            episodes = _drop_motionless(nominal_model, episodes, warn)
+        if plan.horizon_steps < h_steps:
+            cfg = replace(cfg, horizon_s=plan.horizon_steps * period)
+            warn(f"short recording: open-loop horizon shortened from {h_steps} to {plan.horizon_steps} samples "
+                 "so that it can be cut into enough segments")
     preps = nominal_model.prepare(episodes)
 
     sel = select_effects(nominal_model, preps, cfg, seed=seed, log=log)
@@ -180,10 +198,8 @@ def run_calibration(
         })
     report = {
         "model": model,
-        "data": {**summarize(episodes), "segmented": segmented,
-                 "segmentation_note": (
-                     "long recordings were split into contiguous segments treated as episodes; neighbouring "
-                     "segments are correlated, so p-values are somewhat optimistic") if segmented else None,
+        "data": {**summarize(episodes), "segmented": bool(plan and plan.segmented),
+                 "segmentation_note": plan.note if plan else None,
                  "velocity_source": getattr(nominal_model, "velocity_source", None) or _velocity_source(preps[0])},
         "folds": {"k": len(sel.folds), "test_episodes": [episodes[i].name for i in sel.test_idx],
                   "fold_episodes": [[episodes[i].name for i in f] for f in sel.folds],
@@ -207,6 +223,7 @@ def run_calibration(
                      else f"{sel.horizon}-step open-loop windows"},
         "not_tested": sel.skipped,
         "rounds": sel.rounds,
+        "warnings": warnings,
         "elapsed_s": time.time() - t0,
     }
     if hasattr(nominal_model, "export_augmented"):
@@ -231,6 +248,31 @@ def run_calibration(
     log(f"done: verdict {report['verdict']}, multi-step NRMSE {before['multi_step_nrmse']['mean']:.3f} -> "
         f"{after['multi_step_nrmse']['mean']:.3f}")
     return report
+
+
+def _drop_motionless(model, episodes: list[Episode], warn) -> list[Episode]:
+    """Skip episodes in which the axis never moves (no regression row), with a warning.
+
+    Slow friction tests and idle stretches produce such episodes; they say nothing about the
+    dynamics the effects act on, and an empty episode cannot be scored.
+    """
+    preps = model.prepare(episodes)
+    keep = []
+    for e, p in zip(episodes, preps, strict=True):
+        n_rows = int(np.count_nonzero(p.moving[p.margin: p.n - p.margin - 1]))
+        if n_rows < MIN_MOVING_ROWS:
+            warn(f"{e.name}: skipped, the axis barely moves ({n_rows} samples above the standstill threshold "
+                 f"{p.v_min:.3g} x/s; need {MIN_MOVING_ROWS})")
+        else:
+            keep.append(e)
+    if not keep:
+        raise DataError(f"no episode with motion: in all {len(episodes)} episode(s) the axis stays below the "
+                        "standstill threshold; check the position column and its units, or record with motion")
+    return keep
+
+
+#: Fewest samples in motion an episode must have to be used (else it is skipped with a warning).
+MIN_MOVING_ROWS = 20
 
 
 def _velocity_source(p) -> str:

@@ -77,8 +77,20 @@ def episode_loss(s: axis.Scores, nm: Norms) -> float:
     )
 
 
-def split_episodes(n: int, cfg: SelectionConfig, seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
-    """(locked test indices, list of K fold index arrays over the training pool)."""
+def split_episodes(n: int, cfg: SelectionConfig, seed: int,
+                   locked: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(locked test indices, list of K fold index arrays over the training pool).
+
+    ``locked`` (bool per unit): segments of long recordings, where the locked test set is the
+    final block of each recording and the folds are contiguous blocks in time order (blocked
+    time-series cross-validation: a held-out block is never interleaved with training data).
+    Otherwise whole episodes are shuffled (seeded) into a test set and K folds.
+    """
+    if locked is not None and locked.any():
+        test = np.flatnonzero(locked)
+        pool = np.flatnonzero(~locked)
+        k = max(2, min(cfg.k_folds, pool.size))
+        return test, [np.asarray(b, dtype=int) for b in np.array_split(pool, k)]
     rng = np.random.default_rng(seed)
     order = rng.permutation(n)
     n_test = max(1, int(round(cfg.test_fraction * n))) if n >= 4 else 0
@@ -173,7 +185,8 @@ class SelectionResult:
 def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfig, seed: int = 0,
                    log: Callable[[str], None] = lambda s: None) -> SelectionResult:
     """Greedy forward selection of effects with held-out evidence (see module docstring)."""
-    test_idx, folds = split_episodes(len(preps), cfg, seed)
+    locked = np.array([bool(getattr(getattr(p, "ep", None), "meta", {}).get("locked_test")) for p in preps])
+    test_idx, folds = split_episodes(len(preps), cfg, seed, locked)
     pool_idx = np.concatenate(folds)
     pool = [preps[i] for i in pool_idx]
     nm = model.norms(pool)
