@@ -18,6 +18,8 @@ from calibration.selection import (
     SelectionConfig,
     blackbox_check,
     detection_limits,
+    heldout_gain,
+    round_alpha,
     select_effects,
 )
 
@@ -161,6 +163,7 @@ def run_calibration(
     preps = nominal_model.prepare(episodes)
 
     sel = select_effects(nominal_model, preps, cfg, seed=seed, log=log)
+    resolution = _resolution(nominal_model, preps, sel, cfg, warn)
     is_axis = isinstance(sel.final, FittedAxis)
     pool_idx = np.concatenate(sel.folds)
     pool = [preps[i] for i in pool_idx]
@@ -171,6 +174,9 @@ def run_calibration(
     sd = nominal_model.channel_sd(test)
     before = _nrmse_table(before_scores, sd, 500, seed)
     after = _nrmse_table(after_scores, sd, 500, seed)
+    verdict, confirmation = _verdict(nominal_model, sel, test, before, after)
+    if verdict == NOT_CONFIRMED:
+        warn(f"{', '.join(r.name for r in sel.accepted)} passed on the training folds but {confirmation['reason']}")
     log("black-box check of the remaining residual")
     bb = blackbox_check(preps, sel.folds, sel.final, cfg, seed, model=nominal_model)
     candidates, _ = nominal_model.candidate_effects(preps)
@@ -198,7 +204,7 @@ def run_calibration(
         })
     report = {
         "model": model,
-        "data": {**summarize(episodes), "segmented": bool(plan and plan.segmented),
+        "data": {**summarize(episodes), "segmented": bool(plan and plan.segmented), "resolution": resolution,
                  "segmentation_note": plan.note if plan else None,
                  "velocity_source": getattr(nominal_model, "velocity_source", None) or _velocity_source(preps[0])},
         "folds": {"k": len(sel.folds), "test_episodes": [episodes[i].name for i in sel.test_idx],
@@ -206,7 +212,8 @@ def run_calibration(
                   "horizon_steps": sel.horizon, "horizon_s": sel.horizon * preps[0].period_s},
         "config": cfg.__dict__,
         "seed": seed,
-        "verdict": "found" if sel.accepted else "none",
+        "verdict": verdict,
+        "confirmation": confirmation,
         "effects": effects_doc,
         "ambiguous": sel.ambiguous,
         "unexplained_structure": bb["unexplained_structure"],
@@ -248,6 +255,55 @@ def run_calibration(
     log(f"done: verdict {report['verdict']}, multi-step NRMSE {before['multi_step_nrmse']['mean']:.3f} -> "
         f"{after['multi_step_nrmse']['mean']:.3f}")
     return report
+
+
+#: Verdict when effects passed the selection but the locked test set does not confirm them.
+NOT_CONFIRMED = "not confirmed on held-out data"
+
+
+def _verdict(model, sel, test: list, before: dict, after: dict) -> tuple[str, dict]:
+    """``found`` only when the locked test set confirms the accepted effects.
+
+    Confirmed means: the selection score on the locked test episodes improves (held-out gain > 0,
+    the same per-channel score the selection used) and the multi-step NRMSE does not rise.
+    Otherwise the verdict is :data:`NOT_CONFIRMED`, so a report can never claim an effect that
+    made the held-out error worse.
+    """
+    if not sel.accepted:
+        return "none", {"confirmed": None, "reason": "no effect accepted"}
+    if not test:
+        return NOT_CONFIRMED, {"confirmed": False, "reason": "there is no locked test set (too few episodes)"}
+    lb = np.array([model.episode_loss(p, sel.nominal, sel.horizon, sel.norms) for p in test])
+    la = np.array([model.episode_loss(p, sel.final, sel.horizon, sel.norms) for p in test])
+    gain = heldout_gain(lb, la)
+    mb, ma = before["multi_step_nrmse"]["mean"], after["multi_step_nrmse"]["mean"]
+    doc = {"test_gain": gain, "multi_step_nrmse_before": mb, "multi_step_nrmse_after": ma}
+    if gain > 0 and ma <= mb:
+        return "found", {**doc, "confirmed": True, "reason": "the locked test error fell"}
+    why = (f"the locked test score got worse (gain {gain:+.3f})" if gain <= 0 else
+           f"the locked test multi-step NRMSE rose from {mb:.4g} to {ma:.4g}")
+    return NOT_CONFIRMED, {**doc, "confirmed": False, "reason": why}
+
+
+def _resolution(model, preps, sel, cfg, warn) -> dict:
+    """What the amount of data can resolve at all, consistent with the acceptance rule.
+
+    Every held-out unit (episode or segment) gives one paired difference; the one-sided Wilcoxon
+    test over n of them cannot give p below 2^-n. When that is above the first round's
+    per-candidate threshold, no effect can be accepted, whatever its size.
+    """
+    n_units = int(sum(len(f) for f in sel.folds))
+    candidates, _ = model.candidate_effects(preps)
+    alpha1 = round_alpha(cfg.alpha, 1) / max(1, len(candidates))
+    p_min = 0.5**n_units
+    doc = {"heldout_units": n_units, "smallest_attainable_p": p_min, "round1_alpha_per_candidate": alpha1,
+           "can_accept": p_min < alpha1, "locked_test_units": int(len(sel.test_idx))}
+    if p_min >= alpha1:
+        need = int(np.ceil(np.log2(1 / alpha1)))
+        warn(f"with {n_units} held-out units the smallest attainable p-value is {p_min:.2g}, above the per-candidate "
+             f"threshold {alpha1:.2g}: no effect can be accepted; record at least {need} training episodes "
+             "(or a longer recording)")
+    return doc
 
 
 def _drop_motionless(model, episodes: list[Episode], warn) -> list[Episode]:
@@ -295,6 +351,11 @@ def render_markdown(r: dict) -> str:
     if d.get("segmentation_note"):
         lines += ["", f"Note: {d['segmentation_note']}."]
     lines += ["", f"**Verdict: {r['verdict']}**" + ("" if r["effects"] else " (nothing found)"), ""]
+    if r["verdict"] == NOT_CONFIRMED:
+        lines += [f"The effects below passed the tests on the training folds, but {r['confirmation']['reason']}: "
+                  "they are not claimed.", ""]
+    if r.get("warnings"):
+        lines += ["Warnings:", ""] + [f"- {w}" for w in r["warnings"]] + [""]
     if r["effects"]:
         lines += ["| effect | parameters | 95% interval (primary) | held-out gain | p-value | stability |",
                   "|---|---|---|---|---|---|"]
@@ -433,9 +494,10 @@ def _candidate_plot(out: Path, sel) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(9, 3.5))
-    width = 0.8 / max(1, len(sel.rounds))
-    names = [c["name"] for c in sel.rounds[0]["candidates"]] if sel.rounds else []
-    for i, rd in enumerate(sel.rounds):
+    rounds = [rd for rd in sel.rounds if "candidates" in rd]  # not the backward pruning record
+    width = 0.8 / max(1, len(rounds))
+    names = [c["name"] for c in rounds[0]["candidates"]] if rounds else []
+    for i, rd in enumerate(rounds):
         gains = {c["name"]: c["heldout_gain"] for c in rd["candidates"]}
         ax.bar(np.arange(len(names)) + i * width, [gains.get(n, 0.0) for n in names], width, label=f"round {rd['round']}")
     ax.set_xticks(np.arange(len(names)))

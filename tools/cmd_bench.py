@@ -1,4 +1,4 @@
-"""hil bench bus | plan | sim: speed goals as ratios against a peer in the same run."""
+"""hil bench bus | plan | sim: speed goals as ratios against a peer in the same run; calibrate: a gauntlet."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 
 import typer
 
-from tools.common import echo_json, user_errors
+from tools.common import UserError, echo_json, user_errors
 
 bench_app = typer.Typer(help="Benchmarks (ratios against a peer in the same run).", no_args_is_help=True)
 
@@ -51,6 +51,30 @@ def bench_sim(
 
     r = run_bench_sim(seconds_of_robot_time=seconds)
     echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
+
+
+@bench_app.command("calibrate")
+@user_errors
+def bench_calibrate(
+    seeds: int = typer.Option(20, "--seeds", help="seeds per case (each runs an effect and a clean version)"),
+    cases: str | None = typer.Option(None, "--cases", help="comma-separated case names (default: all)"),
+    out: str = typer.Option("bench_calibrate", "--out", help="directory for the generated data and reports"),
+    workers: int = typer.Option(1, "--workers", help="worker processes"),
+    first_seed: int = typer.Option(0, "--first-seed", help="first seed (to run the seeds in batches)"),
+    json_out: bool = typer.Option(False, "--json"),
+) -> None:
+    """Realistic-data gauntlet for `hil calibrate`: hits, misses and false alarms over seeds."""
+    from tools.bench_calibrate import format_table, run_bench_calibrate
+
+    try:
+        r = run_bench_calibrate(seeds=seeds, cases=cases.split(",") if cases else None, out_dir=out, workers=workers,
+                                first_seed=first_seed)
+    except KeyError as e:
+        raise UserError(str(e.args[0])) from None
+    if json_out:
+        echo_json({"cases": r["cases"], "totals": r["totals"]})
+    else:
+        typer.echo(format_table(r))
 
 
 def register(app: typer.Typer) -> None:

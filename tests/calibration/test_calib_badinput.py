@@ -144,3 +144,17 @@ def test_mixed_sample_rates_are_resampled_with_a_warning(tmp_path):
                tmp_path / "ref")
     assert r["before"]["multi_step_nrmse"]["mean"] < 1.5 * ref["before"]["multi_step_nrmse"]["mean"]
     assert r["final_params"]["coef"]["a"] == pytest.approx(ref["final_params"]["coef"]["a"], rel=0.05)
+
+
+def test_quantised_finite_difference_velocity_is_not_used_as_the_state():
+    """Velocity logged as the difference of a 1 mm encoder (0.1 m/s steps) is replaced by the
+    smoothed derivative of position; a genuinely measured velocity is kept."""
+    from calibration import axis
+
+    quant = generate(SynthConfig(n_episodes=3, seed=1, x_quant=1e-3, velocity_from_differences=True))
+    good = generate(SynthConfig(n_episodes=3, seed=1, measure_velocity=True))
+    assert not axis.logged_velocity_usable(quant, 0.01, 7)
+    assert axis.logged_velocity_usable(good, 0.01, 7)
+    pq, pg = axis.prepare(quant)[0], axis.prepare(good)[0]
+    assert pq.kernel is not None and np.array_equal(pq.v_obs, pq.v_from_x)
+    assert pg.kernel is None and np.array_equal(pg.v_obs, good[0].v_meas)
