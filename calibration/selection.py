@@ -328,7 +328,11 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
             for r in passing if r.verdict
         ]
         rounds.append(round_doc)
-        if winner is None and getattr(model, "pair_tests", False) and len(results) > 1 and results[0].gain > 0:
+        # Pair fallback: only when the best single candidate shows evidence on its own (unadjusted)
+        # and a round of error budget is left for it.
+        lead = results[0] if results else None
+        if (winner is None and getattr(model, "pair_tests", False) and len(results) > 1 and budget < cfg.max_rounds
+                and lead.gain >= cfg.min_gain and lead.p_value < cfg.alpha):
             budget += 1
             pair = try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, results, base_loss,
                             round_alpha(cfg.alpha, budget) / (len(results) - 1), cfg, seed + rnd, round_doc, log)
@@ -380,6 +384,9 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
 def try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, results: list[CandidateResult],
              base_loss, alpha_pair: float, cfg: SelectionConfig, seed: int, round_doc: dict, log):
     """When no single candidate passes: the best one together with each other candidate.
+
+    Tried only when the best candidate helps on its own at the unadjusted level (gain ≥
+    ``min_gain``, p < alpha) and a round of error budget is left.
 
     Two effects may only help together (on EMPS, Coulomb friction alone makes some open-loop
     windows worse; with the force offset it explains the data). The pair is tested against the
