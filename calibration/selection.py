@@ -669,7 +669,8 @@ def detection_limits(preps_pool: list[axis.Prepared], fitted: FittedAxis, candid
     infl = _autocorr_inflation(res[0] if len(res[0]) > 50 else r, 2 * preps_pool[0].window)
     sigma = float(np.std(r)) * math.sqrt(infl)
     m = max(1, len(candidates))
-    z = st.norm.ppf(1 - cfg.alpha / (2 * m)) + st.norm.ppf(cfg.power)
+    # the first round's per-candidate threshold: the level an effect of this size would have to pass
+    z = st.norm.ppf(1 - round_alpha(cfg.alpha, 1) / (2 * m)) + st.norm.ppf(cfg.power)
     Q, _ = np.linalg.qr(X0)
     out: dict[str, dict] = {}
     for name in list(candidates) + [s for s in skipped if s not in candidates]:

@@ -29,7 +29,8 @@ def emps_report(tmp_path_factory):
 def test_emps_finds_coulomb_friction_and_halves_the_error(emps_report):
     r = emps_report
     names = [e["name"] for e in r["effects"]]
-    assert r["verdict"] == "found" and "coulomb_friction" in names
+    assert r["verdict"] == "found" and "coulomb_friction" in names and "force_offset" in names
+    assert r["confirmation"]["confirmed"] is True
     assert r["data"]["segmented"] is True  # one long recording -> contiguous segments
     assert r["after"]["multi_step_nrmse"]["mean"] <= 0.5 * r["before"]["multi_step_nrmse"]["mean"]
 
