@@ -376,6 +376,8 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
     if len(accepted) > 1:
         current, accepted, ambiguous = prune_effects(model, preps, folds, pool, current, accepted, ambiguous, nm,
                                                      horizon, cfg, rounds, log)
+    if accepted and getattr(model, "pair_tests", False):
+        ambiguous += swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, horizon, cfg, log)
     if not accepted:
         log("no effect passed the tests")
     return SelectionResult(accepted, ambiguous, rounds, current, nominal, skipped, test_idx, folds, nm, horizon)
@@ -423,6 +425,39 @@ def try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, resul
     round_doc["pair_fallback"]["decision"] = [{"name": r.name, "verdict": r.verdict, "interval": r.interval,
                                                "stability": r.stability} for r in out]
     return out if all(r.verdict.startswith("accepted") for r in out) else None
+
+
+def swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, horizon, cfg, log) -> list[dict]:
+    """Swap each accepted effect for each of its look-alikes that was never compared on equal terms.
+
+    The order of acceptance can hide a look-alike: once Coulomb friction and an offset are in,
+    direction-dependent friction (the same thing on every moving row) adds nothing and is never
+    a rival. Each accepted effect is replaced by each look-alike that the model with the others
+    offers; when the held-out data cannot tell the two models apart (paired tests both ways,
+    p ≥ alpha), the pair is reported as ambiguous with the excitation that would separate it.
+    """
+    table = model.look_alikes
+    names = [r.name for r in accepted]
+    known = {frozenset(a["effects"]) for a in ambiguous}
+    full = crossval_losses(model, preps, folds, list(current.effects), nm, horizon, current, [])
+    out = []
+    for name in names:
+        rest = [e for e in current.effects if e != name]
+        offered, _ = model.candidate_effects(preps, tuple(rest))
+        for alt in offered:
+            if alt in current.effects or not is_look_alike(name, alt, table) or frozenset({name, alt}) in known:
+                continue
+            swapped = crossval_losses(model, preps, folds, rest + [alt], nm, horizon, current, [alt])
+            p_worse, p_better = paired_p(swapped, full), paired_p(full, swapped)
+            if min(p_worse, p_better) >= cfg.alpha:
+                excitation = separating_excitation(name, alt, table)
+                out.append({"effects": [name, alt], "chosen": name,
+                            "heldout_gain": {name: 0.0, alt: heldout_gain(full, swapped)},
+                            "p_value_separation": min(p_worse, p_better), "excitation": excitation,
+                            "found_by": "swap"})
+                known.add(frozenset({name, alt}))
+                log(f"  ambiguous (swap): {name} vs {alt}; separate with {excitation}")
+    return out
 
 
 def prune_effects(model, preps, folds, pool, current, accepted, ambiguous, nm, horizon, cfg, rounds, log):
