@@ -121,3 +121,13 @@ def test_new_catalogue_terms_recover_their_parameters(hidden, effects, truth):
     nominal = axis.fit_axis(preps, [])
     err = [sum(axis.score(q, par, 100).multi_sse["x"] for q in preps) for par in (nominal, p)]
     assert err[1] < 0.2 * err[0]
+
+
+def test_direction_dependent_friction_is_named_or_ambiguous(report_for):
+    """Friction 2.8 forward, 1.2 backward. Coulomb + offset is the same on every moving row, and
+    the order of acceptance may put the offset first; the swap check must then report the
+    direction-dependent friction as a look-alike the data cannot separate, never drop it silently."""
+    r = report_for("coulomb_friction", "asymmetric_friction")
+    names = [e["name"] for e in r["effects"]]
+    assert r["verdict"] == "found" and "coulomb_friction" in names
+    assert "asymmetric_friction" in names or any("asymmetric_friction" in a["effects"] for a in r["ambiguous"])
