@@ -45,6 +45,7 @@ HYPER_OF: dict[str, str] = {
     "saturation": "limit_u",
     "stribeck_friction": "vs",
     "payload_mass": "mu_per_unit",
+    "gravity_load": "q0_rad",
 }
 COEF_OF: dict[str, str] = {
     "coulomb_friction": "fc_acc",
@@ -52,6 +53,8 @@ COEF_OF: dict[str, str] = {
     "force_offset": "offset_acc",
     "slope": "gravity_acc",
     "battery_sag": "kb",
+    "asymmetric_friction": "fa_acc",
+    "gravity_load": "gl_acc",
 }
 NOMINAL_COEFS = ("a", "c_per_s")
 SENSOR_EFFECTS = ("sensor_bias", "sensor_scale")
@@ -63,6 +66,7 @@ HYPER_NO_EFFECT = {
     "limit_u": math.inf,
     "vs": 1.0,
     "mu_per_unit": 0.0,
+    "q0_rad": 0.0,
 }
 
 
@@ -94,40 +98,82 @@ def prepare(episodes: list[Episode], sg_window: int | None = None, max_delay_s: 
     window = sg_window or default_sg_window(period_s)
     max_delay = max_delay_samples(period_s) if max_delay_s is None else int(math.ceil(max_delay_s / period_s))
     kernel = sg_velocity_kernel(window)
+    use_logged = logged_velocity_usable(episodes, period_s, window)
     out = []
     for e in episodes:
         v_x = sg_velocity(e.x, period_s, window)
-        measured = e.v_meas is not None
+        measured = e.v_meas is not None and use_logged
+        v_obs = e.v_meas if measured else v_x
+        moving, v_min = moving_mask(e, v_obs, period_s, window, measured)
+        # The command before the first sample is unknown; the input chain assumes it equals the
+        # first one. That holds for an episode that starts at rest with a steady command, so such an
+        # episode keeps its first samples (the step-from-rest response shows delay and lag); a
+        # segment cut from a longer recording, or an episode already moving, loses the longest
+        # delay tested at its start.
+        cut = "segment_of" in e.meta or bool(np.any(np.abs(v_obs[: window]) > v_min)) \
+            or bool(np.ptp(e.u[: window]) > 0)
         out.append(
             Prepared(
                 ep=e,
                 period_s=period_s,
-                v_obs=e.v_meas if measured else v_x,
+                v_obs=v_obs,
                 v_from_x=v_x,
                 kernel=None if measured else kernel,
-                margin=window // 2 + max_delay + 2,
+                margin=window // 2 + 2 + (max_delay if cut else 0),
                 window=window,
-                moving=(mv := moving_mask(e, e.v_meas if measured else v_x, period_s, window))[0],
-                v_min=mv[1],
+                moving=moving,
+                v_min=v_min,
             )
         )
     return out
 
 
-def velocity_noise(e: Episode, period_s: float, window: int, measured: bool) -> float:
+def segment_margin(period_s: float, sg_window: int | None = None) -> int:
+    """Samples a segment of a long recording loses at each end (see :func:`prepare`)."""
+    window = sg_window or default_sg_window(period_s)
+    return window // 2 + 2 + max_delay_samples(period_s)
+
+
+#: A logged velocity noisier than this many times the Savitzky-Golay derivative of position is
+#: not used as the state (quantised encoder differences, see :func:`logged_velocity_usable`).
+MAX_LOGGED_VELOCITY_NOISE_RATIO = 3.0
+
+
+def logged_velocity_usable(episodes: list[Episode], period_s: float, window: int) -> bool:
+    """Whether the logged velocity channel is fit to be the model's velocity state.
+
+    Many drives log velocity as the finite difference of a quantised encoder: steps of
+    resolution/period, far noisier than a smoothed derivative of the same position. Used as the
+    state, such a channel puts its noise into the regressors (an errors-in-variables bias of every
+    coefficient) and into the one-step target. When its noise (median over episodes) exceeds
+    :data:`MAX_LOGGED_VELOCITY_NOISE_RATIO` times that of the Savitzky-Golay derivative of
+    position, the derivative is used instead (``velocity_source`` in the report says so).
+    """
+    logged = [e for e in episodes if e.v_meas is not None]
+    if not logged:
+        return False
+    ratios = [velocity_noise(e, period_s, window, True, robust=True)
+              / max(velocity_noise(e, period_s, window, False, robust=True), 1e-300) for e in logged]
+    return float(np.median(ratios)) <= MAX_LOGGED_VELOCITY_NOISE_RATIO
+
+
+def velocity_noise(e: Episode, period_s: float, window: int, measured: bool, robust: bool = False) -> float:
     """Noise std [x/s] of the velocity channel: from the SG residual of the logged signal."""
     from scipy.signal import savgol_coeffs, savgol_filter
 
     sig = e.v_meas if measured else e.x
     r = sig - savgol_filter(sig, window, 2, mode="interp")
-    sigma = float(np.std(r)) * math.sqrt(window / max(window - 3, 1))
+    # robust: the median absolute deviation ignores the kinks of a velocity at command steps
+    spread = 1.4826 * float(np.median(np.abs(r - np.median(r)))) if robust else float(np.std(r))
+    sigma = spread * math.sqrt(window / max(window - 3, 1))
     if measured:
         return sigma
     d = savgol_coeffs(window, 2, deriv=1, delta=period_s, use="dot")
     return sigma * float(np.linalg.norm(d))
 
 
-def moving_mask(e: Episode, v: np.ndarray, period_s: float, window: int) -> tuple[np.ndarray, float]:
+def moving_mask(e: Episode, v: np.ndarray, period_s: float, window: int,
+                measured: bool | None = None) -> tuple[np.ndarray, float]:
     """Samples used as regression rows: the axis moves, away from stops by a smoothing window.
 
     While the axis sticks, Coulomb friction is whatever balances the other forces, so an
@@ -135,7 +181,8 @@ def moving_mask(e: Episode, v: np.ndarray, period_s: float, window: int) -> tupl
     smoothed velocity is smeared over the window. Both are left out of the regression (for
     every candidate alike: the mask depends on data only); the simulator still covers them.
     """
-    v_min = 3.0 * velocity_noise(e, period_s, window, e.v_meas is not None) + 1e-3 * float(np.sqrt(np.mean(v**2)))
+    measured = e.v_meas is not None if measured is None else measured
+    v_min = 3.0 * velocity_noise(e, period_s, window, measured) + 1e-3 * float(np.sqrt(np.mean(v**2)))
     slow = np.abs(v) < v_min
     # A fast reversal can jump over the threshold between two samples: mark sign changes too.
     flip = np.signbit(v[1:]) != np.signbit(v[:-1])
@@ -234,15 +281,19 @@ class AxisParams:
     period_s: float = 0.01
     sg_window: int = 7
     k_u: float | None = None  # known actuator gain (force per command unit), if given
+    #: hyper-parameters whose best value stayed at the edge of the search grid after widening it
+    at_bound: dict[str, float] = field(default_factory=dict)
 
     def effect_params(self, name: str) -> dict[str, float]:
         """The parameters reported for one effect, in the catalogue's units."""
-        if name in HYPER_OF and name != "stribeck_friction":
+        if name in ("stribeck_friction", "gravity_load"):
+            return {COEF_OF[name]: self.coef[COEF_OF[name]], HYPER_OF[name]: self.hyper[HYPER_OF[name]]}
+        if name in HYPER_OF:
             return {HYPER_OF[name]: self.hyper[HYPER_OF[name]]}
-        if name == "stribeck_friction":
-            return {"fs_extra_acc": self.coef["fs_extra_acc"], "vs": self.hyper["vs"]}
         if name == "battery_sag":
             return {"gain_per_rel_v": self.coef["kb"] / self.coef["a"], "vbat_ref_v": self.vbat_ref_v}
+        if name == "asymmetric_friction":
+            return {"fa_acc": self.coef["fa_acc"], "fc_acc": self.coef["fc_acc"]}
         if name in COEF_OF:
             return {COEF_OF[name]: self.coef[COEF_OF[name]]}
         if name == "sensor_bias":
@@ -261,7 +312,8 @@ class AxisParams:
             return None
         j = self.k_u / self.coef["a"]
         out = {"k_u": self.k_u, "J": j, "b": self.coef["c_per_s"] * j}
-        names = {"fc_acc": "Fc", "fs_extra_acc": "Fs_minus_Fc", "offset_acc": "offset_force", "gravity_acc": "gravity_force"}
+        names = {"fc_acc": "Fc", "fs_extra_acc": "Fs_minus_Fc", "offset_acc": "offset_force", "gravity_acc": "gravity_force",
+                 "fa_acc": "Fc_asymmetry", "gl_acc": "gravity_load_force"}
         for k, phys in names.items():
             if k in self.coef:
                 out[phys] = self.coef[k] * j
@@ -344,6 +396,12 @@ def raw_features(p: Prepared, params: AxisParams, v: np.ndarray, smooth: bool) -
         feats["offset_acc"] = sm(one.copy())
     if "slope" in eff:
         feats["gravity_acc"] = np.ones(p.n)
+    if "asymmetric_friction" in eff:
+        # Direction-dependent part of Coulomb friction: Fc+ = fc + fa forward, Fc- = fc - fa backward.
+        feats["fa_acc"] = -np.abs(sgn) * one
+    if "gravity_load" in eff:
+        # Position-dependent load, e.g. gravity on a rotary joint: x in rad, q0 the hanging angle.
+        feats["gl_acc"] = -np.sin(p.ep.x - hp["q0_rad"]) * one
     return feats
 
 
@@ -397,30 +455,50 @@ def sse_of(stats: list[Stats], theta: np.ndarray, idx) -> float:
 # ----------------------------------------------------------------------------- grids
 
 
-def hyper_grid(name: str, preps: list[Prepared]) -> np.ndarray:
-    """Search grid of one hyper-parameter, scaled to the data."""
+def hyper_grid(name: str, preps: list[Prepared], widen: int = 0) -> np.ndarray:
+    """Search grid of one hyper-parameter, scaled to the data.
+
+    ``widen`` = 1, 2, ...: the grid after its best point was found at the far edge that many
+    times; it reaches further (twice as far each time, within what the data can mean: a
+    deadband or a backlash no wider than the largest command).
+    """
     dt = preps[0].period_s
     au = np.abs(np.concatenate([p.ep.u for p in preps]))
+    f = 2.0**widen
     if name == "delay_s":
-        mx = max_delay_samples(dt)
-        steps = np.unique(np.concatenate([np.arange(0, 4.01, 0.5), np.geomspace(5, mx, 10).round()]))
+        mx = max_delay_samples(dt) * f
+        steps = np.unique(np.concatenate([np.arange(0, 4.01, 0.5), np.geomspace(5, mx, 10 + 4 * widen).round()]))
         return steps[steps <= mx] * dt
     if name == "tau_s":
-        return np.concatenate([[0.0], np.geomspace(0.3 * dt, max(0.3, 30 * dt), 18)])
+        return np.concatenate([[0.0], np.geomspace(0.3 * dt, f * max(0.3, 30 * dt), 18 + 4 * widen)])
     if name == "width_u":
-        return np.linspace(0, np.quantile(au, 0.6), 21)
+        return np.linspace(0, min(f * np.quantile(au, 0.6), np.max(au)), 21)
     if name == "halfwidth_u":
-        return np.linspace(0, 0.5 * np.quantile(au, 0.9), 21)
+        return np.linspace(0, min(f * 0.5 * np.quantile(au, 0.9), np.max(au)), 21)
     if name == "limit_u":
-        return np.concatenate([np.quantile(au, np.linspace(0.4, 0.995, 20)), [math.inf]])
+        return np.concatenate([np.quantile(au, np.linspace(0.4 / f, 0.995, 20 + 4 * widen)), [math.inf]])
     if name == "vs":
         vr = float(np.sqrt(np.mean(np.concatenate([p.v_obs for p in preps]) ** 2)))
-        return np.geomspace(0.01, 1.0, 14) * vr
+        return np.geomspace(0.01 / f, f, 14 + 4 * widen) * vr
     if name == "mu_per_unit":
         pm = np.concatenate([p.ep.payload for p in preps])
         span = float(np.max(np.abs(pm))) or 1.0
-        return np.linspace(-0.5, 3.0, 36) / span
+        return np.linspace(-0.5, 3.0 * f, 36) / span
+    if name == "q0_rad":
+        return np.linspace(-math.pi / 2, math.pi / 2, 24, endpoint=False)  # q0 and q0 + pi: same load, sign flipped
     raise KeyError(name)
+
+
+#: Hyper-parameters whose grid is widened when the best value sits at its far edge, and which edge.
+#: (q0 is periodic; a delay, lag, width or Stribeck speed at the top, a saturation at the bottom.)
+WIDEN_EDGE = {"delay_s": -1, "tau_s": -1, "width_u": -1, "halfwidth_u": -1, "vs": -1, "mu_per_unit": -1,
+              "limit_u": 0}
+MAX_WIDEN = 2
+
+
+def _at_edge(h: str, i: int, grid: np.ndarray) -> bool:
+    edge = WIDEN_EDGE.get(h)
+    return edge is not None and i == (len(grid) - 1 if edge == -1 else 0) and math.isfinite(grid[i])
 
 
 # ----------------------------------------------------------------------------- fitting
@@ -517,13 +595,21 @@ def fit_axis(preps: list[Prepared], effects: list[str], weights: np.ndarray | No
         hyper_names = [HYPER_OF[e] for e in search if e in HYPER_OF and HYPER_OF[e] in params.hyper]
     for _ in range(passes if len(hyper_names) > 1 else 1):
         for h in hyper_names:
-            grid = hyper_grid(h, preps)
-            sses = []
-            for val in grid:
-                params.hyper[h] = float(val)
-                sses.append(_sse_for(preps, params, weights)[0])
-            i = int(np.argmin(sses))
+            for widen in range(MAX_WIDEN + 1):
+                grid = hyper_grid(h, preps, widen)
+                sses = []
+                for val in grid:
+                    params.hyper[h] = float(val)
+                    sses.append(_sse_for(preps, params, weights)[0])
+                i = int(np.argmin(sses))
+                if not _at_edge(h, i, grid) or grid[i] == hyper_grid(h, preps, widen + 1)[
+                        -1 if WIDEN_EDGE[h] == -1 else 0]:
+                    break
             params.hyper[h] = float(grid[i])
+            if _at_edge(h, i, grid):
+                params.at_bound[h] = float(grid[i])
+            else:
+                params.at_bound.pop(h, None)
             if not refine and 0 < i < len(grid) - 1 and math.isfinite(grid[i + 1]):
                 params.hyper[h] = _parabola_min(grid[i - 1 : i + 2], sses[i - 1 : i + 2])
             if refine and math.isfinite(grid[i]):
@@ -615,11 +701,15 @@ def simulate_windows(p: Prepared, params: AxisParams, horizon: int,
     xs = np.empty((starts.size, horizon))
     vs_out = np.empty((starts.size, horizon))
     idx = starts.copy()
+    fa, gl, q0 = c.get("fa_acc", 0.0), c.get("gl_acc", 0.0), hp.get("q0_rad", 0.0)
     for h in range(horizon):
         gk = g[idx]
         v_pred = v + dt * (drive[idx] - c["c_per_s"] * gk * v)
-        if fc or fs:
-            step = dt * gk * (fc + (fs * np.exp(-((v / vs) ** 2)) if fs else 0.0))
+        if gl:
+            v_pred = v_pred - dt * gk * gl * np.sin(x - q0)
+        if fc or fs or fa:
+            # friction magnitude in the direction the axis would move (fa: forward/backward asymmetry)
+            step = dt * gk * (fc + fa * np.sign(v_pred) + (fs * np.exp(-((v / vs) ** 2)) if fs else 0.0))
             # Implicit (Moreau) friction: stick when the other forces cannot overcome it. A negative
             # fitted friction (no friction in the data, noise) is applied explicitly instead.
             stick = (step > 0) & (np.abs(v_pred) <= step)

@@ -21,6 +21,8 @@ features so that the smoothing does not masquerade as a delay or a lag.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -140,6 +142,9 @@ def parse_column_map(spec: str | dict | Path | None, required: tuple[str, ...] =
                 if "=" not in part:
                     raise DataError(f"bad column map entry {part!r}: expected key=column, e.g. t=time")
                 k, v = part.split("=", 1)
+                if k.strip() in mapping:
+                    raise DataError(f"column map gives key {k.strip()!r} twice ({mapping[k.strip()]!r} and "
+                                    f"{v.strip()!r}); give each key once")
                 mapping[k.strip()] = v.strip()
     unknown = sorted(set(mapping) - set(COLUMN_KEYS))
     if unknown:
@@ -148,6 +153,13 @@ def parse_column_map(spec: str | dict | Path | None, required: tuple[str, ...] =
     missing = [k for k in required if k not in mapping]
     if missing:
         raise DataError(f"column map lacks required key(s) {missing} (need t=..., u=..., x=...)")
+    # One column feeding two keys (e.g. t=time,u=time) is always a typo: the fit would be degenerate.
+    seen: dict[str, str] = {}
+    for k, col in mapping.items():
+        if col in seen:
+            raise DataError(f"column map names column {col!r} twice (keys {seen[col]!r} and {k!r}); "
+                            "each key needs its own column")
+        seen[col] = k
     return mapping
 
 
@@ -165,37 +177,74 @@ def _read_table(path: Path):
 
 
 def _column(df, key: str, col: str, path: Path) -> np.ndarray:
+    """One mapped column as floats; NaN/inf are kept (the caller splits around them).
+
+    A cell that is not a number (text such as ``"1,5"`` or ``"n/a "``) is a DataError naming the
+    file, the data row and the column: it is a format problem the user must fix, not missing data.
+    """
+    import pandas as pd
+
     if col not in df.columns:
         raise DataError(
             f"column {col!r} (map key {key!r}) not found in {path}; available columns: {list(df.columns)}"
         )
-    arr = np.asarray(df[col].to_numpy(), dtype=float)
-    bad = np.flatnonzero(~np.isfinite(arr))
-    if bad.size:
-        raise DataError(
-            f"non-finite value (NaN/inf) in {path}, column {col!r}, at data row {int(bad[0])} "
-            f"({bad.size} bad rows in total); clean or drop these rows first"
-        )
-    return arr
+    raw = df[col]
+    num = pd.to_numeric(raw, errors="coerce")
+    text = num.isna().to_numpy() & raw.notna().to_numpy()
+    if text.any():
+        i = int(np.flatnonzero(text)[0])
+        row = df.index[i]
+        where = f"data row {row} (line {row + 2} of the file)" if path.suffix.lower() == ".csv" else f"data row {row}"
+        raise DataError(f"non-numeric value {raw.iloc[i]!r} in {path}, column {col!r}, {where} "
+                        f"({int(text.sum())} such cell(s) in this column); fix the file (decimal point, no units "
+                        "or text in numeric columns)")
+    return np.asarray(num.to_numpy(), dtype=float)
 
 
-def _episodes_from_table(df, mapping: dict[str, str], path: Path) -> list[Episode]:
+#: Fewest samples an episode (or a piece of one between NaN rows) must have to be used.
+MIN_SAMPLES = 20
+
+
+def _episodes_from_table(df, mapping: dict[str, str], path: Path, warn: Callable[[str], None]) -> list[Episode]:
     ep_col = mapping.get("episode", "episode" if "episode" in df.columns else None)
     if ep_col is not None and ep_col not in df.columns:
         raise DataError(f"episode column {ep_col!r} not found in {path}; available: {list(df.columns)}")
     groups = [(None, df)] if ep_col is None else list(df.groupby(ep_col, sort=True))
     out = []
     for ep_id, g in groups:
-        arrays = {k: _column(g, k, mapping[k], path) for k in ("t", "u", "x", "v", "vbat", "m") if k in mapping}
+        keys = [k for k in ("t", "u", "x", "v", "vbat", "m") if k in mapping]
+        arrays = {k: _column(g, k, mapping[k], path) for k in keys}
         name = path.name if ep_id is None else f"{path.name}#episode={ep_id}"
-        out.append(_make_episode(name, arrays, path))
+        bad = np.zeros(len(g), bool)
+        for k in keys:
+            bad |= ~np.isfinite(arrays[k])
+        if bad.any():
+            # Drop the bad rows and keep every clean stretch as its own episode: no data is lost and
+            # no stretch is bridged across a gap the model would have to integrate through.
+            first = int(np.flatnonzero(bad)[0])
+            col = next(mapping[k] for k in keys if not np.isfinite(arrays[k][first]))
+            d = np.diff(np.concatenate([[0], (~bad).astype(int), [0]]))
+            pieces = list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(), strict=True))
+            warn(f"{path}: {int(bad.sum())} row(s) with NaN/inf dropped in {name} (first: data row "
+                 f"{g.index[first]}, column {col!r}); the rest is kept as {len(pieces)} contiguous piece(s)")
+            for a, b in pieces:
+                ep = _make_episode(f"{name}[rows {g.index[a]}-{g.index[b - 1]}]",
+                                   {k: v[a:b] for k, v in arrays.items()}, path, warn)
+                if ep is not None:
+                    out.append(ep)
+            continue
+        ep = _make_episode(name, arrays, path, warn)
+        if ep is not None:
+            out.append(ep)
     return out
 
 
-def _make_episode(name: str, arrays: dict[str, np.ndarray], path: Path | str) -> Episode:
+def _make_episode(name: str, arrays: dict[str, np.ndarray], path: Path | str,
+                  warn: Callable[[str], None]) -> Episode | None:
     t = arrays["t"]
-    if t.size < 20:
-        raise DataError(f"{name}: only {t.size} samples; need at least 20 per episode")
+    if t.size < MIN_SAMPLES:
+        warn(f"{name}: skipped, only {t.size} samples (need at least {MIN_SAMPLES} per episode)")
+        return None
     dt = np.diff(t)
     if np.any(dt <= 0):
         i = int(np.flatnonzero(dt <= 0)[0])
@@ -218,8 +267,15 @@ def _make_episode(name: str, arrays: dict[str, np.ndarray], path: Path | str) ->
     )
 
 
+def _warn_default(msg: str) -> None:
+    import warnings
+
+    warnings.warn(msg, stacklevel=3)
+
+
 def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
-                  robot: str | None = None, normalize_actions: bool = False) -> list[Episode]:
+                  robot: str | None = None, normalize_actions: bool = False,
+                  warn: Callable[[str], None] | None = None) -> list[Episode]:
     """Load episodes from a .csv/.parquet file, a directory of those, or an .mcap recording.
 
     Args:
@@ -231,9 +287,12 @@ def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
         robot: MCAP only: which robot's states, when the recording holds several.
         normalize_actions: MCAP only: actions in [-1, 1] of the robot's spec (what a learned
             checkpoint trained by ``learning.mbrl`` sees) instead of robot units.
+        warn: called with one line per recoverable problem (rows with NaN dropped and the
+            episode split there, too-short episodes skipped); default :func:`warnings.warn`.
 
     Raises:
-        DataError: missing file/column, NaNs, bad time stamps (message names file, column, row).
+        DataError: missing file/column, non-numeric cells, bad time stamps, a map naming a
+            column twice, no usable episode (the message names file, column and row).
     """
     p = Path(path)
     if not p.exists():
@@ -247,9 +306,12 @@ def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
             raise DataError(f"no .csv or .parquet files in directory {p}")
     else:
         files = [p]
+    warn = warn or _warn_default
     episodes: list[Episode] = []
     for f in files:
-        episodes.extend(_episodes_from_table(_read_table(f), mapping, f))
+        episodes.extend(_episodes_from_table(_read_table(f), mapping, f, warn))
+    if not episodes:
+        raise DataError(f"{p}: no usable episode (each needs at least {MIN_SAMPLES} clean samples)")
     return episodes
 
 
@@ -351,25 +413,138 @@ def sg_velocity_kernel(window: int) -> np.ndarray:
     return kernel / kernel.sum()
 
 
-def segment_episodes(episodes: list[Episode], min_episodes: int, min_len: int) -> tuple[list[Episode], bool]:
-    """Split long recordings into contiguous segments so there are >= ``min_episodes``.
+def resample(e: Episode, period_s: float) -> Episode:
+    """``e`` on a uniform grid of ``period_s`` [s] (coarser than its own).
 
-    Returns (episodes, segmented). Segments are contiguous (no shuffling inside), so held-out
-    segments still test extrapolation in time; neighbouring segments are correlated, which
-    the report mentions.
+    The command is a zero-order hold, so the new command of interval k is its exact average over
+    [t_k, t_k + period_s) (from the integral of the ZOH signal); position, velocity, battery and
+    payload are interpolated linearly.
+    """
+    if e.states is not None:
+        raise DataError(f"{e.name}: a full-state recording cannot be resampled; record all episodes at one rate")
+    t = e.t_s
+    tu = t[0] + period_s * np.arange(int(np.floor((t[-1] - t[0]) / period_s + 1e-9)) + 1)
+    integral = np.concatenate([[0.0], np.cumsum(e.u[:-1] * np.diff(t))])
+    t_end = np.minimum(tu + period_s, t[-1])
+    span = np.maximum(t_end - tu, 1e-12)
+    u = (np.interp(t_end, t, integral) - np.interp(tu, t, integral)) / span
+    u[span <= 1e-12] = e.u[-1]
+
+    def interp(a):
+        return None if a is None else np.interp(tu, t, a)
+
+    return replace(e, t_s=tu, u=u, x=np.interp(tu, t, e.x), v_meas=interp(e.v_meas), vbat_v=interp(e.vbat_v),
+                   payload=interp(e.payload), meta={**e.meta, "resampled_from_period_s": e.period_s})
+
+
+def harmonize_rates(episodes: list[Episode], warn: Callable[[str], None] | None = None,
+                    rtol: float = 0.01) -> list[Episode]:
+    """One sample period for all episodes: the models are discrete-time with a single period.
+
+    Episodes whose period differs by more than ``rtol`` are resampled to the slowest period
+    (never upsampled: that would invent data), with a warning naming the rates found.
+    """
+    periods = np.array([e.period_s for e in episodes])
+    if periods.max() <= (1 + rtol) * periods.min():
+        return episodes
+    slow = float(periods.max())
+    rates = sorted({round(1.0 / p_, 3) for p_ in periods})
+    fast = next(e for e in episodes if e.period_s < slow / (1 + rtol))
+    (warn or _warn_default)(
+        f"episodes are sampled at different rates ({', '.join(f'{r:g}' for r in rates)} Hz, e.g. {fast.name} at "
+        f"{1 / fast.period_s:.4g} Hz): all were resampled to the slowest, {1 / slow:.4g} Hz (commands averaged over "
+        "each period, positions interpolated); to avoid this, calibrate each rate separately")
+    return [e if e.period_s >= slow / (1 + rtol) else resample(e, slow) for e in episodes]
+
+
+@dataclass(frozen=True)
+class SegmentPlan:
+    """How recordings were cut into units for cross-validation (see :func:`segment_episodes`).
+
+    Attributes:
+        segmented: whether any recording was cut.
+        horizon_steps: open-loop horizon [samples] the units were sized for (may be shorter than
+            asked when the data are short).
+        n_units: number of units (segments and whole episodes).
+        n_test: units locked for the final test (the final block of each recording).
+        note: what was done, for the report.
+    """
+
+    segmented: bool
+    horizon_steps: int
+    n_units: int
+    n_test: int
+    note: str | None = None
+
+
+#: Fewest units (episodes or segments) calibration runs on; fewer cannot give a paired test any power.
+MIN_UNITS = 8
+#: Shortest open-loop horizon [samples] the segmentation may shrink to for a short recording.
+MIN_HORIZON_STEPS = 10
+#: Fewest scored samples in a segment of a long recording.
+MIN_SEGMENT_SAMPLES = 40
+
+
+def segment_episodes(episodes: list[Episode], min_episodes: int, horizon_steps: int, margin: int,
+                     test_fraction: float = 0.2) -> tuple[list[Episode], SegmentPlan]:
+    """Cut long recordings into contiguous segments so there are >= ``min_episodes`` units.
+
+    Blocked time-series folds: every recording is cut into contiguous segments in time order and
+    the last ``test_fraction`` of each cut recording (its final segments) is marked
+    ``meta["locked_test"]``: the locked test set is the final block of the recording, never
+    interleaved with training data. A segment holds ``margin`` samples at both ends (filter
+    edges, delay history) as unscored context beyond 1.2 horizons of scored samples, so the
+    segments tile the recording without losing rows. When the data are too short for ``min_episodes``
+    such segments, the horizon is shortened (down to :data:`MIN_HORIZON_STEPS`), then the
+    number of units is lowered (down to :data:`MIN_UNITS`); shorter data is a DataError that
+    says how much is needed.
     """
     if len(episodes) >= min_episodes:
-        return episodes, False
-    total = sum(e.n for e in episodes)
-    n_target = min_episodes
-    seg_len = max(min_len, total // n_target)
-    out = []
+        return episodes, SegmentPlan(False, horizon_steps, len(episodes), 0)
+    total = sum(e.n for e in episodes) - 2 * margin * len(episodes)
+    h = horizon_steps
+
+    def core(h_):  # scored samples per segment: 1.2 horizons, and enough rows to fit and score
+        return max(int(math.ceil(1.2 * h_)), MIN_SEGMENT_SAMPLES)
+
+    n_units = min_episodes
+    if total < n_units * core(h):
+        h = max(MIN_HORIZON_STEPS, int(total / n_units / 1.2))
+        while n_units > MIN_UNITS and total < n_units * core(h):
+            n_units -= 1
+    if total < MIN_UNITS * core(h):
+        period = episodes[0].period_s
+        need = MIN_UNITS * core(MIN_HORIZON_STEPS) + 2 * margin
+        raise DataError(f"data too short to calibrate: {total + 2 * margin * len(episodes)} samples "
+                        f"({(total + 2 * margin * len(episodes)) * period:.3g} s) in {len(episodes)} episode(s); need "
+                        f"at least {need} samples ({need * period:.3g} s) in one recording at this rate, for "
+                        f"{MIN_UNITS} segments; record longer or more episodes")
+    out: list[Episode] = []
+    n_test = 0
+    per = max(core(h), total // n_units)
     for e in episodes:
-        k = max(1, e.n // seg_len)
-        edges = np.linspace(0, e.n, k + 1).astype(int)
+        k = (e.n - 2 * margin) // per
+        if k < 2:  # too short to cut: used whole, as a training unit
+            out.append(e)
+            continue
+        # Segment i scores rows edges[i]..edges[i+1]; it also carries ``margin`` samples of context on
+        # each side (delay history, filter edges), which are never scored in that segment.
+        edges = np.linspace(margin, e.n - margin, k + 1).astype(int)
+        k_test = max(1, int(round(test_fraction * k)))
         for i in range(k):
-            out.append(e.slice(edges[i], edges[i + 1], f"{e.name}[seg{i}]"))
-    return out, len(out) > len(episodes)
+            seg = e.slice(edges[i] - margin, edges[i + 1] + margin, f"{e.name}[seg{i}]")
+            seg.meta["locked_test"] = i >= k - k_test
+            n_test += i >= k - k_test
+            out.append(seg)
+    segmented = len(out) > len(episodes)
+    note = None
+    if segmented:
+        note = (f"{len(episodes)} recording(s) cut into {len(out)} contiguous segments in time order; the final "
+                f"{n_test} segment(s) (the last ~{test_fraction:.0%} of each recording) are the locked test set, the "
+                "others form blocked folds; neighbouring segments are correlated, so p-values are somewhat optimistic")
+        if h < horizon_steps:
+            note += f"; the recording is short, so the open-loop horizon was shortened to {h} samples"
+    return out, SegmentPlan(segmented, h, len(out), n_test, note)
 
 
 def summarize(episodes: list[Episode]) -> dict:
@@ -397,6 +572,9 @@ __all__ = [
     "default_sg_window",
     "load_episodes",
     "parse_column_map",
+    "SegmentPlan",
+    "harmonize_rates",
+    "resample",
     "segment_episodes",
     "sg_velocity",
     "sg_velocity_kernel",

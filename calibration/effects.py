@@ -56,6 +56,12 @@ CATALOGUE: dict[str, EffectSpec] = {
                    "fc_acc", "x/s^2", 0.0, diagnostic="residual vs velocity"),
         EffectSpec("stribeck_friction", "extra breakaway friction decaying with speed, (Fs-Fc)/J·exp(-(v/vs)^2)",
                    "fs_extra_acc", "x/s^2", 0.0, diagnostic="residual vs velocity (near zero)"),
+        EffectSpec("asymmetric_friction", "direction-dependent Coulomb friction: fc + fa forward, fc - fa "
+                   "backward (fa on top of the accepted Coulomb level fc)", "fa_acc", "x/s^2", 0.0,
+                   diagnostic="residual vs velocity, by direction"),
+        EffectSpec("gravity_load", "position-dependent load -gl·sin(x - q0), e.g. gravity on a rotary joint "
+                   "(x in rad, q0 the hanging angle)", "gl_acc", "x/s^2", 0.0,
+                   diagnostic="residual vs position"),
         EffectSpec("viscous_friction", "friction proportional to velocity, b/J·v",
                    "c_per_s", "1/s", 0.0, diagnostic="residual vs velocity",
                    absorbed_by_nominal="c = b/J is a nominal parameter of the axis model and is refit "
@@ -100,6 +106,14 @@ LOOK_ALIKES: dict[frozenset, str] = {
         "motion in both directions at similar speeds for similar durations",
     frozenset({"sensor_bias", "force_offset"}):
         "long runs at zero velocity (a velocity bias shows while standing still)",
+    frozenset({"asymmetric_friction", "coulomb_friction"}):
+        "motion in both directions at similar speeds (the asymmetry is the difference between them)",
+    frozenset({"asymmetric_friction", "force_offset"}):
+        "holding still under small commands (an offset pushes at rest, direction-dependent friction does not)",
+    frozenset({"gravity_load", "force_offset"}):
+        "motion over a wider range of positions (a gravity load changes with the angle, an offset does not)",
+    frozenset({"gravity_load", "slope"}):
+        "motion over a wider range of positions (a gravity load changes with the angle, a slope does not)",
 }
 
 GENERIC_EXCITATION = "richer excitation: steps and chirps over the full command range, both directions"

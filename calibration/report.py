@@ -6,17 +6,20 @@ import json
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from calibration import axis
-from calibration.data import Episode, load_episodes, segment_episodes, summarize
+from calibration.data import DataError, Episode, harmonize_rates, load_episodes, segment_episodes, summarize
 from calibration.models import FittedAxis, get_model, save_model
 from calibration.selection import (
     SelectionConfig,
     blackbox_check,
     detection_limits,
+    heldout_gain,
+    round_alpha,
     select_effects,
 )
 
@@ -123,6 +126,12 @@ def run_calibration(
         if progress:
             print(f"[calibrate {time.time() - t0:6.1f}s] {msg}", file=sys.stderr, flush=True)
 
+    warnings: list[str] = []
+
+    def warn(msg: str) -> None:
+        warnings.append(msg)
+        log(f"warning: {msg}")
+
     opts = {"k_u": k_u, "sg_window": sg_window} if model == "axis" else {}
     opts.update(model_options or {})
     nominal_model = get_model(model, **opts)
@@ -131,18 +140,30 @@ def run_calibration(
     elif hasattr(nominal_model, "load_episodes"):  # the model knows its channels (checkpoint)
         episodes = nominal_model.load_episodes(data_path, column_map, robot=robot)
     else:
-        episodes = load_episodes(data_path, column_map, robot=robot)
+        episodes = load_episodes(data_path, column_map, robot=robot, warn=warn)
+    if not episodes:
+        raise DataError("no episode to calibrate on")
     source = "episodes" if isinstance(data_path, list) else str(data_path)
     log(f"loaded {len(episodes)} episode(s) from {source}")
-    segmented = False
+    plan = None
     if nominal_model.segmentable:
-        min_len = max(200, int(round(1.2 * cfg.horizon_s / episodes[0].period_s)))
-        episodes, segmented = segment_episodes(episodes, cfg.min_episodes, min_len)
-        if segmented:
-            log(f"too few episodes for folds: split into {len(episodes)} contiguous segments")
+        episodes = harmonize_rates(episodes, warn)
+        episodes = _drop_motionless(nominal_model, episodes, warn)
+        period = episodes[0].period_s
+        h_steps = max(2, int(round(cfg.horizon_s / period)))
+        episodes, plan = segment_episodes(episodes, cfg.min_episodes, h_steps,
+                                          axis.segment_margin(period, sg_window), cfg.test_fraction)
+        if plan.segmented:
+            log(plan.note)
+            episodes = _drop_motionless(nominal_model, episodes, warn)
+        if plan.horizon_steps < h_steps:
+            cfg = replace(cfg, horizon_s=plan.horizon_steps * period)
+            warn(f"short recording: open-loop horizon shortened from {h_steps} to {plan.horizon_steps} samples "
+                 "so that it can be cut into enough segments")
     preps = nominal_model.prepare(episodes)
 
     sel = select_effects(nominal_model, preps, cfg, seed=seed, log=log)
+    resolution = _resolution(nominal_model, preps, sel, cfg, warn)
     is_axis = isinstance(sel.final, FittedAxis)
     pool_idx = np.concatenate(sel.folds)
     pool = [preps[i] for i in pool_idx]
@@ -153,6 +174,9 @@ def run_calibration(
     sd = nominal_model.channel_sd(test)
     before = _nrmse_table(before_scores, sd, 500, seed)
     after = _nrmse_table(after_scores, sd, 500, seed)
+    verdict, confirmation = _verdict(nominal_model, sel, test, before, after)
+    if verdict == NOT_CONFIRMED:
+        warn(f"{', '.join(r.name for r in sel.accepted)} passed on the training folds but {confirmation['reason']}")
     log("black-box check of the remaining residual")
     bb = blackbox_check(preps, sel.folds, sel.final, cfg, seed, model=nominal_model)
     candidates, _ = nominal_model.candidate_effects(preps)
@@ -180,17 +204,16 @@ def run_calibration(
         })
     report = {
         "model": model,
-        "data": {**summarize(episodes), "segmented": segmented,
-                 "segmentation_note": (
-                     "long recordings were split into contiguous segments treated as episodes; neighbouring "
-                     "segments are correlated, so p-values are somewhat optimistic") if segmented else None,
+        "data": {**summarize(episodes), "segmented": bool(plan and plan.segmented), "resolution": resolution,
+                 "segmentation_note": plan.note if plan else None,
                  "velocity_source": getattr(nominal_model, "velocity_source", None) or _velocity_source(preps[0])},
         "folds": {"k": len(sel.folds), "test_episodes": [episodes[i].name for i in sel.test_idx],
                   "fold_episodes": [[episodes[i].name for i in f] for f in sel.folds],
                   "horizon_steps": sel.horizon, "horizon_s": sel.horizon * preps[0].period_s},
         "config": cfg.__dict__,
         "seed": seed,
-        "verdict": "found" if sel.accepted else "none",
+        "verdict": verdict,
+        "confirmation": confirmation,
         "effects": effects_doc,
         "ambiguous": sel.ambiguous,
         "unexplained_structure": bb["unexplained_structure"],
@@ -207,6 +230,7 @@ def run_calibration(
                      else f"{sel.horizon}-step open-loop windows"},
         "not_tested": sel.skipped,
         "rounds": sel.rounds,
+        "warnings": warnings,
         "elapsed_s": time.time() - t0,
     }
     if hasattr(nominal_model, "export_augmented"):
@@ -233,6 +257,80 @@ def run_calibration(
     return report
 
 
+#: Verdict when effects passed the selection but the locked test set does not confirm them.
+NOT_CONFIRMED = "not confirmed on held-out data"
+
+
+def _verdict(model, sel, test: list, before: dict, after: dict) -> tuple[str, dict]:
+    """``found`` only when the locked test set confirms the accepted effects.
+
+    Confirmed means: the selection score on the locked test episodes improves (held-out gain > 0,
+    the same per-channel score the selection used) and the multi-step NRMSE does not rise.
+    Otherwise the verdict is :data:`NOT_CONFIRMED`, so a report can never claim an effect that
+    made the held-out error worse.
+    """
+    if not sel.accepted:
+        return "none", {"confirmed": None, "reason": "no effect accepted"}
+    if not test:
+        return NOT_CONFIRMED, {"confirmed": False, "reason": "there is no locked test set (too few episodes)"}
+    lb = np.array([model.episode_loss(p, sel.nominal, sel.horizon, sel.norms) for p in test])
+    la = np.array([model.episode_loss(p, sel.final, sel.horizon, sel.norms) for p in test])
+    gain = heldout_gain(lb, la)
+    mb, ma = before["multi_step_nrmse"]["mean"], after["multi_step_nrmse"]["mean"]
+    doc = {"test_gain": gain, "multi_step_nrmse_before": mb, "multi_step_nrmse_after": ma}
+    if gain > 0 and ma <= mb:
+        return "found", {**doc, "confirmed": True, "reason": "the locked test error fell"}
+    why = (f"the locked test score got worse (gain {gain:+.3f})" if gain <= 0 else
+           f"the locked test multi-step NRMSE rose from {mb:.4g} to {ma:.4g}")
+    return NOT_CONFIRMED, {**doc, "confirmed": False, "reason": why}
+
+
+def _resolution(model, preps, sel, cfg, warn) -> dict:
+    """What the amount of data can resolve at all, consistent with the acceptance rule.
+
+    Every held-out unit (episode or segment) gives one paired difference; the one-sided Wilcoxon
+    test over n of them cannot give p below 2^-n. When that is above the first round's
+    per-candidate threshold, no effect can be accepted, whatever its size.
+    """
+    n_units = int(sum(len(f) for f in sel.folds))
+    candidates, _ = model.candidate_effects(preps)
+    alpha1 = round_alpha(cfg.alpha, 1) / max(1, len(candidates))
+    p_min = 0.5**n_units
+    doc = {"heldout_units": n_units, "smallest_attainable_p": p_min, "round1_alpha_per_candidate": alpha1,
+           "can_accept": p_min < alpha1, "locked_test_units": int(len(sel.test_idx))}
+    if p_min >= alpha1:
+        need = int(np.ceil(np.log2(1 / alpha1)))
+        warn(f"with {n_units} held-out units the smallest attainable p-value is {p_min:.2g}, above the per-candidate "
+             f"threshold {alpha1:.2g}: no effect can be accepted; record at least {need} training episodes "
+             "(or a longer recording)")
+    return doc
+
+
+def _drop_motionless(model, episodes: list[Episode], warn) -> list[Episode]:
+    """Skip episodes in which the axis never moves (no regression row), with a warning.
+
+    Slow friction tests and idle stretches produce such episodes; they say nothing about the
+    dynamics the effects act on, and an empty episode cannot be scored.
+    """
+    preps = model.prepare(episodes)
+    keep = []
+    for e, p in zip(episodes, preps, strict=True):
+        n_rows = int(np.count_nonzero(p.moving[p.margin: p.n - p.margin - 1]))
+        if n_rows < MIN_MOVING_ROWS:
+            warn(f"{e.name}: skipped, the axis barely moves ({n_rows} samples above the standstill threshold "
+                 f"{p.v_min:.3g} x/s; need {MIN_MOVING_ROWS})")
+        else:
+            keep.append(e)
+    if not keep:
+        raise DataError(f"no episode with motion: in all {len(episodes)} episode(s) the axis stays below the "
+                        "standstill threshold; check the position column and its units, or record with motion")
+    return keep
+
+
+#: Fewest samples in motion an episode must have to be used (else it is skipped with a warning).
+MIN_MOVING_ROWS = 20
+
+
 def _velocity_source(p) -> str:
     if not isinstance(p, axis.Prepared):
         return "recorded state (world velocity rotated into the body frame; crank encoders)"
@@ -253,6 +351,11 @@ def render_markdown(r: dict) -> str:
     if d.get("segmentation_note"):
         lines += ["", f"Note: {d['segmentation_note']}."]
     lines += ["", f"**Verdict: {r['verdict']}**" + ("" if r["effects"] else " (nothing found)"), ""]
+    if r["verdict"] == NOT_CONFIRMED:
+        lines += [f"The effects below passed the tests on the training folds, but {r['confirmation']['reason']}: "
+                  "they are not claimed.", ""]
+    if r.get("warnings"):
+        lines += ["Warnings:", ""] + [f"- {w}" for w in r["warnings"]] + [""]
     if r["effects"]:
         lines += ["| effect | parameters | 95% interval (primary) | held-out gain | p-value | stability |",
                   "|---|---|---|---|---|---|"]
@@ -391,9 +494,10 @@ def _candidate_plot(out: Path, sel) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(9, 3.5))
-    width = 0.8 / max(1, len(sel.rounds))
-    names = [c["name"] for c in sel.rounds[0]["candidates"]] if sel.rounds else []
-    for i, rd in enumerate(sel.rounds):
+    rounds = [rd for rd in sel.rounds if "candidates" in rd]  # not the backward pruning record
+    width = 0.8 / max(1, len(rounds))
+    names = [c["name"] for c in rounds[0]["candidates"]] if rounds else []
+    for i, rd in enumerate(rounds):
         gains = {c["name"]: c["heldout_gain"] for c in rd["candidates"]}
         ax.bar(np.arange(len(names)) + i * width, [gains.get(n, 0.0) for n in names], width, label=f"round {rd['round']}")
     ax.set_xticks(np.arange(len(names)))

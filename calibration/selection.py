@@ -52,12 +52,22 @@ class SelectionConfig:
 
 @dataclass
 class Norms:
-    """Normalizers (variances) so channels are comparable: fixed from the training pool."""
+    """Normalizers (variances) of the four scored channels, fixed from the training pool.
+
+    They only make the per-channel numbers readable: the selection score is a log-ratio per
+    channel (see :func:`heldout_gain`), which no per-channel scale changes. ``horizon`` is the
+    open-loop horizon [samples] the cheap out-of-bag loss also scores.
+    """
 
     one_x: float
     one_v: float
     multi_x: float
     multi_v: float
+    horizon: int = 0
+
+
+#: The channels of the axis model's selection score, in the order of :func:`episode_loss`.
+LOSS_CHANNELS = ("one_step_x", "one_step_v", "multi_step_x", "multi_step_v")
 
 
 def compute_norms(preps: list[axis.Prepared]) -> Norms:
@@ -69,16 +79,52 @@ def compute_norms(preps: list[axis.Prepared]) -> Norms:
     return Norms(float(np.var(dx)) + tiny, float(np.var(dv)) + tiny, float(np.var(x)) + tiny, float(np.var(v)) + tiny)
 
 
-def episode_loss(s: axis.Scores, nm: Norms) -> float:
-    """Selection loss of one episode: mean NMSE over one-step and multi-step, x and v channels."""
-    return float(
-        (s.one_sse["x"] / s.one_n / nm.one_x + s.one_sse["v"] / s.one_n / nm.one_v
-         + s.multi_sse["x"] / s.multi_n / nm.multi_x + s.multi_sse["v"] / s.multi_n / nm.multi_v) / 4.0
-    )
+def episode_loss(s: axis.Scores, nm: Norms) -> np.ndarray:
+    """Per-channel normalized MSE of one episode, in the order of :data:`LOSS_CHANNELS`."""
+    one_n, multi_n = max(s.one_n, 1), max(s.multi_n, 1)
+    return np.array([s.one_sse["x"] / one_n / nm.one_x, s.one_sse["v"] / one_n / nm.one_v,
+                     s.multi_sse["x"] / multi_n / nm.multi_x, s.multi_sse["v"] / multi_n / nm.multi_v])
 
 
-def split_episodes(n: int, cfg: SelectionConfig, seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
-    """(locked test indices, list of K fold index arrays over the training pool)."""
+def _log_ratio(base: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    """log(base / cand) per row and channel; a tiny floor per channel keeps exact zeros finite."""
+    floor = 1e-12 * (np.mean(base, axis=0) + 1e-300)
+    return np.log(base + floor) - np.log(cand + floor)
+
+
+def heldout_gain(base: np.ndarray, cand: np.ndarray) -> float:
+    """Relative held-out gain of ``cand`` losses over ``base`` losses (one row per episode).
+
+    Scalar losses (one per episode): 1 − mean(cand)/mean(base). Per-channel losses (episodes ×
+    channels, the axis model): every channel is scored against its own noise level. With a
+    Gaussian likelihood whose noise variance is estimated per channel from the data (its
+    maximum-likelihood value is the channel's MSE), the change of the log-likelihood per sample is
+    the log of the channel's MSE ratio; the gain is 1 − exp(mean over channels of log(MSE_cand /
+    MSE_base)), i.e. one minus the geometric mean of the per-channel MSE ratios. A channel sitting
+    at its noise floor (e.g. a quantised velocity) has a ratio of 1 whatever its size, so it
+    cannot drown a real effect in another channel, and one-step and multi-step (open-loop)
+    channels weigh the same.
+    """
+    base, cand = np.asarray(base, float), np.asarray(cand, float)
+    if base.ndim == 1:
+        return float(1.0 - cand.mean() / base.mean())
+    return float(1.0 - np.exp(-np.mean(_log_ratio(base.sum(0)[None], cand.sum(0)[None]))))
+
+
+def split_episodes(n: int, cfg: SelectionConfig, seed: int,
+                   locked: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(locked test indices, list of K fold index arrays over the training pool).
+
+    ``locked`` (bool per unit): segments of long recordings, where the locked test set is the
+    final block of each recording and the folds are contiguous blocks in time order (blocked
+    time-series cross-validation: a held-out block is never interleaved with training data).
+    Otherwise whole episodes are shuffled (seeded) into a test set and K folds.
+    """
+    if locked is not None and locked.any():
+        test = np.flatnonzero(locked)
+        pool = np.flatnonzero(~locked)
+        k = max(2, min(cfg.k_folds, pool.size))
+        return test, [np.asarray(b, dtype=int) for b in np.array_split(pool, k)]
     rng = np.random.default_rng(seed)
     order = rng.permutation(n)
     n_test = max(1, int(round(cfg.test_fraction * n))) if n >= 4 else 0
@@ -90,9 +136,22 @@ def split_episodes(n: int, cfg: SelectionConfig, seed: int) -> tuple[np.ndarray,
 
 
 def paired_p(base: np.ndarray, cand: np.ndarray) -> float:
-    """One-sided Wilcoxon signed-rank p-value that ``cand`` losses are lower than ``base``."""
-    d = base - cand
-    if np.all(np.abs(d) <= 1e-12 * (np.abs(base) + 1e-300)):
+    """One-sided Wilcoxon signed-rank p-value that ``cand`` losses are lower than ``base``.
+
+    Per-channel losses (episodes × channels) are compared per episode by the log-likelihood
+    gain with each channel's noise variance estimated on all episodes (the channel's mean base
+    MSE): d_e = mean over channels of (base_ec − cand_ec) / mean_e(base_ec). An episode where a
+    channel's error is tiny (little motion) then contributes a tiny difference, not the unstable
+    log of a ratio of two tiny numbers.
+    """
+    base, cand = np.asarray(base, float), np.asarray(cand, float)
+    if base.ndim == 1:
+        d = base - cand
+        tol = 1e-12 * (np.abs(base) + 1e-300)
+    else:
+        d = np.mean((base - cand) / (base.mean(axis=0) + 1e-300), axis=1)
+        tol = np.full(d.shape, 1e-12)
+    if np.all(np.abs(d) <= tol):
         return 1.0
     try:
         return float(st.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue)
@@ -148,9 +207,9 @@ def bootstrap_effect(model: Model, preps, pool_idx: np.ndarray, base: FittedMode
         oob = np.flatnonzero(counts == 0)
         if oob.size:
             tried += 1
-            lb = sum(model.oob_loss(pool[i], b, nm) for i in oob)
-            lc = sum(model.oob_loss(pool[i], c, nm) for i in oob)
-            wins += lc < lb
+            lb = np.sum([np.atleast_1d(model.oob_loss(pool[i], b, nm)) for i in oob], axis=0)
+            lc = np.sum([np.atleast_1d(model.oob_loss(pool[i], c, nm)) for i in oob], axis=0)
+            wins += heldout_gain(lb[None], lc[None]) > 0
     arr = np.asarray(vals, float)
     interval = [float(np.nanpercentile(arr, 2.5)), float(np.nanpercentile(arr, 97.5))]
     return interval, (wins / tried if tried else 0.0), [float(v) for v in arr]
@@ -173,11 +232,14 @@ class SelectionResult:
 def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfig, seed: int = 0,
                    log: Callable[[str], None] = lambda s: None) -> SelectionResult:
     """Greedy forward selection of effects with held-out evidence (see module docstring)."""
-    test_idx, folds = split_episodes(len(preps), cfg, seed)
+    locked = np.array([bool(getattr(getattr(p, "ep", None), "meta", {}).get("locked_test")) for p in preps])
+    test_idx, folds = split_episodes(len(preps), cfg, seed, locked)
     pool_idx = np.concatenate(folds)
     pool = [preps[i] for i in pool_idx]
     nm = model.norms(pool)
     horizon = max(2, int(round(cfg.horizon_s / preps[0].period_s)))
+    if isinstance(nm, Norms):
+        nm.horizon = horizon
     candidates, skipped = model.candidate_effects(preps)
     log(f"{len(preps)} episodes: {test_idx.size} locked for test, {pool_idx.size} in {len(folds)} folds; "
         f"{len(candidates)} candidate effects")
@@ -188,18 +250,22 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
     ambiguous: list[dict] = []
     rounds: list[dict] = []
     # Fold indices into `preps` order; losses come out in pool order.
+    budget = 0  # index of the last error budget spent (a pair attempt spends the next round's)
     for rnd in range(cfg.max_rounds):
+        if budget >= cfg.max_rounds:
+            break
+        budget += 1
         effects = list(current.effects)
         candidates, skipped = model.candidate_effects(preps, tuple(effects))
         remaining = [c for c in candidates if c not in effects]
         if not remaining:
             break
         base_loss = crossval_losses(model, preps, folds, effects, nm, horizon, current, [])
-        alpha_round = cfg.alpha / len(remaining)
+        alpha_round = round_alpha(cfg.alpha, budget) / len(remaining)
         results = []
         for name in remaining:
             losses = crossval_losses(model, preps, folds, effects + [name], nm, horizon, current, [name])
-            gain = float(1.0 - losses.mean() / base_loss.mean())
+            gain = heldout_gain(base_loss, losses)
             r = CandidateResult(name, losses, gain, paired_p(base_loss, losses))
             results.append(r)
             log(f"  round {rnd + 1}: {name:18s} held-out gain {gain:+.3f}  p={r.p_value:.2g}")
@@ -207,13 +273,42 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
         passing = [r for r in results if r.p_value < alpha_round and r.gain >= cfg.min_gain]
         round_doc = {
             "round": rnd + 1,
+            "budget_round": budget,
             "base_effects": effects,
-            "base_heldout_loss": float(base_loss.mean()),
+            "base_heldout_loss": base_loss.mean(axis=0).tolist() if base_loss.ndim > 1 else float(base_loss.mean()),
             "alpha": alpha_round,
             "candidates": [{"name": r.name, "heldout_gain": r.gain, "p_value": r.p_value} for r in results],
         }
+        if base_loss.ndim > 1:
+            round_doc["loss_channels"] = list(LOSS_CHANNELS)
+            for c, r in zip(round_doc["candidates"], results, strict=True):
+                c["channel_gain"] = (1.0 - r.losses.sum(0) / base_loss.sum(0)).tolist()
+        # Look-alikes: test each of the best candidates in the presence of the others, so that one
+        # that only mimics the true effect (a deadband for Coulomb friction) cannot block it.
+        pairs = (pair_tests(model, preps, folds, effects, nm, horizon, current, results, alpha_round, cfg)
+                 if getattr(model, "pair_tests", False) else [])
+        if pairs:
+            round_doc["pairs"] = pairs
+            dominated = {d["explained"] for d in pairs if d["explained"]
+                         and any(r.name == d["explains"] for r in passing)}
+            passing = [r for r in passing if r.name not in dominated] + [r for r in passing if r.name in dominated]
+            for r in passing:
+                if r.name in dominated:
+                    r.verdict = "rejected: explained by " + next(
+                        d["explains"] for d in pairs if d["explained"] == r.name)
         winner = None
         for r in passing:
+            if r.verdict:
+                continue
+            stuck = {}
+            if getattr(model, "reports_bounds", False):
+                bound = model.fit(pool, effects + [r.name], refine=False, start=current, search=[r.name])
+                stuck = {h: v for h, v in bound.at_bound.items() if h == axis.HYPER_OF.get(r.name)}
+            if stuck:
+                r.verdict = (f"rejected: estimate at the edge of its search range even after widening it "
+                             f"({', '.join(f'{h}={v:.4g}' for h, v in stuck.items())}); the data do not bound it")
+                log(f"  round {rnd + 1}: {r.name}: {r.verdict}")
+                continue
             r.interval, r.stability, r.boot_values = bootstrap_effect(
                 model, preps, pool_idx, current, effects, r.name, cfg.n_boot, seed + rnd, nm)
             ok_int = _excludes(r.interval, model.catalogue[r.name].no_effect)
@@ -225,11 +320,29 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
             if r.verdict == "accepted":
                 winner = r
                 break
+        for r in passing:
+            if r.verdict.startswith("rejected: explained by"):
+                log(f"  round {rnd + 1}: {r.name}: {r.verdict}")
         round_doc["decisions"] = [
             {"name": r.name, "verdict": r.verdict, "interval": r.interval, "stability": r.stability}
             for r in passing if r.verdict
         ]
         rounds.append(round_doc)
+        # Pair fallback: only when the best single candidate shows evidence on its own (unadjusted)
+        # and a round of error budget is left for it.
+        lead = results[0] if results else None
+        if (winner is None and getattr(model, "pair_tests", False) and len(results) > 1 and budget < cfg.max_rounds
+                and lead.gain >= cfg.min_gain and lead.p_value < cfg.alpha):
+            budget += 1
+            pair = try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, results, base_loss,
+                            round_alpha(cfg.alpha, budget) / (len(results) - 1), cfg, seed + rnd, round_doc, log)
+            if pair:
+                current = model.fit(pool, effects + [r.name for r in pair], refine=True, start=current)
+                for r in pair:
+                    r.fitted = current
+                    accepted.append(r)
+                log(f"accepted the pair {pair[0].name} + {pair[1].name}")
+                continue
         if winner is None:
             break
         # Look-alikes that explain the held-out data about as well as the winner.
@@ -260,9 +373,170 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
         winner.fitted = current
         accepted.append(winner)
         log(f"accepted {winner.name}: {current.effect_params(winner.name)}")
+    if len(accepted) > 1:
+        current, accepted, ambiguous = prune_effects(model, preps, folds, pool, current, accepted, ambiguous, nm,
+                                                     horizon, cfg, rounds, log)
+    if accepted and getattr(model, "pair_tests", False):
+        ambiguous += swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, horizon, cfg, log)
     if not accepted:
         log("no effect passed the tests")
     return SelectionResult(accepted, ambiguous, rounds, current, nominal, skipped, test_idx, folds, nm, horizon)
+
+
+def try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, results: list[CandidateResult],
+             base_loss, alpha_pair: float, cfg: SelectionConfig, seed: int, round_doc: dict, log):
+    """When no single candidate passes: the best one together with each other candidate.
+
+    Tried only when the best candidate helps on its own at the unadjusted level (gain ≥
+    ``min_gain``, p < alpha) and a round of error budget is left.
+
+    Two effects may only help together (on EMPS, Coulomb friction alone makes some open-loop
+    windows worse; with the force offset it explains the data). The pair is tested against the
+    model without both, at the next round's error budget split over the pairs tried (so the
+    error rate stays controlled over all rounds), and each member must also help in the
+    presence of the other (p < alpha) and pass the bootstrap checks with the other in the model.
+    Returns the two accepted CandidateResults, or None.
+    """
+    lead = results[0]
+    tried, best = [], None
+    for other in results[1:]:
+        both = crossval_losses(model, preps, folds, effects + [lead.name, other.name], nm, horizon, current,
+                               [lead.name, other.name])
+        gain, p = heldout_gain(base_loss, both), paired_p(base_loss, both)
+        p_lead, p_other = paired_p(other.losses, both), paired_p(lead.losses, both)
+        tried.append({"effects": [lead.name, other.name], "heldout_gain": gain, "p_value": p,
+                      "p_adding": {lead.name: p_lead, other.name: p_other}})
+        if (p < alpha_pair and gain >= cfg.min_gain and max(p_lead, p_other) < cfg.alpha
+                and (best is None or gain > best[1])):
+            best = (other, gain, p, both)
+    round_doc["pair_fallback"] = {"alpha": alpha_pair, "tried": tried}
+    if best is None:
+        return None
+    other, gain, p, _ = best
+    out = []
+    for r, partner in ((lead, other), (other, lead)):
+        res = CandidateResult(r.name, best[3], gain, p)
+        res.interval, res.stability, res.boot_values = bootstrap_effect(
+            model, preps, pool_idx, current, effects + [partner.name], r.name, cfg.n_boot, seed, nm)
+        ok = _excludes(res.interval, model.catalogue[r.name].no_effect) and res.stability >= cfg.min_stability
+        res.verdict = "accepted (as a pair with " + partner.name + ")" if ok else "rejected: pair member fails the bootstrap"
+        log(f"  pair {lead.name} + {other.name}: {r.name} interval {res.interval}, stability {res.stability:.2f}")
+        out.append(res)
+    round_doc["pair_fallback"]["decision"] = [{"name": r.name, "verdict": r.verdict, "interval": r.interval,
+                                               "stability": r.stability} for r in out]
+    return out if all(r.verdict.startswith("accepted") for r in out) else None
+
+
+def swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, horizon, cfg, log) -> list[dict]:
+    """Swap each accepted effect for each of its look-alikes that was never compared on equal terms.
+
+    The order of acceptance can hide a look-alike: once Coulomb friction and an offset are in,
+    direction-dependent friction (the same thing on every moving row) adds nothing and is never
+    a rival. Each accepted effect is replaced by each look-alike that the model with the others
+    offers; when the held-out data cannot tell the two models apart (paired tests both ways,
+    p ≥ alpha), the pair is reported as ambiguous with the excitation that would separate it.
+    """
+    table = model.look_alikes
+    names = [r.name for r in accepted]
+    known = {frozenset(a["effects"]) for a in ambiguous}
+    full = crossval_losses(model, preps, folds, list(current.effects), nm, horizon, current, [])
+    out = []
+    for name in names:
+        rest = [e for e in current.effects if e != name]
+        offered, _ = model.candidate_effects(preps, tuple(rest))
+        for alt in offered:
+            if alt in current.effects or not is_look_alike(name, alt, table) or frozenset({name, alt}) in known:
+                continue
+            swapped = crossval_losses(model, preps, folds, rest + [alt], nm, horizon, current, [alt])
+            p_worse, p_better = paired_p(swapped, full), paired_p(full, swapped)
+            if min(p_worse, p_better) >= cfg.alpha:
+                excitation = separating_excitation(name, alt, table)
+                out.append({"effects": [name, alt], "chosen": name,
+                            "heldout_gain": {name: 0.0, alt: heldout_gain(full, swapped)},
+                            "p_value_separation": min(p_worse, p_better), "excitation": excitation,
+                            "found_by": "swap"})
+                known.add(frozenset({name, alt}))
+                log(f"  ambiguous (swap): {name} vs {alt}; separate with {excitation}")
+    return out
+
+
+def prune_effects(model, preps, folds, pool, current, accepted, ambiguous, nm, horizon, cfg, rounds, log):
+    """Backward check: drop an accepted effect that the later ones made redundant.
+
+    Greedy forward selection can accept a look-alike first (an offset before the slope and the
+    payload that explain it). Each accepted effect is removed in turn; if the held-out loss
+    without it is not clearly worse (paired p ≥ alpha or gain < ``min_gain``), it goes.
+    """
+    full = crossval_losses(model, preps, folds, list(current.effects), nm, horizon, current, [])
+    dropped = []
+    for r in list(accepted):
+        rest = [e for e in current.effects if e != r.name]
+        without = crossval_losses(model, preps, folds, rest, nm, horizon, current, [])
+        p, gain = paired_p(without, full), heldout_gain(without, full)
+        if p >= cfg.alpha or gain < cfg.min_gain:
+            log(f"pruned {r.name}: the other accepted effects explain it (gain of keeping it {gain:+.3f}, p={p:.2g})")
+            dropped.append({"name": r.name, "gain_of_keeping": gain, "p_value": p})
+            accepted = [a for a in accepted if a is not r]
+            current = model.fit(pool, rest, refine=True, start=current)
+            full = without
+    if dropped:
+        rounds.append({"round": "prune", "dropped": dropped})
+        gone = {d["name"] for d in dropped}
+        ambiguous = [a for a in ambiguous if a["chosen"] not in gone]
+        for r in accepted:
+            r.fitted = current
+    return current, accepted, ambiguous
+
+
+def round_alpha(alpha: float, rnd: int) -> float:
+    """Error budget of round ``rnd`` (1-based): alpha·6/(π²·rnd²), which sums to alpha over all rounds.
+
+    Within a round it is split evenly over the candidates (Bonferroni), so the probability of
+    accepting any effect that is not there stays below ``alpha`` over the whole selection,
+    however many rounds it takes.
+    """
+    return alpha * 6.0 / (math.pi**2 * rnd**2)
+
+
+#: How many of a round's best candidates are tested in each other's presence.
+PAIR_TOP = 3
+
+
+def pair_tests(model, preps, folds, effects, nm, horizon, current, results: list[CandidateResult],
+               alpha_round: float, cfg: SelectionConfig) -> list[dict]:
+    """Test the best candidates of a round in the presence of each other.
+
+    For the top :data:`PAIR_TOP` candidates that help on their own (gain ≥ ``min_gain``,
+    unadjusted p < alpha), fit every pair (a, b)
+    together. "a explains b" when adding a to b still lowers the held-out loss (p < the round's
+    alpha, gain ≥ ``min_gain``) while adding b to a does not (p ≥ alpha or gain < ``min_gain``):
+    b then only mimics part of a. Returns one record per pair.
+    """
+    top = [r for r in results if r.gain >= cfg.min_gain and r.p_value < cfg.alpha][:PAIR_TOP]
+    out = []
+    for i in range(len(top)):
+        for j in range(i + 1, len(top)):
+            a, b = top[i], top[j]
+            both = crossval_losses(model, preps, folds, effects + [a.name, b.name], nm, horizon, current,
+                                   [a.name, b.name])
+            a_adds = (paired_p(b.losses, both), heldout_gain(b.losses, both))
+            b_adds = (paired_p(a.losses, both), heldout_gain(a.losses, both))
+
+            def helps(t):
+                return t[0] < alpha_round and t[1] >= cfg.min_gain
+
+            def useless(t):
+                return t[0] >= cfg.alpha or t[1] < cfg.min_gain
+
+            # gain_adding[a]: held-out gain of adding a to a model that already has b (and vice versa)
+            rec = {"effects": [a.name, b.name], "gain_adding": {a.name: a_adds[1], b.name: b_adds[1]},
+                   "p_adding": {a.name: a_adds[0], b.name: b_adds[0]}, "explains": None, "explained": None}
+            if helps(a_adds) and useless(b_adds):
+                rec["explains"], rec["explained"] = a.name, b.name
+            elif helps(b_adds) and useless(a_adds):
+                rec["explains"], rec["explained"] = b.name, a.name
+            out.append(rec)
+    return out
 
 
 # ----------------------------------------------------------------------------- black box
@@ -280,20 +554,28 @@ def _bb_features(p: axis.Prepared, k: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
-def _bb_basis(z: np.ndarray, edges: list[np.ndarray], rng_seed: int) -> np.ndarray:
+def _bb_basis(z: np.ndarray, edges: list[np.ndarray], rng_seed: int, bins_only: tuple[int, ...] = ()) -> np.ndarray:
     """Flexible basis on standardized inputs: per-input quantile-bin indicators (an additive
     piecewise-constant model, like boosted stumps: catches e.g. position-periodic forces), plus
-    joint random Fourier features (smooth interactions) and the inputs themselves."""
+    joint random Fourier features (smooth interactions) and the inputs themselves.
+
+    Inputs in ``bins_only`` (the axis position) enter through their bins alone: a bin holds its
+    value beyond the training range, whereas a linear or Fourier term in raw position
+    extrapolates wildly on unbounded motion (a spinning motor, a driving vehicle) whose held-out
+    fold lies at positions the training folds never reached.
+    """
     rng = np.random.default_rng(rng_seed)
     n, d = z.shape
-    parts = [z]
+    smooth = [j for j in range(d) if j not in bins_only]
+    zs = z[:, smooth]
+    parts = [zs]
     for j in range(d):
         idx = np.clip(np.searchsorted(edges[j], z[:, j]), 0, len(edges[j]))
         onehot = np.zeros((n, len(edges[j]) + 1))
         onehot[np.arange(n), idx] = 1.0
         parts.append(onehot)
-    W = rng.standard_normal((d, 80)) / np.exp(rng.uniform(np.log(0.3), np.log(3.0), 80))[None, :]
-    parts.append(np.cos(z @ W + rng.uniform(0, 2 * np.pi, 80)[None, :]))
+    W = rng.standard_normal((len(smooth), 80)) / np.exp(rng.uniform(np.log(0.3), np.log(3.0), 80))[None, :]
+    parts.append(np.cos(zs @ W + rng.uniform(0, 2 * np.pi, 80)[None, :]))
     return np.concatenate(parts, axis=1)
 
 
@@ -359,11 +641,12 @@ def blackbox_check(preps, pool_idx_folds: list[np.ndarray], fitted: FittedModel,
         Zs = (Z[::stride] - zmu) / zsd
         edges = [np.unique(np.quantile(Zs[:, j], np.linspace(0, 1, nb + 1)[1:-1]))
                  for j, nb in enumerate(n_bins)]
-        F = _bb_basis(Zs, edges, seed)
+        bins_only = () if custom else (0,)  # axis: column 0 is the position
+        F = _bb_basis(Zs, edges, seed, bins_only)
         beta, fmu, rmean = _ridge_gcv(F, R[::stride])
         for j in held:
             z, r = rows[j]
-            pred = rmean + (_bb_basis((z - zmu) / zsd, edges, seed) - fmu) @ beta
+            pred = rmean + (_bb_basis((z - zmu) / zsd, edges, seed, bins_only) - fmu) @ beta
             sse_null.append(float(np.sum((r - rmean) ** 2)))
             sse_bb.append(float(np.sum((r - pred) ** 2)))
     sse_null, sse_bb = np.asarray(sse_null), np.asarray(sse_bb)
@@ -373,7 +656,7 @@ def blackbox_check(preps, pool_idx_folds: list[np.ndarray], fitted: FittedModel,
         "method": "ridge (GCV) on per-input quantile-bin indicators + random Fourier features of "
                   + ("commands (now, one period before) and the replay's predicted speeds; target: one-step "
                      "increment residual of v_fwd and crank velocities" if custom else
-                     "lagged command, position, velocity") + "; cross-fitted over the folds",
+                     "lagged command, position (bins only), velocity") + "; cross-fitted over the folds",
         "heldout_r2": r2,
         "p_value": p,
         "threshold_r2": cfg.bb_min_r2,
@@ -421,7 +704,8 @@ def detection_limits(preps_pool: list[axis.Prepared], fitted: FittedAxis, candid
     infl = _autocorr_inflation(res[0] if len(res[0]) > 50 else r, 2 * preps_pool[0].window)
     sigma = float(np.std(r)) * math.sqrt(infl)
     m = max(1, len(candidates))
-    z = st.norm.ppf(1 - cfg.alpha / (2 * m)) + st.norm.ppf(cfg.power)
+    # the first round's per-candidate threshold: the level an effect of this size would have to pass
+    z = st.norm.ppf(1 - round_alpha(cfg.alpha, 1) / (2 * m)) + st.norm.ppf(cfg.power)
     Q, _ = np.linalg.qr(X0)
     out: dict[str, dict] = {}
     for name in list(candidates) + [s for s in skipped if s not in candidates]:
@@ -464,11 +748,13 @@ def _sensitivity(preps, params: axis.AxisParams, name: str) -> tuple[np.ndarray 
     for p in preps:
         X0, _, _ = axis.design(p, params)
         theta = np.array([params.coef[n] for n in axis.coef_names(params.effects)])
-        if name in axis.COEF_OF or name == "stribeck_friction":
+        if name in axis.COEF_OF:
             q = copy.deepcopy(params)
             q.effects = params.effects + [name]
             if name == "stribeck_friction":
                 q.hyper["vs"] = float(np.sqrt(np.mean(p.v_obs**2))) * 0.1
+            if name == "gravity_load":
+                q.hyper["q0_rad"] = 0.0
             X1, _, _ = axis.design(p, q)
             col = X1[:, -1] if name != "battery_sag" else X1[:, axis.coef_names(q.effects).index("kb")] * params.coef["a"]
             cols.append(col)

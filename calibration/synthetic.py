@@ -36,9 +36,14 @@ class SynthConfig:
         v_noise_mps: velocity noise std [m/s] (measured velocity only).
         measure_velocity: log a velocity channel.
         effects: hidden effects, name -> parameters (see :data:`DEFAULTS`).
-        excitation: "steps" (random steps and chirps) or "sine" (slow zero-mean sines: velocity
-            keeps the sign of the command, which makes Coulomb friction and a deadband look alike).
+        excitation: "steps" (random steps and chirps), "sine" (slow zero-mean sines: velocity
+            keeps the sign of the command, which makes Coulomb friction and a deadband look alike)
+            or "drive" (forward-only speed steps, as a vehicle driving: position grows without bound).
         seed: random seed.
+        x_quant: encoder resolution [x-units] (0: none); the logged position is rounded to it.
+        velocity_from_differences: log a velocity channel computed as the finite difference of
+            the (quantised) logged position, as many drives do: quantised in x_quant/period_s steps.
+        n_rest: how many of the episodes are recorded at rest (zero command, the axis still).
     """
 
     n_episodes: int = 12
@@ -54,6 +59,9 @@ class SynthConfig:
     effects: dict[str, dict[str, float]] = field(default_factory=dict)
     excitation: str = "steps"
     seed: int = 0
+    x_quant: float = 0.0
+    velocity_from_differences: bool = False
+    n_rest: int = 0
 
 
 #: Default truth per effect (primary parameter first), used when a test names only the effect.
@@ -72,6 +80,8 @@ DEFAULTS: dict[str, dict[str, float]] = {
     "slope": {"gravity_acc": 1.0},
     "sensor_bias": {"bias_v": 0.1},
     "sensor_scale": {"scale_v": 1.1},
+    "asymmetric_friction": {"fa_acc": 0.8},  # on top of a Coulomb level (default 2.0 when not given)
+    "gravity_load": {"gl_acc": 4.0, "q0_rad": 0.0},  # x in rad
     "cogging": {"amp_acc": 3.0, "period_m": 0.5},  # outside the catalogue
 }
 
@@ -87,6 +97,14 @@ def _commands(rng: np.random.Generator, n: int, period_s: float, u_max: float, k
     if kind == "sine":
         t = np.arange(n) * period_s
         return rng.uniform(0.5, 1.0) * u_max * np.sin(2 * np.pi * rng.uniform(0.2, 0.5) * t + rng.uniform(0, 6.3))
+    if kind == "drive":
+        u = np.empty(n)
+        k = 0
+        while k < n:
+            length = int(rng.uniform(0.3, 1.0) / period_s)
+            u[k : k + length] = rng.uniform(0.0, u_max) if rng.random() > 0.15 else 0.0
+            k += length
+        return u
     u = np.empty(n)
     k = 0
     while k < n:
@@ -112,6 +130,7 @@ def generate(cfg: SynthConfig) -> list[Episode]:
     dts = cfg.period_s / S
     eff = {k: truth(k, cfg) for k in cfg.effects}
     u = np.stack([_commands(rng, n, cfg.period_s, cfg.u_max, cfg.excitation) for _ in range(E)])  # (E, n)
+    u[E - cfg.n_rest:] = 0.0  # episodes at rest: nothing commanded
 
     # Battery: each episode starts at a random charge and sags while driving.
     vbat = None
@@ -148,6 +167,11 @@ def generate(cfg: SynthConfig) -> list[Episode]:
 
     c = eff.get("viscous_friction", {}).get("c_per_s", cfg.c_per_s)
     fc = eff.get("coulomb_friction", {}).get("fc_acc", 0.0)
+    fa = eff.get("asymmetric_friction", {}).get("fa_acc", 0.0)
+    if fa and "coulomb_friction" not in eff:
+        fc = DEFAULTS["coulomb_friction"]["fc_acc"]
+    gl = eff.get("gravity_load", {}).get("gl_acc", 0.0)
+    q0 = eff.get("gravity_load", {}).get("q0_rad", 0.0)
     fs = eff.get("stribeck_friction", {}).get("fs_extra_acc", 0.0)
     vs = eff.get("stribeck_friction", {}).get("vs", 1.0)
     if "stribeck_friction" in eff and "coulomb_friction" not in eff:
@@ -171,9 +195,10 @@ def generate(cfg: SynthConfig) -> list[Episode]:
         for j in range(S):
             i = k * S + j
             f_act = alpha * f_act + (1 - alpha) * us[:, i] if tau > 0 else us[:, i]
-            drive = g * (cfg.a * f_act - c * v + d_off + cog_amp * np.sin(2 * np.pi * x / cog_p)) + slope
+            drive = g * (cfg.a * f_act - c * v + d_off + cog_amp * np.sin(2 * np.pi * x / cog_p)
+                         - gl * np.sin(x - q0)) + slope
             v_pred = v + dts * drive
-            step = dts * g * (fc + fs * np.exp(-((v / vs) ** 2)))
+            step = dts * g * (fc + fa * np.sign(v_pred) + fs * np.exp(-((v / vs) ** 2)))
             v_new = np.where(np.abs(v_pred) <= step, 0.0, v_pred - step * np.sign(v_pred))
             x = x + 0.5 * dts * (v + v_new)
             v = v_new
@@ -185,7 +210,11 @@ def generate(cfg: SynthConfig) -> list[Episode]:
     measure_v = cfg.measure_velocity or "sensor_bias" in eff or "sensor_scale" in eff
     for e in range(E):
         x_meas = xs[e] + cfg.x_noise_m * rng.standard_normal(n)
+        if cfg.x_quant > 0:
+            x_meas = np.round(x_meas / cfg.x_quant) * cfg.x_quant
         v_meas = ss * vs_true[e] + sb + cfg.v_noise_mps * rng.standard_normal(n) if measure_v else None
+        if cfg.velocity_from_differences:
+            v_meas = np.concatenate([[0.0], np.diff(x_meas) / cfg.period_s])
         episodes.append(
             Episode(
                 name=f"synthetic#episode={e}",

@@ -1,5 +1,5 @@
 """hil bench bus | plan | sim: speed goals as ratios against a peer in the same run;
-hil bench fuzz: every parser of untrusted bytes under atheris."""
+hil bench fuzz: every parser of untrusted bytes under atheris; calibrate: a gauntlet."""
 
 from __future__ import annotations
 
@@ -81,6 +81,30 @@ def bench_fuzz(
                 typer.echo(f"  input (hex): {t['crash']['input_hex']}")
     if r["crashes"]:
         raise typer.Exit(1)
+
+
+@bench_app.command("calibrate")
+@user_errors
+def bench_calibrate(
+    seeds: int = typer.Option(20, "--seeds", help="seeds per case (each runs an effect and a clean version)"),
+    cases: str | None = typer.Option(None, "--cases", help="comma-separated case names (default: all)"),
+    out: str = typer.Option("bench_calibrate", "--out", help="directory for the generated data and reports"),
+    workers: int = typer.Option(1, "--workers", help="worker processes"),
+    first_seed: int = typer.Option(0, "--first-seed", help="first seed (to run the seeds in batches)"),
+    json_out: bool = typer.Option(False, "--json"),
+) -> None:
+    """Realistic-data gauntlet for `hil calibrate`: hits, misses and false alarms over seeds."""
+    from tools.bench_calibrate import format_table, run_bench_calibrate
+
+    try:
+        r = run_bench_calibrate(seeds=seeds, cases=cases.split(",") if cases else None, out_dir=out, workers=workers,
+                                first_seed=first_seed)
+    except KeyError as e:
+        raise UserError(str(e.args[0])) from None
+    if json_out:
+        echo_json({"cases": r["cases"], "totals": r["totals"]})
+    else:
+        typer.echo(format_table(r))
 
 
 def register(app: typer.Typer) -> None:

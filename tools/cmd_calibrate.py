@@ -63,6 +63,8 @@ def register(app: typer.Typer) -> None:
                                      robot=robot)
         except (DataError, UnknownModel, ModelNotAvailable) as e:
             _fail(str(e))
+        for w in report.get("warnings", []):
+            print(f"warning: {w}", file=sys.stderr)
         summary = {
             "verdict": report["verdict"],
             "effects": [{"name": e["name"], "params": e["params"], "heldout_gain": e["heldout_gain"],

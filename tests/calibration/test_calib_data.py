@@ -56,17 +56,6 @@ def test_missing_column_names_column_and_file(tmp_path):
     assert "'voltage'" in str(e.value) and str(p) in str(e.value)
 
 
-def test_nan_names_file_column_and_row(tmp_path):
-    p = tmp_path / "log.csv"
-    df = _frame()
-    df.loc[57, "position"] = np.nan
-    df.to_csv(p, index=False)
-    with pytest.raises(DataError) as e:
-        load_episodes(p, "t=time,u=volts,x=position")
-    msg = str(e.value)
-    assert str(p) in msg and "'position'" in msg and "row 57" in msg
-
-
 def test_mcap_recording_loads_as_episodes(tmp_path):
     """A rig recording (spec + RobotState per period, episode counter) loads through
     learning.recordings: one Episode per recorded episode, commands in robot units, the
@@ -117,8 +106,11 @@ def test_sg_velocity_kernel_matches_derivative():
 
 
 def test_segmenting_long_recordings():
+    """Segments tile the recording: every scored row once, context margins overlap the neighbours."""
     eps = generate(SynthConfig(n_episodes=1, duration_s=10.0, seed=0))
-    segs, did = segment_episodes(eps, min_episodes=10, min_len=50)
-    assert did and len(segs) == 10
-    assert sum(s.n for s in segs) == eps[0].n
-    assert np.array_equal(np.concatenate([s.x for s in segs]), eps[0].x)
+    margin = 5
+    segs, plan = segment_episodes(eps, min_episodes=10, horizon_steps=50, margin=margin)
+    assert plan.segmented and len(segs) == 10 and plan.n_test == 2
+    scored = np.concatenate([s.x[margin:-margin] for s in segs])
+    np.testing.assert_array_equal(scored, eps[0].x[margin:-margin])
+    assert [s.meta["locked_test"] for s in segs] == [False] * 8 + [True] * 2

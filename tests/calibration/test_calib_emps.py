@@ -9,8 +9,10 @@ import pytest
 from calibration import run_calibration
 from calibration.emps import EMPS_GTAU_N_PER_V, EMPS_REFERENCE, emps_to_csv
 
-# <clone>/tests/calibration/this file -> parents[2] is the repo root; shared/ sits beside it.
-EMPS_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "emps"
+# shared/ sits beside the repo root (parents[2]); a git worktree may be one level deeper.
+EMPS_DIR = next((d for d in (Path(__file__).resolve().parents[i] / "shared" / "data" / "real" / "emps"
+                             for i in (3, 4)) if d.exists()),
+                Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "emps")
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +29,8 @@ def emps_report(tmp_path_factory):
 def test_emps_finds_coulomb_friction_and_halves_the_error(emps_report):
     r = emps_report
     names = [e["name"] for e in r["effects"]]
-    assert r["verdict"] == "found" and "coulomb_friction" in names
+    assert r["verdict"] == "found" and "coulomb_friction" in names and "force_offset" in names
+    assert r["confirmation"]["confirmed"] is True
     assert r["data"]["segmented"] is True  # one long recording -> contiguous segments
     assert r["after"]["multi_step_nrmse"]["mean"] <= 0.5 * r["before"]["multi_step_nrmse"]["mean"]
 

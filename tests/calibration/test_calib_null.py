@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from calibration.models import AxisModel
 from calibration.selection import SelectionConfig, select_effects
 from calibration.synthetic import SynthConfig, generate
@@ -17,6 +19,18 @@ def test_nothing_found_in_clean_data(report_for):
     lim = r["detection_limit"]["per_effect"]
     for name in ("coulomb_friction", "force_offset", "delay", "deadband"):
         assert lim[name]["value"] is not None and lim[name]["value"] > 0
+
+
+def test_detection_limit_uses_the_acceptance_threshold(report_for):
+    """The limit is computed at the level an effect must pass: round 1's per-candidate alpha."""
+    from scipy.stats import norm
+
+    from calibration.selection import round_alpha
+
+    r = report_for()
+    m = len(r["rounds"][0]["candidates"])
+    assert r["detection_limit"]["z"] == pytest.approx(norm.ppf(1 - round_alpha(0.05, 1) / (2 * m)) + norm.ppf(0.8))
+    assert r["data"]["resolution"]["can_accept"] is True
 
 
 def test_detection_limit_is_meaningful(report_for):
