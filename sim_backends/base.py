@@ -1,7 +1,8 @@
-"""Shared pieces of MuJoCo sim backends: lockstep time."""
+"""Shared pieces of MuJoCo sim backends: lockstep time, and real-time pacing for emulators."""
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from drivers.base import Driver
@@ -37,3 +38,36 @@ class LockstepSim(Driver):
     def reset(self, **kwargs: Any) -> None:
         """Put the simulated robot back to its initial state (sim-only convenience)."""
         raise NotImplementedError
+
+
+class RealtimePacer:
+    """Keeps a device emulator's simulation on the wall clock, in whole firmware ticks.
+
+    :meth:`due` says how many ticks of ``tick_s`` to integrate now so that sim time follows
+    ``realtime_factor`` × wall time since construction. When the loop falls more than
+    ``max_catchup_s`` behind (a loaded CPU), that time is given up and counted in
+    ``slip_s`` instead of integrated in one burst: the robot's world slows down rather than
+    jumping."""
+
+    def __init__(self, sim_time_s: float, tick_s: float, max_catchup_s: float = 0.05,
+                 realtime_factor: float = 1.0, now_s: float | None = None):
+        self.t0_s = time.monotonic() if now_s is None else now_s
+        self.sim_t0_s = sim_time_s
+        self.tick_s = tick_s
+        self.max_catchup_s = max_catchup_s
+        self.realtime_factor = realtime_factor
+        self.slip_s = 0.0
+
+    def target_s(self, now_s: float) -> float:
+        """The sim time the wall clock asks for at ``now_s``."""
+        return self.sim_t0_s + (now_s - self.t0_s) * self.realtime_factor
+
+    def due(self, now_s: float, sim_time_s: float) -> int:
+        """Whole ticks to integrate at ``now_s`` (0 when the sim is ahead)."""
+        lag = self.target_s(now_s) - sim_time_s
+        if lag > self.max_catchup_s:
+            slip = lag - self.max_catchup_s
+            self.sim_t0_s -= slip
+            self.slip_s += slip
+            lag = self.max_catchup_s
+        return max(0, int(lag / self.tick_s + 1e-9))

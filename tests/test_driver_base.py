@@ -221,3 +221,18 @@ def test_space_checks():
     assert s.index("b") == 1
     with pytest.raises(KeyError, match="channels are"):
         s.index("c")
+
+
+def test_realtime_pacer_follows_the_wall_clock_and_slips_instead_of_bursting():
+    from sim_backends.base import RealtimePacer
+
+    pacer = RealtimePacer(sim_time_s=5.0, tick_s=0.001, max_catchup_s=0.05, now_s=100.0)
+    assert pacer.due(100.0, 5.0) == 0
+    assert pacer.due(100.010, 5.0) == 10  # 10 ms of wall time: 10 ticks
+    assert pacer.due(100.010, 5.010) == 0  # caught up
+    # a 1 s stall: only 50 ms is integrated, the rest is given up and counted
+    assert pacer.due(101.010, 5.010) == 50
+    assert pacer.slip_s == pytest.approx(0.95)
+    assert pacer.due(101.020, 5.060) == 10  # then it runs on from the new origin
+    double = RealtimePacer(sim_time_s=0.0, tick_s=0.001, realtime_factor=2.0, now_s=0.0)
+    assert double.due(0.010, 0.0) == 20

@@ -51,6 +51,7 @@ from drivers.shadow_hand.protocol import (
     decode_targets,
     encode_telemetry,
 )
+from sim_backends.base import RealtimePacer
 from sim_backends.shadow_hand.backend import ShadowHandSim
 
 FW_DT_S = 0.001
@@ -274,7 +275,7 @@ class Emulator:
     # ------------------------------------------------------------------ loop
     def run(self, parent_pid: int | None = None) -> None:
         t0 = time.monotonic()
-        sim_t0 = self.sim.sim_time_s
+        pacer = RealtimePacer(self.sim.sim_time_s, FW_DT_S, MAX_CATCHUP_S, now_s=t0)
         tel_period = 1.0 / self.p.telemetry_hz
         next_tel = t0
         next_parent_check = t0 + 0.5
@@ -302,14 +303,8 @@ class Emulator:
                     and not fw.motor_fault_mask >> self.motor_fault_joint & 1):
                 fw.inject_motor_fault(self.motor_fault_joint)
                 log(f"motor fault injected on actuated joint {self.motor_fault_joint}")
-            target = sim_t0 + (now - t0)
-            lag = target - self.sim.sim_time_s
-            if lag > MAX_CATCHUP_S:
-                slip = lag - MAX_CATCHUP_S
-                sim_t0 -= slip
-                self.realtime_slip_s += slip
-                lag = MAX_CATCHUP_S
-            n = int(lag / FW_DT_S + 1e-9)
+            n = pacer.due(now, self.sim.sim_time_s)
+            self.realtime_slip_s = pacer.slip_s
             if n > 0:
                 self.sim.advance(n * FW_DT_S)
             now = time.monotonic()

@@ -42,6 +42,7 @@ from typing import Any
 from drivers.velociroach.config import VelociRoachParams
 from drivers.velociroach.link import FdPort, RadioLink, open_serial, xbee_rx64
 from drivers.velociroach.mavlink import ROBOT_COMPID, ROBOT_SYSID, EncodeError, MavEncoder, mav
+from sim_backends.base import RealtimePacer
 
 DEFAULT_PHYSICS = "sim_backends.velociroach.backend:VelociRoachSim"
 #: firmware PID rate: physics advances in whole milliseconds
@@ -216,7 +217,7 @@ class Emulator:
     # ------------------------------------------------------------------ loop
     def run(self, parent_pid: int | None = None) -> None:
         t0 = time.monotonic()
-        sim_t0 = self.sim.sim_time_s
+        pacer = RealtimePacer(self.sim.sim_time_s, FW_DT_S, MAX_CATCHUP_S, self.rtf, now_s=t0)
         tel_period = 1.0 / self.p.telemetry_hz
         next_tel = next_hb = next_pose = t0
         next_parent_check = t0 + 0.5
@@ -230,14 +231,8 @@ class Emulator:
             now = time.monotonic()
             self.check_watchdog(now)
             # real time: bring sim time up to the wall clock in whole firmware ticks
-            target = sim_t0 + (now - t0) * self.rtf
-            lag = target - self.sim.sim_time_s
-            if lag > MAX_CATCHUP_S:
-                slip = lag - MAX_CATCHUP_S
-                sim_t0 -= slip
-                self.realtime_slip_s += slip
-                lag = MAX_CATCHUP_S
-            n = int(lag / FW_DT_S + 1e-9)
+            n = pacer.due(now, self.sim.sim_time_s)
+            self.realtime_slip_s = pacer.slip_s
             if n > 0:
                 self.sim.advance(n * FW_DT_S)
             now = time.monotonic()

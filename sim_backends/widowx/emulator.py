@@ -35,6 +35,7 @@ import tty
 from typing import Any
 
 from drivers.dynamixel import protocol as p
+from sim_backends.base import RealtimePacer
 from sim_backends.widowx.firmware import TICK_S
 from sim_backends.widowx.world import ArmWorld
 
@@ -144,12 +145,11 @@ class BusEmulator:
 def run(bus: BusEmulator, fd: int, parent_pid: int | None, running: list[bool], rtf: float = 1.0) -> None:
     world = bus.world
     t0 = time.monotonic()
-    sim_t0 = world.time_s
+    pacer = RealtimePacer(world.time_s, TICK_S, MAX_CATCHUP_S, rtf, now_s=t0)
     next_parent_check = t0 + 0.5
     while running[0]:
         now = time.monotonic()
-        target = sim_t0 + (now - t0) * rtf
-        wait = max(0.0, min(TICK_S, world.time_s + TICK_S - target))
+        wait = max(0.0, min(TICK_S, world.time_s + TICK_S - pacer.target_s(now)))
         r, _, _ = select.select([fd], [], [], wait)
         if r:
             try:
@@ -161,15 +161,10 @@ def run(bus: BusEmulator, fd: int, parent_pid: int | None, running: list[bool], 
             if reply:
                 os.write(fd, reply)
         now = time.monotonic()
-        target = sim_t0 + (now - t0) * rtf
-        lag = target - world.time_s
-        if lag > MAX_CATCHUP_S:
-            sim_t0 -= lag - MAX_CATCHUP_S
-            bus.realtime_slip_s += lag - MAX_CATCHUP_S
-            lag = MAX_CATCHUP_S
         # step one tick at a time, checking the port between ticks: answers stay prompt
-        if lag >= TICK_S:
+        if pacer.due(now, world.time_s) >= 1:
             world.step()
+        bus.realtime_slip_s = pacer.slip_s
         if parent_pid and now >= next_parent_check:
             next_parent_check = now + 0.5
             if os.getppid() != parent_pid:
