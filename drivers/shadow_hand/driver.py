@@ -244,9 +244,9 @@ class ShadowHandDriver(Driver):
                     self._heartbeat()
                 self._driver_watchdog(now)
             except (can.CanError, OSError) as e:
-                hint = f"; emulator log: {self._emu_tail(3)}" if self._emu is not None else ""
+                err = f"CAN link lost ({self.params.transport}): {e}"
                 with self._lock:
-                    self._reader_error = f"CAN link lost ({self.params.transport}): {e}{hint}"
+                    self._reader_error = err if self._emu is None else self._emu.failure(err)
                 return
             except Exception as e:  # a bug here must show up in health, not kill the link silently
                 with self._lock:
@@ -355,8 +355,8 @@ class ShadowHandDriver(Driver):
         if emu is not None and emu.proc is not None and not emu.alive:
             # over UDP a dead emulator is only silence: say what happened instead of going stale
             with self._lock:
-                self._reader_error = self._reader_error or (
-                    f"the emulator exited with code {emu.proc.returncode}: {emu.tail(3)}")
+                self._reader_error = self._reader_error or emu.failure(
+                    f"the emulator exited with code {emu.proc.returncode}")
         with self._lock:
             err = self._reader_error
         if err:

@@ -440,10 +440,6 @@ class VelociRoachDriver(Driver):
         raise LinkError(f"no PID gains answer from the robot within {timeout_s} s")
 
     @property
-    def emulator_log(self) -> Path | None:
-        return None if self._emu is None else self._emu.log_path
-
-    @property
     def emulator(self) -> EmulatorProcess | None:
         """The emulator process of an emulated backend (tests kill it to simulate a lost device)."""
         return self._emu
