@@ -8,12 +8,19 @@ import typer
 
 from tools.common import UserError, user_errors
 
+#: The demos besides the roach MBRL one: name → (module, function, one-line help). Each
+#: function takes ``(out, quick=, full=, seed=)`` and prints its own summary.
+OTHER_DEMOS: dict[str, tuple[str, str, str]] = {
+    "transfer": ("tools.demo_transfer", "cli_transfer", "SIDM and GAT/GARAT (docs/transfer.md)"),
+}
+
 
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def demo(
-        what: str = typer.Argument("roach", help="roach (MBRL) | transfer (SIDM, GAT/GARAT: docs/transfer.md)"),
+        what: str = typer.Argument("roach", help="roach (MBRL) | " + " | ".join(
+            f"{k} ({v[2]})" for k, v in OTHER_DEMOS.items())),
         out: Path = typer.Option(Path("out/demo"), "--out", help="output directory"),
         quick: bool = typer.Option(False, "--quick", help="smaller run (< 10 min on 2 cores)"),
         full: bool = typer.Option(False, "--full", help="also the thesis' Table 3.1, Fig. 3.8 speed sweep and "
@@ -33,13 +40,14 @@ def register(app: typer.Typer) -> None:
 
         Collects random data through the driver bridge, trains a dynamics model, runs MPC
         and the differential-drive baseline on five paths at a low and a high speed.
-        `hil demo transfer` runs SIDM and GAT/GARAT instead (tools/demo_transfer.py)."""
-        if what == "transfer":
-            from tools.demo_transfer import cli_transfer
+        The other demos (`hil demo transfer`, ...) are listed in OTHER_DEMOS."""
+        if what in OTHER_DEMOS:
+            import importlib
 
-            return cli_transfer(out, quick=quick, seed=seed)
+            module, fn, _ = OTHER_DEMOS[what]
+            return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed)
         if what != "roach":
-            raise UserError(f"hil demo: unknown demo {what!r} (roach | transfer)")
+            raise UserError(f"hil demo: unknown demo {what!r} ({' | '.join(['roach', *OTHER_DEMOS])})")
         from learning.mbrl import RigError
         from tools.demo import run_demo
 

@@ -139,7 +139,7 @@ def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print
     return report
 
 
-def cli_transfer(out: Path, quick: bool, seed: int) -> None:
+def cli_transfer(out: Path, quick: bool, full: bool, seed: int) -> None:
     """The `hil demo transfer` verb (registered in tools/cmd_demo.py)."""
     import os
 
