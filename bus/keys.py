@@ -74,7 +74,13 @@ def plan(rig: str) -> str:
 
 
 def model_update(rig: str) -> str:
+    """Adapted dynamics models from the adaptation node to the MPC (``ModelUpdate``)."""
     return f"{root(rig)}/model/update"
+
+
+def task_posterior(rig: str) -> str:
+    """MOLe's posterior over its tasks after each EM step (``TaskPosterior``)."""
+    return f"{root(rig)}/model/posterior"
 
 
 def reset(rig: str, what: str) -> str:
