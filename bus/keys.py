@@ -88,6 +88,11 @@ def reset(rig: str, what: str) -> str:
     return f"{root(rig)}/reset/{what}"
 
 
+def reset_all(rig: str) -> str:
+    """Every reset message of the rig (requests, answers, supervisor transitions)."""
+    return f"{root(rig)}/reset/**"
+
+
 def reset_transition(rig: str) -> str:
     """The reset supervisor's state-machine transitions (``ResetTransition``)."""
     return reset(rig, "transition")

@@ -142,7 +142,7 @@ class ModelUpdate(Msg, tag="hil.ModelUpdate/2"):
                    data=b"".join(a.tobytes() for a in arrays), **fields)
 
     def tensors(self, expected: dict[str, tuple[int, ...]] | None = None) -> dict[str, Any]:
-        """The tensors as float32 arrays (read-only views of ``data``), validated.
+        """The tensors as float32 arrays (views of one copy of ``data``), validated.
 
         Raises :class:`MalformedMessage` (one line naming the problem) when names and
         shapes do not match the buffer, a value is NaN or inf, or, with ``expected``
@@ -164,7 +164,8 @@ class ModelUpdate(Msg, tag="hil.ModelUpdate/2"):
         if 4 * sum(sizes) != len(self.data):
             raise MalformedMessage(
                 f"{where}: shapes need {4 * sum(sizes)} bytes of float32, the buffer has {len(self.data)}")
-        flat = np.frombuffer(self.data, dtype="<f4")
+        # one copy: the arrays are writable (torch takes them as they are) and never alias the message
+        flat = np.frombuffer(self.data, dtype="<f4").copy()
         if not np.isfinite(flat).all():
             bad = int(np.flatnonzero(~np.isfinite(flat))[0])
             name = self.names[int(np.searchsorted(np.cumsum(sizes), bad, side="right"))]
