@@ -162,6 +162,13 @@ class TransitionBuilder:
                 np.asarray(m.state, dtype=np.float64))
 
 
+def last_layer(adapter: Adapter) -> list[str]:
+    """Names of the parameters of the model's output layer (``6.weight``, ``6.bias`` for 3 hidden layers)."""
+    layers = {k.rsplit(".", 1)[0] for k in adapter.theta_star}
+    last = max(layers, key=lambda p: [int(x) if x.isdigit() else x for x in p.split(".")])
+    return [k for k in adapter.theta_star if k.rsplit(".", 1)[0] == last]
+
+
 def update_kind(adapter: Adapter, names: list[str]) -> str:
     """``full`` (every parameter), ``subset`` (some parameters; θ* for the rest, also none)
     or ``context`` (tensors that are not parameters, e.g. ReBAL's ``h``)."""
@@ -198,12 +205,15 @@ class AdaptationNode(Node):
 
     def __init__(self, adapter: Adapter, rig: str, robot: str, bus: BusConfig | None = None,
                  name: str = "adaptation", send: list[str] | None = None, **kw: Any):
-        super().__init__(name, rig, bus, **kw)
         unknown = sorted(set(send or ()) - set(adapter.theta_star))
         if unknown:
             raise ValueError(f"send: {unknown} are not parameters of the {adapter.name} model "
                              f"(it has {sorted(adapter.theta_star)})")
         self.adapter = adapter
+        # before the session opens: a long first call holding the GIL starved the new session's
+        # callbacks (states were lost right after it, under load)
+        self._warm_up()
+        super().__init__(name, rig, bus, **kw)
         self.robot = robot
         self.send = None if send is None else set(send)
         self.stats = AdaptationStats()
@@ -234,7 +244,6 @@ class AdaptationNode(Node):
                              f"{len(m.spec['action']['names'])}")
         self.spec = m.spec
         self.builder = TransitionBuilder(m.spec, self.stats)
-        self._warm_up()
         return self.spec
 
     def _warm_up(self) -> None:
