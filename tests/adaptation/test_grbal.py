@@ -7,31 +7,10 @@ import pytest
 import torch
 
 from learning.adaptation import load_adapter
-from learning.adaptation.grbal import GrbalAdapter, evaluate, meta_train, segments
-from learning.adaptation.model import AdaptiveMLP
-from learning.adaptation.training import fit_plain, transitions
+from learning.adaptation.grbal import GrbalAdapter, evaluate, segments
+from learning.adaptation.training import transitions
 from tests.adaptation import toy
-
-M = K = 8
-
-
-def _train_episodes():
-    rng = np.random.default_rng(0)
-    eps = []
-    for i in range(40):  # one condition per episode: speed gain and a turn bias
-        eps += toy.episodes(1, 40, seed=i, gain=rng.uniform(0.5, 1.5), turn_bias=rng.uniform(-1, 1))
-    return eps
-
-
-@pytest.fixture(scope="module")
-def meta():
-    torch.manual_seed(0)
-    eps = _train_episodes()
-    model = AdaptiveMLP(toy.NAMES, 2, hidden=(64, 64), seed=0)
-    fit_plain(model, eps, epochs=20, batch_size=128)
-    plain = AdaptiveMLP.from_checkpoint(model.to_checkpoint())  # the MB model, before meta-training
-    psi, hist = meta_train(model, segments(eps, M, K, stride=4), steps=150, meta_batch=16, lr=1e-3, psi_init=0.01)
-    return model, plain, psi, hist
+from tests.adaptation.conftest import K, M
 
 
 def test_adapted_k_step_error_is_below_unadapted_on_a_heldout_perturbation(meta):

@@ -12,13 +12,13 @@ from learning.adaptation.model import AdaptiveMLP
 from learning.adaptation.rebal import ContextEncoder, RebalAdapter, evaluate, meta_train
 from learning.adaptation.training import fit_plain
 from tests.adaptation import toy
-from tests.adaptation.test_grbal import K, M, _train_episodes
+from tests.adaptation.conftest import K, M, train_episodes
 
 
 @pytest.fixture(scope="module")
 def rebal():
     torch.manual_seed(0)
-    eps = _train_episodes()
+    eps = train_episodes()
     model = AdaptiveMLP(toy.NAMES, 2, hidden=(64, 64), seed=0, context_dim=8)
     enc = ContextEncoder(model, 8)
     # normalization from the data; the zero context is what an MB model without context sees
