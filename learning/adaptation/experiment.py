@@ -105,10 +105,10 @@ class AdaptationConfig:
     @classmethod
     def tiny(cls, **kw: Any) -> AdaptationConfig:
         """Seconds: the CLI test (numbers meaningless)."""
-        base = dict(seeds=(0,), conditions_per_terrain=2, rollouts_per_condition=1, rollout_steps=24,
+        base = dict(seeds=(0,), conditions_per_terrain=2, rollouts_per_condition=1, rollout_steps=12,
                     before_after_rollouts=1, hidden=(16, 16), M=4, K=4, plain_epochs=2, meta_steps=2, rebal_steps=2,
-                    context_dim=4, samples=32, paths=("straight",), path_scale=0.3, time_limit_speed_mps=0.5,
-                    switching_every_steps=6, switching_segments=2)
+                    context_dim=4, samples=32, paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.5,
+                    switching_every_steps=4, switching_segments=2)
         base.update(kw)
         return cls(**base)
 
