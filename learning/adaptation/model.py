@@ -42,19 +42,20 @@ class AdaptiveMLP(nn.Module):
             for the body frame; ``body_frame=False`` learns in the world frame).
         action_dim: A.
         hidden: hidden widths (thesis GrBAL: 3 x 512; MOLe: 3 x 500).
+        context_dim: width of an extra input the caller supplies (ReBAL's GRU state); 0: none.
         seed: weight init.
     """
 
     def __init__(self, state_names: Sequence[str], action_dim: int, hidden: Sequence[int] = (512, 512, 512),
-                 body_frame: bool = True, seed: int = 0):
+                 body_frame: bool = True, seed: int = 0, context_dim: int = 0):
         super().__init__()
         self.state_names = list(state_names)
         self.config = dict(state_names=self.state_names, action_dim=int(action_dim), hidden=[int(h) for h in hidden],
-                           body_frame=bool(body_frame), seed=int(seed))
+                           body_frame=bool(body_frame), seed=int(seed), context_dim=int(context_dim))
         S, A = len(self.state_names), int(action_dim)
         self.frame = PlanarFrame(self.state_names) if body_frame else None
         torch.manual_seed(seed)
-        sizes = [S + A, *self.config["hidden"], S]
+        sizes = [S + A + int(context_dim), *self.config["hidden"], S]
         layers: list[nn.Module] = []
         for i, (fi, fo) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
             layers.append(nn.Linear(fi, fo))
@@ -112,30 +113,27 @@ class AdaptiveMLP(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
 
-    def step(self, params: Params, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Next state (world frame, spec units) under parameters ``params``; any leading batch shape."""
-        y = functional_call(self.net, params, (self.inputs(state, action),))
+    def _net_in(self, state, action, context):
+        x = self.inputs(state, action)
+        if self.config["context_dim"]:
+            if context is None:
+                raise ValueError("this model needs a context (ReBAL hidden state)")
+            x = torch.cat([x, context.expand(*x.shape[:-1], context.shape[-1])], dim=-1)
+        return x
+
+    def step(self, params: Params, state: torch.Tensor, action: torch.Tensor,
+             context: torch.Tensor | None = None) -> torch.Tensor:
+        """Next state (world frame, spec units) under parameters ``params``; any leading batch
+        shape (``context``: ``[C]`` or broadcastable to the batch)."""
+        y = functional_call(self.net, params, (self._net_in(state, action, context),))
         body_next = self._body(state, state) + y * self.delta_std + self.delta_mean
         return self._world(body_next, state)
 
-    def loss(self, params: Params, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
+    def loss(self, params: Params, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+             context: torch.Tensor | None = None) -> torch.Tensor:
         """Mean squared normalized delta error (Gaussian NLL with fixed unit variance, up to a constant)."""
-        y = functional_call(self.net, params, (self.inputs(state, action),))
+        y = functional_call(self.net, params, (self._net_in(state, action, context),))
         return ((y - self.targets(state, next_state)) ** 2).mean()
-
-    def k_step_error(self, params: Params, states: np.ndarray, actions: np.ndarray) -> float:
-        """Open-loop error over a window: from ``states[0]`` apply ``actions[0..K-1]``; mean over
-        the K predictions of the squared state error normalized by ``delta_std`` per channel
-        (world frame). ``states [K+1, S]``, ``actions [K, A]``."""
-        with torch.no_grad():
-            s = torch.as_tensor(states[:1], dtype=torch.float32)
-            truth = torch.as_tensor(states[1:], dtype=torch.float32)
-            a = torch.as_tensor(actions, dtype=torch.float32)
-            err = []
-            for k in range(a.shape[0]):
-                s = self.step(params, s, a[k:k + 1])
-                err.append((((s[0] - truth[k]) / self.delta_std) ** 2).mean())
-            return float(torch.stack(err).mean())
 
     # -- checkpoint ---------------------------------------------------------------------------
     def to_checkpoint(self) -> dict[str, Any]:
@@ -144,6 +142,6 @@ class AdaptiveMLP(nn.Module):
     @classmethod
     def from_checkpoint(cls, ck: dict[str, Any]) -> AdaptiveMLP:
         c = ck["config"]
-        m = cls(c["state_names"], c["action_dim"], c["hidden"], c["body_frame"], c["seed"])
+        m = cls(c["state_names"], c["action_dim"], c["hidden"], c["body_frame"], c["seed"], c.get("context_dim", 0))
         m.load_state_dict(ck["state_dict"])
         return m
