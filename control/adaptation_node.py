@@ -329,7 +329,7 @@ class AdaptationNode(Node):
             return None
         msg = self._pub.put(to_message(upd, self.adapter, state, self.send))
         post = upd.info.get("posterior")
-        if post is not None:
+        if post:  # MOLe (empty before its first task exists)
             self._posterior.put(TaskPosterior(
                 method=upd.method, update_seq=upd.seq, state_stamp_ns=upd.state_stamp_ns,
                 state_seq=msg.state_seq, posterior=[float(p) for p in post],

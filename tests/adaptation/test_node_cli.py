@@ -63,3 +63,16 @@ def test_cli_errors_are_one_line(tmp_path):
         r = CliRunner().invoke(app, args)
         assert r.exit_code == 2 and why in r.output, (args, r.output)
         assert r.output.strip().count("\n") == 0 and "Traceback" not in r.output
+
+
+def test_bench_adaptation_measures_the_delay_against_raw_zenoh():
+    from tools.bench_adaptation import run_bench_adaptation
+
+    r = run_bench_adaptation(rig="pointmass_sim", updates=3, hidden=(16,), payloads=("last_layer",), peer_n=20)
+    row = r["last_layer"]
+    assert row["received"] == 3 and row["rejected"] == 0
+    assert row["bytes"] == 4 * (16 * 4 + 4)  # the output layer of a 16-wide net onto 4 states
+    assert 0 < row["delay_ms"]["p50"] <= row["delay_ms"]["p99"]
+    assert row["raw_oneway_ms_p50"] > 0 and row["ratio_p50"] > 0
+    assert row["node"]["transitions"] >= 3 and r["period_ms"] == 20.0
+    assert r["choice"] in ("last_layer", None) and r["choice"] == ("last_layer" if row["within_period"] else None)
