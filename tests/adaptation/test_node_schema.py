@@ -74,3 +74,21 @@ def test_update_and_posterior_are_recorded_and_read_back(tmp_path):
     np.testing.assert_array_equal(back.tensors(EXPECTED)["net.0.weight"], W["net.0.weight"].astype(np.float32))
     # JSON recording: bytes as base64, declared so in the schema third-party tools read
     assert json_schema(ModelUpdate)["properties"]["data"]["contentEncoding"] == "base64"
+
+
+def test_task_posterior_is_plotted_per_task_in_rerun(tmp_path):
+    import rerun as rr
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    mc = tmp_path / "a.mcap"
+    with McapLog(mc) as log:
+        for i in range(5):
+            log.write(keys.task_posterior("r"), TaskPosterior(method="mole", update_seq=i, posterior=[0.9, 0.1],
+                                                              task=0, tasks_created=2))
+    rrd = tmp_path / "a.rrd"
+    r = CliRunner().invoke(app, ["viz", "--recording", str(mc), "--save", str(rrd)])
+    assert r.exit_code == 0, r.output
+    ents = {str(c.entity_path) for c in rr.chunk.RrdReader(str(rrd)).stream().to_chunks()}
+    assert {"/model/mole/posterior/task0", "/model/mole/posterior/task1"} <= ents
