@@ -1,7 +1,8 @@
 """State → adapted model at the MPC: the delay of online adaptation on a realtime rig.
 
 One run on a wall-clock rig (default ``roach_emulated``: the real radio driver over a pty to
-the firmware emulator, 10 Hz):
+the firmware emulator, 10 Hz; a lockstep sim rig such as ``roach_sim`` is run paced on the
+wall clock instead):
 
 * ``hil up RIG`` (driver node + emulator) and, in this process, a controller commanding the
   robot at the control rate (the MBRL loop's safe random policy: cheap, so the delay is the
@@ -35,6 +36,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import yaml
 
 from bus import keys
 from bus.node import alive_nodes
@@ -91,7 +93,7 @@ def _pct(x: list[float] | np.ndarray) -> dict[str, float]:
     return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99))} if a.size else {}
 
 
-def measure_payload(ctl: ControllerNode, rig: str, ep: str, ck: Path, updates: int,
+def measure_payload(ctl: ControllerNode, rig: str, rig_file: str, ep: str, ck: Path, updates: int,
                     timeout_s: float) -> dict[str, Any]:
     """Run ``hil adapt`` on ``ck`` and receive ``updates`` updates the way the MPC does."""
     adapter = load_adapter(ck)
@@ -139,19 +141,27 @@ def run_bench_adaptation(rig: str = "roach_emulated", updates: int = 100, hidden
                          window: int = 16, context_dim: int = 32, payloads: tuple[str, ...] = PAYLOADS,
                          peer_n: int = 300, timeout_s: float = 180.0) -> dict[str, Any]:
     cfg = load_rig(rig)
+    tmpdir = tempfile.TemporaryDirectory()
     if cfg.pace != "realtime":
-        raise ValueError(f"rig {rig} runs in {cfg.pace} pace: the delay needs a wall-clock rig (e.g. roach_emulated)")
+        if any(r.backend != "sim" for r in cfg.robots.values()):
+            raise ValueError(f"rig {rig} runs in {cfg.pace} pace: the delay needs a wall-clock rig")
+        # a lockstep sim rig, paced on the wall clock instead (what a realtime sim rig is)
+        doc = yaml.safe_load(Path(cfg.source).read_text())
+        doc["pace"] = "realtime"
+        rig = str(Path(tmpdir.name) / "rig_realtime.yaml")
+        Path(rig).write_text(yaml.safe_dump(doc))
+        cfg = load_rig(rig)
     robot = next(iter(cfg.robots))
     spec = make_driver(rig_robot_config(cfg, robot)).spec
     period_ms = spec.period_s * 1e3
     ep = f"tcp/127.0.0.1:{free_port()}"
     bus = BusConfig(endpoint=ep)
-    out: dict[str, Any] = {"rig": rig, "period_ms": period_ms, "updates": updates, "hidden": list(hidden),
+    out: dict[str, Any] = {"rig": cfg.name, "pace": cfg.pace, "backend": cfg.robots[robot].backend, "period_ms": period_ms, "updates": updates, "hidden": list(hidden),
                            "window": window, "cpus": os.cpu_count(), "load_avg_1min": os.getloadavg()[0]}
-    with tempfile.TemporaryDirectory() as tmp:
+    with tmpdir as tmp:
         cks = write_checkpoints(Path(tmp), list(spec.state.names), len(spec.action.names), hidden, window,
                                 context_dim)
-        up = _cli("up", rig, "--endpoint", ep)
+        up = _cli("up", str(cfg.source or rig), "--endpoint", ep)
         ctl = None
         try:
             ctl = ControllerNode(cfg.name, robot, bus, name="bench-controller", handle_signals=False,
@@ -170,7 +180,15 @@ def run_bench_adaptation(rig: str = "roach_emulated", updates: int = 100, hidden
             drive = threading.Thread(target=ctl.run_realtime, args=(policy, 10**9), daemon=True, name="drive")
             drive.start()
             for name in payloads:
-                out[name] = measure_payload(ctl, cfg.name, ep, cks[name], updates, timeout_s)
+                if up.poll() is not None:
+                    raise RuntimeError(f"bench: the rig's driver node exited: {_stop(up)[1].strip()[-500:]}")
+                try:
+                    out[name] = measure_payload(ctl, cfg.name, str(cfg.source or rig), ep, cks[name], updates,
+                                                timeout_s)
+                except RuntimeError as e:
+                    rig_log = _stop(up)[1].strip().splitlines()[-3:] if up.poll() is not None else ["(still running)"]
+                    raise RuntimeError(f"{e} [payload {name}; driver node: {' | '.join(rig_log)}]") from None
+                print(f"bench adaptation: {name}: {out[name]['delay_ms']}", file=sys.stderr, flush=True)
             ctl.stop_event.set()
             drive.join(5)
         finally:

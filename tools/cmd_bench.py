@@ -74,6 +74,9 @@ def bench_adaptation(
         r = run_bench_adaptation(rig=rig, updates=updates, payloads=tuple(payload or PAYLOADS))
     except ValueError as e:
         raise UserError(str(e)) from None
+    except RuntimeError as e:  # the rig or the node failed: one line, exit 1
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from None
     echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
 
 
