@@ -132,6 +132,7 @@ def measure_payload(ctl: ControllerNode, rig: str, rig_file: str, ep: str, ck: P
         # the latest-value queue keeps only the newest: updates the receiver never saw
         "superseded": sub.dropped,
         "node_update_ms": {"p50": node_stats.get("update_ms_p50"), "p99": node_stats.get("update_ms_p99")},
+        "node_update_cpu_ms": {"p50": node_stats.get("update_cpu_ms_p50"), "p99": node_stats.get("update_cpu_ms_p99")},
         "node": {k: node_stats.get(k) for k in ("states", "transitions", "updates", "skipped_gap", "skipped_not_ok",
                                                 "skipped_stopped", "window_clears")},
     }
@@ -210,6 +211,10 @@ def run_bench_adaptation(rig: str = "roach_emulated", updates: int = 100, hidden
         out[name]["within_period"] = bool(d) and d["p99"] < period_ms
     grbal = [n for n in ("full", "last_layer") if n in payloads and out[n]["within_period"]]
     out["choice"] = grbal[0] if grbal else None
+    if not grbal:
+        out["note"] = (f"no GrBAL payload's p99 fit in {period_ms:.0f} ms at 1-min load {out['load_avg_1min']:.1f} on "
+                       f"{out['cpus']} CPUs: compare node_update_ms (wall) with node_update_cpu_ms (CPU) to see how "
+                       "much of it is waiting for a CPU")
     return out
 
 

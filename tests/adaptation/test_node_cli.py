@@ -75,4 +75,5 @@ def test_bench_adaptation_measures_the_delay_against_raw_zenoh():
     assert 0 < row["delay_ms"]["p50"] <= row["delay_ms"]["p99"]
     assert row["raw_oneway_ms_p50"] > 0 and row["ratio_p50"] > 0
     assert row["node"]["transitions"] >= 3 and r["period_ms"] == 20.0
+    assert 0 < row["node_update_cpu_ms"]["p50"] <= row["node_update_cpu_ms"]["p99"]
     assert r["choice"] in ("last_layer", None) and r["choice"] == ("last_layer" if row["within_period"] else None)
