@@ -34,6 +34,16 @@ from learning.frames import PlanarFrame
 Params = dict[str, torch.Tensor]
 
 
+def _safe_std(x: torch.Tensor) -> torch.Tensor:
+    """Per-channel std with constant channels (< 1e-6) set to 1, the rule of
+    ``learning.datasets.NormStats``. Constant inputs exist by construction (the body-frame
+    x, y are 0 and cos yaw is 1 for the state itself); a tiny std there would blow the
+    slightest deviation of a *predicted* state (a cos/sin pair off the unit circle) up by
+    1e6 and make multi-step rollouts diverge."""
+    std = x.std(0)
+    return torch.where(std < 1e-6, torch.ones_like(std), std)
+
+
 class AdaptiveMLP(nn.Module):
     """MLP dynamics over (state, normalized action), predicting the body-frame delta.
 
@@ -105,9 +115,9 @@ class AdaptiveMLP(nn.Module):
         x = torch.cat([self._body(s, s), a], dim=-1)
         d = self._body(n, s) - self._body(s, s)
         self.input_mean.copy_(x.mean(0))
-        self.input_std.copy_(x.std(0).clamp_min(1e-6))
+        self.input_std.copy_(_safe_std(x))
         self.delta_mean.copy_(d.mean(0))
-        self.delta_std.copy_(d.std(0).clamp_min(1e-6))
+        self.delta_std.copy_(_safe_std(d))
 
     # -- functional forward and loss ------------------------------------------------------------
     def forward(self, x: torch.Tensor) -> torch.Tensor:
