@@ -312,3 +312,30 @@ def test_a_slow_model_swap_never_holds_back_a_command(bus, spawn):
     # every slow build overlapped commands going out: the loop did not wait for it
     assert builds and all(end[1] > start[1] for start, end in builds)
     assert log.late_plans >= len(builds)
+
+
+def test_mole_publishes_its_task_posterior_beside_the_model(bus):
+    from bus.schemas import TaskPosterior, decode
+    from learning.adaptation.mole import MoleAdapter
+
+    base = linear_adapter()
+    psi = {k: torch.full_like(v, 0.01) for k, v in base.theta_star.items()}
+    rig = FakeRig(bus)
+    posts = rig.node.subscribe(keys.task_posterior(RIG), TaskPosterior, latest=False)
+    node = AdaptationNode(MoleAdapter(base.model, psi, window=4), RIG, ROBOT, bus, handle_signals=False)
+    try:
+        wait_for(lambda: (rig.spec.put(SpecMsg(robot=ROBOT, spec=SPEC)), node._spec.wait(0.05))[1], 10, "the spec")
+        node.wait_ready(5)
+        for i in range(5):
+            rig.put(0.1 * i)
+        pump(node, 5)
+        got: list[TaskPosterior] = []
+        wait_for(lambda: got.extend(decode(b, TaskPosterior) for _, b in posts.drain()) or
+                 (got and got[-1].update_seq == node.last.update_seq), 10, "the posterior of the last update")
+        p = got[-1]
+        assert p.method == "mole" and p.tasks_created >= 1 and len(p.posterior) >= 1
+        assert abs(sum(p.posterior) - 1.0) < 1e-6 and p.update_seq == node.last.update_seq
+        assert node.last.method == "mole" and node.last.kind == "full" and "posterior" not in node.last.info
+    finally:
+        node.close()
+        rig.node.close()
