@@ -81,6 +81,8 @@ def register(app: typer.Typer) -> None:
                 dyn = SimpleNamespace(predict=swap.initial())
             spec = ctl.wait_ready()
             names = list(spec["state"]["names"])
+            if adapter is not None and list(adapter.model.state_names) != names:
+                raise UserError(f"{adapt} models states {list(adapter.model.state_names)}; robot {robot} has {names}")
             cost = PathCost(wp, names)
             # as in `hil demo`: track the path with rounded corners, score on the path itself
             mcfg = MbrlConfig(planner=planner)
