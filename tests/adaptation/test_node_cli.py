@@ -77,3 +77,14 @@ def test_bench_adaptation_measures_the_delay_against_raw_zenoh():
     assert row["node"]["transitions"] >= 3 and r["period_ms"] == 20.0
     assert 0 < row["node_update_cpu_ms"]["p50"] <= row["node_update_cpu_ms"]["p99"]
     assert r["choice"] in ("last_layer", None) and r["choice"] == ("last_layer" if row["within_period"] else None)
+
+
+def test_mpc_refuses_a_checkpoint_of_another_robot(bus, spawn, tmp_path):
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    ck = str(roach_checkpoint(tmp_path / "mbde.pt"))
+    spawn("up", "pointmass_lockstep", "--endpoint", bus.endpoint)
+    r = CliRunner().invoke(app, ["mpc", "pointmass_lockstep", "--adapt", ck, "--endpoint", bus.endpoint])
+    assert r.exit_code == 2 and "robot pm has ['x', 'y', 'vx', 'vy']" in r.output, r.output
