@@ -339,3 +339,12 @@ def test_mole_publishes_its_task_posterior_beside_the_model(bus):
     finally:
         node.close()
         rig.node.close()
+
+
+def test_last_layer_is_the_output_layer_also_past_ten_modules():
+    from control.adaptation_node import last_layer, update_kind
+
+    deep = MbDeAdapter(AdaptiveMLP(NAMES, 2, hidden=(4,) * 5, body_frame=False))  # Linear at 0, 2, ..., 10
+    assert last_layer(deep) == ["10.weight", "10.bias"]  # not "8": layers sort by number
+    assert update_kind(deep, last_layer(deep)) == "subset"
+    assert update_kind(deep, list(deep.theta_star)) == "full" and update_kind(deep, ["h"]) == "context"
