@@ -100,7 +100,8 @@ class MpcPolicy:
     def __init__(self, model: Any, planner: Any, cost: Callable[..., torch.Tensor],
                  model_source: Callable[[], Any] | None = None):
         self.model = model
-        self.dynamics = model.predict
+        #: the dynamics swapped in by ``model_source`` (None: ``model.predict``)
+        self.dynamics = None
         self.model_source = model_source
         self.planner = planner
         self.cost = cost
@@ -120,7 +121,7 @@ class MpcPolicy:
                 self.dynamics = new
         if hasattr(self.cost, "observe"):
             self.cost.observe(state)  # a path cost tracks the robot's place on the path
-        a = self.planner(self.dynamics, self.cost, state)
+        a = self.planner(self.dynamics or self.model.predict, self.cost, state)
         self.last_plan = self.planner.last_plan.numpy()
         pred = self.planner.last_predicted_states
         self.last_predicted_states = None if pred is None else pred.mean(0).numpy()
