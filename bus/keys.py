@@ -74,12 +74,23 @@ def plan(rig: str) -> str:
 
 
 def model_update(rig: str) -> str:
+    """Adapted dynamics models from the adaptation node to the MPC (``ModelUpdate``)."""
     return f"{root(rig)}/model/update"
+
+
+def task_posterior(rig: str) -> str:
+    """MOLe's posterior over its tasks after each EM step (``TaskPosterior``)."""
+    return f"{root(rig)}/model/posterior"
 
 
 def reset(rig: str, what: str) -> str:
     _check(what)
     return f"{root(rig)}/reset/{what}"
+
+
+def reset_all(rig: str) -> str:
+    """Every reset message of the rig (requests, answers, supervisor transitions)."""
+    return f"{root(rig)}/reset/**"
 
 
 def reset_transition(rig: str) -> str:

@@ -13,6 +13,7 @@ import time
 from typing import Any, TypeVar
 
 import msgspec
+import numpy as np
 
 
 class MalformedMessage(ValueError):
@@ -101,11 +102,110 @@ class SpecMsg(Msg, tag="hil.Spec/1"):
     spec: dict[str, Any]
 
 
-class ModelUpdate(Msg, tag="hil.ModelUpdate/1"):
-    model: str
-    version: int
-    path: str = ""
-    metrics: dict[str, float] = {}
+class ModelUpdate(Msg, tag="hil.ModelUpdate/2"):
+    """An online-adapted dynamics model, from the adaptation node to the MPC, on
+    ``hil/<rig>/model/update`` (control/adaptation_node.py, docs/adaptation.md "On the bus").
+
+    Tensors travel as one buffer of raw little-endian float32 (``data``, C order, in the
+    order of ``names``) with their names and shapes beside it: no per-element encoding, one
+    copy on each side, and :meth:`tensors` checks the whole buffer for NaN/inf in one pass.
+    ``kind`` says what the tensors are: ``full`` (every adapted parameter), ``subset``
+    (some of them, e.g. the last layer; the rest stay the meta-learned θ*) or ``context``
+    (a latent such as ReBAL's GRU state ``h``). Version 1 (model name + checkpoint path)
+    was never published by any node and is gone.
+    """
+
+    #: the adaptation method (``grbal``, ``rebal``, ``mb_de``, ``mole``, ``mb``)
+    method: str
+    kind: str = "full"
+    #: the adapter's own update counter
+    update_seq: int = 0
+    #: ``RobotState.stamp_s`` (sender wall clock) of the newest state the update used [ns];
+    #: the reference of the state → model delay
+    state_stamp_ns: int = 0
+    #: ``RobotState.seq`` and episode of that state
+    state_seq: int = 0
+    episode: int = 0
+    names: list[str] = []
+    #: one shape per name (C order)
+    shapes: list[list[int]] = []
+    #: the tensors, concatenated: little-endian float32
+    data: bytes = b""
+    #: method-specific extras (scalars, e.g. the inner step size or a loss) [free form]
+    info: dict[str, Any] = {}
+
+    @classmethod
+    def pack(cls, tensors: dict[str, Any], **fields: Any) -> ModelUpdate:
+        """A message carrying ``tensors`` (name → array-like, cast to float32)."""
+        arrays = [np.ascontiguousarray(v, dtype="<f4") for v in tensors.values()]
+        return cls(names=list(tensors), shapes=[list(a.shape) for a in arrays],
+                   data=b"".join(a.tobytes() for a in arrays), **fields)
+
+    def tensors(self, expected: dict[str, tuple[int, ...]] | None = None) -> dict[str, Any]:
+        """The tensors as float32 arrays (views of one copy of ``data``), validated.
+
+        Raises :class:`MalformedMessage` (one line naming the problem) when names and
+        shapes do not match the buffer, a value is NaN or inf, or, with ``expected``
+        (name → shape of what the receiver's model has), a name is unknown, a shape
+        differs, or a ``full`` update lacks a tensor.
+        """
+        where = f"model update {self.method}#{self.update_seq}"
+        if len(self.names) != len(self.shapes):
+            raise MalformedMessage(f"{where}: {len(self.names)} names but {len(self.shapes)} shapes")
+        if len(set(self.names)) != len(self.names):
+            raise MalformedMessage(f"{where}: repeated tensor names {sorted(self.names)}")
+        if self.kind not in UPDATE_KINDS:
+            raise MalformedMessage(f"{where}: kind {self.kind!r} is not one of {UPDATE_KINDS}")
+        sizes = []
+        for name, shape in zip(self.names, self.shapes, strict=True):
+            if any(not 0 <= d < 2**31 for d in shape):
+                raise MalformedMessage(f"{where}: tensor {name!r} has a dimension out of range: {shape}")
+            sizes.append(math.prod(shape))
+        if 4 * sum(sizes) != len(self.data):
+            raise MalformedMessage(
+                f"{where}: shapes need {4 * sum(sizes)} bytes of float32, the buffer has {len(self.data)}")
+        # one copy: the arrays are writable (torch takes them as they are) and never alias the message
+        flat = np.frombuffer(self.data, dtype="<f4").copy()
+        if not np.isfinite(flat).all():
+            bad = int(np.flatnonzero(~np.isfinite(flat))[0])
+            name = self.names[int(np.searchsorted(np.cumsum(sizes), bad, side="right"))]
+            raise MalformedMessage(f"{where}: tensor {name!r} has NaN or inf values")
+        if expected is not None:
+            for name, shape in zip(self.names, self.shapes, strict=True):
+                if name not in expected:
+                    raise MalformedMessage(f"{where}: unknown tensor {name!r} (the model has {sorted(expected)})")
+                if tuple(shape) != tuple(expected[name]):
+                    raise MalformedMessage(
+                        f"{where}: tensor {name!r} has shape {tuple(shape)}, the model expects {tuple(expected[name])}")
+            if self.kind == "full" and set(self.names) != set(expected):
+                missing = sorted(set(expected) - set(self.names))
+                raise MalformedMessage(f"{where}: a full update lacks tensors {missing}")
+        out, at = {}, 0
+        for name, shape, n in zip(self.names, self.shapes, sizes, strict=True):
+            out[name] = flat[at : at + n].reshape(shape)
+            at += n
+        return out
+
+
+#: what a :class:`ModelUpdate` carries (see there)
+UPDATE_KINDS = ("full", "subset", "context")
+
+
+class TaskPosterior(Msg, tag="hil.TaskPosterior/1"):
+    """MOLe's posterior over its tasks after an EM step, on ``hil/<rig>/model/posterior``
+    (recorded and plotted: one number per task)."""
+
+    method: str
+    update_seq: int = 0
+    #: as in :class:`ModelUpdate` [ns]
+    state_stamp_ns: int = 0
+    state_seq: int = 0
+    #: P(task | data) per task, in creation order (sums to 1)
+    posterior: list[float] = []
+    #: the most probable task (index into ``posterior``)
+    task: int = 0
+    #: tasks created so far (``len(posterior)`` unless tasks were merged or dropped)
+    tasks_created: int = 0
 
 
 class ResetEvent(Msg, tag="hil.ResetEvent/1"):
@@ -148,11 +248,12 @@ class Ping(Msg, tag="hil.Ping/1"):
 
 
 ALL_TYPES: tuple[type[Msg], ...] = (
-    RobotState, Command, EStop, EStopAck, Plan, Image, SpecMsg, ModelUpdate, ResetEvent, ResetTransition, Ping
+    RobotState, Command, EStop, EStopAck, Plan, Image, SpecMsg, ModelUpdate, TaskPosterior, ResetEvent, ResetTransition,
+    Ping,
 )
 AnyMsg = (
-    RobotState | Command | EStop | EStopAck | Plan | Image | SpecMsg | ModelUpdate | ResetEvent | ResetTransition
-    | Ping
+    RobotState | Command | EStop | EStopAck | Plan | Image | SpecMsg | ModelUpdate | TaskPosterior | ResetEvent
+    | ResetTransition | Ping
 )
 
 T = TypeVar("T", bound=Msg)

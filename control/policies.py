@@ -89,10 +89,20 @@ class SafeRandomPolicy:
 
 
 class MpcPolicy:
-    """``planner(dynamics, cost, state)`` with a learned model over normalized actions."""
+    """``planner(dynamics, cost, state)`` with a learned model over normalized actions.
 
-    def __init__(self, model: Any, planner: Any, cost: Callable[..., torch.Tensor]):
+    ``model_source`` (online adaptation, control/adaptation_node.py ``ModelSwap``): called
+    at the start of every plan, in the planner's thread; it returns a new dynamics function
+    ``(state, action) -> next state`` to plan with from now on, or None to keep the current
+    one. The swap happens between plans, never inside one.
+    """
+
+    def __init__(self, model: Any, planner: Any, cost: Callable[..., torch.Tensor],
+                 model_source: Callable[[], Any] | None = None):
         self.model = model
+        #: the dynamics swapped in by ``model_source`` (None: ``model.predict``)
+        self.dynamics = None
+        self.model_source = model_source
         self.planner = planner
         self.cost = cost
         self.last_plan: np.ndarray | None = None
@@ -105,9 +115,13 @@ class MpcPolicy:
             self.cost.reset()
 
     def __call__(self, state: np.ndarray) -> np.ndarray:
+        if self.model_source is not None:
+            new = self.model_source()
+            if new is not None:
+                self.dynamics = new
         if hasattr(self.cost, "observe"):
             self.cost.observe(state)  # a path cost tracks the robot's place on the path
-        a = self.planner(self.model.predict, self.cost, state)
+        a = self.planner(self.dynamics or self.model.predict, self.cost, state)
         self.last_plan = self.planner.last_plan.numpy()
         pred = self.planner.last_predicted_states
         self.last_predicted_states = None if pred is None else pred.mean(0).numpy()

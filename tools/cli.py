@@ -25,6 +25,7 @@ _VERB_MODULES = [
     "tools.cmd_demo",
     "tools.cmd_drive",
     "tools.cmd_mpc",
+    "tools.cmd_adapt",
     "tools.cmd_record",
     "tools.cmd_viz",
     "tools.cmd_calibrate",

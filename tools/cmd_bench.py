@@ -1,4 +1,4 @@
-"""hil bench bus | plan | sim: speed goals as ratios against a peer in the same run;
+"""hil bench bus | plan | sim | adaptation: speed goals as ratios against a peer in the same run;
 hil bench fuzz: every parser of untrusted bytes under atheris; calibrate: a gauntlet."""
 
 from __future__ import annotations
@@ -51,6 +51,32 @@ def bench_sim(
     from tools.bench_sim import run_bench_sim
 
     r = run_bench_sim(seconds_of_robot_time=seconds)
+    echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
+
+
+@bench_app.command("adaptation")
+@user_errors
+def bench_adaptation(
+    rig: str = typer.Option("roach_emulated", "--rig", help="a wall-clock (realtime) rig"),
+    updates: int = typer.Option(100, "--updates", help="updates measured per payload"),
+    payload: list[str] = typer.Option(None, "--payload", help="only these (repeatable): full, last_layer, context"),
+    json_out: bool = typer.Option(False, "--json"),
+) -> None:
+    """State stamp → adapted model built at the MPC (p50/p99) per payload, vs raw Zenoh of the same bytes."""
+    from tools.bench_adaptation import PAYLOADS, run_bench_adaptation
+
+    bad = [p for p in payload or [] if p not in PAYLOADS]
+    if bad:
+        raise UserError(f"--payload {bad[0]!r}: expected one of {list(PAYLOADS)}")
+    if updates < 1:
+        raise UserError(f"--updates must be at least 1, got {updates}")
+    try:
+        r = run_bench_adaptation(rig=rig, updates=updates, payloads=tuple(payload or PAYLOADS))
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    except RuntimeError as e:  # the rig or the node failed: one line, exit 1
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from None
     echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
 
 

@@ -14,7 +14,11 @@ def register(app: typer.Typer) -> None:
     @user_errors
     def mpc(
         rig: str = typer.Argument(..., help="rig config (its driver node must be up: `hil up RIG`)"),
-        model: Path = typer.Option(..., "--model", exists=True, dir_okay=False, help="dynamics checkpoint (model.pt)"),
+        model: Path = typer.Option(None, "--model", exists=True, dir_okay=False, help="dynamics checkpoint (model.pt)"),
+        adapt: Path = typer.Option(None, "--adapt", exists=True, dir_okay=False,
+                                   help="adaptation checkpoint instead of --model: plan with its model and swap in "
+                                        "the updates `hil adapt` publishes (docs/adaptation.md)"),
+        method: str = typer.Option(None, "--method", help="with --adapt: override the checkpoint's method"),
         path: str = typer.Option("straight", "--path", help="straight | left | right | zigzag | figure8"),
         path_scale: float = typer.Option(1.5, "--path-scale"),
         speed: float = typer.Option(1.0, "--speed", help="bound on normalized commands, (0, 1]"),
@@ -28,7 +32,10 @@ def register(app: typer.Typer) -> None:
         """Follow a path with MPC over the bus; prints the path cost.
 
         Commands are published at the control rate; on realtime rigs late plans are
-        replaced by the shifted last plan and counted."""
+        replaced by the shifted last plan and counted. With --adapt, each plan starts with the
+        newest model from hil/<rig>/model/update (run `hil adapt RIG --checkpoint C` beside it)."""
+        from types import SimpleNamespace
+
         import numpy as np
 
         from configs.schema import load_rig
@@ -39,6 +46,10 @@ def register(app: typer.Typer) -> None:
         from learning.frames import load_dynamics
         from learning.mbrl import MbrlConfig, PathEnd, make_planner, max_step_normalized, path_start_pose
 
+        if (model is None) == (adapt is None):
+            raise UserError("give exactly one of --model (a fixed model) and --adapt (an adaptation checkpoint)")
+        if method is not None and adapt is None:
+            raise UserError("--method needs --adapt")
         if not 0 < speed <= 1:
             raise UserError("--speed must be in (0, 1]")
         cfg = load_rig(rig)
@@ -49,17 +60,35 @@ def register(app: typer.Typer) -> None:
             wp = make_path(path, scale=path_scale)
         except (KeyError, ValueError) as e:
             raise UserError(str(e)) from None
-        dyn = load_dynamics(model)
+        adapter = swap = None
+        if adapt is not None:
+            from learning.adaptation import load_adapter
+
+            try:
+                adapter = load_adapter(adapt, method)
+            except ValueError as e:
+                raise UserError(str(e)) from None
+        else:
+            dyn = load_dynamics(model)
         bus = bus_config(endpoint) if endpoint else cfg.bus
         with ControllerNode(cfg.name, robot, bus, name="mpc", state_timeout_s=10.0) as ctl:
+            if adapter is not None:
+                from bus import keys
+                from bus.schemas import ModelUpdate
+                from control.adaptation_node import ModelSwap
+
+                swap = ModelSwap(adapter, ctl.subscribe(keys.model_update(cfg.name), ModelUpdate))
+                dyn = SimpleNamespace(predict=swap.initial())
             spec = ctl.wait_ready()
             names = list(spec["state"]["names"])
+            if adapter is not None and list(adapter.model.state_names) != names:
+                raise UserError(f"{adapt} models states {list(adapter.model.state_names)}; robot {robot} has {names}")
             cost = PathCost(wp, names)
             # as in `hil demo`: track the path with rounded corners, score on the path itself
             mcfg = MbrlConfig(planner=planner)
             ref = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
             planner_ = make_planner(mcfg, speed, len(spec["action"]["names"]), max_step_normalized(spec))
-            pol = MpcPolicy(dyn, planner_, ref)
+            pol = MpcPolicy(dyn, planner_, ref, model_source=swap)
             first = ctl.reset(**path_start_pose(wp)) if reset else None
             if cfg.pace == "lockstep":
                 log = ctl.run_lockstep(pol, steps, first, stop_if=PathEnd(PathCost(wp, names)))
@@ -68,6 +97,8 @@ def register(app: typer.Typer) -> None:
         m = evaluate_path_following(np.array(log.states), cost, period_s=float(spec["period_s"]))
         m.update(late_plans=log.late_plans, plan_ms_p50=float(np.percentile(log.plan_times_s, 50) * 1e3)
                  if log.plan_times_s else None)
+        if swap is not None:
+            m["model_updates"] = swap.summary()
         if json_out:
             echo_json(m)
         else:

@@ -168,6 +168,15 @@ def fuzz_bus(data: bytes) -> None:
     except schemas.MalformedMessage:
         return  # the documented error
     _check(isinstance(m, schemas.Msg), f"decoded a {type(m).__name__}")
+    if isinstance(m, schemas.ModelUpdate):
+        import numpy as np
+
+        try:
+            tensors = m.tensors()
+        except schemas.MalformedMessage:
+            pass  # the documented error
+        else:
+            _check(all(bool(np.isfinite(t).all()) for t in tensors.values()), "tensors() let NaN/inf through")
     raw = schemas.encode(m)
     # bytes, not ==: a NaN field is a valid float on the wire and never equals itself
     _check(schemas.encode(schemas.decode(raw, typ)) == raw, f"{type(m).__name__} does not round-trip")
@@ -183,7 +192,8 @@ def seeds_bus() -> list[bytes]:
         schemas.Plan(robot="roach", actions=[[0.1, 0.2]], states=[[0.0], [1.0]]),
         schemas.Image(camera="c", t_s=0.0, width=2, height=1, data=b"\x00" * 6),
         schemas.SpecMsg(robot="roach", spec={"period_s": 0.1}),
-        schemas.ModelUpdate(model="m", version=2, metrics={"loss": 0.1}),
+        schemas.ModelUpdate.pack({"w": [[1.0, 2.0]]}, method="mb_de", info={"loss": 0.1}),
+        schemas.TaskPosterior(method="mole", posterior=[0.25, 0.75], task=1, tasks_created=2),
         schemas.ResetEvent(robot="roach", phase="request", pose={"x": 0.0}),
         schemas.Ping(data=b"abc"),
     ]

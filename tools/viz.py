@@ -18,7 +18,18 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from bus import keys
-from bus.schemas import AnyMsg, Command, Image, MalformedMessage, Msg, Plan, RobotState, SpecMsg, decode
+from bus.schemas import (
+    AnyMsg,
+    Command,
+    Image,
+    MalformedMessage,
+    Msg,
+    Plan,
+    RobotState,
+    SpecMsg,
+    TaskPosterior,
+    decode,
+)
 
 
 def blueprint(has_images: bool = True) -> rrb.Blueprint:
@@ -99,6 +110,10 @@ class RigVisualizer:
                 if pts:
                     self.rec.log(f"world/{msg.robot}/plan", rr.LineStrips3D([pts], colors=[255, 120, 0]))
             self.rec.log(f"cmd/{msg.robot}/plan_cost", rr.Scalars(msg.cost))
+        elif isinstance(msg, TaskPosterior):
+            self._time(msg)  # MOLe: one line per task
+            for i, p in enumerate(msg.posterior):
+                self.rec.log(f"model/{msg.method}/posterior/task{i}", rr.Scalars(p))
         elif isinstance(msg, Image):
             self._time(msg, msg.t_s)
             if msg.encoding == "rgb8":

@@ -12,7 +12,8 @@ simulator, crank angles/velocities from the (14-bit) encoders, back-EMF and batt
 
 Public API for the emulator: ``VelociRoachSim(params)``, ``configure()``, ``reset()``,
 ``firmware``, ``advance(duration_s)``, ``telemetry()``, ``mocap_pose()``, ``sim_time_s``,
-``set_perturbation(name, value)``.
+``set_perturbation(name, value)``, ``apply_perturbations(settings)`` (typed settings,
+:mod:`.perturbations`).
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ TERRAINS: dict[str, dict[str, Any]] = {
 #: rough terrain: map beyond ±period/2 so the robot (±7 cm) always stands on it
 _WRAP_MARGIN_M = 0.25
 
-PERTURBATIONS = ("missing_leg", "payload_kg", "mocap_offset_m", "slope_deg")
+PERTURBATIONS = ("missing_leg", "payload_kg", "mocap_offset_m", "slope_deg", "heading_offset_deg")
 
 
 class SimParams(Params):
@@ -152,6 +153,7 @@ class VelociRoachSim(LockstepSim):
             "payload_kg": s.payload_kg,
             "mocap_offset_m": np.zeros(3),
             "slope_deg": s.slope_deg,
+            "heading_offset_deg": 0.0,
         }
         self._seq = 0
         self.mocap_samples = 0
@@ -313,6 +315,9 @@ class VelociRoachSim(LockstepSim):
         * ``payload_kg``: mass [kg] towed behind the robot (sliding friction ``payload_friction``).
         * ``mocap_offset_m``: a bias added to the mocap position (float: along x, or 3 floats).
         * ``slope_deg``: ground slope, + uphill along world +x (tilts gravity).
+        * ``heading_offset_deg``: pose miscalibration, the reported heading minus the true
+          one (the mocap orientation is rotated about world z; position and velocities stay
+          true).
         """
         if name not in PERTURBATIONS:
             raise KeyError(f"unknown perturbation {name!r}; known: {list(PERTURBATIONS)}")
@@ -337,6 +342,16 @@ class VelociRoachSim(LockstepSim):
             if self.model is not None:
                 a = math.radians(float(value))
                 self.model.opt.gravity[:] = (-9.81 * math.sin(a), 0.0, -9.81 * math.cos(a))
+        elif name == "heading_offset_deg":
+            if not math.isfinite(float(value)):
+                raise ValueError(f"heading_offset_deg must be finite, got {value!r}")
+            self.perturbations[name] = float(value)
+
+    def apply_perturbations(self, settings: Any) -> None:
+        """Set every perturbation from a :class:`.perturbations.PerturbationSettings`
+        (validated; unset fields go back to none), mid-episode included."""
+        for name, value in settings.as_backend().items():
+            self.set_perturbation(name, value)
 
     def _apply_missing_leg(self) -> None:
         m = self.model
@@ -461,6 +476,11 @@ class VelociRoachSim(LockstepSim):
                 aw * y - ax * z + ay * w + az * x,
                 aw * z + ax * y - ay * x + az * w,
             )
+        h = self.perturbations["heading_offset_deg"]
+        if h != 0.0:
+            # miscalibrated heading: rotate the reported orientation about world z (left product)
+            hc, hs = math.cos(0.5 * math.radians(h)), math.sin(0.5 * math.radians(h))
+            w, x, y, z = hc * w - hs * z, hc * x - hs * y, hc * y + hs * x, hc * z + hs * w
         self._mocap_queue.append((self._t + s.mocap_latency_s, self._t, pos, np.array([w, x, y, z]), ok))
 
     def _deliver_mocap(self, now_s: float) -> None:

@@ -1,0 +1,469 @@
+"""The adaptation experiment behind `hil demo adaptation` (thesis ch. 5-6 on the sim VelociRoACH).
+
+1. Random data on the training terrains under conditions sampled from the presets'
+   training range (``configs/perturbations/velociroach.yaml``).
+2. Train the plain model (MB, MB+DE), meta-train GrBAL (θ*, ψ) and ReBAL (GRU); MOLe uses
+   GrBAL's θ* and ψ as its prior. Checkpoints go to ``<out>/checkpoints``.
+3. Per test perturbation (and the held-out terrain): MB, MB+DE, GrBAL, ReBAL and MOLe with
+   the same planner on the same paths, scored with the roach evaluation's completion-aware
+   metrics (``control.costs.evaluate_path_following``, ``summarize_paths``), plus each
+   method's online prediction error on the next K transitions.
+4. ``k_step_error_before_after``: GrBAL's loss on the next K transitions before and after
+   its update, on random rollouts under each perturbation (thesis Figs 5.4, 5.5).
+5. Switching: normal and disabled-leg conditions alternate every N steps on one long
+   straight path; MOLe against k-shot (GrBAL from θ* each step) and continued adaptation
+   (gradient steps that continue from the previous step's parameters, from θ*).
+
+The planner runs in this process on the lockstep MuJoCo sim (no bus) for speed; the
+adaptation node (``hil/<rig>/model/update``) runs the same adapters on a live rig.
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from configs.schema import load_robot
+from control.controller_node import ActionScale
+from control.costs import PathCost, evaluate_path_following, summarize_paths
+from control.paths import fillet, make_path, path_length, straight
+from control.policies import SafeRandomPolicy
+from learning.adaptation import grbal, rebal
+from learning.adaptation.base import Adapter
+from learning.adaptation.baselines import MbAdapter, MbDeAdapter
+from learning.adaptation.grbal import GrbalAdapter, segments
+from learning.adaptation.model import AdaptiveMLP
+from learning.adaptation.mole import MoleAdapter
+from learning.adaptation.rebal import ContextEncoder, RebalAdapter
+from learning.adaptation.training import fit_plain, transitions
+from learning.datasets import Episode
+from learning.experiments import mean_std
+from learning.mbrl import MbrlConfig, PathEnd, make_planner, path_start_pose
+from sim_backends.velociroach.backend import VelociRoachSim
+from sim_backends.velociroach.perturbations import PerturbationPresets, PerturbationSettings, load_presets
+
+METHODS = ("mb", "mb_de", "grbal", "rebal", "mole")
+SWITCHING_METHODS = ("mole", "k_shot", "continued")
+
+
+@dataclass
+class AdaptationConfig:
+    """Sizes of one run. ``quick()``/``full()``/``tiny()`` are the presets of the demo."""
+
+    presets: str = "velociroach"
+    seeds: tuple[int, ...] = (0, 1, 2)
+    # data: per training terrain, this many conditions sampled from the training range (the
+    # first is unperturbed), each with this many random rollouts of rollout_steps at 10 Hz
+    conditions_per_terrain: int = 12
+    rollouts_per_condition: int = 8
+    rollout_steps: int = 50
+    before_after_rollouts: int = 6
+    # model (thesis GrBAL: 3 x 512 ReLU, fixed variance)
+    hidden: tuple[int, ...] = (512, 512, 512)
+    M: int = 16
+    K: int = 16
+    plain_epochs: int = 40
+    meta_steps: int = 1000
+    meta_batch: int = 16
+    meta_lr: float = 1e-3
+    psi_init: float = 0.01
+    rebal_steps: int = 1000
+    context_dim: int = 32
+    de_lr: float = 0.01
+    mole_lr: float = 0.01
+    # planner and paths (random shooting as on the real roach)
+    samples: int = 500
+    horizon: int = 4
+    speed: float = 0.5
+    paths: tuple[str, ...] = ("straight", "left", "right")
+    path_scale: float = 1.5
+    time_limit_speed_mps: float = 0.15
+    # switching (None: the presets' every_steps / segments)
+    switching_every_steps: int | None = None
+    switching_segments: int | None = None
+    threads: int = 1
+
+    @classmethod
+    def full(cls, **kw: Any) -> AdaptationConfig:
+        return cls(**kw)
+
+    @classmethod
+    def quick(cls, **kw: Any) -> AdaptationConfig:
+        base = dict(seeds=(0,), conditions_per_terrain=6, rollouts_per_condition=4, before_after_rollouts=3,
+                    hidden=(256, 256, 256), plain_epochs=30, meta_steps=300, rebal_steps=300,
+                    paths=("straight", "left"), switching_every_steps=100, switching_segments=4)
+        base.update(kw)
+        return cls(**base)
+
+    @classmethod
+    def tiny(cls, **kw: Any) -> AdaptationConfig:
+        """Seconds: the CLI test (numbers meaningless)."""
+        base = dict(seeds=(0,), conditions_per_terrain=2, rollouts_per_condition=1, rollout_steps=12,
+                    before_after_rollouts=1, hidden=(16, 16), M=4, K=4, plain_epochs=2, meta_steps=2, rebal_steps=2,
+                    context_dim=4, samples=32, paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.5,
+                    switching_every_steps=4, switching_segments=2)
+        base.update(kw)
+        return cls(**base)
+
+
+# ---------------------------------------------------------------------------- the sim
+class RoachSim:
+    """The VelociRoACH MuJoCo backend on one terrain, driven through the driver contract."""
+
+    def __init__(self, terrain: str, seed: int):
+        self.sim = VelociRoachSim.from_config(load_robot("velociroach", params={"sim": {"terrain": terrain, "seed": seed}}))
+        self.sim.configure()
+        self.sim.activate()
+        spec = self.sim.spec
+        self.state_names = list(spec.state.names)
+        self.scale = ActionScale(spec.action.low, spec.action.high)
+        self.period_s = float(spec.period_s)
+        rate = spec.action_rate_per_s
+        self.max_step = None if rate is None else np.asarray(rate, float) * self.period_s / self.scale.half
+
+    def start(self, pose: dict[str, float], settings: PerturbationSettings) -> np.ndarray:
+        self.sim.apply_perturbations(settings)
+        self.sim.reset(**pose)
+        return self.sim.read().state.copy()
+
+    def apply(self, settings: PerturbationSettings) -> None:
+        self.sim.apply_perturbations(settings)
+
+    def step(self, a_norm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Apply a normalized action; returns (the action actually applied, normalized; next state)."""
+        applied = self.sim.write(self.scale.to_robot(a_norm))
+        self.sim.tick()
+        return self.scale.to_norm(applied).astype(np.float32), self.sim.read().state.copy()
+
+    def close(self) -> None:
+        self.sim.deactivate()
+        self.sim.cleanup()
+
+
+def random_episodes(env: RoachSim, settings: PerturbationSettings, n: int, steps: int, seed: int,
+                    name: str) -> list[Episode]:
+    """``n`` random rollouts (the MBRL loop's safe random policy) under one condition."""
+    pol = SafeRandomPolicy(env.state_names, 2, 3.0, hold_steps=6, forward_fraction=0.6, seed=seed)
+    rng = np.random.default_rng([seed, 7])
+    out = []
+    for i in range(n):
+        s = env.start({"x": 0.0, "y": 0.0, "yaw": float(rng.uniform(-np.pi, np.pi))}, settings)
+        if hasattr(pol, "reset"):
+            pol.reset()
+        states, actions = [s], []
+        for _ in range(steps):
+            a, s = env.step(pol(s))
+            states.append(s)
+            actions.append(a)
+        out.append(Episode(np.array(states), np.array(actions), name=f"{name}#{i}",
+                           meta={"condition": settings.model_dump()}))
+    return out
+
+
+# ---------------------------------------------------------------------------- online error
+class KStepError:
+    """Each published model's error on the K transitions that follow its update.
+
+    ``add(dyn)`` at every update; ``observe(s, a, s')`` at every transition scores it with
+    the last K models. The error is the mean over channels of ``((ŝ' − s') / scale)²``
+    (one-step predictions, the GrBAL objective), ``scale``: std of the training deltas."""
+
+    def __init__(self, K: int, scale: np.ndarray):
+        self.K = K
+        self.scale = torch.as_tensor(scale, dtype=torch.float32)
+        self.live: collections.deque = collections.deque()
+        self.done: list[float] = []
+
+    def add(self, dyn) -> None:
+        self.live.append((dyn, []))
+
+    def observe(self, s, a, n) -> None:
+        s_t, a_t, n_t = (torch.as_tensor(x, dtype=torch.float32)[None] for x in (s, a, n))
+        for dyn, errs in self.live:
+            errs.append(float((((dyn(s_t, a_t) - n_t) / self.scale) ** 2).mean()))
+        while self.live and len(self.live[0][1]) >= self.K:
+            self.done.append(float(np.mean(self.live.popleft()[1])))
+
+    def mean(self) -> float:
+        vals = self.done + [float(np.mean(e)) for _, e in self.live if e]
+        return float(np.mean(vals)) if vals else float("nan")
+
+
+def drive(env: RoachSim, adapter: Adapter, planner, cost: PathCost, s: np.ndarray, steps: int, kerr: KStepError,
+          stop_if: Callable[[np.ndarray], bool] | None = None, on_step: Callable[[int, Any], None] | None = None):
+    """The control loop: observe → update → dynamics → plan → act, per step. Returns
+    (states [T+1, S], timings {adapt_ms, plan_ms})."""
+    adapter.reset()
+    planner.reset()
+    cost.reset()
+    states = [s]
+    prev = None
+    t_adapt, t_plan = [], []
+    for t in range(steps):
+        t0 = time.perf_counter()
+        if prev is not None:
+            adapter.observe(*prev, s)
+            kerr.observe(*prev, s)
+        upd = adapter.update(state_stamp_ns=t)
+        dyn = adapter.dynamics(upd)
+        t1 = time.perf_counter()
+        kerr.add(dyn)
+        cost.observe(s)
+        a = planner(dyn, cost, s)
+        t2 = time.perf_counter()
+        a_applied, s_next = env.step(a)
+        prev = (s, a_applied)
+        s = s_next
+        states.append(s)
+        t_adapt.append(t1 - t0)
+        t_plan.append(t2 - t1)
+        if on_step is not None:
+            on_step(t, upd)
+        if stop_if is not None and stop_if(s):
+            break
+    if prev is not None:
+        kerr.observe(*prev, s)
+    return np.array(states), {"adapt_ms_p50": 1e3 * float(np.median(t_adapt)), "plan_ms_p50": 1e3 * float(np.median(t_plan))}
+
+
+# ---------------------------------------------------------------------------- the run
+@dataclass
+class Trained:
+    plain: AdaptiveMLP
+    meta: AdaptiveMLP
+    psi: dict[str, torch.Tensor]
+    rebal_model: AdaptiveMLP
+    encoder: ContextEncoder
+    delta_scale: np.ndarray
+    history: dict[str, Any] = field(default_factory=dict)
+
+    def adapter(self, method: str, cfg: AdaptationConfig) -> Adapter:
+        if method == "mb":
+            return MbAdapter(self.plain, window=cfg.M)
+        if method == "mb_de":
+            return MbDeAdapter(self.plain, window=cfg.M, lr=cfg.de_lr)
+        if method in ("grbal", "k_shot"):
+            return GrbalAdapter(self.meta, self.psi, window=cfg.M)
+        if method == "rebal":
+            return RebalAdapter(self.rebal_model, self.encoder, window=cfg.M)
+        if method == "mole":
+            return MoleAdapter(self.meta, self.psi, window=cfg.K, lr=cfg.mole_lr, alpha=1.0)
+        if method == "continued":
+            return MbDeAdapter(self.meta, window=cfg.K, lr=cfg.mole_lr)
+        raise ValueError(f"unknown method {method!r}")
+
+
+def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str], seed: int, ckpt_dir: Path,
+          log: Callable[[str], None]) -> Trained:
+    torch.manual_seed(seed)
+    plain = AdaptiveMLP(state_names, 2, hidden=cfg.hidden, seed=seed)
+    t0 = time.monotonic()
+    h_plain = fit_plain(plain, episodes, epochs=cfg.plain_epochs, batch_size=256, seed=seed)
+    log(f"plain model: {len(h_plain)} epochs, loss {h_plain[-1]:.4f} ({time.monotonic() - t0:.0f} s)")
+    seg = segments(episodes, cfg.M, cfg.K, stride=2)
+    meta = AdaptiveMLP.from_checkpoint(plain.to_checkpoint())
+    t0 = time.monotonic()
+    psi, h_meta = grbal.meta_train(meta, seg, steps=cfg.meta_steps, meta_batch=cfg.meta_batch, lr=cfg.meta_lr,
+                                   psi_init=cfg.psi_init, seed=seed)
+    log(f"GrBAL meta-training: {cfg.meta_steps} steps, next-K loss before/after {h_meta[-1]['before']:.4f}/"
+        f"{h_meta[-1]['after']:.4f} ({time.monotonic() - t0:.0f} s)")
+    # ReBAL starts as the plain model: the context's input columns start at zero
+    rm = AdaptiveMLP(state_names, 2, hidden=cfg.hidden, seed=seed, context_dim=cfg.context_dim)
+    sd = plain.state_dict()
+    with torch.no_grad():
+        for k, v in rm.state_dict().items():
+            if k == "net.0.weight":
+                v.zero_()
+                v[:, :sd[k].shape[1]] = sd[k]
+            else:
+                v.copy_(sd[k])
+    enc = ContextEncoder(rm, cfg.context_dim)
+    t0 = time.monotonic()
+    h_rebal = rebal.meta_train(rm, enc, seg, steps=cfg.rebal_steps, lr=cfg.meta_lr, seed=seed)
+    log(f"ReBAL training: {cfg.rebal_steps} steps, loss {h_rebal[-1]['loss'] if h_rebal else float('nan'):.4f} "
+        f"({time.monotonic() - t0:.0f} s)")
+    s, _, n = transitions(episodes)
+    tr = Trained(plain, meta, psi, rm, enc, np.maximum((n - s).std(0), 1e-6),
+                 {"plain_loss": h_plain, "grbal": h_meta, "rebal": h_rebal})
+    for m in ("mb_de", "grbal", "rebal", "mole"):
+        tr.adapter(m, cfg).save(ckpt_dir / f"seed{seed}_{m}.pt")
+    return tr
+
+
+def _conditions(p: PerturbationPresets) -> dict[str, tuple[str, PerturbationSettings]]:
+    """Test name → (terrain, condition); the held-out terrain is a test of its own."""
+    base = p.training_terrains[0]
+    out = {name: (base, s) for name, s in p.tests.items()}
+    out[f"terrain_{p.heldout_terrain}"] = (p.heldout_terrain, PerturbationSettings())
+    return out
+
+
+def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], None]) -> dict[str, Any]:
+    p = load_presets(cfg.presets)
+    rng = np.random.default_rng(seed)
+    envs: dict[str, RoachSim] = {}
+
+    def env(terrain: str) -> RoachSim:
+        if terrain not in envs:
+            envs[terrain] = RoachSim(terrain, seed)
+        return envs[terrain]
+
+    t0 = time.monotonic()
+    episodes: list[Episode] = []
+    for terrain in p.training_terrains:
+        for c in range(cfg.conditions_per_terrain):
+            settings = PerturbationSettings() if c == 0 else p.training.sample(rng)
+            episodes += random_episodes(env(terrain), settings, cfg.rollouts_per_condition, cfg.rollout_steps,
+                                        seed=int(rng.integers(1 << 30)), name=f"{terrain}-c{c}")
+    names = env(p.training_terrains[0]).state_names
+    log(f"seed {seed}: {len(episodes)} random rollouts ({sum(len(e) for e in episodes)} steps) in "
+        f"{time.monotonic() - t0:.0f} s")
+    tr = train(cfg, episodes, names, seed, out / "checkpoints", log)
+
+    conds = _conditions(p)
+    before_after, results = {}, {}
+    for name, (terrain, settings) in conds.items():
+        eps = random_episodes(env(terrain), settings, cfg.before_after_rollouts, cfg.rollout_steps,
+                              seed=int(rng.integers(1 << 30)), name=name)
+        before_after[name] = grbal.evaluate(tr.meta, tr.meta.params(), tr.psi, segments(eps, cfg.M, cfg.K, stride=2))
+        results[name] = {}
+        for method in METHODS:
+            t1 = time.monotonic()
+            results[name][method] = run_paths(cfg, env(terrain), settings, tr, method)
+            r = results[name][method]
+            log(f"  {name:>16} {method:>6}: completed {r['completed']}/{len(cfg.paths)} cost_per_m "
+                f"{r['cost_per_m']:.1f} k_step_error {r['k_step_error']:.3f} ({time.monotonic() - t1:.0f} s)")
+    switching = run_switching(cfg, p, env(p.training_terrains[0]), tr, log)
+    for e in envs.values():
+        e.close()
+    return {"perturbations": results, "k_step_error_before_after": before_after, "switching": switching,
+            "training": {"rollouts": len(episodes), "steps": int(sum(len(e) for e in episodes)),
+                         "grbal_history": tr.history["grbal"], "rebal_history": tr.history["rebal"],
+                         "psi_mean": {k: float(v.mean()) for k, v in tr.psi.items()}}}
+
+
+def run_paths(cfg: AdaptationConfig, env: RoachSim, settings: PerturbationSettings, tr: Trained,
+              method: str) -> dict[str, Any]:
+    per_path, kerrs, timing = {}, [], []
+    mcfg = MbrlConfig(planner="random_shooting", samples=cfg.samples, horizon=cfg.horizon, seed=0)
+    for path in cfg.paths:
+        wp = make_path(path, scale=cfg.path_scale)
+        ref = fillet(wp, mcfg.reference_corner_radius_m)
+        limit_s = path_length(wp) / cfg.time_limit_speed_mps
+        steps = int(np.ceil(limit_s / env.period_s - 1e-9))
+        planner = make_planner(mcfg, cfg.speed, 2, env.max_step)
+        kerr = KStepError(cfg.K, tr.delta_scale)
+        s = env.start(path_start_pose(wp), settings)
+        states, tm = drive(env, tr.adapter(method, cfg), planner, PathCost(ref, env.state_names), s, steps, kerr,
+                           stop_if=PathEnd(PathCost(wp, env.state_names)))
+        m = evaluate_path_following(states, PathCost(wp, env.state_names), period_s=env.period_s, time_limit_s=limit_s)
+        m["xy"] = states[:, :2].tolist()
+        per_path[path] = m
+        kerrs.append(kerr.mean())
+        timing.append(tm)
+    sm = summarize_paths(per_path)
+    return {"cost_per_m": sm["cost_per_m"], "completed": sm["completed"], "k_step_error": float(np.mean(kerrs)),
+            "progress_m": float(sum(m["progress_m"] for m in per_path.values())),
+            "adapt_ms_p50": float(np.median([t["adapt_ms_p50"] for t in timing])),
+            "plan_ms_p50": float(np.median([t["plan_ms_p50"] for t in timing])), "paths": per_path}
+
+
+def run_switching(cfg: AdaptationConfig, p: PerturbationPresets, env: RoachSim, tr: Trained,
+                  log: Callable[[str], None]) -> dict[str, Any]:
+    """Conditions alternate every N steps on one long straight path; reward = progress
+    along the path (m) per segment."""
+    every = cfg.switching_every_steps or p.switching.every_steps
+    nseg = cfg.switching_segments or p.switching.segments
+    conds = [p.switching.conditions[i % len(p.switching.conditions)] for i in range(nseg)]
+    steps = every * nseg
+    # long enough never to end: 1.5 m/s for the whole run
+    wp = straight(length_m=1.5 * steps * env.period_s, points=max(2, int(steps * env.period_s)))
+    mcfg = MbrlConfig(planner="random_shooting", samples=cfg.samples, horizon=cfg.horizon, seed=0)
+    out = {}
+    for method in SWITCHING_METHODS:
+        t0 = time.monotonic()
+        planner = make_planner(mcfg, cfg.speed, 2, env.max_step)
+        kerr = KStepError(cfg.K, tr.delta_scale)
+        s = env.start(path_start_pose(wp), p.condition(conds[0]))
+        posts, tasks = [], []
+
+        def on_step(t: int, upd, conds=conds, posts=posts, tasks=tasks) -> None:
+            if (t + 1) % every == 0 and (t + 1) // every < nseg:
+                env.apply(p.condition(conds[(t + 1) // every]))
+            posts.append(upd.info.get("posterior", []))
+            tasks.append(upd.info.get("task", 0))
+
+        adapter = tr.adapter(method, cfg)
+        states, tm = drive(env, adapter, planner, PathCost(wp, env.state_names), s, steps, kerr, on_step=on_step)
+        track = PathCost(wp, env.state_names)
+        arc = []
+        for st in states:
+            track.observe(st)
+            arc.append(track.arc_length(st[:2]))
+        arc = np.array(arc)
+        reward = [float(arc[min((i + 1) * every, len(arc) - 1)] - arc[i * every]) for i in range(nseg)]
+        out[method] = {"reward_per_segment": reward,
+                       "tasks_created": (posts and len(posts[-1])) if method == "mole" else None,
+                       "conditions": conds, "k_step_error": kerr.mean(), **tm}
+        if method == "mole":
+            out[method]["task_per_step"] = tasks
+            out[method]["posterior_per_step"] = posts
+        log(f"  switching {method:>9}: reward per segment {[round(r, 2) for r in reward]} "
+            f"tasks {out[method]['tasks_created']} ({time.monotonic() - t0:.0f} s)")
+    return out
+
+
+# ---------------------------------------------------------------------------- seeds
+def _cell(vals: list[dict[str, Any]]) -> dict[str, Any]:
+    out = {}
+    for k in ("cost_per_m", "completed", "k_step_error", "progress_m", "adapt_ms_p50", "plan_ms_p50"):
+        ms = mean_std([v[k] for v in vals])
+        out[k] = ms["mean"]
+        out[f"{k}_std"] = ms["std"]
+    out["seeds"] = len(vals)
+    return out
+
+
+def run(cfg: AdaptationConfig, out: Path, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Every seed; the report (issue 12's keys) with means and sample stds over seeds."""
+    torch.set_num_threads(cfg.threads)
+    out = Path(out)
+    t0 = time.monotonic()
+    per_seed = [run_seed(cfg, s, out, log) for s in cfg.seeds]
+    first = per_seed[0]
+    perts = {name: {m: _cell([r["perturbations"][name][m] for r in per_seed]) for m in METHODS}
+             for name in first["perturbations"]}
+    ba = {}
+    for name in first["k_step_error_before_after"]:
+        b = mean_std([r["k_step_error_before_after"][name]["before"] for r in per_seed])
+        a = mean_std([r["k_step_error_before_after"][name]["after"] for r in per_seed])
+        ba[name] = {"before": b["mean"], "after": a["mean"], "before_std": b["std"], "after_std": a["std"]}
+    sw = {}
+    for m in SWITCHING_METHODS:
+        rows = np.array([r["switching"][m]["reward_per_segment"] for r in per_seed])
+        tc = [r["switching"][m]["tasks_created"] for r in per_seed]
+        sw[m] = {"reward_per_segment": rows.mean(0).tolist(), "reward_per_segment_std":
+                 (rows.std(0, ddof=1) if len(rows) > 1 else np.zeros(rows.shape[1])).tolist(),
+                 "tasks_created": None if tc[0] is None else float(np.mean(tc)),
+                 "conditions": first["switching"][m]["conditions"]}
+    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw,
+            "config": _jsonable(asdict(cfg)), "seeds": list(cfg.seeds), "elapsed_s": time.monotonic() - t0,
+            "per_seed": per_seed}
+
+
+def _jsonable(o: Any) -> Any:
+    if isinstance(o, dict):
+        return {k: _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    return o
+
+
+__all__ = ["AdaptationConfig", "run", "METHODS", "SWITCHING_METHODS"]

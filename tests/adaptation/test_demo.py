@@ -1,0 +1,41 @@
+"""`hil demo adaptation` end to end on the real sim with the tiny preset: the report's keys."""
+
+from __future__ import annotations
+
+import inspect
+import json
+
+from learning.adaptation import load_adapter
+from learning.adaptation.experiment import METHODS, SWITCHING_METHODS
+from tools.cmd_demo import OTHER_DEMOS
+from tools.demo_adaptation import cli_adaptation, run_demo
+
+
+def test_registered_with_the_demo_signature():
+    module, fn, _ = OTHER_DEMOS["adaptation"]
+    assert (module, fn) == ("tools.demo_adaptation", "cli_adaptation")
+    assert list(inspect.signature(cli_adaptation).parameters) == ["out", "quick", "full", "seed"]
+
+
+def test_tiny_run_writes_the_issue_report(tmp_path):
+    run_demo(tmp_path, tiny=True)
+    r = json.loads((tmp_path / "report.json").read_text())
+    names = {"missing_leg", "slope", "miscalibration", "payload", "terrain_turf"}
+    assert set(r["perturbations"]) == names
+    for row in r["perturbations"].values():
+        assert set(row) == set(METHODS)
+        for cell in row.values():
+            assert {"cost_per_m", "completed", "k_step_error"} <= set(cell)
+            assert cell["cost_per_m"] >= 0 and cell["k_step_error"] >= 0
+    assert set(r["k_step_error_before_after"]) == names
+    assert all({"before", "after"} <= set(v) for v in r["k_step_error_before_after"].values())
+    assert set(r["switching"]) == set(SWITCHING_METHODS)
+    for m, v in r["switching"].items():
+        assert len(v["reward_per_segment"]) == 2
+        assert (v["tasks_created"] is None) == (m != "mole")
+    assert r["switching"]["mole"]["tasks_created"] >= 1
+    for f in ("report.md", "perturbations.png", "k_step_before_after.png", "switching.png"):
+        assert (tmp_path / f).is_file()
+    # the checkpoints the demo wrote build their adapters (what an adaptation node loads)
+    for m in ("mb_de", "grbal", "rebal", "mole"):
+        assert load_adapter(tmp_path / "checkpoints" / f"seed0_{m}.pt").name == m

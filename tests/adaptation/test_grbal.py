@@ -1,0 +1,73 @@
+"""GrBAL meta-training and run-time adaptation on the toy planar robot (exact, fast)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from learning.adaptation import load_adapter
+from learning.adaptation.grbal import GrbalAdapter, evaluate, segments
+from learning.adaptation.training import transitions
+from tests.adaptation import toy
+from tests.adaptation.conftest import K, M
+
+
+def test_adapted_k_step_error_is_below_unadapted_on_a_heldout_perturbation(meta):
+    model, plain, psi, _ = meta
+    # outside the training range: gain 0.3 (< 0.5) and turn bias 1.5 (> 1)
+    test = segments(toy.episodes(10, 40, seed=99, gain=0.3, turn_bias=1.5), M, K, stride=4)
+    e = evaluate(model, model.params(), psi, test)
+    assert e["after"] < 0.6 * e["before"]
+    # and better than the plain model without adaptation (the MB baseline) on the same windows
+    psi0 = {k: torch.zeros_like(v) for k, v in psi.items()}
+    assert e["after"] < evaluate(plain, plain.params(), psi0, test)["before"]
+
+
+def test_meta_training_learns_the_step_size(meta):
+    _, _, psi, hist = meta
+    assert any(not torch.allclose(v, torch.full_like(v, 0.01)) for v in psi.values())
+    assert hist[-1]["after"] < hist[-1]["before"]  # one step helps on the training conditions too
+
+
+def test_inner_step_is_theta_star_minus_psi_times_gradient(meta):
+    model, _, psi, _ = meta
+    # a step size of its own (per entry, random): the update must use exactly this one
+    gen = torch.Generator().manual_seed(3)
+    psi = {k: 0.02 * torch.rand(v.shape, generator=gen) for k, v in psi.items()}
+    ad = GrbalAdapter(model, psi, window=M)
+    ep = toy.episodes(1, 12, seed=5, gain=0.4)[0]
+    for t in range(12):
+        ad.observe(ep.states[t], ep.actions[t], ep.states[t + 1])
+    s, a, n = (torch.as_tensor(x)[-M:] for x in transitions([ep]))
+    theta = {k: v.clone().requires_grad_(True) for k, v in model.params().items()}
+    g = dict(zip(theta, torch.autograd.grad(model.loss(theta, s, a, n), list(theta.values())), strict=True))
+    u = ad.update()
+    for k in theta:
+        np.testing.assert_allclose(u.tensors[k], (theta[k] - psi[k] * g[k]).detach().numpy(), atol=1e-6)
+    u2 = ad.update()  # from θ* again, not from the previous θ'
+    for k in theta:
+        np.testing.assert_allclose(u2.tensors[k], u.tensors[k], atol=1e-7)
+    # the update's model predicts the window better than θ*
+    assert model.loss(ad.params_of(u), s, a, n) < model.loss(model.params(), s, a, n)
+
+
+def test_checkpoint_and_subset_of_parameters(meta, tmp_path):
+    model, _, psi, _ = meta
+    last = ["4.weight", "4.bias"]
+    GrbalAdapter(model, psi, window=M, adapt_params=last).save(tmp_path / "g.pt")
+    ad = load_adapter(tmp_path / "g.pt")
+    assert isinstance(ad, GrbalAdapter) and ad.adapt_params == last
+    for ep in toy.episodes(1, M, seed=6, gain=0.4):
+        for t in range(M):
+            ad.observe(ep.states[t], ep.actions[t], ep.states[t + 1])
+    u = ad.update(state_stamp_ns=7)
+    assert sorted(u.tensors) == sorted(last) and u.state_stamp_ns == 7
+    assert u.nbytes() == sum(model.params()[k].numel() * 4 for k in last)
+    s = torch.as_tensor(ep.states[:3])
+    out = ad.dynamics(u)(s, torch.zeros(3, 2))
+    assert out.shape == (3, 6) and torch.isfinite(out).all()
+    # an MB+DE adapter from the same checkpoint (same θ*) for a baseline
+    assert load_adapter(tmp_path / "g.pt", method="mb_de").name == "mb_de"
+    with pytest.raises(ValueError, match="psi lacks"):
+        GrbalAdapter(model, {}, window=M)
