@@ -129,3 +129,24 @@ def test_self_right_counts_only_a_robot_it_found_down():
     step.start(ctx, st(2.0), {})
     assert step.update(ctx, st(2.0)) == HOLD and step.update(ctx, st(2.3)) == DONE
     assert ctx.counts == {"self_righted": 1}
+
+
+# ------------------------------------------------------------------ the demo's report
+def test_quick_on_a_wall_clock_rig_tunes_fewer_candidates_and_the_sim_quick_run_is_unchanged():
+    from learning.mbrl import MbrlConfig
+    from tools.demo import quick_wall_clock
+
+    assert quick_wall_clock("roach_sim") == {}
+    assert MbrlConfig.quick(**quick_wall_clock("roach_sim")).baseline_candidates == 20
+    assert quick_wall_clock("roach_emulated") == {"baseline_candidates": 6}
+
+
+def test_the_report_states_the_resets():
+    from tools.demo import resets_markdown
+
+    text = "\n".join(resets_markdown({"requested": 64, "completed": 63, "failed": 1, "mean_duration_s": 4.26,
+                                      "max_duration_s": 11.0, "fixture_recoveries": 2, "self_righted": 5,
+                                      "episode_ends": {"arena": 1, "tipped": 9}}))
+    assert "63 of 64 requested resets completed, 1 failed; 4.3 s mean, 11.0 s longest" in text
+    assert "Self-righted 5; lab-fixture recoveries (operator interventions on a real rig) 2" in text
+    assert "Episodes ended by detectors: arena 1, tipped 9." in text
