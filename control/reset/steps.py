@@ -42,7 +42,15 @@ StepResult = np.ndarray | str
 
 
 class StepError(RuntimeError):
-    """This attempt of the step failed (one line saying what); the supervisor may retry."""
+    """This attempt of the step failed (one line saying what); the supervisor may retry.
+
+    ``from_start``: retrying this step cannot help, an earlier step must run again (the
+    robot tipped over while driving back: self_right first). The supervisor then runs the
+    procedure again from its first step, within the budget of ``verify.retries``."""
+
+    def __init__(self, detail: str, from_start: bool = False):
+        super().__init__(detail)
+        self.from_start = from_start
 
 
 class StepContext(Protocol):
@@ -141,8 +149,9 @@ class DriveToStart(ResetStep):
         if not np.all(np.isfinite(s)):
             raise StepError("drive_to_start: the robot's state is not finite (pose lost?)")
         if not upright(self._names, s, 0.5):
-            # on its side or back: driving will not bring it back (a self_right step may)
-            raise StepError("drive_to_start: the robot is not upright")
+            # on its side or back: driving will not bring it back; self_right (and the lab
+            # fixture) may, so the procedure runs again from its start
+            raise StepError("drive_to_start: the robot is not upright", from_start=True)
         p = self._xy(state)
         off = p - self._goal
         if np.linalg.norm(off) < self.tolerance_m:

@@ -408,6 +408,13 @@ class ResetSupervisor(Node):
             r = step.update(self, s)
         except StepError as e:
             self._send(s, None)
+            if e.from_start and self._i > 0 and self._verify_attempt < self.cfg.verify.retries:
+                step.abort()
+                self._verify_attempt += 1
+                self._i = 0
+                self._attempt = 1
+                self._begin_step(s, retry_detail=f"{e}; the procedure again from {self.steps[0].name}")
+                return
             self._attempt_failed(s, str(e))
             return
         if isinstance(r, str):

@@ -12,7 +12,7 @@ import pytest
 
 from bus.schemas import ResetEvent, RobotState
 from control.reset.config import StepConfig
-from control.reset.steps import DONE, HOLD, LabFixture, SelfRight, StepError
+from control.reset.steps import DONE, HOLD, DriveToStart, LabFixture, SelfRight, StepError
 from sim_backends.velociroach.emulator import LabFixture as EmulatorFixture
 from tests.reset.test_supervisor_sim import _ended_by_supervisor, drive_out
 
@@ -62,6 +62,35 @@ def test_an_optional_step_that_is_the_last_one_fails_the_reset(supervised_rig):
     with pytest.raises(RuntimeError, match="reset step self_right failed after 1 attempt: timed out after 1.5 s"):
         rig.ctl.reset(timeout_s=30)
     assert rig.sup.report()["fixture_recoveries"] == 0
+
+
+class TipsOnTheWayBack(DriveToStart):
+    """drive_to_start whose robot goes over onto its back once, on its first update (in
+    the supervisor's thread while the lockstep driver waits for the answer)."""
+
+    def __init__(self, cfg, sim):
+        super().__init__(cfg)
+        self.sim, self.flips = sim, 0
+
+    def update(self, ctx, state):
+        if self.flips == 0:
+            self.flips = 1
+            EmulatorFixture(self.sim, None).place(upside_down=True)
+            return HOLD
+        return super().update(ctx, state)
+
+
+def test_a_robot_that_tips_while_driving_back_gets_the_procedure_again_from_self_right(supervised_rig):
+    rig = supervised_rig(detectors=[], steps=RECOVERY, verify={"position_tol_m": 0.25, "retries": 1})
+    rig.sup.steps[2] = TipsOnTheWayBack(StepConfig(**RECOVERY[2]), rig.driver.driver)
+    drive_out(rig, steps=8, action=(0.5, 0.5))
+    first = rig.ctl.reset(timeout_s=60, x=0.0, y=0.0, yaw=0.0)
+    assert first.state[6] > 0.9 and math.hypot(first.state[0], first.state[1]) <= 0.25
+    h = rig.sup.history
+    assert [t.trigger for t in h] == ["end_episode", "pause", "begin", "retry", "skip", "steps_done", "verified",
+                                      "resume"]
+    assert "not upright; the procedure again from self_right" in h[3].detail
+    assert rig.sup.report()["fixture_recoveries"] == 1
 
 
 # ------------------------------------------------------------------ the steps alone
