@@ -91,6 +91,9 @@ class VelociRoachParams(Params):
     baudrate: int = Field(230400, gt=0)
     robot_addr64: str = Field("0013A20040A1B2C3", pattern=r"^[0-9A-Fa-f]{16}$")
     telemetry_hz: float = Field(100.0, gt=0)
+    write_timeout_s: float = Field(
+        0.5, gt=0, description="a write to the serial port not done within this is a link failure; pyserial counts "
+                               "the writing thread's own scheduling stalls in it (docs/reset.md, 'CPU stalls')")
     telemetry_deadline_s: float = Field(
         0.3, gt=0, description="telemetry older than this is stale: ok=False, flags.stale_telemetry")
     link_timeout_periods: int = Field(

@@ -144,7 +144,8 @@ class VelociRoachDriver(Driver):
 
             self._pose_client = UdpPoseClient("127.0.0.1" if self.backend == "emulated" else "0.0.0.0", pose_port)
         url = self._start_emulator() if self.backend == "emulated" else p.port
-        self.link = RadioLink.open(url, p.baudrate, role="base", robot_addr64=p.robot_addr64, tlog=p.tlog)
+        self.link = RadioLink.open(url, p.baudrate, write_timeout_s=p.write_timeout_s, role="base",
+                                   robot_addr64=p.robot_addr64, tlog=p.tlog)
         self._stop_evt.clear()
         self._reader_error = None
         self._thread = threading.Thread(target=self._reader, name="velociroach-link", daemon=True)
