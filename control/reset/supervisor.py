@@ -116,6 +116,10 @@ def pose_error(names: list[str], s: RobotState, pose: dict[str, float], verify: 
     return ""
 
 
+def _attempts(n: int) -> str:
+    return f"{n} attempt{'s' if n > 1 else ''}"
+
+
 class _Fsm:
     """The machine's model (kept apart from the Node so trigger names cannot clash)."""
 
@@ -387,16 +391,14 @@ class ResetSupervisor(Node):
             self._attempt += 1
             self._begin_step(s, retry_detail=f"{detail}; attempt {self._attempt} of {step.cfg.retries + 1}")
         elif step.cfg.optional and self._i + 1 < len(self.steps):
-            n = step.cfg.retries + 1
             self.count(f"skipped_{step.name}")
-            self._fire("skip", detail=f"optional step {step.name} gave up after {n} attempt{'s' if n > 1 else ''}: "
+            self._fire("skip", detail=f"optional step {step.name} gave up after {_attempts(step.cfg.retries + 1)}: "
                                       f"{detail}; next: {self.steps[self._i + 1].name}")
             self._i += 1
             self._attempt = 1
             self._begin_step(s)
         else:
-            n = step.cfg.retries + 1
-            self._fail(f"reset step {step.name} failed after {n} attempt{'s' if n > 1 else ''}: {detail}")
+            self._fail(f"reset step {step.name} failed after {_attempts(step.cfg.retries + 1)}: {detail}")
 
     def _resetting(self, s: RobotState) -> None:
         step = self.steps[self._i]
@@ -409,7 +411,7 @@ class ResetSupervisor(Node):
         except StepError as e:
             self._send(s, None)
             if e.from_start and self._i > 0 and self._verify_attempt < self.cfg.verify.retries:
-                step.abort()
+                self._abort_step()
                 self._verify_attempt += 1
                 self._i = 0
                 self._attempt = 1
