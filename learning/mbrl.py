@@ -607,8 +607,7 @@ class MbrlRun:
         report["recordings"] = self.recordings
         report["model"] = str(self.out / "model.pt")
         if self.supervisor is not None:
-            sup = self.supervisor
-            report["resets"] = {**sup.stats, "mean_duration_s": float(np.mean(sup.durations_s)) if sup.durations_s else 0.0}
+            report["resets"] = self.supervisor.report()
         report["wall_s"] = time.monotonic() - t0
         return report
 

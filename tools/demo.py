@@ -24,6 +24,20 @@ def free_endpoint() -> str:
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
+#: `--quick` on a wall-clock rig (emulated, real): fewer differential-drive candidates. The
+#: baseline's random search is the longest phase there (candidates x 3 tuning paths x 2
+#: speeds episodes, each with a reset of a few seconds; docs/reset.md has the timings);
+#: the lockstep sim's quick run is unchanged.
+QUICK_WALL_CLOCK: dict[str, Any] = {"baseline_candidates": 6}
+
+
+def quick_wall_clock(rig: str) -> dict[str, Any]:
+    """The ``--quick`` overrides for ``rig``: :data:`QUICK_WALL_CLOCK` unless it runs in lockstep."""
+    from configs.schema import load_rig
+
+    return {} if load_rig(rig).pace == "lockstep" else dict(QUICK_WALL_CLOCK)
+
+
 def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full: bool = False,
              **overrides: Any) -> dict[str, Any]:
     """Run the MBRL loop (``quick``: the README's few-minute run; ``full``: also the thesis'
@@ -33,7 +47,7 @@ def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if quick:
-        cfg = MbrlConfig.quick(**overrides)
+        cfg = MbrlConfig.quick(**{**quick_wall_clock(overrides.get("rig", MbrlConfig.rig)), **overrides})
     elif full:
         cfg = MbrlConfig.full(**overrides)
     else:
@@ -201,6 +215,17 @@ def experiments_markdown(r: dict[str, Any]) -> list[str]:
     return lines
 
 
+def resets_markdown(rs: dict[str, Any]) -> list[str]:
+    """The reset supervisor's counts (docs/reset.md): resets, their duration, what the
+    steps did and which detectors ended episodes."""
+    ends = ", ".join(f"{k} {v}" for k, v in rs.get("episode_ends", {}).items()) or "none"
+    return ["", "## Automatic resets", "",
+            f"{rs['completed']} of {rs['requested']} requested resets completed, {rs['failed']} failed; "
+            f"{rs['mean_duration_s']:.1f} s mean, {rs.get('max_duration_s', 0.0):.1f} s longest (wall clock). "
+            f"Self-righted {rs.get('self_righted', 0)}; lab-fixture recoveries (operator interventions on a real "
+            f"rig) {rs.get('fixture_recoveries', 0)}. Episodes ended by detectors: {ends}."]
+
+
 def report_markdown(r: dict[str, Any]) -> str:
     cfg = r["config"]
     lines = [
@@ -250,6 +275,8 @@ def report_markdown(r: dict[str, Any]) -> str:
             gains = ", ".join(f"{k} {v:.2f}" for k, v in t["best_params"].items())
             lines.append(f"| {s} | {t['default']['completed']}, {t['default']['cost_per_m']:.1f} | "
                          f"{t['best']['completed']}, {t['best']['cost_per_m']:.1f} | {gains} |")
+    if r.get("resets"):
+        lines += resets_markdown(r["resets"])
     lines += experiments_markdown(r)
     if r.get("random_data"):
         c = r["random_data"]

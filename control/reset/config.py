@@ -51,6 +51,9 @@ class StepConfig(Strict):
     timeout_s: float = Field(30.0, gt=0)
     #: extra attempts after a timeout or a step error
     retries: int = Field(0, ge=0)
+    #: when every attempt failed, go on with the next step (``skip``) instead of failing
+    #: the reset: a best-effort step that a later one backs up (self_right → lab_fixture)
+    optional: bool = False
     params: dict[str, Any] = Field(default_factory=dict)
 
 

@@ -9,7 +9,10 @@ bus; steps own only their own motion.
 
 Kinds (``reset.steps[].kind`` in a rig config):
 
-- ``self_right``: kick the legs at random until the robot is upright again.
+- ``self_right``: hold still, then kick the legs at random until the robot is upright again.
+- ``lab_fixture``: the lab puts the robot on its legs (control/reset/fixture.py: the
+  emulator's fixture service; on a sim the driver's teleport where the robot lies; on a
+  real rig without a fixture the step fails and an operator must).
 - ``drive_to_start``: drive back to the start position with the differential-drive
   baseline (control/baselines.py). For mobile robots with a pose (mocap).
 - ``turn_to_yaw``: turn in place (leg sets in opposite directions) to the start heading.
@@ -39,7 +42,15 @@ StepResult = np.ndarray | str
 
 
 class StepError(RuntimeError):
-    """This attempt of the step failed (one line saying what); the supervisor may retry."""
+    """This attempt of the step failed (one line saying what); the supervisor may retry.
+
+    ``from_start``: retrying this step cannot help, an earlier step must run again (the
+    robot tipped over while driving back: self_right first). The supervisor then runs the
+    procedure again from its first step, within the budget of ``verify.retries``."""
+
+    def __init__(self, detail: str, from_start: bool = False):
+        super().__init__(detail)
+        self.from_start = from_start
 
 
 class StepContext(Protocol):
@@ -52,6 +63,9 @@ class StepContext(Protocol):
 
     def driver_answer(self) -> ResetEvent | None:
         """The driver node's answer to the last :meth:`request_driver`, once it came."""
+
+    def count(self, what: str, n: int = 1) -> None:
+        """Count an event for the report (``fixture_recoveries``, ``self_righted``...)."""
 
 
 class ResetStep(ABC):
@@ -135,8 +149,9 @@ class DriveToStart(ResetStep):
         if not np.all(np.isfinite(s)):
             raise StepError("drive_to_start: the robot's state is not finite (pose lost?)")
         if not upright(self._names, s, 0.5):
-            # on its side or back: driving will not bring it back (a self_right step may)
-            raise StepError("drive_to_start: the robot is not upright")
+            # on its side or back: driving will not bring it back; self_right (and the lab
+            # fixture) may, so the procedure runs again from its start
+            raise StepError("drive_to_start: the robot is not upright", from_start=True)
         p = self._xy(state)
         off = p - self._goal
         if np.linalg.norm(off) < self.tolerance_m:
@@ -191,16 +206,122 @@ class SelfRight(ResetStep):
         self._names = list(ctx.state_names)
         self._upright_since_s: float | None = None
         self._t0_s = state.t_s
+        self._was_down = not upright(self._names, state.state, self.upright_above)
 
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
         if upright(self._names, state.state, self.upright_above):
             if self._upright_since_s is None:
                 self._upright_since_s = state.t_s
-            return DONE if state.t_s - self._upright_since_s >= self.settle_s else HOLD
+            if state.t_s - self._upright_since_s < self.settle_s:
+                return HOLD
+            if self._was_down:
+                ctx.count("self_righted")
+            return DONE
         self._upright_since_s = None
         if state.t_s - self._t0_s < self.hold_first_s:
             return HOLD  # a robot caught mid-tip mostly falls back onto its legs when they stop
         return self.rng.uniform(-self.speed, self.speed, 2)
+
+
+class LabFixture(ResetStep):
+    """The lab puts the robot back on its legs where it lies (same x, y and heading): the
+    step a real lab does by hand. Used after ``self_right`` (``optional: true``) failed:
+    the MuJoCo roach on its back never righted itself, with random kicks or any fixed
+    leg pattern tried (docs/reset.md). Done at once when the robot is upright.
+
+    Where the fixture is: the robot's health names ``lab_fixture_port`` (the emulated
+    VelociRoACH: the emulator's UDP service, :mod:`control.reset.fixture`); otherwise the
+    driver node's teleport to where the robot lies (sim backends). A real rig has neither:
+    the driver answers ``unsupported``, the step fails, the rig stops and the operator
+    is told to put the robot on its legs. Each use counts as ``fixture_recoveries`` (an
+    operator intervention on a real rig).
+
+    Params: ``upright_above`` (default 0.8), ``settle_s`` (upright this long after the
+    fixture acted [s of robot time], default 0.5), ``resend_s`` (ask again when no answer
+    or the robot is still down this long after an answer [s], default 0.5).
+    """
+
+    kind = "lab_fixture"
+
+    def __init__(self, cfg: StepConfig):
+        super().__init__(cfg)
+        p = dict(cfg.params)
+        self.upright_above = float(p.pop("upright_above", 0.8))
+        self.settle_s = float(p.pop("settle_s", 0.5))
+        self.resend_s = float(p.pop("resend_s", 0.5))
+        if p:
+            raise ValueError(f"lab_fixture: unknown params {sorted(p)} (upright_above, settle_s, resend_s)")
+        self._client = None
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        self._names = list(ctx.state_names)
+        self._asked_s: float | None = None
+        self._waiting = False
+        self._acted = 0
+        self._upright_since_s: float | None = None
+
+    def _ask(self, ctx: StepContext, state: RobotState) -> None:
+        from control.reset.fixture import FixtureClient
+
+        port = (state.health or {}).get("lab_fixture_port")
+        if port:
+            if self._client is None or self._client.address[1] != int(port):
+                self.abort()
+                self._client = FixtureClient(int(port))
+            self._client.request("right")
+        else:  # a sim: its teleport is the fixture (x, y and heading where it lies)
+            n, s = self._names, state.state
+            here = {"x": s[n.index("x")], "y": s[n.index("y")],
+                    "yaw": math.atan2(s[n.index("sin_yaw")], s[n.index("cos_yaw")])}
+            ctx.request_driver("teleport", here)
+        self._asked_s, self._waiting = state.t_s, True
+
+    def _answer(self, ctx: StepContext) -> tuple[bool, bool] | None:
+        """(ok, acted) of the pending request, None while it is pending."""
+        if self._client is not None:
+            r = self._client.reply()
+            if r is None:
+                return None
+            if not r.get("ok"):
+                raise StepError(f"lab fixture: {r.get('detail', 'refused')}")
+            return True, bool(r.get("acted"))
+        ans = ctx.driver_answer()
+        if ans is None:
+            return None
+        if ans.phase != "done":
+            raise StepError(f"the robot is not upright and this rig has no lab fixture ({ans.phase}: {ans.detail}); "
+                            "an operator must put it on its legs")
+        return True, True
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        if self._waiting:
+            got = self._answer(ctx)
+            if got is not None:
+                self._waiting = False
+                self._acted += got[1]
+                self._asked_s = state.t_s
+        if upright(self._names, state.state, self.upright_above):
+            if self._asked_s is None:
+                return DONE  # upright when the step began: nothing for the fixture to do
+            if self._waiting:
+                return HOLD  # up, but the fixture has not said yet whether it did it
+            if self._upright_since_s is None:
+                self._upright_since_s = state.t_s
+            if state.t_s - self._upright_since_s < self.settle_s:
+                return HOLD
+            if self._acted:
+                ctx.count("fixture_recoveries")
+            self.abort()
+            return DONE
+        self._upright_since_s = None
+        if self._asked_s is None or state.t_s - self._asked_s >= self.resend_s:
+            self._ask(ctx, state)  # first ask, a lost datagram, or still down after an answer
+        return HOLD
+
+    def abort(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
 
 
 class TurnToYaw(ResetStep):
@@ -318,7 +439,7 @@ class TaskReset(ResetStep):
 
 
 STEP_KINDS: dict[str, type[ResetStep]] = {
-    c.kind: c for c in (SelfRight, DriveToStart, TurnToYaw, Teleport, TaskReset)
+    c.kind: c for c in (SelfRight, LabFixture, DriveToStart, TurnToYaw, Teleport, TaskReset)
 }
 
 

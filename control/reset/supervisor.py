@@ -24,7 +24,8 @@ Protocol (keys in bus/keys.py):
   ``hil/<rig>/alive/reset-supervisor`` is present.
 - ``resetting``: the procedure's steps (control/reset/steps.py) run one after the other,
   each answering every state with one command (lockstep rigs advance on it), each with a
-  timeout in robot time and a number of retries.
+  timeout in robot time and a number of retries. An ``optional`` step that runs out of
+  attempts is skipped (``skip``): the next step backs it up (self_right → lab_fixture).
 - ``verifying``: the robot holds still for ``settle_s`` and its pose is checked against
   the start pose. Failing: the steps run again (``verify.retries``) or the reset fails.
 - ``resumed``: the supervisor asks the driver node to start a new episode
@@ -74,6 +75,7 @@ TRANSITIONS: list[dict[str, Any]] = [
     {"trigger": "pause", "source": "episode_end", "dest": "paused"},
     {"trigger": "begin", "source": "paused", "dest": "resetting"},
     {"trigger": "retry", "source": ["resetting", "verifying"], "dest": "resetting"},
+    {"trigger": "skip", "source": "resetting", "dest": "resetting"},
     {"trigger": "steps_done", "source": "resetting", "dest": "verifying"},
     {"trigger": "verified", "source": "verifying", "dest": "resumed"},
     {"trigger": "resume", "source": "resumed", "dest": "running"},
@@ -112,6 +114,10 @@ def pose_error(names: list[str], s: RobotState, pose: dict[str, float], verify: 
         if not e <= tol:
             return f"heading {e:.2f} rad off the start yaw (tolerance {tol:g} rad)"
     return ""
+
+
+def _attempts(n: int) -> str:
+    return f"{n} attempt{'s' if n > 1 else ''}"
 
 
 class _Fsm:
@@ -167,6 +173,11 @@ class ResetSupervisor(Node):
         self.last_failure = ""
         self.history: list[ResetTransition] = []
         self.stats = {"requested": 0, "completed": 0, "failed": 0}
+        #: what the steps did (``fixture_recoveries``, ``self_righted``; StepContext.count)
+        #: and the optional steps skipped (``skipped_<kind>``)
+        self.counts: dict[str, int] = {}
+        #: episodes each detector ended (its name: timeout, arena, tipped, drop)
+        self.ended_by: dict[str, int] = {}
         self.durations_s: list[float] = []
         self._reset_t0_wall = 0.0
         self._pending: ResetEvent | None = None
@@ -227,6 +238,27 @@ class ResetSupervisor(Node):
     def driver_answer(self) -> ResetEvent | None:
         m = self._from_driver.poll()
         return m if m is not None and m.robot == self.robot else None
+
+    def count(self, what: str, n: int = 1) -> None:
+        self.counts[what] = self.counts.get(what, 0) + n
+
+    def report(self) -> dict[str, Any]:
+        """The ``resets`` section of a demo's report.json: requests, completed and failed
+        resets, their wall-clock duration [s], what the steps did and why episodes ended.
+        ``fixture_recoveries`` is also ``operator_interventions``: on a real rig a person
+        does what the emulator's lab fixture does."""
+        d = self.durations_s
+        fixture = self.counts.get("fixture_recoveries", 0)
+        return {
+            **self.stats,
+            "mean_duration_s": float(np.mean(d)) if d else 0.0,
+            "max_duration_s": float(np.max(d)) if d else 0.0,
+            "fixture_recoveries": fixture,
+            "operator_interventions": fixture,
+            "self_righted": self.counts.get("self_righted", 0),
+            **{k: v for k, v in sorted(self.counts.items()) if k not in ("fixture_recoveries", "self_righted")},
+            "episode_ends": dict(sorted(self.ended_by.items())),
+        }
 
     # ------------------------------------------------------------------ loop
     def serve(self, ready_timeout_s: float = 60.0) -> None:
@@ -327,6 +359,7 @@ class ResetSupervisor(Node):
         for d in self.detectors:
             why = d(s)
             if why:
+                self.ended_by[d.name] = self.ended_by.get(d.name, 0) + 1
                 self._reason = why
                 self._fire("end_episode", detail=why)
                 return
@@ -357,9 +390,15 @@ class ResetSupervisor(Node):
         if self._attempt <= step.cfg.retries:
             self._attempt += 1
             self._begin_step(s, retry_detail=f"{detail}; attempt {self._attempt} of {step.cfg.retries + 1}")
+        elif step.cfg.optional and self._i + 1 < len(self.steps):
+            self.count(f"skipped_{step.name}")
+            self._fire("skip", detail=f"optional step {step.name} gave up after {_attempts(step.cfg.retries + 1)}: "
+                                      f"{detail}; next: {self.steps[self._i + 1].name}")
+            self._i += 1
+            self._attempt = 1
+            self._begin_step(s)
         else:
-            n = step.cfg.retries + 1
-            self._fail(f"reset step {step.name} failed after {n} attempt{'s' if n > 1 else ''}: {detail}")
+            self._fail(f"reset step {step.name} failed after {_attempts(step.cfg.retries + 1)}: {detail}")
 
     def _resetting(self, s: RobotState) -> None:
         step = self.steps[self._i]
@@ -371,6 +410,13 @@ class ResetSupervisor(Node):
             r = step.update(self, s)
         except StepError as e:
             self._send(s, None)
+            if e.from_start and self._i > 0 and self._verify_attempt < self.cfg.verify.retries:
+                self._abort_step()
+                self._verify_attempt += 1
+                self._i = 0
+                self._attempt = 1
+                self._begin_step(s, retry_detail=f"{e}; the procedure again from {self.steps[0].name}")
+                return
             self._attempt_failed(s, str(e))
             return
         if isinstance(r, str):

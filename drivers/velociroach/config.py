@@ -60,6 +60,10 @@ class EmulatorParams(Params):
     pose_hz: float = Field(100.0, gt=0, description="rate of the UDP pose stream")
     seed: int = Field(0, description="seed of the fault injection's noise")
     physics: str | None = Field(None, pattern=r"^[\w.]+:\w+$", description="module:Class of the physics")
+    lab_fixture: bool = Field(
+        True, description="serve the lab fixture beside the robot (control/reset/fixture.py): the stand-in for "
+                          "the lab's hands that puts a robot on its back onto its legs; its UDP port is in the "
+                          "driver's health as lab_fixture_port")
     # fault injection
     corrupt_every: int = Field(0, ge=0, description="break every N-th frame sent (0: never)")
     garbage: bool = Field(False, description="noise bytes between frames")
@@ -68,6 +72,7 @@ class EmulatorParams(Params):
     pose_silence_after_s: float | None = Field(
         None, ge=0, description="mocap outage: the pose stream stops S s after the first command")
     nonfinite_telemetry_every: int = Field(0, ge=0, description="every N-th telemetry carries NaN sensor values")
+    start_upside_down: bool = Field(False, description="the robot starts on its back, as after a flip")
 
 
 class VelociRoachParams(Params):
@@ -86,6 +91,9 @@ class VelociRoachParams(Params):
     baudrate: int = Field(230400, gt=0)
     robot_addr64: str = Field("0013A20040A1B2C3", pattern=r"^[0-9A-Fa-f]{16}$")
     telemetry_hz: float = Field(100.0, gt=0)
+    write_timeout_s: float = Field(
+        0.5, gt=0, description="a write to the serial port not done within this is a link failure; pyserial counts "
+                               "the writing thread's own scheduling stalls in it (docs/reset.md, 'CPU stalls')")
     telemetry_deadline_s: float = Field(
         0.3, gt=0, description="telemetry older than this is stale: ok=False, flags.stale_telemetry")
     link_timeout_periods: int = Field(

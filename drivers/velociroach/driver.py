@@ -90,6 +90,8 @@ class VelociRoachDriver(Driver):
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self._emu: EmulatorProcess | None = None
+        #: UDP port of the emulator's lab fixture (backend emulated; control/reset/fixture.py)
+        self._fixture_port: int | None = None
         self._pose_client: Any = None
         self._pose = PoseFilter()
         self._pose_seen: Any = None  # the newest pose sample taken from the client
@@ -142,7 +144,8 @@ class VelociRoachDriver(Driver):
 
             self._pose_client = UdpPoseClient("127.0.0.1" if self.backend == "emulated" else "0.0.0.0", pose_port)
         url = self._start_emulator() if self.backend == "emulated" else p.port
-        self.link = RadioLink.open(url, p.baudrate, role="base", robot_addr64=p.robot_addr64, tlog=p.tlog)
+        self.link = RadioLink.open(url, p.baudrate, write_timeout_s=p.write_timeout_s, role="base",
+                                   robot_addr64=p.robot_addr64, tlog=p.tlog)
         self._stop_evt.clear()
         self._reader_error = None
         self._thread = threading.Thread(target=self._reader, name="velociroach-link", daemon=True)
@@ -156,10 +159,16 @@ class VelociRoachDriver(Driver):
         args = ["--print-pty", "--config", json.dumps(cfg)]
         if self._pose_client is not None:
             args += ["--pose-port", str(self._pose_client.port)]
+        if self.params.emulator.lab_fixture:
+            args += ["--fixture-port", "0"]
         self._emu = EmulatorProcess("sim_backends.velociroach.emulator", args,
                                     start_timeout_s=self.params.emulator.start_timeout_s,
                                     keep_log=self.params.emulator.keep_log)
-        return self._emu.start()["pty"]
+        ready = self._emu.start()
+        # the lab fixture is beside the robot, not on its radio: the reset supervisor finds
+        # it in the health (control/reset/fixture.py)
+        self._fixture_port = ready.get("fixture_port")
+        return ready["pty"]
 
     def _wait_first_contact(self) -> None:
         """Heartbeat and telemetry from the robot, or a LinkError that says what to check."""
@@ -400,6 +409,7 @@ class VelociRoachDriver(Driver):
             "robot_rx_corrupt": None if tel is None else tel.rx_corrupt,
             "status_text": status,
             "backend": self.backend,
+            **({"lab_fixture_port": self._fixture_port} if self._fixture_port else {}),
         })
         return Health(
             ok=bool(inputs_ok and err is None and not link.dead),

@@ -343,8 +343,8 @@ class RadioLink:
         self._last_bad_count = 0
 
     @classmethod
-    def open(cls, url: str, baudrate: int = 230400, **kw: Any) -> RadioLink:
-        return cls(open_serial(url, baudrate), name=url, **kw)
+    def open(cls, url: str, baudrate: int = 230400, write_timeout_s: float = 0.5, **kw: Any) -> RadioLink:
+        return cls(open_serial(url, baudrate, write_timeout_s=write_timeout_s), name=url, **kw)
 
     # ------------------------------------------------------------------ I/O
     def send(self, mav_frame: bytes) -> None:

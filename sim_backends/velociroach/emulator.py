@@ -21,7 +21,14 @@ received any more; the firmware keeps running, so its watchdog stops the motors,
 mocap stream, a separate system, keeps going). Only in the config's ``emulator`` section
 (:class:`drivers.velociroach.config.EmulatorParams`): ``pose_silence_after_s`` (the mocap
 stream stops S seconds after the first command, the radio keeps going) and
-``nonfinite_telemetry_every`` (every N-th telemetry packet carries NaN sensor values).
+``nonfinite_telemetry_every`` (every N-th telemetry packet carries NaN sensor values) and
+``start_upside_down`` (the robot starts on its back, as after a flip).
+
+Lab fixture (``--fixture-port``, control/reset/fixture.py): a UDP service beside the
+robot, not on its radio, that puts a robot lying on its back or side upright where it
+lies. It stands in for the lab's hands: the MuJoCo roach cannot right itself from its
+back (docs/reset.md), and the reset supervisor calls it only when its own ``self_right``
+step failed. Its port is in the ready line (``fixture_port``).
 """
 
 from __future__ import annotations
@@ -39,7 +46,8 @@ import tty
 from pathlib import Path
 from typing import Any
 
-from drivers.velociroach.config import VelociRoachParams
+from control.reset import fixture as fixture_proto
+from drivers.velociroach.config import VelociRoachParams, quat_to_rpy
 from drivers.velociroach.link import FdPort, RadioLink, open_serial, xbee_rx64
 from drivers.velociroach.mavlink import ROBOT_COMPID, ROBOT_SYSID, EncodeError, MavEncoder, mav
 from sim_backends.base import RealtimePacer
@@ -59,6 +67,79 @@ def log(msg: str) -> None:
     print(f"[velociroach-emulator {os.getpid()}] {msg}", file=sys.stderr, flush=True)
 
 
+class LabFixture:
+    """The lab-fixture service (control/reset/fixture.py) on the emulator's MuJoCo model:
+    like a person in the lab it picks the robot up and sets it down on its legs at the
+    same spot and heading, at rest. The firmware, battery and clock run on untouched."""
+
+    #: upright enough to leave alone: both roll and pitch within acos(0.8) ≈ 37° of level
+    UPRIGHT_COS = 0.8
+    #: set down this far above the standing height [m]: it drops onto its legs
+    DROP_M = 0.003
+
+    def __init__(self, sim: Any, sock: Any):
+        self.sim = sim
+        self.sock = sock
+        # right after reset the robot stands on its tripod (feet straight down, the
+        # lowest a foot reaches): no crank angle puts a foot below the ground from here
+        self.stand_z_m = float(sim.data.qpos[2])
+        self.recoveries = 0
+        self.requests = 0
+        self.bad_requests = 0
+
+    def upright(self) -> bool:
+        roll, pitch, _ = quat_to_rpy(self.sim.data.qpos[3:7])
+        return math.cos(roll) >= self.UPRIGHT_COS and math.cos(pitch) >= self.UPRIGHT_COS
+
+    def heading_rad(self) -> float:
+        """Heading of the body's forward axis on the ground [rad, world frame]: defined on
+        the back or side too, where ZYX Euler yaw jumps."""
+        w, x, y, z = (float(v) for v in self.sim.data.qpos[3:7])
+        return math.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+
+    def place(self, upside_down: bool = False) -> None:
+        """The robot at rest at its (x, y) and heading, on its legs (or on its back)."""
+        import mujoco
+
+        d = self.sim.data
+        yaw = self.heading_rad()
+        cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+        # yaw about world z, then (upside down) half a turn about the body's x axis
+        d.qpos[3:7] = (0.0, cy, sy, 0.0) if upside_down else (cy, 0.0, 0.0, sy)
+        d.qpos[2] = self.stand_z_m + (0.03 if upside_down else self.DROP_M)
+        d.qvel[0:6] = 0.0  # the free joint: linear and angular velocity
+        mujoco.mj_forward(self.sim.model, d)
+
+    def right(self) -> bool:
+        """Put the robot on its legs unless it stands upright; True when it acted."""
+        if self.upright():
+            return False
+        self.place()
+        self.recoveries += 1
+        log(f"lab fixture: robot put back on its legs (recovery {self.recoveries})")
+        return True
+
+    def poll(self) -> None:
+        """Serve every pending request (non-blocking; called from the emulator loop)."""
+        while True:
+            try:
+                data, addr = self.sock.recvfrom(fixture_proto.MAX_DATAGRAM)
+            except (BlockingIOError, InterruptedError):
+                return
+            except ConnectionResetError:
+                continue
+            self.requests += 1
+            req, why = fixture_proto.decode_request(data)
+            if req is None:
+                self.bad_requests += 1
+                reply = {"ok": False, "detail": f"bad lab-fixture request: {why}"}
+            else:
+                acted = self.right()
+                reply = {"id": req.get("id", 0), "ok": True, "acted": acted,
+                         "detail": "put back on its legs" if acted else "already upright"}
+            self.sock.sendto(fixture_proto.encode(reply), addr)
+
+
 def load_physics(target: str, params: VelociRoachParams):
     mod, _, cls = target.partition(":")
     return getattr(importlib.import_module(mod), cls)(params)
@@ -68,8 +149,10 @@ class Emulator:
     def __init__(self, params: VelociRoachParams, link: RadioLink, physics: Any, pose_server: Any = None,
                  *, corrupt_every: int = 0, garbage: bool = False, silence_after_s: float | None = None,
                  realtime_factor: float = 1.0, pose_hz: float = 100.0, seed: int = 0,
-                 pose_silence_after_s: float | None = None, nonfinite_telemetry_every: int = 0):
+                 pose_silence_after_s: float | None = None, nonfinite_telemetry_every: int = 0,
+                 fixture: LabFixture | None = None):
         self.p = params
+        self.fixture = fixture
         self.link = link
         self.sim = physics
         self.pose_server = pose_server
@@ -233,6 +316,8 @@ class Emulator:
             # real time: bring sim time up to the wall clock in whole firmware ticks
             n = pacer.due(now, self.sim.sim_time_s)
             self.realtime_slip_s = pacer.slip_s
+            if self.fixture is not None:
+                self.fixture.poll()
             if n > 0:
                 self.sim.advance(n * FW_DT_S)
             now = time.monotonic()
@@ -261,6 +346,8 @@ class Emulator:
             "rx_corrupt": self.link.corrupt_frames,
             "realtime_slip_s": round(self.realtime_slip_s, 4),
             "sim_time_s": round(self.sim.sim_time_s, 3),
+            **({"fixture_recoveries": self.fixture.recoveries, "fixture_requests": self.fixture.requests}
+               if self.fixture is not None else {}),
         }
 
 
@@ -291,6 +378,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--corrupt-every", type=int, default=None, help="break every N-th frame sent")
     ap.add_argument("--garbage", action="store_true", default=None, help="noise bytes between frames")
     ap.add_argument("--silence-after", type=float, default=None, help="stop transmitting S s after the first command")
+    ap.add_argument("--fixture-port", type=int, default=None,
+                    help="serve the lab fixture on this UDP port (0: any free port; control/reset/fixture.py)")
     ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args(argv)
 
@@ -330,6 +419,21 @@ def main(argv: list[str] | None = None) -> int:
         pose_server = PoseStreamServer(args.pose_host, args.pose_port)
         pose_port = args.pose_port
 
+    fixture = None
+    fixture_port = None
+    if args.fixture_port is not None:
+        import socket
+
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", args.fixture_port))
+        sock.setblocking(False)
+        fixture_port = sock.getsockname()[1]
+        fixture = LabFixture(physics, sock)
+    if emu.start_upside_down:
+        if fixture is None:
+            fixture = LabFixture(physics, None)  # its placing code, without a service
+        fixture.place(upside_down=True)
+
     em = Emulator(
         params, link, physics, pose_server,
         corrupt_every=int(opt(args.corrupt_every, "corrupt_every") or 0),
@@ -340,6 +444,7 @@ def main(argv: list[str] | None = None) -> int:
         seed=emu.seed,
         pose_silence_after_s=emu.pose_silence_after_s,
         nonfinite_telemetry_every=emu.nonfinite_telemetry_every,
+        fixture=fixture if fixture_port is not None else None,
     )
 
     def _stop(signum, frame):  # noqa: ARG001
@@ -347,7 +452,8 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
-    print(json.dumps({"pty": path, "pose_port": pose_port, "pid": os.getpid()}), flush=True)
+    print(json.dumps({"pty": path, "pose_port": pose_port, "fixture_port": fixture_port, "pid": os.getpid()}),
+          flush=True)
     log(f"serving {path}, pose udp port {pose_port}, telemetry {params.telemetry_hz} Hz, "
         f"watchdog {params.firmware_watchdog_s} s")
     try:
@@ -359,6 +465,8 @@ def main(argv: list[str] | None = None) -> int:
         link.close()
         if pose_server is not None:
             pose_server.close()
+        if fixture is not None and fixture.sock is not None:
+            fixture.sock.close()
         if keep_slave is not None:
             try:
                 os.close(keep_slave)

@@ -93,7 +93,7 @@ def test_a_rig_that_nothing_can_reset_refuses_at_start_with_what_to_add():
     assert require_reset(real, "roach", operator_resets=True) is None
     assert require_reset(load_rig("roach_sim"), "roach") is None  # the sim teleports
     emulated = require_reset(load_rig("roach_emulated"), "roach")
-    assert [s.kind for s in emulated.steps] == ["self_right", "drive_to_start", "turn_to_yaw"]
+    assert [s.kind for s in emulated.steps] == ["self_right", "lab_fixture", "drive_to_start", "turn_to_yaw"]
     assert {d.kind for d in emulated.detectors} == {"arena", "timeout", "tipped"}
 
 
@@ -178,6 +178,10 @@ ROACH = ["x", "y", "cos_roll", "cos_pitch", "cos_yaw", "sin_yaw"]
 
 class _RoachCtx:
     state_names = ROACH
+
+    @staticmethod
+    def count(what, n=1):
+        pass
 
 
 def roach(x=0.0, y=0.0, yaw=0.0, cos_roll=1.0) -> RobotState:
