@@ -18,7 +18,11 @@ class OffscreenRenderer:
     def __init__(self, model: mujoco.MjModel, height_px: int, width_px: int):
         model.vis.quality.shadowsize = 0
         self.height_px, self.width_px = height_px, width_px
-        self.renderer = mujoco.Renderer(model, height_px, width_px)
+        try:
+            self.renderer = mujoco.Renderer(model, height_px, width_px)
+        except mujoco.FatalError as e:
+            raise RuntimeError("offscreen rendering needs an OpenGL platform: set MUJOCO_GL=egl (or osmesa) "
+                               f"before MuJoCo is imported ({str(e).splitlines()[0]})") from None
         self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
         self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
 

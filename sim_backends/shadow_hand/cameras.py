@@ -66,22 +66,12 @@ class Checkerboard:
     OpenCV finds its ``(columns − 1) × (rows − 1)`` inner corners."""
 
     squares: tuple[int, int] = (8, 5)
-    square_m: float = 0.02
-    border_m: float = 0.015
+    square_m: float = 0.01
+    border_m: float = 0.008
 
     @property
     def inner(self) -> tuple[int, int]:
         return self.squares[0] - 1, self.squares[1] - 1
-
-    def corners_in_board(self) -> np.ndarray:
-        """(N, 3) inner corners [m] in the board frame (z = its front face's normal),
-        row by row along +x, rows along +y: the order :mod:`calibration.camera` uses."""
-        cols, rows = self.inner
-        s = self.square_m
-        i, j = np.meshgrid(np.arange(cols), np.arange(rows))
-        x = (i.ravel() - (cols - 1) / 2) * s
-        y = (j.ravel() - (rows - 1) / 2) * s
-        return np.stack([x, y, np.zeros_like(x)], axis=1)
 
 
 def add_stereo_cameras(spec: mujoco.MjSpec, mount: StereoMount = StereoMount()) -> None:
@@ -95,20 +85,21 @@ def add_stereo_cameras(spec: mujoco.MjSpec, mount: StereoMount = StereoMount()) 
 
 
 def add_board(spec: mujoco.MjSpec, board: Checkerboard = Checkerboard()) -> None:
-    """A mocap body carrying the board (visual only: no contacts). Its frame: origin at the
-    board centre, z out of the printed face. Squares are geoms (exact geometry, no texture
-    mapping to get wrong); the (0, 0) square is black."""
+    """A mocap body carrying the board (visual only: no contacts). Its frame is OpenCV's
+    board convention: origin at the board centre on the printed face, x along a row, y
+    down the columns, z into the board (the printed face looks along −z). Squares are
+    geoms (exact geometry, no texture mapping to get wrong); the (0, 0) square is black."""
     b = spec.worldbody.add_body(name=BOARD_BODY, mocap=True, pos=[0, 0, -1])
     cols, rows = board.squares
-    s, t = board.square_m, 0.001
+    s, t, ink = board.square_m, 0.002, 0.0001
     vis = {"contype": 0, "conaffinity": 0}
     b.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[cols * s / 2 + board.border_m, rows * s / 2 + board.border_m, t],
-               pos=[0, 0, -t], rgba=[0.95, 0.95, 0.95, 1], **vis)
+               pos=[0, 0, t], rgba=[0.95, 0.95, 0.95, 1], **vis)
     for i in range(cols):
         for j in range(rows):
             if (i + j) % 2 == 0:
-                b.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2, s / 2, t / 2],
-                           pos=[(i - cols / 2 + 0.5) * s, (j - rows / 2 + 0.5) * s, t / 2],
+                b.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2, s / 2, ink],
+                           pos=[(i - cols / 2 + 0.5) * s, (j - rows / 2 + 0.5) * s, -ink],
                            rgba=[0.02, 0.02, 0.02, 1], **vis)
 
 
