@@ -2,8 +2,8 @@
 et al. 2018, and the spatial soft-argmax of Levine et al. 2016), one keypoint per ball.
 
 Input: an RGB image (H×W, 280×180 in the thesis), downsampled 2× by area averaging.
-Body: a 5×5 stride-2 convolution then four 3×3 convolutions dilated 1, 2, 4, 8 (a wide
-receptive field at one resolution, no pooling), ReLU. Heads: one heatmap per ball whose
+Body: a 5×5 stride-2 convolution then three 3×3 convolutions dilated 1, 2, 4 (a receptive
+field of ~60 full-resolution pixels, three ball diameters, at one resolution, no pooling), ReLU. Heads: one heatmap per ball whose
 spatial softmax gives the expected pixel (sub-cell precision), and a visibility logit per
 ball (global max of a second 1×1 map). Output stride 4 w.r.t. the full image; pixels
 are returned in full-resolution coordinates (OpenCV's convention: pixel centres at
@@ -25,12 +25,23 @@ INPUT_SCALE = 2
 STRIDE = 4
 
 
+def spatial_soft_argmax(logits: torch.Tensor, stride: int = STRIDE) -> torch.Tensor:
+    """(B, K, H, W) heatmap logits → (B, K, 2) expected (u, v) under each map's softmax, in
+    full-resolution pixels: cell (i, j) covers pixels [stride·j, stride·(j+1)) and its
+    centre is at stride·(j + ½) − ½ (pixel centres at integers)."""
+    B, K, H, W = logits.shape
+    p = torch.softmax(logits.reshape(B, K, H * W), dim=-1).reshape(B, K, H, W)
+    u = (torch.arange(W, dtype=logits.dtype) + 0.5) * stride - 0.5
+    v = (torch.arange(H, dtype=logits.dtype) + 0.5) * stride - 0.5
+    return torch.stack([(p.sum(2) * u).sum(-1), (p.sum(3) * v).sum(-1)], dim=-1)
+
+
 class KeypointNet(nn.Module):
-    def __init__(self, n_keypoints: int = N_KEYPOINTS, width: int = 16):
+    def __init__(self, n_keypoints: int = N_KEYPOINTS, width: int = 12):
         super().__init__()
         c = width
         layers: list[nn.Module] = [nn.Conv2d(3, c, 5, stride=2, padding=2), nn.ReLU()]
-        for d in (1, 2, 4, 8):
+        for d in (1, 2, 4):
             layers += [nn.Conv2d(c, c, 3, padding=d, dilation=d), nn.ReLU()]
         self.body = nn.Sequential(*layers)
         self.heat = nn.Conv2d(c, n_keypoints, 1)
@@ -43,12 +54,7 @@ class KeypointNet(nn.Module):
         """``x``: (B, 3, h, w) float in [0, 1] at the network's input scale. Returns
         (uv (B, K, 2) in full-resolution pixels, visibility logits (B, K))."""
         f = self.body(x)
-        h = self.heat(f) / self.log_temp.exp()
-        B, K, H, W = h.shape
-        p = torch.softmax(h.reshape(B, K, H * W), dim=-1).reshape(B, K, H, W)
-        u = (torch.arange(W, dtype=x.dtype) + 0.5) * STRIDE - 0.5
-        v = (torch.arange(H, dtype=x.dtype) + 0.5) * STRIDE - 0.5
-        uv = torch.stack([(p.sum(2) * u).sum(-1), (p.sum(3) * v).sum(-1)], dim=-1)
+        uv = spatial_soft_argmax(self.heat(f) / self.log_temp.exp())
         vis = self.vis(f).amax(dim=(2, 3))
         return uv, vis
 

@@ -13,6 +13,7 @@ WidowX cameras; shadows and reflections off).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import mujoco
 import numpy as np
@@ -24,6 +25,7 @@ from drivers.camera.config import CameraParams, camera_spec
 from drivers.camera.pipeline import CameraPipeline, FramePair
 from perception.geometry import (
     StereoCalibration,
+    apply,
     cv_from_mujoco_cam,
     homogeneous,
     intrinsics_from_fovy,
@@ -314,3 +316,44 @@ class StereoCameraSim(LockstepSim):
         return Health(ok=self.scene is not None, last_error=self.last_error,
                       extra={"sim_time_s": self._t_s, "backend": "sim",
                              **({} if self.pipeline is None else self.pipeline.ages(self._t_s))})
+
+
+class TrackerOptions(Params):
+    """``params.sim.tracker`` of the hand sim: feed ``extras["balls_m"]`` from the camera
+    tracker (rendered stereo pair) instead of the simulator's truth."""
+
+    kind: Literal["color", "learned"] = "learned"
+    weights: str | None = Field(None, description="learned: weights file (default: the shipped ones)")
+    min_confidence: float = Field(0.5, ge=0, le=1)
+    stale_after_s: float = Field(0.15, gt=0, description="balls not confidently seen for longer are stale")
+    encoding: Literal["jpeg", "png"] = "jpeg"
+
+
+class HandTracker:
+    """The stereo pair and a tracker inside the hand sim (cameras added to its scene with
+    :func:`scene_edit`): each :meth:`observe` renders the pair at the sim's state and
+    tracks it. Ball positions come back in the world frame, as the hand reports them."""
+
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, opts: TrackerOptions, period_s: float):
+        self.opts = opts
+        self.renderer = StereoRenderer(model)
+        cp = CameraParams(tracker=opts.kind, weights=opts.weights, min_confidence=opts.min_confidence,
+                          stale_after_s=opts.stale_after_s, fail_after_s=1e9, encoding=opts.encoding,
+                          period_s=period_s)
+        self.pipeline = CameraPipeline(cp, truth_calibration(model, data))
+        self.world_from_hand = world_from_hand(model, data)
+
+    def start(self, t_s: float) -> None:
+        self.pipeline.start(t_s)
+
+    def observe(self, data: mujoco.MjData, t_s: float, seq: int) -> Observation:
+        """The camera's observation at ``t_s`` (state: balls in the hand frame + confidence)."""
+        left, right = self.renderer.render(data)
+        self.pipeline.feed(FramePair(left, right, t_s, t_s))
+        return self.pipeline.observation(t_s, seq)
+
+    def balls_world(self, cam_obs: Observation) -> np.ndarray:
+        return apply(self.world_from_hand, cam_obs.state[:6].reshape(2, 3))
+
+    def close(self) -> None:
+        self.renderer.close()
