@@ -7,7 +7,7 @@ downloaded: every image is rendered from the MuJoCo hand scene with the stereo p
 (:class:`sim_backends.shadow_hand.cameras.HandCameraScene`).
 
 Domain randomisation per rendered sample: finger poses about the hold pose (occlusions),
-ball positions over and beside the palm (sometimes out of view), light and headlight
+ball positions over and beside the palm (6 % out of view, 10 % hidden under the hand), light and headlight
 intensity, ball and hand colours, camera pose jitter (a few mm and ~1°); per training
 image: Gaussian pixel noise and brightness/contrast. Labels: each ball's pixel (the
 projection of its centre with the jittered camera) and its visible fraction (segmentation
@@ -85,8 +85,11 @@ def render_dataset(n_pairs: int, seed: int = 0, scene=None, randomize: bool = Tr
                 for i in range(2):
                     rad, th = 0.045 * np.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
                     balls[i] = c + [rad * np.cos(th), rng.uniform(-0.015, 0.006), rad * np.sin(th)]
-                    if rng.uniform() < 0.06:  # out of view
+                    u = rng.uniform()
+                    if u < 0.06:  # out of view
                         balls[i] = c + [rng.choice([-1, 1]) * rng.uniform(0.2, 0.4), 0.0, rng.uniform(-0.1, 0.1)]
+                    elif u < 0.16:  # under the palm or the fingers: hidden
+                        balls[i] = c + [rng.uniform(-0.04, 0.04), rng.uniform(0.03, 0.07), rng.uniform(-0.05, 0.05)]
                 for j, cam in enumerate(cams):
                     m.cam_pos[cam] = base_pos[j] + rng.normal(0.0, 0.003, 3)
                     mujoco.mju_mulQuat(m.cam_quat[cam], base_quat[j], _small_rotation(rng, np.radians(1.0)))
@@ -184,11 +187,20 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--epochs", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--cache", default=None, help="an .npz of the rendered data: written once, reused after")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     t0 = time.monotonic()
-    data = render_dataset(a.pairs, seed=a.seed, log=lambda m: print(m, flush=True))
-    held = render_dataset(30, seed=a.seed + 1000)
+    if a.cache and os.path.exists(a.cache):
+        z = np.load(a.cache)
+        data = Dataset(z["images"], z["uv"], z["vis"])
+        held = Dataset(z["h_images"], z["h_uv"], z["h_vis"])
+    else:
+        data = render_dataset(a.pairs, seed=a.seed, log=lambda m: print(m, flush=True))
+        held = render_dataset(30, seed=a.seed + 1000)
+        if a.cache:
+            np.savez(a.cache, images=data.images, uv=data.uv, vis=data.vis, h_images=held.images, h_uv=held.uv,
+                     h_vis=held.vis)
     t1 = time.monotonic()
     print(f"rendered {len(data.images)} + {len(held.images)} images in {t1 - t0:.0f} s")
     net = train(data, epochs=a.epochs, seed=a.seed)

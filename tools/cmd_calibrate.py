@@ -121,9 +121,6 @@ def register(app: typer.Typer) -> None:
 
         Without --images it renders the board in the MuJoCo hand scene and reports the error
         against the exact camera model."""
-        import os
-
-        os.environ.setdefault("MUJOCO_GL", "egl")  # before MuJoCo is imported (offscreen rendering)
         import numpy as np
 
         from calibration.camera import CalibrationError, calibrate_from_images, calibrate_rendered
