@@ -113,7 +113,9 @@ class StereoUvc:
         except LinkError:
             self.left.close()
             raise
+        #: left frames that found no right frame within max_skew_s
         self.skewed = 0
+        self._refused: int | None = None
         self._last: tuple[int, int] | None = None
 
     def latest_pair(self) -> tuple[Frame, Frame] | None:
@@ -121,9 +123,11 @@ class StereoUvc:
         for g in (self.left, self.right):
             if g.error:
                 raise LinkError(g.error)
-        p = pair_frames(self.left.frames(), self.right.frames(), self.max_skew_s)
+        lf, rf = self.left.frames(), self.right.frames()
+        p = pair_frames(lf, rf, self.max_skew_s)
         if p is None:
-            if self.left.frames() and self.right.frames():
+            if lf and rf and lf[-1].seq != self._refused:
+                self._refused = lf[-1].seq  # each left frame without a partner counts once
                 self.skewed += 1
             return None
         key = (p[0].seq, p[1].seq)

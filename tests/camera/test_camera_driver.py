@@ -146,3 +146,24 @@ def test_images_are_recorded_as_foxglove_compressed_images(tmp_path, scene):
     assert p.returncode == 0 and "foxglove/camera/image" in p.stdout, p.stdout + p.stderr
     lines = [ln for ln in p.stdout.splitlines() if "/hil/" in ln]
     assert lines and all(ln.split()[0] == "ok" for ln in lines), p.stdout
+
+
+def test_stereo_uvc_hands_out_each_pair_once_and_counts_unpaired_left_frames_once():
+    from types import SimpleNamespace
+
+    from drivers.camera.uvc import StereoUvc
+
+    img = np.zeros((1, 1, 3), np.uint8)
+    s = StereoUvc.__new__(StereoUvc)  # the pairing state only; grabbers stand in below
+    s.max_skew_s, s.skewed, s._refused, s._last = 0.005, 0, None, None
+    left = [Frame(1.0, 1, img)]
+    right = [Frame(1.001, 1, img)]
+    s.left = SimpleNamespace(error=None, frames=lambda: list(left))
+    s.right = SimpleNamespace(error=None, frames=lambda: list(right))
+    assert s.latest_pair() is not None and s.latest_pair() is None  # nothing new: no repeat
+    left.append(Frame(1.1, 2, img))  # its partner has not come yet (or never will)
+    assert s.latest_pair() is None and s.latest_pair() is None
+    assert s.skewed == 1
+    s.right.error = "camera right: stream from 1 ended"
+    with pytest.raises(LinkError, match="stream from 1 ended"):
+        s.latest_pair()
