@@ -10,7 +10,8 @@ the hand frame and a confidence per ball out.
 
 Confidence (both trackers) is in [0, 1]: how much of the ball each view sees (the blob
 area, or the network's visibility head) times how well the two views agree (the
-reprojection error of the triangulated point). A ball hidden by a finger or out of view
+reprojection error of the triangulated point); of two estimates closer than the balls can
+be (1.5 radii), the less confident one gets 0. A ball hidden by a finger or out of view
 gets a low confidence; its position is NaN when no view saw it at all. Consumers compare
 ``confidence`` with a threshold (the hand backend's ``min_confidence``).
 """
@@ -74,6 +75,16 @@ def _fuse(cal: StereoCalibration, uv_l: np.ndarray, uv_r: np.ndarray, seen: np.n
     return pos, agree, depth
 
 
+def _exclusive(pos: np.ndarray, conf: np.ndarray, min_separation_m: float = 1.5 * BALL_RADIUS_M) -> np.ndarray:
+    """Two rigid balls cannot overlap (centres ≥ 2 radii apart): when both estimates land on
+    one ball (a keypoint for a missing ball latching onto the other one), the less
+    confident of the two is not a ball. Returns the corrected confidences."""
+    conf = conf.copy()
+    if np.isfinite(pos).all() and np.linalg.norm(pos[0] - pos[1]) < min_separation_m:
+        conf[int(np.argmin(conf))] = 0.0
+    return conf
+
+
 class ColorTracker:
     """HSV thresholds per ball (OpenCV hue 0-180): ball 0 red, ball 1 blue, as rendered.
 
@@ -124,7 +135,7 @@ class ColorTracker:
         with np.errstate(invalid="ignore", divide="ignore"):
             full = np.pi * (f * BALL_RADIUS_M / depth) ** 2
             vis = np.where(np.isfinite(full), np.minimum(1.0, np.minimum(a_l, a_r) / full), 0.0)
-        conf = np.clip(vis * agree, 0.0, 1.0)
+        conf = _exclusive(pos, np.clip(vis * agree, 0.0, 1.0))
         return TrackResult(pos, conf, uv_l, uv_r, time.perf_counter() - t0,
                            extra={"area_px": np.stack([a_l, a_r], axis=1)})
 
@@ -162,7 +173,7 @@ class LearnedTracker:
         uv, vis = self.keypoints(left, right)
         seen = (vis[0] > 0.1) & (vis[1] > 0.1)
         pos, agree, _ = _fuse(self.cal, uv[0], uv[1], seen, self.reproj_sigma_px)
-        conf = np.clip(np.minimum(vis[0], vis[1]) * agree, 0.0, 1.0)
+        conf = _exclusive(pos, np.clip(np.minimum(vis[0], vis[1]) * agree, 0.0, 1.0))
         uv_l = np.where(seen[:, None], uv[0], np.nan)
         uv_r = np.where(seen[:, None], uv[1], np.nan)
         return TrackResult(pos, conf, uv_l, uv_r, time.perf_counter() - t0, extra={"visibility": vis})

@@ -126,3 +126,12 @@ def test_unknown_tracker_and_bad_weights_are_one_line_errors(tmp_path, scene):
     with pytest.raises(ValueError, match="w.pt: not keypoint-net weights"):
         LearnedTracker(scene.truth(), bad)
     assert isinstance(make_tracker("color", scene.truth()), ColorTracker)
+
+
+def test_two_estimates_on_one_ball_leave_only_the_more_confident():
+    from perception.tracker import _exclusive
+
+    pos = np.array([[0.0, 0.0, 0.3], [0.01, 0.0, 0.3]])  # 1 cm apart: one ball, not two
+    assert list(_exclusive(pos, np.array([0.9, 0.8]))) == [0.9, 0.0]
+    apart = np.array([[0.0, 0.0, 0.3], [0.045, 0.0, 0.3]])
+    assert list(_exclusive(apart, np.array([0.9, 0.8]))) == [0.9, 0.8]
