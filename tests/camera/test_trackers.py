@@ -56,7 +56,7 @@ def test_tracker_triangulates_the_balls_against_truth(kind, scene, motion):
         assert np.all(r.confidence > 0.5), r.confidence
         err.append(1e3 * np.linalg.norm(r.positions_m - b, axis=1))
     err = np.array(err)
-    bound = {"color": 5.0, "learned": 12.0}[kind]  # mean [mm]; docs/camera.md has the bench figures
+    bound = {"color": 5.0, "learned": 6.0}[kind]  # mean [mm]; docs/camera.md has the bench figures
     assert err.mean() < bound and err.max() < 3 * bound, err
 
 
