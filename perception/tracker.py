@@ -26,7 +26,7 @@ from typing import Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from perception.geometry import StereoCalibration
+from perception.geometry import StereoCalibration, apply, invert
 
 #: ball radius [m] (the thesis' Baoding balls; sim_backends/shadow_hand/model.py builds the same)
 BALL_RADIUS_M = 0.02
@@ -65,8 +65,6 @@ def _fuse(cal: StereoCalibration, uv_l: np.ndarray, uv_r: np.ndarray, seen: np.n
     both = np.flatnonzero(seen)
     if both.size:
         X, err = cal.triangulate_hand(uv_l[both], uv_r[both])
-        from perception.geometry import apply, invert
-
         z = apply(invert(cal.hand_from_left), X)[:, 2]
         ok = np.isfinite(X).all(axis=1) & (z > 0)
         pos[both[ok]] = X[ok]
@@ -149,7 +147,7 @@ class LearnedTracker:
     name = "learned"
 
     def __init__(self, calibration: StereoCalibration, weights: str | Path | None = None,
-                 reproj_sigma_px: float = 2.0, threads: int | None = None):
+                 reproj_sigma_px: float = 2.0):
         import torch
 
         from perception.keypoint_net import load_keypoint_net
@@ -158,8 +156,6 @@ class LearnedTracker:
         self.reproj_sigma_px = reproj_sigma_px
         path = Path(weights) if weights is not None else WEIGHTS_DIR / "keypoint_net.pt"
         self.net = load_keypoint_net(path)
-        if threads is not None:
-            torch.set_num_threads(threads)
         self._torch = torch
 
     def keypoints(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -67,9 +67,10 @@ class CameraPipeline:
 
     def feed(self, pair: FramePair) -> TrackResult:
         """Track one new pair (time is the pair's capture time)."""
-        finite = pair.left.shape == pair.right.shape == (self.params.height_px, self.params.width_px, 3)
-        self.inputs["image"].update(pair.t_s, finite)
-        if not finite:
+        well_formed = pair.left.shape == pair.right.shape == (self.params.height_px, self.params.width_px, 3)
+        # a malformed pair is not used (counted like a non-finite sample) and refreshes nothing
+        self.inputs["image"].update(pair.t_s, well_formed)
+        if not well_formed:
             raise ValueError(f"frame pair of shapes {pair.left.shape}/{pair.right.shape}, expected "
                              f"({self.params.height_px}, {self.params.width_px}, 3)")
         r = self.tracker.track(pair.left, pair.right)

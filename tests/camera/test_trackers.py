@@ -140,3 +140,15 @@ def test_two_estimates_on_one_ball_leave_only_the_more_confident():
     assert list(_exclusive(pos, np.array([0.9, 0.8]))) == [0.9, 0.0]
     apart = np.array([[0.0, 0.0, 0.3], [0.045, 0.0, 0.3]])
     assert list(_exclusive(apart, np.array([0.9, 0.8]))) == [0.9, 0.8]
+
+
+def test_a_malformed_frame_pair_is_refused_and_flagged(scene):
+    pipe = CameraPipeline(CameraParams(), scene.truth())
+    pipe.start(0.0)
+    small = np.zeros((10, 10, 3), np.uint8)
+    with pytest.raises(ValueError, match=r"frame pair of shapes \(10, 10, 3\)/\(10, 10, 3\), expected \(180, 280, 3\)"):
+        pipe.feed(FramePair(small, small, 0.0, 0.0))
+    obs = pipe.observation(0.0, 1)
+    assert not obs.ok and obs.flag("nonfinite_input") and obs.flag("stale_image")
+    with pytest.raises(ValueError, match="calibration of stereo0 is for 280x180 images, the cameras give 640x480"):
+        CameraPipeline(CameraParams(width_px=640, height_px=480), scene.truth())
