@@ -136,7 +136,7 @@ def augment(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     return (x * gain + bias + sigma * torch.randn(x.shape, generator=gen)).clamp(0.0, 1.0)
 
 
-def train(data: Dataset, epochs: int = 12, batch: int = 32, lr: float = 3e-3, seed: int = 0,
+def train(data: Dataset, epochs: int = 30, batch: int = 32, lr: float = 3e-3, seed: int = 0,
           width: int = 12, log=print) -> KeypointNet:
     """Spatial-softmax keypoint regression (Huber on pixels, where the ball is visible) plus
     the visibility head (binary cross-entropy on the visible fraction)."""
@@ -183,8 +183,8 @@ def evaluate(net: KeypointNet, data: Dataset) -> dict[str, float]:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="perception/weights/keypoint_net.pt")
-    ap.add_argument("--pairs", type=int, default=200, help="rendered stereo pairs (2 images each)")
-    ap.add_argument("--epochs", type=int, default=10)
+    ap.add_argument("--pairs", type=int, default=300, help="rendered stereo pairs (2 images each)")
+    ap.add_argument("--epochs", type=int, default=30)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--cache", default=None, help="an .npz of the rendered data: written once, reused after")

@@ -23,7 +23,7 @@ class CameraParams(Params):
     period_s: float = Field(0.05, gt=0, description="read period (20 Hz)")
     width_px: int = Field(280, gt=0)
     height_px: int = Field(180, gt=0)
-    tracker: Literal["color", "learned"] = "color"
+    tracker: Literal["color", "learned"] = "learned"
     weights: str | None = Field(None, description="learned: weights file (default: the shipped ones)")
     calibration: str | None = Field(
         None, description="calibration file or directory (<camera_id>.json); sim: None uses the exact one")
