@@ -88,26 +88,25 @@ def calibrate_stereo(pairs: list[tuple[np.ndarray, np.ndarray]], board: BoardMod
     # rendered or lab cameras of this size: k3 and tangential terms are not identifiable from
     # a few views of a small board; fixing them keeps the fit well posed
     flags = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
-    # a board found shifted by a square (a partly hidden edge) fits badly: drop such views
-    # by their per-view error (> 3x the median, at least 1 px) and fit again
+    # a view that does not fit the others (a board found shifted by a square, a mis-paired
+    # shot) is dropped by its stereo per-view error (> 3x the median, at least 1 px), and
+    # the fit repeated
     given = len(obj)
-    for _ in range(2):
-        errs = []
-        for pts in (pl, pr):
-            *_, per_view = cv2.calibrateCameraExtended(obj, pts, (w, h), None, None, flags=flags)
-            errs.append(per_view.ravel())
-        worst = np.maximum(*errs)
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 200, 1e-9)
+    while True:
+        if len(obj) < min_views:
+            raise CalibrationError(f"only {len(obj)} of {given} board views fit consistently; need at least "
+                                   f"{min_views}")
+        _, K1, d1, _, _ = cv2.calibrateCamera(obj, pl, (w, h), None, None, flags=flags)
+        _, K2, d2, _, _ = cv2.calibrateCamera(obj, pr, (w, h), None, None, flags=flags)
+        rms, K1, d1, K2, d2, R, T, _, _, _, _, per_view = cv2.stereoCalibrateExtended(
+            obj, pl, pr, K1, d1, K2, d2, (w, h), np.eye(3), np.zeros((3, 1)),
+            flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS, criteria=crit)
+        worst = np.asarray(per_view).reshape(len(obj), -1).max(axis=1)
         keep = worst <= max(1.0, 3 * float(np.median(worst)))
         if keep.all():
             break
         obj, pl, pr = ([x for x, k in zip(v, keep, strict=True) if k] for v in (obj, pl, pr))
-    if len(obj) < min_views:
-        raise CalibrationError(f"only {len(obj)} of {given} board views fit consistently; need at least {min_views}")
-    _, K1, d1, _, _ = cv2.calibrateCamera(obj, pl, (w, h), None, None, flags=flags)
-    _, K2, d2, _, _ = cv2.calibrateCamera(obj, pr, (w, h), None, None, flags=flags)
-    rms, K1, d1, K2, d2, R, T, _, _ = cv2.stereoCalibrate(
-        obj, pl, pr, K1, d1, K2, d2, (w, h), flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS,
-        criteria=(cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 200, 1e-9))
     return StereoCalibration(camera_id=camera_id, width_px=w, height_px=h, K1=K1, dist1=d1.ravel(), K2=K2,
                              dist2=d2.ravel(), R=R, T=T.ravel(),
                              report={"rms_px": float(rms), "views_used": len(obj), "views_given": len(pairs),

@@ -14,7 +14,7 @@ from __future__ import annotations
 import time
 
 from configs.schema import ConfigError, RobotConfig, parse_params
-from drivers.base import Driver, Health, Observation
+from drivers.base import Driver, Health, LinkError, Observation
 from drivers.camera.config import CameraParams, camera_spec
 from drivers.camera.pipeline import CameraPipeline, FramePair
 from perception.geometry import StereoCalibration
@@ -59,7 +59,10 @@ class StereoCameraDriver(Driver):
             self.uvc = None
 
     def _poll(self) -> float:
-        pr = self.uvc.latest_pair()
+        try:
+            pr = self.uvc.latest_pair()
+        except LinkError as e:  # a stream ended or a camera vanished: the error path, then raise
+            self.fail_link(e)
         if pr is not None:
             a, b = pr
             self.pipeline.feed(FramePair(a.image, b.image, a.t_s, b.t_s))

@@ -131,3 +131,13 @@ def test_triangulation_inverts_projection_exactly(board_views):
     off, _ = truth.triangulate_hand(uv_l + [0.5, 0.0], uv_r - [0.5, 0.0])
     z_err = np.abs(apply(left_from_hand, off)[:, 2] - apply(left_from_hand, pts)[:, 2])
     assert np.all((z_err > 1e-3) & (z_err < 4e-3))
+
+
+def test_a_view_that_does_not_fit_is_rejected(board_views):
+    """A pair whose right image belongs to another board pose (a mis-paired shot) fits
+    badly: it is dropped by its per-view error and the result stays right."""
+    board, pairs, fixture, truth = board_views
+    bad = [*pairs, (pairs[0][0], pairs[5][1])]
+    cal = calibrate_stereo(bad, board, "stereo0")
+    assert cal.report["views_rejected"] >= 1
+    assert compare(cal, truth)["baseline_error_mm"] < 1.0

@@ -167,3 +167,20 @@ def test_stereo_uvc_hands_out_each_pair_once_and_counts_unpaired_left_frames_onc
     s.right.error = "camera right: stream from 1 ended"
     with pytest.raises(LinkError, match="stream from 1 ended"):
         s.latest_pair()
+
+
+def test_a_stream_that_ends_takes_the_error_path_with_one_line(tmp_path, scene):
+    scene.set_balls(np.array([[0.022, -0.02, 0.34], [-0.022, -0.02, 0.34]]))
+    left, right = scene.render()
+    _video(tmp_path / "l.avi", [left] * 3)
+    _video(tmp_path / "r.avi", [right] * 3)
+    scene.truth().save(tmp_path / "cal")
+    d = make_driver("camera", backend="real", left_device=str(tmp_path / "l.avi"),
+                    right_device=str(tmp_path / "r.avi"), calibration=str(tmp_path / "cal"), max_skew_s=0.05)
+    d.configure()
+    with pytest.raises(LinkError, match=r"camera (left|right): stream from .* ended") as e:
+        for _ in range(400):  # 3 frames at 30 fps, then the file ends
+            d.read()
+            d.tick()
+    assert "\n" not in str(e.value)
+    assert d.lifecycle.value == "unconfigured" and d.last_error  # the error path ran
