@@ -119,15 +119,13 @@ def closed_loop(seconds: float = 3.0, trackers: tuple[str, ...] = ("color", "lea
     move the balls' centroid, as the controller sees it, towards the targets' centroid,
     holding the fingers. The return is the Baoding reward (−5·Σ‖ball − target‖ − 500·drop,
     computed from the simulator's truth) summed over the episode's 10 Hz steps."""
+    from drivers.shadow_hand.config import ShadowHandParams
     from sim_backends.shadow_hand.backend import ShadowHandSim
-    from sim_backends.shadow_hand.cameras import TrackerOptions
 
     out: dict[str, Any] = {"seconds": seconds, "controller": "wrist P on the ball centroid", "gain": gain}
     for source in ("truth", *trackers):
-        sim = ShadowHandSim()
-        if source != "truth":
-            sim.sim = sim.sim.model_copy(update={"tracker": {"kind": source, "weights": weights}})
-            sim._tracker_opts = TrackerOptions(kind=source, weights=weights)
+        tracker = None if source == "truth" else {"kind": source, "weights": weights}
+        sim = ShadowHandSim(ShadowHandParams(sim={"tracker": tracker}))
         ret, stale, err = 0.0, 0, []
         with sim:
             obs = sim.read()

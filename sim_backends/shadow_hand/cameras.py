@@ -342,14 +342,19 @@ class HandTracker:
                           period_s=period_s)
         self.pipeline = CameraPipeline(cp, truth_calibration(model, data))
         self.world_from_hand = world_from_hand(model, data)
+        self._rendered_t = None
 
     def start(self, t_s: float) -> None:
         self.pipeline.start(t_s)
+        self._rendered_t = None
 
     def observe(self, data: mujoco.MjData, t_s: float, seq: int) -> Observation:
-        """The camera's observation at ``t_s`` (state: balls in the hand frame + confidence)."""
-        left, right = self.renderer.render(data)
-        self.pipeline.feed(FramePair(left, right, t_s, t_s))
+        """The camera's observation at ``t_s`` (state: balls in the hand frame + confidence);
+        one render per sim instant, however often the hand is read."""
+        if self._rendered_t != t_s:
+            left, right = self.renderer.render(data)
+            self.pipeline.feed(FramePair(left, right, t_s, t_s))
+            self._rendered_t = t_s
         return self.pipeline.observation(t_s, seq)
 
     def balls_world(self, cam_obs: Observation) -> np.ndarray:

@@ -26,3 +26,14 @@ def test_bench_tracker_prints_one_json_line_with_errors_latencies_and_ratios():
     assert ratio["latency_p50_ratio"] == pytest.approx(out["learned"]["latency_ms_p50"] / out["color"]["latency_ms_p50"])
     assert out["goals"]["thesis_error_mm"] == 5.0 and out["goals"]["thesis_latency_ms"] == 20.0
     assert out["goals"]["learned_error_met"] == (out["learned"]["mean_error_mm"] <= 5.0)
+
+
+def test_closed_loop_runs_the_same_controller_on_truth_and_on_the_tracker():
+    import math
+
+    from tools.bench_tracker import closed_loop
+
+    r = closed_loop(0.3, trackers=("color",))
+    assert r["truth"]["estimate_error_mm_mean"] == 0.0  # truth fed back: no estimate error
+    assert 0.0 < r["color"]["estimate_error_mm_mean"] < 10.0  # the tracker's balls, not the truth
+    assert all(math.isfinite(r[k]["return"]) and r[k]["return"] < 0 for k in ("truth", "color"))
