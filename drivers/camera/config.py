@@ -1,8 +1,9 @@
 """Parameters and spec of the stereo camera tracker (docs/camera.md explains every field).
 
 State (8 channels): ``ball0_x ball0_y ball0_z ball1_x ball1_y ball1_z`` [m, hand frame]
-then ``ball0_conf ball1_conf`` [1, 0..1]. A ball the tracker did not see has confidence 0
-and its last confident position (0 before any). Action: empty (a sensor).
+then ``ball0_conf ball1_conf`` [1, 0..1]. A ball seen with less than ``min_confidence``
+keeps its last confident position (0 before any) beside the confidence measured now.
+Action: empty (a sensor).
 """
 
 from __future__ import annotations
