@@ -206,17 +206,16 @@ class HandCameraScene:
 
 def baoding_motion(t_s: np.ndarray, radius_m: float = 0.025, rate_rad_s: float = np.pi / 5,
                    bob_m: float = 0.004) -> np.ndarray:
-    """Ball centres (len(t), 2, 3) in the hand frame for a Baoding turn: diametrically
-    opposite on a circle of ``radius_m`` about the palm centre in the palm plane (the
-    hand frame's x-z plane), rotating at ``rate_rad_s``, bobbing ``bob_m`` along the
-    palm normal (rolling over the fingers)."""
-    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
-    th = rate_rad_s * t
-    c = np.asarray(PALM_CENTER_IN_HAND_M)
-    d = np.stack([radius_m * np.cos(th), -bob_m * np.sin(3 * th), radius_m * np.sin(th)], axis=1)
-    d2 = d * np.array([-1.0, 1.0, -1.0])
-    return np.stack([c + d, c + d2], axis=1)
+    """Ball centres (len(t), 2, 3) in the hand frame for a Baoding turn: the task's targets
+    (:class:`sim_backends.shadow_hand.baoding.BaodingTask` about the palm centre, palm normal
+    = the hand frame's −y) bobbing ``bob_m`` along the normal (rolling over the fingers)."""
+    from sim_backends.shadow_hand.baoding import BaodingTask
 
+    task = BaodingTask(center_m=np.asarray(PALM_CENTER_IN_HAND_M), axis=np.array([0.0, -1.0, 0.0]),
+                       radius_m=radius_m, rate_rad_s=rate_rad_s)
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    bob = np.array([0.0, -bob_m, 0.0]) * np.sin(3 * rate_rad_s * t)[:, None, None]  # along the normal
+    return np.stack([task.targets(ti) for ti in t]) + bob
 
 
 class CameraSimParams(Params):
