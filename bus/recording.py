@@ -4,7 +4,8 @@ One file per session; one channel per key expression; one schema per message typ
 (JSON Schema generated from the msgspec definition, in the subset Foxglove parses),
 messages JSON-encoded so any MCAP tool (the ``mcap`` reader, Foxglove, rerun's MCAP
 importer) decodes them. Robot poses are also written on Foxglove's well-known
-``PoseInFrame``/``FrameTransform`` schemas (derived channels, not replayed).
+``PoseInFrame``/``FrameTransform`` schemas, and JPEG/PNG camera images as
+``CompressedImage`` (derived channels, not replayed).
 Chunks are closed, flushed and fsync'ed by time (every ``FLUSH_PERIOD_S``), so a crash
 loses at most that much data; :func:`read_messages` reads a truncated file up to the
 damage.
@@ -130,6 +131,30 @@ class FoxglovePoses:
         ]
 
 
+def foxglove_image_topic(rig: str, camera: str) -> str:
+    """Channel of a camera's ``foxglove.CompressedImage`` (beside ``hil/<rig>/<camera>/image``)."""
+    return f"{keys.root(rig)}/foxglove/{camera}/image"
+
+
+#: hil.Image encodings that are already a file format Foxglove and rerun decode
+COMPRESSED_IMAGE_FORMATS = {"jpeg": "jpeg", "png": "png"}
+
+
+def foxglove_image(topic: str, msg: Msg, log_ns: int) -> tuple[str, Any, int] | None:
+    """A ``foxglove.CompressedImage`` (frame ``<camera>``) for a JPEG/PNG ``hil.Image``, else None.
+    The bytes are copied as they are: nothing is re-encoded."""
+    if not isinstance(msg, Image) or msg.encoding not in COMPRESSED_IMAGE_FORMATS:
+        return None
+    parts = topic.split("/")
+    rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+    stamp_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+    ts = fg.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+    return (foxglove_image_topic(rig, msg.camera),
+            fg.CompressedImage(timestamp=ts, frame_id=msg.camera, data=msg.data,
+                               format=COMPRESSED_IMAGE_FORMATS[msg.encoding]),
+            stamp_ns)
+
+
 class _McapFoxglovePoses:
     """Writes :class:`FoxglovePoses` messages to an mcap ``Writer`` (protobuf channels)."""
 
@@ -152,6 +177,9 @@ class _McapFoxglovePoses:
     def on_message(self, topic: str, msg: Msg, log_ns: int) -> int:
         """Write the Foxglove messages derived from ``msg``; returns how many."""
         out = self._poses.derive(topic, msg, log_ns)
+        img = foxglove_image(topic, msg, log_ns)
+        if img is not None:
+            out.append(img)
         for t, m, stamp_ns in out:
             self._w.add_message(self._channel(t, type(m)), log_time=log_ns, data=m.encode(), publish_time=stamp_ns)
         return len(out)

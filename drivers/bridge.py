@@ -99,7 +99,8 @@ class DriverNode(Node):
         self._estop_ack = self.publisher(keys.estop_ack(rig), EStopAck)
         self._reset_req = self.subscribe(keys.reset(rig, "request"), ResetEvent)
         self._reset_done = self.publisher(keys.reset(rig, "done"), ResetEvent)
-        #: a camera image a driver returns in ``extras["image"]`` (H×W×3 uint8), on keys.image(rig, robot)
+        #: a camera image a driver returns in ``extras["image"]`` (H×W×3 uint8), on keys.image(rig, robot);
+        #: ``extras["image_encoded"] = (encoding, bytes)`` (jpeg/png) is sent instead of the raw pixels
         self._image_pub = self.publisher(keys.image(rig, robot), Image)
         # the reset supervisor (control/reset) drives resets when it is alive: the node then
         # leaves controllers' requests to it and serves its teleport / new-episode requests
@@ -273,8 +274,10 @@ class DriverNode(Node):
         self._last_state = self._state_pub.put(msg)
         img = obs.extras.get("image")
         if isinstance(img, np.ndarray) and img.ndim == 3 and img.dtype == np.uint8:
+            # a camera driver may hand over its own encoding ("jpeg"/"png", bytes): sent as is
+            enc, data = obs.extras.get("image_encoded") or ("rgb8", img.tobytes())
             self._image_pub.put(Image(camera=self.robot, t_s=obs.t_s, width=img.shape[1], height=img.shape[0],
-                                      data=img.tobytes()))
+                                      encoding=enc, data=data))
         return msg
 
     def publish_spec(self) -> None:

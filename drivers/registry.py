@@ -22,6 +22,8 @@ BACKENDS: dict[tuple[str, str], str] = {
     ("velociroach", "emulated"): "drivers.velociroach.driver:VelociRoachDriver",
     ("velociroach", "real"): "drivers.velociroach.driver:VelociRoachDriver",
     ("mocap", "real"): "drivers.mocap.driver:MocapDriver",
+    ("camera", "real"): "drivers.camera.driver:StereoCameraDriver",
+    ("camera", "sim"): "sim_backends.shadow_hand.cameras:StereoCameraSim",
     ("shadow_hand", "sim"): "sim_backends.shadow_hand.backend:ShadowHandSim",
     ("shadow_hand", "emulated"): "drivers.shadow_hand.driver:ShadowHandDriver",
     ("shadow_hand", "real"): "drivers.shadow_hand.driver:ShadowHandDriver",

@@ -21,6 +21,7 @@ CONTRACT_BACKENDS = [
     ("velociroach", "sim", {}),
     ("velociroach", "emulated", {}),
     ("mocap", "real", {"source": "udp"}),
+    ("camera", "sim", {}),
     ("shadow_hand", "sim", {}),
     ("shadow_hand", "emulated", {"transport": "slcan"}),
     ("shadow_hand", "emulated", {"transport": "udp_multicast"}),  # the real UDP client, fed by a pose stream below

@@ -12,6 +12,9 @@ import typer
 # another process (the sim, a driver node) is busy: planner p99 went from ~100 ms to
 # 400-800 ms in `hil bench plan`. Must be set before torch is imported.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Simulated cameras (hand stereo pair, WidowX bench) render offscreen; MuJoCo picks its GL
+# platform when imported, so set it before any verb imports MuJoCo (PLATFORM_NOTES: EGL works headless).
+os.environ.setdefault("MUJOCO_GL", "egl")
 
 app = typer.Typer(
     help="hilstack: hardware-in-the-loop robot stack for model-based learning and control.",

@@ -1,4 +1,4 @@
-"""hil bench bus | plan | sim | adaptation: speed goals as ratios against a peer in the same run;
+"""hil bench bus | plan | sim | adaptation | tracker: speed goals as ratios against a peer in the same run;
 hil bench fuzz: every parser of untrusted bytes under atheris; calibrate: a gauntlet."""
 
 from __future__ import annotations
@@ -131,6 +131,20 @@ def bench_calibrate(
         echo_json({"cases": r["cases"], "totals": r["totals"]})
     else:
         typer.echo(format_table(r))
+
+
+@bench_app.command("tracker")
+@user_errors
+def bench_tracker(
+    seconds: float = typer.Option(5.0, "--seconds", help="seconds of Baoding motion (10 frames per second)"),
+    closed_loop_s: float = typer.Option(0.0, "--closed-loop", help="also run the hand sim closed loop this long [s]"),
+    json_out: bool = typer.Option(False, "--json"),
+) -> None:
+    """Ball trackers on rendered Baoding motion: error vs truth and latency; learned vs colour, vs the thesis."""
+    from tools.bench_tracker import run_bench_tracker
+
+    r = run_bench_tracker(seconds=seconds, closed_loop_s=closed_loop_s)
+    echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
 
 
 def register(app: typer.Typer) -> None:

@@ -1,4 +1,5 @@
-"""`hil calibrate`: find what the nominal model lacks in measured data (see docs/calibration.md)."""
+"""`hil calibrate`: find what the nominal model lacks in measured data (see docs/calibration.md);
+`hil calibrate-camera`: the stereo tracker's cameras (docs/camera.md)."""
 
 from __future__ import annotations
 
@@ -96,6 +97,73 @@ def register(app: typer.Typer) -> None:
         if report.get("closing_the_loop"):
             typer.echo(f"calibrated sim config: {report['closing_the_loop']['sim_params_yaml']}")
         typer.echo(f"report: {out}/report.md")
+
+
+    @app.command("calibrate-camera")
+    def calibrate_camera(
+        camera_id: str = typer.Option("stereo0", "--camera-id", help="the pair's id: names the result file"),
+        out: Path = typer.Option(Path("calibration_out/camera"), "--out",
+                                 help="directory for <camera-id>.json (an older one is kept, renamed)"),
+        images: Path | None = typer.Option(
+            None, "--images", help="real pairs: a directory of left_*.png / right_*.png (default: rendered views)"),
+        views: int = typer.Option(20, "--views", help="rendered: board poses to render"),
+        seed: int = typer.Option(0, "--seed", help="rendered: seed of the board poses"),
+        inner: str = typer.Option("7x4", "--inner", help="real: inner corners COLSxROWS of the printed board"),
+        square_mm: float = typer.Option(10.0, "--square-mm", help="real: square size of the printed board [mm]"),
+        fixture: str | None = typer.Option(None, "--fixture",
+                                           help="real: suffix of the pair with the board in the fixture pose"),
+        fixture_pose: str | None = typer.Option(
+            None, "--fixture-pose", help="real: the fixture pose in the hand frame, x,y,z[m],rx,ry,rz[rad, rotation "
+                                         "vector]"),
+        as_json: bool = typer.Option(False, "--json", help="print one JSON line"),
+    ) -> None:
+        """Stereo intrinsics + extrinsics from checkerboard views, and the pair's pose on the hand.
+
+        Without --images it renders the board in the MuJoCo hand scene and reports the error
+        against the exact camera model."""
+        import numpy as np
+
+        from calibration.camera import CalibrationError, calibrate_from_images, calibrate_rendered
+        from calibration.camera.stereo import BoardModel
+
+        try:
+            if images is None:
+                if views < 6:
+                    _fail("--views must be at least 6")
+                cal, errors = calibrate_rendered(views=views, seed=seed, camera_id=camera_id)
+            else:
+                try:
+                    cols, rows = (int(v) for v in inner.lower().split("x"))
+                except ValueError:
+                    _fail(f"--inner must be COLSxROWS (e.g. 7x4), got {inner!r}")
+                pose = None
+                if fixture_pose is not None:
+                    import cv2
+
+                    from perception.geometry import homogeneous
+
+                    try:
+                        v = [float(x) for x in fixture_pose.split(",")]
+                        assert len(v) == 6 and all(np.isfinite(v))
+                    except (ValueError, AssertionError):
+                        _fail(f"--fixture-pose must be six numbers x,y,z,rx,ry,rz, got {fixture_pose!r}")
+                    pose = homogeneous(cv2.Rodrigues(np.array(v[3:]))[0], v[:3])
+                cal = calibrate_from_images(images, BoardModel((cols, rows), square_mm / 1000), camera_id,
+                                            fixture=fixture, hand_from_board=pose)
+                errors = None
+        except CalibrationError as e:
+            _fail(str(e))
+        path = cal.save(out)
+        summary = {"camera_id": cal.camera_id, "timestamp": cal.timestamp, "file": str(path),
+                   "rms_px": cal.report["rms_px"], "views_used": cal.report["views_used"],
+                   "baseline_mm": 1000 * cal.baseline_m, "error_vs_truth": errors}
+        if as_json:
+            typer.echo(json.dumps(summary))
+            return
+        typer.echo(f"{cal.camera_id}: baseline {summary['baseline_mm']:.2f} mm, RMS {summary['rms_px']:.3f} px "
+                   f"over {summary['views_used']} views -> {path}")
+        for k, v in (errors or {}).items():
+            typer.echo(f"  {k}: {v:.3f}")
 
 
 def _fail(msg: str) -> None:

@@ -2,7 +2,8 @@
 
 Layout (fixed blueprint): a 3-D view of the world (robot path, current pose, planned
 trajectory), time series of the state and of the commands, and the camera images
-when a rig has them. Entity paths: ``world/<robot>/{path,pose,plan}``,
+when a rig has them (raw RGB, or JPEG/PNG as the camera tracker sends them). Entity paths:
+``world/<robot>/{path,pose,plan,balls}`` (``balls``: a camera tracker's ball positions),
 ``state/<robot>/<channel>``, ``cmd/<robot>/<channel>``, ``camera/<name>``.
 """
 
@@ -79,6 +80,17 @@ class RigVisualizer:
             return [state[0], state[1], 0.0]
         return None
 
+    def _balls(self, robot: str, state: list[float]) -> list[list[float]] | None:
+        """Tracked ball positions (channels ``ball<i>_x/y/z``, the camera tracker's state)."""
+        names = self.names.get(robot) or ()
+        out = []
+        for i in range(8):
+            keys_ = (f"ball{i}_x", f"ball{i}_y", f"ball{i}_z")
+            if not all(k in names for k in keys_):
+                break
+            out.append([state[names.index(k)] for k in keys_])
+        return out or None
+
     def log(self, topic: str, msg: Msg) -> None:
         if isinstance(msg, SpecMsg):
             self.names[msg.robot] = tuple(msg.spec["state"]["names"])
@@ -89,6 +101,10 @@ class RigVisualizer:
             names = self.names.get(msg.robot) or tuple(f"s{i}" for i in range(len(msg.state)))
             for n, v in zip(names, msg.state, strict=False):
                 self.rec.log(f"state/{msg.robot}/{n}", rr.Scalars(v))
+            balls = self._balls(msg.robot, msg.state)
+            if balls is not None:
+                self.rec.log(f"world/{msg.robot}/balls", rr.Points3D(balls, radii=0.02,
+                                                                     colors=[[220, 50, 50], [50, 80, 220]]))
             p = self._xyz(msg.robot, msg.state)
             if p is not None:
                 path = self._path.setdefault(msg.robot, [])
@@ -119,6 +135,8 @@ class RigVisualizer:
             if msg.encoding == "rgb8":
                 img = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.width, 3)
                 self.rec.log(f"camera/{msg.camera}", rr.Image(img))
+            elif msg.encoding in ("jpeg", "png"):  # the camera tracker's images: rerun decodes them
+                self.rec.log(f"camera/{msg.camera}", rr.EncodedImage(contents=msg.data, media_type=f"image/{msg.encoding}"))
         else:
             return
         self.logged += 1

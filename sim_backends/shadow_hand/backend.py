@@ -8,6 +8,9 @@ between writes (zero-order hold), as on the real hand.
 State: 24 joint angles [rad] and velocities [rad/s] (``drivers/shadow_hand/config.py``).
 ``Observation.extras["balls_m"]`` holds the two ball positions [m, world frame] (the
 camera tracker's job on a real rig) and ``flags["object_dropped"]`` the task's drop test.
+With ``params.sim.tracker`` set, ``balls_m`` comes from the camera tracker on a rendered
+stereo pair instead (truth in ``balls_true_m``, ``flags["stale_objects"]`` when a ball was
+not confidently seen within ``stale_after_s``; docs/camera.md).
 
 Public API for the emulator: ``ShadowHandSim(params)``, ``configure()``, ``reset()``,
 ``firmware``, ``advance(duration_s)``, ``joint_state()``, ``sim_time_s``.
@@ -56,6 +59,8 @@ class SimParams(Params):
     ki_finger_nm_per_rad_s: float = Field(4.0, ge=0)
     ball_target_radius_m: float = Field(0.025, gt=0)
     ball_target_rate_rad_s: float = Field(float(np.pi / 5), description="target rotation rate (+: counter-clockwise)")
+    tracker: dict | None = Field(None, description="camera tracker options (sim_backends/shadow_hand/cameras.py: "
+                                                   "TrackerOptions): balls_m from rendered stereo images, not truth")
 
 
 def parse_sim_params(sim: dict, source: str | None) -> SimParams:
@@ -93,6 +98,15 @@ class ShadowHandSim(LockstepSim):
         self._badqacc_seen = 0
         self._diverged_pending = False
         self._ticks_per_step = int(round(TICK_S / PHYSICS_DT_S))
+        self.tracker = None  # HandTracker when params.sim.tracker is set
+        self._tracker_opts = None
+        if self.sim.tracker is not None:
+            from sim_backends.shadow_hand.cameras import TrackerOptions
+
+            try:
+                self._tracker_opts = parse_model(TrackerOptions, dict(self.sim.tracker), source)
+            except ConfigError as e:
+                raise ConfigError(source, [(f"params.sim.tracker.{f}", m) for f, m in e.problems]) from None
 
     #: measured − commanded actuated joint angles (used by `hil drive`)
     tracking_error = staticmethod(joint_tracking_error)
@@ -108,7 +122,12 @@ class ShadowHandSim(LockstepSim):
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:
         s = self.sim
-        self.hand = h = build_scene(s.palm_tilt_rad)
+        edit = None
+        if self._tracker_opts is not None:
+            from sim_backends.shadow_hand.cameras import scene_edit
+
+            edit = scene_edit()
+        self.hand = h = build_scene(s.palm_tilt_rad, edit)
         self.model = h.model
         self.data = mujoco.MjData(h.model)
         n = len(h.act_joint)
@@ -128,9 +147,17 @@ class ShadowHandSim(LockstepSim):
         self._act_qadr = h.qpos_adr[h.act_joint]
         self._act_dadr = h.dof_adr[h.act_joint]
         self._palm = h.model.body("robot0:palm").id
+        if self._tracker_opts is not None:
+            from sim_backends.shadow_hand.cameras import HandTracker
+
+            mujoco.mj_forward(self.model, self.data)
+            self.tracker = HandTracker(self.model, self.data, self._tracker_opts, self.spec.period_s)
         self.reset()
 
     def _on_cleanup(self) -> None:
+        if self.tracker is not None:
+            self.tracker.close()
+            self.tracker = None
         self.model = self.data = None
 
     def reset(self, q_rad: np.ndarray | None = None) -> None:
@@ -159,6 +186,8 @@ class ShadowHandSim(LockstepSim):
         # the hand has been holding this pose: the loops' integrals carry the gravity load
         self.firmware.preload(d.qfrc_bias[self._act_dadr])
         self._seq = 0
+        if self.tracker is not None:
+            self.tracker.start(self.sim_time_s)
 
     # ------------------------------------------------------------------ physics
     def advance(self, duration_s: float) -> None:
@@ -204,10 +233,19 @@ class ShadowHandSim(LockstepSim):
             "motor_fault": bool(fw.motor_fault_mask),
             "object_dropped": dropped,
         }
+        extras = {"effort_nm": eff, "balls_m": balls, "ball_targets_m": self.task.targets(self.sim_time_s),
+                  "mode": fw.mode, "motor_fault_mask": fw.motor_fault_mask}
+        if self.tracker is not None:
+            # the tracker's balls replace the truth; stale balls are flagged (the hand's own
+            # reading stays ok, as on the real driver's ball streams)
+            cam = self.tracker.observe(self.data, self.sim_time_s, self._seq)
+            flags["stale_objects"] = cam.flag("stale_objects")
+            extras.update(balls_m=self.tracker.balls_world(cam), balls_true_m=balls, ball_confidence=cam.state[6:],
+                          balls_age_s=cam.extras["objects_age_s"], image=cam.extras["image"],
+                          image_encoded=cam.extras["image_encoded"])
         return Observation(
             t_s=self.sim_time_s, state=np.concatenate([q, qd]), seq=self._seq, ok=not diverged, flags=flags,
-            extras={"effort_nm": eff, "balls_m": balls, "ball_targets_m": self.task.targets(self.sim_time_s),
-                    "mode": fw.mode, "motor_fault_mask": fw.motor_fault_mask},
+            extras=extras,
         )
 
     def _hold_command(self, obs: Observation) -> np.ndarray:

@@ -20,6 +20,7 @@ fingers pointing along world -y; ball positions are reported in the world frame 
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -62,8 +63,10 @@ class HandModel:
     ball_body: tuple[int, int]
 
 
-def build_scene(palm_tilt_rad: float = 0.0) -> HandModel:
-    """The hand, palm up, with two balls; ``palm_tilt_rad`` tilts the mount about world x."""
+def build_scene(palm_tilt_rad: float = 0.0, edit: Callable[[mujoco.MjSpec], None] | None = None) -> HandModel:
+    """The hand, palm up, with two balls; ``palm_tilt_rad`` tilts the mount about world x.
+    ``edit`` adds to the spec before it is compiled (the stereo cameras and the
+    calibration board of :mod:`sim_backends.shadow_hand.cameras`)."""
     spec = mujoco.MjSpec.from_file(str(hand_asset_path()))
     for name in ("object", "target"):
         spec.delete(spec.body(name))
@@ -89,6 +92,8 @@ def build_scene(palm_tilt_rad: float = 0.0) -> HandModel:
         b.add_freejoint(name=f"ball{i}:joint")
         b.add_geom(name=f"ball{i}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[BALL_RADIUS_M, 0, 0],
                    mass=BALL_MASS_KG, rgba=rgba, condim=4, friction=[1.0, 0.005, 0.0001])
+    if edit is not None:
+        edit(spec)
     m = spec.compile()
     qadr = np.array([m.joint(f"robot0:{j}").qposadr[0] for j in JOINT_NAMES])
     dadr = np.array([m.joint(f"robot0:{j}").dofadr[0] for j in JOINT_NAMES])
