@@ -102,9 +102,10 @@ def pose_error(names: list[str], s: RobotState, pose: dict[str, float], verify: 
     v = s.state
     if not s.ok:
         return "robot reports a bad reading"
-    err_m = math.hypot(v[names.index("x")] - pose.get("x", 0.0), v[names.index("y")] - pose.get("y", 0.0))
-    if not err_m <= verify.position_tol_m:  # NaN fails too
-        return f"{err_m:.2f} m from the start (tolerance {verify.position_tol_m:g} m)"
+    if "x" in names and "y" in names:  # a robot without a world position (a hand) has no pose to check
+        err_m = math.hypot(v[names.index("x")] - pose.get("x", 0.0), v[names.index("y")] - pose.get("y", 0.0))
+        if not err_m <= verify.position_tol_m:  # NaN fails too
+            return f"{err_m:.2f} m from the start (tolerance {verify.position_tol_m:g} m)"
     tol = verify.yaw_tol_rad
     if tol is not None and "cos_yaw" in names:
         yaw = math.atan2(v[names.index("sin_yaw")], v[names.index("cos_yaw")])
@@ -430,7 +431,9 @@ class ResetSupervisor(Node):
     def _lost(self) -> str:
         if self.driver_alive is False:
             return f"driver node {keys.driver_node(self.robot)} disappeared (liveliness lost)"
-        age = time.monotonic() - self._last_rx_wall
+        # counted from the request at the earliest: a lockstep robot publishes nothing while
+        # its controller thinks (trains a model) before asking for the reset
+        age = time.monotonic() - max(self._last_rx_wall, self._reset_t0_wall)
         if age > self.cfg.state_timeout_s:
             return f"no state from {self.robot} for {age:.1f} s"
         return ""
