@@ -205,7 +205,8 @@ class ShadowHandSim(LockstepSim):
             "object_dropped": dropped,
         }
         return Observation(
-            t_s=self.sim_time_s, state=np.concatenate([q, qd]), seq=self._seq, ok=not diverged, flags=flags,
+            t_s=self.sim_time_s, seq=self._seq, ok=not diverged, flags=flags,
+            state=np.concatenate([q, qd] + ([balls.reshape(-1)] if self.params.objects_in_state else [])),
             extras={"effort_nm": eff, "balls_m": balls, "ball_targets_m": self.task.targets(self.sim_time_s),
                     "mode": fw.mode, "motor_fault_mask": fw.motor_fault_mask},
         )
