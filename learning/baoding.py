@@ -206,6 +206,37 @@ def summarize(per_episode: list[dict[str, float]]) -> dict[str, Any]:
             "mean_steps": float(np.mean(col["steps"]))}
 
 
+def drop_prediction(model, episodes, task, ball_idx: list[int], horizon: int) -> dict[str, float]:
+    """Does the model see drops coming? Over every ``horizon``-step open-loop window of
+    ``episodes`` (the validation data), replaying the logged actions: ``drop_recall`` = the
+    fraction of windows in which a ball truly drops whose ensemble-mean prediction also
+    drops (the task's rule); ``false_drop_rate`` = predicted drops among windows without
+    one; ``windows_with_drop``. A planner can only avoid the −500 the model predicts."""
+    from learning.dynamics import h_step_windows
+
+    H = min(horizon, max((len(e) for e in episodes), default=0))
+    if H < 1:
+        return {"drop_recall": float("nan"), "false_drop_rate": float("nan"), "windows_with_drop": 0}
+    start, actions, truth = h_step_windows(episodes, H, max_starts=2048)
+    with torch.inference_mode():
+        cur = torch.from_numpy(np.ascontiguousarray(start)).float()
+        preds = []
+        for h in range(H):
+            cur = model.predict(cur, torch.from_numpy(np.ascontiguousarray(actions[:, h])).float())
+            preds.append(cur.mean(0).numpy())
+    pred = np.stack(preds, 1)  # [P, H, S]
+
+    def drops(x: np.ndarray) -> np.ndarray:
+        b = x[..., ball_idx].reshape(*x.shape[:2], 2, 3)
+        return np.array([[task.dropped(bb) for bb in row] for row in b]).any(1)
+
+    true_d, pred_d = drops(truth), drops(pred)
+    n = int(true_d.sum())
+    return {"drop_recall": float((pred_d & true_d).sum() / n) if n else float("nan"),
+            "false_drop_rate": float((pred_d & ~true_d).sum() / max(1, int((~true_d).sum()))),
+            "windows_with_drop": n}
+
+
 class BaodingRun(MbrlRun):
     """The MBRL loop of :class:`MbrlRun` with the Baoding task (see the module docstring)."""
 
@@ -297,8 +328,11 @@ class BaodingRun(MbrlRun):
                 path, scores = self.run_episodes(lambda i, m=model: self.pddm_policy(m), c.rollouts_per_iteration,
                                                  f"{it:03d}-mpc", f"iteration {it}: PDDM rollouts")
                 new = episodes_from_mcap(path, self.cfg.robot)
+                val = [e for e in data if self.val_assigned.get(e.name)]
+                idx = [self.state_names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"]
                 row = {"iteration": it, "points": int(sum(len(e) for e in data)),
-                       "model": {k: train[k] for k in ("train_loss", "val_1step", "val_h") if k in train},
+                       "model": {**{k: train[k] for k in ("train_loss", "val_1step", "val_h") if k in train},
+                                 **drop_prediction(model, val, self.task, idx, c.horizon)},
                        **summarize(scores)}
                 iterations.append(row)
                 data += new

@@ -123,16 +123,21 @@ def report_markdown(r: dict[str, Any]) -> str:
         f"mean {rs['mean_duration_s']:.2f} s.",
         "",
         "Return per episode: Σ_t −5·Σ_i‖ball_i − target_i‖ − 500·1(drop); an episode ends at 10 s or on a drop. "
-        "Success at 90°/180°: the pair turned that far along the targets' rotation before any drop.",
+        "Success at 90°/180°: the pair turned that far along the targets' rotation before any drop. "
+        "Drops foreseen: validation windows (H steps, logged actions) with a true drop whose model "
+        "prediction drops too. An episode that drops later scores lower than one that drops at once "
+        "(docs/baoding.md): read drops beside the return.",
         "",
-        "| policy | episodes | return (mean ± std) | drops | mean rotation (°) | 90° | 180° | model val 1-step / H-step |",
+        "| policy | episodes | return (mean ± std) | drops | mean rotation (°) | 90° | 180° | model val 1-step / H-step; drops foreseen |",
         "|---|---|---|---|---|---|---|---|",
         row("random (uniform actions)", r["random_policy"]),
+        row("hold (keep the start pose)", r["hold_policy"]),
     ]
     for it in r["iterations"]:
         m = it.get("model", {})
         lines.append(row(f"PDDM iteration {it['iteration']} ({it['points']} points)", it,
-                         f"{m.get('val_1step', float('nan')):.3f} / {m.get('val_h', float('nan')):.3f}"))
+                         f"{m.get('val_1step', float('nan')):.3f} / {m.get('val_h', float('nan')):.3f}; "
+                         f"{100 * m.get('drop_recall', float('nan')):.0f} % of {m.get('windows_with_drop', 0)}"))
     lines += ["", "## Files", "", *[f"- ![{f}]({f})" for f in r.get("plots", [])],
               *[f"- recording: `{f}`" for f in r["recordings"]]]
     if r.get("rerun"):
@@ -169,3 +174,91 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int) -> None:
                f"drops {last['drops']}/{last['episodes']}, 90° {100 * last['success_90']:.0f} %, "
                f"180° {100 * last['success_180']:.0f} %")
     typer.echo(f"resets: {r['resets']}; report: {out / 'report.md'}")
+
+
+def compare_choices(run_dir: Path, out: Path | None = None, widths: tuple[int, ...] = (250, 500),
+                    betas: tuple[float, ...] = (0.7, 0.6), episodes: int = 3, samples: int = 200,
+                    epochs: int = 30, seed: int = 0) -> dict[str, Any]:
+    """The small measured comparison behind the quick preset's 2x250 and β (docs/baoding.md).
+
+    On the recordings of a finished run (``run_dir/recordings``): one fixed validation split;
+    an ensemble of 3 for each hidden width, trained the same (``epochs``, Adam 1e-3, batch 500),
+    compared on one-step and H-step validation error and on the time of one Baoding-scale plan
+    (K=700, H=7); then PDDM closed loop with each (width, β) for ``episodes`` episodes on the
+    MuJoCo hand in-process (the same sim the rig runs, without the bus: the planner is what is
+    compared), K=``samples``. Writes ``out`` (default ``run_dir/compare.json``).
+    """
+    import torch
+
+    from control.costs import BaodingCost, baoding_episode_metrics
+    from control.planners import BAODING_PDDM, PddmConfig
+    from control.policies import MpcPolicy
+    from drivers.shadow_hand.config import ShadowHandParams, hold_pose_action
+    from learning.baoding import load_baoding_task, summarize
+    from learning.dynamics import EnsembleDynamics
+    from learning.mbrl import split_episodes
+    from learning.recordings import episodes_from_mcap
+    from sim_backends.shadow_hand.backend import ShadowHandSim
+
+    run_dir = Path(run_dir)
+    eps = [e for f in sorted((run_dir / "recordings").glob("*.mcap")) if "eval" not in f.name
+           for e in episodes_from_mcap(f, "hand")]
+    train, val = split_episodes(eps, 0.1, np.random.default_rng([seed, 1]), {})
+    names = list(eps[0].meta["state_names"])
+    task = load_baoding_task()
+    sim = ShadowHandSim(ShadowHandParams(objects_in_state=True))
+    sim.configure()
+    sim.activate()
+    out_d: dict[str, Any] = {"points": int(sum(len(e) for e in train)), "val_points": int(sum(len(e) for e in val)),
+                             "epochs": epochs, "episodes_per_setting": episodes, "samples": samples, "models": {},
+                             "closed_loop": {}}
+    for w in widths:
+        torch.manual_seed(seed)
+        m = EnsembleDynamics(len(names), 20, ensemble=3, hidden=(w, w), state_names=names, seed=seed)
+        t0 = time.perf_counter()
+        hist = m.fit(train, epochs=epochs, batch_size=500, val=val, horizon=7, progress=False)
+        fit_s = time.perf_counter() - t0
+        planner = BAODING_PDDM.planner()  # K=700, H=7: the thesis' plan size
+        cost = BaodingCost(task, names, 0.1)
+        cost.observe(None)
+        s0 = eps[0].states[0]
+        planner(m.predict, cost, s0)  # warm up
+        ts = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            planner(m.predict, cost, s0)
+            ts.append(time.perf_counter() - t0)
+        out_d["models"][f"2x{w}"] = {"val_1step": hist[-1]["val_1step"], "val_h": hist[-1]["val_h"],
+                                    "horizon": hist[-1]["horizon"], "fit_s": fit_s,
+                                    "plan_ms_p50_K700": float(np.median(ts) * 1e3)}
+        for b in betas:
+            scores = []
+            for e in range(episodes):
+                sim.reset()
+                pc = PddmConfig(horizon=7, samples=samples, gamma=20.0, beta=b, ensemble=3, hidden=(w, w),
+                                state_dim=len(names), action_dim=20)
+                pol = MpcPolicy(m, pc.planner(seed=1000 + e, init_mean=hold_pose_action()), BaodingCost(task, names, 0.1))
+                pol.reset()
+                o = sim.read()
+                states, times = [o.state], [o.t_s]
+                for _ in range(100):
+                    sim.write(pol(o.state))
+                    sim.tick()
+                    o = sim.read()
+                    states.append(o.state)
+                    times.append(o.t_s)
+                    if task.dropped(o.state[-6:].reshape(2, 3)):
+                        break
+                scores.append(baoding_episode_metrics(task, np.array(states)[:, -6:].reshape(-1, 2, 3), times))
+            out_d["closed_loop"][f"2x{w} beta {b:g}"] = summarize(scores)
+    path = Path(out) if out else run_dir / "compare.json"
+    path.write_text(json.dumps(out_d, indent=1))
+    return out_d
+
+
+if __name__ == "__main__":  # python -m tools.demo_baoding compare RUN_DIR
+    import sys
+
+    if len(sys.argv) != 3 or sys.argv[1] != "compare":
+        raise SystemExit("usage: python -m tools.demo_baoding compare RUN_DIR")
+    print(json.dumps(compare_choices(Path(sys.argv[2])), indent=1))

@@ -177,3 +177,33 @@ def test_reset_handshake_and_lockstep_messages_wait_for_a_full_send_queue(bus):
     finally:
         for n in (ctl, sup, node):
             n.close()
+
+
+def test_drop_prediction_counts_the_drops_a_model_sees_coming():
+    from learning.baoding import drop_prediction
+    from learning.datasets import Episode
+
+    tk = task()
+    idx = [NAMES.index(c) for c in BALL_CHANNELS]
+    z0 = tk.center_m[2]
+    # one episode falls (z − 1 cm per step: a drop after 5 steps), one stays put
+    fall = np.array([state_with(np.stack([tk.center_m, tk.center_m]) - [0, 0, 0.01 * k]) for k in range(10)])
+    stay = np.array([state_with(np.stack([tk.center_m, tk.center_m])) for _ in range(10)])
+    eps = [Episode(states=s, actions=np.zeros((9, 20)), times=np.arange(10) * 0.1, name=n)
+           for s, n in ((fall, "fall"), (stay, "stay"))]
+
+    class Still:  # predicts no motion: sees no drop coming
+        def predict(self, s, a):
+            return s.reshape(-1, *s.shape[-2:])[:1] if s.dim() == 3 else s[None]
+
+    class Falls(Still):  # predicts every ball falling 1 cm per step: sees every drop, and false ones
+        def predict(self, s, a):
+            out = super().predict(s, a).clone()
+            out[..., idx[2::3]] -= 0.01
+            return out
+
+    still = drop_prediction(Still(), eps, tk, idx, horizon=7)
+    assert still["windows_with_drop"] > 0 and still["drop_recall"] == 0.0 and still["false_drop_rate"] == 0.0
+    falls = drop_prediction(Falls(), eps, tk, idx, horizon=7)
+    assert falls["drop_recall"] == 1.0 and falls["false_drop_rate"] > 0.5
+    assert z0 - 0.01 * 9 < z0 - tk.drop_below_m  # the falling episode does drop
