@@ -164,6 +164,7 @@ class ResetSupervisor(Node):
         self.state_names: list[str] = []
         self.scale: ActionScale | None = None
         self._zero: np.ndarray | None = None
+        self._safe: np.ndarray | None = None
         #: what the operator was told on the last failure
         self.last_failure = ""
         self.history: list[ResetTransition] = []
@@ -206,6 +207,10 @@ class ResetSupervisor(Node):
         self.state_names = list(spec["state"]["names"])
         self.scale = ActionScale.from_spec(spec)
         self._zero = np.clip(np.zeros(len(self.scale.low)), self.scale.low, self.scale.high)
+        safe = spec.get("safe_action")
+        #: what "hold still" sends: the spec's safe action (zero leg or joint velocity); a robot
+        #: without one (position control: a hand) is held at its driver's held command
+        self._safe: np.ndarray | None = None if safe is None else np.asarray(safe, dtype=np.float64)
         for d in self.detectors:
             d.bind(self.state_names)
 
@@ -217,7 +222,12 @@ class ResetSupervisor(Node):
         self._bind_spec(m.spec)
 
     def _send(self, s: RobotState, action_norm: np.ndarray | None) -> None:
-        a = self._zero if action_norm is None else self.scale.to_robot(action_norm)
+        if action_norm is not None:
+            a = self.scale.to_robot(action_norm)
+        elif self._safe is not None or not s.action:
+            a = self._zero if self._safe is None else self._safe
+        else:
+            a = np.asarray(s.action, dtype=np.float64)  # hold what the robot holds (robot units)
         self._cmd.put(Command(robot=self.robot, action=a.tolist(), state_seq=s.seq, source=self.name))
 
     # StepContext

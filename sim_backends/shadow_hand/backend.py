@@ -159,6 +159,7 @@ class ShadowHandSim(LockstepSim):
         # the hand has been holding this pose: the loops' integrals carry the gravity load
         self.firmware.preload(d.qfrc_bias[self._act_dadr])
         self._seq = 0
+        self._rehold()  # the firmware rebooted holding this pose: the contract's held command is it too
 
     # ------------------------------------------------------------------ physics
     def advance(self, duration_s: float) -> None:

@@ -118,7 +118,7 @@ def test_a_drop_ends_the_episode_through_the_supervisor(bus, tmp_path):
                                         capacity=256)
         log = run.episode(UniformRandomPolicy(20, seed=3), 100, {})  # random actions drop a ball in < 3 s
         ended = [t for _, t in transitions.drain()]
-        run.episode(UniformRandomPolicy(20, seed=4), 2, {})  # the next episode starts: a reset happened
+        nxt = run.episode(UniformRandomPolicy(20, seed=4), 2, {})  # the next episode starts: a reset happened
     assert len(log.states) < 100
     assert np.min(run.balls(np.array(log.states))[-1, :, 2]) < 0.079
     from bus.schemas import decode
@@ -126,6 +126,13 @@ def test_a_drop_ends_the_episode_through_the_supervisor(bus, tmp_path):
     reasons = [decode(p, ResetTransition).reason for p in ended]
     assert any(r.startswith("drop") for r in reasons), reasons
     assert run.supervisor.stats["completed"] >= 2 and run.supervisor.stats["failed"] == 0
+    # the reset held the hand in its start pose (not the middle of every joint's range) and
+    # the next episode starts with both balls in the palm
+    from drivers.shadow_hand.config import ACT_INDEX, hold_pose_action, to_action
+
+    start = np.asarray(nxt.states[0])
+    assert np.abs(to_action(start[ACT_INDEX]) - hold_pose_action()).max() < 0.1
+    assert np.all(run.balls(start[None])[0, :, 2] > 0.1)
 
 
 def test_demo_baoding_tiny_end_to_end(tmp_path):
@@ -207,3 +214,20 @@ def test_drop_prediction_counts_the_drops_a_model_sees_coming():
     falls = drop_prediction(Falls(), eps, tk, idx, horizon=7)
     assert falls["drop_recall"] == 1.0 and falls["false_drop_rate"] > 0.5
     assert z0 - 0.01 * 9 < z0 - tk.drop_below_m  # the falling episode does drop
+
+
+def test_a_sim_reset_holds_the_pose_it_resets_to():
+    """The contract's held command follows a sim reset: the rate limit and the bus's
+    ``RobotState.action`` start from the new pose, not from where the last episode ended."""
+    from drivers.shadow_hand.config import ACT_INDEX, hold_pose_action, to_action
+
+    sim = ShadowHandSim(ShadowHandParams(objects_in_state=True))
+    sim.configure()
+    sim.activate()
+    for _ in range(5):
+        sim.write(-np.ones(20))
+        sim.tick()
+    assert np.abs(sim.held_command - hold_pose_action()).max() > 0.5
+    sim.reset()
+    np.testing.assert_allclose(sim.held_command, to_action(sim.read().state[ACT_INDEX]), atol=1e-9)
+    assert np.abs(sim.held_command - hold_pose_action()).max() < 0.05
