@@ -40,6 +40,7 @@ class BaodingTaskParams(Strict):
     axis: tuple[float, float, float]
     radius_m: float = Field(gt=0)
     rate_rad_s: float
+    phase0_rad: float = 0.0
     source: str | None = None
 
 
@@ -50,7 +51,7 @@ def load_baoding_task(name: str = "baoding"):
     raw = load_task(name)
     p = parse_model(BaodingTaskParams, raw.model_dump(), raw.source)
     return BaodingTask(center_m=np.array(p.center_m), axis=np.array(p.axis), radius_m=p.radius_m,
-                       rate_rad_s=p.rate_rad_s)
+                       rate_rad_s=p.rate_rad_s, phase0_rad=p.phase0_rad)
 
 
 class UniformRandomPolicy:
@@ -156,12 +157,13 @@ class BaodingConfig:
     @classmethod
     def quick(cls, **kw: Any) -> BaodingConfig:
         """`hil demo baoding --quick`: ≤10 min on 2 cores. Scaled down from the thesis:
-        K=200 samples, 2x250 networks (the reference code's width), 3 iterations of 4
-        rollouts, 20 epochs; H, γ, β and the ensemble of 3 as the thesis."""
-        base = dict(random_rollouts=100, random_eval_rollouts=10, iterations=4, rollouts_per_iteration=5,
+        K=200 samples, 2x250 networks (the reference code's width), 6 iterations of 5
+        rollouts, 30/20 epochs; H, γ, β and the ensemble of 3 as the thesis."""
+        base = dict(random_rollouts=200, random_eval_rollouts=10, iterations=6, rollouts_per_iteration=5,
                     samples=200, hidden=(250, 250), epochs=30, retrain_epochs=20, preset="quick",
-                    notes=["scaled down from the thesis to fit 10 min on 2 cores: K=200 (thesis 700), "
-                           "2x250 (thesis 2x500), 4 iterations x 5 rollouts (thesis R=30 each), 30/20 epochs (40)"])
+                    notes=["scaled down from the thesis to fit 10 min on 2 cores: 200 random-walk rollouts x 30 "
+                           "steps, K=200 (thesis 700), 2x250 (thesis 2x500), 6 iterations x 5 rollouts (thesis R=30 "
+                           "each), 30/20 epochs (40)"])
         base.update(kw)
         return cls(**base)
 
@@ -277,7 +279,7 @@ class BaodingRun(MbrlRun):
 
         return RandomWalkPolicy(hold_pose_action(), seed=self._seed(1, i))
 
-    def pddm_policy(self, model) -> MpcPolicy:
+    def pddm_policy(self, model, seed: int) -> MpcPolicy:
         pc = self.bcfg.pddm(len(self.state_names), len(self.action_names))
         # "hold": the first plan is centred on the pose the episode starts in, so a planner
         # with an untrained model perturbs a grasp instead of swinging every joint to mid-range
@@ -286,7 +288,7 @@ class BaodingRun(MbrlRun):
             from drivers.shadow_hand.config import hold_pose_action
 
             init = hold_pose_action()
-        planner = pc.planner(seed=self.bcfg.seed, init_mean=init)
+        planner = pc.planner(seed=seed, init_mean=init)  # a seed per rollout: the sim is deterministic
         return MpcPolicy(model, planner, BaodingCost(self.task, self.state_names, self.period_s))
 
     def run(self) -> dict[str, Any]:
@@ -325,8 +327,9 @@ class BaodingRun(MbrlRun):
             iterations = []
             for it in range(1, c.iterations + 1):
                 train = self.train(model, data, c.epochs if it == 1 else c.retrain_epochs)
-                path, scores = self.run_episodes(lambda i, m=model: self.pddm_policy(m), c.rollouts_per_iteration,
-                                                 f"{it:03d}-mpc", f"iteration {it}: PDDM rollouts")
+                path, scores = self.run_episodes(
+                    lambda i, m=model, it=it: self.pddm_policy(m, self._seed(10 + it, i)),
+                    c.rollouts_per_iteration, f"{it:03d}-mpc", f"iteration {it}: PDDM rollouts")
                 new = episodes_from_mcap(path, self.cfg.robot)
                 val = [e for e in data if self.val_assigned.get(e.name)]
                 idx = [self.state_names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"]
