@@ -158,12 +158,15 @@ class BaodingConfig:
     def quick(cls, **kw: Any) -> BaodingConfig:
         """`hil demo baoding --quick`: ≤10 min on 2 cores. Scaled down from the thesis:
         K=200 samples, 2x250 networks (the reference code's width), 6 iterations of 5
-        rollouts, 30/20 epochs; H, γ, β and the ensemble of 3 as the thesis."""
+        rollouts, 30/20 epochs, planner noise σ=0.05; H, γ, β and the ensemble of 3 as the
+        thesis."""
         base = dict(random_rollouts=200, random_eval_rollouts=10, iterations=6, rollouts_per_iteration=5,
-                    samples=200, hidden=(250, 250), epochs=30, retrain_epochs=20, preset="quick",
+                    samples=200, hidden=(250, 250), epochs=30, retrain_epochs=20, sigma=0.05, preset="quick",
                     notes=["scaled down from the thesis to fit 10 min on 2 cores: 200 random-walk rollouts x 30 "
                            "steps, K=200 (thesis 700), 2x250 (thesis 2x500), 6 iterations x 5 rollouts (thesis R=30 "
-                           "each), 30/20 epochs (40)"])
+                           "each), 30/20 epochs (40)",
+                           "planner noise sigma=0.05 (default: a quarter of the action range, 0.5): with 3k points "
+                           "the model cannot foresee the drops of plans far from the data (docs/baoding.md)"])
         base.update(kw)
         return cls(**base)
 
