@@ -29,12 +29,19 @@ T = TypeVar("T", bound=Msg)
 
 
 class Publisher(Generic[T]):
-    """Stamps (wall clock) and numbers each message, encodes, puts."""
+    """Stamps (wall clock) and numbers each message, encodes, puts.
 
-    def __init__(self, session: zenoh.Session, key: str, typ: type[T], express: bool = True):
+    ``reliable``: a message that must arrive (a reset handshake, a lockstep state or
+    command) waits for room in Zenoh's send queue (``CongestionControl.BLOCK``) instead of
+    being dropped when the queue stays full for 1 ms, Zenoh's default for data: on a loaded
+    2-core machine a starved send thread lost a reset answer and the rig stopped.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, typ: type[T], express: bool = True, reliable: bool = False):
         self.key = key
         self.type = typ
-        self._pub = session.declare_publisher(key, express=express)
+        cc = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+        self._pub = session.declare_publisher(key, express=express, congestion_control=cc)
         self.seq = 0
 
     def put(self, msg: T) -> T:
@@ -229,8 +236,9 @@ class Node:
         self.stop_event.set()
 
     # -------------------------------------------------------------- pub/sub
-    def publisher(self, key: str, typ: type[T]) -> Publisher[T]:
-        p = Publisher(self.session, key, typ)
+    def publisher(self, key: str, typ: type[T], reliable: bool = False) -> Publisher[T]:
+        """``reliable``: never dropped on a full send queue (see :class:`Publisher`)."""
+        p = Publisher(self.session, key, typ, reliable=reliable)
         self._closeables.append(p)
         return p
 

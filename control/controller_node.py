@@ -89,9 +89,9 @@ class ControllerNode(Node):
         self.state_timeout_s = state_timeout_s
         self._state = self.subscribe(keys.state(rig, robot), RobotState)
         self._spec = self.subscribe(keys.spec(rig, robot), SpecMsg)
-        self._cmd = self.publisher(keys.cmd(rig, robot), Command)
+        self._cmd = self.publisher(keys.cmd(rig, robot), Command, reliable=True)  # lockstep steps on each
         self._plan = self.publisher(keys.plan(rig), Plan)
-        self._reset_req = self.publisher(keys.reset(rig, "request"), ResetEvent)
+        self._reset_req = self.publisher(keys.reset(rig, "request"), ResetEvent, reliable=True)
         self._reset_done = self.subscribe(keys.reset(rig, "done"), ResetEvent)
         self.spec: dict[str, Any] | None = None
         self.scale: ActionScale | None = None

@@ -273,3 +273,90 @@ def summarize_paths(per_path: dict[str, dict]) -> dict[str, float]:
 def rank_key(summary: dict[str, float]) -> tuple[int, float]:
     """Sort key (lower is better): more completed paths first, then lower ``cost_per_m``."""
     return (-int(summary["completed"]), float(summary["cost_per_m"]))
+
+
+# ---------------------------------------------------------------------------- Baoding balls
+class BaodingCost:
+    """PDDM's Baoding cost (Nagabandi et al. 2019; thesis ch. 4) over predicted states:
+    ``cost(states [E,N,H+1,S], actions [N,H,A]) -> [E,N]`` = −Σ_{h=1..H} r(s_h, t_h) with
+
+        r(s, t) = −5·Σ_i ‖ball_i − target_i(t)‖ − 500·1(drop)      (positions in m)
+
+    the reward of :class:`sim_backends.shadow_hand.baoding.BaodingTask` (targets and drop rule
+    from it), evaluated on the ball channels ``ball{0,1}_{x,y,z}`` of the state. ``t_h`` is
+    task time: ``(k + h)·period_s`` with ``k`` the control steps of this episode so far
+    (:meth:`observe` is called once per step by :class:`~control.policies.MpcPolicy`;
+    :meth:`reset` at the start of an episode).
+    """
+
+    def __init__(self, task, state_names: Sequence[str], period_s: float):
+        from sim_backends.shadow_hand.baoding import REWARD_DIST_WEIGHT, REWARD_DROP_PENALTY
+
+        names = list(state_names)
+        missing = [f"ball{i}_{c}" for i in range(2) for c in "xyz" if f"ball{i}_{c}" not in names]
+        if missing:
+            raise ValueError(f"Baoding cost: the state has no {missing} (set objects_in_state on the hand)")
+        self.idx = torch.tensor([names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"])
+        self.task = task
+        self.period_s = float(period_s)
+        self.w_dist, self.w_drop = REWARD_DIST_WEIGHT, REWARD_DROP_PENALTY
+        self.center = torch.as_tensor(np.asarray(task.center_m), dtype=torch.float32)
+        n = np.asarray(task.axis, dtype=np.float64)
+        self.normal = torch.as_tensor(n / np.linalg.norm(n), dtype=torch.float32)
+        self.steps = 0
+
+    def reset(self) -> None:
+        self.steps = 0
+
+    def observe(self, state) -> None:
+        """One control step passed (the state is the one the planner plans from)."""
+        del state
+        self.steps += 1
+
+    def targets(self, horizon: int) -> torch.Tensor:
+        """[H, 2, 3] targets of the predicted states 1..H (m, world frame)."""
+        k = max(self.steps - 1, 0)  # observe() was called for the current state already
+        t = [(k + h) * self.period_s for h in range(1, horizon + 1)]
+        return torch.as_tensor(np.stack([self.task.targets(ti) for ti in t]), dtype=torch.float32)
+
+    def step_reward(self, balls: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        """r for balls ``[..., 2, 3]`` and targets broadcastable to them -> ``[...]``."""
+        dist = torch.linalg.vector_norm(balls - targets, dim=-1).sum(-1)
+        d = balls - self.center
+        h = d @ self.normal  # height above the palm centre along its normal [..., 2]
+        side = torch.linalg.vector_norm(d - h.unsqueeze(-1) * self.normal, dim=-1)
+        drop = ((h < -self.task.drop_below_m) | (side > self.task.drop_radius_m)).any(-1)
+        return -self.w_dist * dist - self.w_drop * drop.to(dist.dtype)
+
+    def __call__(self, states: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
+        H = states.shape[-2] - 1
+        balls = states[..., 1:, :][..., self.idx].reshape(*states.shape[:-2], H, 2, 3)
+        return -self.step_reward(balls, self.targets(H)).sum(-1)
+
+
+def baoding_episode_metrics(task, balls_m, t_s) -> dict[str, float]:
+    """Score one executed Baoding episode with the task's own reward (numpy).
+
+    ``balls_m``: ``[T+1, 2, 3]`` ball positions (m, world frame) of the episode's states,
+    ``t_s``: their times (s); reward step t uses task time ``t_s[t] − t_s[0]``. The episode is
+    cut at the first drop (it ends there, penalty counted once). Returns ``return`` (Σ r),
+    ``dropped``, ``steps``, ``rotation_deg`` (how far the pair turned along the targets'
+    direction by the end, unwrapped, before any drop) and ``turned_90`` / ``turned_180``
+    (1.0 when the pair turned at least 90° / 180° along the targets without a drop first:
+    the thesis' success measure for its real-hand turns).
+    """
+    b = np.asarray(balls_m, dtype=np.float64).reshape(-1, 2, 3)
+    t = np.asarray(t_s, dtype=np.float64) - float(t_s[0])
+    ret, dropped, rot, best = 0.0, False, 0.0, 0.0
+    steps = 0
+    for k in range(1, len(b)):
+        steps = k
+        ret += task.reward(b[k], t[k])
+        if task.dropped(b[k]):
+            dropped = True
+            break
+        rot += task.rotation_rad(b[k - 1], b[k])
+        best = max(best, rot)
+    return {"return": float(ret), "dropped": float(dropped), "steps": float(steps),
+            "rotation_deg": float(np.degrees(rot)), "turned_90": float(np.degrees(best) >= 90.0),
+            "turned_180": float(np.degrees(best) >= 180.0)}

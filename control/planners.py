@@ -435,10 +435,11 @@ class PddmConfig:
     action_low: float = -1.0
     action_high: float = 1.0
 
-    def planner(self, seed: int | None = 0) -> PDDM:
+    def planner(self, seed: int | None = 0, init_mean: Sequence[float] | None = None) -> PDDM:
+        """The planner; ``init_mean``: its first mean action (default the middle of the bounds)."""
         return PDDM(self.action_low, self.action_high, horizon=self.horizon, samples=self.samples,
                     gamma=self.gamma, beta=self.beta, sigma=self.sigma, action_dim=self.action_dim,
-                    seed=seed)
+                    seed=seed, init_mean=init_mean)
 
     def model_kwargs(self) -> dict:
         return {"state_dim": self.state_dim, "action_dim": self.action_dim,

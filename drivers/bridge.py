@@ -93,19 +93,20 @@ class DriverNode(Node):
         self.stats = BridgeStats()
         self.estopped = False
         self.stopped_reason = "waiting"
-        self._state_pub = self.publisher(keys.state(rig, robot), RobotState)
+        # lockstep: the controller answers every state, a lost one stalls the loop
+        self._state_pub = self.publisher(keys.state(rig, robot), RobotState, reliable=pace == "lockstep")
         self._spec_pub = self.publisher(keys.spec(rig, robot), SpecMsg)
         self._cmd = self.subscribe(keys.cmd(rig, robot), Command)
         self._estop_ack = self.publisher(keys.estop_ack(rig), EStopAck)
         self._reset_req = self.subscribe(keys.reset(rig, "request"), ResetEvent)
-        self._reset_done = self.publisher(keys.reset(rig, "done"), ResetEvent)
+        self._reset_done = self.publisher(keys.reset(rig, "done"), ResetEvent, reliable=True)
         #: a camera image a driver returns in ``extras["image"]`` (H×W×3 uint8), on keys.image(rig, robot);
         #: ``extras["image_encoded"] = (encoding, bytes)`` (jpeg/png) is sent instead of the raw pixels
         self._image_pub = self.publisher(keys.image(rig, robot), Image)
         # the reset supervisor (control/reset) drives resets when it is alive: the node then
         # leaves controllers' requests to it and serves its teleport / new-episode requests
         self._sup_req = self.subscribe(keys.reset_driver(rig), ResetEvent, latest=False, capacity=16)
-        self._sup_done = self.publisher(keys.reset_driver_done(rig), ResetEvent)
+        self._sup_done = self.publisher(keys.reset_driver_done(rig), ResetEvent, reliable=True)
         self.supervisor_alive = False
         self._sup_token = self.session.liveliness().declare_subscriber(
             keys.alive(rig, keys.RESET_SUPERVISOR_NODE), self._on_supervisor, history=True

@@ -440,7 +440,8 @@ class EnsembleDynamics(nn.Module):
             batch_size: transitions per member per gradient step.
             progress: show progress with the latest losses (a tqdm bar on a terminal, lines in a log).
             val: held-out episodes; when given, every epoch records the one-step and the
-                ``horizon``-step open-loop validation error (:func:`h_step_error`).
+                ``horizon``-step open-loop validation error (:func:`h_step_error`); H is
+                shortened to the longest validation episode when all are shorter.
             horizon: H of the open-loop validation error.
             max_val_starts: cap on validation start points.
         Returns:
@@ -480,6 +481,9 @@ class EnsembleDynamics(nn.Module):
             boot = torch.arange(N).expand(E, N)
         windows = None
         if val is not None:
+            # episodes that end early (a dropped object) can all be shorter than H: validate
+            # over the longest window they hold; each entry's ``horizon`` says which
+            horizon = min(horizon, max(len(e) for e in val.episodes))
             windows = h_step_windows(val.episodes, horizon, max_val_starts)
         noise = self.config["input_noise_std"]
         start_epoch = self.history[-1]["epoch"] + 1 if self.history else 0

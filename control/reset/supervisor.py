@@ -104,9 +104,10 @@ def pose_error(names: list[str], s: RobotState, pose: dict[str, float], verify: 
     v = s.state
     if not s.ok:
         return "robot reports a bad reading"
-    err_m = math.hypot(v[names.index("x")] - pose.get("x", 0.0), v[names.index("y")] - pose.get("y", 0.0))
-    if not err_m <= verify.position_tol_m:  # NaN fails too
-        return f"{err_m:.2f} m from the start (tolerance {verify.position_tol_m:g} m)"
+    if "x" in names and "y" in names:  # a robot without a world position (a hand) has no pose to check
+        err_m = math.hypot(v[names.index("x")] - pose.get("x", 0.0), v[names.index("y")] - pose.get("y", 0.0))
+        if not err_m <= verify.position_tol_m:  # NaN fails too
+            return f"{err_m:.2f} m from the start (tolerance {verify.position_tol_m:g} m)"
     tol = verify.yaw_tol_rad
     if tol is not None and "cos_yaw" in names:
         yaw = math.atan2(v[names.index("sin_yaw")], v[names.index("cos_yaw")])
@@ -155,9 +156,9 @@ class ResetSupervisor(Node):
         self._state = self.subscribe(keys.state(rig, self.robot), RobotState)
         self._spec = self.subscribe(keys.spec(rig, self.robot), SpecMsg)
         self._requests = self.subscribe(keys.reset(rig, "request"), ResetEvent, latest=False, capacity=64)
-        self._done = self.publisher(keys.reset(rig, "done"), ResetEvent)
+        self._done = self.publisher(keys.reset(rig, "done"), ResetEvent, reliable=True)
         self._cmd = self.publisher(keys.cmd(rig, self.robot), Command)
-        self._to_driver = self.publisher(keys.reset_driver(rig), ResetEvent)
+        self._to_driver = self.publisher(keys.reset_driver(rig), ResetEvent, reliable=True)
         self._from_driver = self.subscribe(keys.reset_driver_done(rig), ResetEvent)
         self._transitions = self.publisher(keys.reset_transition(rig), ResetTransition)
         #: driver node liveliness: None until first seen, then True/False (Zenoh callback sets it)
@@ -169,6 +170,7 @@ class ResetSupervisor(Node):
         self.state_names: list[str] = []
         self.scale: ActionScale | None = None
         self._zero: np.ndarray | None = None
+        self._safe: np.ndarray | None = None
         #: what the operator was told on the last failure
         self.last_failure = ""
         self.history: list[ResetTransition] = []
@@ -216,6 +218,10 @@ class ResetSupervisor(Node):
         self.state_names = list(spec["state"]["names"])
         self.scale = ActionScale.from_spec(spec)
         self._zero = np.clip(np.zeros(len(self.scale.low)), self.scale.low, self.scale.high)
+        safe = spec.get("safe_action")
+        #: what "hold still" sends: the spec's safe action (zero leg or joint velocity); a robot
+        #: without one (position control: a hand) is held at its driver's held command
+        self._safe: np.ndarray | None = None if safe is None else np.asarray(safe, dtype=np.float64)
         for d in self.detectors:
             d.bind(self.state_names)
 
@@ -227,7 +233,12 @@ class ResetSupervisor(Node):
         self._bind_spec(m.spec)
 
     def _send(self, s: RobotState, action_norm: np.ndarray | None) -> None:
-        a = self._zero if action_norm is None else self.scale.to_robot(action_norm)
+        if action_norm is not None:
+            a = self.scale.to_robot(action_norm)
+        elif self._safe is not None or not s.action:
+            a = self._zero if self._safe is None else self._safe
+        else:
+            a = np.asarray(s.action, dtype=np.float64)  # hold what the robot holds (robot units)
         self._cmd.put(Command(robot=self.robot, action=a.tolist(), state_seq=s.seq, source=self.name))
 
     # StepContext
@@ -476,7 +487,9 @@ class ResetSupervisor(Node):
     def _lost(self) -> str:
         if self.driver_alive is False:
             return f"driver node {keys.driver_node(self.robot)} disappeared (liveliness lost)"
-        age = time.monotonic() - self._last_rx_wall
+        # counted from the request at the earliest: a lockstep robot publishes nothing while
+        # its controller thinks (trains a model) before asking for the reset
+        age = time.monotonic() - max(self._last_rx_wall, self._reset_t0_wall)
         if age > self.cfg.state_timeout_s:
             return f"no state from {self.robot} for {age:.1f} s"
         return ""

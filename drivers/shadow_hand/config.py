@@ -3,7 +3,10 @@
 State (48-D): the 24 joint angles [rad] then the 24 joint velocities [rad/s], in
 ``JOINT_NAMES`` order (wrist, first/middle/ring/little finger, thumb; the Shadow
 naming: J0 is the distal joint). The ball positions of the Baoding task come from a
-tracker (sim: the simulator, in ``Observation.extras``), not from the hand.
+tracker (sim: the simulator, in ``Observation.extras``), not from the hand; with
+``objects_in_state`` they are also appended to the state (``BALL_CHANNELS``, 54-D), as
+the roach's driver fuses its mocap pose into its state, so they reach the bus, the
+recordings and the reset supervisor's drop detector.
 
 Action (20-D): one normalized position target in [-1, 1] per actuated joint
 (``ACTUATED_JOINTS``), mapped linearly onto the joint's range: -1 → lower limit,
@@ -72,6 +75,9 @@ HOLD_POSE_RAD: dict[str, float] = {
     "THJ4": 0.9, "THJ3": 0.9, "THJ1": 0.3, "THJ0": -0.3,
 }
 
+#: the state channels ``objects_in_state`` appends: ball 0 then ball 1, x y z [m, world frame]
+BALL_CHANNELS: tuple[str, ...] = tuple(f"ball{i}_{c}" for i in range(2) for c in "xyz")
+
 Transport = Literal["socketcan", "slcan", "udp_multicast"]
 
 
@@ -95,6 +101,10 @@ class ShadowHandParams(Params):
     ball_tracker_ports: list[int] | None = Field(
         None, description="real: UDP ports where a ball tracker streams ball 0 and ball 1 (drivers.mocap.udp "
                           "format); emulated: the emulator streams its sim's balls unless emulator.balls is false")
+    objects_in_state: bool = Field(
+        False, description="append the two Baoding balls' positions [m, world frame] to the state (54-D): the "
+                           "task's state, for learning and the drop detector (docs/baoding.md); needs a ball source "
+                           "(sim, the emulator's streams, or ball_tracker_ports)")
     # sim (ignored by the real driver) and emulator settings
     sim: dict = Field(default_factory=dict, description="sim backend settings (palm tilt, gains, seed...)")
     emulator: dict = Field(default_factory=dict, description="emulator settings (fault injection...)")
@@ -124,7 +134,8 @@ def shadow_hand_spec(p: ShadowHandParams) -> RobotSpec:
     # unbounded on purpose: a real joint may read a little past its nominal range
     # (JOINT_LOW_RAD/JOINT_HIGH_RAD), and a reading is never clipped
     state = Space.build([(f"{j}_pos", "rad", -np.inf, np.inf) for j in JOINT_NAMES]
-                        + [(f"{j}_vel", "rad/s", -np.inf, np.inf) for j in JOINT_NAMES])
+                        + [(f"{j}_vel", "rad/s", -np.inf, np.inf) for j in JOINT_NAMES]
+                        + [(c, "m", -np.inf, np.inf) for c in (BALL_CHANNELS if p.objects_in_state else ())])
     action = Space.build([(f"{j}_target", "1", -1.0, 1.0) for j in ACTUATED_JOINTS])
     return RobotSpec(
         name="shadow_hand",

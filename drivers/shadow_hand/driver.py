@@ -145,6 +145,9 @@ class ShadowHandDriver(Driver):
                 raise ConfigError(self.source, [("params.ball_tracker_ports", "expected two ports (ball 0, ball 1), "
                                                  f"got {p.ball_tracker_ports}")])
             self._balls = [UdpPoseClient("0.0.0.0", port) for port in p.ball_tracker_ports]
+        if p.objects_in_state and not self._balls:
+            raise ConfigError(self.source, [("params.objects_in_state", "needs ball positions: set "
+                                             "params.ball_tracker_ports (or emulator.balls: true)")])
 
     def _open_bus(self, channel: str, udp_port: int | None) -> Any:
         import can
@@ -387,6 +390,10 @@ class ShadowHandDriver(Driver):
             extras["balls_age_s"] = None if ages is None else max(ages)
             # a separate sensor: stale balls are flagged, the hand's own reading stays valid
             flags["stale_objects"] = not (have and max(ages) <= self.params.telemetry_deadline_s)
+        if self.params.objects_in_state:
+            # no ball reading yet: NaN makes the reading not ok (drivers/base.py), never a made-up pose
+            balls = extras.get("balls_m")
+            state = np.concatenate([state, np.full(6, np.nan) if balls is None else np.asarray(balls).reshape(-1)])
         self._seq += 1
         return Observation(
             t_s=tel_t, state=state, seq=self._seq,

@@ -186,6 +186,7 @@ class ShadowHandSim(LockstepSim):
         # the hand has been holding this pose: the loops' integrals carry the gravity load
         self.firmware.preload(d.qfrc_bias[self._act_dadr])
         self._seq = 0
+        self._rehold()  # the firmware rebooted holding this pose: the contract's held command is it too
         if self.tracker is not None:
             self.tracker.start(self.sim_time_s)
 
@@ -244,8 +245,10 @@ class ShadowHandSim(LockstepSim):
                           balls_age_s=cam.extras["objects_age_s"], image=cam.extras["image"],
                           image_encoded=cam.extras["image_encoded"])
         return Observation(
-            t_s=self.sim_time_s, state=np.concatenate([q, qd]), seq=self._seq, ok=not diverged, flags=flags,
-            extras=extras,
+            t_s=self.sim_time_s, seq=self._seq, ok=not diverged, flags=flags, extras=extras,
+            # with a tracker, the state's balls are the tracked ones (what a real rig's planner sees)
+            state=np.concatenate([q, qd] + ([np.asarray(extras["balls_m"]).reshape(-1)]
+                                           if self.params.objects_in_state else [])),
         )
 
     def _hold_command(self, obs: Observation) -> np.ndarray:

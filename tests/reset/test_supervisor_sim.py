@@ -222,3 +222,14 @@ def test_teleport_step_puts_the_sim_robot_at_the_pose_through_the_driver_node(su
     assert first.episode == 1  # one new episode, from the supervisor's "episode" request only
     assert first.state[0] == pytest.approx(0.4, abs=0.05) and first.state[1] == pytest.approx(-0.2, abs=0.05)
     assert rig.dests() == FULL_CYCLE
+
+
+def test_a_lockstep_controller_may_pause_longer_than_the_state_timeout_before_asking(supervised_rig):
+    """A lockstep robot publishes nothing while its controller trains between episodes; the
+    supervisor's no-state clock starts at the request, not at the last state before the pause."""
+    rig = supervised_rig(steps=[{"kind": "teleport", "timeout_s": 5}], detectors=[], state_timeout_s=0.5)
+    drive_out(rig, steps=5)
+    time.sleep(1.0)  # the controller trains a model: longer than state_timeout_s
+    first = rig.ctl.reset(timeout_s=30, x=0.0, y=0.0, yaw=0.0)
+    assert first.episode == 1
+    assert rig.sup.stats["failed"] == 0 and rig.dests() == FULL_CYCLE

@@ -1,0 +1,364 @@
+"""PDDM on the Shadow Hand's Baoding balls (Nagabandi et al., CoRL 2019; thesis ch. 4),
+with every node on the bus.
+
+    random-policy data → [train the ensemble → R rollouts with PDDM → aggregate] × iterations
+
+This is the MBRL loop of :mod:`learning.mbrl` on a second robot: :class:`BaodingRun` is an
+:class:`~learning.mbrl.MbrlRun` (the same driver process, controller node, reset
+supervisor, MCAP recordings, episode split and training); only the task differs: the
+policy's cost (:class:`control.costs.BaodingCost`), the random policy (uniform actions, as
+the thesis) and the metrics (:func:`control.costs.baoding_episode_metrics`). Episodes end
+through the rig's reset supervisor (``reset:`` in configs/rigs/hand_sim.yaml: a 10 s
+timeout and a drop detector on the ball heights; teleport on the sim rig) or at
+``episode_steps``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import Field
+
+from configs.schema import BusConfig, Strict, load_task, parse_model
+from control.costs import BaodingCost, baoding_episode_metrics
+from control.planners import PddmConfig
+from control.policies import MpcPolicy
+from learning.mbrl import MbrlConfig, MbrlRun, RigError, _jsonable, _log, _progress, make_model, recording
+from learning.recordings import episodes_from_mcap
+
+
+class BaodingTaskParams(Strict):
+    """``configs/tasks/baoding.yaml``: the task's geometry in the world frame (m, rad/s)."""
+
+    task: str
+    center_m: tuple[float, float, float]
+    axis: tuple[float, float, float]
+    radius_m: float = Field(gt=0)
+    rate_rad_s: float
+    phase0_rad: float = 0.0
+    source: str | None = None
+
+
+def load_baoding_task(name: str = "baoding"):
+    """The :class:`~sim_backends.shadow_hand.baoding.BaodingTask` of a task config."""
+    from sim_backends.shadow_hand.baoding import BaodingTask
+
+    raw = load_task(name)
+    p = parse_model(BaodingTaskParams, raw.model_dump(), raw.source)
+    return BaodingTask(center_m=np.array(p.center_m), axis=np.array(p.axis), radius_m=p.radius_m,
+                       rate_rad_s=p.rate_rad_s, phase0_rad=p.phase0_rad)
+
+
+class UniformRandomPolicy:
+    """Independent uniform actions in [low, high] every step (the thesis' random policy)."""
+
+    def __init__(self, action_dim: int, seed: int = 0, low: float = -1.0, high: float = 1.0):
+        self.rng = np.random.default_rng(seed)
+        self.action_dim, self.low, self.high = action_dim, low, high
+
+    def __call__(self, state: np.ndarray) -> np.ndarray:
+        return self.rng.uniform(self.low, self.high, self.action_dim)
+
+
+class ConstantPolicy:
+    """The same action every step (the ``hold`` baseline: keep the start pose)."""
+
+    def __init__(self, action: np.ndarray):
+        self.action = np.asarray(action, dtype=np.float64).copy()
+
+    def __call__(self, state: np.ndarray) -> np.ndarray:
+        return self.action.copy()
+
+
+class RandomWalkPolicy:
+    """The reference code's random data policy (``rand_policy_sample_velocities``): every
+    ``hold_steps`` steps each action channel draws a velocity of magnitude uniform in
+    [``vel_min``, ``vel_max``] (normalized units per step) and random sign; the action walks
+    from ``start`` with it, clipped to [-1, 1]. Uniform random targets throw the balls out
+    within a second; a walk from the grasp covers the states where the balls are held."""
+
+    def __init__(self, start: np.ndarray, seed: int = 0, vel_min: float = 0.05, vel_max: float = 0.15,
+                 hold_steps: int = 2):
+        self.rng = np.random.default_rng(seed)
+        self.a = np.asarray(start, dtype=np.float64).copy()
+        self.vel_min, self.vel_max, self.hold = vel_min, vel_max, max(1, hold_steps)
+        self._k = 0
+        self._v = np.zeros_like(self.a)
+
+    def __call__(self, state: np.ndarray) -> np.ndarray:
+        if self._k % self.hold == 0:
+            mag = self.rng.uniform(self.vel_min, self.vel_max, self.a.shape)
+            self._v = mag * self.rng.choice([-1.0, 1.0], self.a.shape)
+        self._k += 1
+        self.a = np.clip(self.a + self._v, -1.0, 1.0)
+        return self.a.copy()
+
+
+@dataclass
+class BaodingConfig:
+    """One PDDM-on-Baoding run. Defaults are the thesis' (ch. 4); :meth:`quick` scales down."""
+
+    rig: str = "hand_sim"
+    robot: str = "hand"
+    task: str = "baoding"
+    seed: int = 0
+    #: random-walk rollouts (:class:`RandomWalkPolicy`) collected before the first training
+    #: (reference code: 100 x 30 steps)
+    random_rollouts: int = 100
+    random_steps: int = 30
+    #: random-policy episodes scored as the `random_policy` baseline (not trained on)
+    random_eval_rollouts: int = 10
+    #: 10 s at 10 Hz (T=100); the supervisor's timeout ends episodes at 10 s too
+    episode_steps: int = 100
+    iterations: int = 10
+    #: PDDM rollouts per iteration (thesis R=30)
+    rollouts_per_iteration: int = 30
+    # the planner and its ensemble (thesis: H=7, K=700, γ=20, β=0.7, 3 x 2x500 ReLU MLP)
+    horizon: int = 7
+    samples: int = 700
+    gamma: float = 20.0
+    beta: float = 0.7
+    ensemble: int = 3
+    hidden: tuple[int, ...] = (500, 500)
+    #: std of PDDM's white noise u (normalized action units); None: a quarter of the range
+    sigma: float | None = None
+    #: the plan's first mean: "hold" = the hand's start pose (the measured joints as an
+    #: action), "zero" = the middle of every joint's range (the reference code's zeros)
+    init_mean: str = "hold"
+    # training (thesis: 40 epochs, Adam 1e-3, batch 500)
+    epochs: int = 40
+    retrain_epochs: int = 40
+    batch_size: int = 500
+    input_noise_std: float = 0.0
+    val_fraction: float = 0.1
+    progress: bool = True
+    rig_timeout_s: float = 60.0
+    #: the label of this run's scale in the report ("thesis", "quick", "tiny")
+    preset: str = "thesis"
+    notes: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.init_mean not in ("hold", "zero"):
+            problems.append(f"init_mean must be 'hold' or 'zero', got {self.init_mean!r}")
+        if not 0.0 < self.beta <= 1.0:
+            problems.append(f"beta must be in (0, 1], got {self.beta}")
+        for f in ("random_rollouts", "episode_steps", "horizon", "samples", "ensemble", "rollouts_per_iteration"):
+            if getattr(self, f) < 1:
+                problems.append(f"{f} must be >= 1, got {getattr(self, f)}")
+        if problems:
+            raise ValueError("BaodingConfig: " + "; ".join(problems))
+
+    @classmethod
+    def quick(cls, **kw: Any) -> BaodingConfig:
+        """`hil demo baoding --quick`: ≤10 min on 2 cores. Scaled down from the thesis:
+        K=200 samples, 2x250 networks (the reference code's width), 6 iterations of 5
+        rollouts, 30/20 epochs, planner noise σ=0.05; H, γ, β and the ensemble of 3 as the
+        thesis."""
+        base = dict(random_rollouts=200, random_eval_rollouts=10, iterations=6, rollouts_per_iteration=5,
+                    samples=200, hidden=(250, 250), epochs=30, retrain_epochs=20, sigma=0.05, preset="quick",
+                    notes=["scaled down from the thesis to fit 10 min on 2 cores: 200 random-walk rollouts x 30 "
+                           "steps, K=200 (thesis 700), 2x250 (thesis 2x500), 6 iterations x 5 rollouts (thesis R=30 "
+                           "each), 30/20 epochs (40)",
+                           "planner noise sigma=0.05 (default: a quarter of the action range, 0.5): with 3k points "
+                           "the model cannot foresee the drops of plans far from the data (docs/baoding.md)"])
+        base.update(kw)
+        return cls(**base)
+
+    @classmethod
+    def tiny(cls, **kw: Any) -> BaodingConfig:
+        """A seconds-long smoke run of every stage (tests)."""
+        base = dict(random_rollouts=3, random_steps=8, random_eval_rollouts=2, episode_steps=12, iterations=1,
+                    rollouts_per_iteration=2, samples=16, hidden=(16, 16), epochs=2, retrain_epochs=1,
+                    batch_size=64, preset="tiny", progress=False, notes=["smoke-test scale, not a result"])
+        base.update(kw)
+        return cls(**base)
+
+    def pddm(self, state_dim: int, action_dim: int) -> PddmConfig:
+        return PddmConfig(horizon=self.horizon, samples=self.samples, gamma=self.gamma, beta=self.beta,
+                          ensemble=self.ensemble, hidden=tuple(self.hidden), state_dim=state_dim,
+                          action_dim=action_dim, sigma=self.sigma)
+
+    def mbrl(self) -> MbrlConfig:
+        """The shared loop's settings (:class:`MbrlRun` runs the rig, the episodes, training)."""
+        return MbrlConfig(rig=self.rig, robot=self.robot, seed=self.seed, hidden=tuple(self.hidden),
+                          ensemble=self.ensemble, epochs=self.epochs, retrain_epochs=self.retrain_epochs,
+                          batch_size=self.batch_size, input_noise_std=self.input_noise_std,
+                          val_fraction=self.val_fraction, body_frame=False, invariant_inputs=(),
+                          planner="pddm", samples=self.samples, horizon=self.horizon,
+                          progress=self.progress, rig_timeout_s=self.rig_timeout_s)
+
+
+def _mean_std(x: list[float]) -> dict[str, float]:
+    a = np.asarray(x, dtype=np.float64)
+    return {"mean": float(a.mean()) if a.size else float("nan"), "std": float(a.std()) if a.size else float("nan")}
+
+
+def summarize(per_episode: list[dict[str, float]]) -> dict[str, Any]:
+    """Mean ± std return, drops, rotation and 90°/180° success rates over episodes."""
+    col = {k: [m[k] for m in per_episode] for k in ("return", "dropped", "rotation_deg", "turned_90", "turned_180",
+                                                     "steps")}
+    return {"episodes": len(per_episode), "return": _mean_std(col["return"]),
+            "mean_return": _mean_std(col["return"])["mean"],
+            "drops": int(sum(col["dropped"])), "drop_rate": float(np.mean(col["dropped"])),
+            "mean_rotation_deg": float(np.mean(col["rotation_deg"])),
+            "success_90": float(np.mean(col["turned_90"])), "success_180": float(np.mean(col["turned_180"])),
+            "mean_steps": float(np.mean(col["steps"]))}
+
+
+def drop_prediction(model, episodes, task, ball_idx: list[int], horizon: int) -> dict[str, float]:
+    """Does the model see drops coming? Over every ``horizon``-step open-loop window of
+    ``episodes`` (the validation data), replaying the logged actions: ``drop_recall`` = the
+    fraction of windows in which a ball truly drops whose ensemble-mean prediction also
+    drops (the task's rule); ``false_drop_rate`` = predicted drops among windows without
+    one; ``windows_with_drop``. A planner can only avoid the −500 the model predicts."""
+    from learning.dynamics import h_step_windows
+
+    H = min(horizon, max((len(e) for e in episodes), default=0))
+    if H < 1:
+        return {"drop_recall": float("nan"), "false_drop_rate": float("nan"), "windows_with_drop": 0}
+    start, actions, truth = h_step_windows(episodes, H, max_starts=2048)
+    with torch.inference_mode():
+        cur = torch.from_numpy(np.ascontiguousarray(start)).float()
+        preds = []
+        for h in range(H):
+            cur = model.predict(cur, torch.from_numpy(np.ascontiguousarray(actions[:, h])).float())
+            preds.append(cur.mean(0).numpy())
+    pred = np.stack(preds, 1)  # [P, H, S]
+
+    def drops(x: np.ndarray) -> np.ndarray:
+        b = x[..., ball_idx].reshape(*x.shape[:2], 2, 3)
+        return np.array([[task.dropped(bb) for bb in row] for row in b]).any(1)
+
+    true_d, pred_d = drops(truth), drops(pred)
+    n = int(true_d.sum())
+    return {"drop_recall": float((pred_d & true_d).sum() / n) if n else float("nan"),
+            "false_drop_rate": float((pred_d & ~true_d).sum() / max(1, int((~true_d).sum()))),
+            "windows_with_drop": n}
+
+
+class BaodingRun(MbrlRun):
+    """The MBRL loop of :class:`MbrlRun` with the Baoding task (see the module docstring)."""
+
+    def __init__(self, cfg: BaodingConfig, out_dir: Path, bus: BusConfig):
+        super().__init__(cfg.mbrl(), out_dir, bus)
+        self.bcfg = cfg
+        self.task = load_baoding_task(cfg.task)
+        self.plan_times_s: list[float] = []
+
+    def balls(self, states: np.ndarray) -> np.ndarray:
+        idx = [self.state_names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"]
+        return np.asarray(states)[:, idx].reshape(-1, 2, 3)
+
+    def run_episodes(self, make_policy, n: int, name: str, desc: str,
+                     steps: int | None = None) -> tuple[Path, list[dict[str, float]]]:
+        """``n`` episodes of at most ``steps`` (default ``episode_steps``) recorded to
+        ``rec_dir/name.mcap``, each scored with the task's reward."""
+        path = self.rec_dir / f"{name}.mcap"
+        scores = []
+        with recording(self.rig.name, path, self.bus):
+            for i in _progress(range(n), self.cfg, desc):
+                log = self.episode(make_policy(i), steps or self.bcfg.episode_steps, {})
+                m = baoding_episode_metrics(self.task, self.balls(np.array(log.states)), log.times_s)
+                scores.append(m)
+                if log.plan_times_s and "mpc" in name:
+                    self.plan_times_s += log.plan_times_s
+        self.recordings.append(str(path))
+        return path, scores
+
+    def _seed(self, offset: int, i: int) -> int:
+        return int(np.random.SeedSequence([self.bcfg.seed, offset, i]).generate_state(1)[0])
+
+    def random_policy(self, i: int) -> UniformRandomPolicy:
+        return UniformRandomPolicy(len(self.action_names), seed=self._seed(2, i))
+
+    def random_walk(self, i: int) -> RandomWalkPolicy:
+        from drivers.shadow_hand.config import hold_pose_action  # where every episode starts (sim reset)
+
+        return RandomWalkPolicy(hold_pose_action(), seed=self._seed(1, i))
+
+    def pddm_policy(self, model, seed: int) -> MpcPolicy:
+        pc = self.bcfg.pddm(len(self.state_names), len(self.action_names))
+        # "hold": the first plan is centred on the pose the episode starts in, so a planner
+        # with an untrained model perturbs a grasp instead of swinging every joint to mid-range
+        init = None
+        if self.bcfg.init_mean == "hold":
+            from drivers.shadow_hand.config import hold_pose_action
+
+            init = hold_pose_action()
+        planner = pc.planner(seed=seed, init_mean=init)  # a seed per rollout: the sim is deterministic
+        return MpcPolicy(model, planner, BaodingCost(self.task, self.state_names, self.period_s))
+
+    def run(self) -> dict[str, Any]:
+        torch.manual_seed(self.bcfg.seed)
+        t0 = time.monotonic()
+        report: dict[str, Any] = {"config": _jsonable(asdict(self.bcfg)), "rig": self.rig.name}
+        try:
+            return self._baoding(report, t0)
+        except TimeoutError as e:
+            raise RigError(f"{e} (driver log: {self.out / 'logs' / 'driver.log'})") from None
+
+    def _baoding(self, report: dict[str, Any], t0: float) -> dict[str, Any]:
+        c = self.bcfg
+        with self.session():
+            _log(self.cfg, f"collecting {c.random_rollouts} random-walk rollouts x ≤{c.random_steps} steps")
+            rand_path, walk = self.run_episodes(self.random_walk, c.random_rollouts, "000-random",
+                                                "random-walk rollouts", steps=c.random_steps)
+            data = episodes_from_mcap(rand_path, self.cfg.robot)
+            report["random_data"] = {"policy": "random walk from the hold pose (reference code's velocity sampling: "
+                                               "|v| in [0.05, 0.15] per step, held 2 steps)",
+                                     "rollouts": len(walk), "steps": c.random_steps,
+                                     "points": int(sum(len(e) for e in data)),
+                                     "drop_rate": float(np.mean([m["dropped"] for m in walk]))}
+            _, rand_scores = self.run_episodes(self.random_policy, c.random_eval_rollouts,
+                                               "001-random-eval", "uniform random policy (scored)")
+            report["random_policy"] = summarize(rand_scores)
+            # the do-nothing reference: a planner that only holds the grasp scores this
+            from drivers.shadow_hand.config import hold_pose_action
+
+            _, hold_scores = self.run_episodes(lambda i: ConstantPolicy(hold_pose_action()), 1,
+                                               "002-hold-eval", "hold policy (scored)")
+            report["hold_policy"] = summarize(hold_scores)
+            _log(self.cfg, f"random policy: {report['random_policy']['mean_return']:.1f} mean return, "
+                           f"{report['random_policy']['drops']} drops")
+            model = make_model(self.cfg, self.state_names, self.action_names)
+            iterations = []
+            for it in range(1, c.iterations + 1):
+                train = self.train(model, data, c.epochs if it == 1 else c.retrain_epochs)
+                path, scores = self.run_episodes(
+                    lambda i, m=model, it=it: self.pddm_policy(m, self._seed(10 + it, i)),
+                    c.rollouts_per_iteration, f"{it:03d}-mpc", f"iteration {it}: PDDM rollouts")
+                new = episodes_from_mcap(path, self.cfg.robot)
+                val = [e for e in data if self.val_assigned.get(e.name)]
+                idx = [self.state_names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"]
+                row = {"iteration": it, "points": int(sum(len(e) for e in data)),
+                       "model": {**{k: train[k] for k in ("train_loss", "val_1step", "val_h") if k in train},
+                                 **drop_prediction(model, val, self.task, idx, c.horizon)},
+                       **summarize(scores)}
+                iterations.append(row)
+                data += new
+                _log(self.cfg, f"iteration {it}: trained on {row['points']} points (val_h {train.get('val_h', float('nan')):.3f}); "
+                               f"PDDM {row['mean_return']:.1f} mean return, {row['drops']}/{len(scores)} drops, "
+                               f"{row['mean_rotation_deg']:.0f}° mean rotation")
+            model.save(self.out / "model.pt")
+        pc = c.pddm(len(self.state_names), len(self.action_names))
+        pt = np.asarray(self.plan_times_s) * 1e3
+        report["iterations"] = iterations
+        report["planner"] = {**asdict(pc), "init_mean": c.init_mean,
+                             "plan_ms_p50": float(np.percentile(pt, 50)) if pt.size else None,
+                             "plan_ms_p99": float(np.percentile(pt, 99)) if pt.size else None,
+                             "plans": int(pt.size)}
+        sup = self.supervisor
+        report["resets"] = ({**{k: sup.stats.get(k, 0) for k in ("requested", "completed", "failed")},
+                             "mean_duration_s": float(np.mean(sup.durations_s)) if sup.durations_s else 0.0}
+                            if sup is not None else {"requested": 0, "completed": 0, "failed": 0, "mean_duration_s": 0.0})
+        report["points"] = int(sum(len(e) for e in data))
+        report["recordings"] = self.recordings
+        report["model"] = str(self.out / "model.pt")
+        report["wall_s"] = time.monotonic() - t0
+        return report

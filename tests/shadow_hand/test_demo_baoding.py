@@ -1,0 +1,233 @@
+"""PDDM on the Baoding balls: reward math, the drop ending an episode through the reset
+supervisor, and `hil demo baoding` end to end at a seconds-long scale (real bus, real
+driver process, real MuJoCo, real MCAP)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from bus.schemas import ResetTransition
+from configs.schema import load_rig, rig_robot_config
+from control.costs import BaodingCost, baoding_episode_metrics
+from drivers.registry import make_driver
+from drivers.shadow_hand.config import BALL_CHANNELS, ShadowHandParams, shadow_hand_spec
+from learning.baoding import BaodingConfig, BaodingRun, UniformRandomPolicy, load_baoding_task
+from sim_backends.shadow_hand.backend import ShadowHandSim
+from sim_backends.shadow_hand.baoding import BaodingTask
+
+NAMES = list(shadow_hand_spec(ShadowHandParams(objects_in_state=True)).state.names)
+
+
+def task() -> BaodingTask:
+    return BaodingTask(center_m=np.array([0.0, 0.0, 0.1]), axis=np.array([0.0, 0.0, 1.0]), radius_m=0.025,
+                       rate_rad_s=np.pi / 5)
+
+
+def state_with(balls: np.ndarray) -> np.ndarray:
+    s = np.zeros(len(NAMES))
+    s[[NAMES.index(c) for c in BALL_CHANNELS]] = np.asarray(balls).reshape(-1)
+    return s
+
+
+# ---------------------------------------------------------------------------- reward math
+def test_cost_is_minus_the_task_reward_summed_over_the_horizon():
+    tk, dt, H = task(), 0.1, 4
+    cost = BaodingCost(tk, NAMES, dt)
+    cost.reset()
+    for _ in range(3):  # two steps into the episode: the current state is at t = 0.2 s
+        cost.observe(None)
+    rng = np.random.default_rng(0)
+    balls = tk.center_m + rng.normal(0, 0.03, (2, H + 1, 2, 3))  # [N=2, H+1, ball, xyz]
+    balls[1, 3, 0, 2] = 0.0  # one predicted state with a dropped ball
+    states = torch.tensor(np.stack([[state_with(b) for b in seq] for seq in balls]), dtype=torch.float32)[None]
+    got = cost(states, None)  # [E=1, N=2]
+    want = [-sum(tk.reward(balls[n, h], (2 + h) * dt) for h in range(1, H + 1)) for n in range(2)]
+    assert got.shape == (1, 2)
+    np.testing.assert_allclose(got[0].numpy(), want, rtol=1e-5, atol=1e-4)
+    assert got[0, 1] > 500  # the drop is in it
+
+
+def test_reward_by_hand():
+    tk, dt = task(), 0.1
+    cost = BaodingCost(tk, NAMES, dt)
+    cost.observe(None)  # t = 0
+    on = tk.targets(dt)  # the first predicted state is at t = 0.1 s
+    def c(balls):
+        return float(cost(torch.tensor(np.stack([state_with(tk.center_m + 0 * balls), state_with(balls)]),
+                                       dtype=torch.float32)[None, None], None))
+    assert c(on) == pytest.approx(0.0, abs=1e-4)  # on the targets: no cost
+    off = on.copy()
+    off[0, 2] += 0.1  # one ball 10 cm above its target: 5 · 0.1
+    assert c(off) == pytest.approx(0.5, abs=1e-4)
+    fell = on.copy()
+    fell[1, 2] -= 0.05  # 5 cm below the palm centre: a drop (0.04 m) and 5 · 0.05
+    assert c(fell) == pytest.approx(500.25, abs=1e-3)
+
+
+def test_episode_metrics_turns_drop_and_return():
+    tk, dt = task(), 0.1
+    # the pair turns 10° per step along the targets for 19 steps (190°), then a ball drops
+    ang = np.radians(np.r_[np.arange(20) * 10.0, 190.0])
+    d = 0.025 * np.stack([np.cos(ang), np.sin(ang), 0 * ang], 1)
+    balls = np.stack([tk.center_m + d, tk.center_m - d], 1)
+    balls[-1, 0, 2] = 0.0
+    t = np.arange(len(balls)) * dt
+    m = baoding_episode_metrics(tk, balls, t)
+    assert m["dropped"] == 1.0 and m["steps"] == 20
+    assert m["rotation_deg"] == pytest.approx(190.0) and m["turned_90"] == 1.0 and m["turned_180"] == 1.0
+    assert m["return"] == pytest.approx(sum(tk.reward(balls[k], t[k]) for k in range(1, 21)))
+    # only 100° before the drop: the 180° turn did not happen
+    m2 = baoding_episode_metrics(tk, np.concatenate([balls[:11], balls[-1:]]), t[:12])
+    assert m2["turned_90"] == 1.0 and m2["turned_180"] == 0.0 and m2["rotation_deg"] == pytest.approx(100.0)
+    # turning against the targets counts negative
+    m3 = baoding_episode_metrics(tk, balls[:10][::-1], t[:10])  # time reversed
+    assert m3["rotation_deg"] < 0 and m3["turned_90"] == 0.0
+
+
+def test_the_task_config_matches_the_sim_task():
+    sim = ShadowHandSim()
+    sim.configure()
+    cfg = load_baoding_task()
+    np.testing.assert_allclose(cfg.center_m, sim.task.center_m, atol=1e-5)
+    np.testing.assert_allclose(cfg.axis, sim.task.axis, atol=1e-5)
+    assert (cfg.radius_m, cfg.rate_rad_s) == pytest.approx((sim.task.radius_m, sim.task.rate_rad_s))
+
+
+def test_balls_in_the_state_on_the_demo_rig_and_the_drop_threshold_matches_the_task():
+    rig = load_rig("hand_sim")
+    d = make_driver(rig_robot_config(rig, "hand"))
+    assert list(d.spec.state.names[-6:]) == list(BALL_CHANNELS) and d.spec.state.dim == 54
+    d.configure()
+    obs = d.read()
+    np.testing.assert_allclose(obs.state[-6:], obs.extras["balls_m"].reshape(-1))
+    # the supervisor's drop detector (world z) fires where the task's drop rule does, at rest
+    z_min = next(x["min_height_m"] for x in rig.reset["detectors"] if x["kind"] == "drop")
+    tk = load_baoding_task()
+    assert z_min == pytest.approx(tk.center_m[2] - tk.drop_below_m * tk.axis[2], abs=2e-3)
+
+
+# ---------------------------------------------------------------------------- over the bus
+def test_a_drop_ends_the_episode_through_the_supervisor(bus, tmp_path):
+    run = BaodingRun(BaodingConfig.tiny(), tmp_path, bus)
+    with run.session():
+        transitions = run.ctl.subscribe(f"hil/{run.rig.name}/reset/transition", ResetTransition, latest=False,
+                                        capacity=256)
+        log = run.episode(UniformRandomPolicy(20, seed=3), 100, {})  # random actions drop a ball in < 3 s
+        ended = [t for _, t in transitions.drain()]
+        nxt = run.episode(UniformRandomPolicy(20, seed=4), 2, {})  # the next episode starts: a reset happened
+    assert len(log.states) < 100
+    assert np.min(run.balls(np.array(log.states))[-1, :, 2]) < 0.079
+    from bus.schemas import decode
+
+    reasons = [decode(p, ResetTransition).reason for p in ended]
+    assert any(r.startswith("drop") for r in reasons), reasons
+    assert run.supervisor.stats["completed"] >= 2 and run.supervisor.stats["failed"] == 0
+    # the reset held the hand in its start pose (not the middle of every joint's range) and
+    # the next episode starts with both balls in the palm
+    from drivers.shadow_hand.config import ACT_INDEX, hold_pose_action, to_action
+
+    start = np.asarray(nxt.states[0])
+    assert np.abs(to_action(start[ACT_INDEX]) - hold_pose_action()).max() < 0.1
+    assert np.all(run.balls(start[None])[0, :, 2] > 0.1)
+
+
+def test_demo_baoding_tiny_end_to_end(tmp_path):
+    from tools.demo_baoding import run_baoding_demo
+
+    r = run_baoding_demo(tmp_path, preset="tiny")
+    saved = json.loads((tmp_path / "report.json").read_text())
+    assert saved["iterations"] == r["iterations"]
+    metrics = {"points", "mean_return", "return", "drops", "drop_rate", "mean_rotation_deg", "success_90",
+               "success_180", "model"}
+    assert len(r["iterations"]) == 1 and metrics <= set(r["iterations"][0])
+    assert {"val_1step", "val_h"} <= set(r["iterations"][0]["model"])
+    assert metrics - {"points", "model"} <= set(r["random_policy"]) and metrics - {"points", "model"} <= set(r["hold_policy"])
+    assert r["random_data"]["rollouts"] == 3 and r["random_data"]["points"] > 0
+    assert r["random_policy"]["episodes"] == 2 and r["iterations"][0]["episodes"] == 2
+    p = r["planner"]
+    assert (p["horizon"], p["samples"], p["ensemble"], p["hidden"]) == (7, 16, 3, (16, 16))
+    assert p["plans"] > 0 and 0 < p["plan_ms_p50"] <= p["plan_ms_p99"]
+    rs = r["resets"]
+    assert rs["requested"] >= 3 + 2 + 1 + 2  # one per episode: random walk, random, hold, PDDM
+    assert rs["completed"] == rs["requested"] and rs["failed"] == 0 and rs["mean_duration_s"] > 0
+    for f in ("report.md", "returns.png", "demo.rrd", "model.pt"):
+        assert (tmp_path / f).is_file(), f
+    assert all(p.endswith(".mcap") for p in r["recordings"]) and len(r["recordings"]) == 4
+
+
+def test_reset_handshake_and_lockstep_messages_wait_for_a_full_send_queue(bus):
+    """Zenoh drops a message whose send queue stays full for 1 ms (its default for data):
+    on a loaded machine that lost a teleport answer and stopped the rig. The reset
+    handshake and a lockstep rig's states and commands are declared to wait instead."""
+    import zenoh
+
+    from control.controller_node import ControllerNode
+    from control.reset.config import load_reset
+    from control.reset.supervisor import ResetSupervisor
+    from drivers.bridge import DriverNode
+
+    rig = load_rig("hand_sim")
+    block = zenoh.CongestionControl.BLOCK
+    node = DriverNode(make_driver(rig_robot_config(rig, "hand")), rig.name, "hand", bus, pace="lockstep",
+                      handle_signals=False)
+    sup = ResetSupervisor(rig.name, load_reset(rig), bus, handle_signals=False)
+    ctl = ControllerNode(rig.name, "hand", bus, handle_signals=False)
+    try:
+        for p in (node._state_pub, node._reset_done, node._sup_done, sup._done, sup._to_driver, ctl._cmd,
+                  ctl._reset_req):
+            assert p._pub.congestion_control == block, p.key
+        assert node._image_pub._pub.congestion_control != block  # bulk data may still be dropped
+    finally:
+        for n in (ctl, sup, node):
+            n.close()
+
+
+def test_drop_prediction_counts_the_drops_a_model_sees_coming():
+    from learning.baoding import drop_prediction
+    from learning.datasets import Episode
+
+    tk = task()
+    idx = [NAMES.index(c) for c in BALL_CHANNELS]
+    z0 = tk.center_m[2]
+    # one episode falls (z − 1 cm per step: a drop after 5 steps), one stays put
+    fall = np.array([state_with(np.stack([tk.center_m, tk.center_m]) - [0, 0, 0.01 * k]) for k in range(10)])
+    stay = np.array([state_with(np.stack([tk.center_m, tk.center_m])) for _ in range(10)])
+    eps = [Episode(states=s, actions=np.zeros((9, 20)), times=np.arange(10) * 0.1, name=n)
+           for s, n in ((fall, "fall"), (stay, "stay"))]
+
+    class Still:  # predicts no motion: sees no drop coming
+        def predict(self, s, a):
+            return s.reshape(-1, *s.shape[-2:])[:1] if s.dim() == 3 else s[None]
+
+    class Falls(Still):  # predicts every ball falling 1 cm per step: sees every drop, and false ones
+        def predict(self, s, a):
+            out = super().predict(s, a).clone()
+            out[..., idx[2::3]] -= 0.01
+            return out
+
+    still = drop_prediction(Still(), eps, tk, idx, horizon=7)
+    assert still["windows_with_drop"] > 0 and still["drop_recall"] == 0.0 and still["false_drop_rate"] == 0.0
+    falls = drop_prediction(Falls(), eps, tk, idx, horizon=7)
+    assert falls["drop_recall"] == 1.0 and falls["false_drop_rate"] > 0.5
+    assert z0 - 0.01 * 9 < z0 - tk.drop_below_m  # the falling episode does drop
+
+
+def test_a_sim_reset_holds_the_pose_it_resets_to():
+    """The contract's held command follows a sim reset: the rate limit and the bus's
+    ``RobotState.action`` start from the new pose, not from where the last episode ended."""
+    from drivers.shadow_hand.config import ACT_INDEX, hold_pose_action, to_action
+
+    sim = ShadowHandSim(ShadowHandParams(objects_in_state=True))
+    sim.configure()
+    sim.activate()
+    for _ in range(5):
+        sim.write(-np.ones(20))
+        sim.tick()
+    assert np.abs(sim.held_command - hold_pose_action()).max() > 0.5
+    sim.reset()
+    np.testing.assert_allclose(sim.held_command, to_action(sim.read().state[ACT_INDEX]), atol=1e-9)
+    assert np.abs(sim.held_command - hold_pose_action()).max() < 0.05
