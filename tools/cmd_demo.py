@@ -12,6 +12,7 @@ from tools.common import UserError, user_errors
 #: function takes ``(out, quick=, full=, seed=)`` and prints its own summary.
 OTHER_DEMOS: dict[str, tuple[str, str, str]] = {
     "transfer": ("tools.demo_transfer", "cli_transfer", "SIDM and GAT/GARAT (docs/transfer.md)"),
+    "arms": ("tools.demo_arms", "cli_arms", "reach with a learned model + MPC vs IK and random, WidowX and Sawyer (docs/arms.md)"),
 }
 
 
