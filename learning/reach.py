@@ -416,10 +416,11 @@ class ReachRun:
 
             ik = rep["ik_tuning"]["best_params"]
             planner = make_planner(self.loop.cfg, 1.0, len(self.vel_limit))
+            rand = RandomPolicy(len(self.vel_limit), self.seed + 1000)  # one stream: other actions every episode
             controllers = {
                 "mpc": lambda goal: MpcPolicy(model, planner, ReachCost(self.fk, goal, self.n_joints)),
                 "ik": lambda goal: IkController(self.fk, goal, self.vel_limit, **ik),
-                "random": lambda goal: RandomPolicy(len(self.vel_limit), self.seed + 1000),
+                "random": lambda goal: rand,
             }
             eval_path = self.loop.rec_dir / "900-eval.mcap"
             with recording(self.loop.rig.name, eval_path, self.loop.bus):
