@@ -118,9 +118,9 @@ class ReachConfig:
     seeds: tuple[int, ...] = (0,)
     episode_steps: int = 40          #: policy steps per episode (thesis: 40)
     random_episodes: int = 60
-    hidden: tuple[int, ...] = (256, 256)
+    hidden: tuple[int, ...] = (128, 128)
     ensemble: int = 1
-    epochs: int = 150
+    epochs: int = 120
     batch_size: int = 256
     samples: int = 300
     horizon: int = 5
@@ -149,7 +149,7 @@ class ReachConfig:
 
     @classmethod
     def quick(cls, **kw: Any) -> ReachConfig:
-        base = dict(random_episodes=40, epochs=120, eval_goals=5)
+        base = dict(random_episodes=40, eval_goals=5)
         base.update(kw)
         return cls(**base)
 
