@@ -116,9 +116,10 @@ def test_ik_controller_reaches_a_reachable_goal_kinematically(arm, widowx_model,
     assert np.all(np.abs(ik(np.concatenate([q0, q0]))) <= 1.0)  # a normalized action
 
 
-def test_policy_rate_episode_keeps_every_hold_th_state_and_the_held_action():
+def test_policy_rate_episode_keeps_every_hold_th_state_and_the_commanded_action():
     states = np.arange(13 * 3, dtype=np.float32).reshape(13, 3)
-    actions = np.repeat(np.arange(4, dtype=np.float32), 3)[:, None]  # 12 steps, 4 blocks of 3
+    # 12 steps, 4 blocks of 3; the recorded (applied) action ramps to the held command
+    actions = (np.repeat(np.arange(4, dtype=np.float32), 3) - np.tile([0.5, 0.2, 0.0], 4))[:, None]
     ep = Episode(states, actions, name="e", meta={"state_names": ["a", "b", "c"], "state_units": ["1", "2", "3"]})
     out = policy_rate_episode(ep, 3, [2, 0])
     np.testing.assert_array_equal(out.states, states[[0, 3, 6, 9, 12]][:, [2, 0]])
