@@ -359,7 +359,8 @@ class ReachRun:
         pol = HeldPolicy(inner, self.hold, self.channels)
         log = self.loop.episode(pol, self.cfg.episode_steps * self.hold, {})
         states = np.asarray(log.states)[:: self.hold][:, self.channels]
-        return {"q": states[:, : self.n_joints], "plan_s": log.plan_times_s}
+        # the policy's own steps only: the held steps in between take no planning
+        return {"q": states[:, : self.n_joints], "plan_s": log.plan_times_s[:: self.hold]}
 
     def score(self, q: np.ndarray, goal: np.ndarray) -> dict[str, Any]:
         d = np.linalg.norm(self.fk.position(q) - goal, axis=-1)
