@@ -114,7 +114,6 @@ IK_DEFAULT = {"gain_per_s": 1.0, "damping_m": 0.02}
 @dataclass
 class ReachConfig:
     arm: str = "widowx"
-    seed: int = 0
     #: seeds of the evaluation: each trains its own model on its own random data
     seeds: tuple[int, ...] = (0,)
     episode_steps: int = 40          #: policy steps per episode (thesis: 40)

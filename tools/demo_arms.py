@@ -55,9 +55,8 @@ def run_arms(out: Path, quick: bool = False, full: bool = False, seed: int = 0,
     cmd = reproduce_command(out, quick, full, seed)
     reports = {}
     for arm in arms:
-        kw = {"arm": arm, "seed": seed, **overrides}
-        if not full:
-            kw.setdefault("seeds", (seed,))
+        kw = {"arm": arm, **overrides}
+        kw.setdefault("seeds", (seed, seed + 1, seed + 2) if full else (seed,))
         cfg = ReachConfig.quick(**kw) if quick else ReachConfig.full(**kw) if full else ReachConfig(**kw)
         t0 = time.monotonic()
         r = run_arm(cfg, out / arm, bus or BusConfig(endpoint=_free_endpoint()))
