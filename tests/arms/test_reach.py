@@ -188,3 +188,23 @@ def test_a_tiny_reach_run_on_the_sawyer_rig(tmp_path):
     assert all(e["final_distance_m"] < 0.5 * e["distance_m"][0] for e in run["episodes"]["ik"])
     assert len(run["ik_tuning"]["candidates"]) == 2
     assert (tmp_path / "report.md").is_file() and r["summary"] == saved["summary"]
+
+
+def test_widowx_goals_come_from_the_mechanism_pose(tmp_path, widowx_model):
+    """On the bench rig the mechanism (its own robot on the bus) moves to each task's target
+    and the goal is the switch port at the pose it measures."""
+    from tools.demo_arms import run_arms
+
+    r = run_arms(tmp_path, quick=True, arms=("widowx",), random_episodes=2, epochs=2, episode_steps=4,
+                 samples=60, horizon=2, tune_candidates=1, tune_goals=1, eval_goals=3, progress=False)["widowx"]
+    port = ChainKinematics(widowx_model, "port", ("mech_rail", "mech_rotate"), dtype=torch.float64)
+    eps = r["seeds"][0]["episodes"]["ik"]
+    assert len(eps) == 3
+    for e in eps:
+        target = np.array(e["mechanism_target"])  # normalized: ±1 = ±8°, ±1 cm
+        pose = e["mechanism_pose"]
+        measured = np.array([pose["rotate_rad"] / np.radians(8.0), pose["offset_m"] / 0.01])
+        np.testing.assert_allclose(measured, target, atol=0.15)  # the mechanism got there
+        np.testing.assert_allclose(e["goal_m"], port.position([pose["offset_m"], pose["rotate_rad"]]), atol=1e-4)
+    goals = np.array([e["goal_m"] for e in eps])
+    assert np.ptp(goals[:, 1]) > 0.003  # the rail moved the port between tasks
