@@ -118,6 +118,9 @@ class ReachConfig:
     seeds: tuple[int, ...] = (0,)
     episode_steps: int = 40          #: policy steps per episode (thesis: 40)
     random_episodes: int = 60
+    #: random data: each action times a uniform factor in [0, 1] (False: the thesis' uniform
+    #: actions; near the goal, models trained on those predicted a drift at rest)
+    random_scaled: bool = True
     hidden: tuple[int, ...] = (128, 128)
     ensemble: int = 1
     epochs: int = 120
@@ -203,13 +206,16 @@ class HeldPolicy:
 
 
 class RandomPolicy:
-    """Uniform normalized joint velocities (a new one each policy step)."""
+    """Uniform normalized joint velocities (a new one each policy step); with ``scaled``,
+    each is multiplied by a uniform factor in [0, 1], so that small commands, the ones MPC
+    needs near the goal, are as common as large ones."""
 
-    def __init__(self, action_dim: int, seed: int):
-        self.dim, self.rng = action_dim, np.random.default_rng(seed)
+    def __init__(self, action_dim: int, seed: int, scaled: bool = False):
+        self.dim, self.rng, self.scaled = action_dim, np.random.default_rng(seed), scaled
 
     def __call__(self, state: np.ndarray) -> np.ndarray:
-        return self.rng.uniform(-1.0, 1.0, self.dim)
+        a = self.rng.uniform(-1.0, 1.0, self.dim)
+        return a * self.rng.uniform() if self.scaled else a
 
 
 class ReachCost:
@@ -368,7 +374,7 @@ class ReachRun:
 
     def collect_random(self) -> list[Episode]:
         path = self.loop.rec_dir / "000-random.mcap"
-        pol = RandomPolicy(len(self.vel_limit), self.seed)
+        pol = RandomPolicy(len(self.vel_limit), self.seed, scaled=self.cfg.random_scaled)
         with recording(self.loop.rig.name, path, self.loop.bus):
             for _ in self._progress(range(self.cfg.random_episodes), f"random episodes → {path.name}"):
                 self.run_episode(pol)

@@ -145,6 +145,16 @@ def test_held_policy_acts_every_hold_calls_on_the_model_channels():
     assert float(seen[-1][0]) == 9.0
 
 
+def test_scaled_random_actions_cover_small_commands():
+    from learning.reach import RandomPolicy
+
+    uni = np.array([RandomPolicy(7, s)(None) for s in range(400)])
+    sca = np.array([RandomPolicy(7, s, scaled=True)(None) for s in range(400)])
+    assert np.all(np.abs(sca) <= 1.0)
+    small = lambda a: float(np.mean(np.abs(a).max(axis=1) < 0.3))  # noqa: E731
+    assert small(sca) > 0.2 > 0.01 > small(uni)  # all 7 joints below 0.3: common only when scaled
+
+
 def test_summary_success_is_within_2_cm():
     s = summarize([0.005, 0.019, 0.021, 0.3])
     assert s["success_rate"] == 0.5
