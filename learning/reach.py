@@ -73,6 +73,11 @@ class ArmTask:
     mechanism: str | None = None     #: the task-reset mechanism's key in the rig (WidowX)
     #: Sawyer: target box centres [m, world frame] (the task distribution's three goals)
     boxes: tuple[tuple[float, float, float], ...] = ()
+    #: random data with scaled magnitudes (:class:`RandomPolicy`). Measured in quick runs
+    #: (docs/arms.md): the Sawyer starts mid-workspace and uniform actions carry it far from
+    #: the boxes (MPC 1/3 at 2.0 cm, scaled 3/3 at 0.8 cm); the WidowX starts folded and
+    #: needs the large motions to reach the switch (uniform 4/5 at 1.3 cm, scaled 0/5 at 3.2 cm)
+    random_scaled: bool = False
 
     def model(self):
         if self.name == "widowx":
@@ -98,7 +103,8 @@ SAWYER_BOXES = ((-0.15, 0.75, 0.10), (0.0, 0.80, 0.10), (0.15, 0.75, 0.10))
 def sawyer_task() -> ArmTask:
     from drivers.sawyer.config import JOINTS
 
-    return ArmTask("sawyer", "arm_sawyer_sim", "arm", JOINTS, "endEffector", 0.25, boxes=SAWYER_BOXES)
+    return ArmTask("sawyer", "arm_sawyer_sim", "arm", JOINTS, "endEffector", 0.25, boxes=SAWYER_BOXES,
+                   random_scaled=True)
 
 
 ARMS = {"widowx": widowx_task, "sawyer": sawyer_task}
@@ -119,10 +125,9 @@ class ReachConfig:
     episode_steps: int = 40          #: policy steps per episode (thesis: 40)
     random_episodes: int = 60
     #: random data: each action times a uniform factor in [0, 1] (small commands, the ones
-    #: near the goal, covered better) instead of the thesis' uniform actions. Off: on the
-    #: WidowX, which starts folded, the smaller motions covered too little of the workspace
-    #: (quick run: MPC 0/5 at 3.2 cm instead of 4/5 at 1.3 cm; docs/arms.md)
-    random_scaled: bool = False
+    #: near the goal, covered better) instead of the thesis' uniform actions; None: the
+    #: arm's choice (:attr:`ArmTask.random_scaled`)
+    random_scaled: bool | None = None
     hidden: tuple[int, ...] = (128, 128)
     ensemble: int = 1
     epochs: int = 120
@@ -376,7 +381,8 @@ class ReachRun:
 
     def collect_random(self) -> list[Episode]:
         path = self.loop.rec_dir / "000-random.mcap"
-        pol = RandomPolicy(len(self.vel_limit), self.seed, scaled=self.cfg.random_scaled)
+        scaled = self.task.random_scaled if self.cfg.random_scaled is None else self.cfg.random_scaled
+        pol = RandomPolicy(len(self.vel_limit), self.seed, scaled=scaled)
         with recording(self.loop.rig.name, path, self.loop.bus):
             for _ in self._progress(range(self.cfg.random_episodes), f"random episodes → {path.name}"):
                 self.run_episode(pol)
