@@ -27,12 +27,14 @@ def _ms(c: dict[str, float], scale: float = 100.0) -> str:
 
 def arm_markdown(r: dict[str, Any]) -> str:
     cfg = r["config"]
+    scaled = r["task"]["random_scaled"] if cfg["random_scaled"] is None else cfg["random_scaled"]
     lines = [f"# Reach on the {r['arm']} (rig `{r['rig']}`)", "",
              f"Reproduce: `{r['command']}`. {r['wall_s']:.0f} s wall clock, {r['created']}.", "",
              f"Policy at {r['policy_hz']:.2f} Hz, {cfg['episode_steps']}-step episodes; success = end effector within "
              f"{100 * r['success_m']:.0f} cm of the goal at the end. Reward −(d² + log(d + 1e-5)) (MELD, thesis ch. 7).",
              f"MPC: CEM N={cfg['samples']} H={cfg['horizon']} on a {cfg['ensemble']}× MLP {cfg['hidden']} trained on "
-             f"{cfg['random_episodes']} random episodes per seed; seeds {cfg['seeds']}.", "",
+             f"{cfg['random_episodes']} random episodes per seed ({'scaled' if scaled else 'uniform'} actions); "
+             f"seeds {cfg['seeds']}.", "",
              "| controller | success | final distance (cm, mean ± std) | episodes |", "|---|---|---|---|"]
     labels = {"mpc": "learned model + CEM MPC", "ik": "damped least-squares IK (tuned)", "random": "random"}
     for c, s in r["summary"].items():
