@@ -202,6 +202,17 @@ class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+class EmulatorParams(Params):
+    """Shared base of every robot's ``params.emulator`` section (backend ``emulated``): how
+    the driver starts the emulator process. Each robot's emulator subclasses it with its own
+    typed fault options; a key no class declares (a misspelt fault option) is an error
+    naming ``params.emulator.<key>``."""
+
+    start_timeout_s: float = Field(30.0, gt=0, description="time for the emulator process to import MuJoCo, build "
+                                   "its model and print where to connect [s]")
+    keep_log: bool = Field(False, description="keep the emulator's log after cleanup (always kept on failure)")
+
+
 def parse_params(cfg: RobotConfig, model: type[P]) -> P:
     """Validate ``cfg.params``; errors name the file and ``params.<field>``."""
     try:

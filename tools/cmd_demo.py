@@ -14,6 +14,7 @@ OTHER_DEMOS: dict[str, tuple[str, str, str]] = {
     "transfer": ("tools.demo_transfer", "cli_transfer", "SIDM and GAT/GARAT (docs/transfer.md)"),
     "adaptation": ("tools.demo_adaptation", "cli_adaptation", "GrBAL, ReBAL, MB+DE, MOLe (docs/adaptation.md)"),
     "baoding": ("tools.demo_baoding", "cli_baoding", "PDDM on the Shadow Hand's Baoding balls (docs/baoding.md)"),
+    "arms": ("tools.demo_arms", "cli_arms", "reach with a learned model + MPC vs IK and random, WidowX and Sawyer (docs/arms.md)"),
 }
 
 

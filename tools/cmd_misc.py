@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 
@@ -41,6 +42,13 @@ def register(app: typer.Typer) -> None:
                 if endpoint:
                     cmd += ["--endpoint", endpoint]
                 procs.append(subprocess.Popen(cmd))
+
+            def forward(signum, _frame):  # stopped by a supervisor (SIGTERM): stop every robot's node too
+                for p in procs:
+                    if p.poll() is None:
+                        p.send_signal(signum)
+
+            signal.signal(signal.SIGTERM, forward)
             try:
                 for p in procs:
                     p.wait()

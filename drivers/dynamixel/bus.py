@@ -280,9 +280,10 @@ EMULATED_TIMEOUT_MARGIN_MS = 400.0
 
 def start_emulator(config: dict[str, Any], baudrate: int, start_timeout_s: float = EMULATOR_START_TIMEOUT_S,
                    module: str = "sim_backends.widowx.emulator",
-                   timeout_margin_ms: float = EMULATED_TIMEOUT_MARGIN_MS) -> DynamixelBus:
+                   timeout_margin_ms: float = EMULATED_TIMEOUT_MARGIN_MS, keep_log: bool = False) -> DynamixelBus:
     """Start the bus emulator process on a pty and open a bus on it."""
-    emu = EmulatorProcess(module, ["--print-pty", "--config", json.dumps(config)], start_timeout_s=start_timeout_s)
+    emu = EmulatorProcess(module, ["--print-pty", "--config", json.dumps(config)], start_timeout_s=start_timeout_s,
+                          keep_log=keep_log)
     info = emu.start()
     bus = DynamixelBus(info["pty"], baudrate, timeout_margin_ms=timeout_margin_ms)
     bus.emulator = emu

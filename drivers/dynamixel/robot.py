@@ -75,8 +75,10 @@ class DynamixelRobot(Driver):
         p = self.params
         if self.backend == "emulated":
             key = f"emulated:{p.bus_name}"
-            cfg = {**self._emulator_config(), **p.emulator}
-            return key, acquire_bus(key, lambda: start_emulator(cfg, p.baudrate))
+            e = p.emulator
+            cfg = {**self._emulator_config(), **e.model_dump(exclude={"start_timeout_s", "keep_log"})}
+            return key, acquire_bus(key, lambda: start_emulator(cfg, p.baudrate, start_timeout_s=e.start_timeout_s,
+                                                                keep_log=e.keep_log))
         if not p.port:
             raise ConfigError(self.source, [("params.port", "no serial port: set params.port (e.g. /dev/ttyUSB0) "
                                                             "or pass --port; see docs/arms.md")])

@@ -11,7 +11,7 @@ import math
 import numpy as np
 from pydantic import Field
 
-from configs.schema import Params
+from configs.schema import EmulatorParams, Params
 from drivers.base import RobotSpec, Space
 
 JOINTS = tuple(f"right_j{i}" for i in range(7))
@@ -35,7 +35,8 @@ class SawyerParams(Params):
     namespace: str = Field("", description="the bridge's namespace, if it was started with one")
     joint_states_topic: str = "/robot/joint_states"
     joint_command_topic: str = "/robot/limb/right/joint_command"
-    emulator: dict = Field(default_factory=dict)
+    #: the emulator has no fault injection yet: the shared settings only
+    emulator: EmulatorParams = Field(default_factory=EmulatorParams, description="emulator process settings")
     sim: dict = Field(default_factory=dict)
 
 

@@ -102,11 +102,11 @@ class SawyerDriver(Driver):
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         endpoint = f"tcp/127.0.0.1:{port}"
-        cfg = {**self.params.emulator, "namespace": self.params.namespace,
-               "joint_states_topic": self.params.joint_states_topic,
+        cfg = {"namespace": self.params.namespace, "joint_states_topic": self.params.joint_states_topic,
                "joint_command_topic": self.params.joint_command_topic}
-        self._emu = EmulatorProcess("sim_backends.sawyer.emulator",
-                                    ["--listen", endpoint, "--config", json.dumps(cfg)])
+        e = self.params.emulator
+        self._emu = EmulatorProcess("sim_backends.sawyer.emulator", ["--listen", endpoint, "--config", json.dumps(cfg)],
+                                    start_timeout_s=e.start_timeout_s, keep_log=e.keep_log)
         self._emu.start()
         return endpoint
 

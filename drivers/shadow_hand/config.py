@@ -22,7 +22,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from configs.schema import Params
+from configs.schema import EmulatorParams, Params
 from drivers.base import RobotSpec, Space
 
 JOINT_NAMES: tuple[str, ...] = (
@@ -81,6 +81,22 @@ BALL_CHANNELS: tuple[str, ...] = tuple(f"ball{i}_{c}" for i in range(2) for c in
 Transport = Literal["socketcan", "slcan", "udp_multicast"]
 
 
+class HandEmulatorParams(EmulatorParams):
+    """``params.emulator`` (sim_backends/shadow_hand/emulator.py): the process and its fault
+    injection, counted from the first target frame. Unknown keys are errors."""
+
+    spawn: bool = Field(True, description="start the emulator; false: ``channel`` names one already running")
+    udp_port: int | None = Field(None, ge=0, le=65535, description="udp_multicast transport: the bus's port")
+    balls: bool = Field(True, description="the emulator streams its sim's balls as the ball tracker")
+    connect_timeout_s: float = Field(10.0, gt=0, description="time for the first telemetry [s]")
+    corrupt_every: int = Field(0, ge=0, description="every N-th telemetry frame is broken (0: never)")
+    drop_every: int = Field(0, ge=0, description="every N-th telemetry frame is not sent (0: never)")
+    bus_off_after_s: float | None = Field(None, ge=0, description="the CAN controller goes bus-off after S s")
+    bus_off_s: float = Field(1.0, gt=0, description="how long the bus-off lasts [s]")
+    motor_fault_after_s: float | None = Field(None, ge=0, description="a motor goes limp after S s")
+    motor_fault_joint: int = Field(0, ge=0, description="index of the actuated joint whose motor fails")
+
+
 class ShadowHandParams(Params):
     """Everything configurable about the hand and its CAN link. Units in names."""
 
@@ -107,7 +123,7 @@ class ShadowHandParams(Params):
                            "(sim, the emulator's streams, or ball_tracker_ports)")
     # sim (ignored by the real driver) and emulator settings
     sim: dict = Field(default_factory=dict, description="sim backend settings (palm tilt, gains, seed...)")
-    emulator: dict = Field(default_factory=dict, description="emulator settings (fault injection...)")
+    emulator: HandEmulatorParams = Field(default_factory=HandEmulatorParams, description="emulator settings and fault injection")
 
 
 def to_joint_rad(action: np.ndarray) -> np.ndarray:

@@ -62,7 +62,6 @@ from drivers.shadow_hand.protocol import (
     encode_targets,
 )
 
-EMULATOR_START_TIMEOUT_S = 30.0
 DEFAULT_UDP_GROUP = "239.74.163.2"
 
 
@@ -117,11 +116,11 @@ class ShadowHandDriver(Driver):
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:
         p = self.params
-        spawn = self.backend == "emulated" and p.emulator.get("spawn", True)
+        spawn = self.backend == "emulated" and p.emulator.spawn
         if not spawn and not p.channel:
             raise ConfigError(self.source, [("params.channel", f"no CAN channel for transport {p.transport}: "
                                              "e.g. can0 (socketcan), /dev/ttyACM0 (slcan)")])
-        channel, udp_port = p.channel, p.emulator.get("udp_port")
+        channel, udp_port = p.channel, p.emulator.udp_port
         self._open_ball_tracker(spawn)
         if spawn:
             channel, udp_port = self._start_emulator()
@@ -138,7 +137,7 @@ class ShadowHandDriver(Driver):
         from drivers.mocap.udp import UdpPoseClient
 
         p = self.params
-        if spawn and p.emulator.get("balls", True):
+        if spawn and p.emulator.balls:
             self._balls = [UdpPoseClient("127.0.0.1", 0) for _ in range(2)]
         elif p.ball_tracker_ports:
             if len(p.ball_tracker_ports) != 2:
@@ -179,10 +178,10 @@ class ShadowHandDriver(Driver):
             args.append("--print-pty")
         else:
             args += ["--channel", p.channel or DEFAULT_UDP_GROUP,
-                     "--udp-port", str(p.emulator.get("udp_port") or free_udp_port())]
+                     "--udp-port", str(p.emulator.udp_port or free_udp_port())]
         self._emu = EmulatorProcess("sim_backends.shadow_hand.emulator", args,
-                                    start_timeout_s=float(p.emulator.get("start_timeout_s", EMULATOR_START_TIMEOUT_S)),
-                                    keep_log=bool(p.emulator.get("keep_log", False)))
+                                    start_timeout_s=p.emulator.start_timeout_s,
+                                    keep_log=p.emulator.keep_log)
         info = self._emu.start()
         return info["channel"], info.get("port")
 
@@ -190,7 +189,7 @@ class ShadowHandDriver(Driver):
         return "(no emulator)" if self._emu is None else self._emu.tail(n)
 
     def _wait_first_telemetry(self) -> None:
-        timeout_s = float(self.params.emulator.get("connect_timeout_s", 10.0)) if self.backend == "emulated" else 3.0
+        timeout_s = self.params.emulator.connect_timeout_s if self.backend == "emulated" else 3.0
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             with self._lock:

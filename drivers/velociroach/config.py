@@ -12,7 +12,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from configs.schema import Params
+from configs.schema import EmulatorParams, Params
 from drivers.base import Flag, RobotSpec, Space
 from drivers.velociroach.mavlink import mav
 
@@ -48,14 +48,13 @@ def fault_flags(bits: int) -> dict[str, bool]:
     return {f.value: bool(bits & bit) for bit, f in FAULT_FLAGS.items()}
 
 
-class EmulatorParams(Params):
-    """``params.emulator``: how the driver starts the firmware emulator (backend emulated)
-    and the faults it injects. Unknown keys are errors."""
+class VelociRoachEmulatorParams(EmulatorParams):
+    """``params.emulator``: how the driver starts the firmware emulator (backend emulated;
+    start timeout and log from the shared :class:`configs.schema.EmulatorParams`) and the
+    faults it injects. Unknown keys are errors."""
 
     pose: bool = Field(True, description="stream the sim's mocap pose to the driver over UDP")
-    start_timeout_s: float = Field(30.0, gt=0, description="time to import MuJoCo, build the model, print the pty")
     connect_timeout_s: float = Field(10.0, gt=0, description="time for the first heartbeat and telemetry")
-    keep_log: bool = Field(False, description="keep the emulator's log after cleanup (always kept on failure)")
     realtime_factor: float = Field(1.0, gt=0, description="sim seconds per wall-clock second")
     pose_hz: float = Field(100.0, gt=0, description="rate of the UDP pose stream")
     seed: int = Field(0, description="seed of the fault injection's noise")
@@ -106,7 +105,8 @@ class VelociRoachParams(Params):
         None, ge=0, le=65535, description="real: receive the robot's mocap pose here (drivers.mocap.udp stream)")
     # sim (ignored by the real driver); the sim backend reads the rest from here too
     sim: dict = Field(default_factory=dict, description="sim backend settings (terrain, motor, battery...)")
-    emulator: EmulatorParams = Field(default_factory=EmulatorParams, description="emulator settings and fault injection")
+    emulator: VelociRoachEmulatorParams = Field(default_factory=VelociRoachEmulatorParams,
+                                                description="emulator settings and fault injection")
 
 
 def velociroach_spec(p: VelociRoachParams) -> RobotSpec:

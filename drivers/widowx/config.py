@@ -20,7 +20,7 @@ import math
 import numpy as np
 from pydantic import Field, field_validator
 
-from configs.schema import Params
+from configs.schema import EmulatorParams, Params
 from drivers.base import RobotSpec, Space
 from drivers.widowx.description import WX250S_LINKS
 
@@ -39,6 +39,22 @@ MECH_JOINTS = ("mech_rotate", "mech_rail")
 MECH_DEFAULT_IDS = {"mech_rotate": 10, "mech_rail": 11}
 
 
+class DynamixelEmulatorParams(EmulatorParams):
+    """``params.emulator``: the bus emulator's faults (sim_backends/widowx/emulator.py;
+    docs/arms.md). Robots of one bus share one emulator: the first to open the bus starts it."""
+
+    missing_ids: list[int] = Field(default_factory=list, description="servo IDs that never answer")
+    hardware_errors: dict[int, int] = Field(default_factory=dict, description="ID → Hardware Error Status bits "
+                                            "latched at power-on (0 input voltage, 2 overheating, 3 encoder, "
+                                            "4 electrical shock, 5 overload)")
+    persistent_errors: bool = Field(False, description="the hardware errors survive reboots")
+    corrupt_every: int = Field(0, ge=0, description="every N-th status packet has a bad CRC (0: never)")
+    garbage_every: int = Field(0, ge=0, description="noise bytes before every N-th status packet (0: never)")
+    start_holding: dict[str, float] | None = Field(None, description="start torqued in position mode at these "
+                                                   "joint angles [rad] (default: limp in the sleep pose)")
+    realtime_factor: float = Field(1.0, gt=0, description="sim seconds per wall-clock second")
+
+
 class BusParams(Params):
     """The Dynamixel bus both robots share (units in names)."""
 
@@ -50,7 +66,8 @@ class BusParams(Params):
     telemetry_stale_s: float = Field(0.25, gt=0, description="a reading older than this is not ok")
     reboot_on_hardware_error: bool = Field(False, description="reboot a servo with a latched hardware error "
                                            "at configure (after the operator checked why)")
-    emulator: dict = Field(default_factory=dict, description="emulator settings (faults, missing IDs...)")
+    emulator: DynamixelEmulatorParams = Field(default_factory=DynamixelEmulatorParams,
+                                              description="emulator settings and fault injection")
     sim: dict = Field(default_factory=dict, description="sim world settings")
 
 

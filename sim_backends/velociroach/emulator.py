@@ -19,7 +19,7 @@ a bad XBee checksum and a bad MAVLink CRC), ``--garbage`` (noise bytes between f
 ``--silence-after S`` (radio outage S seconds after the first command: nothing is sent or
 received any more; the firmware keeps running, so its watchdog stops the motors, and the
 mocap stream, a separate system, keeps going). Only in the config's ``emulator`` section
-(:class:`drivers.velociroach.config.EmulatorParams`): ``pose_silence_after_s`` (the mocap
+(:class:`drivers.velociroach.config.VelociRoachEmulatorParams`): ``pose_silence_after_s`` (the mocap
 stream stops S seconds after the first command, the radio keeps going) and
 ``nonfinite_telemetry_every`` (every N-th telemetry packet carries NaN sensor values) and
 ``start_upside_down`` (the robot starts on its back, as after a flip).
