@@ -298,9 +298,11 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
 
 
 def _conditions(p: PerturbationPresets) -> dict[str, tuple[str, PerturbationSettings]]:
-    """Test name → (terrain, condition); the held-out terrain is a test of its own."""
+    """Test name → (terrain, condition): ``normal`` (the first training terrain, unperturbed:
+    the reference), each test condition, and the held-out terrain."""
     base = p.training_terrains[0]
-    out = {name: (base, s) for name, s in p.tests.items()}
+    out = {"normal": (base, PerturbationSettings())}
+    out.update({name: (base, s) for name, s in p.tests.items()})
     out[f"terrain_{p.heldout_terrain}"] = (p.heldout_terrain, PerturbationSettings())
     return out
 

@@ -20,7 +20,7 @@ def test_registered_with_the_demo_signature():
 def test_tiny_run_writes_the_issue_report(tmp_path):
     run_demo(tmp_path, tiny=True)
     r = json.loads((tmp_path / "report.json").read_text())
-    names = {"missing_leg", "slope", "miscalibration", "payload", "terrain_turf"}
+    names = {"normal", "missing_leg", "slope", "miscalibration", "payload", "terrain_turf"}
     assert set(r["perturbations"]) == names
     for row in r["perturbations"].values():
         assert set(row) == set(METHODS)
