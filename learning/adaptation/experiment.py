@@ -45,7 +45,7 @@ from learning.adaptation.rebal import ContextEncoder, RebalAdapter
 from learning.adaptation.training import fit_plain, transitions
 from learning.datasets import Episode
 from learning.experiments import mean_std
-from learning.mbrl import MbrlConfig, PathEnd, make_planner, path_start_pose
+from learning.mbrl import MbrlConfig, PathEnd, _jsonable, make_planner, path_start_pose
 from sim_backends.velociroach.backend import VelociRoachSim
 from sim_backends.velociroach.perturbations import PerturbationPresets, PerturbationSettings, load_presets
 
@@ -459,13 +459,6 @@ def run(cfg: AdaptationConfig, out: Path, log: Callable[[str], None] = print) ->
             "config": _jsonable(asdict(cfg)), "seeds": list(cfg.seeds), "elapsed_s": time.monotonic() - t0,
             "per_seed": per_seed}
 
-
-def _jsonable(o: Any) -> Any:
-    if isinstance(o, dict):
-        return {k: _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    return o
 
 
 __all__ = ["AdaptationConfig", "run", "METHODS", "SWITCHING_METHODS"]
