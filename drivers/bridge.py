@@ -87,7 +87,10 @@ class DriverNode(Node):
         self.robot = robot
         self.pace = pace
         self.watchdog_s = watchdog_periods * driver.spec.period_s
-        self.lockstep_timeout_s = lockstep_timeout_s
+        # a sim that follows another robot's clock (the hand's reset arm, whose world the
+        # hand's node advances) must not hold its own states back while nobody commands it
+        follow_s = getattr(driver, "lockstep_command_wait_s", None)
+        self.lockstep_timeout_s = lockstep_timeout_s if follow_s is None else min(follow_s, lockstep_timeout_s)
         #: how long a starting node asks its peers for a latched e-stop [s]
         self.estop_sync_s = estop_sync_s
         self.stats = BridgeStats()

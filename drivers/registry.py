@@ -34,6 +34,7 @@ BACKENDS: dict[tuple[str, str], str] = {
     ("sawyer", "sim"): "sim_backends.sawyer.backend:SawyerSim",
     ("sawyer", "emulated"): "drivers.sawyer.driver:SawyerDriver",
     ("sawyer", "real"): "drivers.sawyer.driver:SawyerDriver",
+    ("reset_arm", "sim"): "sim_backends.reset_arm.backend:ResetArmSim",
 }
 
 

@@ -15,6 +15,9 @@ Public API for the emulator: ``ShadowHandSim(params)``, ``configure()``, ``reset
 
 from __future__ import annotations
 
+import threading
+import weakref
+
 import mujoco
 import numpy as np
 from pydantic import Field
@@ -36,6 +39,11 @@ from sim_backends.base import LockstepSim
 from sim_backends.shadow_hand.baoding import BaodingTask
 from sim_backends.shadow_hand.firmware import TICK_S, FirmwareConfig, HandFirmware
 from sim_backends.shadow_hand.model import PHYSICS_DT_S, build_scene
+from sim_backends.shadow_hand.station import StationGeometry
+
+#: configured hand sims with a reset station, by ``params.sim.world``: the reset arm's sim
+#: backend (sim_backends/reset_arm/backend.py) joins the scene of the one it names
+SCENES: weakref.WeakValueDictionary[str, ShadowHandSim] = weakref.WeakValueDictionary()
 
 #: J0 ≈ this · J1 for the coupled distal joints (tendon coefficients 0.00805 / 0.00705)
 COUPLING_RATIO = 0.00805 / 0.00705
@@ -56,6 +64,9 @@ class SimParams(Params):
     ki_finger_nm_per_rad_s: float = Field(4.0, ge=0)
     ball_target_radius_m: float = Field(0.025, gt=0)
     ball_target_rate_rad_s: float = Field(float(np.pi / 5), description="target rotation rate (+: counter-clockwise)")
+    reset_station: bool = Field(False, description="add the ramp and the reset arm to the scene (docs/reset.md)")
+    world: str = Field("hand", description="name under which the reset arm's sim backend finds this scene")
+    gripper_force_n: float = Field(10.0, gt=0, le=40, description="the reset arm's jaw force limit [N] (sim_backends/reset_arm/model.py)")
 
 
 def parse_sim_params(sim: dict, source: str | None) -> SimParams:
@@ -93,6 +104,9 @@ class ShadowHandSim(LockstepSim):
         self._badqacc_seen = 0
         self._diverged_pending = False
         self._ticks_per_step = int(round(TICK_S / PHYSICS_DT_S))
+        #: held while the scene is stepped; another robot in the scene (the reset arm)
+        #: reads and writes it under this lock, and waits on it for the clock to advance
+        self.world_lock = threading.Condition()
 
     #: measured − commanded actuated joint angles (used by `hil drive`)
     tracking_error = staticmethod(joint_tracking_error)
@@ -108,7 +122,8 @@ class ShadowHandSim(LockstepSim):
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:
         s = self.sim
-        self.hand = h = build_scene(s.palm_tilt_rad)
+        station = StationGeometry() if s.reset_station else None
+        self.hand = h = build_scene(s.palm_tilt_rad, station, s.gripper_force_n)
         self.model = h.model
         self.data = mujoco.MjData(h.model)
         n = len(h.act_joint)
@@ -129,15 +144,26 @@ class ShadowHandSim(LockstepSim):
         self._act_dadr = h.dof_adr[h.act_joint]
         self._palm = h.model.body("robot0:palm").id
         self.reset()
+        if station is not None:
+            SCENES[s.world] = self
 
     def _on_cleanup(self) -> None:
-        self.model = self.data = None
+        if SCENES.get(self.sim.world) is self:
+            del SCENES[self.sim.world]
+        with self.world_lock:
+            self.model = self.data = None
+            self.world_lock.notify_all()
 
     def reset(self, q_rad: np.ndarray | None = None) -> None:
         """Hand at ``q_rad`` (24 joint angles; default: the cupped hold pose), balls at
         rest in the palm, firmware rebooted holding that pose, task time 0."""
+        with self.world_lock:
+            self._reset(q_rad)
+            self.world_lock.notify_all()
+
+    def _reset(self, q_rad: np.ndarray | None) -> None:
         m, d, h = self.model, self.data, self.hand
-        mujoco.mj_resetData(m, d)
+        mujoco.mj_resetData(m, d)  # the reset arm, if any, goes back to its parked pose too
         self._badqacc_seen = 0
         q = hold_pose_q() if q_rad is None else np.asarray(q_rad, dtype=np.float64).reshape(len(JOINT_NAMES))
         d.qpos[h.qpos_adr] = np.clip(q, h.joint_low, h.joint_high)
@@ -163,11 +189,17 @@ class ShadowHandSim(LockstepSim):
     # ------------------------------------------------------------------ physics
     def advance(self, duration_s: float) -> None:
         """Integrate ``duration_s`` in 1 ms firmware ticks (one MuJoCo step each)."""
+        with self.world_lock:
+            self._advance_locked(duration_s)
+            self.world_lock.notify_all()
+
+    def _advance_locked(self, duration_s: float) -> None:
         m, d, fw = self.model, self.data, self.firmware
         qa, da = self._act_qadr, self._act_dadr
         n = int(round(duration_s / TICK_S))
+        nh = len(self._act_qadr)  # the hand's motors come first; the reset arm's servos follow
         for _ in range(n):
-            d.ctrl[:] = fw.tick(d.time, d.qpos[qa], d.qvel[da])
+            d.ctrl[:nh] = fw.tick(d.time, d.qpos[qa], d.qvel[da])
             for _ in range(self._ticks_per_step):
                 mujoco.mj_step(m, d)
         bad = int(d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)
