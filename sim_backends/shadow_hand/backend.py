@@ -154,9 +154,16 @@ class ShadowHandSim(LockstepSim):
             self.model = self.data = None
             self.world_lock.notify_all()
 
-    def reset(self, q_rad: np.ndarray | None = None) -> None:
+    def reset(self, q_rad: np.ndarray | None = None, **planar_pose: float) -> None:
         """Hand at ``q_rad`` (24 joint angles; default: the cupped hold pose), balls at
-        rest in the palm, firmware rebooted holding that pose, task time 0."""
+        rest in the palm, firmware rebooted holding that pose, task time 0.
+
+        ``planar_pose``: a reset request's ``x``, ``y``, ``yaw`` (the supervisor's default
+        start pose, made for mobile robots) do not apply to a hand fixed to its mount and
+        are ignored; any other key is an error."""
+        unknown = sorted(set(planar_pose) - {"x", "y", "yaw"})
+        if unknown:
+            raise TypeError(f"shadow hand reset: unknown pose keys {unknown} (a hand takes q_rad only)")
         with self.world_lock:
             self._reset(q_rad)
             self.world_lock.notify_all()

@@ -4,29 +4,45 @@ a controller, each with its own Zenoh session, on real MuJoCo."""
 
 from __future__ import annotations
 
+import copy
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
-from configs.schema import load_rig, rig_robot_config
+from bus.estop import command_estop
+from bus.node import Node
+from configs.schema import RigConfig, load_rig, parse_model, rig_robot_config
 from control.controller_node import ControllerNode
 from control.reset.config import load_reset
 from control.reset.supervisor import ResetSupervisor
 from drivers.bridge import DriverNode
 from drivers.registry import make_driver
 from drivers.shadow_hand.config import hold_pose_action
+from tests.helpers import wait_for
 
 RIG = Path(__file__).resolve().parents[2] / "configs" / "rigs" / "hand_sim_arm.yaml"
 FULL_CYCLE = ["episode_end", "paused", "resetting", "verifying", "resumed", "running"]
 
 
+def rig_config(hand_sim: dict | None = None, step_params: dict | None = None, **reset_overrides) -> RigConfig:
+    """hand_sim_arm.yaml with overrides: the hand's ``params.sim``, the arm step's params,
+    and top-level fields of the reset section."""
+    data = yaml.safe_load(RIG.read_text())
+    if hand_sim:
+        data["robots"]["hand"]["params"]["sim"].update(hand_sim)
+    if step_params:
+        data["reset"]["steps"][0]["params"].update(step_params)
+    data["reset"].update(copy.deepcopy(reset_overrides))
+    return parse_model(RigConfig, data, RIG)
+
+
 class HandArmRig:
-    def __init__(self, bus, rig=None, **reset_overrides):
+    def __init__(self, bus, rig=None):
         rig = rig or load_rig(str(RIG))
-        if reset_overrides:
-            rig = rig.model_copy(update={"reset": {**rig.reset, **reset_overrides}})
         self.rig = rig
         self.nodes = {}
         self.threads = {}
@@ -81,7 +97,7 @@ def hand_arm_rig(bus):
     rigs = []
 
     def start(**overrides):
-        rigs.append(HandArmRig(bus, **overrides))
+        rigs.append(HandArmRig(bus, rig_config(**overrides) if overrides else None))
         return rigs[-1]
 
     yield start
@@ -117,3 +133,112 @@ def test_a_drop_ends_the_episode_and_the_arm_puts_both_balls_back_in_the_palm(ha
     # the arm really did it: it picked and placed two balls (no teleport on this rig)
     step = rig.sup.steps[0]
     assert step.script.log.count("release") == 2 and step.script.log[-1] == "park"
+
+
+def end_episode_by_drop(rig, knock=None) -> None:
+    """Knock the balls off and run the held hand until the supervisor ends the episode."""
+    s = rig.ctl.next_state()
+    if knock is None:
+        rig.knock_balls_off()
+    else:
+        knock()
+    rig.ctl.run_lockstep(hold, 60, s, stop_if=lambda _x: rig.sup.state != "running")
+    assert rig.sup.history and rig.sup.history[0].dest == "episode_end", rig.dests()
+
+
+def reset_in_thread(rig, timeout_s=120):
+    got: dict = {}
+
+    def run():
+        try:
+            got["state"] = rig.ctl.reset(timeout_s=timeout_s)
+        except Exception as e:  # handed to the test
+            got["err"] = e
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    return th, got
+
+
+def test_a_failed_grasp_is_retried_then_the_rig_is_stopped_and_the_operator_told(hand_arm_rig):
+    # worn jaws: 0.05 N cannot hold a 0.05 kg ball
+    rig = hand_arm_rig(hand_sim={"gripper_force_n": 0.05})
+    end_episode_by_drop(rig)
+    with pytest.raises(RuntimeError, match=r"arm_pick_place failed after 2 attempts: arm_pick_place: grasp of "
+                                           r"ball\d failed \(the ball is [0-9.]+ m from the jaws after lifting\)"):
+        rig.ctl.reset(timeout_s=120)
+    assert rig.dests()[:5] == ["episode_end", "paused", "resetting", "resetting", "failed"]
+    assert "attempt 2 of 2" in rig.sup.history[3].detail  # the retry, with why
+    assert rig.sup.stats == {"requested": 1, "completed": 0, "failed": 1}
+    # stopped safely: the rig's e-stop is engaged on both driver nodes, no new episode
+    wait_for(lambda: rig.nodes["hand"].estopped and rig.nodes["arm"].estopped, 10, "both e-stopped")
+    wait_for(lambda: rig.sup.state == "estopped", 10, "supervisor estopped")
+    assert rig.nodes["hand"].episode == 0
+    assert "grasp of ball" in rig.sup.last_failure
+
+
+def test_a_ball_that_does_not_reach_the_pickup_spot_fails_the_reset(hand_arm_rig):
+    rig = hand_arm_rig(step_params={"spot_wait_s": 1.0}, verify={"retries": 0})
+
+    def lose_one_ball():
+        # ball 0 falls outside the station (onto the floor, far from the ramp); ball 1 off the palm
+        h = rig.hand
+        with h.world_lock:
+            a = h.hand.ball_qpos_adr[0]
+            h.data.qpos[a:a + 3] = (0.3, 0.3, -0.55)
+            d = h.hand.ball_dof_adr[1]
+            h.data.qvel[d:d + 3] = (0.5, 0.0, 0.3)
+
+    end_episode_by_drop(rig, knock=lose_one_ball)
+    with pytest.raises(RuntimeError, match=r"ball0 did not reach the pick-up spot within 1 s"):
+        rig.ctl.reset(timeout_s=120)
+    assert "failed" in rig.dests()
+    wait_for(lambda: rig.nodes["hand"].estopped, 10, "hand e-stopped")
+    # the ball that did arrive was put back before the step gave up on the other one
+    assert rig.sup.steps[0].script.log.count("release") >= 1
+
+
+def test_the_arm_driver_disappearing_during_a_reset_fails_it(hand_arm_rig):
+    rig = hand_arm_rig()
+    end_episode_by_drop(rig)
+    th, got = reset_in_thread(rig)
+    wait_for(lambda: rig.sup.state == "resetting" and rig.sup.steps[0].script is not None
+             and "descend" in rig.sup.steps[0].script.log, 60, "the arm is picking")
+    rig.stop_node("arm")  # its liveliness token goes with it
+    th.join(30)
+    assert "driver node driver-arm disappeared (liveliness lost)" in str(got["err"])
+    assert rig.dests()[-2:] == ["failed", "estopped"] or rig.dests()[-1] == "failed"
+    # the e-stop is latched on the remaining nodes: the hand holds, a restarted arm starts stopped
+    wait_for(lambda: rig.nodes["hand"].estopped, 10, "hand e-stopped")
+    assert "liveliness lost" in rig.ctl.estop.latched.reason
+
+
+def test_an_estop_during_a_reset_wins_and_the_arm_stops(hand_arm_rig, bus):
+    rig = hand_arm_rig()
+    end_episode_by_drop(rig)
+    th, got = reset_in_thread(rig)
+    wait_for(lambda: rig.sup.state == "resetting" and rig.sup.steps[0].script is not None
+             and "approach" in rig.sup.steps[0].script.log, 60, "the arm is moving")
+    with Node("operator", rig.rig.name, bus, handle_signals=False) as op:
+        assert command_estop(op, True, reason="test").ok
+    th.join(30)
+    assert "e-stop engaged" in str(got["err"]) and "during the reset" in str(got["err"])
+    assert rig.dests()[-1] == "estopped"
+    arm = rig.nodes["arm"]
+    assert arm.estopped and not arm.driver.active
+    # nothing commands the arm any more: the supervisor stopped answering it
+    n = arm.stats.estop_refused
+    time.sleep(0.5)
+    assert arm.stats.estop_refused == n
+    # released: the supervisor is back to running; the arm holds where it stopped
+    with Node("operator2", rig.rig.name, bus, handle_signals=False) as op:
+        assert command_estop(op, False, reason="fixed").ok
+    wait_for(lambda: rig.sup.state == "running", 10, "running again")
+
+
+def test_teleport_remains_an_option_on_the_sim_rig(hand_arm_rig):
+    rig = hand_arm_rig(steps=[{"kind": "teleport", "timeout_s": 5}])
+    end_episode_by_drop(rig)
+    first = rig.ctl.reset(timeout_s=30)
+    assert first.episode == 1 and rig.dests() == FULL_CYCLE
+    assert not rig.hand.task.dropped(rig.hand.balls_m())
