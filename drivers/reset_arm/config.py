@@ -5,7 +5,7 @@ parallel-jaw gripper, standing beside the Shadow Hand's ramp: it picks the balls
 ramp funnels to the pick-up spot and puts them back in the palm (control/reset/steps.py,
 ``arm_pick_place``).
 
-State (22): 7 joint angles [rad], 7 joint velocities [rad/s], the gripper opening [m]
+State (21): 7 joint angles [rad], 7 joint velocities [rad/s], the gripper opening [m]
 (the distance between the jaws), then both balls' positions [m, world frame] as the
 station sees them (``ball0_x`` .. ``ball1_z``: in sim from the world, on a real rig from
 the camera tracker's stream). Action (8): 7 joint position targets [rad] and the

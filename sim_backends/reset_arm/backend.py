@@ -32,6 +32,8 @@ FOLLOW_TIMEOUT_S = 2.0
 
 
 class ResetArmSim(LockstepSim):
+    #: it works in another sim's world: ``hil up`` runs it in one process with the rig's sims
+    world_follower = True
     #: in lockstep its driver node waits this long [s, wall] for a command before it holds
     #: and follows the world's clock (drivers/bridge.py): idle, it still publishes every period
     lockstep_command_wait_s = 0.05

@@ -242,3 +242,28 @@ def test_teleport_remains_an_option_on_the_sim_rig(hand_arm_rig):
     first = rig.ctl.reset(timeout_s=30)
     assert first.episode == 1 and rig.dests() == FULL_CYCLE
     assert not rig.hand.task.dropped(rig.hand.balls_m())
+
+
+def test_hil_up_runs_the_hand_and_its_reset_arm_in_one_world(spawn, bus):
+    """`hil up hand_sim_arm`: the arm's sim joins the hand's scene (it would fail to
+    configure in a process of its own) and both answer a controller on the bus."""
+    from bus import keys
+    from bus.schemas import RobotState
+
+    p = spawn("up", str(RIG), "--endpoint", bus.endpoint)
+    try:
+        with Node("probe", "hand_sim_arm", bus, handle_signals=False) as probe:
+            arm = probe.subscribe(keys.state("hand_sim_arm", "arm"), RobotState)
+            ctl = ControllerNode("hand_sim_arm", "hand", bus, handle_signals=False, state_timeout_s=20)
+            try:
+                ctl.wait_ready(60)
+                s = ctl.next_state(timeout_s=60)
+                ctl.run_lockstep(hold, 5, s)
+                a = wait_for(lambda: arm.poll() or arm.last, 30, "an arm state")
+                assert len(a.state) == 21 and a.ok
+                # the balls the arm reports are the hand's balls, at rest in the palm
+                assert np.all(np.asarray(a.state[17::3]) > 0.1)
+            finally:
+                ctl.close()
+    finally:
+        assert p.stop() == 0, p.p.stderr.read()
