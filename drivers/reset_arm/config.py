@@ -50,6 +50,11 @@ class ResetArmParams(Params):
     max_joint_rate_rad_s: float = Field(1.5, gt=0, description="rate limit of the joint targets [rad/s]")
     max_gripper_rate_m_s: float = Field(0.2, gt=0, description="rate limit of the gripper target [m/s]")
     base_pos_m: tuple[float, float, float] = Field((1.62, 0.95, -0.22), description="arm base in the world [m]")
+    host: str = Field("127.0.0.1", description="emulated/real: the arm controller's address (UDP)")
+    port: int | None = Field(None, ge=1, le=65535, description="emulated/real: the arm controller's UDP port "
+                             "(emulated: the hand emulator's params.emulator.arm_port)")
+    state_deadline_s: float = Field(0.2, gt=0, description="a state older than this makes a reading stale")
+    connect_timeout_s: float = Field(10.0, gt=0, description="configure() waits this long for the first state")
     world: str = Field("hand", description="sim: the simulated hand whose scene holds the arm (same process)")
     world_wait_s: float = Field(10.0, gt=0, description="sim: how long configure() waits for the hand's scene")
     sim: dict = Field(default_factory=dict)

@@ -31,6 +31,27 @@ from sim_backends.reset_arm.model import ArmIndex
 FOLLOW_TIMEOUT_S = 2.0
 
 
+def arm_state(scene, ix: ArmIndex) -> tuple[float, np.ndarray]:
+    """(t_s, state (21,)) of the arm in ``scene`` (a ShadowHandSim; caller holds its lock)."""
+    d = scene.data
+    s = np.concatenate([d.qpos[ix.qpos], d.qvel[ix.dof], [d.qpos[ix.finger_qpos].sum()], scene.balls_m().reshape(-1)])
+    return float(d.time), s
+
+
+def arm_command(scene, ix: ArmIndex, action: np.ndarray) -> None:
+    """Servo targets from an action (7 joint angles [rad], opening [m]); caller holds the lock."""
+    d = scene.data
+    d.ctrl[ix.ctrl] = action[:7]
+    d.ctrl[ix.finger_ctrl] = action[7] / 2  # each jaw moves half the opening
+
+
+def arm_hold(scene, ix: ArmIndex) -> np.ndarray:
+    """Hold the measured joints, the jaws keep their target; returns the held action."""
+    d = scene.data
+    d.ctrl[ix.ctrl] = d.qpos[ix.qpos]
+    return np.concatenate([d.qpos[ix.qpos], [2 * d.ctrl[ix.finger_ctrl[0]]]])
+
+
 class ResetArmSim(LockstepSim):
     #: it works in another sim's world: ``hil up`` runs it in one process with the rig's sims
     world_follower = True
@@ -113,13 +134,8 @@ class ResetArmSim(LockstepSim):
         if scene is None or scene.data is None:
             self.fail_link("reset arm: the hand's scene is gone")
         with scene.world_lock:
-            d = scene.data
-            q, qd = d.qpos[ix.qpos].copy(), d.qvel[ix.dof].copy()
-            opening = float(d.qpos[ix.finger_qpos].sum())
-            balls = scene.balls_m().reshape(-1)
-            t = float(d.time)
-            tcp = d.site_xpos[ix.tcp].copy()
-        s = np.concatenate([q, qd, [opening], balls])
+            t, s = arm_state(scene, ix)
+            tcp = scene.data.site_xpos[ix.tcp].copy()
         finite = bool(np.all(np.isfinite(s)))
         self._seq += 1
         return Observation(t_s=t, state=s, seq=self._seq, ok=finite, flags={"nonfinite_input": not finite},
@@ -130,18 +146,14 @@ class ResetArmSim(LockstepSim):
 
     def _write(self, action: np.ndarray) -> None:
         with self.scene.world_lock:
-            d, ix = self.scene.data, self.idx
-            d.ctrl[ix.ctrl] = action[:7]
-            d.ctrl[ix.finger_ctrl] = action[7] / 2  # each jaw moves half the opening
+            arm_command(self.scene, self.idx, action)
 
     def _stop(self) -> np.ndarray | None:
         """Hold the measured joints; the jaws keep their target (a held ball stays held)."""
         if self.scene is None or self.scene.data is None:
             return None
         with self.scene.world_lock:
-            d, ix = self.scene.data, self.idx
-            d.ctrl[ix.ctrl] = d.qpos[ix.qpos]
-            return np.concatenate([d.qpos[ix.qpos], [2 * d.ctrl[ix.finger_ctrl[0]]]])
+            return arm_hold(self.scene, self.idx)
 
     def _health(self) -> Health:
         return Health(ok=self.scene is not None and self.scene.data is not None,

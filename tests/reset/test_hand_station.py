@@ -3,6 +3,7 @@ arm's kinematics: fast checks without the bus."""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -121,3 +122,54 @@ def test_ik_reaches_reachable_poses_with_the_tool_down(seed):
     assert err < 1e-3 and np.linalg.norm(p2 - p) < 1e-3
     assert r2[:, 2] @ np.array([0.0, 0.0, -1.0]) > 0.999  # the approach axis points down
     np.testing.assert_allclose(r2, r, atol=2e-3)
+
+
+def test_the_arm_udp_driver_and_controller_refuse_bad_frames_and_flag_silence():
+    """The real driver against the controller the emulator runs (in-process here)."""
+    import socket
+    import time
+
+    from drivers.reset_arm.driver import ResetArmDriver
+    from drivers.reset_arm.protocol import encode_command
+    from sim_backends.reset_arm.server import ArmServer
+    from tests.helpers import free_port
+
+    h = hand(True, world="station-udp")
+    port = free_port()
+    srv = ArmServer(h, port)
+    drv = ResetArmDriver(ResetArmParams(port=port, connect_timeout_s=5.0), backend="emulated")
+
+    def serve(seconds: float, send: bool = True) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            srv.poll(time.monotonic())
+            if send:
+                srv.send_state()
+            time.sleep(0.01)
+
+    th = threading.Thread(target=serve, args=(1.0,))
+    th.start()
+    try:
+        drv.configure()
+        drv.activate()
+        th.join()
+        assert drv.read().ok
+        # a frame that is not a state, sent to the driver's socket: counted and dropped
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.sendto(b"garbage", drv._sock.getsockname())
+            # a command with NaN to the controller: refused, the arm keeps its targets
+            ctrl_before = h.data.ctrl[srv.ix.ctrl].copy()
+            s.sendto(encode_command(1, np.full(8, np.nan)), ("127.0.0.1", port))
+        serve(0.2)
+        o = drv.read()
+        assert drv.bad_frames == 1 and o.ok
+        assert srv.bad_frames == 1
+        np.testing.assert_array_equal(h.data.ctrl[srv.ix.ctrl], ctrl_before)
+        # the controller goes silent: the reading turns stale, not ok
+        serve(0.4, send=False)
+        o = drv.read()
+        assert not o.ok and o.flags["stale_telemetry"]
+    finally:
+        drv.cleanup()
+        srv.close()
+        h.cleanup()
