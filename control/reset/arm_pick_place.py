@@ -64,6 +64,8 @@ class PickPlaceConfig:
     #: after lifting, the ball must be this close to the tool point [m] (else: grasp failed)
     grasp_tol_m: float = 0.03
     jaw_dir: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    #: the arm's control period [s]: one command per period
+    period_s: float = 0.1
     park_q_rad: tuple[float, ...] = field(default_factory=lambda: (0.0,) * 7)
 
 
@@ -90,6 +92,8 @@ class PickPlaceScript:
         self.places = self.center + np.asarray(cfg.place_offsets_m, dtype=np.float64)
         self.log: list[str] = []
         self.placed = 0
+        self._parked = False
+        self._joint_goal_cache: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ state
     @staticmethod
@@ -109,6 +113,7 @@ class PickPlaceScript:
         self._prev_balls = self.balls(s)
         self._ball: int | None = None
         self._p_cmd: np.ndarray | None = None
+        self._parked = False
 
     # ------------------------------------------------------------------ planning
     def _plan_pick(self, ball: int, at: np.ndarray, place: np.ndarray) -> None:
@@ -174,12 +179,9 @@ class PickPlaceScript:
         """Plan the next pick, or the park; True when all is done."""
         inp = self.in_palm(balls)
         if all(inp):
-            if not hasattr(self, "_parked"):
-                self._parked = False
             if self._parked:
                 return True
             self._phases = [_Phase("park", "joint", np.asarray(self.cfg.park_q_rad, dtype=np.float64), self.cfg.open_m)]
-            self._parked_pending = True
             return False
         c = self.cfg
         d_spot = np.linalg.norm(balls - self.spot, axis=1)
@@ -217,7 +219,7 @@ class PickPlaceScript:
 
     def _move(self, ph: _Phase) -> bool:
         """Advance the command one period toward the phase's goal; True once it is there."""
-        dt = 0.1
+        dt = self.cfg.period_s
         if ph.kind == "joint":
             goal_q = ph.goal if ph.name == "park" else self._joint_goal(ph.goal)
             step = goal_q - self._q_cmd
@@ -235,13 +237,14 @@ class PickPlaceScript:
         return n <= lim
 
     def _joint_goal(self, pos: np.ndarray) -> np.ndarray:
-        if not hasattr(self, "_jg") or self._jg[0] is not pos:
+        # solved once per goal (from the folded posture: a good branch, far from the limits)
+        if self._joint_goal_cache is None or self._joint_goal_cache[0] is not pos:
             q, err = self.ik.solve(READY_Q_RAD, pos, self.rot, iters=200)
             if err > 0.005:
                 raise PickPlaceError(f"arm_pick_place: no IK solution for {np.round(pos, 3).tolist()} "
                                      f"(off by {err:.3f} m)")
-            self._jg = (pos, q)
-        return self._jg[1]
+            self._joint_goal_cache = (pos, q)
+        return self._joint_goal_cache[1]
 
     def _action(self) -> np.ndarray:
         return np.concatenate([self._q_cmd, [float(np.clip(self._grip, 0.0, GRIPPER_OPEN_M))]])

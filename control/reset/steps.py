@@ -22,6 +22,7 @@ Kinds (``reset.steps[].kind`` in a rig config):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -381,7 +382,9 @@ class ArmPickPlace(ResetStep):
         if s is None:
             raise StepError(f"arm_pick_place: no state from robot {self.arm!r}")
         if self.script is None:
-            self.script = PickPlaceScript(self.pp_cfg)  # builds the IK model once
+            spec = self._link.spec()
+            cfg = dataclasses.replace(self.pp_cfg, period_s=float(spec["period_s"]))
+            self.script = PickPlaceScript(cfg)  # builds the IK model once
         self.script.start(s.t_s, np.asarray(s.state))
         self._hold = hold_pose_action()
 

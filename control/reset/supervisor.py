@@ -227,8 +227,9 @@ class ResetSupervisor(Node):
         self._closeables.append(SimpleNamespace(close=self._alive_sub.undeclare))
         #: other robots of the rig that steps drive or detectors watch (robot -> link)
         self.links: dict[str, RobotLink] = {}
+        self._linked_bound: set[int] = set()  # indices of detectors bound to another robot's names
         for d in self.detectors:
-            if getattr(d, "robot", None):
+            if d.robot:
                 self.robot_link(d.robot)
         self.state_names: list[str] = []
         self.scale: ActionScale | None = None
@@ -276,19 +277,18 @@ class ResetSupervisor(Node):
         self.scale = ActionScale.from_spec(spec)
         self._zero = np.clip(np.zeros(len(self.scale.low)), self.scale.low, self.scale.high)
         for d in self.detectors:
-            if not getattr(d, "robot", None):
+            if not d.robot:
                 d.bind(self.state_names)
 
     def _bind_linked_detectors(self, timeout_s: float) -> None:
-        for d in self.detectors:
-            robot = getattr(d, "robot", None)
-            if robot and not getattr(d, "_bound", False):
-                link = self.links[robot]
+        for i, d in enumerate(self.detectors):
+            if d.robot and i not in self._linked_bound:
+                link = self.links[d.robot]
                 if link.spec(timeout_s) is None:
-                    raise TimeoutError(f"reset supervisor: no spec from {keys.spec(self.rig, robot)} within "
-                                       f"{timeout_s} s (the {d.name} detector watches {robot})")
+                    raise TimeoutError(f"reset supervisor: no spec from {keys.spec(self.rig, d.robot)} within "
+                                       f"{timeout_s} s (the {d.name} detector watches {d.robot})")
                 d.bind(link.state_names)
-                d._bound = True
+                self._linked_bound.add(i)
 
     def wait_ready(self, timeout_s: float = 20.0) -> None:
         """Wait for the robot's spec (its driver node publishes it)."""
@@ -428,15 +428,14 @@ class ResetSupervisor(Node):
     def _detector_state(self, d: EpisodeEndDetector, s: RobotState) -> RobotState | None:
         """What ``d`` watches: the robot's state, or the newest state of the robot it names
         (None until that robot's spec and a state arrived)."""
-        robot = getattr(d, "robot", None)
-        if not robot:
+        if not d.robot:
             return s
-        if not getattr(d, "_bound", False):
+        if self.detectors.index(d) not in self._linked_bound:
             try:
                 self._bind_linked_detectors(0.0)
             except TimeoutError:
                 return None
-        return self.links[robot].state()
+        return self.links[d.robot].state()
 
     def _begin_step(self, s: RobotState, first: bool = False, retry_detail: str = "") -> None:
         self._t0_s = s.t_s
