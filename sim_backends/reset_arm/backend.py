@@ -69,6 +69,8 @@ class ResetArmSim(LockstepSim):
         self._seq = 0
         self._t_ref_s = 0.0
         self.follow_timeouts = 0
+        #: while ``tick()`` waits: the scene time [s] it waits for (None otherwise)
+        self.waiting_for_s: float | None = None
 
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> ResetArmSim:
@@ -120,8 +122,10 @@ class ResetArmSim(LockstepSim):
         with cond:
             if self.scene.sim_time_s < self._t_ref_s:
                 target = self.scene.sim_time_s  # the scene was reset: its clock went back
+            self.waiting_for_s = target
             ok = cond.wait_for(lambda: self.scene.data is None or self.scene.sim_time_s >= target - 1e-9,
                                timeout=FOLLOW_TIMEOUT_S)
+            self.waiting_for_s = None
             if self.scene.data is None:
                 self.fail_link("reset arm: the hand's scene was closed")
             if not ok:
