@@ -181,11 +181,15 @@ class DriverNode(Node):
                 ans = ResetEvent(robot=self.robot, phase="failed", detail="e-stop engaged")
             elif m.phase == "teleport" and reset is not None:
                 self.driver.stop()
-                reset(**m.pose)
-                self._last_cmd_t = None
-                self.stopped_reason = "waiting"
-                jumped = True
-                ans = ResetEvent(robot=self.robot, phase="done", pose=m.pose)
+                try:
+                    reset(**m.pose)
+                except (TypeError, ValueError) as e:  # a pose this robot cannot take: say so, keep serving
+                    ans = ResetEvent(robot=self.robot, phase="failed", detail=f"teleport refused: {e}")
+                else:
+                    self._last_cmd_t = None
+                    self.stopped_reason = "waiting"
+                    jumped = True
+                    ans = ResetEvent(robot=self.robot, phase="done", pose=m.pose)
             elif m.phase == "teleport":
                 ans = ResetEvent(robot=self.robot, phase="unsupported",
                                  detail=f"{self.driver.backend} backend cannot teleport")

@@ -267,3 +267,13 @@ def test_hil_up_runs_the_hand_and_its_reset_arm_in_one_world(spawn, bus):
                 ctl.close()
     finally:
         assert p.stop() == 0, p.p.stderr.read()
+
+
+def test_a_teleport_the_robot_cannot_take_fails_the_reset_and_the_driver_node_survives(hand_arm_rig):
+    # a start pose with a key a hand has no use for: its reset refuses it
+    rig = hand_arm_rig(steps=[{"kind": "teleport", "timeout_s": 5}], start_pose={"z": 1.0})
+    end_episode_by_drop(rig)
+    with pytest.raises(RuntimeError, match=r"teleport failed: teleport refused: shadow hand reset: unknown pose keys"):
+        rig.ctl.reset(timeout_s=30)
+    assert rig.threads["hand"].is_alive()  # it answered and kept serving (it used to die on the TypeError)
+    wait_for(lambda: rig.nodes["hand"].estopped, 10, "hand e-stopped by the failed reset")
