@@ -10,7 +10,7 @@ When both balls are in the palm the arm goes back to its parked pose (q = 0, upr
 out of the balls' way) and the script is done.
 
 Cartesian moves run the tool centre point along a straight line at ``speed_m_s`` with
-IK (drivers/reset_arm/kinematics.py) every period, warm-started from the last command;
+IK (control/reset/arm_ik.py) every period, warm-started from the last command;
 joint-space moves interpolate at ``joint_speed_rad_s``. A phase ends when the command has
 reached its goal and the measured tool point (forward kinematics of the measured joints)
 is within ``tolerance_m`` of it.
@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from control.reset.arm_ik import READY_Q_RAD, ArmIK, down_frame
 from drivers.reset_arm.config import GRIPPER_OPEN_M
-from drivers.reset_arm.kinematics import READY_Q_RAD, ArmIK, down_frame
 
 
 class PickPlaceError(RuntimeError):

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import yaml
 
+from control.reset.arm_ik import READY_Q_RAD, ArmIK, down_frame
 from drivers.base import LinkError
 from drivers.reset_arm.config import ResetArmParams
-from drivers.reset_arm.kinematics import READY_Q_RAD, ArmIK, down_frame
 from drivers.shadow_hand.config import ShadowHandParams, hold_pose_action
 from sim_backends.reset_arm.backend import ResetArmSim
 from sim_backends.shadow_hand.backend import ShadowHandSim
