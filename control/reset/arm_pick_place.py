@@ -91,7 +91,6 @@ class PickPlaceScript:
         self.center = np.asarray(cfg.palm_center_m, dtype=np.float64)
         self.places = self.center + np.asarray(cfg.place_offsets_m, dtype=np.float64)
         self.log: list[str] = []
-        self.placed = 0
         self._parked = False
         self._joint_goal_cache: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -124,7 +123,6 @@ class PickPlaceScript:
         above_place = place.copy()
         above_place[2] = c.travel_z_m
         self._ball = ball
-        self._place = place
         self._phases = [
             _Phase("approach", "joint", above_spot, c.open_m),
             _Phase("descend", "cart", at, c.open_m, tol_m=c.tolerance_m / 2),
@@ -211,8 +209,6 @@ class PickPlaceScript:
         self.log.append(ph.name)
         if ph.name == "park":
             self._parked = True
-        if ph.name == "retreat":
-            self.placed += 1
         self._phase_t0 = t_s
         self._wait_since = t_s
         self._p_cmd = None
