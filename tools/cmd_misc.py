@@ -23,17 +23,21 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
     nodes = [DriverNode(make_driver(rig_robot_config(cfg, n)), cfg.name, n, bus, watchdog_periods=cfg.watchdog_periods,
                         pace=cfg.pace, handle_signals=False) for n in names]
     errors: list[str] = []
+    stopping = threading.Event()  # a stop was asked for: what fails after it is the shutdown
 
     def serve(node: DriverNode) -> None:
         try:
             typer.echo(f"{node.robot} down: {node.serve(max_steps=steps)}", err=True)
         except Exception as e:  # its own error path already stopped its robot
-            errors.append(f"{node.robot}: {e}")
+            if not stopping.is_set():
+                errors.append(f"{node.robot}: {e}")
         finally:
+            stopping.set()
             for other in nodes:  # one robot of a shared world down: the world is gone for all
                 other.stop_event.set()
 
     def stop_all(signum, frame) -> None:  # noqa: ARG001
+        stopping.set()
         for node in nodes:
             node.stop_event.set()
 

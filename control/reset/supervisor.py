@@ -67,6 +67,10 @@ from control.reset.steps import DONE, HOLD, ResetStep, StepError, make_step
 log = logging.getLogger(__name__)
 logging.getLogger("transitions").setLevel(logging.WARNING)  # it logs every callback at INFO
 
+#: how long a detector watching another robot waits for that robot's state of the same
+#: instant as the reset robot's [s, wall clock]; then it sees the newest it has
+LINK_SYNC_S = 0.05
+
 STATES = ["running", "episode_end", "paused", "resetting", "verifying", "resumed", "failed", "estopped"]
 _RESETTING = ["episode_end", "paused", "resetting", "verifying", "resumed"]
 TRANSITIONS: list[dict[str, Any]] = [
@@ -435,7 +439,8 @@ class ResetSupervisor(Node):
                 self._bind_linked_detectors(0.0)
             except TimeoutError:
                 return None
-        return self.links[d.robot].state()
+        # the other robot's state of the same instant (lockstep: it follows a moment later)
+        return self.links[d.robot].state(not_before_t_s=s.t_s, timeout_s=LINK_SYNC_S)
 
     def _begin_step(self, s: RobotState, first: bool = False, retry_detail: str = "") -> None:
         self._t0_s = s.t_s

@@ -56,8 +56,9 @@ class ResetArmSim(LockstepSim):
     #: it works in another sim's world: ``hil up`` runs it in one process with the rig's sims
     world_follower = True
     #: in lockstep its driver node waits this long [s, wall] for a command before it holds
-    #: and follows the world's clock (drivers/bridge.py): idle, it still publishes every period
-    lockstep_command_wait_s = 0.05
+    #: and follows the world's clock (drivers/bridge.py): idle, it still publishes every
+    #: period, so a drop detector watching its ball channels sees the drop without lag
+    lockstep_command_wait_s = 0.01
 
     def __init__(self, params: ResetArmParams | None = None, source: str | None = None):
         super().__init__()

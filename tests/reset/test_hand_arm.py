@@ -119,7 +119,7 @@ def test_a_drop_ends_the_episode_and_the_arm_puts_both_balls_back_in_the_palm(ha
         ended.append(rig.sup.state)
         return rig.sup.state != "running"
 
-    rig.ctl.run_lockstep(hold, 40, s, stop_if=stop)
+    rig.ctl.run_lockstep(hold, 100, s, stop_if=stop)
     assert rig.sup.history and rig.sup.history[0].dest == "episode_end"
     assert "drop: ball" in rig.sup.history[0].reason
     first = rig.ctl.reset(timeout_s=120)
