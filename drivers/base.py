@@ -282,6 +282,8 @@ class RobotSpec:
             "action_rate_per_s": None
             if self.action_rate_per_s is None
             else [float(x) for x in self.action_rate_per_s],
+            # None: the robot stops by holding its measured position (hand, arm joints)
+            "safe_action": None if self.safe_action is None else [float(x) for x in self.safe_action],
         }
 
 

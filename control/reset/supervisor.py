@@ -279,7 +279,14 @@ class ResetSupervisor(Node):
     def _bind_spec(self, spec: dict[str, Any]) -> None:
         self.state_names = list(spec["state"]["names"])
         self.scale = ActionScale.from_spec(spec)
-        self._zero = np.clip(np.zeros(len(self.scale.low)), self.scale.low, self.scale.high)
+        # what "hold" sends: the safe action (legs stopped); for a robot that stops by holding
+        # its position (the hand: safe_action None) the command it holds now (RobotState.action),
+        # not zeros, which would be mid-range joint targets
+        if "safe_action" in spec and spec["safe_action"] is None:
+            self._zero = None
+        else:
+            sa = spec.get("safe_action") or np.zeros(len(self.scale.low))
+            self._zero = np.clip(np.asarray(sa, dtype=np.float64), self.scale.low, self.scale.high)
         for d in self.detectors:
             if not d.robot:
                 d.bind(self.state_names)
@@ -303,7 +310,14 @@ class ResetSupervisor(Node):
         self._bind_linked_detectors(timeout_s)
 
     def _send(self, s: RobotState, action_norm: np.ndarray | None) -> None:
-        a = self._zero if action_norm is None else self.scale.to_robot(action_norm)
+        if action_norm is not None:
+            a = self.scale.to_robot(action_norm)
+        elif self._zero is not None:
+            a = self._zero
+        elif s.action:
+            a = np.asarray(s.action, dtype=np.float64)  # hold what it holds
+        else:
+            return  # nothing held yet: the driver node holds the measured position itself
         self._cmd.put(Command(robot=self.robot, action=a.tolist(), state_seq=s.seq, source=self.name))
 
     # StepContext

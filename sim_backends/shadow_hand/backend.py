@@ -167,6 +167,7 @@ class ShadowHandSim(LockstepSim):
         with self.world_lock:
             self._reset(q_rad)
             self.world_lock.notify_all()
+        self._rehold()  # the held command is now the new pose, not what was held before the reset
 
     def _reset(self, q_rad: np.ndarray | None) -> None:
         m, d, h = self.model, self.data, self.hand

@@ -20,11 +20,10 @@ from control.reset.config import load_reset
 from control.reset.supervisor import ResetSupervisor
 from drivers.bridge import DriverNode
 from drivers.registry import make_driver
-from drivers.shadow_hand.config import ACTUATED_JOINTS, hold_pose_action
 from tests.helpers import free_port
+from tests.reset.test_hand_arm import tip_the_palm
 
 RIG = Path(__file__).resolve().parents[2] / "configs" / "rigs" / "hand_emulated_arm.yaml"
-WRJ0 = ACTUATED_JOINTS.index("WRJ0")
 
 
 def rig_config() -> RigConfig:
@@ -33,17 +32,6 @@ def rig_config() -> RigConfig:
     data["robots"]["hand"]["params"]["emulator"]["arm_port"] = port
     data["robots"]["arm"]["params"]["port"] = port
     return parse_model(RigConfig, copy.deepcopy(data), RIG)
-
-
-def tip_the_palm():
-    """Turn the wrist (WRJ0 to 0.5, 0.05 per period): both balls roll off onto the ramp."""
-    a = hold_pose_action()
-
-    def policy(_x):
-        a[WRJ0] = min(0.5, a[WRJ0] + 0.05)
-        return a.copy()
-
-    return policy
 
 
 def test_the_emulated_hand_resets_itself_through_the_arm_on_the_wall_clock(bus):
