@@ -91,6 +91,7 @@ class ShadowHandSim(LockstepSim):
 
     def __init__(self, params: ShadowHandParams | None = None, source: str | None = None):
         super().__init__()
+        self.source = source
         self.params = p = params or ShadowHandParams()
         self.sim = parse_sim_params(p.sim, source)
         self.spec = shadow_hand_spec(p)
@@ -123,6 +124,10 @@ class ShadowHandSim(LockstepSim):
     def _on_configure(self) -> None:
         s = self.sim
         station = StationGeometry() if s.reset_station else None
+        other = SCENES.get(s.world) if station is not None else None
+        if other is not None and other is not self and other.data is not None:
+            raise ConfigError(self.source, [("params.sim.world", f"a hand scene named {s.world!r} is already "
+                                             "running in this process; give each its own world name")])
         self.hand = h = build_scene(s.palm_tilt_rad, station, s.gripper_force_n)
         self.model = h.model
         self.data = mujoco.MjData(h.model)
