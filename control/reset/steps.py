@@ -3,7 +3,8 @@
 A step is started once per attempt (:meth:`ResetStep.start`) and then sees every robot
 state (:meth:`ResetStep.update`) until it returns :data:`DONE`. It drives the robot by
 returning a normalized action ([-1, 1] of the spec's limits, like every policy here)
-or :data:`HOLD` (the supervisor sends the robot's zero action). It fails an attempt by
+or :data:`HOLD` (the supervisor sends the spec's safe action, or, for a robot that stops by
+holding its position (safe action None: the hand), the command it holds now). It fails an attempt by
 raising :class:`StepError`. The supervisor owns timeouts, retries, the e-stop and the
 bus; steps own only their own motion.
 
@@ -34,7 +35,7 @@ from bus.schemas import ResetEvent, RobotState
 from control.baselines import DifferentialDriveController
 from control.reset.config import StepConfig
 
-#: ``update`` results besides an action: the step is over / send the zero action
+#: ``update`` results besides an action: the step is over / hold (safe action or held command)
 DONE = "done"
 HOLD = "hold"
 
