@@ -282,7 +282,7 @@ class RobotSpec:
             "action_rate_per_s": None
             if self.action_rate_per_s is None
             else [float(x) for x in self.action_rate_per_s],
-            # None: the robot holds its measured position when stopped (a hand)
+            # None: the robot stops by holding its measured position (hand, arm joints)
             "safe_action": None if self.safe_action is None else [float(x) for x in self.safe_action],
         }
 

@@ -87,7 +87,10 @@ class DriverNode(Node):
         self.robot = robot
         self.pace = pace
         self.watchdog_s = watchdog_periods * driver.spec.period_s
-        self.lockstep_timeout_s = lockstep_timeout_s
+        # a sim that follows another robot's clock (the hand's reset arm, whose world the
+        # hand's node advances) must not hold its own states back while nobody commands it
+        follow_s = getattr(driver, "lockstep_command_wait_s", None)
+        self.lockstep_timeout_s = lockstep_timeout_s if follow_s is None else min(follow_s, lockstep_timeout_s)
         #: how long a starting node asks its peers for a latched e-stop [s]
         self.estop_sync_s = estop_sync_s
         self.stats = BridgeStats()
@@ -180,11 +183,15 @@ class DriverNode(Node):
                 ans = ResetEvent(robot=self.robot, phase="failed", detail="e-stop engaged")
             elif m.phase == "teleport" and reset is not None:
                 self.driver.stop()
-                reset(**m.pose)
-                self._last_cmd_t = None
-                self.stopped_reason = "waiting"
-                jumped = True
-                ans = ResetEvent(robot=self.robot, phase="done", pose=m.pose)
+                try:
+                    reset(**m.pose)
+                except (TypeError, ValueError) as e:  # a pose this robot cannot take: say so, keep serving
+                    ans = ResetEvent(robot=self.robot, phase="failed", detail=f"teleport refused: {e}")
+                else:
+                    self._last_cmd_t = None
+                    self.stopped_reason = "waiting"
+                    jumped = True
+                    ans = ResetEvent(robot=self.robot, phase="done", pose=m.pose)
             elif m.phase == "teleport":
                 ans = ResetEvent(robot=self.robot, phase="unsupported",
                                  detail=f"{self.driver.backend} backend cannot teleport")

@@ -36,6 +36,9 @@ BACKENDS: dict[tuple[str, str], str] = {
     ("sawyer", "sim"): "sim_backends.sawyer.backend:SawyerSim",
     ("sawyer", "emulated"): "drivers.sawyer.driver:SawyerDriver",
     ("sawyer", "real"): "drivers.sawyer.driver:SawyerDriver",
+    ("reset_arm", "sim"): "sim_backends.reset_arm.backend:ResetArmSim",
+    ("reset_arm", "emulated"): "drivers.reset_arm.driver:ResetArmDriver",
+    ("reset_arm", "real"): "drivers.reset_arm.driver:ResetArmDriver",
 }
 
 

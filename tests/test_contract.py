@@ -34,7 +34,34 @@ CONTRACT_BACKENDS = [
     ("reset_mechanism", "emulated", {}),
     ("sawyer", "sim", {}),
     ("sawyer", "emulated", {"joint_states_stale_s": 0.5}),  # 100 Hz stream from a process on a loaded CPU
+    # the hand's reset arm lives in the hand's scene: the fixture brings the hand up first
+    ("reset_arm", "sim", {"world": "contract"}),
+    ("reset_arm", "emulated", {}),
 ]
+
+
+def _hand_for_the_arm(backend: str, stop: threading.Event, params: dict) -> tuple[object, dict]:
+    """The reset arm's world: a simulated hand stepped whenever the arm's tick waits for it
+    (as the hand's driver node does), or the emulated hand whose emulator runs the arm."""
+    if backend == "sim":
+        hand = make_driver("shadow_hand", backend="sim", sim={"reset_station": True, "world": "contract"})
+        hand.configure()
+
+        def step_hand(arm_box: list) -> None:
+            while not stop.wait(0.001):
+                arm = arm_box[0] if arm_box else None
+                t = None if arm is None else arm.waiting_for_s
+                if t is not None and hand.sim_time_s < t:
+                    hand.advance(t - hand.sim_time_s)
+
+        box: list = []
+        threading.Thread(target=step_hand, args=(box,), daemon=True).start()
+        return hand, {"box": box}
+    port = free_port()
+    hand = make_driver("shadow_hand", backend="emulated", transport="slcan", sim={"reset_station": True},
+                       emulator={"arm_port": port})
+    hand.configure()
+    return hand, {"port": port}
 
 
 def _pose_stream(port: int, stop: threading.Event) -> None:
@@ -58,10 +85,19 @@ def driver(request):
         port = free_port()
         params = {**params, "port": port}
         threading.Thread(target=_pose_stream, args=(port, stop), daemon=True).start()
+    hand = None
+    if robot == "reset_arm":
+        hand, extra = _hand_for_the_arm(backend, stop, params)
+        if "port" in extra:
+            params = {**params, "port": extra["port"]}
     d = make_driver(robot, backend=backend, **params)
+    if hand is not None and backend == "sim":
+        extra["box"].append(d)
     yield d
     stop.set()
     d.cleanup()
+    if hand is not None:
+        hand.cleanup()
 
 
 def test_spec_readable_before_connecting(driver):

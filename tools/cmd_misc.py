@@ -11,12 +11,61 @@ import typer
 from tools.common import EndpointOpt, UserError, bus_config, echo_json, setup_logging, user_errors
 
 
+def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
+    """Several driver nodes in this process, one thread each (sims sharing one world);
+    a signal stops them all. Exit 1 when one of them failed."""
+    import signal
+    import threading
+
+    from configs.schema import rig_robot_config
+    from drivers.bridge import DriverNode
+    from drivers.registry import make_driver
+
+    nodes = [DriverNode(make_driver(rig_robot_config(cfg, n)), cfg.name, n, bus, watchdog_periods=cfg.watchdog_periods,
+                        pace=cfg.pace, handle_signals=False) for n in names]
+    errors: list[str] = []
+    stopping = threading.Event()  # a stop was asked for: what fails after it is the shutdown
+
+    def serve(node: DriverNode) -> None:
+        try:
+            typer.echo(f"{node.robot} down: {node.serve(max_steps=steps)}", err=True)
+        except Exception as e:  # its own error path already stopped its robot
+            if not stopping.is_set():
+                errors.append(f"{node.robot}: {e}")
+        finally:
+            stopping.set()
+            for other in nodes:  # one robot of a shared world down: the world is gone for all
+                other.stop_event.set()
+
+    def stop_all(signum, frame) -> None:  # noqa: ARG001
+        stopping.set()
+        for node in nodes:
+            node.stop_event.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, stop_all)
+    threads = [threading.Thread(target=serve, args=(nd,), name=f"driver-{nd.robot}") for nd in nodes]
+    for nd, th in zip(nodes, threads, strict=True):
+        typer.echo(f"{nd.robot} up on hil/{cfg.name}/{nd.robot}/{{state,cmd}} ({nd.driver.backend}, {cfg.pace})",
+                   err=True)
+        th.start()
+    try:
+        for th in threads:
+            th.join()
+    finally:
+        for nd in nodes:
+            nd.close()
+    if errors:
+        typer.echo("error: " + "; ".join(errors), err=True)
+        raise typer.Exit(1)
+
+
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def up(
         rig: str = typer.Argument(..., help="rig config name or path (configs/rigs/)"),
-        robot: str = typer.Option(None, "--robot", help="only this robot of the rig (default: all)"),
+        robot: str = typer.Option(None, "--robot", help="only this robot of the rig, or several: a,b (default: all)"),
         steps: int = typer.Option(None, "--steps", help="stop after this many control periods"),
         endpoint: str = EndpointOpt,
     ) -> None:
@@ -28,15 +77,24 @@ def register(app: typer.Typer) -> None:
         setup_logging()
         cfg = load_rig(rig)
         bus = bus_config(endpoint) if endpoint else cfg.bus
-        names = [robot] if robot else list(cfg.robots)
+        names = robot.split(",") if robot else list(cfg.robots)
         for n in names:
             if n not in cfg.robots:
                 raise UserError(f"rig {cfg.name} has no robot {n!r}; has {list(cfg.robots)}")
+        groups = [[n] for n in names]
         if len(names) > 1:
-            # one process per robot: a slow or failing driver cannot stall another
+            # one process per robot: a slow or failing driver cannot stall another; except a
+            # sim that works in another sim's world (the hand's reset arm in the hand's
+            # scene): the rig's sim robots then run together, in one process
+            from drivers.registry import resolve
+
+            sims = [n for n in names if cfg.robots[n].backend == "sim"]
+            if any(getattr(resolve(rig_robot_config(cfg, n).robot, "sim"), "world_follower", False) for n in sims):
+                groups = [sims] + [[n] for n in names if n not in sims]
+        if len(groups) > 1:
             procs = []
-            for n in names:
-                cmd = [sys.executable, "-m", "tools.cli", "up", rig, "--robot", n]
+            for g in groups:
+                cmd = [sys.executable, "-m", "tools.cli", "up", rig, "--robot", ",".join(g)]
                 if steps:
                     cmd += ["--steps", str(steps)]
                 if endpoint:
@@ -59,6 +117,9 @@ def register(app: typer.Typer) -> None:
             failed = [p.returncode for p in procs if p.returncode not in (0, None)]
             if failed:
                 raise typer.Exit(1 if 1 in failed else max(failed))
+            return
+        if len(names) > 1:
+            _up_together(cfg, names, bus, steps)
             return
         n = names[0]
         node = DriverNode(

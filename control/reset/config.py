@@ -41,6 +41,9 @@ class DetectorConfig(Strict):
     channels: list[str] = Field(default_factory=list)
     #: drop: a channel below this height [m] means a drop
     min_height_m: float | None = None
+    #: watch this robot's state instead of the reset robot's (the hand rig: the balls are
+    #: in the reset arm's state, which sees them; a camera tracker's, when it is a robot)
+    robot: str | None = None
 
 
 class StepConfig(Strict):
@@ -97,6 +100,9 @@ def load_reset(rig: RigConfig) -> ResetConfig | None:
         if s.kind not in STEP_KINDS:
             raise ConfigError(rig.source, [(f"reset.steps[{i}].kind", f"unknown step {s.kind!r}; known: {sorted(STEP_KINDS)}")])
     for i, d in enumerate(cfg.detectors):
+        if d.robot is not None and d.robot not in rig.robots:
+            raise ConfigError(rig.source, [(f"reset.detectors[{i}].robot",
+                                            f"{d.robot!r} is not on the rig; robots: {list(rig.robots)}")])
         need = {"timeout": ("max_s",), "arena": ("radius_m",), "tipped": (), "drop": ("channels", "min_height_m")}[d.kind]
         for f in need:
             if not getattr(d, f):

@@ -27,6 +27,8 @@ class EpisodeEndDetector(ABC):
     """``detector(state) -> reason | None``. One instance per supervisor."""
 
     name: str = "detector"
+    #: the robot whose state this detector sees (None: the reset robot's); set from the config
+    robot: str | None = None
 
     def bind(self, state_names: Sequence[str]) -> None:  # noqa: B027 - optional hook
         """Called once with the robot's state channel names (from its spec)."""
@@ -129,9 +131,13 @@ class TippedDetector(EpisodeEndDetector):
 
 def make_detector(cfg: DetectorConfig) -> EpisodeEndDetector:
     if cfg.kind == "timeout":
-        return TimeoutDetector(cfg.max_s)
-    if cfg.kind == "arena":
-        return ArenaDetector(cfg.radius_m, cfg.center_xy_m)
-    if cfg.kind == "tipped":
-        return TippedDetector(cfg.min_cos)
-    return DropDetector(cfg.channels, cfg.min_height_m)
+        d: EpisodeEndDetector = TimeoutDetector(cfg.max_s)
+    elif cfg.kind == "arena":
+        d = ArenaDetector(cfg.radius_m, cfg.center_xy_m)
+    elif cfg.kind == "tipped":
+        d = TippedDetector(cfg.min_cos)
+    else:
+        d = DropDetector(cfg.channels, cfg.min_height_m)
+    #: None: the reset robot's state; a name: that robot's (the supervisor feeds it)
+    d.robot = cfg.robot
+    return d

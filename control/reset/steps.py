@@ -3,7 +3,8 @@
 A step is started once per attempt (:meth:`ResetStep.start`) and then sees every robot
 state (:meth:`ResetStep.update`) until it returns :data:`DONE`. It drives the robot by
 returning a normalized action ([-1, 1] of the spec's limits, like every policy here)
-or :data:`HOLD` (the supervisor sends the robot's zero action). It fails an attempt by
+or :data:`HOLD` (the supervisor sends the spec's safe action, or, for a robot that stops by
+holding its position (safe action None: the hand), the command it holds now). It fails an attempt by
 raising :class:`StepError`. The supervisor owns timeouts, retries, the e-stop and the
 bus; steps own only their own motion.
 
@@ -19,10 +20,13 @@ Kinds (``reset.steps[].kind`` in a rig config):
 - ``teleport``: ask the driver node to put the robot at the pose (sim backends only).
 - ``task_reset``: run a task-reset mechanism (:class:`TaskResetMechanism`; the WidowX
   one comes with the arms issue and registers itself with :func:`register_mechanism`).
+- ``arm_pick_place``: the Shadow Hand's reset arm puts the balls from the ramp's
+  pick-up spot back into the palm (:class:`ArmPickPlace`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -34,7 +38,7 @@ from bus.schemas import ResetEvent, RobotState
 from control.baselines import DifferentialDriveController
 from control.reset.config import StepConfig
 
-#: ``update`` results besides an action: the step is over / send the zero action
+#: ``update`` results besides an action: the step is over / hold (safe action or held command)
 DONE = "done"
 HOLD = "hold"
 
@@ -57,6 +61,10 @@ class StepContext(Protocol):
     """What the supervisor offers a step."""
 
     state_names: list[str]
+
+    def robot_link(self, robot: str) -> Any:
+        """Another robot of the rig (:class:`control.reset.supervisor.RobotLink`): its state,
+        spec, command key and liveliness."""
 
     def request_driver(self, phase: str, pose: dict[str, float]) -> None:
         """Send the robot's driver node a reset request (``teleport``)."""
@@ -86,6 +94,11 @@ class ResetStep(ABC):
     def abort(self) -> None:  # noqa: B027 - optional hook
         """The attempt ends early (timeout, failure, e-stop): stop whatever the step moves
         besides the robot (the supervisor stops commanding the robot itself)."""
+
+    def verify(self, ctx: StepContext, state: RobotState) -> str:
+        """After all steps, before resuming: why what this step did is not in place ('' when
+        it is). The supervisor checks the robot's pose itself; a step adds its own check."""
+        return ""
 
 
 def turn_in_place(e_rad: float, gain: float, speed: float) -> np.ndarray:
@@ -438,8 +451,94 @@ class TaskReset(ResetStep):
         self.mechanism.abort()
 
 
+class ArmPickPlace(ResetStep):
+    """The Shadow Hand's reset: the reset arm (its own robot on the bus, rig-robot name
+    ``arm``) picks each ball from the ramp's pick-up spot and puts it in the palm
+    (control/reset/arm_pick_place.py: the script, IK on MuJoCo's Jacobian). Meanwhile
+    the hand holds its cupped pose. Done when both balls are in the palm and the arm is
+    parked; :meth:`verify` checks both balls are in the palm before the episode resumes.
+
+    The arm's state carries the balls' positions (the station's view: the sim's world,
+    a camera tracker on a real rig). Every arm state is answered with one arm command
+    (lockstep rigs advance on it); each hand state with the hold pose.
+
+    Params (world frame, m): ``arm`` (rig-robot name, default ``arm``), ``base_pos_m``,
+    ``spot_m`` (a ball at the pick-up spot), ``palm_center_m`` (where the balls start),
+    optional ``spot_wait_s`` (default 5: a ball that has not reached the spot by then
+    fails the attempt), ``speed_m_s``, ``joint_speed_rad_s``, ``grip_s``,
+    ``in_palm_radius_m``, ``travel_z_m``, ``sync_wait_s`` (how long to wait for the arm's
+    state of the same instant as the hand's, wall clock, default 0.2).
+    """
+
+    kind = "arm_pick_place"
+
+    def __init__(self, cfg: StepConfig):
+        from control.reset.arm_pick_place import PickPlaceConfig
+
+        super().__init__(cfg)
+        p = dict(cfg.params)
+        self.arm = str(p.pop("arm", "arm"))
+        self.sync_wait_s = float(p.pop("sync_wait_s", 0.2))
+        missing = [k for k in ("base_pos_m", "spot_m", "palm_center_m") if k not in p]
+        if missing:
+            raise ValueError(f"arm_pick_place: params {missing} are required (world frame, m; docs/reset.md)")
+        known = set(PickPlaceConfig.__dataclass_fields__)
+        unknown = sorted(set(p) - known)
+        if unknown:
+            raise ValueError(f"arm_pick_place: unknown params {unknown} (known: {sorted(known | {'arm', 'sync_wait_s'})})")
+        for k in ("base_pos_m", "spot_m", "palm_center_m"):
+            p[k] = tuple(float(x) for x in p[k])
+        self.pp_cfg = PickPlaceConfig(**p)
+        self.script = None
+        self._link = None
+        self._hold: np.ndarray | None = None
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        from control.reset.arm_pick_place import PickPlaceScript
+        from drivers.shadow_hand.config import hold_pose_action
+
+        self._link = ctx.robot_link(self.arm)
+        if self._link.spec(timeout_s=2.0) is None:
+            raise StepError(f"arm_pick_place: no spec from robot {self.arm!r}: is its driver node on the bus?")
+        s = self._link.state(not_before_t_s=state.t_s, timeout_s=self.sync_wait_s)
+        if s is None:
+            raise StepError(f"arm_pick_place: no state from robot {self.arm!r}")
+        if self.script is None:
+            spec = self._link.spec()
+            cfg = dataclasses.replace(self.pp_cfg, period_s=float(spec["period_s"]))
+            self.script = PickPlaceScript(cfg)  # builds the IK model once
+        self.script.start(s.t_s, np.asarray(s.state))
+        self._hold = hold_pose_action()
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        from control.reset.arm_pick_place import PickPlaceError
+
+        s = self._link.state(not_before_t_s=state.t_s, timeout_s=self.sync_wait_s)
+        try:
+            a = self.script.update(s.t_s, np.asarray(s.state))
+        except PickPlaceError as e:
+            raise StepError(str(e)) from None
+        if a is None:
+            return DONE
+        self._link.answer(s, a)
+        return self._hold
+
+    def verify(self, ctx: StepContext, state: RobotState) -> str:
+        link = ctx.robot_link(self.arm)
+        s = link.state()
+        if s is None:
+            return f"no state from robot {self.arm!r} (it sees the balls)"
+        from control.reset.arm_pick_place import PickPlaceScript
+
+        balls = PickPlaceScript.balls(np.asarray(s.state))
+        d = np.linalg.norm(balls - np.asarray(self.pp_cfg.palm_center_m), axis=1)
+        out = [f"ball{i} is {d[i]:.3f} m from the palm centre" for i in range(2)
+               if not d[i] <= self.pp_cfg.in_palm_radius_m]
+        return "; ".join(out) + f" (tolerance {self.pp_cfg.in_palm_radius_m:g} m)" if out else ""
+
+
 STEP_KINDS: dict[str, type[ResetStep]] = {
-    c.kind: c for c in (SelfRight, LabFixture, DriveToStart, TurnToYaw, Teleport, TaskReset)
+    c.kind: c for c in (SelfRight, LabFixture, DriveToStart, TurnToYaw, Teleport, TaskReset, ArmPickPlace)
 }
 
 

@@ -68,6 +68,10 @@ from control.reset.steps import DONE, HOLD, ResetStep, StepError, make_step
 log = logging.getLogger(__name__)
 logging.getLogger("transitions").setLevel(logging.WARNING)  # it logs every callback at INFO
 
+#: how long a detector watching another robot waits for that robot's state of the same
+#: instant as the reset robot's [s, wall clock]; then it sees the newest it has
+LINK_SYNC_S = 0.05
+
 STATES = ["running", "episode_end", "paused", "resetting", "verifying", "resumed", "failed", "estopped"]
 _RESETTING = ["episode_end", "paused", "resetting", "verifying", "resumed"]
 TRANSITIONS: list[dict[str, Any]] = [
@@ -127,6 +131,71 @@ class _Fsm:
     state: str
 
 
+class RobotLink:
+    """Another robot of the rig that a reset step drives (the hand's reset arm) or a
+    detector watches: its state and spec, its command key and its driver node's
+    liveliness, on the supervisor's session. The supervisor fails the reset when that
+    driver node disappears, as it does for its own robot."""
+
+    def __init__(self, sup: ResetSupervisor, robot: str):
+        self.robot = robot
+        self._sup = sup
+        self._state = sup.subscribe(keys.state(sup.rig, robot), RobotState)
+        self._spec = sup.subscribe(keys.spec(sup.rig, robot), SpecMsg)
+        self._cmd = sup.publisher(keys.cmd(sup.rig, robot), Command)
+        #: None until the driver node's token was seen, then True/False (Zenoh callback sets it)
+        self.alive: bool | None = None
+        tok = sup.session.liveliness().declare_subscriber(keys.alive(sup.rig, keys.driver_node(robot)),
+                                                          self._on_alive, history=True)
+        sup._closeables.append(SimpleNamespace(close=tok.undeclare))
+        self.state_names: list[str] = []
+        self._answered_seq = -1
+        self._answered_wall: float | None = None
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        self.alive = sample.kind == zenoh.SampleKind.PUT  # one store: no work in callbacks
+
+    def spec(self, timeout_s: float = 0.0) -> dict[str, Any] | None:
+        m = self._spec.wait(timeout_s) if timeout_s > 0 else (self._spec.poll() or self._spec.last)
+        if m is not None:
+            self.state_names = list(m.spec["state"]["names"])
+            return m.spec
+        return None
+
+    def state(self, not_before_t_s: float | None = None, timeout_s: float = 0.0) -> RobotState | None:
+        """The newest state; with ``not_before_t_s``, wait up to ``timeout_s`` (wall clock)
+        for one at least that recent in robot time (lockstep rigs: the state of this period)."""
+        m = self._state.poll() or self._state.last
+        deadline = time.monotonic() + timeout_s
+        while not_before_t_s is not None and (m is None or m.t_s < not_before_t_s - 1e-9):
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            m = self._state.wait(left) or m
+        return m
+
+    def answer(self, state: RobotState, action: np.ndarray) -> bool:
+        """Send ``action`` (robot units) answering ``state``; False when that state was answered already."""
+        if state.seq <= self._answered_seq:
+            return False
+        self._cmd.put(Command(robot=self.robot, action=[float(x) for x in action], state_seq=state.seq,
+                              source=self._sup.name))
+        self._answered_seq = state.seq
+        self._answered_wall = time.monotonic()
+        return True
+
+    def lost(self, state_timeout_s: float) -> str:
+        if self.alive is False:
+            return f"driver node {keys.driver_node(self.robot)} disappeared (liveliness lost)"
+        # counted from the first command a step sent it: an idle lockstep driver node
+        # publishes rarely (it waits for a command), which is not a fault
+        t = self._answered_wall
+        rx = self._state.last_rx_s
+        if t is not None and (rx is None or rx < t) and time.monotonic() - t > state_timeout_s:
+            return f"no state from {self.robot} for {time.monotonic() - t:.1f} s"
+        return ""
+
+
 class ResetSupervisor(Node):
     """Runs one robot's reset procedure (:class:`~control.reset.config.ResetConfig`).
 
@@ -167,10 +236,15 @@ class ResetSupervisor(Node):
             keys.alive(rig, keys.driver_node(self.robot)), self._on_driver_alive, history=True
         )
         self._closeables.append(SimpleNamespace(close=self._alive_sub.undeclare))
+        #: other robots of the rig that steps drive or detectors watch (robot -> link)
+        self.links: dict[str, RobotLink] = {}
+        self._linked_bound: set[int] = set()  # indices of detectors bound to another robot's names
+        for d in self.detectors:
+            if d.robot:
+                self.robot_link(d.robot)
         self.state_names: list[str] = []
         self.scale: ActionScale | None = None
         self._zero: np.ndarray | None = None
-        self._safe: np.ndarray | None = None
         #: what the operator was told on the last failure
         self.last_failure = ""
         self.history: list[ResetTransition] = []
@@ -217,13 +291,27 @@ class ResetSupervisor(Node):
     def _bind_spec(self, spec: dict[str, Any]) -> None:
         self.state_names = list(spec["state"]["names"])
         self.scale = ActionScale.from_spec(spec)
-        self._zero = np.clip(np.zeros(len(self.scale.low)), self.scale.low, self.scale.high)
-        safe = spec.get("safe_action")
-        #: what "hold still" sends: the spec's safe action (zero leg or joint velocity); a robot
-        #: without one (position control: a hand) is held at its driver's held command
-        self._safe: np.ndarray | None = None if safe is None else np.asarray(safe, dtype=np.float64)
+        # what "hold" sends: the safe action (legs stopped); for a robot that stops by holding
+        # its position (the hand: safe_action None) the command it holds now (RobotState.action),
+        # not zeros, which would be mid-range joint targets
+        if "safe_action" in spec and spec["safe_action"] is None:
+            self._zero = None
+        else:
+            sa = spec.get("safe_action") or np.zeros(len(self.scale.low))
+            self._zero = np.clip(np.asarray(sa, dtype=np.float64), self.scale.low, self.scale.high)
         for d in self.detectors:
-            d.bind(self.state_names)
+            if not d.robot:
+                d.bind(self.state_names)
+
+    def _bind_linked_detectors(self, timeout_s: float) -> None:
+        for i, d in enumerate(self.detectors):
+            if d.robot and i not in self._linked_bound:
+                link = self.links[d.robot]
+                if link.spec(timeout_s) is None:
+                    raise TimeoutError(f"reset supervisor: no spec from {keys.spec(self.rig, d.robot)} within "
+                                       f"{timeout_s} s (the {d.name} detector watches {d.robot})")
+                d.bind(link.state_names)
+                self._linked_bound.add(i)
 
     def wait_ready(self, timeout_s: float = 20.0) -> None:
         """Wait for the robot's spec (its driver node publishes it)."""
@@ -231,17 +319,26 @@ class ResetSupervisor(Node):
         if m is None:
             raise TimeoutError(f"reset supervisor: no spec from {keys.spec(self.rig, self.robot)} within {timeout_s} s")
         self._bind_spec(m.spec)
+        self._bind_linked_detectors(timeout_s)
 
     def _send(self, s: RobotState, action_norm: np.ndarray | None) -> None:
         if action_norm is not None:
             a = self.scale.to_robot(action_norm)
-        elif self._safe is not None or not s.action:
-            a = self._zero if self._safe is None else self._safe
+        elif self._zero is not None:
+            a = self._zero
+        elif s.action:
+            a = np.asarray(s.action, dtype=np.float64)  # hold what it holds
         else:
-            a = np.asarray(s.action, dtype=np.float64)  # hold what the robot holds (robot units)
+            return  # nothing held yet: the driver node holds the measured position itself
         self._cmd.put(Command(robot=self.robot, action=a.tolist(), state_seq=s.seq, source=self.name))
 
     # StepContext
+    def robot_link(self, robot: str) -> RobotLink:
+        """The link to another robot of the rig (created on first use)."""
+        if robot not in self.links:
+            self.links[robot] = RobotLink(self, robot)
+        return self.links[robot]
+
     def request_driver(self, phase: str, pose: dict[str, float]) -> None:
         self._from_driver.poll()  # forget earlier answers
         self._to_driver.put(ResetEvent(robot=self.robot, phase=phase, pose=dict(pose)))
@@ -364,16 +461,34 @@ class ResetSupervisor(Node):
         if s.episode != self._episode:
             self._episode = s.episode
             for d in self.detectors:
-                d.start(s)
+                ds = self._detector_state(d, s)
+                if ds is not None:
+                    d.start(ds)
         if not (s.active and s.stopped_reason == ""):
             return  # nothing is driving the robot: no episode is running
         for d in self.detectors:
-            why = d(s)
+            ds = self._detector_state(d, s)
+            if ds is None:
+                continue
+            why = d(ds)
             if why:
                 self.ended_by[d.name] = self.ended_by.get(d.name, 0) + 1
                 self._reason = why
                 self._fire("end_episode", detail=why)
                 return
+
+    def _detector_state(self, d: EpisodeEndDetector, s: RobotState) -> RobotState | None:
+        """What ``d`` watches: the robot's state, or the newest state of the robot it names
+        (None until that robot's spec and a state arrived)."""
+        if not d.robot:
+            return s
+        if self.detectors.index(d) not in self._linked_bound:
+            try:
+                self._bind_linked_detectors(0.0)
+            except TimeoutError:
+                return None
+        # the other robot's state of the same instant (lockstep: it follows a moment later)
+        return self.links[d.robot].state(not_before_t_s=s.t_s, timeout_s=LINK_SYNC_S)
 
     def _begin_step(self, s: RobotState, first: bool = False, retry_detail: str = "") -> None:
         self._t0_s = s.t_s
@@ -446,8 +561,20 @@ class ResetSupervisor(Node):
             self._send(s, r)
 
     def check_pose(self, s: RobotState) -> str:
-        """Why ``s`` is not at the start pose ('' when it is)."""
-        return pose_error(self.state_names, s, self._pose, self.cfg.verify)
+        """Why the reset is not done ('' when it is): the robot at the start pose (robots
+        with ``x``, ``y`` channels), then each step's own check (the hand: both balls in
+        the palm, :meth:`ResetStep.verify`)."""
+        if "x" in self.state_names and "y" in self.state_names:
+            why = pose_error(self.state_names, s, self._pose, self.cfg.verify)
+            if why:
+                return why
+        elif not s.ok:
+            return "robot reports a bad reading"
+        for step in self.steps:
+            why = step.verify(self, s)
+            if why:
+                return why
+        return ""
 
     def _verifying(self, s: RobotState) -> None:
         self._send(s, None)
@@ -492,6 +619,10 @@ class ResetSupervisor(Node):
         age = time.monotonic() - max(self._last_rx_wall, self._reset_t0_wall)
         if age > self.cfg.state_timeout_s:
             return f"no state from {self.robot} for {age:.1f} s"
+        for link in self.links.values():  # the robots the steps drive (the hand's reset arm)
+            why = link.lost(self.cfg.state_timeout_s)
+            if why:
+                return why
         return ""
 
     def _fail(self, detail: str) -> None:

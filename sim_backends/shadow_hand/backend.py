@@ -18,6 +18,9 @@ Public API for the emulator: ``ShadowHandSim(params)``, ``configure()``, ``reset
 
 from __future__ import annotations
 
+import threading
+import weakref
+
 import mujoco
 import numpy as np
 from pydantic import Field
@@ -39,6 +42,11 @@ from sim_backends.base import LockstepSim
 from sim_backends.shadow_hand.baoding import BaodingTask
 from sim_backends.shadow_hand.firmware import TICK_S, FirmwareConfig, HandFirmware
 from sim_backends.shadow_hand.model import PHYSICS_DT_S, build_scene
+from sim_backends.shadow_hand.station import StationGeometry
+
+#: configured hand sims with a reset station, by ``params.sim.world``: the reset arm's sim
+#: backend (sim_backends/reset_arm/backend.py) joins the scene of the one it names
+SCENES: weakref.WeakValueDictionary[str, ShadowHandSim] = weakref.WeakValueDictionary()
 
 #: J0 ≈ this · J1 for the coupled distal joints (tendon coefficients 0.00805 / 0.00705)
 COUPLING_RATIO = 0.00805 / 0.00705
@@ -61,6 +69,9 @@ class SimParams(Params):
     ball_target_rate_rad_s: float = Field(float(np.pi / 5), description="target rotation rate (+: counter-clockwise)")
     tracker: dict | None = Field(None, description="camera tracker options (sim_backends/shadow_hand/cameras.py: "
                                                    "TrackerOptions): balls_m from rendered stereo images, not truth")
+    reset_station: bool = Field(False, description="add the ramp and the reset arm to the scene (docs/reset.md)")
+    world: str = Field("hand", description="name under which the reset arm's sim backend finds this scene")
+    gripper_force_n: float = Field(10.0, gt=0, le=40, description="the reset arm's jaw force limit [N] (sim_backends/reset_arm/model.py)")
 
 
 def parse_sim_params(sim: dict, source: str | None) -> SimParams:
@@ -85,6 +96,7 @@ class ShadowHandSim(LockstepSim):
 
     def __init__(self, params: ShadowHandParams | None = None, source: str | None = None):
         super().__init__()
+        self.source = source
         self.params = p = params or ShadowHandParams()
         self.sim = parse_sim_params(p.sim, source)
         self.spec = shadow_hand_spec(p)
@@ -107,6 +119,9 @@ class ShadowHandSim(LockstepSim):
                 self._tracker_opts = parse_model(TrackerOptions, dict(self.sim.tracker), source)
             except ConfigError as e:
                 raise ConfigError(source, [(f"params.sim.tracker.{f}", m) for f, m in e.problems]) from None
+        #: held while the scene is stepped; another robot in the scene (the reset arm)
+        #: reads and writes it under this lock, and waits on it for the clock to advance
+        self.world_lock = threading.Condition()
 
     #: measured − commanded actuated joint angles (used by `hil drive`)
     tracking_error = staticmethod(joint_tracking_error)
@@ -127,7 +142,12 @@ class ShadowHandSim(LockstepSim):
             from sim_backends.shadow_hand.cameras import scene_edit
 
             edit = scene_edit()
-        self.hand = h = build_scene(s.palm_tilt_rad, edit)
+        station = StationGeometry() if s.reset_station else None
+        other = SCENES.get(s.world) if station is not None else None
+        if other is not None and other is not self and other.data is not None:
+            raise ConfigError(self.source, [("params.sim.world", f"a hand scene named {s.world!r} is already "
+                                             "running in this process; give each its own world name")])
+        self.hand = h = build_scene(s.palm_tilt_rad, station, s.gripper_force_n, edit=edit)
         self.model = h.model
         self.data = mujoco.MjData(h.model)
         n = len(h.act_joint)
@@ -153,18 +173,37 @@ class ShadowHandSim(LockstepSim):
             mujoco.mj_forward(self.model, self.data)
             self.tracker = HandTracker(self.model, self.data, self._tracker_opts, self.spec.period_s)
         self.reset()
+        if station is not None:
+            SCENES[s.world] = self
 
     def _on_cleanup(self) -> None:
         if self.tracker is not None:
             self.tracker.close()
             self.tracker = None
-        self.model = self.data = None
+        if SCENES.get(self.sim.world) is self:
+            del SCENES[self.sim.world]
+        with self.world_lock:
+            self.model = self.data = None
+            self.world_lock.notify_all()
 
-    def reset(self, q_rad: np.ndarray | None = None) -> None:
+    def reset(self, q_rad: np.ndarray | None = None, **planar_pose: float) -> None:
         """Hand at ``q_rad`` (24 joint angles; default: the cupped hold pose), balls at
-        rest in the palm, firmware rebooted holding that pose, task time 0."""
+        rest in the palm, firmware rebooted holding that pose, task time 0.
+
+        ``planar_pose``: a reset request's ``x``, ``y``, ``yaw`` (the supervisor's default
+        start pose, made for mobile robots) do not apply to a hand fixed to its mount and
+        are ignored; any other key is an error."""
+        unknown = sorted(set(planar_pose) - {"x", "y", "yaw"})
+        if unknown:
+            raise TypeError(f"shadow hand reset: unknown pose keys {unknown} (a hand takes q_rad only)")
+        with self.world_lock:
+            self._reset(q_rad)
+            self.world_lock.notify_all()
+        self._rehold()  # the held command is now the new pose, not what was held before the reset
+
+    def _reset(self, q_rad: np.ndarray | None) -> None:
         m, d, h = self.model, self.data, self.hand
-        mujoco.mj_resetData(m, d)
+        mujoco.mj_resetData(m, d)  # the reset arm, if any, goes back to its parked pose too
         self._badqacc_seen = 0
         q = hold_pose_q() if q_rad is None else np.asarray(q_rad, dtype=np.float64).reshape(len(JOINT_NAMES))
         d.qpos[h.qpos_adr] = np.clip(q, h.joint_low, h.joint_high)
@@ -193,11 +232,17 @@ class ShadowHandSim(LockstepSim):
     # ------------------------------------------------------------------ physics
     def advance(self, duration_s: float) -> None:
         """Integrate ``duration_s`` in 1 ms firmware ticks (one MuJoCo step each)."""
+        with self.world_lock:
+            self._advance_locked(duration_s)
+            self.world_lock.notify_all()
+
+    def _advance_locked(self, duration_s: float) -> None:
         m, d, fw = self.model, self.data, self.firmware
         qa, da = self._act_qadr, self._act_dadr
         n = int(round(duration_s / TICK_S))
+        nh = len(self._act_qadr)  # the hand's motors come first; the reset arm's servos follow
         for _ in range(n):
-            d.ctrl[:] = fw.tick(d.time, d.qpos[qa], d.qvel[da])
+            d.ctrl[:nh] = fw.tick(d.time, d.qpos[qa], d.qvel[da])
             for _ in range(self._ticks_per_step):
                 mujoco.mj_step(m, d)
         bad = int(d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)

@@ -163,7 +163,7 @@ class HandCameraScene:
         from sim_backends.shadow_hand.model import build_scene
 
         self.mount, self.board = mount, board
-        self.hand = build_scene(palm_tilt_rad, scene_edit(mount, board))
+        self.hand = build_scene(palm_tilt_rad, edit=scene_edit(mount, board))
         self.model = self.hand.model
         self.data = mujoco.MjData(self.model)
         self.hold_q = hold_pose_q()

@@ -14,6 +14,9 @@ hand's CAN database (``drivers/shadow_hand/shadow_hand.dbc``) over one of:
 
 With ``--ball-ports P0,P1`` it also stands in for the ball tracker: each ball's
 position streams to its UDP port in the ``drivers.mocap.udp`` format at the telemetry rate.
+With the reset station in the scene (``params.sim.reset_station``) and
+``params.emulator.arm_port``, it also runs the reset arm's controller on that UDP port
+(sim_backends/reset_arm/server.py), in the same world as the hand.
 
 On start it prints one JSON line on stdout (``{"transport", "channel", "port", "pid"}``)
 and then logs to stderr. It stops on SIGTERM/SIGINT or when ``--parent-pid`` dies.
@@ -179,9 +182,11 @@ class UdpDevice:
 
 class Emulator:
     def __init__(self, params: ShadowHandParams, device: Any, physics: ShadowHandSim, *, transport: str,
-                 ball_servers: list | None = None):
+                 ball_servers: list | None = None, arm_server: Any = None):
         self.p = params
         self.ball_servers = ball_servers or []
+        #: the reset arm's controller (sim_backends/reset_arm/server.py), with a reset station
+        self.arm = arm_server
         self.dev = device
         self.sim = physics
         self.transport = transport
@@ -303,6 +308,8 @@ class Emulator:
                     and not fw.motor_fault_mask >> self.motor_fault_joint & 1):
                 fw.inject_motor_fault(self.motor_fault_joint)
                 log(f"motor fault injected on actuated joint {self.motor_fault_joint}")
+            if self.arm is not None:
+                self.arm.poll(now)
             n = pacer.due(now, self.sim.sim_time_s)
             self.realtime_slip_s = pacer.slip_s
             if n > 0:
@@ -312,6 +319,8 @@ class Emulator:
                 if not off:
                     self.send_telemetry()
                 self.send_balls()  # the camera tracker is its own system: bus-off does not stop it
+                if self.arm is not None:
+                    self.arm.send_state()  # the arm has its own controller and link
                 next_tel = next_tel + tel_period if now - next_tel < tel_period else now + tel_period
             if parent_pid and now >= next_parent_check:
                 next_parent_check = now + 0.5
@@ -371,7 +380,14 @@ def main(argv: list[str] | None = None) -> int:
 
         for i, ball_port in enumerate(args.ball_ports.split(",")):
             ball_servers.append(PoseStreamServer("127.0.0.1", int(ball_port), body_id=i + 1))
-    em = Emulator(params, dev, physics, transport=args.transport, ball_servers=ball_servers)
+    arm_server = None
+    if params.emulator.get("arm_port"):
+        from sim_backends.reset_arm.server import ArmServer
+
+        if physics.hand.station is None:
+            ap.error("emulator.arm_port needs the reset station in the scene (params.sim.reset_station: true)")
+        arm_server = ArmServer(physics, int(params.emulator["arm_port"]))
+    em = Emulator(params, dev, physics, transport=args.transport, ball_servers=ball_servers, arm_server=arm_server)
 
     def _stop(signum, frame):  # noqa: ARG001
         em.running = False
@@ -388,6 +404,8 @@ def main(argv: list[str] | None = None) -> int:
         dev.close()
         for srv in ball_servers:
             srv.close()
+        if arm_server is not None:
+            arm_server.close()
         if keep_slave is not None:
             os.close(keep_slave)
     return 0

@@ -28,6 +28,8 @@ import mujoco
 import numpy as np
 
 from drivers.shadow_hand.config import ACTUATED_JOINTS, JOINT_NAMES
+from sim_backends.reset_arm.model import DEFAULT_GRIPPER_FORCE_N
+from sim_backends.shadow_hand.station import StationGeometry, add_station
 
 BALL_RADIUS_M = 0.02
 BALL_MASS_KG = 0.05
@@ -61,12 +63,18 @@ class HandModel:
     ball_qpos_adr: tuple[int, int]  # first qpos index of each ball's free joint
     ball_dof_adr: tuple[int, int]
     ball_body: tuple[int, int]
+    #: the reset station (ramp + arm), when the scene has one (sim_backends/shadow_hand/station.py)
+    station: StationGeometry | None = None
 
 
-def build_scene(palm_tilt_rad: float = 0.0, edit: Callable[[mujoco.MjSpec], None] | None = None) -> HandModel:
+def build_scene(palm_tilt_rad: float = 0.0, station: StationGeometry | None = None,
+                gripper_force_n: float = DEFAULT_GRIPPER_FORCE_N,
+                edit: Callable[[mujoco.MjSpec], None] | None = None) -> HandModel:
     """The hand, palm up, with two balls; ``palm_tilt_rad`` tilts the mount about world x.
-    ``edit`` adds to the spec before it is compiled (the stereo cameras and the
-    calibration board of :mod:`sim_backends.shadow_hand.cameras`)."""
+    ``station``: add the reset station (ramp, pick-up spot, reset arm) beside the hand;
+    its actuators come after the hand's 20. ``edit`` adds to the spec before it is
+    compiled (the stereo cameras and the calibration board of
+    :mod:`sim_backends.shadow_hand.cameras`)."""
     spec = mujoco.MjSpec.from_file(str(hand_asset_path()))
     for name in ("object", "target"):
         spec.delete(spec.body(name))
@@ -92,13 +100,15 @@ def build_scene(palm_tilt_rad: float = 0.0, edit: Callable[[mujoco.MjSpec], None
         b.add_freejoint(name=f"ball{i}:joint")
         b.add_geom(name=f"ball{i}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[BALL_RADIUS_M, 0, 0],
                    mass=BALL_MASS_KG, rgba=rgba, condim=4, friction=[1.0, 0.005, 0.0001])
+    if station is not None:
+        add_station(spec, station, gripper_force_n)
     if edit is not None:
         edit(spec)
     m = spec.compile()
     qadr = np.array([m.joint(f"robot0:{j}").qposadr[0] for j in JOINT_NAMES])
     dadr = np.array([m.joint(f"robot0:{j}").dofadr[0] for j in JOINT_NAMES])
     act_joint = []
-    for i in range(m.nu):
+    for i in range(len(ACTUATED_JOINTS)):
         jid = m.actuator_trnid[i, 0]
         act_joint.append(JOINT_NAMES.index(m.joint(jid).name.removeprefix("robot0:")))
     if tuple(JOINT_NAMES[k] for k in act_joint) != ACTUATED_JOINTS:
@@ -111,8 +121,9 @@ def build_scene(palm_tilt_rad: float = 0.0, edit: Callable[[mujoco.MjSpec], None
         act_joint=np.array(act_joint),
         joint_low=m.jnt_range[jids, 0].copy(),
         joint_high=m.jnt_range[jids, 1].copy(),
-        torque_limit_nm=m.actuator_ctrlrange[:, 1].copy(),
+        torque_limit_nm=m.actuator_ctrlrange[:len(ACTUATED_JOINTS), 1].copy(),
         ball_qpos_adr=(m.joint("ball0:joint").qposadr[0], m.joint("ball1:joint").qposadr[0]),
         ball_dof_adr=(m.joint("ball0:joint").dofadr[0], m.joint("ball1:joint").dofadr[0]),
         ball_body=(m.body("ball0").id, m.body("ball1").id),
+        station=station,
     )
