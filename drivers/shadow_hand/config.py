@@ -95,6 +95,8 @@ class HandEmulatorParams(EmulatorParams):
     bus_off_s: float = Field(1.0, gt=0, description="how long the bus-off lasts [s]")
     motor_fault_after_s: float | None = Field(None, ge=0, description="a motor goes limp after S s")
     motor_fault_joint: int = Field(0, ge=0, description="index of the actuated joint whose motor fails")
+    arm_port: int | None = Field(None, ge=0, le=65535, description="also run the reset arm's controller on this "
+                                 "UDP port (needs params.sim.reset_station; sim_backends/reset_arm/server.py)")
 
 
 class ShadowHandParams(Params):

@@ -381,12 +381,12 @@ def main(argv: list[str] | None = None) -> int:
         for i, ball_port in enumerate(args.ball_ports.split(",")):
             ball_servers.append(PoseStreamServer("127.0.0.1", int(ball_port), body_id=i + 1))
     arm_server = None
-    if params.emulator.get("arm_port"):
+    if params.emulator.arm_port:
         from sim_backends.reset_arm.server import ArmServer
 
         if physics.hand.station is None:
             ap.error("emulator.arm_port needs the reset station in the scene (params.sim.reset_station: true)")
-        arm_server = ArmServer(physics, int(params.emulator["arm_port"]))
+        arm_server = ArmServer(physics, params.emulator.arm_port)
     em = Emulator(params, dev, physics, transport=args.transport, ball_servers=ball_servers, arm_server=arm_server)
 
     def _stop(signum, frame):  # noqa: ARG001
