@@ -86,6 +86,8 @@ class Prepared:
     window: int  # Savitzky-Golay window [samples]
     moving: np.ndarray  # bool per sample: regression rows (the axis moves; see moving_mask)
     v_min: float  # velocity [x/s] below which the axis counts as stopped
+    #: regression statistics per model configuration (see :func:`episode_stats`)
+    stats_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n(self) -> int:
@@ -427,11 +429,35 @@ class Stats:
     n: int
 
 
+#: Most configurations cached per episode before the cache is emptied (bounds memory).
+STATS_CACHE_MAX = 4096
+
+
+def _stats_key(params: AxisParams) -> tuple:
+    """Everything :func:`design` reads from ``params`` (the episode's own data is fixed)."""
+    return (tuple(params.effects), tuple(sorted(params.hyper.items())), params.sensor["bias_v"],
+            params.sensor["scale_v"], params.eps_v, params.vbat_ref_v)
+
+
 def episode_stats(preps: list[Prepared], params: AxisParams) -> list[Stats]:
+    """Per-episode regression statistics, cached on each episode.
+
+    The selection fits the same episode with the same effects and hyper-parameter values many
+    times (every fold that trains on it, every bootstrap replicate, the same grid point in every
+    round); the statistics depend only on the episode and :func:`_stats_key`, so they are
+    computed once. Weights (folds, bootstrap counts) are applied later in :func:`solve`.
+    """
+    key = _stats_key(params)
     out = []
     for p in preps:
-        X, y, _ = design(p, params)
-        out.append(Stats(X.T @ X, X.T @ y, float(y @ y), int(y.shape[0])))
+        s = p.stats_cache.get(key)
+        if s is None:
+            X, y, _ = design(p, params)
+            s = Stats(X.T @ X, X.T @ y, float(y @ y), int(y.shape[0]))
+            if len(p.stats_cache) >= STATS_CACHE_MAX:
+                p.stats_cache.clear()
+            p.stats_cache[key] = s
+        out.append(s)
     return out
 
 
