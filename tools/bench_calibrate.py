@@ -18,7 +18,9 @@ Cases (``CASES``):
 | ``quantised_long`` | one 60 s recording, encoder quantised to 1 mm, velocity logged as the finite difference of the quantised position (0.1 m/s steps) | Coulomb friction |
 | ``rest_mixed_rates`` | 12 episodes, 4 at 50 Hz and 8 at 100 Hz, 3 of them at rest, a few NaN rows | transport delay 60 ms |
 | ``gravity_arm`` | rotary joint (rad), quantised encoder 0.5 mrad | gravity load sin(q) |
+| ``cogging_joint`` | rotary joint (rad), 16 episodes, encoder 0.5 mrad | cogging 2 rad/s²·sin(6q − φ), φ drawn per seed |
 | ``asymmetric_friction`` | 14 episodes | Coulomb friction 2.0 ± 0.8 by direction |
+| ``backlash_quantised`` | 16 episodes, encoder quantised to 1 mm, velocity logged as its finite difference | load-side play 8 mm |
 | ``servo_vehicle`` | forward-only speed commands (unbounded position), quantised odometry 1 cm | transport delay 100 ms |
 | ``velociroach`` | MuJoCo sim recordings through MCAP (sensor noise on) | payload 40 g |
 
@@ -52,7 +54,10 @@ CASES: dict[str, Case] = {c.name: c for c in [
          artefacts="one 60 s recording; 1 mm encoder; velocity = finite difference of the quantised position"),
     Case("rest_mixed_rates", "delay", artefacts="50 and 100 Hz episodes; 3 episodes at rest; NaN rows"),
     Case("gravity_arm", "gravity_load", artefacts="rotary joint in rad; 0.5 mrad encoder"),
+    Case("cogging_joint", "cogging", artefacts="rotary joint in rad; 0.5 mrad encoder; 6 periods per revolution"),
     Case("asymmetric_friction", "asymmetric_friction", artefacts="friction 2.8 forward, 1.2 backward"),
+    Case("backlash_quantised", "load_backlash",
+         artefacts="1 mm encoder on the load; velocity = finite difference of the quantised position"),
     Case("servo_vehicle", "delay", artefacts="forward-only speed commands, unbounded position; 1 cm odometry"),
     Case("velociroach", "payload_mass", model="velociroach", artefacts="MuJoCo sim, MCAP, sensor noise"),
 ]}
@@ -87,12 +92,23 @@ def _axis_files(case: str, seed: int, hidden: bool, out: Path) -> tuple[Path, st
                                    effects={"gravity_load": {"gl_acc": 4.0, "q0_rad": 0.0}} if hidden else {}))
         write_csv(eps, path)
         return path, "t=time,u=volts,x=position"
+    if case == "cogging_joint":
+        cog = {"gc_acc": 2.0, "k_rad_per_x": 6.0, "phase_rad": float(rng.uniform(-np.pi, np.pi))}
+        eps = generate(SynthConfig(n_episodes=16, duration_s=6.0, seed=seed, x_quant=5e-4, u_max=2.0,
+                                   effects={"cogging": cog} if hidden else {}))
+        write_csv(eps, path)
+        return path, "t=time,u=volts,x=position"
     if case == "asymmetric_friction":
         eps = generate(SynthConfig(n_episodes=14, duration_s=6.0, seed=seed,
                                    effects={"coulomb_friction": {"fc_acc": 2.0}, "asymmetric_friction": {"fa_acc": 0.8}}
                                    if hidden else {}))
         write_csv(eps, path)
         return path, "t=time,u=volts,x=position"
+    if case == "backlash_quantised":
+        eps = generate(SynthConfig(n_episodes=16, duration_s=6.0, seed=seed, x_quant=1e-3, velocity_from_differences=True,
+                                   effects={"load_backlash": {"halfwidth_x": 0.008}} if hidden else {}))
+        write_csv(eps, path)
+        return path, "t=time,u=volts,x=position,v=velocity"
     if case == "servo_vehicle":
         # v follows the speed command (first-order servo, gain 1, time constant 0.25 s)
         eps = generate(SynthConfig(n_episodes=14, duration_s=6.0, seed=seed, a=4.0, c_per_s=4.0, u_max=2.0,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from calibration import axis
 from calibration.synthetic import SynthConfig, generate
@@ -37,3 +38,28 @@ def test_cache_is_keyed_on_what_the_design_reads():
     params.hyper["width_u"] = params.hyper["width_u"] + 0.1
     s2 = axis.episode_stats(preps[:1], params)[0]
     assert not np.allclose(s1.xty, s2.xty)
+
+
+def test_exact_signed_rank_matches_scipy_without_its_permutation_test(monkeypatch):
+    """Small held-out sets with zeros or ties: the enumerated exact p equals scipy's permutation p."""
+    from scipy import stats as st
+
+    from calibration import selection
+
+    rng = np.random.default_rng(5)
+    cases = []
+    for n in (6, 9, 13):
+        for _ in range(3):
+            d = rng.normal(0.4, 1.0, n)
+            d[rng.integers(0, n, 2)] = 0.0
+            d[1] = -d[2]  # a tie in |d|
+            cases.append(d)
+    expected = [st.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue for d in cases]
+
+    def no_permutation(*a, **k):
+        raise AssertionError("scipy permutation test called")
+
+    monkeypatch.setattr(st, "permutation_test", no_permutation)
+    for d, want in zip(cases, expected, strict=True):
+        base = np.abs(d) + 1.0
+        assert selection.paired_p(base, base - d) == pytest.approx(want, abs=1e-12)
