@@ -127,7 +127,7 @@ def run_case(case: str, seed: int, hidden: bool, root: str, n_boot: int = 25) ->
     out = Path(root) / case / f"seed{seed}_{'effect' if hidden else 'clean'}"
     out.mkdir(parents=True, exist_ok=True)
     spec = CASES[case]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     row = {"case": case, "seed": seed, "hidden": hidden, "truth": spec.truth if hidden else None}
     try:
         if spec.model == "velociroach":
@@ -147,8 +147,9 @@ def run_case(case: str, seed: int, hidden: bool, root: str, n_boot: int = 25) ->
         return row
     names = [e["name"] for e in r["effects"]]
     amb = [a["effects"] for a in r["ambiguous"]]
+    # cpu_s: this process's CPU time (generation + calibration), comparable across machine loads
     row.update(verdict=r["verdict"], effects=names, ambiguous=amb, warnings=len(r["warnings"]),
-               elapsed_s=time.perf_counter() - t0)
+               elapsed_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0)
     if hidden:
         named = spec.truth in names
         look_alike = any(spec.truth in pair for pair in amb)
@@ -166,14 +167,43 @@ def run_bench_calibrate(seeds: int = 20, cases: list[str] | None = None, out_dir
     unknown = [c for c in names if c not in CASES]
     if unknown:
         raise KeyError(f"unknown case(s) {unknown}; known: {', '.join(CASES)}")
-    jobs = [(c, s, h, str(out_dir), n_boot) for c in names for s in range(first_seed, first_seed + seeds)
+    # Seed-major order, every row appended to rows.jsonl as it finishes: a run stopped early leaves
+    # the same number of seeds for every case, and `python -m tools.bench_calibrate --summarize DIR`
+    # tabulates it.
+    jobs = [(c, s, h, str(out_dir), n_boot) for s in range(first_seed, first_seed + seeds) for c in names
             for h in (True, False)]
     t0 = time.perf_counter()
-    if workers > 1:
-        with ProcessPoolExecutor(workers) as ex:
-            rows = list(ex.map(run_case, *zip(*jobs, strict=True)))
-    else:
-        rows = [run_case(*j) for j in jobs]
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    rows = []
+    with open(Path(out_dir) / "rows.jsonl", "a") as log:
+        if workers > 1:
+            with ProcessPoolExecutor(workers) as ex:
+                it = ex.map(run_case, *zip(*jobs, strict=True))
+                for row in it:
+                    rows.append(row)
+                    log.write(json.dumps(row, default=str) + "\n")
+                    log.flush()
+        else:
+            for j in jobs:
+                rows.append(run_case(*j))
+                log.write(json.dumps(rows[-1], default=str) + "\n")
+                log.flush()
+    result = summarize(rows, names, time.perf_counter() - t0)
+    (Path(out_dir) / f"gauntlet_seeds{first_seed}-{first_seed + seeds - 1}.json").write_text(
+        json.dumps(result, indent=1, default=str))
+    return result
+
+
+def _percentiles(values: list[float]) -> dict:
+    if not values:
+        return {"p50": None, "p99": None}
+    return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99))}
+
+
+def summarize(rows: list[dict], names: list[str] | None = None, elapsed_s: float | None = None) -> dict:
+    """Per-case counts, run-time percentiles and totals of gauntlet rows (complete or partial)."""
+    names = names or list(dict.fromkeys(r["case"] for r in rows))
+    seeds_per_case = {c: len({r["seed"] for r in rows if r["case"] == c}) for c in names}
     per_case = {}
     for c in names:
         mine = [r for r in rows if r["case"] == c]
@@ -193,6 +223,8 @@ def run_bench_calibrate(seeds: int = 20, cases: list[str] | None = None, out_dir
             "missed_as": sorted({f"{r.get('verdict')}: {','.join(r.get('effects') or []) or '-'}"
                                  for r in eff if r["outcome"] == "miss"}),
             "false_alarm_effects": sorted({",".join(r["effects"]) for r in clean if r["outcome"] == "false alarm"}),
+            "cpu_s": _percentiles([r["cpu_s"] for r in mine if "cpu_s" in r]),
+            "wall_s": _percentiles([r["elapsed_s"] for r in mine if "elapsed_s" in r]),
         }
     n_eff = sum(v["runs"] for v in per_case.values())
     totals = {
@@ -200,23 +232,25 @@ def run_bench_calibrate(seeds: int = 20, cases: list[str] | None = None, out_dir
         "false_alarms": sum(v["false_alarms"] for v in per_case.values()),
         "clean_runs": sum(v["clean_runs"] for v in per_case.values()),
         "crashes": sum(v["crashes"] for v in per_case.values()),
-        "seeds": seeds,
-        "elapsed_s": time.perf_counter() - t0,
+        "seeds": min(seeds_per_case.values()) if seeds_per_case else 0,
+        "seeds_per_case": seeds_per_case,
+        "elapsed_s": float(sum(r.get("elapsed_s", 0.0) for r in rows)) if elapsed_s is None else elapsed_s,
     }
-    result = {"cases": per_case, "totals": totals, "rows": rows}
-    Path(out_dir).mkdir(parents=True, exist_ok=True)
-    (Path(out_dir) / f"gauntlet_seeds{first_seed}-{first_seed + seeds - 1}.json").write_text(
-        json.dumps(result, indent=1, default=str))
-    return result
+    return {"cases": per_case, "totals": totals, "rows": rows}
 
 
 def format_table(result: dict) -> str:
     """The gauntlet's figures as a Markdown table (as printed by `hil bench calibrate`)."""
-    lines = ["| case | undeclared effect | hits | of which ambiguous | misses | false alarms (clean) | crashes |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| case | undeclared effect | hits | of which ambiguous | misses | false alarms (clean) | crashes "
+             "| CPU s per run p50/p99 |",
+             "|---|---|---|---|---|---|---|---|"]
+
+    def pct(d):
+        return "-" if not d or d.get("p50") is None else f"{d['p50']:.1f}/{d['p99']:.1f}"
+
     for c, v in result["cases"].items():
         lines.append(f"| {c} | {v['truth']} | {v['hits']}/{v['runs']} | {v['hits_ambiguous']} | {v['misses']} | "
-                     f"{v['false_alarms']}/{v['clean_runs']} | {v['crashes']} |")
+                     f"{v['false_alarms']}/{v['clean_runs']} | {v['crashes']} | {pct(v.get('cpu_s'))} |")
     t = result["totals"]
     lines.append(f"\nhit rate {t['hit_rate']:.0%}, false alarms {t['false_alarms']}/{t['clean_runs']}, crashes "
                  f"{t['crashes']}, {t['seeds']} seed(s), {t['elapsed_s']:.0f} s")
@@ -231,6 +265,11 @@ def format_table(result: dict) -> str:
 if __name__ == "__main__":
     import sys
 
-    res = run_bench_calibrate(seeds=int(sys.argv[1]) if len(sys.argv) > 1 else 2)
-    print(format_table(res))
-    print(json.dumps(res["totals"]))
+    if len(sys.argv) > 2 and sys.argv[1] == "--summarize":
+        # tabulate the rows.jsonl of a run (also one stopped early)
+        rows = [json.loads(line) for d in sys.argv[2:] for line in open(Path(d) / "rows.jsonl") if line.strip()]
+        print(format_table(summarize(rows)))
+    else:
+        res = run_bench_calibrate(seeds=int(sys.argv[1]) if len(sys.argv) > 1 else 2)
+        print(format_table(res))
+        print(json.dumps(res["totals"]))
