@@ -85,7 +85,8 @@ DEFAULTS: dict[str, dict[str, float]] = {
     "sensor_scale": {"scale_v": 1.1},
     "asymmetric_friction": {"fa_acc": 0.8},  # on top of a Coulomb level (default 2.0 when not given)
     "gravity_load": {"gl_acc": 4.0, "q0_rad": 0.0},  # x in rad
-    "drag": {"cd_per_x": 1.0},  # quadratic drag -cd·v·|v|: outside the catalogue (for the black-box check)
+    # outside the catalogue (for the black-box check): a tight spot, a force localized in position
+    "tight_spot": {"amp_acc": 4.0, "x0_m": 0.0, "width_m": 0.1},
     "cogging": {"gc_acc": 3.0, "k_rad_per_x": 4 * math.pi, "phase_rad": 0.0},  # -gc·sin(k·x - phase), period 0.5
 }
 
@@ -185,7 +186,8 @@ def generate(cfg: SynthConfig) -> list[Episode]:
     cog_amp = eff.get("cogging", {}).get("gc_acc", 0.0)
     cog_k = eff.get("cogging", {}).get("k_rad_per_x", 1.0)
     cog_phase = eff.get("cogging", {}).get("phase_rad", 0.0)
-    cd = eff.get("drag", {}).get("cd_per_x", 0.0)
+    ts = eff.get("tight_spot", {})
+    ts_amp, ts_x0, ts_w = ts.get("amp_acc", 0.0), ts.get("x0_m", 0.0), ts.get("width_m", 1.0)
     g = np.ones(E) if payload is None else 1.0 / (1.0 + eff["payload_mass"]["mu_per_unit"] * payload[:, 0])
     tau = eff.get("actuator_lag", {}).get("tau_s", 0.0)
     alpha = math.exp(-dts / tau) if tau > 0 else 0.0
@@ -206,7 +208,7 @@ def generate(cfg: SynthConfig) -> list[Episode]:
             i = k * S + j
             f_act = alpha * f_act + (1 - alpha) * us[:, i] if tau > 0 else us[:, i]
             drive = g * (cfg.a * f_act - c * v + d_off - cog_amp * np.sin(cog_k * x - cog_phase)
-                         - gl * np.sin(x - q0) - cd * v * np.abs(v)) + slope
+                         - gl * np.sin(x - q0) - ts_amp * np.exp(-(((x - ts_x0) / ts_w) ** 2))) + slope
             v_pred = v + dts * drive
             step = dts * g * (fc + fa * np.sign(v_pred) + fs * np.exp(-((v / vs) ** 2)))
             v_new = np.where(np.abs(v_pred) <= step, 0.0, v_pred - step * np.sign(v_pred))

@@ -94,10 +94,12 @@ def test_coulomb_vs_deadband_look_alike(report_for):
 
 
 def test_effect_outside_catalogue_is_flagged(report_for):
-    """Quadratic drag −cd·v·|v| (not in the catalogue): the black box flags the remaining structure."""
-    r = report_for("drag")
+    """A tight spot (a force localized in position, not in the catalogue): the black box flags the
+    structure, and it is not pinned on a catalogue effect."""
+    r = report_for("tight_spot")
     assert r["unexplained_structure"] is True
-    assert r["blackbox"]["heldout_r2"] > 0.05
+    assert r["blackbox"]["heldout_r2"] > 0.2
+    assert all(e["heldout_gain"] < 0.3 for e in r["effects"])
 
 
 @pytest.mark.parametrize("hidden,effects,truth", [
