@@ -42,10 +42,12 @@ HYPER_OF: dict[str, str] = {
     "actuator_lag": "tau_s",
     "deadband": "width_u",
     "backlash": "halfwidth_u",
+    "load_backlash": "halfwidth_x",
     "saturation": "limit_u",
     "stribeck_friction": "vs",
     "payload_mass": "mu_per_unit",
     "gravity_load": "q0_rad",
+    "cogging": "cog_k",
 }
 COEF_OF: dict[str, str] = {
     "coulomb_friction": "fc_acc",
@@ -55,18 +57,29 @@ COEF_OF: dict[str, str] = {
     "battery_sag": "kb",
     "asymmetric_friction": "fa_acc",
     "gravity_load": "gl_acc",
+    "cogging": "gc_acc",
 }
 NOMINAL_COEFS = ("a", "c_per_s")
+#: The phase hyper-parameter of each position-periodic load (see :meth:`AxisParams.primary_along`).
+PHASE_OF = {"gravity_load": "q0_rad", "cogging": "cog_phase"}
+#: Hyper-parameters of the output side: they change the open-loop replay, not the one-step
+#: regression (load-side play: the load stands still in the gap, and standstill rows are not
+#: regression rows), so they are fit on open-loop windows of this length [s].
+OUTPUT_HYPERS = ("halfwidth_x",)
+OUTPUT_FIT_HORIZON_S = 0.5
 SENSOR_EFFECTS = ("sensor_bias", "sensor_scale")
 HYPER_NO_EFFECT = {
     "delay_s": 0.0,
     "tau_s": 0.0,
     "width_u": 0.0,
     "halfwidth_u": 0.0,
+    "halfwidth_x": 0.0,
     "limit_u": math.inf,
     "vs": 1.0,
     "mu_per_unit": 0.0,
     "q0_rad": 0.0,
+    "cog_k": 1.0,
+    "cog_phase": 0.0,
 }
 
 
@@ -86,6 +99,8 @@ class Prepared:
     window: int  # Savitzky-Golay window [samples]
     moving: np.ndarray  # bool per sample: regression rows (the axis moves; see moving_mask)
     v_min: float  # velocity [x/s] below which the axis counts as stopped
+    #: regression statistics per model configuration (see :func:`episode_stats`)
+    stats_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n(self) -> int:
@@ -286,6 +301,10 @@ class AxisParams:
 
     def effect_params(self, name: str) -> dict[str, float]:
         """The parameters reported for one effect, in the catalogue's units."""
+        if name == "cogging":
+            k = self.hyper["cog_k"]
+            return {"gc_acc": self.coef["gc_acc"], "k_rad_per_x": k, "period_x": 2 * math.pi / k,
+                    "phase_rad": self.hyper["cog_phase"]}
         if name in ("stribeck_friction", "gravity_load"):
             return {COEF_OF[name]: self.coef[COEF_OF[name]], HYPER_OF[name]: self.hyper[HYPER_OF[name]]}
         if name in HYPER_OF:
@@ -306,6 +325,18 @@ class AxisParams:
         spec = CATALOGUE[name]
         return float(self.effect_params(name)[spec.primary])
 
+    def primary_along(self, name: str, ref: AxisParams) -> float:
+        """Primary of a position-periodic load measured along ``ref``'s phase [x/s²].
+
+        A load −A·sin(k·x − φ) with φ in [−π/2, π/2) has two representations near φ = ±π/2 (A
+        and −A, φ and φ ∓ π): a bootstrap replicate could flip the sign of A although the load is
+        the same. Its projection on the reference load's phase, A·cos(φ − φ_ref), does not.
+        """
+        h = PHASE_OF.get(name)
+        if h is None:
+            return self.primary(name)
+        return self.primary(name) * math.cos(self.hyper[h] - ref.hyper[h])
+
     def physical(self) -> dict[str, float] | None:
         """Physical parameters when k_u (force per command unit) is known."""
         if not self.k_u:
@@ -313,7 +344,7 @@ class AxisParams:
         j = self.k_u / self.coef["a"]
         out = {"k_u": self.k_u, "J": j, "b": self.coef["c_per_s"] * j}
         names = {"fc_acc": "Fc", "fs_extra_acc": "Fs_minus_Fc", "offset_acc": "offset_force", "gravity_acc": "gravity_force",
-                 "fa_acc": "Fc_asymmetry", "gl_acc": "gravity_load_force"}
+                 "fa_acc": "Fc_asymmetry", "gl_acc": "gravity_load_force", "gc_acc": "cogging_force"}
         for k, phys in names.items():
             if k in self.coef:
                 out[phys] = self.coef[k] * j
@@ -402,6 +433,9 @@ def raw_features(p: Prepared, params: AxisParams, v: np.ndarray, smooth: bool) -
     if "gravity_load" in eff:
         # Position-dependent load, e.g. gravity on a rotary joint: x in rad, q0 the hanging angle.
         feats["gl_acc"] = -np.sin(p.ep.x - hp["q0_rad"]) * one
+    if "cogging" in eff:
+        # Position-periodic load (cogging, detent): k = n per revolution when x is in rad.
+        feats["gc_acc"] = -np.sin(hp["cog_k"] * p.ep.x - hp["cog_phase"]) * one
     return feats
 
 
@@ -427,11 +461,35 @@ class Stats:
     n: int
 
 
+#: Most configurations cached per episode before the cache is emptied (bounds memory).
+STATS_CACHE_MAX = 4096
+
+
+def _stats_key(params: AxisParams) -> tuple:
+    """Everything :func:`design` reads from ``params`` (the episode's own data is fixed)."""
+    return (tuple(params.effects), tuple(sorted(params.hyper.items())), params.sensor["bias_v"],
+            params.sensor["scale_v"], params.eps_v, params.vbat_ref_v)
+
+
 def episode_stats(preps: list[Prepared], params: AxisParams) -> list[Stats]:
+    """Per-episode regression statistics, cached on each episode.
+
+    The selection fits the same episode with the same effects and hyper-parameter values many
+    times (every fold that trains on it, every bootstrap replicate, the same grid point in every
+    round); the statistics depend only on the episode and :func:`_stats_key`, so they are
+    computed once. Weights (folds, bootstrap counts) are applied later in :func:`solve`.
+    """
+    key = _stats_key(params)
     out = []
     for p in preps:
-        X, y, _ = design(p, params)
-        out.append(Stats(X.T @ X, X.T @ y, float(y @ y), int(y.shape[0])))
+        s = p.stats_cache.get(key)
+        if s is None:
+            X, y, _ = design(p, params)
+            s = Stats(X.T @ X, X.T @ y, float(y @ y), int(y.shape[0]))
+            if len(p.stats_cache) >= STATS_CACHE_MAX:
+                p.stats_cache.clear()
+            p.stats_cache[key] = s
+        out.append(s)
     return out
 
 
@@ -475,6 +533,11 @@ def hyper_grid(name: str, preps: list[Prepared], widen: int = 0) -> np.ndarray:
         return np.linspace(0, min(f * np.quantile(au, 0.6), np.max(au)), 21)
     if name == "halfwidth_u":
         return np.linspace(0, min(f * 0.5 * np.quantile(au, 0.9), np.max(au)), 21)
+    if name == "halfwidth_x":
+        # Play up to 5 % of the typical stroke (log-spaced: a play is small against the stroke).
+        span = float(np.median([np.ptp(p.ep.x) for p in preps])) or 1.0
+        hi = f * 0.05 * span
+        return np.concatenate([[0.0], np.geomspace(hi / 200, hi, 20)])
     if name == "limit_u":
         return np.concatenate([np.quantile(au, np.linspace(0.4 / f, 0.995, 20 + 4 * widen)), [math.inf]])
     if name == "vs":
@@ -484,6 +547,8 @@ def hyper_grid(name: str, preps: list[Prepared], widen: int = 0) -> np.ndarray:
         pm = np.concatenate([p.ep.payload for p in preps])
         span = float(np.max(np.abs(pm))) or 1.0
         return np.linspace(-0.5, 3.0 * f, 36) / span
+    if name == "cog_k":
+        return cogging_grid(preps)
     if name == "q0_rad":
         return np.linspace(-math.pi / 2, math.pi / 2, 24, endpoint=False)  # q0 and q0 + pi: same load, sign flipped
     raise KeyError(name)
@@ -492,7 +557,7 @@ def hyper_grid(name: str, preps: list[Prepared], widen: int = 0) -> np.ndarray:
 #: Hyper-parameters whose grid is widened when the best value sits at its far edge, and which edge.
 #: (q0 is periodic; a delay, lag, width or Stribeck speed at the top, a saturation at the bottom.)
 WIDEN_EDGE = {"delay_s": -1, "tau_s": -1, "width_u": -1, "halfwidth_u": -1, "vs": -1, "mu_per_unit": -1,
-              "limit_u": 0}
+              "limit_u": 0, "halfwidth_x": -1}
 MAX_WIDEN = 2
 
 
@@ -512,6 +577,8 @@ def initial_params(preps: list[Prepared], effects: list[str], k_u: float | None 
         if e in HYPER_OF:
             h = HYPER_OF[e]
             hyper[h] = {"vs": 0.1 * float(np.sqrt(np.mean(v**2)))}.get(h, HYPER_NO_EFFECT[h])
+    if "cogging" in effects:
+        hyper["cog_phase"] = HYPER_NO_EFFECT["cog_phase"]
     window = preps[0].window
     return AxisParams(
         effects=list(effects),
@@ -590,11 +657,16 @@ def fit_axis(preps: list[Prepared], effects: list[str], weights: np.ndarray | No
             if h in start.hyper:
                 params.hyper[h] = start.hyper[h]
     params.sensor = fit_sensor(preps, effects, weights)
-    hyper_names = list(params.hyper)
+    hyper_names = [h for h in params.hyper if h != "cog_phase"]  # the phase comes with cog_k
     if search is not None:
         hyper_names = [HYPER_OF[e] for e in search if e in HYPER_OF and HYPER_OF[e] in params.hyper]
+    output_names = [h for h in hyper_names if h in OUTPUT_HYPERS]
+    hyper_names = [h for h in hyper_names if h not in OUTPUT_HYPERS]
     for _ in range(passes if len(hyper_names) > 1 else 1):
         for h in hyper_names:
+            if h == "cog_k":
+                _fit_cogging(preps, params, weights)
+                continue
             for widen in range(MAX_WIDEN + 1):
                 grid = hyper_grid(h, preps, widen)
                 sses = []
@@ -628,7 +700,138 @@ def fit_axis(preps: list[Prepared], effects: list[str], weights: np.ndarray | No
                     params.hyper[h] = float(r.x) if r.fun <= sses[i] else float(grid[i])
     _, theta = _sse_for(preps, params, weights)
     params.coef = dict(zip(coef_names(effects), map(float, theta), strict=True))
+    for h in output_names:
+        _fit_output_hyper(preps, params, h, weights)
     return params
+
+
+#: Spatial-frequency grid of the cogging search: at least two periods over the typical stroke, at
+#: least ``COG_MIN_TRAVEL_SAMPLES`` samples of travel at the rms speed per period, steps of a
+#: quarter of the frequency resolution 2π/stroke, at most ``COG_MAX_GRID`` values.
+COG_MIN_TRAVEL_SAMPLES = 8
+COG_MAX_GRID = 400
+
+
+def cogging_grid(preps: list[Prepared]) -> np.ndarray:
+    """Spatial frequencies k [rad per x-unit] searched for a position-periodic load (may be empty)."""
+    span = float(np.median([np.ptp(p.ep.x) for p in preps]))
+    v_rms = float(np.sqrt(np.mean(np.concatenate([p.v_obs for p in preps]) ** 2)))
+    if span <= 0 or v_rms <= 0:
+        return np.empty(0)
+    k_lo = 2 * 2 * math.pi / span
+    k_hi = 2 * math.pi / (COG_MIN_TRAVEL_SAMPLES * v_rms * preps[0].period_s)
+    if k_hi <= k_lo:
+        return np.empty(0)
+    step = max(0.25 * 2 * math.pi / span, (k_hi - k_lo) / COG_MAX_GRID)
+    return np.arange(k_lo, k_hi + 0.5 * step, step)
+
+
+def _cogging_profile(preps: list[Prepared], params: AxisParams, ks: np.ndarray,
+                     weights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares SSE of the model + a load βs·sin(k·x) + βc·cos(k·x), for every k at once.
+
+    The load is linear in (βs, βc) for a fixed k, so the profile over k is a bordered normal
+    equation per k (a periodogram of the residual, adjusted for the model's other terms).
+    Returns (SSE per k, (βs, βc) per k).
+    """
+    base = AxisParams(**{**params.__dict__, "effects": [e for e in params.effects if e != "cogging"],
+                         "at_bound": {}})
+    ws = np.ones(len(preps)) if weights is None else weights
+    G = len(ks)
+    q = len(coef_names(base.effects))
+    A = np.zeros((G, q + 2, q + 2))
+    b = np.zeros((G, q + 2))
+    yty = 0.0
+    for wi, p in zip(ws, preps, strict=True):
+        if not wi:
+            continue
+        X, y, k = design(p, base)
+        g = _payload_factor(p, params.hyper)
+        one = np.ones(k.size) if g is None else g[k]
+        phase = p.ep.x[k][:, None] * ks[None, :]
+        S, C = -np.sin(phase) * one[:, None], -np.cos(phase) * one[:, None]
+        A[:, :q, :q] += wi * (X.T @ X)
+        A[:, :q, q] += wi * (X.T @ S).T
+        A[:, :q, q + 1] += wi * (X.T @ C).T
+        A[:, q, q] += wi * np.einsum("ng,ng->g", S, S)
+        A[:, q, q + 1] += wi * np.einsum("ng,ng->g", S, C)
+        A[:, q + 1, q + 1] += wi * np.einsum("ng,ng->g", C, C)
+        b[:, :q] += wi * (X.T @ y)[None, :]
+        b[:, q] += wi * (S.T @ y)
+        b[:, q + 1] += wi * (C.T @ y)
+        yty += wi * float(y @ y)
+    A[:, q:, :q] = np.transpose(A[:, :q, q:], (0, 2, 1))
+    A[:, q + 1, q] = A[:, q, q + 1]
+    ridge = 1e-10 * (np.trace(A, axis1=1, axis2=2) / (q + 2))[:, None, None] * np.eye(q + 2)[None]
+    theta = np.linalg.solve(A + ridge, b[..., None])[..., 0]
+    sse = yty - np.einsum("gi,gi->g", theta, b)
+    return sse, theta[:, q:]
+
+
+def _fit_cogging(preps: list[Prepared], params: AxisParams, weights: np.ndarray | None) -> None:
+    """Spatial frequency k by the profile over :func:`cogging_grid` (refined on a finer grid
+    around the best value); phase φ in [−π/2, π/2) and the signed amplitude from (βs, βc)."""
+    grid = cogging_grid(preps)
+    if grid.size == 0:
+        params.hyper["cog_k"], params.hyper["cog_phase"] = HYPER_NO_EFFECT["cog_k"], 0.0
+        return
+    sse, beta = _cogging_profile(preps, params, grid, weights)
+    i = int(np.argmin(sse))
+    if i in (0, grid.size - 1):
+        params.at_bound["cog_k"] = float(grid[i])
+    else:
+        params.at_bound.pop("cog_k", None)
+    fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 17)
+    fsse, fbeta = _cogging_profile(preps, params, fine, weights)
+    j = int(np.argmin(fsse))
+    k, (bs, bc) = (float(fine[j]), fbeta[j]) if fsse[j] <= sse[i] else (float(grid[i]), beta[i])
+    # βs·(−sin kx) + βc·(−cos kx) = −A·sin(kx − φ) with A·cos φ = βs and −A·sin φ = βc.
+    amp, phi = math.hypot(bs, bc), math.atan2(-bc, bs)
+    if phi >= math.pi / 2:
+        phi -= math.pi
+    elif phi < -math.pi / 2:
+        phi += math.pi
+    params.hyper["cog_k"], params.hyper["cog_phase"] = k, phi
+    del amp  # the signed amplitude comes out of the final least squares with this phase
+
+
+def _window_sse_grid(preps: list[Prepared], params: AxisParams, h: str, grid: np.ndarray,
+                     weights: np.ndarray | None) -> np.ndarray:
+    """Weighted open-loop position SSE over all episodes for each value of output hyper ``h``.
+
+    All grid values are replayed at once (windows × grid values in one vectorised replay).
+    """
+    ws = np.ones(len(preps)) if weights is None else weights
+    horizon = max(2, int(round(OUTPUT_FIT_HORIZON_S / preps[0].period_s)))
+    total = np.zeros(len(grid))
+    for wi, p in zip(ws, preps, strict=True):
+        if not wi:
+            continue
+        hz = max(1, min(horizon, p.n - 2 * p.margin - 2))
+        starts = window_starts(p, hz)
+        sim = simulate_windows(p, params, hz, starts=np.tile(starts, len(grid)),
+                               play=np.repeat(np.asarray(grid, float), starts.size))
+        err = np.sum((sim["x_pred"] - sim["x_true"]) ** 2, axis=1).reshape(len(grid), starts.size)
+        total += wi * err.sum(axis=1)
+    return total
+
+
+def _fit_output_hyper(preps: list[Prepared], params: AxisParams, h: str, weights: np.ndarray | None) -> None:
+    """Fit an output-side hyper-parameter by open-loop position error (grid, widened, then a finer grid)."""
+    for widen in range(MAX_WIDEN + 1):
+        grid = hyper_grid(h, preps, widen)
+        sses = _window_sse_grid(preps, params, h, grid, weights)
+        i = int(np.argmin(sses))
+        if not _at_edge(h, i, grid):
+            break
+    if _at_edge(h, i, grid):
+        params.at_bound[h] = float(grid[i])
+    else:
+        params.at_bound.pop(h, None)
+    fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)], 11)
+    fine_sses = _window_sse_grid(preps, params, h, fine, weights)
+    j = int(np.argmin(fine_sses))
+    params.hyper[h] = float(fine[j]) if fine_sses[j] <= sses[i] else float(grid[i])
 
 
 # ----------------------------------------------------------------------------- prediction
@@ -671,12 +874,24 @@ def window_starts(p: Prepared, horizon: int) -> np.ndarray:
     return np.arange(p.margin, last + 1, stride, dtype=int)
 
 
+def motion_direction(v: np.ndarray, v_min: float) -> np.ndarray:
+    """Sign of the last velocity above ``v_min`` at or before each sample (+1 before any motion)."""
+    moving = np.abs(v) > v_min
+    last = np.maximum.accumulate(np.where(moving, np.arange(v.size), -1))
+    return np.where(last >= 0, np.sign(v[np.maximum(last, 0)]), 1.0)
+
+
 def simulate_windows(p: Prepared, params: AxisParams, horizon: int,
-                     starts: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                     starts: np.ndarray | None = None, play: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Open-loop simulation of H-step windows, replaying the logged commands.
 
     Each window starts from the measured position and velocity at its start index.
     Returns x/v predictions and measurements, shape (windows, H).
+
+    With load-side play (``halfwidth_x``, or ``play`` [x-units] per window) the measured
+    position is the load's: the motor starts at load + h·(direction of the last motion), moves
+    by the model, and the load follows only while pushed at one end of the gap (its velocity is
+    the motor's then, zero in the gap).
     """
     horizon = min(horizon, p.n - 2 * p.margin - 2)
     horizon = max(horizon, 1)
@@ -698,15 +913,23 @@ def simulate_windows(p: Prepared, params: AxisParams, horizon: int,
     dt = p.period_s
     x = p.ep.x[starts].astype(float).copy()
     v = v_true[starts].astype(float).copy()
+    if play is None and hp.get("halfwidth_x", 0.0) > 0:
+        play = np.full(starts.size, hp["halfwidth_x"])
+    if play is not None:
+        x_load = x
+        x = x_load + play * motion_direction(v_true, p.v_min)[starts]
     xs = np.empty((starts.size, horizon))
     vs_out = np.empty((starts.size, horizon))
     idx = starts.copy()
     fa, gl, q0 = c.get("fa_acc", 0.0), c.get("gl_acc", 0.0), hp.get("q0_rad", 0.0)
+    gc, cog_k, cog_phase = c.get("gc_acc", 0.0), hp.get("cog_k", 1.0), hp.get("cog_phase", 0.0)
     for h in range(horizon):
         gk = g[idx]
         v_pred = v + dt * (drive[idx] - c["c_per_s"] * gk * v)
         if gl:
             v_pred = v_pred - dt * gk * gl * np.sin(x - q0)
+        if gc:
+            v_pred = v_pred - dt * gk * gc * np.sin(cog_k * x - cog_phase)
         if fc or fs or fa:
             # friction magnitude in the direction the axis would move (fa: forward/backward asymmetry)
             step = dt * gk * (fc + fa * np.sign(v_pred) + (fs * np.exp(-((v / vs) ** 2)) if fs else 0.0))
@@ -720,8 +943,14 @@ def simulate_windows(p: Prepared, params: AxisParams, horizon: int,
         x = x + dt * 0.5 * (v + v_new)
         v = v_new
         idx = idx + 1
-        xs[:, h] = x
-        vs_out[:, h] = v
+        if play is None:
+            xs[:, h] = x
+            vs_out[:, h] = v
+        else:
+            x_next = np.minimum(np.maximum(x_load, x - play), x + play)
+            vs_out[:, h] = np.where(x_next != x_load, v, 0.0)  # the load moves only while pushed
+            x_load = x_next
+            xs[:, h] = x_load
     ks = starts[:, None] + 1 + np.arange(horizon)[None, :]
     s, b = params.sensor["scale_v"], params.sensor["bias_v"]
     return {"x_pred": xs, "x_true": p.ep.x[ks], "v_pred": s * vs_out + b, "v_true": p.v_obs[ks], "k": ks}

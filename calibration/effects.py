@@ -52,6 +52,10 @@ CATALOGUE: dict[str, EffectSpec] = {
                    "width_u", "u", 0.0, diagnostic="residual vs command"),
         EffectSpec("backlash", "play (hysteresis) of half-width h between command and force",
                    "halfwidth_u", "u", 0.0, diagnostic="residual vs command, split by command direction"),
+        EffectSpec("load_backlash", "play of half-width h between the driven motor and the measured (load) "
+                   "position: at every motion reversal the load stands still until the motor has crossed the gap",
+                   "halfwidth_x", "x", 0.0,
+                   diagnostic="open-loop position error after motion reversals (a step of 2h per reversal)"),
         EffectSpec("coulomb_friction", "constant friction opposing motion, Fc/J·sign(v)",
                    "fc_acc", "x/s^2", 0.0, diagnostic="residual vs velocity"),
         EffectSpec("stribeck_friction", "extra breakaway friction decaying with speed, (Fs-Fc)/J·exp(-(v/vs)^2)",
@@ -62,6 +66,9 @@ CATALOGUE: dict[str, EffectSpec] = {
         EffectSpec("gravity_load", "position-dependent load -gl·sin(x - q0), e.g. gravity on a rotary joint "
                    "(x in rad, q0 the hanging angle)", "gl_acc", "x/s^2", 0.0,
                    diagnostic="residual vs position"),
+        EffectSpec("cogging", "position-periodic load -gc·sin(k·x - phi) (cogging, detent; k = n per revolution "
+                   "when x is in rad), k estimated from at least two periods over the stroke", "gc_acc", "x/s^2", 0.0,
+                   diagnostic="residual vs position (periodogram of the residual over k)"),
         EffectSpec("viscous_friction", "friction proportional to velocity, b/J·v",
                    "c_per_s", "1/s", 0.0, diagnostic="residual vs velocity",
                    absorbed_by_nominal="c = b/J is a nominal parameter of the axis model and is refit "
@@ -98,6 +105,11 @@ LOOK_ALIKES: dict[frozenset, str] = {
         "does not)",
     frozenset({"backlash", "deadband"}):
         "command reversals away from zero, e.g. a sine on an offset (backlash acts at every reversal)",
+    frozenset({"load_backlash", "backlash"}):
+        "command reversals while the axis keeps moving one way, and motion reversals under a steady command "
+        "(play on the command acts at command reversals, play before the load at motion reversals)",
+    frozenset({"load_backlash", "delay"}):
+        "slow motion reversals (load-side play holds the position for a distance, a delay for a time)",
     frozenset({"backlash", "coulomb_friction"}):
         "command reversals while the axis keeps moving in one direction",
     frozenset({"saturation", "deadband"}):
@@ -112,6 +124,14 @@ LOOK_ALIKES: dict[frozenset, str] = {
         "holding still under small commands (an offset pushes at rest, direction-dependent friction does not)",
     frozenset({"gravity_load", "force_offset"}):
         "motion over a wider range of positions (a gravity load changes with the angle, an offset does not)",
+    frozenset({"cogging", "gravity_load"}):
+        "motion over more positions, several revolutions if the joint can (a gravity load has one period per "
+        "revolution, cogging n)",
+    frozenset({"cogging", "coulomb_friction"}):
+        "slow motion in both directions over the same positions (cogging depends on where the axis is, friction "
+        "on which way it moves)",
+    frozenset({"cogging", "force_offset"}):
+        "motion over more periods of the load (a periodic load averages out over a period, an offset does not)",
     frozenset({"gravity_load", "slope"}):
         "motion over a wider range of positions (a gravity load changes with the angle, a slope does not)",
 }

@@ -103,6 +103,10 @@ class FittedAxis:
     def effect_params(self, name: str) -> dict[str, float]:
         return self.params.effect_params(name)
 
+    def primary_along(self, name: str, ref: FittedAxis) -> float:
+        """Primary of a position-periodic load along ``ref``'s phase (see AxisParams.primary_along)."""
+        return self.params.primary_along(name, ref.params)
+
     def predict_one_step(self, episode: axis.Prepared | Episode) -> dict:
         p = episode if isinstance(episode, axis.Prepared) else self._prep(episode)
         return axis.predict_one_step(p, self.params)
@@ -214,6 +218,9 @@ class AxisModel:
                 skipped[name] = (f"positions span only {span_x:.3g} (< {GRAVITY_MIN_SPAN_RAD:.3g} rad): a sine load "
                                  "cannot be told from an offset and a spring; needs a rotary joint moving over a "
                                  "wide angle, x in rad")
+            elif name == "cogging" and axis.cogging_grid(episodes).size == 0:
+                skipped[name] = ("the stroke is too short for two periods of a load the sample rate can resolve "
+                                 f"(at least {axis.COG_MIN_TRAVEL_SAMPLES} samples of travel per period)")
             elif not all(has[n] for n in spec.needs):
                 need = {"v": "a measured velocity column (v=...)", "vbat": "a battery voltage column (vbat=...)",
                         "m": "a payload column (m=...)"}

@@ -6,7 +6,9 @@ generator's own discretization would not pass.
 
 Physics (normalized by the inertia J): dv/dt = g·(a·ũ − c·v − F_fric(v) + d + cog(x)) + s_g,
 dx/dt = v, with ũ the command after the hidden input-side effects. Units: x in m, u in V,
-accelerations in m/s².
+accelerations in m/s². With ``load_backlash`` the logged position is that of a load behind a
+play of half-width h: x_load follows x only once x has moved h past it (a light load, whose
+inertia and friction are part of the motor's).
 """
 
 from __future__ import annotations
@@ -70,6 +72,7 @@ DEFAULTS: dict[str, dict[str, float]] = {
     "actuator_lag": {"tau_s": 0.05},
     "deadband": {"width_u": 0.3},
     "backlash": {"halfwidth_u": 0.25},
+    "load_backlash": {"halfwidth_x": 0.01},
     "coulomb_friction": {"fc_acc": 2.0},
     "stribeck_friction": {"fs_extra_acc": 2.0, "vs": 0.1},
     "viscous_friction": {"c_per_s": 9.0},  # replaces the nominal c: a tuning error, absorbed by refit
@@ -82,7 +85,9 @@ DEFAULTS: dict[str, dict[str, float]] = {
     "sensor_scale": {"scale_v": 1.1},
     "asymmetric_friction": {"fa_acc": 0.8},  # on top of a Coulomb level (default 2.0 when not given)
     "gravity_load": {"gl_acc": 4.0, "q0_rad": 0.0},  # x in rad
-    "cogging": {"amp_acc": 3.0, "period_m": 0.5},  # outside the catalogue
+    # outside the catalogue (for the black-box check): a tight spot, a force localized in position
+    "tight_spot": {"amp_acc": 4.0, "x0_m": 0.0, "width_m": 0.1},
+    "cogging": {"gc_acc": 3.0, "k_rad_per_x": 4 * math.pi, "phase_rad": 0.0},  # -gc·sin(k·x - phase), period 0.5
 }
 
 
@@ -178,30 +183,42 @@ def generate(cfg: SynthConfig) -> list[Episode]:
         fc = 0.5 * fs  # Stribeck needs a Coulomb level to decay to
     d_off = eff.get("force_offset", {}).get("offset_acc", 0.0)
     slope = eff.get("slope", {}).get("gravity_acc", 0.0)
-    cog_amp = eff.get("cogging", {}).get("amp_acc", 0.0)
-    cog_p = eff.get("cogging", {}).get("period_m", 1.0)
+    cog_amp = eff.get("cogging", {}).get("gc_acc", 0.0)
+    cog_k = eff.get("cogging", {}).get("k_rad_per_x", 1.0)
+    cog_phase = eff.get("cogging", {}).get("phase_rad", 0.0)
+    ts = eff.get("tight_spot", {})
+    ts_amp, ts_x0, ts_w = ts.get("amp_acc", 0.0), ts.get("x0_m", 0.0), ts.get("width_m", 1.0)
     g = np.ones(E) if payload is None else 1.0 / (1.0 + eff["payload_mass"]["mu_per_unit"] * payload[:, 0])
     tau = eff.get("actuator_lag", {}).get("tau_s", 0.0)
     alpha = math.exp(-dts / tau) if tau > 0 else 0.0
 
+    hl = eff.get("load_backlash", {}).get("halfwidth_x", 0.0)
+
     x = np.zeros(E)
     v = np.zeros(E)
+    x_load = x - hl  # the load in contact as after a forward move (what the model assumes at rest)
+    v_load = v.copy()
     f_act = us[:, 0].copy()
     xs = np.empty((E, n))
     vs_true = np.empty((E, n))
     for k in range(n):
-        xs[:, k] = x
-        vs_true[:, k] = v
+        xs[:, k] = x if not hl else x_load
+        vs_true[:, k] = v if not hl else v_load
         for j in range(S):
             i = k * S + j
             f_act = alpha * f_act + (1 - alpha) * us[:, i] if tau > 0 else us[:, i]
-            drive = g * (cfg.a * f_act - c * v + d_off + cog_amp * np.sin(2 * np.pi * x / cog_p)
-                         - gl * np.sin(x - q0)) + slope
+            drive = g * (cfg.a * f_act - c * v + d_off - cog_amp * np.sin(cog_k * x - cog_phase)
+                         - gl * np.sin(x - q0) - ts_amp * np.exp(-(((x - ts_x0) / ts_w) ** 2))) + slope
             v_pred = v + dts * drive
             step = dts * g * (fc + fa * np.sign(v_pred) + fs * np.exp(-((v / vs) ** 2)))
             v_new = np.where(np.abs(v_pred) <= step, 0.0, v_pred - step * np.sign(v_pred))
             x = x + 0.5 * dts * (v + v_new)
             v = v_new
+            if hl:
+                # play operator on the sub-step grid: the load moves only while pushed at one end of the gap
+                x_next = np.minimum(np.maximum(x_load, x - hl), x + hl)
+                v_load = (x_next - x_load) / dts
+                x_load = x_next
 
     t = np.arange(n) * cfg.period_s
     episodes = []

@@ -18,7 +18,9 @@ Cases (``CASES``):
 | ``quantised_long`` | one 60 s recording, encoder quantised to 1 mm, velocity logged as the finite difference of the quantised position (0.1 m/s steps) | Coulomb friction |
 | ``rest_mixed_rates`` | 12 episodes, 4 at 50 Hz and 8 at 100 Hz, 3 of them at rest, a few NaN rows | transport delay 60 ms |
 | ``gravity_arm`` | rotary joint (rad), quantised encoder 0.5 mrad | gravity load sin(q) |
+| ``cogging_joint`` | rotary joint (rad), 16 episodes, encoder 0.5 mrad | cogging 2 rad/s²·sin(6q − φ), φ drawn per seed |
 | ``asymmetric_friction`` | 14 episodes | Coulomb friction 2.0 ± 0.8 by direction |
+| ``backlash_quantised`` | 16 episodes, encoder quantised to 1 mm, velocity logged as its finite difference | load-side play 8 mm |
 | ``servo_vehicle`` | forward-only speed commands (unbounded position), quantised odometry 1 cm | transport delay 100 ms |
 | ``velociroach`` | MuJoCo sim recordings through MCAP (sensor noise on) | payload 40 g |
 
@@ -52,7 +54,10 @@ CASES: dict[str, Case] = {c.name: c for c in [
          artefacts="one 60 s recording; 1 mm encoder; velocity = finite difference of the quantised position"),
     Case("rest_mixed_rates", "delay", artefacts="50 and 100 Hz episodes; 3 episodes at rest; NaN rows"),
     Case("gravity_arm", "gravity_load", artefacts="rotary joint in rad; 0.5 mrad encoder"),
+    Case("cogging_joint", "cogging", artefacts="rotary joint in rad; 0.5 mrad encoder; 6 periods per revolution"),
     Case("asymmetric_friction", "asymmetric_friction", artefacts="friction 2.8 forward, 1.2 backward"),
+    Case("backlash_quantised", "load_backlash",
+         artefacts="1 mm encoder on the load; velocity = finite difference of the quantised position"),
     Case("servo_vehicle", "delay", artefacts="forward-only speed commands, unbounded position; 1 cm odometry"),
     Case("velociroach", "payload_mass", model="velociroach", artefacts="MuJoCo sim, MCAP, sensor noise"),
 ]}
@@ -87,12 +92,23 @@ def _axis_files(case: str, seed: int, hidden: bool, out: Path) -> tuple[Path, st
                                    effects={"gravity_load": {"gl_acc": 4.0, "q0_rad": 0.0}} if hidden else {}))
         write_csv(eps, path)
         return path, "t=time,u=volts,x=position"
+    if case == "cogging_joint":
+        cog = {"gc_acc": 2.0, "k_rad_per_x": 6.0, "phase_rad": float(rng.uniform(-np.pi, np.pi))}
+        eps = generate(SynthConfig(n_episodes=16, duration_s=6.0, seed=seed, x_quant=5e-4, u_max=2.0,
+                                   effects={"cogging": cog} if hidden else {}))
+        write_csv(eps, path)
+        return path, "t=time,u=volts,x=position"
     if case == "asymmetric_friction":
         eps = generate(SynthConfig(n_episodes=14, duration_s=6.0, seed=seed,
                                    effects={"coulomb_friction": {"fc_acc": 2.0}, "asymmetric_friction": {"fa_acc": 0.8}}
                                    if hidden else {}))
         write_csv(eps, path)
         return path, "t=time,u=volts,x=position"
+    if case == "backlash_quantised":
+        eps = generate(SynthConfig(n_episodes=16, duration_s=6.0, seed=seed, x_quant=1e-3, velocity_from_differences=True,
+                                   effects={"load_backlash": {"halfwidth_x": 0.008}} if hidden else {}))
+        write_csv(eps, path)
+        return path, "t=time,u=volts,x=position,v=velocity"
     if case == "servo_vehicle":
         # v follows the speed command (first-order servo, gain 1, time constant 0.25 s)
         eps = generate(SynthConfig(n_episodes=14, duration_s=6.0, seed=seed, a=4.0, c_per_s=4.0, u_max=2.0,
@@ -111,7 +127,7 @@ def run_case(case: str, seed: int, hidden: bool, root: str, n_boot: int = 25) ->
     out = Path(root) / case / f"seed{seed}_{'effect' if hidden else 'clean'}"
     out.mkdir(parents=True, exist_ok=True)
     spec = CASES[case]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     row = {"case": case, "seed": seed, "hidden": hidden, "truth": spec.truth if hidden else None}
     try:
         if spec.model == "velociroach":
@@ -131,8 +147,9 @@ def run_case(case: str, seed: int, hidden: bool, root: str, n_boot: int = 25) ->
         return row
     names = [e["name"] for e in r["effects"]]
     amb = [a["effects"] for a in r["ambiguous"]]
+    # cpu_s: this process's CPU time (generation + calibration), comparable across machine loads
     row.update(verdict=r["verdict"], effects=names, ambiguous=amb, warnings=len(r["warnings"]),
-               elapsed_s=time.perf_counter() - t0)
+               elapsed_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0)
     if hidden:
         named = spec.truth in names
         look_alike = any(spec.truth in pair for pair in amb)
@@ -150,14 +167,43 @@ def run_bench_calibrate(seeds: int = 20, cases: list[str] | None = None, out_dir
     unknown = [c for c in names if c not in CASES]
     if unknown:
         raise KeyError(f"unknown case(s) {unknown}; known: {', '.join(CASES)}")
-    jobs = [(c, s, h, str(out_dir), n_boot) for c in names for s in range(first_seed, first_seed + seeds)
+    # Seed-major order, every row appended to rows.jsonl as it finishes: a run stopped early leaves
+    # the same number of seeds for every case, and `python -m tools.bench_calibrate --summarize DIR`
+    # tabulates it.
+    jobs = [(c, s, h, str(out_dir), n_boot) for s in range(first_seed, first_seed + seeds) for c in names
             for h in (True, False)]
     t0 = time.perf_counter()
-    if workers > 1:
-        with ProcessPoolExecutor(workers) as ex:
-            rows = list(ex.map(run_case, *zip(*jobs, strict=True)))
-    else:
-        rows = [run_case(*j) for j in jobs]
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    rows = []
+    with open(Path(out_dir) / "rows.jsonl", "a") as log:
+        if workers > 1:
+            with ProcessPoolExecutor(workers) as ex:
+                it = ex.map(run_case, *zip(*jobs, strict=True))
+                for row in it:
+                    rows.append(row)
+                    log.write(json.dumps(row, default=str) + "\n")
+                    log.flush()
+        else:
+            for j in jobs:
+                rows.append(run_case(*j))
+                log.write(json.dumps(rows[-1], default=str) + "\n")
+                log.flush()
+    result = summarize(rows, names, time.perf_counter() - t0)
+    (Path(out_dir) / f"gauntlet_seeds{first_seed}-{first_seed + seeds - 1}.json").write_text(
+        json.dumps(result, indent=1, default=str))
+    return result
+
+
+def _percentiles(values: list[float]) -> dict:
+    if not values:
+        return {"p50": None, "p99": None}
+    return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99))}
+
+
+def summarize(rows: list[dict], names: list[str] | None = None, elapsed_s: float | None = None) -> dict:
+    """Per-case counts, run-time percentiles and totals of gauntlet rows (complete or partial)."""
+    names = names or list(dict.fromkeys(r["case"] for r in rows))
+    seeds_per_case = {c: len({r["seed"] for r in rows if r["case"] == c}) for c in names}
     per_case = {}
     for c in names:
         mine = [r for r in rows if r["case"] == c]
@@ -177,6 +223,8 @@ def run_bench_calibrate(seeds: int = 20, cases: list[str] | None = None, out_dir
             "missed_as": sorted({f"{r.get('verdict')}: {','.join(r.get('effects') or []) or '-'}"
                                  for r in eff if r["outcome"] == "miss"}),
             "false_alarm_effects": sorted({",".join(r["effects"]) for r in clean if r["outcome"] == "false alarm"}),
+            "cpu_s": _percentiles([r["cpu_s"] for r in mine if "cpu_s" in r]),
+            "wall_s": _percentiles([r["elapsed_s"] for r in mine if "elapsed_s" in r]),
         }
     n_eff = sum(v["runs"] for v in per_case.values())
     totals = {
@@ -184,23 +232,25 @@ def run_bench_calibrate(seeds: int = 20, cases: list[str] | None = None, out_dir
         "false_alarms": sum(v["false_alarms"] for v in per_case.values()),
         "clean_runs": sum(v["clean_runs"] for v in per_case.values()),
         "crashes": sum(v["crashes"] for v in per_case.values()),
-        "seeds": seeds,
-        "elapsed_s": time.perf_counter() - t0,
+        "seeds": min(seeds_per_case.values()) if seeds_per_case else 0,
+        "seeds_per_case": seeds_per_case,
+        "elapsed_s": float(sum(r.get("elapsed_s", 0.0) for r in rows)) if elapsed_s is None else elapsed_s,
     }
-    result = {"cases": per_case, "totals": totals, "rows": rows}
-    Path(out_dir).mkdir(parents=True, exist_ok=True)
-    (Path(out_dir) / f"gauntlet_seeds{first_seed}-{first_seed + seeds - 1}.json").write_text(
-        json.dumps(result, indent=1, default=str))
-    return result
+    return {"cases": per_case, "totals": totals, "rows": rows}
 
 
 def format_table(result: dict) -> str:
     """The gauntlet's figures as a Markdown table (as printed by `hil bench calibrate`)."""
-    lines = ["| case | undeclared effect | hits | of which ambiguous | misses | false alarms (clean) | crashes |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| case | undeclared effect | hits | of which ambiguous | misses | false alarms (clean) | crashes "
+             "| CPU s per run p50/p99 |",
+             "|---|---|---|---|---|---|---|---|"]
+
+    def pct(d):
+        return "-" if not d or d.get("p50") is None else f"{d['p50']:.1f}/{d['p99']:.1f}"
+
     for c, v in result["cases"].items():
         lines.append(f"| {c} | {v['truth']} | {v['hits']}/{v['runs']} | {v['hits_ambiguous']} | {v['misses']} | "
-                     f"{v['false_alarms']}/{v['clean_runs']} | {v['crashes']} |")
+                     f"{v['false_alarms']}/{v['clean_runs']} | {v['crashes']} | {pct(v.get('cpu_s'))} |")
     t = result["totals"]
     lines.append(f"\nhit rate {t['hit_rate']:.0%}, false alarms {t['false_alarms']}/{t['clean_runs']}, crashes "
                  f"{t['crashes']}, {t['seeds']} seed(s), {t['elapsed_s']:.0f} s")
@@ -215,6 +265,11 @@ def format_table(result: dict) -> str:
 if __name__ == "__main__":
     import sys
 
-    res = run_bench_calibrate(seeds=int(sys.argv[1]) if len(sys.argv) > 1 else 2)
-    print(format_table(res))
-    print(json.dumps(res["totals"]))
+    if len(sys.argv) > 2 and sys.argv[1] == "--summarize":
+        # tabulate the rows.jsonl of a run (also one stopped early)
+        rows = [json.loads(line) for d in sys.argv[2:] for line in open(Path(d) / "rows.jsonl") if line.strip()]
+        print(format_table(summarize(rows)))
+    else:
+        res = run_bench_calibrate(seeds=int(sys.argv[1]) if len(sys.argv) > 1 else 2)
+        print(format_table(res))
+        print(json.dumps(res["totals"]))

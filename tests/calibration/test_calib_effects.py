@@ -94,8 +94,9 @@ def test_coulomb_vs_deadband_look_alike(report_for):
 
 
 def test_effect_outside_catalogue_is_flagged(report_for):
-    """Position-dependent cogging: structure is flagged, not pinned on a catalogue effect."""
-    r = report_for("cogging")
+    """A tight spot (a force localized in position, not in the catalogue): the black box flags the
+    structure, and it is not pinned on a catalogue effect."""
+    r = report_for("tight_spot")
     assert r["unexplained_structure"] is True
     assert r["blackbox"]["heldout_r2"] > 0.2
     assert all(e["heldout_gain"] < 0.3 for e in r["effects"])

@@ -1,0 +1,65 @@
+"""The fit caches per-episode regression statistics: repeated fits reuse them and match a fresh fit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration import axis
+from calibration.synthetic import SynthConfig, generate
+
+
+def _preps():
+    return axis.prepare(generate(SynthConfig(n_episodes=4, duration_s=3.0, seed=3, effects={"deadband": {}})))
+
+
+def test_repeated_fit_reuses_episode_statistics(monkeypatch):
+    preps = _preps()
+    first = axis.fit_axis(preps, ["deadband"], refine=False)
+    calls = []
+    real_design = axis.design
+    monkeypatch.setattr(axis, "design", lambda p, params: calls.append(1) or real_design(p, params))
+    # The same fit again: no new design matrix at all.
+    axis.fit_axis(preps, ["deadband"], refine=False)
+    assert calls == []
+    # A bootstrap replicate (other weights): the grid is reused; only its refined (off-grid) point is new.
+    axis.fit_axis(preps, ["deadband"], weights=np.array([2.0, 0.0, 1.0, 1.0]), refine=False)
+    assert len(calls) <= len(preps)
+    # The cached statistics give the same fit as fresh episodes without a cache.
+    fresh = axis.fit_axis(_preps(), ["deadband"], refine=False)
+    assert first.hyper == fresh.hyper
+    assert first.coef == fresh.coef
+
+
+def test_cache_is_keyed_on_what_the_design_reads():
+    preps = _preps()
+    params = axis.fit_axis(preps, ["deadband"], refine=False)
+    s1 = axis.episode_stats(preps[:1], params)[0]
+    params.hyper["width_u"] = params.hyper["width_u"] + 0.1
+    s2 = axis.episode_stats(preps[:1], params)[0]
+    assert not np.allclose(s1.xty, s2.xty)
+
+
+def test_exact_signed_rank_matches_scipy_without_its_permutation_test(monkeypatch):
+    """Small held-out sets with zeros or ties: the enumerated exact p equals scipy's permutation p."""
+    from scipy import stats as st
+
+    from calibration import selection
+
+    rng = np.random.default_rng(5)
+    cases = []
+    for n in (6, 9, 13):
+        for _ in range(3):
+            d = rng.normal(0.4, 1.0, n)
+            d[rng.integers(0, n, 2)] = 0.0
+            d[1] = -d[2]  # a tie in |d|
+            cases.append(d)
+    expected = [st.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue for d in cases]
+
+    def no_permutation(*a, **k):
+        raise AssertionError("scipy permutation test called")
+
+    monkeypatch.setattr(st, "permutation_test", no_permutation)
+    for d, want in zip(cases, expected, strict=True):
+        base = np.abs(d) + 1.0
+        assert selection.paired_p(base, base - d) == pytest.approx(want, abs=1e-12)
