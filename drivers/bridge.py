@@ -98,7 +98,7 @@ class DriverNode(Node):
         self.stopped_reason = "waiting"
         # lockstep: the controller answers every state, a lost one stalls the loop
         self._state_pub = self.publisher(keys.state(rig, robot), RobotState, reliable=pace == "lockstep")
-        self._spec_pub = self.publisher(keys.spec(rig, robot), SpecMsg)
+        self._spec_pub = self.publisher(keys.spec(rig, robot), SpecMsg, reliable=True)  # rare; every reader needs it
         self._cmd = self.subscribe(keys.cmd(rig, robot), Command)
         self._estop_ack = self.publisher(keys.estop_ack(rig), EStopAck)
         self._reset_req = self.subscribe(keys.reset(rig, "request"), ResetEvent)
@@ -207,7 +207,15 @@ class DriverNode(Node):
         return jumped
 
     def _handle_reset(self) -> bool:
-        """Serve a reset request; True when the robot was reset (a new episode starts)."""
+        """Serve a reset request; True when the robot was reset (a new episode starts).
+        The spec goes out again at every new episode, so a recording that starts with an
+        episode has it however short it is (the 1 Hz / 50-step repeat may not fall inside)."""
+        new_episode = self._serve_reset()
+        if new_episode:
+            self.publish_spec()
+        return new_episode
+
+    def _serve_reset(self) -> bool:
         jumped = self._handle_supervisor()
         m = self._reset_req.poll()
         if m is None or m.robot != self.robot or self.supervisor_alive:

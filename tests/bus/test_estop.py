@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from bus import keys
 from bus.node import Node
-from bus.schemas import Command, EStop, RobotState, decode, encode
+from bus.schemas import Command, EStop, ResetEvent, RobotState, decode, encode
 from configs.schema import load_rig, rig_robot_config
 from drivers.bridge import DriverNode
 from drivers.registry import make_driver
@@ -169,4 +169,31 @@ def test_a_release_the_driver_cannot_honour_is_acknowledged_as_still_engaged(bus
     finally:
         stop.set()
         th.join()
+        node.close()
+
+
+def test_every_new_episode_republishes_the_spec(bus):
+    """A recording that starts with an episode gets the spec however short it is (the 1 Hz /
+    50-step repeat may fall outside it): the node sends the spec again on each reset."""
+    cfg = load_rig(RIG)
+    node = DriverNode(make_driver(rig_robot_config(cfg, "pm")), RIG, "pm", bus, handle_signals=False)
+    try:
+        node.driver.configure()
+        node.driver.activate()
+        sent: list[int] = []
+        node.publish_spec = lambda: sent.append(node.episode)  # type: ignore[method-assign]
+        ctl = Node("ctl", RIG, bus, handle_signals=False)
+        try:
+            req = ctl.publisher(keys.reset(RIG, "request"), ResetEvent)
+
+            def served() -> bool:
+                req.put(ResetEvent(robot="pm", phase="request", pose={"x": 0.0, "y": 0.0}))
+                return node._handle_reset()
+
+            wait_for(served, 10.0, "the reset request reaches the driver node")
+        finally:
+            ctl.close()
+        assert sent == [1]  # one spec, sent for the new episode
+    finally:
+        node.driver.cleanup()
         node.close()
