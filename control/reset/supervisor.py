@@ -149,6 +149,9 @@ class RobotLink:
                                                           self._on_alive, history=True)
         sup._closeables.append(SimpleNamespace(close=tok.undeclare))
         self.state_names: list[str] = []
+        #: the newest state when the robot last changed under it (a reset): older states
+        #: describe a world that is gone (:meth:`outdate`)
+        self._outdated: RobotState | None = None
         self._answered_seq = -1
         self._answered_wall: float | None = None
 
@@ -162,9 +165,17 @@ class RobotLink:
             return m.spec
         return None
 
+    def outdate(self) -> None:
+        """The world changed (a reset put the balls back): states received so far are
+        history. :meth:`state` answers None until this robot publishes again, so a detector
+        never ends the new episode on a picture of the old one (an idle lockstep arm
+        publishes only once per lockstep timeout)."""
+        self._outdated = self._state.poll() or self._state.last
+
     def state(self, not_before_t_s: float | None = None, timeout_s: float = 0.0) -> RobotState | None:
-        """The newest state; with ``not_before_t_s``, wait up to ``timeout_s`` (wall clock)
-        for one at least that recent in robot time (lockstep rigs: the state of this period)."""
+        """The newest state (None before any, or none since :meth:`outdate`); with
+        ``not_before_t_s``, wait up to ``timeout_s`` (wall clock) for one at least that
+        recent in robot time (lockstep rigs: the state of this period)."""
         m = self._state.poll() or self._state.last
         deadline = time.monotonic() + timeout_s
         while not_before_t_s is not None and (m is None or m.t_s < not_before_t_s - 1e-9):
@@ -172,6 +183,8 @@ class RobotLink:
             if left <= 0:
                 break
             m = self._state.wait(left) or m
+        if m is not None and m is self._outdated:
+            return None
         return m
 
     def answer(self, state: RobotState, action: np.ndarray) -> bool:
@@ -583,6 +596,8 @@ class ResetSupervisor(Node):
         why = self.check_pose(s)
         if not why:
             self._fire("verified")
+            for link in self.links.values():
+                link.outdate()
             self.request_driver("episode", self._pose)
             self._answer_wait_s = time.monotonic()
             return

@@ -254,6 +254,23 @@ def test_teleport_remains_an_option_on_the_sim_rig(hand_arm_rig):
     assert not rig.hand.task.dropped(rig.hand.balls_m())
 
 
+def test_the_new_episode_is_not_judged_on_the_arms_picture_of_the_old_one(hand_arm_rig):
+    """The drop detector watches the arm's state, and an idle lockstep arm publishes once per
+    lockstep timeout: after a teleport its newest state still shows the dropped balls. That
+    picture must not end the new episode (CI caught it once under load)."""
+    rig = hand_arm_rig(steps=[{"kind": "teleport", "timeout_s": 5}])
+    end_episode_by_drop(rig)
+    # the arm's last picture shows the drop, and it publishes no other for a while
+    arm = rig.nodes["arm"]
+    arm.lockstep_timeout_s = 60.0
+    steps = arm.stats.steps
+    wait_for(lambda: arm.stats.steps > steps, 5, "the arm's last state before the reset")
+    first = rig.ctl.reset(timeout_s=30)
+    rig.ctl.run_lockstep(hold, 10, first)
+    assert rig.dests() == FULL_CYCLE
+    assert not rig.hand.task.dropped(rig.hand.balls_m())
+
+
 def test_hil_up_runs_the_hand_and_its_reset_arm_in_one_world(spawn, bus):
     """`hil up hand_sim_arm`: the arm's sim joins the hand's scene (it would fail to
     configure in a process of its own) and both answer a controller on the bus."""
