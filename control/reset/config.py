@@ -87,8 +87,9 @@ class ResetConfig(Strict):
 
 
 def load_reset(rig: RigConfig) -> ResetConfig | None:
-    """The rig's reset procedure, or None when it has none. Checks the step kinds and that
-    the robot is on the rig; raises :class:`ConfigError` naming file and field."""
+    """The rig's reset procedure, or None when it has none. Checks the step kinds, each
+    step's params and that the robot is on the rig; raises :class:`ConfigError` naming
+    file and field."""
     if rig.reset is None:
         return None
     cfg = parse_model(ResetConfig, rig.reset, rig.source)
@@ -99,6 +100,7 @@ def load_reset(rig: RigConfig) -> ResetConfig | None:
     for i, s in enumerate(cfg.steps):
         if s.kind not in STEP_KINDS:
             raise ConfigError(rig.source, [(f"reset.steps[{i}].kind", f"unknown step {s.kind!r}; known: {sorted(STEP_KINDS)}")])
+        STEP_KINDS[s.kind].parse_params(s.params, rig.source, f"reset.steps[{i}].params")
     for i, d in enumerate(cfg.detectors):
         if d.robot is not None and d.robot not in rig.robots:
             raise ConfigError(rig.source, [(f"reset.detectors[{i}].robot",

@@ -27,14 +27,17 @@ Kinds (``reset.steps[].kind`` in a rig config):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from bus.schemas import ResetEvent, RobotState
+from configs.schema import ConfigError, parse_model
 from control.baselines import DifferentialDriveController
 from control.reset.config import StepConfig
 
@@ -76,12 +79,39 @@ class StepContext(Protocol):
         """Count an event for the report (``fixture_recoveries``, ``self_righted``...)."""
 
 
+class StepParams(BaseModel):
+    """A step's ``params`` (``reset.steps[].params``): typed, unknown keys refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
 class ResetStep(ABC):
+    """A step's ``params`` are declared as its ``Params`` model; :meth:`parse_params`
+    checks them when the rig config loads (control/reset/config.py: ``load_reset``), and
+    each validated param becomes an attribute of the step."""
+
     kind: str = "step"
+    Params: type[StepParams] = StepParams
 
     def __init__(self, cfg: StepConfig):
         self.cfg = cfg
         self.name = cfg.kind
+        self.params = self.parse_params(cfg.params, where=f"{cfg.kind}.params")
+        for k in type(self.params).model_fields:
+            setattr(self, k, getattr(self.params, k))
+
+    @classmethod
+    def params_model(cls) -> type[StepParams]:
+        return cls.Params
+
+    @classmethod
+    def parse_params(cls, params: dict[str, Any], file: str | None = None, where: str = "params") -> StepParams:
+        """``params`` validated into :attr:`Params`; a :class:`ConfigError` naming each bad
+        field under ``where`` (``reset.steps[2].params``)."""
+        try:
+            return parse_model(cls.params_model(), params, file)
+        except ConfigError as e:
+            raise ConfigError(file, [(f"{where}.{loc}" if loc else where, msg) for loc, msg in e.problems]) from None
 
     @abstractmethod
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
@@ -127,18 +157,16 @@ class DriveToStart(ResetStep):
 
     kind = "drive_to_start"
 
+    class Params(StepParams):
+        speed: float = Field(0.6, gt=0, le=1)
+        tolerance_m: float = Field(0.1, gt=0)
+        k_heading: float = Field(0.1, ge=0)
+        k_perp: float = Field(0.5, ge=0)
+        d_max: float = Field(0.1, gt=0, le=1)
+        turn_above_rad: float = Field(0.6, gt=0)
+
     def __init__(self, cfg: StepConfig):
         super().__init__(cfg)
-        p = dict(cfg.params)
-        self.speed = float(p.pop("speed", 0.6))
-        self.tolerance_m = float(p.pop("tolerance_m", 0.1))
-        self.k_heading = float(p.pop("k_heading", 0.1))
-        self.k_perp = float(p.pop("k_perp", 0.5))
-        self.d_max = float(p.pop("d_max", 0.1))
-        self.turn_above_rad = float(p.pop("turn_above_rad", 0.6))
-        if p:
-            raise ValueError(f"drive_to_start: unknown params {sorted(p)} "
-                             "(speed, tolerance_m, k_heading, k_perp, d_max, turn_above_rad)")
         self._ctl: DifferentialDriveController | None = None
         self._goal = np.zeros(2)
         self._dir = np.array([1.0, 0.0])
@@ -202,18 +230,16 @@ class SelfRight(ResetStep):
 
     kind = "self_right"
 
+    class Params(StepParams):
+        speed: float = Field(1.0, gt=0, le=1)
+        upright_above: float = Field(0.8, gt=0, le=1)
+        settle_s: float = Field(0.5, ge=0)
+        hold_first_s: float = Field(1.0, ge=0)
+        seed: int = 0
+
     def __init__(self, cfg: StepConfig):
         super().__init__(cfg)
-        p = dict(cfg.params)
-        self.speed = float(p.pop("speed", 1.0))
-        self.upright_above = float(p.pop("upright_above", 0.8))
-        self.settle_s = float(p.pop("settle_s", 0.5))
-        self.hold_first_s = float(p.pop("hold_first_s", 1.0))
-        self.rng = np.random.default_rng(int(p.pop("seed", 0)))
-        if p:
-            raise ValueError(
-                f"self_right: unknown params {sorted(p)} (speed, upright_above, settle_s, hold_first_s, seed)"
-            )
+        self.rng = np.random.default_rng(self.seed)
 
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
         self._names = list(ctx.state_names)
@@ -256,14 +282,13 @@ class LabFixture(ResetStep):
 
     kind = "lab_fixture"
 
+    class Params(StepParams):
+        upright_above: float = Field(0.8, gt=0, le=1)
+        settle_s: float = Field(0.5, ge=0)
+        resend_s: float = Field(0.5, gt=0)
+
     def __init__(self, cfg: StepConfig):
         super().__init__(cfg)
-        p = dict(cfg.params)
-        self.upright_above = float(p.pop("upright_above", 0.8))
-        self.settle_s = float(p.pop("settle_s", 0.5))
-        self.resend_s = float(p.pop("resend_s", 0.5))
-        if p:
-            raise ValueError(f"lab_fixture: unknown params {sorted(p)} (upright_above, settle_s, resend_s)")
         self._client = None
 
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
@@ -352,15 +377,14 @@ class TurnToYaw(ResetStep):
 
     kind = "turn_to_yaw"
 
+    class Params(StepParams):
+        speed: float = Field(0.1, gt=0, le=1)
+        gain: float = Field(0.1, gt=0)
+        tolerance_rad: float = Field(0.15, gt=0)
+        settle_s: float = Field(0.5, ge=0)
+
     def __init__(self, cfg: StepConfig):
         super().__init__(cfg)
-        p = dict(cfg.params)
-        self.speed = float(p.pop("speed", 0.1))
-        self.gain = float(p.pop("gain", 0.1))
-        self.tolerance_rad = float(p.pop("tolerance_rad", 0.15))
-        self.settle_s = float(p.pop("settle_s", 0.5))
-        if p:
-            raise ValueError(f"turn_to_yaw: unknown params {sorted(p)} (speed, gain, tolerance_rad, settle_s)")
         self._inside_since_s: float | None = None
 
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
@@ -430,16 +454,20 @@ class TaskReset(ResetStep):
 
     kind = "task_reset"
 
+    class Params(StepParams):
+        #: the other params go to the mechanism, which checks them
+        model_config = ConfigDict(extra="allow", frozen=True)
+        mechanism: str
+
     def __init__(self, cfg: StepConfig):
         super().__init__(cfg)
-        p = dict(cfg.params)
-        name = p.pop("mechanism", None)
+        name = self.params.mechanism
         if name not in MECHANISMS:
             raise ValueError(
                 f"task_reset: no mechanism {name!r} registered (known: {sorted(MECHANISMS)}); "
                 "the WidowX mechanism comes with the arms driver"
             )
-        self.mechanism = MECHANISMS[name](p)
+        self.mechanism = MECHANISMS[name](dict(self.params.model_extra or {}))
 
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
         self.mechanism.begin(pose)
@@ -449,6 +477,32 @@ class TaskReset(ResetStep):
 
     def abort(self) -> None:
         self.mechanism.abort()
+
+
+@functools.cache
+def _pick_place_params() -> type[StepParams]:
+    """ArmPickPlace's params: the rig-robot name of the arm, the sync wait, and the
+    script's :class:`~control.reset.arm_pick_place.PickPlaceConfig` fields (its period
+    comes from the arm's spec, not from the config)."""
+    import typing
+
+    from pydantic import create_model
+
+    from control.reset.arm_pick_place import PickPlaceConfig
+
+    hints = typing.get_type_hints(PickPlaceConfig)
+    fields: dict[str, Any] = {}
+    for f in dataclasses.fields(PickPlaceConfig):
+        if f.name == "period_s":
+            continue
+        if f.default is not dataclasses.MISSING:
+            fields[f.name] = (hints[f.name], f.default)
+        elif f.default_factory is not dataclasses.MISSING:
+            fields[f.name] = (hints[f.name], Field(default_factory=f.default_factory))
+        else:
+            fields[f.name] = (hints[f.name], ...)
+    return create_model("ArmPickPlaceParams", __base__=StepParams, arm=(str, "arm"),
+                        sync_wait_s=(float, Field(0.2, ge=0)), **fields)
 
 
 class ArmPickPlace(ResetStep):
@@ -472,23 +526,15 @@ class ArmPickPlace(ResetStep):
 
     kind = "arm_pick_place"
 
+    @classmethod
+    def params_model(cls) -> type[StepParams]:
+        return _pick_place_params()  # built on first use: the script's module loads MuJoCo
+
     def __init__(self, cfg: StepConfig):
         from control.reset.arm_pick_place import PickPlaceConfig
 
         super().__init__(cfg)
-        p = dict(cfg.params)
-        self.arm = str(p.pop("arm", "arm"))
-        self.sync_wait_s = float(p.pop("sync_wait_s", 0.2))
-        missing = [k for k in ("base_pos_m", "spot_m", "palm_center_m") if k not in p]
-        if missing:
-            raise ValueError(f"arm_pick_place: params {missing} are required (world frame, m; docs/reset.md)")
-        known = set(PickPlaceConfig.__dataclass_fields__)
-        unknown = sorted(set(p) - known)
-        if unknown:
-            raise ValueError(f"arm_pick_place: unknown params {unknown} (known: {sorted(known | {'arm', 'sync_wait_s'})})")
-        for k in ("base_pos_m", "spot_m", "palm_center_m"):
-            p[k] = tuple(float(x) for x in p[k])
-        self.pp_cfg = PickPlaceConfig(**p)
+        self.pp_cfg = PickPlaceConfig(**self.params.model_dump(exclude={"arm", "sync_wait_s"}))
         self.script = None
         self._link = None
         self._hold: np.ndarray | None = None

@@ -82,6 +82,16 @@ def test_reset_config_errors_name_the_field():
         load_reset(rig({"robot": "hand", "steps": [{"kind": "drive_to_start"}]}))
     with pytest.raises(ConfigError, match=r"timeout_s"):
         load_reset(rig({"robot": "roach", "steps": [{"kind": "drive_to_start", "timeout_s": -1}]}))
+    # a step's params are checked when the config loads, not when the supervisor starts
+    with pytest.raises(ConfigError, match=r"reset.steps\[1\].params.speed: Input should be less than or equal to 1"):
+        load_reset(rig({"robot": "roach", "steps": [{"kind": "self_right"},
+                                                   {"kind": "drive_to_start", "params": {"speed": 6}}]}))
+    with pytest.raises(ConfigError, match=r"reset.steps\[0\].params.spot_m: Field required"):
+        load_reset(rig({"robot": "roach", "steps": [{"kind": "arm_pick_place", "params": {
+            "base_pos_m": [0, 0, 0], "palm_center_m": [0, 0, 0.1]}}]}))
+    with pytest.raises(ConfigError, match=r"reset.steps\[0\].params.period_s: unknown field"):
+        load_reset(rig({"robot": "roach", "steps": [{"kind": "arm_pick_place", "params": {
+            "base_pos_m": [0, 0, 0], "spot_m": [0, 0, 0], "palm_center_m": [0, 0, 0.1], "period_s": 0.1}}]}))
 
 
 def test_a_rig_that_nothing_can_reset_refuses_at_start_with_what_to_add():
@@ -118,7 +128,7 @@ def test_turn_to_yaw_turns_the_short_way_and_finishes_within_tolerance():
     assert isinstance(t.update(_Ctx, st(t_s=1.2, yaw=2.7)), type(a))  # coasted out: turn again
     assert t.update(_Ctx, st(t_s=1.3, yaw=2.95)) == HOLD
     assert t.update(_Ctx, st(t_s=1.8, yaw=2.96)) == DONE
-    with pytest.raises(ValueError, match="unknown params"):
+    with pytest.raises(ConfigError, match=r"turn_to_yaw.params.sped: unknown field \(allowed here: \['gain', 'settle_s', 'speed', 'tolerance_rad'\]\)"):
         TurnToYaw(StepConfig(kind="turn_to_yaw", params={"sped": 1}))
 
 
