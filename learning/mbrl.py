@@ -174,7 +174,9 @@ def rig_processes(rig: str, bus: BusConfig, log_dir: Path) -> Iterator[subproces
         [sys.executable, "-m", "tools.cli", "up", rig, "--endpoint", bus.endpoint],
         stdout=err,
         stderr=subprocess.STDOUT,
-        env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"},
+        # HIL_PARENT_PID: the rig stops itself if this process dies without stopping it
+        # (SIGKILL, a crash): tools/common.py, exit_with_parent
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1", "HIL_PARENT_PID": str(os.getpid())},
     )
     try:
         yield p

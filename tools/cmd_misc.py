@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
 
 import typer
 
-from tools.common import EndpointOpt, UserError, bus_config, echo_json, setup_logging, user_errors
+from tools.common import (
+    PARENT_PID_ENV,
+    EndpointOpt,
+    UserError,
+    bus_config,
+    echo_json,
+    exit_with_parent,
+    setup_logging,
+    user_errors,
+)
 
 
 def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
@@ -75,6 +85,7 @@ def register(app: typer.Typer) -> None:
         from drivers.registry import make_driver
 
         setup_logging()
+        exit_with_parent()
         cfg = load_rig(rig)
         bus = bus_config(endpoint) if endpoint else cfg.bus
         names = robot.split(",") if robot else list(cfg.robots)
@@ -99,7 +110,7 @@ def register(app: typer.Typer) -> None:
                     cmd += ["--steps", str(steps)]
                 if endpoint:
                     cmd += ["--endpoint", endpoint]
-                procs.append(subprocess.Popen(cmd))
+                procs.append(subprocess.Popen(cmd, env={**os.environ, PARENT_PID_ENV: str(os.getpid())}))
 
             def forward(signum, _frame):  # stopped by a supervisor (SIGTERM): stop every robot's node too
                 for p in procs:

@@ -1,0 +1,51 @@
+"""A rig started by a `hil` process stops when that process dies without stopping it
+(SIGKILL, a crash): tools/common.py, exit_with_parent."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+from bus.node import Node, alive_nodes
+from tests.helpers import wait_for
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie (exited, not reaped: its parent is gone and init reaps it soon) is not alive
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().split(")")[-1].split()[0] != "Z"
+
+
+def test_a_killed_demo_does_not_leave_its_rig_running(bus, tmp_path):
+    code = textwrap.dedent(f"""
+        import sys, time
+        from pathlib import Path
+        from configs.schema import BusConfig
+        from learning.mbrl import rig_processes
+        with rig_processes("roach_sim", BusConfig(endpoint={bus.endpoint!r}), Path({str(tmp_path)!r})) as p:
+            print(p.pid, flush=True)
+            time.sleep(600)
+    """)
+    parent = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    try:
+        rig_pid = int(parent.stdout.readline())
+        log = tmp_path / "driver.log"
+        with Node("probe", "roach_sim", bus, handle_signals=False) as probe:
+            wait_for(lambda: alive_nodes(probe.session, "roach_sim", timeout_s=0.2), 60, "the rig's driver node")
+        assert _alive(rig_pid)
+        parent.send_signal(signal.SIGKILL)  # no cleanup runs in the parent
+        parent.wait(10)
+        wait_for(lambda: not _alive(rig_pid), 20, "the orphaned rig to stop")
+        assert "is gone: stopping" in log.read_text()
+    finally:
+        if parent.poll() is None:
+            parent.kill()
