@@ -413,7 +413,9 @@ def read_messages(path: str | Path) -> ReadResult:
 
 
 class Recorder(Node):
-    """Records every message under ``hil/<rig>/**`` to one MCAP file.
+    """Records every message under ``hil/<rig>/**`` to one MCAP file; with ``topics``
+    (key-expression patterns, as :func:`topic_filter`) only the matching ones, plus the
+    robots' specs, without which a recording cannot be read back as robot data.
 
     Use :meth:`record` (blocks until a signal, ``stop_event`` or ``seconds``) or call
     :meth:`pump` yourself; :meth:`close` writes what is still queued, finishes the file
@@ -428,16 +430,25 @@ class Recorder(Node):
         path: str | Path,
         bus: BusConfig | None = None,
         flush_period_s: float = FLUSH_PERIOD_S,
+        topics: list[str] | None = None,
         **kw: Any,
     ):
+        keep = topic_filter(topics)  # a bad pattern fails here, before anything is opened
+        for t in topics or []:
+            if not zenoh.KeyExpr(t).intersects(zenoh.KeyExpr(keys.all_of(rig))):
+                raise ValueError(f"topic pattern {t!r} matches nothing under {keys.all_of(rig)}")
+        specs = zenoh.KeyExpr(f"{keys.root(rig)}/*/spec")  # every robot's (bus/keys.py: spec)
+        self._keep = keep if topics else None
+        self._is_spec = lambda topic: specs.intersects(zenoh.KeyExpr(topic))
         super().__init__("recorder", rig, bus, **kw)
-        self.log = McapLog(
-            path,
-            metadata={"rig": rig, "started": time.strftime("%Y-%m-%dT%H:%M:%S")},
-            flush_period_s=flush_period_s,
-        )
+        meta = {"rig": rig, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+        if topics:
+            meta["topics"] = " ".join(topics)
+        self.log = McapLog(path, metadata=meta, flush_period_s=flush_period_s)
         self._sub = self.subscribe(keys.all_of(rig), AnyMsg, latest=False, capacity=1 << 16)
         self.malformed = 0
+        #: messages left out by ``topics``
+        self.filtered = 0
         self._lock = threading.Lock()
 
     def pump(self) -> int:
@@ -447,6 +458,9 @@ class Recorder(Node):
             if self.log.closed:
                 raise RecordingClosed(f"recorder of {self.rig} is closed: {self.log.path} is finished")
             for key, payload in self._sub.drain():
+                if self._keep is not None and not (self._keep(key) or self._is_spec(key)):
+                    self.filtered += 1
+                    continue
                 try:
                     msg = decode(payload, AnyMsg)
                 except MalformedMessage:

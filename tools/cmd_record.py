@@ -17,19 +17,28 @@ def register(app: typer.Typer) -> None:
         rig: str = typer.Option(..., "--rig", help="rig name (key prefix hil/<rig>/)"),
         out: Path = typer.Option(None, "--out", help="MCAP file (default recordings/<rig>-<time>.mcap)"),
         seconds: float = typer.Option(None, "--seconds", help="stop after this long (default: until Ctrl-C)"),
+        topics: list[str] = typer.Option(
+            None, "--topics", help="only topics matching these key expressions (e.g. 'hil/lab/*/state'; the "
+                                   "robots' specs are always recorded); repeatable. Default: everything of the rig"
+        ),
         endpoint: str = EndpointOpt,
     ) -> None:
         """Record every message of a rig to one MCAP file (a crash loses at most the last 0.5 s)."""
         from bus.recording import Recorder
 
         out = out or Path("recordings") / f"{rig}-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
-        rec = Recorder(rig, out, bus_config(endpoint))
-        typer.echo(f"recording hil/{rig}/** to {out} (Ctrl-C to stop)", err=True)
+        try:
+            rec = Recorder(rig, out, bus_config(endpoint), topics=topics)
+        except ValueError as e:
+            raise UserError(str(e)) from None
+        what = " ".join(topics) + " (and the specs)" if topics else f"hil/{rig}/**"
+        typer.echo(f"recording {what} to {out} (Ctrl-C to stop)", err=True)
         try:
             n = rec.record(seconds)
         finally:
             rec.close()
-        typer.echo(f"wrote {n} messages to {out} ({rec.malformed} malformed payloads skipped)", err=True)
+        left = f", {rec.filtered} left out by --topics" if topics else ""
+        typer.echo(f"wrote {n} messages to {out} ({rec.malformed} malformed payloads skipped{left})", err=True)
 
     @app.command()
     @user_errors

@@ -420,3 +420,36 @@ def test_replay_refuses_a_rig_with_live_driver_nodes_unless_forced(tmp_path, bus
     finally:
         lis.node.close()
         driver.close()
+
+
+def test_record_topics_keeps_the_matching_ones_and_the_specs(tmp_path, bus):
+    from bus.schemas import SpecMsg, encode
+
+    path = tmp_path / "rec.mcap"
+    rec = Recorder(RIG, path, bus, handle_signals=False, topics=[f"hil/{RIG}/*/state"])
+    pub = Node("pub", RIG, bus, handle_signals=False)
+    try:
+        time.sleep(0.5)  # discovery
+        pub.session.put(keys.spec(RIG, "pm"), encode(SpecMsg(robot="pm", spec={"state": {"names": ["x"]}})))
+        pub.session.put(keys.cmd(RIG, "pm"), encode(Command(robot="pm", action=[1.0], seq=1)))
+        pub.session.put(keys.state(RIG, "pm"), encode(RobotState(robot="pm", t_s=0.0, state=[0.0], seq=1)))
+        pub.session.put(keys.plan(RIG), encode(Plan(robot="pm", actions=[[0.0]], states=[[0.0]], cost=0.0, seq=1)))
+        rec.record(seconds=0.5)
+    finally:
+        rec.close()
+        pub.close()
+    back = read_messages(path)
+    assert sorted(r.topic for r in back.messages) == [keys.spec(RIG, "pm"), keys.state(RIG, "pm")]
+    assert rec.filtered == 2
+
+
+def test_record_topics_errors_are_one_line(tmp_path):
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    for pattern, why in [("hil/other/*/state", "matches nothing under hil/rec_test/**"),
+                         ("hil/**/a**", "bad topic pattern")]:
+        r = CliRunner().invoke(app, ["record", "--rig", RIG, "--out", str(tmp_path / "x.mcap"), "--topics", pattern])
+        assert r.exit_code == 2 and why in r.output and r.output.strip().count("\n") == 0, r.output
+        assert not (tmp_path / "x.mcap").exists()
