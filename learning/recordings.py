@@ -5,6 +5,12 @@ state, the action held during the period that ended with it, and an ``episode``
 counter incremented by each reset. So transition t of an episode is
 ``(states[t], states[t+1].action, states[t+1])``. Actions are returned normalized to
 [-1, 1] of the robot's spec (recorded on ``.../spec``) unless ``normalize=False``.
+
+The driver node bumps ``episode`` only when a reset is done, so the reset's own motion
+(self-right kicks, the drive back, a lab fixture putting the robot on its legs, a
+teleport) is recorded under the episode that ended. The reset supervisor's recorded
+``ResetTransition`` messages say when: every state between leaving ``running`` and coming
+back to it is left out, and the episode's transitions end where the episode did.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from bus.recording import iter_messages
-from bus.schemas import RobotState, SpecMsg
+from bus.schemas import ResetTransition, RobotState, SpecMsg
 from learning.datasets import Episode
 
 
@@ -28,12 +34,24 @@ def episodes_from_mcap(
     """Split a recording into episodes of one robot (the only one, or ``robot``)."""
     states: dict[tuple[str, int], list[RobotState]] = {}
     specs: dict[str, dict] = {}
+    #: per robot: log times [ns] of each reset's [start, end) (end None: never came back)
+    resets: dict[str, list[list[int | None]]] = {}
+    in_reset: set[int] = set()  # ids of the states recorded during a reset
     for rm in iter_messages(path):
         m = rm.msg
         if isinstance(m, SpecMsg):
             specs.setdefault(m.robot, m.spec)
         elif isinstance(m, RobotState) and m.state:
             states.setdefault((m.robot, m.episode), []).append(m)
+            w = resets.get(m.robot)
+            if w and w[-1][1] is None:
+                in_reset.add(id(m))
+        elif isinstance(m, ResetTransition):
+            w = resets.setdefault(m.robot, [])
+            if m.source == "running" and m.dest != "running" and not (w and w[-1][1] is None):
+                w.append([rm.log_time_ns, None])  # the episode ended (or the rig stopped)
+            elif m.dest == "running" and w and w[-1][1] is None:
+                w[-1][1] = rm.log_time_ns
     robots = sorted({r for r, _ in states})
     if robot is None:
         if len(robots) != 1:
@@ -58,10 +76,11 @@ def episodes_from_mcap(
             if m.t_s > uniq[-1].t_s:
                 uniq.append(m)
         # a reading flagged not ok (link trouble, sim blow-up) ends a segment: transitions
-        # into or out of it are not trustworthy
+        # into or out of it are not trustworthy; so does a reset (its motion is not the
+        # episode's, and a fixture or teleport moves the robot without a cause in the action)
         segments: list[list[RobotState]] = [[]]
         for m in uniq:
-            if m.ok:
+            if m.ok and id(m) not in in_reset:
                 segments[-1].append(m)
             elif segments[-1]:
                 segments.append([])

@@ -46,3 +46,35 @@ def test_unknown_robot_is_a_clear_error(tmp_path):
     _write(tmp_path / "c.mcap", [(0, 0.0, 0.0, True), (0, 1.0, 0.0, True)])
     with pytest.raises(ValueError, match="no states of robot 'other'"):
         episodes_from_mcap(tmp_path / "c.mcap", "other")
+
+
+def test_a_reset_recorded_under_the_ended_episode_is_left_out(tmp_path):
+    """The driver bumps the episode when the reset is done: the reset's motion (here a
+    teleport-like jump) is recorded under episode 0, between the supervisor's transitions."""
+    from bus.schemas import ResetTransition
+
+    def tr(source, dest):
+        return ResetTransition(robot="bot", trigger="t", source=source, dest=dest)
+
+    with McapLog(tmp_path / "r.mcap") as log:
+        t = iter(range(1, 100))
+        log.write(keys.spec("r", "bot"), SpecMsg(robot="bot", spec=SPEC), log_time_ns=next(t))
+
+        def state(i, ep, x):
+            log.write(keys.state("r", "bot"), RobotState(robot="bot", t_s=0.1 * i, state=[x, 0.0], action=[1.0],
+                                                         episode=ep, seq=i + 1), log_time_ns=next(t))
+
+        for i in range(5):
+            state(i, 0, float(i))
+        log.write(keys.reset_transition("r"), tr("running", "episode_end"), log_time_ns=next(t))
+        for i, x in [(5, 4.5), (6, 50.0), (7, 0.0)]:  # the reset drives back, then jumps home
+            state(i, 0, x)
+        for src, dst in [("episode_end", "paused"), ("paused", "resetting"), ("resetting", "verifying"),
+                         ("verifying", "resumed"), ("resumed", "running")]:
+            log.write(keys.reset_transition("r"), tr(src, dst), log_time_ns=next(t))
+        for i in range(8, 12):
+            state(i, 1, float(i - 8))
+    eps = episodes_from_mcap(tmp_path / "r.mcap")
+    np.testing.assert_allclose(eps[0].states[:, 0], [0, 1, 2, 3, 4])
+    np.testing.assert_allclose(eps[1].states[:, 0], [0, 1, 2, 3])
+    assert max(np.abs(np.diff(e.states[:, 0])).max() for e in eps) == 1.0
