@@ -3,10 +3,11 @@
 ``hil foxglove --rig RIG`` starts foxglove-sdk's WebSocket server (``foxglove.start_server``)
 and forwards every message under ``hil/<rig>/**`` on a channel named by its key, JSON with
 the same Foxglove-parsable JSON Schema as in recordings (``bus.schemas.json_schema``), plus
-the robots' poses as ``foxglove.PoseInFrame`` / ``FrameTransform`` (the same derived
-channels as in recordings, :class:`bus.recording.FoxglovePoses`). In Foxglove: Open
-connection → Foxglove WebSocket → ``ws://HOST:PORT``; the 3D panel shows the robots in
-frame ``world``.
+the robots' poses as ``foxglove.PoseInFrame`` / ``FrameTransform`` and the cameras' JPEG/PNG
+frames as ``foxglove.CompressedImage`` (the same derived channels as in recordings,
+:class:`bus.recording.FoxglovePoses`, :func:`bus.recording.foxglove_image`). In Foxglove:
+Open connection → Foxglove WebSocket → ``ws://HOST:PORT``; the 3D panel shows the robots in
+frame ``world``, an Image panel the cameras.
 
 The node only listens; it never publishes on the bus. Decoding happens in the node's own
 loop, not in Zenoh's callbacks.
@@ -20,15 +21,17 @@ from typing import Any
 
 import foxglove
 import foxglove.messages as fg
-from foxglove.channels import FrameTransformChannel, PoseInFrameChannel
+from foxglove.channels import CompressedImageChannel, FrameTransformChannel, PoseInFrameChannel
 
 from bus import keys
 from bus.node import Node
-from bus.recording import FoxglovePoses
+from bus.recording import FoxglovePoses, foxglove_image
 from bus.schemas import AnyMsg, MalformedMessage, Msg, decode, encode_json, json_schema, type_name
 from configs.schema import BusConfig
 
-_POSE_CHANNELS: dict[type, Any] = {fg.PoseInFrame: PoseInFrameChannel, fg.FrameTransform: FrameTransformChannel}
+#: the Foxglove messages derived from bus messages, and their typed channels
+_DERIVED_CHANNELS: dict[type, Any] = {fg.PoseInFrame: PoseInFrameChannel, fg.FrameTransform: FrameTransformChannel,
+                                      fg.CompressedImage: CompressedImageChannel}
 
 
 class FoxgloveLive(Node):
@@ -69,10 +72,10 @@ class FoxgloveLive(Node):
                                                           context=self._ctx)
         return ch
 
-    def _pose_channel(self, topic: str, m: Any) -> Any:
+    def _derived_channel(self, topic: str, m: Any) -> Any:
         ch = self._channels.get(topic)
         if ch is None:
-            ch = self._channels[topic] = _POSE_CHANNELS[type(m)](topic, context=self._ctx)
+            ch = self._channels[topic] = _DERIVED_CHANNELS[type(m)](topic, context=self._ctx)
         return ch
 
     def pump(self) -> int:
@@ -86,8 +89,12 @@ class FoxgloveLive(Node):
                 continue
             now_ns = time.time_ns()
             self._channel(key, msg).log(encode_json(msg), log_time=now_ns)
-            for topic, m, _stamp_ns in self._poses.derive(key, msg, now_ns):
-                self._pose_channel(topic, m).log(m, log_time=now_ns)
+            derived = self._poses.derive(key, msg, now_ns)
+            img = foxglove_image(key, msg, now_ns)
+            if img is not None:
+                derived.append(img)
+            for topic, m, _stamp_ns in derived:
+                self._derived_channel(topic, m).log(m, log_time=now_ns)
             n += 1
         self.forwarded += n
         return n

@@ -14,6 +14,7 @@ from mcap.reader import make_reader
 from bus import keys
 from bus.recording import (
     McapLog,
+    foxglove_image_topic,
     foxglove_pose_topic,
     foxglove_tf_topic,
     read_messages,
@@ -339,9 +340,12 @@ def test_tlog_errors_are_one_line(tmp_path):
 def test_live_foxglove_websocket_serves_the_rig(bus):
     """`hil foxglove`'s node: a WebSocket client speaking Foxglove's protocol sees our
     channels advertised with schemas that pass Foxglove's rules, and receives the rig's
-    states (JSON) and the robot's PoseInFrame (protobuf, decoded from the advertised schema)."""
+    states (JSON), the robot's PoseInFrame and a camera's CompressedImage (protobuf,
+    decoded from the advertised schema)."""
     import struct
 
+    import cv2
+    import numpy as np
     from mcap.records import Schema
     from mcap_protobuf.decoder import DecoderFactory
     from websockets.sync.client import connect
@@ -354,6 +358,8 @@ def test_live_foxglove_websocket_serves_the_rig(bus):
     live = FoxgloveLive(RIG, bus, port=0, handle_signals=False)
     pub = Node("pub", RIG, bus, handle_signals=False)
     state_topic, pose_topic = keys.state(RIG, "bot"), foxglove_pose_topic(RIG, "bot")
+    image_topic = foxglove_image_topic(RIG, "cam")
+    jpeg = cv2.imencode(".jpg", np.full((12, 16, 3), 200, np.uint8))[1].tobytes()
     try:
         with connect(live.url, subprotocols=["foxglove.sdk.v1"], open_timeout=10) as ws:
             channels: dict[str, dict] = {}
@@ -368,6 +374,8 @@ def test_live_foxglove_websocket_serves_the_rig(bus):
                     pub.session.put(keys.spec(RIG, "bot"), encode(SpecMsg(robot="bot", spec=SPEC, seq=i)))
                 st = RobotState(robot="bot", t_s=0.01 * i, state=[1.0, 2.0, 0.0, 1.0, 0.1], seq=i, stamp_s=1000.0 + i)
                 pub.session.put(state_topic, encode(st))
+                pub.session.put(keys.image(RIG, "cam"), encode(Image(camera="cam", t_s=0.01 * i, width=16, height=12,
+                                                                     encoding="jpeg", data=jpeg, seq=i)))
                 live.pump()
                 try:
                     while True:
@@ -377,7 +385,7 @@ def test_live_foxglove_websocket_serves_the_rig(bus):
                             if op["op"] == "advertise":
                                 for ch in op["channels"]:
                                     channels[ch["topic"]] = ch
-                                    if ch["topic"] in (state_topic, pose_topic):
+                                    if ch["topic"] in (state_topic, pose_topic, image_topic):
                                         subscribed[ch["id"]] = ch["topic"]
                                         ws.send(json.dumps({"op": "subscribe",
                                                             "subscriptions": [{"id": ch["id"], "channelId": ch["id"]}]}))
@@ -386,9 +394,9 @@ def test_live_foxglove_websocket_serves_the_rig(bus):
                             got.setdefault(subscribed[sub_id], []).append(bytes(frame[13:]))
                 except TimeoutError:
                     pass
-                return state_topic in got and pose_topic in got
+                return state_topic in got and pose_topic in got and image_topic in got
 
-            wait_for(step, timeout_s=20.0, what="a state and a pose over the Foxglove WebSocket")
+            wait_for(step, timeout_s=20.0, what="a state, a pose and an image over the Foxglove WebSocket")
     finally:
         pub.close()
         live.close()
@@ -404,6 +412,11 @@ def test_live_foxglove_websocket_serves_the_rig(bus):
     assert (pose.frame_id, pose.pose.position.x, pose.pose.position.y) == ("world", 1.0, 2.0)
     assert pose.pose.orientation.z == pytest.approx(math.sin(math.pi / 4))  # yaw 90 deg
     assert foxglove_tf_topic(RIG) in channels
+    ich = channels[image_topic]
+    assert (ich["encoding"], ich["schemaName"]) == ("protobuf", "foxglove.CompressedImage")
+    schema = Schema(id=2, name=ich["schemaName"], encoding="protobuf", data=base64.b64decode(ich["schema"]))
+    img = DecoderFactory().decoder_for("protobuf", schema)(got[image_topic][-1])
+    assert (img.format, img.frame_id, bytes(img.data)) == ("jpeg", "cam", jpeg)
 
 
 def test_live_foxglove_busy_port_is_a_one_line_error(bus):
