@@ -71,6 +71,14 @@ def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full:
     return report
 
 
+def _save(plt, fig, path: Path) -> str:
+    """Write ``fig`` to ``path`` (PNG) and close it; returns the file's name."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path.name
+
+
 def write_plots(report: dict[str, Any], out: Path) -> list[str]:
     import matplotlib
 
@@ -93,11 +101,7 @@ def write_plots(report: dict[str, Any], out: Path) -> list[str]:
             ax.set_aspect("equal", adjustable="datalim")
             ax.legend(fontsize=7)
         fig.suptitle(f"{label}: trajectories (cost per metre in legend, lower is better)")
-        f = out / f"trajectories_{label}.png"
-        fig.tight_layout()
-        fig.savefig(f, dpi=80)
-        plt.close(fig)
-        files.append(f.name)
+        files.append(_save(plt, fig, out / f"trajectories_{label}.png"))
     fig, ax = plt.subplots(figsize=(5, 3.5))
     x = np.arange(len(speeds))
     ax.bar(x - 0.2, [report[s]["mpc_cost_per_m"] for s in speeds], 0.4, label="MPC")
@@ -106,10 +110,7 @@ def write_plots(report: dict[str, Any], out: Path) -> list[str]:
                       for s in speeds])
     ax.set_ylabel("cost per metre of progress (lower is better)")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "costs.png", dpi=80)
-    plt.close(fig)
-    files.append("costs.png")
+    files.append(_save(plt, fig, out / "costs.png"))
     files += experiment_plots(report, out, plt)
     return files
 
@@ -134,10 +135,7 @@ def experiment_plots(report: dict[str, Any], out: Path, plt) -> list[str]:
         ax.set_ylabel("MPC cost per metre (mean ± std)")
         ax.set_title(f"Table 3.1: {len(t31['seeds'])} seeds, speed {t31['speed']}")
         ax.legend()
-        fig.tight_layout()
-        fig.savefig(out / "table_3_1.png", dpi=80)
-        plt.close(fig)
-        files.append("table_3_1.png")
+        files.append(_save(plt, fig, out / "table_3_1.png"))
     sw = report.get("speed_sweep")
     if sw:
         fig, ax = plt.subplots(figsize=(5.5, 3.8))
@@ -149,10 +147,7 @@ def experiment_plots(report: dict[str, Any], out: Path, plt) -> list[str]:
         ax.set_ylabel("cost per metre, all paths (mean ± std)")
         ax.set_title("Fig. 3.8: MPC vs tuned differential drive")
         ax.legend()
-        fig.tight_layout()
-        fig.savefig(out / "speed_sweep.png", dpi=80)
-        plt.close(fig)
-        files.append("speed_sweep.png")
+        files.append(_save(plt, fig, out / "speed_sweep.png"))
     t32 = report.get("table_3_2")
     if t32:
         fig, ax = plt.subplots(figsize=(6, 3.8))
@@ -166,10 +161,7 @@ def experiment_plots(report: dict[str, Any], out: Path, plt) -> list[str]:
         ax.set_ylabel("straight-line cost per metre (mean ± std)")
         ax.set_title("Table 3.2: terrains")
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(out / "table_3_2.png", dpi=80)
-        plt.close(fig)
-        files.append("table_3_2.png")
+        files.append(_save(plt, fig, out / "table_3_2.png"))
     return files
 
 
