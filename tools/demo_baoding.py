@@ -21,6 +21,9 @@ from learning.baoding import BaodingConfig, BaodingRun
 from tools.demo import free_endpoint
 
 FULL_SEEDS = (0, 1, 2)
+#: the full run's rig: the hand with its reset station (ramp + reset arm: docs/reset.md); the
+#: quick run teleports on hand_sim for speed
+FULL_RIG = "hand_sim_arm"
 
 
 def make_config(preset: str, seed: int, **overrides: Any) -> BaodingConfig:
@@ -55,11 +58,13 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
     return report
 
 
-def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thesis", **overrides: Any) -> dict[str, Any]:
+def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thesis", rig: str = FULL_RIG,
+             **overrides: Any) -> dict[str, Any]:
     """The thesis' settings over ``seeds``: per-seed reports in ``out/seed_<k>`` and the
-    final iteration's metrics as mean ± std across seeds."""
+    final iteration's metrics as mean ± std across seeds. On :data:`FULL_RIG` by default:
+    dropped balls are put back by the reset arm, as on the thesis' real hand."""
     out = Path(out)
-    runs = [run_baoding_demo(out / f"seed_{s}", preset=preset, seed=s, **overrides) for s in seeds]
+    runs = [run_baoding_demo(out / f"seed_{s}", preset=preset, seed=s, rig=rig, **overrides) for s in seeds]
 
     def across(key: str, pick) -> dict[str, float]:
         v = np.array([pick(r) for r in runs], dtype=np.float64)

@@ -159,6 +159,17 @@ def test_demo_baoding_tiny_end_to_end(tmp_path):
     assert all(p.endswith(".mcap") for p in r["recordings"]) and len(r["recordings"]) == 4
 
 
+def test_demo_baoding_runs_through_the_arm_reset_rig(tmp_path):
+    """The full run's default rig (hand_sim_arm: the reset arm puts dropped balls back)."""
+    from tools.demo_baoding import FULL_RIG, run_baoding_demo
+
+    assert FULL_RIG == "hand_sim_arm"
+    r = run_baoding_demo(tmp_path, preset="tiny", rig=FULL_RIG, iterations=0)
+    assert r["rig"] == "hand_sim_arm" and r["random_data"]["points"] > 0
+    rs = r["resets"]
+    assert rs["requested"] >= 3 + 2 + 1 and rs["completed"] == rs["requested"] and rs["failed"] == 0
+
+
 def test_reset_handshake_and_lockstep_messages_wait_for_a_full_send_queue(bus):
     """Zenoh drops a message whose send queue stays full for 1 ms (its default for data):
     on a loaded machine that lost a teleport answer and stopped the rig. The reset
