@@ -40,8 +40,11 @@ def test_adapt_node_feeds_the_mpc_on_the_roach_sim_rig(bus, spawn, tmp_path):
     nout, nerr = node.p.communicate(timeout=60)
     assert node.p.returncode == 0, nerr[-2000:]
     s = json.loads(nout.strip().splitlines()[-1])
-    assert s["updates"] == 12 and s["transitions"] >= 11
     assert s["window_clears"] >= 1  # the MPC reset the robot to the path start: a new episode
+    # each update follows new transitions or a window clear (which publishes θ*); how the
+    # states batch into steps depends on the load, so count, do not assume one clear
+    assert s["updates"] == 12 and s["transitions"] >= 1
+    assert s["updates"] <= s["transitions"] + s["window_clears"]
     assert s["rejected"] == 0 and s["nonfinite_updates"] == 0
 
 
