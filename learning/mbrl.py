@@ -354,6 +354,23 @@ class MbrlRun:
         self.supervisor: ResetSupervisor | None = None
         self.reset_timeout_s = 10.0
 
+    def _wait_for_rig(self, ctl: ControllerNode, proc: subprocess.Popen) -> dict[str, Any]:
+        """The robot's spec once its driver node is up; a rig process that exits first (a
+        wrong port, a bad config) is a :class:`RigError` at once, with its log's last line."""
+        deadline = time.monotonic() + self.cfg.rig_timeout_s
+        while True:
+            try:
+                return ctl.wait_ready(timeout_s=0.5)
+            except TimeoutError:
+                if proc.poll() is not None:
+                    log = self.out / "logs" / "driver.log"
+                    lines = [ln for ln in log.read_text(errors="replace").splitlines() if ln.strip()]
+                    why = lines[-1].strip() if lines else "it printed nothing"
+                    raise RigError(f"the rig's process exited (code {proc.returncode}) before its driver came up: "
+                                   f"{why} (driver log: {log})") from None
+                if time.monotonic() > deadline:
+                    raise
+
     @contextlib.contextmanager
     def session(self) -> Iterator[ControllerNode]:
         """The rig's driver node (own process) and this loop's controller node, up until exit."""
@@ -362,14 +379,14 @@ class MbrlRun:
             reset_cfg = require_reset(self.rig, cfg.robot, cfg.operator_resets)
         except ResetUnavailable as e:
             raise RigError(str(e)) from None
-        with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs"), \
+        with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs") as proc, \
                 ControllerNode(self.rig.name, cfg.robot, self.bus, name="mbrl-controller",
                                handle_signals=False, state_timeout_s=20.0) as ctl, \
                 self._supervised(reset_cfg):
             self.ctl = ctl
             self._transitions = ctl.subscribe(keys.reset_transition(self.rig.name), ResetTransition,
                                               latest=False, capacity=256)
-            spec = ctl.wait_ready(timeout_s=cfg.rig_timeout_s)
+            spec = self._wait_for_rig(ctl, proc)
             self.state_names = list(spec["state"]["names"])
             self.action_names = list(spec["action"]["names"])
             self.period_s = float(spec["period_s"])
