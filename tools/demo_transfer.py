@@ -21,8 +21,8 @@ from learning.transfer.sidm import SidmConfig
 PRESETS: dict[str, dict] = {
     "full": {
         # sized for about 45 min on one loaded core (docs/transfer.md "What ran")
-        "sidm_exp": SidmExperiment(expert_minutes=20.0, novice_minutes=(1.0, 2.0, 4.0, 8.0, 16.0),
-                                   validation_minutes=5.0, trials=3, ablation_minutes=(1.0,)),
+        "sidm_exp": SidmExperiment(expert_minutes=20.0, novice_minutes=(1.0, 2.0, 4.0, 8.0, 16.0, 32.0),
+                                   validation_minutes=5.0, trials=4, ablation_minutes=(1.0,)),
         "sidm": SidmConfig(latent_dim=128, width=128, enc_layers=0, warm_rounds=10, max_rounds=30,
                            patience_rounds=5),
         "pendulum": PendulumConfig(),

@@ -157,6 +157,7 @@ def run_sidm(exp: SidmExperiment, cfg, log=print) -> dict:
 
     from learning.transfer.sidm import (
         data_multiplier,
+    data_multipliers,
         open_loop_drift,
         target_scale,
         train_sidm,
@@ -209,7 +210,10 @@ def run_sidm(exp: SidmExperiment, cfg, log=print) -> dict:
         log(f"sidm {pair}: multiplier {mult}; expert's own model on novice validation "
             f"{float(np.median(expert_only)):.4f} (novice-only at {curve[-1]['minutes']:g} min: "
             f"{curve[-1]['without_sidm']:.4f})")
-        out["pairs"][pair] = {"curve": curve, "data_multiplier": mult, "p_e": p_e,
+        per_size = data_multipliers([r["minutes"] for r in curve], [r["with_sidm"] for r in curve],
+                                    [r["without_sidm"] for r in curve])
+        out["pairs"][pair] = {"curve": curve, "data_multiplier": mult, "data_multiplier_per_size": per_size,
+                              "p_e": p_e,
                               "expert_model_on_novice": float(np.median(expert_only)),
                               "expert_model_on_novice_iqr": [float(np.percentile(expert_only, 25)),
                                                              float(np.percentile(expert_only, 75))],

@@ -270,15 +270,19 @@ def latent_mean_distance(model: Sidm, xe: np.ndarray, xn: np.ndarray) -> float:
 
 
 def data_multiplier(minutes: list[float], with_sidm: list[float], without_sidm: list[float]) -> float | None:
-    """How much more novice data the baseline needs to reach SIDM's error, the median over the
-    sizes where that is measurable.
+    """The median over sizes of ``data_multipliers`` (None if nothing is measurable)."""
+    out = data_multipliers(minutes, with_sidm, without_sidm)
+    return float(np.median(out)) if out else None
+
+
+def data_multipliers(minutes: list[float], with_sidm: list[float], without_sidm: list[float]) -> list[float]:
+    """How much more novice data the baseline needs to reach SIDM's error, at each size.
 
     For each size m_i, the baseline's error curve (made monotone by a running minimum,
     interpolated linearly in log error vs log minutes) is inverted at SIDM's error e_i; the
     multiplier is m_needed / m_i. Sizes where SIDM's error is below the baseline's best are
     counted at the largest size measured (a lower bound); sizes where SIDM is worse than the
-    baseline at the smallest size give m_needed < m_i (a multiplier below 1 is reported as is).
-    Returns None if nothing is measurable."""
+    baseline at the smallest size give m_needed < m_i (a multiplier below 1 is reported as is)."""
     m = np.log(np.asarray(minutes, float))
     b = np.minimum.accumulate(np.log(np.asarray(without_sidm, float)))
     out = []
@@ -292,7 +296,7 @@ def data_multiplier(minutes: list[float], with_sidm: list[float], without_sidm: 
             t = (e - b[j - 1]) / (b[j] - b[j - 1]) if b[j] != b[j - 1] else 1.0
             need = m[j - 1] + t * (m[j] - m[j - 1])
         out.append(math.exp(need - mi))
-    return float(np.median(out)) if out else None
+    return out
 
 
 def open_loop_drift(model: Sidm | None, x0_seq: np.ndarray, s_seq: np.ndarray, features, horizon: int,

@@ -54,6 +54,7 @@ def test_demo_transfer_sidm_part_only(tmp_path, monkeypatch):
     assert set(rep["checks"]) == {"sidm_multiplier_above_1_on_a_pair"}
     p = rep["sidm"]["pairs"]["similar"]
     assert p["expert_model_on_novice"] > 0 and p["curve"][0]["with_sidm_no_matching"] > 0
+    assert len(p["data_multiplier_per_size"]) == len(p["curve"])
     assert "pendulum" not in r.output and "skipped (HIL_TRANSFER_PARTS): garat" in r.output
 
 

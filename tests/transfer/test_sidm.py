@@ -12,6 +12,7 @@ from learning.transfer.sidm import (
     Transitions,
     adversarial_step,
     data_multiplier,
+    data_multipliers,
     discriminator,
     latent_mean_distance,
     target_scale,
@@ -102,6 +103,8 @@ def test_data_multiplier_on_known_curves():
     baseline = [8.0, 4.0, 2.0, 1.0]  # error halves per doubling
     # SIDM reaches at m what the baseline reaches at 4m
     assert data_multiplier(minutes, [4.0, 2.0, 1.0, 1.0], baseline) == pytest.approx(2.0, rel=1e-6)
+    # per size: 4x, 4x, 2x (8 min is the largest measured: a lower bound), 1x
+    np.testing.assert_allclose(data_multipliers(minutes, [2.0, 1.0, 1.0, 1.0], baseline), [4.0, 4.0, 2.0, 1.0])
     assert data_multiplier(minutes, baseline, baseline) == pytest.approx(1.0)
     # between grid points: error 2*sqrt(2) is reached at 2*sqrt(2) minutes
     assert data_multiplier([1.0, 2.0, 4.0], [2 * np.sqrt(2)] * 3, [8.0, 4.0, 2.0]) == pytest.approx(
