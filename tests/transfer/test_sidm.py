@@ -160,9 +160,10 @@ def test_warm_started_sidm_on_an_identical_novice_is_near_the_experts_own_model(
     def f(x):
         return np.stack([np.sin(2 * x[:, 1]) + x[:, 3], x[:, 0] * x[:, 4], np.cos(x[:, 2] + x[:, 0]) * x[:, 3]], 1)
 
-    xe, xn, xv = (rng.uniform(-1.5, 1.5, (n, 5)) for n in (2000, 48, 1000))
+    xe, xn, xv = (rng.uniform(-1.5, 1.5, (n, 5)) for n in (1500, 48, 1000))
     expert, novice, val = Transitions(xe, f(xe)), Transitions(xn, f(xn)), Transitions(xv, f(xv))
-    cfg = SidmConfig(**{**TINY.__dict__, "warm_rounds": 8, "max_rounds": 6, "patience_rounds": 6})
+    cfg = SidmConfig(**{**TINY.__dict__, "pred_iters": 50, "match_iters": 10, "warm_rounds": 8,
+                        "max_rounds": 4, "patience_rounds": 4})
     scale = target_scale(val)
     warm = validation_mse(train_sidm(novice, cfg, expert), val, scale=scale)
     own = validation_mse(train_sidm(expert, cfg), val, scale=scale)
