@@ -143,6 +143,8 @@ class SidmExperiment:
     p_e: tuple[tuple[str, float], ...] = (("similar", 0.75), ("dissimilar", 0.5))  # the paper's values
     drift_steps: int = 25
     episode_s: float = 10.0
+    #: sizes where SIDM is also trained without distribution matching (match_iters 0): an ablation
+    ablation_minutes: tuple[float, ...] = ()
     seed: int = 0
 
 
@@ -153,17 +155,28 @@ def run_sidm(exp: SidmExperiment, cfg, log=print) -> dict:
     per pair). Trials differ in the training seed and in which novice episodes form each size."""
     from dataclasses import replace
 
-    from learning.transfer.sidm import data_multiplier, open_loop_drift, train_sidm, validation_mse
+    from learning.transfer.sidm import (
+        data_multiplier,
+    data_multipliers,
+        open_loop_drift,
+        target_scale,
+        train_sidm,
+        validation_mse,
+    )
 
     expert_r = collect(EXPERT, exp.expert_minutes, exp.seed, exp.episode_s)
     expert = transitions(expert_r)
     log(f"sidm: expert {expert_r.minutes():.1f} min")
+    # the expert's own model (no novice data), one per trial: how different each pair really is
+    expert_models = [train_sidm(expert, replace(cfg, seed=exp.seed + trial)) for trial in range(exp.trials)]
     out: dict = {"pairs": {}}
     for pi, (pair, p_e) in enumerate(exp.p_e):
         ov = PAIRS[pair]
         nov_all = collect(ov, max(exp.novice_minutes), exp.seed + 100 + pi, exp.episode_s)
         val_r = collect(ov, exp.validation_minutes, exp.seed + 200 + pi, exp.episode_s)
         val = transitions(val_r)
+        scale = target_scale(val)  # one fixed error scale for every model of this pair
+        expert_only = [validation_mse(m, val, scale=scale) for m in expert_models]
         curve = []
         for minutes in exp.novice_minutes:
             runs: dict[str, list[float]] = {"with_sidm": [], "without_sidm": [], "drift_with_m": [], "drift_without_m": []}
@@ -174,23 +187,36 @@ def run_sidm(exp: SidmExperiment, cfg, log=print) -> dict:
                 c = replace(cfg, p_e=p_e, seed=exp.seed + trial)
                 for key, expert_data in (("with_sidm", expert), ("without_sidm", None)):
                     model = train_sidm(nov, c, expert_data)
-                    runs[key].append(validation_mse(model, val))
+                    runs[key].append(validation_mse(model, val, scale=scale))
                     drift = np.mean([open_loop_drift(model, extras(val_r)[e], val_r.states[e], features,
                                                      exp.drift_steps) for e in range(len(val_r.states))])
                     runs["drift_with_m" if key == "with_sidm" else "drift_without_m"].append(float(drift))
+                if minutes in exp.ablation_minutes:
+                    model = train_sidm(nov, replace(c, match_iters=0), expert)
+                    runs.setdefault("with_sidm_no_matching", []).append(validation_mse(model, val, scale=scale))
             row = {"minutes": minutes}
             for k, v in runs.items():
                 row[k] = float(np.median(v))
                 row[k + "_iqr"] = [float(np.percentile(v, 25)), float(np.percentile(v, 75))]
             log(f"sidm {pair}: {minutes:g} min novice: val MSE with {row['with_sidm']:.4f} "
                 f"without {row['without_sidm']:.4f}; 25-step drift with {row['drift_with_m']:.3f} m "
-                f"without {row['drift_without_m']:.3f} m")
+                f"without {row['drift_without_m']:.3f} m"
+                + (f"; no matching {row['with_sidm_no_matching']:.4f}" if "with_sidm_no_matching" in row else ""))
             curve.append(row)
         mult = data_multiplier([r["minutes"] for r in curve], [r["with_sidm"] for r in curve],
                                [r["without_sidm"] for r in curve])
         no_model_drift = float(np.mean([open_loop_drift(None, extras(val_r)[e], val_r.states[e], features,
                                                         exp.drift_steps) for e in range(len(val_r.states))]))
-        out["pairs"][pair] = {"curve": curve, "data_multiplier": mult, "p_e": p_e,
+        log(f"sidm {pair}: multiplier {mult}; expert's own model on novice validation "
+            f"{float(np.median(expert_only)):.4f} (novice-only at {curve[-1]['minutes']:g} min: "
+            f"{curve[-1]['without_sidm']:.4f})")
+        per_size = data_multipliers([r["minutes"] for r in curve], [r["with_sidm"] for r in curve],
+                                    [r["without_sidm"] for r in curve])
+        out["pairs"][pair] = {"curve": curve, "data_multiplier": mult, "data_multiplier_per_size": per_size,
+                              "p_e": p_e,
+                              "expert_model_on_novice": float(np.median(expert_only)),
+                              "expert_model_on_novice_iqr": [float(np.percentile(expert_only, 25)),
+                                                             float(np.percentile(expert_only, 75))],
                               "drift_no_motion_m": no_model_drift, "overrides": ov}
     out["expert_minutes"] = expert_r.minutes()
     return out

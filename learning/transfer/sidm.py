@@ -52,11 +52,14 @@ class SidmConfig:
     max_rounds: int = 40  # one round = pred_iters + match_iters
     patience_rounds: int = 6  # early stopping on the novice test split
     test_fraction: float = 0.25  # paper: 75/25 train/test split
+    warm_rounds: int = 0  # SIDM only: expert-only prediction rounds, then novice enc/dec := expert's
     seed: int = 0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.p_e <= 1.0:
             raise ValueError(f"SidmConfig.p_e must be in [0, 1], got {self.p_e}")
+        if self.warm_rounds < 0:
+            raise ValueError(f"SidmConfig.warm_rounds must be >= 0, got {self.warm_rounds}")
         for n in ("latent_dim", "width", "batch", "max_rounds"):
             if getattr(self, n) < 1:
                 raise ValueError(f"SidmConfig.{n} must be >= 1, got {getattr(self, n)}")
@@ -200,6 +203,19 @@ def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None 
         i = rng.integers(0, len(d), size=min(cfg.batch, len(d)))
         return torch.as_tensor(d.x[i]), torch.as_tensor(d.y[i])
 
+    if use_expert and cfg.warm_rounds > 0:
+        # warm start: the shared network and the expert's encoder/decoder learn the expert's
+        # dynamics, then the novice starts from the expert's encoder/decoder (each system keeps
+        # its own normalisation, so the copy maps standardised novice inputs like the expert's)
+        model.train()
+        for _ in range(cfg.warm_rounds * cfg.pred_iters):
+            x, y = batch("expert")
+            loss = model.loss("expert", x, y)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        model.enc["novice"].load_state_dict(model.enc["expert"].state_dict())
+        model.dec["novice"].load_state_dict(model.dec["expert"].state_dict())
     best, best_state, stale = math.inf, copy.deepcopy(model.state_dict()), 0
     for _ in range(cfg.max_rounds):
         model.train()
@@ -226,10 +242,22 @@ def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None 
     return model
 
 
-def validation_mse(model: Sidm, data: Transitions, system: str = "novice") -> float:
-    """Mean squared error of the normalised state change (the system's own target scale)."""
+def validation_mse(model: Sidm, data: Transitions, system: str = "novice", scale: np.ndarray | None = None) -> float:
+    """Mean squared error of the state change divided by ``scale`` per channel (default: the
+    model's own target scale for ``system``, i.e. its training data's std). Give a fixed
+    ``scale`` (e.g. the validation data's std) to compare models trained on different data."""
     with torch.no_grad():
-        return float(model.loss(system, torch.as_tensor(data.x), torch.as_tensor(data.y)))
+        if scale is None:
+            return float(model.loss(system, torch.as_tensor(data.x), torch.as_tensor(data.y)))
+        sc = np.asarray(scale, np.float32)
+        if sc.shape != (data.y.shape[1],) or not (np.isfinite(sc).all() and (sc > 0).all()):
+            raise ValueError(f"validation_mse: scale must be {data.y.shape[1]} positive finite values")
+        return float((((model.predict(system, data.x) - data.y) / sc) ** 2).mean())
+
+
+def target_scale(data: Transitions) -> np.ndarray:
+    """Per-channel std of the state change (floored at 1e-6): the fixed scale of the validation error."""
+    return np.maximum(data.y.std(0), 1e-6).astype(np.float32)
 
 
 def latent_mean_distance(model: Sidm, xe: np.ndarray, xn: np.ndarray) -> float:
@@ -242,15 +270,19 @@ def latent_mean_distance(model: Sidm, xe: np.ndarray, xn: np.ndarray) -> float:
 
 
 def data_multiplier(minutes: list[float], with_sidm: list[float], without_sidm: list[float]) -> float | None:
-    """How much more novice data the baseline needs to reach SIDM's error, the median over the
-    sizes where that is measurable.
+    """The median over sizes of ``data_multipliers`` (None if nothing is measurable)."""
+    out = data_multipliers(minutes, with_sidm, without_sidm)
+    return float(np.median(out)) if out else None
+
+
+def data_multipliers(minutes: list[float], with_sidm: list[float], without_sidm: list[float]) -> list[float]:
+    """How much more novice data the baseline needs to reach SIDM's error, at each size.
 
     For each size m_i, the baseline's error curve (made monotone by a running minimum,
     interpolated linearly in log error vs log minutes) is inverted at SIDM's error e_i; the
     multiplier is m_needed / m_i. Sizes where SIDM's error is below the baseline's best are
     counted at the largest size measured (a lower bound); sizes where SIDM is worse than the
-    baseline at the smallest size give m_needed < m_i (a multiplier below 1 is reported as is).
-    Returns None if nothing is measurable."""
+    baseline at the smallest size give m_needed < m_i (a multiplier below 1 is reported as is)."""
     m = np.log(np.asarray(minutes, float))
     b = np.minimum.accumulate(np.log(np.asarray(without_sidm, float)))
     out = []
@@ -264,7 +296,7 @@ def data_multiplier(minutes: list[float], with_sidm: list[float], without_sidm: 
             t = (e - b[j - 1]) / (b[j] - b[j - 1]) if b[j] != b[j - 1] else 1.0
             need = m[j - 1] + t * (m[j] - m[j - 1])
         out.append(math.exp(need - mi))
-    return float(np.median(out)) if out else None
+    return out
 
 
 def open_loop_drift(model: Sidm | None, x0_seq: np.ndarray, s_seq: np.ndarray, features, horizon: int,

@@ -12,8 +12,10 @@ from learning.transfer.sidm import (
     Transitions,
     adversarial_step,
     data_multiplier,
+    data_multipliers,
     discriminator,
     latent_mean_distance,
+    target_scale,
     train_sidm,
     validation_mse,
 )
@@ -101,6 +103,8 @@ def test_data_multiplier_on_known_curves():
     baseline = [8.0, 4.0, 2.0, 1.0]  # error halves per doubling
     # SIDM reaches at m what the baseline reaches at 4m
     assert data_multiplier(minutes, [4.0, 2.0, 1.0, 1.0], baseline) == pytest.approx(2.0, rel=1e-6)
+    # per size: 4x, 4x, 2x (8 min is the largest measured: a lower bound), 1x
+    np.testing.assert_allclose(data_multipliers(minutes, [2.0, 1.0, 1.0, 1.0], baseline), [4.0, 4.0, 2.0, 1.0])
     assert data_multiplier(minutes, baseline, baseline) == pytest.approx(1.0)
     # between grid points: error 2*sqrt(2) is reached at 2*sqrt(2) minutes
     assert data_multiplier([1.0, 2.0, 4.0], [2 * np.sqrt(2)] * 3, [8.0, 4.0, 2.0]) == pytest.approx(
@@ -129,3 +133,55 @@ def test_open_loop_drift_is_the_position_error_after_the_horizon():
             return np.array([[0.1, 0.0, 0.0]])
 
     assert open_loop_drift(Exact(), extra, states, lambda s, e: s, horizon=25) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_warm_start_gives_the_novice_the_experts_encoder_and_decoder():
+    """After the expert-only warm start the novice's encoder/decoder are the expert's; with
+    p_e = 1 and no matching the novice parts get no gradient afterwards, so they stay within
+    one Adam step (lr 1e-3) of the expert's."""
+    expert, novice, _ = pair(500, 40)
+    cfg = SidmConfig(**{**TINY.__dict__, "p_e": 1.0, "match_iters": 0, "pred_iters": 1, "max_rounds": 1,
+                        "warm_rounds": 2})
+    m = train_sidm(novice, cfg, expert)
+    for part in ("enc", "dec"):
+        for a, b in zip(getattr(m, part)["novice"].parameters(), getattr(m, part)["expert"].parameters(),
+                        strict=True):
+            assert torch.allclose(a, b, atol=3e-3)
+    cold = train_sidm(novice, SidmConfig(**{**cfg.__dict__, "warm_rounds": 0}), expert)
+    assert not torch.allclose(cold.enc["novice"][0].weight, cold.enc["expert"][0].weight, atol=3e-2)
+
+
+@pytest.mark.slow
+def test_warm_started_sidm_on_an_identical_novice_is_near_the_experts_own_model():
+    """Novice = expert (same dynamics, other samples): with 48 novice transitions the warm-started
+    SIDM must be close to a model trained on all the expert data, and far better than the baseline."""
+    rng = np.random.default_rng(1)
+
+    def f(x):
+        return np.stack([np.sin(2 * x[:, 1]) + x[:, 3], x[:, 0] * x[:, 4], np.cos(x[:, 2] + x[:, 0]) * x[:, 3]], 1)
+
+    xe, xn, xv = (rng.uniform(-1.5, 1.5, (n, 5)) for n in (1500, 48, 1000))
+    expert, novice, val = Transitions(xe, f(xe)), Transitions(xn, f(xn)), Transitions(xv, f(xv))
+    cfg = SidmConfig(**{**TINY.__dict__, "pred_iters": 50, "match_iters": 10, "warm_rounds": 8,
+                        "max_rounds": 4, "patience_rounds": 4})
+    scale = target_scale(val)
+    warm = validation_mse(train_sidm(novice, cfg, expert), val, scale=scale)
+    own = validation_mse(train_sidm(expert, cfg), val, scale=scale)
+    baseline = validation_mse(train_sidm(novice, cfg), val, scale=scale)
+    assert warm < 0.5 * baseline
+    assert warm < own + 0.5 * (baseline - own)
+
+
+def test_validation_mse_on_a_fixed_scale():
+    class Const:  # predicts 1 everywhere
+        def predict(self, system, x):
+            return np.ones((len(x), 2), np.float32)
+
+    data = Transitions(np.zeros((4, 3)), np.array([[1.0, 3.0], [1.0, 3.0], [3.0, 1.0], [3.0, 1.0]]))
+    scale = target_scale(data)  # std 1 per channel
+    np.testing.assert_allclose(scale, [1.0, 1.0])
+    # errors: channel 0 (0, 0, 2, 2), channel 1 (2, 2, 0, 0) → mean of squares 2
+    assert validation_mse(Const(), data, scale=scale) == pytest.approx(2.0)
+    assert validation_mse(Const(), data, scale=2 * scale) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="scale"):
+        validation_mse(Const(), data, scale=np.array([1.0, 0.0]))
