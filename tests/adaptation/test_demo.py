@@ -34,8 +34,28 @@ def test_tiny_run_writes_the_issue_report(tmp_path):
         assert len(v["reward_per_segment"]) == 2
         assert (v["tasks_created"] is None) == (m != "mole")
     assert r["switching"]["mole"]["tasks_created"] >= 1
+    assert json.loads((tmp_path / "seed0.json").read_text())["perturbations"].keys() == names  # kept per seed
     for f in ("report.md", "perturbations.png", "k_step_before_after.png", "switching.png"):
         assert (tmp_path / f).is_file()
     # the checkpoints the demo wrote build their adapters (what an adaptation node loads)
     for m in ("mb_de", "grbal", "rebal", "mole"):
         assert load_adapter(tmp_path / "checkpoints" / f"seed0_{m}.pt").name == m
+
+
+def test_oracle_is_an_mb_model_of_the_tested_condition():
+    import numpy as np
+    import pytest
+
+    from learning.adaptation.experiment import AdaptationConfig, Trained
+    from learning.adaptation.model import AdaptiveMLP
+
+    names = ["x", "y", "vx", "vy", "cos_yaw", "sin_yaw"]
+    plain, oracle = AdaptiveMLP(names, 2, hidden=(8,), seed=0), AdaptiveMLP(names, 2, hidden=(8,), seed=1)
+    tr = Trained(plain, plain, {}, plain, None, np.ones(6))
+    cfg = AdaptationConfig.tiny()
+    assert "oracle" in METHODS
+    with pytest.raises(ValueError, match="no oracle model"):
+        tr.adapter("oracle", cfg)
+    tr.oracle = oracle
+    ad = tr.adapter("oracle", cfg)
+    assert ad.name == "mb" and ad.model is oracle  # no adaptation: θ of the oracle every step
