@@ -474,6 +474,12 @@ def run(cfg: AdaptationConfig, out: Path, log: Callable[[str], None] = print) ->
         # each finished seed on disk at once: a run stopped later keeps it
         (out / f"seed{s}.json").write_text(json.dumps(_jsonable(per_seed[-1])))
         log(f"seed {s} done ({(time.monotonic() - t0) / 60:.1f} min): {out / f'seed{s}.json'}")
+    return {**aggregate(per_seed), "config": _jsonable(asdict(cfg)), "seeds": list(cfg.seeds),
+            "elapsed_s": time.monotonic() - t0, "per_seed": per_seed}
+
+
+def aggregate(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
+    """Means and sample stds over seeds of :func:`run_seed`'s results (the report's tables)."""
     first = per_seed[0]
     perts = {name: {m: _cell([r["perturbations"][name][m] for r in per_seed]) for m in METHODS}
              for name in first["perturbations"]}
@@ -490,10 +496,9 @@ def run(cfg: AdaptationConfig, out: Path, log: Callable[[str], None] = print) ->
                  (rows.std(0, ddof=1) if len(rows) > 1 else np.zeros(rows.shape[1])).tolist(),
                  "tasks_created": None if tc[0] is None else float(np.mean(tc)),
                  "conditions": first["switching"][m]["conditions"]}
-    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw,
-            "config": _jsonable(asdict(cfg)), "seeds": list(cfg.seeds), "elapsed_s": time.monotonic() - t0,
-            "per_seed": per_seed}
+    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw}
 
 
 
-__all__ = ["AdaptationConfig", "run", "METHODS", "SWITCHING_METHODS"]
+
+__all__ = ["AdaptationConfig", "run", "aggregate", "METHODS", "SWITCHING_METHODS"]
