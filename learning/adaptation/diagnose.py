@@ -5,6 +5,10 @@ as the quick preset gathers it (cached as .npz), the plain model, then meta-trai
 (which parameters are adapted, ψ's initial value and learning rate), each scored by GrBAL's
 loss on the next K before / after its step on random rollouts under every test condition
 (the demo's ``k_step_error_before_after``). docs/adaptation.md records the numbers.
+
+``--closed-loop CKPT_DIR NAME...``: on the demo's paths under the named conditions, MB, GrBAL's
+θ* without its step, and GrBAL, from a demo run's seed checkpoints (the same seed's data gives
+the error scale; it reproduces the demo's MB and GrBAL numbers exactly).
 """
 
 from __future__ import annotations
@@ -55,6 +59,34 @@ def data(cfg: AdaptationConfig, seed: int, cache: Path):
     return out
 
 
+def closed_loop(ckpt_dir: str, names: list[str], seed: int, cache: Path) -> None:
+    from learning.adaptation import load_adapter
+    from learning.adaptation.baselines import MbAdapter
+    from learning.adaptation.experiment import Trained, run_paths
+    from learning.adaptation.training import transitions
+
+    cfg = AdaptationConfig.full()
+    train, _, _ = data(AdaptationConfig.quick(), seed, cache)
+    plain = load_adapter(Path(ckpt_dir) / f"seed{seed}_mb_de.pt").model
+    g = load_adapter(Path(ckpt_dir) / f"seed{seed}_grbal.pt")
+    s, _, n = transitions(train)
+
+    class T(Trained):
+        def adapter(self, method, cfg):
+            return MbAdapter(self.meta, window=cfg.M) if method == "theta_star" else super().adapter(method, cfg)
+
+    tr = T(plain, g.model, g.psi, plain, None, np.maximum((n - s).std(0), 1e-6), adapt_params=g.adapt_params)
+    conds = _conditions(load_presets(cfg.presets))
+    for name in names:
+        terrain, st = conds[name]
+        env = RoachSim(terrain, seed)
+        for method in ("mb", "theta_star", "grbal"):
+            r = run_paths(cfg, env, st, tr, method)
+            print(f"{name} {method}: completed {r['completed']} cost_per_m {r['cost_per_m']:.1f} "
+                  f"k_step_error {r['k_step_error']:.3f}", flush=True)
+        env.close()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seed", type=int, default=0)
@@ -66,8 +98,11 @@ def main() -> None:
     ap.add_argument("--rollouts", type=int, default=4, help="per condition (quick: 4)")
     ap.add_argument("--test-rollouts", type=int, default=3, help="per test condition (quick: 3)")
     ap.add_argument("--variants", default="all,all_psi_lr,last,last_psi_lr,last_psi1")
+    ap.add_argument("--closed-loop", nargs="+", metavar=("CKPT_DIR", "NAME"))
     a = ap.parse_args()
     torch.set_num_threads(1)
+    if a.closed_loop:
+        return closed_loop(a.closed_loop[0], a.closed_loop[1:], a.seed, Path(a.cache))
     cfg = AdaptationConfig.quick(presets=a.presets, M=a.M, conditions_per_terrain=a.conditions,
                                  rollouts_per_condition=a.rollouts, before_after_rollouts=a.test_rollouts)
     train, tests, names = data(cfg, a.seed, Path(a.cache))
