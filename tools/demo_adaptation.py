@@ -4,7 +4,7 @@ Meta-trains on the training terrains, runs MB, MB+DE, GrBAL, ReBAL and MOLe on e
 perturbation with the same planner and paths, and a switching scenario for MOLe against
 k-shot and continued adaptation (learning/adaptation/experiment.py). Writes
 ``report.json`` (keys of issue 12), ``report.md``, PNG plots and the checkpoints.
-Presets: default and ``--full`` (3 seeds, thesis sizes where 2 cores allow), ``--quick``
+Presets: default and ``--full`` (3 seeds at the quick sizes, ≈ 45 min on one core), ``--quick``
 (1 seed, smaller; ≤ 15 min on 2 cores) and ``tiny`` (the CLI test). docs/adaptation.md.
 """
 
@@ -89,6 +89,39 @@ def _plots(r: dict[str, Any], out: Path) -> list[str]:
     return files
 
 
+def _rank(cell: dict[str, Any]) -> tuple[float, float]:
+    """Completions first (more is better), then cost per metre (lower is better)."""
+    return (-cell["completed"], cell["cost_per_m"])
+
+
+def ranking_line(r: dict[str, Any], other: str, method: str = "grbal") -> str:
+    """How often ``method`` ranks above ``other`` (completions, then cost per metre): on the
+    means over seeds, and per seed."""
+    perts = list(r["perturbations"])
+    above = [p for p in perts if _rank(r["perturbations"][p][method]) < _rank(r["perturbations"][p][other])]
+    per_seed = [sum(_rank(s["perturbations"][p][method]) < _rank(s["perturbations"][p][other]) for p in perts)
+                for s in r.get("per_seed", [])]
+    return (f"{method} ranks above {other} on {len(above)} of {len(perts)} ({', '.join(above) or 'none'}) on the "
+            f"means; per seed: {per_seed}.")
+
+
+def report_from_seeds(out: Path) -> dict[str, Any]:
+    """The report of the seeds a run has finished so far (``<out>/seed<N>.json``), e.g. of
+    a run stopped before its end: ``python -m tools.demo_adaptation DIR`` writes
+    ``report_seeds.md``."""
+    from learning.adaptation.experiment import aggregate
+
+    out = Path(out)
+    files = sorted(out.glob("seed*.json"))
+    if not files:
+        raise FileNotFoundError(f"no seed*.json in {out}: no seed has finished")
+    per_seed = [json.loads(f.read_text()) for f in files]
+    r = {**aggregate(per_seed), "per_seed": per_seed, "seeds": [f.stem[4:] for f in files], "elapsed_s": float("nan"),
+         "config": {"paths": list(per_seed[0]["perturbations"]["normal"]["mb"]["paths"])}}
+    (out / "report_seeds.md").write_text(report_markdown(r))
+    return r
+
+
 def report_markdown(r: dict[str, Any]) -> str:
     n = r["config"]["paths"]
     lines = ["# Online adaptation (hil demo adaptation)", "",
@@ -97,12 +130,15 @@ def report_markdown(r: dict[str, Any]) -> str:
              "| perturbation | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
     for p, row in r["perturbations"].items():
         cells = [f"{row[m]['cost_per_m']:.1f} ± {row[m]['cost_per_m_std']:.1f} ({row[m]['completed']:.1f}/{len(n)}) "
-                 f"[{row[m]['k_step_error']:.3f}]" for m in METHODS]
+                 f"[{row[m]['k_step_error']:.3f} ± {row[m]['k_step_error_std']:.3f}]" for m in METHODS]
         lines.append(f"| {p} | " + " | ".join(cells) + " |")
-    lines += ["", "## GrBAL: loss on the next K before / after the update", "", "| perturbation | before | after |",
-              "|---|---|---|"]
+    lines += ["", ranking_line(r, "mb")]
+    lines += [""] + [ranking_line(r, m) for m in ("mb_de", "rebal", "mole", "oracle")]
+    lines += ["", "## GrBAL: loss on the next K before / after the update", "",
+              "| perturbation | before | after | change |", "|---|---|---|---|"]
     for p, v in r["k_step_error_before_after"].items():
-        lines.append(f"| {p} | {v['before']:.4f} | {v['after']:.4f} |")
+        lines.append(f"| {p} | {v['before']:.4f} ± {v.get('before_std', 0):.4f} | {v['after']:.4f} ± "
+                     f"{v.get('after_std', 0):.4f} | {100 * (v['after'] / v['before'] - 1):+.1f} % |")
     lines += ["", "## Switching: progress per segment (m)", "", "| method | " +
               " | ".join(r["switching"]["mole"]["conditions"]) + " | tasks created |",
               "|---" * (len(r["switching"]["mole"]["conditions"]) + 2) + "|"]
@@ -146,3 +182,11 @@ def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int
     for p, row in r["perturbations"].items():
         best = min(METHODS, key=lambda m: (-row[m]["completed"], row[m]["cost_per_m"]))
         print(f"{p}: best {best}; cost_per_m " + ", ".join(f"{m} {row[m]['cost_per_m']:.1f}" for m in METHODS))
+
+
+if __name__ == "__main__":
+    import sys
+
+    if len(sys.argv) != 2:
+        raise SystemExit("usage: python -m tools.demo_adaptation OUT_DIR   (tables of the seeds finished so far)")
+    print(report_markdown(report_from_seeds(Path(sys.argv[1]))))

@@ -21,6 +21,7 @@ adaptation node (``hil/<rig>/model/update``) runs the same adapters on a live ri
 from __future__ import annotations
 
 import collections
+import json
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -49,7 +50,7 @@ from learning.mbrl import MbrlConfig, PathEnd, _jsonable, make_planner, path_sta
 from sim_backends.velociroach.backend import VelociRoachSim
 from sim_backends.velociroach.perturbations import PerturbationPresets, PerturbationSettings, load_presets
 
-METHODS = ("mb", "mb_de", "grbal", "rebal", "mole")
+METHODS = ("mb", "mb_de", "grbal", "rebal", "mole", "oracle")
 SWITCHING_METHODS = ("mole", "k_shot", "continued")
 
 
@@ -74,6 +75,9 @@ class AdaptationConfig:
     meta_batch: int = 16
     meta_lr: float = 1e-3
     psi_init: float = 0.01
+    psi_lr: float | None = 1e-2  # Adam's step for ψ (None: meta_lr); docs/adaptation.md, "Why one step ..."
+    # which parameters GrBAL adapts: "all", or "last" (the output layer's weight and bias)
+    grbal_adapt: str = "last"
     rebal_steps: int = 1000
     context_dim: int = 32
     de_lr: float = 0.01
@@ -92,12 +96,19 @@ class AdaptationConfig:
 
     @classmethod
     def full(cls, **kw: Any) -> AdaptationConfig:
-        return cls(**kw)
+        """3 seeds at the quick sizes with 2/3 the path length (≈ 45 min on one loaded core):
+        the dataclass defaults (3 x 512, 1000 meta-steps, 3 paths, switching every 500 steps)
+        take hours here."""
+        base = dict(seeds=(0, 1, 2), conditions_per_terrain=6, rollouts_per_condition=4, before_after_rollouts=4,
+                    hidden=(256, 256, 256), plain_epochs=60, meta_steps=300, rebal_steps=300,
+                    paths=("straight", "left"), path_scale=1.0, switching_every_steps=50, switching_segments=4)
+        base.update(kw)
+        return cls(**base)
 
     @classmethod
     def quick(cls, **kw: Any) -> AdaptationConfig:
         base = dict(seeds=(0,), conditions_per_terrain=6, rollouts_per_condition=4, before_after_rollouts=3,
-                    hidden=(256, 256, 256), plain_epochs=30, meta_steps=300, rebal_steps=300,
+                    hidden=(256, 256, 256), plain_epochs=60, meta_steps=300, rebal_steps=300,
                     paths=("straight", "left"), switching_every_steps=100, switching_segments=4)
         base.update(kw)
         return cls(**base)
@@ -243,14 +254,21 @@ class Trained:
     encoder: ContextEncoder
     delta_scale: np.ndarray
     history: dict[str, Any] = field(default_factory=dict)
+    # the oracle of the condition being tested (an MB model trained on that condition's data)
+    oracle: AdaptiveMLP | None = None
+    adapt_params: list[str] | None = None  # GrBAL's adapted subset (None: all)
 
     def adapter(self, method: str, cfg: AdaptationConfig) -> Adapter:
         if method == "mb":
             return MbAdapter(self.plain, window=cfg.M)
+        if method == "oracle":
+            if self.oracle is None:
+                raise ValueError("no oracle model trained for this condition")
+            return MbAdapter(self.oracle, window=cfg.M)
         if method == "mb_de":
             return MbDeAdapter(self.plain, window=cfg.M, lr=cfg.de_lr)
         if method in ("grbal", "k_shot"):
-            return GrbalAdapter(self.meta, self.psi, window=cfg.M)
+            return GrbalAdapter(self.meta, self.psi, window=cfg.M, adapt_params=self.adapt_params)
         if method == "rebal":
             return RebalAdapter(self.rebal_model, self.encoder, window=cfg.M)
         if method == "mole":
@@ -270,8 +288,11 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
     seg = segments(episodes, cfg.M, cfg.K, stride=2)
     meta = AdaptiveMLP.from_checkpoint(plain.to_checkpoint())
     t0 = time.monotonic()
+    if cfg.grbal_adapt not in ("all", "last"):
+        raise ValueError(f"grbal_adapt must be 'all' or 'last', got {cfg.grbal_adapt!r}")
+    adapt_params = None if cfg.grbal_adapt == "all" else list(meta.params())[-2:]
     psi, h_meta = grbal.meta_train(meta, seg, steps=cfg.meta_steps, meta_batch=cfg.meta_batch, lr=cfg.meta_lr,
-                                   psi_init=cfg.psi_init, seed=seed)
+                                   psi_init=cfg.psi_init, psi_lr=cfg.psi_lr, seed=seed, adapt_params=adapt_params)
     log(f"GrBAL meta-training: {cfg.meta_steps} steps, next-K loss before/after {h_meta[-1]['before']:.4f}/"
         f"{h_meta[-1]['after']:.4f} ({time.monotonic() - t0:.0f} s)")
     # ReBAL starts as the plain model: the context's input columns start at zero
@@ -291,7 +312,7 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
         f"({time.monotonic() - t0:.0f} s)")
     s, _, n = transitions(episodes)
     tr = Trained(plain, meta, psi, rm, enc, np.maximum((n - s).std(0), 1e-6),
-                 {"plain_loss": h_plain, "grbal": h_meta, "rebal": h_rebal})
+                 {"plain_loss": h_plain, "grbal": h_meta, "rebal": h_rebal}, adapt_params=adapt_params)
     for m in ("mb_de", "grbal", "rebal", "mole"):
         tr.adapter(m, cfg).save(ckpt_dir / f"seed{seed}_{m}.pt")
     return tr
@@ -334,7 +355,17 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
     for name, (terrain, settings) in conds.items():
         eps = random_episodes(env(terrain), settings, cfg.before_after_rollouts, cfg.rollout_steps,
                               seed=int(rng.integers(1 << 30)), name=name)
-        before_after[name] = grbal.evaluate(tr.meta, tr.meta.params(), tr.psi, segments(eps, cfg.M, cfg.K, stride=2))
+        before_after[name] = grbal.evaluate(tr.meta, tr.meta.params(), tr.psi, segments(eps, cfg.M, cfg.K, stride=2),
+                                            names=tr.adapt_params)
+        # the oracle: an MB model of the same size trained with the same effort (epochs) on as
+        # much random data as the training set, all gathered under this test condition
+        t1 = time.monotonic()
+        n_or = len(p.training_terrains) * cfg.conditions_per_terrain * cfg.rollouts_per_condition
+        or_eps = random_episodes(env(terrain), settings, n_or, cfg.rollout_steps, seed=int(rng.integers(1 << 30)),
+                                 name=f"oracle-{name}")
+        tr.oracle = AdaptiveMLP(names, 2, hidden=cfg.hidden, seed=seed)
+        h_or = fit_plain(tr.oracle, or_eps, epochs=cfg.plain_epochs, batch_size=256, seed=seed)
+        log(f"  {name:>16} oracle model: {n_or} rollouts, loss {h_or[-1]:.4f} ({time.monotonic() - t1:.0f} s)")
         results[name] = {}
         for method in METHODS:
             t1 = time.monotonic()
@@ -438,7 +469,18 @@ def run(cfg: AdaptationConfig, out: Path, log: Callable[[str], None] = print) ->
     torch.set_num_threads(cfg.threads)
     out = Path(out)
     t0 = time.monotonic()
-    per_seed = [run_seed(cfg, s, out, log) for s in cfg.seeds]
+    per_seed = []
+    for s in cfg.seeds:
+        per_seed.append(run_seed(cfg, s, out, log))
+        # each finished seed on disk at once: a run stopped later keeps it
+        (out / f"seed{s}.json").write_text(json.dumps(_jsonable(per_seed[-1])))
+        log(f"seed {s} done ({(time.monotonic() - t0) / 60:.1f} min): {out / f'seed{s}.json'}")
+    return {**aggregate(per_seed), "config": _jsonable(asdict(cfg)), "seeds": list(cfg.seeds),
+            "elapsed_s": time.monotonic() - t0, "per_seed": per_seed}
+
+
+def aggregate(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
+    """Means and sample stds over seeds of :func:`run_seed`'s results (the report's tables)."""
     first = per_seed[0]
     perts = {name: {m: _cell([r["perturbations"][name][m] for r in per_seed]) for m in METHODS}
              for name in first["perturbations"]}
@@ -455,10 +497,9 @@ def run(cfg: AdaptationConfig, out: Path, log: Callable[[str], None] = print) ->
                  (rows.std(0, ddof=1) if len(rows) > 1 else np.zeros(rows.shape[1])).tolist(),
                  "tasks_created": None if tc[0] is None else float(np.mean(tc)),
                  "conditions": first["switching"][m]["conditions"]}
-    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw,
-            "config": _jsonable(asdict(cfg)), "seeds": list(cfg.seeds), "elapsed_s": time.monotonic() - t0,
-            "per_seed": per_seed}
+    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw}
 
 
 
-__all__ = ["AdaptationConfig", "run", "METHODS", "SWITCHING_METHODS"]
+
+__all__ = ["AdaptationConfig", "run", "aggregate", "METHODS", "SWITCHING_METHODS"]

@@ -70,18 +70,29 @@ def segments(episodes: Sequence[Episode], M: int, K: int, stride: int = 1) -> Se
     return Segments(torch.as_tensor(np.stack(st)), torch.as_tensor(np.stack(ac)), M, K)
 
 
-def adapt(model: AdaptiveMLP, params: Params, psi: Params, s, a, n) -> Params:
-    """One inner step ``θ − ψ ⊙ ∇θ L(θ; s, a, n)`` (differentiable in θ and ψ)."""
-    g = grad(model.loss)(params, s, a, n)
-    return {k: params[k] - psi[k] * g[k] for k in params}
+def adapt(model: AdaptiveMLP, params: Params, psi: Params, s, a, n,
+          names: Sequence[str] | None = None) -> Params:
+    """One inner step ``θ − ψ ⊙ ∇θ L(θ; s, a, n)`` (differentiable in θ and ψ).
+
+    ``names``: adapt only these parameters (None: all). The gradient is taken with respect
+    to that subset only (``torch.func.grad`` of a function of the subset), so adapting the
+    last layer backpropagates through the last layer only; the others stay θ."""
+    if names is None:
+        g = grad(model.loss)(params, s, a, n)
+        return {k: params[k] - psi[k] * g[k] for k in params}
+    sub = {k: params[k] for k in names}
+    rest = {k: v for k, v in params.items() if k not in sub}
+    g = grad(lambda p: model.loss({**rest, **p}, s, a, n))(sub)
+    return {**rest, **{k: sub[k] - psi[k] * g[k] for k in sub}}
 
 
-def task_losses(model: AdaptiveMLP, params: Params, psi: Params, seg: Segments, idx) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per task of ``idx``: (loss on the next K after adapting on the past M, loss before adapting)."""
+def task_losses(model: AdaptiveMLP, params: Params, psi: Params, seg: Segments, idx,
+                names: Sequence[str] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per task of ``idx``: (loss on the next K after adapting ``names`` on the past M, loss before adapting)."""
     past, fut = seg.past(idx), seg.future(idx)
 
     def one(sp, ap, np_, sf, af, nf):
-        adapted = adapt(model, params, psi, sp, ap, np_)
+        adapted = adapt(model, params, psi, sp, ap, np_, names)
         return model.loss(adapted, sf, af, nf), model.loss(params, sf, af, nf)
 
     return vmap(one)(*past, *fut)
@@ -89,39 +100,48 @@ def task_losses(model: AdaptiveMLP, params: Params, psi: Params, seg: Segments, 
 
 def meta_train(model: AdaptiveMLP, seg: Segments, *, steps: int = 500, meta_batch: int = 16, lr: float = 1e-3,
                psi_init: float = 0.01, psi_lr: float | None = None, seed: int = 0, val: Segments | None = None,
-               progress: bool = False) -> tuple[Params, list[dict[str, float]]]:
+               progress: bool = False, adapt_params: Sequence[str] | None = None) -> tuple[Params, list[dict[str, float]]]:
     """Meta-train θ (in place in ``model``) and ψ; returns (ψ, history).
 
     ``model`` should carry its normalization already (``set_normalization``); θ starts from
     its current weights (a supervised warm start saves meta-steps on 2 CPU cores).
     History: per 10 % of the steps, the outer loss (``after``) and the loss of θ without
     adaptation on the same K transitions (``before``), on ``val`` when given.
+    ``adapt_params``: the parameters the inner step adapts (None: all); ψ of the others is
+    returned as 0. ``psi_lr``: Adam's step for ψ (default ``lr``).
     """
     params = {k: v for k, v in model.net.named_parameters()}
-    psi = {k: torch.full_like(v, psi_init, requires_grad=True) for k, v in params.items()}
+    names = list(params) if adapt_params is None else list(adapt_params)
+    unknown = set(names) - set(params)
+    if unknown:
+        raise ValueError(f"adapt_params names unknown parameters {sorted(unknown)}; the model has {sorted(params)}")
+    psi = {k: torch.full_like(params[k], psi_init, requires_grad=True) for k in names}
     opt = torch.optim.Adam([{"params": list(params.values()), "lr": lr},
                             {"params": list(psi.values()), "lr": psi_lr if psi_lr is not None else lr}])
+    sub = None if adapt_params is None else names
     gen = torch.Generator().manual_seed(seed)
     hist: list[dict[str, float]] = []
     every = max(1, steps // 10)
     it_range = progress_output(range(steps), total=steps, desc="GrBAL meta-training") if progress else range(steps)
     for it in it_range:
         idx = torch.randint(len(seg), (min(meta_batch, len(seg)),), generator=gen)
-        after, _ = task_losses(model, params, psi, seg, idx)
+        after, _ = task_losses(model, params, psi, seg, idx, sub)
         loss = after.mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
         if (it + 1) % every == 0 or it == steps - 1:
             hist.append({"step": it + 1, **evaluate(model, {k: v.detach() for k, v in params.items()},
-                                                      {k: v.detach() for k, v in psi.items()}, val or seg)})
-    return {k: v.detach().clone() for k, v in psi.items()}, hist
+                                                      {k: v.detach() for k, v in psi.items()}, val or seg, names=sub)})
+    return {k: (psi[k].detach().clone() if k in psi else torch.zeros_like(v.detach())) for k, v in params.items()}, hist
 
 
-def evaluate(model: AdaptiveMLP, params: Params, psi: Params, seg: Segments, max_tasks: int = 256) -> dict[str, float]:
-    """Mean loss on the next K transitions before and after one adaptation step (fixed subset)."""
+def evaluate(model: AdaptiveMLP, params: Params, psi: Params, seg: Segments, max_tasks: int = 256,
+             names: Sequence[str] | None = None) -> dict[str, float]:
+    """Mean loss on the next K transitions before and after one adaptation step of ``names``
+    (None: all parameters) on a fixed subset of the segments."""
     idx = torch.arange(min(len(seg), max_tasks))
-    after, before = task_losses(model, params, psi, seg, idx)
+    after, before = task_losses(model, params, psi, seg, idx, names)
     return {"before": float(before.mean()), "after": float(after.mean())}
 
 
@@ -151,8 +171,7 @@ class GrbalAdapter(Adapter):
     def _update(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
         if not self._buf:
             return {}, {}
-        psi = {k: (v if k in self.adapt_params else torch.zeros_like(v)) for k, v in self.psi.items()}
-        adapted = adapt(self.model, self.theta_star, psi, *self.window_tensors())
+        adapted = adapt(self.model, self.theta_star, self.psi, *self.window_tensors(), names=self.adapt_params)
         return {k: adapted[k] for k in self.adapt_params}, {"step_size_mean": float(
             torch.cat([self.psi[k].reshape(-1) for k in self.adapt_params]).mean())}
 

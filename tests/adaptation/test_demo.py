@@ -8,7 +8,7 @@ import json
 from learning.adaptation import load_adapter
 from learning.adaptation.experiment import METHODS, SWITCHING_METHODS
 from tools.cmd_demo import OTHER_DEMOS
-from tools.demo_adaptation import cli_adaptation, run_demo
+from tools.demo_adaptation import cli_adaptation, ranking_line, report_from_seeds, run_demo
 
 
 def test_registered_with_the_demo_signature():
@@ -34,8 +34,40 @@ def test_tiny_run_writes_the_issue_report(tmp_path):
         assert len(v["reward_per_segment"]) == 2
         assert (v["tasks_created"] is None) == (m != "mole")
     assert r["switching"]["mole"]["tasks_created"] >= 1
+    assert json.loads((tmp_path / "seed0.json").read_text())["perturbations"].keys() == names  # kept per seed
+    partial = report_from_seeds(tmp_path)  # the tables of a run stopped after its first seed
+    assert partial["perturbations"]["slope"]["grbal"]["cost_per_m"] == r["perturbations"]["slope"]["grbal"]["cost_per_m"]
+    assert "grbal ranks above mb on " in (tmp_path / "report_seeds.md").read_text()
     for f in ("report.md", "perturbations.png", "k_step_before_after.png", "switching.png"):
         assert (tmp_path / f).is_file()
     # the checkpoints the demo wrote build their adapters (what an adaptation node loads)
     for m in ("mb_de", "grbal", "rebal", "mole"):
         assert load_adapter(tmp_path / "checkpoints" / f"seed0_{m}.pt").name == m
+
+
+def test_oracle_is_an_mb_model_of_the_tested_condition():
+    import numpy as np
+    import pytest
+
+    from learning.adaptation.experiment import AdaptationConfig, Trained
+    from learning.adaptation.model import AdaptiveMLP
+
+    names = ["x", "y", "vx", "vy", "cos_yaw", "sin_yaw"]
+    plain, oracle = AdaptiveMLP(names, 2, hidden=(8,), seed=0), AdaptiveMLP(names, 2, hidden=(8,), seed=1)
+    tr = Trained(plain, plain, {}, plain, None, np.ones(6))
+    cfg = AdaptationConfig.tiny()
+    assert "oracle" in METHODS
+    with pytest.raises(ValueError, match="no oracle model"):
+        tr.adapter("oracle", cfg)
+    tr.oracle = oracle
+    ad = tr.adapter("oracle", cfg)
+    assert ad.name == "mb" and ad.model is oracle  # no adaptation: θ of the oracle every step
+
+
+def test_ranking_counts_completions_first_then_cost():
+    cell = lambda c, k: {"completed": c, "cost_per_m": k}  # noqa: E731
+    seed = {"perturbations": {"a": {"grbal": cell(1, 90.0), "mb": cell(0, 10.0)},     # more completions wins
+                              "b": {"grbal": cell(1, 20.0), "mb": cell(1, 10.0)},     # tie: lower cost wins
+                              "c": {"grbal": cell(0, 5.0), "mb": cell(0, 6.0)}}}
+    r = {**seed, "per_seed": [seed, seed]}
+    assert ranking_line(r, "mb") == "grbal ranks above mb on 2 of 3 (a, c) on the means; per seed: [2, 2]."

@@ -8,6 +8,7 @@ import torch
 
 from learning.adaptation import load_adapter
 from learning.adaptation.grbal import GrbalAdapter, evaluate, segments
+from learning.adaptation.model import AdaptiveMLP
 from learning.adaptation.training import transitions
 from tests.adaptation import toy
 from tests.adaptation.conftest import K, M
@@ -71,3 +72,65 @@ def test_checkpoint_and_subset_of_parameters(meta, tmp_path):
     assert load_adapter(tmp_path / "g.pt", method="mb_de").name == "mb_de"
     with pytest.raises(ValueError, match="psi lacks"):
         GrbalAdapter(model, {}, window=M)
+
+
+def _matmuls(fn) -> int:
+    """aten matrix products run by ``fn()`` (forward and backward)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func.overloadpacket in (torch.ops.aten.mm, torch.ops.aten.addmm, torch.ops.aten.bmm):
+                Count.n += 1
+            return func(*args, **(kwargs or {}))
+
+    with Count():
+        fn()
+    return Count.n
+
+
+def test_adapting_a_subset_differentiates_only_that_subset(meta):
+    model, _, psi, _ = meta
+    last = list(model.params())[-2:]
+    full, sub = GrbalAdapter(model, psi, window=M), GrbalAdapter(model, psi, window=M, adapt_params=last)
+    ep = toy.episodes(1, M, seed=8, gain=0.4)[0]
+    for ad in (full, sub):
+        for t in range(M):
+            ad.observe(ep.states[t], ep.actions[t], ep.states[t + 1])
+    n_full, n_sub = _matmuls(full.update), _matmuls(sub.update)
+    # 3 layers: forward 3 products; the full backward adds the weight gradients of all 3 and
+    # the input gradients of the 2 upper layers; the last layer's: its weight gradient only
+    assert n_sub == 3 + 1 < n_full
+    # same values as a full-gradient step with ψ = 0 outside the subset
+    u = sub.update()
+    psi0 = {k: (v if k in last else torch.zeros_like(v)) for k, v in psi.items()}
+    ref = GrbalAdapter(model, psi0, window=M)
+    for t in range(M):
+        ref.observe(ep.states[t], ep.actions[t], ep.states[t + 1])
+    r = ref.update()
+    for k in last:
+        np.testing.assert_allclose(u.tensors[k], r.tensors[k], atol=1e-6)
+
+
+def test_meta_training_a_subset_learns_only_its_step_sizes(meta):
+    from learning.adaptation.grbal import meta_train
+    from tests.adaptation.conftest import train_episodes
+
+    _, plain, _, _ = meta
+    model = AdaptiveMLP.from_checkpoint(plain.to_checkpoint())
+    last = list(model.params())[-2:]
+    first_before = model.params()[list(model.params())[0]].clone()
+    psi, hist = meta_train(model, segments(train_episodes(), M, K, stride=4), steps=30, meta_batch=8,
+                           psi_init=0.05, psi_lr=1e-2, adapt_params=last)
+    assert set(psi) == set(model.params())
+    for k, v in psi.items():
+        if k in last:
+            assert not torch.allclose(v, torch.full_like(v, 0.05))  # learned
+        else:
+            assert torch.count_nonzero(v) == 0  # not adapted: no step
+    # the outer loss still trains every parameter of θ
+    assert not torch.allclose(model.params()[list(model.params())[0]], first_before)
+    with pytest.raises(ValueError, match="unknown parameters"):
+        meta_train(model, segments(train_episodes(), M, K, stride=4), steps=1, adapt_params=["nope"])
