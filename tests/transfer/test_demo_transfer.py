@@ -23,10 +23,33 @@ def test_demo_transfer_writes_the_report_and_plots(tmp_path, monkeypatch):
         assert "data_multiplier" in p
     ge = rep["garat"]["pendulum"]["grounding_error"]
     assert set(ge) == {"none", "gat", "garat"} and all(v > 0 for v in ge.values())
-    assert set(rep["garat"]["roach"]["normalised_return"]) == {"source", "gat", "garat"}
+    roach = rep["garat"]["roach"]
+    assert set(roach["normalised_return"]) == {"source", "gat", "garat"}
+    assert roach["seeds"] == [0] and len(roach["per_seed"]) == 1
+    row = roach["per_seed"][0]
+    assert set(row["target_return_m"]) == {"source", "target", "gat", "garat"}
+    assert row["garat_disc_updates"] == 2  # 128 PPO steps / 64 per update: one D update per π_g update
+    assert rep["garat"]["pendulum"]["seeds"] == [0]
     for f in rep["plots"]:
         assert (tmp_path / f).read_bytes()[:4] == b"\x89PNG"
     assert "sidm similar: data multiplier" in r.output and "pendulum grounding error" in r.output
+
+
+def test_part_runs_only_that_half(tmp_path, monkeypatch):
+    import learning.transfer.roach_pairs as rp
+    import tools.demo_transfer as dt
+
+    calls = []
+    monkeypatch.setattr(rp, "run_sidm", lambda *a: calls.append("sidm") or {"pairs": {}})
+    monkeypatch.setattr(dt, "_pendulum_over_seeds", lambda *a: calls.append("pendulum") or {})
+    monkeypatch.setattr(dt, "_roach_over_seeds", lambda *a: calls.append("roach") or {})
+    monkeypatch.setattr(dt, "_plots", lambda *a: [])
+    rep = dt.run_transfer_demo(tmp_path, preset="tiny", part="sidm", log=lambda m: None)
+    assert calls == ["sidm"] and "garat" not in rep and "sidm" in rep
+    with pytest.raises(ValueError, match="unknown part"):
+        dt.run_transfer_demo(tmp_path, preset="tiny", part="both")
+    r = CliRunner().invoke(app, ["demo", "arms", "--part", "garat"])
+    assert r.exit_code != 0 and "--part is for the transfer demo only" in r.output
 
 
 def test_unknown_demo_is_a_one_line_error():
