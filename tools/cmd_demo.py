@@ -34,6 +34,7 @@ def register(app: typer.Typer) -> None:
                                              help="random data and random shooting as in the thesis: independent "
                                                   "uniform steps (no holds, no forward commands, no rate limit)"),
         seed: int = typer.Option(0, "--seed"),
+        part: str = typer.Option("all", "--part", help="transfer only: all | sidm | garat (one half of the demo)"),
         planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
         rig: str = typer.Option("roach_sim", "--rig", help="rig config: roach_sim (lockstep), roach_emulated, roach_real"),
         operator_resets: bool = typer.Option(False, "--operator-resets",
@@ -44,11 +45,16 @@ def register(app: typer.Typer) -> None:
         Collects random data through the driver bridge, trains a dynamics model, runs MPC
         and the differential-drive baseline on five paths at a low and a high speed.
         The other demos (`hil demo transfer`, ...) are listed in OTHER_DEMOS."""
+        if part != "all" and what != "transfer":
+            raise UserError(f"hil demo {what}: --part is for the transfer demo only")
+        if part not in ("all", "sidm", "garat"):
+            raise UserError(f"hil demo transfer: unknown --part {part!r} (all | sidm | garat)")
         if what in OTHER_DEMOS:
             import importlib
 
             module, fn, _ = OTHER_DEMOS[what]
-            return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed)
+            kw = {"part": part} if what == "transfer" else {}
+            return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed, **kw)
         if what != "roach":
             raise UserError(f"hil demo: unknown demo {what!r} ({' | '.join(['roach', *OTHER_DEMOS])})")
         from learning.mbrl import RigError

@@ -1,6 +1,8 @@
-"""`hil demo transfer`: SIDM on VelociRoACH expert/novice pairs, GAT vs GARAT on InvertedPendulum.
+"""`hil demo transfer`: SIDM on VelociRoACH expert/novice pairs, GAT vs GARAT on InvertedPendulum
+and on the VelociRoACH (source sim → target sim with a missing leg).
 
 Writes ``report.json`` (keys of issue 13) and PNG plots into the output directory.
+``part`` (``--part all|sidm|garat``) runs only one half; the other's keys are then absent.
 Presets: ``full`` (the issue's sweep), ``quick`` (a reduced sweep meant for ≤ 20 min on two
 idle cores) and ``tiny`` (seconds; the CLI test). docs/transfer.md lists what each ran and
 how long it took.
@@ -15,8 +17,13 @@ from pathlib import Path
 
 from learning.transfer.grounding import GaratConfig
 from learning.transfer.pendulum import PendulumConfig
+from learning.transfer.roach_garat import RoachGaratConfig
 from learning.transfer.roach_pairs import SidmExperiment
 from learning.transfer.sidm import SidmConfig
+
+#: the pendulum settings of `quick` (chosen on seed 0); `full` runs them on three fresh seeds
+_PENDULUM = PendulumConfig(agent_timesteps=20000, target_sizes=(500, 3000), source_transitions=5000,
+                           validation_transitions=500, gat_fit_steps=1500, garat=GaratConfig(total_timesteps=49152))
 
 PRESETS: dict[str, dict] = {
     "full": {
@@ -25,16 +32,20 @@ PRESETS: dict[str, dict] = {
                                    validation_minutes=5.0, trials=4, ablation_minutes=(1.0,)),
         "sidm": SidmConfig(latent_dim=128, width=128, enc_layers=0, warm_rounds=10, max_rounds=30,
                            patience_rounds=5),
-        "pendulum": PendulumConfig(),
+        "pendulum": _PENDULUM,  # the GARAT part of `full` is sized for ~45 min on one loaded core
+        "roach": RoachGaratConfig(),
+        "garat_seeds": (1, 2, 3),  # fresh seeds: seed 0 was used to choose the GARAT settings
+        "roach_seeds": (1, 2, 3, 4, 5),  # as many as the paper's Fig. 3 (the roach part has no tuning seed)
     },
     "quick": {
         "sidm_exp": SidmExperiment(expert_minutes=10.0, novice_minutes=(1.0, 2.0, 4.0, 8.0), validation_minutes=2.0,
                                    trials=3, ablation_minutes=(1.0,)),
         "sidm": SidmConfig(latent_dim=128, width=128, enc_layers=0, warm_rounds=10, max_rounds=30,
                            patience_rounds=5),
-        "pendulum": PendulumConfig(agent_timesteps=20000, target_sizes=(500, 3000), source_transitions=5000,
-                                   validation_transitions=500, gat_fit_steps=1500,
-                                   garat=GaratConfig(total_timesteps=49152)),
+        "pendulum": _PENDULUM,
+        "roach": RoachGaratConfig(cem_population=8, cem_iterations=6, cem_episodes=1, target_transitions=1000,
+                                  source_transitions=2000, garat=GaratConfig(total_timesteps=8192, log_std_init=-2.0)),
+        "garat_seeds": None,  # the --seed given
     },
     "tiny": {
         "sidm_exp": SidmExperiment(expert_minutes=0.1, novice_minutes=(0.05, 0.1), validation_minutes=0.05,
@@ -45,11 +56,16 @@ PRESETS: dict[str, dict] = {
                                    validation_transitions=50, gat_fit_steps=50, trace_steps=20,
                                    garat=GaratConfig(total_timesteps=256, n_steps=128, batch_size=64, n_epochs=1,
                                                      disc_steps=2)),
+        "roach": RoachGaratConfig(episode_steps=5, cem_population=4, cem_iterations=1, cem_elites=2, cem_episodes=1,
+                                  eval_episodes=1,
+                                  target_transitions=40, source_transitions=40, gat_fit_steps=50,
+                                  garat=GaratConfig(total_timesteps=128, n_steps=64, batch_size=32, n_epochs=1,
+                                                    disc_steps=2, log_std_init=-2.0)),
+        "garat_seeds": None,
     },
 }
 
-ROACH_GARAT_STATUS = ("not run: the VelociRoACH GARAT part (normalised target return for source-only, GAT "
-                      "and GARAT) is not built yet (docs/transfer.md)")
+PARTS = ("all", "sidm", "garat")
 
 
 def _sidm_plot(report: dict, out: Path, plt) -> str:
@@ -73,6 +89,48 @@ def _sidm_plot(report: dict, out: Path, plt) -> str:
     return "sidm_validation.png"
 
 
+def _garat_plots(report: dict, out: Path, plt) -> list[str]:
+    p = report["garat"]["pendulum"]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+    n = [row["target_transitions"] for row in p["curve"]]
+    for key in ("none", "gat", "garat"):
+        a1.errorbar(n, [row[key] for row in p["curve"]], yerr=[row[key + "_std"] for row in p["curve"]],
+                    fmt="o-", capsize=3, label=key)
+    a1.set_xscale("log")
+    a1.set_xlabel("target transitions")
+    a1.set_ylabel("per-step transition error (L2, state units)")
+    a1.set_title(f"InvertedPendulum, pole {p['target_pole_mass_kg']:g} kg, seeds {p['seeds']} (mean ± std)")
+    a1.legend()
+    for key, tr in p["angle_traces_rad"].items():
+        a2.plot(range(len(tr)), tr, label=key)
+    a2.set_xlabel("step (0.04 s)")
+    a2.set_ylabel("pole angle [rad]")
+    a2.set_title(f"one policy, same start state (seed {p['seeds'][0]})")
+    a2.legend()
+    fig.tight_layout()
+    fig.savefig(out / "garat_pendulum.png", dpi=100)
+    plt.close(fig)
+
+    r = report["garat"]["roach"]
+    keys = ("source", "gat", "garat")
+    fig, ax = plt.subplots(figsize=(5, 4))
+    mean = [r["normalised_return"][k] if r["normalised_return"][k] is not None else float("nan") for k in keys]
+    std = [r["normalised_return_std"][k] if r["normalised_return_std"][k] is not None else 0.0 for k in keys]
+    ax.bar(keys, mean, yerr=std, capsize=4)
+    for i, k in enumerate(keys):
+        ax.plot([i] * len(r["per_seed"]), [row["normalised_return"][k] if row["normalised_return"][k] is not None
+                                           else float("nan") for row in r["per_seed"]], "k.")
+    ax.axhline(1.0, color="g", ls="--", lw=1, label="target-trained = 1")
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_ylabel("normalised target return")
+    ax.set_title(f"VelociRoACH, target: leg {r['missing_leg']} missing, seeds {r['seeds']}")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "garat_roach.png", dpi=100)
+    plt.close(fig)
+    return ["garat_pendulum.png", "garat_roach.png"]
+
+
 def _plots(report: dict, out: Path) -> list[str]:
     import matplotlib
 
@@ -80,122 +138,112 @@ def _plots(report: dict, out: Path) -> list[str]:
     import matplotlib.pyplot as plt
 
     files = []
-    if report["sidm"] is not None:
+    if "sidm" in report:
         files.append(_sidm_plot(report, out, plt))
-    if report["garat"] is None:
-        return files
-    p = report["garat"]["pendulum"]
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
-    n = [row["target_transitions"] for row in p["curve"]]
-    for key in ("none", "gat", "garat"):
-        a1.plot(n, [row[key] for row in p["curve"]], "o-", label=key)
-    a1.set_xscale("log")
-    a1.set_xlabel("target transitions")
-    a1.set_ylabel("per-step transition error (L2, state units)")
-    a1.set_title(f"InvertedPendulum, target pole {p['target_pole_mass_kg']:g} kg")
-    a1.legend()
-    for key, tr in p["angle_traces_rad"].items():
-        a2.plot(range(len(tr)), tr, label=key)
-    a2.set_xlabel("step (0.04 s)")
-    a2.set_ylabel("pole angle [rad]")
-    a2.set_title("one policy, same start state")
-    a2.legend()
-    fig.tight_layout()
-    fig.savefig(out / "garat_pendulum.png", dpi=100)
-    plt.close(fig)
-    files.append("garat_pendulum.png")
+    if "garat" in report:
+        files += _garat_plots(report, out, plt)
     return files
 
 
-#: the parts of the demo; ``HIL_TRANSFER_PARTS=sidm`` (or ``garat``) runs only one of them
-PARTS = ("sidm", "garat")
-
-
-def parse_parts(text: str | None) -> tuple[str, ...]:
-    """``"sidm,garat"`` → ("sidm", "garat"); None or empty → all parts. Unknown names are an error."""
-    if not text:
-        return PARTS
-    parts = tuple(p.strip() for p in text.split(",") if p.strip())
-    bad = [p for p in parts if p not in PARTS]
-    if bad or not parts:
-        raise ValueError(f"HIL_TRANSFER_PARTS: unknown part(s) {bad or text!r}: choose from {', '.join(PARTS)}")
-    return parts
-
-
-def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print,
-                      parts: tuple[str, ...] = PARTS) -> dict:
-    """Run the preset's ``parts``, write report.json and the plots into ``out``; return the report.
-    A part that did not run is ``None`` in the report (with ``skipped``) and has no plot or check."""
-    import torch
+def _pendulum_over_seeds(cfg: PendulumConfig, seeds: tuple[int, ...], log) -> dict:
+    """The Fig. 1 experiment per seed; the curve carries mean and std over seeds, and
+    ``grounding_error`` the mean at the largest target data size."""
+    import numpy as np
 
     from learning.transfer.pendulum import run as run_pendulum
+
+    runs = [run_pendulum(replace(cfg, seed=s), log) for s in seeds]
+    curve = []
+    for i, row in enumerate(runs[0]["curve"]):
+        agg = {"target_transitions": row["target_transitions"]}
+        for k in ("none", "gat", "garat"):
+            v = np.array([r["curve"][i][k] for r in runs])
+            agg[k], agg[k + "_std"] = float(v.mean()), float(v.std())
+        agg["ordering_holds_on_seeds"] = int(sum(r["curve"][i]["garat"] < r["curve"][i]["gat"] < r["curve"][i]["none"]
+                                                 for r in runs))
+        curve.append(agg)
+    last = curve[-1]
+    return {"grounding_error": {k: last[k] for k in ("none", "gat", "garat")},
+            "grounding_error_std": {k: last[k + "_std"] for k in ("none", "gat", "garat")},
+            "seeds": list(seeds), "curve": curve, "per_seed": [r["curve"] for r in runs],
+            "angle_traces_rad": runs[0]["angle_traces_rad"], "target_pole_mass_kg": runs[0]["target_pole_mass_kg"]}
+
+
+def _roach_over_seeds(cfg: RoachGaratConfig, seeds: tuple[int, ...], log) -> dict:
+    from learning.transfer.roach_garat import run_seed, summarise
+
+    out = summarise([run_seed(replace(cfg, seed=s), log) for s in seeds])
+    out["missing_leg"] = cfg.missing_leg
+    return out
+
+
+def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print, part: str = "all") -> dict:
+    """Run the preset (``part``: all, sidm or garat), write report.json and the plots into ``out``."""
+    import torch
+
     from learning.transfer.roach_pairs import run_sidm
 
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)}")
+    if part not in PARTS:
+        raise ValueError(f"unknown part {part!r}: choose one of {', '.join(PARTS)}")
     torch.set_num_threads(1)  # two shared cores: one thread each is faster under load (PLATFORM_NOTES)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     p = PRESETS[preset]
     sidm_exp, pend = replace(p["sidm_exp"], seed=seed), replace(p["pendulum"], seed=seed)
-    parts = parse_parts(",".join(parts))
+    garat_seeds = tuple(p["garat_seeds"] or (seed,))
+    report: dict = {"preset": preset, "seed": seed, "part": part, "settings": {}, "timing_s": {}, "checks": {}}
     t0 = time.monotonic()
-    sidm = run_sidm(sidm_exp, p["sidm"], log) if "sidm" in parts else None
-    t1 = time.monotonic()
-    pendulum = run_pendulum(pend, log) if "garat" in parts else None
-    t2 = time.monotonic()
-    report = {
-        "preset": preset,
-        "seed": seed,
-        "parts": list(parts),
-        "skipped": [q for q in PARTS if q not in parts],
-        "sidm": sidm,
-        "garat": None if pendulum is None else {
-            "pendulum": pendulum,
-            "roach": {"normalised_return": {"source": None, "gat": None, "garat": None},
-                      "status": ROACH_GARAT_STATUS},
-        },
-        "settings": {"sidm_experiment": asdict(sidm_exp), "sidm_model": asdict(p["sidm"]),
-                     "pendulum": asdict(pend)},
-        "timing_s": {"sidm": t1 - t0, "garat_pendulum": t2 - t1, "total": t2 - t0},
-    }
-    report["checks"] = {}
-    if sidm is not None:
+    if part in ("all", "sidm"):
+        t = time.monotonic()
+        sidm = run_sidm(sidm_exp, p["sidm"], log)
+        report["sidm"] = sidm
+        report["settings"].update(sidm_experiment=asdict(sidm_exp), sidm_model=asdict(p["sidm"]))
+        report["timing_s"]["sidm"] = time.monotonic() - t
         mults = {k: v["data_multiplier"] for k, v in sidm["pairs"].items()}
         report["checks"]["sidm_multiplier_above_1_on_a_pair"] = any(m is not None and m > 1 for m in mults.values())
-    if pendulum is not None:
+    if part in ("all", "garat"):
+        t = time.monotonic()
+        pendulum = _pendulum_over_seeds(pend, garat_seeds, log)
+        t1 = time.monotonic()
+        roach_seeds = tuple(p.get("roach_seeds") or garat_seeds)
+        roach = _roach_over_seeds(p["roach"], roach_seeds, log)
+        report["garat"] = {"pendulum": pendulum, "roach": roach}
+        report["settings"].update(pendulum=asdict(pend), roach=asdict(p["roach"]), garat_seeds=list(garat_seeds),
+                                  roach_seeds=list(roach_seeds))
+        report["timing_s"].update(garat_pendulum=t1 - t, garat_roach=time.monotonic() - t1)
         ge = pendulum["grounding_error"]
         report["checks"]["garat_below_gat_below_none"] = bool(ge["garat"] < ge["gat"] < ge["none"])
+    report["timing_s"]["total"] = time.monotonic() - t0
     report["plots"] = _plots(report, out)
     (out / "report.json").write_text(json.dumps(report, indent=2))
     return report
 
 
-def cli_transfer(out: Path, quick: bool, full: bool, seed: int) -> None:
+def cli_transfer(out: Path, quick: bool, full: bool, seed: int, part: str = "all") -> None:
     """The `hil demo transfer` verb (registered in tools/cmd_demo.py)."""
     import os
 
     import typer
 
-    from tools.common import UserError
 
     preset = os.environ.get("HIL_TRANSFER_PRESET") or ("quick" if quick else "full")
     if out == Path("out/demo"):
         out = Path("out/transfer")
-    try:
-        parts = parse_parts(os.environ.get("HIL_TRANSFER_PARTS"))
-    except ValueError as e:
-        raise UserError(str(e)) from None
-    r = run_transfer_demo(out, preset=preset, seed=seed, log=typer.echo, parts=parts)
-    if r["sidm"] is not None:
-        for pair, v in r["sidm"]["pairs"].items():
-            m = v["data_multiplier"]
-            typer.echo(f"sidm {pair}: data multiplier {'n/a' if m is None else f'{m:.2f}x'}")
-    if r["garat"] is not None:
-        ge = r["garat"]["pendulum"]["grounding_error"]
-        typer.echo(f"pendulum grounding error: none {ge['none']:.4f}  gat {ge['gat']:.4f}  garat {ge['garat']:.4f}")
-    if r["skipped"]:
-        typer.echo(f"skipped (HIL_TRANSFER_PARTS): {', '.join(r['skipped'])}")
+    r = run_transfer_demo(out, preset=preset, seed=seed, log=typer.echo, part=part)
+    for pair, v in r.get("sidm", {}).get("pairs", {}).items():
+        m = v["data_multiplier"]
+        typer.echo(f"sidm {pair}: data multiplier {'n/a' if m is None else f'{m:.2f}x'}")
+    if "garat" in r:
+        pend, roach = r["garat"]["pendulum"], r["garat"]["roach"]
+        ge, sd = pend["grounding_error"], pend["grounding_error_std"]
+        typer.echo(f"pendulum grounding error (seeds {pend['seeds']}, mean ± std): "
+                   + "  ".join(f"{k} {ge[k]:.4f} ± {sd[k]:.4f}" for k in ("none", "gat", "garat")))
+        nr, ns = roach["normalised_return"], roach["normalised_return_std"]
+        typer.echo(f"roach normalised target return (seeds with a gap {roach['seeds_with_gap']} of {roach['seeds']}): "
+                   + "  ".join(f"{k} {'n/a' if nr[k] is None else f'{nr[k]:.2f} ± {ns[k]:.2f}'}"
+                               for k in ("source", "gat", "garat")))
     for k, ok in r["checks"].items():
         typer.echo(f"{'PASS' if ok else 'FAIL'} {k}")
     typer.echo(f"time {r['timing_s']['total']:.0f} s; report: {out / 'report.json'}")

@@ -23,10 +23,33 @@ def test_demo_transfer_writes_the_report_and_plots(tmp_path, monkeypatch):
         assert "data_multiplier" in p
     ge = rep["garat"]["pendulum"]["grounding_error"]
     assert set(ge) == {"none", "gat", "garat"} and all(v > 0 for v in ge.values())
-    assert set(rep["garat"]["roach"]["normalised_return"]) == {"source", "gat", "garat"}
+    roach = rep["garat"]["roach"]
+    assert set(roach["normalised_return"]) == {"source", "gat", "garat"}
+    assert roach["seeds"] == [0] and len(roach["per_seed"]) == 1
+    row = roach["per_seed"][0]
+    assert set(row["target_return_m"]) == {"source", "target", "gat", "garat"}
+    assert row["garat_disc_updates"] == 2  # 128 PPO steps / 64 per update: one D update per π_g update
+    assert rep["garat"]["pendulum"]["seeds"] == [0]
     for f in rep["plots"]:
         assert (tmp_path / f).read_bytes()[:4] == b"\x89PNG"
     assert "sidm similar: data multiplier" in r.output and "pendulum grounding error" in r.output
+
+
+def test_part_runs_only_that_half(tmp_path, monkeypatch):
+    import learning.transfer.roach_pairs as rp
+    import tools.demo_transfer as dt
+
+    calls = []
+    monkeypatch.setattr(rp, "run_sidm", lambda *a: calls.append("sidm") or {"pairs": {}})
+    monkeypatch.setattr(dt, "_pendulum_over_seeds", lambda *a: calls.append("pendulum") or {})
+    monkeypatch.setattr(dt, "_roach_over_seeds", lambda *a: calls.append("roach") or {})
+    monkeypatch.setattr(dt, "_plots", lambda *a: [])
+    rep = dt.run_transfer_demo(tmp_path, preset="tiny", part="sidm", log=lambda m: None)
+    assert calls == ["sidm"] and "garat" not in rep and "sidm" in rep
+    with pytest.raises(ValueError, match="unknown part"):
+        dt.run_transfer_demo(tmp_path, preset="tiny", part="both")
+    r = CliRunner().invoke(app, ["demo", "arms", "--part", "garat"])
+    assert r.exit_code != 0 and "--part is for the transfer demo only" in r.output
 
 
 def test_unknown_demo_is_a_one_line_error():
@@ -34,32 +57,21 @@ def test_unknown_demo_is_a_one_line_error():
     assert r.exit_code == 2 and "unknown demo 'nonsense'" in r.output
 
 
-def test_parts_parse_and_refuse_unknown_names():
-    from tools.demo_transfer import PARTS, parse_parts
-
-    assert parse_parts(None) == PARTS and parse_parts("") == PARTS
-    assert parse_parts(" sidm ") == ("sidm",)
-    with pytest.raises(ValueError, match="HIL_TRANSFER_PARTS"):
-        parse_parts("sidm,gart")
-
-
 @pytest.mark.slow
 def test_demo_transfer_sidm_part_only(tmp_path, monkeypatch):
     monkeypatch.setenv("HIL_TRANSFER_PRESET", "tiny")
-    monkeypatch.setenv("HIL_TRANSFER_PARTS", "sidm")
-    r = CliRunner().invoke(app, ["demo", "transfer", "--out", str(tmp_path)])
+    r = CliRunner().invoke(app, ["demo", "transfer", "--part", "sidm", "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
     rep = json.loads((tmp_path / "report.json").read_text())
-    assert rep["garat"] is None and rep["skipped"] == ["garat"] and rep["plots"] == ["sidm_validation.png"]
+    assert "garat" not in rep and rep["part"] == "sidm" and rep["plots"] == ["sidm_validation.png"]
     assert set(rep["checks"]) == {"sidm_multiplier_above_1_on_a_pair"}
     p = rep["sidm"]["pairs"]["similar"]
     assert p["expert_model_on_novice"] > 0 and p["curve"][0]["with_sidm_no_matching"] > 0
     assert len(p["data_multiplier_per_size"]) == len(p["curve"])
-    assert "pendulum" not in r.output and "skipped (HIL_TRANSFER_PARTS): garat" in r.output
+    assert "pendulum" not in r.output
 
 
 def test_demo_transfer_unknown_part_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setenv("HIL_TRANSFER_PRESET", "tiny")
-    monkeypatch.setenv("HIL_TRANSFER_PARTS", "nonsense")
-    r = CliRunner().invoke(app, ["demo", "transfer", "--out", str(tmp_path)])
-    assert r.exit_code != 0 and "unknown part" in r.output
+    r = CliRunner().invoke(app, ["demo", "transfer", "--part", "nonsense", "--out", str(tmp_path)])
+    assert r.exit_code != 0 and "part" in r.output and "Traceback" not in r.output
