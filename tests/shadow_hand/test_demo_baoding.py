@@ -140,7 +140,8 @@ def test_demo_baoding_tiny_end_to_end(tmp_path):
 
     r = run_baoding_demo(tmp_path, preset="tiny")
     saved = json.loads((tmp_path / "report.json").read_text())
-    assert saved["iterations"] == r["iterations"]
+    # as JSON: a metric without data is NaN (drop recall with no drop window), and NaN != NaN
+    assert json.dumps(saved["iterations"], sort_keys=True) == json.dumps(r["iterations"], sort_keys=True)
     metrics = {"points", "mean_return", "return", "drops", "drop_rate", "mean_rotation_deg", "success_90",
                "success_180", "model"}
     assert len(r["iterations"]) == 1 and metrics <= set(r["iterations"][0])
@@ -157,17 +158,6 @@ def test_demo_baoding_tiny_end_to_end(tmp_path):
     for f in ("report.md", "returns.png", "demo.rrd", "model.pt"):
         assert (tmp_path / f).is_file(), f
     assert all(p.endswith(".mcap") for p in r["recordings"]) and len(r["recordings"]) == 4
-
-
-def test_demo_baoding_runs_through_the_arm_reset_rig(tmp_path):
-    """The full run's default rig (hand_sim_arm: the reset arm puts dropped balls back)."""
-    from tools.demo_baoding import FULL_RIG, run_baoding_demo
-
-    assert FULL_RIG == "hand_sim_arm"
-    r = run_baoding_demo(tmp_path, preset="tiny", rig=FULL_RIG, iterations=0)
-    assert r["rig"] == "hand_sim_arm" and r["random_data"]["points"] > 0
-    rs = r["resets"]
-    assert rs["requested"] >= 3 + 2 + 1 and rs["completed"] == rs["requested"] and rs["failed"] == 0
 
 
 def test_reset_handshake_and_lockstep_messages_wait_for_a_full_send_queue(bus):
