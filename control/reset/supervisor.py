@@ -459,9 +459,9 @@ class ResetSupervisor(Node):
 
     def _answer(self, phase: str, detail: str = "", episode: int | None = None) -> None:
         ep = episode if episode is not None else (self._last.episode if self._last else 0)
-        self._done.put(ResetEvent(robot=self.robot, phase=phase, pose=dict(self._pose), episode=ep, detail=detail))
-        if phase == "failed":
+        if phase == "failed":  # counted before the answer goes out: whoever acts on it sees the count
             self.stats["failed"] += 1
+        self._done.put(ResetEvent(robot=self.robot, phase=phase, pose=dict(self._pose), episode=ep, detail=detail))
         self._pending = None
 
     def _running(self, s: RobotState | None) -> None:
