@@ -44,7 +44,14 @@ def register(app: typer.Typer) -> None:
         from control.paths import fillet, make_path
         from control.policies import MpcPolicy
         from learning.frames import load_dynamics
-        from learning.mbrl import MbrlConfig, PathEnd, make_planner, max_step_normalized, path_start_pose
+        from learning.mbrl import (
+            MbrlConfig,
+            PathEnd,
+            command_delay_steps,
+            make_planner,
+            max_step_normalized,
+            path_start_pose,
+        )
 
         if (model is None) == (adapt is None):
             raise UserError("give exactly one of --model (a fixed model) and --adapt (an adaptation checkpoint)")
@@ -88,7 +95,7 @@ def register(app: typer.Typer) -> None:
             mcfg = MbrlConfig(planner=planner)
             ref = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
             planner_ = make_planner(mcfg, speed, len(spec["action"]["names"]), max_step_normalized(spec))
-            pol = MpcPolicy(dyn, planner_, ref, model_source=swap)
+            pol = MpcPolicy(dyn, planner_, ref, model_source=swap, delay_steps=command_delay_steps(cfg, robot))
             first = ctl.reset(**path_start_pose(wp)) if reset else None
             if cfg.pace == "lockstep":
                 log = ctl.run_lockstep(pol, steps, first, stop_if=PathEnd(PathCost(wp, names)))
