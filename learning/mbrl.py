@@ -440,7 +440,6 @@ class MbrlRun:
             reset_cfg = require_reset(self.rig, cfg.robot, cfg.operator_resets)
         except ResetUnavailable as e:
             raise RigError(str(e)) from None
-        self._check_episode_timeout(reset_cfg)
         with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs") as proc, \
                 ControllerNode(self.rig.name, cfg.robot, self.bus, name="mbrl-controller",
                                handle_signals=False, state_timeout_s=20.0) as ctl, \
@@ -670,6 +669,10 @@ class MbrlRun:
 
     def _run(self, report: dict[str, Any], t0: float) -> dict[str, Any]:
         cfg = self.cfg
+        try:
+            self._check_episode_timeout(require_reset(self.rig, cfg.robot, cfg.operator_resets))
+        except ResetUnavailable:
+            pass  # session() says so
         with self.session():
             _log(cfg, f"collecting {cfg.random_rollouts} random rollouts x {cfg.rollout_steps} steps")
             rand_path = self.collect_random(cfg.random_rollouts, "000-random")

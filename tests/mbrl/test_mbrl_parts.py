@@ -229,6 +229,6 @@ def test_a_supervisor_timeout_shorter_than_a_path_is_refused_before_the_rig_star
     rig.write_text(src.replace("max_s: 60", "max_s: 30").replace("name: roach_emulated", "name: roach_emu_short"))
     run = MbrlRun(MbrlConfig.quick(rig=str(rig), progress=False), tmp_path / "out", BusConfig())
     with pytest.raises(RigError, match=r"timeout, max_s 30 s\) would end the figure8 path before its time limit "
-                                       r"of 45\.7 s"), run.session():
-        pass
+                                       r"of 45\.7 s"):
+        run.run()
     assert not (tmp_path / "out" / "logs").exists()  # refused before the rig's process started
