@@ -65,9 +65,10 @@ class CycleTimer:
         self.missed = 0
         self._samples: dict[str, deque[float]] = {}
 
-    def start(self) -> float:
-        """Start the grid now; the first cycle begins at once, the next one a period later."""
-        now = self._clock()
+    def start(self, at_s: float | None = None) -> float:
+        """Start the grid now (or at clock time ``at_s``, e.g. to keep in phase with another
+        loop's grid); the first cycle begins then, the next one a period later."""
+        now = self._clock() if at_s is None else float(at_s)
         self.cycle_start_s = now
         self._next_s = now + self.period_s
         return now

@@ -66,6 +66,8 @@ class EpisodeLog:
     episode: int = 0
     plan_times_s: list[float] = field(default_factory=list)
     late_plans: int = 0
+    #: realtime mode: cycles whose state did not arrive within half a period (the newest was used)
+    stale_states: int = 0
     timeouts: int = 0
     #: realtime mode: the cycle timer's summary (late/missed periods, p50/p99 per section)
     timing: dict[str, Any] = field(default_factory=dict)
@@ -206,6 +208,19 @@ class ControllerNode(Node):
 
         Paced by :class:`bus.cycle.CycleTimer` (``self.cycle`` afterwards: late and
         missed periods, p50/p99 of the wait for the plan); ``log.timing`` holds its summary.
+
+        The cycle grid is started when a fresh state arrives, so it runs in phase with the
+        driver node's (same period, same clock): each cycle plans from the state published
+        at its start, and its command (sent within ``deadline_frac`` periods) reaches the
+        driver node before that node's next period. (A free-running grid had a random
+        phase per episode: a state up to a period old, and a command that missed the next
+        period half of the time.) A cycle whose state has not arrived within half a period
+        uses the newest one and counts it in ``log.stale_states``.
+
+        A policy with ``delay_steps`` > 0 (:class:`control.policies.MpcPolicy` on a
+        wall-clock robot) is called as ``policy(state, committed=...)`` with the last
+        ``delay_steps`` commands sent (normalized, oldest first): those act before the one
+        it plans. A plan that comes in late is used shifted by the cycles it missed.
         """
         spec = self.wait_ready()
         period = period_s or spec["period_s"]
@@ -214,6 +229,7 @@ class ControllerNode(Node):
         done = threading.Event()
         ready = threading.Event()
         go = threading.Event()
+        delay = int(getattr(policy, "delay_steps", 0) or 0)
 
         def worker() -> None:
             while not done.is_set():
@@ -221,7 +237,10 @@ class ControllerNode(Node):
                     continue
                 go.clear()
                 t0 = time.perf_counter()
-                a = np.asarray(policy(job["x"]), dtype=np.float64)
+                if delay:
+                    a = np.asarray(policy(job["x"], committed=job["committed"]), dtype=np.float64)
+                else:
+                    a = np.asarray(policy(job["x"]), dtype=np.float64)
                 plan = getattr(policy, "last_plan", None)
                 job["result"] = (a, None if plan is None else np.array(plan), time.perf_counter() - t0, job["seq"])
                 ready.set()
@@ -230,20 +249,36 @@ class ControllerNode(Node):
         th.start()
         fallback: list[np.ndarray] = []  # remaining actions of the last good plan
         busy = False
+        # align the grid with the state stream (see above): the least delayed of three
+        # fresh arrivals marks the driver node's grid (a single one may come late)
+        s = self._state.poll() or self._state.last  # take what is queued: the next ones are fresh
+        phase = []
+        for j in range(3):
+            s = self.next_state(after_seq=s.seq if s is not None else -1)
+            phase.append(time.monotonic() - j * period)
+        sent: list[np.ndarray] = [self.scale.to_norm(s.action) if len(s.action) == len(spec["action"]["names"])
+                                  else np.zeros(len(spec["action"]["names"]))]
         timer = self.cycle = CycleTimer(period, sleep=self.stop_event.wait)
-        timer.start()
+        timer.start(at_s=min(phase) + 2 * period)
         try:
             for i in range(steps):
                 if i:
                     timer.wait()
+                    if self.stop_event.is_set():
+                        break
+                    try:  # the state the driver node published at the start of this period
+                        s = self.next_state(after_seq=s.seq, timeout_s=0.5 * period)
+                    except TimeoutError:
+                        log.stale_states += 1
+                        s = self.next_state()
                 if self.stop_event.is_set():
                     break
-                s = self.next_state()
                 x = np.asarray(s.state)
                 if stop_if is not None and log.states and stop_if(x):
                     break
                 if not busy:
-                    job["x"], job["seq"] = x, s.seq
+                    job["x"], job["seq"], job["cycle"] = x, s.seq, i
+                    job["committed"] = [a.copy() for a in sent[-delay:]] if delay else []
                     ready.clear()
                     go.set()
                     busy = True
@@ -252,7 +287,11 @@ class ControllerNode(Node):
                 if got:
                     a, plan, dt, _ = job["result"]
                     busy = False
-                    fallback = [] if plan is None else [np.asarray(p) for p in plan[1:]]
+                    skip = i - job["cycle"]  # cycles this plan missed: its first actions are gone
+                    steps_left = [] if plan is None else [np.asarray(p) for p in plan]
+                    if skip and len(steps_left) > skip:
+                        a = steps_left[skip]
+                    fallback = steps_left[skip + 1:]
                     self.publish_plan(policy, dt, False)
                     log.plan_times_s.append(dt)
                 else:
@@ -260,6 +299,7 @@ class ControllerNode(Node):
                     log.late_plans += 1
                     a = fallback.pop(0) if fallback else np.zeros(len(spec["action"]["names"]))
                 a_sent = self.send(a, s.seq)
+                sent = (sent + [self.scale.to_norm(a_sent)])[-max(delay, 1):]
                 log.states.append(x)
                 log.actions.append(a_sent)
                 log.actions_norm.append(self.scale.to_norm(a_sent))

@@ -98,7 +98,15 @@ class MpcPolicy:
     """
 
     def __init__(self, model: Any, planner: Any, cost: Callable[..., torch.Tensor],
-                 model_source: Callable[[], Any] | None = None):
+                 model_source: Callable[[], Any] | None = None, delay_steps: int = 0):
+        if delay_steps < 0:
+            raise ValueError(f"delay_steps must be >= 0, got {delay_steps}")
+        #: commands already on their way when a state is measured: on a wall-clock robot
+        #: (real, emulated) the command planned from a state is applied at the driver
+        #: node's next period, while the one sent before acts (1; ``command_delay_steps``
+        #: of learning/mbrl.py). The plan then starts from the state the model predicts
+        #: after those (``committed`` of :meth:`__call__`, given by the controller node).
+        self.delay_steps = int(delay_steps)
         self.model = model
         #: the dynamics swapped in by ``model_source`` (None: ``model.predict``)
         self.dynamics = None
@@ -114,20 +122,37 @@ class MpcPolicy:
         if hasattr(self.cost, "reset"):
             self.cost.reset()
 
-    def __call__(self, state: np.ndarray) -> np.ndarray:
+    def __call__(self, state: np.ndarray, committed: Sequence[np.ndarray] | None = None) -> np.ndarray:
+        """The first action of a plan from ``state``; with ``committed`` (normalized
+        actions, oldest first, that act before this plan's first one) from the state the
+        model predicts after them."""
         if self.model_source is not None:
             new = self.model_source()
             if new is not None:
                 self.dynamics = new
         if hasattr(self.cost, "observe"):
             self.cost.observe(state)  # a path cost tracks the robot's place on the path
-        a = self.planner(self.dynamics or self.model.predict, self.cost, state)
+        dynamics = self.dynamics or self.model.predict
+        start = self.predict_after(dynamics, state, committed) if committed is not None and len(committed) else state
+        a = self.planner(dynamics, self.cost, start)
         self.last_plan = self.planner.last_plan.numpy()
         pred = self.planner.last_predicted_states
         self.last_predicted_states = None if pred is None else pred.mean(0).numpy()
         costs = self.planner.last_costs
         self.last_cost = float(costs.min()) if costs is not None else 0.0
         return a
+
+
+    @staticmethod
+    def predict_after(dynamics: Callable[..., torch.Tensor], state: np.ndarray,
+                      actions: Sequence[np.ndarray]) -> np.ndarray:
+        """``state`` rolled forward through ``actions`` with the model (ensemble mean)."""
+        with torch.inference_mode():
+            x = torch.as_tensor(np.asarray(state), dtype=torch.float32).unsqueeze(0)
+            for a in actions:
+                u = torch.as_tensor(np.asarray(a), dtype=torch.float32).reshape(1, -1)
+                x = dynamics(x, u).mean(0)
+        return x[0].numpy().astype(np.float64)
 
 
 class BaselinePolicy:

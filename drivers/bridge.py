@@ -308,17 +308,32 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------------ loops
     def step(self) -> None:
-        """One realtime period (sections timed by the cycle timer of ``run()``: ``hil up`` prints them)."""
+        """One realtime period (sections timed by the cycle timer of ``run()``: ``hil up`` prints them).
+
+        Each published state carries the action held during the period that ended with it
+        (``RobotState.action``; ``learning/recordings.py`` pairs ``(s_t, s_{t+1}.action,
+        s_{t+1})``). A sim backend advances inside the step, after the command is applied,
+        so it reads after the tick. A wall-clock robot (real, emulated) moved during the
+        period before this step, under the command held then: it is read and published
+        *before* the newest command is applied. (Applying first stamped every state with
+        the command that had not acted yet: the recorded transitions were one period off
+        and a model trained on them learned a wrong action effect; docs/mbrl.md.)
+        """
         timer = self.cycle
+        wall_clock = self.driver.backend != "sim"
         with timer.section("control") if timer else nullcontext():
             self._handle_estop()
             self._handle_reset()
+        if wall_clock:
+            with timer.section("read_publish") if timer else nullcontext():
+                self.publish_state()
+        with timer.section("apply") if timer else nullcontext():
             self._apply(self._cmd.poll())
-        if self.driver.backend == "sim":
+        if not wall_clock:
             with timer.section("sim_tick") if timer else nullcontext():
                 self.driver.tick()
-        with timer.section("read_publish") if timer else nullcontext():
-            self.publish_state()
+            with timer.section("read_publish") if timer else nullcontext():
+                self.publish_state()
         self.stats.steps += 1
         self._maybe_publish_spec()
 

@@ -10,7 +10,9 @@ The driver node bumps ``episode`` only when a reset is done, so the reset's own 
 (self-right kicks, the drive back, a lab fixture putting the robot on its legs, a
 teleport) is recorded under the episode that ended. The reset supervisor's recorded
 ``ResetTransition`` messages say when: every state between leaving ``running`` and coming
-back to it is left out, and the episode's transitions end where the episode did.
+back to it is left out, and the episode's transitions end where the episode did. A
+recording whose first transition does not leave ``running`` started during a reset (the
+previous file holds the episode's end): the states before it are left out too.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ def episodes_from_mcap(
     #: per robot: log times [ns] of each reset's [start, end) (end None: never came back)
     resets: dict[str, list[list[int | None]]] = {}
     in_reset: set[int] = set()  # ids of the states recorded during a reset
+    #: per robot: ids of the states recorded before its first reset transition
+    before_first: dict[str, list[int]] = {}
     for rm in iter_messages(path):
         m = rm.msg
         if isinstance(m, SpecMsg):
@@ -46,7 +50,16 @@ def episodes_from_mcap(
             w = resets.get(m.robot)
             if w and w[-1][1] is None:
                 in_reset.add(id(m))
+            if m.robot not in resets:
+                before_first.setdefault(m.robot, []).append(id(m))
         elif isinstance(m, ResetTransition):
+            if m.robot not in resets and m.source != "running":
+                # the recording started during a reset (the previous file holds the end of the
+                # episode that opened it): what came before is the reset's, not an episode's
+                in_reset.update(before_first.get(m.robot, []))
+                if m.dest != "running":
+                    resets[m.robot] = [[rm.log_time_ns, None]]
+                    continue
             w = resets.setdefault(m.robot, [])
             if m.source == "running" and m.dest != "running" and not (w and w[-1][1] is None):
                 w.append([rm.log_time_ns, None])  # the episode ended (or the rig stopped)

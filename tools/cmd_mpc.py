@@ -34,6 +34,7 @@ def register(app: typer.Typer) -> None:
         Commands are published at the control rate; on realtime rigs late plans are
         replaced by the shifted last plan and counted. With --adapt, each plan starts with the
         newest model from hil/<rig>/model/update (run `hil adapt RIG --checkpoint C` beside it)."""
+        import time
         from types import SimpleNamespace
 
         import numpy as np
@@ -44,7 +45,15 @@ def register(app: typer.Typer) -> None:
         from control.paths import fillet, make_path
         from control.policies import MpcPolicy
         from learning.frames import load_dynamics
-        from learning.mbrl import MbrlConfig, PathEnd, make_planner, max_step_normalized, path_start_pose
+        from learning.mbrl import (
+            MbrlConfig,
+            PathEnd,
+            command_delay_steps,
+            fit_samples_to_budget,
+            make_planner,
+            max_step_normalized,
+            path_start_pose,
+        )
 
         if (model is None) == (adapt is None):
             raise UserError("give exactly one of --model (a fixed model) and --adapt (an adaptation checkpoint)")
@@ -87,15 +96,30 @@ def register(app: typer.Typer) -> None:
             # as in `hil demo`: track the path with rounded corners, score on the path itself
             mcfg = MbrlConfig(planner=planner)
             ref = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
-            planner_ = make_planner(mcfg, speed, len(spec["action"]["names"]), max_step_normalized(spec))
-            pol = MpcPolicy(dyn, planner_, ref, model_source=swap)
+            n_act, max_step = len(spec["action"]["names"]), max_step_normalized(spec)
+            samples = None
+            if cfg.pace != "lockstep":  # as in `hil demo`: the planner must fit the period on this machine
+                x = np.asarray(ctl.next_state().state)
+                timing_cost = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
+
+                def plan_time_s(n: int) -> float:
+                    pl = make_planner(mcfg, speed, n_act, max_step, n)
+                    pl(dyn.predict, timing_cost, x)
+                    t0 = time.perf_counter()
+                    pl(dyn.predict, timing_cost, x)
+                    return time.perf_counter() - t0
+
+                samples, _ = fit_samples_to_budget(plan_time_s, mcfg.samples, mcfg.realtime_plan_budget
+                                                   * float(spec["period_s"]), mcfg.realtime_min_samples)
+            planner_ = make_planner(mcfg, speed, n_act, max_step, samples)
+            pol = MpcPolicy(dyn, planner_, ref, model_source=swap, delay_steps=command_delay_steps(cfg, robot))
             first = ctl.reset(**path_start_pose(wp)) if reset else None
             if cfg.pace == "lockstep":
                 log = ctl.run_lockstep(pol, steps, first, stop_if=PathEnd(PathCost(wp, names)))
             else:
                 log = ctl.run_realtime(pol, steps)
         m = evaluate_path_following(np.array(log.states), cost, period_s=float(spec["period_s"]))
-        m.update(late_plans=log.late_plans, plan_ms_p50=float(np.percentile(log.plan_times_s, 50) * 1e3)
+        m.update(samples=planner_.samples, late_plans=log.late_plans, plan_ms_p50=float(np.percentile(log.plan_times_s, 50) * 1e3)
                  if log.plan_times_s else None)
         if swap is not None:
             m["model_updates"] = swap.summary()

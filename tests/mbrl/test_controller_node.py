@@ -88,3 +88,52 @@ def test_realtime_mode_counts_late_plans_and_keeps_rate(bus, spawn):
     sent = np.array(log.actions_norm)
     # late steps used the shifted last plan (0.3, 0.4, ...), never a jump to zero
     assert set(np.round(sent[:, 0], 3)) <= {0.2, 0.3, 0.4, 0.5}
+
+
+def test_realtime_runs_in_phase_with_the_driver_and_passes_the_committed_command(bus, spawn):
+    """Each cycle plans from the state the driver node just published (the grid starts on
+    a state's arrival), so a plan taking half a period still reaches the driver node's next
+    period: the command planned from the state at t is the one held over (t, t + period].
+    A free-running grid had a random phase: half the time such a command missed that
+    period and acted one later. A policy with ``delay_steps`` gets the command sent the
+    cycle before (the one acting while it plans)."""
+    from bus import keys
+    from bus.schemas import RobotState, decode
+
+    spawn("up", "pointmass_sim", "--endpoint", bus.endpoint)
+
+    class HalfPeriodPlanner:
+        delay_steps = 1
+
+        def __init__(self):
+            self.calls = 0
+            self.committed: list = []
+
+        def __call__(self, s, committed=None):
+            self.calls += 1
+            self.committed.append([np.asarray(c).copy() for c in committed])
+            time.sleep(0.011)  # a bit over half the 20 ms period, within the 0.8 deadline
+            return np.array([0.01 * (self.calls % 60), 0.0])
+
+    with ControllerNode("pointmass_sim", "pm", bus, handle_signals=False, state_timeout_s=20) as ctl:
+        ctl.wait_ready(30)
+        wait_for(lambda: ctl._state.poll() is not None, 20, "states")
+        sub = ctl.subscribe(keys.state("pointmass_sim", "pm"), RobotState, latest=False, capacity=1024)
+        logs, pols = [], []
+        for _ in range(3):  # three episodes: three chances for a free-running grid to be out of phase
+            pols.append(HalfPeriodPlanner())
+            logs.append(ctl.run_realtime(pols[-1], 30))
+        time.sleep(0.1)
+        published = {round(m.t_s, 6): m for m in (decode(p, RobotState) for _, p in sub.drain())}
+    for log, pol in zip(logs, pols, strict=True):
+        assert log.stale_states <= 2 and log.late_plans <= 2  # CI load: a rare late state or plan
+        assert len(set(log.times_s[:-1])) == len(log.times_s) - 1  # never the same state twice
+        on_time = 0
+        for t, a in zip(log.times_s[:-1], log.actions, strict=True):
+            nxt = published.get(round(t + 0.02, 6))  # the state after the next period
+            on_time += nxt is not None and bool(np.allclose(nxt.action, a, atol=1e-9))
+        assert on_time >= len(log.actions) - 4, f"{on_time} of {len(log.actions)} commands acted in the next period"
+        if log.late_plans == 0:  # one call per cycle: the command sent the cycle before is the committed one
+            for i in range(1, len(log.actions)):
+                np.testing.assert_allclose(pol.committed[i][0], log.actions_norm[i - 1], atol=1e-9)
+    assert any(log.late_plans == 0 for log in logs)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -147,3 +149,86 @@ def test_demo_flags_select_the_variants(monkeypatch, tmp_path):
     r = CliRunner().invoke(app, ["demo", "--quick", "--full", "--out", str(tmp_path / "x")])
     assert r.exit_code == 1 and "choose --quick or --full" in r.output
     assert len(r.output.strip().splitlines()) == 1
+
+
+def test_planner_samples_fit_the_wall_clock_budget():
+    from learning.mbrl import fit_samples_to_budget
+
+    def plan_time(n):  # 20 ms overhead + 0.3 ms per sample: 170 ms at N = 500
+        return 0.020 + 0.0003 * n
+
+    n, trials = fit_samples_to_budget(plan_time, 500, budget_s=0.2)
+    assert n == 500 and len(trials) == 1  # fits: the configured size is kept
+    n, trials = fit_samples_to_budget(plan_time, 500, budget_s=0.04)
+    assert trials[0] == {"samples": 500, "plan_ms_p50": pytest.approx(170.0)}
+    assert 50 <= n < 500 and plan_time(n) <= 0.04 + 0.002  # cut until the median fits (within a round)
+    n, _ = fit_samples_to_budget(plan_time, 500, budget_s=0.001, min_samples=50)
+    assert n == 50  # never below the floor
+
+
+def test_realtime_planner_delay_and_elites():
+    from types import SimpleNamespace
+
+    from configs.schema import load_rig
+    from learning.mbrl import MbrlConfig, command_delay_steps, make_planner
+
+    assert command_delay_steps(load_rig("roach_emulated"), "roach") == 1
+    assert command_delay_steps(load_rig("roach_sim"), "roach") == 0
+    assert command_delay_steps(load_rig("pointmass_sim"), "pm") == 0  # a realtime sim advances after applying
+    assert command_delay_steps(SimpleNamespace(pace="realtime", robots=load_rig("roach_emulated").robots,
+                                               source=load_rig("roach_emulated").source), "roach") == 1
+    cfg = MbrlConfig()
+    assert make_planner(cfg, 1.0, 2).elites == 50  # the thesis' CEM as before
+    small = make_planner(cfg, 1.0, 2, samples=120)
+    assert small.samples == 120 and small.elites == 12
+
+
+def test_mpc_plans_from_the_state_after_the_committed_commands():
+    import torch
+
+    from control.policies import MpcPolicy
+
+    class Recorder:
+        """A planner stub: remembers the state it planned from."""
+
+        last_predicted_states = None
+        last_costs = None
+
+        def __call__(self, dynamics, cost, state):
+            self.start = np.asarray(state, dtype=np.float64)
+            self.last_plan = torch.zeros(3, 2)
+            return np.zeros(2)
+
+        def reset(self):
+            pass
+
+    def dynamics(s, a):  # [B, S], [B, A] -> [E=1, B, S]: x += a0, y += a1
+        return (s + torch.nn.functional.pad(a, (0, s.shape[-1] - a.shape[-1]))).unsqueeze(0)
+
+    model = type("M", (), {"predict": staticmethod(dynamics)})()
+    pl = Recorder()
+    pol = MpcPolicy(model, pl, cost=lambda *a: None, delay_steps=1)
+    x = np.array([1.0, 2.0, 0.0])
+    pol(x)
+    np.testing.assert_allclose(pl.start, x)  # nothing committed: from the measured state
+    pol(x, committed=[np.array([0.5, -0.25])])
+    np.testing.assert_allclose(pl.start, [1.5, 1.75, 0.0])
+    pol(x, committed=[np.array([0.5, 0.0]), np.array([0.5, 1.0])])  # oldest first, each applied
+    np.testing.assert_allclose(pl.start, [2.0, 3.0, 0.0])
+    with pytest.raises(ValueError, match="delay_steps"):
+        MpcPolicy(model, pl, cost=None, delay_steps=-1)
+
+
+def test_a_supervisor_timeout_shorter_than_a_path_is_refused_before_the_rig_starts(tmp_path):
+    from configs.schema import BusConfig
+    from learning.mbrl import MbrlConfig, MbrlRun, RigError
+
+    src = (Path(__file__).resolve().parents[2] / "configs" / "rigs" / "roach_emulated.yaml").read_text()
+    assert "max_s: 60" in src  # the shipped rig leaves the figure-8 its 45.7 s
+    rig = tmp_path / "roach_emulated_short.yaml"
+    rig.write_text(src.replace("max_s: 60", "max_s: 30").replace("name: roach_emulated", "name: roach_emu_short"))
+    run = MbrlRun(MbrlConfig.quick(rig=str(rig), progress=False), tmp_path / "out", BusConfig())
+    with pytest.raises(RigError, match=r"timeout, max_s 30 s\) would end the figure8 path before its time limit "
+                                       r"of 45\.7 s"):
+        run.run()
+    assert not (tmp_path / "out" / "logs").exists()  # refused before the rig's process started

@@ -313,3 +313,51 @@ def test_hil_drive_shows_why_the_emulator_did_not_start_and_keeps_its_log(tmp_pa
         assert log.is_file() and "no_such_module" in log.read_text()
     finally:
         log.unlink(missing_ok=True)
+
+
+def test_bridge_states_carry_the_command_that_moved_the_robot(bus):
+    """On the wall clock the driver node must stamp each state with the command held during
+    the period that ended with it (what ``learning/recordings.py`` pairs as the action of a
+    transition). It used to apply the newest command first and read right after, so the
+    first state carrying a new command still showed the old one's effect: every recorded
+    emulated/real transition was one period off (docs/mbrl.md, "Wall-clock rigs")."""
+    import threading
+
+    from bus import keys
+    from bus.schemas import RobotState, decode
+    from configs.schema import load_rig, rig_robot_config
+    from control.controller_node import ControllerNode
+    from drivers.bridge import DriverNode
+    from drivers.registry import make_driver
+
+    rig = load_rig("roach_emulated")
+    node = DriverNode(make_driver(rig_robot_config(rig, "roach")), rig.name, "roach", bus,
+                      handle_signals=False, estop_sync_s=0.3)
+    th = threading.Thread(target=node.serve, daemon=True)
+    th.start()
+    try:
+        with ControllerNode(rig.name, "roach", bus, handle_signals=False, state_timeout_s=10) as ctl:
+            ctl.wait_ready(30)
+            states = ctl.subscribe(keys.state(rig.name, "roach"), RobotState, latest=False, capacity=512)
+            got: list[RobotState] = []
+            # 0 for 0.5 s, then 6 rev/s (0.4 normalized), a command every 50 ms (two per period)
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 1.5:
+                a = 0.0 if time.monotonic() - t0 < 0.5 else 0.4
+                ctl.send(np.array([a, a]), 0)
+                time.sleep(0.05)
+                got += [decode(p, RobotState) for _, p in states.drain()]
+    finally:
+        node.stop_event.set()
+        th.join(10)
+        node.close()
+    got = [m for m in got if m.action]
+    first = next(i for i, m in enumerate(got) if m.action[0] > 3.0)
+    assert 0 < first < len(got) - 5
+    # the first state stamped with 6 rev/s was measured after a period under it: its cranks
+    # turn (the PID reaches it in ~20 ms); the state before, stamped 0, shows them still
+    assert got[first].state[I_VEL_L] > 3.0 and got[first].state[I_VEL_R] > 3.0, got[first].state[I_VEL_L:I_VEL_L + 2]
+    assert abs(got[first - 1].state[I_VEL_L]) < 1.0
+    # and so on: each later state's cranks match the command it carries
+    for m in got[first:first + 5]:
+        np.testing.assert_allclose(m.state[I_VEL_L:I_VEL_L + 2], m.action, atol=1.5)
