@@ -28,7 +28,7 @@ def test_split_holds_out_whole_rollouts():
 def test_fit_plain_stops_early_and_keeps_the_best_held_out_epoch():
     # held-out rollouts of another robot (a fifth of the speed): fitting the training data
     # better eventually makes the held-out loss worse, so training must stop and roll back
-    train = toy.episodes(30, 20, seed=0)
+    train = toy.episodes(20, 20, seed=0)
     val = toy.episodes(6, 20, seed=1, gain=0.2, turn_bias=1.0)
     m = AdaptiveMLP(toy.NAMES, 2, hidden=(32, 32), seed=0)
     h: dict = {}
