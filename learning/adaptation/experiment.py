@@ -386,6 +386,23 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
     return tr
 
 
+def save_episodes(path: Path, episodes: list[Episode]) -> None:
+    """The random rollouts as one ``.npz`` (``states [N, T+1, S]``, ``actions [N, T, A]``,
+    ``names``, ``conditions`` as JSON): the meta-training data of a run is kept."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, states=np.stack([e.states for e in episodes]).astype(np.float32),
+                        actions=np.stack([e.actions for e in episodes]).astype(np.float32),
+                        names=np.array([e.name for e in episodes]),
+                        conditions=np.array([json.dumps(e.meta.get("condition")) for e in episodes]))
+
+
+def load_episodes(path: Path) -> list[Episode]:
+    """The inverse of :func:`save_episodes`."""
+    z = np.load(path)
+    return [Episode(s, a, name=str(n), meta={"condition": json.loads(str(c))})
+            for s, a, n, c in zip(z["states"], z["actions"], z["names"], z["conditions"], strict=True)]
+
+
 def _conditions(p: PerturbationPresets) -> dict[str, tuple[str, PerturbationSettings]]:
     """Test name → (terrain, condition): ``normal`` (the first training terrain, unperturbed:
     the reference), each test condition, and the held-out terrain."""
@@ -418,6 +435,7 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
     n_steps = sum(len(e) for e in episodes)
     log(f"seed {seed}: {len(episodes)} random rollouts ({n_steps} steps = "
         f"{n_steps * env(p.training_terrains[0]).period_s / 60:.0f} min of robot time) in {ph.wall:.0f} s, cpu {ph.cpu:.0f} s")
+    save_episodes(out / "data" / f"seed{seed}_training.npz", episodes)
     tr = train(cfg, episodes, names, seed, out / "checkpoints", log, phases)
 
     conds = _conditions(p)

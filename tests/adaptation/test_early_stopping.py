@@ -1,4 +1,4 @@
-"""Held-out split and early stopping of MB, GrBAL's meta-training and ReBAL (tiny sizes)."""
+"""Held-out split and early stopping of MB, GrBAL's meta-training and ReBAL; the saved training data (tiny sizes)."""
 
 from __future__ import annotations
 
@@ -65,3 +65,17 @@ def test_rebal_stops_early_and_keeps_the_best_weights():
     hist = rebal.meta_train(m, enc, train, steps=400, batch=16, lr=3e-3, val=val, eval_every=10, patience=3)
     assert "best_step" in hist[-1] and hist[-2]["step"] < 400
     assert rebal.evaluate(m, enc, val)["after"] == pytest.approx(min(h["val_loss"] for h in hist[:-1]), rel=1e-5)
+
+
+def test_training_rollouts_are_saved_and_load_back(tmp_path):
+    from learning.adaptation.experiment import load_episodes, save_episodes
+
+    eps = toy.episodes(3, 7, seed=2)
+    for i, e in enumerate(eps):
+        e.meta["condition"] = {"payload_kg": 0.01 * i}
+    save_episodes(tmp_path / "d" / "x.npz", eps)
+    back = load_episodes(tmp_path / "d" / "x.npz")
+    assert [e.name for e in back] == [e.name for e in eps]
+    for a, b in zip(eps, back, strict=True):
+        assert (a.states == b.states).all() and (a.actions == b.actions).all()
+        assert b.meta["condition"] == a.meta["condition"]
