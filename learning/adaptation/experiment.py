@@ -60,9 +60,11 @@ class AdaptationConfig:
 
     presets: str = "velociroach"
     seeds: tuple[int, ...] = (0, 1, 2)
-    # data: per training terrain, this many conditions sampled from the training range (the
-    # first is unperturbed), each with this many random rollouts of rollout_steps at 10 Hz
+    # data: per training terrain, this many conditions, each with this many random rollouts
+    # of rollout_steps at 10 Hz; a fraction of them unperturbed (the thesis' terrain-only data;
+    # always at least the first), the others sampled from the presets' training range
     conditions_per_terrain: int = 12
+    unperturbed_fraction: float = 0.0
     rollouts_per_condition: int = 8
     rollout_steps: int = 50
     before_after_rollouts: int = 6
@@ -105,7 +107,7 @@ class AdaptationConfig:
 
     @classmethod
     def full(cls, **kw: Any) -> AdaptationConfig:
-        """3 seeds at the quick sizes with 2/3 the path length (≈ 45 min on one core):
+        """3 seeds at the quick sizes with 4 before/after rollouts and switching every 50 steps (≈ 45 min on one core):
         the dataclass defaults (3 x 512, 3 paths, switching every 500 steps) take hours here."""
         base = dict(cls._scaled(), seeds=(0, 1, 2), before_after_rollouts=4, path_scale=1.0,
                     switching_every_steps=50, switching_segments=4)
@@ -114,7 +116,7 @@ class AdaptationConfig:
 
     @classmethod
     def quick(cls, **kw: Any) -> AdaptationConfig:
-        base = dict(cls._scaled(), seeds=(0,), before_after_rollouts=3, switching_every_steps=100,
+        base = dict(cls._scaled(), seeds=(0,), before_after_rollouts=3, path_scale=1.0, switching_every_steps=100,
                     switching_segments=4)
         base.update(kw)
         return cls(**base)
@@ -122,10 +124,11 @@ class AdaptationConfig:
     @staticmethod
     def _scaled() -> dict[str, Any]:
         """The data and training sizes of quick and full: 15 min of random robot time per
-        training terrain (12 conditions x 15 rollouts x 5 s; the thesis: ~30 min), 10 % of the
+        training terrain (12 conditions x 15 rollouts x 5 s, half of the conditions
+        unperturbed; the thesis: ~30 min, terrains only), 10 % of the
         rollouts held out for early stopping of MB, GrBAL and ReBAL; the oracle gets 100
         rollouts (8.3 min) of its one condition. docs/adaptation.md, "Sizes"."""
-        return dict(conditions_per_terrain=12, rollouts_per_condition=15, hidden=(256, 256, 256),
+        return dict(conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=15, hidden=(256, 256, 256),
                     plain_epochs=60, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
                     meta_eval_every=50, meta_patience=4, oracle_rollouts=100, paths=("straight", "left"))
 
@@ -386,6 +389,16 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
     return tr
 
 
+def unperturbed_conditions(cfg: AdaptationConfig) -> set[int]:
+    """Indices (per terrain) of the unperturbed training conditions: the first, and
+    ``unperturbed_fraction`` of them spread evenly."""
+    if not 0.0 <= cfg.unperturbed_fraction <= 1.0:
+        raise ValueError(f"unperturbed_fraction must be in [0, 1], got {cfg.unperturbed_fraction}")
+    n = cfg.conditions_per_terrain
+    k = max(1, int(round(cfg.unperturbed_fraction * n)))
+    return {int(i) for i in np.floor(np.arange(k) * n / k)}
+
+
 def save_episodes(path: Path, episodes: list[Episode]) -> None:
     """The random rollouts as one ``.npz`` (``states [N, T+1, S]``, ``actions [N, T, A]``,
     ``names``, ``conditions`` as JSON): the meta-training data of a run is kept."""
@@ -427,8 +440,9 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
     episodes: list[Episode] = []
     with phases("gathering") as ph:
         for terrain in p.training_terrains:
+            clean = unperturbed_conditions(cfg)
             for c in range(cfg.conditions_per_terrain):
-                settings = PerturbationSettings() if c == 0 else p.training.sample(rng)
+                settings = PerturbationSettings() if c in clean else p.training.sample(rng)
                 episodes += random_episodes(env(terrain), settings, cfg.rollouts_per_condition, cfg.rollout_steps,
                                             seed=int(rng.integers(1 << 30)), name=f"{terrain}-c{c}")
     names = env(p.training_terrains[0]).state_names

@@ -79,3 +79,14 @@ def test_training_rollouts_are_saved_and_load_back(tmp_path):
     for a, b in zip(eps, back, strict=True):
         assert (a.states == b.states).all() and (a.actions == b.actions).all()
         assert b.meta["condition"] == a.meta["condition"]
+
+
+def test_unperturbed_conditions_are_the_first_and_a_spread_fraction():
+    from learning.adaptation.experiment import AdaptationConfig, unperturbed_conditions
+
+    assert unperturbed_conditions(AdaptationConfig(conditions_per_terrain=12, unperturbed_fraction=0.0)) == {0}
+    assert unperturbed_conditions(AdaptationConfig(conditions_per_terrain=12, unperturbed_fraction=0.5)) == \
+        {0, 2, 4, 6, 8, 10}
+    assert unperturbed_conditions(AdaptationConfig(conditions_per_terrain=3, unperturbed_fraction=1.0)) == {0, 1, 2}
+    with pytest.raises(ValueError, match="unperturbed_fraction"):
+        unperturbed_conditions(AdaptationConfig(unperturbed_fraction=1.5))
