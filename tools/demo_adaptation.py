@@ -4,7 +4,7 @@ Meta-trains on the training terrains, runs MB, MB+DE, GrBAL, ReBAL and MOLe on e
 perturbation with the same planner and paths, and a switching scenario for MOLe against
 k-shot and continued adaptation (learning/adaptation/experiment.py). Writes
 ``report.json`` (keys of issue 12), ``report.md``, PNG plots and the checkpoints.
-Presets: default and ``--full`` (3 seeds at the quick sizes, ≈ 45 min on one core), ``--quick``
+Presets: default and ``--full`` (the quick run over 3 seeds, ≈ 40 min on one core), ``--quick``
 (1 seed, smaller; ≤ 15 min on 2 cores) and ``tiny`` (the CLI test). docs/adaptation.md.
 """
 
