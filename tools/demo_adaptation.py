@@ -4,8 +4,8 @@ Meta-trains on the training terrains, runs MB, MB+DE, GrBAL, ReBAL and MOLe on e
 perturbation with the same planner and paths, and a switching scenario for MOLe against
 k-shot and continued adaptation (learning/adaptation/experiment.py). Writes
 ``report.json`` (keys of issue 12), ``report.md``, PNG plots and the checkpoints.
-Presets: default and ``--full`` (3 seeds at the quick sizes, ≈ 45 min on one core), ``--quick``
-(1 seed, smaller; ≤ 15 min on 2 cores) and ``tiny`` (the CLI test). docs/adaptation.md.
+Presets: default and ``--full`` (the quick run over 3 seeds, ≈ 40 min on one core), ``--quick``
+(seed 0 of it; ≤ 15 min on 2 cores) and ``tiny`` (the CLI test). docs/adaptation.md.
 """
 
 from __future__ import annotations
@@ -145,8 +145,36 @@ def report_markdown(r: dict[str, Any]) -> str:
     for m, v in r["switching"].items():
         lines.append(f"| {m} | " + " | ".join(f"{x:.2f}" for x in v["reward_per_segment"]) +
                      f" | {v['tasks_created'] if v['tasks_created'] is not None else '-'} |")
+    lines += _training_lines(r.get("per_seed", []))
     lines += ["", "Plots: " + ", ".join(f"![]({f})" for f in r.get("plots", []))]
     return "\n".join(lines) + "\n"
+
+
+def _training_lines(per_seed: list[dict[str, Any]]) -> list[str]:
+    """Per seed: how long each training stopped at (early stopping) and the time per phase."""
+    seeds = [s for s in per_seed if "timing" in s]
+    if not seeds:
+        return []
+    lines = ["", "## Training (early stopping on held-out rollouts), per seed", "",
+             "| seed | MB epochs (best) | MB held-out loss | GrBAL steps kept | GrBAL held-out next-K before/after | "
+             "ReBAL steps kept | ReBAL held-out |", "|---|---|---|---|---|---|---|"]
+    for i, s in enumerate(seeds):
+        tr = s["training"]
+        pl, g, rb = tr.get("plain_history", {}), tr["grbal_history"][-1], (tr["rebal_history"] or [{}])[-1]
+        lines.append(f"| {i} | {pl.get('epochs_run')} ({pl.get('best_epoch')}) | {pl.get('best_val') or float('nan'):.4f} | "
+                     f"{g.get('best_step', g.get('step'))} | {g['before']:.4f} / {g['after']:.4f} | "
+                     f"{rb.get('best_step', rb.get('step'))} | {rb.get('val_loss', float('nan')):.4f} |")
+    phases = list(seeds[0]["timing"])
+    lines += ["", "## Time per phase: wall / CPU (s), per seed", "",
+              "| phase | " + " | ".join(str(i) for i in range(len(seeds))) + " |", "|---" * (len(seeds) + 1) + "|"]
+    for ph in phases + ["total"]:
+        cells = []
+        for s in seeds:
+            v = s["timing"].get(ph) if ph != "total" else {
+                k: sum(x[k] for x in s["timing"].values()) for k in ("wall_s", "cpu_s")}
+            cells.append("-" if v is None else f"{v['wall_s']:.0f} / {v['cpu_s']:.0f}")
+        lines.append(f"| {ph} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def run_demo(out: Path, quick: bool = False, full: bool = False, seed: int = 0, tiny: bool = False) -> dict[str, Any]:

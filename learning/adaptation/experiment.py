@@ -43,7 +43,7 @@ from learning.adaptation.grbal import GrbalAdapter, segments
 from learning.adaptation.model import AdaptiveMLP
 from learning.adaptation.mole import MoleAdapter
 from learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from learning.adaptation.training import fit_plain, transitions
+from learning.adaptation.training import fit_plain, split_episodes, transitions
 from learning.datasets import Episode
 from learning.experiments import mean_std
 from learning.mbrl import MbrlConfig, PathEnd, _jsonable, make_planner, path_start_pose
@@ -60,9 +60,11 @@ class AdaptationConfig:
 
     presets: str = "velociroach"
     seeds: tuple[int, ...] = (0, 1, 2)
-    # data: per training terrain, this many conditions sampled from the training range (the
-    # first is unperturbed), each with this many random rollouts of rollout_steps at 10 Hz
+    # data: per training terrain, this many conditions, each with this many random rollouts
+    # of rollout_steps at 10 Hz; a fraction of them unperturbed (the thesis' terrain-only data;
+    # always at least the first), the others sampled from the presets' training range
     conditions_per_terrain: int = 12
+    unperturbed_fraction: float = 0.0
     rollouts_per_condition: int = 8
     rollout_steps: int = 50
     before_after_rollouts: int = 6
@@ -70,7 +72,16 @@ class AdaptationConfig:
     hidden: tuple[int, ...] = (512, 512, 512)
     M: int = 16
     K: int = 16
-    plain_epochs: int = 40
+    plain_epochs: int = 40  # the maximum: early stopping on held-out rollouts (plain_patience)
+    plain_batch: int = 256
+    plain_patience: int = 8
+    # a random val_fraction of the rollouts is held out: early stopping of MB (and the oracle),
+    # GrBAL's meta-training and ReBAL (on their next-K loss every meta_eval_every steps)
+    val_fraction: float = 0.1
+    meta_eval_every: int = 50
+    meta_patience: int = 6
+    # the oracle's random rollouts per test condition (None: as many as the training set)
+    oracle_rollouts: int | None = None
     meta_steps: int = 1000
     meta_batch: int = 16
     meta_lr: float = 1e-3
@@ -96,22 +107,29 @@ class AdaptationConfig:
 
     @classmethod
     def full(cls, **kw: Any) -> AdaptationConfig:
-        """3 seeds at the quick sizes with 2/3 the path length (≈ 45 min on one loaded core):
-        the dataclass defaults (3 x 512, 1000 meta-steps, 3 paths, switching every 500 steps)
-        take hours here."""
-        base = dict(seeds=(0, 1, 2), conditions_per_terrain=6, rollouts_per_condition=4, before_after_rollouts=4,
-                    hidden=(256, 256, 256), plain_epochs=60, meta_steps=300, rebal_steps=300,
-                    paths=("straight", "left"), path_scale=1.0, switching_every_steps=50, switching_segments=4)
+        """``quick`` over 3 seeds (≈ 40 min on one core; seed 0 is the quick run exactly): the
+        dataclass defaults (3 x 512, 3 paths, switching every 500 steps) take hours here."""
+        base = dict(cls._scaled(), seeds=(0, 1, 2))
         base.update(kw)
         return cls(**base)
 
     @classmethod
     def quick(cls, **kw: Any) -> AdaptationConfig:
-        base = dict(seeds=(0,), conditions_per_terrain=6, rollouts_per_condition=4, before_after_rollouts=3,
-                    hidden=(256, 256, 256), plain_epochs=60, meta_steps=300, rebal_steps=300,
-                    paths=("straight", "left"), switching_every_steps=100, switching_segments=4)
+        base = dict(cls._scaled(), seeds=(0,))
         base.update(kw)
         return cls(**base)
+
+    @staticmethod
+    def _scaled() -> dict[str, Any]:
+        """The data and training sizes of quick and full: 15 min of random robot time per
+        training terrain (12 conditions x 15 rollouts x 5 s, half of the conditions
+        unperturbed; the thesis: ~30 min, terrains only), 10 % of the
+        rollouts held out for early stopping of MB, GrBAL and ReBAL; the oracle gets 100
+        rollouts (8.3 min) of its one condition. docs/adaptation.md, "Sizes"."""
+        return dict(conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=15, hidden=(256, 256, 256),
+                    plain_epochs=60, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
+                    meta_eval_every=50, meta_patience=4, oracle_rollouts=100, paths=("straight", "left"),
+                    path_scale=1.0, before_after_rollouts=3, switching_every_steps=100, switching_segments=4)
 
     @classmethod
     def tiny(cls, **kw: Any) -> AdaptationConfig:
@@ -245,6 +263,38 @@ def drive(env: RoachSim, adapter: Adapter, planner, cost: PathCost, s: np.ndarra
 
 
 # ---------------------------------------------------------------------------- the run
+class Phases:
+    """Wall-clock and CPU seconds (this process) summed per named phase."""
+
+    def __init__(self) -> None:
+        self.totals: dict[str, dict[str, float]] = {}
+
+    def __call__(self, name: str):
+        return _Phase(self, name)
+
+    def add(self, name: str, wall: float, cpu: float) -> None:
+        d = self.totals.setdefault(name, {"wall_s": 0.0, "cpu_s": 0.0})
+        d["wall_s"] += wall
+        d["cpu_s"] += cpu
+
+    def line(self) -> str:
+        return ", ".join(f"{k} {v['wall_s']:.0f}/{v['cpu_s']:.0f}" for k, v in self.totals.items())
+
+
+class _Phase:
+    def __init__(self, owner: Phases, name: str):
+        self.owner, self.name = owner, name
+
+    def __enter__(self):
+        self.w, self.c = time.monotonic(), time.process_time()
+        return self
+
+    def __exit__(self, *exc):
+        self.wall, self.cpu = time.monotonic() - self.w, time.process_time() - self.c
+        self.owner.add(self.name, self.wall, self.cpu)
+        return False
+
+
 @dataclass
 class Trained:
     plain: AdaptiveMLP
@@ -278,23 +328,41 @@ class Trained:
         raise ValueError(f"unknown method {method!r}")
 
 
+def fit_mb(cfg: AdaptationConfig, model: AdaptiveMLP, episodes: list[Episode], seed: int) -> dict[str, Any]:
+    """The plain (MB) model trained to convergence: at most ``plain_epochs`` epochs, early
+    stopping on a held-out ``val_fraction`` of the rollouts. Returns the history."""
+    tr_eps, va_eps = split_episodes(episodes, cfg.val_fraction, seed)
+    h: dict[str, Any] = {}
+    h["train"] = fit_plain(model, tr_eps, epochs=cfg.plain_epochs, batch_size=cfg.plain_batch, seed=seed,
+                           val=va_eps or None, patience=cfg.plain_patience, history=h)
+    return h
+
+
 def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str], seed: int, ckpt_dir: Path,
-          log: Callable[[str], None]) -> Trained:
+          log: Callable[[str], None], phases: Phases | None = None) -> Trained:
     torch.manual_seed(seed)
+    phases = phases or Phases()
     plain = AdaptiveMLP(state_names, 2, hidden=cfg.hidden, seed=seed)
-    t0 = time.monotonic()
-    h_plain = fit_plain(plain, episodes, epochs=cfg.plain_epochs, batch_size=256, seed=seed)
-    log(f"plain model: {len(h_plain)} epochs, loss {h_plain[-1]:.4f} ({time.monotonic() - t0:.0f} s)")
-    seg = segments(episodes, cfg.M, cfg.K, stride=2)
+    with phases("mb_training") as ph:
+        h_plain = fit_mb(cfg, plain, episodes, seed)
+    bv = h_plain.get("best_val")
+    log(f"plain model: {h_plain['epochs_run']} epochs (best {h_plain['best_epoch']}), train loss "
+        f"{h_plain['train'][-1]:.4f}, held-out {bv if bv is None else round(bv, 4)} ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s)")
+    tr_eps, va_eps = split_episodes(episodes, cfg.val_fraction, seed)
+    seg = segments(tr_eps, cfg.M, cfg.K, stride=2)
+    vseg = segments(va_eps, cfg.M, cfg.K, stride=4) if va_eps else None
     meta = AdaptiveMLP.from_checkpoint(plain.to_checkpoint())
-    t0 = time.monotonic()
     if cfg.grbal_adapt not in ("all", "last"):
         raise ValueError(f"grbal_adapt must be 'all' or 'last', got {cfg.grbal_adapt!r}")
     adapt_params = None if cfg.grbal_adapt == "all" else list(meta.params())[-2:]
-    psi, h_meta = grbal.meta_train(meta, seg, steps=cfg.meta_steps, meta_batch=cfg.meta_batch, lr=cfg.meta_lr,
-                                   psi_init=cfg.psi_init, psi_lr=cfg.psi_lr, seed=seed, adapt_params=adapt_params)
-    log(f"GrBAL meta-training: {cfg.meta_steps} steps, next-K loss before/after {h_meta[-1]['before']:.4f}/"
-        f"{h_meta[-1]['after']:.4f} ({time.monotonic() - t0:.0f} s)")
+    with phases("grbal_meta_training") as ph:
+        psi, h_meta = grbal.meta_train(meta, seg, steps=cfg.meta_steps, meta_batch=cfg.meta_batch, lr=cfg.meta_lr,
+                                       psi_init=cfg.psi_init, psi_lr=cfg.psi_lr, seed=seed, adapt_params=adapt_params,
+                                       val=vseg, eval_every=cfg.meta_eval_every, patience=cfg.meta_patience)
+    last = h_meta[-1]
+    log(f"GrBAL meta-training: {last.get('best_step', last['step'])} steps kept of "
+        f"{h_meta[-2]['step'] if 'best_step' in last else last['step']}, held-out next-K loss before/after "
+        f"{last['before']:.4f}/{last['after']:.4f} ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s)")
     # ReBAL starts as the plain model: the context's input columns start at zero
     rm = AdaptiveMLP(state_names, 2, hidden=cfg.hidden, seed=seed, context_dim=cfg.context_dim)
     sd = plain.state_dict()
@@ -306,16 +374,45 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
             else:
                 v.copy_(sd[k])
     enc = ContextEncoder(rm, cfg.context_dim)
-    t0 = time.monotonic()
-    h_rebal = rebal.meta_train(rm, enc, seg, steps=cfg.rebal_steps, lr=cfg.meta_lr, seed=seed)
-    log(f"ReBAL training: {cfg.rebal_steps} steps, loss {h_rebal[-1]['loss'] if h_rebal else float('nan'):.4f} "
-        f"({time.monotonic() - t0:.0f} s)")
+    with phases("rebal_training") as ph:
+        h_rebal = rebal.meta_train(rm, enc, seg, steps=cfg.rebal_steps, lr=cfg.meta_lr, seed=seed, val=vseg,
+                                   eval_every=cfg.meta_eval_every, patience=cfg.meta_patience)
+    last = h_rebal[-1] if h_rebal else {}
+    log(f"ReBAL training: {last.get('best_step', last.get('step'))} steps kept, held-out loss "
+        f"{last.get('val_loss', float('nan')):.4f} ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s)")
     s, _, n = transitions(episodes)
     tr = Trained(plain, meta, psi, rm, enc, np.maximum((n - s).std(0), 1e-6),
-                 {"plain_loss": h_plain, "grbal": h_meta, "rebal": h_rebal}, adapt_params=adapt_params)
+                 {"plain": h_plain, "grbal": h_meta, "rebal": h_rebal}, adapt_params=adapt_params)
     for m in ("mb_de", "grbal", "rebal", "mole"):
         tr.adapter(m, cfg).save(ckpt_dir / f"seed{seed}_{m}.pt")
     return tr
+
+
+def unperturbed_conditions(cfg: AdaptationConfig) -> set[int]:
+    """Indices (per terrain) of the unperturbed training conditions: the first, and
+    ``unperturbed_fraction`` of them spread evenly."""
+    if not 0.0 <= cfg.unperturbed_fraction <= 1.0:
+        raise ValueError(f"unperturbed_fraction must be in [0, 1], got {cfg.unperturbed_fraction}")
+    n = cfg.conditions_per_terrain
+    k = max(1, int(round(cfg.unperturbed_fraction * n)))
+    return {int(i) for i in np.floor(np.arange(k) * n / k)}
+
+
+def save_episodes(path: Path, episodes: list[Episode]) -> None:
+    """The random rollouts as one ``.npz`` (``states [N, T+1, S]``, ``actions [N, T, A]``,
+    ``names``, ``conditions`` as JSON): the meta-training data of a run is kept."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, states=np.stack([e.states for e in episodes]).astype(np.float32),
+                        actions=np.stack([e.actions for e in episodes]).astype(np.float32),
+                        names=np.array([e.name for e in episodes]),
+                        conditions=np.array([json.dumps(e.meta.get("condition")) for e in episodes]))
+
+
+def load_episodes(path: Path) -> list[Episode]:
+    """The inverse of :func:`save_episodes`."""
+    z = np.load(path)
+    return [Episode(s, a, name=str(n), meta={"condition": json.loads(str(c))})
+            for s, a, n, c in zip(z["states"], z["actions"], z["names"], z["conditions"], strict=True)]
 
 
 def _conditions(p: PerturbationPresets) -> dict[str, tuple[str, PerturbationSettings]]:
@@ -338,46 +435,59 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
             envs[terrain] = RoachSim(terrain, seed)
         return envs[terrain]
 
-    t0 = time.monotonic()
+    phases = Phases()
     episodes: list[Episode] = []
-    for terrain in p.training_terrains:
-        for c in range(cfg.conditions_per_terrain):
-            settings = PerturbationSettings() if c == 0 else p.training.sample(rng)
-            episodes += random_episodes(env(terrain), settings, cfg.rollouts_per_condition, cfg.rollout_steps,
-                                        seed=int(rng.integers(1 << 30)), name=f"{terrain}-c{c}")
+    with phases("gathering") as ph:
+        for terrain in p.training_terrains:
+            clean = unperturbed_conditions(cfg)
+            for c in range(cfg.conditions_per_terrain):
+                settings = PerturbationSettings() if c in clean else p.training.sample(rng)
+                episodes += random_episodes(env(terrain), settings, cfg.rollouts_per_condition, cfg.rollout_steps,
+                                            seed=int(rng.integers(1 << 30)), name=f"{terrain}-c{c}")
     names = env(p.training_terrains[0]).state_names
-    log(f"seed {seed}: {len(episodes)} random rollouts ({sum(len(e) for e in episodes)} steps) in "
-        f"{time.monotonic() - t0:.0f} s")
-    tr = train(cfg, episodes, names, seed, out / "checkpoints", log)
+    n_steps = sum(len(e) for e in episodes)
+    log(f"seed {seed}: {len(episodes)} random rollouts ({n_steps} steps = "
+        f"{n_steps * env(p.training_terrains[0]).period_s / 60:.0f} min of robot time) in {ph.wall:.0f} s, cpu {ph.cpu:.0f} s")
+    save_episodes(out / "data" / f"seed{seed}_training.npz", episodes)
+    tr = train(cfg, episodes, names, seed, out / "checkpoints", log, phases)
 
     conds = _conditions(p)
-    before_after, results = {}, {}
+    before_after, results, oracle_hist = {}, {}, {}
     for name, (terrain, settings) in conds.items():
-        eps = random_episodes(env(terrain), settings, cfg.before_after_rollouts, cfg.rollout_steps,
-                              seed=int(rng.integers(1 << 30)), name=name)
-        before_after[name] = grbal.evaluate(tr.meta, tr.meta.params(), tr.psi, segments(eps, cfg.M, cfg.K, stride=2),
-                                            names=tr.adapt_params)
-        # the oracle: an MB model of the same size trained with the same effort (epochs) on as
-        # much random data as the training set, all gathered under this test condition
-        t1 = time.monotonic()
-        n_or = len(p.training_terrains) * cfg.conditions_per_terrain * cfg.rollouts_per_condition
-        or_eps = random_episodes(env(terrain), settings, n_or, cfg.rollout_steps, seed=int(rng.integers(1 << 30)),
-                                 name=f"oracle-{name}")
+        with phases("before_after"):
+            eps = random_episodes(env(terrain), settings, cfg.before_after_rollouts, cfg.rollout_steps,
+                                  seed=int(rng.integers(1 << 30)), name=name)
+            before_after[name] = grbal.evaluate(tr.meta, tr.meta.params(), tr.psi,
+                                                segments(eps, cfg.M, cfg.K, stride=2), names=tr.adapt_params)
+        # the oracle: an MB model of the same size, trained like MB (same early stopping) on
+        # oracle_rollouts (default: as many as the training set) all under this test condition
+        n_or = cfg.oracle_rollouts or len(episodes)
+        with phases("oracle_gathering") as ph_g:
+            or_eps = random_episodes(env(terrain), settings, n_or, cfg.rollout_steps, seed=int(rng.integers(1 << 30)),
+                                     name=f"oracle-{name}")
         tr.oracle = AdaptiveMLP(names, 2, hidden=cfg.hidden, seed=seed)
-        h_or = fit_plain(tr.oracle, or_eps, epochs=cfg.plain_epochs, batch_size=256, seed=seed)
-        log(f"  {name:>16} oracle model: {n_or} rollouts, loss {h_or[-1]:.4f} ({time.monotonic() - t1:.0f} s)")
+        with phases("oracle_training") as ph_t:
+            h_or = fit_mb(cfg, tr.oracle, or_eps, seed)
+        oracle_hist[name] = {k: h_or[k] for k in ("best_epoch", "best_val", "epochs_run")}
+        log(f"  {name:>16} oracle model: {n_or} rollouts ({ph_g.wall:.0f} s, cpu {ph_g.cpu:.0f} s), "
+            f"{h_or['epochs_run']} epochs (best {h_or['best_epoch']}), held-out {h_or['best_val'] or float('nan'):.4f} "
+            f"({ph_t.wall:.0f} s, cpu {ph_t.cpu:.0f} s)")
         results[name] = {}
         for method in METHODS:
-            t1 = time.monotonic()
-            results[name][method] = run_paths(cfg, env(terrain), settings, tr, method)
+            with phases("closed_loop") as ph:
+                results[name][method] = run_paths(cfg, env(terrain), settings, tr, method)
             r = results[name][method]
             log(f"  {name:>16} {method:>6}: completed {r['completed']}/{len(cfg.paths)} cost_per_m "
-                f"{r['cost_per_m']:.1f} k_step_error {r['k_step_error']:.3f} ({time.monotonic() - t1:.0f} s)")
-    switching = run_switching(cfg, p, env(p.training_terrains[0]), tr, log)
+                f"{r['cost_per_m']:.1f} k_step_error {r['k_step_error']:.3f} ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s)")
+    with phases("switching"):
+        switching = run_switching(cfg, p, env(p.training_terrains[0]), tr, log)
     for e in envs.values():
         e.close()
+    log(f"seed {seed} phases (wall/cpu s): {phases.line()}")
     return {"perturbations": results, "k_step_error_before_after": before_after, "switching": switching,
-            "training": {"rollouts": len(episodes), "steps": int(sum(len(e) for e in episodes)),
+            "timing": phases.totals,
+            "training": {"rollouts": len(episodes), "steps": int(n_steps), "plain_history": tr.history["plain"],
+                         "oracle_history": oracle_hist,
                          "grbal_history": tr.history["grbal"], "rebal_history": tr.history["rebal"],
                          "psi_mean": {k: float(v.mean()) for k, v in tr.psi.items()}}}
 

@@ -100,7 +100,8 @@ def task_losses(model: AdaptiveMLP, params: Params, psi: Params, seg: Segments, 
 
 def meta_train(model: AdaptiveMLP, seg: Segments, *, steps: int = 500, meta_batch: int = 16, lr: float = 1e-3,
                psi_init: float = 0.01, psi_lr: float | None = None, seed: int = 0, val: Segments | None = None,
-               progress: bool = False, adapt_params: Sequence[str] | None = None) -> tuple[Params, list[dict[str, float]]]:
+               progress: bool = False, adapt_params: Sequence[str] | None = None, eval_every: int | None = None,
+               patience: int | None = None) -> tuple[Params, list[dict[str, float]]]:
     """Meta-train θ (in place in ``model``) and ψ; returns (ψ, history).
 
     ``model`` should carry its normalization already (``set_normalization``); θ starts from
@@ -109,6 +110,10 @@ def meta_train(model: AdaptiveMLP, seg: Segments, *, steps: int = 500, meta_batc
     adaptation on the same K transitions (``before``), on ``val`` when given.
     ``adapt_params``: the parameters the inner step adapts (None: all); ψ of the others is
     returned as 0. ``psi_lr``: Adam's step for ψ (default ``lr``).
+    ``eval_every``: steps between history entries (default 10 % of ``steps``). With ``val``
+    and ``patience``: early stopping on the held-out outer loss (``after`` on ``val``): stop
+    after ``patience`` evaluations without a new best and return the best evaluation's θ
+    (written back into ``model``) and ψ.
     """
     params = {k: v for k, v in model.net.named_parameters()}
     names = list(params) if adapt_params is None else list(adapt_params)
@@ -121,7 +126,9 @@ def meta_train(model: AdaptiveMLP, seg: Segments, *, steps: int = 500, meta_batc
     sub = None if adapt_params is None else names
     gen = torch.Generator().manual_seed(seed)
     hist: list[dict[str, float]] = []
-    every = max(1, steps // 10)
+    every = max(1, eval_every or steps // 10)
+    stop = val is not None and patience is not None
+    best, best_n, n_eval, best_state = float("inf"), 0, 0, None
     it_range = progress_output(range(steps), total=steps, desc="GrBAL meta-training") if progress else range(steps)
     for it in it_range:
         idx = torch.randint(len(seg), (min(meta_batch, len(seg)),), generator=gen)
@@ -131,8 +138,24 @@ def meta_train(model: AdaptiveMLP, seg: Segments, *, steps: int = 500, meta_batc
         loss.backward()
         opt.step()
         if (it + 1) % every == 0 or it == steps - 1:
-            hist.append({"step": it + 1, **evaluate(model, {k: v.detach() for k, v in params.items()},
-                                                      {k: v.detach() for k, v in psi.items()}, val or seg, names=sub)})
+            ev = evaluate(model, {k: v.detach() for k, v in params.items()}, {k: v.detach() for k, v in psi.items()},
+                          val or seg, names=sub)
+            hist.append({"step": it + 1, **ev})
+            n_eval += 1
+            if stop:
+                if ev["after"] < best:
+                    best, best_n = ev["after"], n_eval
+                    best_state = ({k: v.detach().clone() for k, v in params.items()},
+                                  {k: v.detach().clone() for k, v in psi.items()})
+                elif n_eval - best_n >= patience:
+                    break
+    if best_state is not None:
+        with torch.no_grad():
+            for k, v in params.items():
+                v.copy_(best_state[0][k])
+            for k, v in psi.items():
+                v.copy_(best_state[1][k])
+        hist.append({"best_step": hist[best_n - 1]["step"], **hist[best_n - 1]})
     return {k: (psi[k].detach().clone() if k in psi else torch.zeros_like(v.detach())) for k, v in params.items()}, hist
 
 

@@ -36,20 +36,43 @@ class ContextEncoder(nn.Module):
 
 
 def meta_train(model: AdaptiveMLP, encoder: ContextEncoder, seg: Segments, *, steps: int = 500,
-               batch: int = 32, lr: float = 1e-3, seed: int = 0) -> list[dict[str, float]]:
-    """Fit the GRU and the MLP (in place): predict the next K from the context of the past M."""
+               batch: int = 32, lr: float = 1e-3, seed: int = 0, val: Segments | None = None,
+               eval_every: int | None = None, patience: int | None = None) -> list[dict[str, float]]:
+    """Fit the GRU and the MLP (in place): predict the next K from the context of the past M.
+
+    History: every ``eval_every`` steps (default 10 % of ``steps``) the batch loss and, with
+    ``val``, the held-out loss (``val_loss``). With ``val`` and ``patience``: stop after
+    ``patience`` evaluations without a new best held-out loss and keep the best weights."""
     opt = torch.optim.Adam([*model.net.parameters(), *encoder.parameters()], lr=lr)
     params = dict(model.net.named_parameters())
     gen = torch.Generator().manual_seed(seed)
     hist = []
+    every = max(1, eval_every or steps // 10)
+    stop = val is not None and patience is not None
+    best, best_n, n_eval, best_state = float("inf"), 0, 0, None
     for it in range(steps):
         idx = torch.randint(len(seg), (min(batch, len(seg)),), generator=gen)
         loss = _loss(model, encoder, params, seg, idx)
         opt.zero_grad()
         loss.backward()
         opt.step()
-        if (it + 1) % max(1, steps // 10) == 0:
-            hist.append({"step": it + 1, "loss": float(loss.detach())})
+        if (it + 1) % every == 0 or it == steps - 1:
+            h = {"step": it + 1, "loss": float(loss.detach())}
+            if val is not None:
+                h["val_loss"] = evaluate(model, encoder, val)["after"]
+            hist.append(h)
+            n_eval += 1
+            if stop:
+                if h["val_loss"] < best:
+                    best, best_n = h["val_loss"], n_eval
+                    best_state = ({k: v.detach().clone() for k, v in model.state_dict().items()},
+                                  {k: v.detach().clone() for k, v in encoder.state_dict().items()})
+                elif n_eval - best_n >= patience:
+                    break
+    if best_state is not None:
+        model.load_state_dict(best_state[0])
+        encoder.load_state_dict(best_state[1])
+        hist.append({"best_step": hist[best_n - 1]["step"], **hist[best_n - 1]})
     return hist
 
 

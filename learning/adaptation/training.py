@@ -23,17 +23,39 @@ def transitions(episodes: Sequence[Episode]) -> tuple[np.ndarray, np.ndarray, np
     return s, a, n
 
 
+def split_episodes(episodes: Sequence[Episode], val_fraction: float, seed: int) -> tuple[list[Episode], list[Episode]]:
+    """(train, held-out): a random ``val_fraction`` of the rollouts (whole rollouts, never
+    transitions of one rollout on both sides), at least one of each when there are two."""
+    if not 0.0 <= val_fraction < 1.0:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    n = len(episodes)
+    k = int(round(val_fraction * n))
+    if val_fraction > 0 and n >= 2:
+        k = min(max(k, 1), n - 1)
+    perm = np.random.default_rng([seed, 11]).permutation(n)
+    val = set(perm[:k].tolist())
+    return [e for i, e in enumerate(episodes) if i not in val], [e for i, e in enumerate(episodes) if i in val]
+
+
 def fit_plain(model: AdaptiveMLP, episodes: Sequence[Episode], epochs: int = 30, batch_size: int = 256,
-              lr: float = 1e-3, seed: int = 0, normalize: bool = True) -> list[float]:
-    """Adam on the model's loss over all transitions (the MB model); returns the loss per epoch."""
+              lr: float = 1e-3, seed: int = 0, normalize: bool = True, val: Sequence[Episode] | None = None,
+              patience: int = 5, history: dict | None = None) -> list[float]:
+    """Adam on the model's loss over all transitions (the MB model); returns the loss per epoch.
+
+    ``val``: held-out rollouts. Then ``epochs`` is the maximum: after each epoch the loss on
+    ``val`` is measured, training stops after ``patience`` epochs without a new best, and
+    the model keeps the best epoch's weights (early stopping). ``history`` (a dict) receives
+    ``val`` (loss per epoch), ``best_epoch`` and ``best_val``."""
     s, a, n = (torch.as_tensor(x) for x in transitions(episodes))
     if normalize:
         model.set_normalization(s.numpy(), a.numpy(), n.numpy())
     opt = torch.optim.Adam(model.net.parameters(), lr=lr)
     gen = torch.Generator().manual_seed(seed)
     params = dict(model.net.named_parameters())
+    vt = None if not val else tuple(torch.as_tensor(x) for x in transitions(val))
+    best, best_ep, best_sd, vhist = float("inf"), 0, None, []
     hist = []
-    for _ in range(epochs):
+    for ep in range(epochs):
         perm = torch.randperm(s.shape[0], generator=gen)
         tot, cnt = 0.0, 0
         for i in range(0, s.shape[0], batch_size):
@@ -45,4 +67,20 @@ def fit_plain(model: AdaptiveMLP, episodes: Sequence[Episode], epochs: int = 30,
             tot += float(loss.detach()) * idx.shape[0]
             cnt += idx.shape[0]
         hist.append(tot / max(cnt, 1))
+        if vt is not None:
+            with torch.no_grad():
+                v = float(model.loss(params, *vt))
+            vhist.append(v)
+            if v < best:
+                best, best_ep = v, ep + 1
+                best_sd = {k: p.detach().clone() for k, p in params.items()}
+            elif ep + 1 - best_ep >= patience:
+                break
+    if best_sd is not None:
+        with torch.no_grad():
+            for k, p in params.items():
+                p.copy_(best_sd[k])
+    if history is not None:
+        history.update({"val": vhist, "best_epoch": best_ep, "best_val": best if vt is not None else None,
+                        "epochs_run": len(hist)})
     return hist

@@ -38,6 +38,15 @@ def test_tiny_run_writes_the_issue_report(tmp_path):
     partial = report_from_seeds(tmp_path)  # the tables of a run stopped after its first seed
     assert partial["perturbations"]["slope"]["grbal"]["cost_per_m"] == r["perturbations"]["slope"]["grbal"]["cost_per_m"]
     assert "grbal ranks above mb on " in (tmp_path / "report_seeds.md").read_text()
+    # phase timing and early stopping are reported; the training data is kept
+    seed0 = r["per_seed"][0]
+    assert {"gathering", "mb_training", "grbal_meta_training", "rebal_training", "oracle_gathering",
+            "oracle_training", "closed_loop", "switching"} <= set(seed0["timing"])
+    assert all(v["cpu_s"] >= 0 and v["wall_s"] >= 0 for v in seed0["timing"].values())
+    assert seed0["training"]["plain_history"]["epochs_run"] >= 1
+    md = (tmp_path / "report.md").read_text()
+    assert "Time per phase" in md and "| closed_loop |" in md and "MB epochs (best)" in md
+    assert (tmp_path / "data" / "seed0_training.npz").is_file()
     for f in ("report.md", "perturbations.png", "k_step_before_after.png", "switching.png"):
         assert (tmp_path / f).is_file()
     # the checkpoints the demo wrote build their adapters (what an adaptation node loads)
