@@ -123,7 +123,7 @@ def _garat_plots(report: dict, out: Path, plt) -> list[str]:
     ax.axhline(1.0, color="g", ls="--", lw=1, label="target-trained = 1")
     ax.axhline(0.0, color="k", lw=0.8)
     ax.set_ylabel("normalised target return")
-    ax.set_title(f"VelociRoACH, target: leg {r['missing_leg']} missing, seeds {r['seeds']}")
+    ax.set_title(f"VelociRoACH, target: {r['target']}, seeds {r['seeds']}", fontsize=9)
     ax.legend()
     fig.tight_layout()
     fig.savefig(out / "garat_roach.png", dpi=100)
@@ -170,10 +170,12 @@ def _pendulum_over_seeds(cfg: PendulumConfig, seeds: tuple[int, ...], log) -> di
 
 
 def _roach_over_seeds(cfg: RoachGaratConfig, seeds: tuple[int, ...], log) -> dict:
-    from learning.transfer.roach_garat import run_seed, summarise
+    from learning.transfer.roach_garat import run_seed, summarise, target_description
 
     out = summarise([run_seed(replace(cfg, seed=s), log) for s in seeds])
     out["missing_leg"] = cfg.missing_leg
+    out["leg_speed_scale"] = None if cfg.leg_speed_scale is None else list(cfg.leg_speed_scale)
+    out["target"] = target_description(cfg)
     return out
 
 

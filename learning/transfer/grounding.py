@@ -99,10 +99,10 @@ class Gat:
     """GAT's action transformer: inverse source model ∘ forward target model."""
 
     def __init__(self, source: TransitionSet, target: TransitionSet, a_low: np.ndarray, a_high: np.ndarray,
-                 width: int = 64, layers: int = 2, steps: int = 2000, seed: int = 0):
+                 width: int = 64, layers: int = 2, steps: int = 2000, seed: int = 0, lr: float = 3e-3):
         # forward target model: Δs = f(s, a); inverse source model: a = g(s, Δs)
-        self.fwd = fit_mlp(np.hstack([target.s, target.a]), target.s1 - target.s, width, layers, steps, seed=seed)
-        self.inv = fit_mlp(np.hstack([source.s, source.s1 - source.s]), source.a, width, layers, steps, seed=seed)
+        self.fwd = fit_mlp(np.hstack([target.s, target.a]), target.s1 - target.s, width, layers, steps, lr, seed=seed)
+        self.inv = fit_mlp(np.hstack([source.s, source.s1 - source.s]), source.a, width, layers, steps, lr, seed=seed)
         self.a_low, self.a_high = np.asarray(a_low, float), np.asarray(a_high, float)
 
     def __call__(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
