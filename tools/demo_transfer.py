@@ -161,6 +161,7 @@ def _pendulum_over_seeds(cfg: PendulumConfig, seeds: tuple[int, ...], log) -> di
             agg[k], agg[k + "_std"] = float(v.mean()), float(v.std())
         agg["ordering_holds_on_seeds"] = int(sum(r["curve"][i]["garat"] < r["curve"][i]["gat"] < r["curve"][i]["none"]
                                                  for r in runs))
+        agg["garat_below_gat_on_seeds"] = int(sum(r["curve"][i]["garat"] < r["curve"][i]["gat"] for r in runs))
         curve.append(agg)
     last = curve[-1]
     return {"grounding_error": {k: last[k] for k in ("none", "gat", "garat")},
@@ -242,6 +243,10 @@ def cli_transfer(out: Path, quick: bool, full: bool, seed: int, part: str = "all
         ge, sd = pend["grounding_error"], pend["grounding_error_std"]
         typer.echo(f"pendulum grounding error (seeds {pend['seeds']}, mean ± std): "
                    + "  ".join(f"{k} {ge[k]:.4f} ± {sd[k]:.4f}" for k in ("none", "gat", "garat")))
+        for row in pend["curve"]:
+            typer.echo(f"pendulum {row['target_transitions']} target transitions: "
+                       + "  ".join(f"{k} {row[k]:.4f} ± {row[k + '_std']:.4f}" for k in ("none", "gat", "garat"))
+                       + f"  (garat < gat on {row['garat_below_gat_on_seeds']} of {len(pend['seeds'])} seeds)")
         nr, ns = roach["normalised_return"], roach["normalised_return_std"]
         typer.echo(f"roach normalised target return (seeds with a gap {roach['seeds_with_gap']} of {roach['seeds']}): "
                    + "  ".join(f"{k} {'n/a' if nr[k] is None else f'{nr[k]:.2f} ± {ns[k]:.2f}'}"

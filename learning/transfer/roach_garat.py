@@ -132,6 +132,9 @@ class RoachGaratConfig:
     source_transitions: int = 3000  # for GAT's inverse source model (source data is free)
     action_noise_rps: float = 2.0  # exploration noise on the gait's commands for the grounding data
     gat_fit_steps: int = 1500
+    gat_width: int = 64  # GAT's MLPs (the pendulum's tuned settings carry over; not tuned on the roach)
+    gat_layers: int = 2
+    gat_val_frac: float = 0.0
     garat: GaratConfig = field(default_factory=lambda: GaratConfig(total_timesteps=16384, log_std_init=-2.0))
     seed: int = 0
 
@@ -220,7 +223,8 @@ def run_seed(cfg: RoachGaratConfig, log=print) -> dict:
         explore = Gait(theta["source"], cfg.action_noise_rps, cfg.v_min_rps, cfg.v_max_rps)
         target = collect(tgt, explore, cfg.target_transitions, cfg.episode_steps, sd * 1000 + 3)
         source = collect(src, explore, cfg.source_transitions, cfg.episode_steps, sd * 1000 + 4)
-        gat = Gat(source, target, lo, hi, steps=cfg.gat_fit_steps, seed=sd)
+        gat = Gat(source, target, lo, hi, width=cfg.gat_width, layers=cfg.gat_layers, steps=cfg.gat_fit_steps, seed=sd,
+                  val_frac=cfg.gat_val_frac)
         garat = train_garat(src, target, src.reset_state, explore, lambda s: False, lo, hi, cfg.episode_steps,
                             replace(cfg.garat, seed=sd))
         theta["gat"] = cem(src, cfg, sd * 1000 + 5, gat)
