@@ -48,7 +48,7 @@ PRESETS: dict[str, dict] = {
                                    trials=3, ablation_minutes=(1.0,)),
         "sidm": SidmConfig(latent_dim=128, width=128, enc_layers=0, warm_rounds=10, max_rounds=30,
                            patience_rounds=5),
-        "pendulum": _PENDULUM,
+        "pendulum": replace(_PENDULUM, target_sizes=(3000,)),  # the done-when size only; `full` has both
         "roach": replace(_ROACH, cem_episodes=1, target_transitions=1000, source_transitions=2000,
                          garat=GaratConfig(total_timesteps=4096, n_steps=256, log_std_init=-2.0)),
         "garat_seeds": (1,),  # a fresh seed (seed 0 chose the settings), whatever --seed says
