@@ -2,7 +2,8 @@
 
 * GAT (Hanna & Stone): π_g(s, a) = g_src(s, f_tgt(s, a)), an inverse source model (which
   action takes s to s' in the source) composed with a forward target model (where the
-  target goes from s under a). Both are small MLPs fitted by regression (``fit_mlp``).
+  target goes from s under a). Both are small MLPs fitted by regression (``fit_mlp``);
+  optional action smoothing ã = α·π_g(s, a) + (1 − α)·a (Hanna & Stone's α).
 * GARAT (Desai et al.): π_g is a stochastic policy trained with PPO
   (stable-baselines3) in the source simulator on the reward −log D(s, a, s'), where D is a
   GAIfO-style discriminator giving the probability that a transition (s, a, s') came from
@@ -77,21 +78,40 @@ class Mlp(nn.Module):
 
 
 def fit_mlp(x: np.ndarray, y: np.ndarray, width: int = 64, layers: int = 2, steps: int = 2000,
-            lr: float = 3e-3, batch: int = 256, seed: int = 0) -> Mlp:
-    """Least-squares MLP regression (Adam, cosine-decayed learning rate)."""
+            lr: float = 3e-3, batch: int = 256, seed: int = 0, val_frac: float = 0.0) -> Mlp:
+    """Least-squares MLP regression (Adam, cosine-decayed learning rate). With ``val_frac`` > 0
+    that share of the samples (random) is held out and the weights with the lowest held-out
+    error (checked every ``steps // 20`` steps) are kept: early stopping."""
+    if not 0.0 <= val_frac < 1.0:
+        raise ValueError(f"val_frac must be in [0, 1), got {val_frac}")
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    m = Mlp(x, y, width, layers)
-    xt, yt = torch.as_tensor(x, dtype=torch.float32), torch.as_tensor(y, dtype=torch.float32)
+    n_val = int(round(val_frac * len(x)))
+    if n_val > 0:
+        idx = rng.permutation(len(x))
+        tr, va = idx[n_val:], idx[:n_val]
+    else:  # no draw: the same minibatches as without early stopping
+        tr, va = np.arange(len(x)), np.arange(0)
+    m = Mlp(x[tr], y[tr], width, layers)
+    xt, yt = torch.as_tensor(x[tr], dtype=torch.float32), torch.as_tensor(y[tr], dtype=torch.float32)
+    xv, yv = torch.as_tensor(x[va], dtype=torch.float32), torch.as_tensor(y[va], dtype=torch.float32)
     opt = torch.optim.Adam(m.net.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
-    for _ in range(steps):
-        i = rng.integers(0, len(x), min(batch, len(x)))
+    every, best, best_state = max(1, steps // 20), float("inf"), None
+    for k in range(steps):
+        i = rng.integers(0, len(xt), min(batch, len(xt)))
         loss = (((m.forward(xt[i]) - yt[i]) / m.ys) ** 2).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
+        if len(va) and ((k + 1) % every == 0 or k + 1 == steps):
+            with torch.no_grad():
+                v = float((((m.forward(xv) - yv) / m.ys) ** 2).mean())
+            if v < best:
+                best, best_state = v, {n: t.clone() for n, t in m.state_dict().items()}
+    if best_state is not None:
+        m.load_state_dict(best_state)
     return m
 
 
@@ -99,16 +119,24 @@ class Gat:
     """GAT's action transformer: inverse source model ∘ forward target model."""
 
     def __init__(self, source: TransitionSet, target: TransitionSet, a_low: np.ndarray, a_high: np.ndarray,
-                 width: int = 64, layers: int = 2, steps: int = 2000, seed: int = 0):
+                 width: int = 64, layers: int = 2, steps: int = 2000, seed: int = 0, lr: float = 3e-3,
+                 alpha: float = 1.0, val_frac: float = 0.0):
+        if not 0.0 <= alpha <= 1.0:
+            raise ValueError(f"GAT smoothing alpha must be in [0, 1], got {alpha}")
+        self.alpha = alpha  # Hanna & Stone's action smoothing: ã = α·g(s, f(s, a)) + (1 − α)·a
         # forward target model: Δs = f(s, a); inverse source model: a = g(s, Δs)
-        self.fwd = fit_mlp(np.hstack([target.s, target.a]), target.s1 - target.s, width, layers, steps, seed=seed)
-        self.inv = fit_mlp(np.hstack([source.s, source.s1 - source.s]), source.a, width, layers, steps, seed=seed)
+        # (val_frac: early stopping of both on a held-out share of their data)
+        self.fwd = fit_mlp(np.hstack([target.s, target.a]), target.s1 - target.s, width, layers, steps, lr, seed=seed,
+                           val_frac=val_frac)
+        self.inv = fit_mlp(np.hstack([source.s, source.s1 - source.s]), source.a, width, layers, steps, lr, seed=seed,
+                           val_frac=val_frac)
         self.a_low, self.a_high = np.asarray(a_low, float), np.asarray(a_high, float)
 
     def __call__(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
         s, a = np.atleast_2d(s), np.atleast_2d(a)
         ds_target = self.fwd(np.hstack([s, a]))
-        return np.clip(self.inv(np.hstack([s, ds_target])), self.a_low, self.a_high)
+        at = self.alpha * self.inv(np.hstack([s, ds_target])) + (1.0 - self.alpha) * a
+        return np.clip(at, self.a_low, self.a_high)
 
 
 def transition_error(step: StepFn, data: TransitionSet, transform: Callable | None = None) -> float:

@@ -36,6 +36,11 @@ class PendulumConfig:
     action_noise: float = 0.5
     max_episode_steps: int = 200
     gat_fit_steps: int = 2000
+    gat_width: int = 64  # GAT's forward and inverse MLPs: width, hidden layers, Adam lr
+    gat_layers: int = 2
+    gat_lr: float = 3e-3
+    gat_val_frac: float = 0.0  # early stopping of GAT's models on this held-out share of their data
+    gat_alpha: float = 1.0  # GAT's action smoothing (Hanna & Stone)
     garat: GaratConfig = field(default_factory=GaratConfig)
     trace_steps: int = 100
     seed: int = 0
@@ -150,7 +155,8 @@ def run(cfg: PendulumConfig, log=print) -> dict:
         gat = garat = None
         for n in sorted(cfg.target_sizes):
             target = target_all.head(n)
-            gat = Gat(source, target, low, high, steps=cfg.gat_fit_steps, seed=cfg.seed)
+            gat = Gat(source, target, low, high, width=cfg.gat_width, layers=cfg.gat_layers, steps=cfg.gat_fit_steps,
+                      seed=cfg.seed, lr=cfg.gat_lr, alpha=cfg.gat_alpha, val_frac=cfg.gat_val_frac)
             garat = train_garat(src, target, src.reset_state, agent, done, low, high, cfg.max_episode_steps,
                                 cfg.garat)
             row = {"target_transitions": n, "none": none, "gat": transition_error(src, val, gat),

@@ -1,10 +1,12 @@
 """GAT vs GARAT with the VelociRoACH MuJoCo sim as the source (GARAT paper, Fig. 3 protocol).
 
 Source: the nominal sim (``sim_backends/velociroach``, carpet). Target: the same sim with a
-physical change set by config, by default the left middle leg missing (the backend's
-``missing_leg`` perturbation, as a ``PerturbationSettings`` would set it): the robot then
-curves left under equal leg commands, an effect a per-step change of the two leg commands
-can largely undo.
+physical change set by config, by default the left side's legs at 60 % of the commanded speed
+(``params.sim.leg_speed_scale`` = (0.6, 1)): the robot then turns left under equal leg
+commands, an effect an action transformation of the source (ã_left = 0.6 a_left, always in the command
+range) reproduces exactly. The earlier target, the left middle leg missing (``missing_leg``, the
+backend's perturbation), is still available; it is not an action transformation in disguise,
+and neither grounding recovered its turn (docs/transfer.md).
 
 Task: run straight. Episode of ``episode_steps`` control periods (0.1 s) from a reset at a
 random heading; return = progress along the start heading − ``lateral_weight`` · |sideways
@@ -62,10 +64,14 @@ class RoachStep:
     the features it returned last (the sim cannot start from an arbitrary state); ``a`` is the
     (left, right) leg-velocity command [rev/s], held one control period."""
 
-    def __init__(self, missing_leg: str | None = None, seed: int = 0):
+    def __init__(self, missing_leg: str | None = None, seed: int = 0,
+                 leg_speed_scale: tuple[float, float] | None = None):
         if missing_leg is not None and missing_leg not in LEG_NAMES:
             raise ValueError(f"missing_leg must be one of {list(LEG_NAMES)} or None, got {missing_leg!r}")
-        self.params = VelociRoachParams(sim={"seed": seed})
+        sim: dict = {"seed": seed}
+        if leg_speed_scale is not None:
+            sim["leg_speed_scale"] = tuple(leg_speed_scale)  # validated by the sim's params
+        self.params = VelociRoachParams(sim=sim)
         self.sim = VelociRoachSim(self.params)
         self.sim.configure()
         self.sim.activate()
@@ -106,7 +112,10 @@ class RoachStep:
 
 @dataclass(frozen=True)
 class RoachGaratConfig:
-    missing_leg: str = "lm"  # the target's change (backend perturbation missing_leg)
+    # the target's change: a per-side leg-speed scaling (params.sim.leg_speed_scale; left side at
+    # 60 %) and/or a missing leg (backend perturbation missing_leg, e.g. "lm"); None = unchanged
+    leg_speed_scale: tuple[float, float] | None = (0.6, 1.0)
+    missing_leg: str | None = None
     episode_steps: int = 30  # 3 s
     lateral_weight: float = 1.0
     v_min_rps: float = 0.0  # the gait's command range [v_min, v_max] (forward only)
@@ -123,6 +132,9 @@ class RoachGaratConfig:
     source_transitions: int = 3000  # for GAT's inverse source model (source data is free)
     action_noise_rps: float = 2.0  # exploration noise on the gait's commands for the grounding data
     gat_fit_steps: int = 1500
+    gat_width: int = 64  # GAT's MLPs (the pendulum's tuned settings carry over; not tuned on the roach)
+    gat_layers: int = 2
+    gat_val_frac: float = 0.0
     garat: GaratConfig = field(default_factory=lambda: GaratConfig(total_timesteps=16384, log_std_init=-2.0))
     seed: int = 0
 
@@ -204,14 +216,15 @@ def run_seed(cfg: RoachGaratConfig, log=print) -> dict:
     """One seed: train the gait in source and target, ground the source with GAT and GARAT,
     retrain the gait in each grounded source, evaluate every gait in the target."""
     sd = cfg.seed
-    src, tgt = RoachStep(None, sd), RoachStep(cfg.missing_leg, sd)
+    src, tgt = RoachStep(None, sd), RoachStep(cfg.missing_leg, sd, cfg.leg_speed_scale)
     lo, hi = np.full(2, cfg.v_min_rps), np.full(2, cfg.v_max_rps)
     try:
         theta = {"source": cem(src, cfg, sd * 1000 + 1), "target": cem(tgt, cfg, sd * 1000 + 2)}
         explore = Gait(theta["source"], cfg.action_noise_rps, cfg.v_min_rps, cfg.v_max_rps)
         target = collect(tgt, explore, cfg.target_transitions, cfg.episode_steps, sd * 1000 + 3)
         source = collect(src, explore, cfg.source_transitions, cfg.episode_steps, sd * 1000 + 4)
-        gat = Gat(source, target, lo, hi, steps=cfg.gat_fit_steps, seed=sd)
+        gat = Gat(source, target, lo, hi, width=cfg.gat_width, layers=cfg.gat_layers, steps=cfg.gat_fit_steps, seed=sd,
+                  val_frac=cfg.gat_val_frac)
         garat = train_garat(src, target, src.reset_state, explore, lambda s: False, lo, hi, cfg.episode_steps,
                             replace(cfg.garat, seed=sd))
         theta["gat"] = cem(src, cfg, sd * 1000 + 5, gat)
@@ -228,6 +241,16 @@ def run_seed(cfg: RoachGaratConfig, log=print) -> dict:
     return {"seed": sd, "theta_rps": {k: [round(float(v), 3) for v in th] for k, th in theta.items()},
             "target_return_m": ret, "source_return_m": ret_src, "gap_m": gap, "normalised_return": norm,
             "garat_disc_updates": garat.disc_updates}
+
+
+def target_description(cfg: RoachGaratConfig) -> str:
+    """The target's change in words (plots, report)."""
+    parts = []
+    if cfg.leg_speed_scale is not None:
+        parts.append(f"leg speed scale (left, right) = ({cfg.leg_speed_scale[0]:g}, {cfg.leg_speed_scale[1]:g})")
+    if cfg.missing_leg is not None:
+        parts.append(f"leg {cfg.missing_leg} missing")
+    return ", ".join(parts) or "unchanged"
 
 
 def normalise(ret: dict[str, float], min_gap: float = 0.0) -> dict[str, float | None]:

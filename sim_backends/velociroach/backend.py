@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import collections
 import math
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import mujoco
 import numpy as np
@@ -57,6 +57,9 @@ _WRAP_MARGIN_M = 0.25
 PERTURBATIONS = ("missing_leg", "payload_kg", "mocap_offset_m", "slope_deg", "heading_offset_deg")
 
 
+_Scale = Annotated[float, Field(gt=0, le=2, allow_inf_nan=False)]
+
+
 class SimParams(Params):
     """``params.sim`` of the VelociRoACH sim backend (units in names; sources in docs)."""
 
@@ -83,6 +86,9 @@ class SimParams(Params):
     gear_efficiency: float = Field(0.8, gt=0, le=1)
     rotor_inertia_kgm2: float = Field(1.0e-9, ge=0)
     current_limit_a: float = Field(1.5, gt=0, description="H-bridge current limit (crank torque limit)")
+    leg_speed_scale: tuple[_Scale, _Scale] = Field(
+        (1.0, 1.0), description="(left, right): the side's crank runs at this times its leg-velocity command "
+        "(a miscalibrated drive side; leg_velocity mode only; 1 = nominal)")
     # battery (1-cell LiPo)
     battery_full_v: float = Field(4.2, gt=0)
     battery_empty_v: float = Field(3.5, gt=0)
@@ -583,7 +589,8 @@ class VelociRoachSim(LockstepSim):
         if self.params.action_mode == "pwm":
             v = np.array([fw.duty_l, fw.duty_r])
         elif fw.mode == "leg_velocity":
-            v = np.array([fw.setpoint_l, fw.setpoint_r])
+            sl, sr = self.sim.leg_speed_scale  # the command that gives this setpoint
+            v = np.array([fw.setpoint_l / sl, fw.setpoint_r / sr])
         else:
             i = self.spec.state.index("crank_vel_l")
             v = obs.state[i:i + 2]
@@ -591,7 +598,8 @@ class VelociRoachSim(LockstepSim):
 
     def _write(self, action: np.ndarray) -> None:
         if self.params.action_mode == "leg_velocity":
-            self.firmware.set_leg_velocity(action[0], action[1], self.sim_time_s)
+            sl, sr = self.sim.leg_speed_scale
+            self.firmware.set_leg_velocity(action[0] * sl, action[1] * sr, self.sim_time_s)
         else:
             self.firmware.set_pwm(action[0], action[1], self.sim_time_s)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -12,6 +14,7 @@ from learning.transfer.grounding import (
     Gat,
     TransitionSet,
     discriminator_update,
+    fit_mlp,
     train_garat,
     transition_error,
 )
@@ -91,3 +94,30 @@ def test_garat_grounds_the_source_towards_the_target():
 def test_bad_transitions_are_refused():
     with pytest.raises(ValueError, match="NaN"):
         TransitionSet(np.array([[np.nan]]), np.zeros((1, 1)), np.zeros((1, 1)))
+
+
+def test_gat_smoothing_alpha_blends_with_the_identity():
+    tgt, src, val = rollouts(target, 400, 0), rollouts(source, 400, 1), rollouts(target, 50, 2)
+    full = Gat(src, tgt, LOW, HIGH, steps=100)
+    half, zero = copy.copy(full), copy.copy(full)
+    half.alpha, zero.alpha = 0.5, 0.0
+    s, a = val.s[:10], np.clip(val.a[:10], -1, 1)
+    assert np.abs(full(s, a) - a).max() > 0.1  # the fitted transform is not the identity
+    np.testing.assert_allclose(half(s, a), np.clip(0.5 * full(s, a) + 0.5 * a, LOW, HIGH), atol=1e-6)
+    np.testing.assert_allclose(zero(s, a), a, atol=1e-12)
+    with pytest.raises(ValueError, match="alpha"):
+        Gat(src, tgt, LOW, HIGH, steps=10, alpha=1.5)
+
+
+def test_fit_mlp_early_stopping_keeps_the_best_held_out_weights():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(60, 3))
+    y = x[:, :1] + rng.normal(0, 1.0, (60, 1))  # few noisy samples: a wide net overfits with many steps
+    xv = rng.normal(size=(500, 3))
+    err = {}
+    for vf in (0.0, 0.3):
+        m = fit_mlp(x, y, width=64, layers=2, steps=300, lr=1e-2, val_frac=vf)
+        err[vf] = float(np.mean((m(xv) - xv[:, :1]) ** 2))
+    assert err[0.3] < 0.7 * err[0.0]
+    with pytest.raises(ValueError, match="val_frac"):
+        fit_mlp(x, y, steps=1, val_frac=1.0)

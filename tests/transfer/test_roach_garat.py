@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from configs.schema import ConfigError
 from drivers.velociroach.config import STATE_NAMES
 from learning.transfer.roach_garat import (
     RoachGaratConfig,
@@ -50,6 +51,25 @@ def test_missing_leg_target_curves_where_the_source_runs_straighter():
         step.close()
     # equal commands: the target (left middle leg missing) veers left by far more
     assert lat["target"] > 0.2 and lat["target"] > abs(lat["source"]) + 0.15
+
+
+def test_leg_speed_target_turns_left_and_slows_the_left_cranks():
+    cfg = RoachGaratConfig(episode_steps=10)
+    assert cfg.leg_speed_scale == (0.6, 1.0) and cfg.missing_leg is None  # the default target
+    out = {}
+    for name, scale in (("source", None), ("target", (0.6, 1.0))):
+        step = RoachStep(None, seed=0, leg_speed_scale=scale)
+        rng = np.random.default_rng(0)
+        s = step.reset_state(rng)
+        for _ in range(cfg.episode_steps):
+            s = step(s, np.array([10.0, 10.0]))
+        out[name] = (s, step.progress()[1])
+        step.close()
+    # the left cranks run at 60 % of the command in the target, as commanded in the source
+    assert out["target"][0][3] == pytest.approx(6.0, abs=1.0) and out["source"][0][3] == pytest.approx(10.0, abs=1.0)
+    assert out["target"][1] > out["source"][1] + 0.1  # veers left
+    with pytest.raises(ConfigError, match="leg_speed_scale"):
+        RoachStep(None, leg_speed_scale=(0.0, 1.0))
 
 
 def test_bad_missing_leg_is_refused():

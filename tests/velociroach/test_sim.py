@@ -324,3 +324,17 @@ def test_reset_rewinds_time_and_holds_what_the_rebooted_firmware_runs():
     step = s.params.max_leg_accel_rps2 * s.params.period_s
     assert s.write([15.0, 15.0]) == pytest.approx([step, step])  # ramps from zero again
     assert s.write([15.0, 15.0]) == pytest.approx([step, step])
+
+
+def test_leg_speed_scale_slows_one_side_and_default_is_unchanged():
+    # the default (1, 1) is the nominal physics, bit for bit
+    np.testing.assert_array_equal(drive(make(), 9.0, 9.0, 0.5), drive(make(leg_speed_scale=(1.0, 1.0)), 9.0, 9.0, 0.5))
+    # left side at 60 %: equal commands turn the robot left, and the left crank runs at 0.6 x 9 rev/s
+    s = make(leg_speed_scale=(0.6, 1.0))
+    nominal = yaw_of(drive(make(), 9.0, 9.0, 0.5))  # about -8 degrees
+    assert yaw_of(drive(s, 9.0, 9.0, 0.5)) > nominal + math.radians(30)  # about +54
+    assert yaw_of(drive(make(leg_speed_scale=(1.0, 0.6)), 9.0, 9.0, 0.5)) < nominal - math.radians(30)
+    samples = [drive(s, 9.0, 9.0, 0.1)[[IX["crank_vel_l"], IX["crank_vel_r"]]] for _ in range(5)]
+    np.testing.assert_allclose(np.mean(samples, 0), [5.4, 9.0], atol=0.6)
+    with pytest.raises(ConfigError, match="leg_speed_scale"):
+        make(leg_speed_scale=(0.0, 1.0))

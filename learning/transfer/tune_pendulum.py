@@ -1,0 +1,82 @@
+"""The seed-0 settings search for GAT and GARAT on the pendulum (docs/transfer.md, "Tuning").
+
+    python -m learning.transfer.tune_pendulum gat            # the GAT grid (about 15 min on loaded cores)
+    python -m learning.transfer.tune_pendulum garat '{"gamma": 0.0}'   # one GARAT variant at 3000 transitions
+
+It builds exactly the agent and data of ``pendulum.run`` for the seed (same seeds, same
+functions) and prints the per-step transition error on the validation transitions for
+500 and 3000 target transitions (GAT) or the sizes given (GARAT). Seed 0 only chooses
+settings; the demo's `full` and `quick` presets evaluate on other seeds.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from learning.transfer.grounding import Gat, train_garat, transition_error
+from learning.transfer.pendulum import Agent, PendulumConfig, StepFrom, collect, done, make_env, train_agent
+
+#: (width, hidden layers, Adam steps, lr, early-stopping share); α 0.5 and 0.8 are also
+#: evaluated for the ones with early stopping (no refit: α only blends the output)
+GAT_GRID = [(64, 2, 1500, 3e-3, 0.0), (32, 1, 1500, 3e-3, 0.0), (64, 1, 1500, 3e-3, 0.0), (32, 2, 1500, 3e-3, 0.0),
+            (64, 2, 500, 3e-3, 0.0), (64, 2, 4000, 3e-3, 0.0), (128, 2, 1500, 3e-3, 0.0), (64, 3, 1500, 3e-3, 0.0),
+            (128, 2, 4000, 1e-3, 0.0), (64, 1, 4000, 3e-3, 0.0), (128, 1, 1500, 3e-3, 0.0),
+            (64, 3, 1500, 3e-3, 0.2), (64, 2, 4000, 3e-3, 0.2), (128, 2, 1500, 3e-3, 0.2)]
+
+
+def data(cfg: PendulumConfig, n_target: int, tmp: Path):
+    """The source step function, the agent and the data ``pendulum.run`` uses for ``cfg.seed``."""
+    src_env = make_env(None, tmp)
+    src, tgt = StepFrom(src_env), StepFrom(make_env(cfg.target_pole_mass_kg, tmp))
+    agent = Agent(train_agent(src_env, cfg.agent_timesteps, cfg.seed), cfg.action_noise)
+    target = collect(tgt, agent, n_target, cfg.max_episode_steps, cfg.seed + 1)
+    val = collect(tgt, agent, cfg.validation_transitions, cfg.max_episode_steps, cfg.seed + 2)
+    source = collect(src, agent, cfg.source_transitions, cfg.max_episode_steps, cfg.seed + 3)
+    return src, agent, target, val, source
+
+
+def main(argv: list[str]) -> None:
+    from tools.demo_transfer import PRESETS
+
+    torch.set_num_threads(1)
+    what = argv[0] if argv else "gat"
+    cfg = replace(PRESETS["quick"]["pendulum"], seed=0)
+    low, high = np.array([-3.0]), np.array([3.0])
+    with tempfile.TemporaryDirectory() as tmp:
+        src, agent, target, val, source = data(cfg, max(cfg.target_sizes), Path(tmp))
+        print(f"none {transition_error(src, val):.4f}", flush=True)
+        if what == "gat":
+            for w, layers, steps, lr, vf in GAT_GRID:
+                out = []
+                for n in cfg.target_sizes:
+                    g = Gat(source, target.head(n), low, high, width=w, layers=layers, steps=steps, lr=lr,
+                            seed=cfg.seed, val_frac=vf)
+                    alphas = (1.0, 0.5, 0.8) if vf > 0 else (1.0,)
+                    errs = []
+                    for a in alphas:
+                        g.alpha = a
+                        errs.append(f"α{a:g} {transition_error(src, val, g):.4f}")
+                    out.append(f"{n}: " + " ".join(errs))
+                print(f"width {w} layers {layers} steps {steps} lr {lr:g} val_frac {vf:g}: " + "; ".join(out),
+                      flush=True)
+        elif what == "garat":
+            kw = json.loads(argv[1]) if len(argv) > 1 else {}
+            sizes = [int(x) for x in argv[2].split(",")] if len(argv) > 2 else [max(cfg.target_sizes)]
+            for n in sizes:
+                gcfg = replace(cfg.garat, **kw, seed=cfg.seed)
+                g = train_garat(src, target.head(n), src.reset_state, agent, done, low, high, cfg.max_episode_steps,
+                                gcfg)
+                print(f"garat {json.dumps(kw)} {n}: {transition_error(src, val, g):.4f}", flush=True)
+        else:
+            raise SystemExit(f"unknown search {what!r}: gat or garat")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
