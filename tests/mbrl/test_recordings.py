@@ -48,32 +48,39 @@ def test_unknown_robot_is_a_clear_error(tmp_path):
         episodes_from_mcap(tmp_path / "c.mcap", "other")
 
 
+class _Recorder:
+    """Writes a recording in order: the spec, then states and the supervisor's transitions."""
+
+    def __init__(self, log: McapLog):
+        self.log, self._t = log, iter(range(1, 1000))
+        log.write(keys.spec("r", "bot"), SpecMsg(robot="bot", spec=SPEC), log_time_ns=next(self._t))
+
+    def state(self, i: int, ep: int, x: float) -> None:
+        self.log.write(keys.state("r", "bot"), RobotState(robot="bot", t_s=0.1 * i, state=[x, 0.0], action=[1.0],
+                                                          episode=ep, seq=i + 1), log_time_ns=next(self._t))
+
+    def transitions(self, *path: str) -> None:
+        """``transitions("a", "b", "c")``: a → b, then b → c."""
+        from bus.schemas import ResetTransition
+
+        for src, dst in zip(path[:-1], path[1:], strict=True):
+            self.log.write(keys.reset_transition("r"), ResetTransition(robot="bot", trigger="t", source=src, dest=dst),
+                           log_time_ns=next(self._t))
+
+
 def test_a_reset_recorded_under_the_ended_episode_is_left_out(tmp_path):
     """The driver bumps the episode when the reset is done: the reset's motion (here a
     teleport-like jump) is recorded under episode 0, between the supervisor's transitions."""
-    from bus.schemas import ResetTransition
-
-    def tr(source, dest):
-        return ResetTransition(robot="bot", trigger="t", source=source, dest=dest)
-
     with McapLog(tmp_path / "r.mcap") as log:
-        t = iter(range(1, 100))
-        log.write(keys.spec("r", "bot"), SpecMsg(robot="bot", spec=SPEC), log_time_ns=next(t))
-
-        def state(i, ep, x):
-            log.write(keys.state("r", "bot"), RobotState(robot="bot", t_s=0.1 * i, state=[x, 0.0], action=[1.0],
-                                                         episode=ep, seq=i + 1), log_time_ns=next(t))
-
+        rec = _Recorder(log)
         for i in range(5):
-            state(i, 0, float(i))
-        log.write(keys.reset_transition("r"), tr("running", "episode_end"), log_time_ns=next(t))
+            rec.state(i, 0, float(i))
+        rec.transitions("running", "episode_end")
         for i, x in [(5, 4.5), (6, 50.0), (7, 0.0)]:  # the reset drives back, then jumps home
-            state(i, 0, x)
-        for src, dst in [("episode_end", "paused"), ("paused", "resetting"), ("resetting", "verifying"),
-                         ("verifying", "resumed"), ("resumed", "running")]:
-            log.write(keys.reset_transition("r"), tr(src, dst), log_time_ns=next(t))
+            rec.state(i, 0, x)
+        rec.transitions("episode_end", "paused", "resetting", "verifying", "resumed", "running")
         for i in range(8, 12):
-            state(i, 1, float(i - 8))
+            rec.state(i, 1, float(i - 8))
     eps = episodes_from_mcap(tmp_path / "r.mcap")
     np.testing.assert_allclose(eps[0].states[:, 0], [0, 1, 2, 3, 4])
     np.testing.assert_allclose(eps[1].states[:, 0], [0, 1, 2, 3])
@@ -87,39 +94,25 @@ def test_a_recording_that_starts_during_a_reset_leaves_that_reset_out(tmp_path):
     kicks, the lab fixture), not an episode's. The 'running → episode_end' transition that
     opens the reset is in the previous file. (Measured: the emulated quick demo's on-policy
     data held 6.7 s of a robot on its back as a transition sequence of episode 60.)"""
-    from bus.schemas import ResetTransition
-
-    def tr(source, dest):
-        return ResetTransition(robot="bot", trigger="t", source=source, dest=dest)
-
     with McapLog(tmp_path / "r.mcap") as log:
-        t = iter(range(1, 100))
-        log.write(keys.spec("r", "bot"), SpecMsg(robot="bot", spec=SPEC), log_time_ns=next(t))
-
-        def state(i, ep, x):
-            log.write(keys.state("r", "bot"), RobotState(robot="bot", t_s=0.1 * i, state=[x, 0.0], action=[1.0],
-                                                         episode=ep, seq=i + 1), log_time_ns=next(t))
-
+        rec = _Recorder(log)
         for i, x in [(0, 7.0), (1, 7.0), (2, 7.0)]:  # lying where it tipped, episode 0 ended already
-            state(i, 0, x)
-        log.write(keys.reset_transition("r"), tr("episode_end", "paused"), log_time_ns=next(t))
-        log.write(keys.reset_transition("r"), tr("paused", "resetting"), log_time_ns=next(t))
+            rec.state(i, 0, x)
+        rec.transitions("episode_end", "paused", "resetting")
         for i, x in [(3, 9.0), (4, 30.0), (5, 0.0)]:  # kicks, the fixture, the drive back
-            state(i, 0, x)
-        for src, dst in [("resetting", "verifying"), ("verifying", "resumed"), ("resumed", "running")]:
-            log.write(keys.reset_transition("r"), tr(src, dst), log_time_ns=next(t))
+            rec.state(i, 0, x)
+        rec.transitions("resetting", "verifying", "resumed", "running")
         for i in range(6, 10):
-            state(i, 1, float(i - 6))
+            rec.state(i, 1, float(i - 6))
     eps = episodes_from_mcap(tmp_path / "r.mcap")
     assert [e.meta["episode"] for e in eps] == [1]
     np.testing.assert_allclose(eps[0].states[:, 0], [0, 1, 2, 3])
 
     # a recording that starts inside a running episode keeps the states before its first transition
     with McapLog(tmp_path / "s.mcap") as log:
-        t = iter(range(1, 100))
-        log.write(keys.spec("r", "bot"), SpecMsg(robot="bot", spec=SPEC), log_time_ns=next(t))
+        rec = _Recorder(log)
         for i in range(4):
-            state(i, 3, float(i))
-        log.write(keys.reset_transition("r"), tr("running", "episode_end"), log_time_ns=next(t))
+            rec.state(i, 3, float(i))
+        rec.transitions("running", "episode_end")
     eps = episodes_from_mcap(tmp_path / "s.mcap")
     np.testing.assert_allclose(eps[0].states[:, 0], [0, 1, 2, 3])
