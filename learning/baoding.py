@@ -292,7 +292,9 @@ class BaodingRun(MbrlRun):
 
             init = hold_pose_action()
         planner = pc.planner(seed=seed, init_mean=init)  # a seed per rollout: the sim is deterministic
-        return MpcPolicy(model, planner, BaodingCost(self.task, self.state_names, self.period_s))
+        # on a wall-clock rig the plan starts from the state after the command already sent
+        return MpcPolicy(model, planner, BaodingCost(self.task, self.state_names, self.period_s),
+                         delay_steps=self.command_delay)
 
     def run(self) -> dict[str, Any]:
         torch.manual_seed(self.bcfg.seed)

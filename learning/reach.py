@@ -448,7 +448,9 @@ class ReachRun:
                           action_dim=len(self.vel_limit), iterations=cfg.cem_iterations, elites=cfg.cem_elites)
             rand = RandomPolicy(len(self.vel_limit), self.seed + 1000)  # one stream: other actions every episode
             controllers = {
-                "mpc": lambda goal: MpcPolicy(model, planner, ReachCost(self.fk, goal, self.n_joints)),
+                # wall-clock rigs: plan from the state after the command already sent (learning.mbrl)
+                "mpc": lambda goal: MpcPolicy(model, planner, ReachCost(self.fk, goal, self.n_joints),
+                                              delay_steps=self.loop.command_delay),
                 "ik": lambda goal: IkController(self.fk, goal, self.vel_limit, **ik),
                 "random": lambda goal: rand,
             }

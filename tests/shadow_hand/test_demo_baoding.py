@@ -232,3 +232,17 @@ def test_a_sim_reset_holds_the_pose_it_resets_to():
     sim.reset()
     np.testing.assert_allclose(sim.held_command, to_action(sim.read().state[ACT_INDEX]), atol=1e-9)
     assert np.abs(sim.held_command - hold_pose_action()).max() < 0.05
+
+
+def test_the_pddm_policy_plans_from_the_state_after_the_sent_command_on_a_wall_clock_hand(bus, tmp_path):
+    """The emulated (and real) hand applies a command one period after the state it was
+    planned from (learning.mbrl.command_delay_steps); the lockstep sim does not."""
+    from learning.mbrl import command_delay_steps
+
+    for rig, delay in (("hand_emulated", 1), ("hand_sim", 0)):
+        run = BaodingRun(BaodingConfig.tiny(rig=rig), tmp_path / rig, bus)
+        run.state_names = NAMES
+        run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
+        run.command_delay = command_delay_steps(run.rig, "hand")  # what session() sets
+        assert run.command_delay == delay
+        assert run.pddm_policy(model=None, seed=0).delay_steps == delay
