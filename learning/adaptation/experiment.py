@@ -127,7 +127,7 @@ class AdaptationConfig:
         rollouts held out for early stopping of MB, GrBAL and ReBAL; the oracle gets 100
         rollouts (8.3 min) of its one condition. docs/adaptation.md, "Sizes"."""
         return dict(conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=15, hidden=(256, 256, 256),
-                    plain_epochs=60, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
+                    plain_epochs=200, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
                     meta_eval_every=50, meta_patience=4, oracle_rollouts=100, paths=("straight", "left"),
                     path_scale=1.0, before_after_rollouts=3, switching_every_steps=100, switching_segments=4)
 
