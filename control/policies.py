@@ -146,12 +146,15 @@ class MpcPolicy:
     @staticmethod
     def predict_after(dynamics: Callable[..., torch.Tensor], state: np.ndarray,
                       actions: Sequence[np.ndarray]) -> np.ndarray:
-        """``state`` rolled forward through ``actions`` with the model (ensemble mean)."""
+        """``state`` rolled forward through ``actions`` with the model: an ensemble's
+        ``[E, B, S]`` by its mean over members, a single model's ``[B, S]`` (the adaptation
+        adapters' dynamics) as it is, as the planners' rollout takes both."""
         with torch.inference_mode():
             x = torch.as_tensor(np.asarray(state), dtype=torch.float32).unsqueeze(0)
             for a in actions:
                 u = torch.as_tensor(np.asarray(a), dtype=torch.float32).reshape(1, -1)
-                x = dynamics(x, u).mean(0)
+                nxt = dynamics(x, u)
+                x = nxt.mean(0) if nxt.dim() == 3 else nxt
         return x[0].numpy().astype(np.float64)
 
 

@@ -365,6 +365,23 @@ def fit_samples_to_budget(plan_time_s, samples: int, budget_s: float, min_sample
     return n, trials
 
 
+def fit_planner_to_period(cfg: MbrlConfig, speed: float, action_dim: int, max_step: np.ndarray | None,
+                          predict, cost, state: np.ndarray, period_s: float) -> tuple[int, list[dict[str, float]]]:
+    """:func:`fit_samples_to_budget` for the configured planner, timed with ``predict`` and
+    ``cost`` from ``state`` (a first call per size fills the buffers and is not timed), within
+    ``cfg.realtime_plan_budget`` of ``period_s``. ``hil demo`` and ``hil mpc`` on wall-clock rigs."""
+
+    def plan_time_s(n: int) -> float:
+        pl = make_planner(cfg, speed, action_dim, max_step, n)
+        pl(predict, cost, state)
+        t0 = time.perf_counter()
+        pl(predict, cost, state)
+        return time.perf_counter() - t0
+
+    return fit_samples_to_budget(plan_time_s, cfg.samples, cfg.realtime_plan_budget * period_s,
+                                 cfg.realtime_min_samples)
+
+
 def command_delay_steps(rig: Any, robot: str) -> int:
     """Control periods between the state a realtime plan starts from and the period its
     command acts in, minus one: 0 on sim backends (lockstep, or a realtime sim that
@@ -597,18 +614,10 @@ class MbrlRun:
         if self.planner_fit is None:
             cfg = self.cfg
             x = np.asarray(self.ctl.next_state().state)
-            wp = make_path("straight", scale=cfg.path_scale)
-            cost = PathCost(wp, self.state_names)
-
-            def plan_time_s(n: int) -> float:
-                pl = make_planner(cfg, max(cfg.speeds.values()), len(self.action_names), self.max_step, n)
-                pl(model.predict, cost, x)  # first call: buffers
-                t0 = time.perf_counter()
-                pl(model.predict, cost, x)
-                return time.perf_counter() - t0
-
+            cost = PathCost(make_path("straight", scale=cfg.path_scale), self.state_names)
             budget = cfg.realtime_plan_budget * self.period_s
-            n, trials = fit_samples_to_budget(plan_time_s, cfg.samples, budget, cfg.realtime_min_samples)
+            n, trials = fit_planner_to_period(cfg, max(cfg.speeds.values()), len(self.action_names), self.max_step,
+                                              model.predict, cost, x, self.period_s)
             self.planner_fit = {"samples": n, "configured_samples": cfg.samples, "budget_ms": budget * 1e3,
                                 "torch_threads": torch.get_num_threads(), "trials": trials}
             _log(cfg, f"planner on the wall clock: {n} samples (median plan within {budget * 1e3:.0f} ms: {trials})")

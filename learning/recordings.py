@@ -36,8 +36,8 @@ def episodes_from_mcap(
     """Split a recording into episodes of one robot (the only one, or ``robot``)."""
     states: dict[tuple[str, int], list[RobotState]] = {}
     specs: dict[str, dict] = {}
-    #: per robot: log times [ns] of each reset's [start, end) (end None: never came back)
-    resets: dict[str, list[list[int | None]]] = {}
+    #: per robot, once it has a reset transition in this file: inside a reset now
+    resetting: dict[str, bool] = {}
     in_reset: set[int] = set()  # ids of the states recorded during a reset
     #: per robot: ids of the states recorded before its first reset transition
     before_first: dict[str, list[int]] = {}
@@ -47,24 +47,21 @@ def episodes_from_mcap(
             specs.setdefault(m.robot, m.spec)
         elif isinstance(m, RobotState) and m.state:
             states.setdefault((m.robot, m.episode), []).append(m)
-            w = resets.get(m.robot)
-            if w and w[-1][1] is None:
+            if resetting.get(m.robot):
                 in_reset.add(id(m))
-            if m.robot not in resets:
+            if m.robot not in resetting:
                 before_first.setdefault(m.robot, []).append(id(m))
         elif isinstance(m, ResetTransition):
-            if m.robot not in resets and m.source != "running":
+            if m.robot not in resetting and m.source != "running":
                 # the recording started during a reset (the previous file holds the end of the
                 # episode that opened it): what came before is the reset's, not an episode's
                 in_reset.update(before_first.get(m.robot, []))
-                if m.dest != "running":
-                    resets[m.robot] = [[rm.log_time_ns, None]]
-                    continue
-            w = resets.setdefault(m.robot, [])
-            if m.source == "running" and m.dest != "running" and not (w and w[-1][1] is None):
-                w.append([rm.log_time_ns, None])  # the episode ended (or the rig stopped)
-            elif m.dest == "running" and w and w[-1][1] is None:
-                w[-1][1] = rm.log_time_ns
+            if m.source == "running" and m.dest != "running":
+                resetting[m.robot] = True  # the episode ended (or the rig stopped)
+            elif m.dest == "running":
+                resetting[m.robot] = False
+            else:  # a step inside a reset; the first one seen says the file started in one
+                resetting[m.robot] = resetting.get(m.robot, True)
     robots = sorted({r for r, _ in states})
     if robot is None:
         if len(robots) != 1:

@@ -34,7 +34,6 @@ def register(app: typer.Typer) -> None:
         Commands are published at the control rate; on realtime rigs late plans are
         replaced by the shifted last plan and counted. With --adapt, each plan starts with the
         newest model from hil/<rig>/model/update (run `hil adapt RIG --checkpoint C` beside it)."""
-        import time
         from types import SimpleNamespace
 
         import numpy as np
@@ -49,7 +48,7 @@ def register(app: typer.Typer) -> None:
             MbrlConfig,
             PathEnd,
             command_delay_steps,
-            fit_samples_to_budget,
+            fit_planner_to_period,
             make_planner,
             max_step_normalized,
             path_start_pose,
@@ -99,18 +98,9 @@ def register(app: typer.Typer) -> None:
             n_act, max_step = len(spec["action"]["names"]), max_step_normalized(spec)
             samples = None
             if cfg.pace != "lockstep":  # as in `hil demo`: the planner must fit the period on this machine
-                x = np.asarray(ctl.next_state().state)
                 timing_cost = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
-
-                def plan_time_s(n: int) -> float:
-                    pl = make_planner(mcfg, speed, n_act, max_step, n)
-                    pl(dyn.predict, timing_cost, x)
-                    t0 = time.perf_counter()
-                    pl(dyn.predict, timing_cost, x)
-                    return time.perf_counter() - t0
-
-                samples, _ = fit_samples_to_budget(plan_time_s, mcfg.samples, mcfg.realtime_plan_budget
-                                                   * float(spec["period_s"]), mcfg.realtime_min_samples)
+                samples, _ = fit_planner_to_period(mcfg, speed, n_act, max_step, dyn.predict, timing_cost,
+                                                   np.asarray(ctl.next_state().state), float(spec["period_s"]))
             planner_ = make_planner(mcfg, speed, n_act, max_step, samples)
             pol = MpcPolicy(dyn, planner_, ref, model_source=swap, delay_steps=command_delay_steps(cfg, robot))
             first = ctl.reset(**path_start_pose(wp)) if reset else None

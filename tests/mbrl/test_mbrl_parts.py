@@ -166,6 +166,31 @@ def test_planner_samples_fit_the_wall_clock_budget():
     assert n == 50  # never below the floor
 
 
+def test_the_configured_planner_is_timed_on_the_model_and_fitted_to_the_period():
+    """`hil demo` and `hil mpc` on wall-clock rigs: the real planner, planning with the model
+    from a state (no wall-clock assertion: a period nothing fits, and one anything fits)."""
+    import torch
+
+    from control.costs import PathCost
+    from control.paths import make_path
+    from learning.mbrl import MbrlConfig, fit_planner_to_period
+
+    names = ["x", "y", "cos_yaw", "sin_yaw"]
+    calls = []
+
+    def predict(s, a):  # [B, S], [B, A] -> [E=1, B, S]
+        calls.append(s.shape[0])
+        return (s + torch.nn.functional.pad(a, (0, 2))).unsqueeze(0)
+
+    cfg = MbrlConfig(samples=200, realtime_min_samples=20)
+    args = (cfg, 1.0, 2, None, predict, PathCost(make_path("straight"), names), np.array([0.0, 0.0, 1.0, 0.0]))
+    n, trials = fit_planner_to_period(*args, period_s=1e-9)
+    assert n == 20 and trials[0]["samples"] == 200  # measured at the configured size, cut to the floor
+    assert 200 in calls and 20 in calls  # the planner's rollouts ran through the model at both sizes
+    n, trials = fit_planner_to_period(*args, period_s=1e6)
+    assert n == 200 and len(trials) == 1
+
+
 def test_realtime_planner_delay_and_elites():
     from types import SimpleNamespace
 
@@ -215,6 +240,10 @@ def test_mpc_plans_from_the_state_after_the_committed_commands():
     np.testing.assert_allclose(pl.start, [1.5, 1.75, 0.0])
     pol(x, committed=[np.array([0.5, 0.0]), np.array([0.5, 1.0])])  # oldest first, each applied
     np.testing.assert_allclose(pl.start, [2.0, 3.0, 0.0])
+    # a single model's [B, S] (the adaptation adapters' dynamics, `hil mpc --adapt`) as well
+    single = type("M", (), {"predict": staticmethod(lambda s, a: dynamics(s, a)[0])})()
+    MpcPolicy(single, pl, cost=lambda *a: None, delay_steps=1)(x, committed=[np.array([0.5, -0.25])])
+    np.testing.assert_allclose(pl.start, [1.5, 1.75, 0.0])
     with pytest.raises(ValueError, match="delay_steps"):
         MpcPolicy(model, pl, cost=None, delay_steps=-1)
 
