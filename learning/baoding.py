@@ -16,7 +16,7 @@ timeout and a drop detector on the ball heights; teleport on the sim rig) or at
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,9 @@ from control.planners import PddmConfig
 from control.policies import MpcPolicy
 from learning.mbrl import MbrlConfig, MbrlRun, RigError, _jsonable, _log, _progress, make_model, recording
 from learning.recordings import episodes_from_mcap
+
+#: the state channels Baoding needs: both balls' positions [m, world]
+BALL_NAMES = tuple(f"ball{i}_{c}" for i in range(2) for c in "xyz")
 
 
 class BaodingTaskParams(Strict):
@@ -252,7 +255,7 @@ class BaodingRun(MbrlRun):
         self.plan_times_s: list[float] = []
 
     def balls(self, states: np.ndarray) -> np.ndarray:
-        idx = [self.state_names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"]
+        idx = [self.state_names.index(n) for n in BALL_NAMES]
         return np.asarray(states)[:, idx].reshape(-1, 2, 3)
 
     def run_episodes(self, make_policy, n: int, name: str, desc: str,
@@ -282,16 +285,33 @@ class BaodingRun(MbrlRun):
 
         return RandomWalkPolicy(hold_pose_action(), seed=self._seed(1, i))
 
-    def pddm_policy(self, model, seed: int) -> MpcPolicy:
+    def pddm_config(self, samples: int | None = None) -> PddmConfig:
+        """The planner's settings; ``samples`` instead of the configured K (wall-clock rigs:
+        :meth:`fit_pddm_to_period`)."""
         pc = self.bcfg.pddm(len(self.state_names), len(self.action_names))
+        return pc if samples is None else replace(pc, samples=int(samples))
+
+    def _init_mean(self) -> np.ndarray | None:
         # "hold": the first plan is centred on the pose the episode starts in, so a planner
         # with an untrained model perturbs a grasp instead of swinging every joint to mid-range
-        init = None
-        if self.bcfg.init_mean == "hold":
-            from drivers.shadow_hand.config import hold_pose_action
+        if self.bcfg.init_mean != "hold":
+            return None
+        from drivers.shadow_hand.config import hold_pose_action
 
-            init = hold_pose_action()
-        planner = pc.planner(seed=seed, init_mean=init)  # a seed per rollout: the sim is deterministic
+        return hold_pose_action()
+
+    def fit_pddm_to_period(self, model) -> int | None:
+        """Wall-clock hands: PDDM's K cut until its median plan fits the period's budget on
+        this machine (the thesis' K = 700 through 3 x 2x500 took ~200 ms per plan on one
+        core here, twice the 100 ms period). None on lockstep rigs."""
+        cost = BaodingCost(self.task, self.state_names, self.period_s)
+        init = self._init_mean()
+        return self.realtime_samples(model, make=lambda n: self.pddm_config(n).planner(seed=0, init_mean=init),
+                                     cost=cost)
+
+    def pddm_policy(self, model, seed: int, samples: int | None = None) -> MpcPolicy:
+        """PDDM through ``model``; ``samples``: instead of the configured K (:meth:`fit_pddm_to_period`)."""
+        planner = self.pddm_config(samples).planner(seed=seed, init_mean=self._init_mean())  # a seed per rollout
         # on a wall-clock rig the plan starts from the state after the command already sent
         return MpcPolicy(model, planner, BaodingCost(self.task, self.state_names, self.period_s),
                          delay_steps=self.command_delay)
@@ -308,6 +328,11 @@ class BaodingRun(MbrlRun):
     def _baoding(self, report: dict[str, Any], t0: float) -> dict[str, Any]:
         c = self.bcfg
         with self.session():
+            missing = [n for n in BALL_NAMES if n not in self.state_names]
+            if missing:
+                raise RigError(f"rig {self.rig.name}: robot {self.cfg.robot}'s state has no {', '.join(missing)}: "
+                               "Baoding needs the balls' positions in the hand's state (objects_in_state: true "
+                               "and ball trackers; docs/baoding.md, 'Connecting a real hand')")
             _log(self.cfg, f"collecting {c.random_rollouts} random-walk rollouts x ≤{c.random_steps} steps")
             rand_path, walk = self.run_episodes(self.random_walk, c.random_rollouts, "000-random",
                                                 "random-walk rollouts", steps=c.random_steps)
@@ -329,15 +354,16 @@ class BaodingRun(MbrlRun):
             _log(self.cfg, f"random policy: {report['random_policy']['mean_return']:.1f} mean return, "
                            f"{report['random_policy']['drops']} drops")
             model = make_model(self.cfg, self.state_names, self.action_names)
+            samples = self.fit_pddm_to_period(model)  # timing needs the architecture, not trained weights
             iterations = []
             for it in range(1, c.iterations + 1):
                 train = self.train(model, data, c.epochs if it == 1 else c.retrain_epochs)
                 path, scores = self.run_episodes(
-                    lambda i, m=model, it=it: self.pddm_policy(m, self._seed(10 + it, i)),
+                    lambda i, m=model, it=it: self.pddm_policy(m, self._seed(10 + it, i), samples),
                     c.rollouts_per_iteration, f"{it:03d}-mpc", f"iteration {it}: PDDM rollouts")
                 new = episodes_from_mcap(path, self.cfg.robot)
                 val = [e for e in data if self.val_assigned.get(e.name)]
-                idx = [self.state_names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"]
+                idx = [self.state_names.index(n) for n in BALL_NAMES]
                 row = {"iteration": it, "points": int(sum(len(e) for e in data)),
                        "model": {**{k: train[k] for k in ("train_loss", "val_1step", "val_h") if k in train},
                                  **drop_prediction(model, val, self.task, idx, c.horizon)},
@@ -348,13 +374,15 @@ class BaodingRun(MbrlRun):
                                f"PDDM {row['mean_return']:.1f} mean return, {row['drops']}/{len(scores)} drops, "
                                f"{row['mean_rotation_deg']:.0f}° mean rotation")
             model.save(self.out / "model.pt")
-        pc = c.pddm(len(self.state_names), len(self.action_names))
+        pc = self.pddm_config(self.planner_fit["samples"] if self.planner_fit else None)
         pt = np.asarray(self.plan_times_s) * 1e3
         report["iterations"] = iterations
         report["planner"] = {**asdict(pc), "init_mean": c.init_mean,
                              "plan_ms_p50": float(np.percentile(pt, 50)) if pt.size else None,
                              "plan_ms_p99": float(np.percentile(pt, 99)) if pt.size else None,
                              "plans": int(pt.size)}
+        if self.planner_fit is not None:  # wall-clock rigs: K fitted to the period (configured: config.samples)
+            report["planner"]["realtime_fit"] = self.planner_fit
         sup = self.supervisor
         report["resets"] = ({**{k: sup.stats.get(k, 0) for k in ("requested", "completed", "failed")},
                              "mean_duration_s": float(np.mean(sup.durations_s)) if sup.durations_s else 0.0}

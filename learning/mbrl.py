@@ -25,6 +25,7 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -367,19 +368,27 @@ def fit_samples_to_budget(plan_time_s, samples: int, budget_s: float, min_sample
 
 def fit_planner_to_period(cfg: MbrlConfig, speed: float, action_dim: int, max_step: np.ndarray | None,
                           predict, cost, state: np.ndarray, period_s: float) -> tuple[int, list[dict[str, float]]]:
-    """:func:`fit_samples_to_budget` for the configured planner, timed with ``predict`` and
-    ``cost`` from ``state`` (a first call per size fills the buffers and is not timed), within
+    """:func:`fit_planner_samples` for the configured planner (:func:`make_planner`) within
     ``cfg.realtime_plan_budget`` of ``period_s``. ``hil demo`` and ``hil mpc`` on wall-clock rigs."""
+    return fit_planner_samples(lambda n: make_planner(cfg, speed, action_dim, max_step, n), cfg.samples,
+                               predict, cost, state, cfg.realtime_plan_budget * period_s, cfg.realtime_min_samples)
+
+
+def fit_planner_samples(make, samples: int, predict, cost, state: np.ndarray, budget_s: float,
+                        min_samples: int = 50) -> tuple[int, list[dict[str, float]]]:
+    """:func:`fit_samples_to_budget` for any planner: ``make(n)`` builds it with ``n``
+    samples; each plan is timed with ``predict`` and ``cost`` from ``state`` (a first call
+    per size fills the buffers and is not timed). The path MPC, the Baoding PDDM and the
+    arms' reach CEM share it (:meth:`MbrlRun.realtime_samples`)."""
 
     def plan_time_s(n: int) -> float:
-        pl = make_planner(cfg, speed, action_dim, max_step, n)
+        pl = make(n)
         pl(predict, cost, state)
         t0 = time.perf_counter()
         pl(predict, cost, state)
         return time.perf_counter() - t0
 
-    return fit_samples_to_budget(plan_time_s, cfg.samples, cfg.realtime_plan_budget * period_s,
-                                 cfg.realtime_min_samples)
+    return fit_samples_to_budget(plan_time_s, samples, budget_s, min_samples)
 
 
 def command_delay_steps(rig: Any, robot: str) -> int:
@@ -604,20 +613,25 @@ class MbrlRun:
                              cost, delay_steps=self.command_delay)
         return make
 
-    def realtime_samples(self, model) -> int | None:
+    def realtime_samples(self, model, make=None, cost=None) -> int | None:
         """Wall-clock rigs: the planner's sample count fitted to the control period on this
         machine, measured once with ``model`` from the robot's current state
-        (:func:`fit_samples_to_budget`; ``self.planner_fit`` records it for the report).
-        None on lockstep rigs (the configured samples)."""
+        (:func:`fit_planner_samples`; ``self.planner_fit`` records it for the report).
+        ``make(n)`` / ``cost``: the planner with ``n`` samples and its cost (default: the
+        path-tracking planner on a straight path at the top speed). None on lockstep rigs
+        (the configured samples)."""
         if self.rig.pace == "lockstep":
             return None
         if self.planner_fit is None:
             cfg = self.cfg
             x = np.asarray(self.ctl.next_state().state)
-            cost = PathCost(make_path("straight", scale=cfg.path_scale), self.state_names)
+            if make is None:
+                cost = PathCost(make_path("straight", scale=cfg.path_scale), self.state_names)
+                speed, n_act = max(cfg.speeds.values()), len(self.action_names)
+                make = partial(make_planner, cfg, speed, n_act, self.max_step)
             budget = cfg.realtime_plan_budget * self.period_s
-            n, trials = fit_planner_to_period(cfg, max(cfg.speeds.values()), len(self.action_names), self.max_step,
-                                              model.predict, cost, x, self.period_s)
+            n, trials = fit_planner_samples(make, cfg.samples, model.predict, cost, x, budget,
+                                            cfg.realtime_min_samples)
             self.planner_fit = {"samples": n, "configured_samples": cfg.samples, "budget_ms": budget * 1e3,
                                 "torch_threads": torch.get_num_threads(), "trials": trials}
             _log(cfg, f"planner on the wall clock: {n} samples (median plan within {budget * 1e3:.0f} ms: {trials})")

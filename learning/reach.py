@@ -444,8 +444,16 @@ class ReachRun:
             self._log(f"IK: default {rep['ik_tuning']['default']} → best {rep['ik_tuning']['best']}")
 
             ik = rep["ik_tuning"]["best_params"]
-            planner = CEM(action_low=-1.0, action_high=1.0, horizon=cfg.horizon, samples=cfg.samples, seed=self.seed,
-                          action_dim=len(self.vel_limit), iterations=cfg.cem_iterations, elites=cfg.cem_elites)
+            def cem(n: int) -> CEM:  # elites in the configured proportion (50 of 300)
+                return CEM(action_low=-1.0, action_high=1.0, horizon=cfg.horizon, samples=n, seed=self.seed,
+                           action_dim=len(self.vel_limit), iterations=cfg.cem_iterations,
+                           elites=max(1, min(n, round(cfg.cem_elites * n / cfg.samples))))
+
+            # wall-clock arms: the samples cut until the median plan fits the period (learning.mbrl)
+            fitted = self.loop.realtime_samples(model, make=cem, cost=ReachCost(self.fk, np.zeros(3), self.n_joints))  # any goal times it
+            planner = cem(cfg.samples if fitted is None else fitted)
+            if self.loop.planner_fit is not None:
+                rep["planner_realtime"] = self.loop.planner_fit
             rand = RandomPolicy(len(self.vel_limit), self.seed + 1000)  # one stream: other actions every episode
             controllers = {
                 # wall-clock rigs: plan from the state after the command already sent (learning.mbrl)

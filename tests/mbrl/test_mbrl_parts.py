@@ -261,3 +261,42 @@ def test_a_supervisor_timeout_shorter_than_a_path_is_refused_before_the_rig_star
                                        r"of 45\.7 s"):
         run.run()
     assert not (tmp_path / "out" / "logs").exists()  # refused before the rig's process started
+
+
+def test_realtime_samples_fits_the_given_planner_once_on_a_wall_clock_rig_only(tmp_path):
+    """`MbrlRun.realtime_samples`: on a wall-clock rig the planner ``make(n)`` is timed from
+    the robot's state and cut to the floor when nothing fits the period; the fit is measured
+    once and reported; lockstep rigs keep the configured samples (None)."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from configs.schema import BusConfig
+    from control.planners import CEM
+    from learning.mbrl import MbrlConfig, MbrlRun
+
+    made = []
+
+    def make(n):
+        made.append(n)
+        return CEM(action_low=-1.0, action_high=1.0, horizon=2, samples=n, action_dim=2, iterations=1,
+                   elites=max(1, n // 10))
+
+    model = SimpleNamespace(predict=lambda s, a: (s + torch.nn.functional.pad(a, (0, 1))).unsqueeze(0))
+    cost = lambda states, actions: states[..., -1, 0]  # noqa: E731
+
+    def run_on(rig, period_s):
+        run = MbrlRun(MbrlConfig(rig=rig, samples=200, realtime_min_samples=20), tmp_path / rig, BusConfig())
+        run.ctl = SimpleNamespace(next_state=lambda: SimpleNamespace(state=np.zeros(3)))
+        run.period_s = period_s
+        return run
+
+    run = run_on("roach_emulated", 1e-9)  # no plan fits a nanosecond
+    assert run.realtime_samples(model, make=make, cost=cost) == 20
+    assert made[0] == 200 and 20 in made
+    assert run.planner_fit["configured_samples"] == 200 and run.planner_fit["trials"][0]["samples"] == 200
+    n_made = len(made)
+    run.period_s = 1e6
+    assert run.realtime_samples(model, make=make, cost=cost) == 20 and len(made) == n_made  # measured once
+    assert run_on("roach_emulated", 1e6).realtime_samples(model, make=make, cost=cost) == 200
+    assert run_on("roach_sim", 1e-9).realtime_samples(model, make=make, cost=cost) is None  # lockstep

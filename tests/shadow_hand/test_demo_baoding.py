@@ -246,3 +246,42 @@ def test_the_pddm_policy_plans_from_the_state_after_the_sent_command_on_a_wall_c
         run.command_delay = command_delay_steps(run.rig, "hand")  # what session() sets
         assert run.command_delay == delay
         assert run.pddm_policy(model=None, seed=0).delay_steps == delay
+
+
+def test_a_wall_clock_hand_fits_pddm_k_to_the_period_and_the_sim_keeps_it(bus, tmp_path):
+    """PDDM's K on a wall-clock hand: timed through the model with the task's cost from the
+    hand's state, cut (here to the floor: no plan fits a nanosecond) and used by every PDDM
+    rollout; the lockstep sim keeps the configured K."""
+    from types import SimpleNamespace
+
+    from learning.mbrl import make_model
+
+    for rig, want in (("hand_emulated", 50), ("hand_sim", None)):
+        run = BaodingRun(BaodingConfig.tiny(rig=rig, samples=200), tmp_path / rig, bus)
+        run.state_names = NAMES
+        run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
+        run.ctl = SimpleNamespace(next_state=lambda: SimpleNamespace(state=np.zeros(len(NAMES))))
+        run.period_s = 1e-9
+        model = make_model(run.cfg, run.state_names, run.action_names)
+        k = run.fit_pddm_to_period(model)
+        assert k == want
+        assert run.pddm_policy(model, seed=0, samples=k).planner.samples == (want or 200)
+        if want:
+            assert run.planner_fit["trials"][0]["samples"] == 200
+            assert run.pddm_config(k).samples == 50 and run.pddm_config().samples == 200
+
+
+def test_a_hand_state_without_the_balls_is_refused_before_any_episode(bus, tmp_path):
+    """Baoding scores and plans on the balls' positions: a rig whose hand state lacks them (the
+    emulated hand without trackers) is a RigError naming the channels, not an IndexError
+    after the random rollouts."""
+    import contextlib
+
+    from learning.mbrl import RigError
+
+    run = BaodingRun(BaodingConfig.tiny(rig="hand_emulated_arm"), tmp_path, bus)
+    run.session = contextlib.nullcontext  # the rig is up; its hand publishes joints only
+    run.state_names = [n for n in NAMES if not n.startswith("ball")]
+    run.run_episodes = lambda *a, **k: pytest.fail("an episode ran")
+    with pytest.raises(RigError, match=r"no ball0_x, ball0_y, ball0_z, ball1_x, ball1_y, ball1_z.*objects_in_state"):
+        run.run()
