@@ -440,6 +440,8 @@ class MbrlRun:
         self.reset_timeout_s = 10.0
         #: why the last episode ended early: "supervisor: <detector's reason>", or ""
         self.last_end_reason = ""
+        self._ended = False  # the supervisor ended the current episode (_scan_transitions)
+        self._episode_no = 0  # the robot's episode counter of the current episode
 
     def _wait_for_rig(self, ctl: ControllerNode, proc: subprocess.Popen) -> dict[str, Any]:
         """The robot's spec once its driver node is up; a rig process that exits first (a
@@ -505,9 +507,10 @@ class MbrlRun:
         """Reset (the sim puts the robot at ``pose``; a real robot is placed by an operator)
         and run one episode: lockstep on sim rigs, on the wall clock otherwise."""
         first = self.reset(pose)
-        self.last_end_reason = ""
+        self._ended, self.last_end_reason = False, ""
+        self._episode_no = int(getattr(first, "episode", 0))
         if self.supervisor is not None:
-            self._transitions.drain()  # transitions of the reset just done
+            self._scan_transitions()  # the reset's own end nothing; a detector's on the first state does
         if hasattr(policy, "reset"):
             policy.reset()
         if self.supervisor is not None:  # the supervisor's detectors end episodes too
@@ -518,14 +521,19 @@ class MbrlRun:
 
     def _episode_ended(self, state) -> bool:
         """The reset supervisor's detectors ended the episode (arena left, timeout...)."""
-        ended = False
+        return self._scan_transitions()
+
+    def _scan_transitions(self) -> bool:
+        """Read the supervisor's transitions since the last scan: a detector's end of episode
+        (not "request": the end this loop asked for itself) in the current episode (the
+        robot's episode counter, ``ResetTransition.episode``) ends it. So a detector that
+        fired on the episode's first state, before the episode's first scan, still ends it,
+        and one that fired at the end of the episode before does not."""
         for _, p in self._transitions.drain():
             t = decode(p, ResetTransition)
-            # "request": the end of an episode this loop asked for itself (an earlier one)
-            if t.dest == "episode_end" and t.reason != "request":
-                ended = True
-                self.last_end_reason = f"supervisor: {t.reason}"
-        return ended
+            if t.dest == "episode_end" and t.reason != "request" and t.episode >= self._episode_no:
+                self._ended, self.last_end_reason = True, f"supervisor: {t.reason}"
+        return self._ended
 
     @contextlib.contextmanager
     def _supervised(self, reset_cfg: ResetConfig | None) -> Iterator[None]:

@@ -300,3 +300,44 @@ def test_realtime_samples_fits_the_given_planner_once_on_a_wall_clock_rig_only(t
     assert run.realtime_samples(model, make=make, cost=cost) == 20 and len(made) == n_made  # measured once
     assert run_on("roach_emulated", 1e6).realtime_samples(model, make=make, cost=cost) == 200
     assert run_on("roach_sim", 1e-9).realtime_samples(model, make=make, cost=cost) is None  # lockstep
+
+
+def test_the_supervisor_ends_an_episode_by_its_detectors_in_that_episode_only(tmp_path):
+    """A detector that fires on the first state after the reset (before the loop's first
+    look) ends the new episode; a detector's end left over from the episode before, and the
+    reset's own transitions, do not."""
+    from types import SimpleNamespace
+
+    from bus.schemas import ResetTransition, encode
+    from configs.schema import BusConfig
+    from learning.mbrl import MbrlConfig, MbrlRun
+
+    def tr(trigger, source, dest, episode, reason=""):
+        return ResetTransition(robot="roach", trigger=trigger, source=source, dest=dest, episode=episode, reason=reason)
+
+    the_reset = [tr("end_episode", "running", "episode_end", 4, "request"), tr("pause", "episode_end", "paused", 4),
+                 tr("begin", "paused", "resetting", 4), tr("steps_done", "resetting", "verifying", 4),
+                 tr("verified", "verifying", "resumed", 4), tr("resume", "resumed", "running", 4)]
+    stale = tr("end_episode", "running", "episode_end", 4, "timeout")  # the episode before's last state
+    fired = tr("end_episode", "running", "episode_end", 5, "left_arena")  # the new episode's first state
+    run = MbrlRun(MbrlConfig(rig="roach_sim"), tmp_path, BusConfig())
+    run.supervisor = object()
+    run.reset = lambda pose: SimpleNamespace(episode=5)
+    run.ctl = SimpleNamespace()
+    queue: list = []
+
+    def drain():  # the subscription: every transition published since the last drain
+        out = [(None, encode(m)) for m in queue]
+        queue.clear()
+        return out
+
+    run._transitions = SimpleNamespace(drain=drain)
+
+    for before, during, ended in (([stale, *the_reset], [], False), ([*the_reset, fired], [], True),
+                                  ([stale, *the_reset], [fired], True)):
+        queue[:] = before
+        run.ctl.run_lockstep = lambda policy, steps, first, stop_if, d=during: [stop_if(first), queue.extend(d),
+                                                                                 stop_if(first)]
+        first_look, _, second_look = run.episode(lambda s: s, 10, {})
+        assert second_look == ended and first_look == (ended and not during)
+        assert run.last_end_reason == ("supervisor: left_arena" if ended else "")
