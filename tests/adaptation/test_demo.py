@@ -86,3 +86,11 @@ def test_ranking_counts_completions_first_then_cost():
                               "c": {"grbal": cell(0, 5.0), "mb": cell(0, 6.0)}}}
     r = {**seed, "per_seed": [seed, seed]}
     assert ranking_line(r, "mb") == "grbal ranks above mb on 2 of 3 (a, c) on the means; per seed: [2, 2]."
+
+
+def test_config_overrides_change_only_the_named_fields():
+    from tools.demo_adaptation import config_for
+
+    base, cfg = config_for(True, False), config_for(True, False, train_leg_speed_scale=(0.6, 1.4))
+    assert cfg.train_leg_speed_scale == (0.6, 1.4) and base.train_leg_speed_scale is None
+    assert {**vars(cfg), "train_leg_speed_scale": None} == vars(base)
