@@ -18,12 +18,14 @@ from typing import Any
 from learning.adaptation.experiment import METHODS, SWITCHING_METHODS, AdaptationConfig, run
 
 
-def config_for(quick: bool, full: bool, tiny: bool = False, seed: int = 0) -> AdaptationConfig:
+def config_for(quick: bool, full: bool, tiny: bool = False, seed: int = 0, **overrides: Any) -> AdaptationConfig:
+    """The preset's config; ``overrides``: fields to change (experiments from Python, e.g.
+    ``run_demo(out, quick=True, overrides={"train_leg_speed_scale": (0.6, 1.4)})``)."""
     if tiny:
-        return AdaptationConfig.tiny(seeds=(seed,))
+        return AdaptationConfig.tiny(seeds=(seed,), **overrides)
     if quick:
-        return AdaptationConfig.quick(seeds=(seed,))
-    return AdaptationConfig.full(seeds=(seed, seed + 1, seed + 2))
+        return AdaptationConfig.quick(seeds=(seed,), **overrides)
+    return AdaptationConfig.full(seeds=(seed, seed + 1, seed + 2), **overrides)
 
 
 def _plots(r: dict[str, Any], out: Path) -> list[str]:
@@ -177,10 +179,11 @@ def _training_lines(per_seed: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def run_demo(out: Path, quick: bool = False, full: bool = False, seed: int = 0, tiny: bool = False) -> dict[str, Any]:
+def run_demo(out: Path, quick: bool = False, full: bool = False, seed: int = 0, tiny: bool = False,
+             overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = config_for(quick, full, tiny, seed)
+    cfg = config_for(quick, full, tiny, seed, **(overrides or {}))
     log_file = (out / "demo.log").open("w")
 
     def log(msg: str) -> None:
@@ -193,6 +196,7 @@ def run_demo(out: Path, quick: bool = False, full: bool = False, seed: int = 0, 
     try:
         r = run(cfg, out, log)
         r["preset"] = "tiny" if tiny else ("quick" if quick else "full")
+        r["overrides"] = overrides or {}
         r["cpu_s"] = time.process_time()
         (out / "report.json").write_text(json.dumps(r, indent=1))
         r["plots"] = _plots(r, out)

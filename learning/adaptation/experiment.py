@@ -85,10 +85,19 @@ class AdaptationConfig:
     meta_steps: int = 1000
     meta_batch: int = 16
     meta_lr: float = 1e-3
+    grbal_meta_lr: float | None = None  # Adam's step for GrBAL's θ (None: meta_lr; ReBAL always uses meta_lr)
     psi_init: float = 0.01
     psi_lr: float | None = 1e-2  # Adam's step for ψ (None: meta_lr); docs/adaptation.md, "Why one step ..."
     # which parameters GrBAL adapts: "all", or "last" (the output layer's weight and bias)
     grbal_adapt: str = "last"
+    # cap on the norm of GrBAL's inner gradient (meta-training and run time alike): this
+    # quantile of the norms on the training segments' past M at the warm start (None: no cap);
+    # docs/adaptation.md, "Why one GrBAL step ..."
+    grbal_clip_quantile: float | None = None
+    # meta-training only: each perturbed training condition also runs each drive side's crank
+    # at a factor drawn uniformly from this range (params.sim.leg_speed_scale, a miscalibrated
+    # drive side; None: nominal). No test condition changes it (configs/perturbations).
+    train_leg_speed_scale: tuple[float, float] | None = None
     rebal_steps: int = 1000
     context_dim: int = 32
     de_lr: float = 0.01
@@ -125,11 +134,15 @@ class AdaptationConfig:
         training terrain (12 conditions x 15 rollouts x 5 s, half of the conditions
         unperturbed; the thesis: ~30 min, terrains only), 10 % of the
         rollouts held out for early stopping of MB, GrBAL and ReBAL; the oracle gets 100
-        rollouts (8.3 min) of its one condition. docs/adaptation.md, "Sizes"."""
+        rollouts (8.3 min) of its one condition. GrBAL: its inner gradient's norm capped at
+        the median of the training windows' (``grbal_clip_quantile``), θ's meta learning rate
+        1e-4 (ψ's 1e-2): the open-loop screen in docs/adaptation.md, "Why one GrBAL step ...".
+        docs/adaptation.md, "Sizes"."""
         return dict(conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=15, hidden=(256, 256, 256),
                     plain_epochs=200, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
                     meta_eval_every=50, meta_patience=4, oracle_rollouts=100, paths=("straight", "left"),
-                    path_scale=1.0, before_after_rollouts=3, switching_every_steps=100, switching_segments=4)
+                    path_scale=1.0, before_after_rollouts=10, switching_every_steps=100, switching_segments=4,
+                    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4)
 
     @classmethod
     def tiny(cls, **kw: Any) -> AdaptationConfig:
@@ -137,7 +150,8 @@ class AdaptationConfig:
         base = dict(seeds=(0,), conditions_per_terrain=2, rollouts_per_condition=1, rollout_steps=12,
                     before_after_rollouts=1, hidden=(16, 16), M=4, K=4, plain_epochs=2, meta_steps=2, rebal_steps=2,
                     context_dim=4, samples=32, paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.5,
-                    switching_every_steps=4, switching_segments=2)
+                    switching_every_steps=4, switching_segments=2, grbal_clip_quantile=0.5,
+                    train_leg_speed_scale=(0.8, 1.2))  # the last two: run those code paths
         base.update(kw)
         return cls(**base)
 
@@ -161,6 +175,10 @@ class RoachSim:
         self.sim.apply_perturbations(settings)
         self.sim.reset(**pose)
         return self.sim.read().state.copy()
+
+    def set_leg_speed_scale(self, left: float, right: float) -> None:
+        """Each drive side's crank runs at this factor times its command (``params.sim.leg_speed_scale``)."""
+        self.sim.sim = self.sim.sim.model_copy(update={"leg_speed_scale": (float(left), float(right))})
 
     def apply(self, settings: PerturbationSettings) -> None:
         self.sim.apply_perturbations(settings)
@@ -307,6 +325,7 @@ class Trained:
     # the oracle of the condition being tested (an MB model trained on that condition's data)
     oracle: AdaptiveMLP | None = None
     adapt_params: list[str] | None = None  # GrBAL's adapted subset (None: all)
+    clip: float | None = None  # GrBAL's inner-gradient norm cap (None: none)
 
     def adapter(self, method: str, cfg: AdaptationConfig) -> Adapter:
         if method == "mb":
@@ -318,11 +337,12 @@ class Trained:
         if method == "mb_de":
             return MbDeAdapter(self.plain, window=cfg.M, lr=cfg.de_lr)
         if method in ("grbal", "k_shot"):
-            return GrbalAdapter(self.meta, self.psi, window=cfg.M, adapt_params=self.adapt_params)
+            return GrbalAdapter(self.meta, self.psi, window=cfg.M, adapt_params=self.adapt_params, clip=self.clip)
         if method == "rebal":
             return RebalAdapter(self.rebal_model, self.encoder, window=cfg.M)
         if method == "mole":
-            return MoleAdapter(self.meta, self.psi, window=cfg.K, lr=cfg.mole_lr, alpha=1.0)
+            return MoleAdapter(self.meta, self.psi, window=cfg.K, lr=cfg.mole_lr, alpha=1.0,
+                               adapt_params=self.adapt_params, clip=self.clip)
         if method == "continued":
             return MbDeAdapter(self.meta, window=cfg.K, lr=cfg.mole_lr)
         raise ValueError(f"unknown method {method!r}")
@@ -355,10 +375,20 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
     if cfg.grbal_adapt not in ("all", "last"):
         raise ValueError(f"grbal_adapt must be 'all' or 'last', got {cfg.grbal_adapt!r}")
     adapt_params = None if cfg.grbal_adapt == "all" else list(meta.params())[-2:]
+    clip = None
+    if cfg.grbal_clip_quantile is not None:
+        if not 0.0 < cfg.grbal_clip_quantile <= 1.0:
+            raise ValueError(f"grbal_clip_quantile must be in (0, 1] or None, got {cfg.grbal_clip_quantile}")
+        norms = grbal.gradient_norms(meta, meta.params(), seg, adapt_params)
+        clip = float(np.quantile(norms, cfg.grbal_clip_quantile))
+        log(f"GrBAL inner-gradient cap: {clip:.4f} (quantile {cfg.grbal_clip_quantile} of {len(norms)} training "
+            f"windows; median {np.median(norms):.4f})")
     with phases("grbal_meta_training") as ph:
-        psi, h_meta = grbal.meta_train(meta, seg, steps=cfg.meta_steps, meta_batch=cfg.meta_batch, lr=cfg.meta_lr,
+        theta_lr = cfg.meta_lr if cfg.grbal_meta_lr is None else cfg.grbal_meta_lr
+        psi, h_meta = grbal.meta_train(meta, seg, steps=cfg.meta_steps, meta_batch=cfg.meta_batch, lr=theta_lr,
                                        psi_init=cfg.psi_init, psi_lr=cfg.psi_lr, seed=seed, adapt_params=adapt_params,
-                                       val=vseg, eval_every=cfg.meta_eval_every, patience=cfg.meta_patience)
+                                       val=vseg, eval_every=cfg.meta_eval_every, patience=cfg.meta_patience,
+                                       clip=clip)
     last = h_meta[-1]
     log(f"GrBAL meta-training: {last.get('best_step', last['step'])} steps kept of "
         f"{h_meta[-2]['step'] if 'best_step' in last else last['step']}, held-out next-K loss before/after "
@@ -382,7 +412,7 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
         f"{last.get('val_loss', float('nan')):.4f} ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s)")
     s, _, n = transitions(episodes)
     tr = Trained(plain, meta, psi, rm, enc, np.maximum((n - s).std(0), 1e-6),
-                 {"plain": h_plain, "grbal": h_meta, "rebal": h_rebal}, adapt_params=adapt_params)
+                 {"plain": h_plain, "grbal": h_meta, "rebal": h_rebal}, adapt_params=adapt_params, clip=clip)
     for m in ("mb_de", "grbal", "rebal", "mole"):
         tr.adapter(m, cfg).save(ckpt_dir / f"seed{seed}_{m}.pt")
     return tr
@@ -437,13 +467,25 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
 
     phases = Phases()
     episodes: list[Episode] = []
+    scale_range = cfg.train_leg_speed_scale
+    if scale_range is not None and not 0.0 < scale_range[0] <= scale_range[1] <= 2.0:
+        raise ValueError(f"train_leg_speed_scale must be (low, high) with 0 < low <= high <= 2, got {scale_range}")
+    scale_rng = np.random.default_rng([seed, 99])  # its own stream: the other draws stay as without it
     with phases("gathering") as ph:
         for terrain in p.training_terrains:
             clean = unperturbed_conditions(cfg)
             for c in range(cfg.conditions_per_terrain):
                 settings = PerturbationSettings() if c in clean else p.training.sample(rng)
-                episodes += random_episodes(env(terrain), settings, cfg.rollouts_per_condition, cfg.rollout_steps,
-                                            seed=int(rng.integers(1 << 30)), name=f"{terrain}-c{c}")
+                scale = (1.0, 1.0)
+                if scale_range is not None and c not in clean:
+                    scale = tuple(float(x) for x in scale_rng.uniform(*scale_range, 2))
+                env(terrain).set_leg_speed_scale(*scale)
+                eps = random_episodes(env(terrain), settings, cfg.rollouts_per_condition, cfg.rollout_steps,
+                                      seed=int(rng.integers(1 << 30)), name=f"{terrain}-c{c}")
+                for e in eps:
+                    e.meta["condition"] = {**e.meta["condition"], "leg_speed_scale": list(scale)}
+                episodes += eps
+            env(terrain).set_leg_speed_scale(1.0, 1.0)  # the tests run the nominal robot
     names = env(p.training_terrains[0]).state_names
     n_steps = sum(len(e) for e in episodes)
     log(f"seed {seed}: {len(episodes)} random rollouts ({n_steps} steps = "
@@ -458,7 +500,8 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
             eps = random_episodes(env(terrain), settings, cfg.before_after_rollouts, cfg.rollout_steps,
                                   seed=int(rng.integers(1 << 30)), name=name)
             before_after[name] = grbal.evaluate(tr.meta, tr.meta.params(), tr.psi,
-                                                segments(eps, cfg.M, cfg.K, stride=2), names=tr.adapt_params)
+                                                segments(eps, cfg.M, cfg.K, stride=2), names=tr.adapt_params,
+                                                clip=tr.clip)
         # the oracle: an MB model of the same size, trained like MB (same early stopping) on
         # oracle_rollouts (default: as many as the training set) all under this test condition
         n_or = cfg.oracle_rollouts or len(episodes)
@@ -489,7 +532,7 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
             "training": {"rollouts": len(episodes), "steps": int(n_steps), "plain_history": tr.history["plain"],
                          "oracle_history": oracle_hist,
                          "grbal_history": tr.history["grbal"], "rebal_history": tr.history["rebal"],
-                         "psi_mean": {k: float(v.mean()) for k, v in tr.psi.items()}}}
+                         "psi_mean": {k: float(v.mean()) for k, v in tr.psi.items()}, "grbal_clip": tr.clip}}
 
 
 def run_paths(cfg: AdaptationConfig, env: RoachSim, settings: PerturbationSettings, tr: Trained,

@@ -65,12 +65,15 @@ class MoleAdapter(Adapter):
         lr: β, the M-step's step size (thesis: 0.01).
         alpha: CRP concentration (thesis: 1).
         max_tasks: a bound on memory; past it no task is created (counted in ``info``).
+        adapt_params, clip: the prior's step (GrBAL's subset and inner-gradient cap) for the
+            new-task candidate (None: all parameters, no cap).
     """
 
     name = "mole"
 
     def __init__(self, model: AdaptiveMLP, psi: Params, window: int = 16, lr: float = 0.01, alpha: float = 1.0,
-                 max_tasks: int = 32, score: int | None = None):
+                 max_tasks: int = 32, score: int | None = None, adapt_params: list[str] | None = None,
+                 clip: float | None = None):
         super().__init__(model, window)
         if not alpha > 0 or not lr > 0:
             raise ValueError(f"mole needs alpha > 0 and lr > 0, got alpha={alpha}, lr={lr}")
@@ -79,6 +82,8 @@ class MoleAdapter(Adapter):
         self.psi = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in psi.items()}
         self.lr, self.alpha, self.max_tasks = float(lr), float(alpha), int(max_tasks)
         self.score = int(score) if score is not None else self.window // 2
+        self.adapt_params = list(adapt_params) if adapt_params is not None else None
+        self.clip = None if clip is None else float(clip)
         if not 1 <= self.score < self.window:
             raise ValueError(f"mole score must be in [1, window), got {self.score}")
         self._grad = grad(model.loss)
@@ -102,7 +107,8 @@ class MoleAdapter(Adapter):
         k = min(self.score, m - 1) if m > 1 else m
         fit, sc = slice(0, m - k), slice(m - k, m)
         if m > 1:
-            cand = {key: v.detach() for key, v in adapt(self.model, self.theta_star, self.psi, s[fit], a[fit], n[fit]).items()}
+            cand = {key: v.detach() for key, v in adapt(self.model, self.theta_star, self.psi, s[fit], a[fit], n[fit],
+                                                  self.adapt_params, self.clip).items()}
         else:
             cand = dict(self.theta_star)
         ll = torch.tensor([self._log_lik(p, s[sc], a[sc], n[sc]) for p in [*self.tasks, cand]], dtype=torch.float64)
@@ -130,7 +136,8 @@ class MoleAdapter(Adapter):
 
     def checkpoint(self) -> dict[str, Any]:
         return {**super().checkpoint(), "psi": {k: v.clone() for k, v in self.psi.items()}, "mole_lr": self.lr,
-                "alpha": self.alpha, "max_tasks": self.max_tasks, "score": self.score}
+                "alpha": self.alpha, "max_tasks": self.max_tasks, "score": self.score,
+                "adapt_params": self.adapt_params, "clip": self.clip}
 
     @classmethod
     def from_checkpoint(cls, ck: dict[str, Any]) -> MoleAdapter:
@@ -139,4 +146,4 @@ class MoleAdapter(Adapter):
             raise ValueError("MOLe needs a meta-learned prior: the checkpoint has no step size psi (train GrBAL first)")
         return cls(AdaptiveMLP.from_checkpoint(ck["model"]), ck["psi"], window=ck["window"],
                    lr=ck.get("mole_lr", 0.01), alpha=ck.get("alpha", 1.0), max_tasks=ck.get("max_tasks", 32),
-                   score=ck.get("score"))
+                   score=ck.get("score"), adapt_params=ck.get("adapt_params"), clip=ck.get("clip"))

@@ -6,7 +6,7 @@ import inspect
 import json
 
 from learning.adaptation import load_adapter
-from learning.adaptation.experiment import METHODS, SWITCHING_METHODS
+from learning.adaptation.experiment import METHODS, SWITCHING_METHODS, load_episodes
 from tools.cmd_demo import OTHER_DEMOS
 from tools.demo_adaptation import cli_adaptation, ranking_line, report_from_seeds, run_demo
 
@@ -47,6 +47,12 @@ def test_tiny_run_writes_the_issue_report(tmp_path):
     md = (tmp_path / "report.md").read_text()
     assert "Time per phase" in md and "| closed_loop |" in md and "MB epochs (best)" in md
     assert (tmp_path / "data" / "seed0_training.npz").is_file()
+    # the tiny preset caps GrBAL's inner gradient and varies the training leg speeds: both recorded
+    assert seed0["training"]["grbal_clip"] > 0
+    assert load_adapter(tmp_path / "checkpoints" / "seed0_grbal.pt").clip == seed0["training"]["grbal_clip"]
+    assert load_adapter(tmp_path / "checkpoints" / "seed0_mole.pt").clip == seed0["training"]["grbal_clip"]
+    scales = [e.meta["condition"]["leg_speed_scale"] for e in load_episodes(tmp_path / "data" / "seed0_training.npz")]
+    assert [1.0, 1.0] in scales and any(s != [1.0, 1.0] and all(0.8 <= x <= 1.2 for x in s) for s in scales)
     for f in ("report.md", "perturbations.png", "k_step_before_after.png", "switching.png"):
         assert (tmp_path / f).is_file()
     # the checkpoints the demo wrote build their adapters (what an adaptation node loads)
@@ -80,3 +86,11 @@ def test_ranking_counts_completions_first_then_cost():
                               "c": {"grbal": cell(0, 5.0), "mb": cell(0, 6.0)}}}
     r = {**seed, "per_seed": [seed, seed]}
     assert ranking_line(r, "mb") == "grbal ranks above mb on 2 of 3 (a, c) on the means; per seed: [2, 2]."
+
+
+def test_config_overrides_change_only_the_named_fields():
+    from tools.demo_adaptation import config_for
+
+    base, cfg = config_for(True, False), config_for(True, False, train_leg_speed_scale=(0.6, 1.4))
+    assert cfg.train_leg_speed_scale == (0.6, 1.4) and base.train_leg_speed_scale is None
+    assert {**vars(cfg), "train_leg_speed_scale": None} == vars(base)

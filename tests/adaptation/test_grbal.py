@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from learning.adaptation import load_adapter
-from learning.adaptation.grbal import GrbalAdapter, evaluate, segments
+from learning.adaptation.grbal import GrbalAdapter, adapt, evaluate, gradient_norms, segments
 from learning.adaptation.model import AdaptiveMLP
 from learning.adaptation.training import transitions
 from tests.adaptation import toy
@@ -134,3 +134,35 @@ def test_meta_training_a_subset_learns_only_its_step_sizes(meta):
     assert not torch.allclose(model.params()[list(model.params())[0]], first_before)
     with pytest.raises(ValueError, match="unknown parameters"):
         meta_train(model, segments(train_episodes(), M, K, stride=4), steps=1, adapt_params=["nope"])
+
+
+def test_clipped_step_caps_the_gradient_norm_and_is_kept_in_the_checkpoint(meta, tmp_path):
+    model, _, psi, _ = meta
+    last = ["4.weight", "4.bias"]
+    one = {k: torch.ones_like(v) for k, v in psi.items()}  # ψ = 1: the step is the (capped) gradient itself
+    ep = toy.episodes(1, M, seed=7, gain=0.3, turn_bias=1.5)[0]  # far outside training: a large gradient
+    s, a, n = (torch.as_tensor(x) for x in transitions([ep]))
+    theta = model.params()
+    g_full = {k: theta[k] - v for k, v in adapt(model, theta, one, s, a, n, last).items() if k in last}
+    norm = float(torch.sqrt(sum((v * v).sum() for v in g_full.values())))
+    cap = 0.25 * norm
+    step = {k: theta[k] - v for k, v in adapt(model, theta, one, s, a, n, last, clip=cap).items() if k in last}
+    assert float(torch.sqrt(sum((v * v).sum() for v in step.values()))) == pytest.approx(cap, rel=1e-4)
+    for k in last:  # the same direction, shortened
+        torch.testing.assert_close(step[k], g_full[k] * (cap / norm), atol=1e-6, rtol=1e-4)
+    # a cap above the norm changes nothing; the untouched layers stay θ*
+    big = adapt(model, theta, one, s, a, n, last, clip=10 * norm)
+    for k in theta:
+        torch.testing.assert_close(big[k], theta[k] - g_full.get(k, torch.zeros_like(theta[k])), atol=1e-6, rtol=0)
+    assert np.median(gradient_norms(model, theta, segments([ep], M // 2, M // 2), last)) > 0
+    # the run-time adapter applies the cap its checkpoint names
+    GrbalAdapter(model, one, window=M, adapt_params=last, clip=cap).save(tmp_path / "c.pt")
+    ad = load_adapter(tmp_path / "c.pt")
+    assert ad.clip == cap
+    for t in range(M):
+        ad.observe(ep.states[t], ep.actions[t], ep.states[t + 1])
+    u = ad.update()
+    for k in last:
+        np.testing.assert_allclose(u.tensors[k], (theta[k] - step[k]).numpy(), atol=1e-6)
+    with pytest.raises(ValueError, match="clip"):
+        GrbalAdapter(model, one, window=M, clip=0.0)

@@ -112,3 +112,29 @@ def test_bad_settings_name_the_field(tmp_path):
     with pytest.raises(ValueError, match="heading_offset_deg must be finite"):
         _sim().set_perturbation("heading_offset_deg", float("nan"))
 
+
+
+def test_training_leg_speed_scale_runs_each_side_at_its_factor_and_resets():
+    from learning.adaptation.experiment import RoachSim
+
+    env = RoachSim("carpet", 0)
+    try:
+        names = env.state_names
+        il, ir = names.index("crank_vel_l"), names.index("crank_vel_r")
+
+        def crank(scale):
+            env.set_leg_speed_scale(*scale)
+            env.start({"x": 0.0, "y": 0.0, "yaw": 0.0}, PerturbationSettings())
+            s = None
+            for _ in range(15):
+                applied, s = env.step(np.array([0.5, 0.5], dtype=np.float32))
+            return s[il], s[ir], applied
+
+        l1, r1, a1 = crank((1.0, 1.0))
+        l2, r2, a2 = crank((0.6, 1.4))
+        assert l2 < 0.8 * l1 and r2 > 1.2 * r1  # the cranks follow the factor ...
+        np.testing.assert_allclose(a2, a1, atol=1e-6)  # ... while the applied command reads the same
+        l3, r3, _ = crank((1.0, 1.0))
+        assert l3 == pytest.approx(l1, rel=0.05) and r3 == pytest.approx(r1, rel=0.05)
+    finally:
+        env.close()
