@@ -52,10 +52,31 @@ def test_cli_writes_report_and_json_line(cli_run):
             assert set(t["per_channel"]) == {"x", "v"} and t["mean_interval"][0] <= t["mean"] <= t["mean_interval"][1]
 
 
-def test_cli_summary_text(csv_path, tmp_path):
+def test_cli_summary_text(cli_run, csv_path, tmp_path, monkeypatch):
+    """The text summary (no --json) of a real report, and the CLI's defaults for a CSV (column map,
+    seed, --quiet = no progress). The calibration itself is cli_run's: running a second one here
+    only to print it cost a full calibration of the suite's time."""
+    import calibration
+
+    _, out = cli_run
+    report = json.loads((out / "report.json").read_text())
+    calls = []
+
+    def fake_run_calibration(data, **kw):
+        calls.append((data, kw))
+        return report
+
+    monkeypatch.setattr(calibration, "run_calibration", fake_run_calibration)
     res = runner.invoke(app, ["calibrate", "--data", str(csv_path), "--out", str(tmp_path), "--quiet"])
     assert res.exit_code == 0, res.output
     assert "verdict: found" in res.stdout and "multi-step NRMSE" in res.stdout
+    e = report["effects"][0]
+    assert f"  {e['name']}: " in res.stdout and f"held-out gain {e['heldout_gain']:.3f}" in res.stdout
+    assert f"before {report['before']['multi_step_nrmse']['mean']:.4f}" in res.stdout
+    assert f"report: {tmp_path}/report.md" in res.stdout
+    (data, kw), = calls
+    assert data == csv_path and kw["column_map"] == "t=time,u=volts,x=position" and kw["model"] == "axis"
+    assert kw["seed"] == 0 and kw["progress"] is False and kw["out_dir"] == tmp_path
 
 
 def test_saved_model_simulates_new_data(cli_run):

@@ -2,7 +2,10 @@
 episodes, a negative control, and closing the loop through sim_params.yaml.
 
 Data: VelociRoACH episodes generated in-process by the sim backend with its sensor noise on
-(calibration.synthetic_velociroach), each 3 s from rest with random leg-speed steps.
+(calibration.synthetic_velociroach), each 2 s from rest with random leg-speed steps (the
+replays dominate the run time and scale with the episode length; 12 episodes are kept: with 8,
+the locked test set leaves too few pool episodes for the paired test to reach its Bonferroni
+level, and nothing is found).
 """
 
 from __future__ import annotations
@@ -20,12 +23,15 @@ from calibration.velociroach import CHANNELS, load_sim_params, replay
 #: the statistics need no more bootstrap replicates than this to decide; the sim replays are cached
 FAST = SelectionConfig(n_boot=25)
 PAYLOAD_KG = 0.04  # between grid points (0.03, 0.05): the fit must interpolate
+#: 2 s instead of the generator's 3 s: every assertion checked on data seeds 3-7 (payload) and 11-15
+#: (negative control) with tests/calibration/seed_checks.py; the margins are in docs/calibration.md
+EPISODE_S = 2.0
 
 
 @pytest.fixture(scope="module")
 def payload_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("roach_payload")
-    eps = generate(RoachSynthConfig(n_episodes=12, seed=3, hidden={"payload_kg": PAYLOAD_KG}))
+    eps = generate(RoachSynthConfig(n_episodes=12, duration_s=EPISODE_S, seed=3, hidden={"payload_kg": PAYLOAD_KG}))
     rep = run_calibration(eps, model="velociroach", out_dir=out, seed=0, progress=False, config=FAST, plots=False)
     return rep, out, eps
 
@@ -84,7 +90,7 @@ def test_no_hidden_change_reports_none(tmp_path):
 
     from tools.cli import app
 
-    eps = generate(RoachSynthConfig(n_episodes=12, seed=11))
+    eps = generate(RoachSynthConfig(n_episodes=12, duration_s=EPISODE_S, seed=11))
     rec = write_mcap(eps, tmp_path / "rec.mcap")
     res = CliRunner().invoke(app, ["calibrate", "--data", str(rec), "--model", "velociroach", "--out",
                                    str(tmp_path / "o"), "--json", "--quiet"])
