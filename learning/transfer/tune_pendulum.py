@@ -4,6 +4,7 @@
     python -m learning.transfer.tune_pendulum garat '{"gamma": 0.0}'   # one GARAT variant at 3000 transitions
     python -m learning.transfer.tune_pendulum garat-grid 0::2 3000  # GARAT_GRID (a slice of it) at these sizes
     python -m learning.transfer.tune_pendulum floor          # the floor of the per-step error (any transform)
+    python -m learning.transfer.tune_pendulum fresh 1,3 out.json  # the `full` preset's pendulum part on these seeds
 
 It builds exactly the agent and data of ``pendulum.run`` for the seed (same seeds, same
 functions) and prints the per-step transition error on the validation transitions for
@@ -72,6 +73,14 @@ def main(argv: list[str]) -> None:
 
     torch.set_num_threads(1)
     what = argv[0] if argv else "gat"
+    if what == "fresh":  # exactly the demo's pendulum part (`full` preset), for a subset of seeds
+        from tools.demo_transfer import _pendulum_over_seeds
+
+        seeds = tuple(int(x) for x in argv[1].split(","))
+        r = _pendulum_over_seeds(PRESETS["full"]["pendulum"], seeds, print)
+        Path(argv[2]).write_text(json.dumps(r, indent=2))
+        print(json.dumps(r["curve"], indent=1), flush=True)
+        return
     cfg = replace(PRESETS["quick"]["pendulum"], seed=0)
     low, high = np.array([-3.0]), np.array([3.0])
     with tempfile.TemporaryDirectory() as tmp:
