@@ -173,15 +173,30 @@ class Discriminator(nn.Module):
 
 
 def discriminator_update(disc: Discriminator, opt: torch.optim.Optimizer, grounded: TransitionSet,
-                         target: TransitionSet, steps: int, rng: np.random.Generator, batch: int = 256) -> float:
-    """``steps`` minibatch steps of binary cross-entropy: grounded source 1, target 0."""
+                         target: TransitionSet, steps: int, rng: np.random.Generator, batch: int = 256,
+                         label_smoothing: float = 0.0, grad_penalty: float = 0.0) -> float:
+    """``steps`` minibatch steps of binary cross-entropy: grounded source 1, target 0.
+
+    ``label_smoothing`` ε: labels 1 − ε and ε instead of 1 and 0. ``grad_penalty`` λ: adds
+    λ·E‖∇_x logit‖² on the target samples (the zero-centred R1 penalty, in the normalised
+    input units), which keeps D smooth so that its reward stays informative."""
+    if not 0.0 <= label_smoothing < 0.5:
+        raise ValueError(f"label_smoothing must be in [0, 0.5), got {label_smoothing}")
+    if grad_penalty < 0:
+        raise ValueError(f"grad_penalty must be >= 0, got {grad_penalty}")
     bce = nn.functional.binary_cross_entropy_with_logits
     xg, xt = torch.as_tensor(disc.inputs(grounded)), torch.as_tensor(disc.inputs(target))
     loss = torch.zeros(())
     for _ in range(steps):
         ig = rng.integers(0, len(xg), min(batch, len(xg)))
         it = rng.integers(0, len(xt), min(batch, len(xt)))
-        loss = bce(disc(xg[ig]), torch.ones(len(ig), 1)) + bce(disc(xt[it]), torch.zeros(len(it), 1))
+        xti = xt[it].clone().requires_grad_(grad_penalty > 0)
+        lt = disc(xti)
+        loss = (bce(disc(xg[ig]), torch.full((len(ig), 1), 1.0 - label_smoothing))
+                + bce(lt, torch.full((len(it), 1), label_smoothing)))
+        if grad_penalty > 0:
+            (g,) = torch.autograd.grad(lt.sum(), xti, create_graph=True)
+            loss = loss + grad_penalty * ((g * disc.xs) ** 2).sum(1).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -251,7 +266,16 @@ class GaratConfig:
     log_std_init: float = -1.5  # start near the identity transform (ã ≈ a)
     disc_steps: int = 50  # minibatch steps of the once-per-update discriminator update
     disc_lr: float = 1e-3
-    width: int = 64
+    width: int = 64  # π_g's MLP (2 hidden layers) and, unless disc_width is set, D's
+    disc_width: int | None = None
+    disc_grad_penalty: float = 0.0  # λ of the R1 gradient penalty on target samples (0: none)
+    disc_label_smoothing: float = 0.0
+    ent_coef: float = 0.0  # PPO's entropy bonus
+    #: checkpoint selection: hold out this share of the TARGET TRAINING transitions (random; D
+    #: never sees them) and keep the π_g with the lowest per-step error on them, checked every
+    #: ``select_every`` discriminator updates (GARAT's analogue of GAT's early stopping; 0: last π_g)
+    select_frac: float = 0.0
+    select_every: int = 4
     seed: int = 0
 
 
@@ -259,7 +283,8 @@ class _DiscCallback:
     """Built lazily so that importing this module does not import stable-baselines3."""
 
     @staticmethod
-    def make(env: GroundingEnv, target: TransitionSet, cfg: GaratConfig):
+    def make(env: GroundingEnv, target: TransitionSet, cfg: GaratConfig, step: StepFn | None = None,
+             held_out: TransitionSet | None = None):
         from stable_baselines3.common.callbacks import BaseCallback
 
         class DiscUpdate(BaseCallback):
@@ -268,6 +293,8 @@ class _DiscCallback:
                 self.opt = torch.optim.Adam(env.disc.parameters(), lr=cfg.disc_lr)
                 self.rng = np.random.default_rng(cfg.seed)
                 self.updates = 0
+                self.select_errors: list[tuple[int, float]] = []  # (π_g updates so far, held-out error)
+                self.best: tuple[float, int, dict] | None = None
 
             def _on_step(self) -> bool:
                 return True
@@ -275,8 +302,19 @@ class _DiscCallback:
             def _on_rollout_end(self) -> None:  # once per π_g update
                 s, a, s1 = (np.asarray(v) for v in zip(*env.buffer, strict=True))
                 env.buffer.clear()
-                discriminator_update(env.disc, self.opt, TransitionSet(s, a, s1), target, cfg.disc_steps, self.rng)
+                discriminator_update(env.disc, self.opt, TransitionSet(s, a, s1), target, cfg.disc_steps, self.rng,
+                                     label_smoothing=cfg.disc_label_smoothing, grad_penalty=cfg.disc_grad_penalty)
                 self.updates += 1
+                # the π_g about to be updated is the one trained by ``updates − 1`` PPO updates
+                if held_out is not None and (self.updates - 1) % cfg.select_every == 0:
+                    self.check(self.updates - 1)
+
+            def check(self, n_updates: int) -> None:
+                err = transition_error(step, held_out, Garat(env, self.model, n_updates))
+                self.select_errors.append((n_updates, err))
+                if self.best is None or err < self.best[0]:
+                    state = {k: v.detach().clone() for k, v in self.model.policy.state_dict().items()}
+                    self.best = (err, n_updates, state)
 
         return DiscUpdate()
 
@@ -284,8 +322,11 @@ class _DiscCallback:
 class Garat:
     """GARAT's action transformer: the deterministic (mean) action of the trained PPO policy."""
 
-    def __init__(self, env: GroundingEnv, model, disc_updates: int):
+    def __init__(self, env: GroundingEnv, model, disc_updates: int, selected_update: int | None = None,
+                 select_errors: list[tuple[int, float]] | None = None):
         self.env, self.model, self.disc_updates = env, model, disc_updates
+        self.selected_update = selected_update  # PPO updates of the kept π_g (None: no selection, the last)
+        self.select_errors = select_errors or []
 
     def __call__(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
         s, a = np.atleast_2d(s), np.atleast_2d(a)
@@ -295,15 +336,77 @@ class Garat:
 
 def train_garat(step: StepFn, target: TransitionSet, reset_state: Callable, agent: Callable,
                 done: Callable[[np.ndarray], bool], a_low, a_high, max_steps: int, cfg: GaratConfig) -> Garat:
-    """Train π_g with PPO against a discriminator updated once per PPO update."""
+    """Train π_g with PPO against a discriminator updated once per PPO update.
+
+    With ``cfg.select_frac`` > 0 a random share of ``target`` is held out (D trains on the
+    rest) and the π_g with the lowest per-step error on it is returned."""
     from stable_baselines3 import PPO
 
+    if not 0.0 <= cfg.select_frac < 1.0:
+        raise ValueError(f"select_frac must be in [0, 1), got {cfg.select_frac}")
+    if cfg.select_every < 1:
+        raise ValueError(f"select_every must be >= 1, got {cfg.select_every}")
     torch.manual_seed(cfg.seed)
-    disc = Discriminator(target, cfg.width)
+    held_out = None
+    n_sel = int(round(cfg.select_frac * len(target)))
+    if n_sel > 0:
+        idx = np.random.default_rng(cfg.seed + 7919).permutation(len(target))
+        held_out = TransitionSet(target.s[idx[:n_sel]], target.a[idx[:n_sel]], target.s1[idx[:n_sel]])
+        target = TransitionSet(target.s[idx[n_sel:]], target.a[idx[n_sel:]], target.s1[idx[n_sel:]])
+    disc = Discriminator(target, cfg.disc_width or cfg.width)
     env = GroundingEnv(step, reset_state, agent, done, disc, a_low, a_high, target.s.shape[1], max_steps, cfg.seed)
-    cb = _DiscCallback.make(env, target, cfg)
+    cb = _DiscCallback.make(env, target, cfg, step, held_out)
     model = PPO("MlpPolicy", env, n_steps=cfg.n_steps, batch_size=cfg.batch_size, n_epochs=cfg.n_epochs,
-                learning_rate=cfg.learning_rate, gamma=cfg.gamma, seed=cfg.seed, device="cpu", verbose=0,
-                policy_kwargs={"log_std_init": cfg.log_std_init, "net_arch": [cfg.width, cfg.width]})
+                learning_rate=cfg.learning_rate, gamma=cfg.gamma, ent_coef=cfg.ent_coef, seed=cfg.seed, device="cpu",
+                verbose=0, policy_kwargs={"log_std_init": cfg.log_std_init, "net_arch": [cfg.width, cfg.width]})
     model.learn(cfg.total_timesteps, callback=cb)
-    return Garat(env, model, cb.updates)
+    if held_out is None:
+        return Garat(env, model, cb.updates)
+    cb.check(cb.updates)  # the final π_g too
+    _, best_update, state = cb.best
+    model.policy.load_state_dict(state)
+    return Garat(env, model, cb.updates, selected_update=best_update, select_errors=cb.select_errors)
+
+
+def best_action(step: StepFn, s: np.ndarray, s1: np.ndarray, a_low: float, a_high: float, grid: int = 61,
+                iters: int = 40) -> tuple[float, float]:
+    """(ã*, error) minimising ‖step(s, ã) − s'‖ over ã in [a_low, a_high] for a 1-D action: the
+    best grid point, then golden-section search in the interval of its two neighbours."""
+    if grid < 2:
+        raise ValueError(f"grid needs at least 2 points, got {grid}")
+
+    def err(x: float) -> float:
+        return float(np.linalg.norm(step(s, np.array([x])) - s1))
+
+    xs = np.linspace(a_low, a_high, grid)
+    es = np.array([err(x) for x in xs])
+    k = int(np.argmin(es))
+    best_x, best_e = float(xs[k]), float(es[k])
+    lo, hi = float(xs[max(k - 1, 0)]), float(xs[min(k + 1, grid - 1)])
+    r = (np.sqrt(5.0) - 1.0) / 2.0
+    c, d = hi - r * (hi - lo), lo + r * (hi - lo)
+    ec, ed = err(c), err(d)
+    for _ in range(iters):
+        if ec < ed:
+            hi, d, ed = d, c, ec
+            c = hi - r * (hi - lo)
+            ec = err(c)
+        else:
+            lo, c, ec = c, d, ed
+            d = lo + r * (hi - lo)
+            ed = err(d)
+    for x, e in ((c, ec), (d, ed)):
+        if e < best_e:
+            best_x, best_e = float(x), e
+    return best_x, best_e
+
+
+def floor_error(step: StepFn, data: TransitionSet, a_low, a_high, grid: int = 61, iters: int = 40) -> float:
+    """The floor of the per-step transition error: mean over ``data`` of min over ã of
+    ‖step(s, ã) − s'‖ (1-D action; ``best_action`` per transition). No action transform, of
+    any form, can have a lower mean error on ``data``."""
+    if data.a.shape[1] != 1:
+        raise ValueError(f"floor_error searches a 1-D action, got {data.a.shape[1]}-D")
+    lo, hi = float(np.ravel(a_low)[0]), float(np.ravel(a_high)[0])
+    return float(np.mean([best_action(step, s, s1, lo, hi, grid, iters)[1] for s, s1 in zip(data.s, data.s1,
+                                                                                             strict=True)]))

@@ -2,6 +2,9 @@
 
     python -m learning.transfer.tune_pendulum gat            # the GAT grid (about 15 min on loaded cores)
     python -m learning.transfer.tune_pendulum garat '{"gamma": 0.0}'   # one GARAT variant at 3000 transitions
+    python -m learning.transfer.tune_pendulum garat-grid 0::2 3000  # GARAT_GRID (a slice of it) at these sizes
+    python -m learning.transfer.tune_pendulum floor          # the floor of the per-step error (any transform)
+    python -m learning.transfer.tune_pendulum fresh 1,3 out.json  # the `full` preset's pendulum part on these seeds
 
 It builds exactly the agent and data of ``pendulum.run`` for the seed (same seeds, same
 functions) and prints the per-step transition error on the validation transitions for
@@ -20,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from learning.transfer.grounding import Gat, train_garat, transition_error
+from learning.transfer.grounding import Gat, floor_error, train_garat, transition_error
 from learning.transfer.pendulum import Agent, PendulumConfig, StepFrom, collect, done, make_env, train_agent
 
 #: (width, hidden layers, Adam steps, lr, early-stopping share); α 0.5 and 0.8 are also
@@ -29,6 +32,29 @@ GAT_GRID = [(64, 2, 1500, 3e-3, 0.0), (32, 1, 1500, 3e-3, 0.0), (64, 1, 1500, 3e
             (64, 2, 500, 3e-3, 0.0), (64, 2, 4000, 3e-3, 0.0), (128, 2, 1500, 3e-3, 0.0), (64, 3, 1500, 3e-3, 0.0),
             (128, 2, 4000, 1e-3, 0.0), (64, 1, 4000, 3e-3, 0.0), (128, 1, 1500, 3e-3, 0.0),
             (64, 3, 1500, 3e-3, 0.2), (64, 2, 4000, 3e-3, 0.2), (128, 2, 1500, 3e-3, 0.2)]
+
+#: GARAT's equal-effort search (issue 13), fixed before any fresh seed ran: each entry changes
+#: the preset's GaratConfig (γ 0.5, rollouts 1024, 49152 steps, D 50 steps, log σ −1.5, ...).
+#: SEL = checkpoint selection on a held-out 20 % of the target training data.
+SEL = {"select_frac": 0.2}
+GARAT_GRID: list[dict] = [
+    SEL,
+    {**SEL, "n_steps": 512},  # 96 discriminator updates, as the paper's many small updates
+    {**SEL, "n_steps": 512, "disc_steps": 20},
+    {**SEL, "n_steps": 512, "disc_steps": 100},
+    {**SEL, "log_std_init": -2.5},
+    {**SEL, "total_timesteps": 98304},
+    {**SEL, "n_epochs": 10, "batch_size": 64},
+    {**SEL, "learning_rate": 1e-4},
+    {**SEL, "ent_coef": 0.005},
+    {**SEL, "disc_width": 128},
+    {**SEL, "disc_grad_penalty": 1.0},
+    {**SEL, "disc_label_smoothing": 0.1},
+    {**SEL, "gamma": 0.0},
+    {**SEL, "gamma": 0.9},
+    {**SEL, "n_steps": 512, "log_std_init": -2.5, "disc_grad_penalty": 1.0},
+]
+SIZES = (3000,)  # the default sizes of garat-grid (the criterion: the error at 3000, fixed before it ran)
 
 
 def data(cfg: PendulumConfig, n_target: int, tmp: Path):
@@ -47,6 +73,14 @@ def main(argv: list[str]) -> None:
 
     torch.set_num_threads(1)
     what = argv[0] if argv else "gat"
+    if what == "fresh":  # exactly the demo's pendulum part (`full` preset), for a subset of seeds
+        from tools.demo_transfer import _pendulum_over_seeds
+
+        seeds = tuple(int(x) for x in argv[1].split(","))
+        r = _pendulum_over_seeds(PRESETS["full"]["pendulum"], seeds, print)
+        Path(argv[2]).write_text(json.dumps(r, indent=2))
+        print(json.dumps(r["curve"], indent=1), flush=True)
+        return
     cfg = replace(PRESETS["quick"]["pendulum"], seed=0)
     low, high = np.array([-3.0]), np.array([3.0])
     with tempfile.TemporaryDirectory() as tmp:
@@ -66,6 +100,25 @@ def main(argv: list[str]) -> None:
                     out.append(f"{n}: " + " ".join(errs))
                 print(f"width {w} layers {layers} steps {steps} lr {lr:g} val_frac {vf:g}: " + "; ".join(out),
                       flush=True)
+        elif what == "floor":
+            print(f"floor {floor_error(src, val, low, high):.4f}", flush=True)
+        elif what == "garat-grid":
+            sl = slice(*[int(x) if x else None for x in argv[1].split(":")]) if len(argv) > 1 else slice(None)
+            sizes = [int(x) for x in argv[2].split(",")] if len(argv) > 2 else list(SIZES)
+            rows = []
+            for i in range(len(GARAT_GRID))[sl]:
+                kw, errs = GARAT_GRID[i], []
+                for n in sizes:
+                    g = train_garat(src, target.head(n), src.reset_state, agent, done, low, high,
+                                    cfg.max_episode_steps, replace(cfg.garat, **kw, seed=cfg.seed))
+                    errs.append(transition_error(src, val, g))
+                    print(f"garat #{i} {json.dumps(kw)} {n}: {errs[-1]:.4f} (kept π_g after {g.selected_update} "
+                          f"of {g.disc_updates} updates)", flush=True)
+                rows.append((i, kw, errs))
+            print("| # | GARAT setting | " + " | ".join(str(n) for n in sizes) + " | mean |")
+            for i, kw, errs in rows:
+                print(f"| {i} | {json.dumps(kw)} | " + " | ".join(f"{e:.4f}" for e in errs)
+                      + f" | {np.mean(errs):.4f} |", flush=True)
         elif what == "garat":
             kw = json.loads(argv[1]) if len(argv) > 1 else {}
             sizes = [int(x) for x in argv[2].split(",")] if len(argv) > 2 else [max(cfg.target_sizes)]

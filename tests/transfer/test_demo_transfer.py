@@ -22,7 +22,8 @@ def test_demo_transfer_writes_the_report_and_plots(tmp_path, monkeypatch):
         assert all(row["with_sidm"] > 0 and row["without_sidm"] > 0 for row in p["curve"])
         assert "data_multiplier" in p
     ge = rep["garat"]["pendulum"]["grounding_error"]
-    assert set(ge) == {"none", "gat", "garat"} and all(v > 0 for v in ge.values())
+    assert set(ge) == {"none", "gat", "garat", "floor"} and all(v > 0 for v in ge.values())
+    assert ge["floor"] <= min(ge["none"], ge["gat"], ge["garat"])  # no transform beats the floor
     roach = rep["garat"]["roach"]
     assert set(roach["normalised_return"]) == {"source", "gat", "garat"}
     assert roach["seeds"] == [0] and len(roach["per_seed"]) == 1

@@ -121,3 +121,69 @@ def test_fit_mlp_early_stopping_keeps_the_best_held_out_weights():
     assert err[0.3] < 0.7 * err[0.0]
     with pytest.raises(ValueError, match="val_frac"):
         fit_mlp(x, y, steps=1, val_frac=1.0)
+
+
+def test_floor_is_zero_where_an_exact_mapping_exists_and_below_none_and_gat():
+    from learning.transfer.grounding import floor_error
+
+    tgt, src, val = rollouts(target, 300, 0), rollouts(source, 300, 1), rollouts(target, 40, 2)
+    inside = TransitionSet(*(v[np.abs(val.a[:, 0]) < 1.4] for v in (val.s, val.a, val.s1)))
+    assert len(inside) > 20
+    # the exact mapping ã = 2a reproduces every target transition whose 2a is inside the limits
+    exact = transition_error(source, inside, lambda s, a: np.clip(2 * a, LOW, HIGH))
+    floor = floor_error(source, inside, LOW, HIGH)
+    assert exact < 1e-9 and floor < 1e-6
+    # on all transitions (some need |ã| > 3) the floor is > 0 but below no grounding and GAT
+    gat = Gat(src, tgt, LOW, HIGH, steps=100)
+    f_all = floor_error(source, val, LOW, HIGH)
+    assert f_all <= transition_error(source, val) and f_all <= transition_error(source, val, gat)
+    # break-it: a coarse grid without the golden-section refinement must not beat the fine search
+    assert floor_error(source, val, LOW, HIGH, grid=4, iters=0) > f_all + 1e-4
+
+
+def test_best_action_finds_the_minimiser_of_a_known_curve():
+    from learning.transfer.grounding import best_action
+
+    # the error |step(s, ã) − s'| of the source is |0.1·(ã − 1.234)|: minimiser 1.234 between grid points
+    s = np.zeros(2)
+    x, e = best_action(source, s, source(s, np.array([1.234])), -3.0, 3.0, grid=7)
+    assert abs(x - 1.234) < 1e-5 and e < 1e-6
+    with pytest.raises(ValueError, match="grid"):
+        best_action(source, s, s, -3.0, 3.0, grid=1)
+
+
+def test_discriminator_label_smoothing_bounds_its_confidence_and_bad_values_are_refused():
+    tgt, src = rollouts(target, 400, 0), rollouts(source, 400, 1)
+    probs = {}
+    for ls in (0.0, 0.2):
+        torch.manual_seed(0)
+        d = Discriminator(tgt, 32)
+        opt = torch.optim.Adam(d.parameters(), lr=3e-3)
+        discriminator_update(d, opt, src, tgt, steps=150, rng=np.random.default_rng(0), label_smoothing=ls,
+                             grad_penalty=0.1)
+        with torch.no_grad():
+            probs[ls] = torch.sigmoid(d(torch.as_tensor(d.inputs(src)))).numpy().max()
+    assert probs[0.2] < 0.9 < probs[0.0]  # smoothed labels 0.8: D no longer pushes towards 1
+    d = Discriminator(tgt, 8)
+    opt = torch.optim.Adam(d.parameters())
+    with pytest.raises(ValueError, match="label_smoothing"):
+        discriminator_update(d, opt, src, tgt, 1, np.random.default_rng(0), label_smoothing=0.5)
+    with pytest.raises(ValueError, match="grad_penalty"):
+        discriminator_update(d, opt, src, tgt, 1, np.random.default_rng(0), grad_penalty=-1.0)
+
+
+def test_garat_checkpoint_selection_keeps_the_best_held_out_policy():
+    tgt = rollouts(target, 500, 0)
+    cfg = GaratConfig(total_timesteps=512, n_steps=128, batch_size=64, n_epochs=2, disc_steps=5, width=16,
+                      select_frac=0.2, select_every=2, log_std_init=-0.5)
+    g = train_garat(source, tgt, reset_state, agent, done, LOW, HIGH, max_steps=50, cfg=cfg)
+    assert g.disc_updates == 4
+    assert [n for n, _ in g.select_errors] == [0, 2, 4]
+    best_n, best_e = min(g.select_errors, key=lambda r: r[1])
+    assert g.selected_update == best_n
+    # the returned π_g is that checkpoint: its error on the held-out 20 % (same draw) is the best one
+    idx = np.random.default_rng(cfg.seed + 7919).permutation(len(tgt))[:100]
+    held = TransitionSet(tgt.s[idx], tgt.a[idx], tgt.s1[idx])
+    assert transition_error(source, held, g) == pytest.approx(best_e, abs=1e-9)
+    with pytest.raises(ValueError, match="select_frac"):
+        train_garat(source, tgt, reset_state, agent, done, LOW, HIGH, 50, GaratConfig(select_frac=1.0))

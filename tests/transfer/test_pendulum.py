@@ -30,3 +30,21 @@ def test_step_from_matches_the_env_own_step(tmp_path):
 def test_bad_pole_mass_is_refused(tmp_path):
     with pytest.raises(ValueError, match="pole mass"):
         make_env(float("nan"), tmp_path)
+
+
+def test_floor_is_below_none_and_gat_on_the_pendulum(tmp_path):
+    from learning.transfer.grounding import Gat, floor_error, transition_error
+    from learning.transfer.pendulum import collect
+
+    src, tgt = StepFrom(make_env(None, tmp_path)), StepFrom(make_env(15.0, tmp_path))
+
+    def agent(s, rng):  # a stabilising PD law with exploration noise (no PPO: seconds, not minutes)
+        return np.clip(np.array([2.0 * s[1] + 0.5 * s[3] + 0.2 * s[0]]) + rng.normal(0, 0.5, 1), -3, 3)
+
+    target, source, val = collect(tgt, agent, 300, 200, 1), collect(src, agent, 300, 200, 3), collect(tgt, agent, 30, 200, 2)
+    low, high = np.array([-3.0]), np.array([3.0])
+    gat = Gat(source, target, low, high, steps=100)
+    floor, none = floor_error(src, val, low, high), transition_error(src, val)
+    assert 0 < floor < none and floor <= transition_error(src, val, gat)
+    # break-it: the coarse grid alone must not beat the refined search
+    assert floor_error(src, val, low, high, grid=4, iters=0) > floor
