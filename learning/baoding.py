@@ -374,7 +374,7 @@ class BaodingRun(MbrlRun):
                                f"PDDM {row['mean_return']:.1f} mean return, {row['drops']}/{len(scores)} drops, "
                                f"{row['mean_rotation_deg']:.0f}° mean rotation")
             model.save(self.out / "model.pt")
-        pc = self.pddm_config(self.planner_fit["samples"] if self.planner_fit else None)
+        pc = self.pddm_config(samples)
         pt = np.asarray(self.plan_times_s) * 1e3
         report["iterations"] = iterations
         report["planner"] = {**asdict(pc), "init_mean": c.init_mean,

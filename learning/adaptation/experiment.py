@@ -348,10 +348,10 @@ class Trained:
         raise ValueError(f"unknown method {method!r}")
 
 
-def fit_mb(cfg: AdaptationConfig, model: AdaptiveMLP, episodes: list[Episode], seed: int) -> dict[str, Any]:
+def fit_mb(cfg: AdaptationConfig, model: AdaptiveMLP, tr_eps: list[Episode], va_eps: list[Episode],
+           seed: int) -> dict[str, Any]:
     """The plain (MB) model trained to convergence: at most ``plain_epochs`` epochs, early
-    stopping on a held-out ``val_fraction`` of the rollouts. Returns the history."""
-    tr_eps, va_eps = split_episodes(episodes, cfg.val_fraction, seed)
+    stopping on the held-out rollouts ``va_eps`` (``split_episodes``). Returns the history."""
     h: dict[str, Any] = {}
     h["train"] = fit_plain(model, tr_eps, epochs=cfg.plain_epochs, batch_size=cfg.plain_batch, seed=seed,
                            val=va_eps or None, patience=cfg.plain_patience, history=h)
@@ -363,12 +363,12 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
     torch.manual_seed(seed)
     phases = phases or Phases()
     plain = AdaptiveMLP(state_names, 2, hidden=cfg.hidden, seed=seed)
+    tr_eps, va_eps = split_episodes(episodes, cfg.val_fraction, seed)
     with phases("mb_training") as ph:
-        h_plain = fit_mb(cfg, plain, episodes, seed)
+        h_plain = fit_mb(cfg, plain, tr_eps, va_eps, seed)
     bv = h_plain.get("best_val")
     log(f"plain model: {h_plain['epochs_run']} epochs (best {h_plain['best_epoch']}), train loss "
         f"{h_plain['train'][-1]:.4f}, held-out {bv if bv is None else round(bv, 4)} ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s)")
-    tr_eps, va_eps = split_episodes(episodes, cfg.val_fraction, seed)
     seg = segments(tr_eps, cfg.M, cfg.K, stride=2)
     vseg = segments(va_eps, cfg.M, cfg.K, stride=4) if va_eps else None
     meta = AdaptiveMLP.from_checkpoint(plain.to_checkpoint())
@@ -510,7 +510,7 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
                                      name=f"oracle-{name}")
         tr.oracle = AdaptiveMLP(names, 2, hidden=cfg.hidden, seed=seed)
         with phases("oracle_training") as ph_t:
-            h_or = fit_mb(cfg, tr.oracle, or_eps, seed)
+            h_or = fit_mb(cfg, tr.oracle, *split_episodes(or_eps, cfg.val_fraction, seed), seed)
         oracle_hist[name] = {k: h_or[k] for k in ("best_epoch", "best_val", "epochs_run")}
         log(f"  {name:>16} oracle model: {n_or} rollouts ({ph_g.wall:.0f} s, cpu {ph_g.cpu:.0f} s), "
             f"{h_or['epochs_run']} epochs (best {h_or['best_epoch']}), held-out {h_or['best_val'] or float('nan'):.4f} "

@@ -79,10 +79,10 @@ def main(argv: list[str] | None = None) -> None:
     env.close()
     plain = AdaptiveMLP(names, 2, hidden=cfg.hidden, seed=a.seed)
     t = time.process_time()
-    h = fit_mb(cfg, plain, episodes, a.seed)
+    tr_eps, va_eps = split_episodes(episodes, cfg.val_fraction, a.seed)
+    h = fit_mb(cfg, plain, tr_eps, va_eps, a.seed)
     print(f"MB: {h['epochs_run']} epochs (best {h['best_epoch']}), held-out {h['best_val']:.4f}, "
           f"cpu {time.process_time() - t:.0f} s", flush=True)
-    tr_eps, va_eps = split_episodes(episodes, cfg.val_fraction, a.seed)
     seg, vseg = segments(tr_eps, cfg.M, cfg.K, stride=2), segments(va_eps, cfg.M, cfg.K, stride=4)
     tsegs = {n: segments(e, cfg.M, cfg.K, stride=2) for n, e in tests.items()}
     zero = {k: torch.zeros_like(v) for k, v in plain.params().items()}

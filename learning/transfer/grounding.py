@@ -371,7 +371,10 @@ def train_garat(step: StepFn, target: TransitionSet, reset_state: Callable, agen
 def best_action(step: StepFn, s: np.ndarray, s1: np.ndarray, a_low: float, a_high: float, grid: int = 61,
                 iters: int = 40) -> tuple[float, float]:
     """(ã*, error) minimising ‖step(s, ã) − s'‖ over ã in [a_low, a_high] for a 1-D action: the
-    best grid point, then golden-section search in the interval of its two neighbours."""
+    best grid point (the error need not be unimodal over the whole range), then SciPy's bounded
+    Brent search (``minimize_scalar``, at most ``iters`` evaluations) between its two neighbours."""
+    from scipy.optimize import minimize_scalar
+
     if grid < 2:
         raise ValueError(f"grid needs at least 2 points, got {grid}")
 
@@ -381,24 +384,11 @@ def best_action(step: StepFn, s: np.ndarray, s1: np.ndarray, a_low: float, a_hig
     xs = np.linspace(a_low, a_high, grid)
     es = np.array([err(x) for x in xs])
     k = int(np.argmin(es))
-    best_x, best_e = float(xs[k]), float(es[k])
     lo, hi = float(xs[max(k - 1, 0)]), float(xs[min(k + 1, grid - 1)])
-    r = (np.sqrt(5.0) - 1.0) / 2.0
-    c, d = hi - r * (hi - lo), lo + r * (hi - lo)
-    ec, ed = err(c), err(d)
-    for _ in range(iters):
-        if ec < ed:
-            hi, d, ed = d, c, ec
-            c = hi - r * (hi - lo)
-            ec = err(c)
-        else:
-            lo, c, ec = c, d, ed
-            d = lo + r * (hi - lo)
-            ed = err(d)
-    for x, e in ((c, ec), (d, ed)):
-        if e < best_e:
-            best_x, best_e = float(x), e
-    return best_x, best_e
+    r = minimize_scalar(err, bounds=(lo, hi), method="bounded", options={"maxiter": iters, "xatol": 1e-9})
+    if float(r.fun) < float(es[k]):
+        return float(r.x), float(r.fun)
+    return float(xs[k]), float(es[k])
 
 
 def floor_error(step: StepFn, data: TransitionSet, a_low, a_high, grid: int = 61, iters: int = 40) -> float:

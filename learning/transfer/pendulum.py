@@ -50,7 +50,7 @@ class PendulumConfig:
     gat_alpha: float = 1.0  # GAT's action smoothing (Hanna & Stone)
     garat: GaratConfig = field(default_factory=GaratConfig)
     trace_steps: int = 100
-    floor_grid: int = 61  # the floor's search per transition: grid points over [-3, 3], then golden section
+    floor_grid: int = 61  # the floor's search per transition: grid points over [-3, 3], then bounded Brent (scipy)
     floor_iters: int = 40
     seed: int = 0
 

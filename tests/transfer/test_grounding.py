@@ -137,7 +137,7 @@ def test_floor_is_zero_where_an_exact_mapping_exists_and_below_none_and_gat():
     gat = Gat(src, tgt, LOW, HIGH, steps=100)
     f_all = floor_error(source, val, LOW, HIGH)
     assert f_all <= transition_error(source, val) and f_all <= transition_error(source, val, gat)
-    # break-it: a coarse grid without the golden-section refinement must not beat the fine search
+    # break-it: a coarse grid without the bounded-Brent refinement must not beat the fine search
     assert floor_error(source, val, LOW, HIGH, grid=4, iters=0) > f_all + 1e-4
 
 
