@@ -3,7 +3,7 @@
 What "engaged" means: every driver node of the rig holds its robot in the safe state
 (``stop()``), deactivates the driver and refuses commands until an explicit release.
 
-Who holds the latch: every node on the bus (:class:`bus.node.Node` creates an
+Who holds the latch: every node on the bus (:class:`hilstack.bus.node.Node` creates an
 :class:`EStopLatch`). It keeps the last e-stop command it heard and answers queries
 for it on ``hil/<rig>/estop/latch/<node>``. The ``hil estop`` process is short-lived,
 so the rig's memory of an e-stop is the set of running nodes: a driver node that
@@ -13,7 +13,7 @@ the rig is running, nothing remembers the e-stop; a driver then starts as always
 holding the safe action until the first command.
 
 Acknowledgements: a driver node answers each e-stop command on
-``hil/<rig>/estop/ack`` with an :class:`~bus.schemas.EStopAck` quoting the command's
+``hil/<rig>/estop/ack`` with an :class:`~hilstack.bus.schemas.EStopAck` quoting the command's
 id and the state it is now in. :func:`command_estop` repeats the command until every
 driver node alive on the rig (liveliness tokens ``hil/<rig>/alive/driver-*``) has
 acknowledged it, or the timeout passes.
@@ -30,11 +30,11 @@ from typing import TYPE_CHECKING
 
 import zenoh
 
-from bus import keys
-from bus.schemas import EStop, EStopAck, MalformedMessage, decode, encode
+from hilstack.bus import keys
+from hilstack.bus.schemas import EStop, EStopAck, MalformedMessage, decode, encode
 
 if TYPE_CHECKING:
-    from bus.node import Node
+    from hilstack.bus.node import Node
 
 
 class EStopLatch:
@@ -101,7 +101,7 @@ class EStopLatch:
         on one host, a little later across hosts) and at most ``window_s`` seconds; in
         between it stops as soon as every node alive on the rig has answered.
         """
-        from bus.node import alive_nodes
+        from hilstack.bus.node import alive_nodes
 
         t0 = time.monotonic()
         while True:
@@ -213,6 +213,6 @@ def command_estop(
 
 
 def _driver_nodes(node: Node, timeout_s: float) -> set[str]:
-    from bus.node import alive_nodes
+    from hilstack.bus.node import alive_nodes
 
     return {n for n in alive_nodes(node.session, node.rig, timeout_s) if n.startswith(keys.DRIVER_NODE_PREFIX)}

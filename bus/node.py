@@ -18,12 +18,12 @@ from typing import Any, Generic, TypeVar
 
 import zenoh
 
-from bus import keys
-from bus.cycle import CycleTimer
-from bus.estop import EStopLatch
-from bus.schemas import MalformedMessage, Msg, decode, encode
-from bus.session import open_session
-from configs.schema import BusConfig
+from hilstack.bus import keys
+from hilstack.bus.cycle import CycleTimer
+from hilstack.bus.estop import EStopLatch
+from hilstack.bus.schemas import MalformedMessage, Msg, decode, encode
+from hilstack.bus.session import open_session
+from hilstack.configs.schema import BusConfig
 
 T = TypeVar("T", bound=Msg)
 
@@ -202,7 +202,7 @@ class Node:
     """Base of every process on the bus.
 
     Declares the liveliness token ``hil/<rig>/alive/<name>`` and holds the rig's
-    e-stop latch (``self.estop``, :class:`bus.estop.EStopLatch`: every node remembers
+    e-stop latch (``self.estop``, :class:`hilstack.bus.estop.EStopLatch`: every node remembers
     the last e-stop command and tells late driver nodes); SIGINT/SIGTERM set
     ``stop_event`` (when created in the main thread) so ``run()`` loops end cleanly
     and ``close()`` runs.
@@ -254,7 +254,7 @@ class Node:
     def run(self, step: Callable[[], None], period_s: float, max_steps: int | None = None) -> int:
         """Call ``step`` every ``period_s`` (wall clock) until stopped; returns steps run.
 
-        Paced by :class:`bus.cycle.CycleTimer` (``self.cycle`` after the call: its
+        Paced by :class:`hilstack.bus.cycle.CycleTimer` (``self.cycle`` after the call: its
         catch-up rule, late/missed counts and the p50/p99 of ``step``); a stop request
         interrupts the sleep between steps.
         """

@@ -30,9 +30,9 @@ from mcap.exceptions import McapError
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from bus import keys
-from bus.node import Node
-from bus.schemas import (
+from hilstack.bus import keys
+from hilstack.bus.node import Node
+from hilstack.bus.schemas import (
     ALL_TYPES,
     AnyMsg,
     Image,
@@ -47,7 +47,7 @@ from bus.schemas import (
     json_schema,
     type_name,
 )
-from configs.schema import BusConfig
+from hilstack.configs.schema import BusConfig
 
 log = logging.getLogger(__name__)
 
@@ -563,8 +563,8 @@ def replay(
     raised (nothing is published to it) unless ``force`` (then a warning is logged). Messages are re-sent
     byte-identical to what was recorded (same stamps and sequence numbers).
     """
-    from bus.node import alive_nodes
-    from bus.session import open_session
+    from hilstack.bus.node import alive_nodes
+    from hilstack.bus.session import open_session
 
     wanted = topic_filter(topics)
     own = session is None

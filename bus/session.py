@@ -6,7 +6,7 @@ import json
 
 import zenoh
 
-from configs.schema import BusConfig
+from hilstack.configs.schema import BusConfig
 
 
 def zenoh_config(bus: BusConfig | None = None) -> zenoh.Config:

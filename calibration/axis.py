@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
-from calibration.data import Episode, default_sg_window, sg_velocity, sg_velocity_kernel
-from calibration.effects import CATALOGUE
+from hilstack.calibration.data import Episode, default_sg_window, sg_velocity, sg_velocity_kernel
+from hilstack.calibration.effects import CATALOGUE
 
 #: Hyper-parameters (nonlinear) per effect, and linear coefficients per effect.
 HYPER_OF: dict[str, str] = {

@@ -6,7 +6,7 @@ An *episode* is one contiguous recording of a single-axis drive: time ``t_s``, c
 episode or several episodes in one file told apart by an ``episode`` column.
 
 MCAP recordings of a rig (``bus/recording.py``) are read through
-:func:`learning.recordings.episodes_from_mcap` with ``normalize=False``, so commands stay in
+:func:`hilstack.learning.recordings.episodes_from_mcap` with ``normalize=False``, so commands stay in
 robot units (e.g. rev/s of the VelociRoACH cranks: the units the sim backend is commanded
 in). Such an episode also keeps the full state and action arrays (``states``, ``actions``)
 with their channel names, which multi-channel nominal models (``velociroach``) use; the
@@ -286,7 +286,7 @@ def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
             the state channel ``vbat`` when there is one.
         robot: MCAP only: which robot's states, when the recording holds several.
         normalize_actions: MCAP only: actions in [-1, 1] of the robot's spec (what a learned
-            checkpoint trained by ``learning.mbrl`` sees) instead of robot units.
+            checkpoint trained by ``hilstack.learning.mbrl`` sees) instead of robot units.
         warn: called with one line per recoverable problem (rows with NaN dropped and the
             episode split there, too-short episodes skipped); default :func:`warnings.warn`.
 
@@ -317,13 +317,13 @@ def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
 
 def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None,
                normalize_actions: bool = False) -> list[Episode]:
-    """Episodes of one robot from an MCAP recording (learning.recordings.episodes_from_mcap).
+    """Episodes of one robot from an MCAP recording (hilstack.learning.recordings.episodes_from_mcap).
 
     Actions stay in robot units (``normalize=False``): the nominal models replay them as
     commands, and a sim backend is commanded in robot units, not in [-1, 1]. A learned
-    checkpoint sees what it was trained on (``normalize_actions=True``: learning.mbrl's default).
+    checkpoint sees what it was trained on (``normalize_actions=True``: hilstack.learning.mbrl's default).
     """
-    from learning.recordings import episodes_from_mcap
+    from hilstack.learning.recordings import episodes_from_mcap
 
     try:
         raw = episodes_from_mcap(path, robot=robot, normalize=normalize_actions)

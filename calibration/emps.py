@@ -146,12 +146,12 @@ def emps_to_csv(mat_path: str | Path, out_path: str | Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m calibration.emps DATA_EMPS.mat emps.csv``."""
+    """``python -m hilstack.calibration.emps DATA_EMPS.mat emps.csv``."""
     import sys
 
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 2:
-        raise SystemExit("usage: python -m calibration.emps DATA_EMPS.mat out.csv")
+        raise SystemExit("usage: python -m hilstack.calibration.emps DATA_EMPS.mat out.csv")
     print(emps_to_csv(args[0], args[1]))
 
 

@@ -1,7 +1,7 @@
 """The ``checkpoint`` nominal model: a learned dynamics checkpoint, where an effect is a missing input.
 
-A checkpoint is what :meth:`learning.dynamics.EnsembleDynamics.save` writes (loaded with
-:func:`learning.frames.load_dynamics`: an ``EnsembleDynamics`` or a ``BodyFrameDynamics``
+A checkpoint is what :meth:`hilstack.learning.dynamics.EnsembleDynamics.save` writes (loaded with
+:func:`hilstack.learning.frames.load_dynamics`: an ``EnsembleDynamics`` or a ``BodyFrameDynamics``
 wrapper). It predicts s_{t+1} from (s_t, a_t). What such a model can lack is an *input*: the
 next state may depend on something it never sees. The candidates (``LEARNED_CATALOGUE``):
 
@@ -22,7 +22,7 @@ checkpoint's (tests) trains from scratch instead.
 Scores (like the other models): one-step prediction from the logged state and multi-step
 open-loop windows of ``horizon`` steps replaying the logged actions (and exogenous extras),
 NMSE per state channel. The selection (folds, locked test set, paired test, bootstrap,
-look-alikes, black box) is :func:`calibration.selection.select_effects`, unchanged.
+look-alikes, black box) is :func:`hilstack.calibration.selection.select_effects`, unchanged.
 
 The primary parameter of every candidate is ``shuffle_loss_increase``: the relative increase
 of the one-step loss when that input's values are shuffled across transitions, measured on
@@ -42,9 +42,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from calibration import axis
-from calibration.data import DataError, Episode
-from calibration.effects import EffectSpec
+from hilstack.calibration import axis
+from hilstack.calibration.data import DataError, Episode
+from hilstack.calibration.effects import EffectSpec
 
 
 class CheckpointError(DataError):
@@ -317,7 +317,7 @@ class AugmentedDynamics:
 
 def load_checkpoint(path: str | Path):
     """load_dynamics with clear errors (missing file, not a dynamics checkpoint)."""
-    from learning.frames import load_dynamics
+    from hilstack.learning.frames import load_dynamics
 
     p = Path(path)
     if not p.exists():
@@ -327,7 +327,7 @@ def load_checkpoint(path: str | Path):
     try:
         net = load_dynamics(p)
     except Exception as e:  # torch.load raises many types on foreign files (pickle, zip, key errors)
-        raise CheckpointError(f"{p} is not a dynamics checkpoint (learning.dynamics.EnsembleDynamics.save): "
+        raise CheckpointError(f"{p} is not a dynamics checkpoint (hilstack.learning.dynamics.EnsembleDynamics.save): "
                               f"{type(e).__name__}: {str(e)[:200]}") from None
     inner = getattr(net, "model", net)
     if not inner.state_names or not inner.action_names:
@@ -371,7 +371,7 @@ class CheckpointModel:
             different size trains from scratch instead of from the checkpoint's weights).
         ensemble: members of the retrained networks (default: the checkpoint's).
         normalized_actions: MCAP input: actions in [-1, 1] of the robot's spec (as
-            ``learning.mbrl`` trains) or in robot units; default: the checkpoint config's
+            ``hilstack.learning.mbrl`` trains) or in robot units; default: the checkpoint config's
             ``actions_normalized``, else True.
         max_starts: multi-step window starts per episode (evenly spaced).
     """
@@ -407,8 +407,8 @@ class CheckpointModel:
 
     # ------------------------------------------------------------------ data
     def load_episodes(self, path, column_map=None, robot: str | None = None) -> list[Episode]:
-        """MCAP via calibration.data.load_episodes, CSV/Parquet via :func:`load_state_action_table`."""
-        from calibration.data import load_episodes
+        """MCAP via hilstack.calibration.data.load_episodes, CSV/Parquet via :func:`load_state_action_table`."""
+        from hilstack.calibration.data import load_episodes
 
         p = Path(path)
         if p.suffix.lower() == ".mcap":
@@ -500,8 +500,8 @@ class CheckpointModel:
 
     # ------------------------------------------------------------------ fitting
     def _new_net(self, effects: list[str], extra_dim: int):
-        from learning.dynamics import EnsembleDynamics
-        from learning.frames import BodyFrameDynamics
+        from hilstack.learning.dynamics import EnsembleDynamics
+        from hilstack.learning.frames import BodyFrameDynamics
 
         cfg = self.inner0.config
         names = [c for e in effects for c in feature_columns(e, self.state_names, self.action_names)]
@@ -535,7 +535,7 @@ class CheckpointModel:
         """Retrain with ``effects`` as extra inputs on ``episodes`` (bootstrap ``weights`` repeat
         episodes). ``start``/``search``/``refine`` do not apply: every fit starts from the checkpoint
         and trains the same epochs, so fits with and without a candidate differ only in the input."""
-        from learning.datasets import Episode as LEpisode
+        from hilstack.learning.datasets import Episode as LEpisode
 
         if self._nm is None:
             self.norms(episodes)
@@ -617,7 +617,7 @@ class CheckpointModel:
                               "init": "checkpoint weights" if self.warm else "scratch",
                               "body_frame": self.body_frame, "n_fits": self.n_fits},
                 "checkpoint_as_is": base,
-                "load": "calibration.learned.load_augmented(path).predict(state, action, extras); "
+                "load": "hilstack.calibration.learned.load_augmented(path).predict(state, action, extras); "
                         ".features(states, actions, t_s, vbat_v) builds extras from a log"}
 
     def _as_is_scores(self, test: list[LearnedPrepared], report: dict) -> dict | None:
@@ -676,7 +676,7 @@ def load_state_action_table(path: str | Path, state_names: list[str], action_nam
     optional; default ``vbat`` if present). Unmapped channels are looked up by their own name.
     Row k holds s_k and the action a_k applied after it (the last row's action is unused).
     """
-    from calibration.data import _read_table
+    from hilstack.calibration.data import _read_table
 
     p = Path(path)
     if not p.exists():

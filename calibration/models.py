@@ -2,13 +2,13 @@
 
 A nominal model is refit together with each candidate effect (grey box), replays logged
 commands open loop and predicts one step ahead. The selection code
-(:mod:`calibration.selection`) only talks to the :class:`Model` / :class:`FittedModel`
+(:mod:`hilstack.calibration.selection`) only talks to the :class:`Model` / :class:`FittedModel`
 protocol: fitting on (weighted) episodes, a per-episode held-out loss, a cheap out-of-bag
 loss, the model's effect catalogue and look-alike table.
 
-Registered: ``axis`` (:mod:`calibration.axis`), ``velociroach`` (the MuJoCo backend,
-:mod:`calibration.velociroach`), ``checkpoint`` (a learned dynamics checkpoint, where an
-effect is a missing input: :mod:`calibration.learned`; needs ``checkpoint=PATH``, or pass
+Registered: ``axis`` (:mod:`hilstack.calibration.axis`), ``velociroach`` (the MuJoCo backend,
+:mod:`hilstack.calibration.velociroach`), ``checkpoint`` (a learned dynamics checkpoint, where an
+effect is a missing input: :mod:`hilstack.calibration.learned`; needs ``checkpoint=PATH``, or pass
 the ``.pt`` path as the model name).
 """
 
@@ -19,9 +19,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
-from calibration import axis
-from calibration.data import Episode
-from calibration.effects import CATALOGUE, LOOK_ALIKES
+from hilstack.calibration import axis
+from hilstack.calibration.data import Episode
+from hilstack.calibration.effects import CATALOGUE, LOOK_ALIKES
 
 
 class ModelNotAvailable(RuntimeError):
@@ -56,7 +56,7 @@ class Model(Protocol):
     effects not in ``search`` (None: search all). ``norms`` returns the normalizers that
     ``episode_loss`` (the selection loss of one held-out episode) and ``oob_loss`` (a cheap
     loss for the bootstrap's out-of-bag check) use; ``score`` returns per-channel squared
-    errors (:class:`calibration.axis.Scores`) and ``channel_sd`` their report normalizers.
+    errors (:class:`hilstack.calibration.axis.Scores`) and ``channel_sd`` their report normalizers.
     """
 
     name: str
@@ -84,7 +84,7 @@ class Model(Protocol):
 
 @dataclass
 class FittedAxis:
-    """The axis model with its parameters (see :mod:`calibration.axis`)."""
+    """The axis model with its parameters (see :mod:`hilstack.calibration.axis`)."""
 
     params: axis.AxisParams
 
@@ -149,12 +149,12 @@ class AxisModel:
         self.sg_window = sg_window
 
     def norms(self, pool: list[axis.Prepared]):
-        from calibration.selection import compute_norms
+        from hilstack.calibration.selection import compute_norms
 
         return compute_norms(pool)
 
     def episode_loss(self, prep: axis.Prepared, fitted: FittedAxis, horizon: int, nm):
-        from calibration.selection import episode_loss
+        from hilstack.calibration.selection import episode_loss
 
         return episode_loss(axis.score(prep, fitted.params, horizon), nm)
 
@@ -232,9 +232,9 @@ class AxisModel:
 
 def _mujoco_model(**kw):
     try:
-        from calibration.velociroach import VelociRoachModel
+        from hilstack.calibration.velociroach import VelociRoachModel
     except ImportError as e:  # mujoco or the sim backend missing from this install
-        raise ModelNotAvailable(f"model 'velociroach' needs MuJoCo and sim_backends.velociroach ({e})") from e
+        raise ModelNotAvailable(f"model 'velociroach' needs MuJoCo and hilstack.sim_backends.velociroach ({e})") from e
     return VelociRoachModel(**kw)
 
 
@@ -245,7 +245,7 @@ def _checkpoint_model(checkpoint: str | Path | None = None, **kw):
             "not available without a checkpoint file: pass --model path/to/model.pt "
             "(or --model checkpoint --checkpoint PATH)"
         )
-    from calibration.learned import CheckpointModel
+    from hilstack.calibration.learned import CheckpointModel
 
     return CheckpointModel(checkpoint, **kw)
 
@@ -284,12 +284,12 @@ def load_model(path: str | Path) -> FittedModel:
     """Load an augmented model written by :func:`run_calibration` (``model.json``)."""
     doc = json.loads(Path(path).read_text())
     if doc.get("model") == "checkpoint":
-        from calibration.learned import load_augmented
+        from hilstack.calibration.learned import load_augmented
 
         # the network is in model_augmented.pt next to model.json
         return load_augmented(Path(path).with_name("model_augmented.pt"))
     if doc.get("model") == "velociroach":
-        from calibration.velociroach import FittedVelociRoach
+        from hilstack.calibration.velociroach import FittedVelociRoach
 
         return FittedVelociRoach.from_dict(doc)
     if doc.get("model") != "axis":

@@ -11,10 +11,17 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration import axis
-from calibration.data import DataError, Episode, harmonize_rates, load_episodes, segment_episodes, summarize
-from calibration.models import FittedAxis, get_model, save_model
-from calibration.selection import (
+from hilstack.calibration import axis
+from hilstack.calibration.data import (
+    DataError,
+    Episode,
+    harmonize_rates,
+    load_episodes,
+    segment_episodes,
+    summarize,
+)
+from hilstack.calibration.models import FittedAxis, get_model, save_model
+from hilstack.calibration.selection import (
     SelectionConfig,
     blackbox_check,
     detection_limits,

@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats as st
 
-from calibration import axis
-from calibration.effects import CATALOGUE, is_look_alike, separating_excitation
-from calibration.models import FittedAxis, FittedModel, Model
+from hilstack.calibration import axis
+from hilstack.calibration.effects import CATALOGUE, is_look_alike, separating_excitation
+from hilstack.calibration.models import FittedAxis, FittedModel, Model
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.data import Episode
+from hilstack.calibration.data import Episode
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.data import Episode
+from hilstack.calibration.data import Episode
 
 PERIOD_S = 0.05
 STATE_NAMES = ("x", "v")
@@ -68,8 +68,8 @@ def train_checkpoint(path: str | Path, n_episodes: int = 40, steps: int = 100, s
     """
     import torch
 
-    from learning.datasets import Episode as LEpisode
-    from learning.dynamics import EnsembleDynamics
+    from hilstack.learning.datasets import Episode as LEpisode
+    from hilstack.learning.dynamics import EnsembleDynamics
 
     eps = generate(n_episodes, steps, hidden=data_hidden, seed=seed)
     train = [LEpisode(e.states, e.actions[:-1], times=e.t_s, name=e.name) for e in eps]

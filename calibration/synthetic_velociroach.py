@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.data import Episode
+from hilstack.calibration.data import Episode
 
 
 @dataclass
@@ -31,8 +31,8 @@ class RoachSynthConfig:
 
 
 def generate(cfg: RoachSynthConfig) -> list[Episode]:
-    from drivers.velociroach.config import STATE_NAMES, VelociRoachParams
-    from sim_backends.velociroach.backend import VelociRoachSim
+    from hilstack.drivers.velociroach.config import STATE_NAMES, VelociRoachParams
+    from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
     rng = np.random.default_rng(cfg.seed)
     out = []
@@ -66,7 +66,7 @@ def generate(cfg: RoachSynthConfig) -> list[Episode]:
             t_s=np.asarray(times) - times[0],
             u=np.concatenate([acts[:, 0], acts[-1:, 0]]),
             x=np.asarray(states)[:, 0],
-            meta={"source": "calibration.synthetic_velociroach", "hidden": dict(cfg.hidden)},
+            meta={"source": "hilstack.calibration.synthetic_velociroach", "hidden": dict(cfg.hidden)},
             states=np.asarray(states),
             actions=np.concatenate([acts, acts[-1:]]),
             state_names=tuple(STATE_NAMES),
@@ -79,10 +79,10 @@ def generate(cfg: RoachSynthConfig) -> list[Episode]:
 def write_mcap(episodes: list[Episode], path: str | Path, robot: str = "roach", rig: str = "calib") -> Path:
     """Write episodes as a rig recording: a spec message, then one RobotState per period
     carrying the action held during the period that ended with it and an episode counter."""
-    from bus import keys
-    from bus.recording import McapLog
-    from bus.schemas import RobotState, SpecMsg
-    from drivers.velociroach.config import VelociRoachParams, velociroach_spec
+    from hilstack.bus import keys
+    from hilstack.bus.recording import McapLog
+    from hilstack.bus.schemas import RobotState, SpecMsg
+    from hilstack.drivers.velociroach.config import VelociRoachParams, velociroach_spec
 
     spec = velociroach_spec(VelociRoachParams()).to_dict()
     seq = 0

@@ -1,6 +1,6 @@
 """The ``velociroach`` nominal model: the MuJoCo sim backend, replaying logged commands.
 
-Each episode is replayed open loop through ``sim_backends.velociroach.VelociRoachSim``: the
+Each episode is replayed open loop through ``hilstack.sim_backends.velociroach.VelociRoachSim``: the
 sim is reset to the episode's first recorded pose (x, y, yaw; legs in the backend's standing
 tripod, firmware rebooted, battery at its configured charge) and the recorded leg commands
 [rev/s] are written one control period (0.1 s) at a time. The crank phase and velocities at
@@ -44,9 +44,9 @@ from typing import Any
 
 import numpy as np
 
-from calibration import axis
-from calibration.data import DataError, Episode
-from calibration.effects import GENERIC_EXCITATION, EffectSpec
+from hilstack.calibration import axis
+from hilstack.calibration.data import DataError, Episode
+from hilstack.calibration.effects import GENERIC_EXCITATION, EffectSpec
 
 #: channels compared, with units
 CHANNELS: tuple[str, ...] = ("x", "y", "yaw", "v_fwd", "crank_vel_l", "crank_vel_r")
@@ -170,7 +170,7 @@ class FittedVelociRoach:
 
     def sim_overrides(self) -> tuple[dict, dict]:
         """(params.sim overrides, effects that are not sim settings) for the calibrated effects."""
-        from sim_backends.velociroach.backend import TERRAINS, SimParams
+        from hilstack.sim_backends.velociroach.backend import TERRAINS, SimParams
 
         base = dict(self.nominal.get("sim") or {})
         sp = SimParams(**base)
@@ -206,14 +206,14 @@ def sim_params_for(fitted: FittedVelociRoach, noise_free: bool = False) -> dict:
 
 def write_sim_params(fitted: FittedVelociRoach, path: str | Path, note: str = "") -> Path:
     """Write ``sim_params.yaml``: a robot config (``robot``, ``backend: sim``, ``params``) that
-    ``configs.schema.load_robot`` / ``VelociRoachSim.from_config`` load as is. Effects that
+    ``hilstack.configs.schema.load_robot`` / ``VelociRoachSim.from_config`` load as is. Effects that
     are not sim settings (delay, mocap heading bias) go into the header comment."""
     import yaml
 
     path = Path(path)
     _, other = fitted.sim_overrides()
     head = ["# Calibrated VelociRoACH sim parameters, written by `hil calibrate --model velociroach`.",
-            "# Load: VelociRoachSim.from_config(configs.schema.load_robot('<this file>'))."]
+            "# Load: VelociRoachSim.from_config(hilstack.configs.schema.load_robot('<this file>'))."]
     if note:
         head.append(f"# {note}")
     for k, v in other.items():
@@ -225,8 +225,8 @@ def write_sim_params(fitted: FittedVelociRoach, path: str | Path, note: str = ""
 
 def load_sim_params(path: str | Path):
     """A configured, active VelociRoachSim built from a ``sim_params.yaml``."""
-    from configs.schema import load_robot
-    from sim_backends.velociroach.backend import VelociRoachSim
+    from hilstack.configs.schema import load_robot
+    from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
     sim = VelociRoachSim.from_config(load_robot(Path(path)))
     sim.configure()
@@ -245,7 +245,7 @@ def replay(sim, actions: np.ndarray, pose0: tuple[float, float, float], period_s
     k−n−1 for the first f of period k and command k−n for the rest (zero before the episode:
     it starts from rest). A heading bias b starts the sim at yaw0 − b and reports yaw + b.
     """
-    from drivers.velociroach.config import STATE_NAMES
+    from hilstack.drivers.velociroach.config import STATE_NAMES
 
     if sim.active:
         sim.deactivate()
@@ -303,14 +303,14 @@ class VelociRoachModel:
         """``nominal``: a robot config YAML (e.g. configs/robots/velociroach.yaml or a previous
         sim_params.yaml) or a dict of VelociRoachParams fields; default: the backend defaults.
         ``workers``: processes for batches of replays (default: up to 2 of the CPUs; 1 = serial)."""
-        from drivers.velociroach.config import VelociRoachParams
+        from hilstack.drivers.velociroach.config import VelociRoachParams
 
         if nominal is None:
             params: dict = {}
         elif isinstance(nominal, dict):
             params = dict(nominal)
         else:
-            from configs.schema import load_robot
+            from hilstack.configs.schema import load_robot
 
             params = dict(load_robot(Path(nominal)).params)
         self.nominal = params
@@ -355,8 +355,8 @@ class VelociRoachModel:
     # ------------------------------------------------------------------ simulation
     def _sim(self, setting: tuple[tuple[str, float], ...]):
         """A configured sim for a setting (the replay-only effects do not need their own)."""
-        from drivers.velociroach.config import VelociRoachParams
-        from sim_backends.velociroach.backend import VelociRoachSim
+        from hilstack.drivers.velociroach.config import VelociRoachParams
+        from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
         s = dict(setting)
         key = (s["payload_mass"], s["leg_friction"], s["torque_scale"], s["slope"])
@@ -529,7 +529,7 @@ class VelociRoachModel:
         """
         from scipy import stats as st
 
-        from calibration.selection import _autocorr_inflation
+        from hilstack.calibration.selection import _autocorr_inflation
 
         nm = self._nm
         scale = np.sqrt(nm.multi)

@@ -4,7 +4,7 @@
 Errors are :class:`ConfigError` naming the file, the field and what was expected.
 """
 
-from configs.schema import (
+from hilstack.configs.schema import (
     BusConfig,
     ConfigError,
     Params,

@@ -92,7 +92,7 @@ class RigConfig(Strict):
     watchdog_periods: float = Field(3.0, gt=0)
     #: sim rigs: "realtime" paces on the wall clock, "lockstep" steps when a command arrives
     pace: Literal["realtime", "lockstep"] = "realtime"
-    #: the automated reset procedure (detectors, steps, verification), checked by control.reset
+    #: the automated reset procedure (detectors, steps, verification), checked by hilstack.control.reset
     reset: dict[str, Any] | None = None
     source: str | None = None
 

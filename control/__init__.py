@@ -3,24 +3,24 @@
 Public names are imported lazily so that ``import control`` (e.g. for a safety node) does not
 pull in torch::
 
-    from control import PDDM, CEM, RandomShooting, PathCost, make_path, DifferentialDriveController
+    from hilstack.control import PDDM, CEM, RandomShooting, PathCost, make_path, DifferentialDriveController
 """
 
 from importlib import import_module
 
 _EXPORTS = {
-    "Planner": "control.planners",
-    "RandomShooting": "control.planners",
-    "CEM": "control.planners",
-    "PDDM": "control.planners",
-    "PathCost": "control.costs",
-    "evaluate_path_following": "control.costs",
-    "summarize_paths": "control.costs",
-    "rank_key": "control.costs",
-    "make_path": "control.paths",
-    "fillet": "control.paths",
-    "PATHS": "control.paths",
-    "DifferentialDriveController": "control.baselines",
+    "Planner": "hilstack.control.planners",
+    "RandomShooting": "hilstack.control.planners",
+    "CEM": "hilstack.control.planners",
+    "PDDM": "hilstack.control.planners",
+    "PathCost": "hilstack.control.costs",
+    "evaluate_path_following": "hilstack.control.costs",
+    "summarize_paths": "hilstack.control.costs",
+    "rank_key": "hilstack.control.costs",
+    "make_path": "hilstack.control.paths",
+    "fillet": "hilstack.control.paths",
+    "PATHS": "hilstack.control.paths",
+    "DifferentialDriveController": "hilstack.control.baselines",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -8,7 +8,7 @@ learning/frames.py). ``a_t`` is the action the driver actually applied during th
 (``RobotState.action``, after clamping and rate limits), as the MBRL loop's recordings use
 it; a driver that does not report it falls back to the command that answered ``s_t``. Each
 control step it feeds the adapter the new transitions, calls ``adapter.update()`` and
-publishes the result as a :class:`bus.schemas.ModelUpdate` on ``hil/<rig>/model/update``
+publishes the result as a :class:`hilstack.bus.schemas.ModelUpdate` on ``hil/<rig>/model/update``
 (and MOLe's task posterior on ``hil/<rig>/model/posterior``).
 
 What it refuses to learn from (counted in :class:`AdaptationStats`): readings flagged not
@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from bus import keys
-from bus.node import Node, Subscription
-from bus.schemas import (
+from hilstack.bus import keys
+from hilstack.bus.node import Node, Subscription
+from hilstack.bus.schemas import (
     Command,
     MalformedMessage,
     ModelUpdate,
@@ -49,10 +49,10 @@ from bus.schemas import (
     TaskPosterior,
     decode,
 )
-from configs.schema import BusConfig
-from control.controller_node import ActionScale
-from learning.adaptation.base import Adapter
-from learning.adaptation.base import ModelUpdate as AdaptedModel
+from hilstack.configs.schema import BusConfig
+from hilstack.control.controller_node import ActionScale
+from hilstack.learning.adaptation.base import Adapter
+from hilstack.learning.adaptation.base import ModelUpdate as AdaptedModel
 
 log = logging.getLogger(__name__)
 
@@ -198,7 +198,7 @@ def stamp_ns(state: RobotState) -> int:
 
 
 class AdaptationNode(Node):
-    """Feeds an :class:`~learning.adaptation.base.Adapter` from a robot's state stream and
+    """Feeds an :class:`~hilstack.learning.adaptation.base.Adapter` from a robot's state stream and
     publishes its updates (see the module docstring).
 
     Args:

@@ -3,7 +3,7 @@
 Differential-drive path follower (the thesis' VelociRoACH baseline): steer toward the
 current segment's direction, corrected by the signed perpendicular error, and drive the
 two leg sets at ``ω_nom ± d``. The current segment is tracked with the cost's progress
-window (:meth:`control.costs.PathCost.observe`), so at a figure-8 crossing the baseline
+window (:meth:`hilstack.control.costs.PathCost.observe`), so at a figure-8 crossing the baseline
 follows the branch it is on:
 
     e_ψ   = wrap(θ_seg − ψ)                 heading error to the current segment (rad)
@@ -18,7 +18,7 @@ Default gains (normalized action per unit error): ``omega_nom = 0.6``, ``k_headi
 per rad, ``k_perp = 4.0`` per m, ``d_max = 0.4``: at 10 cm lateral error the correction
 equals ~0.5 rad of heading error, and ``d`` never exceeds what still leaves both leg sets
 moving forward at ``omega_nom``. These are starting points, not tuned values: `hil demo`
-tunes them per speed (:meth:`learning.mbrl.MbrlRun.tune_baseline`).
+tunes them per speed (:meth:`hilstack.learning.mbrl.MbrlRun.tune_baseline`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from control.costs import PathCost
+from hilstack.control.costs import PathCost
 
 __all__ = ["DifferentialDriveController"]
 

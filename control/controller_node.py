@@ -26,11 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from bus import keys
-from bus.cycle import CycleTimer
-from bus.node import Node
-from bus.schemas import Command, Plan, ResetEvent, RobotState, SpecMsg
-from configs.schema import BusConfig
+from hilstack.bus import keys
+from hilstack.bus.cycle import CycleTimer
+from hilstack.bus.node import Node
+from hilstack.bus.schemas import Command, Plan, ResetEvent, RobotState, SpecMsg
+from hilstack.configs.schema import BusConfig
 
 Policy = Callable[[np.ndarray], np.ndarray]
 
@@ -206,7 +206,7 @@ class ControllerNode(Node):
                      stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
         """Fixed-rate commands; planning in a worker with a deadline of ``deadline_frac`` periods.
 
-        Paced by :class:`bus.cycle.CycleTimer` (``self.cycle`` afterwards: late and
+        Paced by :class:`hilstack.bus.cycle.CycleTimer` (``self.cycle`` afterwards: late and
         missed periods, p50/p99 of the wait for the plan); ``log.timing`` holds its summary.
 
         The cycle grid is started when a fresh state arrives, so it runs in phase with the
@@ -217,7 +217,7 @@ class ControllerNode(Node):
         period half of the time.) A cycle whose state has not arrived within half a period
         uses the newest one and counts it in ``log.stale_states``.
 
-        A policy with ``delay_steps`` > 0 (:class:`control.policies.MpcPolicy` on a
+        A policy with ``delay_steps`` > 0 (:class:`hilstack.control.policies.MpcPolicy` on a
         wall-clock robot) is called as ``policy(state, committed=...)`` with the last
         ``delay_steps`` commands sent (normalized, oldest first): those act before the one
         it plans. A plan that comes in late is used shifted by the cycles it missed.

@@ -21,7 +21,7 @@ place on the path is tracked: :meth:`PathCost.observe` moves the current segment
 forward to the closest segment among those starting less than ``window_m`` of arc length
 after segment ``k`` ends, never backward; the planner's predicted states are matched
 within the same window. The controller calls ``observe`` once per control step (the
-baseline and :class:`~control.policies.MpcPolicy` do), and the evaluation replays the
+baseline and :class:`~hilstack.control.policies.MpcPolicy` do), and the evaluation replays the
 same tracking over the executed trajectory.
 
 **Metrics** (:func:`evaluate_path_following`): the summed cost alone rewards a robot that
@@ -80,7 +80,7 @@ class PathCost:
     """Path-following cost ``cost(states [E,N,H+1,S], actions [N,H,A]) -> [E,N]``.
 
     Args:
-        waypoints: ``[P, 2]`` polyline in metres, world frame (see :mod:`control.paths`).
+        waypoints: ``[P, 2]`` polyline in metres, world frame (see :mod:`hilstack.control.paths`).
         state_names: names of the S state channels; the x, y, cos(yaw), sin(yaw) channels are
             looked up by name (``x``/``y``/``cos_yaw``/``sin_yaw`` by default, override with
             ``x=``, ``y=``, ``cos_yaw=``, ``sin_yaw=``).
@@ -282,15 +282,15 @@ class BaodingCost:
 
         r(s, t) = −5·Σ_i ‖ball_i − target_i(t)‖ − 500·1(drop)      (positions in m)
 
-    the reward of :class:`sim_backends.shadow_hand.baoding.BaodingTask` (targets and drop rule
+    the reward of :class:`hilstack.sim_backends.shadow_hand.baoding.BaodingTask` (targets and drop rule
     from it), evaluated on the ball channels ``ball{0,1}_{x,y,z}`` of the state. ``t_h`` is
     task time: ``(k + h)·period_s`` with ``k`` the control steps of this episode so far
-    (:meth:`observe` is called once per step by :class:`~control.policies.MpcPolicy`;
+    (:meth:`observe` is called once per step by :class:`~hilstack.control.policies.MpcPolicy`;
     :meth:`reset` at the start of an episode).
     """
 
     def __init__(self, task, state_names: Sequence[str], period_s: float):
-        from sim_backends.shadow_hand.baoding import REWARD_DIST_WEIGHT, REWARD_DROP_PENALTY
+        from hilstack.sim_backends.shadow_hand.baoding import REWARD_DIST_WEIGHT, REWARD_DROP_PENALTY
 
         names = list(state_names)
         missing = [f"ball{i}_{c}" for i in range(2) for c in "xyz" if f"ball{i}_{c}" not in names]

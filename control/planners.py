@@ -24,7 +24,7 @@ with the two user functions
         action: [N, A]
         returns [E, N, S] for an ensemble of E models, or [N, S] for a single model
         (then E = 1 and later calls also get [N, S]).
-        ``learning.dynamics.EnsembleDynamics`` (or its ``.predict``) fits as is.
+        ``hilstack.learning.dynamics.EnsembleDynamics`` (or its ``.predict``) fits as is.
     cost(states, actions) -> [E, N]   (or [N] when the cost ignores the member)
         states:  [E, N, H+1, S], states[:, :, 0] is the current state and states[:, :, h]
                  the prediction after h actions
@@ -417,7 +417,7 @@ class PddmConfig:
     """A PDDM planner and the size of the ensemble it plans through, in one place.
 
     ``planner()`` builds the :class:`PDDM`; ``model_kwargs()`` are the
-    ``learning.dynamics.EnsembleDynamics`` arguments (``state_dim, action_dim, ensemble,
+    ``hilstack.learning.dynamics.EnsembleDynamics`` arguments (``state_dim, action_dim, ensemble,
     hidden``). Actions are normalized to ``[action_low, action_high]`` (unitless; the hand
     maps [-1, 1] to each joint's range). ``sigma=None`` keeps PDDM's default (a quarter of
     the action range).

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from control.costs import state_index
+from hilstack.control.costs import state_index
 
 
 class SafeRandomPolicy:

@@ -41,7 +41,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from bus.cycle import CycleTimer
+from hilstack.bus.cycle import CycleTimer
 
 
 class LifecycleError(RuntimeError):
@@ -304,7 +304,7 @@ class Observation:
         unknown = sorted(set(self.flags) - FLAG_NAMES)
         if unknown:
             raise ValueError(f"observation flags {unknown} are not in the contract's vocabulary "
-                             f"(drivers.base.Flag): {sorted(FLAG_NAMES)}")
+                             f"(hilstack.drivers.base.Flag): {sorted(FLAG_NAMES)}")
         # plain str keys (not Flag members): they serialize the same everywhere
         self.flags = {str(k): bool(v) for k, v in self.flags.items()}
 
@@ -608,7 +608,7 @@ class Driver(ABC):
     def tick(self) -> None:
         """Wait until the next control period boundary (wall clock).
 
-        Paced by :class:`bus.cycle.CycleTimer`: the first call waits a full period (N
+        Paced by :class:`hilstack.bus.cycle.CycleTimer`: the first call waits a full period (N
         ticks span N periods); after an overrun the late tick returns at once and
         further missed periods are skipped and counted, never made up in a burst.
         """

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 import zenoh
 
-from bus import keys
-from bus.node import Node
-from bus.schemas import (
+from hilstack.bus import keys
+from hilstack.bus.node import Node
+from hilstack.bus.schemas import (
     Command,
     EStop,
     EStopAck,
@@ -38,8 +38,8 @@ from bus.schemas import (
     SpecMsg,
     decode,
 )
-from configs.schema import BusConfig
-from drivers.base import CommandError, Driver, LinkError
+from hilstack.configs.schema import BusConfig
+from hilstack.drivers.base import CommandError, Driver, LinkError
 
 log = logging.getLogger(__name__)
 

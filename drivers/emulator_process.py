@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from drivers.base import LinkError
+from hilstack.drivers.base import LinkError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: how many of the log's last lines a failure message quotes

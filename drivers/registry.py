@@ -10,35 +10,35 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
-from configs.schema import ConfigError, RobotConfig, load_robot
+from hilstack.configs.schema import ConfigError, RobotConfig, load_robot
 
 if TYPE_CHECKING:
-    from drivers.base import Driver
+    from hilstack.drivers.base import Driver
 
 #: (robot, backend) -> "module:Class"
 BACKENDS: dict[tuple[str, str], str] = {
-    ("pointmass", "sim"): "sim_backends.pointmass:PointMassSim",
-    ("velociroach", "sim"): "sim_backends.velociroach.backend:VelociRoachSim",
-    ("velociroach", "emulated"): "drivers.velociroach.driver:VelociRoachDriver",
-    ("velociroach", "real"): "drivers.velociroach.driver:VelociRoachDriver",
-    ("mocap", "real"): "drivers.mocap.driver:MocapDriver",
-    ("camera", "real"): "drivers.camera.driver:StereoCameraDriver",
-    ("camera", "sim"): "sim_backends.shadow_hand.cameras:StereoCameraSim",
-    ("shadow_hand", "sim"): "sim_backends.shadow_hand.backend:ShadowHandSim",
-    ("shadow_hand", "emulated"): "drivers.shadow_hand.driver:ShadowHandDriver",
-    ("shadow_hand", "real"): "drivers.shadow_hand.driver:ShadowHandDriver",
-    ("widowx", "sim"): "sim_backends.widowx.backend:WidowXSim",
-    ("widowx", "emulated"): "drivers.widowx.driver:WidowXDriver",
-    ("widowx", "real"): "drivers.widowx.driver:WidowXDriver",
-    ("reset_mechanism", "sim"): "sim_backends.widowx.backend:MechanismSim",
-    ("reset_mechanism", "emulated"): "drivers.widowx.driver:MechanismDriver",
-    ("reset_mechanism", "real"): "drivers.widowx.driver:MechanismDriver",
-    ("sawyer", "sim"): "sim_backends.sawyer.backend:SawyerSim",
-    ("sawyer", "emulated"): "drivers.sawyer.driver:SawyerDriver",
-    ("sawyer", "real"): "drivers.sawyer.driver:SawyerDriver",
-    ("reset_arm", "sim"): "sim_backends.reset_arm.backend:ResetArmSim",
-    ("reset_arm", "emulated"): "drivers.reset_arm.driver:ResetArmDriver",
-    ("reset_arm", "real"): "drivers.reset_arm.driver:ResetArmDriver",
+    ("pointmass", "sim"): "hilstack.sim_backends.pointmass:PointMassSim",
+    ("velociroach", "sim"): "hilstack.sim_backends.velociroach.backend:VelociRoachSim",
+    ("velociroach", "emulated"): "hilstack.drivers.velociroach.driver:VelociRoachDriver",
+    ("velociroach", "real"): "hilstack.drivers.velociroach.driver:VelociRoachDriver",
+    ("mocap", "real"): "hilstack.drivers.mocap.driver:MocapDriver",
+    ("camera", "real"): "hilstack.drivers.camera.driver:StereoCameraDriver",
+    ("camera", "sim"): "hilstack.sim_backends.shadow_hand.cameras:StereoCameraSim",
+    ("shadow_hand", "sim"): "hilstack.sim_backends.shadow_hand.backend:ShadowHandSim",
+    ("shadow_hand", "emulated"): "hilstack.drivers.shadow_hand.driver:ShadowHandDriver",
+    ("shadow_hand", "real"): "hilstack.drivers.shadow_hand.driver:ShadowHandDriver",
+    ("widowx", "sim"): "hilstack.sim_backends.widowx.backend:WidowXSim",
+    ("widowx", "emulated"): "hilstack.drivers.widowx.driver:WidowXDriver",
+    ("widowx", "real"): "hilstack.drivers.widowx.driver:WidowXDriver",
+    ("reset_mechanism", "sim"): "hilstack.sim_backends.widowx.backend:MechanismSim",
+    ("reset_mechanism", "emulated"): "hilstack.drivers.widowx.driver:MechanismDriver",
+    ("reset_mechanism", "real"): "hilstack.drivers.widowx.driver:MechanismDriver",
+    ("sawyer", "sim"): "hilstack.sim_backends.sawyer.backend:SawyerSim",
+    ("sawyer", "emulated"): "hilstack.drivers.sawyer.driver:SawyerDriver",
+    ("sawyer", "real"): "hilstack.drivers.sawyer.driver:SawyerDriver",
+    ("reset_arm", "sim"): "hilstack.sim_backends.reset_arm.backend:ResetArmSim",
+    ("reset_arm", "emulated"): "hilstack.drivers.reset_arm.driver:ResetArmDriver",
+    ("reset_arm", "real"): "hilstack.drivers.reset_arm.driver:ResetArmDriver",
 }
 
 

@@ -2,21 +2,21 @@
 
 Public names are imported lazily so that ``import learning`` stays cheap (no torch import)::
 
-    from learning import EnsembleDynamics, Episode, TransitionDataset, load_episodes
+    from hilstack.learning import EnsembleDynamics, Episode, TransitionDataset, load_episodes
 """
 
 from importlib import import_module
 
 _EXPORTS = {
-    "Episode": "learning.datasets",
-    "NormStats": "learning.datasets",
-    "TransitionDataset": "learning.datasets",
-    "episodes_from_table": "learning.datasets",
-    "load_episodes": "learning.datasets",
-    "EnsembleDynamics": "learning.dynamics",
-    "cpu_bf16_support": "learning.dynamics",
-    "h_step_error": "learning.dynamics",
-    "h_step_windows": "learning.dynamics",
+    "Episode": "hilstack.learning.datasets",
+    "NormStats": "hilstack.learning.datasets",
+    "TransitionDataset": "hilstack.learning.datasets",
+    "episodes_from_table": "hilstack.learning.datasets",
+    "load_episodes": "hilstack.learning.datasets",
+    "EnsembleDynamics": "hilstack.learning.dynamics",
+    "cpu_bf16_support": "hilstack.learning.dynamics",
+    "h_step_error": "hilstack.learning.dynamics",
+    "h_step_windows": "hilstack.learning.dynamics",
 }
 
 __all__ = sorted(_EXPORTS)

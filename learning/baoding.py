@@ -3,11 +3,11 @@ with every node on the bus.
 
     random-policy data → [train the ensemble → R rollouts with PDDM → aggregate] × iterations
 
-This is the MBRL loop of :mod:`learning.mbrl` on a second robot: :class:`BaodingRun` is an
-:class:`~learning.mbrl.MbrlRun` (the same driver process, controller node, reset
+This is the MBRL loop of :mod:`hilstack.learning.mbrl` on a second robot: :class:`BaodingRun` is an
+:class:`~hilstack.learning.mbrl.MbrlRun` (the same driver process, controller node, reset
 supervisor, MCAP recordings, episode split and training); only the task differs: the
-policy's cost (:class:`control.costs.BaodingCost`), the random policy (uniform actions, as
-the thesis) and the metrics (:func:`control.costs.baoding_episode_metrics`). Episodes end
+policy's cost (:class:`hilstack.control.costs.BaodingCost`), the random policy (uniform actions, as
+the thesis) and the metrics (:func:`hilstack.control.costs.baoding_episode_metrics`). Episodes end
 through the rig's reset supervisor (``reset:`` in configs/rigs/hand_sim.yaml: a 10 s
 timeout and a drop detector on the ball heights; teleport on the sim rig) or at
 ``episode_steps``.
@@ -24,12 +24,21 @@ import numpy as np
 import torch
 from pydantic import Field
 
-from configs.schema import BusConfig, Strict, load_task, parse_model
-from control.costs import BaodingCost, baoding_episode_metrics
-from control.planners import PddmConfig
-from control.policies import MpcPolicy
-from learning.mbrl import MbrlConfig, MbrlRun, RigError, _jsonable, _log, _progress, make_model, recording
-from learning.recordings import episodes_from_mcap
+from hilstack.configs.schema import BusConfig, Strict, load_task, parse_model
+from hilstack.control.costs import BaodingCost, baoding_episode_metrics
+from hilstack.control.planners import PddmConfig
+from hilstack.control.policies import MpcPolicy
+from hilstack.learning.mbrl import (
+    MbrlConfig,
+    MbrlRun,
+    RigError,
+    _jsonable,
+    _log,
+    _progress,
+    make_model,
+    recording,
+)
+from hilstack.learning.recordings import episodes_from_mcap
 
 #: the state channels Baoding needs: both balls' positions [m, world]
 BALL_NAMES = tuple(f"ball{i}_{c}" for i in range(2) for c in "xyz")
@@ -48,8 +57,8 @@ class BaodingTaskParams(Strict):
 
 
 def load_baoding_task(name: str = "baoding"):
-    """The :class:`~sim_backends.shadow_hand.baoding.BaodingTask` of a task config."""
-    from sim_backends.shadow_hand.baoding import BaodingTask
+    """The :class:`~hilstack.sim_backends.shadow_hand.baoding.BaodingTask` of a task config."""
+    from hilstack.sim_backends.shadow_hand.baoding import BaodingTask
 
     raw = load_task(name)
     p = parse_model(BaodingTaskParams, raw.model_dump(), raw.source)
@@ -220,7 +229,7 @@ def drop_prediction(model, episodes, task, ball_idx: list[int], horizon: int) ->
     fraction of windows in which a ball truly drops whose ensemble-mean prediction also
     drops (the task's rule); ``false_drop_rate`` = predicted drops among windows without
     one; ``windows_with_drop``. A planner can only avoid the −500 the model predicts."""
-    from learning.dynamics import h_step_windows
+    from hilstack.learning.dynamics import h_step_windows
 
     H = min(horizon, max((len(e) for e in episodes), default=0))
     if H < 1:
@@ -281,7 +290,9 @@ class BaodingRun(MbrlRun):
         return UniformRandomPolicy(len(self.action_names), seed=self._seed(2, i))
 
     def random_walk(self, i: int) -> RandomWalkPolicy:
-        from drivers.shadow_hand.config import hold_pose_action  # where every episode starts (sim reset)
+        from hilstack.drivers.shadow_hand.config import (
+            hold_pose_action,  # where every episode starts (sim reset)
+        )
 
         return RandomWalkPolicy(hold_pose_action(), seed=self._seed(1, i))
 
@@ -296,7 +307,7 @@ class BaodingRun(MbrlRun):
         # with an untrained model perturbs a grasp instead of swinging every joint to mid-range
         if self.bcfg.init_mean != "hold":
             return None
-        from drivers.shadow_hand.config import hold_pose_action
+        from hilstack.drivers.shadow_hand.config import hold_pose_action
 
         return hold_pose_action()
 
@@ -346,7 +357,7 @@ class BaodingRun(MbrlRun):
                                                "001-random-eval", "uniform random policy (scored)")
             report["random_policy"] = summarize(rand_scores)
             # the do-nothing reference: a planner that only holds the grasp scores this
-            from drivers.shadow_hand.config import hold_pose_action
+            from hilstack.drivers.shadow_hand.config import hold_pose_action
 
             _, hold_scores = self.run_episodes(lambda i: ConstantPolicy(hold_pose_action()), 1,
                                                "002-hold-eval", "hold policy (scored)")

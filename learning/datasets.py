@@ -280,13 +280,13 @@ def load_episodes(path: str | Path, **column_map) -> list[Episode]:
 
     ``.csv`` and ``.parquet``/``.pq`` take the column map of :func:`episodes_from_table`
     (``state=[...], action=[...], episode=col, time=col``). ``.mcap`` recordings are read
-    by ``learning.recordings.episodes_from_mcap(path, **kwargs)`` (``robot=``,
+    by ``hilstack.learning.recordings.episodes_from_mcap(path, **kwargs)`` (``robot=``,
     ``normalize=``, ...): a recording names its own channels, so no column map applies.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".mcap":
-        from learning.recordings import episodes_from_mcap  # noqa: PLC0415 - pulls in the bus
+        from hilstack.learning.recordings import episodes_from_mcap  # noqa: PLC0415 - pulls in the bus
 
         return episodes_from_mcap(path, **column_map)
     import pandas as pd  # noqa: PLC0415 - keep import cost off the planner path

@@ -43,8 +43,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from learning.datasets import Episode, NormStats, TransitionDataset
-from learning.progress import progress as progress_output
+from hilstack.learning.datasets import Episode, NormStats, TransitionDataset
+from hilstack.learning.progress import progress as progress_output
 
 __all__ = ["EnsembleDynamics", "cpu_bf16_support", "h_step_windows", "h_step_error"]
 

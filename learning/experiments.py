@@ -9,7 +9,7 @@ training order) and reported as mean ± std (sample std, ``ddof=1``) over seeds:
   on-policy iteration on top of the largest.
 * **Fig. 3.8** (:func:`speed_sweep`): MPC vs the tuned differential drive over the
   commanded speeds ``sweep_speeds``, all evaluation paths; the baseline is tuned at each
-  speed (:meth:`learning.mbrl.MbrlRun.tune_baseline`).
+  speed (:meth:`hilstack.learning.mbrl.MbrlRun.tune_baseline`).
 * **Table 3.2** (:func:`table_3_2`): two terrain presets of the sim (``carpet`` and
   ``styrofoam``, docs/velociroach.md). Models trained on A, on B and on both, plus the
   baseline tuned on each terrain: the straight-line cost matrix.
@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from control.costs import summarize_paths
-from learning.datasets import Episode
-from learning.mbrl import EXPERIMENTS, MbrlRun, _log, make_model, recording
-from learning.recordings import episodes_from_mcap
+from hilstack.control.costs import summarize_paths
+from hilstack.learning.datasets import Episode
+from hilstack.learning.mbrl import EXPERIMENTS, MbrlRun, _log, make_model, recording
+from hilstack.learning.recordings import episodes_from_mcap
 
 __all__ = ["mean_std", "table_3_1", "speed_sweep", "table_3_2", "run_experiments", "EXPERIMENTS"]
 

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from learning.datasets import Episode
-from learning.dynamics import EnsembleDynamics, h_step_error, h_step_windows
+from hilstack.learning.datasets import Episode
+from hilstack.learning.dynamics import EnsembleDynamics, h_step_error, h_step_windows
 
 
 class PlanarFrame:
@@ -103,7 +103,7 @@ class BodyFrameDynamics:
         """Train the wrapped model on one-step body-frame transitions.
 
         With ``val``, the last history entry gets the real ``horizon``-step open-loop error
-        (thesis Eqn 2.2, :func:`learning.dynamics.h_step_error`) of this world-frame model on
+        (thesis Eqn 2.2, :func:`hilstack.learning.dynamics.h_step_error`) of this world-frame model on
         the validation episodes, in two frames:
 
         * ``val_h`` (and ``val_h_raw``): world frame, normalized by the per-channel std of

@@ -4,7 +4,7 @@
     → aggregate → retrain (warm start) → ... → tune the differential-drive baseline per
     speed on separate tuning paths → evaluate MPC vs the tuned baseline on the paths at a
     low and a high commanded speed (paths completed, then cost per metre; docs/mbrl.md)
-    → with ``experiments``, the thesis' tables over seeds (:mod:`learning.experiments`).
+    → with ``experiments``, the thesis' tables over seeds (:mod:`hilstack.learning.experiments`).
 
 The rig is real nodes over a real Zenoh session: the driver bridge runs in its own
 process (``hil up <rig>``), the controller node (random policy, MPC, baseline) and the
@@ -32,23 +32,23 @@ from typing import Any
 import numpy as np
 import torch
 
-from bus import keys
-from bus.recording import Recorder
-from bus.schemas import ResetTransition, decode
-from configs.schema import BusConfig, load_rig
-from control.baselines import DifferentialDriveController
-from control.controller_node import ControllerNode, EpisodeLog
-from control.costs import PathCost, evaluate_path_following, rank_key, summarize_paths
-from control.paths import fillet, make_path, path_length
-from control.planners import CEM, PDDM, RandomShooting
-from control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
-from control.reset.config import ResetConfig, ResetUnavailable, require_reset
-from control.reset.supervisor import ResetSupervisor
-from learning.datasets import Episode
-from learning.dynamics import EnsembleDynamics
-from learning.frames import BodyFrameDynamics
-from learning.progress import progress
-from learning.recordings import episodes_from_mcap
+from hilstack.bus import keys
+from hilstack.bus.recording import Recorder
+from hilstack.bus.schemas import ResetTransition, decode
+from hilstack.configs.schema import BusConfig, load_rig
+from hilstack.control.baselines import DifferentialDriveController
+from hilstack.control.controller_node import ControllerNode, EpisodeLog
+from hilstack.control.costs import PathCost, evaluate_path_following, rank_key, summarize_paths
+from hilstack.control.paths import fillet, make_path, path_length
+from hilstack.control.planners import CEM, PDDM, RandomShooting
+from hilstack.control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
+from hilstack.control.reset.config import ResetConfig, ResetUnavailable, require_reset
+from hilstack.control.reset.supervisor import ResetSupervisor
+from hilstack.learning.datasets import Episode
+from hilstack.learning.dynamics import EnsembleDynamics
+from hilstack.learning.frames import BodyFrameDynamics
+from hilstack.learning.progress import progress
+from hilstack.learning.recordings import episodes_from_mcap
 
 
 class RigError(RuntimeError):
@@ -56,7 +56,7 @@ class RigError(RuntimeError):
     watchdogs have stopped it. Recordings written so far are complete up to that point."""
 
 
-#: the thesis' experiments `hil demo --full` runs (learning.experiments)
+#: the thesis' experiments `hil demo --full` runs (hilstack.learning.experiments)
 EXPERIMENTS = ("table_3_1", "speed_sweep", "table_3_2")
 
 
@@ -70,7 +70,7 @@ class MbrlConfig:
     rollout_steps: int = 50
     arena_radius_m: float = 3.0
     #: random data: each random command is held 1..random_hold_steps steps, and this fraction
-    #: of them are forward commands (control.policies.SafeRandomPolicy) so the data covers
+    #: of them are forward commands (hilstack.control.policies.SafeRandomPolicy) so the data covers
     #: the speeds the evaluation asks for; 1 and 0.0 give the thesis' uniform steps
     random_hold_steps: int = 6
     random_forward_fraction: float = 0.6
@@ -82,7 +82,7 @@ class MbrlConfig:
     batch_size: int = 512
     input_noise_std: float = 0.01
     val_fraction: float = 0.1
-    #: learn in the robot's body frame (translation and heading invariance; learning.frames)
+    #: learn in the robot's body frame (translation and heading invariance; hilstack.learning.frames)
     body_frame: bool = True
     #: otherwise: inputs the model ignores (planar translation invariance)
     invariant_inputs: tuple[str, ...] = ("x", "y")
@@ -91,7 +91,7 @@ class MbrlConfig:
     samples: int = 500
     horizon: int = 4
     #: random shooting samples within the actuator's reachable set (the rig's rate limit
-    #: times the period, :class:`control.planners.RandomShooting` ``max_step``); False: the
+    #: times the period, :class:`hilstack.control.planners.RandomShooting` ``max_step``); False: the
     #: thesis' independent uniform steps
     reachable_set: bool = True
     # MBRL iterations: on-policy MPC rollouts on the paths, aggregated, warm-start retrain
@@ -101,7 +101,7 @@ class MbrlConfig:
     path_scale: float = 1.5
     speeds: dict[str, float] = field(default_factory=lambda: {"low_speed": 0.5, "high_speed": 1.0})
     #: the controllers track the path with its corners rounded to this radius (m,
-    #: control.paths.fillet): at a polyline's sharp corner the H-step MPC parks (docs/mbrl.md);
+    #: hilstack.control.paths.fillet): at a polyline's sharp corner the H-step MPC parks (docs/mbrl.md);
     #: episodes are scored on the original path. 0: track the polyline itself
     reference_corner_radius_m: float = 0.2
     #: time limit of an evaluation episode = path length / this speed (m/s): long enough for
@@ -112,7 +112,7 @@ class MbrlConfig:
     baseline_candidates: int = 24
     tune_paths: tuple[str, ...] = ("left", "zigzag", "figure8")
     tune_path_scale: float = 1.0
-    # the thesis' experiments with statistics (`hil demo --full`, learning.experiments):
+    # the thesis' experiments with statistics (`hil demo --full`, hilstack.learning.experiments):
     # any of "table_3_1", "speed_sweep", "table_3_2", each repeated for every seed in seeds
     experiments: tuple[str, ...] = ()
     seeds: tuple[int, ...] = (0, 1, 2)
@@ -180,7 +180,7 @@ def rig_processes(rig: str, bus: BusConfig, log_dir: Path) -> Iterator[subproces
     log_dir.mkdir(parents=True, exist_ok=True)
     err = open(log_dir / "driver.log", "w")  # noqa: SIM115 - closed below
     p = subprocess.Popen(
-        [sys.executable, "-m", "tools.cli", "up", rig, "--endpoint", bus.endpoint],
+        [sys.executable, "-m", "hilstack.tools.cli", "up", rig, "--endpoint", bus.endpoint],
         stdout=err,
         stderr=subprocess.STDOUT,
         # HIL_PARENT_PID: the rig stops itself if this process dies without stopping it
@@ -397,8 +397,8 @@ def command_delay_steps(rig: Any, robot: str) -> int:
     advances right after applying the command), 1 on wall-clock robots (real,
     emulated), whose driver node publishes the state of period k and applies the command
     planned from it at period k+1 (drivers/bridge.py). The MPC then plans from the state
-    its model predicts after the command already sent (:class:`control.policies.MpcPolicy`)."""
-    from configs.schema import rig_robot_config
+    its model predicts after the command already sent (:class:`hilstack.control.policies.MpcPolicy`)."""
+    from hilstack.configs.schema import rig_robot_config
 
     if rig.pace == "lockstep" or rig_robot_config(rig, robot).backend == "sim":
         return 0
@@ -751,12 +751,12 @@ class MbrlRun:
             self.recordings.append(str(eval_path))
 
             if cfg.experiments:
-                from learning.experiments import run_experiments
+                from hilstack.learning.experiments import run_experiments
 
                 report.update(run_experiments(self))
 
         if "table_3_2" in cfg.experiments:
-            from learning.experiments import table_3_2
+            from hilstack.learning.experiments import table_3_2
 
             high = cfg.speeds.get("high_speed", max(cfg.speeds.values()))
             report["table_3_2"] = table_3_2(self, cfg.seeds, cfg.terrains, cfg.terrain_rollouts, high)

@@ -6,7 +6,7 @@
     vs a damped-least-squares IK controller (gains tuned by a random search) and a
     random policy, on goals from the task distribution.
 
-Everything runs over the bus as in :mod:`learning.mbrl` (whose rig processes, episodes,
+Everything runs over the bus as in :mod:`hilstack.learning.mbrl` (whose rig processes, episodes,
 model and training this module calls): the arm's driver bridge in its own process, the
 controllers here. The drivers run at their own period (20 Hz); the policies act at the
 thesis' rates (WidowX 3.3 Hz, Sawyer 4 Hz, Zhao et al. / MELD, Nagabandi's thesis ch. 7)
@@ -17,7 +17,7 @@ step (``hold`` driver periods) ahead.
 Reward (thesis ch. 7, the simulated Sawyer tasks): ``r = −(d² + log(d + 1e-5))`` with
 ``d`` the end-effector distance to the goal [m]; MPC minimizes ``Σ_h d_h² + log(d_h + 1e-5)``
 over its horizon. The end effector comes from forward kinematics of the MuJoCo model
-(:class:`learning.kinematics.ChainKinematics`), never from the simulator's state, so the
+(:class:`hilstack.learning.kinematics.ChainKinematics`), never from the simulator's state, so the
 same code runs on a real arm. Success: ``d < 2 cm`` at the end of the 40-step episode.
 
 Goals: on the WidowX the task-reset mechanism (its own robot on the bus) is driven to a
@@ -38,15 +38,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from configs.schema import BusConfig
-from control.controller_node import ControllerNode
-from control.planners import CEM
-from control.policies import MpcPolicy
-from learning.datasets import Episode
-from learning.kinematics import ChainKinematics
-from learning.mbrl import MbrlConfig, MbrlRun, RigError, _jsonable, make_model, recording
-from learning.progress import progress
-from learning.recordings import episodes_from_mcap
+from hilstack.configs.schema import BusConfig
+from hilstack.control.controller_node import ControllerNode
+from hilstack.control.planners import CEM
+from hilstack.control.policies import MpcPolicy
+from hilstack.learning.datasets import Episode
+from hilstack.learning.kinematics import ChainKinematics
+from hilstack.learning.mbrl import MbrlConfig, MbrlRun, RigError, _jsonable, make_model, recording
+from hilstack.learning.progress import progress
+from hilstack.learning.recordings import episodes_from_mcap
 
 #: success: the end effector within this distance of the goal at the episode end [m]
 SUCCESS_M = 0.02
@@ -81,16 +81,16 @@ class ArmTask:
 
     def model(self):
         if self.name == "widowx":
-            from sim_backends.widowx.world import ArmWorld
+            from hilstack.sim_backends.widowx.world import ArmWorld
 
             return ArmWorld().model
-        from sim_backends.sawyer.model import build_model
+        from hilstack.sim_backends.sawyer.model import build_model
 
         return build_model()
 
 
 def widowx_task() -> ArmTask:
-    from drivers.widowx.config import JOINT_NAMES
+    from hilstack.drivers.widowx.config import JOINT_NAMES
 
     return ArmTask("widowx", "arm_widowx_sim", "arm", JOINT_NAMES, "ee", 0.3, mechanism="mechanism")
 
@@ -101,7 +101,7 @@ SAWYER_BOXES = ((-0.15, 0.75, 0.10), (0.0, 0.80, 0.10), (0.15, 0.75, 0.10))
 
 
 def sawyer_task() -> ArmTask:
-    from drivers.sawyer.config import JOINTS
+    from hilstack.drivers.sawyer.config import JOINTS
 
     return ArmTask("sawyer", "arm_sawyer_sim", "arm", JOINTS, "endEffector", 0.25, boxes=SAWYER_BOXES,
                    random_scaled=True)
@@ -449,14 +449,14 @@ class ReachRun:
                            action_dim=len(self.vel_limit), iterations=cfg.cem_iterations,
                            elites=max(1, min(n, round(cfg.cem_elites * n / cfg.samples))))
 
-            # wall-clock arms: the samples cut until the median plan fits the period (learning.mbrl)
+            # wall-clock arms: the samples cut until the median plan fits the period (hilstack.learning.mbrl)
             fitted = self.loop.realtime_samples(model, make=cem, cost=ReachCost(self.fk, np.zeros(3), self.n_joints))  # any goal times it
             planner = cem(cfg.samples if fitted is None else fitted)
             if self.loop.planner_fit is not None:
                 rep["planner_realtime"] = self.loop.planner_fit
             rand = RandomPolicy(len(self.vel_limit), self.seed + 1000)  # one stream: other actions every episode
             controllers = {
-                # wall-clock rigs: plan from the state after the command already sent (learning.mbrl)
+                # wall-clock rigs: plan from the state after the command already sent (hilstack.learning.mbrl)
                 "mpc": lambda goal: MpcPolicy(model, planner, ReachCost(self.fk, goal, self.n_joints),
                                               delay_steps=self.loop.command_delay),
                 "ik": lambda goal: IkController(self.fk, goal, self.vel_limit, **ik),

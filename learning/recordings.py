@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bus.recording import iter_messages
-from bus.schemas import ResetTransition, RobotState, SpecMsg
-from learning.datasets import Episode
+from hilstack.bus.recording import iter_messages
+from hilstack.bus.schemas import ResetTransition, RobotState, SpecMsg
+from hilstack.learning.datasets import Episode
 
 
 def episodes_from_mcap(

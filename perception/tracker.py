@@ -6,7 +6,7 @@ the hand frame and a confidence per ball out.
 * :class:`LearnedTracker`: a small dilated CNN (after KeypointNet) with a spatial-softmax
   keypoint head per ball, run on each view, then the same triangulation (the pair's
   disparity gives the depth). Trained on rendered images with domain randomisation
-  (:mod:`perception.train`); weights in ``perception/weights/``.
+  (:mod:`hilstack.perception.train`); weights in ``perception/weights/``.
 
 Confidence (both trackers) is in [0, 1]: how much of the ball each view sees (the blob
 area, or the network's visibility head) times how well the two views agree (the
@@ -26,7 +26,7 @@ from typing import Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from perception.geometry import StereoCalibration, apply, invert
+from hilstack.perception.geometry import StereoCalibration, apply, invert
 
 #: ball radius [m] (the thesis' Baoding balls; sim_backends/shadow_hand/model.py builds the same)
 BALL_RADIUS_M = 0.02
@@ -139,9 +139,9 @@ class ColorTracker:
 
 
 class LearnedTracker:
-    """The CNN keypoint tracker (:class:`perception.keypoint_net.KeypointNet`) on both views,
+    """The CNN keypoint tracker (:class:`hilstack.perception.keypoint_net.KeypointNet`) on both views,
     then stereo triangulation. ``weights``: a ``.pt`` file written by
-    ``python -m perception.train`` (default: the shipped ``perception/weights/keypoint_net.pt``).
+    ``python -m hilstack.perception.train`` (default: the shipped ``perception/weights/keypoint_net.pt``).
     """
 
     name = "learned"
@@ -150,7 +150,7 @@ class LearnedTracker:
                  reproj_sigma_px: float = 2.0):
         import torch
 
-        from perception.keypoint_net import load_keypoint_net
+        from hilstack.perception.keypoint_net import load_keypoint_net
 
         self.cal = calibration
         self.reproj_sigma_px = reproj_sigma_px

@@ -1,10 +1,10 @@
 """Train the keypoint CNN on rendered images with domain randomisation; write the weights.
 
-    MUJOCO_GL=egl python -m perception.train --out perception/weights/keypoint_net.pt
+    MUJOCO_GL=egl python -m hilstack.perception.train --out perception/weights/keypoint_net.pt
 
 (what made the shipped weights; see docs/camera.md for the numbers). No data is
 downloaded: every image is rendered from the MuJoCo hand scene with the stereo pair
-(:class:`sim_backends.shadow_hand.cameras.HandCameraScene`).
+(:class:`hilstack.sim_backends.shadow_hand.cameras.HandCameraScene`).
 
 Domain randomisation per rendered sample: finger poses about the hold pose (occlusions),
 ball positions over and beside the palm (6 % out of view, 10 % hidden under the hand), light and headlight
@@ -25,9 +25,9 @@ import mujoco
 import numpy as np
 import torch
 
-from perception.geometry import apply, cv_from_mujoco_cam, intrinsics_from_fovy, invert, project
-from perception.keypoint_net import KeypointNet, save_keypoint_net
-from perception.tracker import BALL_RADIUS_M
+from hilstack.perception.geometry import apply, cv_from_mujoco_cam, intrinsics_from_fovy, invert, project
+from hilstack.perception.keypoint_net import KeypointNet, save_keypoint_net
+from hilstack.perception.tracker import BALL_RADIUS_M
 
 
 @dataclass
@@ -46,7 +46,7 @@ def _small_rotation(rng: np.random.Generator, sigma_rad: float) -> np.ndarray:
 
 def render_dataset(n_pairs: int, seed: int = 0, scene=None, randomize: bool = True, log=None) -> Dataset:
     """``2·n_pairs`` labelled images (left and right views of ``n_pairs`` random scenes)."""
-    from sim_backends.shadow_hand.cameras import (
+    from hilstack.sim_backends.shadow_hand.cameras import (
         LEFT_CAMERA,
         PALM_CENTER_IN_HAND_M,
         RIGHT_CAMERA,
@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> None:
     ev = evaluate(net, held)
     print(f"trained in {time.monotonic() - t1:.0f} s; held out: {ev}")
     meta = {"pairs": a.pairs, "epochs": a.epochs, "seed": a.seed, "held_out": ev,
-            "command": f"python -m perception.train --pairs {a.pairs} --epochs {a.epochs} --seed {a.seed}"}
+            "command": f"python -m hilstack.perception.train --pairs {a.pairs} --epochs {a.epochs} --seed {a.seed}"}
     p = save_keypoint_net(net, a.out, meta)
     print(f"wrote {p} ({os.path.getsize(p) / 1024:.0f} KiB)")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from drivers.base import Driver
+from hilstack.drivers.base import Driver
 
 
 class LockstepSim(Driver):

@@ -9,9 +9,9 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from configs.schema import Params, RobotConfig, parse_params
-from drivers.base import Health, Observation, RobotSpec, Space
-from sim_backends.base import LockstepSim
+from hilstack.configs.schema import Params, RobotConfig, parse_params
+from hilstack.drivers.base import Health, Observation, RobotSpec, Space
+from hilstack.sim_backends.base import LockstepSim
 
 _XML = """
 <mujoco model="pointmass">

@@ -17,7 +17,7 @@ except ImportError:  # pragma: no cover
 @pytest.fixture
 def bus():
     """A private Zenoh rendezvous endpoint per test: tests never hear each other."""
-    from configs.schema import BusConfig
+    from hilstack.configs.schema import BusConfig
     from tests.helpers import free_port
 
     return BusConfig(endpoint=f"tcp/127.0.0.1:{free_port()}")

@@ -20,7 +20,7 @@ def free_port() -> int:
 class Proc:
     def __init__(self, args: list[str]):
         self.p = subprocess.Popen(
-            [sys.executable, "-m", "tools.cli", *args],
+            [sys.executable, "-m", "hilstack.tools.cli", *args],
             cwd=ROOT,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

@@ -6,7 +6,7 @@ import json
 
 from typer.testing import CliRunner
 
-from tools.cli import app
+from hilstack.tools.cli import app
 
 
 def test_help_lists_the_verbs():
@@ -29,9 +29,9 @@ def test_user_errors_are_one_line_exit_2():
 
 
 def _recording(path):
-    from bus import keys
-    from bus.recording import McapLog
-    from bus.schemas import Command, EStop, RobotState
+    from hilstack.bus import keys
+    from hilstack.bus.recording import McapLog
+    from hilstack.bus.schemas import Command, EStop, RobotState
 
     with McapLog(path) as log:
         for i in range(3):
@@ -42,8 +42,8 @@ def _recording(path):
 
 
 def test_replay_cli_says_what_it_left_out_and_refuses_a_live_rig(tmp_path, bus):
-    from bus import keys
-    from bus.node import Node
+    from hilstack.bus import keys
+    from hilstack.bus.node import Node
 
     path = _recording(tmp_path / "r.mcap")
     r = CliRunner().invoke(app, ["replay", str(path), "--speed", "0", "--endpoint", bus.endpoint])
@@ -135,8 +135,8 @@ def test_optional_packages_missing_say_which_extra(monkeypatch):
 
     import pytest
 
-    from drivers.mocap.natnet_client import NatNetPoseSource
-    from tools import bench_plan
+    from hilstack.drivers.mocap.natnet_client import NatNetPoseSource
+    from hilstack.tools import bench_plan
 
     monkeypatch.setitem(sys.modules, "natnet", None)  # import natnet -> ImportError
     monkeypatch.setitem(sys.modules, "pytorch_mppi", None)
@@ -172,8 +172,8 @@ def test_required_dependencies_are_imported_somewhere():
 def test_a_link_error_keeps_its_diagnosis_indented_below_the_one_line():
     import typer
 
-    from drivers.base import LinkError
-    from tools.common import user_errors
+    from hilstack.drivers.base import LinkError
+    from hilstack.tools.common import user_errors
 
     mini = typer.Typer()
 

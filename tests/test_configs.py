@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from configs.schema import ConfigError, load_rig, load_robot
-from drivers.registry import make_driver
+from hilstack.configs.schema import ConfigError, load_rig, load_robot
+from hilstack.drivers.registry import make_driver
 
 
 def _write(tmp_path, name, text):

@@ -11,8 +11,8 @@ import threading
 import numpy as np
 import pytest
 
-from drivers.base import FLAG_NAMES, CommandError, Lifecycle, LifecycleError
-from drivers.registry import make_driver
+from hilstack.drivers.base import FLAG_NAMES, CommandError, Lifecycle, LifecycleError
+from hilstack.drivers.registry import make_driver
 from tests.helpers import free_port
 
 # (robot config, backend, param overrides)
@@ -68,7 +68,7 @@ def _pose_stream(port: int, stop: threading.Event) -> None:
     """A mocap system on loopback: a rigid body moving along x, 500 Hz, stamped on its clock."""
     import time
 
-    from drivers.mocap.udp import PoseStreamServer
+    from hilstack.drivers.mocap.udp import PoseStreamServer
 
     t0 = time.monotonic()
     with PoseStreamServer("127.0.0.1", port, body_id=1) as srv:
@@ -206,7 +206,7 @@ def _run_behind_the_driver(robot: str, backend: str, driver, action: np.ndarray)
     elif (robot, backend) == ("velociroach", "sim"):
         driver.firmware.set_leg_velocity(action[0], action[1], driver.sim_time_s)
     elif (robot, backend) == ("velociroach", "emulated"):
-        from drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, MavEncoder
+        from hilstack.drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, MavEncoder
 
         # another base station's command: a cmd_seq this driver never sent
         frame = MavEncoder(BASE_SYSID, BASE_COMPID).leg_velocity(70000, action[0], action[1], driver.spec.action.high[0])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.base import Driver, Flag, Freshness, Inputs, Lifecycle, Observation, RobotSpec, Space
+from hilstack.drivers.base import Driver, Flag, Freshness, Inputs, Lifecycle, Observation, RobotSpec, Space
 
 
 class Fake(Driver):
@@ -224,7 +224,7 @@ def test_space_checks():
 
 
 def test_realtime_pacer_follows_the_wall_clock_and_slips_instead_of_bursting():
-    from sim_backends.base import RealtimePacer
+    from hilstack.sim_backends.base import RealtimePacer
 
     pacer = RealtimePacer(sim_time_s=5.0, tick_s=0.001, max_catchup_s=0.05, now_s=100.0)
     assert pacer.due(100.0, 5.0) == 0

@@ -11,8 +11,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bus import schemas
-from tools import fuzz
+from hilstack.bus import schemas
+from hilstack.tools import fuzz
 
 SETTINGS = settings(max_examples=300, deadline=None, derandomize=True, database=None,
                     suppress_health_check=[HealthCheck.too_slow])
@@ -51,8 +51,8 @@ def test_the_seeds_are_valid_input(target):
 
 def test_seeds_reach_past_the_checks():
     """The seeds decode to real frames and messages, so mutations start deep in the parser."""
-    from drivers.velociroach.link import XBeeDeframer
-    from drivers.velociroach.mavlink import MavDecoder
+    from hilstack.drivers.velociroach.link import XBeeDeframer
+    from hilstack.drivers.velociroach.mavlink import MavDecoder
 
     d = XBeeDeframer()
     assert sum(len(d.feed(s[2:], now_s=0.0)) for s in fuzz.seeds_xbee()) >= 20
@@ -81,7 +81,7 @@ def test_fuzz_bus_decoders(data):
 
 
 def test_a_non_utf8_string_is_a_malformed_message():
-    """Found by `hil bench fuzz`: msgspec let UnicodeDecodeError out of bus.schemas.decode."""
+    """Found by `hil bench fuzz`: msgspec let UnicodeDecodeError out of hilstack.bus.schemas.decode."""
     raw = bytes.fromhex("84a474797065aa68696c2e50696e0884a47479672f31")  # a Ping with a broken tag
     with pytest.raises(schemas.MalformedMessage):
         schemas.decode(raw, schemas.Ping)
@@ -92,7 +92,7 @@ def test_a_non_utf8_string_is_a_malformed_message():
 
 
 def test_the_mavlink_crc_fixer_makes_a_flipped_frame_decode():
-    from drivers.velociroach.mavlink import MavDecoder
+    from hilstack.drivers.velociroach.mavlink import MavDecoder
 
     frame = bytearray(fuzz._mav_seed_frames()[4])
     frame[14] ^= 0x10  # a payload bit: the CRC no longer matches
@@ -103,7 +103,7 @@ def test_the_mavlink_crc_fixer_makes_a_flipped_frame_decode():
 
 def test_a_broken_counter_is_caught_by_the_harness(monkeypatch):
     """Break the deframer's bookkeeping on purpose: the harness must call it a crash."""
-    from drivers.velociroach.link import XBeeDeframer
+    from hilstack.drivers.velociroach.link import XBeeDeframer
 
     def bad_without_kind(self, kind, why):  # counts the total but forgets the kind
         self.corrupt += 1
@@ -117,7 +117,7 @@ def test_a_broken_counter_is_caught_by_the_harness(monkeypatch):
 
 
 def test_a_decoder_that_loses_count_is_caught(monkeypatch):
-    from drivers.velociroach.mavlink import MavDecoder
+    from hilstack.drivers.velociroach.mavlink import MavDecoder
 
     monkeypatch.setattr(MavDecoder, "_fail", lambda self, why: None)
     with pytest.raises(fuzz.InvariantBroken, match="frames decoded"):

@@ -9,7 +9,7 @@ import subprocess
 import sys
 import textwrap
 
-from bus.node import Node, alive_nodes
+from hilstack.bus.node import Node, alive_nodes
 from tests.helpers import wait_for
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -29,8 +29,8 @@ def test_a_killed_demo_does_not_leave_its_rig_running(bus, tmp_path):
     code = textwrap.dedent(f"""
         import sys, time
         from pathlib import Path
-        from configs.schema import BusConfig
-        from learning.mbrl import rig_processes
+        from hilstack.configs.schema import BusConfig
+        from hilstack.learning.mbrl import rig_processes
         with rig_processes("roach_sim", BusConfig(endpoint={bus.endpoint!r}), Path({str(tmp_path)!r})) as p:
             print(p.pid, flush=True)
             time.sleep(600)

@@ -38,19 +38,19 @@ import numpy as np
 import torch
 import yaml
 
-from bus import keys
-from bus.node import alive_nodes
-from bus.schemas import ModelUpdate
-from configs.schema import BusConfig, load_rig, rig_robot_config
-from control.adaptation_node import ModelSwap, last_layer
-from control.controller_node import ControllerNode
-from control.policies import SafeRandomPolicy
-from drivers.registry import make_driver
-from learning.adaptation import load_adapter
-from learning.adaptation.grbal import GrbalAdapter
-from learning.adaptation.model import AdaptiveMLP
-from learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from tools.bench_bus import free_port, run_bench_bus
+from hilstack.bus import keys
+from hilstack.bus.node import alive_nodes
+from hilstack.bus.schemas import ModelUpdate
+from hilstack.configs.schema import BusConfig, load_rig, rig_robot_config
+from hilstack.control.adaptation_node import ModelSwap, last_layer
+from hilstack.control.controller_node import ControllerNode
+from hilstack.control.policies import SafeRandomPolicy
+from hilstack.drivers.registry import make_driver
+from hilstack.learning.adaptation import load_adapter
+from hilstack.learning.adaptation.grbal import GrbalAdapter
+from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
+from hilstack.tools.bench_bus import free_port, run_bench_bus
 
 PAYLOADS = ("full", "last_layer", "context")
 #: channels of a planar robot (body-frame model, the safe random policy's arena)
@@ -74,7 +74,7 @@ def write_checkpoints(out: Path, state_names: list[str], action_dim: int, hidden
 
 
 def _cli(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "tools.cli", *args], stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-m", "hilstack.tools.cli", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 

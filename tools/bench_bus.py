@@ -16,10 +16,10 @@ import time
 
 import numpy as np
 
-from bus.node import Node
-from bus.schemas import Ping
-from bus.session import open_session
-from configs.schema import BusConfig
+from hilstack.bus.node import Node
+from hilstack.bus.schemas import Ping
+from hilstack.bus.session import open_session
+from hilstack.configs.schema import BusConfig
 
 PING, PONG = "hil/bench/ping", "hil/bench/pong"
 
@@ -114,7 +114,7 @@ def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: in
         for mode in ("raw", "node"):
             ep = f"tcp/127.0.0.1:{free_port()}"
             proc = subprocess.Popen(
-                [sys.executable, "-m", "tools.bench_bus", "pong", mode, ep],
+                [sys.executable, "-m", "hilstack.tools.bench_bus", "pong", mode, ep],
                 stdout=subprocess.PIPE,
                 text=True,
                 env={**os.environ, "PYTHONUNBUFFERED": "1"},

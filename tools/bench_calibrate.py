@@ -67,7 +67,7 @@ def _axis_files(case: str, seed: int, hidden: bool, out: Path) -> tuple[Path, st
     """Write the case's data as a CSV; returns (path, column map)."""
     import pandas as pd
 
-    from calibration.synthetic import SynthConfig, generate, write_csv
+    from hilstack.calibration.synthetic import SynthConfig, generate, write_csv
 
     rng = np.random.default_rng(10_000 + seed)
     path = out / "data.csv"
@@ -121,8 +121,8 @@ def _axis_files(case: str, seed: int, hidden: bool, out: Path) -> tuple[Path, st
 
 def run_case(case: str, seed: int, hidden: bool, root: str, n_boot: int = 25) -> dict:
     """Generate, write and calibrate one case; returns a row of the gauntlet table."""
-    from calibration import DataError, run_calibration
-    from calibration.selection import SelectionConfig
+    from hilstack.calibration import DataError, run_calibration
+    from hilstack.calibration.selection import SelectionConfig
 
     out = Path(root) / case / f"seed{seed}_{'effect' if hidden else 'clean'}"
     out.mkdir(parents=True, exist_ok=True)
@@ -131,7 +131,7 @@ def run_case(case: str, seed: int, hidden: bool, root: str, n_boot: int = 25) ->
     row = {"case": case, "seed": seed, "hidden": hidden, "truth": spec.truth if hidden else None}
     try:
         if spec.model == "velociroach":
-            from calibration.synthetic_velociroach import RoachSynthConfig, generate, write_mcap
+            from hilstack.calibration.synthetic_velociroach import RoachSynthConfig, generate, write_mcap
 
             eps = generate(RoachSynthConfig(n_episodes=10, seed=seed, hidden={"payload_kg": 0.04} if hidden else {}))
             path, cmap = write_mcap(eps, out / "data.mcap"), None
@@ -168,7 +168,7 @@ def run_bench_calibrate(seeds: int = 20, cases: list[str] | None = None, out_dir
     if unknown:
         raise KeyError(f"unknown case(s) {unknown}; known: {', '.join(CASES)}")
     # Seed-major order, every row appended to rows.jsonl as it finishes: a run stopped early leaves
-    # the same number of seeds for every case, and `python -m tools.bench_calibrate --summarize DIR`
+    # the same number of seeds for every case, and `python -m hilstack.tools.bench_calibrate --summarize DIR`
     # tabulates it.
     jobs = [(c, s, h, str(out_dir), n_boot) for s in range(first_seed, first_seed + seeds) for c in names
             for h in (True, False)]

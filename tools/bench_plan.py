@@ -6,11 +6,11 @@ Workloads (the two systems of the research):
   path-following cost on a figure-8.
 * **B** Shadow Hand / PDDM: state 40, action 24, ensemble of 3, 700 samples, horizon 7, PDDM
   (γ=20, β=0.7), quadratic goal cost on the first 6 state channels (two ball positions).
-* **baoding**: the planner and ensemble exactly as ``control.planners.BAODING_PDDM``
+* **baoding**: the planner and ensemble exactly as ``hilstack.control.planners.BAODING_PDDM``
   configures them (the one definition the Baoding demo uses): state 54, action 20, the same
   PDDM settings as B, quadratic goal cost on the two balls (the last 6 state channels).
 
-All use a 2x500 ReLU MLP (:class:`learning.dynamics.EnsembleDynamics`, random init).
+All use a 2x500 ReLU MLP (:class:`hilstack.learning.dynamics.EnsembleDynamics`, random init).
 The peer is ``pytorch_mppi.MPPI`` with the same cost (as its ``terminal_state_cost``,
 which receives the whole predicted trajectory), the same samples, horizon and noise σ,
 ``lambda_ = 1/γ`` (which gives the same e^{γ(R - max R)} weights), and for the ensemble
@@ -26,7 +26,7 @@ ratio says how much of the machine's matmul rate the planner gets under today's 
 
 ``run_bench_plan`` returns latency percentiles in milliseconds over ``calls`` planning calls
 after ``warmup`` calls. Use it through ``hil bench plan --json`` or
-``python -m tools.bench_plan``.
+``python -m hilstack.tools.bench_plan``.
 """
 
 from __future__ import annotations
@@ -41,10 +41,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from control.costs import PathCost
-from control.paths import make_path
-from control.planners import BAODING_PDDM, PDDM, RandomShooting
-from learning.dynamics import EnsembleDynamics, cpu_bf16_support
+from hilstack.control.costs import PathCost
+from hilstack.control.paths import make_path
+from hilstack.control.planners import BAODING_PDDM, PDDM, RandomShooting
+from hilstack.learning.dynamics import EnsembleDynamics, cpu_bf16_support
 
 __all__ = ["run_bench_plan", "WORKLOADS", "plan_flops", "PlainEnsemble"]
 

@@ -6,7 +6,7 @@ steps of 1 ms), on one core. The peer is raw ``mujoco.mj_step`` on the same mode
 constant motor voltage (no Python in the loop): the ceiling the backend's Python
 firmware/motor loop is measured against.
 
-Use ``hil bench sim`` or ``python -m tools.bench_sim [seconds]``; ``profile=True`` adds
+Use ``hil bench sim`` or ``python -m hilstack.tools.bench_sim [seconds]``; ``profile=True`` adds
 the top cProfile entries (cumulative) of the contract loop.
 """
 
@@ -33,8 +33,8 @@ def run_bench_sim(seconds_of_robot_time: float = 60.0, terrain: str = "carpet", 
     """Run the benchmark; returns realtime factors, wall and robot seconds, steps per second."""
     import mujoco
 
-    from drivers.velociroach.config import VelociRoachParams
-    from sim_backends.velociroach.backend import VelociRoachSim
+    from hilstack.drivers.velociroach.config import VelociRoachParams
+    from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
     _one_core()
     sim = VelociRoachSim(VelociRoachParams(sim={"terrain": terrain, "seed": seed}))

@@ -1,7 +1,7 @@
 """`hil bench tracker`: the ball trackers on rendered Baoding motion with ground truth.
 
 Scene: the MuJoCo hand at its hold pose with the 280×180 stereo pair (12 cm baseline),
-the balls on a scripted Baoding turn (:func:`sim_backends.shadow_hand.cameras.baoding_motion`)
+the balls on a scripted Baoding turn (:func:`hilstack.sim_backends.shadow_hand.cameras.baoding_motion`)
 while the fingers move about the hold pose (partial occlusions). Every frame is rendered
 once (*capture*, MuJoCo's offscreen renderer standing in for the cameras) and given to
 each tracker (*inference*: segmentation or CNN, then triangulation). Per tracker:
@@ -42,8 +42,8 @@ def run_bench_tracker(seconds: float = 5.0, period_s: float = 0.1, trackers: tup
     os.environ.setdefault("MUJOCO_GL", "egl")
     import torch
 
-    from perception.tracker import make_tracker
-    from sim_backends.shadow_hand.cameras import HandCameraScene, baoding_motion
+    from hilstack.perception.tracker import make_tracker
+    from hilstack.sim_backends.shadow_hand.cameras import HandCameraScene, baoding_motion
 
     torch.set_num_threads(1)  # what the tracker gets in a rig beside the planner
     scene = HandCameraScene()
@@ -119,8 +119,8 @@ def closed_loop(seconds: float = 3.0, trackers: tuple[str, ...] = ("color", "lea
     move the balls' centroid, as the controller sees it, towards the targets' centroid,
     holding the fingers. The return is the Baoding reward (−5·Σ‖ball − target‖ − 500·drop,
     computed from the simulator's truth) summed over the episode's 10 Hz steps."""
-    from drivers.shadow_hand.config import ShadowHandParams
-    from sim_backends.shadow_hand.backend import ShadowHandSim
+    from hilstack.drivers.shadow_hand.config import ShadowHandParams
+    from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
 
     out: dict[str, Any] = {"seconds": seconds, "controller": "wrist P on the ball centroid", "gain": gain}
     for source in ("truth", *trackers):

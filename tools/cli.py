@@ -25,16 +25,16 @@ app = typer.Typer(
 
 # Order is the order `hil --help` lists them.
 _VERB_MODULES = [
-    "tools.cmd_demo",
-    "tools.cmd_drive",
-    "tools.cmd_mpc",
-    "tools.cmd_adapt",
-    "tools.cmd_record",
-    "tools.cmd_viz",
-    "tools.cmd_calibrate",
-    "tools.cmd_data",
-    "tools.cmd_bench",
-    "tools.cmd_misc",
+    "hilstack.tools.cmd_demo",
+    "hilstack.tools.cmd_drive",
+    "hilstack.tools.cmd_mpc",
+    "hilstack.tools.cmd_adapt",
+    "hilstack.tools.cmd_record",
+    "hilstack.tools.cmd_viz",
+    "hilstack.tools.cmd_calibrate",
+    "hilstack.tools.cmd_data",
+    "hilstack.tools.cmd_bench",
+    "hilstack.tools.cmd_misc",
 ]
 
 def version() -> str:

@@ -6,12 +6,12 @@ from pathlib import Path
 
 import typer
 
-from tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
 
 
 def send_names(send: str, adapter) -> list[str] | None:
     """``--send``: ``all`` (None), ``last_layer`` or comma-separated parameter names."""
-    from control.adaptation_node import last_layer
+    from hilstack.control.adaptation_node import last_layer
 
     if send == "all":
         return None
@@ -45,9 +45,9 @@ def register(app: typer.Typer) -> None:
         """Online adaptation on the bus: adapts the model from the robot's last M transitions at
         every control step and publishes it on hil/<rig>/model/update (`hil mpc --adapt` swaps
         it in between plans). Runs until Ctrl-C; prints what it learned from and what it skipped."""
-        from configs.schema import load_rig
-        from control.adaptation_node import AdaptationNode
-        from learning.adaptation import load_adapter
+        from hilstack.configs.schema import load_rig
+        from hilstack.control.adaptation_node import AdaptationNode
+        from hilstack.learning.adaptation import load_adapter
 
         cfg = load_rig(rig)
         robot = robot or next(iter(cfg.robots))

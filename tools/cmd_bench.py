@@ -7,7 +7,7 @@ import json
 
 import typer
 
-from tools.common import UserError, echo_json, user_errors
+from hilstack.tools.common import UserError, echo_json, user_errors
 
 bench_app = typer.Typer(help="Benchmarks (ratios against a peer in the same run).", no_args_is_help=True)
 
@@ -19,7 +19,7 @@ def bench_bus(
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """Ping-pong latency: hilstack node layer vs raw zenoh-python (64 B and 4 KB)."""
-    from tools.bench_bus import run_bench_bus
+    from hilstack.tools.bench_bus import run_bench_bus
 
     r = run_bench_bus(n=n)
     if json_out:
@@ -35,7 +35,7 @@ def bench_plan(
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """Planner timing on workloads A, B and baoding vs pytorch-mppi's MPPI (our model and a plain nn.Sequential one)."""
-    from tools.bench_plan import run_bench_plan
+    from hilstack.tools.bench_plan import run_bench_plan
 
     r = run_bench_plan(calls=calls)
     echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
@@ -48,7 +48,7 @@ def bench_sim(
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """VelociRoACH sim speed in lockstep vs raw mj_step on the same model."""
-    from tools.bench_sim import run_bench_sim
+    from hilstack.tools.bench_sim import run_bench_sim
 
     r = run_bench_sim(seconds_of_robot_time=seconds)
     echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
@@ -63,7 +63,7 @@ def bench_adaptation(
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """State stamp → adapted model built at the MPC (p50/p99) per payload, vs raw Zenoh of the same bytes."""
-    from tools.bench_adaptation import PAYLOADS, run_bench_adaptation
+    from hilstack.tools.bench_adaptation import PAYLOADS, run_bench_adaptation
 
     bad = [p for p in payload or [] if p not in PAYLOADS]
     if bad:
@@ -89,7 +89,7 @@ def bench_fuzz(
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """Fuzz the XBee deframer, the MAVLink decoder and the bus decoders (atheris); exit 1 on a crash."""
-    from tools.fuzz import TARGETS, run_bench_fuzz
+    from hilstack.tools.fuzz import TARGETS, run_bench_fuzz
 
     if n < 1:
         raise UserError(f"--n must be at least 1, got {n}")
@@ -120,7 +120,7 @@ def bench_calibrate(
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """Realistic-data gauntlet for `hil calibrate`: hits, misses and false alarms over seeds."""
-    from tools.bench_calibrate import format_table, run_bench_calibrate
+    from hilstack.tools.bench_calibrate import format_table, run_bench_calibrate
 
     try:
         r = run_bench_calibrate(seeds=seeds, cases=cases.split(",") if cases else None, out_dir=out, workers=workers,
@@ -141,7 +141,7 @@ def bench_tracker(
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """Ball trackers on rendered Baoding motion: error vs truth and latency; learned vs colour, vs the thesis."""
-    from tools.bench_tracker import run_bench_tracker
+    from hilstack.tools.bench_tracker import run_bench_tracker
 
     r = run_bench_tracker(seconds=seconds, closed_loop_s=closed_loop_s)
     echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))

@@ -23,7 +23,7 @@ def register(app: typer.Typer) -> None:
         epochs: int | None = typer.Option(None, "--epochs",
                                           help="checkpoint: training epochs of every retrain (default 40)"),
         actions: str | None = typer.Option(
-            None, "--actions", help="checkpoint + .mcap: actions 'normalized' to [-1, 1] of the spec (learning.mbrl, "
+            None, "--actions", help="checkpoint + .mcap: actions 'normalized' to [-1, 1] of the spec (hilstack.learning.mbrl, "
                                     "default) or 'raw' robot units, as the checkpoint was trained"),
         column_map: str | None = typer.Option(
             None, "--map",
@@ -41,7 +41,7 @@ def register(app: typer.Typer) -> None:
         quiet: bool = typer.Option(False, "--quiet", help="no progress on stderr"),
     ) -> None:
         """Replay measured commands through the model, test the effect catalogue, report before/after."""
-        from calibration import DataError, ModelNotAvailable, UnknownModel, run_calibration
+        from hilstack.calibration import DataError, ModelNotAvailable, UnknownModel, run_calibration
 
         if sg_window is not None and (sg_window < 5 or sg_window % 2 == 0):
             _fail("--sg-window must be an odd number of samples >= 5")
@@ -123,8 +123,8 @@ def register(app: typer.Typer) -> None:
         against the exact camera model."""
         import numpy as np
 
-        from calibration.camera import CalibrationError, calibrate_from_images, calibrate_rendered
-        from calibration.camera.stereo import BoardModel
+        from hilstack.calibration.camera import CalibrationError, calibrate_from_images, calibrate_rendered
+        from hilstack.calibration.camera.stereo import BoardModel
 
         try:
             if images is None:
@@ -140,7 +140,7 @@ def register(app: typer.Typer) -> None:
                 if fixture_pose is not None:
                     import cv2
 
-                    from perception.geometry import homogeneous
+                    from hilstack.perception.geometry import homogeneous
 
                     try:
                         v = [float(x) for x in fixture_pose.split(",")]

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import typer
 
-from tools.common import EXIT_RUNTIME, UserError, echo_json, one_line, user_errors
+from hilstack.tools.common import EXIT_RUNTIME, UserError, echo_json, one_line, user_errors
 
 data_app = typer.Typer(help="Public data sets used by the examples (checksummed, cached).", no_args_is_help=True)
 
@@ -25,7 +25,7 @@ def emps(
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """The EMPS ball-screw axis data (real measurements): find or download, check, convert."""
-    from calibration.emps import DataError, DataNotFound, emps_to_csv, fetch_emps
+    from hilstack.calibration.emps import DataError, DataNotFound, emps_to_csv, fetch_emps
 
     try:
         d = fetch_emps(base_url=url, offline=offline)

@@ -6,15 +6,15 @@ from pathlib import Path
 
 import typer
 
-from tools.common import UserError, user_errors
+from hilstack.tools.common import UserError, user_errors
 
 #: The demos besides the roach MBRL one: name → (module, function, one-line help). Each
 #: function takes ``(out, quick=, full=, seed=)`` and prints its own summary.
 OTHER_DEMOS: dict[str, tuple[str, str, str]] = {
-    "transfer": ("tools.demo_transfer", "cli_transfer", "SIDM and GAT/GARAT (docs/transfer.md)"),
-    "adaptation": ("tools.demo_adaptation", "cli_adaptation", "GrBAL, ReBAL, MB+DE, MOLe (docs/adaptation.md)"),
-    "baoding": ("tools.demo_baoding", "cli_baoding", "PDDM on the Shadow Hand's Baoding balls (docs/baoding.md)"),
-    "arms": ("tools.demo_arms", "cli_arms", "reach with a learned model + MPC vs IK and random, WidowX and Sawyer (docs/arms.md)"),
+    "transfer": ("hilstack.tools.demo_transfer", "cli_transfer", "SIDM and GAT/GARAT (docs/transfer.md)"),
+    "adaptation": ("hilstack.tools.demo_adaptation", "cli_adaptation", "GrBAL, ReBAL, MB+DE, MOLe (docs/adaptation.md)"),
+    "baoding": ("hilstack.tools.demo_baoding", "cli_baoding", "PDDM on the Shadow Hand's Baoding balls (docs/baoding.md)"),
+    "arms": ("hilstack.tools.demo_arms", "cli_arms", "reach with a learned model + MPC vs IK and random, WidowX and Sawyer (docs/arms.md)"),
 }
 
 
@@ -57,8 +57,8 @@ def register(app: typer.Typer) -> None:
             return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed, **kw)
         if what != "roach":
             raise UserError(f"hil demo: unknown demo {what!r} ({' | '.join(['roach', *OTHER_DEMOS])})")
-        from learning.mbrl import RigError
-        from tools.demo import run_demo
+        from hilstack.learning.mbrl import RigError
+        from hilstack.tools.demo import run_demo
 
         variant: dict = {}
         if world_frame:

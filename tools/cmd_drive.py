@@ -23,7 +23,7 @@ from typing import Any
 
 import typer
 
-from tools.common import UserError, echo_json, user_errors
+from hilstack.tools.common import UserError, echo_json, user_errors
 
 
 def parse_action(text: str, dim: int, names: tuple[str, ...]) -> list[float]:
@@ -64,7 +64,7 @@ def drive_run(robot: str, backend: str | None, action: str | None, seconds: floa
     emulated backends of a MAVLink robot; the sim backend has no link)."""
     import numpy as np
 
-    from drivers.registry import make_driver
+    from hilstack.drivers.registry import make_driver
 
     if not (seconds > 0 and math.isfinite(seconds)):
         raise UserError(f"--seconds must be a positive number, got {seconds}")
@@ -157,7 +157,7 @@ def register(app: typer.Typer) -> None:
         seconds: float = typer.Option(3.0, "--seconds", help="how long to drive [s] (sim: simulated seconds)"),
         port: str = typer.Option(None, "--port", help="serial port of the radio (real backend), e.g. /dev/ttyUSB0"),
         tlog: str = typer.Option(None, "--tlog", help="append every MAVLink frame to this .tlog "
-                                 "(emulated/real backends; read it with `python -m drivers.velociroach.mavlink dump`)"),
+                                 "(emulated/real backends; read it with `python -m hilstack.drivers.velociroach.mavlink dump`)"),
         json_out: bool = typer.Option(False, "--json", help="print one JSON line"),
     ) -> None:
         """Drive a robot open loop and report distance, final pose and link statistics."""

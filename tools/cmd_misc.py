@@ -9,7 +9,7 @@ import sys
 
 import typer
 
-from tools.common import (
+from hilstack.tools.common import (
     PARENT_PID_ENV,
     EndpointOpt,
     UserError,
@@ -27,9 +27,9 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
     import signal
     import threading
 
-    from configs.schema import rig_robot_config
-    from drivers.bridge import DriverNode
-    from drivers.registry import make_driver
+    from hilstack.configs.schema import rig_robot_config
+    from hilstack.drivers.bridge import DriverNode
+    from hilstack.drivers.registry import make_driver
 
     nodes = [DriverNode(make_driver(rig_robot_config(cfg, n)), cfg.name, n, bus, watchdog_periods=cfg.watchdog_periods,
                         pace=cfg.pace, handle_signals=False) for n in names]
@@ -80,9 +80,9 @@ def register(app: typer.Typer) -> None:
         endpoint: str = EndpointOpt,
     ) -> None:
         """Bring a rig's robots onto the bus (one driver bridge node per robot)."""
-        from configs.schema import load_rig, rig_robot_config
-        from drivers.bridge import DriverNode
-        from drivers.registry import make_driver
+        from hilstack.configs.schema import load_rig, rig_robot_config
+        from hilstack.drivers.bridge import DriverNode
+        from hilstack.drivers.registry import make_driver
 
         setup_logging()
         exit_with_parent()
@@ -97,7 +97,7 @@ def register(app: typer.Typer) -> None:
             # one process per robot: a slow or failing driver cannot stall another; except a
             # sim that works in another sim's world (the hand's reset arm in the hand's
             # scene): the rig's sim robots then run together, in one process
-            from drivers.registry import resolve
+            from hilstack.drivers.registry import resolve
 
             sims = [n for n in names if cfg.robots[n].backend == "sim"]
             if any(getattr(resolve(rig_robot_config(cfg, n).robot, "sim"), "world_follower", False) for n in sims):
@@ -105,7 +105,7 @@ def register(app: typer.Typer) -> None:
         if len(groups) > 1:
             procs = []
             for g in groups:
-                cmd = [sys.executable, "-m", "tools.cli", "up", rig, "--robot", ",".join(g)]
+                cmd = [sys.executable, "-m", "hilstack.tools.cli", "up", rig, "--robot", ",".join(g)]
                 if steps:
                     cmd += ["--steps", str(steps)]
                 if endpoint:
@@ -166,8 +166,8 @@ def register(app: typer.Typer) -> None:
         Exit 0: every driver node alive on the rig acknowledged. Exit 1: none did, or
         some did not, within --timeout-s (the message names the rig and the nodes).
         """
-        from bus.estop import command_estop
-        from bus.node import Node
+        from hilstack.bus.estop import command_estop
+        from hilstack.bus.node import Node
 
         if not timeout_s > 0:
             raise UserError("--timeout-s must be > 0")
@@ -203,8 +203,8 @@ def register(app: typer.Typer) -> None:
         endpoint: str = EndpointOpt,
     ) -> None:
         """List the nodes alive on a rig (liveliness tokens) and the e-stop each one holds."""
-        from bus.estop import query_latches
-        from bus.node import Node, alive_nodes
+        from hilstack.bus.estop import query_latches
+        from hilstack.bus.node import Node, alive_nodes
 
         node = Node("nodes-cli", rig, bus_config(endpoint), handle_signals=False)
         try:

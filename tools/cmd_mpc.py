@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -38,13 +38,13 @@ def register(app: typer.Typer) -> None:
 
         import numpy as np
 
-        from configs.schema import load_rig
-        from control.controller_node import ControllerNode
-        from control.costs import PathCost, evaluate_path_following
-        from control.paths import fillet, make_path
-        from control.policies import MpcPolicy
-        from learning.frames import load_dynamics
-        from learning.mbrl import (
+        from hilstack.configs.schema import load_rig
+        from hilstack.control.controller_node import ControllerNode
+        from hilstack.control.costs import PathCost, evaluate_path_following
+        from hilstack.control.paths import fillet, make_path
+        from hilstack.control.policies import MpcPolicy
+        from hilstack.learning.frames import load_dynamics
+        from hilstack.learning.mbrl import (
             MbrlConfig,
             PathEnd,
             command_delay_steps,
@@ -70,7 +70,7 @@ def register(app: typer.Typer) -> None:
             raise UserError(str(e)) from None
         adapter = swap = None
         if adapt is not None:
-            from learning.adaptation import load_adapter
+            from hilstack.learning.adaptation import load_adapter
 
             try:
                 adapter = load_adapter(adapt, method)
@@ -81,9 +81,9 @@ def register(app: typer.Typer) -> None:
         bus = bus_config(endpoint) if endpoint else cfg.bus
         with ControllerNode(cfg.name, robot, bus, name="mpc", state_timeout_s=10.0) as ctl:
             if adapter is not None:
-                from bus import keys
-                from bus.schemas import ModelUpdate
-                from control.adaptation_node import ModelSwap
+                from hilstack.bus import keys
+                from hilstack.bus.schemas import ModelUpdate
+                from hilstack.control.adaptation_node import ModelSwap
 
                 swap = ModelSwap(adapter, ctl.subscribe(keys.model_update(cfg.name), ModelUpdate))
                 dyn = SimpleNamespace(predict=swap.initial())

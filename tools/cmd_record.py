@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -24,7 +24,7 @@ def register(app: typer.Typer) -> None:
         endpoint: str = EndpointOpt,
     ) -> None:
         """Record every message of a rig to one MCAP file (a crash loses at most the last 0.5 s)."""
-        from bus.recording import Recorder
+        from hilstack.bus.recording import Recorder
 
         out = out or Path("recordings") / f"{rig}-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
         try:
@@ -50,7 +50,7 @@ def register(app: typer.Typer) -> None:
         endpoint: str = EndpointOpt,
     ) -> None:
         """Live view of a rig in Foxglove (WebSocket server; robots in the 3D panel)."""
-        from tools.foxglove_live import FoxgloveLive
+        from hilstack.tools.foxglove_live import FoxgloveLive
 
         if not 0 <= port <= 65535:
             raise UserError(f"--port {port}: expected 0..65535")
@@ -82,8 +82,8 @@ def register(app: typer.Typer) -> None:
 
         Refuses when the target rig has live driver nodes, unless --force.
         """
-        from bus.recording import ReplayRefused, topic_filter
-        from bus.recording import replay as do_replay
+        from hilstack.bus.recording import ReplayRefused, topic_filter
+        from hilstack.bus.recording import replay as do_replay
 
         if speed < 0:
             raise UserError("--speed must be >= 0")
@@ -116,7 +116,7 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(..., "--out", help="the repaired copy (a new file)"),
     ) -> None:
         """Copy a crashed recording into a finished MCAP file that every tool opens."""
-        from bus.recording import repair as do_repair
+        from hilstack.bus.recording import repair as do_repair
 
         if out.exists() and out.resolve() == path.resolve():
             raise UserError(f"--out {out} is the recording itself; write the repaired copy to another file")
@@ -131,7 +131,7 @@ def register(app: typer.Typer) -> None:
         json_out: bool = typer.Option(False, "--json", help="one JSON object on stdout"),
     ) -> None:
         """Summarise a recording: channels, counts, rates, gaps."""
-        from bus.recording import summarize
+        from hilstack.bus.recording import summarize
 
         s = summarize(path)
         if json_out:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from tools.common import EndpointOpt, UserError, bus_config, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, bus_config, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -24,7 +24,7 @@ def register(app: typer.Typer) -> None:
 
         Live: `hil viz --rig NAME --spawn` (viewer), `--save out.rrd` (headless), or
         neither (serves gRPC; connect a viewer with `rerun --connect`)."""
-        from tools.viz import viz_live, viz_recording
+        from hilstack.tools.viz import viz_live, viz_recording
 
         if recording is not None:
             if save is None:

@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 
 import typer
 
-from configs.schema import BusConfig, ConfigError
+from hilstack.configs.schema import BusConfig, ConfigError
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -65,7 +65,7 @@ def user_errors(fn: F) -> F:
     """Expected failures as one line on stderr, no traceback. Exit 2: the input is wrong
     (argument, config, missing file, a command the contract refuses). Exit 1: the robot,
     its link or the rig failed while running (the robot's safety has stopped it)."""
-    from drivers.base import CommandError, LifecycleError, LinkError
+    from hilstack.drivers.base import CommandError, LifecycleError, LinkError
 
     @functools.wraps(fn)
     def wrapper(*a: Any, **kw: Any) -> Any:

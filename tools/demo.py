@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import BusConfig
-from learning.mbrl import MbrlConfig, MbrlRun
+from hilstack.configs.schema import BusConfig
+from hilstack.learning.mbrl import MbrlConfig, MbrlRun
 
 
 def free_endpoint() -> str:
@@ -33,7 +33,7 @@ QUICK_WALL_CLOCK: dict[str, Any] = {"baseline_candidates": 6}
 
 def quick_wall_clock(rig: str) -> dict[str, Any]:
     """The ``--quick`` overrides for ``rig``: :data:`QUICK_WALL_CLOCK` unless it runs in lockstep."""
-    from configs.schema import load_rig
+    from hilstack.configs.schema import load_rig
 
     return {} if load_rig(rig).pace == "lockstep" else dict(QUICK_WALL_CLOCK)
 
@@ -41,7 +41,7 @@ def quick_wall_clock(rig: str) -> dict[str, Any]:
 def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full: bool = False,
              **overrides: Any) -> dict[str, Any]:
     """Run the MBRL loop (``quick``: the README's few-minute run; ``full``: also the thesis'
-    experiments over seeds, :mod:`learning.experiments`) and write the report to ``out``."""
+    experiments over seeds, :mod:`hilstack.learning.experiments`) and write the report to ``out``."""
     if quick and full:
         raise ValueError("choose --quick or --full, not both")
     out = Path(out)
@@ -60,7 +60,7 @@ def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full:
     report["created"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     plots = write_plots(report, out)
     report["plots"] = plots
-    from tools.viz import viz_recording
+    from hilstack.tools.viz import viz_recording
 
     eval_rec = next((r for r in report["recordings"] if "eval" in r), None)
     if eval_rec:

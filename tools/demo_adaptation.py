@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from learning.adaptation.experiment import METHODS, SWITCHING_METHODS, AdaptationConfig, run
+from hilstack.learning.adaptation.experiment import METHODS, SWITCHING_METHODS, AdaptationConfig, run
 
 
 def config_for(quick: bool, full: bool, tiny: bool = False, seed: int = 0, **overrides: Any) -> AdaptationConfig:
@@ -109,9 +109,9 @@ def ranking_line(r: dict[str, Any], other: str, method: str = "grbal") -> str:
 
 def report_from_seeds(out: Path) -> dict[str, Any]:
     """The report of the seeds a run has finished so far (``<out>/seed<N>.json``), e.g. of
-    a run stopped before its end: ``python -m tools.demo_adaptation DIR`` writes
+    a run stopped before its end: ``python -m hilstack.tools.demo_adaptation DIR`` writes
     ``report_seeds.md``."""
-    from learning.adaptation.experiment import aggregate
+    from hilstack.learning.adaptation.experiment import aggregate
 
     out = Path(out)
     files = sorted(out.glob("seed*.json"))
@@ -220,5 +220,5 @@ if __name__ == "__main__":
     import sys
 
     if len(sys.argv) != 2:
-        raise SystemExit("usage: python -m tools.demo_adaptation OUT_DIR   (tables of the seeds finished so far)")
+        raise SystemExit("usage: python -m hilstack.tools.demo_adaptation OUT_DIR   (tables of the seeds finished so far)")
     print(report_markdown(report_from_seeds(Path(sys.argv[1]))))

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from configs.schema import BusConfig
+from hilstack.configs.schema import BusConfig
 
 ARM_ORDER = ("widowx", "sawyer")
 
@@ -51,7 +51,7 @@ def arm_markdown(r: dict[str, Any]) -> str:
 
 def run_arms(out: Path, quick: bool = False, full: bool = False, seed: int = 0,
              arms: tuple[str, ...] = ARM_ORDER, bus: BusConfig | None = None, **overrides: Any) -> dict[str, Any]:
-    from learning.reach import ReachConfig, run_arm
+    from hilstack.learning.reach import ReachConfig, run_arm
 
     out = Path(out)
     cmd = reproduce_command(out, quick, full, seed)
@@ -85,7 +85,7 @@ def cli_arms(out: Path, quick: bool = False, full: bool = False, seed: int = 0) 
     """`hil demo arms` (tools/cmd_demo.py's OTHER_DEMOS)."""
     import typer
 
-    from learning.mbrl import RigError
+    from hilstack.learning.mbrl import RigError
 
     try:
         reports = run_arms(out, quick=quick, full=full, seed=seed)

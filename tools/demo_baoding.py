@@ -2,7 +2,7 @@
 
 Writes ``OUT/report.json``, ``OUT/report.md``, ``OUT/returns.png``, the MCAP recordings of
 every phase and a rerun ``OUT/demo.rrd`` of the last PDDM iteration (docs/baoding.md).
-``--quick``: the scaled-down preset (:meth:`learning.baoding.BaodingConfig.quick`, ≤10 min on
+``--quick``: the scaled-down preset (:meth:`hilstack.learning.baoding.BaodingConfig.quick`, ≤10 min on
 2 cores); default: the thesis' settings, one seed; ``--full``: the thesis' settings over
 seeds 0, 1, 2 (``OUT/seed_<k>/``) with mean ± std across seeds in ``OUT/report.json``.
 """
@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import BusConfig
-from learning.baoding import BaodingConfig, BaodingRun
-from tools.demo import free_endpoint
+from hilstack.configs.schema import BusConfig
+from hilstack.learning.baoding import BaodingConfig, BaodingRun
+from hilstack.tools.demo import free_endpoint
 
 FULL_SEEDS = (0, 1, 2)
 #: the full run's rig. The teleport rig: on the reset-arm rig (hand_sim_arm) a ball that comes to
@@ -50,7 +50,7 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
     report["plots"] = [write_plot(report, out)]
     last = next((r for r in reversed(report["recordings"]) if r.endswith("-mpc.mcap")), None)
     if last:
-        from tools.viz import viz_recording
+        from hilstack.tools.viz import viz_recording
 
         viz_recording(last, out / "demo.rrd", rig=report["rig"])
         report["rerun"] = str(out / "demo.rrd")
@@ -155,7 +155,7 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int) -> None:
     """The `hil demo baoding` verb (registered in tools/cmd_demo.py)."""
     import typer
 
-    from learning.mbrl import RigError
+    from hilstack.learning.mbrl import RigError
 
     if quick and full:
         raise typer.BadParameter("choose --quick or --full, not both")
@@ -195,15 +195,15 @@ def compare_choices(run_dir: Path, out: Path | None = None, widths: tuple[int, .
     """
     import torch
 
-    from control.costs import BaodingCost, baoding_episode_metrics
-    from control.planners import BAODING_PDDM, PddmConfig
-    from control.policies import MpcPolicy
-    from drivers.shadow_hand.config import ShadowHandParams, hold_pose_action
-    from learning.baoding import load_baoding_task, summarize
-    from learning.dynamics import EnsembleDynamics
-    from learning.mbrl import split_episodes
-    from learning.recordings import episodes_from_mcap
-    from sim_backends.shadow_hand.backend import ShadowHandSim
+    from hilstack.control.costs import BaodingCost, baoding_episode_metrics
+    from hilstack.control.planners import BAODING_PDDM, PddmConfig
+    from hilstack.control.policies import MpcPolicy
+    from hilstack.drivers.shadow_hand.config import ShadowHandParams, hold_pose_action
+    from hilstack.learning.baoding import load_baoding_task, summarize
+    from hilstack.learning.dynamics import EnsembleDynamics
+    from hilstack.learning.mbrl import split_episodes
+    from hilstack.learning.recordings import episodes_from_mcap
+    from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
 
     run_dir = Path(run_dir)
     eps = [e for f in sorted((run_dir / "recordings").glob("*.mcap")) if "eval" not in f.name
@@ -261,9 +261,9 @@ def compare_choices(run_dir: Path, out: Path | None = None, widths: tuple[int, .
     return out_d
 
 
-if __name__ == "__main__":  # python -m tools.demo_baoding compare RUN_DIR
+if __name__ == "__main__":  # python -m hilstack.tools.demo_baoding compare RUN_DIR
     import sys
 
     if len(sys.argv) != 3 or sys.argv[1] != "compare":
-        raise SystemExit("usage: python -m tools.demo_baoding compare RUN_DIR")
+        raise SystemExit("usage: python -m hilstack.tools.demo_baoding compare RUN_DIR")
     print(json.dumps(compare_choices(Path(sys.argv[2])), indent=1))

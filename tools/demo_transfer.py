@@ -15,11 +15,11 @@ import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from learning.transfer.grounding import GaratConfig
-from learning.transfer.pendulum import PendulumConfig
-from learning.transfer.roach_garat import RoachGaratConfig
-from learning.transfer.roach_pairs import SidmExperiment
-from learning.transfer.sidm import SidmConfig
+from hilstack.learning.transfer.grounding import GaratConfig
+from hilstack.learning.transfer.pendulum import PendulumConfig
+from hilstack.learning.transfer.roach_garat import RoachGaratConfig
+from hilstack.learning.transfer.roach_pairs import SidmExperiment
+from hilstack.learning.transfer.sidm import SidmConfig
 
 #: the pendulum settings (GAT's and GARAT's chosen on seed 0, docs/transfer.md); `full` and `quick`
 #: run them on fresh seeds only
@@ -158,7 +158,7 @@ def _pendulum_over_seeds(cfg: PendulumConfig, seeds: tuple[int, ...], log) -> di
     ``grounding_error`` the mean at the largest target data size."""
     import numpy as np
 
-    from learning.transfer.pendulum import run as run_pendulum
+    from hilstack.learning.transfer.pendulum import run as run_pendulum
 
     runs = [run_pendulum(replace(cfg, seed=s), log) for s in seeds]
     curve = []
@@ -179,7 +179,7 @@ def _pendulum_over_seeds(cfg: PendulumConfig, seeds: tuple[int, ...], log) -> di
 
 
 def _roach_over_seeds(cfg: RoachGaratConfig, seeds: tuple[int, ...], log) -> dict:
-    from learning.transfer.roach_garat import run_seed, summarise, target_description
+    from hilstack.learning.transfer.roach_garat import run_seed, summarise, target_description
 
     out = summarise([run_seed(replace(cfg, seed=s), log) for s in seeds])
     out["missing_leg"] = cfg.missing_leg
@@ -192,7 +192,7 @@ def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print
     """Run the preset (``part``: all, sidm or garat), write report.json and the plots into ``out``."""
     import torch
 
-    from learning.transfer.roach_pairs import run_sidm
+    from hilstack.learning.transfer.roach_pairs import run_sidm
 
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)}")

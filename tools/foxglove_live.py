@@ -2,10 +2,10 @@
 
 ``hil foxglove --rig RIG`` starts foxglove-sdk's WebSocket server (``foxglove.start_server``)
 and forwards every message under ``hil/<rig>/**`` on a channel named by its key, JSON with
-the same Foxglove-parsable JSON Schema as in recordings (``bus.schemas.json_schema``), plus
+the same Foxglove-parsable JSON Schema as in recordings (``hilstack.bus.schemas.json_schema``), plus
 the robots' poses as ``foxglove.PoseInFrame`` / ``FrameTransform`` and the cameras' JPEG/PNG
 frames as ``foxglove.CompressedImage`` (the same derived channels as in recordings,
-:class:`bus.recording.FoxglovePoses`, :func:`bus.recording.foxglove_image`). In Foxglove:
+:class:`hilstack.bus.recording.FoxglovePoses`, :func:`hilstack.bus.recording.foxglove_image`). In Foxglove:
 Open connection → Foxglove WebSocket → ``ws://HOST:PORT``; the 3D panel shows the robots in
 frame ``world``, an Image panel the cameras.
 
@@ -23,11 +23,11 @@ import foxglove
 import foxglove.messages as fg
 from foxglove.channels import CompressedImageChannel, FrameTransformChannel, PoseInFrameChannel
 
-from bus import keys
-from bus.node import Node
-from bus.recording import FoxglovePoses, foxglove_image
-from bus.schemas import AnyMsg, MalformedMessage, Msg, decode, encode_json, json_schema, type_name
-from configs.schema import BusConfig
+from hilstack.bus import keys
+from hilstack.bus.node import Node
+from hilstack.bus.recording import FoxglovePoses, foxglove_image
+from hilstack.bus.schemas import AnyMsg, MalformedMessage, Msg, decode, encode_json, json_schema, type_name
+from hilstack.configs.schema import BusConfig
 
 #: the Foxglove messages derived from bus messages, and their typed channels
 _DERIVED_CHANNELS: dict[type, Any] = {fg.PoseInFrame: PoseInFrameChannel, fg.FrameTransform: FrameTransformChannel,

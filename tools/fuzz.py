@@ -2,14 +2,14 @@
 
 Parsers (bytes from a radio, a serial port or the network):
 
-* ``xbee``: :class:`drivers.velociroach.link.XBeeDeframer` (byte stream -> XBee API frames);
-* ``mavlink``: :class:`drivers.velociroach.mavlink.MavDecoder` (XBee payload -> MAVLink
+* ``xbee``: :class:`hilstack.drivers.velociroach.link.XBeeDeframer` (byte stream -> XBee API frames);
+* ``mavlink``: :class:`hilstack.drivers.velociroach.mavlink.MavDecoder` (XBee payload -> MAVLink
   message). Half of the inputs get a valid MAVLink CRC, so the fuzzer also reaches the
   payload unpacking behind the CRC check (a random frame almost never passes it);
-* ``bus``: :func:`bus.schemas.decode` for every message type (Zenoh payload -> message).
+* ``bus``: :func:`hilstack.bus.schemas.decode` for every message type (Zenoh payload -> message).
 
 A *crash* is an exception other than the parser's documented error (the deframer and the
-MAVLink decoder never raise: they count and skip; ``bus.schemas.decode`` raises only
+MAVLink decoder never raise: they count and skip; ``hilstack.bus.schemas.decode`` raises only
 ``MalformedMessage``) or a broken invariant (:class:`InvariantBroken`): counters that do
 not add up, a receive buffer that grows without bound, a decoded message that does not
 encode back to the same bytes.
@@ -21,7 +21,7 @@ and exits at the first crash). A new parser gets a harness here and a line in
 :data:`TARGETS`.
 
     hil bench fuzz --json --n 1000000
-    python -m tools.fuzz xbee -runs=100000     # one target, libFuzzer flags as usual
+    python -m hilstack.tools.fuzz xbee -runs=100000     # one target, libFuzzer flags as usual
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def _check(ok: bool, why: str) -> None:
 def fuzz_xbee(data: bytes) -> None:
     """The deframer over ``data[2:]``, read in three reads cut where ``data[0]`` and
     ``data[1]`` say (a frame or a corrupt run split over reads is the hard case)."""
-    from drivers.velociroach.link import MAX_FRAME_LEN, STALE_PARTIAL_S, XBeeDeframer
+    from hilstack.drivers.velociroach.link import MAX_FRAME_LEN, STALE_PARTIAL_S, XBeeDeframer
 
     if len(data) < 2:
         return
@@ -77,7 +77,7 @@ def fuzz_xbee(data: bytes) -> None:
 
 
 def seeds_xbee() -> list[bytes]:
-    from drivers.velociroach.link import addr64, xbee_rx64, xbee_tx64
+    from hilstack.drivers.velociroach.link import addr64, xbee_rx64, xbee_tx64
 
     a = addr64("0013A20040A1B2C3")
     out = []
@@ -93,7 +93,7 @@ def fix_mavlink_crc(frame: bytes) -> bytes:
     """``frame`` with a valid MAVLink v2 header checksum when its message id is known."""
     from pymavlink.generator.mavcrc import x25crc
 
-    from drivers.velociroach.mavlink import mav
+    from hilstack.drivers.velociroach.mavlink import mav
 
     if len(frame) < 10:
         return frame
@@ -111,7 +111,7 @@ def fix_mavlink_crc(frame: bytes) -> bytes:
 def fuzz_mavlink(data: bytes) -> None:
     """``data[2:]`` split into frames of ``data[1] % 64 + 8`` bytes, decoded one by one;
     if ``data[0]`` is odd each frame first gets a valid CRC."""
-    from drivers.velociroach.mavlink import MavDecoder
+    from hilstack.drivers.velociroach.mavlink import MavDecoder
 
     if len(data) < 3:
         return
@@ -132,7 +132,7 @@ def fuzz_mavlink(data: bytes) -> None:
 
 
 def _mav_seed_frames() -> list[bytes]:
-    from drivers.velociroach import mavlink as vm
+    from hilstack.drivers.velociroach import mavlink as vm
 
     r = vm.MavEncoder(vm.ROBOT_SYSID, vm.ROBOT_COMPID)
     b = vm.MavEncoder(vm.BASE_SYSID, vm.BASE_COMPID)
@@ -150,14 +150,14 @@ def seeds_mavlink() -> list[bytes]:
 
 # --------------------------------------------------------------------------- bus
 def _bus_types() -> list[Any]:
-    from bus import schemas
+    from hilstack.bus import schemas
 
     return [*schemas.ALL_TYPES, schemas.AnyMsg]
 
 
 def fuzz_bus(data: bytes) -> None:
     """``data[1:]`` decoded as the message type ``data[0]`` picks (or as any message)."""
-    from bus import schemas
+    from hilstack.bus import schemas
 
     if not data:
         return
@@ -183,7 +183,7 @@ def fuzz_bus(data: bytes) -> None:
 
 
 def seeds_bus() -> list[bytes]:
-    from bus import schemas
+    from hilstack.bus import schemas
 
     samples = [
         schemas.RobotState(robot="roach", t_s=1.0, state=[0.0, 1.5], action=[0.1, 0.2], health={"ok": True}),
@@ -204,9 +204,9 @@ def seeds_bus() -> list[bytes]:
 
 #: name -> (harness, seed inputs, packages atheris instruments for coverage)
 TARGETS: dict[str, tuple[Callable[[bytes], None], Callable[[], list[bytes]], list[str]]] = {
-    "xbee": (fuzz_xbee, seeds_xbee, ["drivers.velociroach.link"]),
-    "mavlink": (fuzz_mavlink, seeds_mavlink, ["drivers.velociroach.mavlink", "pymavlink"]),
-    "bus": (fuzz_bus, seeds_bus, ["bus.schemas"]),
+    "xbee": (fuzz_xbee, seeds_xbee, ["hilstack.drivers.velociroach.link"]),
+    "mavlink": (fuzz_mavlink, seeds_mavlink, ["hilstack.drivers.velociroach.mavlink", "pymavlink"]),
+    "bus": (fuzz_bus, seeds_bus, ["hilstack.bus.schemas"]),
 }
 
 
@@ -251,7 +251,7 @@ def run_target(target: str, n: int, *, seed: int = 1, max_len: int = 300,
         corpus.mkdir()
         for i, s in enumerate(seeds()):
             (corpus / f"seed{i}").write_bytes(s)
-        cmd = [sys.executable, "-m", "tools.fuzz", target, f"-runs={n}", f"-seed={seed}", f"-max_len={max_len}",
+        cmd = [sys.executable, "-m", "hilstack.tools.fuzz", target, f"-runs={n}", f"-seed={seed}", f"-max_len={max_len}",
                f"-artifact_prefix={tmp}/", "-print_final_stats=1", str(corpus)]
         t0, cpu0 = time.monotonic(), _children_cpu_s()
         env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -295,7 +295,7 @@ def _atheris_main(argv: list[str]) -> None:
     import atheris
 
     if not argv or argv[0].startswith("-"):
-        raise SystemExit(f"usage: python -m tools.fuzz TARGET [libFuzzer flags] [corpus dir]; "
+        raise SystemExit(f"usage: python -m hilstack.tools.fuzz TARGET [libFuzzer flags] [corpus dir]; "
                          f"targets: {sorted(TARGETS)} or module:function")
     target = argv[0]
     include = TARGETS[target][2] if target in TARGETS else [target.partition(":")[0]]
@@ -308,7 +308,7 @@ def _atheris_main(argv: list[str]) -> None:
         # hook: instrument its decoding code by hand (instrument_all would be 3x slower)
         import inspect
 
-        from drivers.velociroach.mavlink import mav
+        from hilstack.drivers.velociroach.mavlink import mav
 
         for cls in (mav.MAVLink, mav.MAVLink_message, mav.MAVLink_header):
             for _, fn in inspect.getmembers(cls, inspect.isfunction):

@@ -18,8 +18,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from bus import keys
-from bus.schemas import (
+from hilstack.bus import keys
+from hilstack.bus.schemas import (
     AnyMsg,
     Command,
     Image,
@@ -155,7 +155,7 @@ class RigVisualizer:
 
 def viz_live(rig: str, bus: Any = None, seconds: float | None = None, **viz_kw: Any) -> RigVisualizer:
     """Subscribe to everything on the rig and log it until stopped or ``seconds`` pass."""
-    from bus.node import Node
+    from hilstack.bus.node import Node
 
     v = RigVisualizer(rig, **viz_kw)
     node = Node("viz", rig, bus)
@@ -177,7 +177,7 @@ def viz_live(rig: str, bus: Any = None, seconds: float | None = None, **viz_kw: 
 
 def viz_recording(mcap_path: str | Path, save: str | Path, rig: str | None = None) -> int:
     """Convert an MCAP recording into a rerun .rrd with the standard layout."""
-    from bus.recording import iter_messages
+    from hilstack.bus.recording import iter_messages
 
     v = RigVisualizer(rig or Path(mcap_path).stem, save=save)
     n = v.log_many((m.topic, m.msg) for m in iter_messages(mcap_path))

@@ -6,7 +6,7 @@
 the exact camera model). ``hil calibrate-camera`` runs it (docs/camera.md).
 """
 
-from calibration.camera.stereo import (
+from hilstack.calibration.camera.stereo import (
     CalibrationError,
     calibrate_from_images,
     calibrate_rendered,

@@ -23,7 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from perception.geometry import StereoCalibration, homogeneous, invert
+from hilstack.perception.geometry import StereoCalibration, homogeneous, invert
 
 
 class CalibrationError(ValueError):
@@ -181,7 +181,7 @@ def calibrate_rendered(views: int = 15, seed: int = 0, camera_id: str = "stereo0
                                                                                               dict[str, Any]]:
     """The whole procedure on MuJoCo renders of the board (random poses, then the fixture
     pose); returns the calibration and its errors against the exact camera model."""
-    from sim_backends.shadow_hand.cameras import Checkerboard, HandCameraScene
+    from hilstack.sim_backends.shadow_hand.cameras import Checkerboard, HandCameraScene
 
     cb = Checkerboard()
     board = BoardModel(cb.inner, cb.square_m)

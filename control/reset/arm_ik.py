@@ -20,7 +20,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from drivers.reset_arm.config import JOINT_LIMITS_RAD
+from hilstack.drivers.reset_arm.config import JOINT_LIMITS_RAD
 
 #: a folded posture reaching towards -x (the hand), elbow up, tool down that seeds the first solve [rad]
 READY_Q_RAD = np.array([0.0, -0.5, 0.0, -1.7, 0.0, -0.9, 0.0])
@@ -36,7 +36,7 @@ def down_frame(jaw_dir: np.ndarray) -> np.ndarray:
 
 class ArmIK:
     def __init__(self, base_pos_m, damping: float = 0.05, rest_gain: float = 0.02):
-        from sim_backends.reset_arm.model import ArmIndex, build_arm_kinematics
+        from hilstack.sim_backends.reset_arm.model import ArmIndex, build_arm_kinematics
 
         self.model = build_arm_kinematics(base_pos_m)
         self.data = mujoco.MjData(self.model)

@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control.reset.arm_ik import READY_Q_RAD, ArmIK, down_frame
-from drivers.reset_arm.config import GRIPPER_OPEN_M
+from hilstack.control.reset.arm_ik import READY_Q_RAD, ArmIK, down_frame
+from hilstack.drivers.reset_arm.config import GRIPPER_OPEN_M
 
 
 class PickPlaceError(RuntimeError):

@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 from pydantic import Field
 
-from configs.schema import ConfigError, RigConfig, Strict, parse_model
+from hilstack.configs.schema import ConfigError, RigConfig, Strict, parse_model
 
 
 class DetectorConfig(Strict):
@@ -95,7 +95,7 @@ def load_reset(rig: RigConfig) -> ResetConfig | None:
     cfg = parse_model(ResetConfig, rig.reset, rig.source)
     if cfg.robot not in rig.robots:
         raise ConfigError(rig.source, [("reset.robot", f"{cfg.robot!r} is not on the rig; robots: {list(rig.robots)}")])
-    from control.reset.steps import STEP_KINDS
+    from hilstack.control.reset.steps import STEP_KINDS
 
     for i, s in enumerate(cfg.steps):
         if s.kind not in STEP_KINDS:
@@ -120,7 +120,7 @@ def require_reset(rig: RigConfig, robot: str, operator_resets: bool = False) -> 
     """The rig's reset procedure for ``robot``; None when the driver resets itself (sim
     backends teleport) or an operator places the robot. Raises :class:`ResetUnavailable`
     at start, before anything moves, when nothing can reset the robot."""
-    from configs.schema import rig_robot_config
+    from hilstack.configs.schema import rig_robot_config
 
     cfg = load_reset(rig)
     if cfg is not None and cfg.robot == robot:

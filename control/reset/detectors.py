@@ -1,6 +1,6 @@
 """Episode-end detectors: pluggable checks the reset supervisor runs on every state.
 
-A detector sees each :class:`~bus.schemas.RobotState` of the running episode (with the
+A detector sees each :class:`~hilstack.bus.schemas.RobotState` of the running episode (with the
 robot's state-channel names) and returns why the episode ended, or ``None``. The
 supervisor calls :meth:`EpisodeEndDetector.start` when a new episode begins.
 
@@ -19,8 +19,8 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 
-from bus.schemas import RobotState
-from control.reset.config import DetectorConfig
+from hilstack.bus.schemas import RobotState
+from hilstack.control.reset.config import DetectorConfig
 
 
 class EpisodeEndDetector(ABC):

@@ -36,10 +36,10 @@ from typing import Any, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from bus.schemas import ResetEvent, RobotState
-from configs.schema import ConfigError, parse_model
-from control.baselines import DifferentialDriveController
-from control.reset.config import StepConfig
+from hilstack.bus.schemas import ResetEvent, RobotState
+from hilstack.configs.schema import ConfigError, parse_model
+from hilstack.control.baselines import DifferentialDriveController
+from hilstack.control.reset.config import StepConfig
 
 #: ``update`` results besides an action: the step is over / hold (safe action or held command)
 DONE = "done"
@@ -66,7 +66,7 @@ class StepContext(Protocol):
     state_names: list[str]
 
     def robot_link(self, robot: str) -> Any:
-        """Another robot of the rig (:class:`control.reset.supervisor.RobotLink`): its state,
+        """Another robot of the rig (:class:`hilstack.control.reset.supervisor.RobotLink`): its state,
         spec, command key and liveliness."""
 
     def request_driver(self, phase: str, pose: dict[str, float]) -> None:
@@ -269,7 +269,7 @@ class LabFixture(ResetStep):
     leg pattern tried (docs/reset.md). Done at once when the robot is upright.
 
     Where the fixture is: the robot's health names ``lab_fixture_port`` (the emulated
-    VelociRoACH: the emulator's UDP service, :mod:`control.reset.fixture`); otherwise the
+    VelociRoACH: the emulator's UDP service, :mod:`hilstack.control.reset.fixture`); otherwise the
     driver node's teleport to where the robot lies (sim backends). A real rig has neither:
     the driver answers ``unsupported``, the step fails, the rig stops and the operator
     is told to put the robot on its legs. Each use counts as ``fixture_recoveries`` (an
@@ -299,7 +299,7 @@ class LabFixture(ResetStep):
         self._upright_since_s: float | None = None
 
     def _ask(self, ctx: StepContext, state: RobotState) -> None:
-        from control.reset.fixture import FixtureClient
+        from hilstack.control.reset.fixture import FixtureClient
 
         port = (state.health or {}).get("lab_fixture_port")
         if port:
@@ -482,13 +482,13 @@ class TaskReset(ResetStep):
 @functools.cache
 def _pick_place_params() -> type[StepParams]:
     """ArmPickPlace's params: the rig-robot name of the arm, the sync wait, and the
-    script's :class:`~control.reset.arm_pick_place.PickPlaceConfig` fields (its period
+    script's :class:`~hilstack.control.reset.arm_pick_place.PickPlaceConfig` fields (its period
     comes from the arm's spec, not from the config)."""
     import typing
 
     from pydantic import create_model
 
-    from control.reset.arm_pick_place import PickPlaceConfig
+    from hilstack.control.reset.arm_pick_place import PickPlaceConfig
 
     hints = typing.get_type_hints(PickPlaceConfig)
     fields: dict[str, Any] = {}
@@ -531,7 +531,7 @@ class ArmPickPlace(ResetStep):
         return _pick_place_params()  # built on first use: the script's module loads MuJoCo
 
     def __init__(self, cfg: StepConfig):
-        from control.reset.arm_pick_place import PickPlaceConfig
+        from hilstack.control.reset.arm_pick_place import PickPlaceConfig
 
         super().__init__(cfg)
         self.pp_cfg = PickPlaceConfig(**self.params.model_dump(exclude={"arm", "sync_wait_s"}))
@@ -540,8 +540,8 @@ class ArmPickPlace(ResetStep):
         self._hold: np.ndarray | None = None
 
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
-        from control.reset.arm_pick_place import PickPlaceScript
-        from drivers.shadow_hand.config import hold_pose_action
+        from hilstack.control.reset.arm_pick_place import PickPlaceScript
+        from hilstack.drivers.shadow_hand.config import hold_pose_action
 
         self._link = ctx.robot_link(self.arm)
         if self._link.spec(timeout_s=2.0) is None:
@@ -557,7 +557,7 @@ class ArmPickPlace(ResetStep):
         self._hold = hold_pose_action()
 
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
-        from control.reset.arm_pick_place import PickPlaceError
+        from hilstack.control.reset.arm_pick_place import PickPlaceError
 
         s = self._link.state(not_before_t_s=state.t_s, timeout_s=self.sync_wait_s)
         try:
@@ -574,7 +574,7 @@ class ArmPickPlace(ResetStep):
         s = link.state()
         if s is None:
             return f"no state from robot {self.arm!r} (it sees the balls)"
-        from control.reset.arm_pick_place import PickPlaceScript
+        from hilstack.control.reset.arm_pick_place import PickPlaceScript
 
         balls = PickPlaceScript.balls(np.asarray(s.state))
         d = np.linalg.norm(balls - np.asarray(self.pp_cfg.palm_center_m), axis=1)

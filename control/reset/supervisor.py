@@ -33,13 +33,13 @@ Protocol (keys in bus/keys.py):
   recordings split), then answers the controller on ``reset/done``; ``resume`` → running.
 - ``failed``: a step ran out of attempts, the verification failed, the driver node
   disappeared or went silent. The supervisor engages the rig's e-stop
-  (bus/estop.py :func:`~bus.estop.command_estop`), answers the controller ``failed`` with
+  (bus/estop.py :func:`~hilstack.bus.estop.command_estop`), answers the controller ``failed`` with
   the reason, logs it and publishes it; the e-stop latch then moves it to ``estopped``.
 - The e-stop wins: whenever the node's latch is engaged the machine goes to
   ``estopped`` from any state, stops commanding, and answers a pending request
   ``failed``. Releasing the e-stop returns it to ``running``.
 
-Every transition is published as a :class:`~bus.schemas.ResetTransition` on
+Every transition is published as a :class:`~hilstack.bus.schemas.ResetTransition` on
 ``hil/<rig>/reset/transition`` (recorded with the rest of the rig).
 """
 
@@ -55,15 +55,23 @@ import numpy as np
 import zenoh
 from transitions import EventData, Machine
 
-from bus import keys
-from bus.estop import command_estop
-from bus.node import Node
-from bus.schemas import Command, MalformedMessage, ResetEvent, ResetTransition, RobotState, SpecMsg, decode
-from configs.schema import BusConfig
-from control.controller_node import ActionScale
-from control.reset.config import ResetConfig, VerifyConfig
-from control.reset.detectors import EpisodeEndDetector, make_detector
-from control.reset.steps import DONE, HOLD, ResetStep, StepError, make_step
+from hilstack.bus import keys
+from hilstack.bus.estop import command_estop
+from hilstack.bus.node import Node
+from hilstack.bus.schemas import (
+    Command,
+    MalformedMessage,
+    ResetEvent,
+    ResetTransition,
+    RobotState,
+    SpecMsg,
+    decode,
+)
+from hilstack.configs.schema import BusConfig
+from hilstack.control.controller_node import ActionScale
+from hilstack.control.reset.config import ResetConfig, VerifyConfig
+from hilstack.control.reset.detectors import EpisodeEndDetector, make_detector
+from hilstack.control.reset.steps import DONE, HOLD, ResetStep, StepError, make_step
 
 log = logging.getLogger(__name__)
 logging.getLogger("transitions").setLevel(logging.WARNING)  # it logs every callback at INFO
@@ -210,7 +218,7 @@ class RobotLink:
 
 
 class ResetSupervisor(Node):
-    """Runs one robot's reset procedure (:class:`~control.reset.config.ResetConfig`).
+    """Runs one robot's reset procedure (:class:`~hilstack.control.reset.config.ResetConfig`).
 
     ``serve()`` runs until stopped; ``spin_once()`` is one iteration (tests drive it).
     Times in steps and detectors are robot time (``RobotState.t_s``); ``settle_s`` too.

@@ -13,8 +13,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from configs.schema import Params
-from drivers.base import RobotSpec, Space
+from hilstack.configs.schema import Params
+from hilstack.drivers.base import RobotSpec, Space
 
 STATE_NAMES = ("ball0_x", "ball0_y", "ball0_z", "ball1_x", "ball1_y", "ball1_z", "ball0_conf", "ball1_conf")
 

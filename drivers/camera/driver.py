@@ -1,8 +1,8 @@
 """The stereo camera tracker's real backend: two UVC cameras (OpenCV), a tracker, the contract.
 
 ``read()`` takes the newest left/right pair (paired by arrival time within
-``max_skew_s``, :mod:`drivers.camera.uvc`), tracks the balls, and returns the state of
-:mod:`drivers.camera.config` with ``extras["image"]`` (left | right, RGB) and
+``max_skew_s``, :mod:`hilstack.drivers.camera.uvc`), tracks the balls, and returns the state of
+:mod:`hilstack.drivers.camera.config` with ``extras["image"]`` (left | right, RGB) and
 ``extras["image_encoded"]`` (``params.encoding`` bytes, what the bus and recordings
 carry). It never blocks: with no new pair it reports the last one and its age
 (``stale_image`` past ``stale_after_s``; past ``fail_after_s`` the error path). The
@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import time
 
-from configs.schema import ConfigError, RobotConfig, parse_params
-from drivers.base import Driver, Health, LinkError, Observation
-from drivers.camera.config import CameraParams, camera_spec
-from drivers.camera.pipeline import CameraPipeline, FramePair
-from perception.geometry import StereoCalibration
+from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.drivers.base import Driver, Health, LinkError, Observation
+from hilstack.drivers.camera.config import CameraParams, camera_spec
+from hilstack.drivers.camera.pipeline import CameraPipeline, FramePair
+from hilstack.perception.geometry import StereoCalibration
 
 
 class StereoCameraDriver(Driver):
@@ -39,7 +39,7 @@ class StereoCameraDriver(Driver):
         return d
 
     def _on_configure(self) -> None:
-        from drivers.camera.uvc import StereoUvc
+        from hilstack.drivers.camera.uvc import StereoUvc
 
         p = self.params
         if p.calibration is None:

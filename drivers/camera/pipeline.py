@@ -1,6 +1,6 @@
 """Frames → tracker → observation: the part every camera backend shares.
 
-Freshness (drivers.base): the frame pair is the input ``image`` (``stale_image``; stale
+Freshness (hilstack.drivers.base): the frame pair is the input ``image`` (``stale_image``; stale
 makes ``ok`` False; past ``fail_after_s`` the real backend takes the error path); the
 balls are ``objects`` (``stale_objects``: refreshed only by a pair in which both balls
 have at least ``min_confidence``), a flag that leaves the reading ``ok``, as the hand's
@@ -14,10 +14,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from drivers.base import Flag, Freshness, Inputs, Observation
-from drivers.camera.config import CameraParams
-from perception.geometry import StereoCalibration
-from perception.tracker import TrackResult, make_tracker
+from hilstack.drivers.base import Flag, Freshness, Inputs, Observation
+from hilstack.drivers.camera.config import CameraParams
+from hilstack.perception.geometry import StereoCalibration
+from hilstack.perception.tracker import TrackResult, make_tracker
 
 
 @dataclass

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from drivers.base import LinkError
+from hilstack.drivers.base import LinkError
 
 
 @dataclass(frozen=True)

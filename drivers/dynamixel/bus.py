@@ -24,9 +24,9 @@ from typing import Any
 from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
 from serial import SerialException
 
-from drivers.base import LinkError
-from drivers.dynamixel.control_table import ControlTable, control_table, describe_status_error
-from drivers.emulator_process import EmulatorProcess
+from hilstack.drivers.base import LinkError
+from hilstack.drivers.dynamixel.control_table import ControlTable, control_table, describe_status_error
+from hilstack.drivers.emulator_process import EmulatorProcess
 
 EMULATOR_START_TIMEOUT_S = 30.0
 # dynamixel-sdk packet layout offsets (status packet: ... INST ERROR PARAMS)
@@ -279,7 +279,7 @@ EMULATED_TIMEOUT_MARGIN_MS = 400.0
 
 
 def start_emulator(config: dict[str, Any], baudrate: int, start_timeout_s: float = EMULATOR_START_TIMEOUT_S,
-                   module: str = "sim_backends.widowx.emulator",
+                   module: str = "hilstack.sim_backends.widowx.emulator",
                    timeout_margin_ms: float = EMULATED_TIMEOUT_MARGIN_MS, keep_log: bool = False) -> DynamixelBus:
     """Start the bus emulator process on a pty and open a bus on it."""
     emu = EmulatorProcess(module, ["--print-pty", "--config", json.dumps(config)], start_timeout_s=start_timeout_s,

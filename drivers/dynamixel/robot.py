@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import ConfigError
-from drivers.base import Driver, Health, Lifecycle, LinkError, Observation
-from drivers.dynamixel.bus import DynamixelBus, ServoError, acquire_bus, release_bus, start_emulator
-from drivers.dynamixel.control_table import (
+from hilstack.configs.schema import ConfigError
+from hilstack.drivers.base import Driver, Health, Lifecycle, LinkError, Observation
+from hilstack.drivers.dynamixel.bus import DynamixelBus, ServoError, acquire_bus, release_bus, start_emulator
+from hilstack.drivers.dynamixel.control_table import (
     AMP_PER_COUNT,
     OPERATING_MODES,
     STATUS_ALERT_BIT,

@@ -1,5 +1,5 @@
 """Motion capture pose sources: a small protocol, a UDP pose stream, an OptiTrack NatNet client."""
 
-from drivers.mocap.base import PoseSample, PoseSource
+from hilstack.drivers.mocap.base import PoseSample, PoseSource
 
 __all__ = ["PoseSample", "PoseSource"]

@@ -5,7 +5,7 @@ State: x, y, z [m], qw, qx, qy, qz (body → world), in the mocap world frame (z
 or ``udp`` (hilstack's pose stream, served by the VelociRoACH emulator). ``read()`` returns
 the newest pose without blocking, stamped with its arrival time on the local monotonic
 clock (the mocap system's own stamp is in ``extras["source_t_s"]``). The pose is the
-driver's one input (:class:`drivers.base.Freshness`, deadline ``stale_after_s``): ``ok`` is
+driver's one input (:class:`hilstack.drivers.base.Freshness`, deadline ``stale_after_s``): ``ok`` is
 False and ``flags["stale_pose"]`` True until a pose arrived and while the newest usable one
 is older than the deadline; a pose with NaN/inf is not used (the last finite one is kept)
 and the next read reports ``flags["nonfinite_input"]``. ``health().extra["pose_age_s"]`` is
@@ -21,9 +21,9 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from configs.schema import Params, RobotConfig, parse_params
-from drivers.base import Driver, Flag, Freshness, Health, Inputs, Observation, RobotSpec, Space
-from drivers.mocap.base import PoseSource
+from hilstack.configs.schema import Params, RobotConfig, parse_params
+from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, Observation, RobotSpec, Space
+from hilstack.drivers.mocap.base import PoseSource
 
 
 class MocapParams(Params):
@@ -78,11 +78,11 @@ class MocapDriver(Driver):
         self.inputs.start(time.monotonic())
         self._pose = self._seen = None
         if p.source == "udp":
-            from drivers.mocap.udp import UdpPoseClient
+            from hilstack.drivers.mocap.udp import UdpPoseClient
 
             self.source = UdpPoseClient(p.host, p.port, body_id=p.rigid_body_id)
         else:
-            from drivers.mocap.natnet_client import NatNetPoseSource
+            from hilstack.drivers.mocap.natnet_client import NatNetPoseSource
 
             src = NatNetPoseSource(p.server_ip, p.local_ip, p.rigid_body_id, use_multicast=p.multicast,
                                    up_axis=p.up_axis)

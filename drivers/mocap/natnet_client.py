@@ -1,4 +1,4 @@
-"""OptiTrack NatNet client behind the :class:`~drivers.mocap.base.PoseSource` protocol.
+"""OptiTrack NatNet client behind the :class:`~hilstack.drivers.mocap.base.PoseSource` protocol.
 
 Uses the PyPI ``natnet`` package (>= 0.3, pure Python: ``natnet.NatNetClient``), which
 speaks NatNet over UDP: a command socket to Motive's command port (1510: connect /
@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from drivers.mocap.base import PoseSample
+from hilstack.drivers.mocap.base import PoseSample
 
 # y-up (Motive default) → z-up: a +90° rotation about x
 _Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])

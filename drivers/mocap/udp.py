@@ -34,7 +34,7 @@ import zlib
 
 import numpy as np
 
-from drivers.mocap.base import PoseSample
+from hilstack.drivers.mocap.base import PoseSample
 
 MAGIC = b"HPOS"
 _BODY = struct.Struct("<4sIdI3f4f")

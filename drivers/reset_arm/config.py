@@ -22,8 +22,8 @@ import math
 import numpy as np
 from pydantic import Field
 
-from configs.schema import Params
-from drivers.base import RobotSpec, Space
+from hilstack.configs.schema import Params
+from hilstack.drivers.base import RobotSpec, Space
 
 JOINTS = tuple(f"j{i}" for i in range(1, 8))
 #: joint axes in the parent link frame, from the base

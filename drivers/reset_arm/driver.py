@@ -18,10 +18,10 @@ import time
 
 import numpy as np
 
-from configs.schema import ConfigError, RobotConfig, parse_params
-from drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
-from drivers.reset_arm.config import ResetArmParams, reset_arm_spec
-from drivers.reset_arm.protocol import QUERY, ProtocolError, decode_state, encode_command
+from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
+from hilstack.drivers.reset_arm.config import ResetArmParams, reset_arm_spec
+from hilstack.drivers.reset_arm.protocol import QUERY, ProtocolError, decode_state, encode_command
 
 
 class ResetArmDriver(Driver):

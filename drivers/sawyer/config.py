@@ -11,8 +11,8 @@ import math
 import numpy as np
 from pydantic import Field
 
-from configs.schema import EmulatorParams, Params
-from drivers.base import RobotSpec, Space
+from hilstack.configs.schema import EmulatorParams, Params
+from hilstack.drivers.base import RobotSpec, Space
 
 JOINTS = tuple(f"right_j{i}" for i in range(7))
 #: Rethink's joint velocity limits [rad/s]

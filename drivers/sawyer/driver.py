@@ -4,7 +4,7 @@ backend "real": connects to ``params.zenoh_connect`` (a zenoh-bridge-ros2dds bes
 robot's ROS 2 side); subscribes ``sensor_msgs/JointState`` on the joint-states topic and
 publishes ``intera_core_msgs/JointCommand`` (velocity mode) on the command topic, under
 the keys the bridge uses (drivers/sawyer/ros.py).
-backend "emulated": the same code against ``python -m sim_backends.sawyer.emulator``, a
+backend "emulated": the same code against ``python -m hilstack.sim_backends.sawyer.emulator``, a
 process playing the robot side on MuJoCo, started here on a loopback endpoint.
 
 Zenoh's callback only stores the newest sample and its arrival time (no decoding there);
@@ -22,11 +22,11 @@ import time
 
 import numpy as np
 
-from configs.schema import ConfigError, RobotConfig, parse_params
-from drivers.base import Driver, Health, LinkError, Observation
-from drivers.emulator_process import EmulatorProcess
-from drivers.sawyer import ros
-from drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
+from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.drivers.base import Driver, Health, LinkError, Observation
+from hilstack.drivers.emulator_process import EmulatorProcess
+from hilstack.drivers.sawyer import ros
+from hilstack.drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
 
 FIRST_STATE_TIMEOUT_S = 10.0
 
@@ -105,7 +105,7 @@ class SawyerDriver(Driver):
         cfg = {"namespace": self.params.namespace, "joint_states_topic": self.params.joint_states_topic,
                "joint_command_topic": self.params.joint_command_topic}
         e = self.params.emulator
-        self._emu = EmulatorProcess("sim_backends.sawyer.emulator", ["--listen", endpoint, "--config", json.dumps(cfg)],
+        self._emu = EmulatorProcess("hilstack.sim_backends.sawyer.emulator", ["--listen", endpoint, "--config", json.dumps(cfg)],
                                     start_timeout_s=e.start_timeout_s, keep_log=e.keep_log)
         self._emu.start()
         return endpoint

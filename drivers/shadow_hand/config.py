@@ -22,8 +22,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from configs.schema import EmulatorParams, Params
-from drivers.base import RobotSpec, Space
+from hilstack.configs.schema import EmulatorParams, Params
+from hilstack.drivers.base import RobotSpec, Space
 
 JOINT_NAMES: tuple[str, ...] = (
     "WRJ1", "WRJ0",
@@ -117,7 +117,7 @@ class ShadowHandParams(Params):
     telemetry_deadline_s: float = Field(
         0.1, gt=0, description="telemetry older than this makes a reading stale (ok=False)")
     ball_tracker_ports: list[int] | None = Field(
-        None, description="real: UDP ports where a ball tracker streams ball 0 and ball 1 (drivers.mocap.udp "
+        None, description="real: UDP ports where a ball tracker streams ball 0 and ball 1 (hilstack.drivers.mocap.udp "
                           "format); emulated: the emulator streams its sim's balls unless emulator.balls is false")
     objects_in_state: bool = Field(
         False, description="append the two Baoding balls' positions [m, world frame] to the state (54-D): the "

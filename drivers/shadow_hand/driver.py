@@ -7,7 +7,7 @@ Transports, chosen by ``params.transport`` (python-can interfaces):
 * ``udp_multicast``: CAN frames over UDP multicast (``channel``: an IPv4 group). Used by
   the emulated backend; the bus echoes our own frames, which are filtered out by id.
 
-backend "emulated" starts the firmware emulator (``python -m sim_backends.shadow_hand.
+backend "emulated" starts the firmware emulator (``python -m hilstack.sim_backends.shadow_hand.
 emulator``) as its own process, on a pty it creates (slcan; also when the config
 says socketcan, which needs a kernel CAN interface) or on a free UDP port
 (udp_multicast), unless ``params.emulator.spawn`` is false (then ``channel`` names an
@@ -36,10 +36,10 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import ConfigError, RobotConfig, parse_params
-from drivers.base import Driver, Health, LinkError, Observation
-from drivers.emulator_process import EmulatorProcess
-from drivers.shadow_hand.config import (
+from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.drivers.base import Driver, Health, LinkError, Observation
+from hilstack.drivers.emulator_process import EmulatorProcess
+from hilstack.drivers.shadow_hand.config import (
     ACT_INDEX,
     ShadowHandParams,
     joint_tracking_error,
@@ -47,7 +47,7 @@ from drivers.shadow_hand.config import (
     to_action,
     to_joint_rad,
 )
-from drivers.shadow_hand.protocol import (
+from hilstack.drivers.shadow_hand.protocol import (
     FAULT_ESTOP,
     FAULT_MOTOR,
     FAULT_WATCHDOG,
@@ -133,8 +133,8 @@ class ShadowHandDriver(Driver):
 
     def _open_ball_tracker(self, spawn: bool) -> None:
         """Ball positions come from a tracker, not from the hand: one UDP pose stream per
-        ball (``drivers.mocap.udp``). The emulator streams its sim's balls to ports we pick."""
-        from drivers.mocap.udp import UdpPoseClient
+        ball (``hilstack.drivers.mocap.udp``). The emulator streams its sim's balls to ports we pick."""
+        from hilstack.drivers.mocap.udp import UdpPoseClient
 
         p = self.params
         if spawn and p.emulator.balls:
@@ -179,7 +179,7 @@ class ShadowHandDriver(Driver):
         else:
             args += ["--channel", p.channel or DEFAULT_UDP_GROUP,
                      "--udp-port", str(p.emulator.udp_port or free_udp_port())]
-        self._emu = EmulatorProcess("sim_backends.shadow_hand.emulator", args,
+        self._emu = EmulatorProcess("hilstack.sim_backends.shadow_hand.emulator", args,
                                     start_timeout_s=p.emulator.start_timeout_s,
                                     keep_log=p.emulator.keep_log)
         info = self._emu.start()

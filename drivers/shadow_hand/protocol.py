@@ -20,7 +20,7 @@ from pathlib import Path
 import cantools
 import numpy as np
 
-from drivers.shadow_hand.config import ACTUATED_JOINTS, JOINT_NAMES
+from hilstack.drivers.shadow_hand.config import ACTUATED_JOINTS, JOINT_NAMES
 
 #: modes (``HAND_STATUS.mode`` in the DBC)
 MODE_HOLD = 1  # holding the measured position (boot, watchdog)

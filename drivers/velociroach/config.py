@@ -12,9 +12,9 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from configs.schema import EmulatorParams, Params
-from drivers.base import Flag, RobotSpec, Space
-from drivers.velociroach.mavlink import mav
+from hilstack.configs.schema import EmulatorParams, Params
+from hilstack.drivers.base import Flag, RobotSpec, Space
+from hilstack.drivers.velociroach.mavlink import mav
 
 STATE_CHANNELS: list[tuple[str, str]] = [
     ("x", "m"), ("y", "m"), ("z", "m"),
@@ -50,7 +50,7 @@ def fault_flags(bits: int) -> dict[str, bool]:
 
 class VelociRoachEmulatorParams(EmulatorParams):
     """``params.emulator``: how the driver starts the firmware emulator (backend emulated;
-    start timeout and log from the shared :class:`configs.schema.EmulatorParams`) and the
+    start timeout and log from the shared :class:`hilstack.configs.schema.EmulatorParams`) and the
     faults it injects. Unknown keys are errors."""
 
     pose: bool = Field(True, description="stream the sim's mocap pose to the driver over UDP")
@@ -102,7 +102,7 @@ class VelociRoachParams(Params):
     firmware_watchdog_s: float = Field(0.5, gt=0)
     tlog: str | None = Field(None, description="write every MAVLink frame to this .tlog")
     mocap_udp_port: int | None = Field(
-        None, ge=0, le=65535, description="real: receive the robot's mocap pose here (drivers.mocap.udp stream)")
+        None, ge=0, le=65535, description="real: receive the robot's mocap pose here (hilstack.drivers.mocap.udp stream)")
     # sim (ignored by the real driver); the sim backend reads the rest from here too
     sim: dict = Field(default_factory=dict, description="sim backend settings (terrain, motor, battery...)")
     emulator: VelociRoachEmulatorParams = Field(default_factory=VelociRoachEmulatorParams,

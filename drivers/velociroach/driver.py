@@ -2,7 +2,7 @@
 
 backend "real": the base-station XBee on ``params.port`` (API mode 1, ``params.baudrate``).
 backend "emulated": the same code against the firmware emulator
-(``python -m sim_backends.velociroach.emulator``), started here as a separate process on a
+(``python -m hilstack.sim_backends.velociroach.emulator``), started here as a separate process on a
 pty it creates; its mocap pose arrives over UDP like a motion-capture stream would.
 
 Threads: a reader thread drains the port, keeps the latest telemetry and pose, and sends
@@ -13,7 +13,7 @@ State (24-D, see ``config.STATE_CHANNELS``): position and orientation from the m
 linear velocity by differencing the pose (low-pass filtered), angular velocity from the
 gyro, crank angles/velocities, back-EMFs and battery voltage from telemetry.
 
-Inputs and their deadlines (:class:`drivers.base.Freshness`, local monotonic clock at
+Inputs and their deadlines (:class:`hilstack.drivers.base.Freshness`, local monotonic clock at
 arrival): the pose (``pose_deadline_s``) and the telemetry (``telemetry_deadline_s``). A
 stale input, or a sample with NaN/inf since the last read (not used: the last finite one is
 kept), makes ``ok`` False with ``stale_pose`` / ``stale_telemetry`` / ``nonfinite_input``; the firmware's
@@ -33,12 +33,12 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import ConfigError, RobotConfig, parse_params
-from drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
-from drivers.emulator_process import EmulatorProcess
-from drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
-from drivers.velociroach.link import RadioLink
-from drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, EncodeError, MavEncoder, mav
+from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
+from hilstack.drivers.emulator_process import EmulatorProcess
+from hilstack.drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
+from hilstack.drivers.velociroach.link import RadioLink
+from hilstack.drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, EncodeError, MavEncoder, mav
 
 #: the base station's heartbeat rate (MAVLink convention: 1 Hz)
 HEARTBEAT_PERIOD_S = 1.0
@@ -140,7 +140,7 @@ class VelociRoachDriver(Driver):
             self._pose = PoseFilter()
             self._pose_seen = None
         if pose_port is not None:
-            from drivers.mocap.udp import UdpPoseClient
+            from hilstack.drivers.mocap.udp import UdpPoseClient
 
             self._pose_client = UdpPoseClient("127.0.0.1" if self.backend == "emulated" else "0.0.0.0", pose_port)
         url = self._start_emulator() if self.backend == "emulated" else p.port
@@ -161,7 +161,7 @@ class VelociRoachDriver(Driver):
             args += ["--pose-port", str(self._pose_client.port)]
         if self.params.emulator.lab_fixture:
             args += ["--fixture-port", "0"]
-        self._emu = EmulatorProcess("sim_backends.velociroach.emulator", args,
+        self._emu = EmulatorProcess("hilstack.sim_backends.velociroach.emulator", args,
                                     start_timeout_s=self.params.emulator.start_timeout_s,
                                     keep_log=self.params.emulator.keep_log)
         ready = self._emu.start()

@@ -7,7 +7,7 @@ Layers, bottom up:
 * :class:`XBeeDeframer`: byte stream -> XBee API frames (API mode 1, no escaping). It
   resynchronises on the 0x7E start delimiter and counts, then skips, bad checksums,
   truncated frames, impossible lengths and garbage between frames;
-* :class:`~drivers.velociroach.mavlink.MavDecoder`: XBee payload -> MAVLink message, counts
+* :class:`~hilstack.drivers.velociroach.mavlink.MavDecoder`: XBee payload -> MAVLink message, counts
   bad CRCs and sequence gaps (dropped frames);
 * :class:`RadioLink`: both directions for one endpoint (``role="base"``: the PC behind the
   base-station XBee sends TX64 requests and receives RX64 frames; ``role="robot"``: the
@@ -15,7 +15,7 @@ Layers, bottom up:
   statistics and an optional ``.tlog`` of every MAVLink frame.
 
 Every port error (device unplugged, pty closed, write stuck) becomes
-:class:`drivers.base.LinkError` with the port name in the message; nothing blocks longer
+:class:`hilstack.drivers.base.LinkError` with the port name in the message; nothing blocks longer
 than the port's timeouts.
 """
 
@@ -38,8 +38,8 @@ from digi.xbee.models.mode import OperatingMode
 from digi.xbee.packets import factory
 from digi.xbee.packets.raw import RX64Packet, TX64Packet
 
-from drivers.base import LinkError
-from drivers.velociroach.mavlink import MavDecoder
+from hilstack.drivers.base import LinkError
+from hilstack.drivers.velociroach.mavlink import MavDecoder
 
 START = 0x7E
 FRAME_TX64 = 0x00

@@ -5,13 +5,13 @@ with pymavlink's mavgen into a cache directory keyed by the hash of the XML (plu
 included ``minimal.xml`` and the pymavlink version), so a fresh clone needs no network and
 no generated file in git. The module is registered as ``pymavlink.dialects.v20.velociroach``
 in this process (``sys.modules``), so ``mavutil.mavlink_connection(..., dialect="velociroach")``
-works after ``import drivers.velociroach.mavlink``. Stock tools started on their own
+works after ``import hilstack.drivers.velociroach.mavlink``. Stock tools started on their own
 (``mavlogdump.py --dialect velociroach``) cannot find it: mavutil imports dialects only
 from the ``pymavlink.dialects.v20`` package directory, and ``MAVLINK_DIALECT`` only picks
 a name there. Decode a ``.tlog`` with the wrapper, which loads the dialect and then runs
 pymavlink's own mavlogdump with any of its options (see docs/velociroach.md)::
 
-    python -m drivers.velociroach.mavlink dump --types ROACH_TELEMETRY runs/roach.tlog
+    python -m hilstack.drivers.velociroach.mavlink dump --types ROACH_TELEMETRY runs/roach.tlog
 
 Also here: encoders with a last range check (nothing non-finite or out of range is ever
 packed), and :class:`MavDecoder` which decodes one frame at a time and counts sequence gaps.
@@ -285,10 +285,10 @@ class MavDecoder:
 
 def _main(argv: list[str]) -> int:
     """Usage:
-    python -m drivers.velociroach.mavlink dump [mavlogdump options] LOG.tlog
+    python -m hilstack.drivers.velociroach.mavlink dump [mavlogdump options] LOG.tlog
         decode a .tlog with pymavlink's mavlogdump, this dialect loaded (``mavlogdump``
         is accepted as an alias of ``dump``; ``dump --help`` lists mavlogdump's options)
-    python -m drivers.velociroach.mavlink path
+    python -m hilstack.drivers.velociroach.mavlink path
         print where the generated dialect module lives"""
     if not argv or argv[0] in ("-h", "--help"):
         print(_main.__doc__)

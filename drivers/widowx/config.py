@@ -20,9 +20,9 @@ import math
 import numpy as np
 from pydantic import Field, field_validator
 
-from configs.schema import EmulatorParams, Params
-from drivers.base import RobotSpec, Space
-from drivers.widowx.description import WX250S_LINKS
+from hilstack.configs.schema import EmulatorParams, Params
+from hilstack.drivers.base import RobotSpec, Space
+from hilstack.drivers.widowx.description import WX250S_LINKS
 
 #: joint, default ID, default servo model, stall torque at the joint [N·m] (2 servos: 2×)
 JOINTS: list[tuple[str, int, str, float]] = [

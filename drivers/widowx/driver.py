@@ -2,7 +2,7 @@
 
 backend "real": ``params.port`` (a U2D2 or other USB-serial adapter, docs/arms.md).
 backend "emulated": the same code against the bus emulator process
-(``python -m sim_backends.widowx.emulator``) on a pty it creates.
+(``python -m hilstack.sim_backends.widowx.emulator``) on a pty it creates.
 The sim backend (sim_backends/widowx/backend.py) runs this same code over an in-process
 bus on the MuJoCo world, in lockstep.
 
@@ -23,11 +23,11 @@ import math
 
 import numpy as np
 
-from configs.schema import RobotConfig, parse_params
-from drivers.base import Observation
-from drivers.dynamixel.control_table import OPERATING_MODES, pos_counts, vel_counts
-from drivers.dynamixel.robot import DynamixelRobot
-from drivers.widowx.config import (
+from hilstack.configs.schema import RobotConfig, parse_params
+from hilstack.drivers.base import Observation
+from hilstack.drivers.dynamixel.control_table import OPERATING_MODES, pos_counts, vel_counts
+from hilstack.drivers.dynamixel.robot import DynamixelRobot
+from hilstack.drivers.widowx.config import (
     JOINT_NAMES,
     MECH_JOINTS,
     MechanismParams,

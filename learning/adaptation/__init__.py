@@ -3,6 +3,6 @@
 The interface (``ModelUpdate``, ``Adapter``, ``load_adapter``) is in :mod:`.base`.
 """
 
-from learning.adaptation.base import ADAPTERS, Adapter, ModelUpdate, load_adapter
+from hilstack.learning.adaptation.base import ADAPTERS, Adapter, ModelUpdate, load_adapter
 
 __all__ = ["ADAPTERS", "Adapter", "ModelUpdate", "load_adapter"]

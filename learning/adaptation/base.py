@@ -50,8 +50,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from control.planners import DynamicsFn
-from learning.adaptation.model import AdaptiveMLP, Params
+from hilstack.control.planners import DynamicsFn
+from hilstack.learning.adaptation.model import AdaptiveMLP, Params
 
 __all__ = ["ModelUpdate", "Adapter", "DynamicsFn", "ADAPTERS", "load_adapter", "save_checkpoint",
            "CHECKPOINT_FORMAT"]
@@ -61,11 +61,11 @@ CHECKPOINT_VERSION = 1
 
 #: method name → "module:Class" (resolved when a checkpoint asks for it)
 ADAPTERS: dict[str, str] = {
-    "mb": "learning.adaptation.baselines:MbAdapter",
-    "mb_de": "learning.adaptation.baselines:MbDeAdapter",
-    "grbal": "learning.adaptation.grbal:GrbalAdapter",
-    "rebal": "learning.adaptation.rebal:RebalAdapter",
-    "mole": "learning.adaptation.mole:MoleAdapter",
+    "mb": "hilstack.learning.adaptation.baselines:MbAdapter",
+    "mb_de": "hilstack.learning.adaptation.baselines:MbDeAdapter",
+    "grbal": "hilstack.learning.adaptation.grbal:GrbalAdapter",
+    "rebal": "hilstack.learning.adaptation.rebal:RebalAdapter",
+    "mole": "hilstack.learning.adaptation.mole:MoleAdapter",
 }
 
 

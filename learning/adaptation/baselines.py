@@ -15,8 +15,8 @@ from typing import Any
 import torch
 from torch.func import grad
 
-from learning.adaptation.base import Adapter
-from learning.adaptation.model import AdaptiveMLP, Params
+from hilstack.learning.adaptation.base import Adapter
+from hilstack.learning.adaptation.model import AdaptiveMLP, Params
 
 
 class MbAdapter(Adapter):

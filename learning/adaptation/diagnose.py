@@ -1,6 +1,6 @@
 """Why does one GrBAL step from θ* help so little? Meta-training variants on the same data.
 
-``python -m learning.adaptation.diagnose [--seed 0] [--steps 300] [--cache DIR]``: random data
+``python -m hilstack.learning.adaptation.diagnose [--seed 0] [--steps 300] [--cache DIR]``: random data
 as the quick preset gathers it (cached as .npz), the plain model, then meta-training variants
 (which parameters are adapted, ψ's initial value and learning rate), each scored by GrBAL's
 loss on the next K before / after its step on random rollouts under every test condition
@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from learning.adaptation import grbal
-from learning.adaptation.experiment import AdaptationConfig, RoachSim, _conditions, random_episodes
-from learning.adaptation.grbal import segments
-from learning.adaptation.model import AdaptiveMLP
-from learning.adaptation.training import fit_plain
-from sim_backends.velociroach.perturbations import PerturbationSettings, load_presets
+from hilstack.learning.adaptation import grbal
+from hilstack.learning.adaptation.experiment import AdaptationConfig, RoachSim, _conditions, random_episodes
+from hilstack.learning.adaptation.grbal import segments
+from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.training import fit_plain
+from hilstack.sim_backends.velociroach.perturbations import PerturbationSettings, load_presets
 
 
 def data(cfg: AdaptationConfig, seed: int, cache: Path):
@@ -60,10 +60,10 @@ def data(cfg: AdaptationConfig, seed: int, cache: Path):
 
 
 def closed_loop(ckpt_dir: str, names: list[str], seed: int, cache: Path) -> None:
-    from learning.adaptation import load_adapter
-    from learning.adaptation.baselines import MbAdapter
-    from learning.adaptation.experiment import Trained, run_paths
-    from learning.adaptation.training import transitions
+    from hilstack.learning.adaptation import load_adapter
+    from hilstack.learning.adaptation.baselines import MbAdapter
+    from hilstack.learning.adaptation.experiment import Trained, run_paths
+    from hilstack.learning.adaptation.training import transitions
 
     cfg = AdaptationConfig.full()
     train, _, _ = data(AdaptationConfig.quick(), seed, cache)

@@ -6,7 +6,7 @@
    GrBAL's θ* and ψ as its prior. Checkpoints go to ``<out>/checkpoints``.
 3. Per test perturbation (and the held-out terrain): MB, MB+DE, GrBAL, ReBAL and MOLe with
    the same planner on the same paths, scored with the roach evaluation's completion-aware
-   metrics (``control.costs.evaluate_path_following``, ``summarize_paths``), plus each
+   metrics (``hilstack.control.costs.evaluate_path_following``, ``summarize_paths``), plus each
    method's online prediction error on the next K transitions.
 4. ``k_step_error_before_after``: GrBAL's loss on the next K transitions before and after
    its update, on random rollouts under each perturbation (thesis Figs 5.4, 5.5).
@@ -31,24 +31,28 @@ from typing import Any
 import numpy as np
 import torch
 
-from configs.schema import load_robot
-from control.controller_node import ActionScale
-from control.costs import PathCost, evaluate_path_following, summarize_paths
-from control.paths import fillet, make_path, path_length, straight
-from control.policies import SafeRandomPolicy
-from learning.adaptation import grbal, rebal
-from learning.adaptation.base import Adapter
-from learning.adaptation.baselines import MbAdapter, MbDeAdapter
-from learning.adaptation.grbal import GrbalAdapter, segments
-from learning.adaptation.model import AdaptiveMLP
-from learning.adaptation.mole import MoleAdapter
-from learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from learning.adaptation.training import fit_plain, split_episodes, transitions
-from learning.datasets import Episode
-from learning.experiments import mean_std
-from learning.mbrl import MbrlConfig, PathEnd, _jsonable, make_planner, path_start_pose
-from sim_backends.velociroach.backend import VelociRoachSim
-from sim_backends.velociroach.perturbations import PerturbationPresets, PerturbationSettings, load_presets
+from hilstack.configs.schema import load_robot
+from hilstack.control.controller_node import ActionScale
+from hilstack.control.costs import PathCost, evaluate_path_following, summarize_paths
+from hilstack.control.paths import fillet, make_path, path_length, straight
+from hilstack.control.policies import SafeRandomPolicy
+from hilstack.learning.adaptation import grbal, rebal
+from hilstack.learning.adaptation.base import Adapter
+from hilstack.learning.adaptation.baselines import MbAdapter, MbDeAdapter
+from hilstack.learning.adaptation.grbal import GrbalAdapter, segments
+from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.mole import MoleAdapter
+from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
+from hilstack.learning.adaptation.training import fit_plain, split_episodes, transitions
+from hilstack.learning.datasets import Episode
+from hilstack.learning.experiments import mean_std
+from hilstack.learning.mbrl import MbrlConfig, PathEnd, _jsonable, make_planner, path_start_pose
+from hilstack.sim_backends.velociroach.backend import VelociRoachSim
+from hilstack.sim_backends.velociroach.perturbations import (
+    PerturbationPresets,
+    PerturbationSettings,
+    load_presets,
+)
 
 METHODS = ("mb", "mb_de", "grbal", "rebal", "mole", "oracle")
 SWITCHING_METHODS = ("mole", "k_shot", "continued")

@@ -28,10 +28,10 @@ import numpy as np
 import torch
 from torch.func import grad, vmap
 
-from learning.adaptation.base import Adapter
-from learning.adaptation.model import AdaptiveMLP, Params
-from learning.datasets import Episode
-from learning.progress import progress as progress_output
+from hilstack.learning.adaptation.base import Adapter
+from hilstack.learning.adaptation.model import AdaptiveMLP, Params
+from hilstack.learning.datasets import Episode
+from hilstack.learning.progress import progress as progress_output
 
 
 @dataclass

@@ -3,7 +3,7 @@
 GrBAL, MB+DE and MOLe adapt the model's parameters at run time with ``torch.func``
 (``functional_call``, ``grad``, ``vmap``), so the network is a plain ``nn.Sequential`` of
 ``nn.Linear`` layers and every forward pass takes the parameters as an argument
-(:meth:`AdaptiveMLP.step`). :class:`learning.dynamics.EnsembleDynamics` keeps its members
+(:meth:`AdaptiveMLP.step`). :class:`hilstack.learning.dynamics.EnsembleDynamics` keeps its members
 in batched ``[E, in, out]`` tensors behind a fused inference path; that is the right
 layout for planning with ensembles, the wrong one for per-step functional adaptation.
 
@@ -29,14 +29,14 @@ import torch
 from torch import nn
 from torch.func import functional_call
 
-from learning.frames import PlanarFrame
+from hilstack.learning.frames import PlanarFrame
 
 Params = dict[str, torch.Tensor]
 
 
 def _safe_std(x: torch.Tensor) -> torch.Tensor:
     """Per-channel std with constant channels (< 1e-6) set to 1, the rule of
-    ``learning.datasets.NormStats``. Constant inputs exist by construction (the body-frame
+    ``hilstack.learning.datasets.NormStats``. Constant inputs exist by construction (the body-frame
     x, y are 0 and cos yaw is 1 for the state itself); a tiny std there would blow the
     slightest deviation of a *predicted* state (a cos/sin pair off the unit circle) up by
     1e6 and make multi-step rollouts diverge."""

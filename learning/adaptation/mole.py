@@ -38,9 +38,9 @@ from typing import Any
 import torch
 from torch.func import grad
 
-from learning.adaptation.base import Adapter
-from learning.adaptation.grbal import adapt
-from learning.adaptation.model import AdaptiveMLP, Params
+from hilstack.learning.adaptation.base import Adapter
+from hilstack.learning.adaptation.grbal import adapt
+from hilstack.learning.adaptation.model import AdaptiveMLP, Params
 
 
 def crp_log_prior(counts: torch.Tensor, alpha: float) -> torch.Tensor:

@@ -16,9 +16,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from learning.adaptation.base import Adapter, DynamicsFn, ModelUpdate
-from learning.adaptation.grbal import Segments
-from learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.base import Adapter, DynamicsFn, ModelUpdate
+from hilstack.learning.adaptation.grbal import Segments
+from hilstack.learning.adaptation.model import AdaptiveMLP
 
 
 class ContextEncoder(nn.Module):

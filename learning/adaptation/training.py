@@ -1,7 +1,7 @@
 """Supervised training of the plain model (θ* of MB and MB+DE) and data helpers.
 
 Transitions are numpy arrays ``states [N, S]``, ``actions [N, A]``, ``next_states [N, S]``
-(spec units; actions normalized). Episodes are :class:`learning.datasets.Episode`.
+(spec units; actions normalized). Episodes are :class:`hilstack.learning.datasets.Episode`.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from learning.adaptation.model import AdaptiveMLP
-from learning.datasets import Episode
+from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.datasets import Episode
 
 
 def transitions(episodes: Sequence[Episode]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

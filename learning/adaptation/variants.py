@@ -1,6 +1,6 @@
 """GrBAL meta-training variants on a demo run's saved training data (docs/adaptation.md, "Why").
 
-``python -m learning.adaptation.variants --data OUT/data/seed0_training.npz [--seed 0] VARIANT...``
+``python -m hilstack.learning.adaptation.variants --data OUT/data/seed0_training.npz [--seed 0] VARIANT...``
 
 Trains MB exactly as the demo does on that data (same split, same early stopping), then
 meta-trains each variant from it and prints, on the held-out segments and on fresh random
@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from learning.adaptation import grbal
-from learning.adaptation.experiment import (
+from hilstack.learning.adaptation import grbal
+from hilstack.learning.adaptation.experiment import (
     AdaptationConfig,
     RoachSim,
     _conditions,
@@ -33,10 +33,10 @@ from learning.adaptation.experiment import (
     load_episodes,
     random_episodes,
 )
-from learning.adaptation.grbal import segments
-from learning.adaptation.model import AdaptiveMLP
-from learning.adaptation.training import split_episodes
-from sim_backends.velociroach.perturbations import load_presets
+from hilstack.learning.adaptation.grbal import segments
+from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.training import split_episodes
+from hilstack.sim_backends.velociroach.perturbations import load_presets
 
 # variant -> (θ's meta learning rate, cap quantile or None)
 VARIANTS = {"default": (1e-4, 0.5), "uncapped": (1e-3, None), "theta1e-4": (1e-4, None), "cap1e-3": (1e-3, 0.5),

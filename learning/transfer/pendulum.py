@@ -21,7 +21,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from learning.transfer.grounding import (
+from hilstack.learning.transfer.grounding import (
     GaratConfig,
     Gat,
     TransitionSet,

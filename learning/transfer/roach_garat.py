@@ -36,10 +36,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from drivers.velociroach.config import STATE_NAMES, VelociRoachParams
-from learning.transfer.grounding import GaratConfig, Gat, TransitionSet, train_garat
-from sim_backends.velociroach.backend import VelociRoachSim
-from sim_backends.velociroach.model import LEG_NAMES
+from hilstack.drivers.velociroach.config import STATE_NAMES, VelociRoachParams
+from hilstack.learning.transfer.grounding import GaratConfig, Gat, TransitionSet, train_garat
+from hilstack.sim_backends.velociroach.backend import VelociRoachSim
+from hilstack.sim_backends.velociroach.model import LEG_NAMES
 
 _I = {n: i for i, n in enumerate(STATE_NAMES)}
 FEATURE_NAMES = ("v_fwd", "v_lat", "wz", "crank_vel_l", "crank_vel_r", "cos_dphase", "sin_dphase")

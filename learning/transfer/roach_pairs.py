@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from drivers.velociroach.config import VelociRoachParams
-from sim_backends.velociroach.backend import VelociRoachSim
+from hilstack.drivers.velociroach.config import VelociRoachParams
+from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
 #: the nominal contact of ``gravel`` (sim_backends/velociroach/backend.py TERRAINS)
 _GRAVEL_SOLREF = (0.006, 1.0)
@@ -118,7 +118,7 @@ def extras(r: Rollouts) -> np.ndarray:
 
 def transitions(r: Rollouts):
     """(x [N, 33], Δs [N, 24]) over all episodes."""
-    from learning.transfer.sidm import Transitions
+    from hilstack.learning.transfer.sidm import Transitions
 
     s0 = r.states[:, :-1].reshape(-1, r.states.shape[2])
     s1 = r.states[:, 1:].reshape(-1, r.states.shape[2])
@@ -155,7 +155,7 @@ def run_sidm(exp: SidmExperiment, cfg, log=print) -> dict:
     per pair). Trials differ in the training seed and in which novice episodes form each size."""
     from dataclasses import replace
 
-    from learning.transfer.sidm import (
+    from hilstack.learning.transfer.sidm import (
         data_multiplier,
     data_multipliers,
         open_loop_drift,

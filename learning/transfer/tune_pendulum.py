@@ -1,10 +1,10 @@
 """The seed-0 settings search for GAT and GARAT on the pendulum (docs/transfer.md, "Tuning").
 
-    python -m learning.transfer.tune_pendulum gat            # the GAT grid (about 15 min on loaded cores)
-    python -m learning.transfer.tune_pendulum garat '{"gamma": 0.0}'   # one GARAT variant at 3000 transitions
-    python -m learning.transfer.tune_pendulum garat-grid 0::2 3000  # GARAT_GRID (a slice of it) at these sizes
-    python -m learning.transfer.tune_pendulum floor          # the floor of the per-step error (any transform)
-    python -m learning.transfer.tune_pendulum fresh 1,3 out.json  # the `full` preset's pendulum part on these seeds
+    python -m hilstack.learning.transfer.tune_pendulum gat            # the GAT grid (about 15 min on loaded cores)
+    python -m hilstack.learning.transfer.tune_pendulum garat '{"gamma": 0.0}'   # one GARAT variant at 3000 transitions
+    python -m hilstack.learning.transfer.tune_pendulum garat-grid 0::2 3000  # GARAT_GRID (a slice of it) at these sizes
+    python -m hilstack.learning.transfer.tune_pendulum floor          # the floor of the per-step error (any transform)
+    python -m hilstack.learning.transfer.tune_pendulum fresh 1,3 out.json  # the `full` preset's pendulum part on these seeds
 
 It builds exactly the agent and data of ``pendulum.run`` for the seed (same seeds, same
 functions) and prints the per-step transition error on the validation transitions for
@@ -23,8 +23,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from learning.transfer.grounding import Gat, floor_error, train_garat, transition_error
-from learning.transfer.pendulum import Agent, PendulumConfig, StepFrom, collect, done, make_env, train_agent
+from hilstack.learning.transfer.grounding import Gat, floor_error, train_garat, transition_error
+from hilstack.learning.transfer.pendulum import (
+    Agent,
+    PendulumConfig,
+    StepFrom,
+    collect,
+    done,
+    make_env,
+    train_agent,
+)
 
 #: (width, hidden layers, Adam steps, lr, early-stopping share); α 0.5 and 0.8 are also
 #: evaluated for the ones with early stopping (no refit: α only blends the output)
@@ -69,12 +77,12 @@ def data(cfg: PendulumConfig, n_target: int, tmp: Path):
 
 
 def main(argv: list[str]) -> None:
-    from tools.demo_transfer import PRESETS
+    from hilstack.tools.demo_transfer import PRESETS
 
     torch.set_num_threads(1)
     what = argv[0] if argv else "gat"
     if what == "fresh":  # exactly the demo's pendulum part (`full` preset), for a subset of seeds
-        from tools.demo_transfer import _pendulum_over_seeds
+        from hilstack.tools.demo_transfer import _pendulum_over_seeds
 
         seeds = tuple(int(x) for x in argv[1].split(","))
         r = _pendulum_over_seeds(PRESETS["full"]["pendulum"], seeds, print)

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import torch
 
-from configs.schema import BusConfig
-from learning.mbrl import MbrlConfig, MbrlRun
+from hilstack.configs.schema import BusConfig
+from hilstack.learning.mbrl import MbrlConfig, MbrlRun
 from tests.helpers import free_port
 
 torch.set_num_threads(1)

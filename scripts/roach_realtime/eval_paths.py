@@ -11,9 +11,9 @@ from pathlib import Path
 
 import torch
 
-from configs.schema import BusConfig
-from learning.frames import load_dynamics
-from learning.mbrl import MbrlConfig, MbrlRun
+from hilstack.configs.schema import BusConfig
+from hilstack.learning.frames import load_dynamics
+from hilstack.learning.mbrl import MbrlConfig, MbrlRun
 from tests.helpers import free_port
 
 torch.set_num_threads(1)

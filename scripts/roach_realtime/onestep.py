@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import torch
 
-from drivers.velociroach.config import STATE_NAMES
-from learning.frames import load_dynamics
-from learning.recordings import episodes_from_mcap
+from hilstack.drivers.velociroach.config import STATE_NAMES
+from hilstack.learning.frames import load_dynamics
+from hilstack.learning.recordings import episodes_from_mcap
 
 torch.set_num_threads(1)
 model = load_dynamics(sys.argv[1])

@@ -10,9 +10,9 @@ import sys
 
 import numpy as np
 
-from bus.recording import iter_messages
-from bus.schemas import RobotState
-from drivers.velociroach.config import STATE_NAMES
+from hilstack.bus.recording import iter_messages
+from hilstack.bus.schemas import RobotState
+from hilstack.drivers.velociroach.config import STATE_NAMES
 
 path = sys.argv[1]
 by_ep: dict[int, list[RobotState]] = {}

@@ -21,11 +21,11 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from configs.schema import ConfigError, RobotConfig, parse_params
-from drivers.base import Health, LinkError, Observation
-from drivers.reset_arm.config import ResetArmParams, reset_arm_spec
-from sim_backends.base import LockstepSim
-from sim_backends.reset_arm.model import ArmIndex
+from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.drivers.base import Health, LinkError, Observation
+from hilstack.drivers.reset_arm.config import ResetArmParams, reset_arm_spec
+from hilstack.sim_backends.base import LockstepSim
+from hilstack.sim_backends.reset_arm.model import ArmIndex
 
 #: how long ``tick()`` waits for the hand's scene to advance [s, wall clock] before it reads anyway
 FOLLOW_TIMEOUT_S = 2.0
@@ -83,7 +83,7 @@ class ResetArmSim(LockstepSim):
 
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:
-        from sim_backends.shadow_hand.backend import SCENES
+        from hilstack.sim_backends.shadow_hand.backend import SCENES
 
         p = self.params
         deadline = time.monotonic() + p.world_wait_s

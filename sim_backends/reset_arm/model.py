@@ -17,7 +17,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from drivers.reset_arm.config import (
+from hilstack.drivers.reset_arm.config import (
     AXES,
     GRIPPER_OPEN_M,
     JOINT_LIMITS_RAD,

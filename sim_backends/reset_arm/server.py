@@ -14,9 +14,9 @@ import socket
 
 import numpy as np
 
-from drivers.reset_arm.protocol import QUERY, ProtocolError, decode_command, encode_state
-from sim_backends.reset_arm.backend import arm_command, arm_hold, arm_state
-from sim_backends.reset_arm.model import ArmIndex
+from hilstack.drivers.reset_arm.protocol import QUERY, ProtocolError, decode_command, encode_state
+from hilstack.sim_backends.reset_arm.backend import arm_command, arm_hold, arm_state
+from hilstack.sim_backends.reset_arm.model import ArmIndex
 
 
 class ArmServer:

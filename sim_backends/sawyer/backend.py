@@ -7,12 +7,12 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import RobotConfig, parse_params
-from drivers.base import Health, Observation
-from drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
-from drivers.sawyer.ros import POSITION_MODE, VELOCITY_MODE
-from sim_backends.base import LockstepSim
-from sim_backends.sawyer.controller import SawyerArm
+from hilstack.configs.schema import RobotConfig, parse_params
+from hilstack.drivers.base import Health, Observation
+from hilstack.drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
+from hilstack.drivers.sawyer.ros import POSITION_MODE, VELOCITY_MODE
+from hilstack.sim_backends.base import LockstepSim
+from hilstack.sim_backends.sawyer.controller import SawyerArm
 
 
 class SawyerSim(LockstepSim):

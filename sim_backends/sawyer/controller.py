@@ -13,7 +13,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from sim_backends.sawyer.model import JOINTS, VELOCITY_LIMITS_RAD_S, build_model
+from hilstack.sim_backends.sawyer.model import JOINTS, VELOCITY_LIMITS_RAD_S, build_model
 
 POSITION_MODE, VELOCITY_MODE = 1, 2
 COMMAND_TIMEOUT_S = 0.2

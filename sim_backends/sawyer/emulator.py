@@ -6,7 +6,7 @@ with the vendor controller of :mod:`.controller` (velocity/position mode, 0.2 s 
 timeout), in real time. The keys are those of zenoh-bridge-ros2dds, so the driver under
 test is configured exactly as for a real robot behind a bridge.
 
-    python -m sim_backends.sawyer.emulator --listen tcp/127.0.0.1:7461
+    python -m hilstack.sim_backends.sawyer.emulator --listen tcp/127.0.0.1:7461
 
 Prints one JSON line ``{"listen": ..., "pid": ...}`` when ready; logs go to stderr.
 """
@@ -23,9 +23,9 @@ import time
 
 import zenoh
 
-from drivers.sawyer import ros
-from sim_backends.sawyer.controller import SawyerArm
-from sim_backends.sawyer.model import JOINTS
+from hilstack.drivers.sawyer import ros
+from hilstack.sim_backends.sawyer.controller import SawyerArm
+from hilstack.sim_backends.sawyer.model import JOINTS
 
 STATE_PERIOD_S = 0.01
 
@@ -35,7 +35,7 @@ def log(msg: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sim_backends.sawyer.emulator")
+    ap = argparse.ArgumentParser(prog="python -m hilstack.sim_backends.sawyer.emulator")
     ap.add_argument("--listen", required=True, help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7461")
     ap.add_argument("--config", default="{}", help="JSON: namespace, joint_states_topic, joint_command_topic")
     ap.add_argument("--parent-pid", type=int, default=None)

@@ -25,9 +25,9 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
-from drivers.base import Health, Observation
-from drivers.shadow_hand.config import (
+from hilstack.configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
+from hilstack.drivers.base import Health, Observation
+from hilstack.drivers.shadow_hand.config import (
     ACT_INDEX,
     COUPLED_JOINTS,
     HOLD_POSE_RAD,
@@ -38,11 +38,11 @@ from drivers.shadow_hand.config import (
     to_action,
     to_joint_rad,
 )
-from sim_backends.base import LockstepSim
-from sim_backends.shadow_hand.baoding import BaodingTask
-from sim_backends.shadow_hand.firmware import TICK_S, FirmwareConfig, HandFirmware
-from sim_backends.shadow_hand.model import PHYSICS_DT_S, build_scene
-from sim_backends.shadow_hand.station import StationGeometry
+from hilstack.sim_backends.base import LockstepSim
+from hilstack.sim_backends.shadow_hand.baoding import BaodingTask
+from hilstack.sim_backends.shadow_hand.firmware import TICK_S, FirmwareConfig, HandFirmware
+from hilstack.sim_backends.shadow_hand.model import PHYSICS_DT_S, build_scene
+from hilstack.sim_backends.shadow_hand.station import StationGeometry
 
 #: configured hand sims with a reset station, by ``params.sim.world``: the reset arm's sim
 #: backend (sim_backends/reset_arm/backend.py) joins the scene of the one it names
@@ -113,7 +113,7 @@ class ShadowHandSim(LockstepSim):
         self.tracker = None  # HandTracker when params.sim.tracker is set
         self._tracker_opts = None
         if self.sim.tracker is not None:
-            from sim_backends.shadow_hand.cameras import TrackerOptions
+            from hilstack.sim_backends.shadow_hand.cameras import TrackerOptions
 
             try:
                 self._tracker_opts = parse_model(TrackerOptions, dict(self.sim.tracker), source)
@@ -139,7 +139,7 @@ class ShadowHandSim(LockstepSim):
         s = self.sim
         edit = None
         if self._tracker_opts is not None:
-            from sim_backends.shadow_hand.cameras import scene_edit
+            from hilstack.sim_backends.shadow_hand.cameras import scene_edit
 
             edit = scene_edit()
         station = StationGeometry() if s.reset_station else None
@@ -168,7 +168,7 @@ class ShadowHandSim(LockstepSim):
         self._act_dadr = h.dof_adr[h.act_joint]
         self._palm = h.model.body("robot0:palm").id
         if self._tracker_opts is not None:
-            from sim_backends.shadow_hand.cameras import HandTracker
+            from hilstack.sim_backends.shadow_hand.cameras import HandTracker
 
             mujoco.mj_forward(self.model, self.data)
             self.tracker = HandTracker(self.model, self.data, self._tracker_opts, self.spec.period_s)

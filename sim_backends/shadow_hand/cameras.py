@@ -6,7 +6,7 @@ along the palm normal, ``baseline_m`` apart along the mount's x, looking at the 
 Their poses in the hand frame are exact by construction, which is the truth calibration
 is checked against (:func:`truth_calibration`).
 
-Rendering goes through :class:`sim_backends.rendering.OffscreenRenderer` (shared with the
+Rendering goes through :class:`hilstack.sim_backends.rendering.OffscreenRenderer` (shared with the
 WidowX cameras; shadows and reflections off).
 """
 
@@ -19,11 +19,11 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
-from drivers.base import Health, Observation
-from drivers.camera.config import CameraParams, camera_spec
-from drivers.camera.pipeline import CameraPipeline, FramePair
-from perception.geometry import (
+from hilstack.configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
+from hilstack.drivers.base import Health, Observation
+from hilstack.drivers.camera.config import CameraParams, camera_spec
+from hilstack.drivers.camera.pipeline import CameraPipeline, FramePair
+from hilstack.perception.geometry import (
     StereoCalibration,
     apply,
     cv_from_mujoco_cam,
@@ -31,8 +31,8 @@ from perception.geometry import (
     intrinsics_from_fovy,
     invert,
 )
-from sim_backends.base import LockstepSim
-from sim_backends.rendering import OffscreenRenderer
+from hilstack.sim_backends.base import LockstepSim
+from hilstack.sim_backends.rendering import OffscreenRenderer
 
 LEFT_CAMERA = "stereo_left"
 RIGHT_CAMERA = "stereo_right"
@@ -106,7 +106,7 @@ def add_board(spec: mujoco.MjSpec, board: Checkerboard = Checkerboard()) -> None
 
 
 def scene_edit(mount: StereoMount = StereoMount(), board: Checkerboard | None = None):
-    """The ``edit`` for :func:`sim_backends.shadow_hand.model.build_scene`: cameras (+ board)."""
+    """The ``edit`` for :func:`hilstack.sim_backends.shadow_hand.model.build_scene`: cameras (+ board)."""
 
     def edit(spec: mujoco.MjSpec) -> None:
         add_stereo_cameras(spec, mount)
@@ -159,8 +159,8 @@ class HandCameraScene:
 
     def __init__(self, palm_tilt_rad: float = 0.15, mount: StereoMount = StereoMount(),
                  board: Checkerboard | None = None):
-        from sim_backends.shadow_hand.backend import hold_pose_q
-        from sim_backends.shadow_hand.model import build_scene
+        from hilstack.sim_backends.shadow_hand.backend import hold_pose_q
+        from hilstack.sim_backends.shadow_hand.model import build_scene
 
         self.mount, self.board = mount, board
         self.hand = build_scene(palm_tilt_rad, edit=scene_edit(mount, board))
@@ -207,9 +207,9 @@ class HandCameraScene:
 def baoding_motion(t_s: np.ndarray, radius_m: float = 0.025, rate_rad_s: float = np.pi / 5,
                    bob_m: float = 0.004) -> np.ndarray:
     """Ball centres (len(t), 2, 3) in the hand frame for a Baoding turn: the task's targets
-    (:class:`sim_backends.shadow_hand.baoding.BaodingTask` about the palm centre, palm normal
+    (:class:`hilstack.sim_backends.shadow_hand.baoding.BaodingTask` about the palm centre, palm normal
     = the hand frame's −y) bobbing ``bob_m`` along the normal (rolling over the fingers)."""
-    from sim_backends.shadow_hand.baoding import BaodingTask
+    from hilstack.sim_backends.shadow_hand.baoding import BaodingTask
 
     task = BaodingTask(center_m=np.asarray(PALM_CENTER_IN_HAND_M), axis=np.array([0.0, -1.0, 0.0]),
                        radius_m=radius_m, rate_rad_s=rate_rad_s)

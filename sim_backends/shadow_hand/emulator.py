@@ -13,7 +13,7 @@ hand's CAN database (``drivers/shadow_hand/shadow_hand.dbc``) over one of:
   keeps only host frames (``protocol.HOST_IDS``).
 
 With ``--ball-ports P0,P1`` it also stands in for the ball tracker: each ball's
-position streams to its UDP port in the ``drivers.mocap.udp`` format at the telemetry rate.
+position streams to its UDP port in the ``hilstack.drivers.mocap.udp`` format at the telemetry rate.
 With the reset station in the scene (``params.sim.reset_station``) and
 ``params.emulator.arm_port``, it also runs the reset arm's controller on that UDP port
 (sim_backends/reset_arm/server.py), in the same world as the hand.
@@ -43,8 +43,8 @@ import time
 import tty
 from typing import Any
 
-from drivers.shadow_hand.config import ShadowHandParams
-from drivers.shadow_hand.protocol import (
+from hilstack.drivers.shadow_hand.config import ShadowHandParams
+from hilstack.drivers.shadow_hand.protocol import (
     HOST_IDS,
     ID_ESTOP,
     ID_HOST_HEARTBEAT,
@@ -54,8 +54,8 @@ from drivers.shadow_hand.protocol import (
     decode_targets,
     encode_telemetry,
 )
-from sim_backends.base import RealtimePacer
-from sim_backends.shadow_hand.backend import ShadowHandSim
+from hilstack.sim_backends.base import RealtimePacer
+from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
 
 FW_DT_S = 0.001
 MAX_CATCHUP_S = 0.05  # never integrate more per loop: if the CPU falls behind, time slips
@@ -336,7 +336,7 @@ class Emulator:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sim_backends.shadow_hand.emulator",
+    ap = argparse.ArgumentParser(prog="python -m hilstack.sim_backends.shadow_hand.emulator",
                                  description=__doc__.split("\n")[0])
     ap.add_argument("--transport", choices=("slcan", "udp_multicast"), default="slcan")
     ap.add_argument("--print-pty", action="store_true", help="slcan: create a pty and print its path")
@@ -344,7 +344,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--channel", default="239.74.163.2", help="udp_multicast: IPv4 multicast group")
     ap.add_argument("--udp-port", type=int, default=43113, help="udp_multicast: UDP port")
     ap.add_argument("--config", help="ShadowHandParams as inline JSON")
-    ap.add_argument("--ball-ports", help="P0,P1: stream the two ball positions to these UDP ports (drivers.mocap.udp)")
+    ap.add_argument("--ball-ports", help="P0,P1: stream the two ball positions to these UDP ports (hilstack.drivers.mocap.udp)")
     ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args(argv)
 
@@ -376,13 +376,13 @@ def main(argv: list[str] | None = None) -> int:
 
     ball_servers = []
     if args.ball_ports:
-        from drivers.mocap.udp import PoseStreamServer
+        from hilstack.drivers.mocap.udp import PoseStreamServer
 
         for i, ball_port in enumerate(args.ball_ports.split(",")):
             ball_servers.append(PoseStreamServer("127.0.0.1", int(ball_port), body_id=i + 1))
     arm_server = None
     if params.emulator.arm_port:
-        from sim_backends.reset_arm.server import ArmServer
+        from hilstack.sim_backends.reset_arm.server import ArmServer
 
         if physics.hand.station is None:
             ap.error("emulator.arm_port needs the reset station in the scene (params.sim.reset_station: true)")

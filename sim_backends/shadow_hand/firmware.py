@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.shadow_hand.protocol import (  # noqa: F401 - re-exported for the emulator and tests
+from hilstack.drivers.shadow_hand.protocol import (  # noqa: F401 - re-exported for the emulator and tests
     FAULT_BUS_OFF,
     FAULT_ESTOP,
     FAULT_MOTOR,

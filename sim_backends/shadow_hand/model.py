@@ -10,7 +10,7 @@ used (its ``gym.make`` environments fail on MuJoCo >= 3.12). MjSpec edits:
   above the palm;
 * the 20 position servos become torque motors (``set_to_motor``, ctrl range = the servo's
   force range): the position loop runs in the firmware model at 1 kHz
-  (:mod:`sim_backends.shadow_hand.firmware`), as on the real hand's motor boards;
+  (:mod:`hilstack.sim_backends.shadow_hand.firmware`), as on the real hand's motor boards;
 * the physics step becomes 1 ms (the firmware's tick) instead of 2 ms.
 
 Frames: world z up. The hand's mount is rotated so that the palm faces up (+z) with the
@@ -27,9 +27,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from drivers.shadow_hand.config import ACTUATED_JOINTS, JOINT_NAMES
-from sim_backends.reset_arm.model import DEFAULT_GRIPPER_FORCE_N
-from sim_backends.shadow_hand.station import StationGeometry, add_station
+from hilstack.drivers.shadow_hand.config import ACTUATED_JOINTS, JOINT_NAMES
+from hilstack.sim_backends.reset_arm.model import DEFAULT_GRIPPER_FORCE_N
+from hilstack.sim_backends.shadow_hand.station import StationGeometry, add_station
 
 BALL_RADIUS_M = 0.02
 BALL_MASS_KG = 0.05
@@ -74,7 +74,7 @@ def build_scene(palm_tilt_rad: float = 0.0, station: StationGeometry | None = No
     ``station``: add the reset station (ramp, pick-up spot, reset arm) beside the hand;
     its actuators come after the hand's 20. ``edit`` adds to the spec before it is
     compiled (the stereo cameras and the calibration board of
-    :mod:`sim_backends.shadow_hand.cameras`)."""
+    :mod:`hilstack.sim_backends.shadow_hand.cameras`)."""
     spec = mujoco.MjSpec.from_file(str(hand_asset_path()))
     for name in ("object", "target"):
         spec.delete(spec.body(name))

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from sim_backends.reset_arm.model import DEFAULT_GRIPPER_FORCE_N, add_arm
+from hilstack.sim_backends.reset_arm.model import DEFAULT_GRIPPER_FORCE_N, add_arm
 
 
 @dataclass(frozen=True)

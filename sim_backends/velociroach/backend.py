@@ -26,12 +26,12 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
-from drivers.base import Flag, Freshness, Health, Inputs, Observation
-from drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
-from sim_backends.base import LockstepSim
-from sim_backends.velociroach.firmware import TICK_S, Firmware, FirmwareConfig, default_ff_v_per_rps
-from sim_backends.velociroach.model import (
+from hilstack.configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
+from hilstack.drivers.base import Flag, Freshness, Health, Inputs, Observation
+from hilstack.drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
+from hilstack.sim_backends.base import LockstepSim
+from hilstack.sim_backends.velociroach.firmware import TICK_S, Firmware, FirmwareConfig, default_ff_v_per_rps
+from hilstack.sim_backends.velociroach.model import (
     LEG_NAMES,
     Geometry,
     build_mjcf,

@@ -5,9 +5,9 @@ device with ``--pty PATH``) and stands in for "base-station XBee + air + robot X
 dsPIC firmware": it receives the PC's XBee TX64 requests, answers with RX64 frames, and
 runs the firmware (1 kHz PID, watchdog, telemetry; ``firmware.py`` of the sim backend)
 on the MuJoCo model in real time. The robot's mocap pose is served over UDP
-(``drivers.mocap.udp.PoseStreamServer``) like a motion-capture system would.
+(``hilstack.drivers.mocap.udp.PoseStreamServer``) like a motion-capture system would.
 
-    python -m sim_backends.velociroach.emulator --print-pty --pose-port 0 --config '{"telemetry_hz": 100}'
+    python -m hilstack.sim_backends.velociroach.emulator --print-pty --pose-port 0 --config '{"telemetry_hz": 100}'
 
 On start it prints one JSON line on stdout, ``{"pty": ..., "pose_port": ..., "pid": ...}``,
 then stays quiet on stdout (logs go to stderr). It stops on SIGTERM/SIGINT or when
@@ -19,7 +19,7 @@ a bad XBee checksum and a bad MAVLink CRC), ``--garbage`` (noise bytes between f
 ``--silence-after S`` (radio outage S seconds after the first command: nothing is sent or
 received any more; the firmware keeps running, so its watchdog stops the motors, and the
 mocap stream, a separate system, keeps going). Only in the config's ``emulator`` section
-(:class:`drivers.velociroach.config.VelociRoachEmulatorParams`): ``pose_silence_after_s`` (the mocap
+(:class:`hilstack.drivers.velociroach.config.VelociRoachEmulatorParams`): ``pose_silence_after_s`` (the mocap
 stream stops S seconds after the first command, the radio keeps going) and
 ``nonfinite_telemetry_every`` (every N-th telemetry packet carries NaN sensor values) and
 ``start_upside_down`` (the robot starts on its back, as after a flip).
@@ -46,13 +46,13 @@ import tty
 from pathlib import Path
 from typing import Any
 
-from control.reset import fixture as fixture_proto
-from drivers.velociroach.config import VelociRoachParams, quat_to_rpy
-from drivers.velociroach.link import FdPort, RadioLink, open_serial, xbee_rx64
-from drivers.velociroach.mavlink import ROBOT_COMPID, ROBOT_SYSID, EncodeError, MavEncoder, mav
-from sim_backends.base import RealtimePacer
+from hilstack.control.reset import fixture as fixture_proto
+from hilstack.drivers.velociroach.config import VelociRoachParams, quat_to_rpy
+from hilstack.drivers.velociroach.link import FdPort, RadioLink, open_serial, xbee_rx64
+from hilstack.drivers.velociroach.mavlink import ROBOT_COMPID, ROBOT_SYSID, EncodeError, MavEncoder, mav
+from hilstack.sim_backends.base import RealtimePacer
 
-DEFAULT_PHYSICS = "sim_backends.velociroach.backend:VelociRoachSim"
+DEFAULT_PHYSICS = "hilstack.sim_backends.velociroach.backend:VelociRoachSim"
 #: firmware PID rate: physics advances in whole milliseconds
 FW_DT_S = 0.001
 #: never integrate more than this per loop: if the CPU falls behind, sim time slips
@@ -367,11 +367,11 @@ def _load_config(arg: str | None) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sim_backends.velociroach.emulator", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m hilstack.sim_backends.velociroach.emulator", description=__doc__.split("\n")[0])
     where = ap.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", help="serial device to serve (e.g. one end of a socat pty pair)")
     where.add_argument("--print-pty", action="store_true", help="create a pty and print its path")
-    ap.add_argument("--pose-port", type=int, default=None, help="send the mocap pose to this UDP port (drivers.mocap.udp)")
+    ap.add_argument("--pose-port", type=int, default=None, help="send the mocap pose to this UDP port (hilstack.drivers.mocap.udp)")
     ap.add_argument("--pose-host", default="127.0.0.1")
     ap.add_argument("--config", help="VelociRoachParams as inline JSON or a JSON/YAML file")
     ap.add_argument("--physics", default=None, help=f"module:Class of the physics (default {DEFAULT_PHYSICS})")
@@ -414,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
     pose_server = None
     pose_port = None
     if args.pose_port is not None:
-        from drivers.mocap.udp import PoseStreamServer
+        from hilstack.drivers.mocap.udp import PoseStreamServer
 
         pose_server = PoseStreamServer(args.pose_host, args.pose_port)
         pose_port = args.pose_port

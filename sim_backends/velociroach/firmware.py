@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from drivers.velociroach.mavlink import mav
+from hilstack.drivers.velociroach.mavlink import mav
 
 TICK_S = 0.001
 TICK_HZ = 1000

@@ -20,8 +20,8 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from configs.schema import Params, config_path, load_yaml_model
-from sim_backends.velociroach.model import LEG_NAMES
+from hilstack.configs.schema import Params, config_path, load_yaml_model
+from hilstack.sim_backends.velociroach.model import LEG_NAMES
 
 Leg = Literal["lf", "lm", "la", "rf", "rm", "ra"]
 Terrain = Literal["carpet", "styrofoam", "gravel", "turf"]

@@ -1,6 +1,6 @@
 """WidowX and mechanism MuJoCo backends: the real drivers' code over an in-process bus.
 
-``SimBus`` offers what :class:`drivers.dynamixel.bus.DynamixelBus` offers (ping, read,
+``SimBus`` offers what :class:`hilstack.drivers.dynamixel.bus.DynamixelBus` offers (ping, read,
 write, reboot, sync read/write, counters) by calling the simulated servos' control
 tables directly, without packets or a port. The drivers' logic (modes, limits, hold,
 stop, health) is therefore the same code on every backend; only the clock differs:
@@ -18,14 +18,14 @@ from typing import Any
 
 import numpy as np
 
-from configs.schema import RobotConfig, parse_params
-from drivers.base import Lifecycle, LinkError
-from drivers.dynamixel.bus import ServoError
-from drivers.dynamixel.control_table import control_table, describe_status_error
-from drivers.widowx.config import MechanismParams, WidowXParams
-from drivers.widowx.driver import MechanismDriver, WidowXDriver
-from sim_backends.base import LockstepSim
-from sim_backends.widowx.world import ArmWorld, shared_world
+from hilstack.configs.schema import RobotConfig, parse_params
+from hilstack.drivers.base import Lifecycle, LinkError
+from hilstack.drivers.dynamixel.bus import ServoError
+from hilstack.drivers.dynamixel.control_table import control_table, describe_status_error
+from hilstack.drivers.widowx.config import MechanismParams, WidowXParams
+from hilstack.drivers.widowx.driver import MechanismDriver, WidowXDriver
+from hilstack.sim_backends.base import LockstepSim
+from hilstack.sim_backends.widowx.world import ArmWorld, shared_world
 
 
 class SimBus:
@@ -173,7 +173,7 @@ class WidowXSim(_SimMixin, WidowXDriver):
         obs = super()._read()
         if self.params.sim.get("cameras") and self.world is not None:
             if self._cameras is None:
-                from sim_backends.widowx.cameras import BenchCameras
+                from hilstack.sim_backends.widowx.cameras import BenchCameras
 
                 self._cameras = BenchCameras(self.world.model, int(self.params.sim.get("camera_px", 64)))
             obs.extras["image"] = self._cameras.render(self.world.data)

@@ -2,7 +2,7 @@
 and a wrist camera, each ``height × height`` pixels, concatenated side by side into one
 ``height × 2·height`` RGB image (64×128 in the MELD thesis' cable-insertion task).
 
-Rendering goes through :class:`sim_backends.rendering.OffscreenRenderer` (offscreen GL,
+Rendering goes through :class:`hilstack.sim_backends.rendering.OffscreenRenderer` (offscreen GL,
 shadows and reflections off).
 """
 
@@ -11,7 +11,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from sim_backends.rendering import OffscreenRenderer
+from hilstack.sim_backends.rendering import OffscreenRenderer
 
 CAMERAS = ("fixed", "wrist")
 

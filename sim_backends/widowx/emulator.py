@@ -9,7 +9,7 @@ world (:mod:`.world`) advanced in real time in 1 ms servo ticks.
 It must be a separate process: dynamixel-sdk busy-polls the port and starves any thread
 of its own process (docs/arms.md).
 
-    python -m sim_backends.widowx.emulator --print-pty --config '{"missing_ids": [8]}'
+    python -m hilstack.sim_backends.widowx.emulator --print-pty --config '{"missing_ids": [8]}'
 
 On start it prints one JSON line ``{"pty": ..., "pid": ...}`` on stdout; logs go to
 stderr. It stops on SIGTERM/SIGINT or when ``--parent-pid`` dies.
@@ -34,10 +34,10 @@ import time
 import tty
 from typing import Any
 
-from drivers.dynamixel import protocol as p
-from sim_backends.base import RealtimePacer
-from sim_backends.widowx.firmware import TICK_S
-from sim_backends.widowx.world import ArmWorld
+from hilstack.drivers.dynamixel import protocol as p
+from hilstack.sim_backends.base import RealtimePacer
+from hilstack.sim_backends.widowx.firmware import TICK_S
+from hilstack.sim_backends.widowx.world import ArmWorld
 
 #: never integrate more than this per loop: if the CPU falls behind, sim time slips
 MAX_CATCHUP_S = 0.05
@@ -173,7 +173,7 @@ def run(bus: BusEmulator, fd: int, parent_pid: int | None, running: list[bool], 
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sim_backends.widowx.emulator", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m hilstack.sim_backends.widowx.emulator", description=__doc__.split("\n")[0])
     ap.add_argument("--print-pty", action="store_true", required=True, help="create a pty and print its path")
     ap.add_argument("--config", default="{}", help="JSON: arm_ids, mech_ids, missing_ids, hardware_errors, ...")
     ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")

@@ -29,8 +29,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from drivers.dynamixel import protocol as p
-from drivers.dynamixel.control_table import (
+from hilstack.drivers.dynamixel import protocol as p
+from hilstack.drivers.dynamixel.control_table import (
     AMP_PER_COUNT,
     OPERATING_MODES,
     RAD_PER_COUNT,

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from drivers.widowx.description import WX250S_LINKS
+from hilstack.drivers.widowx.description import WX250S_LINKS
 
 #: base link (fixed): mass and CoM of wx250s/base_link
 BASE_MASS_KG = 0.538736

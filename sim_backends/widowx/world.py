@@ -1,5 +1,5 @@
 """The simulated bench: WidowX + mechanism + switch in MuJoCo, each joint driven by a
-:class:`~sim_backends.widowx.firmware.Servo` at 1 kHz.
+:class:`~hilstack.sim_backends.widowx.firmware.Servo` at 1 kHz.
 
 Used by the sim backends in-process (lockstep) and by the bus emulator process (real
 time). Servos are addressed by Dynamixel ID, as on the wire.
@@ -16,9 +16,9 @@ import weakref
 import mujoco
 import numpy as np
 
-from drivers.widowx.config import JOINTS, MECH_DEFAULT_IDS
-from sim_backends.widowx.firmware import TICK_S, Servo, ServoPhysics
-from sim_backends.widowx.model import WX250S_LINKS, MechanismGeometry, build_spec
+from hilstack.drivers.widowx.config import JOINTS, MECH_DEFAULT_IDS
+from hilstack.sim_backends.widowx.firmware import TICK_S, Servo, ServoPhysics
+from hilstack.sim_backends.widowx.model import WX250S_LINKS, MechanismGeometry, build_spec
 
 #: Interbotix' sleep pose: shoulder and elbow on their limits, so gravity keeps it there
 SLEEP_POSE_RAD = {"shoulder": -1.88, "elbow": 1.60, "wrist_angle": -1.74}

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from learning.adaptation.grbal import meta_train, segments
-from learning.adaptation.model import AdaptiveMLP
-from learning.adaptation.training import fit_plain
+from hilstack.learning.adaptation.grbal import meta_train, segments
+from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.training import fit_plain
 from tests.adaptation import toy
 
 M = K = 8

@@ -5,15 +5,15 @@ from __future__ import annotations
 import inspect
 import json
 
-from learning.adaptation import load_adapter
-from learning.adaptation.experiment import METHODS, SWITCHING_METHODS, load_episodes
-from tools.cmd_demo import OTHER_DEMOS
-from tools.demo_adaptation import cli_adaptation, ranking_line, report_from_seeds, run_demo
+from hilstack.learning.adaptation import load_adapter
+from hilstack.learning.adaptation.experiment import METHODS, SWITCHING_METHODS, load_episodes
+from hilstack.tools.cmd_demo import OTHER_DEMOS
+from hilstack.tools.demo_adaptation import cli_adaptation, ranking_line, report_from_seeds, run_demo
 
 
 def test_registered_with_the_demo_signature():
     module, fn, _ = OTHER_DEMOS["adaptation"]
-    assert (module, fn) == ("tools.demo_adaptation", "cli_adaptation")
+    assert (module, fn) == ("hilstack.tools.demo_adaptation", "cli_adaptation")
     assert list(inspect.signature(cli_adaptation).parameters) == ["out", "quick", "full", "seed"]
 
 
@@ -64,8 +64,8 @@ def test_oracle_is_an_mb_model_of_the_tested_condition():
     import numpy as np
     import pytest
 
-    from learning.adaptation.experiment import AdaptationConfig, Trained
-    from learning.adaptation.model import AdaptiveMLP
+    from hilstack.learning.adaptation.experiment import AdaptationConfig, Trained
+    from hilstack.learning.adaptation.model import AdaptiveMLP
 
     names = ["x", "y", "vx", "vy", "cos_yaw", "sin_yaw"]
     plain, oracle = AdaptiveMLP(names, 2, hidden=(8,), seed=0), AdaptiveMLP(names, 2, hidden=(8,), seed=1)
@@ -89,7 +89,7 @@ def test_ranking_counts_completions_first_then_cost():
 
 
 def test_config_overrides_change_only_the_named_fields():
-    from tools.demo_adaptation import config_for
+    from hilstack.tools.demo_adaptation import config_for
 
     base, cfg = config_for(True, False), config_for(True, False, train_leg_speed_scale=(0.6, 1.4))
     assert cfg.train_leg_speed_scale == (0.6, 1.4) and base.train_leg_speed_scale is None

@@ -5,11 +5,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from learning.adaptation import grbal, rebal
-from learning.adaptation.grbal import segments
-from learning.adaptation.model import AdaptiveMLP
-from learning.adaptation.rebal import ContextEncoder
-from learning.adaptation.training import fit_plain, split_episodes, transitions
+from hilstack.learning.adaptation import grbal, rebal
+from hilstack.learning.adaptation.grbal import segments
+from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.rebal import ContextEncoder
+from hilstack.learning.adaptation.training import fit_plain, split_episodes, transitions
 from tests.adaptation import toy
 
 
@@ -68,7 +68,7 @@ def test_rebal_stops_early_and_keeps_the_best_weights():
 
 
 def test_training_rollouts_are_saved_and_load_back(tmp_path):
-    from learning.adaptation.experiment import load_episodes, save_episodes
+    from hilstack.learning.adaptation.experiment import load_episodes, save_episodes
 
     eps = toy.episodes(3, 7, seed=2)
     for i, e in enumerate(eps):
@@ -82,7 +82,7 @@ def test_training_rollouts_are_saved_and_load_back(tmp_path):
 
 
 def test_unperturbed_conditions_are_the_first_and_a_spread_fraction():
-    from learning.adaptation.experiment import AdaptationConfig, unperturbed_conditions
+    from hilstack.learning.adaptation.experiment import AdaptationConfig, unperturbed_conditions
 
     assert unperturbed_conditions(AdaptationConfig(conditions_per_terrain=12, unperturbed_fraction=0.0)) == {0}
     assert unperturbed_conditions(AdaptationConfig(conditions_per_terrain=12, unperturbed_fraction=0.5)) == \

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from learning.adaptation import load_adapter
-from learning.adaptation.grbal import GrbalAdapter, adapt, evaluate, gradient_norms, segments
-from learning.adaptation.model import AdaptiveMLP
-from learning.adaptation.training import transitions
+from hilstack.learning.adaptation import load_adapter
+from hilstack.learning.adaptation.grbal import GrbalAdapter, adapt, evaluate, gradient_norms, segments
+from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.training import transitions
 from tests.adaptation import toy
 from tests.adaptation.conftest import K, M
 
@@ -115,7 +115,7 @@ def test_adapting_a_subset_differentiates_only_that_subset(meta):
 
 
 def test_meta_training_a_subset_learns_only_its_step_sizes(meta):
-    from learning.adaptation.grbal import meta_train
+    from hilstack.learning.adaptation.grbal import meta_train
     from tests.adaptation.conftest import train_episodes
 
     _, plain, _, _ = meta

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from learning.adaptation import load_adapter
-from learning.adaptation.base import ModelUpdate
-from learning.adaptation.baselines import MbAdapter, MbDeAdapter
-from learning.adaptation.model import AdaptiveMLP
-from learning.adaptation.training import fit_plain, transitions
+from hilstack.learning.adaptation import load_adapter
+from hilstack.learning.adaptation.base import ModelUpdate
+from hilstack.learning.adaptation.baselines import MbAdapter, MbDeAdapter
+from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.training import fit_plain, transitions
 from tests.adaptation import toy
 
 

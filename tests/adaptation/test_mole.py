@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from learning.adaptation import load_adapter
-from learning.adaptation.grbal import GrbalAdapter
-from learning.adaptation.mole import MoleAdapter, crp_log_prior, task_posterior
+from hilstack.learning.adaptation import load_adapter
+from hilstack.learning.adaptation.grbal import GrbalAdapter
+from hilstack.learning.adaptation.mole import MoleAdapter, crp_log_prior, task_posterior
 from tests.adaptation import toy
 
 A, B = (1.0, 0.0), (0.3, 1.5)  # normal; slow and turning (outside the meta-training range)
@@ -68,7 +68,7 @@ def test_builds_from_a_grbal_checkpoint_and_refuses_a_plain_one(meta, tmp_path):
     assert isinstance(ad, MoleAdapter) and ad.window == 8 and ad.score == 4
     ad.save(tmp_path / "m.pt")
     assert isinstance(load_adapter(tmp_path / "m.pt"), MoleAdapter)
-    from learning.adaptation.baselines import MbAdapter
+    from hilstack.learning.adaptation.baselines import MbAdapter
     MbAdapter(model, window=8).save(tmp_path / "mb.pt")
     with pytest.raises(ValueError, match="no step size psi"):
         load_adapter(tmp_path / "mb.pt", method="mole")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from learning.adaptation.mole import MoleAdapter
+from hilstack.learning.adaptation.mole import MoleAdapter
 from tests.adaptation.test_mole import A, B, _run
 
 

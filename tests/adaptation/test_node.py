@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-from bus import keys
-from bus.node import Node
-from bus.schemas import EStop, ModelUpdate, ResetEvent, RobotState, SpecMsg
-from control.adaptation_node import AdaptationNode, AdaptationStats, ModelSwap, TransitionBuilder
-from control.planners import RandomShooting
-from control.policies import MpcPolicy
-from learning.adaptation.baselines import MbDeAdapter
-from learning.adaptation.model import AdaptiveMLP
+from hilstack.bus import keys
+from hilstack.bus.node import Node
+from hilstack.bus.schemas import EStop, ModelUpdate, ResetEvent, RobotState, SpecMsg
+from hilstack.control.adaptation_node import AdaptationNode, AdaptationStats, ModelSwap, TransitionBuilder
+from hilstack.control.planners import RandomShooting
+from hilstack.control.policies import MpcPolicy
+from hilstack.learning.adaptation.baselines import MbDeAdapter
+from hilstack.learning.adaptation.model import AdaptiveMLP
 from tests.helpers import wait_for
 
 RIG, ROBOT = "adapt_t", "pm"
@@ -63,7 +63,7 @@ def test_builder_makes_one_step_transitions_in_model_units_and_counts_what_it_sk
     out = []
     for m in seq:
         if m.seq == 9:
-            from bus.schemas import Command
+            from hilstack.bus.schemas import Command
 
             b.command(Command(robot=ROBOT, action=[-1.0, 0.0], state_seq=8))
         out.append(b.push(m))
@@ -261,7 +261,7 @@ def test_a_slow_model_swap_never_holds_back_a_command(bus, spawn):
     """The swap (decode + build) runs in the planner thread: while a slow one runs, the control
     loop keeps sending commands from the last plan."""
     spawn("up", "pointmass_sim", "--endpoint", bus.endpoint)
-    from control.controller_node import ControllerNode
+    from hilstack.control.controller_node import ControllerNode
 
     events: list[tuple[str, int]] = []
     sent = [0]
@@ -315,8 +315,8 @@ def test_a_slow_model_swap_never_holds_back_a_command(bus, spawn):
 
 
 def test_mole_publishes_its_task_posterior_beside_the_model(bus):
-    from bus.schemas import TaskPosterior, decode
-    from learning.adaptation.mole import MoleAdapter
+    from hilstack.bus.schemas import TaskPosterior, decode
+    from hilstack.learning.adaptation.mole import MoleAdapter
 
     base = linear_adapter()
     psi = {k: torch.full_like(v, 0.01) for k, v in base.theta_star.items()}
@@ -342,7 +342,7 @@ def test_mole_publishes_its_task_posterior_beside_the_model(bus):
 
 
 def test_last_layer_is_the_output_layer_also_past_ten_modules():
-    from control.adaptation_node import last_layer, update_kind
+    from hilstack.control.adaptation_node import last_layer, update_kind
 
     deep = MbDeAdapter(AdaptiveMLP(NAMES, 2, hidden=(4,) * 5, body_frame=False))  # Linear at 0, 2, ..., 10
     assert last_layer(deep) == ["10.weight", "10.bias"]  # not "8": layers sort by number

@@ -7,11 +7,11 @@ import json
 
 import torch
 
-from bus.node import Node, alive_nodes
-from configs.schema import load_rig, rig_robot_config
-from drivers.registry import make_driver
-from learning.adaptation.baselines import MbDeAdapter
-from learning.adaptation.model import AdaptiveMLP
+from hilstack.bus.node import Node, alive_nodes
+from hilstack.configs.schema import load_rig, rig_robot_config
+from hilstack.drivers.registry import make_driver
+from hilstack.learning.adaptation.baselines import MbDeAdapter
+from hilstack.learning.adaptation.model import AdaptiveMLP
 from tests.helpers import wait_for
 
 
@@ -51,7 +51,7 @@ def test_adapt_node_feeds_the_mpc_on_the_roach_sim_rig(bus, spawn, tmp_path):
 def test_cli_errors_are_one_line(tmp_path):
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
@@ -69,7 +69,7 @@ def test_cli_errors_are_one_line(tmp_path):
 
 
 def test_bench_adaptation_measures_the_delay_against_raw_zenoh():
-    from tools.bench_adaptation import run_bench_adaptation
+    from hilstack.tools.bench_adaptation import run_bench_adaptation
 
     r = run_bench_adaptation(rig="pointmass_sim", updates=3, hidden=(16,), payloads=("last_layer",), peer_n=20)
     row = r["last_layer"]
@@ -85,7 +85,7 @@ def test_bench_adaptation_measures_the_delay_against_raw_zenoh():
 def test_mpc_refuses_a_checkpoint_of_another_robot(bus, spawn, tmp_path):
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     ck = str(roach_checkpoint(tmp_path / "mbde.pt"))
     spawn("up", "pointmass_lockstep", "--endpoint", bus.endpoint)

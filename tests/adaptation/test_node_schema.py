@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bus import keys
-from bus.recording import McapLog, iter_messages
-from bus.schemas import MalformedMessage, ModelUpdate, TaskPosterior, decode, encode, json_schema
+from hilstack.bus import keys
+from hilstack.bus.recording import McapLog, iter_messages
+from hilstack.bus.schemas import MalformedMessage, ModelUpdate, TaskPosterior, decode, encode, json_schema
 
 W = {"net.0.weight": np.arange(6, dtype=np.float32).reshape(2, 3) / 7, "net.0.bias": np.array([0.5, -1.0])}
 EXPECTED = {"net.0.weight": (2, 3), "net.0.bias": (2,)}
@@ -80,7 +80,7 @@ def test_task_posterior_is_plotted_per_task_in_rerun(tmp_path):
     import rerun as rr
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     mc = tmp_path / "a.mcap"
     with McapLog(mc) as log:

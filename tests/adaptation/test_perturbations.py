@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from configs.schema import ConfigError, load_robot, parse_model
-from sim_backends.velociroach.backend import VelociRoachSim
-from sim_backends.velociroach.perturbations import PerturbationSettings, load_presets
+from hilstack.configs.schema import ConfigError, load_robot, parse_model
+from hilstack.sim_backends.velociroach.backend import VelociRoachSim
+from hilstack.sim_backends.velociroach.perturbations import PerturbationSettings, load_presets
 
 
 def _sim(**sim) -> VelociRoachSim:
@@ -115,7 +115,7 @@ def test_bad_settings_name_the_field(tmp_path):
 
 
 def test_training_leg_speed_scale_runs_each_side_at_its_factor_and_resets():
-    from learning.adaptation.experiment import RoachSim
+    from hilstack.learning.adaptation.experiment import RoachSim
 
     env = RoachSim("carpet", 0)
     try:

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from learning.adaptation import load_adapter
-from learning.adaptation.grbal import segments
-from learning.adaptation.model import AdaptiveMLP
-from learning.adaptation.rebal import ContextEncoder, RebalAdapter, evaluate, meta_train
-from learning.adaptation.training import fit_plain
+from hilstack.learning.adaptation import load_adapter
+from hilstack.learning.adaptation.grbal import segments
+from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter, evaluate, meta_train
+from hilstack.learning.adaptation.training import fit_plain
 from tests.adaptation import toy
 from tests.adaptation.conftest import K, M, train_episodes
 

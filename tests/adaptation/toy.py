@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from learning.datasets import Episode
+from hilstack.learning.datasets import Episode
 
 NAMES = ["x", "y", "vx", "vy", "cos_yaw", "sin_yaw"]
 DT_S = 0.1

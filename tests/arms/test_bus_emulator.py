@@ -6,10 +6,10 @@ import time
 
 import pytest
 
-from drivers.base import LinkError
-from drivers.dynamixel.bus import ServoError, start_emulator
-from drivers.dynamixel.control_table import OPERATING_MODES, control_table, vel_rad_s
-from sim_backends.widowx.firmware import Servo
+from hilstack.drivers.base import LinkError
+from hilstack.drivers.dynamixel.bus import ServoError, start_emulator
+from hilstack.drivers.dynamixel.control_table import OPERATING_MODES, control_table, vel_rad_s
+from hilstack.sim_backends.widowx.firmware import Servo
 
 ARM = [1, 2, 4, 6, 7, 8]
 

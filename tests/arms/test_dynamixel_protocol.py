@@ -11,8 +11,8 @@ from dynamixel_sdk import GroupSyncWrite, PacketHandler, PortHandler
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.dynamixel import protocol as p
-from drivers.dynamixel.control_table import (
+from hilstack.drivers.dynamixel import protocol as p
+from hilstack.drivers.dynamixel.control_table import (
     control_table,
     describe_hardware_error,
     parse_model_file,

@@ -1,16 +1,16 @@
-"""Every robot's ``params.emulator`` is typed on the shared base (configs.schema.EmulatorParams):
+"""Every robot's ``params.emulator`` is typed on the shared base (hilstack.configs.schema.EmulatorParams):
 a misspelt fault option is a one-line config error naming the field, before anything starts."""
 
 from __future__ import annotations
 
 import pytest
 
-from configs.schema import ConfigError, EmulatorParams
-from drivers.registry import make_driver
-from drivers.sawyer.config import SawyerParams
-from drivers.shadow_hand.config import HandEmulatorParams, ShadowHandParams
-from drivers.velociroach.config import VelociRoachEmulatorParams, VelociRoachParams
-from drivers.widowx.config import DynamixelEmulatorParams, MechanismParams, WidowXParams
+from hilstack.configs.schema import ConfigError, EmulatorParams
+from hilstack.drivers.registry import make_driver
+from hilstack.drivers.sawyer.config import SawyerParams
+from hilstack.drivers.shadow_hand.config import HandEmulatorParams, ShadowHandParams
+from hilstack.drivers.velociroach.config import VelociRoachEmulatorParams, VelociRoachParams
+from hilstack.drivers.widowx.config import DynamixelEmulatorParams, MechanismParams, WidowXParams
 
 #: robot config → a typo of one of its emulator's real options
 TYPOS = {

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from drivers.sawyer.config import JOINTS as SAWYER_JOINTS
-from drivers.widowx.config import JOINT_NAMES as WIDOWX_JOINTS
-from learning.datasets import Episode
-from learning.kinematics import ChainKinematics
-from learning.reach import (
+from hilstack.drivers.sawyer.config import JOINTS as SAWYER_JOINTS
+from hilstack.drivers.widowx.config import JOINT_NAMES as WIDOWX_JOINTS
+from hilstack.learning.datasets import Episode
+from hilstack.learning.kinematics import ChainKinematics
+from hilstack.learning.reach import (
     HeldPolicy,
     IkController,
     ReachConfig,
@@ -24,8 +24,8 @@ from learning.reach import (
     reach_cost,
     summarize,
 )
-from sim_backends.sawyer.model import build_model
-from sim_backends.widowx.world import ArmWorld
+from hilstack.sim_backends.sawyer.model import build_model
+from hilstack.sim_backends.widowx.world import ArmWorld
 
 
 @pytest.fixture(scope="module")
@@ -146,7 +146,7 @@ def test_held_policy_acts_every_hold_calls_on_the_model_channels():
 
 
 def test_scaled_random_actions_cover_small_commands():
-    from learning.reach import RandomPolicy
+    from hilstack.learning.reach import RandomPolicy
 
     uni = np.array([RandomPolicy(7, s)(None) for s in range(400)])
     sca = np.array([RandomPolicy(7, s, scaled=True)(None) for s in range(400)])
@@ -171,7 +171,7 @@ def test_config_refuses_bad_settings_and_matches_the_ik_effort_to_the_data():
 def test_hil_demo_arms_is_registered_with_the_shared_signature():
     import importlib
 
-    from tools.cmd_demo import OTHER_DEMOS
+    from hilstack.tools.cmd_demo import OTHER_DEMOS
 
     module, fn, _ = OTHER_DEMOS["arms"]
     f = getattr(importlib.import_module(module), fn)
@@ -180,7 +180,7 @@ def test_hil_demo_arms_is_registered_with_the_shared_signature():
 
 def test_a_tiny_reach_run_on_the_sawyer_rig(tmp_path):
     """The whole loop over the bus: random data → model → MPC, IK and random; report.json."""
-    from tools.demo_arms import run_arms
+    from hilstack.tools.demo_arms import run_arms
 
     r = run_arms(tmp_path, quick=True, arms=("sawyer",), random_episodes=3, epochs=3, episode_steps=8,
                  samples=60, horizon=2, tune_candidates=2, tune_goals=1, progress=False)["sawyer"]
@@ -203,7 +203,7 @@ def test_a_tiny_reach_run_on_the_sawyer_rig(tmp_path):
 def test_widowx_goals_come_from_the_mechanism_pose(tmp_path, widowx_model):
     """On the bench rig the mechanism (its own robot on the bus) moves to each task's target
     and the goal is the switch port at the pose it measures."""
-    from tools.demo_arms import run_arms
+    from hilstack.tools.demo_arms import run_arms
 
     r = run_arms(tmp_path, quick=True, arms=("widowx",), random_episodes=2, epochs=2, episode_steps=4,
                  samples=60, horizon=2, tune_candidates=1, tune_goals=1, eval_goals=3, progress=False)["widowx"]

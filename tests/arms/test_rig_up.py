@@ -20,7 +20,7 @@ def test_sigterm_to_a_multi_robot_rig_stops_every_robot_process():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
-    parent = subprocess.Popen([sys.executable, "-m", "tools.cli", "up", "arm_widowx_sim", "--endpoint", endpoint],
+    parent = subprocess.Popen([sys.executable, "-m", "hilstack.tools.cli", "up", "arm_widowx_sim", "--endpoint", endpoint],
                               cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     children: list[psutil.Process] = []
     try:

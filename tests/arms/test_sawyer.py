@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from configs.schema import ConfigError
-from drivers.base import Lifecycle
-from drivers.registry import make_driver
-from drivers.sawyer import ros
-from drivers.sawyer.config import JOINTS
-from sim_backends.sawyer.controller import COMMAND_TIMEOUT_S, POSITION_MODE, VELOCITY_MODE, SawyerArm
+from hilstack.configs.schema import ConfigError
+from hilstack.drivers.base import Lifecycle
+from hilstack.drivers.registry import make_driver
+from hilstack.drivers.sawyer import ros
+from hilstack.drivers.sawyer.config import JOINTS
+from hilstack.sim_backends.sawyer.controller import COMMAND_TIMEOUT_S, POSITION_MODE, VELOCITY_MODE, SawyerArm
 
 
 def test_cdr_round_trip_and_bridge_keys():
@@ -68,7 +68,7 @@ def test_foreign_or_corrupt_joint_states_are_counted_not_used():
     leaves the last good state in place, counted as corrupt."""
     import time
 
-    from drivers.sawyer.driver import SawyerDriver
+    from hilstack.drivers.sawyer.driver import SawyerDriver
 
     d = SawyerDriver()
     good = ros.encode_joint_state(JOINTS, np.arange(7) * 0.1, np.zeros(7), np.zeros(7))

@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from configs.schema import ConfigError
-from drivers.base import Lifecycle, LinkError
-from drivers.dynamixel.control_table import OPERATING_MODES
-from drivers.registry import make_driver
-from drivers.widowx.config import JOINT_NAMES
-from sim_backends.widowx.world import SLEEP_POSE_RAD
-from tools.cmd_drive import drive_run
+from hilstack.configs.schema import ConfigError
+from hilstack.drivers.base import Lifecycle, LinkError
+from hilstack.drivers.dynamixel.control_table import OPERATING_MODES
+from hilstack.drivers.registry import make_driver
+from hilstack.drivers.widowx.config import JOINT_NAMES
+from hilstack.sim_backends.widowx.world import SLEEP_POSE_RAD
+from hilstack.tools.cmd_drive import drive_run
 
 HELD = {"shoulder": -0.5, "elbow": 0.5, "wrist_angle": 0.3}
 
@@ -206,12 +206,12 @@ def test_sim_renders_fixed_and_wrist_cameras_side_by_side():
 
 
 def test_bridge_publishes_the_camera_image_on_the_bus():
-    from bus import keys
-    from bus.node import Node
-    from bus.schemas import Image
-    from configs.schema import BusConfig
-    from drivers.bridge import DriverNode
-    from tools.demo import free_endpoint
+    from hilstack.bus import keys
+    from hilstack.bus.node import Node
+    from hilstack.bus.schemas import Image
+    from hilstack.configs.schema import BusConfig
+    from hilstack.drivers.bridge import DriverNode
+    from hilstack.tools.demo import free_endpoint
 
     bus = BusConfig(endpoint=free_endpoint())
     arm = _sim("t_bridge", sim={"cameras": True})

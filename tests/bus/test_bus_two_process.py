@@ -6,9 +6,9 @@ import math
 
 import pytest
 
-from bus import keys
-from bus.node import Node, alive_nodes
-from bus.schemas import Command, EStop, RobotState
+from hilstack.bus import keys
+from hilstack.bus.node import Node, alive_nodes
+from hilstack.bus.schemas import Command, EStop, RobotState
 from tests.helpers import wait_for
 
 RIG = "pointmass_sim"
@@ -28,7 +28,7 @@ def rig(bus, spawn):
 
 
 def _states(sub) -> list[RobotState]:
-    from bus.schemas import decode
+    from hilstack.bus.schemas import decode
 
     return [decode(p, RobotState) for _, p in sub.drain()]
 

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from bus import keys
-from bus.node import Node
-from bus.recording import summarize
-from bus.schemas import RobotState
+from hilstack.bus import keys
+from hilstack.bus.node import Node
+from hilstack.bus.recording import summarize
+from hilstack.bus.schemas import RobotState
 from tests.bus.test_viz_and_bench import _entities
 
 

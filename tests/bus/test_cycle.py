@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from bus.cycle import CycleTimer
+from hilstack.bus.cycle import CycleTimer
 
 
 class FakeClock:
@@ -120,7 +120,7 @@ def test_driver_tick_follows_the_catch_up_rule(monkeypatch):
     def timer_on_fake_clock(period_s):
         return CycleTimer(period_s, clock=c, sleep=c.sleep)
 
-    monkeypatch.setattr("drivers.base.CycleTimer", timer_on_fake_clock)
+    monkeypatch.setattr("hilstack.drivers.base.CycleTimer", timer_on_fake_clock)
     d = Fake()
     t0 = c.t
     super(Fake, d).tick()  # the wall-clock tick of the base class (Fake overrides it)
@@ -133,7 +133,7 @@ def test_driver_tick_follows_the_catch_up_rule(monkeypatch):
 
 
 def test_node_run_is_paced_and_timed(bus):
-    from bus.node import Node
+    from hilstack.bus.node import Node
 
     with Node("t", "cyc", bus, handle_signals=False) as n:
         calls = []

@@ -8,14 +8,14 @@ import threading
 import pytest
 from typer.testing import CliRunner
 
-from bus import keys
-from bus.node import Node
-from bus.schemas import Command, EStop, ResetEvent, RobotState, decode, encode
-from configs.schema import load_rig, rig_robot_config
-from drivers.bridge import DriverNode
-from drivers.registry import make_driver
+from hilstack.bus import keys
+from hilstack.bus.node import Node
+from hilstack.bus.schemas import Command, EStop, ResetEvent, RobotState, decode, encode
+from hilstack.configs.schema import load_rig, rig_robot_config
+from hilstack.drivers.bridge import DriverNode
+from hilstack.drivers.registry import make_driver
+from hilstack.tools.cli import app
 from tests.helpers import wait_for
-from tools.cli import app
 
 RIG = "pointmass_sim"
 
@@ -143,7 +143,7 @@ def test_bad_timeout_is_a_user_error(bus, bad):
 
 
 def test_a_release_the_driver_cannot_honour_is_acknowledged_as_still_engaged(bus):
-    from bus.estop import command_estop
+    from hilstack.bus.estop import command_estop
     from tests.test_driver_base import Fake
 
     drv = Fake()

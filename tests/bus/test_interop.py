@@ -11,8 +11,8 @@ import msgspec
 import pytest
 from mcap.reader import make_reader
 
-from bus import keys
-from bus.recording import (
+from hilstack.bus import keys
+from hilstack.bus.recording import (
     McapLog,
     foxglove_image_topic,
     foxglove_pose_topic,
@@ -20,7 +20,7 @@ from bus.recording import (
     read_messages,
     summarize,
 )
-from bus.schemas import ALL_TYPES, Command, Image, Plan, RobotState, SpecMsg, json_schema, type_name
+from hilstack.bus.schemas import ALL_TYPES, Command, Image, Plan, RobotState, SpecMsg, json_schema, type_name
 
 RIG = "fox"
 NAMES = ["x", "y", "cos_yaw", "sin_yaw", "v"]
@@ -209,8 +209,8 @@ def test_recording_opens_under_foxglove_rules_with_robot_poses(tmp_path):
 
 
 def test_our_readers_ignore_the_foxglove_channels(tmp_path, bus):
-    from bus.recording import replay
-    from learning.recordings import episodes_from_mcap
+    from hilstack.bus.recording import replay
+    from hilstack.learning.recordings import episodes_from_mcap
 
     path = tmp_path / "ours.mcap"
     msgs = _recording(path)
@@ -225,7 +225,7 @@ def test_our_readers_ignore_the_foxglove_channels(tmp_path, bus):
     assert replay(path, bus, speed=0, include_commands=True).published == len(msgs)
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     r = CliRunner().invoke(app, ["inspect", str(path)])
     assert r.exit_code == 0, r.output
@@ -274,15 +274,15 @@ def test_nan_state_survives_and_a_bad_message_does_not_end_reading(tmp_path):
 # --------------------------------------------------------------------------- MAVLink .tlog
 def test_drive_tlog_decodes_with_the_documented_dump_command(tmp_path):
     """`hil drive --tlog` on the emulated VelociRoACH (real driver over a pty) writes a
-    .tlog; `python -m drivers.velociroach.mavlink dump` (pymavlink's mavlogdump with our
+    .tlog; `python -m hilstack.drivers.velociroach.mavlink dump` (pymavlink's mavlogdump with our
     dialect) decodes every command and telemetry frame in it."""
     import subprocess
     import sys
 
     from typer.testing import CliRunner
 
+    from hilstack.tools.cli import app
     from tests.helpers import ROOT
-    from tools.cli import app
 
     tlog = tmp_path / "roach.tlog"
     r = CliRunner().invoke(app, ["drive", "velociroach", "--backend", "emulated", "--action", "0.5,0.5",
@@ -292,7 +292,7 @@ def test_drive_tlog_decodes_with_the_documented_dump_command(tmp_path):
     assert res["tlog"] == str(tlog)
 
     def dump(*args: str) -> list[str]:
-        p = subprocess.run([sys.executable, "-m", "drivers.velociroach.mavlink", "dump", *args, str(tlog)],
+        p = subprocess.run([sys.executable, "-m", "hilstack.drivers.velociroach.mavlink", "dump", *args, str(tlog)],
                            cwd=ROOT, capture_output=True, text=True, timeout=60)
         assert p.returncode == 0, p.stderr
         return p.stdout.splitlines()
@@ -324,14 +324,14 @@ def test_tlog_errors_are_one_line(tmp_path):
 
     from typer.testing import CliRunner
 
+    from hilstack.tools.cli import app
     from tests.helpers import ROOT
-    from tools.cli import app
 
     r = CliRunner().invoke(app, ["drive", "velociroach", "--backend", "sim", "--action", "0.5,0.5",
                                  "--seconds", "0.2", "--tlog", str(tmp_path / "x.tlog")])
     assert r.exit_code == 2 and "the sim backend has no radio link" in r.output
     assert not (tmp_path / "x.tlog").exists()
-    p = subprocess.run([sys.executable, "-m", "drivers.velociroach.mavlink", "dump", str(tmp_path / "none.tlog")],
+    p = subprocess.run([sys.executable, "-m", "hilstack.drivers.velociroach.mavlink", "dump", str(tmp_path / "none.tlog")],
                        cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert p.returncode == 2 and p.stderr.strip() == f"error: no such log file: {tmp_path / 'none.tlog'}"
 
@@ -350,10 +350,10 @@ def test_live_foxglove_websocket_serves_the_rig(bus):
     from mcap_protobuf.decoder import DecoderFactory
     from websockets.sync.client import connect
 
-    from bus.node import Node
-    from bus.schemas import encode
+    from hilstack.bus.node import Node
+    from hilstack.bus.schemas import encode
+    from hilstack.tools.foxglove_live import FoxgloveLive
     from tests.helpers import wait_for
-    from tools.foxglove_live import FoxgloveLive
 
     live = FoxgloveLive(RIG, bus, port=0, handle_signals=False)
     pub = Node("pub", RIG, bus, handle_signals=False)
@@ -424,7 +424,7 @@ def test_live_foxglove_busy_port_is_a_one_line_error(bus):
 
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

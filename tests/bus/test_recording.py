@@ -7,10 +7,10 @@ import time
 
 import pytest
 
-from bus import keys
-from bus.node import Node
-from bus.recording import McapLog, Recorder, ReplayRefused, read_messages, replay, summarize
-from bus.schemas import AnyMsg, Command, EStop, Image, Plan, ResetEvent, RobotState, decode
+from hilstack.bus import keys
+from hilstack.bus.node import Node
+from hilstack.bus.recording import McapLog, Recorder, ReplayRefused, read_messages, replay, summarize
+from hilstack.bus.schemas import AnyMsg, Command, EStop, Image, Plan, ResetEvent, RobotState, decode
 
 RIG = "rec_test"
 
@@ -94,7 +94,7 @@ def test_record_replay_round_trip_equality(tmp_path, bus):
     pub = Node("pub", RIG, bus, handle_signals=False)
     time.sleep(0.5)  # discovery
     for t, m in msgs:
-        from bus.schemas import encode
+        from hilstack.bus.schemas import encode
 
         pub.session.put(t, encode(m))
         time.sleep(0.001)
@@ -117,7 +117,7 @@ def test_record_replay_round_trip_equality(tmp_path, bus):
 
 
 class _FakeClock:
-    """Stands in for the ``time`` module inside bus.recording: ``sleep`` advances the
+    """Stands in for the ``time`` module inside hilstack.bus.recording: ``sleep`` advances the
     clock instead of waiting, so the replay schedule is checked without wall-clock timing."""
 
     def __init__(self):
@@ -137,7 +137,7 @@ class _FakeClock:
 
 @pytest.mark.parametrize("speed", [1.0, 5.0])
 def test_replay_speed_scales_timing(tmp_path, bus, monkeypatch, speed):
-    import bus.recording as recording
+    import hilstack.bus.recording as recording
 
     path = tmp_path / "d.mcap"
     with McapLog(path) as log:
@@ -155,7 +155,7 @@ def test_replay_speed_scales_timing(tmp_path, bus, monkeypatch, speed):
 def test_inspect_cli(tmp_path):
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     path = tmp_path / "e.mcap"
     with McapLog(path) as log:
@@ -173,7 +173,7 @@ def test_inspect_cli(tmp_path):
 
 
 def test_write_after_close_is_refused_and_file_unchanged(tmp_path):
-    from bus.recording import RecordingClosed
+    from hilstack.bus.recording import RecordingClosed
 
     path = tmp_path / "closed.mcap"
     log = McapLog(path)
@@ -189,8 +189,8 @@ def test_write_after_close_is_refused_and_file_unchanged(tmp_path):
 def test_recorder_close_after_record_writes_nothing_more(tmp_path, bus):
     """`hil record` calls record() (which finishes the file) and then close(): messages
     arriving in between must not be 'written' into the finished file."""
-    from bus.recording import RecordingClosed
-    from bus.schemas import encode
+    from hilstack.bus.recording import RecordingClosed
+    from hilstack.bus.schemas import encode
 
     path = tmp_path / "rec.mcap"
     rec = Recorder(RIG, path, bus, handle_signals=False)
@@ -236,7 +236,7 @@ def test_sigkill_loses_at_most_one_second(tmp_path, bus, spawn):
     holds a gap-free prefix of what was sent, missing at most one second's worth of it."""
     import signal
 
-    from bus.schemas import Ping, encode
+    from hilstack.bus.schemas import Ping, encode
     from tests.helpers import wait_for
 
     rate_hz = 100
@@ -271,7 +271,7 @@ def test_sigkill_loses_at_most_one_second(tmp_path, bus, spawn):
 
 
 def test_close_from_another_thread_ends_record_cleanly(tmp_path, bus):
-    from bus.schemas import encode
+    from hilstack.bus.schemas import encode
 
     path = tmp_path / "threaded.mcap"
     rec = Recorder(RIG, path, bus, handle_signals=False)
@@ -314,7 +314,7 @@ def test_repair_turns_a_crashed_file_into_a_finished_one(tmp_path):
     from mcap.reader import make_reader
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     crashed = tmp_path / "crashed.mcap"
     log = McapLog(crashed)
@@ -423,7 +423,7 @@ def test_replay_refuses_a_rig_with_live_driver_nodes_unless_forced(tmp_path, bus
 
 
 def test_record_topics_keeps_the_matching_ones_and_the_specs(tmp_path, bus):
-    from bus.schemas import SpecMsg, encode
+    from hilstack.bus.schemas import SpecMsg, encode
 
     path = tmp_path / "rec.mcap"
     rec = Recorder(RIG, path, bus, handle_signals=False, topics=[f"hil/{RIG}/*/state"])
@@ -446,7 +446,7 @@ def test_record_topics_keeps_the_matching_ones_and_the_specs(tmp_path, bus):
 def test_record_topics_errors_are_one_line(tmp_path):
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     for pattern, why in [("hil/other/*/state", "matches nothing under hil/rec_test/**"),
                          ("hil/**/a**", "bad topic pattern")]:

@@ -6,9 +6,9 @@ import sys
 import threading
 import time
 
-from bus import keys
-from bus.node import Node
-from bus.schemas import Command, encode
+from hilstack.bus import keys
+from hilstack.bus.node import Node
+from hilstack.bus.schemas import Command, encode
 
 RIG = "subtest"
 

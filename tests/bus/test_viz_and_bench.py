@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import json
 
-from bus import keys
-from bus.recording import McapLog
-from bus.schemas import Command, Image, Plan, RobotState, SpecMsg
+from hilstack.bus import keys
+from hilstack.bus.recording import McapLog
+from hilstack.bus.schemas import Command, Image, Plan, RobotState, SpecMsg
 
 
 def _entities(rrd) -> set[str]:
@@ -18,7 +18,7 @@ def _entities(rrd) -> set[str]:
 def test_viz_recording_to_rrd_with_layout(tmp_path):
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     mc = tmp_path / "a.mcap"
     spec = {"state": {"names": ["x", "y", "vx", "vy"]}, "action": {"names": ["fx", "fy"]}}
@@ -40,7 +40,7 @@ def test_viz_recording_to_rrd_with_layout(tmp_path):
 def test_bench_bus_prints_json_with_ratio():
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     r = CliRunner().invoke(app, ["bench", "bus", "--n", "100", "--json"])
     assert r.exit_code == 0, r.output

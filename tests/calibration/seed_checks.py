@@ -24,12 +24,12 @@ PAYLOAD_KG = 0.04
 
 
 def vr_payload(n_eps: int, dur: float, seeds: list[int]) -> None:
-    from calibration import run_calibration
-    from calibration.selection import SelectionConfig
-    from calibration.synthetic_velociroach import RoachSynthConfig, generate
-    from calibration.velociroach import channels_from_states, load_sim_params, replay
-    from drivers.velociroach.config import VelociRoachParams
-    from sim_backends.velociroach.backend import VelociRoachSim
+    from hilstack.calibration import run_calibration
+    from hilstack.calibration.selection import SelectionConfig
+    from hilstack.calibration.synthetic_velociroach import RoachSynthConfig, generate
+    from hilstack.calibration.velociroach import channels_from_states, load_sim_params, replay
+    from hilstack.drivers.velociroach.config import VelociRoachParams
+    from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
     p = PAYLOAD_KG
     for seed in seeds:
@@ -72,8 +72,8 @@ def vr_payload(n_eps: int, dur: float, seeds: list[int]) -> None:
 def vr_null(n_eps: int, dur: float, seeds: list[int]) -> None:
     from typer.testing import CliRunner
 
-    from calibration.synthetic_velociroach import RoachSynthConfig, generate, write_mcap
-    from tools.cli import app
+    from hilstack.calibration.synthetic_velociroach import RoachSynthConfig, generate, write_mcap
+    from hilstack.tools.cli import app
 
     for seed in seeds:
         t0 = time.time()
@@ -97,9 +97,9 @@ def vr_null(n_eps: int, dur: float, seeds: list[int]) -> None:
 
 
 def emps(n_boot: int, seeds: list[int]) -> None:
-    from calibration import run_calibration
-    from calibration.emps import EMPS_GTAU_N_PER_V, EMPS_REFERENCE, emps_to_csv
-    from calibration.selection import SelectionConfig
+    from hilstack.calibration import run_calibration
+    from hilstack.calibration.emps import EMPS_GTAU_N_PER_V, EMPS_REFERENCE, emps_to_csv
+    from hilstack.calibration.selection import SelectionConfig
     from tests.calibration.test_calib_emps import EMPS_DIR
 
     for seed in seeds:

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from calibration import axis, run_calibration
-from calibration.selection import LOSS_CHANNELS
-from calibration.synthetic import SynthConfig, generate
+from hilstack.calibration import axis, run_calibration
+from hilstack.calibration.selection import LOSS_CHANNELS
+from hilstack.calibration.synthetic import SynthConfig, generate
 from tests.calibration.conftest import FAST
 
 
@@ -81,7 +81,7 @@ def test_periodic_load_bootstrap_value_does_not_flip_sign_at_the_phase_edge():
 
 
 def test_cogging_look_alikes_name_the_separating_excitation():
-    from calibration.effects import is_look_alike, separating_excitation
+    from hilstack.calibration.effects import is_look_alike, separating_excitation
 
     for other in ("gravity_load", "coulomb_friction", "force_offset"):
         assert is_look_alike("cogging", other)

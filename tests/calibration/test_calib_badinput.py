@@ -9,11 +9,11 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from calibration import run_calibration
-from calibration.data import DataError, harmonize_rates, load_episodes, parse_column_map, resample
-from calibration.selection import SelectionConfig
-from calibration.synthetic import SynthConfig, generate, write_csv
-from tools.cli import app
+from hilstack.calibration import run_calibration
+from hilstack.calibration.data import DataError, harmonize_rates, load_episodes, parse_column_map, resample
+from hilstack.calibration.selection import SelectionConfig
+from hilstack.calibration.synthetic import SynthConfig, generate, write_csv
+from hilstack.tools.cli import app
 
 #: Cheap statistics: these tests check that the pipeline runs and says the right thing.
 CHEAP = SelectionConfig(n_boot=8, max_rounds=1)
@@ -149,7 +149,7 @@ def test_mixed_sample_rates_are_resampled_with_a_warning(tmp_path):
 def test_quantised_finite_difference_velocity_is_not_used_as_the_state():
     """Velocity logged as the difference of a 1 mm encoder (0.1 m/s steps) is replaced by the
     smoothed derivative of position; a genuinely measured velocity is kept."""
-    from calibration import axis
+    from hilstack.calibration import axis
 
     quant = generate(SynthConfig(n_episodes=3, seed=1, x_quant=1e-3, velocity_from_differences=True))
     good = generate(SynthConfig(n_episodes=3, seed=1, measure_velocity=True))

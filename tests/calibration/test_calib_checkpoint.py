@@ -1,6 +1,6 @@
 """The ``checkpoint`` nominal model: a learned dynamics checkpoint, where an effect is a missing input.
 
-System (calibration.synthetic_learned): a 1-D point mass whose actuation is one period late
+System (hilstack.calibration.synthetic_learned): a 1-D point mass whose actuation is one period late
 (the next state depends on a_{t-1}) or whose force scales with a sagging battery voltage. The
 checkpoint is a small EnsembleDynamics (2 members, 2x64) trained on (s_t, a_t) only.
 """
@@ -14,11 +14,11 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from calibration import DataError, ModelNotAvailable, get_model, load_model, run_calibration
-from calibration.learned import CheckpointError, load_augmented
-from calibration.selection import SelectionConfig
-from calibration.synthetic_learned import generate, train_checkpoint, write_csv
-from tools.cli import app
+from hilstack.calibration import DataError, ModelNotAvailable, get_model, load_model, run_calibration
+from hilstack.calibration.learned import CheckpointError, load_augmented
+from hilstack.calibration.selection import SelectionConfig
+from hilstack.calibration.synthetic_learned import generate, train_checkpoint, write_csv
+from hilstack.tools.cli import app
 
 # The tests check behaviour, not tight intervals: fewer bootstrap replicates and short retrains.
 CFG = SelectionConfig(n_boot=12)
@@ -155,9 +155,9 @@ def test_errors_python_api(ckpt, tmp_path):
 
 
 def _write_mcap(episodes, path, high: float):
-    from bus import keys
-    from bus.recording import McapLog
-    from bus.schemas import RobotState, SpecMsg
+    from hilstack.bus import keys
+    from hilstack.bus.recording import McapLog
+    from hilstack.bus.schemas import RobotState, SpecMsg
 
     spec = {"state": {"names": ["x", "v", "vbat"]}, "action": {"names": ["u"], "low": [-high], "high": [high]}}
     seq, t_base = 0, 0.0

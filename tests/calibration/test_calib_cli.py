@@ -9,9 +9,9 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from calibration import load_model
-from calibration.synthetic import SynthConfig, generate, write_csv
-from tools.cli import app
+from hilstack.calibration import load_model
+from hilstack.calibration.synthetic import SynthConfig, generate, write_csv
+from hilstack.tools.cli import app
 
 runner = CliRunner()
 TRUTH = {"force_offset": {}}
@@ -56,7 +56,7 @@ def test_cli_summary_text(cli_run, csv_path, tmp_path, monkeypatch):
     """The text summary (no --json) of a real report, and the CLI's defaults for a CSV (column map,
     seed, --quiet = no progress). The calibration itself is cli_run's: running a second one here
     only to print it cost a full calibration of the suite's time."""
-    import calibration
+    from hilstack import calibration
 
     _, out = cli_run
     report = json.loads((out / "report.json").read_text())
@@ -122,7 +122,7 @@ def test_cli_unknown_model_lists_known(csv_path, tmp_path):
 
 
 def test_unavailable_backends_raise_clear_errors():
-    from calibration.models import ModelNotAvailable, get_model
+    from hilstack.calibration.models import ModelNotAvailable, get_model
 
     with pytest.raises(ModelNotAvailable, match="not available|not built"):
         get_model("checkpoint")

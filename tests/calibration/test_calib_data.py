@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calibration.data import (
+from hilstack.calibration.data import (
     DataError,
     load_episodes,
     parse_column_map,
@@ -14,7 +14,7 @@ from calibration.data import (
     sg_velocity,
     sg_velocity_kernel,
 )
-from calibration.synthetic import SynthConfig, generate, write_csv
+from hilstack.calibration.synthetic import SynthConfig, generate, write_csv
 
 
 def _frame(n=200, period_s=0.01):
@@ -58,10 +58,10 @@ def test_missing_column_names_column_and_file(tmp_path):
 
 def test_mcap_recording_loads_as_episodes(tmp_path):
     """A rig recording (spec + RobotState per period, episode counter) loads through
-    learning.recordings: one Episode per recorded episode, commands in robot units, the
+    hilstack.learning.recordings: one Episode per recorded episode, commands in robot units, the
     action of state k+1 held from t_k to t_{k+1}, channel names from the recorded spec."""
-    from calibration.synthetic_velociroach import RoachSynthConfig, write_mcap
-    from calibration.synthetic_velociroach import generate as roach_generate
+    from hilstack.calibration.synthetic_velociroach import RoachSynthConfig, write_mcap
+    from hilstack.calibration.synthetic_velociroach import generate as roach_generate
 
     src = roach_generate(RoachSynthConfig(n_episodes=2, duration_s=1.0, seed=5))
     path = write_mcap(src, tmp_path / "rec.mcap")
@@ -84,7 +84,7 @@ def test_mcap_recording_loads_as_episodes(tmp_path):
 
 
 def test_mcap_without_states_is_a_data_error(tmp_path):
-    from bus.recording import McapLog
+    from hilstack.bus.recording import McapLog
 
     p = tmp_path / "empty.mcap"
     with McapLog(p):

@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from calibration.effects import CATALOGUE
-from calibration.synthetic import DEFAULTS
+from hilstack.calibration.effects import CATALOGUE
+from hilstack.calibration.synthetic import DEFAULTS
 
 # (effect, relative tolerance on the primary parameter). The model is discrete-time (Euler
 # form) while the truth is integrated finely, so gains come out ~2.5 % low at Δt·c = 0.05.
@@ -110,8 +110,8 @@ def test_effect_outside_catalogue_is_flagged(report_for):
 def test_new_catalogue_terms_recover_their_parameters(hidden, effects, truth):
     """Gravity load −gl·sin(x − q0) (x in rad) and direction-dependent Coulomb friction: the grey-box
     fit recovers the generator's values, and the open-loop replay with them beats the nominal."""
-    from calibration import axis
-    from calibration.synthetic import SynthConfig, generate
+    from hilstack.calibration import axis
+    from hilstack.calibration.synthetic import SynthConfig, generate
 
     eps = generate(SynthConfig(n_episodes=6, duration_s=5.0, seed=7, u_max=2.0, effects=hidden))
     preps = axis.prepare(eps)

@@ -2,24 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
-from calibration import run_calibration
-from calibration.emps import EMPS_GTAU_N_PER_V, EMPS_REFERENCE, emps_to_csv
-
-# shared/ sits beside the repo root (parents[2]); a git worktree may be one level deeper.
-EMPS_DIR = next((d for d in (Path(__file__).resolve().parents[i] / "shared" / "data" / "real" / "emps"
-                             for i in (3, 4)) if d.exists()),
-                Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "emps")
+from hilstack.calibration import run_calibration
+from hilstack.calibration.emps import EMPS_GTAU_N_PER_V, EMPS_REFERENCE, emps_to_csv
 
 
 @pytest.fixture(scope="module")
-def emps_report(tmp_path_factory):
-    mat = EMPS_DIR / "DATA_EMPS.mat"
-    if not mat.exists():
-        pytest.skip(f"EMPS data folder absent: {EMPS_DIR} (shared/ is expected beside the repo)")
+def emps_report(tmp_path_factory, emps_dir):
+    mat = emps_dir / "DATA_EMPS.mat"
     tmp = tmp_path_factory.mktemp("emps")
     csv = emps_to_csv(mat, tmp / "emps.csv")
     return run_calibration(csv, column_map="t=time,u=volts,x=position", out_dir=tmp / "out", seed=0,

@@ -6,8 +6,8 @@ import json
 
 from typer.testing import CliRunner
 
-from tools.bench_calibrate import CASES, format_table
-from tools.cli import app
+from hilstack.tools.bench_calibrate import CASES, format_table
+from hilstack.tools.cli import app
 
 runner = CliRunner()
 
@@ -33,7 +33,7 @@ def test_gauntlet_unknown_case_is_a_one_line_error(tmp_path):
 def test_gauntlet_runs_seed_major_and_logs_every_row(tmp_path, monkeypatch):
     """A run stopped early leaves equal seeds per case: jobs go seed by seed, each row is appended to
     rows.jsonl as it finishes, and `summarize` tabulates such a partial log."""
-    import tools.bench_calibrate as bc
+    import hilstack.tools.bench_calibrate as bc
 
     def fake(case, seed, hidden, root, n_boot):
         hit = not (case == "gravity_arm" and seed == 1)

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from calibration.models import AxisModel
-from calibration.selection import SelectionConfig, select_effects
-from calibration.synthetic import SynthConfig, generate
+from hilstack.calibration.models import AxisModel
+from hilstack.calibration.selection import SelectionConfig, select_effects
+from hilstack.calibration.synthetic import SynthConfig, generate
 
 
 def test_nothing_found_in_clean_data(report_for):
@@ -25,7 +25,7 @@ def test_detection_limit_uses_the_acceptance_threshold(report_for):
     """The limit is computed at the level an effect must pass: round 1's per-candidate alpha."""
     from scipy.stats import norm
 
-    from calibration.selection import round_alpha
+    from hilstack.calibration.selection import round_alpha
 
     r = report_for()
     m = len(r["rounds"][0]["candidates"])

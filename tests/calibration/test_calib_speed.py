@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration import axis
-from calibration.synthetic import SynthConfig, generate
+from hilstack.calibration import axis
+from hilstack.calibration.synthetic import SynthConfig, generate
 
 
 def _preps():
@@ -44,7 +44,7 @@ def test_exact_signed_rank_matches_scipy_without_its_permutation_test(monkeypatc
     """Small held-out sets with zeros or ties: the enumerated exact p equals scipy's permutation p."""
     from scipy import stats as st
 
-    from calibration import selection
+    from hilstack.calibration import selection
 
     rng = np.random.default_rng(5)
     cases = []

@@ -2,7 +2,7 @@
 episodes, a negative control, and closing the loop through sim_params.yaml.
 
 Data: VelociRoACH episodes generated in-process by the sim backend with its sensor noise on
-(calibration.synthetic_velociroach), each 2 s from rest with random leg-speed steps (the
+(hilstack.calibration.synthetic_velociroach), each 2 s from rest with random leg-speed steps (the
 replays dominate the run time and scale with the episode length; 12 episodes are kept: with 8,
 the locked test set leaves too few pool episodes for the paired test to reach its Bonferroni
 level, and nothing is found).
@@ -15,10 +15,10 @@ import json
 import numpy as np
 import pytest
 
-from calibration import load_model, run_calibration
-from calibration.selection import SelectionConfig
-from calibration.synthetic_velociroach import RoachSynthConfig, generate, write_mcap
-from calibration.velociroach import CHANNELS, load_sim_params, replay
+from hilstack.calibration import load_model, run_calibration
+from hilstack.calibration.selection import SelectionConfig
+from hilstack.calibration.synthetic_velociroach import RoachSynthConfig, generate, write_mcap
+from hilstack.calibration.velociroach import CHANNELS, load_sim_params, replay
 
 #: the statistics need no more bootstrap replicates than this to decide; the sim replays are cached
 FAST = SelectionConfig(n_boot=25)
@@ -63,13 +63,13 @@ def test_sim_params_yaml_closes_the_loop(payload_run):
     assert path.exists() and rep["closing_the_loop"]["sim_overrides"]["payload_kg"] > 0
     calibrated = load_sim_params(path)
     assert calibrated.perturbations["payload_kg"] == pytest.approx(rep["effects"][0]["params"]["payload_kg"])
-    from drivers.velociroach.config import VelociRoachParams
-    from sim_backends.velociroach.backend import VelociRoachSim
+    from hilstack.drivers.velociroach.config import VelociRoachParams
+    from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
     nominal = VelociRoachSim(VelociRoachParams())
     nominal.configure()
     fresh = generate(RoachSynthConfig(n_episodes=3, seed=77, hidden={"payload_kg": PAYLOAD_KG}))
-    from calibration.velociroach import channels_from_states
+    from hilstack.calibration.velociroach import channels_from_states
 
     def err(sim) -> float:
         tot = 0.0
@@ -88,7 +88,7 @@ def test_no_hidden_change_reports_none(tmp_path):
     """Negative control, end to end: recording → MCAP → `hil calibrate` → verdict none."""
     from typer.testing import CliRunner
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     eps = generate(RoachSynthConfig(n_episodes=12, duration_s=EPISODE_S, seed=11))
     rec = write_mcap(eps, tmp_path / "rec.mcap")
@@ -104,9 +104,9 @@ def test_no_hidden_change_reports_none(tmp_path):
 
 
 def test_table_data_is_refused_with_a_clear_error(tmp_path):
-    from calibration import DataError
-    from calibration.synthetic import SynthConfig
-    from calibration.synthetic import generate as axis_generate
+    from hilstack.calibration import DataError
+    from hilstack.calibration.synthetic import SynthConfig
+    from hilstack.calibration.synthetic import generate as axis_generate
 
     with pytest.raises(DataError, match="needs full state/action recordings"):
         run_calibration(axis_generate(SynthConfig(n_episodes=3)), model="velociroach", out_dir=tmp_path,

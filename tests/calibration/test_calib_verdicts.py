@@ -7,11 +7,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from calibration import axis
-from calibration.models import AxisModel, FittedAxis
-from calibration.report import NOT_CONFIRMED, _nrmse_table, _verdict, render_markdown
-from calibration.selection import compute_norms, heldout_gain, paired_p, round_alpha
-from calibration.synthetic import SynthConfig, generate
+from hilstack.calibration import axis
+from hilstack.calibration.models import AxisModel, FittedAxis
+from hilstack.calibration.report import NOT_CONFIRMED, _nrmse_table, _verdict, render_markdown
+from hilstack.calibration.selection import compute_norms, heldout_gain, paired_p, round_alpha
+from hilstack.calibration.synthetic import SynthConfig, generate
 
 
 def test_noise_floor_channel_cannot_drown_a_real_effect():
@@ -128,7 +128,7 @@ def test_estimate_beyond_the_grid_widens_it_then_flags_the_bound():
 
 
 def test_selection_rejects_an_estimate_at_the_bound():
-    from calibration.selection import SelectionConfig, select_effects
+    from hilstack.calibration.selection import SelectionConfig, select_effects
 
     eps = generate(SynthConfig(n_episodes=14, duration_s=2.0, seed=4, effects={"saturation": {"limit_u": 0.05}}))
     model = AxisModel()
@@ -142,7 +142,7 @@ def test_blackbox_does_not_extrapolate_in_position():
     """Unbounded motion (a spinning motor, a vehicle): the held-out fold lies at positions the
     training folds never reached. Position enters the black box through bins only, so its basis
     is the same at 10 and at 1000 training standard deviations."""
-    from calibration.selection import _bb_basis
+    from hilstack.calibration.selection import _bb_basis
 
     rng = np.random.default_rng(0)
     z = rng.standard_normal((200, 3))

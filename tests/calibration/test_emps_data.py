@@ -15,12 +15,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from calibration.emps import EMPS_SHA256, DataError, DataNotFound, fetch_emps
-from tools.cli import app
-
-#: ../shared beside the repository (or beside a parent folder: worktrees sit deeper)
-SHARED = next(p / "shared" / "data" / "real" / "emps" for p in Path(__file__).resolve().parents
-              if (p / "shared" / "data" / "real" / "emps" / "DATA_EMPS.mat").is_file())
+from hilstack.calibration.emps import EMPS_SHA256, DataError, DataNotFound, fetch_emps
+from hilstack.tools.cli import app
 
 
 @pytest.fixture
@@ -50,11 +46,11 @@ def serve():
         s.server_close()
 
 
-def mirror(tmp_path: Path, corrupt: str | None = None) -> Path:
+def mirror(tmp_path: Path, src: Path, corrupt: str | None = None) -> Path:
     root = tmp_path / "www"
     (root / "data").mkdir(parents=True)
     for name in EMPS_SHA256:
-        shutil.copy(SHARED / name, root / "data" / name)
+        shutil.copy(src / name, root / "data" / name)
     if corrupt:
         p = root / "data" / corrupt
         b = bytearray(p.read_bytes())
@@ -63,21 +59,21 @@ def mirror(tmp_path: Path, corrupt: str | None = None) -> Path:
     return root
 
 
-def test_download_checks_and_caches(tmp_path, serve):
-    url, requested = serve(mirror(tmp_path))
+def test_download_checks_and_caches(tmp_path, serve, emps_dir):
+    url, requested = serve(mirror(tmp_path, emps_dir))
     cache = tmp_path / "cache"
     d = fetch_emps(base_url=url, search_dirs=[cache], cache_dir=cache)
     assert d == cache and sorted(p.name for p in cache.glob("*.mat")) == sorted(EMPS_SHA256)
     assert sorted(requested) == sorted(f"/data/{n}" for n in EMPS_SHA256)
     for name in EMPS_SHA256:
-        assert (cache / name).read_bytes() == (SHARED / name).read_bytes()
+        assert (cache / name).read_bytes() == (emps_dir / name).read_bytes()
     # second time: from the cache, no request
     assert fetch_emps(base_url=url, search_dirs=[cache], cache_dir=cache) == cache
     assert len(requested) == 2
 
 
-def test_a_checksum_mismatch_is_an_error_and_nothing_is_kept(tmp_path, serve):
-    url, _ = serve(mirror(tmp_path, corrupt="DATA_EMPS_PULSES.mat"))
+def test_a_checksum_mismatch_is_an_error_and_nothing_is_kept(tmp_path, serve, emps_dir):
+    url, _ = serve(mirror(tmp_path, emps_dir, corrupt="DATA_EMPS_PULSES.mat"))
     cache = tmp_path / "cache"
     with pytest.raises(DataError, match="DATA_EMPS_PULSES.mat from http://127.0.0.1:.* failed its checksum"):
         fetch_emps(base_url=url, search_dirs=[cache], cache_dir=cache)
@@ -90,11 +86,11 @@ def test_unreachable_server_is_one_clear_error(tmp_path):
         fetch_emps(base_url="http://127.0.0.1:9/", search_dirs=[cache], cache_dir=cache)
 
 
-def test_offline_uses_hil_data_and_rejects_a_corrupt_copy(tmp_path, monkeypatch):
+def test_offline_uses_hil_data_and_rejects_a_corrupt_copy(tmp_path, monkeypatch, emps_dir):
     data = tmp_path / "hil_data"
     (data / "emps").mkdir(parents=True)
     for name in EMPS_SHA256:
-        (data / "emps" / name).symlink_to(SHARED / name)
+        (data / "emps" / name).symlink_to(emps_dir / name)
     monkeypatch.setenv("HIL_DATA", str(data))
     monkeypatch.setenv("HILSTACK_CACHE", str(tmp_path / "cache"))
     assert fetch_emps(offline=True) == data / "emps"
@@ -107,8 +103,11 @@ def test_offline_uses_hil_data_and_rejects_a_corrupt_copy(tmp_path, monkeypatch)
         fetch_emps(offline=True, search_dirs=[bad])
 
 
-def test_cli_converts_the_local_copy_and_exit_codes(tmp_path, monkeypatch):
-    monkeypatch.setenv("HIL_DATA", str(SHARED.parents[1]))  # .../data, holding real/emps
+def test_cli_converts_the_local_copy_and_exit_codes(tmp_path, monkeypatch, emps_dir):
+    hil_data = tmp_path / "hil_data"
+    hil_data.mkdir()
+    (hil_data / "emps").symlink_to(emps_dir)
+    monkeypatch.setenv("HIL_DATA", str(hil_data))
     out = tmp_path / "emps.csv"
     r = CliRunner().invoke(app, ["data", "emps", "--offline", "--csv", str(out)])
     assert r.exit_code == 0, r.output
@@ -117,7 +116,7 @@ def test_cli_converts_the_local_copy_and_exit_codes(tmp_path, monkeypatch):
 
     monkeypatch.setenv("HIL_DATA", str(tmp_path / "nothing"))
     monkeypatch.setenv("HILSTACK_CACHE", str(tmp_path / "cache"))
-    import calibration.emps as emps
+    import hilstack.calibration.emps as emps
 
     monkeypatch.setattr(emps, "emps_search_dirs", lambda: [tmp_path / "nothing" / "emps", tmp_path / "cache"])
     r = CliRunner().invoke(app, ["data", "emps", "--offline"])

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 
 def test_bench_tracker_prints_one_json_line_with_errors_latencies_and_ratios():
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     r = CliRunner().invoke(app, ["bench", "tracker", "--seconds", "0.3", "--json"])
     assert r.exit_code == 0, r.output
@@ -31,7 +31,7 @@ def test_bench_tracker_prints_one_json_line_with_errors_latencies_and_ratios():
 def test_closed_loop_runs_the_same_controller_on_truth_and_on_the_tracker():
     import math
 
-    from tools.bench_tracker import closed_loop
+    from hilstack.tools.bench_tracker import closed_loop
 
     r = closed_loop(0.3, trackers=("color",))
     assert r["truth"]["estimate_error_mm_mean"] == 0.0  # truth fed back: no estimate error

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from calibration.camera.stereo import (
+from hilstack.calibration.camera.stereo import (
     FIXTURE_HAND_FROM_BOARD,
     BoardModel,
     CalibrationError,
@@ -20,13 +20,13 @@ from calibration.camera.stereo import (
     hand_extrinsics,
     random_board_poses,
 )
-from perception.geometry import StereoCalibration, apply, homogeneous, invert, project
+from hilstack.perception.geometry import StereoCalibration, apply, homogeneous, invert, project
 
 
 @pytest.fixture(scope="module")
 def board_views():
     """12 rendered board poses, the fixture view and the truth."""
-    from sim_backends.shadow_hand.cameras import Checkerboard, HandCameraScene
+    from hilstack.sim_backends.shadow_hand.cameras import Checkerboard, HandCameraScene
 
     cb = Checkerboard()
     scene = HandCameraScene(board=cb)
@@ -96,7 +96,7 @@ def test_calibration_file_is_keyed_by_camera_id_with_a_timestamp(tmp_path, board
 def test_cli_calibrates_from_image_files_without_prompts(tmp_path, board_views):
     """`hil calibrate-camera --images DIR --fixture F --fixture-pose ...`: the real-rig path
     on the rendered pairs written as PNG files; result file and JSON line."""
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     board, pairs, fixture, truth = board_views
     for i, (left, right) in enumerate([*pairs, fixture]):

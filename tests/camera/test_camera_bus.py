@@ -9,18 +9,18 @@ import threading
 import numpy as np
 from typer.testing import CliRunner
 
-from bus import keys
-from bus.recording import Recorder, foxglove_image_topic, read_messages, summarize
-from bus.schemas import Image, RobotState
-from configs.schema import load_rig, rig_robot_config
-from drivers.bridge import DriverNode
-from drivers.registry import make_driver
+from hilstack.bus import keys
+from hilstack.bus.recording import Recorder, foxglove_image_topic, read_messages, summarize
+from hilstack.bus.schemas import Image, RobotState
+from hilstack.configs.schema import load_rig, rig_robot_config
+from hilstack.drivers.bridge import DriverNode
+from hilstack.drivers.registry import make_driver
 
 
 def test_camera_rig_on_the_bus_records_and_plays_back_in_rerun(tmp_path, bus):
     import rerun as rr
 
-    from tools.cli import app
+    from hilstack.tools.cli import app
 
     rig = load_rig("hand_camera_sim")
     drv = make_driver(rig_robot_config(rig, "camera"))

@@ -11,14 +11,14 @@ import cv2
 import numpy as np
 import pytest
 
-from bus import keys
-from bus.recording import McapLog, foxglove_image_topic, read_messages
-from bus.schemas import Image
-from drivers.base import CommandError, LinkError
-from drivers.camera.config import STATE_NAMES
-from drivers.camera.pipeline import encode_image
-from drivers.camera.uvc import Frame, pair_frames
-from drivers.registry import make_driver
+from hilstack.bus import keys
+from hilstack.bus.recording import McapLog, foxglove_image_topic, read_messages
+from hilstack.bus.schemas import Image
+from hilstack.drivers.base import CommandError, LinkError
+from hilstack.drivers.camera.config import STATE_NAMES
+from hilstack.drivers.camera.pipeline import encode_image
+from hilstack.drivers.camera.uvc import Frame, pair_frames
+from hilstack.drivers.registry import make_driver
 
 
 def test_sim_camera_is_a_sensor_that_tracks_the_balls():
@@ -63,7 +63,7 @@ def _video(path, frames, fps=30.0):
 def test_real_backend_reads_two_streams_through_opencv(tmp_path, scene):
     """The real backend on two video files (cv2.VideoCapture, the UVC code path): the pair
     is tracked with the calibration file; a missing device is a one-line LinkError."""
-    from sim_backends.shadow_hand.cameras import baoding_motion
+    from hilstack.sim_backends.shadow_hand.cameras import baoding_motion
 
     lefts, rights = [], []
     for b in baoding_motion(np.arange(0, 1.5, 1 / 30)):
@@ -99,7 +99,7 @@ def test_real_backend_reads_two_streams_through_opencv(tmp_path, scene):
 
 
 def test_real_backend_without_calibration_is_a_config_error():
-    from configs.schema import ConfigError
+    from hilstack.configs.schema import ConfigError
 
     d = make_driver("camera", backend="real")
     with pytest.raises(ConfigError, match="params.calibration"):
@@ -151,7 +151,7 @@ def test_images_are_recorded_as_foxglove_compressed_images(tmp_path, scene):
 def test_stereo_uvc_hands_out_each_pair_once_and_counts_unpaired_left_frames_once():
     from types import SimpleNamespace
 
-    from drivers.camera.uvc import StereoUvc
+    from hilstack.drivers.camera.uvc import StereoUvc
 
     img = np.zeros((1, 1, 3), np.uint8)
     s = StereoUvc.__new__(StereoUvc)  # the pairing state only; grabbers stand in below

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from drivers.camera.config import CameraParams
-from drivers.camera.pipeline import CameraPipeline, FramePair
-from perception.keypoint_net import spatial_soft_argmax
-from perception.tracker import ColorTracker, LearnedTracker, make_tracker
+from hilstack.drivers.camera.config import CameraParams
+from hilstack.drivers.camera.pipeline import CameraPipeline, FramePair
+from hilstack.perception.keypoint_net import spatial_soft_argmax
+from hilstack.perception.tracker import ColorTracker, LearnedTracker, make_tracker
 
 CENTER = np.array([0.0, -0.02, 0.34])  # palm centre, hand frame [m]
 
@@ -40,7 +40,7 @@ def _frames(scene, balls_list, wiggle_rad=0.0):
 
 @pytest.fixture(scope="module")
 def motion(scene):
-    from sim_backends.shadow_hand.cameras import baoding_motion
+    from hilstack.sim_backends.shadow_hand.cameras import baoding_motion
 
     balls = baoding_motion(np.arange(0.0, 5.0, 0.5))
     return balls, _frames(scene, balls)
@@ -100,8 +100,8 @@ def test_hand_sim_takes_its_balls_from_the_tracker_and_flags_a_lost_ball(kind):
     """The hand rig with ``params.sim.tracker`` (configs/rigs/hand_tracker_sim.yaml): balls_m
     is the tracker's estimate (close to the truth beside it); a ball teleported out of view
     goes stale within the deadline."""
-    from configs.schema import load_rig, rig_robot_config
-    from drivers.registry import make_driver
+    from hilstack.configs.schema import load_rig, rig_robot_config
+    from hilstack.drivers.registry import make_driver
 
     cfg = rig_robot_config(load_rig("hand_tracker_sim"), "hand")
     assert cfg.params["sim"]["tracker"]["kind"] == "learned"
@@ -134,7 +134,7 @@ def test_unknown_tracker_and_bad_weights_are_one_line_errors(tmp_path, scene):
 
 
 def test_two_estimates_on_one_ball_leave_only_the_more_confident():
-    from perception.tracker import _exclusive
+    from hilstack.perception.tracker import _exclusive
 
     pos = np.array([[0.0, 0.0, 0.3], [0.01, 0.0, 0.3]])  # 1 cm apart: one ball, not two
     assert list(_exclusive(pos, np.array([0.9, 0.8]))) == [0.9, 0.0]

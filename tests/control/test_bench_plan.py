@@ -7,9 +7,9 @@ import pytest
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from control.planners import BAODING_PDDM
-from learning.dynamics import EnsembleDynamics
-from tools.bench_plan import WORKLOADS, PlainEnsemble, _make_planner, plan_flops, run_bench_plan
+from hilstack.control.planners import BAODING_PDDM
+from hilstack.learning.dynamics import EnsembleDynamics
+from hilstack.tools.bench_plan import WORKLOADS, PlainEnsemble, _make_planner, plan_flops, run_bench_plan
 
 
 def _finite_pos(x):
@@ -118,7 +118,7 @@ def test_plan_cost_measure_ranks_a_planned_sequence_above_random_ones():
     """The quality measure of the levers: a PDDM plan must score better than random plans."""
     from dataclasses import replace
 
-    from tools.bench_plan import _cost_for, _plan_cost
+    from hilstack.tools.bench_plan import _cost_for, _plan_cost
 
     cfg = replace(BAODING_PDDM, hidden=(32, 32), samples=200)
     model = EnsembleDynamics(**cfg.model_kwargs(), seed=0).eval()

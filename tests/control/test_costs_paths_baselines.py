@@ -7,11 +7,17 @@ import numpy as np
 import pytest
 import torch
 
-from control.baselines import DifferentialDriveController
-from control.costs import PathCost, closest_segment, evaluate_path_following, rank_key, summarize_paths
-from control.paths import PATHS, fillet, make_path, path_length
-from control.planners import CEM, RandomShooting
-from control.policies import BaselinePolicy, MpcPolicy
+from hilstack.control.baselines import DifferentialDriveController
+from hilstack.control.costs import (
+    PathCost,
+    closest_segment,
+    evaluate_path_following,
+    rank_key,
+    summarize_paths,
+)
+from hilstack.control.paths import PATHS, fillet, make_path, path_length
+from hilstack.control.planners import CEM, RandomShooting
+from hilstack.control.policies import BaselinePolicy, MpcPolicy
 
 ROACH_NAMES = [
     "x", "y", "z", "vx", "vy", "vz", "cos_roll", "sin_roll", "cos_pitch", "sin_pitch",

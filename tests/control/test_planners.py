@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from control.planners import CEM, PDDM, Planner, RandomShooting, filtered_noise, reward_weighted_mean
+from hilstack.control.planners import CEM, PDDM, Planner, RandomShooting, filtered_noise, reward_weighted_mean
 
 
 def identity_dynamics(state, action):

@@ -4,7 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from learning.datasets import Episode, TransitionDataset, episodes_from_table, load_episodes
+from hilstack.learning.datasets import Episode, TransitionDataset, episodes_from_table, load_episodes
 
 
 def make_episode(T, offset, name=""):
@@ -103,9 +103,9 @@ def test_load_episodes_errors(tmp_path):
 
 
 def test_mcap_recordings_load_through_the_same_entry_point(tmp_path):
-    from bus import keys
-    from bus.recording import McapLog
-    from bus.schemas import RobotState, SpecMsg
+    from hilstack.bus import keys
+    from hilstack.bus.recording import McapLog
+    from hilstack.bus.schemas import RobotState, SpecMsg
 
     spec = {"state": {"names": ["x"]}, "action": {"names": ["u"], "low": [-1.0], "high": [1.0]}}
     with McapLog(tmp_path / "session.mcap") as log:

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from learning.datasets import Episode, TransitionDataset
-from learning.dynamics import EnsembleDynamics, cpu_bf16_support, h_step_error, h_step_windows
+from hilstack.learning.datasets import Episode, TransitionDataset
+from hilstack.learning.dynamics import EnsembleDynamics, cpu_bf16_support, h_step_error, h_step_windows
 
 A_TRUE = np.array([[0.95, 0.1], [-0.1, 0.9]], dtype=np.float32)
 B_TRUE = np.array([[0.0], [0.5]], dtype=np.float32)
@@ -192,7 +192,7 @@ def test_save_load_roundtrip(tmp_path, data):
 
 
 def test_model_plugs_into_planner():
-    from control.planners import PDDM
+    from hilstack.control.planners import PDDM
 
     m = EnsembleDynamics(2, 1, ensemble=3, hidden=(16,), seed=0)
     p = PDDM(-1.0, 1.0, horizon=4, samples=32, action_dim=1)

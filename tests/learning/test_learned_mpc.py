@@ -3,9 +3,9 @@
 import numpy as np
 import torch
 
-from control.planners import PDDM
-from learning.datasets import Episode, TransitionDataset
-from learning.dynamics import EnsembleDynamics
+from hilstack.control.planners import PDDM
+from hilstack.learning.datasets import Episode, TransitionDataset
+from hilstack.learning.dynamics import EnsembleDynamics
 
 DT = 0.1
 

@@ -7,7 +7,7 @@ import os
 
 import numpy as np
 
-from learning.progress import LineProgress, progress
+from hilstack.learning.progress import LineProgress, progress
 
 
 def test_a_log_gets_one_line_per_tenth_and_no_carriage_returns():
@@ -51,8 +51,8 @@ def test_a_terminal_gets_a_tqdm_bar():
 
 
 def test_fitting_a_model_into_a_log_writes_plain_lines(capsys):
-    from learning.datasets import Episode
-    from learning.dynamics import EnsembleDynamics
+    from hilstack.learning.datasets import Episode
+    from hilstack.learning.dynamics import EnsembleDynamics
 
     rng = np.random.default_rng(0)
     s = rng.normal(size=(21, 2)).astype(np.float32)

@@ -9,9 +9,9 @@ import time
 import numpy as np
 import pytest
 
-from bus.recording import Recorder
-from control.controller_node import ActionScale, ControllerNode
-from learning.recordings import episodes_from_mcap
+from hilstack.bus.recording import Recorder
+from hilstack.control.controller_node import ActionScale, ControllerNode
+from hilstack.learning.recordings import episodes_from_mcap
 from tests.helpers import wait_for
 
 
@@ -97,8 +97,8 @@ def test_realtime_runs_in_phase_with_the_driver_and_passes_the_committed_command
     A free-running grid had a random phase: half the time such a command missed that
     period and acted one later. A policy with ``delay_steps`` gets the command sent the
     cycle before (the one acting while it plans)."""
-    from bus import keys
-    from bus.schemas import RobotState, decode
+    from hilstack.bus import keys
+    from hilstack.bus.schemas import RobotState, decode
 
     spawn("up", "pointmass_sim", "--endpoint", bus.endpoint)
 

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 
-from tools.demo import run_demo
+from hilstack.tools.demo import run_demo
 
 
 def test_tiny_demo_writes_a_complete_report(tmp_path):
@@ -56,10 +56,10 @@ def test_tiny_demo_writes_a_complete_report(tmp_path):
     # the trained model drives `hil mpc` on a fresh rig, scored with the same metrics
     from typer.testing import CliRunner
 
-    from configs.schema import BusConfig
-    from learning.mbrl import rig_processes
-    from tools.cli import app
-    from tools.demo import free_endpoint
+    from hilstack.configs.schema import BusConfig
+    from hilstack.learning.mbrl import rig_processes
+    from hilstack.tools.cli import app
+    from hilstack.tools.demo import free_endpoint
 
     bus = BusConfig(endpoint=free_endpoint())
     with rig_processes("roach_sim", bus, tmp_path / "mpc_logs"):
@@ -73,7 +73,7 @@ def test_tiny_demo_writes_a_complete_report(tmp_path):
 def test_a_rig_that_never_comes_up_is_a_clear_error(tmp_path):
     import pytest
 
-    from learning.mbrl import RigError
+    from hilstack.learning.mbrl import RigError
 
     rig = tmp_path / "broken.yaml"
     rig.write_text(

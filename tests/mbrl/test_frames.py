@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from learning.datasets import Episode
-from learning.dynamics import EnsembleDynamics, h_step_error, h_step_windows
-from learning.frames import BodyFrameDynamics, PlanarFrame, load_dynamics
+from hilstack.learning.datasets import Episode
+from hilstack.learning.dynamics import EnsembleDynamics, h_step_error, h_step_windows
+from hilstack.learning.frames import BodyFrameDynamics, PlanarFrame, load_dynamics
 
 NAMES = ["x", "y", "vx", "vy", "cos_yaw", "sin_yaw", "w"]
 

@@ -7,8 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from learning.datasets import Episode
-from learning.mbrl import BASELINE_SEARCH, baseline_candidates, default_baseline_params, split_episodes
+from hilstack.learning.datasets import Episode
+from hilstack.learning.mbrl import (
+    BASELINE_SEARCH,
+    baseline_candidates,
+    default_baseline_params,
+    split_episodes,
+)
 
 
 def eps(names):
@@ -51,8 +56,8 @@ def test_baseline_candidates_start_at_the_default_and_cover_the_ranges():
 
 
 def test_rate_limit_in_normalized_units_per_step():
-    from drivers.velociroach.config import VelociRoachParams, velociroach_spec
-    from learning.mbrl import MbrlConfig, make_planner, max_step_normalized
+    from hilstack.drivers.velociroach.config import VelociRoachParams, velociroach_spec
+    from hilstack.learning.mbrl import MbrlConfig, make_planner, max_step_normalized
 
     spec = velociroach_spec(VelociRoachParams(max_leg_accel_rps2=60.0, max_leg_vel_rps=15.0)).to_dict()
     # 60 rev/s² for 0.1 s is 6 rev/s, and [-1, 1] spans ±15 rev/s
@@ -66,7 +71,7 @@ def test_rate_limit_in_normalized_units_per_step():
 
 
 def test_random_policy_holds_commands_and_drives_forward_when_asked():
-    from control.policies import SafeRandomPolicy
+    from hilstack.control.policies import SafeRandomPolicy
 
     names = ["x", "y", "cos_yaw", "sin_yaw"]
     state = np.array([0.0, 0.0, 1.0, 0.0])
@@ -86,7 +91,7 @@ def test_random_policy_holds_commands_and_drives_forward_when_asked():
 
 
 def test_speed_coverage():
-    from learning.mbrl import speed_coverage
+    from hilstack.learning.mbrl import speed_coverage
 
     st = np.zeros((5, 2))
     st[:, 0] = [0.0, 0.3, 0.6, 1.0, 1.2]
@@ -96,7 +101,7 @@ def test_speed_coverage():
 
 
 def test_quick_and_full_are_exclusive(tmp_path):
-    from tools.demo import run_demo
+    from hilstack.tools.demo import run_demo
 
     with pytest.raises(ValueError, match="--quick or --full"):
         run_demo(tmp_path, quick=True, full=True)
@@ -104,8 +109,8 @@ def test_quick_and_full_are_exclusive(tmp_path):
 
 
 def test_full_config_runs_every_experiment_over_three_seeds():
-    from learning.experiments import EXPERIMENTS
-    from learning.mbrl import MbrlConfig
+    from hilstack.learning.experiments import EXPERIMENTS
+    from hilstack.learning.mbrl import MbrlConfig
 
     cfg = MbrlConfig.full()
     assert set(cfg.experiments) == set(EXPERIMENTS) and len(cfg.seeds) >= 3
@@ -117,7 +122,7 @@ def test_full_config_runs_every_experiment_over_three_seeds():
                                               ("baseline_candidates", 0), ("random_forward_fraction", 1.5),
                                               ("reference_corner_radius_m", -0.1)])
 def test_bad_config_is_one_clear_error_naming_the_field(field, value):
-    from learning.mbrl import MbrlConfig
+    from hilstack.learning.mbrl import MbrlConfig
 
     with pytest.raises(ValueError, match=field) as e:
         MbrlConfig(**{field: value})
@@ -129,9 +134,9 @@ def test_demo_flags_select_the_variants(monkeypatch, tmp_path):
     one line on stderr and exit code 1."""
     from typer.testing import CliRunner
 
-    import tools.demo
-    from learning.mbrl import MbrlConfig
-    from tools.cli import app
+    import hilstack.tools.demo
+    from hilstack.learning.mbrl import MbrlConfig
+    from hilstack.tools.cli import app
 
     seen = {}
 
@@ -140,7 +145,7 @@ def test_demo_flags_select_the_variants(monkeypatch, tmp_path):
         MbrlConfig(**{k: v for k, v in kw.items() if k in MbrlConfig.__dataclass_fields__})
         raise ValueError("stop here")
 
-    monkeypatch.setattr(tools.demo, "run_demo", fake_run_demo)
+    monkeypatch.setattr(hilstack.tools.demo, "run_demo", fake_run_demo)
     r = CliRunner().invoke(app, ["demo", "--quick", "--world-frame", "--thesis-sampling", "--out", str(tmp_path)])
     assert r.exit_code == 1 and "stop here" in r.output
     assert seen["body_frame"] is False
@@ -152,7 +157,7 @@ def test_demo_flags_select_the_variants(monkeypatch, tmp_path):
 
 
 def test_planner_samples_fit_the_wall_clock_budget():
-    from learning.mbrl import fit_samples_to_budget
+    from hilstack.learning.mbrl import fit_samples_to_budget
 
     def plan_time(n):  # 20 ms overhead + 0.3 ms per sample: 170 ms at N = 500
         return 0.020 + 0.0003 * n
@@ -171,9 +176,9 @@ def test_the_configured_planner_is_timed_on_the_model_and_fitted_to_the_period()
     from a state (no wall-clock assertion: a period nothing fits, and one anything fits)."""
     import torch
 
-    from control.costs import PathCost
-    from control.paths import make_path
-    from learning.mbrl import MbrlConfig, fit_planner_to_period
+    from hilstack.control.costs import PathCost
+    from hilstack.control.paths import make_path
+    from hilstack.learning.mbrl import MbrlConfig, fit_planner_to_period
 
     names = ["x", "y", "cos_yaw", "sin_yaw"]
     calls = []
@@ -194,8 +199,8 @@ def test_the_configured_planner_is_timed_on_the_model_and_fitted_to_the_period()
 def test_realtime_planner_delay_and_elites():
     from types import SimpleNamespace
 
-    from configs.schema import load_rig
-    from learning.mbrl import MbrlConfig, command_delay_steps, make_planner
+    from hilstack.configs.schema import load_rig
+    from hilstack.learning.mbrl import MbrlConfig, command_delay_steps, make_planner
 
     assert command_delay_steps(load_rig("roach_emulated"), "roach") == 1
     assert command_delay_steps(load_rig("roach_sim"), "roach") == 0
@@ -211,7 +216,7 @@ def test_realtime_planner_delay_and_elites():
 def test_mpc_plans_from_the_state_after_the_committed_commands():
     import torch
 
-    from control.policies import MpcPolicy
+    from hilstack.control.policies import MpcPolicy
 
     class Recorder:
         """A planner stub: remembers the state it planned from."""
@@ -249,8 +254,8 @@ def test_mpc_plans_from_the_state_after_the_committed_commands():
 
 
 def test_a_supervisor_timeout_shorter_than_a_path_is_refused_before_the_rig_starts(tmp_path):
-    from configs.schema import BusConfig
-    from learning.mbrl import MbrlConfig, MbrlRun, RigError
+    from hilstack.configs.schema import BusConfig
+    from hilstack.learning.mbrl import MbrlConfig, MbrlRun, RigError
 
     src = (Path(__file__).resolve().parents[2] / "configs" / "rigs" / "roach_emulated.yaml").read_text()
     assert "max_s: 60" in src  # the shipped rig leaves the figure-8 its 45.7 s
@@ -271,9 +276,9 @@ def test_realtime_samples_fits_the_given_planner_once_on_a_wall_clock_rig_only(t
 
     import torch
 
-    from configs.schema import BusConfig
-    from control.planners import CEM
-    from learning.mbrl import MbrlConfig, MbrlRun
+    from hilstack.configs.schema import BusConfig
+    from hilstack.control.planners import CEM
+    from hilstack.learning.mbrl import MbrlConfig, MbrlRun
 
     made = []
 
@@ -308,9 +313,9 @@ def test_the_supervisor_ends_an_episode_by_its_detectors_in_that_episode_only(tm
     reset's own transitions, do not."""
     from types import SimpleNamespace
 
-    from bus.schemas import ResetTransition, encode
-    from configs.schema import BusConfig
-    from learning.mbrl import MbrlConfig, MbrlRun
+    from hilstack.bus.schemas import ResetTransition, encode
+    from hilstack.configs.schema import BusConfig
+    from hilstack.learning.mbrl import MbrlConfig, MbrlRun
 
     def tr(trigger, source, dest, episode, reason=""):
         return ResetTransition(robot="roach", trigger=trigger, source=source, dest=dest, episode=episode, reason=reason)

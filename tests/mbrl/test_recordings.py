@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bus import keys
-from bus.recording import McapLog
-from bus.schemas import RobotState, SpecMsg
-from learning.recordings import episodes_from_mcap
+from hilstack.bus import keys
+from hilstack.bus.recording import McapLog
+from hilstack.bus.schemas import RobotState, SpecMsg
+from hilstack.learning.recordings import episodes_from_mcap
 
 SPEC = {"state": {"names": ["x", "v"]}, "action": {"names": ["u"], "low": [-2.0], "high": [2.0]}}
 
@@ -61,7 +61,7 @@ class _Recorder:
 
     def transitions(self, *path: str) -> None:
         """``transitions("a", "b", "c")``: a → b, then b → c."""
-        from bus.schemas import ResetTransition
+        from hilstack.bus.schemas import ResetTransition
 
         for src, dst in zip(path[:-1], path[1:], strict=True):
             self.log.write(keys.reset_transition("r"), ResetTransition(robot="bot", trigger="t", source=src, dest=dst),

@@ -7,10 +7,10 @@ import time
 import numpy as np
 import pytest
 
-from configs.schema import ConfigError
-from drivers.base import CommandError
-from drivers.mocap.udp import PoseStreamServer
-from drivers.registry import make_driver
+from hilstack.configs.schema import ConfigError
+from hilstack.drivers.base import CommandError
+from hilstack.drivers.mocap.udp import PoseStreamServer
+from hilstack.drivers.registry import make_driver
 from tests.helpers import free_port, wait_for
 
 

@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from drivers.mocap.base import PoseSource
-from drivers.mocap.natnet_client import NatNetPoseSource, natnet_to_world
-from drivers.mocap.udp import PACKET_SIZE, PoseStreamServer, UdpPoseClient, decode_pose, encode_pose
+from hilstack.drivers.mocap.base import PoseSource
+from hilstack.drivers.mocap.natnet_client import NatNetPoseSource, natnet_to_world
+from hilstack.drivers.mocap.udp import PACKET_SIZE, PoseStreamServer, UdpPoseClient, decode_pose, encode_pose
 
 
 @pytest.fixture

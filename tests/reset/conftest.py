@@ -11,12 +11,12 @@ from pathlib import Path
 import pytest
 import yaml
 
-from configs.schema import RigConfig, parse_model, rig_robot_config
-from control.controller_node import ControllerNode
-from control.reset.config import load_reset
-from control.reset.supervisor import ResetSupervisor
-from drivers.bridge import DriverNode
-from drivers.registry import make_driver
+from hilstack.configs.schema import RigConfig, parse_model, rig_robot_config
+from hilstack.control.controller_node import ControllerNode
+from hilstack.control.reset.config import load_reset
+from hilstack.control.reset.supervisor import ResetSupervisor
+from hilstack.drivers.bridge import DriverNode
+from hilstack.drivers.registry import make_driver
 
 RIG_FILE = Path(__file__).with_name("rig_roach_reset.yaml")
 

@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 import yaml
 
-from bus.estop import command_estop
-from bus.node import Node
-from configs.schema import RigConfig, parse_model, rig_robot_config
-from control.controller_node import ControllerNode
-from control.reset.config import load_reset
-from control.reset.supervisor import ResetSupervisor
-from drivers.bridge import DriverNode
-from drivers.registry import make_driver
-from drivers.shadow_hand.config import ACTUATED_JOINTS, hold_pose_action
-from sim_backends.shadow_hand.model import BALL_RADIUS_M
+from hilstack.bus.estop import command_estop
+from hilstack.bus.node import Node
+from hilstack.configs.schema import RigConfig, parse_model, rig_robot_config
+from hilstack.control.controller_node import ControllerNode
+from hilstack.control.reset.config import load_reset
+from hilstack.control.reset.supervisor import ResetSupervisor
+from hilstack.drivers.bridge import DriverNode
+from hilstack.drivers.registry import make_driver
+from hilstack.drivers.shadow_hand.config import ACTUATED_JOINTS, hold_pose_action
+from hilstack.sim_backends.shadow_hand.model import BALL_RADIUS_M
 from tests.helpers import wait_for
 
 RIG = Path(__file__).resolve().parents[2] / "configs" / "rigs" / "hand_sim_arm.yaml"
@@ -274,8 +274,8 @@ def test_the_new_episode_is_not_judged_on_the_arms_picture_of_the_old_one(hand_a
 def test_hil_up_runs_the_hand_and_its_reset_arm_in_one_world(spawn, bus):
     """`hil up hand_sim_arm`: the arm's sim joins the hand's scene (it would fail to
     configure in a process of its own) and both answer a controller on the bus."""
-    from bus import keys
-    from bus.schemas import RobotState
+    from hilstack.bus import keys
+    from hilstack.bus.schemas import RobotState
 
     p = spawn("up", str(RIG), "--endpoint", bus.endpoint)
     try:

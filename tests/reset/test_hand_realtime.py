@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from configs.schema import RigConfig, parse_model, rig_robot_config
-from control.controller_node import ControllerNode
-from control.reset.config import load_reset
-from control.reset.supervisor import ResetSupervisor
-from drivers.bridge import DriverNode
-from drivers.registry import make_driver
+from hilstack.configs.schema import RigConfig, parse_model, rig_robot_config
+from hilstack.control.controller_node import ControllerNode
+from hilstack.control.reset.config import load_reset
+from hilstack.control.reset.supervisor import ResetSupervisor
+from hilstack.drivers.bridge import DriverNode
+from hilstack.drivers.registry import make_driver
 from tests.helpers import free_port
 from tests.reset.test_hand_arm import tip_the_palm
 

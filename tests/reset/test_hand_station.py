@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import yaml
 
-from control.reset.arm_ik import READY_Q_RAD, ArmIK, down_frame
-from drivers.base import LinkError
-from drivers.reset_arm.config import ResetArmParams
-from drivers.shadow_hand.config import ShadowHandParams, hold_pose_action
-from sim_backends.reset_arm.backend import ResetArmSim
-from sim_backends.shadow_hand.backend import ShadowHandSim
-from sim_backends.shadow_hand.model import BALL_RADIUS_M
+from hilstack.control.reset.arm_ik import READY_Q_RAD, ArmIK, down_frame
+from hilstack.drivers.base import LinkError
+from hilstack.drivers.reset_arm.config import ResetArmParams
+from hilstack.drivers.shadow_hand.config import ShadowHandParams, hold_pose_action
+from hilstack.sim_backends.reset_arm.backend import ResetArmSim
+from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
+from hilstack.sim_backends.shadow_hand.model import BALL_RADIUS_M
 
 RIG = Path(__file__).resolve().parents[2] / "configs" / "rigs" / "hand_sim_arm.yaml"
 
@@ -129,9 +129,9 @@ def test_the_arm_udp_driver_and_controller_refuse_bad_frames_and_flag_silence():
     import socket
     import time
 
-    from drivers.reset_arm.driver import ResetArmDriver
-    from drivers.reset_arm.protocol import encode_command
-    from sim_backends.reset_arm.server import ArmServer
+    from hilstack.drivers.reset_arm.driver import ResetArmDriver
+    from hilstack.drivers.reset_arm.protocol import encode_command
+    from hilstack.sim_backends.reset_arm.server import ArmServer
     from tests.helpers import free_port
 
     h = hand(True, world="station-udp")

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bus.schemas import RobotState
-from configs.schema import ConfigError, RigConfig, load_rig, parse_model
-from control.reset.config import (
+from hilstack.bus.schemas import RobotState
+from hilstack.configs.schema import ConfigError, RigConfig, load_rig, parse_model
+from hilstack.control.reset.config import (
     DetectorConfig,
     ResetUnavailable,
     StepConfig,
@@ -18,8 +18,8 @@ from control.reset.config import (
     load_reset,
     require_reset,
 )
-from control.reset.detectors import ArenaDetector, DropDetector, TimeoutDetector, make_detector
-from control.reset.steps import (
+from hilstack.control.reset.detectors import ArenaDetector, DropDetector, TimeoutDetector, make_detector
+from hilstack.control.reset.steps import (
     DONE,
     HOLD,
     MECHANISMS,
@@ -31,7 +31,7 @@ from control.reset.steps import (
     TurnToYaw,
     register_mechanism,
 )
-from control.reset.supervisor import pose_error, state_diagram_mermaid
+from hilstack.control.reset.supervisor import pose_error, state_diagram_mermaid
 
 NAMES = ["x", "y", "cos_yaw", "sin_yaw", "ball_z"]
 

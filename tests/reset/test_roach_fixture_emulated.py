@@ -12,14 +12,14 @@ from pathlib import Path
 
 import yaml
 
-from configs.schema import load_rig
-from control.controller_node import ControllerNode
-from control.reset.config import require_reset
-from control.reset.fixture import FixtureClient
-from control.reset.supervisor import ResetSupervisor
-from drivers.emulator_process import EmulatorProcess
-from drivers.mocap.udp import UdpPoseClient
-from drivers.velociroach.config import quat_to_rpy
+from hilstack.configs.schema import load_rig
+from hilstack.control.controller_node import ControllerNode
+from hilstack.control.reset.config import require_reset
+from hilstack.control.reset.fixture import FixtureClient
+from hilstack.control.reset.supervisor import ResetSupervisor
+from hilstack.drivers.emulator_process import EmulatorProcess
+from hilstack.drivers.mocap.udp import UdpPoseClient
+from hilstack.drivers.velociroach.config import quat_to_rpy
 from tests.helpers import wait_for
 
 
@@ -35,7 +35,7 @@ def _ask(client: FixtureClient) -> dict:
 
 def test_the_emulator_fixture_puts_a_robot_on_its_back_onto_its_legs():
     with UdpPoseClient("127.0.0.1", 0) as pc:
-        emu = EmulatorProcess("sim_backends.velociroach.emulator", [
+        emu = EmulatorProcess("hilstack.sim_backends.velociroach.emulator", [
             "--print-pty", "--pose-port", str(pc.port), "--fixture-port", "0",
             "--config", json.dumps({"emulator": {"start_upside_down": True}})])
         try:

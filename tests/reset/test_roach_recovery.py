@@ -10,10 +10,10 @@ import math
 import numpy as np
 import pytest
 
-from bus.schemas import ResetEvent, RobotState
-from control.reset.config import StepConfig
-from control.reset.steps import DONE, HOLD, DriveToStart, LabFixture, SelfRight, StepError
-from sim_backends.velociroach.emulator import LabFixture as EmulatorFixture
+from hilstack.bus.schemas import ResetEvent, RobotState
+from hilstack.control.reset.config import StepConfig
+from hilstack.control.reset.steps import DONE, HOLD, DriveToStart, LabFixture, SelfRight, StepError
+from hilstack.sim_backends.velociroach.emulator import LabFixture as EmulatorFixture
 from tests.reset.test_supervisor_sim import _ended_by_supervisor, drive_out
 
 DETECTORS = [{"kind": "tipped", "min_cos": 0.7}, {"kind": "arena", "radius_m": 2.0}]
@@ -162,8 +162,8 @@ def test_self_right_counts_only_a_robot_it_found_down():
 
 # ------------------------------------------------------------------ the demo's report
 def test_quick_on_a_wall_clock_rig_tunes_fewer_candidates_and_the_sim_quick_run_is_unchanged():
-    from learning.mbrl import MbrlConfig
-    from tools.demo import quick_wall_clock
+    from hilstack.learning.mbrl import MbrlConfig
+    from hilstack.tools.demo import quick_wall_clock
 
     assert quick_wall_clock("roach_sim") == {}
     assert MbrlConfig.quick(**quick_wall_clock("roach_sim")).baseline_candidates == 20
@@ -171,7 +171,7 @@ def test_quick_on_a_wall_clock_rig_tunes_fewer_candidates_and_the_sim_quick_run_
 
 
 def test_the_report_states_the_resets():
-    from tools.demo import resets_markdown
+    from hilstack.tools.demo import resets_markdown
 
     text = "\n".join(resets_markdown({"requested": 64, "completed": 63, "failed": 1, "mean_duration_s": 4.26,
                                       "max_duration_s": 11.0, "fixture_recoveries": 2, "self_righted": 5,

@@ -11,11 +11,11 @@ import threading
 
 import numpy as np
 
-from configs.schema import load_rig
-from control.controller_node import ControllerNode
-from control.reset.config import require_reset
-from control.reset.supervisor import ResetSupervisor
-from learning.mbrl import MbrlConfig, MbrlRun, RigError
+from hilstack.configs.schema import load_rig
+from hilstack.control.controller_node import ControllerNode
+from hilstack.control.reset.config import require_reset
+from hilstack.control.reset.supervisor import ResetSupervisor
+from hilstack.learning.mbrl import MbrlConfig, MbrlRun, RigError
 
 
 def test_the_emulated_roach_is_driven_back_and_a_new_episode_starts(bus, spawn):

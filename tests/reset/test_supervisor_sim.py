@@ -11,12 +11,12 @@ import time
 import numpy as np
 import pytest
 
-from bus import keys
-from bus.estop import command_estop
-from bus.node import Node
-from bus.recording import Recorder, read_messages
-from bus.schemas import ResetTransition, decode
-from control.reset.steps import MECHANISMS, TaskResetMechanism, register_mechanism
+from hilstack.bus import keys
+from hilstack.bus.estop import command_estop
+from hilstack.bus.node import Node
+from hilstack.bus.recording import Recorder, read_messages
+from hilstack.bus.schemas import ResetTransition, decode
+from hilstack.control.reset.steps import MECHANISMS, TaskResetMechanism, register_mechanism
 from tests.helpers import wait_for
 
 FULL_CYCLE = ["episode_end", "paused", "resetting", "verifying", "resumed", "running"]

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 import torch
 
-from bus.schemas import ResetTransition
-from configs.schema import load_rig, rig_robot_config
-from control.costs import BaodingCost, baoding_episode_metrics
-from drivers.registry import make_driver
-from drivers.shadow_hand.config import BALL_CHANNELS, ShadowHandParams, shadow_hand_spec
-from learning.baoding import BaodingConfig, BaodingRun, UniformRandomPolicy, load_baoding_task
-from sim_backends.shadow_hand.backend import ShadowHandSim
-from sim_backends.shadow_hand.baoding import BaodingTask
+from hilstack.bus.schemas import ResetTransition
+from hilstack.configs.schema import load_rig, rig_robot_config
+from hilstack.control.costs import BaodingCost, baoding_episode_metrics
+from hilstack.drivers.registry import make_driver
+from hilstack.drivers.shadow_hand.config import BALL_CHANNELS, ShadowHandParams, shadow_hand_spec
+from hilstack.learning.baoding import BaodingConfig, BaodingRun, UniformRandomPolicy, load_baoding_task
+from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
+from hilstack.sim_backends.shadow_hand.baoding import BaodingTask
 
 NAMES = list(shadow_hand_spec(ShadowHandParams(objects_in_state=True)).state.names)
 
@@ -121,14 +121,14 @@ def test_a_drop_ends_the_episode_through_the_supervisor(bus, tmp_path):
         nxt = run.episode(UniformRandomPolicy(20, seed=4), 2, {})  # the next episode starts: a reset happened
     assert len(log.states) < 100
     assert np.min(run.balls(np.array(log.states))[-1, :, 2]) < 0.079
-    from bus.schemas import decode
+    from hilstack.bus.schemas import decode
 
     reasons = [decode(p, ResetTransition).reason for p in ended]
     assert any(r.startswith("drop") for r in reasons), reasons
     assert run.supervisor.stats["completed"] >= 2 and run.supervisor.stats["failed"] == 0
     # the reset held the hand in its start pose (not the middle of every joint's range) and
     # the next episode starts with both balls in the palm
-    from drivers.shadow_hand.config import ACT_INDEX, hold_pose_action, to_action
+    from hilstack.drivers.shadow_hand.config import ACT_INDEX, hold_pose_action, to_action
 
     start = np.asarray(nxt.states[0])
     assert np.abs(to_action(start[ACT_INDEX]) - hold_pose_action()).max() < 0.1
@@ -136,7 +136,7 @@ def test_a_drop_ends_the_episode_through_the_supervisor(bus, tmp_path):
 
 
 def test_demo_baoding_tiny_end_to_end(tmp_path):
-    from tools.demo_baoding import run_baoding_demo
+    from hilstack.tools.demo_baoding import run_baoding_demo
 
     r = run_baoding_demo(tmp_path, preset="tiny")
     saved = json.loads((tmp_path / "report.json").read_text())
@@ -166,10 +166,10 @@ def test_reset_handshake_and_lockstep_messages_wait_for_a_full_send_queue(bus):
     handshake and a lockstep rig's states and commands are declared to wait instead."""
     import zenoh
 
-    from control.controller_node import ControllerNode
-    from control.reset.config import load_reset
-    from control.reset.supervisor import ResetSupervisor
-    from drivers.bridge import DriverNode
+    from hilstack.control.controller_node import ControllerNode
+    from hilstack.control.reset.config import load_reset
+    from hilstack.control.reset.supervisor import ResetSupervisor
+    from hilstack.drivers.bridge import DriverNode
 
     rig = load_rig("hand_sim")
     block = zenoh.CongestionControl.BLOCK
@@ -188,8 +188,8 @@ def test_reset_handshake_and_lockstep_messages_wait_for_a_full_send_queue(bus):
 
 
 def test_drop_prediction_counts_the_drops_a_model_sees_coming():
-    from learning.baoding import drop_prediction
-    from learning.datasets import Episode
+    from hilstack.learning.baoding import drop_prediction
+    from hilstack.learning.datasets import Episode
 
     tk = task()
     idx = [NAMES.index(c) for c in BALL_CHANNELS]
@@ -220,7 +220,7 @@ def test_drop_prediction_counts_the_drops_a_model_sees_coming():
 def test_a_sim_reset_holds_the_pose_it_resets_to():
     """The contract's held command follows a sim reset: the rate limit and the bus's
     ``RobotState.action`` start from the new pose, not from where the last episode ended."""
-    from drivers.shadow_hand.config import ACT_INDEX, hold_pose_action, to_action
+    from hilstack.drivers.shadow_hand.config import ACT_INDEX, hold_pose_action, to_action
 
     sim = ShadowHandSim(ShadowHandParams(objects_in_state=True))
     sim.configure()
@@ -236,8 +236,8 @@ def test_a_sim_reset_holds_the_pose_it_resets_to():
 
 def test_the_pddm_policy_plans_from_the_state_after_the_sent_command_on_a_wall_clock_hand(bus, tmp_path):
     """The emulated (and real) hand applies a command one period after the state it was
-    planned from (learning.mbrl.command_delay_steps); the lockstep sim does not."""
-    from learning.mbrl import command_delay_steps
+    planned from (hilstack.learning.mbrl.command_delay_steps); the lockstep sim does not."""
+    from hilstack.learning.mbrl import command_delay_steps
 
     for rig, delay in (("hand_emulated", 1), ("hand_sim", 0)):
         run = BaodingRun(BaodingConfig.tiny(rig=rig), tmp_path / rig, bus)
@@ -254,7 +254,7 @@ def test_a_wall_clock_hand_fits_pddm_k_to_the_period_and_the_sim_keeps_it(bus, t
     rollout; the lockstep sim keeps the configured K."""
     from types import SimpleNamespace
 
-    from learning.mbrl import make_model
+    from hilstack.learning.mbrl import make_model
 
     for rig, want in (("hand_emulated", 50), ("hand_sim", None)):
         run = BaodingRun(BaodingConfig.tiny(rig=rig, samples=200), tmp_path / rig, bus)
@@ -277,7 +277,7 @@ def test_a_hand_state_without_the_balls_is_refused_before_any_episode(bus, tmp_p
     after the random rollouts."""
     import contextlib
 
-    from learning.mbrl import RigError
+    from hilstack.learning.mbrl import RigError
 
     run = BaodingRun(BaodingConfig.tiny(rig="hand_emulated_arm"), tmp_path, bus)
     run.session = contextlib.nullcontext  # the rig is up; its hand publishes joints only

@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from configs.schema import ConfigError
-from drivers.base import Lifecycle, LinkError
-from drivers.shadow_hand.config import ACT_INDEX, ShadowHandParams, to_action, to_joint_rad
-from drivers.shadow_hand.driver import ShadowHandDriver
-from drivers.shadow_hand.protocol import ID_STATUS, ID_TARGET, decode, encode_targets
-from sim_backends.shadow_hand.firmware import (
+from hilstack.configs.schema import ConfigError
+from hilstack.drivers.base import Lifecycle, LinkError
+from hilstack.drivers.shadow_hand.config import ACT_INDEX, ShadowHandParams, to_action, to_joint_rad
+from hilstack.drivers.shadow_hand.driver import ShadowHandDriver
+from hilstack.drivers.shadow_hand.protocol import ID_STATUS, ID_TARGET, decode, encode_targets
+from hilstack.sim_backends.shadow_hand.firmware import (
     FAULT_RX_ERROR,
     FAULT_WATCHDOG,
     MODE_ESTOP,
@@ -51,7 +51,7 @@ def slcan_emulator(tmp_path_factory):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     log = tmp_path_factory.mktemp("emu") / "emulator.log"
     with open(log, "wb") as errf:
-        p = subprocess.Popen([sys.executable, "-m", "sim_backends.shadow_hand.emulator", "--transport", "slcan",
+        p = subprocess.Popen([sys.executable, "-m", "hilstack.sim_backends.shadow_hand.emulator", "--transport", "slcan",
                               "--print-pty", "--config", cfg, "--parent-pid", str(os.getpid())],
                              stdout=subprocess.PIPE, stderr=errf, cwd=REPO, env=env)
     try:
@@ -242,7 +242,7 @@ def test_config_errors_name_the_field(tmp_path):
 
 
 def test_hil_drive_holds_the_pose_with_a_clean_link():
-    out = subprocess.run([sys.executable, "-m", "tools.cli", "drive", "shadow_hand", "--backend", "emulated",
+    out = subprocess.run([sys.executable, "-m", "hilstack.tools.cli", "drive", "shadow_hand", "--backend", "emulated",
                           "--seconds", "2", "--json"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.shadow_hand.config import (
+from hilstack.drivers.shadow_hand.config import (
     ACT_INDEX,
     ACTUATED_JOINTS,
     JOINT_HIGH_RAD,
@@ -19,7 +19,7 @@ from drivers.shadow_hand.config import (
     to_action,
     to_joint_rad,
 )
-from drivers.shadow_hand.protocol import (
+from hilstack.drivers.shadow_hand.protocol import (
     CYCLE_IDS,
     ID_POS,
     ID_TARGET,
@@ -33,7 +33,7 @@ from drivers.shadow_hand.protocol import (
     encode_telemetry,
     frame_bits_worst_case,
 )
-from sim_backends.shadow_hand.emulator import SlcanDevice
+from hilstack.sim_backends.shadow_hand.emulator import SlcanDevice
 
 
 def _cycle(cycle: int, q=None, qd=None, eff=None, **kw):
@@ -215,7 +215,7 @@ def _drain(drv, bus) -> list:
 def test_garbled_slcan_lines_are_corrupt_frames_not_a_dead_link(loop_bus):
     """Regression: a short line (IndexError in python-can) or non-ASCII bytes (left in
     python-can's buffer, failing every later read) took the whole link down."""
-    from drivers.shadow_hand.driver import ShadowHandDriver
+    from hilstack.drivers.shadow_hand.driver import ShadowHandDriver
 
     drv = ShadowHandDriver(ShadowHandParams())
     loop_bus.serialPortOrig.reset_input_buffer()
@@ -232,7 +232,7 @@ def test_garbled_slcan_lines_are_corrupt_frames_not_a_dead_link(loop_bus):
 @settings(max_examples=200, deadline=None)
 @given(junk=st.binary(max_size=30))
 def test_fuzz_driver_slcan_receive(loop_bus, junk):
-    from drivers.shadow_hand.driver import ShadowHandDriver
+    from hilstack.drivers.shadow_hand.driver import ShadowHandDriver
 
     drv = ShadowHandDriver(ShadowHandParams())
     loop_bus.flush()
@@ -247,7 +247,7 @@ def test_fuzz_driver_slcan_receive(loop_bus, junk):
 def test_frame_handler_sorts_own_foreign_error_and_corrupt_frames():
     import can
 
-    from drivers.shadow_hand.driver import ShadowHandDriver
+    from hilstack.drivers.shadow_hand.driver import ShadowHandDriver
 
     drv = ShadowHandDriver(ShadowHandParams())
     mid, data = encode_targets(np.zeros(20))[0]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.shadow_hand.config import (
+from hilstack.drivers.shadow_hand.config import (
     ACT_INDEX,
     ACTUATED_JOINTS,
     JOINT_HIGH_RAD,
@@ -14,9 +14,9 @@ from drivers.shadow_hand.config import (
     ShadowHandParams,
     to_joint_rad,
 )
-from sim_backends.shadow_hand.backend import ShadowHandSim
-from sim_backends.shadow_hand.baoding import BaodingTask
-from sim_backends.shadow_hand.firmware import (
+from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
+from hilstack.sim_backends.shadow_hand.baoding import BaodingTask
+from hilstack.sim_backends.shadow_hand.firmware import (
     FAULT_ESTOP,
     FAULT_MOTOR,
     FAULT_WATCHDOG,
@@ -26,7 +26,7 @@ from sim_backends.shadow_hand.firmware import (
     FirmwareConfig,
     HandFirmware,
 )
-from sim_backends.shadow_hand.model import BALL_MASS_KG, BALL_RADIUS_M, build_scene
+from hilstack.sim_backends.shadow_hand.model import BALL_MASS_KG, BALL_RADIUS_M, build_scene
 
 
 @pytest.fixture(scope="module")
@@ -172,7 +172,7 @@ def test_open_flat_hand_drops_the_balls_and_flags_it():
 
 
 def _flat_action() -> np.ndarray:
-    from drivers.shadow_hand.config import to_action
+    from hilstack.drivers.shadow_hand.config import to_action
 
     return to_action(np.zeros(20))
 

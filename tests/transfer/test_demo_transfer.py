@@ -7,7 +7,7 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from tools.cli import app
+from hilstack.tools.cli import app
 
 
 @pytest.mark.slow
@@ -37,8 +37,8 @@ def test_demo_transfer_writes_the_report_and_plots(tmp_path, monkeypatch):
 
 
 def test_part_runs_only_that_half(tmp_path, monkeypatch):
-    import learning.transfer.roach_pairs as rp
-    import tools.demo_transfer as dt
+    import hilstack.learning.transfer.roach_pairs as rp
+    import hilstack.tools.demo_transfer as dt
 
     calls = []
     monkeypatch.setattr(rp, "run_sidm", lambda *a: calls.append("sidm") or {"pairs": {}})

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from learning.transfer.grounding import (
+from hilstack.learning.transfer.grounding import (
     Discriminator,
     GaratConfig,
     Gat,
@@ -124,7 +124,7 @@ def test_fit_mlp_early_stopping_keeps_the_best_held_out_weights():
 
 
 def test_floor_is_zero_where_an_exact_mapping_exists_and_below_none_and_gat():
-    from learning.transfer.grounding import floor_error
+    from hilstack.learning.transfer.grounding import floor_error
 
     tgt, src, val = rollouts(target, 300, 0), rollouts(source, 300, 1), rollouts(target, 40, 2)
     inside = TransitionSet(*(v[np.abs(val.a[:, 0]) < 1.4] for v in (val.s, val.a, val.s1)))
@@ -142,7 +142,7 @@ def test_floor_is_zero_where_an_exact_mapping_exists_and_below_none_and_gat():
 
 
 def test_best_action_finds_the_minimiser_of_a_known_curve():
-    from learning.transfer.grounding import best_action
+    from hilstack.learning.transfer.grounding import best_action
 
     # the error |step(s, ã) − s'| of the source is |0.1·(ã − 1.234)|: minimiser 1.234 between grid points
     s = np.zeros(2)

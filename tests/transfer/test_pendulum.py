@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from learning.transfer.pendulum import StepFrom, make_env
+from hilstack.learning.transfer.pendulum import StepFrom, make_env
 
 
 def test_target_has_the_heavier_pole_and_behaves_differently(tmp_path):
@@ -33,8 +33,8 @@ def test_bad_pole_mass_is_refused(tmp_path):
 
 
 def test_floor_is_below_none_and_gat_on_the_pendulum(tmp_path):
-    from learning.transfer.grounding import Gat, floor_error, transition_error
-    from learning.transfer.pendulum import collect
+    from hilstack.learning.transfer.grounding import Gat, floor_error, transition_error
+    from hilstack.learning.transfer.pendulum import collect
 
     src, tgt = StepFrom(make_env(None, tmp_path)), StepFrom(make_env(15.0, tmp_path))
 

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from configs.schema import ConfigError
-from drivers.velociroach.config import STATE_NAMES
-from learning.transfer.roach_garat import (
+from hilstack.configs.schema import ConfigError
+from hilstack.drivers.velociroach.config import STATE_NAMES
+from hilstack.learning.transfer.roach_garat import (
     RoachGaratConfig,
     RoachStep,
     cem,

@@ -8,9 +8,16 @@ import mujoco
 import numpy as np
 import pytest
 
-from drivers.velociroach.config import VelociRoachParams
-from learning.transfer.roach_pairs import EXPERT, PAIRS, PATCH_XY_M, collect, terrain_patch_m, transitions
-from sim_backends.velociroach.backend import VelociRoachSim
+from hilstack.drivers.velociroach.config import VelociRoachParams
+from hilstack.learning.transfer.roach_pairs import (
+    EXPERT,
+    PAIRS,
+    PATCH_XY_M,
+    collect,
+    terrain_patch_m,
+    transitions,
+)
+from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
 
 def ground_height_m(sim: VelociRoachSim, x: float, y: float) -> float:

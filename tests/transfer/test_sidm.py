@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from learning.transfer.sidm import (
+from hilstack.learning.transfer.sidm import (
     Sidm,
     SidmConfig,
     Transitions,
@@ -119,7 +119,7 @@ def test_bad_inputs_are_refused():
 
 
 def test_open_loop_drift_is_the_position_error_after_the_horizon():
-    from learning.transfer.sidm import open_loop_drift
+    from hilstack.learning.transfer.sidm import open_loop_drift
 
     t = np.arange(51.0)
     states = np.stack([0.1 * t, 0.0 * t, np.ones_like(t)], 1)  # moving 0.1 m per step along x

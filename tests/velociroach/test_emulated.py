@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.base import Lifecycle, LinkError
-from drivers.velociroach.config import STATE_NAMES, VelociRoachParams
-from drivers.velociroach.driver import VelociRoachDriver
-from drivers.velociroach.link import addr64, xbee_tx64
-from drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, MavEncoder
+from hilstack.drivers.base import Lifecycle, LinkError
+from hilstack.drivers.velociroach.config import STATE_NAMES, VelociRoachParams
+from hilstack.drivers.velociroach.driver import VelociRoachDriver
+from hilstack.drivers.velociroach.link import addr64, xbee_tx64
+from hilstack.drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, MavEncoder
 
 REPO = Path(__file__).resolve().parents[2]
 I_VEL_L, I_VEL_R = STATE_NAMES.index("crank_vel_l"), STATE_NAMES.index("crank_vel_r")
@@ -180,7 +180,7 @@ def test_radio_silence_shows_in_health_and_the_watchdog_stops_the_robot():
 def test_hil_drive_emulated_moves_forward_with_a_clean_link():
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     r = subprocess.run(
-        [sys.executable, "-m", "tools.cli", "drive", "velociroach", "--backend", "emulated",
+        [sys.executable, "-m", "hilstack.tools.cli", "drive", "velociroach", "--backend", "emulated",
          "--action", "0.6,0.6", "--seconds", "3", "--json"],
         capture_output=True, text=True, timeout=60, cwd=REPO, env=env,
     )
@@ -285,8 +285,8 @@ def test_stale_pose_and_nan_telemetry_are_flagged_not_hidden():
 
 
 def test_emulator_section_is_typed():
-    from configs.schema import ConfigError
-    from drivers.registry import make_driver
+    from hilstack.configs.schema import ConfigError
+    from hilstack.drivers.registry import make_driver
 
     with pytest.raises(ConfigError) as e:
         make_driver("velociroach", backend="emulated", emulator={"corupt_every": 3})
@@ -300,7 +300,7 @@ def test_hil_drive_shows_why_the_emulator_did_not_start_and_keeps_its_log(tmp_pa
     cfg.write_text("robot: velociroach\nbackend: emulated\nparams:\n  emulator: {physics: 'no_such_module:Physics'}\n")
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     r = subprocess.run(
-        [sys.executable, "-m", "tools.cli", "drive", str(cfg), "--backend", "emulated", "--action", "0.1,0.1",
+        [sys.executable, "-m", "hilstack.tools.cli", "drive", str(cfg), "--backend", "emulated", "--action", "0.1,0.1",
          "--seconds", "0.2"],
         capture_output=True, text=True, timeout=60, cwd=REPO, env=env,
     )
@@ -323,12 +323,12 @@ def test_bridge_states_carry_the_command_that_moved_the_robot(bus):
     emulated/real transition was one period off (docs/mbrl.md, "Wall-clock rigs")."""
     import threading
 
-    from bus import keys
-    from bus.schemas import RobotState, decode
-    from configs.schema import load_rig, rig_robot_config
-    from control.controller_node import ControllerNode
-    from drivers.bridge import DriverNode
-    from drivers.registry import make_driver
+    from hilstack.bus import keys
+    from hilstack.bus.schemas import RobotState, decode
+    from hilstack.configs.schema import load_rig, rig_robot_config
+    from hilstack.control.controller_node import ControllerNode
+    from hilstack.drivers.bridge import DriverNode
+    from hilstack.drivers.registry import make_driver
 
     rig = load_rig("roach_emulated")
     node = DriverNode(make_driver(rig_robot_config(rig, "roach")), rig.name, "roach", bus,

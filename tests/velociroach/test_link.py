@@ -14,10 +14,10 @@ import tty
 import numpy as np
 import pytest
 
-from drivers.base import CommandError, LinkError
-from drivers.velociroach import mavlink as vm
-from drivers.velociroach.config import VelociRoachParams
-from drivers.velociroach.link import (
+from hilstack.drivers.base import CommandError, LinkError
+from hilstack.drivers.velociroach import mavlink as vm
+from hilstack.drivers.velociroach.config import VelociRoachParams
+from hilstack.drivers.velociroach.link import (
     FdPort,
     RadioLink,
     XBeeDeframer,
@@ -362,7 +362,7 @@ class FakeRobot:
 
 def test_driver_never_sends_nan_or_out_of_range(tmp_path):
     """Real driver on a pty with a fake robot: every command on the wire is finite and in range."""
-    from drivers.velociroach.driver import VelociRoachDriver
+    from hilstack.drivers.velociroach.driver import VelociRoachDriver
 
     master, slave = os.openpty()
     tty.setraw(slave)

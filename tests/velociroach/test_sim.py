@@ -11,10 +11,10 @@ import math
 import numpy as np
 import pytest
 
-from configs.schema import ConfigError
-from drivers.registry import make_driver
-from drivers.velociroach.config import STATE_NAMES, VelociRoachParams
-from sim_backends.velociroach.backend import VelociRoachSim
+from hilstack.configs.schema import ConfigError
+from hilstack.drivers.registry import make_driver
+from hilstack.drivers.velociroach.config import STATE_NAMES, VelociRoachParams
+from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
 IX = {n: i for i, n in enumerate(STATE_NAMES)}
 
@@ -279,14 +279,14 @@ def _max_safe_step_rps(sim) -> float:
     """The largest leg-velocity setpoint step whose current spike (the PID's duty jump
     (ff + kp·vbat)·dw over R, before the back-EMF moves) stays under the over-current fault
     at a full battery: the derivation of the default rate limit (configs/robots/velociroach.yaml)."""
-    from sim_backends.velociroach.firmware import default_ff_v_per_rps
+    from hilstack.sim_backends.velociroach.firmware import default_ff_v_per_rps
 
     ff = default_ff_v_per_rps(sim.motor_k_v_s_per_rad, sim.gear_ratio)
     return sim.overcurrent_a * sim.motor_resistance_ohm / (ff + sim.kp_duty_per_rps * sim.battery_full_v)
 
 
 def test_default_rate_limit_follows_from_the_motor_model():
-    from sim_backends.velociroach.backend import SimParams
+    from hilstack.sim_backends.velociroach.backend import SimParams
 
     p = VelociRoachParams()
     step = p.max_leg_accel_rps2 * p.period_s
