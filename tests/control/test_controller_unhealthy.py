@@ -141,3 +141,36 @@ def test_lockstep_answers_a_not_ok_state_with_the_held_command_without_planning(
         if m is not None and not m.ok:
             assert c.action == pytest.approx(HELD)
     assert log.unhealthy_states == 4
+
+
+def test_late_plans_on_the_hand_sim_hold_its_targets(bus, spawn, tmp_path):
+    """The simulated Shadow Hand (position control) on the wall clock behind its driver node
+    (`hil up`), with a planner whose first plan is late: the node sends the hand's held targets
+    while it waits, and the hand's applied targets do not move towards the middle of the joint
+    ranges (the normalized zero it was sent before)."""
+    rig = tmp_path / "hand_rt.yaml"
+    rig.write_text("name: hand_rt\nrobots:\n  hand: {config: shadow_hand, backend: sim}\n"
+                   "watchdog_periods: 3\npace: realtime\n")
+    spawn("up", str(rig), "--endpoint", bus.endpoint)
+    with ControllerNode("hand_rt", "hand", bus, handle_signals=False, state_timeout_s=20) as ctl:
+        spec = ctl.wait_ready(60)
+        wait_for(lambda: ctl._state.poll() is not None, 30, "states")
+        held = np.asarray(ctl.next_state().action)
+        held_norm = ctl.scale.to_norm(held)
+        assert np.abs(held_norm).max() > 0.3  # the hold pose is far from the middle of the ranges
+
+        class LatePlanner:
+            calls = 0
+
+            def __call__(self, s):
+                self.calls += 1
+                if self.calls == 1:
+                    time.sleep(5 * spec["period_s"])
+                return held_norm  # then: hold where it is
+
+        log = ctl.run_realtime(LatePlanner(), 8)
+        after = ctl.next_state()
+    assert log.late_plans >= 3
+    for a in log.actions:
+        np.testing.assert_allclose(a, held, atol=1e-6)
+    np.testing.assert_allclose(after.action, held, atol=1e-6)  # applied: the hand kept its targets
