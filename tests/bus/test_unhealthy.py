@@ -126,8 +126,11 @@ def test_not_ok_readings_hold_the_roach_and_refuse_commands_until_ok_again(roach
               f"(pose deadline 0.25 s, period {PERIOD_S} s)")
 
         mocap.mode = "ok"
+        t_ok = time.monotonic()
         got = _drive(state, cmd, go, lambda g: any(_moving(s) for _, s in g), 30, "commands obeyed again")
         i = next(k for k, (_, s) in enumerate(got) if _moving(s))
+        print(f"{fault} mocap: commands obeyed again {got[i][0] - t_ok:.3f} s after the mocap recovered "
+              "(3 ok readings)")
         # the state that first carries the command was preceded by >= 3 ok readings in a row
         run = 0
         for _, s in reversed(got[:i]):
