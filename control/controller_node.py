@@ -10,8 +10,9 @@ Two timing modes, same node:
 * **realtime** (real and emulated robots, or a sim paced on the wall clock): commands go
   out at a fixed rate whatever the planning time. Planning runs in a worker thread; if
   the plan for the newest state is not ready by the deadline, the next action of the
-  last good plan (shifted one step) is sent instead, or, when none is left, the command
-  the robot holds (``RobotState.action``; never a normalized zero, which is the middle of
+  last good plan (shifted one step) is sent instead, or, when none is left, what the
+  robot's stop holds (the spec's ``safe_action``, else, for a position-controlled robot, the
+  command it holds, ``RobotState.action``; never a normalized zero, which is the middle of
   the range: a jump for a position-controlled robot), and the late plan is counted.
 * **lockstep** (sim rigs with ``pace: lockstep``): the node answers each published state
   with one command tagged with that state's sequence number, and the sim advances when
@@ -19,8 +20,8 @@ Two timing modes, same node:
 
 A state that is not ok (``RobotState.ok``: a stale or non-finite input) is never planned
 from: realtime sends nothing for it (the driver node holds the robot), lockstep answers it
-with the held command so the sim advances (the driver node refuses it while the robot is
-not ok); both count it in ``EpisodeLog.unhealthy_states`` and leave it out of the log.
+with what the robot's stop holds so the sim advances (the driver node refuses it while the
+robot is not ok); both count it in ``EpisodeLog.unhealthy_states`` and leave it out of the log.
 """
 
 from __future__ import annotations
@@ -142,16 +143,24 @@ class ControllerNode(Node):
                 raise TimeoutError(f"no new state from {self.robot} within {timeout_s} s")
 
     def held_norm(self, s: RobotState) -> np.ndarray | None:
-        """The command the robot holds, normalized: the state's ``action`` (the driver's held
-        command: a position robot's current target), else the spec's safe action; None when
-        neither is known (then nothing may be sent in its place)."""
+        """The command the robot runs now, normalized: the state's ``action`` (the driver's
+        held command), else the spec's safe action; None when neither is known."""
         n = len(self.spec["action"]["names"])
         if len(s.action) == n and np.all(np.isfinite(s.action)):
             return self.scale.to_norm(np.asarray(s.action, dtype=np.float64))
+        return self.safe_norm(s, held=False)
+
+    def safe_norm(self, s: RobotState, held: bool = True) -> np.ndarray | None:
+        """What the controller sends when it has no plan, normalized: what ``Driver.stop()``
+        holds. The spec's safe action (zero leg or joint velocity...), else, for a
+        position-controlled robot, the command it holds (its current target); None when
+        neither is known (then nothing may be sent). Never the normalized zero: that is the
+        middle of each range, a jump for a position robot and not a stop for an asymmetric one."""
+        n = len(self.spec["action"]["names"])
         safe = self.spec.get("safe_action")
         if safe is not None and len(safe) == n:
             return self.scale.to_norm(np.asarray(safe, dtype=np.float64))
-        return None
+        return self.held_norm(s) if held else None
 
     def send(self, action_norm: np.ndarray, state_seq: int) -> np.ndarray:
         a = self.scale.to_robot(action_norm)
@@ -207,9 +216,9 @@ class ControllerNode(Node):
             x = np.asarray(s.state)
             if not s.ok:  # nothing planned from it; the held command lets the sim advance
                 log.unhealthy_states += 1
-                held = self.held_norm(s)
-                if held is not None:
-                    self.send(held, s.seq)
+                hold = self.safe_norm(s)
+                if hold is not None:
+                    self.send(hold, s.seq)
                 s = self.next_state(after_seq=s.seq)
                 continue
             t0 = time.perf_counter()
@@ -337,8 +346,8 @@ class ControllerNode(Node):
                     if busy:
                         self.late_count += 1
                         log.late_plans += 1
-                    # the shifted last plan, else the command the robot holds: never a zero
-                    a = fallback.pop(0) if fallback else self.held_norm(s)
+                    # the shifted last plan, else what stop() holds: never a normalized zero
+                    a = fallback.pop(0) if fallback else self.safe_norm(s)
                     if a is None:
                         continue
                 a_sent = self.send(a, s.seq)

@@ -32,12 +32,13 @@ class FakeDriverNode:
     (and NaN) while ``bad(k)`` for its index k. ``lockstep``: the next state waits for the
     command answering the last one. Every command is kept with the state it answered."""
 
-    def __init__(self, bus, bad, lockstep: bool = False):
+    def __init__(self, bus, bad, lockstep: bool = False, spec: dict | None = None, held=None):
         self.node = Node("driver-pos", RIG, bus, handle_signals=False)
         self.spec = self.node.publisher(keys.spec(RIG, "pos"), SpecMsg, reliable=True)
         self.state = self.node.publisher(keys.state(RIG, "pos"), RobotState, reliable=True)
         self.cmd = self.node.subscribe(keys.cmd(RIG, "pos"), Command, latest=False, capacity=4096)
         self.bad, self.lockstep = bad, lockstep
+        self.spec_dict, self.held = spec or SPEC, list(held or HELD)
         self.sent: dict[int, RobotState] = {}  # seq -> state
         self.answers: list[Command] = []
         self.stop = threading.Event()
@@ -48,11 +49,11 @@ class FakeDriverNode:
         k, spec_t = 0, 0.0
         while not self.stop.is_set():
             if time.monotonic() - spec_t > 0.2:
-                self.spec.put(SpecMsg(robot="pos", spec=SPEC))
+                self.spec.put(SpecMsg(robot="pos", spec=self.spec_dict))
                 spec_t = time.monotonic()
             ok = not self.bad(k)
             m = self.state.put(RobotState(robot="pos", t_s=k * PERIOD_S, state=[0.2, 0.3] if ok else [np.nan] * 2,
-                                          ok=ok, active=True, action=list(HELD)))
+                                          ok=ok, active=True, action=list(self.held)))
             self.sent[m.seq] = m
             if self.lockstep:  # k counts answered states: unanswered ones are sent again after 0.2 s
                 deadline = time.monotonic() + 0.2
@@ -124,6 +125,26 @@ def test_a_late_first_plan_sends_the_held_command_not_a_normalized_zero(bus):
     np.testing.assert_allclose(log.actions[0], HELD, atol=1e-9)
     assert all(np.allclose(a, HELD) or np.allclose(a, [1.5, 1.5]) for a in late)
     assert not any(np.allclose(a, [1.0, 1.0]) for a in log.actions)
+
+
+def test_a_late_first_plan_stops_a_velocity_robot_with_its_safe_action(bus):
+    """A velocity robot whose range is not symmetric (leg speeds in [-1, 3]: the normalized zero
+    is 1.0, not a stop), moving at 2.5: with no plan to shift, the node sends the spec's safe
+    action, what ``stop()`` holds, not the normalized zero and not the speed it was running."""
+    spec = {**SPEC, "action": {**SPEC["action"], "low": [-1.0, -1.0], "high": [3.0, 3.0]},
+            "safe_action": [0.0, 0.0]}
+    drv = FakeDriverNode(bus, bad=lambda k: False, spec=spec, held=[2.5, 2.5])
+    try:
+        with ControllerNode(RIG, "pos", bus, handle_signals=False, state_timeout_s=10) as ctl:
+            ctl.wait_ready(20)
+            wait_for(lambda: ctl._state.poll() is not None, 10, "states")
+            log = ctl.run_realtime(Planner(first_sleep_s=4 * PERIOD_S), 12)
+    finally:
+        drv.close()
+    assert log.late_plans >= 2
+    np.testing.assert_allclose(log.actions[0], [0.0, 0.0], atol=1e-9)
+    # the plan's 0.5 (normalized) is 2.0; everything else sent is the safe action
+    assert all(np.allclose(a, [0.0, 0.0]) or np.allclose(a, [2.0, 2.0]) for a in log.actions)
 
 
 def test_lockstep_answers_a_not_ok_state_with_the_held_command_without_planning(bus):
