@@ -214,7 +214,7 @@ class ControllerNode(Node):
         log.episode = s.episode
         for _ in range(steps):
             x = np.asarray(s.state)
-            if not s.ok:  # nothing planned from it; the held command lets the sim advance
+            if not s.ok:  # nothing planned from it; what stop() holds lets the sim advance
                 log.unhealthy_states += 1
                 hold = self.safe_norm(s)
                 if hold is not None:
