@@ -10,10 +10,18 @@ Two timing modes, same node:
 * **realtime** (real and emulated robots, or a sim paced on the wall clock): commands go
   out at a fixed rate whatever the planning time. Planning runs in a worker thread; if
   the plan for the newest state is not ready by the deadline, the next action of the
-  last good plan (shifted one step) is sent instead and the late plan is counted.
+  last good plan (shifted one step) is sent instead, or, when none is left, what the
+  robot's stop holds (the spec's ``safe_action``, else, for a position-controlled robot, the
+  command it holds, ``RobotState.action``; never a normalized zero, which is the middle of
+  the range: a jump for a position-controlled robot), and the late plan is counted.
 * **lockstep** (sim rigs with ``pace: lockstep``): the node answers each published state
   with one command tagged with that state's sequence number, and the sim advances when
   it arrives, so a rig runs faster than real time with the same nodes.
+
+A state that is not ok (``RobotState.ok``: a stale or non-finite input) is never planned
+from: realtime sends nothing for it (the driver node holds the robot), lockstep answers it
+with what the robot's stop holds so the sim advances (the driver node refuses it while the
+robot is not ok); both count it in ``EpisodeLog.unhealthy_states`` and leave it out of the log.
 """
 
 from __future__ import annotations
@@ -68,6 +76,8 @@ class EpisodeLog:
     late_plans: int = 0
     #: realtime mode: cycles whose state did not arrive within half a period (the newest was used)
     stale_states: int = 0
+    #: states that were not ok: nothing planned from them (realtime: nothing sent)
+    unhealthy_states: int = 0
     timeouts: int = 0
     #: realtime mode: the cycle timer's summary (late/missed periods, p50/p99 per section)
     timing: dict[str, Any] = field(default_factory=dict)
@@ -132,6 +142,26 @@ class ControllerNode(Node):
             if time.monotonic() >= deadline:
                 raise TimeoutError(f"no new state from {self.robot} within {timeout_s} s")
 
+    def held_norm(self, s: RobotState) -> np.ndarray | None:
+        """The command the robot runs now, normalized: the state's ``action`` (the driver's
+        held command), else the spec's safe action; None when neither is known."""
+        n = len(self.spec["action"]["names"])
+        if len(s.action) == n and np.all(np.isfinite(s.action)):
+            return self.scale.to_norm(np.asarray(s.action, dtype=np.float64))
+        return self.safe_norm(s, held=False)
+
+    def safe_norm(self, s: RobotState, held: bool = True) -> np.ndarray | None:
+        """What the controller sends when it has no plan, normalized: what ``Driver.stop()``
+        holds. The spec's safe action (zero leg or joint velocity...), else, for a
+        position-controlled robot, the command it holds (its current target); None when
+        neither is known (then nothing may be sent). Never the normalized zero: that is the
+        middle of each range, a jump for a position robot and not a stop for an asymmetric one."""
+        n = len(self.spec["action"]["names"])
+        safe = self.spec.get("safe_action")
+        if safe is not None and len(safe) == n:
+            return self.scale.to_norm(np.asarray(safe, dtype=np.float64))
+        return self.held_norm(s) if held else None
+
     def send(self, action_norm: np.ndarray, state_seq: int) -> np.ndarray:
         a = self.scale.to_robot(action_norm)
         self._cmd.put(Command(robot=self.robot, action=a.tolist(), state_seq=state_seq, source=self.name))
@@ -184,6 +214,13 @@ class ControllerNode(Node):
         log.episode = s.episode
         for _ in range(steps):
             x = np.asarray(s.state)
+            if not s.ok:  # nothing planned from it; what stop() holds lets the sim advance
+                log.unhealthy_states += 1
+                hold = self.safe_norm(s)
+                if hold is not None:
+                    self.send(hold, s.seq)
+                s = self.next_state(after_seq=s.seq)
+                continue
             t0 = time.perf_counter()
             a_norm = np.asarray(policy(x), dtype=np.float64)
             dt = time.perf_counter() - t0
@@ -249,6 +286,7 @@ class ControllerNode(Node):
         th.start()
         fallback: list[np.ndarray] = []  # remaining actions of the last good plan
         busy = False
+        unhealthy_cycle = -1  # the last cycle whose state was not ok
         # align the grid with the state stream (see above): the least delayed of three
         # fresh arrivals marks the driver node's grid (a single one may come late)
         s = self._state.poll() or self._state.last  # take what is queued: the next ones are fresh
@@ -256,8 +294,8 @@ class ControllerNode(Node):
         for j in range(3):
             s = self.next_state(after_seq=s.seq if s is not None else -1)
             phase.append(time.monotonic() - j * period)
-        sent: list[np.ndarray] = [self.scale.to_norm(s.action) if len(s.action) == len(spec["action"]["names"])
-                                  else np.zeros(len(spec["action"]["names"]))]
+        held = self.held_norm(s)
+        sent: list[np.ndarray] = [] if held is None else [held]
         timer = self.cycle = CycleTimer(period, sleep=self.stop_event.wait)
         timer.start(at_s=min(phase) + 2 * period)
         try:
@@ -274,6 +312,13 @@ class ControllerNode(Node):
                 if self.stop_event.is_set():
                     break
                 x = np.asarray(s.state)
+                if not s.ok:
+                    # nothing planned from it, nothing sent: the driver node holds the robot;
+                    # a plan under way or left over started before it and is dropped
+                    log.unhealthy_states += 1
+                    fallback = []
+                    unhealthy_cycle = i
+                    continue
                 if stop_if is not None and log.states and stop_if(x):
                     break
                 if not busy:
@@ -284,6 +329,9 @@ class ControllerNode(Node):
                     busy = True
                 with timer.section("plan_wait"):
                     got = ready.wait(max(0.0, timer.deadline_s(deadline_frac) - time.monotonic()))
+                if got and job["cycle"] <= unhealthy_cycle:  # planned before a not-ok state
+                    busy, got = False, False
+                    log.plan_times_s.append(job["result"][2])
                 if got:
                     a, plan, dt, _ = job["result"]
                     busy = False
@@ -295,9 +343,13 @@ class ControllerNode(Node):
                     self.publish_plan(policy, dt, False)
                     log.plan_times_s.append(dt)
                 else:
-                    self.late_count += 1
-                    log.late_plans += 1
-                    a = fallback.pop(0) if fallback else np.zeros(len(spec["action"]["names"]))
+                    if busy:
+                        self.late_count += 1
+                        log.late_plans += 1
+                    # the shifted last plan, else what stop() holds: never a normalized zero
+                    a = fallback.pop(0) if fallback else self.safe_norm(s)
+                    if a is None:
+                        continue
                 a_sent = self.send(a, s.seq)
                 sent = (sent + [self.scale.to_norm(a_sent)])[-max(delay, 1):]
                 log.states.append(x)

@@ -574,11 +574,26 @@ class Driver(ABC):
     def stop(self) -> None:
         """Bring the robot to its safe state. Allowed in any state with a link.
 
-        The stop is not rate limited (safety first); the rate limit restarts from the safe
-        action."""
+        With a ``safe_action`` (zero leg velocity...) the stop is not rate limited (safety
+        first). Without one (position control) the robot holds its held command, the last
+        target it was sent (the rate limit already bounded it), so nothing jumps and no
+        measurement is used: a stale measured pose would be a jump back to where the robot
+        was. A driver that is not ACTIVE (no held command of this activation), or whose device
+        refuses that target, holds its measured position (``_stop()``). The rate limit
+        restarts from what is held."""
         if self._lifecycle is Lifecycle.UNCONFIGURED:
             return
-        held = self._stop()
+        held = None
+        if self.spec.safe_action is None and self._held is not None and self._lifecycle is Lifecycle.ACTIVE:
+            try:
+                self._write(self._held)
+                held = self._held.copy()
+            except LinkError:
+                raise
+            except Exception:  # the device refused the target: its own stop
+                held = None
+        if held is None:
+            held = self._stop()
         if held is None:
             held = self.spec.safe_action
         if held is not None:

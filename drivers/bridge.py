@@ -4,7 +4,9 @@ Each period: take the e-stop commands (latched; each acknowledged on
 ``hil/<rig>/estop/ack``), take the newest command, apply it or hold the safe action,
 read, publish the state. Safety is local: the robot is stopped when commands go stale
 (``watchdog_periods`` control periods without a new command, default 3), when an
-e-stop arrives, or when a command is invalid, whatever other nodes do. At start the
+e-stop arrives, when a command is invalid, or when its reading is not ok (a stale or
+non-finite input: the node then refuses commands until ``resume_ok_readings``
+consecutive readings are ok again, default 3), whatever other nodes do. At start the
 node asks the rig's other nodes for a latched e-stop (``estop_sync_s``) and, when one
 is engaged, starts stopped and refuses commands until a release (bus/estop.py).
 
@@ -43,6 +45,9 @@ from hilstack.drivers.base import CommandError, Driver, LinkError
 
 log = logging.getLogger(__name__)
 
+#: upper bound of ``resume_ok_readings`` (a node that never resumes is a config error)
+MAX_RESUME_OK_READINGS = 100
+
 
 @dataclass
 class BridgeStats:
@@ -53,6 +58,12 @@ class BridgeStats:
     estops: int = 0
     #: commands ignored because the e-stop is engaged
     estop_refused: int = 0
+    #: times the robot was stopped because its reading was not ok
+    unhealthy_stops: int = 0
+    #: commands refused because the robot's reading was not ok (or not yet ok again)
+    unhealthy_refused: int = 0
+    #: why the last not-ok reading was not ok: its flags that were set, e.g. "stale_pose"
+    last_unhealthy: str = ""
     lockstep_timeouts: int = 0
     last_reject: str = ""
 
@@ -78,8 +89,12 @@ class DriverNode(Node):
         pace: str = "realtime",
         lockstep_timeout_s: float = 5.0,
         estop_sync_s: float = 1.0,
+        resume_ok_readings: int = 3,
         **node_kw,
     ):
+        if not (isinstance(resume_ok_readings, int) and 1 <= resume_ok_readings <= MAX_RESUME_OK_READINGS):
+            raise ValueError(f"resume_ok_readings must be an integer in [1, {MAX_RESUME_OK_READINGS}], "
+                             f"got {resume_ok_readings!r}")
         super().__init__(keys.driver_node(robot), rig, bus, **node_kw)
         if pace == "lockstep" and driver.backend != "sim":
             raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
@@ -96,6 +111,11 @@ class DriverNode(Node):
         self.stats = BridgeStats()
         self.estopped = False
         self.stopped_reason = "waiting"
+        #: consecutive ok readings needed before commands are taken again after a not-ok one
+        self.resume_ok_readings = resume_ok_readings
+        #: the newest reading was not ok, or fewer than resume_ok_readings ok ones followed it
+        self.unhealthy = False
+        self._ok_run = 0
         # lockstep: the controller answers every state, a lost one stalls the loop
         self._state_pub = self.publisher(keys.state(rig, robot), RobotState, reliable=pace == "lockstep")
         self._spec_pub = self.publisher(keys.spec(rig, robot), SpecMsg, reliable=True)  # rare; every reader needs it
@@ -245,6 +265,10 @@ class DriverNode(Node):
             if cmd is not None:
                 self.stats.estop_refused += 1
             return
+        if self.unhealthy:  # held safe by _assess_reading; the command acts on a state not ok
+            if cmd is not None:
+                self.stats.unhealthy_refused += 1
+            return
         if cmd is not None:
             try:
                 self.driver.write(np.asarray(cmd.action, dtype=np.float64))
@@ -265,16 +289,45 @@ class DriverNode(Node):
             self.driver.stop()
             self.stopped_reason = "stale"
 
+    def _assess_reading(self, ok: bool, flags: dict[str, bool]) -> None:
+        """Control on unhealthy states: a reading that is not ok (a stale or non-finite
+        input, ``Observation.ok``, or ``health().ok`` False) stops the robot at once by the
+        same path as the watchdog and the e-stop (``stop()``: the safe action, or holding the
+        held target for a position-controlled robot) and makes ``_apply`` refuse commands
+        (counted in ``unhealthy_refused``). Commands are taken again after
+        ``resume_ok_readings`` consecutive ok readings; the robot holds until the next one."""
+        if ok:
+            self._ok_run += 1
+            if self.unhealthy and self._ok_run >= self.resume_ok_readings:
+                self.unhealthy = False
+                self._last_cmd_t = None
+                if self.stopped_reason == "unhealthy":
+                    self.stopped_reason = "waiting"
+                log.warning("%s: %d ok readings: taking commands again", self.robot, self._ok_run)
+            return
+        self._ok_run = 0
+        self.stats.last_unhealthy = ",".join(sorted(k for k, v in flags.items() if v)) or "health"
+        self.unhealthy = True
+        if self.estopped or self.stopped_reason == "unhealthy":
+            return
+        self.stats.unhealthy_stops += 1
+        log.warning("%s: reading not ok (%s): holding, commands refused", self.robot, self.stats.last_unhealthy)
+        if self.driver.active:
+            self.driver.stop()
+        self.stopped_reason = "unhealthy"
+
     def publish_state(self) -> RobotState:
         obs = self.driver.read()
         h = self.driver.health()
+        ok = bool(obs.ok and h.ok)
+        self._assess_reading(ok, obs.flags)
         held = self.driver.held_command
         msg = RobotState(
             robot=self.robot,
             t_s=obs.t_s,
             state=obs.state.tolist(),
             obs_seq=obs.seq,
-            ok=obs.ok and h.ok,
+            ok=ok,
             active=self.driver.active,
             stopped_reason=self.stopped_reason,
             action=[] if held is None else held.tolist(),
@@ -285,6 +338,9 @@ class DriverNode(Node):
                 "commands_rejected": self.stats.commands_rejected,
                 "stale_stops": self.stats.stale_stops,
                 "estop_refused": self.stats.estop_refused,
+                "unhealthy_stops": self.stats.unhealthy_stops,
+                "unhealthy_refused": self.stats.unhealthy_refused,
+                "unhealthy_reason": self.stats.last_unhealthy,
             },
         )
         self._last_state = self._state_pub.put(msg)

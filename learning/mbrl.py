@@ -606,8 +606,9 @@ class MbrlRun:
             m["plan_ms_p50"] = float(np.percentile(log.plan_times_s, 50) * 1e3) if log.plan_times_s else 0.0
             m["plan_ms_p99"] = float(np.percentile(log.plan_times_s, 99) * 1e3) if log.plan_times_s else 0.0
             m["late_plans"] = log.late_plans  # realtime: steps that sent the shifted last plan instead
+            m["unhealthy_states"] = log.unhealthy_states  # not ok: nothing planned, the driver node held the robot
             m["end"] = ("completed" if m["completed"] else self.last_end_reason
-                        or ("time_limit" if len(log.actions) >= steps else "stopped"))
+                        or ("time_limit" if len(log.actions) + log.unhealthy_states >= steps else "stopped"))
             m["xy"] = states[:, [self.state_names.index("x"), self.state_names.index("y")]].tolist()
             m["waypoints"] = wp.tolist()
             out[name] = m

@@ -56,7 +56,10 @@ def test_activation_holds_measured_state_and_rate_limits_from_there():
         assert a == pytest.approx([0.4])
         d.tick()
         assert d.write([-1.0]) == pytest.approx([0.3])
-    assert d.lifecycle is Lifecycle.UNCONFIGURED and d.stopped >= 1
+        last = d.held_command
+    assert d.lifecycle is Lifecycle.UNCONFIGURED
+    # a position robot's stop on exit holds the held target (sent again), not a measurement
+    assert d.sent[-1] == pytest.approx(last)
 
 
 def test_writes_at_one_instant_cannot_add_up_to_more_than_one_period():
@@ -236,3 +239,39 @@ def test_realtime_pacer_follows_the_wall_clock_and_slips_instead_of_bursting():
     assert pacer.due(101.020, 5.060) == 10  # then it runs on from the new origin
     double = RealtimePacer(sim_time_s=0.0, tick_s=0.001, realtime_factor=2.0, now_s=0.0)
     assert double.due(0.010, 0.0) == 20
+
+
+class HoldsMeasured(Fake):
+    """A position robot whose own ``_stop`` holds the measured position, as the hand's,
+    the reset arm's and the mechanism's do; its reading can be stale."""
+
+    def _stop(self):
+        self.stopped += 1
+        a = np.array([self.q])
+        self.sent.append(a)
+        return a
+
+
+def test_a_position_stop_holds_the_held_target_not_a_stale_measured_pose():
+    """The review's case: the measured pose is stale (0.3, the reading stopped updating)
+    while the commands ramped the target to 0.8; a stop that held the measured pose sent
+    0.3 at once, a jump of 0.5 where the rate limit allows 0.1 per period. The stop holds
+    the last target instead, and the next write ramps from there."""
+    d = HoldsMeasured(rate=1.0)
+    with d:
+        for _ in range(5):
+            d.write([1.0])
+            d.t += 0.1
+        last = d.held_command
+        assert last == pytest.approx([0.8])
+        d.stop()
+        step = 1.0 * d.spec.period_s
+        assert abs(d.sent[-1][0] - last[0]) <= step + 1e-12, f"stop sent {d.sent[-1]} after {last}"
+        assert d.held_command == pytest.approx(last) and d.stopped == 0
+        assert d.write([-1.0]) == pytest.approx([0.7])  # the rate limit restarts from the hold
+    # not active (never activated, or deactivated): nothing held of this activation, the device's own stop
+    d2 = HoldsMeasured()
+    d2.configure()
+    d2.stop()
+    assert d2.stopped == 1 and d2.sent[-1] == pytest.approx([0.3])
+    d2.cleanup()

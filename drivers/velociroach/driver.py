@@ -157,7 +157,7 @@ class VelociRoachDriver(Driver):
         cfg["port"] = None
         cfg["tlog"] = None  # the driver writes the log, not the robot
         args = ["--print-pty", "--config", json.dumps(cfg)]
-        if self._pose_client is not None:
+        if self._pose_client is not None and self.params.emulator.pose:  # pose: false, a mocap bridge sends it
             args += ["--pose-port", str(self._pose_client.port)]
         if self.params.emulator.lab_fixture:
             args += ["--fixture-port", "0"]
