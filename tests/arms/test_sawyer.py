@@ -154,6 +154,22 @@ def test_only_complete_finite_joint_states_refresh_the_input_over_zenoh():
         robot.close()
 
 
+@pytest.mark.parametrize("sig", ["SIGSTOP", "SIGKILL"])
+def test_hil_drive_exits_1_when_the_sawyer_freezes_or_dies(sig):
+    """Issue 22: the Sawyer's emulator process stopped or killed while `hil drive` drives it:
+    the error path, `hil drive` exits 1 with one line (before: it went on commanding a dead
+    robot and exited 0)."""
+    import signal
+
+    from tests.helpers import hil_drive_with_device_signal
+
+    r = hil_drive_with_device_signal("sawyer", "hilstack.sim_backends.sawyer.emulator", getattr(signal, sig))
+    assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
+    assert r.stderr.startswith("link error: ") and "Traceback" not in r.stderr, r.stderr
+    if sig == "SIGSTOP":
+        assert "no usable joint_states" in r.stderr and "20 control periods" in r.stderr, r.stderr
+
+
 def test_link_timeout_is_bounded_and_after_the_stale_deadline():
     for bad in ({"link_timeout_periods": 0}, {"link_timeout_periods": 10_000},
                 {"link_timeout_periods": 2, "joint_states_stale_s": 0.5}, {"joint_states_stale_s": float("inf")}):

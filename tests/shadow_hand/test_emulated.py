@@ -250,3 +250,17 @@ def test_hil_drive_holds_the_pose_with_a_clean_link():
     assert res["link"]["corrupt_frames"] == 0 and res["link"]["transport"] == "slcan"
     assert res["tracking_error"]["max_rad"] < 0.02
     assert len(res["tracking_error"]["per_joint_rad"]) == 20
+
+
+@pytest.mark.parametrize("sig", ["SIGSTOP", "SIGKILL"])
+def test_hil_drive_exits_1_when_the_hand_freezes_or_dies(sig):
+    """Issue 22: the hand's device process stopped (frozen, link open) or killed while `hil
+    drive` holds it: the driver takes the error path and `hil drive` exits 1 with one line."""
+    from tests.helpers import hil_drive_with_device_signal
+
+    r = hil_drive_with_device_signal("shadow_hand", "hilstack.sim_backends.shadow_hand.emulator",
+                                     getattr(signal, sig))
+    assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
+    assert r.stderr.startswith("link error: ") and "Traceback" not in r.stderr, r.stderr
+    if sig == "SIGSTOP":
+        assert "no usable telemetry" in r.stderr and "10 control periods" in r.stderr, r.stderr
