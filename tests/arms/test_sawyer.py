@@ -170,6 +170,70 @@ def test_hil_drive_exits_1_when_the_sawyer_freezes_or_dies(sig):
         assert "no usable joint_states" in r.stderr and "20 control periods" in r.stderr, r.stderr
 
 
+#: a host process driving joint 0 at 0.3 rad/s through the real driver (backend real)
+SAWYER_HOST = """
+import sys
+import numpy as np
+from hilstack.drivers.registry import make_driver
+d = make_driver("sawyer", backend="real", zenoh_mode="peer", zenoh_connect=[sys.argv[1]], joint_states_stale_s=0.5)
+with d:
+    for k in range(10**9):
+        d.read()
+        d.write(np.array([0.3, 0, 0, 0, 0, 0, 0]))
+        d.tick()
+        if k == 10:
+            print("driving", flush=True)
+"""
+
+
+def test_host_killed_the_vendor_timeout_stops_the_arm():
+    """Issue 22, host death: the process driving the Sawyer is SIGKILLed mid-motion; the robot
+    side (intera's 0.2 s command timeout, played by the emulator's vendor controller) holds
+    the arm. Measured from the kill to the first joint state with joint 0 at rest."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    import zenoh
+
+    from hilstack.drivers.emulator_process import EmulatorProcess
+    from tests.helpers import ROOT, free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    emu = EmulatorProcess("hilstack.sim_backends.sawyer.emulator", ["--listen", endpoint, "--config", "{}"])
+    emu.start()
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    c.insert_json5("listen/endpoints", "[]")
+    session = zenoh.open(c)
+    seen: list[tuple[float, float]] = []  # (arrival, joint 0 velocity)
+    sub = session.declare_subscriber(ros.bridge_key(ros.JOINT_STATES_TOPIC), lambda smp: seen.append(
+        (time.monotonic(), float(ros.decode_joint_state(smp.payload.to_bytes()).velocity[0]))))
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    host = subprocess.Popen([sys.executable, "-c", SAWYER_HOST, endpoint], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env)
+    try:
+        assert host.stdout.readline().strip() == "driving", host.stderr.read()
+        wait_for(lambda: seen and seen[-1][1] > 0.25, 10.0, "joint 0 moving at the commanded 0.3 rad/s")
+        host.kill()
+        t_kill = time.monotonic()
+        host.wait(timeout=10)
+        t_rest = wait_for(lambda: next((t for t, v in list(seen) if t > t_kill and abs(v) < 0.02), None), 10.0,
+                          "the arm at rest after the host died")
+        print(f"\nMEASURED sawyer host SIGKILL: joint 0 at rest {t_rest - t_kill:.2f} s after the kill "
+              "(vendor command timeout 0.2 s)")
+    finally:
+        if host.poll() is None:
+            host.kill()
+            host.wait()
+        sub.undeclare()
+        session.close()
+        emu.stop()
+
+
 def test_link_timeout_is_bounded_and_after_the_stale_deadline():
     for bad in ({"link_timeout_periods": 0}, {"link_timeout_periods": 10_000},
                 {"link_timeout_periods": 2, "joint_states_stale_s": 0.5}, {"joint_states_stale_s": float("inf")}):
