@@ -78,6 +78,7 @@ from hilstack.drivers.mocap.udp import PoseStreamServer
 port, parent = int(sys.argv[1]), int(sys.argv[2])
 t0 = time.monotonic()
 with PoseStreamServer("127.0.0.1", port, body_id=1) as srv:
+    print("streaming", flush=True)
     while os.getppid() == parent:
         t = time.monotonic() - t0
         srv.send(t, [0.1 * t, 0.0, 0.05], [1.0, 0.0, 0.0, 0.0])
@@ -87,7 +88,10 @@ with PoseStreamServer("127.0.0.1", port, body_id=1) as srv:
 
 def _pose_stream(port: int) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.Popen([sys.executable, "-c", POSE_STREAM, str(port), str(os.getpid())], env=env, cwd=ROOT)
+    p = subprocess.Popen([sys.executable, "-c", POSE_STREAM, str(port), str(os.getpid())], env=env, cwd=ROOT,
+                         stdout=subprocess.PIPE, text=True)
+    assert p.stdout.readline().strip() == "streaming", "the pose stream process did not start"
+    return p
 
 
 @pytest.fixture(params=CONTRACT_BACKENDS, ids=lambda p: f"{p[0]}-{p[1]}")
@@ -117,6 +121,7 @@ def driver(request):
     if stream is not None:
         stream.kill()
         stream.wait()
+        stream.stdout.close()
 
 
 def _device_pid(d, hand, stream: subprocess.Popen | None) -> int | None:
