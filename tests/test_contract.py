@@ -461,3 +461,15 @@ def test_frozen_or_dead_device_takes_the_error_path(driver, request, sig):
                 assert "stop was not sent" not in driver.last_error, driver.last_error
     print(f"\nMEASURED {robot}-{backend} {sig}: error path {t_fail:.2f} s after the signal "
           f"(error deadline {fail_after_s:g} s): {str(err.value)[:160]}")
+
+
+@pytest.mark.parametrize("robot", ["velociroach", "shadow_hand", "sawyer", "reset_arm", "mocap"])
+def test_the_error_deadline_is_a_bounded_config_value(robot):
+    """The contract's rule is stated per robot: link_timeout_periods is a whole number of
+    control periods, bounded in the robot's config schema; anything else is a config error
+    naming the field (exit 2 from the CLI)."""
+    from hilstack.configs.schema import ConfigError
+
+    for bad in (0, 10**6, 1.5, "inf"):
+        with pytest.raises(ConfigError, match="params.link_timeout_periods"):
+            make_driver(robot, link_timeout_periods=bad)
