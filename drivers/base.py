@@ -13,6 +13,11 @@ Shape (after ros2_control's hardware lifecycle and LeRobot's robot base):
   ``ok`` is False when any fused input is stale or non-finite; ``flags`` uses the one
   vocabulary :class:`Flag` (every backend, every robot); each input's freshness is a
   :class:`Freshness` record and ``health().extra`` carries ``<input>_age_s``.
+* A frozen or dead device: an input without a usable sample for ``fail_after_s``
+  (``link_timeout_periods`` control periods, bounded in each robot's config) makes
+  ``read()`` and ``write()`` take the error path: stop, UNCONFIGURED, ``last_error``,
+  :class:`LinkError`. Sim backends whose physics runs in the driver's own thread cannot
+  freeze apart from their host (tests/test_contract.py says which).
 * ``write(action)`` is refused unless ACTIVE, rejects wrong shapes and non-finite values
   with :class:`CommandError`, clamps to limits and the rate limit, and returns the
   action actually applied. The rate limit bounds the applied command over time: between
@@ -96,6 +101,10 @@ class Flag(enum.StrEnum):
     #: the device reports a latched hardware error (Dynamixel: overheating, overload,
     #: input voltage, electrical shock, encoder); it needs a reboot
     HARDWARE_ERROR = "hardware_error"
+    #: a sample that did not decode, was incomplete or out of its valid range (a JointState
+    #: missing a joint, a zero quaternion, a pose outside the arena) arrived since the last
+    #: read; it was not used and did not refresh its input
+    INVALID_INPUT = "invalid_input"
 
 
 FLAG_NAMES: frozenset[str] = frozenset(f.value for f in Flag)
@@ -110,8 +119,15 @@ class Freshness:
     the newest *usable* (finite) sample: a non-finite sample is not used and does not
     refresh the input (an input that only delivers NaN goes stale); it sets ``nonfinite``,
     which stays set until ``read()`` has reported it (a NaN between two reads is never
-    lost), and counts in ``nonfinite_samples``. ``fail_after_s`` (optional): an input this
-    old means the device is gone (a frozen robot); the backend takes the error path.
+    lost), and counts in ``nonfinite_samples``. A sample that is malformed, incomplete or
+    out of range is not used either (:meth:`reject`): it sets ``invalid`` (reported like
+    ``nonfinite``, flag ``invalid_input``) and counts in ``invalid_samples``.
+
+    ``fail_after_s``: an input this old (counting from :meth:`start` before the first
+    sample) means the device is gone: frozen, dead, or its link dropped. The contract's
+    rule (:meth:`Driver.read`, :meth:`Driver.write`) then takes the error path. Robots set
+    it as ``link_timeout_periods * period_s`` (:meth:`fail_after_periods`), N finite and
+    bounded in the robot's config schema.
     """
 
     name: str
@@ -123,10 +139,28 @@ class Freshness:
     last_t_s: float | None = None
     nonfinite: bool = False
     nonfinite_samples: int = 0
+    invalid: bool = False
+    invalid_samples: int = 0
+    #: why the newest rejected sample was not used
+    last_invalid: str | None = None
+
+    @classmethod
+    def fail_after_periods(cls, name: str, deadline_s: float, stale_flag: Flag, periods: int,
+                           period_s: float) -> Freshness:
+        """The contract's rule for an input the device must keep sending: stale after
+        ``deadline_s``, the error path after ``periods`` control periods without a usable sample."""
+        if not (isinstance(periods, int) and periods >= 1 and math.isfinite(period_s) and period_s > 0):
+            raise ValueError(f"{name}: the error deadline needs a finite number of periods >= 1, got {periods} "
+                             f"of {period_s} s")
+        if not periods * period_s > deadline_s:
+            raise ValueError(f"{name}: {periods} periods of {period_s:g} s = {periods * period_s:g} s must exceed "
+                             f"the stale deadline {deadline_s:g} s")
+        return cls(name, deadline_s, stale_flag, fail_after_s=periods * period_s)
 
     def start(self, now_s: float) -> None:
         """Forget every sample; age counts from ``now_s`` for the error deadline."""
         self.since_t_s, self.last_t_s, self.nonfinite, self.nonfinite_samples = now_s, None, False, 0
+        self.invalid, self.invalid_samples, self.last_invalid = False, 0, None
 
     def update(self, t_s: float, finite: bool = True) -> None:
         """One sample arrived at ``t_s``; ``finite`` False: it had NaN/inf and was not used."""
@@ -135,6 +169,13 @@ class Freshness:
         else:
             self.nonfinite = True
             self.nonfinite_samples += 1
+
+    def reject(self, why: str) -> None:
+        """A sample arrived that is malformed, incomplete or out of range: not used, it does
+        not refresh the input; flagged (``invalid_input``) at the next report and counted."""
+        self.invalid = True
+        self.invalid_samples += 1
+        self.last_invalid = why
 
     def age_s(self, now_s: float) -> float | None:
         """Seconds since the newest usable sample; None before the first."""
@@ -169,23 +210,29 @@ class Inputs:
             i.start(now_s)
 
     def assess(self, now_s: float, report: bool = False) -> tuple[bool, dict[str, bool]]:
-        """(ok, flags): each input's stale flag, and ``nonfinite_input`` if a non-finite
-        sample arrived since the last report; ok is False when any flag is set. ``read()``
-        passes ``report=True``, which clears the non-finite marks it reports."""
+        """(ok, flags): each input's stale flag, ``nonfinite_input`` if a non-finite sample
+        and ``invalid_input`` if a rejected one arrived since the last report; ok is False
+        when any flag is set. ``read()`` passes ``report=True``, which clears the marks it
+        reports."""
         flags = {i.stale_flag.value: i.stale(now_s) for i in self}
         flags[Flag.NONFINITE_INPUT.value] = any(i.nonfinite for i in self)
+        flags[Flag.INVALID_INPUT.value] = any(i.invalid for i in self)
         if report:
             for i in self:
-                i.nonfinite = False
+                i.nonfinite = i.invalid = False
         return not any(flags.values()), flags
 
     def ages(self, now_s: float) -> dict[str, float | None]:
         """``{"<input>_age_s": seconds since its newest usable sample (None: none yet),
-        "<input>_nonfinite_samples": samples dropped for NaN/inf since configure}``."""
-        out: dict[str, float | None] = {}
+        "<input>_nonfinite_samples": samples dropped for NaN/inf since configure,
+        "<input>_invalid_samples": samples rejected as malformed/incomplete/out of range,
+        "<input>_last_invalid": why the newest of those was rejected}``."""
+        out: dict[str, Any] = {}
         for i in self:
             out[f"{i.name}_age_s"] = i.age_s(now_s)
             out[f"{i.name}_nonfinite_samples"] = i.nonfinite_samples
+            out[f"{i.name}_invalid_samples"] = i.invalid_samples
+            out[f"{i.name}_last_invalid"] = i.last_invalid
         return out
 
     def expired(self, now_s: float) -> Freshness | None:
@@ -347,6 +394,9 @@ class Driver(ABC):
     spec: RobotSpec
     #: "real", "emulated" or "sim"
     backend: str = "real"
+    #: the inputs the backend fuses (None: none). Any of them past its ``fail_after_s`` is a
+    #: dead device: ``read()`` and ``write()`` take the error path (:meth:`_expire_inputs`)
+    inputs: Inputs | None = None
 
     def __init__(self) -> None:
         self._lifecycle = Lifecycle.UNCONFIGURED
@@ -463,6 +513,7 @@ class Driver(ABC):
         if self._lifecycle is Lifecycle.UNCONFIGURED:
             raise LifecycleError(f"{self.spec.name}: read() needs configure() first")
         obs = self._read()
+        self._expire_inputs()
         if not np.all(np.isfinite(obs.state)):
             # whatever the backend missed: NaN/inf in the state is never a healthy reading
             obs.ok = False
@@ -565,6 +616,8 @@ class Driver(ABC):
                 f"{self.spec.name}: write() refused in state {self._lifecycle.value}; call activate() first"
             )
         a = self.validate(action)
+        self._refresh_inputs()
+        self._expire_inputs()  # never command a robot that stopped answering
         now = self.now()
         a = self.limit(a, now)
         self._write(a)
@@ -605,6 +658,24 @@ class Driver(ABC):
         if self._lifecycle is Lifecycle.ACTIVE:
             self._anchor(np.asarray(self._hold_command(self._read()), dtype=np.float64), self.now())
 
+    def _expire_inputs(self) -> None:
+        """The contract's rule for a frozen or dead device: an input that delivered no usable
+        sample for its ``fail_after_s`` (``link_timeout_periods`` control periods) while the
+        link is open takes the error path: the stop is sent (if the port still takes it),
+        the link closed, UNCONFIGURED, ``last_error`` set, :class:`LinkError` raised."""
+        if self.inputs is None or self._lifecycle is Lifecycle.UNCONFIGURED:
+            return
+        now = self.now()
+        gone = self.inputs.expired(now)
+        if gone is None:
+            return
+        age = gone.age_s(now)
+        since = "since the link came up" if age is None else f"for {age:.2f} s"
+        periods = round(gone.fail_after_s / self.spec.period_s)
+        self.fail_link(f"{self.spec.name}: no usable {gone.name} {since} (limit: {periods} control periods of "
+                       f"{self.spec.period_s:g} s = {gone.fail_after_s:g} s) while the link is open: the device "
+                       "is frozen, switched off or unreachable")
+
     def health(self) -> Health:
         h = self._health()
         if self.last_error and not h.last_error:
@@ -634,6 +705,10 @@ class Driver(ABC):
     # ------------------------------------------------------------------ hooks
     def _on_configure(self) -> None:  # noqa: B027 - optional hook
         pass
+
+    def _refresh_inputs(self) -> None:  # noqa: B027
+        """Take in what arrived (backends that poll their link in ``_read``), so that
+        ``write()`` judges the inputs' ages on the newest samples."""
 
     def _on_activate(self) -> None:  # noqa: B027
         pass

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import select
+import signal
 import subprocess
 import sys
 import tempfile
@@ -91,6 +92,7 @@ class EmulatorProcess:
         if self.proc is not None:
             if self.proc.poll() is None:
                 self.proc.terminate()
+                self.proc.send_signal(signal.SIGCONT)  # a frozen (SIGSTOPped) emulator handles it now
                 try:
                     self.proc.wait(timeout=3.0)
                 except subprocess.TimeoutExpired:

@@ -46,3 +46,51 @@ def wait_for(cond, timeout_s: float = 10.0, what: str = "condition"):
             return v
         time.sleep(0.01)
     raise AssertionError(f"timed out waiting for {what}")
+
+
+def hil_drive_with_device_signal(robot: str, emulator_module: str, sig: int, timeout_s: float = 120.0,
+                                 settle_s: float = 1.5) -> subprocess.CompletedProcess:
+    """``hil drive ROBOT --backend emulated`` for long; once the driver talks to its emulator
+    process (the emulator keeps reading bytes from the host, then ``settle_s`` more), that
+    process gets ``sig`` (SIGSTOP: frozen; SIGKILL: dead). Returns the finished ``hil drive``.
+    A frozen emulator is continued and killed afterwards if it is still there."""
+    p = subprocess.Popen([sys.executable, "-m", "hilstack.tools.cli", "drive", robot, "--backend", "emulated",
+                          "--seconds", "600"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    emu = None
+    try:
+        def child() -> int | None:
+            kids = Path(f"/proc/{p.pid}/task/{p.pid}/children").read_text().split()
+            for k in kids:
+                if emulator_module in Path(f"/proc/{k}/cmdline").read_bytes().decode(errors="replace"):
+                    return int(k)
+            return None
+
+        def rchar(pid: int) -> int:
+            line = next(ln for ln in Path(f"/proc/{pid}/io").read_text().splitlines() if ln.startswith("rchar"))
+            return int(line.split()[1])
+
+        emu = wait_for(lambda: p.poll() is None and child(), 60.0, f"{robot}'s emulator process")
+        last = rchar(emu)
+        deadline = time.monotonic() + 60.0
+        while True:  # the host is sending to it: the driver configured and drives
+            time.sleep(0.5)
+            now = rchar(emu)
+            if now > last:
+                break
+            assert time.monotonic() < deadline and p.poll() is None, "the driver never talked to its emulator"
+            last = now
+        time.sleep(settle_s)
+        assert p.poll() is None, p.communicate()
+        os.kill(emu, sig)
+        out, err = p.communicate(timeout=timeout_s)
+        return subprocess.CompletedProcess(p.args, p.returncode, out, err)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        if emu is not None:
+            for s in (signal.SIGCONT, signal.SIGKILL):
+                try:
+                    os.kill(emu, s)
+                except ProcessLookupError:
+                    break

@@ -6,14 +6,20 @@ driver from config alone (``backend: ...``) and must pass every test here.
 
 from __future__ import annotations
 
+import math
+import os
+import signal
+import subprocess
+import sys
 import threading
+import time
 
 import numpy as np
 import pytest
 
-from hilstack.drivers.base import FLAG_NAMES, CommandError, Lifecycle, LifecycleError
+from hilstack.drivers.base import FLAG_NAMES, CommandError, Lifecycle, LifecycleError, LinkError
 from hilstack.drivers.registry import make_driver
-from tests.helpers import free_port
+from tests.helpers import ROOT, free_port
 
 # (robot config, backend, param overrides)
 CONTRACT_BACKENDS = [
@@ -64,27 +70,39 @@ def _hand_for_the_arm(backend: str, stop: threading.Event, params: dict) -> tupl
     return hand, {"port": port}
 
 
-def _pose_stream(port: int, stop: threading.Event) -> None:
-    """A mocap system on loopback: a rigid body moving along x, 500 Hz, stamped on its clock."""
-    import time
+#: a mocap system on loopback, in its own process (so that it can be frozen and killed): a
+#: rigid body moving along x, 500 Hz, stamped on its clock; it exits with its parent
+POSE_STREAM = """
+import os, sys, time
+from hilstack.drivers.mocap.udp import PoseStreamServer
+port, parent = int(sys.argv[1]), int(sys.argv[2])
+t0 = time.monotonic()
+with PoseStreamServer("127.0.0.1", port, body_id=1) as srv:
+    print("streaming", flush=True)
+    while os.getppid() == parent:
+        t = time.monotonic() - t0
+        srv.send(t, [0.1 * t, 0.0, 0.05], [1.0, 0.0, 0.0, 0.0])
+        time.sleep(0.002)
+"""
 
-    from hilstack.drivers.mocap.udp import PoseStreamServer
 
-    t0 = time.monotonic()
-    with PoseStreamServer("127.0.0.1", port, body_id=1) as srv:
-        while not stop.wait(0.002):
-            t = time.monotonic() - t0
-            srv.send(t, [0.1 * t, 0.0, 0.05], [1.0, 0.0, 0.0, 0.0])
+def _pose_stream(port: int) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    p = subprocess.Popen([sys.executable, "-c", POSE_STREAM, str(port), str(os.getpid())], env=env, cwd=ROOT,
+                         stdout=subprocess.PIPE, text=True)
+    assert p.stdout.readline().strip() == "streaming", "the pose stream process did not start"
+    return p
 
 
 @pytest.fixture(params=CONTRACT_BACKENDS, ids=lambda p: f"{p[0]}-{p[1]}")
 def driver(request):
     robot, backend, params = request.param
     stop = threading.Event()
+    stream = None
     if robot == "mocap":
         port = free_port()
         params = {**params, "port": port}
-        threading.Thread(target=_pose_stream, args=(port, stop), daemon=True).start()
+        stream = _pose_stream(port)
     hand = None
     if robot == "reset_arm":
         hand, extra = _hand_for_the_arm(backend, stop, params)
@@ -93,11 +111,30 @@ def driver(request):
     d = make_driver(robot, backend=backend, **params)
     if hand is not None and backend == "sim":
         extra["box"].append(d)
+    # the process playing the device, for the freeze tests (None: a sim in the driver's process)
+    request.node.device_pid = lambda: _device_pid(d, hand, stream)
     yield d
     stop.set()
     d.cleanup()
     if hand is not None:
         hand.cleanup()
+    if stream is not None:
+        stream.kill()
+        stream.wait()
+        stream.stdout.close()
+
+
+def _device_pid(d, hand, stream: subprocess.Popen | None) -> int | None:
+    """The pid of the process that plays the device: the emulator the driver started, the
+    hand's emulator that runs the reset arm's controller, or the mocap stream."""
+    if stream is not None:
+        return stream.pid
+    if hand is not None:  # the reset arm: its controller runs in the hand's emulator
+        return None if hand.emulator is None else hand.emulator.proc.pid
+    for emu in (getattr(d, "_emu", None), getattr(getattr(d, "bus", None), "emulator", None)):
+        if emu is not None and emu.proc is not None:
+            return emu.proc.pid
+    return None
 
 
 def test_spec_readable_before_connecting(driver):
@@ -319,7 +356,7 @@ def test_health(driver):
         d = h.to_dict()
         assert d["link_quality"] == h.link_quality and d["ok"] is True
         # every input the backend fuses reports its age, younger than its deadline
-        inputs = list(getattr(driver, "inputs", []))
+        inputs = list(driver.inputs or [])
         for i in inputs:
             assert d[f"{i.name}_age_s"] is not None and d[f"{i.name}_age_s"] <= i.deadline_s, i.name
         obs = driver.read()
@@ -339,3 +376,100 @@ def test_both_roach_backends_report_the_same_flags():
             keys[backend] = set(d.read().flags)
     assert keys["sim"] - {"sim_diverged"} == keys["emulated"]
     assert {"stale_pose", "stale_telemetry", "nonfinite_input", "watchdog", "motor_fault"} <= keys["emulated"]
+
+
+#: why a sim backend cannot freeze apart from its host: its device is the MuJoCo physics
+#: stepped by ``tick()`` in the driver's own process, on sim time (LockstepSim). Nothing of it
+#: runs while the host does not call ``tick()``, so its inputs can never age on its own clock:
+#: when the host process stops or dies, the physics and the simulated robot stop with it (a
+#: robot frozen in place, nothing moves). The reset arm's sim lives in the hand's scene and
+#: follows the hand's clock: when the hand stops stepping, the arm's physics stops too. The
+#: test below checks that claim on every sim backend: without tick() the clock and the
+#: inputs' ages stand still.
+SIM_CANNOT_FREEZE = "a sim backend's device is the physics stepped by tick() in the driver's process"
+
+
+def test_sim_device_cannot_freeze_apart_from_its_host(driver):
+    if driver.backend != "sim":
+        return  # emulated and real backends: the freeze test below
+    driver.configure()
+    o1, t1 = driver.read(), driver.now()
+    ages1 = driver.inputs.ages(t1) if driver.inputs is not None else {}
+    time.sleep(0.3)  # wall time passes; sim time does not
+    o2, t2 = driver.read(), driver.now()
+    assert t2 == t1 and o2.t_s == o1.t_s, SIM_CANNOT_FREEZE
+    assert (driver.inputs.ages(t2) if driver.inputs is not None else {}) == ages1
+    assert driver.lifecycle is Lifecycle.CONFIGURED
+
+
+#: robots whose stop is a fire-and-forget message (CAN frames, UDP, Zenoh, radio): it is sent
+#: to a frozen device whose port is open. A Dynamixel stop waits for the servos' status packets
+ONE_WAY_STOP = ("shadow_hand", "sawyer", "reset_arm", "velociroach")
+
+
+@pytest.mark.parametrize("sig", ["SIGSTOP", "SIGKILL"])
+def test_frozen_or_dead_device_takes_the_error_path(driver, request, sig):
+    """Issue 22: the device's process stopped (SIGSTOP: frozen, the link stays open) or killed
+    (SIGKILL: dead) while the robot is driven: the reading goes stale (ok False) and, at the
+    latest after the robot's link_timeout_periods, read()/write() take the error path: the
+    stop is sent while the port is open, UNCONFIGURED, last_error set, LinkError. A dead robot
+    is never commanded again."""
+    robot, backend, _ = request.node.callspec.params["driver"]
+    if driver.backend == "sim":
+        return  # cannot freeze apart from its host: SIM_CANNOT_FREEZE, checked above
+    sig_no = getattr(signal, sig)
+    with driver:
+        # the inputs the device must keep sending (a mocap pose fused by a robot may go stale
+        # without the robot being dead: it has no error deadline)
+        limits = [i.fail_after_s for i in (driver.inputs or ()) if i.fail_after_s is not None]
+        assert limits and all(math.isfinite(v) and v > 0 for v in limits), \
+            f"{robot} {backend}: an input with a finite error deadline (link_timeout_periods) is required"
+        fail_after_s = max(limits)
+        for _ in range(50):  # healthy first (a loaded machine may need a few periods)
+            if driver.read().ok:
+                break
+            driver.tick()
+        hold = driver.held_command
+        pid = request.node.device_pid()
+        assert pid is not None, f"{robot} {backend}: no device process to signal"
+        os.kill(pid, sig_no)
+        t_sig = time.monotonic()
+        stale_before_error = False
+        try:
+            with pytest.raises(LinkError) as err:
+                while True:
+                    obs = driver.read()
+                    stale_before_error |= not obs.ok
+                    driver.write(hold)
+                    driver.tick()
+                    # bounded: generous for a loaded machine, never a speed requirement
+                    assert time.monotonic() - t_sig < fail_after_s + 60, "no error path 60 s after the deadline"
+            t_fail = time.monotonic() - t_sig
+        finally:
+            if sig_no == signal.SIGSTOP:
+                try:
+                    os.kill(pid, signal.SIGCONT)
+                except ProcessLookupError:
+                    pass
+        assert driver.lifecycle is Lifecycle.UNCONFIGURED and driver.last_error, err.value
+        with pytest.raises(LifecycleError):
+            driver.write(hold)
+        if sig_no == signal.SIGSTOP:
+            # frozen with the link open: stale first, then the error path with the stop sent
+            assert stale_before_error and "no usable" in str(err.value), err.value
+            if robot in ONE_WAY_STOP:
+                assert "stop was not sent" not in driver.last_error, driver.last_error
+    print(f"\nMEASURED {robot}-{backend} {sig}: error path {t_fail:.2f} s after the signal "
+          f"(error deadline {fail_after_s:g} s): {str(err.value)[:160]}")
+
+
+@pytest.mark.parametrize("robot", ["velociroach", "shadow_hand", "sawyer", "reset_arm", "mocap"])
+def test_the_error_deadline_is_a_bounded_config_value(robot):
+    """The contract's rule is stated per robot: link_timeout_periods is a whole number of
+    control periods, bounded in the robot's config schema; anything else is a config error
+    naming the field (exit 2 from the CLI)."""
+    from hilstack.configs.schema import ConfigError
+
+    for bad in (0, 10**6, 1.5, "inf"):
+        with pytest.raises(ConfigError, match="params.link_timeout_periods"):
+            make_driver(robot, link_timeout_periods=bad)

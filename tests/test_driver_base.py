@@ -5,7 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hilstack.drivers.base import Driver, Flag, Freshness, Inputs, Lifecycle, Observation, RobotSpec, Space
+from hilstack.drivers.base import (
+    Driver,
+    Flag,
+    Freshness,
+    Inputs,
+    Lifecycle,
+    LifecycleError,
+    LinkError,
+    Observation,
+    RobotSpec,
+    Space,
+)
 
 
 class Fake(Driver):
@@ -156,19 +167,24 @@ def test_freshness_deadlines_and_ages():
     ins = Inputs(pose, tel)
     ins.start(10.0)
     ok, flags = ins.assess(10.0)
-    assert not ok and flags == {"stale_pose": True, "stale_telemetry": True, "nonfinite_input": False}
-    assert ins.ages(10.0) == {"pose_age_s": None, "pose_nonfinite_samples": 0, "telemetry_age_s": None,
-                              "telemetry_nonfinite_samples": 0}
+    assert not ok and flags == {"stale_pose": True, "stale_telemetry": True, "nonfinite_input": False,
+                              "invalid_input": False}
+    assert ins.ages(10.0) == {"pose_age_s": None, "pose_nonfinite_samples": 0, "pose_invalid_samples": 0,
+                              "pose_last_invalid": None, "telemetry_age_s": None,
+                              "telemetry_nonfinite_samples": 0, "telemetry_invalid_samples": 0,
+                              "telemetry_last_invalid": None}
     assert ins.expired(10.9) is None and ins.expired(11.1) is pose  # never arrived counts from start
     pose.update(11.0)
     tel.update(11.0)
-    assert ins.assess(11.2) == (True, {"stale_pose": False, "stale_telemetry": False, "nonfinite_input": False})
+    assert ins.assess(11.2) == (True, {"stale_pose": False, "stale_telemetry": False, "nonfinite_input": False,
+                                     "invalid_input": False})
     pose.update(11.1, finite=False)  # a NaN sample: flagged, and it does not refresh the pose
     pose.update(11.12)  # a good one right after: the NaN is still reported once
     ok, flags = ins.assess(11.15)
     assert not ok and flags["nonfinite_input"] and not flags["stale_pose"]
     assert ins.assess(11.15, report=True)[1]["nonfinite_input"]  # read() reports it ...
-    assert ins.assess(11.15) == (True, {"stale_pose": False, "stale_telemetry": False, "nonfinite_input": False})
+    assert ins.assess(11.15) == (True, {"stale_pose": False, "stale_telemetry": False, "nonfinite_input": False,
+                                     "invalid_input": False})
     assert ins.ages(11.15)["pose_age_s"] == pytest.approx(0.03) and ins.ages(11.15)["pose_nonfinite_samples"] == 1
     pose.update(11.16, finite=False)
     assert ins.ages(11.2)["pose_age_s"] == pytest.approx(0.08)  # ... and the NaN did not refresh it
@@ -275,3 +291,71 @@ def test_a_position_stop_holds_the_held_target_not_a_stale_measured_pose():
     d2.stop()
     assert d2.stopped == 1 and d2.sent[-1] == pytest.approx([0.3])
     d2.cleanup()
+
+def test_rejected_samples_are_flagged_counted_and_do_not_refresh():
+    pose = Freshness("pose", deadline_s=0.2, stale_flag=Flag.STALE_POSE)
+    ins = Inputs(pose)
+    ins.start(0.0)
+    pose.update(1.0)
+    pose.reject("zero quaternion")
+    ok, flags = ins.assess(1.1, report=True)
+    assert not ok and flags["invalid_input"] and not flags["stale_pose"]
+    assert ins.assess(1.1) == (True, {"stale_pose": False, "nonfinite_input": False, "invalid_input": False})
+    pose.reject("outside the arena")
+    assert ins.ages(1.3) == {"pose_age_s": pytest.approx(0.3), "pose_nonfinite_samples": 0,
+                             "pose_invalid_samples": 2, "pose_last_invalid": "outside the arena"}
+    assert ins.assess(1.3)[1]["stale_pose"]  # rejected samples never refresh the input
+
+
+def test_error_deadline_in_periods_is_finite_bounded_and_beyond_the_stale_deadline():
+    f = Freshness.fail_after_periods("telemetry", 0.1, Flag.STALE_TELEMETRY, 10, 0.1)
+    assert f.fail_after_s == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="must exceed the stale deadline"):
+        Freshness.fail_after_periods("telemetry", 0.5, Flag.STALE_TELEMETRY, 2, 0.1)
+    with pytest.raises(ValueError, match="finite number of periods"):
+        Freshness.fail_after_periods("telemetry", 0.1, Flag.STALE_TELEMETRY, 10, float("inf"))
+
+
+class Streaming(Fake):
+    """A device that streams one input; the test decides when samples arrive."""
+
+    def __init__(self):
+        super().__init__()
+        self.inputs = Inputs(Freshness.fail_after_periods("telemetry", 0.25, Flag.STALE_TELEMETRY, 5, 0.1))
+        self.cleaned = 0
+
+    def _on_configure(self):
+        self.inputs.start(self.t)
+        self.inputs["telemetry"].update(self.t)
+
+    def _on_cleanup(self):
+        self.cleaned += 1
+
+    def _read(self):
+        ok, flags = self.inputs.assess(self.t, report=True)
+        return Observation(self.t, np.array([self.q]), 0, ok=ok, flags=flags)
+
+
+def test_an_input_silent_for_its_periods_takes_the_error_path_from_read_and_write():
+    d = Streaming()
+    with d:
+        for _ in range(3):  # 0.3 s without telemetry: stale, still active
+            d.tick()
+        obs = d.read()
+        assert not obs.ok and obs.flags["stale_telemetry"] and d.active
+        d.tick()
+        d.tick()
+        d.tick()  # 0.6 s > 5 periods
+        with pytest.raises(LinkError, match=r"no usable telemetry for 0.60 s \(limit: 5 control periods"):
+            d.write([0.3])  # a dead robot is never commanded
+        assert d.lifecycle is Lifecycle.UNCONFIGURED and d.stopped == 1 and d.cleaned == 1
+        assert "no usable telemetry" in d.last_error and d.sent == []
+        with pytest.raises(LifecycleError):
+            d.read()
+    d = Streaming()
+    d.configure()
+    for _ in range(6):
+        d.tick()
+    with pytest.raises(LinkError, match="frozen, switched off or unreachable"):
+        d.read()
+    assert d.lifecycle is Lifecycle.UNCONFIGURED and d.stopped == 1

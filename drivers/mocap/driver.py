@@ -8,29 +8,47 @@ clock (the mocap system's own stamp is in ``extras["source_t_s"]``). The pose is
 driver's one input (:class:`hilstack.drivers.base.Freshness`, deadline ``stale_after_s``): ``ok`` is
 False and ``flags["stale_pose"]`` True until a pose arrived and while the newest usable one
 is older than the deadline; a pose with NaN/inf is not used (the last finite one is kept)
-and the next read reports ``flags["nonfinite_input"]``. ``health().extra["pose_age_s"]`` is
-its age.
+and the next read reports ``flags["nonfinite_input"]``. A finite pose outside the configured
+volume (``volume_min_m`` .. ``volume_max_m``, a box around the arena) or whose quaternion's
+norm is not 1 within ``quat_norm_tol`` (a zero quaternion, garbage) is not used either:
+counted (``pose_invalid_samples``, why in ``pose_last_invalid``) and flagged
+``invalid_input``. ``health().extra["pose_age_s"]`` is the age of the newest usable pose;
+none for ``link_timeout_periods`` periods (the mocap system frozen, dead or unreachable)
+takes the error path (``LinkError``, UNCONFIGURED).
 ``write()`` accepts only the empty action.
 """
 
 from __future__ import annotations
 
 import time
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from hilstack.configs.schema import Params, RobotConfig, parse_params
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, Observation, RobotSpec, Space
 from hilstack.drivers.mocap.base import PoseSource
 
+#: a coordinate of the tracked volume [m]: finite and within 100 m of the origin
+VolumeCoord = Annotated[float, Field(ge=-100.0, le=100.0)]
+
 
 class MocapParams(Params):
     source: Literal["natnet", "udp"] = "udp"
     rigid_body_id: int = Field(1, ge=0)
-    period_s: float = Field(0.01, gt=0, description="how often consumers should read (100 Hz)")
-    stale_after_s: float = Field(0.1, gt=0, description="a pose older than this is not ok")
+    period_s: float = Field(0.01, gt=0, le=1.0, description="how often consumers should read (100 Hz)")
+    stale_after_s: float = Field(0.1, gt=0, le=2.0, description="a pose older than this is not ok")
+    link_timeout_periods: int = Field(
+        100, ge=2, le=1000, description="no usable pose for this many periods (the mocap system frozen, dead or "
+                                        "unreachable, or the body lost): the error path (LinkError, UNCONFIGURED)")
+    volume_min_m: tuple[VolumeCoord, VolumeCoord, VolumeCoord] = Field(
+        (-10.0, -10.0, -1.0), description="the tracked volume's lower corner [m, world frame]; a pose outside is "
+                                          "rejected (invalid_input)")
+    volume_max_m: tuple[VolumeCoord, VolumeCoord, VolumeCoord] = Field(
+        (10.0, 10.0, 5.0), description="the tracked volume's upper corner [m, world frame]")
+    quat_norm_tol: float = Field(
+        0.01, gt=0, le=0.1, description="a quaternion whose norm differs from 1 by more than this is rejected")
     # udp
     host: str = "127.0.0.1"
     port: int = Field(0, ge=0, le=65535, description="UDP port to listen on (0: ephemeral)")
@@ -39,6 +57,29 @@ class MocapParams(Params):
     local_ip: str = "127.0.0.1"
     multicast: bool = True
     up_axis: Literal["y", "z"] = "y"
+
+    @model_validator(mode="after")
+    def _bounds(self) -> MocapParams:
+        if not all(lo < hi for lo, hi in zip(self.volume_min_m, self.volume_max_m, strict=True)):
+            raise ValueError(f"volume_min_m {list(self.volume_min_m)} must be below volume_max_m "
+                             f"{list(self.volume_max_m)} on every axis")
+        if not self.link_timeout_periods * self.period_s > self.stale_after_s:
+            raise ValueError(f"link_timeout_periods: {self.link_timeout_periods} periods of {self.period_s:g} s must "
+                             f"exceed stale_after_s ({self.stale_after_s:g} s)")
+        return self
+
+
+def pose_problem(p: MocapParams, position_m: np.ndarray, quaternion_wxyz: np.ndarray) -> str | None:
+    """Why a finite pose cannot be used (None: usable): outside the volume, or a quaternion
+    that is not a rotation (its norm off 1 by more than ``quat_norm_tol``)."""
+    lo, hi = np.asarray(p.volume_min_m), np.asarray(p.volume_max_m)
+    pos = np.asarray(position_m, dtype=np.float64)
+    if np.any(pos < lo) or np.any(pos > hi):
+        return f"position {pos.tolist()} m outside the volume {lo.tolist()} .. {hi.tolist()}"
+    norm = float(np.linalg.norm(quaternion_wxyz))
+    if abs(norm - 1.0) > p.quat_norm_tol:
+        return f"quaternion {np.asarray(quaternion_wxyz).tolist()} has norm {norm:.3g}, not 1 ± {p.quat_norm_tol:g}"
+    return None
 
 
 def mocap_spec(p: MocapParams) -> RobotSpec:
@@ -63,7 +104,8 @@ class MocapDriver(Driver):
         self.spec = mocap_spec(self.params)
         self.source: PoseSource | None = None
         self._seq = 0
-        self.inputs = Inputs(Freshness("pose", self.params.stale_after_s, Flag.STALE_POSE))
+        self.inputs = Inputs(Freshness.fail_after_periods("pose", self.params.stale_after_s, Flag.STALE_POSE,
+                                                          self.params.link_timeout_periods, self.params.period_s))
         self._pose = None  # the newest finite sample
         self._seen = None  # the newest sample looked at (finite or not)
 
@@ -106,6 +148,10 @@ class MocapDriver(Driver):
         if s is not None and s is not self._seen:
             self._seen = s
             finite = bool(np.all(np.isfinite(s.position_m)) and np.all(np.isfinite(s.quaternion_wxyz)))
+            why = pose_problem(self.params, s.position_m, s.quaternion_wxyz) if finite else None
+            if why is not None:
+                self.inputs["pose"].reject(why)
+                return now
             self.inputs["pose"].update(s.received_s if s.received_s is not None else now, finite)
             if finite:
                 self._pose = s
@@ -125,6 +171,9 @@ class MocapDriver(Driver):
         return Observation(t_local, state, self._seq, ok=ok, flags=flags,
                            extras={"age_s": self.inputs["pose"].age_s(now), "frame_id": s.frame_id,
                                    "source_t_s": s.t_s})
+
+    def _refresh_inputs(self) -> None:
+        self._poll()
 
     def _write(self, action: np.ndarray) -> None:
         pass  # a sensor: nothing to command (validation already refused anything non-empty)

@@ -49,7 +49,9 @@ def natnet_to_world(pos_xyz, rot_xyzw, up_axis: Literal["y", "z"] = "y") -> tupl
     if up_axis == "y":
         p = _Y_UP_TO_Z_UP @ p
         q = _qmul(_Q_Y_UP_TO_Z_UP, q)
-    return p, q / np.linalg.norm(q)
+    # not normalized: a rotation keeps the norm, so a broken quaternion from the wire (zero,
+    # garbage) stays visibly broken and the driver rejects it (drivers/mocap/driver.py)
+    return p, q
 
 
 class NatNetPoseSource:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from hilstack.configs.schema import Params
 from hilstack.drivers.base import RobotSpec, Space
@@ -53,11 +53,21 @@ class ResetArmParams(Params):
     host: str = Field("127.0.0.1", description="emulated/real: the arm controller's address (UDP)")
     port: int | None = Field(None, ge=1, le=65535, description="emulated/real: the arm controller's UDP port "
                              "(emulated: the hand emulator's params.emulator.arm_port)")
-    state_deadline_s: float = Field(0.2, gt=0, description="a state older than this makes a reading stale")
+    state_deadline_s: float = Field(0.2, gt=0, le=2.0, description="a state older than this makes a reading stale")
+    link_timeout_periods: int = Field(
+        10, ge=2, le=100, description="emulated/real: no valid state for this many control periods (the controller "
+                                      "frozen or dead, the link down): the error path (stop, UNCONFIGURED, LinkError)")
     connect_timeout_s: float = Field(10.0, gt=0, description="configure() waits this long for the first state")
     world: str = Field("hand", description="sim: the simulated hand whose scene holds the arm (same process)")
     world_wait_s: float = Field(10.0, gt=0, description="sim: how long configure() waits for the hand's scene")
     sim: dict = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _error_deadline_after_stale(self) -> ResetArmParams:
+        if not self.link_timeout_periods * self.period_s > self.state_deadline_s:
+            raise ValueError(f"link_timeout_periods: {self.link_timeout_periods} periods of {self.period_s:g} s must "
+                             f"exceed state_deadline_s ({self.state_deadline_s:g} s)")
+        return self
 
 
 def reset_arm_spec(p: ResetArmParams) -> RobotSpec:

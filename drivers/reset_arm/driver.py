@@ -7,7 +7,9 @@ code against the station's arm controller at ``params.host:params.port``.
 
 ``read()`` drains the socket and keeps the newest valid state; a state older than
 ``state_deadline_s`` is stale (``ok`` False, ``stale_telemetry``), frames that are not
-states are counted and dropped. ``stop()`` holds the measured joints and keeps the jaws'
+states are counted and dropped (they never refresh the input); no valid state for
+``link_timeout_periods`` control periods (the controller frozen or dead, the link down)
+takes the error path (the contract's rule, drivers/base.py). ``stop()`` holds the measured joints and keeps the jaws'
 target (a held ball is not dropped). The controller itself holds when commands stop.
 """
 
@@ -39,7 +41,8 @@ class ResetArmDriver(Driver):
         self.bad_frames = 0
         self.received = 0
         self.sent = 0
-        self._inputs = Inputs(Freshness("state", self.params.state_deadline_s, Flag.STALE_TELEMETRY))
+        self.inputs = Inputs(Freshness.fail_after_periods("state", self.params.state_deadline_s, Flag.STALE_TELEMETRY,
+                                                          self.params.link_timeout_periods, self.params.period_s))
 
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> ResetArmDriver:
@@ -59,7 +62,7 @@ class ResetArmDriver(Driver):
                                              f"{self.backend} backend (emulated: the hand's params.emulator.arm_port)")])
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.setblocking(False)
-        self._inputs.start(self.now())
+        self.inputs.start(self.now())
         deadline = time.monotonic() + p.connect_timeout_s
         while self._t_s is None:
             self._sock.sendto(QUERY, self._addr)
@@ -88,17 +91,20 @@ class ResetArmDriver(Driver):
             try:
                 _, t, s = decode_state(raw)
             except ProtocolError:
-                self.bad_frames += 1
+                self.bad_frames += 1  # counted (health corrupt_frames); it does not refresh the state
                 continue
             self.received += 1
             finite = bool(np.all(np.isfinite(s)))
-            self._inputs["state"].update(self.now(), finite)
+            self.inputs["state"].update(self.now(), finite)
             if finite:
                 self._state, self._t_s = s, t
 
+    def _refresh_inputs(self) -> None:
+        self._drain()
+
     def _read(self) -> Observation:
         self._drain()
-        ok, flags = self._inputs.assess(self.now(), report=True)
+        ok, flags = self.inputs.assess(self.now(), report=True)
         self._seq += 1
         return Observation(t_s=self.now(), state=self._state.copy(), seq=self._seq, ok=ok, flags=flags,
                            extras={"controller_t_s": self._t_s})
@@ -129,8 +135,8 @@ class ResetArmDriver(Driver):
         return a
 
     def _health(self) -> Health:
-        age = self._inputs["state"].age_s(self.now())
+        age = self.inputs["state"].age_s(self.now())
         fresh = age is not None and age <= self.params.state_deadline_s
         return Health(ok=self._sock is not None and fresh, link_quality=1.0 if fresh else 0.0,
                       frames_sent=self.sent, frames_received=self.received, corrupt_frames=self.bad_frames,
-                      extra={"backend": self.backend, **self._inputs.ages(self.now())})
+                      extra={"backend": self.backend, **self.inputs.ages(self.now())})

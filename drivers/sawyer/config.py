@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from hilstack.configs.schema import EmulatorParams, Params
 from hilstack.drivers.base import RobotSpec, Space
@@ -27,7 +27,10 @@ class SawyerParams(Params):
                             "commands are more than 0.2 s apart")
     max_joint_vel_rad_s: float = Field(0.5, gt=0, description="action limit (also capped by each joint's limit)")
     max_joint_accel_rad_s2: float = Field(3.0, gt=0)
-    joint_states_stale_s: float = Field(0.1, gt=0, description="joint_states older than this: reading not ok")
+    joint_states_stale_s: float = Field(0.1, gt=0, le=1.0, description="joint_states older than this: reading not ok")
+    link_timeout_periods: int = Field(
+        20, ge=2, le=200, description="no usable joint_states for this many control periods (a frozen or dead "
+                                      "robot, bridge or link): the error path (stop, UNCONFIGURED, LinkError)")
     # Zenoh / ROS 2 bridge (real; the emulated backend sets these itself)
     zenoh_mode: str = Field("client", pattern="^(client|peer)$")
     zenoh_connect: list[str] = Field(default_factory=list, description="e.g. ['tcp/192.168.1.20:7447'], "
@@ -38,6 +41,13 @@ class SawyerParams(Params):
     #: the emulator has no fault injection yet: the shared settings only
     emulator: EmulatorParams = Field(default_factory=EmulatorParams, description="emulator process settings")
     sim: dict = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _error_deadline_after_stale(self) -> SawyerParams:
+        if not self.link_timeout_periods * self.period_s > self.joint_states_stale_s:
+            raise ValueError(f"link_timeout_periods: {self.link_timeout_periods} periods of {self.period_s:g} s must "
+                             f"exceed joint_states_stale_s ({self.joint_states_stale_s:g} s)")
+        return self
 
 
 def sawyer_spec(p: SawyerParams) -> RobotSpec:

@@ -7,15 +7,23 @@ the keys the bridge uses (drivers/sawyer/ros.py).
 backend "emulated": the same code against ``python -m hilstack.sim_backends.sawyer.emulator``, a
 process playing the robot side on MuJoCo, started here on a loopback endpoint.
 
-Zenoh's callback only stores the newest sample and its arrival time (no decoding there);
-``read()`` decodes it. Readings older than ``joint_states_stale_s``, or lacking a joint, are
-``ok=False`` with a flag. ``stop()``: zero velocity, then a position command at the
-measured pose (hold). The vendor side stops the arm by itself when commands are more
-than 0.2 s apart.
+Zenoh's callback only queues the samples with their arrival times (no decoding there);
+``read()`` decodes them. The joint states are the driver's one input
+(:class:`hilstack.drivers.base.Freshness`): only a message that decodes, names every joint
+of the arm with a position, velocity and effort each, all finite, refreshes it. A message
+that does not decode or lacks a joint or a field is counted (``corrupt_frames``,
+``joint_states_invalid_samples``) and flagged ``invalid_input``; one with NaN/inf is counted
+(``joint_states_nonfinite_samples``) and flagged ``nonfinite_input``; neither is used. A
+reading older than ``joint_states_stale_s`` is ``ok=False`` (``stale_telemetry``); no usable
+joint states for ``link_timeout_periods`` control periods (robot, bridge or link frozen or
+dead), or the emulator process gone, takes the error path (stop, UNCONFIGURED, LinkError).
+``stop()``: zero velocity, then a position command at the measured pose (hold). The vendor
+side stops the arm by itself when commands are more than 0.2 s apart.
 """
 
 from __future__ import annotations
 
+import collections
 import json
 import threading
 import time
@@ -23,12 +31,14 @@ import time
 import numpy as np
 
 from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
-from hilstack.drivers.base import Driver, Health, LinkError, Observation
+from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
 from hilstack.drivers.emulator_process import EmulatorProcess
 from hilstack.drivers.sawyer import ros
 from hilstack.drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
 
 FIRST_STATE_TIMEOUT_S = 10.0
+#: joint states queued between two reads (100 Hz stream, reads at >= 6.7 Hz); older ones are dropped and counted
+INBOX_SIZE = 64
 
 
 class SawyerDriver(Driver):
@@ -41,9 +51,14 @@ class SawyerDriver(Driver):
         self.source = source
         self.spec = sawyer_spec(self.params)
         self._lock = threading.Lock()
-        self._latest: tuple[bytes, float] | None = None
+        self._inbox: collections.deque[tuple[bytes, float]] = collections.deque()
         self._received = 0
+        self._dropped = 0
         self._decode_errors = 0
+        self._nonfinite = 0
+        self.inputs = Inputs(Freshness.fail_after_periods(
+            "joint_states", self.params.joint_states_stale_s, Flag.STALE_TELEMETRY,
+            self.params.link_timeout_periods, self.params.period_s))
         self._sent = 0
         self._session = None
         self._pub = None
@@ -53,7 +68,6 @@ class SawyerDriver(Driver):
         self._state_t: float | None = None
         self._stamp_s: float | None = None
         self._seq = 0
-        self._last_error: str | None = None
 
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> SawyerDriver:
@@ -77,23 +91,28 @@ class SawyerDriver(Driver):
         c.insert_json5("connect/endpoints", json.dumps(connect))
         if mode == "peer":
             c.insert_json5("listen/endpoints", json.dumps([]))
+        with self._lock:
+            self._inbox.clear()
+        self._state = np.full(21, np.nan)
+        self._state_t = self._stamp_s = None
+        self.inputs.start(time.monotonic())
         self._session = zenoh.open(c)
         self._pub = self._session.declare_publisher(ros.bridge_key(p.joint_command_topic, p.namespace))
         self._sub = self._session.declare_subscriber(ros.bridge_key(p.joint_states_topic, p.namespace),
                                                      self._on_sample)
         deadline = time.monotonic() + FIRST_STATE_TIMEOUT_S
         while time.monotonic() < deadline:
-            with self._lock:
-                if self._latest is not None:
-                    break
+            self._decode()
+            if self._state_t is not None:
+                break
             if self._emu is not None and not self._emu.alive:
                 raise LinkError(self._emu.failure(f"Sawyer emulator exited with code {self._emu.proc.returncode}"))
             time.sleep(0.01)
         else:
             where = "the emulator" if self.backend == "emulated" else f"{connect}"
-            raise LinkError(f"sawyer: no {p.joint_states_topic} within {FIRST_STATE_TIMEOUT_S:.0f} s from {where}; "
-                            "is the bridge running and the robot enabled?")
-        self._decode()
+            raise LinkError(f"sawyer: no usable {p.joint_states_topic} within {FIRST_STATE_TIMEOUT_S:.0f} s from "
+                            f"{where} ({self._received} received, {self._decode_errors} invalid, {self._nonfinite} "
+                            "with NaN/inf); is the bridge running and the robot enabled?")
 
     def _start_emulator(self) -> str:
         import socket
@@ -130,38 +149,53 @@ class SawyerDriver(Driver):
 
     # ------------------------------------------------------------------ transport
     def _on_sample(self, sample) -> None:
-        # Zenoh's thread: keep the newest bytes, nothing else
+        # Zenoh's thread: queue the bytes with their arrival time, nothing else
         raw = sample.payload.to_bytes()
         t = time.monotonic()
         with self._lock:
-            self._latest = (raw, t)
+            if len(self._inbox) >= INBOX_SIZE:
+                self._inbox.popleft()
+                self._dropped += 1
+            self._inbox.append((raw, t))
             self._received += 1
 
     def _decode(self) -> None:
+        """Take every queued joint state into the input: the usable ones refresh it (the
+        newest becomes the state), the others are counted and flagged, never used."""
         with self._lock:
-            latest = self._latest
-        if latest is None or latest[1] == self._state_t:
-            return
-        raw, t = latest
-        try:
-            msg = ros.decode_joint_state(raw)
-            index = {n: i for i, n in enumerate(msg.name)}
-            idx = [index[j] for j in JOINTS]
-        except Exception as e:  # a malformed or foreign message: counted, the last good state stays
-            self._decode_errors += 1
-            self._last_error = f"joint_states not usable: {type(e).__name__}: {e}"
-            self._state_t = t
-            return
-        pos, vel, eff = (np.asarray(a, dtype=np.float64) for a in (msg.position, msg.velocity, msg.effort))
-        s = np.full(21, np.nan)
-        s[:7] = pos[idx]
-        if len(vel) == len(msg.name):
-            s[7:14] = vel[idx]
-        if len(eff) == len(msg.name):
-            s[14:21] = eff[idx]
-        self._state = s
-        self._state_t = t
-        self._stamp_s = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            batch = list(self._inbox)
+            self._inbox.clear()
+        fresh = self.inputs["joint_states"]
+        for raw, t in batch:
+            try:
+                msg = ros.decode_joint_state(raw)
+                s = self._complete(msg)
+            except Exception as e:  # malformed, foreign or incomplete: counted, the last good state stays
+                self._decode_errors += 1
+                fresh.reject(f"joint_states not usable: {type(e).__name__}: {e}")
+                continue
+            finite = bool(np.all(np.isfinite(s)))
+            fresh.update(t, finite)
+            if not finite:
+                self._nonfinite += 1
+                continue
+            self._state, self._state_t = s, t
+            self._stamp_s = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+    @staticmethod
+    def _complete(msg) -> np.ndarray:
+        """The 21-D state from a JointState that names every joint of the arm with a position,
+        a velocity and an effort each; ValueError naming what is missing otherwise."""
+        names = list(msg.name)
+        missing = [j for j in JOINTS if j not in names]
+        if missing:
+            raise ValueError(f"no {missing} in the message (it names {names[:10]})")
+        short = [f for f in ("position", "velocity", "effort") if len(getattr(msg, f)) != len(names)]
+        if short:
+            raise ValueError(f"{short} do not have one value per name ({len(names)})")
+        idx = [names.index(j) for j in JOINTS]
+        return np.concatenate([np.asarray(getattr(msg, f), dtype=np.float64)[idx]
+                               for f in ("position", "velocity", "effort")])
 
     def _publish(self, mode: int, values: np.ndarray) -> None:
         if self._pub is None:
@@ -173,16 +207,24 @@ class SawyerDriver(Driver):
     def _age_s(self) -> float:
         return float("inf") if self._state_t is None else time.monotonic() - self._state_t
 
-    def _read(self) -> Observation:
+    def _check_link(self) -> None:
+        """The emulator process gone (killed, crashed): the error path at once, with its log."""
+        emu = self._emu
+        if emu is not None and emu.proc is not None and not emu.alive:
+            self.fail_link(emu.failure(f"sawyer: the emulator exited with code {emu.proc.returncode}"))
+
+    def _refresh_inputs(self) -> None:
         self._decode()
-        age = self._age_s()
-        stale = not age < self.params.joint_states_stale_s
-        finite = bool(np.all(np.isfinite(self._state)))
+
+    def _read(self) -> Observation:
+        self._check_link()
+        self._decode()
+        now = time.monotonic()
+        ok, flags = self.inputs.assess(now, report=True)
         self._seq += 1
-        return Observation(t_s=self._state_t if self._state_t is not None else time.monotonic(),
-                           state=self._state.copy(), seq=self._seq, ok=not stale and finite,
-                           flags={"stale_telemetry": stale, "nonfinite_input": not finite},
-                           extras={"joint_states_age_s": age, "robot_stamp_s": self._stamp_s})
+        return Observation(t_s=self._state_t if self._state_t is not None else now,
+                           state=self._state.copy(), seq=self._seq, ok=ok, flags=flags,
+                           extras={"joint_states_age_s": self._age_s(), "robot_stamp_s": self._stamp_s})
 
     def _hold_command(self, obs: Observation) -> np.ndarray:
         if self._position_hold:  # after a stop the controller holds position: zero velocity
@@ -196,6 +238,7 @@ class SawyerDriver(Driver):
         self._publish(ros.VELOCITY_MODE, self._held)
 
     def _write(self, action: np.ndarray) -> None:
+        self._check_link()
         self._publish(ros.VELOCITY_MODE, action)
         self._position_hold = False
 
@@ -210,14 +253,15 @@ class SawyerDriver(Driver):
             self._position_hold = True
 
     def _health(self) -> Health:
-        age = self._age_s()
-        fresh = age < self.params.joint_states_stale_s
+        now = time.monotonic()
+        ok, _ = self.inputs.assess(now)
+        fresh = not self.inputs["joint_states"].stale(now)
         with self._lock:
-            received = self._received
-        return Health(ok=bool(self._session is not None and fresh), link_quality=1.0 if fresh else 0.0,
+            received, dropped = self._received, self._dropped
+        return Health(ok=bool(self._session is not None and ok), link_quality=1.0 if fresh else 0.0,
                       frames_sent=self._sent, frames_received=received, corrupt_frames=self._decode_errors,
-                      dropped_frames=0, latency_s=None, last_error=self._last_error or self.last_error,
-                      extra={"backend": self.backend, "joint_states_age_s": age,
+                      dropped_frames=dropped, latency_s=None, last_error=self.last_error,
+                      extra={"backend": self.backend, **self.inputs.ages(now),
                              "keys": {"joint_states": ros.bridge_key(self.params.joint_states_topic,
                                                                      self.params.namespace),
                                       "joint_command": ros.bridge_key(self.params.joint_command_topic,

@@ -20,7 +20,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from hilstack.configs.schema import EmulatorParams, Params
 from hilstack.drivers.base import RobotSpec, Space
@@ -115,7 +115,10 @@ class ShadowHandParams(Params):
     driver_watchdog_s: float = Field(
         1.0, gt=0, description="driver sends stop (hold measured) when the caller has not written for this long")
     telemetry_deadline_s: float = Field(
-        0.1, gt=0, description="telemetry older than this makes a reading stale (ok=False)")
+        0.1, gt=0, le=1.0, description="telemetry older than this makes a reading stale (ok=False)")
+    link_timeout_periods: int = Field(
+        10, ge=2, le=100, description="no complete telemetry cycle for this many control periods with the link "
+                                      "open (a frozen or dead hand): the error path (stop, UNCONFIGURED, LinkError)")
     ball_tracker_ports: list[int] | None = Field(
         None, description="real: UDP ports where a ball tracker streams ball 0 and ball 1 (hilstack.drivers.mocap.udp "
                           "format); emulated: the emulator streams its sim's balls unless emulator.balls is false")
@@ -126,6 +129,13 @@ class ShadowHandParams(Params):
     # sim (ignored by the real driver) and emulator settings
     sim: dict = Field(default_factory=dict, description="sim backend settings (palm tilt, gains, seed...)")
     emulator: HandEmulatorParams = Field(default_factory=HandEmulatorParams, description="emulator settings and fault injection")
+
+    @model_validator(mode="after")
+    def _error_deadline_after_stale(self) -> ShadowHandParams:
+        if not self.link_timeout_periods * self.period_s > self.telemetry_deadline_s:
+            raise ValueError(f"link_timeout_periods: {self.link_timeout_periods} periods of {self.period_s:g} s must "
+                             f"exceed telemetry_deadline_s ({self.telemetry_deadline_s:g} s)")
+        return self
 
 
 def to_joint_rad(action: np.ndarray) -> np.ndarray:

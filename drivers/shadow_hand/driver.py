@@ -21,8 +21,11 @@ from the caller's thread (sends are serialized by a lock).
 Safety: the firmware holds position when heartbeats stop (host or link dead); the driver
 sends stop (hold the measured position) when the caller has not written for
 ``driver_watchdog_s``; telemetry older than ``telemetry_deadline_s`` makes a reading
-``ok=False`` with ``flags["stale_telemetry"]``; any link failure goes through ``fail()``,
-which tries to send the stop while the port is still open.
+``ok=False`` with ``flags["stale_telemetry"]``; no complete telemetry cycle for
+``link_timeout_periods`` control periods (a frozen or dead hand, the link open or not)
+takes the error path on the next ``read()`` or ``write()`` (the contract's rule,
+drivers/base.py); any link failure goes through ``fail()``, which tries to send the stop
+while the port is still open.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
-from hilstack.drivers.base import Driver, Health, LinkError, Observation
+from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
 from hilstack.drivers.emulator_process import EmulatorProcess
 from hilstack.drivers.shadow_hand.config import (
     ACT_INDEX,
@@ -92,6 +95,11 @@ class ShadowHandDriver(Driver):
         self._asm = TelemetryAssembler()
         self._tel: Telemetry | None = None
         self._tel_t: float | None = None
+        #: the hand's telemetry: stale after telemetry_deadline_s, the error path after
+        #: link_timeout_periods control periods without a complete cycle (a frozen or dead hand)
+        self.inputs = Inputs(Freshness.fail_after_periods(
+            "telemetry", params.telemetry_deadline_s, Flag.STALE_TELEMETRY, params.link_timeout_periods,
+            params.period_s))
         self._reader_error: str | None = None
         self._seq = 0
         self._hb_counter = 0
@@ -125,6 +133,9 @@ class ShadowHandDriver(Driver):
         if spawn:
             channel, udp_port = self._start_emulator()
         self.bus = self._open_bus(channel, udp_port)
+        with self._lock:
+            self._tel = self._tel_t = None
+            self.inputs.start(time.monotonic())
         self._stop_evt.clear()
         self._reader_error = None
         self._thread = threading.Thread(target=self._reader, name="shadow-hand-can", daemon=True)
@@ -302,6 +313,7 @@ class ShadowHandDriver(Driver):
             tel = self._asm.feed(mid, vals)
             if tel is not None:
                 self._tel, self._tel_t = tel, now
+                self.inputs["telemetry"].update(now)
 
     def _send(self, mid: int, data: bytes) -> None:
         import can
@@ -369,11 +381,11 @@ class ShadowHandDriver(Driver):
         now = time.monotonic()
         with self._lock:
             tel, tel_t = self._tel, self._tel_t
+            ok, flags = self.inputs.assess(now, report=True)
         age = now - tel_t
-        stale = age > self.params.telemetry_deadline_s
         state = np.concatenate([tel.q_rad, tel.qd_rad_s])
         flags = {
-            "stale_telemetry": stale,
+            **flags,  # stale_telemetry, nonfinite_input, invalid_input
             "watchdog": bool(tel.faults & FAULT_WATCHDOG),
             "estop": bool(tel.faults & FAULT_ESTOP),
             "motor_fault": bool(tel.faults & FAULT_MOTOR),
@@ -396,7 +408,7 @@ class ShadowHandDriver(Driver):
         self._seq += 1
         return Observation(
             t_s=tel_t, state=state, seq=self._seq,
-            ok=not stale,  # device faults are flags; the reading stays valid data (docs/platform.md)
+            ok=ok,  # device faults are flags; the reading stays valid data (docs/platform.md)
             flags=flags, extras=extras,
         )
 
@@ -457,6 +469,7 @@ class ShadowHandDriver(Driver):
                 "hand_rx_errors": None if tel is None else tel.rx_error_count,
                 "motor_fault_mask": None if tel is None else tel.motor_fault_mask,
                 "driver_watchdog_trips": self.driver_watchdog_trips,
+                **{k: v for k, v in self.inputs.ages(now).items() if k != "telemetry_age_s"},
             },
         )
 

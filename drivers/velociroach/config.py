@@ -96,7 +96,7 @@ class VelociRoachParams(Params):
     telemetry_deadline_s: float = Field(
         0.3, gt=0, description="telemetry older than this is stale: ok=False, flags.stale_telemetry")
     link_timeout_periods: int = Field(
-        10, ge=1, description="no usable telemetry for this many control periods with the link open: error path")
+        10, ge=1, le=1000, description="no usable telemetry for this many control periods with the link open: error path")
     pose_deadline_s: float = Field(
         0.25, gt=0, description="a mocap pose older than this is stale: ok=False, flags.stale_pose (mocap >= 10 Hz)")
     firmware_watchdog_s: float = Field(0.5, gt=0)
