@@ -24,6 +24,8 @@ read at most about one period. Writes to the port time out after ``WRITE_TIMEOUT
 from __future__ import annotations
 
 import json
+import os
+import signal
 import termios
 import threading
 import time
@@ -116,6 +118,8 @@ class DynamixelBus:
                 pass
             self._closed = True
         if self.emulator is not None:
+            if self.emulator.alive:  # a frozen (SIGSTOPped) emulator must run to take its SIGTERM
+                os.kill(self.emulator.proc.pid, signal.SIGCONT)
             self.emulator.stop()
             self.emulator = None
 

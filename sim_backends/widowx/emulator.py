@@ -12,7 +12,8 @@ of its own process (docs/arms.md).
     python -m hilstack.sim_backends.widowx.emulator --print-pty --config '{"missing_ids": [8]}'
 
 On start it prints one JSON line ``{"pty": ..., "pid": ...}`` on stdout; logs go to
-stderr. It stops on SIGTERM/SIGINT or when ``--parent-pid`` dies.
+stderr. It stops on SIGTERM, on SIGINT unless it has a ``--parent-pid`` (Ctrl-C in the
+driver's terminal must not cut the bus before the driver's stop), or when the parent dies.
 
 Fault injection (config keys): ``missing_ids`` (these IDs never answer, as an unplugged
 servo), ``hardware_errors`` ({id: bits}: latched at power-on, cleared by a reboot
@@ -234,7 +235,9 @@ def main(argv: list[str] | None = None) -> int:
         running[0] = False
 
     signal.signal(signal.SIGTERM, _stop)
-    signal.signal(signal.SIGINT, _stop)
+    # started by a driver (--parent-pid): Ctrl-C in its terminal reaches us too, but the
+    # driver must still send its stop over the bus; it ends us (SIGTERM) when it is done
+    signal.signal(signal.SIGINT, signal.SIG_IGN if args.parent_pid else _stop)
     print(json.dumps({"pty": path, "pid": os.getpid()}), flush=True)
     log(f"serving {path}: IDs {sorted(world.servos)}, missing {sorted(bus.missing)}")
     try:

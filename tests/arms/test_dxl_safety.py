@@ -249,6 +249,26 @@ def test_hil_drive_exits_1_when_the_emulator_freezes_or_dies(tmp_path, sig):
             os.kill(emu_pid, signal.SIGKILL)
 
 
+def test_ctrl_c_of_hil_drive_still_sends_the_stop_over_the_bus(tmp_path):
+    """Ctrl-C reaches the whole process group, the emulator too: it must not leave before
+    the driver's stop (it did: `link error: ... Input/output error`, exit 1)."""
+    states = tmp_path / "servos.jsonl"
+    cfg = _robot_yaml(tmp_path, "widowx", "t_ctrl_c", state_file=str(states))
+    host = subprocess.Popen([sys.executable, "-m", "hilstack.tools.cli", "drive", str(cfg), "--action", "0.3,0,0,0,0,0",
+                             "--seconds", "60"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        wait_for(lambda: any(s["servos"]["1"][1] > 0.2 for s in _states(states)), 90, "the waist moving")
+        os.killpg(host.pid, signal.SIGINT)  # what Ctrl-C in its terminal does
+        rc = host.wait(30)
+    finally:
+        if host.poll() is None:
+            os.killpg(host.pid, signal.SIGKILL)
+            host.wait()
+    err = host.stderr.read()
+    assert "link error" not in err and rc == 130, (rc, err)
+
+
 # ---------------------------------------------------------------------- one bus, one owner
 def test_a_second_process_opening_the_port_is_refused():
     bus = start_emulator({}, 1_000_000)
