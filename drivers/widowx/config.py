@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from hilstack.configs.schema import EmulatorParams, Params
 from hilstack.drivers.base import RobotSpec, Space
@@ -82,12 +82,13 @@ class BusParams(Params):
     sim: dict = Field(default_factory=dict, description="sim world settings")
 
 
-def _check_watchdog(p: BusParams) -> BusParams:
-    period = getattr(p, "period_s", None)
-    if period is not None and p.bus_watchdog_s < 2 * period:
-        raise ValueError(f"bus_watchdog_s {p.bus_watchdog_s:g} must be at least 2 control periods "
-                         f"(2 x period_s = {2 * period:g} s): shorter stops the servos between commands")
-    return p
+def _check_watchdog(period_s: float, info: ValidationInfo) -> float:
+    """``period_s`` (declared after ``bus_watchdog_s``) against the watchdog."""
+    wd = info.data.get("bus_watchdog_s")
+    if wd is not None and wd < 2 * period_s:
+        raise ValueError(f"bus_watchdog_s {wd:g} must be at least 2 control periods (2 x period_s = "
+                         f"{2 * period_s:g} s): shorter stops the servos between commands")
+    return period_s
 
 
 class WidowXParams(BusParams):
@@ -110,9 +111,10 @@ class WidowXParams(BusParams):
             raise ValueError(f"ids must be distinct and within 0..252, got {v}")
         return v
 
-    @model_validator(mode="after")
-    def _watchdog_vs_period(self):
-        return _check_watchdog(self)
+    @field_validator("period_s")
+    @classmethod
+    def _watchdog_vs_period(cls, v: float, info: ValidationInfo) -> float:
+        return _check_watchdog(v, info)
 
 
 class MechanismParams(BusParams):
@@ -124,9 +126,10 @@ class MechanismParams(BusParams):
     rotate_rate_rad_s: float = Field(0.5, gt=0, description="rate limit of the rotation target")
     rail_rate_m_s: float = Field(0.02, gt=0, description="rate limit of the offset target")
 
-    @model_validator(mode="after")
-    def _watchdog_vs_period(self):
-        return _check_watchdog(self)
+    @field_validator("period_s")
+    @classmethod
+    def _watchdog_vs_period(cls, v: float, info: ValidationInfo) -> float:
+        return _check_watchdog(v, info)
 
 
 def joint_limits(p: WidowXParams) -> dict[str, tuple[float, float]]:

@@ -34,6 +34,7 @@ from hilstack.bus import keys
 from hilstack.bus.estop import command_estop
 from hilstack.bus.node import Node
 from hilstack.bus.schemas import RobotState
+from hilstack.configs.schema import ConfigError
 from hilstack.drivers.base import Lifecycle, LinkError
 from hilstack.drivers.dynamixel import protocol as p
 from hilstack.drivers.dynamixel.bus import start_emulator
@@ -102,6 +103,19 @@ def test_sim_driver_arms_the_watchdog_and_recovers_from_a_trip():
         assert {w.servos[i].get("Bus Watchdog") for i in d.ids.values()} == {10}
         d.tick()
         assert not d.read().flag("watchdog")
+
+
+@pytest.mark.parametrize("robot", ["widowx", "reset_mechanism"])
+@pytest.mark.parametrize("field, bad, says", [
+    ("bus_watchdog_s", 0.01, "params.bus_watchdog_s"), ("bus_watchdog_s", float("nan"), "params.bus_watchdog_s"),
+    ("bus_watchdog_s", 3.0, "params.bus_watchdog_s"), ("bus_watchdog_s", 0.06, "at least 2 control periods"),
+    ("link_timeout_periods", 1, "params.link_timeout_periods"), ("link_timeout_periods", 1000, "params.link_timeout_periods"),
+    ("period_s", float("inf"), "params.period_s"), ("telemetry_stale_s", float("inf"), "params.telemetry_stale_s"),
+])
+def test_safety_values_are_bounded_and_named(robot, field, bad, says):
+    with pytest.raises(ConfigError, match=says.replace(".", r"\.")) as ei:
+        make_driver(robot, backend="sim", **{field: bad})
+    assert "Input should be" in str(ei.value) or "control periods" in str(ei.value)  # a bound, not an unknown key
 
 
 # ---------------------------------------------------------------------- host death
