@@ -174,8 +174,12 @@ def test_host_sigkill_the_servos_stop_by_themselves(tmp_path, robot, action, ids
         k -= 1
     assert k < len(after), "never came to rest"
     stop = after[k]
+    sim0 = after[0]["sim_t"]
     print(f"\n{robot}: watchdog tripped {trip['t'] - t_kill:.3f} s after the host's SIGKILL "
-          f"({trip['sim_t'] - after[0]['sim_t']:.3f} s sim), at rest after {stop['t'] - t_kill:.3f} s")
+          f"({trip['sim_t'] - sim0:.3f} s sim), at rest after {stop['t'] - t_kill:.3f} s ({stop['sim_t'] - sim0:.3f} s sim)")
+    # the stated time: the watchdog (0.2 s) plus the deceleration, in the servos' own
+    # (simulated) time, which a loaded CPU slows but does not stretch; the wall clock loosely
+    assert stop["sim_t"] - sim0 <= 0.2 + 0.15
     assert stop["t"] - t_kill < 2.0
     q_kill = {i: after[0]["servos"][i][0] for i in ids}
     moved = max(abs(last[i][0] - q_kill[i]) for i in ids)
