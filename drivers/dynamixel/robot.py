@@ -86,6 +86,7 @@ class DynamixelRobot(Driver):
         self._goal_pos = np.zeros(n, dtype=int)  # Goal Position register as last read [counts]
         self.watchdog_trips = 0
         self._stop_confirmed = False
+        self._pos_limits: dict[int, tuple[int, int]] = {}  # ID -> (Min, Max Position Limit) [counts]
         self._t_read_try = -np.inf  # when the last sync read was sent (self.now())
         self._answers = np.zeros(n, dtype=np.int64)  # status packets each joint answered a read with
         self.inputs = Inputs(Freshness("telemetry", params.telemetry_stale_s, Flag.STALE_TELEMETRY,
@@ -142,6 +143,7 @@ class DynamixelRobot(Driver):
         self._bus_key, self.bus = self._open_bus()
         self.inputs.start(self.now())
         self._stop_confirmed = False
+        self._pos_limits = {}
         for name, dxl_id in self.ids.items():
             try:
                 _, err = self.bus.ping(dxl_id)
@@ -163,6 +165,10 @@ class DynamixelRobot(Driver):
                 self.bus.reboot(dxl_id)
                 self._wait_reboot(dxl_id, name, what)
         self._mode = None
+        # a position goal outside these is refused by the servo (data limit error; a sync
+        # write gets no answer): every hold the driver sends is clamped into them
+        self._pos_limits = {i: (self.bus.read(i, "Min Position Limit"), self.bus.read(i, "Max Position Limit"))
+                            for i in self.ids.values()}
         self._on_bus_ready()
         self._sync_read()
         missing = [n for n, t in zip(self.ids, self._t_joint, strict=True) if not math.isfinite(t)]
@@ -208,6 +214,13 @@ class DynamixelRobot(Driver):
         self.bus.sync_write("Bus Watchdog", {i: self.watchdog_units for i in ids})
         self._wd[:] = self.watchdog_units
         self._mode = m
+
+    def clamp_goal_position(self, dxl_id: int, counts: int) -> int:
+        """A Goal Position the servo accepts: within its position limits (a joint resting on
+        its end stop may read a few counts beyond them; that hold would be refused and the
+        servo would go on to its previous goal)."""
+        lo, hi = self._pos_limits.get(dxl_id, (counts, counts))
+        return max(lo, min(hi, counts))
 
     @property
     def watchdog_units(self) -> int:

@@ -118,7 +118,7 @@ class WidowXDriver(DynamixelRobot):
         try:
             self._sync_read()
         finally:
-            hold = {i: ("Goal Position", pos_counts(float(q), self.bus.table.zero_count))
+            hold = {i: ("Goal Position", self.clamp_goal_position(i, pos_counts(float(q), self.bus.table.zero_count)))
                     for i, q in zip(ids, self._q, strict=True) if math.isfinite(q)}
             if len(hold) == len(ids):
                 before = self._answers.copy()
@@ -158,7 +158,7 @@ class MechanismDriver(DynamixelRobot):
         self._send_pose(action)
 
     def _send_pose(self, pose: np.ndarray) -> dict[int, int]:
-        goal = {i: pos_counts(float(x * s), self.bus.table.zero_count)
+        goal = {i: self.clamp_goal_position(i, pos_counts(float(x * s), self.bus.table.zero_count))
                 for i, x, s in zip(self.ids.values(), pose, self._scale, strict=True)}
         self._stop_confirmed = False
         if self._mode != OPERATING_MODES["position"]:

@@ -118,6 +118,34 @@ def test_safety_values_are_bounded_and_named(robot, field, bad, says):
     assert "Input should be" in str(ei.value) or "control periods" in str(ei.value)  # a bound, not an unknown key
 
 
+def test_a_hold_beyond_a_servo_limit_is_clamped_and_confirmed():
+    """A joint resting on its end stop can read a few counts beyond its Position Limit (the
+    emulated arm's shoulder did, right after activation in the sleep pose): the stop's hold
+    there was refused (data limit error, no status on a sync write), the servo went on to
+    its previous goal and the shoulder overloaded 3 s later. The hold is clamped now."""
+    from hilstack.drivers.dynamixel.control_table import pos_counts
+    from hilstack.sim_backends.widowx.world import shared_world
+
+    w = shared_world("t_hold_lim")
+    shoulder = w.servos[2]
+    shoulder.publish()
+    # the servo's limit just above where the shoulder rests: its pose reads beyond it
+    shoulder.set("Min Position Limit", shoulder.get("Present Position") + 30)
+    d = make_driver("widowx", backend="sim", bus_name="t_hold_lim")
+    with d:
+        d.stop()
+        assert d.stop_confirmed()
+        for i in d.ids.values():
+            s = w.servos[i]
+            assert s.get("Min Position Limit") <= s.get("Goal Position") <= s.get("Max Position Limit")
+        for _ in range(100):  # 5 s: nothing pushes into a limit, no overload
+            d.read()
+            d.tick()
+        assert not d.read().flag("hardware_error")
+        assert shoulder.get("Goal Position") == shoulder.get("Min Position Limit")
+        assert abs(pos_counts(d.read().state[1]) - shoulder.get("Min Position Limit")) < 30
+
+
 # ---------------------------------------------------------------------- host death
 def _states(path: Path) -> list[dict]:
     if not path.exists():
