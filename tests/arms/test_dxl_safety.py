@@ -349,6 +349,11 @@ def test_hil_up_of_the_emulated_one_bus_rig_runs_both_robots(bus):
                 drain()
                 time.sleep(0.05)
                 assert up.poll() is None, up.stderr.read()
+            # a healthy bus: both robots' servos confirm the e-stop's hold
+            r = CliRunner().invoke(app, ["estop", rig, "--endpoint", bus.endpoint, "--timeout-s", "5"])
+            assert r.exit_code == 0 and "driver-arm" in r.output and "driver-mechanism" in r.output, r.output
+            r = CliRunner().invoke(app, ["estop", rig, "--release", "--endpoint", bus.endpoint, "--timeout-s", "5"])
+            assert r.exit_code == 0, r.output
         emulators = [c for c in psutil.Process(up.pid).children(recursive=True) if "emulator" in " ".join(c.cmdline())]
         assert len(emulators) == 1, "one bus: one emulator, one owner"
     finally:
