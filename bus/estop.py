@@ -16,7 +16,9 @@ Acknowledgements: a driver node answers each e-stop command on
 ``hil/<rig>/estop/ack`` with an :class:`~hilstack.bus.schemas.EStopAck` quoting the command's
 id and the state it is now in. :func:`command_estop` repeats the command until every
 driver node alive on the rig (liveliness tokens ``hil/<rig>/alive/driver-*``) has
-acknowledged it, or the timeout passes.
+acknowledged it, or the timeout passes. An engage counts as done for a node only when
+its ack also says ``device_confirmed`` (the device itself confirmed the stop); nodes that
+acknowledged without it are listed in ``EStopResult.unconfirmed``.
 """
 
 from __future__ import annotations
@@ -155,6 +157,8 @@ class EStopResult:
     drivers: set[str] = field(default_factory=set)
     #: driver node → the state it acknowledged
     acked: dict[str, bool] = field(default_factory=dict)
+    #: driver node → whether its device confirmed the stop (its newest ack)
+    device_confirmed: dict[str, bool] = field(default_factory=dict)
 
     @property
     def confirmed(self) -> list[str]:
@@ -165,9 +169,15 @@ class EStopResult:
         return sorted(self.drivers - set(self.confirmed))
 
     @property
+    def unconfirmed(self) -> list[str]:
+        """Engage: driver nodes that acknowledged but whose device did not confirm the stop."""
+        return [n for n in self.confirmed if not self.device_confirmed.get(n, False)] if self.engaged else []
+
+    @property
     def ok(self) -> bool:
-        """At least one driver node, and every driver node seen alive, confirmed."""
-        return bool(self.confirmed) and not self.missing
+        """At least one driver node, and every driver node seen alive, confirmed (an
+        engage: with its device's confirmation)."""
+        return bool(self.confirmed) and not self.missing and not self.unconfirmed
 
 
 def command_estop(
@@ -205,6 +215,7 @@ def command_estop(
                 continue
             if ack.estop_id == res.estop_id:
                 res.acked[ack.node] = ack.engaged
+                res.device_confirmed[ack.node] = ack.device_confirmed
                 res.drivers.add(ack.node)
         elapsed = time.monotonic() - t0
         if (res.ok and elapsed >= settle_s) or elapsed >= timeout_s:

@@ -74,6 +74,10 @@ class EStopAck(Msg, tag="hil.EStopAck/1"):
     #: ``EStop.id`` of the command answered
     estop_id: str = ""
     detail: str = ""
+    #: engaged and the device itself confirmed its safe state (``Driver.stop_confirmed``:
+    #: e.g. the servos read back the stop); False when the stop could not be verified
+    #: (a frozen device) or for a release
+    device_confirmed: bool = False
 
 
 class Plan(Msg, tag="hil.Plan/1"):

@@ -652,6 +652,16 @@ class Driver(ABC):
         if held is not None:
             self._anchor(held, self.now())
 
+    def stop_confirmed(self) -> bool:
+        """Whether the device itself confirmed the safe state of the last ``stop()`` (the
+        e-stop acknowledgement reports it). Default: the link is healthy now (``health().ok``:
+        every input within its deadline); backends that can read the device's stop back
+        override it (Dynamixel robots)."""
+        try:
+            return self._lifecycle is not Lifecycle.UNCONFIGURED and bool(self.health().ok)
+        except Exception:
+            return False
+
     def _rehold(self) -> None:
         """After the device's state was changed behind the contract (a sim reset), hold what
         it now runs, anchored at the current time. No-op unless ACTIVE."""

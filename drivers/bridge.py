@@ -179,7 +179,8 @@ class DriverNode(Node):
             else:
                 detail = self._release(m)
             self._estop_ack.put(
-                EStopAck(node=self.name, robot=self.robot, engaged=self.estopped, estop_id=m.id, detail=detail)
+                EStopAck(node=self.name, robot=self.robot, engaged=self.estopped, estop_id=m.id, detail=detail,
+                         device_confirmed=self.estopped and self.driver.stop_confirmed())
             )
 
     def _on_supervisor(self, sample) -> None:

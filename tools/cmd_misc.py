@@ -70,6 +70,29 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
         raise typer.Exit(1)
 
 
+def _bus_key(cfg, name: str) -> str | None:
+    """The device bus a rig robot owns (its driver class's ``shared_bus_key``), or None."""
+    from hilstack.configs.schema import rig_robot_config
+    from hilstack.drivers.registry import resolve
+
+    rc = rig_robot_config(cfg, name)
+    key = getattr(resolve(rc.robot, rc.backend), "shared_bus_key", None)
+    return key(rc) if key is not None else None
+
+
+def _merge_shared_buses(groups: list[list[str]], keys: dict[str, str | None]) -> list[list[str]]:
+    """Merge the process groups whose robots share a bus key."""
+    out: list[list[str]] = []
+    for g in groups:
+        ks = {keys[n] for n in g} - {None}
+        into = next((o for o in out if ks & ({keys[n] for n in o} - {None})), None)
+        if into is None:
+            out.append(list(g))
+        else:
+            into.extend(g)
+    return out
+
+
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
@@ -102,6 +125,9 @@ def register(app: typer.Typer) -> None:
             sims = [n for n in names if cfg.robots[n].backend == "sim"]
             if any(getattr(resolve(rig_robot_config(cfg, n).robot, "sim"), "world_follower", False) for n in sims):
                 groups = [sims] + [[n] for n in names if n not in sims]
+            # robots on one device bus (the WidowX and its mechanism on one Dynamixel adapter)
+            # share one process: only that process may own the port (drivers/dynamixel/bus.py)
+            groups = _merge_shared_buses(groups, {n: _bus_key(cfg, n) for n in names})
         if len(groups) > 1:
             procs = []
             for g in groups:
@@ -163,8 +189,9 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Engage (latched) or release the rig's e-stop; waits for every driver node to acknowledge.
 
-        Exit 0: every driver node alive on the rig acknowledged. Exit 1: none did, or
-        some did not, within --timeout-s (the message names the rig and the nodes).
+        Exit 0: every driver node alive on the rig acknowledged (an engage: with its device's
+        confirmation of the stop). Exit 1: none did, or some did not, or some device did not
+        confirm its stop, within --timeout-s (the message names the rig and the nodes).
         """
         from hilstack.bus.estop import command_estop
         from hilstack.bus.node import Node
@@ -181,7 +208,14 @@ def register(app: typer.Typer) -> None:
             state = "released" if release else "ENGAGED"
             typer.echo(f"{state} e-stop on rig {rig}: acknowledged by {', '.join(res.confirmed)}", err=True)
             return
-        if not res.confirmed:
+        if res.unconfirmed:
+            typer.echo(
+                f"error: e-stop on rig {rig} acknowledged but the stop was NOT confirmed by the device of "
+                f"{', '.join(res.unconfirmed)} within {timeout_s:g} s: check that robot, cut its power if it moves"
+                + (f"; not acknowledged by {', '.join(res.missing)}" if res.missing else ""),
+                err=True,
+            )
+        elif not res.confirmed:
             typer.echo(
                 f"error: {what} on rig {rig} NOT acknowledged: no driver node answered within {timeout_s:g} s"
                 + (f" (alive but silent: {', '.join(res.missing)})" if res.missing else " (no driver node alive)"),

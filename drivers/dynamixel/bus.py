@@ -9,18 +9,30 @@ packets received, CRC errors (``COMM_RX_CORRUPT``), missing status packets
 
 Robots on one bus (the arm and the mechanism share an adapter) share one object:
 ``acquire_bus(key, opener)`` hands out a reference-counted instance per port; the lock
-makes each transaction atomic between them.
+makes each transaction atomic between them. Only one process may own a port: it is
+opened exclusively (pyserial ``exclusive=True``, an ``flock`` on the device), so a
+second process that opens it gets a one-line :class:`LinkError` instead of colliding
+packets on the wire (``hil up`` runs the robots of one bus in one process).
+
+Time bounds: every transaction waits for its status packets at most the SDK's transfer
+time plus a margin; ``sync_read`` takes a tighter margin from its caller (the robots
+pass a fraction of their control period), so a device that stops answering costs a
+read at most about one period. Writes to the port time out after ``WRITE_TIMEOUT_S``
+(a device that stopped reading cannot block the driver).
 """
 
 from __future__ import annotations
 
 import json
+import os
+import signal
 import termios
 import threading
 import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
+import serial
 from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
 from serial import SerialException
 
@@ -39,6 +51,8 @@ class ServoError(RuntimeError):
 
 #: dynamixel-sdk's own status timeout: 2 × its 16 ms latency-timer assumption + 2 ms
 SDK_TIMEOUT_MARGIN_MS = 34.0
+#: a write to the port that cannot complete within this fails (the device stopped reading)
+WRITE_TIMEOUT_S = 0.1
 
 
 class _Port(PortHandler):
@@ -51,6 +65,18 @@ class _Port(PortHandler):
     def setPacketTimeout(self, packet_length):  # noqa: N802 - the SDK's name
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = self.tx_time_per_byte * packet_length + self.timeout_margin_ms
+
+    def setupPort(self, cflag_baud):  # noqa: N802 - the SDK's name
+        """The SDK's setup, but the port is locked for this process (``exclusive``) and
+        writes time out."""
+        if self.is_open:
+            self.closePort()
+        self.ser = serial.Serial(port=self.port_name, baudrate=self.baudrate, bytesize=serial.EIGHTBITS,
+                                 timeout=0, write_timeout=WRITE_TIMEOUT_S, exclusive=True)
+        self.is_open = True
+        self.ser.reset_input_buffer()
+        self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+        return True
 
 
 class DynamixelBus:
@@ -74,8 +100,11 @@ class DynamixelBus:
     # ------------------------------------------------------------------ open / close
     def open(self) -> None:
         try:
-            ok = self.port.openPort() and self.port.setBaudRate(self.baudrate)
+            ok = self.port.setBaudRate(self.baudrate)
         except Exception as e:  # pyserial's SerialException: port missing, busy, no permission
+            if "exclusively lock" in str(e):
+                raise LinkError(f"Dynamixel port {self.port_name} is in use by another process (one process "
+                                "owns a bus: run the robots of one bus in one `hil up`)") from None
             raise LinkError(f"cannot open Dynamixel port {self.port_name}: {e}") from None
         if not ok:
             raise LinkError(f"cannot open Dynamixel port {self.port_name} at {self.baudrate} baud")
@@ -89,6 +118,8 @@ class DynamixelBus:
                 pass
             self._closed = True
         if self.emulator is not None:
+            if self.emulator.alive:  # a frozen (SIGSTOPped) emulator must run to take its SIGTERM
+                os.kill(self.emulator.proc.pid, signal.SIGCONT)
             self.emulator.stop()
             self.emulator = None
 
@@ -194,8 +225,10 @@ class DynamixelBus:
                 self.last_error = msg
                 raise LinkError(msg)
 
-    def sync_read(self, ids: Iterable[int], first: str, last: str) -> tuple[dict[int, bytes], dict[int, int]]:
-        """SYNC_READ of the block ``first..last`` from ``ids``.
+    def sync_read(self, ids: Iterable[int], first: str, last: str,
+                  timeout_margin_ms: float | None = None) -> tuple[dict[int, bytes], dict[int, int]]:
+        """SYNC_READ of the block ``first..last`` from ``ids``, waiting for the answers at
+        most their transfer time plus ``timeout_margin_ms`` (default: the bus's margin).
 
         Returns ``(data, errors)``: the raw block of every servo that answered, and the
         status error byte of every answer that had one. IDs that did not answer (or
@@ -208,7 +241,13 @@ class DynamixelBus:
             self._require_open()
             self.stats["instructions"] += 1
             t0 = time.monotonic()
-            result = self._io(self.ph.syncReadTx, self.port, addr, n, ids, len(ids), False)
+            margin = self.port.timeout_margin_ms
+            if timeout_margin_ms is not None:
+                self.port.timeout_margin_ms = min(margin, float(timeout_margin_ms))
+            try:
+                result = self._io(self.ph.syncReadTx, self.port, addr, n, ids, len(ids), False)
+            finally:
+                self.port.timeout_margin_ms = margin
             if result != COMM_SUCCESS:
                 self._count(result)
                 self.last_error = f"sync read: {self.ph.getTxRxResult(result)}"

@@ -29,6 +29,7 @@ SIGNED_ITEMS = frozenset({
     "Homing Offset", "Goal PWM", "Goal Current", "Goal Velocity", "Goal Position",
     "Present PWM", "Present Current", "Present Velocity", "Present Position",
     "Velocity Trajectory", "Position Trajectory", "Max Position Limit", "Min Position Limit", "Present Load",
+    "Bus Watchdog",  # -1: the watchdog tripped (X-series e-Manual, Bus Watchdog(98))
 })
 
 #: SI value per count (X series e-Manual)
@@ -43,6 +44,16 @@ VOLT_PER_COUNT = 0.1
 #: Operating Mode (address in the table) values
 OPERATING_MODES = {"current": 0, "velocity": 1, "position": 3, "extended_position": 4,
                    "current_based_position": 5, "pwm": 16}
+
+#: Bus Watchdog (98): 1..127 arm it in units of 20 ms, 0 disarms and clears a trip, the
+#: servo sets -1 when it tripped (no instruction packet for the set time with torque on: it
+#: stops, and Goal PWM/Current/Velocity/Position refuse writes until 0 is written);
+#: available from firmware v38 (X-series e-Manual, "Bus Watchdog(98)")
+BUS_WATCHDOG_UNIT_S = 0.02
+BUS_WATCHDOG_MAX_UNITS = 127
+BUS_WATCHDOG_TRIPPED = -1
+BUS_WATCHDOG_MIN_FIRMWARE = 38
+GOAL_ITEMS = ("Goal PWM", "Goal Current", "Goal Velocity", "Goal Position")
 
 #: Hardware Error Status bits
 HARDWARE_ERROR_BITS = {0: "input voltage", 2: "overheating", 3: "motor encoder",

@@ -10,11 +10,22 @@ state and action):
 * at configure: pings every ID (a missing servo is a one-line error naming joint, ID and
   port), checks Hardware Error Status (reboots only if the config allows it), reads the
   limits, does a first sync read;
-* ``read()``: one SYNC_READ of Present Current .. Present Temperature from every ID;
+* ``read()``: one SYNC_READ of Bus Watchdog .. Present Temperature from every ID,
+  waiting for the answers at most ``READ_TIMEOUT_PERIODS`` of a control period (so a
+  device that stopped answering costs a read about one period, not the SDK's timeout);
   a joint that did not answer keeps its last value, and the reading is ``ok=False`` with
   ``flags["stale_telemetry"]`` once the oldest joint value is older than ``telemetry_stale_s``;
+  no answer from every servo for ``link_timeout_periods`` periods (the contract's
+  ``Freshness(fail_after_s=...)``: a frozen, unpowered or unplugged device) takes the
+  error path (stop sent, UNCONFIGURED, ``last_error``) and raises ``LinkError``;
   a hardware alert in any status packet reads the error, takes the error path (stop the
   others, go UNCONFIGURED) and raises with the decoded error;
+* the servos' own Bus Watchdog (``bus_watchdog_s``): armed whenever the driver turns the
+  torque on, so the servos stop by themselves when the host stops talking (its process
+  died); a servo that tripped (the register reads -1) is reported as ``flags["watchdog"]``
+  and re-armed before the next goal (goals are refused while it is tripped);
+* ``stop()`` reads the servos back after it: :meth:`stop_confirmed` is True only when
+  every servo answered after the stop and reports the goal the stop wrote;
 * ``health()``: link counters of the bus, the round-trip time of the last sync read,
   telemetry age, servo temperatures and input voltage, latched hardware errors.
 """
@@ -28,10 +39,13 @@ from typing import Any
 import numpy as np
 
 from hilstack.configs.schema import ConfigError
-from hilstack.drivers.base import Driver, Health, Lifecycle, LinkError, Observation
+from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, Lifecycle, LinkError, Observation
 from hilstack.drivers.dynamixel.bus import DynamixelBus, ServoError, acquire_bus, release_bus, start_emulator
 from hilstack.drivers.dynamixel.control_table import (
     AMP_PER_COUNT,
+    BUS_WATCHDOG_MIN_FIRMWARE,
+    BUS_WATCHDOG_TRIPPED,
+    BUS_WATCHDOG_UNIT_S,
     OPERATING_MODES,
     STATUS_ALERT_BIT,
     VOLT_PER_COUNT,
@@ -40,7 +54,9 @@ from hilstack.drivers.dynamixel.control_table import (
     vel_rad_s,
 )
 
-BLOCK = ("Present Current", "Present Temperature")
+BLOCK = ("Bus Watchdog", "Present Temperature")
+#: a read waits for the servos' answers at most this fraction of a control period
+READ_TIMEOUT_PERIODS = 0.8
 #: wait after a REBOOT before the servo answers again (e-Manual: about 0.5 s on XM)
 REBOOT_WAIT_S = 0.5
 
@@ -66,8 +82,29 @@ class DynamixelRobot(Driver):
         self._hw_errors: dict[str, str] = {}
         self._mode: int | None = None
         self._seq = 0
+        self._wd = np.zeros(n, dtype=int)  # Bus Watchdog register as last read (-1: tripped)
+        self._goal_pos = np.zeros(n, dtype=int)  # Goal Position register as last read [counts]
+        self.watchdog_trips = 0
+        self._stop_confirmed = False
+        self._pos_limits: dict[int, tuple[int, int]] = {}  # ID -> (Min, Max Position Limit) [counts]
+        self._t_read_try = -np.inf  # when the last sync read was sent (self.now())
+        self._answers = np.zeros(n, dtype=np.int64)  # status packets each joint answered a read with
+        self.inputs = Inputs(Freshness("telemetry", params.telemetry_stale_s, Flag.STALE_TELEMETRY,
+                                       fail_after_s=params.link_timeout_periods * params.period_s))
 
     # ------------------------------------------------------------------ bus
+    @classmethod
+    def shared_bus_key(cls, cfg: Any) -> str | None:
+        """Robots with the same key share one port and must run in one process (``hil up``
+        groups them): the adapter for ``real``, the emulator for ``emulated``; None for
+        sim (each process has its own world)."""
+        p = cfg.params or {}
+        if cfg.backend == "real":
+            return f"dynamixel:{p.get('port')}"
+        if cfg.backend == "emulated":
+            return f"dynamixel-emulated:{p.get('bus_name', 'widowx')}"
+        return None
+
     def _emulator_config(self) -> dict[str, Any]:
         raise NotImplementedError
 
@@ -104,12 +141,20 @@ class DynamixelRobot(Driver):
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:
         self._bus_key, self.bus = self._open_bus()
+        self.inputs.start(self.now())
+        self._stop_confirmed = False
+        self._pos_limits = {}
         for name, dxl_id in self.ids.items():
             try:
                 _, err = self.bus.ping(dxl_id)
             except LinkError:
                 raise LinkError(f"{self.spec.name}: joint {name!r} (ID {dxl_id}) does not answer on {self.where}: "
                                 f"check its cable, power (12 V) and ID/baud ({self.params.baudrate})") from None
+            fw = self.bus.read(dxl_id, "Firmware Version")
+            if fw < BUS_WATCHDOG_MIN_FIRMWARE:
+                raise LinkError(f"{self.spec.name}: joint {name!r} (ID {dxl_id}) has firmware v{fw}, without the "
+                                f"Bus Watchdog (needs v{BUS_WATCHDOG_MIN_FIRMWARE}+): update it with DYNAMIXEL "
+                                "Wizard; without it the servos would not stop when the host dies")
             hw = self.bus.read(dxl_id, "Hardware Error Status") if err & STATUS_ALERT_BIT else 0
             if hw:
                 what = describe_hardware_error(hw)
@@ -120,6 +165,10 @@ class DynamixelRobot(Driver):
                 self.bus.reboot(dxl_id)
                 self._wait_reboot(dxl_id, name, what)
         self._mode = None
+        # a position goal outside these is refused by the servo (data limit error; a sync
+        # write gets no answer): every hold the driver sends is clamped into them
+        self._pos_limits = {i: (self.bus.read(i, "Min Position Limit"), self.bus.read(i, "Max Position Limit"))
+                            for i in self.ids.values()}
         self._on_bus_ready()
         self._sync_read()
         missing = [n for n, t in zip(self.ids, self._t_joint, strict=True) if not math.isfinite(t)]
@@ -156,21 +205,72 @@ class DynamixelRobot(Driver):
         m = OPERATING_MODES[mode]
         ids = list(self.ids.values())
         self.bus.sync_write("Torque Enable", {i: 0 for i in ids})
+        self.bus.sync_write("Bus Watchdog", {i: 0 for i in ids})  # clears a trip: goals are accepted again
         self.bus.sync_write("Operating Mode", {i: m for i in ids})
         if goal:
             item = next(iter(goal.values()))[0]
             self.bus.sync_write(item, {i: v for i, (_, v) in goal.items()})
         self.bus.sync_write("Torque Enable", {i: 1 for i in ids})
+        self.bus.sync_write("Bus Watchdog", {i: self.watchdog_units for i in ids})
+        self._wd[:] = self.watchdog_units
         self._mode = m
 
+    def clamp_goal_position(self, dxl_id: int, counts: int) -> int:
+        """A Goal Position the servo accepts: within its position limits (a joint resting on
+        its end stop may read a few counts beyond them; that hold would be refused and the
+        servo would go on to its previous goal)."""
+        lo, hi = self._pos_limits.get(dxl_id, (counts, counts))
+        return max(lo, min(hi, counts))
+
+    @property
+    def watchdog_units(self) -> int:
+        """``bus_watchdog_s`` in the register's 20 ms units, rounded up."""
+        return max(1, math.ceil(self.params.bus_watchdog_s / BUS_WATCHDOG_UNIT_S - 1e-9))
+
+    @property
+    def watchdog_tripped(self) -> bool:
+        return bool(np.any(self._wd == BUS_WATCHDOG_TRIPPED))
+
+    def rearm_watchdog(self) -> None:
+        """After a trip (the host stalled longer than ``bus_watchdog_s`` and the servos
+        stopped): clear it (0) and arm it again, so goals are accepted."""
+        ids = list(self.ids.values())
+        self.bus.sync_write("Bus Watchdog", {i: 0 for i in ids})
+        self.bus.sync_write("Bus Watchdog", {i: self.watchdog_units for i in ids})
+        self._wd[:] = self.watchdog_units
+
+    def _confirm_hold(self, answers_before: np.ndarray, goal: dict[int, int]) -> bool:
+        """Read the servos back: every one answered since ``answers_before`` (a copy of
+        ``self._answers`` taken before the stop's writes) and holds the Goal Position ``goal``."""
+        try:
+            self._sync_read()
+        except LinkError:
+            return False
+        return all(self._answers[k] > answers_before[k] and self._goal_pos[k] == goal.get(dxl_id, self._goal_pos[k])
+                   for k, dxl_id in enumerate(self.ids.values()))
+
+    def stop_confirmed(self) -> bool:
+        """True when the servos read back the hold of the last ``stop()`` (see the module)."""
+        return self._stop_confirmed and self.lifecycle is not Lifecycle.UNCONFIGURED
+
     def _sync_read(self) -> None:
-        data, errors = self.bus.sync_read(self.ids.values(), *BLOCK)
+        self._t_read_try = self.now()
+        data, errors = self.bus.sync_read(self.ids.values(), *BLOCK,
+                                          timeout_margin_ms=READ_TIMEOUT_PERIODS * self.spec.period_s * 1000.0)
         now = self.now()
         dec = self.bus.decode
+        if len(data) == len(self.ids):
+            self.inputs["telemetry"].update(now)
         for k, (name, dxl_id) in enumerate(self.ids.items()):
             raw = data.get(dxl_id)
             if raw is None:
                 continue
+            wd = dec(raw, BLOCK[0], "Bus Watchdog")
+            if wd == BUS_WATCHDOG_TRIPPED and self._wd[k] != BUS_WATCHDOG_TRIPPED:
+                self.watchdog_trips += 1
+            self._wd[k] = wd
+            self._goal_pos[k] = dec(raw, BLOCK[0], "Goal Position")
+            self._answers[k] += 1
             self._q[k] = pos_rad(dec(raw, BLOCK[0], "Present Position"), self.bus.table.zero_count)
             self._qd[k] = vel_rad_s(dec(raw, BLOCK[0], "Present Velocity"))
             self._cur[k] = dec(raw, BLOCK[0], "Present Current") * AMP_PER_COUNT
@@ -200,7 +300,8 @@ class DynamixelRobot(Driver):
         finite = bool(np.all(np.isfinite(state)))
         self._seq += 1
         return Observation(t_s=self.now(), state=state, seq=self._seq, ok=not stale and finite,
-                           flags={"stale_telemetry": stale, "nonfinite_input": not finite, "hardware_error": bool(self._hw_errors)},
+                           flags={"stale_telemetry": stale, "nonfinite_input": not finite,
+                                  "hardware_error": bool(self._hw_errors), "watchdog": self.watchdog_tripped},
                            extras={"telemetry_age_s": age, **extras})
 
     def _read_bus(self) -> None:
@@ -214,6 +315,32 @@ class DynamixelRobot(Driver):
                 raise
             self.fail_link(e)
         self._check_hw()
+        self._check_alive()
+
+    def _check_alive(self) -> None:
+        """The contract's frozen-device rule: no status from every servo for
+        ``link_timeout_periods`` control periods with the port open takes the error path."""
+        now = self.now()
+        gone = self.inputs.expired(now)
+        if gone is None or self._failing or self.lifecycle is Lifecycle.UNCONFIGURED:
+            return
+        age = gone.age_s(now)
+        since = "since configure" if age is None else f"for {age:.2f} s"
+        silent = [n for n, t in zip(self.ids, self._t_joint, strict=True) if not now - t <= gone.fail_after_s]
+        self.fail_link(f"{self.spec.name}: no status from joints {silent} on {self.where} {since} (limit: "
+                       f"{self.params.link_timeout_periods} control periods of {self.spec.period_s:g} s): "
+                       "servos frozen, unpowered or unplugged")
+
+    def _send(self, fn, *args) -> None:
+        """A goal write: re-arms a tripped watchdog first; a failing port takes the error path."""
+        try:
+            if self.watchdog_tripped:
+                self.rearm_watchdog()
+            fn(*args)
+        except LinkError as e:
+            if self._failing:
+                raise
+            self.fail_link(e)
 
     # ------------------------------------------------------------------ health
     def _health(self) -> Health:
@@ -231,6 +358,8 @@ class DynamixelRobot(Driver):
             corrupt_frames=st["crc_errors"], dropped_frames=st["missing_status"],
             latency_s=b.last_rtt_s, last_error=b.last_error or self.last_error,
             extra={"backend": self.backend, "telemetry_age_s": age, "servo_errors": st["servo_errors"],
+                   "bus_watchdog_s": self.watchdog_units * BUS_WATCHDOG_UNIT_S, "watchdog_trips": self.watchdog_trips,
+                   **self.inputs.ages(self.now()),
                    "temperatures_c": {n: float(t) for n, t in zip(self.ids, self._temp_c, strict=True)},
                    "input_voltage_v": float(np.nanmin(self._volt)) if np.any(np.isfinite(self._volt)) else None,
                    "hardware_errors": dict(self._hw_errors), "ids": dict(self.ids)},

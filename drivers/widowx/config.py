@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from hilstack.configs.schema import EmulatorParams, Params
 from hilstack.drivers.base import RobotSpec, Space
@@ -53,6 +53,11 @@ class DynamixelEmulatorParams(EmulatorParams):
     start_holding: dict[str, float] | None = Field(None, description="start torqued in position mode at these "
                                                    "joint angles [rad] (default: limp in the sleep pose)")
     realtime_factor: float = Field(1.0, gt=0, description="sim seconds per wall-clock second")
+    state_file: str | None = Field(None, description="tests: append the servos' state (position, velocity, "
+                                   "Bus Watchdog) as JSON lines to this file, without bus traffic")
+    state_every_s: float = Field(0.02, gt=0, le=1.0, description="period of the state_file lines [s]")
+    linger_s: float = Field(0.0, ge=0, le=60.0, description="tests of host death: keep simulating the servos "
+                            "this long after the driver's process died [s]")
 
 
 class BusParams(Params):
@@ -63,7 +68,13 @@ class BusParams(Params):
     #: robots built with the same bus name share one port/emulator/sim world in a process
     bus_name: str = "widowx"
     latency_timer_ms: int = Field(1, ge=1, le=16, description="USB-serial latency timer (docs/arms.md)")
-    telemetry_stale_s: float = Field(0.25, gt=0, description="a reading older than this is not ok")
+    telemetry_stale_s: float = Field(0.25, gt=0, le=5.0, description="a reading older than this is not ok")
+    link_timeout_periods: int = Field(10, ge=2, le=100, description="no status from every servo for this many "
+                                      "control periods: the device is gone (frozen, unpowered, unplugged): "
+                                      "error path")
+    bus_watchdog_s: float = Field(0.2, ge=0.04, le=2.54, description="the servos' Bus Watchdog: with no "
+                                  "instruction packet for this long they stop by themselves (host died); "
+                                  "rounded up to 20 ms, at least 2 control periods")
     reboot_on_hardware_error: bool = Field(False, description="reboot a servo with a latched hardware error "
                                            "at configure (after the operator checked why)")
     emulator: DynamixelEmulatorParams = Field(default_factory=DynamixelEmulatorParams,
@@ -71,9 +82,18 @@ class BusParams(Params):
     sim: dict = Field(default_factory=dict, description="sim world settings")
 
 
+def _check_watchdog(period_s: float, info: ValidationInfo) -> float:
+    """``period_s`` (declared after ``bus_watchdog_s``) against the watchdog."""
+    wd = info.data.get("bus_watchdog_s")
+    if wd is not None and wd < 2 * period_s:
+        raise ValueError(f"bus_watchdog_s {wd:g} must be at least 2 control periods (2 x period_s = "
+                         f"{2 * period_s:g} s): shorter stops the servos between commands")
+    return period_s
+
+
 class WidowXParams(BusParams):
     ids: dict[str, int] = Field(default_factory=lambda: {n: i for n, i, _, _ in JOINTS})
-    period_s: float = Field(0.05, gt=0, description="driver control period (MELD acts at 3.3 Hz above it)")
+    period_s: float = Field(0.05, gt=0, le=1.0, description="driver control period (MELD acts at 3.3 Hz above it)")
     max_joint_vel_rad_s: float = Field(1.0, gt=0, le=4.8, description="action limit (XM430 no-load: 4.8 rad/s)")
     max_joint_accel_rad_s2: float = Field(6.0, gt=0, description="rate limit on velocity commands")
     #: joints slow to zero when moving towards a limit within this margin
@@ -91,15 +111,25 @@ class WidowXParams(BusParams):
             raise ValueError(f"ids must be distinct and within 0..252, got {v}")
         return v
 
+    @field_validator("period_s")
+    @classmethod
+    def _watchdog_vs_period(cls, v: float, info: ValidationInfo) -> float:
+        return _check_watchdog(v, info)
+
 
 class MechanismParams(BusParams):
     ids: dict[str, int] = Field(default_factory=lambda: dict(MECH_DEFAULT_IDS))
-    period_s: float = Field(0.05, gt=0)
+    period_s: float = Field(0.05, gt=0, le=1.0)
     rotate_half_range_deg: float = Field(8.0, gt=0, le=45)
     rail_half_travel_m: float = Field(0.01, gt=0, le=0.1)
     rail_pinion_radius_m: float = Field(0.01, gt=0, description="rail offset = pinion radius × servo angle")
     rotate_rate_rad_s: float = Field(0.5, gt=0, description="rate limit of the rotation target")
     rail_rate_m_s: float = Field(0.02, gt=0, description="rate limit of the offset target")
+
+    @field_validator("period_s")
+    @classmethod
+    def _watchdog_vs_period(cls, v: float, info: ValidationInfo) -> float:
+        return _check_watchdog(v, info)
 
 
 def joint_limits(p: WidowXParams) -> dict[str, tuple[float, float]]:

@@ -10,8 +10,9 @@ WidowX: joint velocity commands to the servos' velocity loops (Operating Mode 1)
 ``limit()`` adds to the contract's clamps a joint-limit guard: a joint within
 ``limit_margin_rad`` of a limit may only move away from it (the servo ignores its
 position limits in velocity mode). ``stop()``: zero velocity to every joint, then
-position hold at the measured pose (Operating Mode 3); the next ``write()`` returns to
-velocity mode.
+position hold at the measured pose (Operating Mode 3), read back (``stop_confirmed``);
+the next ``write()`` returns to velocity mode. After a Bus Watchdog trip (the servos
+stopped themselves) the rate limit restarts from zero velocity, as the joints are.
 
 Mechanism: target rotation [rad] and rail offset [m] to the servos' position loops; stop
 holds the measured pose.
@@ -78,9 +79,14 @@ class WidowXDriver(DynamixelRobot):
         self._send_velocity(self._held)
 
     def limit(self, a: np.ndarray, now_s: float) -> np.ndarray:
+        if self.watchdog_tripped:  # the servos stopped themselves: ramp up again from rest
+            self._anchor(self.spec.safe_action, now_s)
         a = super().limit(a, now_s)
-        if self.telemetry_age_s() > self.spec.period_s:
-            self._read_bus()  # the guard needs the pose now, not the one of the last read()
+        p = self.spec.period_s
+        if self.telemetry_age_s() > p and self.now() - self._t_read_try > p:
+            # the guard needs the pose now, not the one of the last read(); at most one read
+            # per period (a silent device must not cost every write a read timeout)
+            self._read_bus()
         m = self.params.limit_margin_rad
         q = self._q
         # towards a limit inside the margin: not allowed (finite q only: NaN compares False)
@@ -96,12 +102,14 @@ class WidowXDriver(DynamixelRobot):
         for (_, dxl_id), v in zip(self.ids.items(), v_rad_s, strict=True):
             lim = self._vel_limit_counts.get(dxl_id, 0)
             goal[dxl_id] = max(-lim, min(lim, vel_counts(float(v))))
+        self._stop_confirmed = False
         if self._mode != VELOCITY:
-            self.set_mode("velocity", {i: ("Goal Velocity", c) for i, c in goal.items()})
+            self._send(self.set_mode, "velocity", {i: ("Goal Velocity", c) for i, c in goal.items()})
         else:
-            self.bus.sync_write("Goal Velocity", goal)
+            self._send(self.bus.sync_write, "Goal Velocity", goal)
 
     def _stop(self) -> None:
+        self._stop_confirmed = False
         if self.bus is None or self.bus.closed:
             return
         ids = list(self.ids.values())
@@ -110,10 +118,12 @@ class WidowXDriver(DynamixelRobot):
         try:
             self._sync_read()
         finally:
-            hold = {i: ("Goal Position", pos_counts(float(q), self.bus.table.zero_count))
+            hold = {i: ("Goal Position", self.clamp_goal_position(i, pos_counts(float(q), self.bus.table.zero_count)))
                     for i, q in zip(ids, self._q, strict=True) if math.isfinite(q)}
             if len(hold) == len(ids):
+                before = self._answers.copy()
                 self.set_mode("position", hold)
+                self._stop_confirmed = self._confirm_hold(before, {i: c for i, (_, c) in hold.items()})
 
 
 class MechanismDriver(DynamixelRobot):
@@ -147,23 +157,29 @@ class MechanismDriver(DynamixelRobot):
     def _write(self, action: np.ndarray) -> None:
         self._send_pose(action)
 
-    def _send_pose(self, pose: np.ndarray) -> None:
-        goal = {i: pos_counts(float(x * s), self.bus.table.zero_count)
+    def _send_pose(self, pose: np.ndarray) -> dict[int, int]:
+        goal = {i: self.clamp_goal_position(i, pos_counts(float(x * s), self.bus.table.zero_count))
                 for i, x, s in zip(self.ids.values(), pose, self._scale, strict=True)}
+        self._stop_confirmed = False
         if self._mode != OPERATING_MODES["position"]:
-            self.set_mode("position", {i: ("Goal Position", c) for i, c in goal.items()})
+            self._send(self.set_mode, "position", {i: ("Goal Position", c) for i, c in goal.items()})
         else:
-            self.bus.sync_write("Goal Position", goal)
+            self._send(self.bus.sync_write, "Goal Position", goal)
+        return goal
 
     def _stop(self) -> np.ndarray | None:
-        """Hold the measured pose; returns it (the held command and the rate limit restart there)."""
+        """Hold the measured pose, read back (``stop_confirmed``); returns it (the held
+        command and the rate limit restart there)."""
+        self._stop_confirmed = False
         if self.bus is None or self.bus.closed:
             return None
         self._sync_read()
         pose = self._q / self._scale
         if not np.all(np.isfinite(pose)):
             return None
-        self._send_pose(pose)
+        before = self._answers.copy()
+        goal = self._send_pose(pose)
+        self._stop_confirmed = self._confirm_hold(before, goal)
         return np.clip(pose, self.spec.action.low, self.spec.action.high)
 
     def pose(self) -> tuple[float, float]:

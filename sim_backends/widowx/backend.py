@@ -49,6 +49,7 @@ class SimBus:
             self.last_error = f"ID {dxl_id}: There is no status packet!"
             raise LinkError(self.last_error)
         self.stats["status_ok"] += 1
+        s.heard()  # an instruction reached it: its Bus Watchdog counts anew
         return s
 
     def _err(self, what: str, dxl_id: int, err: int) -> None:
@@ -80,9 +81,11 @@ class SimBus:
         for dxl_id, v in values.items():
             s = self.world.servos.get(dxl_id)
             if s is not None:
+                s.heard()
                 s.write(it.address, it.encode(v))
 
-    def sync_read(self, ids: Iterable[int], first: str, last: str) -> tuple[dict[int, bytes], dict[int, int]]:
+    def sync_read(self, ids: Iterable[int], first: str, last: str,
+                  timeout_margin_ms: float | None = None) -> tuple[dict[int, bytes], dict[int, int]]:
         addr, n = self.table.span(first, last)
         self.stats["instructions"] += 1
         data, errors = {}, {}
@@ -92,6 +95,7 @@ class SimBus:
                 self.stats["missing_status"] += 1
                 continue
             self.stats["status_ok"] += 1
+            s.heard()
             err, raw = s.read(addr, n)
             data[dxl_id] = raw
             if err | s.status_error():

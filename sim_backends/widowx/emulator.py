@@ -12,7 +12,8 @@ of its own process (docs/arms.md).
     python -m hilstack.sim_backends.widowx.emulator --print-pty --config '{"missing_ids": [8]}'
 
 On start it prints one JSON line ``{"pty": ..., "pid": ...}`` on stdout; logs go to
-stderr. It stops on SIGTERM/SIGINT or when ``--parent-pid`` dies.
+stderr. It stops on SIGTERM, on SIGINT unless it has a ``--parent-pid`` (Ctrl-C in the
+driver's terminal must not cut the bus before the driver's stop), or when the parent dies.
 
 Fault injection (config keys): ``missing_ids`` (these IDs never answer, as an unplugged
 servo), ``hardware_errors`` ({id: bits}: latched at power-on, cleared by a reboot
@@ -20,6 +21,13 @@ unless ``persistent_errors``), ``corrupt_every`` (every N-th status packet gets 
 CRC), ``garbage_every`` (noise bytes before every N-th status packet). ``start_holding``
 ({joint: rad}) starts the arm torqued in position mode at that pose instead of limp in
 its sleep pose.
+
+Host death (tests): ``state_file`` (a path) gets one JSON line every ``state_every_s``
+wall-clock seconds: ``{"t": monotonic [s], "sim_t": [s], "servos": {id: [position
+rad, velocity rad/s, Bus Watchdog]}}``, read without sending the servos a packet (a
+read over the bus would feed their watchdog). ``linger_s``: when the parent process
+dies, go on simulating the servos this long before exiting, as a real bench stays
+powered after its host died (default 0: exit at once).
 """
 
 from __future__ import annotations
@@ -98,6 +106,7 @@ class BusEmulator:
             for k in range(0, len(body) - n, n + 1) if n else ():
                 s = self._servo(body[k])
                 if s is not None:
+                    s.heard()
                     s.write(addr, bytes(body[k + 1:k + 1 + n]))  # no status for sync write
             return b""
         if inst == p.SYNC_READ:
@@ -108,6 +117,7 @@ class BusEmulator:
             for dxl_id in prm[4:]:  # each servo answers in the order asked
                 s = self._servo(dxl_id)
                 if s is not None:
+                    s.heard()
                     err, data = s.read(addr, n)
                     out += self._status(dxl_id, err | s.status_error(), data)
             return bytes(out)
@@ -117,6 +127,7 @@ class BusEmulator:
             s = self._servo(dxl_id)
             if s is None:
                 continue
+            s.heard()
             reply = pkt.dxl_id != p.BROADCAST_ID or inst == p.PING
             if inst == p.PING:
                 data = s.table["Model Number"].encode(s.get("Model Number")) + bytes([s.get("Firmware Version")])
@@ -142,11 +153,32 @@ class BusEmulator:
                 "injected_corrupt": self.injected_corrupt, "sim_time_s": round(self.world.time_s, 3)}
 
 
-def run(bus: BusEmulator, fd: int, parent_pid: int | None, running: list[bool], rtf: float = 1.0) -> None:
+def servo_states(world: ArmWorld) -> dict[str, list[float]]:
+    """ID -> [position rad, velocity rad/s, Bus Watchdog] of the last servo tick."""
+    out = {}
+    for i, s in world.servos.items():
+        q, qd, _ = s._present
+        out[str(i)] = [round(q, 5), round(qd, 5), s.get("Bus Watchdog")]
+    return out
+
+
+def run(bus: BusEmulator, fd: int, parent_pid: int | None, running: list[bool], rtf: float = 1.0,
+        state_file: str | None = None, state_every_s: float = 0.02, linger_s: float = 0.0) -> None:
+    pacer = RealtimePacer(bus.world.time_s, TICK_S, MAX_CATCHUP_S, rtf, now_s=time.monotonic())
+    states = open(state_file, "a", buffering=1) if state_file else None  # noqa: SIM115 - closed below
+    try:
+        _loop(bus, fd, parent_pid, running, pacer, states, state_every_s, linger_s)
+    finally:
+        if states is not None:
+            states.close()
+
+
+def _loop(bus, fd, parent_pid, running, pacer, states, state_every_s, linger_s) -> None:
     world = bus.world
-    t0 = time.monotonic()
-    pacer = RealtimePacer(world.time_s, TICK_S, MAX_CATCHUP_S, rtf, now_s=t0)
-    next_parent_check = t0 + 0.5
+    now = time.monotonic()
+    next_parent_check = now + 0.5
+    next_state = now
+    exit_at: float | None = None
     while running[0]:
         now = time.monotonic()
         wait = max(0.0, min(TICK_S, world.time_s + TICK_S - pacer.target_s(now)))
@@ -165,11 +197,20 @@ def run(bus: BusEmulator, fd: int, parent_pid: int | None, running: list[bool], 
         if pacer.due(now, world.time_s) >= 1:
             world.step()
         bus.realtime_slip_s = pacer.slip_s
-        if parent_pid and now >= next_parent_check:
+        if states is not None and now >= next_state:
+            next_state = now + state_every_s
+            states.write(json.dumps({"t": now, "sim_t": round(world.time_s, 4), "servos": servo_states(world)}) + "\n")
+        if exit_at is not None and now >= exit_at:
+            log("lingered after the parent: exiting")
+            return
+        if parent_pid and exit_at is None and now >= next_parent_check:
             next_parent_check = now + 0.5
             if os.getppid() != parent_pid:
-                log("parent process is gone: exiting")
-                return
+                if linger_s <= 0:
+                    log("parent process is gone: exiting")
+                    return
+                log(f"parent process is gone: the servos run on for {linger_s:g} s")
+                exit_at = now + linger_s
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -194,11 +235,15 @@ def main(argv: list[str] | None = None) -> int:
         running[0] = False
 
     signal.signal(signal.SIGTERM, _stop)
-    signal.signal(signal.SIGINT, _stop)
+    # started by a driver (--parent-pid): Ctrl-C in its terminal reaches us too, but the
+    # driver must still send its stop over the bus; it ends us (SIGTERM) when it is done
+    signal.signal(signal.SIGINT, signal.SIG_IGN if args.parent_pid else _stop)
     print(json.dumps({"pty": path, "pid": os.getpid()}), flush=True)
     log(f"serving {path}: IDs {sorted(world.servos)}, missing {sorted(bus.missing)}")
     try:
-        run(bus, master, args.parent_pid, running, float(cfg.get("realtime_factor", 1.0)))
+        run(bus, master, args.parent_pid, running, float(cfg.get("realtime_factor", 1.0)),
+            state_file=cfg.get("state_file"), state_every_s=float(cfg.get("state_every_s", 0.02)),
+            linger_s=float(cfg.get("linger_s", 0.0)))
     finally:
         log(f"summary {json.dumps({**bus.summary(), 'realtime_slip_s': round(bus.realtime_slip_s, 4)})}")
         os.close(master)

@@ -19,6 +19,16 @@ What is modelled (XM430-W350 e-Manual, "Control Table" and "Operating Mode"):
   Enable = 1 is then refused until a reboot clears the error.
 * Present Current from the torque (torque constant ``kt``), Present Temperature, Present
   Input Voltage, Moving.
+* Bus Watchdog (98), as the e-Manual describes it: 1..127 arms it (unit 20 ms); with
+  torque on, no instruction packet for longer than that stops the servo (velocity mode:
+  Goal Velocity becomes 0; position mode: the servo stops its profile where it is, and
+  this model has no profile, so it keeps holding its Goal Position),
+  the register reads -1, and writes to Goal PWM/Current/Velocity/Position are refused
+  with a data range error until 0 is written (0 disarms and clears the trip). The caller
+  reports every instruction packet that reaches the servo (:meth:`Servo.heard`); the time
+  since the last one is counted in servo ticks (simulated time). Which packets count is a
+  modelling choice: those addressed to the servo (its ID, broadcast, or a sync
+  instruction naming it); a value other than 0 while tripped is refused (data range).
 
 The gains are in SI units, not the servo's raw gain registers: the emulator's job is the
 wire protocol and a plausible closed loop, not a bit-exact copy of ROBOTIS' controller.
@@ -32,6 +42,10 @@ from dataclasses import dataclass
 from hilstack.drivers.dynamixel import protocol as p
 from hilstack.drivers.dynamixel.control_table import (
     AMP_PER_COUNT,
+    BUS_WATCHDOG_MAX_UNITS,
+    BUS_WATCHDOG_TRIPPED,
+    BUS_WATCHDOG_UNIT_S,
+    GOAL_ITEMS,
     OPERATING_MODES,
     RAD_PER_COUNT,
     ControlTable,
@@ -124,6 +138,7 @@ class Servo:
         self.set("Hardware Error Status", self.injected_error)
         self._integral = 0.0
         self._saturated_s = 0.0
+        self._idle_s = 0.0  # since the last instruction packet (Bus Watchdog)
         self._present = (0.0, 0.0, 0.0)  # q [rad], qd [rad/s], current [A] of the last tick
         self._dirty = False
         self._refresh()
@@ -139,6 +154,23 @@ class Servo:
         self._hw_error = self.get("Hardware Error Status")
         self._temp_limit_c = self.get("Temperature Limit")
         self._moving_threshold_rad_s = self.get("Moving Threshold") * self.vel_scale
+        self._watchdog = self.get("Bus Watchdog")
+
+    # ------------------------------------------------------------------ bus watchdog
+    def heard(self) -> None:
+        """An instruction packet reached this servo: the Bus Watchdog starts counting anew."""
+        self._idle_s = 0.0
+
+    @property
+    def watchdog_tripped(self) -> bool:
+        return self._watchdog == BUS_WATCHDOG_TRIPPED
+
+    def _trip_watchdog(self) -> None:
+        """No instruction for the set time: stop (velocity 0; position mode holds its goal,
+        the end of a profile this model does not have), refuse goals."""
+        if self._mode == VELOCITY_MODE:
+            self.set("Goal Velocity", 0)
+        self.set("Bus Watchdog", BUS_WATCHDOG_TRIPPED)
 
     def publish(self) -> None:
         """Write the present values of the last tick into the table (before a read)."""
@@ -215,6 +247,12 @@ class Servo:
         return 0
 
     def _check(self, new: dict[str, int]) -> int:
+        if "Bus Watchdog" in new:
+            wd = new["Bus Watchdog"]
+            if not 0 <= wd <= BUS_WATCHDOG_MAX_UNITS or (self.watchdog_tripped and wd != 0):
+                return p.ERR_DATA_RANGE
+        elif self.watchdog_tripped and any(g in new for g in GOAL_ITEMS):
+            return p.ERR_DATA_RANGE  # goals are read-only until the trip is cleared
         if "Operating Mode" in new and new["Operating Mode"] not in (OPERATING_MODES["velocity"],
                                                                      OPERATING_MODES["position"]):
             return p.ERR_DATA_RANGE
@@ -235,6 +273,10 @@ class Servo:
         """One control step from the measured joint state; returns the torque [N·m]."""
         ph = self.phys
         tau = 0.0
+        if self._torque_on and self._watchdog > 0:
+            self._idle_s += dt_s
+            if self._idle_s > self._watchdog * BUS_WATCHDOG_UNIT_S + 1e-9:
+                self._trip_watchdog()
         if self._torque_on and not self._hw_error:
             if self._mode == VELOCITY_MODE:
                 e = self._goal_vel_rad_s - qd_rad_s
