@@ -639,7 +639,7 @@ class Driver(ABC):
         held = None
         if self.spec.safe_action is None and self._held is not None and self._lifecycle is Lifecycle.ACTIVE:
             try:
-                self._write(self._held)
+                self._hold_target(self._held)
                 held = self._held.copy()
             except LinkError:
                 raise
@@ -651,6 +651,11 @@ class Driver(ABC):
             held = self.spec.safe_action
         if held is not None:
             self._anchor(held, self.now())
+
+    def _hold_target(self, target: np.ndarray) -> None:
+        """The stop of a position robot: send its held target again (default: as a write).
+        Backends that can read the hold back override it and set what ``stop_confirmed`` says."""
+        self._write(target)
 
     def stop_confirmed(self) -> bool:
         """Whether the device itself confirmed the safe state of the last ``stop()`` (the

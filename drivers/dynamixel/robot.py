@@ -327,9 +327,15 @@ class DynamixelRobot(Driver):
         age = gone.age_s(now)
         since = "since configure" if age is None else f"for {age:.2f} s"
         silent = [n for n, t in zip(self.ids, self._t_joint, strict=True) if not now - t <= gone.fail_after_s]
-        self.fail_link(f"{self.spec.name}: no status from joints {silent} on {self.where} {since} (limit: "
+        self.fail_link(f"{self.spec.name}: no usable telemetry (no status from joints {silent}) on {self.where} {since} (limit: "
                        f"{self.params.link_timeout_periods} control periods of {self.spec.period_s:g} s): "
                        "servos frozen, unpowered or unplugged")
+
+    def _refresh_inputs(self) -> None:
+        """Before a write: a driver written to without reads for a period asks the servos first,
+        so the contract's frozen-device rule judges a recent answer, not the last read()."""
+        if self.bus is not None and not self.bus.closed and self.now() - self._t_read_try >= self.spec.period_s:
+            self._read_bus()
 
     def _send(self, fn, *args) -> None:
         """A goal write: re-arms a tripped watchdog first; a failing port takes the error path."""

@@ -167,6 +167,12 @@ class MechanismDriver(DynamixelRobot):
             self._send(self.bus.sync_write, "Goal Position", goal)
         return goal
 
+    def _hold_target(self, target: np.ndarray) -> None:
+        """The stop at the held target (``Driver.stop``), read back (``stop_confirmed``)."""
+        before = self._answers.copy()
+        goal = self._send_pose(target)
+        self._stop_confirmed = self._confirm_hold(before, goal)
+
     def _stop(self) -> np.ndarray | None:
         """Hold the measured pose, read back (``stop_confirmed``); returns it (the held
         command and the rate limit restart there)."""
