@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -14,6 +15,7 @@ from hilstack.tools.common import (
     EndpointOpt,
     UserError,
     bus_config,
+    check_rig_name,
     echo_json,
     exit_with_parent,
     setup_logging,
@@ -169,8 +171,9 @@ def register(app: typer.Typer) -> None:
         from hilstack.bus.estop import command_estop
         from hilstack.bus.node import Node
 
-        if not timeout_s > 0:
-            raise UserError("--timeout-s must be > 0")
+        check_rig_name(rig)
+        if not (math.isfinite(timeout_s) and 0 < timeout_s <= 60):
+            raise UserError(f"--timeout-s {timeout_s}: expected a number in (0, 60]")
         node = Node("estop-cli", rig, bus_config(endpoint), handle_signals=False)
         try:
             res = command_estop(node, engaged=not release, reason=reason, timeout_s=timeout_s)
@@ -206,6 +209,7 @@ def register(app: typer.Typer) -> None:
         from hilstack.bus.estop import query_latches
         from hilstack.bus.node import Node, alive_nodes
 
+        check_rig_name(rig)
         node = Node("nodes-cli", rig, bus_config(endpoint), handle_signals=False)
         try:
             # a fresh session finds its peers over the first few hundred ms: keep asking
