@@ -16,7 +16,8 @@ NO_NODE_WARN_S = 3.0
 
 
 def _recording_arg(path: Path) -> None:
-    """A one-line exit-2 error unless ``path`` is an MCAP recording (empty file, CSV, random bytes...)."""
+    """A one-line exit-2 error unless ``path`` is an MCAP recording (empty file, CSV, random
+    bytes...); also used by `hil viz --recording`."""
     from hilstack.bus.recording import NotARecording, check_mcap
 
     try:

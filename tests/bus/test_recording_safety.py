@@ -155,11 +155,12 @@ def test_not_mcap_is_refused_in_one_line_and_nothing_is_written(tmp_path, conten
         check_mcap(src)
     out = tmp_path / "fixed.mcap"
     for args in (["inspect", str(src)], ["inspect", str(src), "--json"], ["replay", str(src), "--speed", "0"],
-                 ["repair", str(src), "--out", str(out)]):
+                 ["repair", str(src), "--out", str(out)],
+                 ["viz", "--recording", str(src), "--save", str(tmp_path / "v.rrd")]):
         r = CliRunner().invoke(app, args)
         assert r.exit_code == 2, (args, r.output)
         assert "is not an MCAP recording" in r.output and r.output.strip().count("\n") == 0, (args, r.output)
-    assert not out.exists()
+    assert not out.exists() and not (tmp_path / "v.rrd").exists()
     assert src.read_bytes() == content
 
 
@@ -253,6 +254,7 @@ def test_record_mistyped_rig_is_an_error(tmp_path, spawn):
     (["nodes", "a/b"], "is not a rig name"),
     (["estop", "a/b"], "is not a rig name"),
     (["foxglove", "--rig", "a/b"], "is not a rig name"),
+    (["viz", "--rig", "a/b", "--seconds", "1"], "is not a rig name"),
 ])
 def test_bad_cli_values_are_one_line_exit_2(tmp_path, args, why):
     rec = tmp_path / "r.mcap"
