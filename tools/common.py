@@ -111,8 +111,12 @@ def user_errors(fn: F) -> F:
                 typer.echo(f"  {ln}", err=True)
             exit_within(EXIT_RUNTIME)
             raise typer.Exit(EXIT_RUNTIME) from None
-        except Exception:  # a bug: its traceback, and the process still ends
-            exit_within(EXIT_RUNTIME)
+        except Exception as e:
+            # typer.Exit and typer's usage errors carry their exit code (0: a normal end);
+            # anything else is a bug: its traceback, exit 1, and the process still ends
+            code = getattr(e, "exit_code", EXIT_RUNTIME)
+            if code:
+                exit_within(code)
             raise
 
     return wrapper  # type: ignore[return-value]
