@@ -17,6 +17,8 @@ import json
 import logging
 import math
 import os
+import struct
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -185,6 +187,56 @@ class _McapFoxglovePoses:
         return len(out)
 
 
+#: the 8 bytes every MCAP file starts (and ends) with
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+class NotARecording(ValueError):
+    """The file is not an MCAP recording (empty, another format, cut inside its first bytes)."""
+
+
+class RecordingExists(FileExistsError):
+    """The output file exists and overwriting it was not asked for."""
+
+
+def check_mcap(path: str | Path) -> None:
+    """Raise :class:`NotARecording` (one line naming the file and why) unless ``path``
+    starts with the MCAP magic. A file cut after its magic is a (damaged) recording."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC))
+    except OSError as e:
+        raise NotARecording(f"{path}: cannot read it ({e.strerror or e})") from None
+    if head == MCAP_MAGIC:
+        return
+    if not head:
+        why = "the file is empty"
+    elif MCAP_MAGIC.startswith(head):
+        why = f"{len(head)} bytes, cut before anything was recorded"
+    else:
+        why = f"it starts with {head!r}, not the MCAP magic"
+    raise NotARecording(f"{path} is not an MCAP recording ({why})")
+
+
+def open_new(path: str | Path, overwrite: bool = False):  # noqa: ANN201 - a binary file object
+    """Open ``path`` for writing, creating its directory. An existing file is never
+    replaced unless ``overwrite`` (:class:`RecordingExists` otherwise; the check and the
+    creation are one atomic ``open(..., "xb")``)."""
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(21, "is a directory", str(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        return open(path, "wb" if overwrite else "xb")  # noqa: SIM115 - the caller closes it
+    except FileExistsError:
+        raise RecordingExists(17, "exists (not overwritten)", str(path)) from None
+
+
+#: what a cut or corrupted file raises while it is streamed (the mcap package reads
+#: lengths and numbers with ``struct``): reading stops there and keeps what came before
+_DAMAGE = (McapError, EOFError, ValueError, KeyError, OSError, struct.error)
+
+
 class RecordingClosed(RuntimeError):
     """A write to a recording that is already closed (the message is not in the file)."""
 
@@ -213,13 +265,14 @@ class McapLog:
         metadata: dict[str, str] | None = None,
         flush_period_s: float = FLUSH_PERIOD_S,
         foxglove: bool = True,
+        overwrite: bool = True,
     ):
         if not flush_period_s > 0:
             raise ValueError(f"flush_period_s must be > 0, got {flush_period_s}")
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.flush_period_s = flush_period_s
-        self._f = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        # overwrite=False: an existing file is refused (RecordingExists), never truncated
+        self._f = open_new(self.path, overwrite)
         self._w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self._w.start(profile="", library="hilstack")
         if metadata:
@@ -330,6 +383,7 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
     ``result.truncated``). A single undecodable message is skipped and counted
     (``result.undecodable``); channels of other schemas are counted in ``result.foreign``."""
     res = result if result is not None else ReadResult()
+    check_mcap(path)
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, int]] = {}
     with open(path, "rb") as f:
@@ -354,7 +408,7 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
                         res.undecodable_error = res.undecodable_error or f"{topic}: {e}"
                         continue
                     yield RecordedMessage(topic, rec.log_time, rec.publish_time, msg)
-        except (McapError, EOFError, ValueError, KeyError, OSError) as e:
+        except _DAMAGE as e:
             res.truncated = True
             res.error = f"{type(e).__name__}: {e}"
 
@@ -368,41 +422,66 @@ class RepairResult:
     error: str | None = None
 
 
-def repair(src: str | Path, dst: str | Path) -> RepairResult:
+def repair(src: str | Path, dst: str | Path, overwrite: bool = False) -> RepairResult:
     """Copy a recording, crashed or not, into a finished MCAP file (summary, indexes).
 
     Tools that need the summary (rerun, ``mcap.reader.make_reader``) refuse a file cut
     by a crash. Every schema, channel, message and metadata record up to the damage is
-    copied byte for byte (also the Foxglove channels), through the ``mcap`` package."""
+    copied byte for byte (also the Foxglove channels), through the ``mcap`` package: a
+    cut keeps every message of the chunks completed before it.
+
+    A source that is not MCAP raises :class:`NotARecording` and nothing is written. The
+    copy is written to a temporary file beside ``dst`` and moved to ``dst`` only when it
+    is finished; an existing ``dst`` is never replaced unless ``overwrite``
+    (:class:`RecordingExists`)."""
     src, dst = Path(src), Path(dst)
-    if src.resolve() == dst.resolve():
+    if dst.exists() and src.resolve() == dst.resolve():
         raise ValueError(f"repair: {dst} is the source; write the repaired copy to another file")
+    check_mcap(src)
+    if dst.is_dir():
+        raise IsADirectoryError(21, "is a directory", str(dst))
+    if dst.exists() and not overwrite:
+        raise RecordingExists(17, "exists (not overwritten)", str(dst))
     dst.parent.mkdir(parents=True, exist_ok=True)
     n = 0
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
     truncated, error = False, None
-    with open(src, "rb") as f, open(dst, "wb") as out:
-        w = Writer(out, compression=CompressionType.ZSTD)
-        w.start(profile="", library="hilstack repair")
-        try:
-            for rec in StreamReader(f, skip_magic=False).records:
-                kind = type(rec).__name__
-                if kind == "Schema" and rec.id not in schema_ids:
-                    schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
-                elif kind == "Channel" and rec.id not in channel_ids:
-                    channel_ids[rec.id] = w.register_channel(
-                        rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), rec.metadata
-                    )
-                elif kind == "Message" and rec.channel_id in channel_ids:
-                    w.add_message(channel_ids[rec.channel_id], rec.log_time, rec.data,
-                                  rec.publish_time, rec.sequence)
-                    n += 1
-                elif kind == "Metadata":
-                    w.add_metadata(rec.name, rec.metadata)
-        except (McapError, EOFError, ValueError, KeyError, OSError) as e:
-            truncated, error = True, f"{type(e).__name__}: {e}"
-        w.finish()
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".part", dir=dst.parent)
+    tmp = Path(tmp_name)
+    try:
+        with open(src, "rb") as f, os.fdopen(fd, "wb") as out:
+            w = Writer(out, compression=CompressionType.ZSTD)
+            w.start(profile="", library="hilstack repair")
+            try:
+                for rec in StreamReader(f, skip_magic=False).records:
+                    kind = type(rec).__name__
+                    if kind == "Schema" and rec.id not in schema_ids:
+                        schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+                    elif kind == "Channel" and rec.id not in channel_ids:
+                        channel_ids[rec.id] = w.register_channel(
+                            rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), rec.metadata
+                        )
+                    elif kind == "Message" and rec.channel_id in channel_ids:
+                        w.add_message(channel_ids[rec.channel_id], rec.log_time, rec.data,
+                                      rec.publish_time, rec.sequence)
+                        n += 1
+                    elif kind == "Metadata":
+                        w.add_metadata(rec.name, rec.metadata)
+            except _DAMAGE as e:
+                truncated, error = True, f"{type(e).__name__}: {e}"
+            w.finish()
+            out.flush()
+            os.fsync(out.fileno())
+        if overwrite:
+            os.replace(tmp, dst)
+        else:
+            try:
+                os.link(tmp, dst)  # atomic: fails if dst appeared meanwhile
+            except FileExistsError:
+                raise RecordingExists(17, "exists (not overwritten)", str(dst)) from None
+    finally:
+        tmp.unlink(missing_ok=True)
     return RepairResult(messages=n, channels=len(channel_ids), truncated=truncated, error=error)
 
 
@@ -419,7 +498,8 @@ class Recorder(Node):
 
     Use :meth:`record` (blocks until a signal, ``stop_event`` or ``seconds``) or call
     :meth:`pump` yourself; :meth:`close` writes what is still queued, finishes the file
-    and stops listening. Nothing is written after that (``pump`` then raises
+    and stops listening. ``overwrite=False``: an existing ``path`` is refused
+    (:class:`RecordingExists`) before anything is opened. Nothing is written after that (``pump`` then raises
     :class:`RecordingClosed`). A crash loses at most ``flush_period_s`` of messages
     plus one polling period (see :class:`McapLog`).
     """
@@ -431,6 +511,7 @@ class Recorder(Node):
         bus: BusConfig | None = None,
         flush_period_s: float = FLUSH_PERIOD_S,
         topics: list[str] | None = None,
+        overwrite: bool = True,
         **kw: Any,
     ):
         keep = topic_filter(topics)  # a bad pattern fails here, before anything is opened
@@ -440,11 +521,17 @@ class Recorder(Node):
         specs = zenoh.KeyExpr(f"{keys.root(rig)}/*/spec")  # every robot's (bus/keys.py: spec)
         self._keep = keep if topics else None
         self._is_spec = lambda topic: specs.intersects(zenoh.KeyExpr(topic))
-        super().__init__("recorder", rig, bus, **kw)
         meta = {"rig": rig, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
         if topics:
             meta["topics"] = " ".join(topics)
-        self.log = McapLog(path, metadata=meta, flush_period_s=flush_period_s)
+        # the file first: a path that cannot be written fails before a session is open
+        self.log = McapLog(path, metadata=meta, flush_period_s=flush_period_s, overwrite=overwrite)
+        try:
+            super().__init__("recorder", rig, bus, **kw)
+        except BaseException:
+            self.log.close()
+            self.log.path.unlink(missing_ok=True)  # our new file, with nothing recorded
+            raise
         self._sub = self.subscribe(keys.all_of(rig), AnyMsg, latest=False, capacity=1 << 16)
         self.malformed = 0
         #: messages left out by ``topics``

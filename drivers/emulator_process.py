@@ -48,8 +48,11 @@ class EmulatorProcess:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), *filter(None, [env.get("PYTHONPATH")])])
         with open(self.log_path, "wb") as errf:
+            # its own session (process group): a Ctrl-C in the terminal reaches the driver,
+            # which stops the robot and then the emulator (stop()); the emulator itself
+            # must not die first. It still exits with us (--parent-pid).
             self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=errf, stdin=subprocess.DEVNULL,
-                                         cwd=str(REPO_ROOT), env=env)
+                                         cwd=str(REPO_ROOT), env=env, start_new_session=True)
         assert self.proc.stdout is not None
         deadline = time.monotonic() + self.start_timeout_s
         line = b""

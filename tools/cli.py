@@ -71,6 +71,9 @@ for _mod in _VERB_MODULES:
 
 
 def main() -> None:
+    from hilstack.tools import common
+
+    common.HARD_EXIT_AFTER_ERROR = True  # after an error the process ends, whatever is left open
     app()
 
 

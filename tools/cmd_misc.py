@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
 import sys
+import threading
 
 import typer
 
@@ -14,6 +16,7 @@ from hilstack.tools.common import (
     EndpointOpt,
     UserError,
     bus_config,
+    check_rig_name,
     echo_json,
     exit_with_parent,
     setup_logging,
@@ -21,12 +24,30 @@ from hilstack.tools.common import (
 )
 
 
+def _up_line(node, cfg) -> str:  # noqa: ANN001 - a DriverNode, a RigConfig
+    return f"{node.robot} up on hil/{cfg.name}/{node.robot}/{{state,cmd}} ({node.driver.backend}, {cfg.pace})"
+
+
+def _announce_when_up(node, line: str) -> threading.Event:  # noqa: ANN001 - a DriverNode
+    """Print ``line`` once the node's driver is configured and active (its link is open and
+    answering), or configured and held stopped by a latched e-stop; never when it fails
+    before. Set the returned event when ``serve`` has ended."""
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.is_set():
+            if node.driver.active or node.estopped:
+                typer.echo(line + (" (rig e-stop engaged: stopped)" if node.estopped else ""), err=True)
+                return
+            done.wait(0.02)
+
+    threading.Thread(target=watch, daemon=True, name=f"announce-{node.robot}").start()
+    return done
+
+
 def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
     """Several driver nodes in this process, one thread each (sims sharing one world);
     a signal stops them all. Exit 1 when one of them failed."""
-    import signal
-    import threading
-
     from hilstack.configs.schema import rig_robot_config
     from hilstack.drivers.bridge import DriverNode
     from hilstack.drivers.registry import make_driver
@@ -37,12 +58,14 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
     stopping = threading.Event()  # a stop was asked for: what fails after it is the shutdown
 
     def serve(node: DriverNode) -> None:
+        announced = _announce_when_up(node, _up_line(node, cfg))
         try:
             typer.echo(f"{node.robot} down: {node.serve(max_steps=steps)}", err=True)
         except Exception as e:  # its own error path already stopped its robot
             if not stopping.is_set():
                 errors.append(f"{node.robot}: {e}")
         finally:
+            announced.set()
             stopping.set()
             for other in nodes:  # one robot of a shared world down: the world is gone for all
                 other.stop_event.set()
@@ -55,9 +78,7 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, stop_all)
     threads = [threading.Thread(target=serve, args=(nd,), name=f"driver-{nd.robot}") for nd in nodes]
-    for nd, th in zip(nodes, threads, strict=True):
-        typer.echo(f"{nd.robot} up on hil/{cfg.name}/{nd.robot}/{{state,cmd}} ({nd.driver.backend}, {cfg.pace})",
-                   err=True)
+    for th in threads:
         th.start()
     try:
         for th in threads:
@@ -107,6 +128,8 @@ def register(app: typer.Typer) -> None:
         from hilstack.drivers.bridge import DriverNode
         from hilstack.drivers.registry import make_driver
 
+        if steps is not None and steps < 1:
+            raise UserError(f"--steps {steps}: expected a number of control periods >= 1")
         setup_logging()
         exit_with_parent()
         cfg = load_rig(rig)
@@ -138,18 +161,16 @@ def register(app: typer.Typer) -> None:
                     cmd += ["--endpoint", endpoint]
                 procs.append(subprocess.Popen(cmd, env={**os.environ, PARENT_PID_ENV: str(os.getpid())}))
 
-            def forward(signum, _frame):  # stopped by a supervisor (SIGTERM): stop every robot's node too
+            def forward(signum, _frame):  # Ctrl-C, or a supervisor's SIGTERM: every robot's node stops its robot
                 for p in procs:
                     if p.poll() is None:
                         p.send_signal(signum)
 
-            signal.signal(signal.SIGTERM, forward)
-            try:
-                for p in procs:
-                    p.wait()
-            except KeyboardInterrupt:
-                for p in procs:
-                    p.terminate()
+            # installed explicitly: a `hil up` started in the background inherits SIGINT ignored
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, forward)
+            for p in procs:
+                p.wait()  # each node stops its robot and exits; we wait for all of them
             # the rig failed if one robot's node did: its exit code (1 link, 2 input) is ours
             failed = [p.returncode for p in procs if p.returncode not in (0, None)]
             if failed:
@@ -167,10 +188,11 @@ def register(app: typer.Typer) -> None:
             watchdog_periods=cfg.watchdog_periods,
             pace=cfg.pace,
         )
-        typer.echo(f"{n} up on hil/{cfg.name}/{n}/{{state,cmd}} ({node.driver.backend}, {cfg.pace})", err=True)
+        announced = _announce_when_up(node, _up_line(node, cfg))
         try:
             stats = node.serve(max_steps=steps)
         finally:
+            announced.set()
             node.close()
         typer.echo(f"{n} down: {stats}", err=True)
         if node.cycle is not None:
@@ -196,8 +218,9 @@ def register(app: typer.Typer) -> None:
         from hilstack.bus.estop import command_estop
         from hilstack.bus.node import Node
 
-        if not timeout_s > 0:
-            raise UserError("--timeout-s must be > 0")
+        check_rig_name(rig)
+        if not (math.isfinite(timeout_s) and 0 < timeout_s <= 60):
+            raise UserError(f"--timeout-s {timeout_s}: expected a number in (0, 60]")
         node = Node("estop-cli", rig, bus_config(endpoint), handle_signals=False)
         try:
             res = command_estop(node, engaged=not release, reason=reason, timeout_s=timeout_s)
@@ -240,6 +263,7 @@ def register(app: typer.Typer) -> None:
         from hilstack.bus.estop import query_latches
         from hilstack.bus.node import Node, alive_nodes
 
+        check_rig_name(rig)
         node = Node("nodes-cli", rig, bus_config(endpoint), handle_signals=False)
         try:
             # a fresh session finds its peers over the first few hundred ms: keep asking

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, bus_config, echo_json, one_line, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -76,8 +76,15 @@ def register(app: typer.Typer) -> None:
                 adapter = load_adapter(adapt, method)
             except ValueError as e:
                 raise UserError(str(e)) from None
+            except Exception as e:  # noqa: BLE001 - not a checkpoint at all (CSV, random bytes...)
+                raise UserError(f"--adapt {adapt}: not an adaptation checkpoint ({type(e).__name__}: "
+                                f"{one_line(e)})") from None
         else:
-            dyn = load_dynamics(model)
+            try:
+                dyn = load_dynamics(model)
+            except Exception as e:  # noqa: BLE001 - torch/pickle say many things about a file that is not one
+                raise UserError(f"--model {model}: not a dynamics checkpoint ({type(e).__name__}: "
+                                f"{one_line(e)})") from None
         bus = bus_config(endpoint) if endpoint else cfg.bus
         with ControllerNode(cfg.name, robot, bus, name="mpc", state_timeout_s=10.0) as ctl:
             if adapter is not None:

@@ -2,37 +2,99 @@
 
 from __future__ import annotations
 
+import math
+import threading
 import time
 from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, bus_config, check_rig_name, echo_json, user_errors
+
+#: `hil record` warns when no node is alive on the rig this long after it started [s]
+NO_NODE_WARN_S = 3.0
+
+
+def _recording_arg(path: Path) -> None:
+    """A one-line exit-2 error unless ``path`` is an MCAP recording (empty file, CSV, random
+    bytes...); also used by `hil viz --recording`."""
+    from hilstack.bus.recording import NotARecording, check_mcap
+
+    try:
+        check_mcap(path)
+    except NotARecording as e:
+        raise UserError(str(e)) from None
+
+
+def _out_error(out: Path, e: OSError) -> UserError:
+    from hilstack.bus.recording import RecordingExists
+
+    if isinstance(e, RecordingExists):
+        return UserError(f"--out {out} exists: not overwritten (choose another file, or --force to replace it)")
+    return UserError(f"--out {out}: cannot write it ({e.strerror or e})")
+
+
+def _default_out(rig: str) -> Path:
+    """recordings/<rig>-<time>.mcap, with -2, -3... when that name is taken (never overwritten)."""
+    base = Path("recordings") / f"{rig}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out, k = base.with_suffix(".mcap"), 1
+    while out.exists():
+        k += 1
+        out = base.parent / f"{base.name}-{k}.mcap"
+    return out
+
+
+def _warn_if_no_node(rec, rig: str, wait_s: float) -> None:  # noqa: ANN001 - a Recorder
+    """In the background: a warning when no other node is alive on the rig after ``wait_s``."""
+    from hilstack.bus.node import alive_nodes
+
+    def check() -> None:
+        try:
+            seen = [n for n in alive_nodes(rec.session, rig, timeout_s=0.5, window_s=wait_s) if n != rec.name]
+        except Exception:  # noqa: BLE001 - the recorder stopped meanwhile: nothing to say
+            return
+        if not seen and not rec.stop_event.is_set():
+            typer.echo(f"warning: no node alive on rig {rig} after {wait_s:g} s (is it up? `hil up {rig}`); "
+                       "recording on", err=True)
+
+    threading.Thread(target=check, daemon=True, name="rig-alive-check").start()
 
 
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def record(
-        rig: str = typer.Option(..., "--rig", help="rig name (key prefix hil/<rig>/)"),
+        rig: str = typer.Option(..., "--rig", help="rig config name or path (configs/rigs/); records hil/<its name>/**"),
         out: Path = typer.Option(None, "--out", help="MCAP file (default recordings/<rig>-<time>.mcap)"),
         seconds: float = typer.Option(None, "--seconds", help="stop after this long (default: until Ctrl-C)"),
         topics: list[str] = typer.Option(
             None, "--topics", help="only topics matching these key expressions (e.g. 'hil/lab/*/state'; the "
                                    "robots' specs are always recorded); repeatable. Default: everything of the rig"
         ),
+        force: bool = typer.Option(False, "--force", help="replace --out if it exists (default: refuse)"),
         endpoint: str = EndpointOpt,
     ) -> None:
-        """Record every message of a rig to one MCAP file (a crash loses at most the last 0.5 s)."""
-        from hilstack.bus.recording import Recorder
+        """Record every message of a rig to one MCAP file (a crash loses at most the last 0.5 s).
 
-        out = out or Path("recordings") / f"{rig}-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
+        An existing --out is never overwritten without --force."""
+        from hilstack.bus.recording import Recorder
+        from hilstack.configs.schema import load_rig
+
+        if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+            raise UserError(f"--seconds {seconds}: expected a finite number > 0")
+        cfg = load_rig(rig)  # a mistyped name: "no such rig config; known: [...]", exit 2
+        name = cfg.name
+        bus = bus_config(endpoint) if endpoint else cfg.bus
+        out = out or _default_out(name)
         try:
-            rec = Recorder(rig, out, bus_config(endpoint), topics=topics)
+            rec = Recorder(name, out, bus, topics=topics, overwrite=force)
         except ValueError as e:
             raise UserError(str(e)) from None
-        what = " ".join(topics) + " (and the specs)" if topics else f"hil/{rig}/**"
+        except OSError as e:
+            raise _out_error(out, e) from None
+        what = " ".join(topics) + " (and the specs)" if topics else f"hil/{name}/**"
         typer.echo(f"recording {what} to {out} (Ctrl-C to stop)", err=True)
+        _warn_if_no_node(rec, name, NO_NODE_WARN_S)
         try:
             n = rec.record(seconds)
         finally:
@@ -52,6 +114,7 @@ def register(app: typer.Typer) -> None:
         """Live view of a rig in Foxglove (WebSocket server; robots in the 3D panel)."""
         from hilstack.tools.foxglove_live import FoxgloveLive
 
+        check_rig_name(rig, "--rig")
         if not 0 <= port <= 65535:
             raise UserError(f"--port {port}: expected 0..65535")
         try:
@@ -85,8 +148,11 @@ def register(app: typer.Typer) -> None:
         from hilstack.bus.recording import ReplayRefused, topic_filter
         from hilstack.bus.recording import replay as do_replay
 
-        if speed < 0:
-            raise UserError("--speed must be >= 0")
+        if not (math.isfinite(speed) and speed >= 0):
+            raise UserError(f"--speed {speed}: expected a finite number >= 0 (0: as fast as possible)")
+        if rig is not None:
+            check_rig_name(rig, "--rig")
+        _recording_arg(path)
         try:
             topic_filter(topics)
         except ValueError as e:
@@ -114,13 +180,21 @@ def register(app: typer.Typer) -> None:
     def repair(
         path: Path = typer.Argument(..., exists=True, dir_okay=False, help="MCAP recording, e.g. cut by a crash"),
         out: Path = typer.Option(..., "--out", help="the repaired copy (a new file)"),
+        force: bool = typer.Option(False, "--force", help="replace --out if it exists (default: refuse)"),
     ) -> None:
-        """Copy a crashed recording into a finished MCAP file that every tool opens."""
+        """Copy a crashed recording into a finished MCAP file that every tool opens.
+
+        A file that is not MCAP is refused (nothing written); an existing --out is never
+        overwritten without --force."""
         from hilstack.bus.recording import repair as do_repair
 
         if out.exists() and out.resolve() == path.resolve():
             raise UserError(f"--out {out} is the recording itself; write the repaired copy to another file")
-        r = do_repair(path, out)
+        _recording_arg(path)
+        try:
+            r = do_repair(path, out, overwrite=force)
+        except OSError as e:
+            raise _out_error(out, e) from None
         cut = f"; the source was cut ({r.error}): everything before the damage was kept" if r.truncated else ""
         typer.echo(f"wrote {r.messages} messages on {r.channels} channels to {out}{cut}", err=True)
 
@@ -133,6 +207,7 @@ def register(app: typer.Typer) -> None:
         """Summarise a recording: channels, counts, rates, gaps."""
         from hilstack.bus.recording import summarize
 
+        _recording_arg(path)
         s = summarize(path)
         if json_out:
             echo_json(s)

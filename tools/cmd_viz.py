@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, bus_config, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, bus_config, check_rig_name, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -29,10 +29,14 @@ def register(app: typer.Typer) -> None:
         if recording is not None:
             if save is None:
                 raise UserError("--recording needs --save OUT.rrd")
+            from hilstack.tools.cmd_record import _recording_arg
+
+            _recording_arg(recording)  # not MCAP (empty, CSV...): one line, nothing written
             n = viz_recording(recording, save)
             typer.echo(f"wrote {n} messages to {save}; open with: rerun {save}", err=True)
             return
         if rig is None:
             raise UserError("give --rig NAME (live) or --recording FILE --save OUT.rrd")
+        check_rig_name(rig, "--rig")
         v = viz_live(rig, bus_config(endpoint), seconds=seconds, save=save, spawn=spawn, grpc=not (save or spawn))
         typer.echo(f"logged {v.logged} messages", err=True)

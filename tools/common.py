@@ -61,6 +61,34 @@ def one_line(e: BaseException) -> str:
     return lines[0] if lines else type(e).__name__
 
 
+#: after an error a verb exits within this long, even when something it opened (a Zenoh
+#: session's callback threads, which are not daemon threads) would keep the process alive [s]
+ERROR_EXIT_GRACE_S = 5.0
+#: set by the `hil` program (tools/cli.py: main); off when verbs run inside another
+#: process (tests' CliRunner), which must not be ended
+HARD_EXIT_AFTER_ERROR = False
+
+
+def exit_within(code: int, grace_s: float = ERROR_EXIT_GRACE_S) -> None:
+    """Make sure this process ends, with ``code``, at most ``grace_s`` from now: a daemon
+    thread that calls ``os._exit`` if the normal exit has not happened by then. Called on
+    every error path of :func:`user_errors`: no verb hangs after an error. Only in the
+    `hil` program (:data:`HARD_EXIT_AFTER_ERROR`)."""
+    if not HARD_EXIT_AFTER_ERROR:
+        return
+
+    def hard_exit() -> None:
+        time.sleep(grace_s)
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: S110 - exiting anyway
+                pass
+        os._exit(code)
+
+    threading.Thread(target=hard_exit, daemon=True, name="exit-after-error").start()
+
+
 def user_errors(fn: F) -> F:
     """Expected failures as one line on stderr, no traceback. Exit 2: the input is wrong
     (argument, config, missing file, a command the contract refuses). Exit 1: the robot,
@@ -73,6 +101,7 @@ def user_errors(fn: F) -> F:
             return fn(*a, **kw)
         except (UserError, ConfigError, CommandError, FileNotFoundError) as e:
             typer.echo(f"error: {one_line(e)}", err=True)
+            exit_within(EXIT_USAGE)
             raise typer.Exit(EXIT_USAGE) from None
         except (LinkError, LifecycleError) as e:
             what = "link error" if isinstance(e, LinkError) else "error"
@@ -80,9 +109,29 @@ def user_errors(fn: F) -> F:
             # what follows the first line (e.g. the emulator's log tail) is diagnosis: indented
             for ln in str(e).strip().splitlines()[1:]:
                 typer.echo(f"  {ln}", err=True)
+            exit_within(EXIT_RUNTIME)
             raise typer.Exit(EXIT_RUNTIME) from None
+        except Exception as e:
+            # typer.Exit and typer's usage errors carry their exit code (0: a normal end);
+            # anything else is a bug: its traceback, exit 1, and the process still ends
+            code = getattr(e, "exit_code", EXIT_RUNTIME)
+            if code:
+                exit_within(code)
+            raise
 
     return wrapper  # type: ignore[return-value]
+
+
+def check_rig_name(rig: str, what: str = "rig") -> str:
+    """``rig`` if it can be a rig name on the bus (the segment of ``hil/<rig>/...``), else a
+    one-line UserError (exit 2) naming ``what`` (e.g. ``--rig``) and the value."""
+    from hilstack.bus import keys
+
+    try:
+        keys.root(rig)
+    except ValueError:
+        raise UserError(f"{what} {rig!r} is not a rig name: use letters, digits, '_' and '-'") from None
+    return rig
 
 
 def bus_config(endpoint: str | None, connect: list[str] | None = None) -> BusConfig:

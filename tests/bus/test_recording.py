@@ -15,6 +15,14 @@ from hilstack.bus.schemas import AnyMsg, Command, EStop, Image, Plan, ResetEvent
 RIG = "rec_test"
 
 
+def rig_file(tmp_path, name: str = RIG):
+    """A rig config without robots, so that `hil record --rig FILE` records hil/<name>/**
+    (`hil record` takes a rig config: a mistyped name is an error)."""
+    p = tmp_path / f"{name}.yaml"
+    p.write_text(f"name: {name}\nrobots: {{}}\n")
+    return p
+
+
 def _sample_messages() -> list[tuple[str, object]]:
     out = []
     for i in range(50):
@@ -241,7 +249,7 @@ def test_sigkill_loses_at_most_one_second(tmp_path, bus, spawn):
 
     rate_hz = 100
     path = tmp_path / "killed.mcap"
-    child = spawn("record", "--rig", RIG, "--out", str(path), "--endpoint", bus.endpoint)
+    child = spawn("record", "--rig", str(rig_file(tmp_path)), "--out", str(path), "--endpoint", bus.endpoint)
     pub = Node("pub", RIG, bus, handle_signals=False)
     try:
         # warm up until the recorder is subscribed *and* its data is on disk: proves the
@@ -450,6 +458,7 @@ def test_record_topics_errors_are_one_line(tmp_path):
 
     for pattern, why in [("hil/other/*/state", "matches nothing under hil/rec_test/**"),
                          ("hil/**/a**", "bad topic pattern")]:
-        r = CliRunner().invoke(app, ["record", "--rig", RIG, "--out", str(tmp_path / "x.mcap"), "--topics", pattern])
+        r = CliRunner().invoke(app, ["record", "--rig", str(rig_file(tmp_path)), "--out", str(tmp_path / "x.mcap"),
+                                     "--topics", pattern])
         assert r.exit_code == 2 and why in r.output and r.output.strip().count("\n") == 0, r.output
         assert not (tmp_path / "x.mcap").exists()
