@@ -49,7 +49,8 @@ def test_replay_cli_says_what_it_left_out_and_refuses_a_live_rig(tmp_path, bus):
     r = CliRunner().invoke(app, ["replay", str(path), "--speed", "0", "--endpoint", bus.endpoint])
     assert r.exit_code == 0, r.output
     assert "replayed 3 messages" in r.output
-    assert "not replayed: 6 command messages" in r.output and "hil/clirig/estop" in r.output
+    assert "not replayed: 3 command messages" in r.output
+    assert "never replayed: 3 e-stop releases on hil/clirig/estop" in r.output
     r = CliRunner().invoke(app, ["replay", str(path), "--topics", "hil//x", "--endpoint", bus.endpoint])
     assert r.exit_code == 2 and "--topics: bad topic pattern 'hil//x'" in r.output
 
@@ -61,7 +62,7 @@ def test_replay_cli_says_what_it_left_out_and_refuses_a_live_rig(tmp_path, bus):
         r = CliRunner().invoke(
             app, ["replay", str(path), "--speed", "0", "--force", "--include-commands", "--endpoint", bus.endpoint]
         )
-        assert r.exit_code == 0 and "replayed 9 messages" in r.output
+        assert r.exit_code == 0 and "replayed 6 messages" in r.output and "never replayed: 3 e-stop releases" in r.output
 
 
 def test_version_is_the_package_version():
@@ -71,12 +72,32 @@ def test_version_is_the_package_version():
     assert r.exit_code == 0 and r.output.strip() == f"hilstack {version('hilstack')}"
 
 
+def access_section(tmp_path) -> str:
+    """A rig's bus section with access control on a private endpoint, its credentials generated."""
+    from hilstack.bus.access import generate
+    from tests.helpers import free_port
+
+    creds = tmp_path / "creds.txt"
+    generate(creds, ["operator"])
+    return f"bus:\n  endpoint: tcp/127.0.0.1:{free_port()}\n  access: {{credentials: {creds}}}\n"
+
+
 def real_roach(tmp_path, port: str):
     robot = tmp_path / "my_roach.yaml"
     robot.write_text(f"robot: velociroach\nbackend: real\nparams:\n  port: {port}\n")
     rig = tmp_path / "my_rig.yaml"
-    rig.write_text(f"name: my_rig\nrobots:\n  roach:\n    config: {robot}\n")
+    rig.write_text(f"name: my_rig\nrobots:\n  roach:\n    config: {robot}\n" + access_section(tmp_path))
     return robot, rig
+
+
+def test_a_real_robot_on_a_rig_without_access_control_is_refused(tmp_path):
+    robot, _ = real_roach(tmp_path, "/dev/ttyNOPE_hilstack")
+    rig = tmp_path / "open_rig.yaml"
+    rig.write_text(f"name: open_rig\nrobots:\n  roach:\n    config: {robot}\n")
+    r = CliRunner().invoke(app, ["up", str(rig), "--steps", "1"])
+    assert r.exit_code == 2, r.output
+    assert r.output.strip() == ("error: rig open_rig: robot roach is real hardware; its rig needs a bus.access "
+                                "section (who may command and release it; docs/platform.md)")
 
 
 def test_drive_uses_the_backend_of_the_config_file(tmp_path):
@@ -112,7 +133,8 @@ def test_a_rig_whose_robot_fails_exits_like_the_robot(tmp_path):
     not_a_tty.write_bytes(b"")
     robot, _ = real_roach(tmp_path, str(not_a_tty))
     rig = tmp_path / "two.yaml"
-    rig.write_text(f"name: two\nrobots:\n  a:\n    config: {robot}\n  b:\n    config: {robot}\n")
+    rig.write_text(f"name: two\nrobots:\n  a:\n    config: {robot}\n  b:\n    config: {robot}\n"
+                   + access_section(tmp_path))
     r = CliRunner().invoke(app, ["up", str(rig), "--steps", "1"])
     assert r.exit_code == 1, r.output
 
