@@ -9,6 +9,7 @@ every other node is a client of it with its credentials.
 from __future__ import annotations
 
 import json
+import re
 
 import zenoh
 
@@ -100,7 +101,7 @@ def open_session(bus: BusConfig | None = None, server: bool = False, rig: str | 
     try:
         return zenoh.open(cfg)
     except Exception as e:  # zenoh.ZError; the message ends with a Rust source location
-        why = str(e).split("  at /", 1)[0].strip()
+        why = re.split(r"\s+at /", str(e), maxsplit=1)[0].strip()
         if server:
             raise BusUnavailable(f"rig {rig}: cannot own its endpoint {bus.endpoint} ({why}); another process "
                                  "holds it (another rig on this host? give each rig its own bus.endpoint)") from None

@@ -208,3 +208,64 @@ def test_a_link_error_keeps_its_diagnosis_indented_below_the_one_line():
     assert r.exit_code == 1
     assert r.output.splitlines() == ["link error: no heartbeat from the robot within 10 s; emulator log:",
                                      "  line one", "  line two"]
+
+
+def test_every_rig_verb_takes_a_name_or_a_file_and_uses_its_bus_section(tmp_path, spawn, monkeypatch):
+    """Issue 22 item 9: `hil estop configs/rigs/X.yaml` was a traceback and `hil estop NAME`
+    ignored the rig's bus: section (a rig on its own endpoint: "no driver node alive")."""
+    import re
+
+    from hilstack.configs import schema
+    from tests.helpers import ROOT, free_port, wait_for
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    root = tmp_path / "configs"
+    (root / "rigs").mkdir(parents=True)
+    rig = root / "rigs" / "own_ep.yaml"  # a rig on its own endpoint, nothing on the command line says where
+    rig.write_text(f"name: own_ep\nrobots:\n  pm:\n    config: {ROOT / 'configs/robots/pointmass.yaml'}\n"
+                   f"bus:\n  endpoint: {ep}\n")
+    up = spawn("up", str(rig))
+    monkeypatch.setattr(schema, "CONFIG_ROOT", root)  # so that the name own_ep is a rig config here
+    try:
+        wait_for(lambda: "driver-pm" in CliRunner().invoke(app, ["nodes", "own_ep"]).output, 60, "the driver node")
+        for form in (str(rig), "own_ep"):
+            r = CliRunner().invoke(app, ["estop", form, "--timeout-s", "5"])
+            assert r.exit_code == 0 and "ENGAGED e-stop on rig own_ep: acknowledged by driver-pm" in r.output, r.output
+            r = CliRunner().invoke(app, ["estop", form, "--release", "--timeout-s", "5"])
+            assert r.exit_code == 0 and "released e-stop on rig own_ep" in r.output, r.output
+            r = CliRunner().invoke(app, ["nodes", form, "--json"])
+            assert r.exit_code == 0 and any(x["node"] == "driver-pm" for x in json.loads(r.output)), r.output
+        out = tmp_path / "s.mcap"
+        r = CliRunner().invoke(app, ["record", "--rig", str(rig), "--seconds", "1.5", "--out", str(out)])
+        assert r.exit_code == 0, r.output
+        n = int(re.search(r"wrote (\d+) messages", r.output).group(1))
+        assert n > 0  # it heard the rig on the rig's endpoint
+        # replay onto the rig by its file: the live-driver check looks on the rig's endpoint
+        r = CliRunner().invoke(app, ["replay", str(out), "--rig", str(rig), "--speed", "0"])
+        assert r.exit_code == 2 and "rig 'own_ep' has live driver nodes (driver-pm)" in r.output, r.output
+        r = CliRunner().invoke(app, ["replay", str(out), "--speed", "0"])  # the recorded rig: its config's bus
+        assert r.exit_code == 2 and "rig 'own_ep' has live driver nodes (driver-pm)" in r.output, r.output
+        r = CliRunner().invoke(app, ["foxglove", "--rig", "own_ep", "--seconds", "1", "--port", "0"])
+        assert r.exit_code == 0 and int(re.search(r"forwarded (\d+)", r.output).group(1)) > 0, r.output
+        r = CliRunner().invoke(app, ["viz", "--rig", str(rig), "--seconds", "1", "--save", str(tmp_path / "v.rrd")])
+        assert r.exit_code == 0 and int(re.search(r"logged (\d+)", r.output).group(1)) > 0, r.output
+    finally:
+        assert up.stop(20) == 0
+    # the one helper: name or file, --endpoint replaces the endpoint only, a bad path is one line
+    from hilstack.tools.common import rig_bus
+
+    name, bus, cfg = rig_bus(str(rig), "tcp/127.0.0.1:1")
+    assert (name, bus.endpoint, cfg.name) == ("own_ep", "tcp/127.0.0.1:1", "own_ep")
+    assert rig_bus("made_up_rig")[1:] == (schema.BusConfig(), None)
+    r = CliRunner().invoke(app, ["estop", str(tmp_path / "nope.yaml")])
+    assert r.exit_code == 2 and r.output.startswith("error: ") and "Traceback" not in r.output
+    assert len(r.output.strip().splitlines()) == 1
+
+
+def test_endpoint_override_keeps_the_rigs_access_control(tmp_path):
+    from hilstack.tools.common import rig_bus
+
+    rig = tmp_path / "r.yaml"
+    rig.write_text("name: r\nrobots:\n  pm:\n    config: pointmass\nbus:\n  access: {credentials: /x/creds}\n")
+    _, bus, _ = rig_bus(str(rig), "tcp/127.0.0.1:9")
+    assert bus.endpoint == "tcp/127.0.0.1:9" and bus.access is not None and bus.access.credentials == "/x/creds"
