@@ -89,6 +89,7 @@ class DriverNode(Node):
                               "(who may command and release it; docs/platform.md)")
         if "session" not in node_kw:  # on an access rig the driver node is the rig's router (bus/session.py)
             node_kw.update(server=access, robots=[robot])
+        node_kw.setdefault("unique", True)  # one driver node per robot and rig (bus/node.py: NodeConflict)
         super().__init__(keys.driver_node(robot), rig, bus, **node_kw)
         if not access and driver.backend == "emulated":
             log.warning("rig %s has no bus.access: any process on this host can command %s and release its e-stop",

@@ -66,6 +66,7 @@ def user_errors(fn: F) -> F:
     (argument, config, missing file, a command the contract refuses). Exit 1: the robot,
     its link or the rig failed while running (the robot's safety has stopped it)."""
     from hilstack.bus.access import AccessError
+    from hilstack.bus.node import NodeConflict
     from hilstack.bus.session import BusUnavailable
     from hilstack.drivers.base import CommandError, LifecycleError, LinkError
 
@@ -73,7 +74,7 @@ def user_errors(fn: F) -> F:
     def wrapper(*a: Any, **kw: Any) -> Any:
         try:
             return fn(*a, **kw)
-        except (UserError, ConfigError, CommandError, FileNotFoundError, AccessError) as e:
+        except (UserError, ConfigError, CommandError, FileNotFoundError, AccessError, NodeConflict) as e:
             typer.echo(f"error: {one_line(e)}", err=True)
             raise typer.Exit(EXIT_USAGE) from None
         except (LinkError, LifecycleError, BusUnavailable) as e:

@@ -311,3 +311,22 @@ def test_no_session_opens_without_the_credentials_a_client_needs(tmp_path):
     bus = BusConfig(endpoint=bus.endpoint, access=BusAccess(credentials=str(creds)))
     with pytest.raises(BusUnavailable, match="no driver node listening there"):
         Node("n", "r", bus, handle_signals=False)
+
+
+def test_a_second_driver_node_of_the_same_rig_and_robot_is_refused(spawn):
+    """Two rigs of one name on one endpoint (another user's `hil up` of the same rig on this
+    host) no longer share the robot's command key silently: the second driver node refuses."""
+    import socket
+
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    spawn("up", "pointmass_sim", "--endpoint", ep)
+    # the first driver node owns the rendezvous port (a test node opened earlier would own it instead)
+    wait_for(lambda: socket.socket().connect_ex(("127.0.0.1", port)) == 0, 60, "the first driver's listener")
+    with Node("test-watch", "pointmass_sim", BusConfig(endpoint=ep), handle_signals=False) as w:
+        States(w, "pointmass_sim", "pm").until(lambda s: True, "the first driver's state", 60)
+    r = _hil("up", "pointmass_sim", "--endpoint", ep, "--steps", "50")
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == (
+        f"error: a node driver-pm is already alive on rig pointmass_sim at {ep}: another process (another user's "
+        "rig of the same name?) drives it; give each rig its own bus.endpoint")

@@ -26,7 +26,7 @@ RIG = "pointmass_sim"
 
 def _hil(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "hilstack.tools.cli", *args], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)
+                          text=True, timeout=180)
 
 
 def test_replay_with_commands_and_force_never_releases_the_estop(tmp_path, spawn):
@@ -58,7 +58,7 @@ def test_replay_with_commands_and_force_never_releases_the_estop(tmp_path, spawn
             time.sleep(0.05)
         assert any(s.action and s.action[0] > 0.5 for s in new())  # it drove
         time.sleep(0.6)  # the recorder's flush period
-        assert rec.stop(30) == 0
+        assert rec.stop(60) == 0
 
         # the operator's e-stop, then the replay of that session onto the live rig
         assert _hil("estop", RIG, "--endpoint", ep, "--timeout-s", "5").returncode == 0
@@ -78,4 +78,4 @@ def test_replay_with_commands_and_force_never_releases_the_estop(tmp_path, spawn
         assert re.search(r"never replayed: \d+ e-stop releases on hil/pointmass_sim/estop/release/", r.stderr)
     finally:
         ctl.close()
-        assert up.stop(20) == 0
+        assert up.stop(60) == 0
