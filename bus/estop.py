@@ -12,6 +12,12 @@ when ANY of them says engaged (disagreement errs on the safe side). When no node
 the rig is running, nothing remembers the e-stop; a driver then starts as always,
 holding the safe action until the first command.
 
+Who releases: a release is only taken from ``hil/<rig>/estop/release/<user>``
+(``EStop.sender`` is set from that key); a release on the engage key (an old client, a
+replayed recording) is refused and counted. On a rig with access control the ACL lets
+only the ``release`` users' credentials publish there, each on its own key, and every
+authenticated session may engage (bus/access.py).
+
 Acknowledgements: a driver node answers each e-stop command on
 ``hil/<rig>/estop/ack`` with an :class:`~hilstack.bus.schemas.EStopAck` quoting the command's
 id and the state it is now in. :func:`command_estop` repeats the command until every
@@ -48,15 +54,22 @@ class EStopLatch:
     it; the owner's thread takes the commands with :meth:`take`.
     """
 
-    def __init__(self, session: zenoh.Session, rig: str, node: str):
+    def __init__(self, session: zenoh.Session, rig: str, node: str, releasers: list[str] | None = None):
         self.rig = rig
         self.node = node
+        #: on a rig with access control: the users that may release (the ACL already holds the
+        #: others back; this is the same rule checked again where the release takes effect)
+        self.releasers = None if releasers is None else set(releasers)
         self._session = session
         self._lock = threading.Lock()
         self._latched: EStop | None = None
         self._pending: deque[EStop] = deque(maxlen=256)
+        #: releases not taken, with why (a release on the engage key, from a user not allowed...)
+        self._refused: deque[tuple[EStop, str]] = deque(maxlen=256)
+        self.refused_releases = 0
         self.malformed = 0
         self._sub = session.declare_subscriber(keys.estop(rig), self._on_sample)
+        self._release_sub = session.declare_subscriber(keys.estop_release_all(rig), self._on_release)
         self._queryable = session.declare_queryable(keys.estop_latch(rig, node), self._on_query)
 
     # ------------------------------------------------------------------ callbacks
@@ -66,9 +79,39 @@ class EStopLatch:
         except MalformedMessage:
             self.malformed += 1
             return
+        if not msg.engaged:
+            # a release must come on the sender's release key (it names who releases); one on
+            # the engage key is an old client or a replayed recording: never taken
+            self._refuse(msg, "a release on the engage key (not on hil/<rig>/estop/release/<user>)")
+            return
+        self._take(msg)
+
+    def _on_release(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = decode(sample.payload.to_bytes(), EStop)
+        except MalformedMessage:
+            self.malformed += 1
+            return
+        user = str(sample.key_expr).rsplit("/", 1)[-1]
+        claimed, msg.sender = msg.sender, user  # the key names the sender (bound to its credentials by the ACL)
+        if msg.engaged:
+            self._refuse(msg, "an engage on a release key")
+        elif self.releasers is not None and user not in self.releasers:
+            self._refuse(msg, f"user {user!r} may not release (bus.access.release: {sorted(self.releasers)})")
+        elif claimed and claimed != user:
+            self._refuse(msg, f"sender {claimed!r} released on {user!r}'s key")
+        else:
+            self._take(msg)
+
+    def _take(self, msg: EStop) -> None:
         with self._lock:
             self._latched = msg
             self._pending.append(msg)
+
+    def _refuse(self, msg: EStop, why: str) -> None:
+        with self._lock:
+            self.refused_releases += 1
+            self._refused.append((msg, why))
 
     def _on_query(self, query: zenoh.Query) -> None:
         with self._lock:
@@ -93,6 +136,13 @@ class EStopLatch:
         with self._lock:
             out = list(self._pending)
             self._pending.clear()
+        return out
+
+    def take_refused(self) -> list[tuple[EStop, str]]:
+        """Releases refused since the last call, with why (the driver node logs them)."""
+        with self._lock:
+            out = list(self._refused)
+            self._refused.clear()
         return out
 
     def sync_from_peers(self, window_s: float, min_window_s: float = 0.2, query_timeout_s: float = 0.25) -> EStop | None:
@@ -129,6 +179,7 @@ class EStopLatch:
 
     def close(self) -> None:
         self._queryable.undeclare()
+        self._release_sub.undeclare()
         self._sub.undeclare()
 
 
@@ -159,6 +210,8 @@ class EStopResult:
     acked: dict[str, bool] = field(default_factory=dict)
     #: driver node → whether its device confirmed the stop (its newest ack)
     device_confirmed: dict[str, bool] = field(default_factory=dict)
+    #: what driver nodes said beside the state ("driver-pm: release refused: ...")
+    details: list[str] = field(default_factory=list)
 
     @property
     def confirmed(self) -> list[str]:
@@ -197,9 +250,10 @@ def command_estop(
     """
     rig = node.rig
     acks = node.subscribe(keys.estop_ack(rig), EStopAck, latest=False, capacity=1024)
-    pub = node.publisher(keys.estop(rig), EStop)
+    # a release goes on the sender's own release key: it names who released (bus/access.py)
+    pub = node.publisher(keys.estop(rig) if engaged else keys.estop_release(rig, node.user), EStop)
     res = EStopResult(rig=rig, engaged=engaged, estop_id=uuid.uuid4().hex)
-    msg = EStop(engaged=engaged, reason=reason, source=node.name, id=res.estop_id)
+    msg = EStop(engaged=engaged, reason=reason, source=node.name, id=res.estop_id, sender=node.user)
     t0 = time.monotonic()
     next_alive_s = t0
     while True:
@@ -216,6 +270,9 @@ def command_estop(
             if ack.estop_id == res.estop_id:
                 res.acked[ack.node] = ack.engaged
                 res.device_confirmed[ack.node] = ack.device_confirmed
+                note = f"{ack.node}: {ack.detail}"
+                if ack.detail and note not in res.details:
+                    res.details.append(note)
                 res.drivers.add(ack.node)
         elapsed = time.monotonic() - t0
         if (res.ok and elapsed >= settle_s) or elapsed >= timeout_s:

@@ -2,7 +2,8 @@
 
 Data under ``hil/<rig>/<robot>/...``, rig-wide control (e-stop, plan, model updates,
 reset) beside it, and presence (liveliness tokens) under ``hil/<rig>/alive/<node>``.
-The e-stop has three keys: commands on ``hil/<rig>/estop``, driver acknowledgements
+The e-stop has four keys: engage commands on ``hil/<rig>/estop``, releases on
+``hil/<rig>/estop/release/<user>`` (the key names who released), driver acknowledgements
 on ``hil/<rig>/estop/ack`` and every node's latched state as a queryable under
 ``hil/<rig>/estop/latch/<node>``.
 """
@@ -52,6 +53,18 @@ def image(rig: str, camera: str) -> str:
 def estop(rig: str) -> str:
     """E-stop commands (``EStop``: engage or release), from ``hil estop`` or any node."""
     return f"{root(rig)}/estop"
+
+
+def estop_release(rig: str, user: str) -> str:
+    """Releases of the e-stop by ``user`` (``EStop`` with ``engaged=False``). A release on
+    :func:`estop` is refused: the key names who released, and on a rig with access control
+    Zenoh's ACL lets only ``user``'s credentials publish on it (bus/access.py)."""
+    _check(user)
+    return f"{root(rig)}/estop/release/{user}"
+
+
+def estop_release_all(rig: str) -> str:
+    return f"{root(rig)}/estop/release/*"
 
 
 def estop_ack(rig: str) -> str:

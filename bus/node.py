@@ -19,6 +19,7 @@ from typing import Any, Generic, TypeVar
 import zenoh
 
 from hilstack.bus import keys
+from hilstack.bus.access import identity
 from hilstack.bus.cycle import CycleTimer
 from hilstack.bus.estop import EStopLatch
 from hilstack.bus.schemas import MalformedMessage, Msg, decode, encode
@@ -198,6 +199,10 @@ class Subscription(Generic[T]):
         self._sub.undeclare()
 
 
+class NodeConflict(ValueError):
+    """A node that must be alone on its rig (a driver node) found its name already alive."""
+
+
 class Node:
     """Base of every process on the bus.
 
@@ -215,16 +220,34 @@ class Node:
         bus: BusConfig | None = None,
         session: zenoh.Session | None = None,
         handle_signals: bool = True,
+        server: bool = False,
+        robots: list[str] | None = None,
+        unique: bool = False,
     ):
         self.name = name
         self.rig = rig
+        #: who this process is on the bus (bus/access.py: identity); releases are sent in its name
+        self.user = identity(bus)
         self._own_session = session is None
-        self.session = session if session is not None else open_session(bus)
+        # ``server`` (a driver node on a rig with access control): the rig's router, ACL for ``robots``
+        self.session = session if session is not None else open_session(bus, server=server, rig=rig, robots=robots)
         self.stop_event = threading.Event()
+        if unique:
+            # a driver node is one per robot and rig: a second one on the same endpoint is another
+            # process (another user's rig of the same name on this host?) and both would command it
+            others = alive_nodes(self.session, rig, timeout_s=0.2, window_s=0.3)
+            if name in others:
+                if self._own_session:
+                    self.session.close()
+                where = bus.endpoint if bus is not None else "this bus"
+                raise NodeConflict(f"a node {name} is already alive on rig {rig} at {where}: another process "
+                                   "(another user's rig of the same name?) drives it; give each rig its own "
+                                   "bus.endpoint")
         self._token = self.session.liveliness().declare_token(keys.alive(rig, name))
         self._closeables: list[Any] = []
         self._closed = False
-        self.estop = EStopLatch(self.session, rig, name)
+        self.estop = EStopLatch(self.session, rig, name,
+                                releasers=None if bus is None or bus.access is None else list(bus.access.release))
         self._closeables.append(self.estop)
         #: the timer of the last ``run()`` (timing summary)
         self.cycle: CycleTimer | None = None

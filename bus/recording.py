@@ -37,6 +37,7 @@ from hilstack.bus.node import Node
 from hilstack.bus.schemas import (
     ALL_TYPES,
     AnyMsg,
+    EStop,
     Image,
     MalformedMessage,
     Msg,
@@ -607,6 +608,24 @@ class ReplayStats:
     skipped_commands: dict[str, int] = field(default_factory=dict)
     #: messages left out by the ``topics`` filter
     skipped_by_filter: int = 0
+    #: topic → e-stop releases left out: a replay never releases an e-stop, ``include_commands`` or not
+    skipped_releases: dict[str, int] = field(default_factory=dict)
+
+
+def recorded_rig(path: str | Path) -> str | None:
+    """The rig a recording was made on (its first message's key ``hil/<rig>/...``), or None."""
+    for rm in iter_messages(path):
+        parts = rm.topic.split("/")
+        return parts[1] if len(parts) > 2 and parts[0] == "hil" else None
+    return None
+
+
+def is_release(topic: str, msg: Msg) -> bool:
+    """An e-stop release (on a release key, or an ``EStop`` with ``engaged=False`` anywhere)."""
+    if isinstance(msg, EStop) and not msg.engaged:
+        return True
+    parts = topic.split("/")
+    return len(parts) >= 4 and parts[0] == "hil" and parts[2:4] == ["estop", "release"]
 
 
 def topic_filter(patterns: list[str] | None) -> Callable[[str], bool]:
@@ -640,8 +659,8 @@ def replay(
     """Publish a recording back onto the bus, timed by log time / ``speed`` (0: as fast as possible).
 
     By default only sensor and state messages (:data:`REPLAY_DATA_TYPES`) are
-    published; ``include_commands`` adds commands, e-stops, resets, plans and model
-    updates. ``topics``: Zenoh key-expression patterns matched against the recorded
+    published; ``include_commands`` adds commands, e-stop engages, resets, plans and model
+    updates. E-stop releases are never published (:func:`is_release`). ``topics``: Zenoh key-expression patterns matched against the recorded
     topics (``hil/*/pm/state``, ``hil/**/image``). ``rig`` remaps ``hil/<old>/...``
     keys to ``hil/<rig>/...``.
 
@@ -665,6 +684,10 @@ def replay(
         for rm in iter_messages(path):
             if not wanted(rm.topic):
                 stats.skipped_by_filter += 1
+                continue
+            if is_release(rm.topic, rm.msg):
+                # never: a recorded release would lift the operator's e-stop on the live rig
+                stats.skipped_releases[rm.topic] = stats.skipped_releases.get(rm.topic, 0) + 1
                 continue
             if not include_commands and not isinstance(rm.msg, REPLAY_DATA_TYPES):
                 stats.skipped_commands[rm.topic] = stats.skipped_commands.get(rm.topic, 0) + 1

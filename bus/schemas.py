@@ -61,6 +61,11 @@ class EStop(Msg, tag="hil.EStop/1"):
     source: str = ""
     #: unique id of this command (repeats of one command share it); acks quote it
     id: str = ""
+    #: who sent it: the sender's bus identity (its credentials' user on a rig with access control,
+    #: else the OS user). Receivers of a release set it from the release key (bus/keys.py:
+    #: estop_release), which the rig's ACL binds to the credentials. Added to version 1 with a
+    #: default (additive: older readers ignore it, older messages read as "")
+    sender: str = ""
 
 
 class EStopAck(Msg, tag="hil.EStopAck/1"):

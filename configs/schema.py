@@ -28,6 +28,40 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+_NAME_RE = r"^[A-Za-z0-9_\-]+$"
+
+
+class BusAccess(Strict):
+    """Who may command and who may release the rig (bus/access.py, docs/platform.md "Who may
+    command and who may release").
+
+    The driver node owns the rig's endpoint as a Zenoh router that authenticates every
+    session (user/password) against ``credentials`` and filters by Zenoh ACL: only
+    ``command`` users may publish robot commands (and resets, plans, model updates), only
+    ``release`` users may release the e-stop, every authenticated session may engage it
+    and listen. A session without the rig's credentials cannot connect at all. The file
+    holds ``user:password`` lines (Zenoh's usrpwd dictionary), is never in the repository
+    and must be readable by its owner only; ``hil credentials RIG`` creates it."""
+
+    #: the credentials file (``~`` and ``$VARS`` expanded); the environment variable
+    #: HIL_CREDENTIALS overrides it
+    credentials: str = Field(min_length=1)
+    #: who this process is on the bus (its line of the credentials file); HIL_BUS_USER overrides it
+    user: str = Field("operator", pattern=_NAME_RE)
+    #: users that may command the robots
+    command: list[str] = Field(default_factory=lambda: ["operator"])
+    #: users that may release the e-stop (each release names its sender)
+    release: list[str] = Field(default_factory=lambda: ["operator"])
+
+    @field_validator("command", "release")
+    @classmethod
+    def _names(cls, v: list[str]) -> list[str]:
+        for n in v:
+            if not re.match(_NAME_RE, n):
+                raise ValueError(f"user name {n!r}: use letters, digits, '_' and '-'")
+        return v
+
+
 class BusConfig(Strict):
     """Zenoh session. Default: peer-to-peer on loopback, no router, no multicast.
 
@@ -43,6 +77,8 @@ class BusConfig(Strict):
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
     gossip: bool = True
+    #: access control (authentication + ACL); required for rigs with real robots
+    access: BusAccess | None = None
 
     @field_validator("listen", "connect")
     @classmethod

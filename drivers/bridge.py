@@ -95,7 +95,20 @@ class DriverNode(Node):
         if not (isinstance(resume_ok_readings, int) and 1 <= resume_ok_readings <= MAX_RESUME_OK_READINGS):
             raise ValueError(f"resume_ok_readings must be an integer in [1, {MAX_RESUME_OK_READINGS}], "
                              f"got {resume_ok_readings!r}")
+        access = bus is not None and bus.access is not None
+        if driver.backend == "real" and not access:
+            # who may command and release a real robot is not left open (docs/platform.md, Safety model)
+            from hilstack.bus.access import AccessError
+
+            raise AccessError(f"rig {rig}: robot {robot} is real hardware; its rig needs a bus.access section "
+                              "(who may command and release it; docs/platform.md)")
+        if "session" not in node_kw:  # on an access rig the driver node is the rig's router (bus/session.py)
+            node_kw.update(server=access, robots=[robot])
+        node_kw.setdefault("unique", True)  # one driver node per robot and rig (bus/node.py: NodeConflict)
         super().__init__(keys.driver_node(robot), rig, bus, **node_kw)
+        if not access and driver.backend == "emulated":
+            log.warning("rig %s has no bus.access: any process on this host can command %s and release its e-stop",
+                        rig, robot)
         if pace == "lockstep" and driver.backend != "sim":
             raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
         self.driver = driver
@@ -164,7 +177,7 @@ class DriverNode(Node):
         except Exception as e:  # the link may be down: stay stopped, say why in the ack
             log.error("e-stop release from %s failed: %s", m.source or "?", e)
             return f"release failed: {e}"
-        log.warning("e-stop released by %s", m.source or "?")
+        log.warning("e-stop released by %s (node %s)", m.sender or "?", m.source or "?")
         self.estopped = False
         self._last_cmd_t = None
         self.stopped_reason = "waiting"
@@ -172,6 +185,10 @@ class DriverNode(Node):
 
     def _handle_estop(self) -> None:
         """Apply every e-stop command heard since the last period and acknowledge each."""
+        for m, why in self.estop.take_refused():
+            log.warning("e-stop release from %s (node %s) refused: %s", m.sender or "?", m.source or "?", why)
+            self._estop_ack.put(EStopAck(node=self.name, robot=self.robot, engaged=self.estopped, estop_id=m.id,
+                                         detail=f"release refused: {why}"))
         for m in self.estop.take():
             detail = ""
             if m.engaged:
@@ -342,6 +359,7 @@ class DriverNode(Node):
                 "unhealthy_stops": self.stats.unhealthy_stops,
                 "unhealthy_refused": self.stats.unhealthy_refused,
                 "unhealthy_reason": self.stats.last_unhealthy,
+                "estop_releases_refused": self.estop.refused_releases,
             },
         )
         self._last_state = self._state_pub.put(msg)

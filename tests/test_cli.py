@@ -49,7 +49,8 @@ def test_replay_cli_says_what_it_left_out_and_refuses_a_live_rig(tmp_path, bus):
     r = CliRunner().invoke(app, ["replay", str(path), "--speed", "0", "--endpoint", bus.endpoint])
     assert r.exit_code == 0, r.output
     assert "replayed 3 messages" in r.output
-    assert "not replayed: 6 command messages" in r.output and "hil/clirig/estop" in r.output
+    assert "not replayed: 3 command messages" in r.output
+    assert "never replayed: 3 e-stop releases on hil/clirig/estop" in r.output
     r = CliRunner().invoke(app, ["replay", str(path), "--topics", "hil//x", "--endpoint", bus.endpoint])
     assert r.exit_code == 2 and "--topics: bad topic pattern 'hil//x'" in r.output
 
@@ -61,7 +62,7 @@ def test_replay_cli_says_what_it_left_out_and_refuses_a_live_rig(tmp_path, bus):
         r = CliRunner().invoke(
             app, ["replay", str(path), "--speed", "0", "--force", "--include-commands", "--endpoint", bus.endpoint]
         )
-        assert r.exit_code == 0 and "replayed 9 messages" in r.output
+        assert r.exit_code == 0 and "replayed 6 messages" in r.output and "never replayed: 3 e-stop releases" in r.output
 
 
 def test_version_is_the_package_version():
@@ -71,12 +72,32 @@ def test_version_is_the_package_version():
     assert r.exit_code == 0 and r.output.strip() == f"hilstack {version('hilstack')}"
 
 
+def access_section(tmp_path) -> str:
+    """A rig's bus section with access control on a private endpoint, its credentials generated."""
+    from hilstack.bus.access import generate
+    from tests.helpers import free_port
+
+    creds = tmp_path / "creds.txt"
+    generate(creds, ["operator"])
+    return f"bus:\n  endpoint: tcp/127.0.0.1:{free_port()}\n  access: {{credentials: {creds}}}\n"
+
+
 def real_roach(tmp_path, port: str):
     robot = tmp_path / "my_roach.yaml"
     robot.write_text(f"robot: velociroach\nbackend: real\nparams:\n  port: {port}\n")
     rig = tmp_path / "my_rig.yaml"
-    rig.write_text(f"name: my_rig\nrobots:\n  roach:\n    config: {robot}\n")
+    rig.write_text(f"name: my_rig\nrobots:\n  roach:\n    config: {robot}\n" + access_section(tmp_path))
     return robot, rig
+
+
+def test_a_real_robot_on_a_rig_without_access_control_is_refused(tmp_path):
+    robot, _ = real_roach(tmp_path, "/dev/ttyNOPE_hilstack")
+    rig = tmp_path / "open_rig.yaml"
+    rig.write_text(f"name: open_rig\nrobots:\n  roach:\n    config: {robot}\n")
+    r = CliRunner().invoke(app, ["up", str(rig), "--steps", "1"])
+    assert r.exit_code == 2, r.output
+    assert r.output.strip() == ("error: rig open_rig: robot roach is real hardware; its rig needs a bus.access "
+                                "section (who may command and release it; docs/platform.md)")
 
 
 def test_drive_uses_the_backend_of_the_config_file(tmp_path):
@@ -112,7 +133,8 @@ def test_a_rig_whose_robot_fails_exits_like_the_robot(tmp_path):
     not_a_tty.write_bytes(b"")
     robot, _ = real_roach(tmp_path, str(not_a_tty))
     rig = tmp_path / "two.yaml"
-    rig.write_text(f"name: two\nrobots:\n  a:\n    config: {robot}\n  b:\n    config: {robot}\n")
+    rig.write_text(f"name: two\nrobots:\n  a:\n    config: {robot}\n  b:\n    config: {robot}\n"
+                   + access_section(tmp_path))
     r = CliRunner().invoke(app, ["up", str(rig), "--steps", "1"])
     assert r.exit_code == 1, r.output
 
@@ -186,3 +208,64 @@ def test_a_link_error_keeps_its_diagnosis_indented_below_the_one_line():
     assert r.exit_code == 1
     assert r.output.splitlines() == ["link error: no heartbeat from the robot within 10 s; emulator log:",
                                      "  line one", "  line two"]
+
+
+def test_every_rig_verb_takes_a_name_or_a_file_and_uses_its_bus_section(tmp_path, spawn, monkeypatch):
+    """Issue 22 item 9: `hil estop configs/rigs/X.yaml` was a traceback and `hil estop NAME`
+    ignored the rig's bus: section (a rig on its own endpoint: "no driver node alive")."""
+    import re
+
+    from hilstack.configs import schema
+    from tests.helpers import ROOT, free_port, wait_for
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    root = tmp_path / "configs"
+    (root / "rigs").mkdir(parents=True)
+    rig = root / "rigs" / "own_ep.yaml"  # a rig on its own endpoint, nothing on the command line says where
+    rig.write_text(f"name: own_ep\nrobots:\n  pm:\n    config: {ROOT / 'configs/robots/pointmass.yaml'}\n"
+                   f"bus:\n  endpoint: {ep}\n")
+    up = spawn("up", str(rig))
+    monkeypatch.setattr(schema, "CONFIG_ROOT", root)  # so that the name own_ep is a rig config here
+    try:
+        wait_for(lambda: "driver-pm" in CliRunner().invoke(app, ["nodes", "own_ep"]).output, 60, "the driver node")
+        for form in (str(rig), "own_ep"):
+            r = CliRunner().invoke(app, ["estop", form, "--timeout-s", "5"])
+            assert r.exit_code == 0 and "ENGAGED e-stop on rig own_ep: acknowledged by driver-pm" in r.output, r.output
+            r = CliRunner().invoke(app, ["estop", form, "--release", "--timeout-s", "5"])
+            assert r.exit_code == 0 and "released e-stop on rig own_ep" in r.output, r.output
+            r = CliRunner().invoke(app, ["nodes", form, "--json"])
+            assert r.exit_code == 0 and any(x["node"] == "driver-pm" for x in json.loads(r.output)), r.output
+        out = tmp_path / "s.mcap"
+        r = CliRunner().invoke(app, ["record", "--rig", str(rig), "--seconds", "1.5", "--out", str(out)])
+        assert r.exit_code == 0, r.output
+        n = int(re.search(r"wrote (\d+) messages", r.output).group(1))
+        assert n > 0  # it heard the rig on the rig's endpoint
+        # replay onto the rig by its file: the live-driver check looks on the rig's endpoint
+        r = CliRunner().invoke(app, ["replay", str(out), "--rig", str(rig), "--speed", "0"])
+        assert r.exit_code == 2 and "rig 'own_ep' has live driver nodes (driver-pm)" in r.output, r.output
+        r = CliRunner().invoke(app, ["replay", str(out), "--speed", "0"])  # the recorded rig: its config's bus
+        assert r.exit_code == 2 and "rig 'own_ep' has live driver nodes (driver-pm)" in r.output, r.output
+        r = CliRunner().invoke(app, ["foxglove", "--rig", "own_ep", "--seconds", "1", "--port", "0"])
+        assert r.exit_code == 0 and int(re.search(r"forwarded (\d+)", r.output).group(1)) > 0, r.output
+        r = CliRunner().invoke(app, ["viz", "--rig", str(rig), "--seconds", "1", "--save", str(tmp_path / "v.rrd")])
+        assert r.exit_code == 0 and int(re.search(r"logged (\d+)", r.output).group(1)) > 0, r.output
+    finally:
+        assert up.stop(20) == 0
+    # the one helper: name or file, --endpoint replaces the endpoint only, a bad path is one line
+    from hilstack.tools.common import rig_bus
+
+    name, bus, cfg = rig_bus(str(rig), "tcp/127.0.0.1:1")
+    assert (name, bus.endpoint, cfg.name) == ("own_ep", "tcp/127.0.0.1:1", "own_ep")
+    assert rig_bus("made_up_rig")[1:] == (schema.BusConfig(), None)
+    r = CliRunner().invoke(app, ["estop", str(tmp_path / "nope.yaml")])
+    assert r.exit_code == 2 and r.output.startswith("error: ") and "Traceback" not in r.output
+    assert len(r.output.strip().splitlines()) == 1
+
+
+def test_endpoint_override_keeps_the_rigs_access_control(tmp_path):
+    from hilstack.tools.common import rig_bus
+
+    rig = tmp_path / "r.yaml"
+    rig.write_text("name: r\nrobots:\n  pm:\n    config: pointmass\nbus:\n  access: {credentials: /x/creds}\n")
+    _, bus, _ = rig_bus(str(rig), "tcp/127.0.0.1:9")
+    assert bus.endpoint == "tcp/127.0.0.1:9" and bus.access is not None and bus.access.credentials == "/x/creds"

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, bus_config, echo_json, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, echo_json, rig_bus, user_errors
 
 
 def send_names(send: str, adapter) -> list[str] | None:
@@ -45,11 +45,10 @@ def register(app: typer.Typer) -> None:
         """Online adaptation on the bus: adapts the model from the robot's last M transitions at
         every control step and publishes it on hil/<rig>/model/update (`hil mpc --adapt` swaps
         it in between plans). Runs until Ctrl-C; prints what it learned from and what it skipped."""
-        from hilstack.configs.schema import load_rig
         from hilstack.control.adaptation_node import AdaptationNode
         from hilstack.learning.adaptation import load_adapter
 
-        cfg = load_rig(rig)
+        _, bus, cfg = rig_bus(rig, endpoint, need_config=True)
         robot = robot or next(iter(cfg.robots))
         if robot not in cfg.robots:
             raise UserError(f"rig {cfg.name} has no robot {robot!r}")
@@ -58,7 +57,6 @@ def register(app: typer.Typer) -> None:
         except ValueError as e:
             raise UserError(str(e)) from None
         names = send_names(send, adapter)
-        bus = bus_config(endpoint) if endpoint else cfg.bus
         with AdaptationNode(adapter, cfg.name, robot, bus, send=names) as node:
             try:
                 stats = node.run(max_updates=max_updates, idle_timeout_s=idle_timeout_s)

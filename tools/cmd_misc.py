@@ -15,10 +15,9 @@ from hilstack.tools.common import (
     PARENT_PID_ENV,
     EndpointOpt,
     UserError,
-    bus_config,
-    check_rig_name,
     echo_json,
     exit_with_parent,
+    rig_bus,
     setup_logging,
     user_errors,
 )
@@ -52,8 +51,19 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
     from hilstack.drivers.bridge import DriverNode
     from hilstack.drivers.registry import make_driver
 
-    nodes = [DriverNode(make_driver(rig_robot_config(cfg, n)), cfg.name, n, bus, watchdog_periods=cfg.watchdog_periods,
-                        pace=cfg.pace, handle_signals=False) for n in names]
+    session = None
+    if bus.access is not None:  # one router for the rig (bus/session.py): its driver nodes share it
+        from hilstack.bus.session import open_session
+
+        session = open_session(bus, server=True, rig=cfg.name, robots=names)
+    try:
+        nodes = [DriverNode(make_driver(rig_robot_config(cfg, n)), cfg.name, n, bus,
+                            watchdog_periods=cfg.watchdog_periods, pace=cfg.pace, handle_signals=False,
+                            **({"session": session} if session is not None else {})) for n in names]
+    except BaseException:
+        if session is not None:
+            session.close()
+        raise
     errors: list[str] = []
     stopping = threading.Event()  # a stop was asked for: what fails after it is the shutdown
 
@@ -86,6 +96,8 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
     finally:
         for nd in nodes:
             nd.close()
+        if session is not None:
+            session.close()
     if errors:
         typer.echo("error: " + "; ".join(errors), err=True)
         raise typer.Exit(1)
@@ -124,7 +136,7 @@ def register(app: typer.Typer) -> None:
         endpoint: str = EndpointOpt,
     ) -> None:
         """Bring a rig's robots onto the bus (one driver bridge node per robot)."""
-        from hilstack.configs.schema import load_rig, rig_robot_config
+        from hilstack.configs.schema import rig_robot_config
         from hilstack.drivers.bridge import DriverNode
         from hilstack.drivers.registry import make_driver
 
@@ -132,14 +144,16 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"--steps {steps}: expected a number of control periods >= 1")
         setup_logging()
         exit_with_parent()
-        cfg = load_rig(rig)
-        bus = bus_config(endpoint) if endpoint else cfg.bus
+        _, bus, cfg = rig_bus(rig, endpoint, need_config=True)
         names = robot.split(",") if robot else list(cfg.robots)
         for n in names:
             if n not in cfg.robots:
                 raise UserError(f"rig {cfg.name} has no robot {n!r}; has {list(cfg.robots)}")
         groups = [[n] for n in names]
-        if len(names) > 1:
+        if len(names) > 1 and bus.access is not None:
+            # the rig's driver nodes are its one Zenoh router (bus/session.py): one process
+            groups = [names]
+        elif len(names) > 1:
             # one process per robot: a slow or failing driver cannot stall another; except a
             # sim that works in another sim's world (the hand's reset arm in the hand's
             # scene): the rig's sim robots then run together, in one process
@@ -201,8 +215,8 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def estop(
-        rig: str = typer.Argument(..., help="rig name"),
-        release: bool = typer.Option(False, "--release", help="release a latched e-stop"),
+        rig: str = typer.Argument(..., help="rig config name or file (its bus settings are used), or a rig name"),
+        release: bool = typer.Option(False, "--release", help="release a latched e-stop (in this user's name)"),
         reason: str = typer.Option("operator", "--reason"),
         timeout_s: float = typer.Option(
             2.0, "--timeout-s", help="how long to wait for every driver node's acknowledgement [s]"
@@ -218,10 +232,16 @@ def register(app: typer.Typer) -> None:
         from hilstack.bus.estop import command_estop
         from hilstack.bus.node import Node
 
-        check_rig_name(rig)
         if not (math.isfinite(timeout_s) and 0 < timeout_s <= 60):
             raise UserError(f"--timeout-s {timeout_s}: expected a number in (0, 60]")
-        node = Node("estop-cli", rig, bus_config(endpoint), handle_signals=False)
+        rig, bus, _ = rig_bus(rig, endpoint)
+        if release and bus.access is not None:
+            from hilstack.bus.access import user_of
+
+            if user_of(bus.access) not in bus.access.release:
+                raise UserError(f"user {user_of(bus.access)!r} may not release rig {rig}'s e-stop "
+                                f"(bus.access.release: {bus.access.release})")
+        node = Node("estop-cli", rig, bus, handle_signals=False)
         try:
             res = command_estop(node, engaged=not release, reason=reason, timeout_s=timeout_s)
         finally:
@@ -229,8 +249,12 @@ def register(app: typer.Typer) -> None:
         what = "release" if release else "e-stop"
         if res.ok:
             state = "released" if release else "ENGAGED"
-            typer.echo(f"{state} e-stop on rig {rig}: acknowledged by {', '.join(res.confirmed)}", err=True)
+            by = f" (released by {node.user})" if release else ""
+            typer.echo(f"{state} e-stop on rig {rig}: acknowledged by {', '.join(res.confirmed)}{by}", err=True)
             return
+        if res.details:
+            typer.echo(f"error: {what} on rig {rig} NOT acknowledged as asked: {'; '.join(res.details)}", err=True)
+            raise typer.Exit(1)
         if res.unconfirmed:
             typer.echo(
                 f"error: e-stop on rig {rig} acknowledged but the stop was NOT confirmed by the device of "
@@ -255,7 +279,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def nodes(
-        rig: str = typer.Argument(..., help="rig name"),
+        rig: str = typer.Argument(..., help="rig config name or file (its bus settings are used), or a rig name"),
         json_out: bool = typer.Option(False, "--json"),
         endpoint: str = EndpointOpt,
     ) -> None:
@@ -263,8 +287,8 @@ def register(app: typer.Typer) -> None:
         from hilstack.bus.estop import query_latches
         from hilstack.bus.node import Node, alive_nodes
 
-        check_rig_name(rig)
-        node = Node("nodes-cli", rig, bus_config(endpoint), handle_signals=False)
+        rig, bus, _ = rig_bus(rig, endpoint)
+        node = Node("nodes-cli", rig, bus, handle_signals=False)
         try:
             # a fresh session finds its peers over the first few hundred ms: keep asking
             names = [n for n in alive_nodes(node.session, rig, window_s=0.5) if n != "nodes-cli"]
@@ -279,6 +303,8 @@ def register(app: typer.Typer) -> None:
                 "estop": "none heard" if m is None else ("engaged" if m.engaged else "released"),
                 "reason": "" if m is None else m.reason,
                 "source": "" if m is None else m.source,
+                # who sent it (a release: the user its release key names, bus/estop.py)
+                "sender": "" if m is None else m.sender,
             })
         if json_out:
             echo_json(rows)
@@ -286,5 +312,36 @@ def register(app: typer.Typer) -> None:
         if not rows:
             typer.echo("(no nodes)")
         for r in rows:
-            why = f" ({r['reason'] or '-'}, from {r['source'] or '?'})" if r["estop"] == "engaged" else ""
+            if r["estop"] == "engaged":
+                why = f" ({r['reason'] or '-'}, from {r['source'] or '?'}" + (f" by {r['sender']})" if r["sender"] else ")")
+            elif r["estop"] == "released":
+                why = f" (by {r['sender'] or '?'} from {r['source'] or '?'})"
+            else:
+                why = ""
             typer.echo(f"{r['node']:24s} e-stop {r['estop']}{why}")
+
+    @app.command()
+    @user_errors
+    def credentials(
+        rig: str = typer.Argument(..., help="rig config name or file with a bus.access section"),
+        users: list[str] = typer.Option(None, "--user", help="add this user (repeatable; default: the rig's "
+                                                             "command and release users and bus.access.user)"),
+    ) -> None:
+        """Create (or extend) the rig's credentials file: a random password per user, mode 600.
+
+        Existing lines are kept. Give an operator a file with only their line (HIL_CREDENTIALS=that file)."""
+        from hilstack.bus.access import credentials_path, generate
+
+        name, bus, _ = rig_bus(rig, need_config=True)
+        if bus.access is None:
+            raise UserError(f"rig {name} has no bus.access section: nothing to create (docs/platform.md)")
+        acc = bus.access
+        want = list(users) if users else [acc.user, *acc.command, *acc.release]
+        from hilstack.bus.keys import _NAME
+
+        for u in want:
+            if not _NAME.match(u):
+                raise UserError(f"--user {u!r}: use letters, digits, '_' and '-'")
+        path = credentials_path(acc)
+        added = generate(path, want)
+        typer.echo(f"{path}: added {', '.join(added) if added else 'nobody (all present)'}", err=True)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, bus_config, echo_json, one_line, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, echo_json, one_line, rig_bus, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -38,7 +38,6 @@ def register(app: typer.Typer) -> None:
 
         import numpy as np
 
-        from hilstack.configs.schema import load_rig
         from hilstack.control.controller_node import ControllerNode
         from hilstack.control.costs import PathCost, evaluate_path_following
         from hilstack.control.paths import fillet, make_path
@@ -60,7 +59,7 @@ def register(app: typer.Typer) -> None:
             raise UserError("--method needs --adapt")
         if not 0 < speed <= 1:
             raise UserError("--speed must be in (0, 1]")
-        cfg = load_rig(rig)
+        _, bus, cfg = rig_bus(rig, endpoint, need_config=True)
         robot = robot or next(iter(cfg.robots))
         if robot not in cfg.robots:
             raise UserError(f"rig {cfg.name} has no robot {robot!r}")
@@ -85,7 +84,6 @@ def register(app: typer.Typer) -> None:
             except Exception as e:  # noqa: BLE001 - torch/pickle say many things about a file that is not one
                 raise UserError(f"--model {model}: not a dynamics checkpoint ({type(e).__name__}: "
                                 f"{one_line(e)})") from None
-        bus = bus_config(endpoint) if endpoint else cfg.bus
         with ControllerNode(cfg.name, robot, bus, name="mpc", state_timeout_s=10.0) as ctl:
             if adapter is not None:
                 from hilstack.bus import keys

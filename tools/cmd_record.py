@@ -9,7 +9,14 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, bus_config, check_rig_name, echo_json, user_errors
+from hilstack.tools.common import (
+    EndpointOpt,
+    UserError,
+    bus_config,
+    echo_json,
+    rig_bus,
+    user_errors,
+)
 
 #: `hil record` warns when no node is alive on the rig this long after it started [s]
 NO_NODE_WARN_S = 3.0
@@ -60,11 +67,15 @@ def _warn_if_no_node(rec, rig: str, wait_s: float) -> None:  # noqa: ANN001 - a 
     threading.Thread(target=check, daemon=True, name="rig-alive-check").start()
 
 
+RigOpt = typer.Option(..., "--rig", help="rig config name or file (its bus settings are used), or a rig name "
+                                          "(key prefix hil/<rig>/)")
+
+
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def record(
-        rig: str = typer.Option(..., "--rig", help="rig config name or path (configs/rigs/); records hil/<its name>/**"),
+        rig: str = RigOpt,
         out: Path = typer.Option(None, "--out", help="MCAP file (default recordings/<rig>-<time>.mcap)"),
         seconds: float = typer.Option(None, "--seconds", help="stop after this long (default: until Ctrl-C)"),
         topics: list[str] = typer.Option(
@@ -78,13 +89,11 @@ def register(app: typer.Typer) -> None:
 
         An existing --out is never overwritten without --force."""
         from hilstack.bus.recording import Recorder
-        from hilstack.configs.schema import load_rig
 
         if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
             raise UserError(f"--seconds {seconds}: expected a finite number > 0")
-        cfg = load_rig(rig)  # a mistyped name: "no such rig config; known: [...]", exit 2
-        name = cfg.name
-        bus = bus_config(endpoint) if endpoint else cfg.bus
+        # a mistyped name: "no such rig config; known: [...]", exit 2 (a recording of nothing is no recording)
+        name, bus, _ = rig_bus(rig, endpoint, need_config=True)
         out = out or _default_out(name)
         try:
             rec = Recorder(name, out, bus, topics=topics, overwrite=force)
@@ -105,7 +114,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def foxglove(
-        rig: str = typer.Option(..., "--rig", help="rig name (key prefix hil/<rig>/)"),
+        rig: str = RigOpt,
         host: str = typer.Option("127.0.0.1", "--host", help="address to serve on (0.0.0.0: every interface)"),
         port: int = typer.Option(8765, "--port", help="WebSocket port (Foxglove's default is 8765)"),
         seconds: float = typer.Option(None, "--seconds", help="stop after this long (default: until Ctrl-C)"),
@@ -114,11 +123,11 @@ def register(app: typer.Typer) -> None:
         """Live view of a rig in Foxglove (WebSocket server; robots in the 3D panel)."""
         from hilstack.tools.foxglove_live import FoxgloveLive
 
-        check_rig_name(rig, "--rig")
         if not 0 <= port <= 65535:
             raise UserError(f"--port {port}: expected 0..65535")
+        rig, bus, _ = rig_bus(rig, endpoint)
         try:
-            live = FoxgloveLive(rig, bus_config(endpoint), host=host, port=port)
+            live = FoxgloveLive(rig, bus, host=host, port=port)
         except RuntimeError as e:
             raise UserError(str(e)) from None
         typer.echo(f"serving hil/{rig}/** to Foxglove at {live.url} "
@@ -131,12 +140,14 @@ def register(app: typer.Typer) -> None:
     def replay(
         path: Path = typer.Argument(..., exists=True, dir_okay=False, help="MCAP recording"),
         speed: float = typer.Option(1.0, "--speed", help="playback speed factor; 0 = as fast as possible"),
-        rig: str = typer.Option(None, "--rig", help="publish under hil/<rig>/ instead of the recorded rig"),
+        rig: str = typer.Option(None, "--rig", help="publish under hil/<rig>/ instead of the recorded rig: a rig "
+                                                    "config name or file (its bus settings are used), or a name"),
         topics: list[str] = typer.Option(
             None, "--topics", help="only recorded topics matching these key expressions (e.g. 'hil/*/pm/state'); repeatable"
         ),
         include_commands: bool = typer.Option(
-            False, "--include-commands", help="also publish commands, e-stops, resets, plans and model updates"
+            False, "--include-commands", help="also publish commands, e-stop engages, resets, plans and model "
+                                              "updates (e-stop releases are never replayed)"
         ),
         force: bool = typer.Option(False, "--force", help="replay even onto a rig with live driver nodes"),
         endpoint: str = EndpointOpt,
@@ -150,16 +161,21 @@ def register(app: typer.Typer) -> None:
 
         if not (math.isfinite(speed) and speed >= 0):
             raise UserError(f"--speed {speed}: expected a finite number >= 0 (0: as fast as possible)")
-        if rig is not None:
-            check_rig_name(rig, "--rig")
         _recording_arg(path)
         try:
             topic_filter(topics)
         except ValueError as e:
             raise UserError(f"--topics: {e}") from None
+        if rig is not None:
+            rig, bus, _ = rig_bus(rig, endpoint)
+        else:  # the recorded rig: its config's bus settings when this checkout has it
+            from hilstack.bus.recording import recorded_rig
+
+            name = recorded_rig(path)
+            bus = rig_bus(name, endpoint)[1] if name else bus_config(endpoint)
         try:
             st = do_replay(
-                path, bus_config(endpoint), speed=speed, rig=rig, topics=topics,
+                path, bus, speed=speed, rig=rig, topics=topics,
                 include_commands=include_commands, force=force,
             )
         except ReplayRefused as e:
@@ -172,6 +188,10 @@ def register(app: typer.Typer) -> None:
                 "(--include-commands to replay them)",
                 err=True,
             )
+        if st.skipped_releases:
+            n = sum(st.skipped_releases.values())
+            typer.echo(f"  never replayed: {n} e-stop releases on {', '.join(sorted(st.skipped_releases))} "
+                       "(a replay never releases an e-stop)", err=True)
         if st.skipped_by_filter:
             typer.echo(f"  left out by --topics: {st.skipped_by_filter} messages", err=True)
 

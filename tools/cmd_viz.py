@@ -6,14 +6,14 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, bus_config, check_rig_name, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, rig_bus, user_errors
 
 
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def viz(
-        rig: str = typer.Option(None, "--rig", help="rig to subscribe to (live)"),
+        rig: str = typer.Option(None, "--rig", help="rig to subscribe to (live): config name or file, or a rig name"),
         recording: Path = typer.Option(None, "--recording", help="MCAP file to convert instead of live"),
         save: Path = typer.Option(None, "--save", help="write a .rrd file (headless)"),
         spawn: bool = typer.Option(False, "--spawn", help="spawn the rerun viewer"),
@@ -37,6 +37,6 @@ def register(app: typer.Typer) -> None:
             return
         if rig is None:
             raise UserError("give --rig NAME (live) or --recording FILE --save OUT.rrd")
-        check_rig_name(rig, "--rig")
-        v = viz_live(rig, bus_config(endpoint), seconds=seconds, save=save, spawn=spawn, grpc=not (save or spawn))
+        rig, bus, _ = rig_bus(rig, endpoint)
+        v = viz_live(rig, bus, seconds=seconds, save=save, spawn=spawn, grpc=not (save or spawn))
         typer.echo(f"logged {v.logged} messages", err=True)

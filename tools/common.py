@@ -93,17 +93,20 @@ def user_errors(fn: F) -> F:
     """Expected failures as one line on stderr, no traceback. Exit 2: the input is wrong
     (argument, config, missing file, a command the contract refuses). Exit 1: the robot,
     its link or the rig failed while running (the robot's safety has stopped it)."""
+    from hilstack.bus.access import AccessError
+    from hilstack.bus.node import NodeConflict
+    from hilstack.bus.session import BusUnavailable
     from hilstack.drivers.base import CommandError, LifecycleError, LinkError
 
     @functools.wraps(fn)
     def wrapper(*a: Any, **kw: Any) -> Any:
         try:
             return fn(*a, **kw)
-        except (UserError, ConfigError, CommandError, FileNotFoundError) as e:
+        except (UserError, ConfigError, CommandError, FileNotFoundError, AccessError, NodeConflict) as e:
             typer.echo(f"error: {one_line(e)}", err=True)
             exit_within(EXIT_USAGE)
             raise typer.Exit(EXIT_USAGE) from None
-        except (LinkError, LifecycleError) as e:
+        except (LinkError, LifecycleError, BusUnavailable) as e:
             what = "link error" if isinstance(e, LinkError) else "error"
             typer.echo(f"{what}: {one_line(e)}", err=True)
             # what follows the first line (e.g. the emulator's log tail) is diagnosis: indented
@@ -122,16 +125,37 @@ def user_errors(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-def check_rig_name(rig: str, what: str = "rig") -> str:
-    """``rig`` if it can be a rig name on the bus (the segment of ``hil/<rig>/...``), else a
-    one-line UserError (exit 2) naming ``what`` (e.g. ``--rig``) and the value."""
-    from hilstack.bus import keys
+def with_endpoint(bus: BusConfig, endpoint: str | None) -> BusConfig:
+    """``bus`` with its endpoint replaced (``--endpoint``); everything else, access control
+    included, stays as the rig says."""
+    if not endpoint:
+        return bus
+    try:
+        return BusConfig.model_validate({**bus.model_dump(), "endpoint": endpoint})
+    except Exception as e:
+        raise UserError(f"bad --endpoint {endpoint!r}: {one_line(e)}") from None
+
+
+def rig_bus(rig: str, endpoint: str | None = None, need_config: bool = False) -> tuple[str, BusConfig, Any]:
+    """The one way every verb that takes a rig reads it: a rig config name
+    (``configs/rigs/<name>.yaml``) or file → ``(rig name, its bus settings, RigConfig)``,
+    ``--endpoint`` replacing only the endpoint. A plain name that is no config (a rig made
+    up on the command line, e.g. a test's): that name on the default bus and None, unless
+    ``need_config``."""
+    from pathlib import Path
+
+    from hilstack.bus.keys import _NAME
+    from hilstack.configs.schema import config_path, load_rig
 
     try:
-        keys.root(rig)
-    except ValueError:
-        raise UserError(f"{what} {rig!r} is not a rig name: use letters, digits, '_' and '-'") from None
-    return rig
+        path = config_path("rigs", rig)
+    except ConfigError:
+        p = Path(rig)
+        if need_config or p.suffix in (".yaml", ".yml") or "/" in rig or not _NAME.match(rig):
+            raise
+        return rig, bus_config(endpoint), None
+    cfg = load_rig(path)
+    return cfg.name, with_endpoint(cfg.bus, endpoint), cfg
 
 
 def bus_config(endpoint: str | None, connect: list[str] | None = None) -> BusConfig:

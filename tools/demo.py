@@ -52,8 +52,13 @@ def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full:
         cfg = MbrlConfig.full(**overrides)
     else:
         cfg = MbrlConfig(**{"random_rollouts": 400, **overrides})
-    # a private rendezvous port: a demo never talks to another rig by accident
-    bus = bus or BusConfig(endpoint=free_endpoint())
+    # a private rendezvous port: a demo never talks to another rig by accident; the rig's
+    # bus settings otherwise (its access control: a real rig's driver admits only its credentials)
+    if bus is None:
+        from hilstack.configs.schema import load_rig
+        from hilstack.tools.common import with_endpoint
+
+        bus = with_endpoint(load_rig(cfg.rig).bus, free_endpoint())
     report = MbrlRun(cfg, out, bus).run()
     report["quick"] = quick
     report["full"] = full

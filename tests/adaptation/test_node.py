@@ -171,7 +171,7 @@ def test_estop_pauses_learning_and_publishing_and_restarts_from_theta_star(rig_a
     wait_for(lambda: (node.step(), node.stats.estop_steps >= 3)[1], 10, "states during the e-stop")
     assert node.stats.updates == published and len(node.adapter._buf) == 0
     assert np.allclose(node.adapter.current["0.weight"], node.adapter.theta_star["0.weight"])
-    rig.estop.put(EStop(engaged=False, reason="test", id="e2"))
+    rig.node.publisher(keys.estop_release(RIG, "test"), EStop).put(EStop(engaged=False, reason="test", id="e2"))
     wait_for(lambda: not node.estop.engaged, 10, "the release")
     rig.put(2.0)
     rig.put(2.1)

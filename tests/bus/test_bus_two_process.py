@@ -89,6 +89,7 @@ def test_liveliness_appears_and_disappears(rig):
 
 def test_estop_stops_within_two_periods_and_latches(rig):
     node, state, cmd, estop, _ = rig
+    release = node.publisher(keys.estop_release(RIG, node.user), EStop)
     for _ in range(10):
         cmd.put(Command(robot="pm", action=[2.0, 0.0]))
         _collect(state, lambda g: len(g) >= 1)
@@ -103,7 +104,7 @@ def test_estop_stops_within_two_periods_and_latches(rig):
         cmd.put(Command(robot="pm", action=[2.0, 0.0]))
         after = _collect(state, lambda g: len(g) >= 1)
     assert after[-1].stopped_reason == "estop" and after[-1].action == [0.0, 0.0]
-    estop.put(EStop(engaged=False))
+    release.put(EStop(engaged=False))
     _collect(state, lambda g: any(s.active for s in g))
     cmd.put(Command(robot="pm", action=[1.0, 0.0]))
     _collect(state, lambda g: any(s.action and s.action[0] > 0 for s in g))

@@ -132,8 +132,9 @@ def test_a_malformed_estop_never_replaces_the_latch(bus):
         wait_for(lambda: a.estop.malformed == 1, 5, "malformed counted")
         assert a.estop.engaged and a.estop.latched.id == "1"
         assert [m.id for m in a.estop.take()] == ["1"]
-        a.session.put(keys.estop(RIG), encode(EStop(engaged=False, id="2")))
+        a.session.put(keys.estop_release(RIG, "tester"), encode(EStop(engaged=False, id="2")))
         wait_for(lambda: not a.estop.engaged, 5, "released")
+        assert a.estop.latched.sender == "tester"  # the release key names who released
 
 
 @pytest.mark.parametrize("bad", ["0", "-1"])

@@ -391,8 +391,9 @@ def test_replay_publishes_only_sensor_and_state_topics_by_default(tmp_path, bus)
         lis.node.close()
     assert lis.topics() == {keys.state(RIG, "pm"), keys.image(RIG, "cam")}
     assert st.published == 40
-    assert st.skipped_commands == {keys.cmd(RIG, "pm"): 20, keys.estop(RIG): 20,
+    assert st.skipped_commands == {keys.cmd(RIG, "pm"): 20, keys.estop(RIG): 10,
                                    keys.reset(RIG, "request"): 20, keys.plan(RIG): 20}
+    assert st.skipped_releases == {keys.estop(RIG): 10}  # the recorded releases: never replayed
 
 
 def test_replay_include_commands_and_topic_patterns(tmp_path, bus):
@@ -401,11 +402,14 @@ def test_replay_include_commands_and_topic_patterns(tmp_path, bus):
     lis = _Listener(bus)
     try:
         st = replay(path, bus, speed=0, include_commands=True, topics=["hil/*/pm/*", "hil/*/estop"])
-        lis.collect(lambda g: len(g) >= 15)
+        lis.collect(lambda g: len(g) >= 13)
     finally:
         lis.node.close()
     assert lis.topics() == {keys.state(RIG, "pm"), keys.cmd(RIG, "pm"), keys.estop(RIG)}
-    assert st.published == 15 and st.skipped_by_filter == 15 and not st.skipped_commands
+    # the 3 engages go out, the 2 releases never do, --include-commands or not
+    assert st.published == 13 and st.skipped_by_filter == 15 and not st.skipped_commands
+    assert st.skipped_releases == {keys.estop(RIG): 2}
+    assert all(m.engaged for _, m in lis.got if isinstance(m, EStop))
     with pytest.raises(ValueError, match="bad topic pattern 'hil//x'"):
         replay(path, bus, topics=["hil//x"])
 
