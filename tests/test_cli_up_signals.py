@@ -69,9 +69,14 @@ def test_up_is_not_said_when_the_link_never_opens(tmp_path):
     review saw "arm up on ..." printed before the link was opened, then the link error."""
     master, slave = os.openpty()
     try:
+        # a real robot's rig needs access control (docs/platform.md): the operator's credentials
+        cred = tmp_path / "silent_arm.credentials"
+        cred.write_text("operator:test-password\n")
+        cred.chmod(0o600)
         rig = tmp_path / "silent_arm.yaml"
         rig.write_text(f"name: silent_arm\nrobots:\n  arm:\n    config: widowx\n    backend: real\n"
-                       f"    params: {{port: {os.ttyname(slave)}}}\n")
+                       f"    params: {{port: {os.ttyname(slave)}}}\n"
+                       f"bus:\n  access:\n    credentials: {cred}\n")
         up = Up([str(rig)], start_new_session=True)
         try:
             code = up.p.wait(START_BOUND_S)

@@ -250,11 +250,11 @@ def test_record_mistyped_rig_is_an_error(tmp_path, spawn):
     (["record", "--rig", "pointmass_sim", "--seconds", "-1"], "--seconds"),
     (["replay", "REC", "--speed", "nan"], "--speed"),
     (["replay", "REC", "--speed", "inf"], "--speed"),
-    (["replay", "REC", "--rig", "a/b"], "is not a rig name"),
-    (["nodes", "a/b"], "is not a rig name"),
-    (["estop", "a/b"], "is not a rig name"),
-    (["foxglove", "--rig", "a/b"], "is not a rig name"),
-    (["viz", "--rig", "a/b", "--seconds", "1"], "is not a rig name"),
+    (["replay", "REC", "--rig", "a/b"], "no such rig config"),
+    (["nodes", "a/b"], "no such rig config"),
+    (["estop", "a/b"], "no such rig config"),
+    (["foxglove", "--rig", "a/b"], "no such rig config"),
+    (["viz", "--rig", "a/b", "--seconds", "1"], "no such rig config"),
 ])
 def test_bad_cli_values_are_one_line_exit_2(tmp_path, args, why):
     rec = tmp_path / "r.mcap"
