@@ -127,6 +127,9 @@ def run_calibration(
     t0 = time.time()
     cfg = config or SelectionConfig()
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise DataError(f"--out {out} is an existing file, not a directory; give a directory for the report "
+                        "(the file is left as it is)")
     out.mkdir(parents=True, exist_ok=True)
 
     def log(msg: str) -> None:
@@ -346,6 +349,11 @@ def _velocity_source(p) -> str:
     return f"Savitzky-Golay derivative of position (quadratic, window {p.window} samples)"
 
 
+def _num(v, fmt: str = ".3g") -> str:
+    """A number for the report, or "n/a" when it is missing or not finite (constant data gives None)."""
+    return "n/a" if v is None or not np.isfinite(v) else format(v, fmt)
+
+
 def _fmt_iv(iv) -> str:
     return "" if not iv else f" [{iv[0]:.3g}, {iv[1]:.3g}]"
 
@@ -382,12 +390,12 @@ def render_markdown(r: dict) -> str:
               "|---|---|---|" + "---|" * len(chans)]
     for k in ("before", "after"):
         t = r[k]
-        lines.append(f"| {k} | {t['one_step_nrmse']['mean']:.4f}{_fmt_iv(t['one_step_nrmse']['mean_interval'])} | "
-                     f"{t['multi_step_nrmse']['mean']:.4f}{_fmt_iv(t['multi_step_nrmse']['mean_interval'])} | "
-                     + " | ".join(f"{t['multi_step_nrmse']['per_channel'][c]:.4f}" for c in chans) + " |")
+        lines.append(f"| {k} | {_num(t['one_step_nrmse']['mean'], '.4f')}{_fmt_iv(t['one_step_nrmse']['mean_interval'])}"
+                     f" | {_num(t['multi_step_nrmse']['mean'], '.4f')}{_fmt_iv(t['multi_step_nrmse']['mean_interval'])} | "
+                     + " | ".join(_num(t['multi_step_nrmse']['per_channel'][c], '.4f') for c in chans) + " |")
     bb = r["blackbox"]
     lines += ["", f"Unexplained structure: **{r['unexplained_structure']}** (black-box held-out R² "
-              f"{bb['heldout_r2']:.3f}, p={bb['p_value']:.2g}; thresholds R² ≥ {bb['threshold_r2']}, p < {bb['alpha']})."]
+              f"{_num(bb['heldout_r2'], '.3f')}, p={_num(bb['p_value'], '.2g')}; thresholds R² ≥ {bb['threshold_r2']}, p < {bb['alpha']})."]
     lines += ["", "Detection limits (smallest primary-parameter value the data could have revealed):", ""]
     for name, e in r["detection_limit"]["per_effect"].items():
         val = "n/a" if e["value"] is None else f"{e['value']:.3g} {e['unit']}"

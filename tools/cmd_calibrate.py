@@ -88,8 +88,9 @@ def register(app: typer.Typer) -> None:
         for a in report["ambiguous"]:
             typer.echo(f"  ambiguous: {' vs '.join(a['effects'])} -> {a['excitation']}")
         typer.echo(f"unexplained structure: {summary['unexplained_structure']}")
-        typer.echo(f"multi-step NRMSE (locked test set): before {summary['before_multi_step_nrmse']:.4f}, "
-                   f"after {summary['after_multi_step_nrmse']:.4f}")
+        b, a = summary["before_multi_step_nrmse"], summary["after_multi_step_nrmse"]
+        typer.echo(f"multi-step NRMSE (locked test set): before {'n/a' if b is None else f'{b:.4f}'}, "
+                   f"after {'n/a' if a is None else f'{a:.4f}'}")
         if report.get("augmented_model"):
             am = report["augmented_model"]
             typer.echo(f"augmented model: {am['path']} (extra inputs: "
