@@ -20,7 +20,10 @@ def emps_report(tmp_path_factory, emps_dir):
 def test_emps_finds_coulomb_friction_and_halves_the_error(emps_report):
     r = emps_report
     names = [e["name"] for e in r["effects"]]
-    assert r["verdict"] == "found" and "coulomb_friction" in names and "force_offset" in names
+    # The published offset enters as force_offset or as direction-dependent friction, which is the same
+    # thing on every moving row (docs/calibration.md; under issue 28's evidence rule the latter is chosen).
+    assert r["verdict"] == "found" and "coulomb_friction" in names
+    assert "force_offset" in names or "asymmetric_friction" in names, names
     assert r["confirmation"]["confirmed"] is True
     assert r["data"]["segmented"] is True  # one long recording -> contiguous segments
     assert r["after"]["multi_step_nrmse"]["mean"] <= 0.5 * r["before"]["multi_step_nrmse"]["mean"]
