@@ -566,9 +566,11 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
         rounds.append(round_doc)
         # Search over sets: when no single candidate enters, the best one together with each other
         # candidate (friction + lag, delay + Coulomb, gravity + friction must often enter together).
-        lead = results[0] if results else None
+        # The lead is the best candidate whose parameter the data bound (one at the edge of its search range
+        # stays unbounded with a partner, and pairing it costs a refit per candidate).
+        lead = next((r for r in results if "edge of its search range" not in r.verdict), None)
         if (winner is None and getattr(model, "pair_tests", False) and len(results) > 1 and used < cfg.max_rounds
-                and lead.gain >= cfg.min_gain and lead.evidence.at_least("weak")):
+                and lead is not None and lead.gain >= cfg.min_gain and lead.evidence.at_least("weak")):
             used += 1
             pair = try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, results, base_loss,
                             cfg, seed + rnd, round_doc, log, ev)
@@ -646,9 +648,9 @@ def try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, resul
     has moderate evidence in the presence of the other, and both pass the bootstrap checks with the
     other in the model. Returns the two accepted CandidateResults, or None.
     """
-    lead = results[0]
+    lead = next(r for r in results if "edge of its search range" not in r.verdict)
     tried, best = [], None
-    for other in results[1:]:
+    for other in [r for r in results if r is not lead]:
         both = crossval_losses(model, preps, folds, effects + [lead.name, other.name], nm, horizon, current,
                                [lead.name, other.name])
         e_pair, e_lead, e_other = ev(base_loss, both, 31), ev(other.losses, both, 37), ev(lead.losses, both, 41)
