@@ -21,6 +21,7 @@ features so that the smoothing does not masquerade as a delay or a lag.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -167,13 +168,26 @@ def parse_column_map(spec: str | dict | Path | None, required: tuple[str, ...] =
 
 
 def _read_table(path: Path):
+    """The file as a DataFrame; an unreadable file (empty, binary, not Parquet) is a one-line DataError."""
     import pandas as pd
 
-    if path.suffix.lower() == ".csv":
-        return pd.read_csv(path)
-    if path.suffix.lower() in (".parquet", ".pq"):
-        return pd.read_parquet(path)
-    raise DataError(f"unsupported file type {path.suffix!r} for {path} (use .csv, .parquet or .mcap)")
+    kind = path.suffix.lower()
+    if kind not in (".csv", ".parquet", ".pq"):
+        raise DataError(f"unsupported file type {path.suffix!r} for {path} (use .csv, .parquet or .mcap)")
+    if path.stat().st_size == 0:
+        raise DataError(f"{path} is empty (0 bytes)")
+    try:
+        df = pd.read_csv(path) if kind == ".csv" else pd.read_parquet(path)
+    except UnicodeDecodeError as e:
+        raise DataError(f"{path} is not a text CSV file (byte {e.start} is not UTF-8 text); is it binary?") from e
+    except (pd.errors.EmptyDataError, pd.errors.ParserError) as e:
+        raise DataError(f"{path} is not a readable CSV table: {str(e).splitlines()[0]}") from e
+    except (OSError, ValueError) as e:  # pyarrow.ArrowInvalid is a ValueError
+        raise DataError(f"{path} is not a readable {'CSV' if kind == '.csv' else 'Parquet'} file: "
+                        f"{str(e).splitlines()[0]}") from e
+    if len(df) == 0:
+        raise DataError(f"{path} has a header but no data rows (columns {list(df.columns)})")
+    return df
 
 
 def _column(df, key: str, col: str, path: Path) -> np.ndarray:
@@ -203,6 +217,12 @@ def _column(df, key: str, col: str, path: Path) -> np.ndarray:
 
 #: Fewest samples an episode (or a piece of one between NaN rows) must have to be used.
 MIN_SAMPLES = 20
+#: Largest magnitude a logged value may have; beyond it (e.g. 1e300, a corrupt cell) the row is treated
+#: like a NaN row: dropped, and the episode split there. Squares and sums of such values overflow.
+MAX_ABS_VALUE = 1e12
+#: A time step longer than this many median periods is a gap (logging paused, clock jumped): the
+#: recording is split there into separate episodes, never bridged or resampled across.
+GAP_PERIODS = 5.0
 
 
 def _episodes_from_table(df, mapping: dict[str, str], path: Path, warn: Callable[[str], None]) -> list[Episode]:
@@ -217,45 +237,64 @@ def _episodes_from_table(df, mapping: dict[str, str], path: Path, warn: Callable
         name = path.name if ep_id is None else f"{path.name}#episode={ep_id}"
         bad = np.zeros(len(g), bool)
         for k in keys:
-            bad |= ~np.isfinite(arrays[k])
+            with np.errstate(invalid="ignore"):
+                bad |= ~(np.abs(arrays[k]) <= MAX_ABS_VALUE)  # NaN, inf, and values beyond the bound
         if bad.any():
             # Drop the bad rows and keep every clean stretch as its own episode: no data is lost and
             # no stretch is bridged across a gap the model would have to integrate through.
             first = int(np.flatnonzero(bad)[0])
-            col = next(mapping[k] for k in keys if not np.isfinite(arrays[k][first]))
+            key = next(k for k in keys if not abs(arrays[k][first]) <= MAX_ABS_VALUE)
+            col = mapping[key]
             d = np.diff(np.concatenate([[0], (~bad).astype(int), [0]]))
             pieces = list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(), strict=True))
-            warn(f"{path}: {int(bad.sum())} row(s) with NaN/inf dropped in {name} (first: data row "
-                 f"{g.index[first]}, column {col!r}); the rest is kept as {len(pieces)} contiguous piece(s)")
+            warn(f"{path}: {int(bad.sum())} row(s) with NaN/inf or |value| > {MAX_ABS_VALUE:g} dropped in {name} "
+                 f"(first: data row {g.index[first]}, column {col!r}, value {arrays[key][first]:g}); the rest is "
+                 f"kept as {len(pieces)} contiguous piece(s)")
             for a, b in pieces:
-                ep = _make_episode(f"{name}[rows {g.index[a]}-{g.index[b - 1]}]",
-                                   {k: v[a:b] for k, v in arrays.items()}, path, warn)
-                if ep is not None:
-                    out.append(ep)
+                out.extend(_make_episode(f"{name}[rows {g.index[a]}-{g.index[b - 1]}]",
+                                         {k: v[a:b] for k, v in arrays.items()}, path, warn))
             continue
-        ep = _make_episode(name, arrays, path, warn)
-        if ep is not None:
-            out.append(ep)
+        out.extend(_make_episode(name, arrays, path, warn))
     return out
 
 
 def _make_episode(name: str, arrays: dict[str, np.ndarray], path: Path | str,
-                  warn: Callable[[str], None]) -> Episode | None:
+                  warn: Callable[[str], None]) -> list[Episode]:
+    """The episode(s) of one clean stretch of rows: split at time gaps, resampled when jittery.
+
+    A step longer than :data:`GAP_PERIODS` median periods splits the stretch into separate
+    episodes (with a warning): bridging it would make the models integrate through time that was
+    not recorded, and resampling across it would allocate memory for the gap (a 1e6 s clock jump
+    at 100 Hz is 1e8 samples). After the split every step is at most GAP_PERIODS periods, so a
+    resampled episode has at most GAP_PERIODS times as many samples as it had rows.
+    """
     t = arrays["t"]
     if t.size < MIN_SAMPLES:
         warn(f"{name}: skipped, only {t.size} samples (need at least {MIN_SAMPLES} per episode)")
-        return None
+        return []
     dt = np.diff(t)
     if np.any(dt <= 0):
         i = int(np.flatnonzero(dt <= 0)[0])
         raise DataError(f"{path}: time column is not strictly increasing at data row {i + 1} ({name})")
     med = float(np.median(dt))
+    gaps = np.flatnonzero(dt > GAP_PERIODS * med)
+    if gaps.size:
+        cuts = [0, *(gaps + 1).tolist(), t.size]
+        warn(f"{name}: {gaps.size} time gap(s) longer than {GAP_PERIODS:g} median periods ({med:.4g} s) split it "
+             f"into {len(cuts) - 1} episodes (largest gap {float(dt.max()):.4g} s after data row {int(gaps[0])})")
+        out: list[Episode] = []
+        for j, (a, b) in enumerate(itertools.pairwise(cuts)):
+            out.extend(_make_episode(f"{name}[part{j}]", {k: v[a:b] for k, v in arrays.items()}, path, warn))
+        return out
     if np.max(np.abs(dt - med)) > 0.25 * med:
         # The models are discrete-time with one period; resample a jittery log onto a uniform grid.
         n = int(round((t[-1] - t[0]) / med)) + 1
         tu = t[0] + med * np.arange(n)
         arrays = {k: (tu if k == "t" else np.interp(tu, t, a)) for k, a in arrays.items()}
-    return Episode(
+    if float(np.ptp(arrays["x"])) <= 1e-12 * max(1.0, float(np.max(np.abs(arrays["x"])))):
+        warn(f"{name}: skipped, position is constant ({float(arrays['x'][0]):.6g}) over all {t.size} samples")
+        return []
+    return [Episode(
         name=name,
         t_s=arrays["t"],
         u=arrays["u"],
@@ -264,7 +303,7 @@ def _make_episode(name: str, arrays: dict[str, np.ndarray], path: Path | str,
         vbat_v=arrays.get("vbat"),
         payload=arrays.get("m"),
         meta={"source": str(path)},
-    )
+    )]
 
 
 def _warn_default(msg: str) -> None:
@@ -311,8 +350,18 @@ def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
     for f in files:
         episodes.extend(_episodes_from_table(_read_table(f), mapping, f, warn))
     if not episodes:
-        raise DataError(f"{p}: no usable episode (each needs at least {MIN_SAMPLES} clean samples)")
+        raise DataError(f"{p}: no usable episode (each needs at least {MIN_SAMPLES} clean samples with moving "
+                        "position)")
+    u_all = np.concatenate([e.u for e in episodes])
+    if float(np.ptp(u_all)) == 0.0:
+        raise DataError(f"{p}: the command column {mapping['u']!r} is constant ({float(u_all[0]):.6g}) in every "
+                        "row: the actuator gain cannot be told apart from a constant force; record with a "
+                        "varying command")
     return episodes
+
+
+#: The first 8 bytes of every MCAP file.
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None,
@@ -325,10 +374,19 @@ def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None,
     """
     from hilstack.learning.recordings import episodes_from_mcap
 
+    with open(path, "rb") as f:
+        magic = f.read(8)
+    if magic != MCAP_MAGIC:
+        raise DataError(f"{path} is not an MCAP file (its first bytes are not the MCAP magic {MCAP_MAGIC!r})")
     try:
         raw = episodes_from_mcap(path, robot=robot, normalize=normalize_actions)
     except ValueError as e:
+        if "robots []" in str(e):
+            raise DataError(f"{path}: no robot state messages in the recording (not a hilstack rig recording, or "
+                            "truncated)") from e
         raise DataError(str(e)) from e
+    except Exception as e:  # a corrupt MCAP body: the reader's own exception types vary
+        raise DataError(f"{path}: unreadable MCAP recording: {type(e).__name__}: {str(e).splitlines()[0]}") from e
     if not raw:
         raise DataError(f"{path}: no episode with at least 2 transitions and recorded actions")
     out = []

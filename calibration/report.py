@@ -26,7 +26,6 @@ from hilstack.calibration.selection import (
     blackbox_check,
     detection_limits,
     heldout_gain,
-    round_alpha,
     select_effects,
 )
 
@@ -127,6 +126,9 @@ def run_calibration(
     t0 = time.time()
     cfg = config or SelectionConfig()
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise DataError(f"--out {out} is an existing file, not a directory; give a directory for the report "
+                        "(the file is left as it is)")
     out.mkdir(parents=True, exist_ok=True)
 
     def log(msg: str) -> None:
@@ -192,6 +194,13 @@ def run_calibration(
     else:
         det = detection_limits(pool, sel.final, candidates, sel.skipped, cfg)
 
+    diagnostics = None
+    if is_axis:
+        from hilstack.calibration.diagnostics import residual_diagnostics
+
+        log("residual diagnostics")
+        diagnostics = {"nominal": residual_diagnostics(pool, sel.nominal.params),
+                       "final": residual_diagnostics(pool, sel.final.params)}
     effects_doc = []
     amb_names = {n for a in sel.ambiguous for n in a["effects"]}
     for r in sel.accepted:
@@ -205,6 +214,7 @@ def run_calibration(
             "no_effect": spec.no_effect,
             "interval": r.interval,
             "heldout_gain": r.gain,
+            "evidence": r.evidence.to_dict() if r.evidence is not None else None,
             "p_value": r.p_value,
             "stability": r.stability,
             "ambiguous": r.name in amb_names,
@@ -223,6 +233,8 @@ def run_calibration(
         "confirmation": confirmation,
         "effects": effects_doc,
         "ambiguous": sel.ambiguous,
+        "findings": sel.findings,
+        "diagnostics": diagnostics,
         "unexplained_structure": bb["unexplained_structure"],
         "blackbox": bb,
         "detection_limit": det,
@@ -258,6 +270,9 @@ def run_calibration(
             _candidate_plot(out, sel)
         else:
             _plots(out, sel, preps, pool, test)
+            from hilstack.calibration.diagnostics import plot_diagnostics
+
+            plot_diagnostics(out / "residual_diagnostics.png", diagnostics["nominal"], pool, sel.nominal.params)
     (out / "report.md").write_text(render_markdown(report))
     log(f"done: verdict {report['verdict']}, multi-step NRMSE {before['multi_step_nrmse']['mean']:.3f} -> "
         f"{after['multi_step_nrmse']['mean']:.3f}")
@@ -293,24 +308,26 @@ def _verdict(model, sel, test: list, before: dict, after: dict) -> tuple[str, di
 
 
 def _resolution(model, preps, sel, cfg, warn) -> dict:
-    """What the amount of data can resolve at all, consistent with the acceptance rule.
+    """What the amount of data can resolve at all, consistent with the evidence rule.
 
-    Every held-out unit (episode or segment) gives one paired difference; the one-sided Wilcoxon
-    test over n of them cannot give p below 2^-n. When that is above the first round's
-    per-candidate threshold, no effect can be accepted, whatever its size.
+    The evidence levels come from a block bootstrap over held-out units: with fewer than
+    :data:`MIN_HELDOUT_UNITS` of them (or fewer blocks than that) the bootstrap interval is
+    meaningless, so nothing can reach "moderate".
     """
     n_units = int(sum(len(f) for f in sel.folds))
-    candidates, _ = model.candidate_effects(preps)
-    alpha1 = round_alpha(cfg.alpha, 1) / max(1, len(candidates))
-    p_min = 0.5**n_units
-    doc = {"heldout_units": n_units, "smallest_attainable_p": p_min, "round1_alpha_per_candidate": alpha1,
-           "can_accept": p_min < alpha1, "locked_test_units": int(len(sel.test_idx))}
-    if p_min >= alpha1:
-        need = int(np.ceil(np.log2(1 / alpha1)))
-        warn(f"with {n_units} held-out units the smallest attainable p-value is {p_min:.2g}, above the per-candidate "
-             f"threshold {alpha1:.2g}: no effect can be accepted; record at least {need} training episodes "
-             "(or a longer recording)")
+    block = int(getattr(sel.folds, "block", 1))
+    n_blocks = n_units // max(1, block)
+    doc = {"heldout_units": n_units, "bootstrap_block": block, "bootstrap_blocks": n_blocks,
+           "can_accept": n_blocks >= MIN_HELDOUT_UNITS, "locked_test_units": int(len(sel.test_idx))}
+    if n_blocks < MIN_HELDOUT_UNITS:
+        warn(f"only {n_blocks} independent held-out block(s) of {block} unit(s): the bootstrap interval of the "
+             f"held-out gain needs at least {MIN_HELDOUT_UNITS}; no effect can reach moderate evidence; record more "
+             "episodes or a longer recording")
     return doc
+
+
+#: Fewest held-out bootstrap blocks for an evidence level above "weak" to mean anything.
+MIN_HELDOUT_UNITS = 4
 
 
 def _drop_motionless(model, episodes: list[Episode], warn) -> list[Episode]:
@@ -346,6 +363,11 @@ def _velocity_source(p) -> str:
     return f"Savitzky-Golay derivative of position (quadratic, window {p.window} samples)"
 
 
+def _num(v, fmt: str = ".3g") -> str:
+    """A number for the report, or "n/a" when it is missing or not finite (constant data gives None)."""
+    return "n/a" if v is None or not np.isfinite(v) else format(v, fmt)
+
+
 def _fmt_iv(iv) -> str:
     return "" if not iv else f" [{iv[0]:.3g}, {iv[1]:.3g}]"
 
@@ -364,30 +386,46 @@ def render_markdown(r: dict) -> str:
     if r.get("warnings"):
         lines += ["Warnings:", ""] + [f"- {w}" for w in r["warnings"]] + [""]
     if r["effects"]:
-        lines += ["| effect | parameters | 95% interval (primary) | held-out gain | p-value | stability |",
-                  "|---|---|---|---|---|---|"]
+        lines += ["| effect | parameters | 95% interval (primary) | evidence | held-out gain [95% block bootstrap] "
+                  "| stability |", "|---|---|---|---|---|---|"]
         for e in r["effects"]:
             ps = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items() if v is not None)
+            evd = e.get("evidence") or {}
             lines.append(f"| {e['name']}{' (ambiguous)' if e['ambiguous'] else ''} | {ps} | "
-                         f"{e['primary']}{_fmt_iv(e['interval'])} | {e['heldout_gain']:.3f} | {e['p_value']:.2g} | "
-                         f"{e['stability']:.2f} |")
+                         f"{e['primary']}{_fmt_iv(e['interval'])} | {evd.get('level', 'n/a')} | "
+                         f"{e['heldout_gain']:.3f}{_fmt_iv(evd.get('interval'))} | {_num(e['stability'], '.2f')} |")
+    if r.get("findings"):
+        lines += ["", "Weaker findings (not added to the model; evidence with its numbers):", ""]
+        for f in r["findings"]:
+            lines.append(f"- {f['name']}: {f['level']}, held-out gain {f['heldout_gain']:+.3f}"
+                         f"{_fmt_iv(f['interval'])}, {f['p_positive']:.0%} of bootstrap replicates positive"
+                         + (f"; {f['why_not_accepted']}" if f.get("why_not_accepted") else ""))
     if r["ambiguous"]:
         lines += ["", "Ambiguous (look-alikes the data cannot separate):"]
         for a in r["ambiguous"]:
-            lines.append(f"- {a['effects'][0]} vs {a['effects'][1]} (chose {a['chosen']}, separation p="
-                         f"{a['p_value_separation']:.2g}); to separate: {a['excitation']}")
+            how = ("identical held-out fit" if a.get("identical_fit") else
+                   f"separation evidence {(a.get('evidence_separation') or {}).get('level', 'n/a')}")
+            lines.append(f"- {a['effects'][0]} vs {a['effects'][1]} (chose {a['chosen']}, {how}); to separate: "
+                         f"{a['excitation']}")
     chans = list(r["before"]["multi_step_nrmse"]["per_channel"])
     lines += ["", "Locked test set (NRMSE, 95% episode-bootstrap interval):", "",
               "| | one-step mean | multi-step mean | " + " | ".join(f"multi-step {c}" for c in chans) + " |",
               "|---|---|---|" + "---|" * len(chans)]
     for k in ("before", "after"):
         t = r[k]
-        lines.append(f"| {k} | {t['one_step_nrmse']['mean']:.4f}{_fmt_iv(t['one_step_nrmse']['mean_interval'])} | "
-                     f"{t['multi_step_nrmse']['mean']:.4f}{_fmt_iv(t['multi_step_nrmse']['mean_interval'])} | "
-                     + " | ".join(f"{t['multi_step_nrmse']['per_channel'][c]:.4f}" for c in chans) + " |")
+        lines.append(f"| {k} | {_num(t['one_step_nrmse']['mean'], '.4f')}{_fmt_iv(t['one_step_nrmse']['mean_interval'])}"
+                     f" | {_num(t['multi_step_nrmse']['mean'], '.4f')}{_fmt_iv(t['multi_step_nrmse']['mean_interval'])} | "
+                     + " | ".join(_num(t['multi_step_nrmse']['per_channel'][c], '.4f') for c in chans) + " |")
     bb = r["blackbox"]
     lines += ["", f"Unexplained structure: **{r['unexplained_structure']}** (black-box held-out R² "
-              f"{bb['heldout_r2']:.3f}, p={bb['p_value']:.2g}; thresholds R² ≥ {bb['threshold_r2']}, p < {bb['alpha']})."]
+              f"{_num(bb['heldout_r2'], '.3f')}, p={_num(bb['p_value'], '.2g')}; thresholds R² ≥ {bb['threshold_r2']}, p < {bb['alpha']})."]
+    if r.get("diagnostics"):
+        lines += ["", "Residual diagnostics (they propose; the held-out evidence decides; plot "
+                  "residual_diagnostics.png):", ""]
+        for stage in ("nominal", "final"):
+            dg = r["diagnostics"][stage]
+            props = ", ".join(f"{q['name']} ({q['by']}, z={q['z']:.1f})" for q in dg.get("proposed", [])) or "nothing"
+            lines.append(f"- residual of the {stage} model proposes: {props}")
     lines += ["", "Detection limits (smallest primary-parameter value the data could have revealed):", ""]
     for name, e in r["detection_limit"]["per_effect"].items():
         val = "n/a" if e["value"] is None else f"{e['value']:.3g} {e['unit']}"
@@ -411,7 +449,7 @@ def render_markdown(r: dict) -> str:
             lines.append(f"- {k}: " + ", ".join(f"{n}={v:.4g}" for n, v in r["physical_params"][k].items()))
     lines += ["", "Not tested: " + "; ".join(f"{k}: {v}" for k, v in r["not_tested"].items()), ""]
     plots = ("residual_before_after.png, candidates.png" if r.get("closing_the_loop") or r.get("augmented_model")
-             else "residual_before_after.png, diagnostics.png, candidates.png")
+             else "residual_before_after.png, diagnostics.png, residual_diagnostics.png, candidates.png")
     lines += [f"Plots: {plots}", ""]
     return "\n".join(lines)
 

@@ -1,19 +1,21 @@
-"""Effect selection: folds, locked test set, paired tests, bootstrap, look-alikes, black box.
+"""Effect selection: folds, locked test set, held-out evidence, bootstrap, look-alikes, black box.
 
 Procedure (see docs/calibration.md):
 
-1. Whole episodes are split into a locked test set (never used for any decision) and a
-   training pool, which is split into K folds.
+1. Whole episodes (or contiguous time blocks of long recordings) are split into a locked test
+   set (never used for any decision) and a training pool, which is split into K folds; the
+   blocks of a recording next to a held-out block are purged from its training set (a gap).
 2. Each round, every remaining candidate is added to the accepted set; model + candidate are
-   fit on K−1 folds and scored on the held-out fold (one-step and multi-step open-loop), so
-   every training episode gets a held-out loss with and without the candidate.
-3. A candidate is accepted when (a) a one-sided Wilcoxon signed-rank test over held-out
-   episodes says it lowers the loss, at α / (number of candidates in the round); (b) the
-   relative held-out gain is at least ``min_gain``; (c) the 95 % episode-bootstrap interval
-   of its primary parameter excludes the no-effect value; (d) it improves the out-of-bag loss
-   in at least ``min_stability`` of the bootstrap replicates. The best such candidate is
-   accepted, its look-alikes that explain the data about as well are reported as ambiguous,
-   and the round repeats until nothing passes.
+   fit on the other folds and scored on the held-out fold (one-step and multi-step open-loop),
+   so every training unit gets a held-out loss with and without the candidate.
+3. Evidence (:func:`gain_evidence`): the held-out gain (a held-out likelihood ratio) and its
+   moving-block bootstrap interval give a level, strong / moderate / weak / none, with its
+   numbers. A candidate enters the model at moderate or better when also (c) the 95 %
+   bootstrap interval of its primary parameter excludes the no-effect value and (d) it improves
+   the out-of-bag loss in at least ``min_stability`` of the bootstrap replicates. Candidates
+   with the same held-out fit are ranked by catalogue order and reported as look-alikes, never
+   by float noise. When no single candidate enters, the best one is fitted jointly with each
+   other (search over sets); a backward pass prunes effects the others made redundant.
 4. A black-box regressor on the remaining one-step residual (random Fourier features, ridge)
    checks for structure the catalogue cannot explain (held-out R² with a paired test).
 """
@@ -48,6 +50,15 @@ class SelectionConfig:
     bb_alpha: float = 0.01
     bb_min_r2: float = 0.05
     power: float = 0.8
+    #: block-bootstrap replicates of the held-out gain (cheap: sums of held-out losses, no refits)
+    n_boot_gain: int = 2000
+    #: evidence levels: the held-out gain's block-bootstrap quantile that must be above 0
+    #: (strong: the 0.5 % quantile, moderate: 2.5 %, weak: 20 %; see :func:`gain_evidence`)
+    strong_quantile: float = 0.005
+    moderate_quantile: float = 0.025
+    weak_quantile: float = 0.2
+    #: units of the same recording next to a held-out block that are left out of its training set
+    purge_gap: int = 1
 
 
 @dataclass
@@ -109,6 +120,183 @@ def heldout_gain(base: np.ndarray, cand: np.ndarray) -> float:
     if base.ndim == 1:
         return float(1.0 - cand.mean() / base.mean())
     return float(1.0 - np.exp(-np.mean(_log_ratio(base.sum(0)[None], cand.sum(0)[None]))))
+
+
+#: Evidence levels, strongest first. An effect enters the model at "moderate" or better.
+LEVELS = ("strong", "moderate", "weak", "none")
+ACCEPT_LEVELS = ("strong", "moderate")
+
+
+@dataclass
+class Evidence:
+    """How strongly held-out data support a candidate (see :func:`gain_evidence`).
+
+    Attributes:
+        level: strong / moderate / weak / none.
+        gain: held-out gain (point estimate over all held-out units).
+        interval: 95 % block-bootstrap interval of the gain.
+        lower_strong: the bootstrap quantile the "strong" level needs above 0 (0.5 %).
+        p_positive: fraction of bootstrap replicates with a positive gain.
+        n_units: held-out units (episodes or time blocks) the bootstrap resamples.
+        block: bootstrap block length [units].
+    """
+
+    level: str
+    gain: float
+    interval: list[float]
+    lower_strong: float
+    p_positive: float
+    n_units: int
+    block: int
+
+    def to_dict(self) -> dict:
+        return {"level": self.level, "gain": self.gain, "interval": self.interval,
+                "lower_strong": self.lower_strong, "p_positive": self.p_positive, "n_units": self.n_units,
+                "block": self.block}
+
+    def at_least(self, level: str) -> bool:
+        return LEVELS.index(self.level) <= LEVELS.index(level)
+
+
+def _gain_rows(base: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    """Held-out gain of summed losses; ``base``/``cand`` are (replicates, units[, channels])."""
+    b, c = base.sum(1), cand.sum(1)
+    if b.ndim == 1:
+        return 1.0 - c / np.maximum(b, 1e-300)
+    floor = 1e-12 * (b.mean(0) + 1e-300)
+    return 1.0 - np.exp(-np.mean(np.log(b + floor) - np.log(c + floor), axis=1))
+
+
+def block_indices(n: int, block: int, n_boot: int, rng: np.random.Generator) -> np.ndarray:
+    """Moving-block bootstrap: (n_boot, n) unit indices, runs of ``block`` consecutive units."""
+    block = max(1, min(block, n))
+    n_blocks = int(math.ceil(n / block))
+    starts = rng.integers(0, n - block + 1, (n_boot, n_blocks))
+    return (starts[:, :, None] + np.arange(block)[None, None, :]).reshape(n_boot, -1)[:, :n]
+
+
+def gain_evidence(base: np.ndarray, cand: np.ndarray, cfg: SelectionConfig, seed: int = 0,
+                  block: int = 1, min_gain: float | None = None) -> Evidence:
+    """Evidence level of ``cand`` held-out losses over ``base`` (one row per held-out unit, pool order).
+
+    The effect size is the held-out gain (a held-out likelihood ratio: it charges every parameter
+    by its out-of-sample cost, like an information criterion, cf. Stone 1977); its uncertainty is a
+    moving-block bootstrap over held-out units (``block`` > 1 when units are neighbouring time
+    blocks of one recording, which are correlated). Levels, each also needing gain ≥ ``min_gain``
+    (the effect size):
+
+    * strong: the 0.5 % bootstrap quantile of the gain is above 0,
+    * moderate: the 2.5 % quantile is above 0 (the 95 % interval excludes no gain),
+    * weak: the 20 % quantile is above 0 (4 in 5 replicates say it helps),
+    * none: otherwise.
+
+    No correction towards zero for the number of candidates or rounds: with 2–12 recordings such a
+    corrected test cannot reach significance at all. False alarms are instead measured on clean
+    data (docs/calibration.md: at most 5 % at "strong").
+    """
+    base, cand = np.asarray(base, float), np.asarray(cand, float)
+    min_gain = cfg.min_gain if min_gain is None else min_gain
+    n = base.shape[0]
+    gain = heldout_gain(base, cand)
+    if n == 0 or not np.isfinite(gain):
+        return Evidence("none", float(gain) if np.isfinite(gain) else 0.0, [0.0, 0.0], 0.0, 0.0, n, block)
+    rng = np.random.default_rng(seed + 104729)
+    idx = block_indices(n, block, cfg.n_boot_gain, rng)
+    g = _gain_rows(base[idx], cand[idx])
+    q = np.quantile(g, [cfg.strong_quantile, cfg.moderate_quantile, cfg.weak_quantile, 0.975])
+    if gain >= min_gain and q[0] > 0:
+        level = "strong"
+    elif gain >= min_gain and q[1] > 0:
+        level = "moderate"
+    elif gain >= min_gain and q[2] > 0:
+        level = "weak"
+    else:
+        level = "none"
+    return Evidence(level, float(gain), [float(q[1]), float(q[3])], float(q[0]), float(np.mean(g > 0)), n, block)
+
+
+#: Two candidates whose held-out losses agree to this relative tolerance on every unit are the same
+#: fit (e.g. a force offset and a slope on a fixed axis: the same column); ranking them by their
+#: gains would be ranking by floating-point noise, which differs between CPUs.
+TIE_RTOL = 1e-6
+
+
+def same_fit(a: np.ndarray, b: np.ndarray) -> bool:
+    return bool(np.allclose(a, b, rtol=TIE_RTOL, atol=1e-300))
+
+
+def rank_candidates(results: list, order: list[str]) -> list:
+    """Sort by held-out gain, best first; candidates with the same held-out losses (:func:`same_fit`)
+    form a tie group ordered by ``order`` (the catalogue order), never by float noise."""
+    by_gain = sorted(results, key=lambda r: (-r.gain, order.index(r.name) if r.name in order else len(order)))
+    groups: list[list] = []
+    for r in by_gain:
+        g = next((g for g in groups if same_fit(g[0].losses, r.losses)), None)
+        if g is None:
+            groups.append([r])
+        else:
+            g.append(r)
+    out = []
+    for g in groups:
+        g.sort(key=lambda r: order.index(r.name) if r.name in order else len(order))
+        for r in g[1:]:
+            r.tied_with = g[0].name
+        out.extend(g)
+    return out
+
+
+class Folds(list):
+    """Fold index arrays over the training pool, plus the units purged from each fold's training set.
+
+    ``purge[i]``: units of the same recording next to fold i's held-out block (``purge_gap`` on
+    each side), left out when fold i is held out, so that neighbouring samples (shared context,
+    correlated noise) do not leak from training into the held-out block.
+    """
+
+    def __init__(self, folds, purge: dict[int, set[int]] | None = None, block: int = 1):
+        super().__init__(folds)
+        self.purge = purge or {}
+        self.block = block
+
+    def train(self, i: int) -> list[int]:
+        gone = self.purge.get(i, set())
+        return [j for f, fold in enumerate(self) if f != i for j in fold if j not in gone]
+
+
+def _unit_order(preps) -> list[tuple[str, int] | None]:
+    """(recording, start sample) of each segment cut from a recording; None for a whole episode."""
+    out = []
+    for p in preps:
+        meta = getattr(getattr(p, "ep", None), "meta", {}) or {}
+        out.append((str(meta["segment_of"]), int(meta.get("segment_start", 0))) if "segment_of" in meta else None)
+    return out
+
+
+def purge_neighbours(preps, folds: list[np.ndarray], gap: int) -> dict[int, set[int]]:
+    """For each fold, the units within ``gap`` positions (same recording, time order) of its units."""
+    order = _unit_order(preps)
+    rec: dict[str, list[tuple[int, int]]] = {}
+    for j, o in enumerate(order):
+        if o is not None:
+            rec.setdefault(o[0], []).append((o[1], j))
+    pos: dict[int, tuple[str, int]] = {}
+    seq: dict[str, list[int]] = {}
+    for name, lst in rec.items():
+        seq[name] = [j for _, j in sorted(lst)]
+        for k, j in enumerate(seq[name]):
+            pos[j] = (name, k)
+    out: dict[int, set[int]] = {}
+    pool = {int(j) for fold in folds for j in fold}
+    for i, fold in enumerate(folds):
+        held = {int(j) for j in fold}
+        near: set[int] = set()
+        for j in held:
+            if j in pos and gap > 0:
+                name, k = pos[j]
+                s_ = seq[name]
+                near.update(s_[max(0, k - gap): k + gap + 1])
+        out[i] = (near - held) & pool
+    return out
 
 
 def split_episodes(n: int, cfg: SelectionConfig, seed: int,
@@ -195,6 +383,8 @@ class CandidateResult:
     stability: float | None = None
     boot_values: list[float] = field(default_factory=list)
     verdict: str = ""
+    evidence: Evidence | None = None
+    tied_with: str | None = None
 
 
 def crossval_losses(model: Model, preps, folds, effects, nm, horizon: int,
@@ -202,7 +392,9 @@ def crossval_losses(model: Model, preps, folds, effects, nm, horizon: int,
     """Held-out loss of every training-pool episode (pool order = concatenated folds)."""
     out = []
     for i, held in enumerate(folds):
-        train = [preps[j] for f, fold in enumerate(folds) if f != i for j in fold]
+        idx = folds.train(i) if isinstance(folds, Folds) else [j for f, fold in enumerate(folds) if f != i
+                                                               for j in fold]
+        train = [preps[j] for j in idx]
         fitted = model.fit(train, effects, refine=False, start=start, search=search)
         out.extend(model.episode_loss(preps[j], fitted, horizon, nm) for j in held)
     return np.asarray(out)
@@ -256,57 +448,69 @@ class SelectionResult:
     folds: list[np.ndarray]
     norms: Norms
     horizon: int
+    #: candidates with weak or better evidence that did not enter the model (last round)
+    findings: list[dict] = field(default_factory=list)
 
 
 def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfig, seed: int = 0,
                    log: Callable[[str], None] = lambda s: None) -> SelectionResult:
-    """Greedy forward selection of effects with held-out evidence (see module docstring)."""
+    """Stepwise selection of effects by held-out evidence (see module docstring)."""
     locked = np.array([bool(getattr(getattr(p, "ep", None), "meta", {}).get("locked_test")) for p in preps])
-    test_idx, folds = split_episodes(len(preps), cfg, seed, locked)
-    pool_idx = np.concatenate(folds)
+    test_idx, raw_folds = split_episodes(len(preps), cfg, seed, locked)
+    pool_idx = np.concatenate(raw_folds)
+    segmented = any(o is not None for o in _unit_order(preps))
+    # Neighbouring time blocks of one recording are correlated: resample runs of them.
+    block = max(1, int(round(pool_idx.size ** (1 / 3)))) if segmented else 1
+    folds = Folds(raw_folds, purge_neighbours(preps, raw_folds, cfg.purge_gap), block)
     pool = [preps[i] for i in pool_idx]
     nm = model.norms(pool)
     horizon = max(2, int(round(cfg.horizon_s / preps[0].period_s)))
     if isinstance(nm, Norms):
         nm.horizon = horizon
     candidates, skipped = model.candidate_effects(preps)
-    log(f"{len(preps)} episodes: {test_idx.size} locked for test, {pool_idx.size} in {len(folds)} folds; "
-        f"{len(candidates)} candidate effects")
+    n_purged = sum(len(v) for v in folds.purge.values())
+    log(f"{len(preps)} episodes: {test_idx.size} locked for test, {pool_idx.size} in {len(folds)} folds"
+        + (f" ({n_purged} neighbouring unit(s) purged from the training sets, bootstrap blocks of {block})"
+           if segmented else "") + f"; {len(candidates)} candidate effects")
+    order = list(model.catalogue)
+
+    def ev(base, cand, salt: int = 0) -> Evidence:
+        return gain_evidence(base, cand, cfg, seed + salt, folds.block)
 
     nominal = model.fit(pool, [])
     current = nominal
     accepted: list[CandidateResult] = []
     ambiguous: list[dict] = []
     rounds: list[dict] = []
-    # Fold indices into `preps` order; losses come out in pool order.
-    budget = 0  # index of the last error budget spent (a pair attempt spends the next round's)
+    findings: list[dict] = []
+    used = 0  # rounds used (a pair accepted together uses two)
     for rnd in range(cfg.max_rounds):
-        if budget >= cfg.max_rounds:
+        if used >= cfg.max_rounds:
             break
-        budget += 1
+        used += 1
         effects = list(current.effects)
         candidates, skipped = model.candidate_effects(preps, tuple(effects))
         remaining = [c for c in candidates if c not in effects]
         if not remaining:
             break
         base_loss = crossval_losses(model, preps, folds, effects, nm, horizon, current, [])
-        alpha_round = round_alpha(cfg.alpha, budget) / len(remaining)
         results = []
         for name in remaining:
             losses = crossval_losses(model, preps, folds, effects + [name], nm, horizon, current, [name])
-            gain = heldout_gain(base_loss, losses)
-            r = CandidateResult(name, losses, gain, paired_p(base_loss, losses))
+            r = CandidateResult(name, losses, heldout_gain(base_loss, losses), paired_p(base_loss, losses))
+            r.evidence = ev(base_loss, losses, rnd)
             results.append(r)
-            log(f"  round {rnd + 1}: {name:18s} held-out gain {gain:+.3f}  p={r.p_value:.2g}")
-        results.sort(key=lambda r: -r.gain)
-        passing = [r for r in results if r.p_value < alpha_round and r.gain >= cfg.min_gain]
+            iv = r.evidence.interval
+            log(f"  round {rnd + 1}: {name:18s} held-out gain {r.gain:+.3f} [{iv[0]:+.3f}, {iv[1]:+.3f}]  "
+                f"{r.evidence.level}")
+        results = rank_candidates(results, order)
+        passing = [r for r in results if r.evidence.at_least("moderate")]
         round_doc = {
             "round": rnd + 1,
-            "budget_round": budget,
             "base_effects": effects,
             "base_heldout_loss": base_loss.mean(axis=0).tolist() if base_loss.ndim > 1 else float(base_loss.mean()),
-            "alpha": alpha_round,
-            "candidates": [{"name": r.name, "heldout_gain": r.gain, "p_value": r.p_value} for r in results],
+            "candidates": [{"name": r.name, "heldout_gain": r.gain, "p_value": r.p_value,
+                            "evidence": r.evidence.to_dict(), "tied_with": r.tied_with} for r in results],
         }
         if base_loss.ndim > 1:
             round_doc["loss_channels"] = list(LOSS_CHANNELS)
@@ -314,7 +518,7 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
                 c["channel_gain"] = (1.0 - r.losses.sum(0) / base_loss.sum(0)).tolist()
         # Look-alikes: test each of the best candidates in the presence of the others, so that one
         # that only mimics the true effect (a deadband for Coulomb friction) cannot block it.
-        pairs = (pair_tests(model, preps, folds, effects, nm, horizon, current, results, alpha_round, cfg)
+        pairs = (pair_tests(model, preps, folds, effects, nm, horizon, current, results, cfg, ev)
                  if getattr(model, "pair_tests", False) else [])
         if pairs:
             round_doc["pairs"] = pairs
@@ -328,6 +532,9 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
         winner = None
         for r in passing:
             if r.verdict:
+                continue
+            if r.tied_with is not None:
+                r.verdict = f"same held-out fit as {r.tied_with} (reported as a look-alike)"
                 continue
             stuck = {}
             if getattr(model, "reports_bounds", False):
@@ -357,14 +564,16 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
             for r in passing if r.verdict
         ]
         rounds.append(round_doc)
-        # Pair fallback: only when the best single candidate shows evidence on its own (unadjusted)
-        # and a round of error budget is left for it.
-        lead = results[0] if results else None
-        if (winner is None and getattr(model, "pair_tests", False) and len(results) > 1 and budget < cfg.max_rounds
-                and lead.gain >= cfg.min_gain and lead.p_value < cfg.alpha):
-            budget += 1
+        # Search over sets: when no single candidate enters, the best one together with each other
+        # candidate (friction + lag, delay + Coulomb, gravity + friction must often enter together).
+        # The lead is the best candidate whose parameter the data bound (one at the edge of its search range
+        # stays unbounded with a partner, and pairing it costs a refit per candidate).
+        lead = next((r for r in results if "edge of its search range" not in r.verdict), None)
+        if (winner is None and getattr(model, "pair_tests", False) and len(results) > 1 and used < cfg.max_rounds
+                and lead is not None and lead.gain >= cfg.min_gain and lead.evidence.at_least("weak")):
+            used += 1
             pair = try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, results, base_loss,
-                            round_alpha(cfg.alpha, budget) / (len(results) - 1), cfg, seed + rnd, round_doc, log)
+                            cfg, seed + rnd, round_doc, log, ev)
             if pair:
                 current = model.fit(pool, effects + [r.name for r in pair], refine=True, start=current)
                 for r in pair:
@@ -373,23 +582,37 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
                 log(f"accepted the pair {pair[0].name} + {pair[1].name}")
                 continue
         if winner is None:
+            # Nothing enters the model: what the data hint at is still reported, with its numbers.
+            findings = [{"name": r.name, "round": rnd + 1, "level": r.evidence.level, "heldout_gain": r.gain,
+                         "interval": r.evidence.interval, "p_positive": r.evidence.p_positive,
+                         "why_not_accepted": r.verdict or ("evidence below moderate" if not
+                                                           r.evidence.at_least("moderate") else "")}
+                        for r in results if r.evidence.at_least("weak")]
             break
-        # Look-alikes that explain the held-out data about as well as the winner.
+        # Look-alikes that explain the held-out data about as well as the winner, and candidates
+        # with the very same held-out fit (never ranked against each other by float noise).
         table = model.look_alikes
-        for r in passing:
-            if r is winner or not is_look_alike(winner.name, r.name, table):
+        for r in results:
+            if r is winner:
                 continue
-            p_sep = paired_p(r.losses, winner.losses)
-            if p_sep >= cfg.alpha:
-                excitation = separating_excitation(winner.name, r.name, table)
+            tied = r.tied_with == winner.name
+            if not tied and (r not in passing or not is_look_alike(winner.name, r.name, table)):
+                continue
+            sep = ev(r.losses, winner.losses, 17)
+            if tied or not sep.at_least("moderate"):
+                excitation = (separating_excitation(winner.name, r.name, table) if is_look_alike(
+                    winner.name, r.name, table) else "an excitation in which the two act differently")
                 ambiguous.append({
                     "effects": [winner.name, r.name],
                     "chosen": winner.name,
                     "heldout_gain": {winner.name: winner.gain, r.name: r.gain},
-                    "p_value_separation": p_sep,
+                    "p_value_separation": paired_p(r.losses, winner.losses),
+                    "evidence_separation": sep.to_dict(),
+                    "identical_fit": tied,
                     "excitation": excitation,
                 })
-                log(f"  ambiguous: {winner.name} vs {r.name} (p={p_sep:.2g}); separate with {excitation}")
+                log(f"  ambiguous: {winner.name} vs {r.name} ({'identical held-out fit' if tied else sep.level}); "
+                    f"separate with {excitation}")
         prev = current
         current = model.fit(pool, effects + [winner.name], refine=True, start=current)
         if getattr(model, "shift_interval_to_refined", False):
@@ -401,50 +624,49 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
             winner.interval = [winner.interval[0] + delta, winner.interval[1] + delta]
         winner.fitted = current
         accepted.append(winner)
-        log(f"accepted {winner.name}: {current.effect_params(winner.name)}")
+        log(f"accepted {winner.name} ({winner.evidence.level}): {current.effect_params(winner.name)}")
     if len(accepted) > 1:
         current, accepted, ambiguous = prune_effects(model, preps, folds, pool, current, accepted, ambiguous, nm,
-                                                     horizon, cfg, rounds, log)
+                                                     horizon, cfg, rounds, log, ev)
     if accepted and getattr(model, "pair_tests", False):
-        ambiguous += swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, horizon, cfg, log)
+        ambiguous += swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, horizon, cfg, log, ev)
     if not accepted:
-        log("no effect passed the tests")
-    return SelectionResult(accepted, ambiguous, rounds, current, nominal, skipped, test_idx, folds, nm, horizon)
+        log("no effect reached moderate evidence" + (
+            f"; weak or better: {', '.join(f['name'] + ' (' + f['level'] + ')' for f in findings)}" if findings else ""))
+    return SelectionResult(accepted, ambiguous, rounds, current, nominal, skipped, test_idx, folds, nm, horizon,
+                           findings)
 
 
 def try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, results: list[CandidateResult],
-             base_loss, alpha_pair: float, cfg: SelectionConfig, seed: int, round_doc: dict, log):
-    """When no single candidate passes: the best one together with each other candidate.
+             base_loss, cfg: SelectionConfig, seed: int, round_doc: dict, log, ev):
+    """When no single candidate enters: the best one together with each other candidate.
 
-    Tried only when the best candidate helps on its own at the unadjusted level (gain ≥
-    ``min_gain``, p < alpha) and a round of error budget is left.
-
-    Two effects may only help together (on EMPS, Coulomb friction alone makes some open-loop
-    windows worse; with the force offset it explains the data). The pair is tested against the
-    model without both, at the next round's error budget split over the pairs tried (so the
-    error rate stays controlled over all rounds), and each member must also help in the
-    presence of the other (p < alpha) and pass the bootstrap checks with the other in the model.
-    Returns the two accepted CandidateResults, or None.
+    Tried when the best candidate helps on its own at least weakly (gain ≥ ``min_gain``, evidence
+    weak or better). Two effects may only help together (on EMPS, Coulomb friction alone makes
+    some open-loop windows worse; with the force offset it explains the data). The pair is fitted
+    jointly and accepted when it has moderate evidence against the model without both, each member
+    has moderate evidence in the presence of the other, and both pass the bootstrap checks with the
+    other in the model. Returns the two accepted CandidateResults, or None.
     """
-    lead = results[0]
+    lead = next(r for r in results if "edge of its search range" not in r.verdict)
     tried, best = [], None
-    for other in results[1:]:
+    for other in [r for r in results if r is not lead]:
         both = crossval_losses(model, preps, folds, effects + [lead.name, other.name], nm, horizon, current,
                                [lead.name, other.name])
-        gain, p = heldout_gain(base_loss, both), paired_p(base_loss, both)
-        p_lead, p_other = paired_p(other.losses, both), paired_p(lead.losses, both)
-        tried.append({"effects": [lead.name, other.name], "heldout_gain": gain, "p_value": p,
-                      "p_adding": {lead.name: p_lead, other.name: p_other}})
-        if (p < alpha_pair and gain >= cfg.min_gain and max(p_lead, p_other) < cfg.alpha
+        e_pair, e_lead, e_other = ev(base_loss, both, 31), ev(other.losses, both, 37), ev(lead.losses, both, 41)
+        gain = e_pair.gain
+        tried.append({"effects": [lead.name, other.name], "heldout_gain": gain, "evidence": e_pair.to_dict(),
+                      "adding": {lead.name: e_lead.to_dict(), other.name: e_other.to_dict()}})
+        if (e_pair.at_least("moderate") and e_lead.at_least("moderate") and e_other.at_least("moderate")
                 and (best is None or gain > best[1])):
-            best = (other, gain, p, both)
-    round_doc["pair_fallback"] = {"alpha": alpha_pair, "tried": tried}
+            best = (other, gain, e_pair, both)
+    round_doc["pair_fallback"] = {"tried": tried}
     if best is None:
         return None
-    other, gain, p, _ = best
+    other, gain, e_pair, _ = best
     out = []
     for r, partner in ((lead, other), (other, lead)):
-        res = CandidateResult(r.name, best[3], gain, p)
+        res = CandidateResult(r.name, best[3], gain, paired_p(base_loss, best[3]), evidence=e_pair)
         res.interval, res.stability, res.boot_values = bootstrap_effect(
             model, preps, pool_idx, current, effects + [partner.name], r.name, cfg.n_boot, seed, nm)
         ok = _excludes(res.interval, model.catalogue[r.name].no_effect) and res.stability >= cfg.min_stability
@@ -456,14 +678,14 @@ def try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, resul
     return out if all(r.verdict.startswith("accepted") for r in out) else None
 
 
-def swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, horizon, cfg, log) -> list[dict]:
+def swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, horizon, cfg, log, ev) -> list[dict]:
     """Swap each accepted effect for each of its look-alikes that was never compared on equal terms.
 
     The order of acceptance can hide a look-alike: once Coulomb friction and an offset are in,
     direction-dependent friction (the same thing on every moving row) adds nothing and is never
     a rival. Each accepted effect is replaced by each look-alike that the model with the others
-    offers; when the held-out data cannot tell the two models apart (paired tests both ways,
-    p ≥ alpha), the pair is reported as ambiguous with the excitation that would separate it.
+    offers; when neither model has moderate evidence over the other on held-out data, the pair is
+    reported as ambiguous with the excitation that would separate it.
     """
     table = model.look_alikes
     names = [r.name for r in accepted]
@@ -477,34 +699,37 @@ def swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, hori
             if alt in current.effects or not is_look_alike(name, alt, table) or frozenset({name, alt}) in known:
                 continue
             swapped = crossval_losses(model, preps, folds, rest + [alt], nm, horizon, current, [alt])
-            p_worse, p_better = paired_p(swapped, full), paired_p(full, swapped)
-            if min(p_worse, p_better) >= cfg.alpha:
+            e_worse, e_better = ev(swapped, full, 43), ev(full, swapped, 47)
+            if not (e_worse.at_least("moderate") or e_better.at_least("moderate")):
                 excitation = separating_excitation(name, alt, table)
                 out.append({"effects": [name, alt], "chosen": name,
                             "heldout_gain": {name: 0.0, alt: heldout_gain(full, swapped)},
-                            "p_value_separation": min(p_worse, p_better), "excitation": excitation,
-                            "found_by": "swap"})
+                            "p_value_separation": min(paired_p(swapped, full), paired_p(full, swapped)),
+                            "evidence_separation": e_worse.to_dict(), "identical_fit": same_fit(full, swapped),
+                            "excitation": excitation, "found_by": "swap"})
                 known.add(frozenset({name, alt}))
                 log(f"  ambiguous (swap): {name} vs {alt}; separate with {excitation}")
     return out
 
 
-def prune_effects(model, preps, folds, pool, current, accepted, ambiguous, nm, horizon, cfg, rounds, log):
-    """Backward check: drop an accepted effect that the later ones made redundant.
+def prune_effects(model, preps, folds, pool, current, accepted, ambiguous, nm, horizon, cfg, rounds, log, ev):
+    """Backward pass: drop an accepted effect that the others made redundant.
 
-    Greedy forward selection can accept a look-alike first (an offset before the slope and the
-    payload that explain it). Each accepted effect is removed in turn; if the held-out loss
-    without it is not clearly worse (paired p ≥ alpha or gain < ``min_gain``), it goes.
+    Stepwise selection can accept a look-alike first (an offset before the slope and the payload
+    that explain it). Each accepted effect is removed in turn, the rest refit; if keeping it has
+    less than moderate held-out evidence over the model without it, it goes.
     """
     full = crossval_losses(model, preps, folds, list(current.effects), nm, horizon, current, [])
     dropped = []
     for r in list(accepted):
         rest = [e for e in current.effects if e != r.name]
         without = crossval_losses(model, preps, folds, rest, nm, horizon, current, [])
-        p, gain = paired_p(without, full), heldout_gain(without, full)
-        if p >= cfg.alpha or gain < cfg.min_gain:
-            log(f"pruned {r.name}: the other accepted effects explain it (gain of keeping it {gain:+.3f}, p={p:.2g})")
-            dropped.append({"name": r.name, "gain_of_keeping": gain, "p_value": p})
+        e_keep = ev(without, full, 53)
+        if not e_keep.at_least("moderate"):
+            log(f"pruned {r.name}: the other accepted effects explain it (gain of keeping it {e_keep.gain:+.3f}, "
+                f"{e_keep.level})")
+            dropped.append({"name": r.name, "gain_of_keeping": e_keep.gain, "evidence": e_keep.to_dict(),
+                            "p_value": paired_p(without, full)})
             accepted = [a for a in accepted if a is not r]
             current = model.fit(pool, rest, refine=True, start=current)
             full = without
@@ -517,52 +742,35 @@ def prune_effects(model, preps, folds, pool, current, accepted, ambiguous, nm, h
     return current, accepted, ambiguous
 
 
-def round_alpha(alpha: float, rnd: int) -> float:
-    """Error budget of round ``rnd`` (1-based): alpha·6/(π²·rnd²), which sums to alpha over all rounds.
-
-    Within a round it is split evenly over the candidates (Bonferroni), so the probability of
-    accepting any effect that is not there stays below ``alpha`` over the whole selection,
-    however many rounds it takes.
-    """
-    return alpha * 6.0 / (math.pi**2 * rnd**2)
-
-
 #: How many of a round's best candidates are tested in each other's presence.
 PAIR_TOP = 3
 
 
 def pair_tests(model, preps, folds, effects, nm, horizon, current, results: list[CandidateResult],
-               alpha_round: float, cfg: SelectionConfig) -> list[dict]:
+               cfg: SelectionConfig, ev) -> list[dict]:
     """Test the best candidates of a round in the presence of each other.
 
-    For the top :data:`PAIR_TOP` candidates that help on their own (gain ≥ ``min_gain``,
-    unadjusted p < alpha), fit every pair (a, b)
-    together. "a explains b" when adding a to b still lowers the held-out loss (p < the round's
-    alpha, gain ≥ ``min_gain``) while adding b to a does not (p ≥ alpha or gain < ``min_gain``):
-    b then only mimics part of a. Returns one record per pair.
+    For the top :data:`PAIR_TOP` candidates that help on their own (gain ≥ ``min_gain``, evidence
+    weak or better), fit every pair (a, b) together. "a explains b" when adding a to b still has
+    moderate evidence while adding b to a does not: b then only mimics part of a. Candidates with
+    the same held-out fit as another are left out (they are reported as look-alikes).
     """
-    top = [r for r in results if r.gain >= cfg.min_gain and r.p_value < cfg.alpha][:PAIR_TOP]
+    top = [r for r in results if r.gain >= cfg.min_gain and r.evidence.at_least("weak")
+           and r.tied_with is None][:PAIR_TOP]
     out = []
     for i in range(len(top)):
         for j in range(i + 1, len(top)):
             a, b = top[i], top[j]
             both = crossval_losses(model, preps, folds, effects + [a.name, b.name], nm, horizon, current,
                                    [a.name, b.name])
-            a_adds = (paired_p(b.losses, both), heldout_gain(b.losses, both))
-            b_adds = (paired_p(a.losses, both), heldout_gain(a.losses, both))
-
-            def helps(t):
-                return t[0] < alpha_round and t[1] >= cfg.min_gain
-
-            def useless(t):
-                return t[0] >= cfg.alpha or t[1] < cfg.min_gain
-
+            a_adds, b_adds = ev(b.losses, both, 59), ev(a.losses, both, 61)
             # gain_adding[a]: held-out gain of adding a to a model that already has b (and vice versa)
-            rec = {"effects": [a.name, b.name], "gain_adding": {a.name: a_adds[1], b.name: b_adds[1]},
-                   "p_adding": {a.name: a_adds[0], b.name: b_adds[0]}, "explains": None, "explained": None}
-            if helps(a_adds) and useless(b_adds):
+            rec = {"effects": [a.name, b.name], "gain_adding": {a.name: a_adds.gain, b.name: b_adds.gain},
+                   "evidence_adding": {a.name: a_adds.level, b.name: b_adds.level},
+                   "explains": None, "explained": None}
+            if a_adds.at_least("moderate") and not b_adds.at_least("moderate"):
                 rec["explains"], rec["explained"] = a.name, b.name
-            elif helps(b_adds) and useless(a_adds):
+            elif b_adds.at_least("moderate") and not a_adds.at_least("moderate"):
                 rec["explains"], rec["explained"] = b.name, a.name
             out.append(rec)
     return out
@@ -732,9 +940,8 @@ def detection_limits(preps_pool: list[axis.Prepared], fitted: FittedAxis, candid
     r = np.concatenate(res)
     infl = _autocorr_inflation(res[0] if len(res[0]) > 50 else r, 2 * preps_pool[0].window)
     sigma = float(np.std(r)) * math.sqrt(infl)
-    m = max(1, len(candidates))
-    # the first round's per-candidate threshold: the level an effect of this size would have to pass
-    z = st.norm.ppf(1 - round_alpha(cfg.alpha, 1) / (2 * m)) + st.norm.ppf(cfg.power)
+    # "moderate": a 95 % interval of the effect that excludes no effect, with the given power
+    z = st.norm.ppf(1 - cfg.moderate_quantile) + st.norm.ppf(cfg.power)
     Q, _ = np.linalg.qr(X0)
     out: dict[str, dict] = {}
     for name in list(candidates) + [s for s in skipped if s not in candidates]:

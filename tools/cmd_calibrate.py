@@ -69,7 +69,11 @@ def register(app: typer.Typer) -> None:
         summary = {
             "verdict": report["verdict"],
             "effects": [{"name": e["name"], "params": e["params"], "heldout_gain": e["heldout_gain"],
+                         "evidence": (e.get("evidence") or {}).get("level"),
+                         "gain_interval": (e.get("evidence") or {}).get("interval"),
                          "p_value": e["p_value"]} for e in report["effects"]],
+            "findings": [{k: f[k] for k in ("name", "level", "heldout_gain", "interval")}
+                         for f in report.get("findings", [])],
             "ambiguous": [a["effects"] for a in report["ambiguous"]],
             "unexplained_structure": report["unexplained_structure"],
             "before_multi_step_nrmse": report["before"]["multi_step_nrmse"]["mean"],
@@ -84,12 +88,19 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"verdict: {summary['verdict']}" + ("" if report["effects"] else " (nothing found)"))
         for e in report["effects"]:
             ps = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items() if v is not None)
-            typer.echo(f"  {e['name']}: {ps} (held-out gain {e['heldout_gain']:.3f}, p={e['p_value']:.2g})")
+            evd = e.get("evidence") or {}
+            iv = evd.get("interval") or [float("nan")] * 2
+            typer.echo(f"  {e['name']}: {ps} (evidence {evd.get('level', 'n/a')}: held-out gain {e['heldout_gain']:.3f}"
+                       f" [{iv[0]:.3f}, {iv[1]:.3f}])")
+        for f in report.get("findings", []):
+            typer.echo(f"  {f['level']} finding (not added): {f['name']} (held-out gain {f['heldout_gain']:+.3f} "
+                       f"[{f['interval'][0]:+.3f}, {f['interval'][1]:+.3f}])")
         for a in report["ambiguous"]:
             typer.echo(f"  ambiguous: {' vs '.join(a['effects'])} -> {a['excitation']}")
         typer.echo(f"unexplained structure: {summary['unexplained_structure']}")
-        typer.echo(f"multi-step NRMSE (locked test set): before {summary['before_multi_step_nrmse']:.4f}, "
-                   f"after {summary['after_multi_step_nrmse']:.4f}")
+        b, a = summary["before_multi_step_nrmse"], summary["after_multi_step_nrmse"]
+        typer.echo(f"multi-step NRMSE (locked test set): before {'n/a' if b is None else f'{b:.4f}'}, "
+                   f"after {'n/a' if a is None else f'{a:.4f}'}")
         if report.get("augmented_model"):
             am = report["augmented_model"]
             typer.echo(f"augmented model: {am['path']} (extra inputs: "

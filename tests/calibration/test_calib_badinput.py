@@ -158,3 +158,125 @@ def test_quantised_finite_difference_velocity_is_not_used_as_the_state():
     pq, pg = axis.prepare(quant)[0], axis.prepare(good)[0]
     assert pq.kernel is not None and np.array_equal(pq.v_obs, pq.v_from_x)
     assert pg.kernel is None and np.array_equal(pg.v_obs, good[0].v_meas)
+
+
+# ------------------------------------------------------------------ issue 22 item 15: bad files, memory
+
+
+def _ok_csv(tmp_path, name="ok.csv", duration_s=30.0):
+    return write_csv(generate(SynthConfig(n_episodes=1, duration_s=duration_s, seed=0)), tmp_path / name)
+
+
+def _bad_file(tmp_path, kind: str):
+    rng = np.random.default_rng(0)
+    if kind == "empty.csv" or kind == "empty.parquet":
+        p = tmp_path / kind
+        p.write_bytes(b"")
+    elif kind == "header_only.csv":
+        p = tmp_path / kind
+        p.write_text("time,volts,position\n")
+    elif kind in ("binary.csv", "random.parquet", "random.mcap"):
+        p = tmp_path / kind
+        p.write_bytes(rng.integers(0, 256, 5000, dtype=np.uint8).tobytes())
+    elif kind == "garbage_body.mcap":
+        p = tmp_path / kind
+        p.write_bytes(b"\x89MCAP0\r\n" + rng.integers(0, 256, 3000, dtype=np.uint8).tobytes())
+    elif kind in ("constant.csv", "constant_command.csv"):
+        p = _ok_csv(tmp_path, kind, 3.0)
+        df = pd.read_csv(p)
+        df["volts"] = 1.0
+        if kind == "constant.csv":
+            df["position"] = 0.5
+        df.to_csv(p, index=False)
+    return p
+
+
+BAD_FILES = {
+    "empty.csv": "is empty (0 bytes)",
+    "empty.parquet": "is empty (0 bytes)",
+    "header_only.csv": "no data rows",
+    "binary.csv": "is not a text CSV file",
+    "random.parquet": "is not a readable Parquet file",
+    "random.mcap": "is not an MCAP file",
+    "garbage_body.mcap": "no robot state messages",
+    "constant.csv": "no usable episode",
+    "constant_command.csv": "command column 'volts' is constant",
+}
+
+
+@pytest.mark.parametrize("kind", list(BAD_FILES))
+def test_unreadable_or_degenerate_file_is_a_one_line_error(tmp_path, kind):
+    """Issue 22 item 15: each of these was a traceback (pandas, pyarrow, the report's formatting) or
+    'recording has robots []; say which one'; now one line naming the file and what is wrong, exit 2."""
+    p = _bad_file(tmp_path, kind)
+    res = _cli(["--data", str(p), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output and "robots []" not in res.output
+    err = [ln for ln in res.output.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and BAD_FILES[kind] in err[0] and p.name in err[0], res.output
+
+
+def test_huge_values_are_dropped_like_nan_with_a_warning(tmp_path):
+    """1e300 in a cell overflowed squares downstream (a TypeError in the report); such rows are now
+    dropped like NaN rows (|value| > MAX_ABS_VALUE), the recording split there, and the run completes."""
+    from hilstack.calibration.data import MAX_ABS_VALUE
+
+    p = _ok_csv(tmp_path, duration_s=10.0)
+    df = pd.read_csv(p)
+    df.loc[400:402, "volts"] = 1e300
+    df.to_csv(p, index=False)
+    warned: list[str] = []
+    got = load_episodes(p, "t=time,u=volts,x=position", warn=warned.append)
+    assert [e.n for e in got] == [400, 1000 - 403]
+    assert len(warned) == 1 and "3 row(s)" in warned[0] and f"{MAX_ABS_VALUE:g}" in warned[0] and "'volts'" in warned[0]
+    res = _cli(["--data", str(p), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0 and "Traceback" not in res.output and "dropped" in res.output
+
+
+def test_out_at_an_existing_file_is_refused_and_the_file_kept(tmp_path):
+    p = _ok_csv(tmp_path, duration_s=3.0)
+    keep = tmp_path / "notes.txt"
+    keep.write_text("lab notes")
+    res = _cli(["--data", str(p), "--out", str(keep)])
+    assert res.exit_code == 2 and "Traceback" not in res.output and "existing file" in res.output
+    assert keep.read_text() == "lab notes"
+
+
+def test_time_gap_splits_the_recording_by_the_stated_rule(tmp_path):
+    """A step longer than GAP_PERIODS median periods starts a new episode; nothing is resampled across it,
+    so the loaded samples never exceed the rows in the file (memory bounded by the data size)."""
+    from hilstack.calibration.data import GAP_PERIODS
+
+    p = _ok_csv(tmp_path, duration_s=30.0)
+    df = pd.read_csv(p)
+    df.loc[1500:, "time"] += 1e4  # 1e6 samples if resampled across at 100 Hz
+    df.loc[2200:, "time"] += (GAP_PERIODS - 2) * 0.01  # below the rule: kept (and resampled)
+    df.to_csv(p, index=False)
+    warned: list[str] = []
+    got = load_episodes(p, "t=time,u=volts,x=position", warn=warned.append)
+    assert len(got) == 2 and got[0].n == 1500
+    assert sum(e.n for e in got) <= len(df) + GAP_PERIODS
+    assert len(warned) == 1 and "1 time gap(s)" in warned[0] and f"{GAP_PERIODS:g} median periods" in warned[0]
+
+
+def test_clock_jump_of_1e6_s_keeps_memory_bounded(tmp_path):
+    """Issue 22 item 15: `hil calibrate` on a 3000-row CSV with one 1e6 s jump grew to 5.2 GB. Run the real
+    CLI in a child process under a 3 GB address-space limit: it must finish (the gap splits the recording)."""
+    import os
+    import resource
+    import subprocess
+    import sys
+
+    p = _ok_csv(tmp_path, duration_s=30.0)
+    df = pd.read_csv(p)
+    df.loc[1500:, "time"] += 1e6
+    df.to_csv(p, index=False)
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+
+    r = subprocess.run([sys.executable, "-m", "hilstack.tools.cli", "calibrate", "--data", str(p), "--out",
+                        str(tmp_path / "o"), "--quiet", "--json"], capture_output=True, text=True,
+                       preexec_fn=limit, timeout=600, env=os.environ.copy())
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "time gap(s)" in r.stderr and "Traceback" not in r.stderr

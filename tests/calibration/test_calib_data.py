@@ -89,7 +89,7 @@ def test_mcap_without_states_is_a_data_error(tmp_path):
     p = tmp_path / "empty.mcap"
     with McapLog(p):
         pass
-    with pytest.raises(DataError, match="robots"):
+    with pytest.raises(DataError, match="no robot state messages"):  # was "robots []; say which one"
         load_episodes(p)
 
 

@@ -22,14 +22,12 @@ def test_nothing_found_in_clean_data(report_for):
 
 
 def test_detection_limit_uses_the_acceptance_threshold(report_for):
-    """The limit is computed at the level an effect must pass: round 1's per-candidate alpha."""
+    """The limit is computed at the level an effect must reach to enter the model: "moderate" (a 95 %
+    interval excluding no effect), with 80 % power (issue 28: no correction towards zero)."""
     from scipy.stats import norm
 
-    from hilstack.calibration.selection import round_alpha
-
     r = report_for()
-    m = len(r["rounds"][0]["candidates"])
-    assert r["detection_limit"]["z"] == pytest.approx(norm.ppf(1 - round_alpha(0.05, 1) / (2 * m)) + norm.ppf(0.8))
+    assert r["detection_limit"]["z"] == pytest.approx(norm.ppf(0.975) + norm.ppf(0.8))
     assert r["data"]["resolution"]["can_accept"] is True
 
 
@@ -40,13 +38,19 @@ def test_detection_limit_is_meaningful(report_for):
 
 
 def test_false_detection_rate_over_seeds():
-    """30 seeds of clean data with a cheap configuration: at most 1 false detection (≈ < 5 %)."""
+    """30 seeds of clean data with a cheap configuration: at most 1 false detection (≈ < 5 %), and at
+    most 1 run in which any candidate reaches "strong" evidence (issue 28's goal: ≤ 5 % at strong).
+    Measured with the current rule: 0 of 30 at strong or moderate (docs/calibration.md)."""
     cfg = SelectionConfig(n_boot=15, max_rounds=1, horizon_s=0.5)
     model = AxisModel()
-    detections = []
+    detections, strong = [], []
     for seed in range(30):
         eps = generate(SynthConfig(n_episodes=12, duration_s=3.0, seed=100 + seed))
         res = select_effects(model, model.prepare(eps), cfg, seed=seed)
         if res.accepted:
             detections.append((seed, [a.name for a in res.accepted]))
+        levels = [c["evidence"]["level"] for c in res.rounds[0]["candidates"]]
+        if "strong" in levels:
+            strong.append(seed)
     assert len(detections) <= 1, detections
+    assert len(strong) <= 1, strong
