@@ -113,7 +113,7 @@ class SpecMsg(Msg, tag="hil.Spec/1"):
 
 class ModelUpdate(Msg, tag="hil.ModelUpdate/2"):
     """An online-adapted dynamics model, from the adaptation node to the MPC, on
-    ``hil/<rig>/model/update`` (control/adaptation_node.py, docs/adaptation.md "On the bus").
+    ``hil/<rig>/model/update`` (learning/adaptation/node.py, docs/adaptation.md "On the bus").
 
     Tensors travel as one buffer of raw little-endian float32 (``data``, C order, in the
     order of ``names``) with their names and shapes beside it: no per-element encoding, one

@@ -91,7 +91,7 @@ class SafeRandomPolicy:
 class MpcPolicy:
     """``planner(dynamics, cost, state)`` with a learned model over normalized actions.
 
-    ``model_source`` (online adaptation, control/adaptation_node.py ``ModelSwap``): called
+    ``model_source`` (online adaptation, learning/adaptation/node.py ``ModelSwap``): called
     at the start of every plan, in the planner's thread; it returns a new dynamics function
     ``(state, action) -> next state`` to plan with from now on, or None to keep the current
     one. The swap happens between plans, never inside one.

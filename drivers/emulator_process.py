@@ -28,6 +28,20 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 FAILURE_TAIL_LINES = 3
 
 
+#: entry-point group of the device emulators (pyproject.toml: name = "module")
+EMULATORS = "hilstack.emulators"
+
+
+def emulator_module(name: str) -> str:
+    """The module of the device emulator registered as ``name`` (run as ``python -m``)."""
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=EMULATORS, name=name):
+        return ep.value
+    raise LinkError(f"no device emulator registered as {name!r} (entry points {EMULATORS!r}): "
+                    "install hilstack (pip install -e .)")
+
+
 class EmulatorProcess:
     """``python -m <module> <args> --parent-pid <us>``; ``start()`` returns its ready line."""
 

@@ -1,13 +1,16 @@
 """Backend registry: ``backend: real | emulated | sim`` in a robot config picks the class.
 
 Entries are import strings so that choosing a backend imports only what it needs
-(the sim backend pulls MuJoCo, the real one pyserial...). A backend class takes the
-validated :class:`configs.RobotConfig` in ``from_config``.
+(the sim backend pulls MuJoCo, the real one pyserial...). They are the package's
+``hilstack.backends`` entry points (pyproject.toml), so another package can add a robot
+without editing this one. A backend class takes the validated :class:`configs.RobotConfig`
+in ``from_config``.
 """
 
 from __future__ import annotations
 
 import importlib
+from importlib.metadata import entry_points
 from typing import TYPE_CHECKING
 
 from hilstack.configs.schema import ConfigError, RobotConfig, load_robot
@@ -15,31 +18,22 @@ from hilstack.configs.schema import ConfigError, RobotConfig, load_robot
 if TYPE_CHECKING:
     from hilstack.drivers.base import Driver
 
-#: (robot, backend) -> "module:Class"
-BACKENDS: dict[tuple[str, str], str] = {
-    ("pointmass", "sim"): "hilstack.sim_backends.pointmass:PointMassSim",
-    ("velociroach", "sim"): "hilstack.sim_backends.velociroach.backend:VelociRoachSim",
-    ("velociroach", "emulated"): "hilstack.drivers.velociroach.driver:VelociRoachDriver",
-    ("velociroach", "real"): "hilstack.drivers.velociroach.driver:VelociRoachDriver",
-    ("mocap", "real"): "hilstack.drivers.mocap.driver:MocapDriver",
-    ("camera", "real"): "hilstack.drivers.camera.driver:StereoCameraDriver",
-    ("camera", "sim"): "hilstack.sim_backends.shadow_hand.cameras:StereoCameraSim",
-    ("shadow_hand", "sim"): "hilstack.sim_backends.shadow_hand.backend:ShadowHandSim",
-    ("shadow_hand", "emulated"): "hilstack.drivers.shadow_hand.driver:ShadowHandDriver",
-    ("shadow_hand", "real"): "hilstack.drivers.shadow_hand.driver:ShadowHandDriver",
-    ("widowx", "sim"): "hilstack.sim_backends.widowx.backend:WidowXSim",
-    ("widowx", "emulated"): "hilstack.drivers.widowx.driver:WidowXDriver",
-    ("widowx", "real"): "hilstack.drivers.widowx.driver:WidowXDriver",
-    ("reset_mechanism", "sim"): "hilstack.sim_backends.widowx.backend:MechanismSim",
-    ("reset_mechanism", "emulated"): "hilstack.drivers.widowx.driver:MechanismDriver",
-    ("reset_mechanism", "real"): "hilstack.drivers.widowx.driver:MechanismDriver",
-    ("sawyer", "sim"): "hilstack.sim_backends.sawyer.backend:SawyerSim",
-    ("sawyer", "emulated"): "hilstack.drivers.sawyer.driver:SawyerDriver",
-    ("sawyer", "real"): "hilstack.drivers.sawyer.driver:SawyerDriver",
-    ("reset_arm", "sim"): "hilstack.sim_backends.reset_arm.backend:ResetArmSim",
-    ("reset_arm", "emulated"): "hilstack.drivers.reset_arm.driver:ResetArmDriver",
-    ("reset_arm", "real"): "hilstack.drivers.reset_arm.driver:ResetArmDriver",
-}
+#: the entry-point group every backend is registered in (pyproject.toml: "robot.backend" = "module:Class")
+GROUP = "hilstack.backends"
+
+
+def _registered() -> dict[tuple[str, str], str]:
+    out: dict[tuple[str, str], str] = {}
+    for ep in entry_points(group=GROUP):
+        robot, _, backend = ep.name.rpartition(".")
+        if robot and backend:
+            out[(robot, backend)] = ep.value
+    return out
+
+
+#: (robot, backend) -> "module:Class", read from the installed package's entry points (so this
+#: module names no backend package: drivers never import sim_backends) plus register_backend()
+BACKENDS: dict[tuple[str, str], str] = _registered()
 
 
 def register_backend(robot: str, backend: str, target: str) -> None:
@@ -58,8 +52,12 @@ def robots() -> list[str]:
 def resolve(robot: str, backend: str) -> type[Driver]:
     key = (robot, backend)
     if key not in BACKENDS:
+        if not BACKENDS:
+            raise ConfigError(None, [("robot", f"no robot is registered (entry points {GROUP!r}): install "
+                                               "hilstack (pip install -e .) so its metadata exists")])
         if robot not in robots():
-            raise ConfigError(None, [("robot", f"unknown robot {robot!r}; known: {robots()}")])
+            raise ConfigError(None, [("robot", f"unknown robot {robot!r}; known: {robots()} (a new one needs "
+                                               f"its {GROUP!r} entry point and a re-install)")])
         raise ConfigError(None, [("backend", f"robot {robot!r} has no {backend!r} backend; has {backends_of(robot)}")])
     mod, _, cls = BACKENDS[key].partition(":")
     return getattr(importlib.import_module(mod), cls)

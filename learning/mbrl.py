@@ -180,7 +180,7 @@ def rig_processes(rig: str, bus: BusConfig, log_dir: Path) -> Iterator[subproces
     log_dir.mkdir(parents=True, exist_ok=True)
     err = open(log_dir / "driver.log", "w")  # noqa: SIM115 - closed below
     p = subprocess.Popen(
-        [sys.executable, "-m", "hilstack.tools.cli", "up", rig, "--endpoint", bus.endpoint],
+        [sys.executable, "-m", "hilstack", "up", rig, "--endpoint", bus.endpoint],
         stdout=err,
         stderr=subprocess.STDOUT,
         # HIL_PARENT_PID: the rig stops itself if this process dies without stopping it

@@ -85,7 +85,7 @@ def load_keypoint_net(path: str | Path) -> KeypointNet:
     try:
         ck = torch.load(p, map_location="cpu", weights_only=True)
     except FileNotFoundError:
-        raise ValueError(f"no keypoint-net weights at {p} (make them: python -m hilstack.perception.train --out {p})") from None
+        raise ValueError(f"no keypoint-net weights at {p} (make them with tools/train_keypoints.py: see docs/camera.md)") from None
     except Exception as e:  # torch raises several types for a corrupt file
         raise ValueError(f"{p}: not keypoint-net weights ({type(e).__name__}: {e})") from None
     net = KeypointNet(ck["n_keypoints"], ck["width"])

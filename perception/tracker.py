@@ -6,7 +6,7 @@ the hand frame and a confidence per ball out.
 * :class:`LearnedTracker`: a small dilated CNN (after KeypointNet) with a spatial-softmax
   keypoint head per ball, run on each view, then the same triangulation (the pair's
   disparity gives the depth). Trained on rendered images with domain randomisation
-  (:mod:`hilstack.perception.train`); weights in ``perception/weights/``.
+  (:mod:`hilstack.tools.train_keypoints`); weights in ``perception/weights/``.
 
 Confidence (both trackers) is in [0, 1]: how much of the ball each view sees (the blob
 area, or the network's visibility head) times how well the two views agree (the
@@ -141,7 +141,7 @@ class ColorTracker:
 class LearnedTracker:
     """The CNN keypoint tracker (:class:`hilstack.perception.keypoint_net.KeypointNet`) on both views,
     then stereo triangulation. ``weights``: a ``.pt`` file written by
-    ``python -m hilstack.perception.train`` (default: the shipped ``perception/weights/keypoint_net.pt``).
+    ``python -m hilstack.tools.train_keypoints`` (default: the shipped ``perception/weights/keypoint_net.pt``).
     """
 
     name = "learned"

@@ -42,13 +42,13 @@ from hilstack.bus import keys
 from hilstack.bus.node import alive_nodes
 from hilstack.bus.schemas import ModelUpdate
 from hilstack.configs.schema import BusConfig, load_rig, rig_robot_config
-from hilstack.control.adaptation_node import ModelSwap, last_layer
 from hilstack.control.controller_node import ControllerNode
 from hilstack.control.policies import SafeRandomPolicy
 from hilstack.drivers.registry import make_driver
 from hilstack.learning.adaptation import load_adapter
 from hilstack.learning.adaptation.grbal import GrbalAdapter
 from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.node import ModelSwap, last_layer
 from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
 from hilstack.tools.bench_bus import free_port, run_bench_bus
 

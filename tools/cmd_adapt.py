@@ -11,7 +11,7 @@ from hilstack.tools.common import EndpointOpt, UserError, echo_json, rig_bus, us
 
 def send_names(send: str, adapter) -> list[str] | None:
     """``--send``: ``all`` (None), ``last_layer`` or comma-separated parameter names."""
-    from hilstack.control.adaptation_node import last_layer
+    from hilstack.learning.adaptation.node import last_layer
 
     if send == "all":
         return None
@@ -45,8 +45,8 @@ def register(app: typer.Typer) -> None:
         """Online adaptation on the bus: adapts the model from the robot's last M transitions at
         every control step and publishes it on hil/<rig>/model/update (`hil mpc --adapt` swaps
         it in between plans). Runs until Ctrl-C; prints what it learned from and what it skipped."""
-        from hilstack.control.adaptation_node import AdaptationNode
         from hilstack.learning.adaptation import load_adapter
+        from hilstack.learning.adaptation.node import AdaptationNode
 
         _, bus, cfg = rig_bus(rig, endpoint, need_config=True)
         robot = robot or next(iter(cfg.robots))

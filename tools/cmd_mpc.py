@@ -88,7 +88,7 @@ def register(app: typer.Typer) -> None:
             if adapter is not None:
                 from hilstack.bus import keys
                 from hilstack.bus.schemas import ModelUpdate
-                from hilstack.control.adaptation_node import ModelSwap
+                from hilstack.learning.adaptation.node import ModelSwap
 
                 swap = ModelSwap(adapter, ctl.subscribe(keys.model_update(cfg.name), ModelUpdate))
                 dyn = SimpleNamespace(predict=swap.initial())

@@ -11,7 +11,7 @@ bus; steps own only their own motion.
 Kinds (``reset.steps[].kind`` in a rig config):
 
 - ``self_right``: hold still, then kick the legs at random until the robot is upright again.
-- ``lab_fixture``: the lab puts the robot on its legs (control/reset/fixture.py: the
+- ``lab_fixture``: the lab puts the robot on its legs (drivers/velociroach/fixture.py: the
   emulator's fixture service; on a sim the driver's teleport where the robot lies; on a
   real rig without a fixture the step fails and an operator must).
 - ``drive_to_start``: drive back to the start position with the differential-drive
@@ -269,7 +269,7 @@ class LabFixture(ResetStep):
     leg pattern tried (docs/reset.md). Done at once when the robot is upright.
 
     Where the fixture is: the robot's health names ``lab_fixture_port`` (the emulated
-    VelociRoACH: the emulator's UDP service, :mod:`hilstack.control.reset.fixture`); otherwise the
+    VelociRoACH: the emulator's UDP service, :mod:`hilstack.drivers.velociroach.fixture`); otherwise the
     driver node's teleport to where the robot lies (sim backends). A real rig has neither:
     the driver answers ``unsupported``, the step fails, the rig stops and the operator
     is told to put the robot on its legs. Each use counts as ``fixture_recoveries`` (an
@@ -299,7 +299,7 @@ class LabFixture(ResetStep):
         self._upright_since_s: float | None = None
 
     def _ask(self, ctx: StepContext, state: RobotState) -> None:
-        from hilstack.control.reset.fixture import FixtureClient
+        from hilstack.drivers.velociroach.fixture import FixtureClient
 
         port = (state.health or {}).get("lab_fixture_port")
         if port:

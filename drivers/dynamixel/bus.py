@@ -38,7 +38,7 @@ from serial import SerialException
 
 from hilstack.drivers.base import LinkError
 from hilstack.drivers.dynamixel.control_table import ControlTable, control_table, describe_status_error
-from hilstack.drivers.emulator_process import EmulatorProcess
+from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
 
 EMULATOR_START_TIMEOUT_S = 30.0
 # dynamixel-sdk packet layout offsets (status packet: ... INST ERROR PARAMS)
@@ -318,10 +318,10 @@ EMULATED_TIMEOUT_MARGIN_MS = 400.0
 
 
 def start_emulator(config: dict[str, Any], baudrate: int, start_timeout_s: float = EMULATOR_START_TIMEOUT_S,
-                   module: str = "hilstack.sim_backends.widowx.emulator",
+                   module: str | None = None,
                    timeout_margin_ms: float = EMULATED_TIMEOUT_MARGIN_MS, keep_log: bool = False) -> DynamixelBus:
     """Start the bus emulator process on a pty and open a bus on it."""
-    emu = EmulatorProcess(module, ["--print-pty", "--config", json.dumps(config)], start_timeout_s=start_timeout_s,
+    emu = EmulatorProcess(module or emulator_module("dynamixel"), ["--print-pty", "--config", json.dumps(config)], start_timeout_s=start_timeout_s,
                           keep_log=keep_log)
     info = emu.start()
     bus = DynamixelBus(info["pty"], baudrate, timeout_margin_ms=timeout_margin_ms)

@@ -32,7 +32,7 @@ import numpy as np
 
 from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
-from hilstack.drivers.emulator_process import EmulatorProcess
+from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
 from hilstack.drivers.sawyer import ros
 from hilstack.drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
 
@@ -124,7 +124,7 @@ class SawyerDriver(Driver):
         cfg = {"namespace": self.params.namespace, "joint_states_topic": self.params.joint_states_topic,
                "joint_command_topic": self.params.joint_command_topic}
         e = self.params.emulator
-        self._emu = EmulatorProcess("hilstack.sim_backends.sawyer.emulator", ["--listen", endpoint, "--config", json.dumps(cfg)],
+        self._emu = EmulatorProcess(emulator_module("sawyer"), ["--listen", endpoint, "--config", json.dumps(cfg)],
                                     start_timeout_s=e.start_timeout_s, keep_log=e.keep_log)
         self._emu.start()
         return endpoint

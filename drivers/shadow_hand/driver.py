@@ -41,7 +41,7 @@ import numpy as np
 
 from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
-from hilstack.drivers.emulator_process import EmulatorProcess
+from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
 from hilstack.drivers.shadow_hand.config import (
     ACT_INDEX,
     ShadowHandParams,
@@ -190,7 +190,7 @@ class ShadowHandDriver(Driver):
         else:
             args += ["--channel", p.channel or DEFAULT_UDP_GROUP,
                      "--udp-port", str(p.emulator.udp_port or free_udp_port())]
-        self._emu = EmulatorProcess("hilstack.sim_backends.shadow_hand.emulator", args,
+        self._emu = EmulatorProcess(emulator_module("shadow_hand"), args,
                                     start_timeout_s=p.emulator.start_timeout_s,
                                     keep_log=p.emulator.keep_log)
         info = self._emu.start()

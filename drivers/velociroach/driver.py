@@ -35,7 +35,7 @@ import numpy as np
 
 from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
-from hilstack.drivers.emulator_process import EmulatorProcess
+from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
 from hilstack.drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
 from hilstack.drivers.velociroach.link import RadioLink
 from hilstack.drivers.velociroach.mavlink import BASE_COMPID, BASE_SYSID, EncodeError, MavEncoder, mav
@@ -90,7 +90,7 @@ class VelociRoachDriver(Driver):
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self._emu: EmulatorProcess | None = None
-        #: UDP port of the emulator's lab fixture (backend emulated; control/reset/fixture.py)
+        #: UDP port of the emulator's lab fixture (backend emulated; drivers/velociroach/fixture.py)
         self._fixture_port: int | None = None
         self._pose_client: Any = None
         self._pose = PoseFilter()
@@ -161,12 +161,12 @@ class VelociRoachDriver(Driver):
             args += ["--pose-port", str(self._pose_client.port)]
         if self.params.emulator.lab_fixture:
             args += ["--fixture-port", "0"]
-        self._emu = EmulatorProcess("hilstack.sim_backends.velociroach.emulator", args,
+        self._emu = EmulatorProcess(emulator_module("velociroach"), args,
                                     start_timeout_s=self.params.emulator.start_timeout_s,
                                     keep_log=self.params.emulator.keep_log)
         ready = self._emu.start()
         # the lab fixture is beside the robot, not on its radio: the reset supervisor finds
-        # it in the health (control/reset/fixture.py)
+        # it in the health (drivers/velociroach/fixture.py)
         self._fixture_port = ready.get("fixture_port")
         return ready["pty"]
 

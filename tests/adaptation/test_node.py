@@ -15,11 +15,11 @@ import torch
 from hilstack.bus import keys
 from hilstack.bus.node import Node
 from hilstack.bus.schemas import EStop, ModelUpdate, ResetEvent, RobotState, SpecMsg
-from hilstack.control.adaptation_node import AdaptationNode, AdaptationStats, ModelSwap, TransitionBuilder
 from hilstack.control.planners import RandomShooting
 from hilstack.control.policies import MpcPolicy
 from hilstack.learning.adaptation.baselines import MbDeAdapter
 from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.adaptation.node import AdaptationNode, AdaptationStats, ModelSwap, TransitionBuilder
 from tests.helpers import wait_for
 
 RIG, ROBOT = "adapt_t", "pm"
@@ -342,7 +342,7 @@ def test_mole_publishes_its_task_posterior_beside_the_model(bus):
 
 
 def test_last_layer_is_the_output_layer_also_past_ten_modules():
-    from hilstack.control.adaptation_node import last_layer, update_kind
+    from hilstack.learning.adaptation.node import last_layer, update_kind
 
     deep = MbDeAdapter(AdaptiveMLP(NAMES, 2, hidden=(4,) * 5, body_frame=False))  # Linear at 0, 2, ..., 10
     assert last_layer(deep) == ["10.weight", "10.bias"]  # not "8": layers sort by number

@@ -15,11 +15,11 @@ import yaml
 from hilstack.configs.schema import load_rig
 from hilstack.control.controller_node import ControllerNode
 from hilstack.control.reset.config import require_reset
-from hilstack.control.reset.fixture import FixtureClient
 from hilstack.control.reset.supervisor import ResetSupervisor
 from hilstack.drivers.emulator_process import EmulatorProcess
 from hilstack.drivers.mocap.udp import UdpPoseClient
 from hilstack.drivers.velociroach.config import quat_to_rpy
+from hilstack.drivers.velociroach.fixture import FixtureClient
 from tests.helpers import wait_for
 
 

@@ -1,6 +1,6 @@
 """Train the keypoint CNN on rendered images with domain randomisation; write the weights.
 
-    MUJOCO_GL=egl python -m hilstack.perception.train --out perception/weights/keypoint_net.pt
+    MUJOCO_GL=egl python -m hilstack.tools.train_keypoints --out perception/weights/keypoint_net.pt
 
 (what made the shipped weights; see docs/camera.md for the numbers). No data is
 downloaded: every image is rendered from the MuJoCo hand scene with the stereo pair
@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> None:
     ev = evaluate(net, held)
     print(f"trained in {time.monotonic() - t1:.0f} s; held out: {ev}")
     meta = {"pairs": a.pairs, "epochs": a.epochs, "seed": a.seed, "held_out": ev,
-            "command": f"python -m hilstack.perception.train --pairs {a.pairs} --epochs {a.epochs} --seed {a.seed}"}
+            "command": f"python -m hilstack.tools.train_keypoints --pairs {a.pairs} --epochs {a.epochs} --seed {a.seed}"}
     p = save_keypoint_net(net, a.out, meta)
     print(f"wrote {p} ({os.path.getsize(p) / 1024:.0f} KiB)")
 

@@ -1,10 +1,10 @@
 """The seed-0 settings search for GAT and GARAT on the pendulum (docs/transfer.md, "Tuning").
 
-    python -m hilstack.learning.transfer.tune_pendulum gat            # the GAT grid (about 15 min on loaded cores)
-    python -m hilstack.learning.transfer.tune_pendulum garat '{"gamma": 0.0}'   # one GARAT variant at 3000 transitions
-    python -m hilstack.learning.transfer.tune_pendulum garat-grid 0::2 3000  # GARAT_GRID (a slice of it) at these sizes
-    python -m hilstack.learning.transfer.tune_pendulum floor          # the floor of the per-step error (any transform)
-    python -m hilstack.learning.transfer.tune_pendulum fresh 1,3 out.json  # the `full` preset's pendulum part on these seeds
+    python -m hilstack.tools.tune_pendulum gat            # the GAT grid (about 15 min on loaded cores)
+    python -m hilstack.tools.tune_pendulum garat '{"gamma": 0.0}'   # one GARAT variant at 3000 transitions
+    python -m hilstack.tools.tune_pendulum garat-grid 0::2 3000  # GARAT_GRID (a slice of it) at these sizes
+    python -m hilstack.tools.tune_pendulum floor          # the floor of the per-step error (any transform)
+    python -m hilstack.tools.tune_pendulum fresh 1,3 out.json  # the `full` preset's pendulum part on these seeds
 
 It builds exactly the agent and data of ``pendulum.run`` for the seed (same seeds, same
 functions) and prints the per-step transition error on the validation transitions for
