@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from hilstack.configs.schema import Params, RobotConfig, parse_params
+from hilstack.configs.schema import Params, PeriodS, RobotConfig, StaleS, parse_params
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, Observation, RobotSpec, Space
 from hilstack.drivers.mocap.base import PoseSource
 
@@ -29,8 +29,8 @@ from hilstack.drivers.mocap.base import PoseSource
 class MocapParams(Params):
     source: Literal["natnet", "udp"] = "udp"
     rigid_body_id: int = Field(1, ge=0)
-    period_s: float = Field(0.01, gt=0, description="how often consumers should read (100 Hz)")
-    stale_after_s: float = Field(0.1, gt=0, description="a pose older than this is not ok")
+    period_s: PeriodS = Field(0.01, description="how often consumers should read (100 Hz)")
+    stale_after_s: StaleS = Field(0.1, description="a pose older than this is not ok")
     # udp
     host: str = "127.0.0.1"
     port: int = Field(0, ge=0, le=65535, description="UDP port to listen on (0: ephemeral)")
