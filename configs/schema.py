@@ -16,6 +16,7 @@ from pydantic import (
     PrivateAttr,
     ValidationError,
     field_validator,
+    model_validator,
 )
 
 CONFIG_ROOT = Path(__file__).resolve().parent
@@ -78,8 +79,10 @@ PeriodS = finite(ge=0.001, le=1.0, source=(
 StaleS = finite(gt=0, le=2.0, source=(
     "≤ 2 s: at its top speed (1.36 m/s at 15 rev/s) the fastest robot, the VelociRoACH, covers 2.7 m in 2 s, "
     "more than its arena's radius; a 10 Hz controller acting on a state 20 periods old is open loop"))
+#: the bound of every failure deadline [s] (FailAfterS; a count of periods times the period too)
+FAIL_AFTER_MAX_S = 10.0
 #: how long a device (or a link) may stay silent before the driver takes the error path [s]
-FailAfterS = finite(gt=0, le=10.0, source=(
+FailAfterS = finite(gt=0, le=FAIL_AFTER_MAX_S, source=(
     "≤ 10 s: every device stops itself long before (firmware watchdogs 0.5 s, intera 0.2 s); beyond 10 s the "
     "host waits on a dead device instead of reporting it"))
 #: how long a robot runs its last command without hearing from the host (firmware and driver watchdogs) [s]
@@ -95,8 +98,9 @@ RateHz = finite(ge=0.1, le=1000.0, source=(
     "≤ 1 kHz: the fastest device loop (the roach firmware's and the hand's joint loops run at 1 kHz); ≥ 0.1 Hz: "
     "a slower stream is stale by every deadline (≤ 2 s)"))
 #: a count of control periods (link timeouts) [1]
-Periods = bounded_int(ge=1, le=100, source=(
-    "≥ 1 period; ≤ 100: at the 10 Hz robots' period 10 s, the failure deadline's bound (FailAfterS)"))
+Periods = bounded_int(ge=1, le=10_000, source=(
+    "≥ 1 period; the count times the robot's period_s ≤ 10 s, the failure deadline's bound (FailAfterS; "
+    "checked by Params for every *_periods field)"))
 #: a duration of the emulators' fault injection or sim pacing (not a safety value) [s]
 EmulatorS = finite(ge=0, le=3600.0, source="≤ 1 h: an emulator run (fault injection time, never a safety value)")
 
@@ -410,6 +414,20 @@ class Params(BaseModel):
     depending on each other."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _periods_within_the_failure_bound(self) -> Params:
+        """A deadline given in control periods (``link_timeout_periods``) is a time too:
+        N · ``period_s`` ≤ :data:`FAIL_AFTER_MAX_S`, as for a deadline in seconds."""
+        period = getattr(self, "period_s", None)
+        if not isinstance(period, float):
+            return self
+        for name in type(self).model_fields:
+            n = getattr(self, name)
+            if name.endswith("_periods") and isinstance(n, int) and n * period > FAIL_AFTER_MAX_S:
+                raise ValueError(f"{name}: {n} periods of {period:g} s = {n * period:g} s, more than the "
+                                 f"{FAIL_AFTER_MAX_S:g} s a device may stay silent (FailAfterS)")
+        return self
 
 
 class EmulatorParams(Params):
