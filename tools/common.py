@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import math
 import os
 import signal
 import sys
@@ -61,15 +62,27 @@ def one_line(e: BaseException) -> str:
     return lines[0] if lines else type(e).__name__
 
 
+def check_args(params: dict[str, Any]) -> None:
+    """Arguments every verb refuses before it starts anything: a number that is not finite
+    (``--timeout-s inf`` would wait forever, ``--seconds nan`` drive for no time). Raises
+    :class:`UserError` naming the option."""
+    for name, v in params.items():
+        for x in v if isinstance(v, (list, tuple)) else (v,):
+            if isinstance(x, float) and not math.isfinite(x):
+                raise UserError(f"--{name.replace('_', '-')} {x}: expected a finite number")
+
+
 def user_errors(fn: F) -> F:
     """Expected failures as one line on stderr, no traceback. Exit 2: the input is wrong
     (argument, config, missing file, a command the contract refuses). Exit 1: the robot,
-    its link or the rig failed while running (the robot's safety has stopped it)."""
+    its link or the rig failed while running (the robot's safety has stopped it).
+    Non-finite numbers among the arguments are refused first (:func:`check_args`)."""
     from hilstack.drivers.base import CommandError, LifecycleError, LinkError
 
     @functools.wraps(fn)
     def wrapper(*a: Any, **kw: Any) -> Any:
         try:
+            check_args(kw)
             return fn(*a, **kw)
         except (UserError, ConfigError, CommandError, FileNotFoundError) as e:
             typer.echo(f"error: {one_line(e)}", err=True)
