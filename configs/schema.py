@@ -102,7 +102,7 @@ Periods = bounded_int(ge=1, le=10_000, source=(
     "≥ 1 period; the count times the robot's period_s ≤ 10 s, the failure deadline's bound (FailAfterS; "
     "checked by Params for every *_periods field)"))
 #: a duration of the emulators' fault injection or sim pacing (not a safety value) [s]
-EmulatorS = finite(ge=0, le=3600.0, source="≤ 1 h: an emulator run (fault injection time, never a safety value)")
+EmulatorS = finite(ge=0, le=3600.0, source="≤ 1 h: an emulator run's fault injection (not a safety value)")
 
 
 def _ordered(r: tuple[float, float]) -> tuple[float, float]:

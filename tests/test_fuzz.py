@@ -240,8 +240,8 @@ def test_a_non_finite_argument_is_one_line_exit_2():
 
     from hilstack.tools.cli import app
 
-    for args in (["estop", "r", "--timeout-s", "inf"], ["drive", "pointmass", "--seconds", "nan"],
-                 ["bench", "tracker", "--seconds", "-inf"]):
+    for args in (["drive", "pointmass", "--seconds", "nan"], ["bench", "tracker", "--seconds", "-inf"],
+                 ["estop", "r", "--timeout-s", "inf"]):
         r = CliRunner().invoke(app, args)
         assert r.exit_code == 2 and "expected a finite number" in r.output, (args, r.output)
         assert len([ln for ln in r.output.splitlines() if ln.strip()]) == 1

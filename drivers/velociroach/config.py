@@ -66,7 +66,7 @@ RoachPeriodS = finite(ge=0.001, le=0.1, source=(
     "≤ 0.1 s (the thesis' 10 Hz): the rate limit's bound (≤ 12 rev/s per step at ≤ 120 rev/s²) holds only at "
     "10 Hz or faster"))
 #: the emulator's pacing [sim s per wall-clock s] (not a safety value)
-RealtimeFactor = finite(gt=0, le=100.0, source="emulator pacing: up to 100× faster than the wall clock")
+RealtimeFactor = finite(gt=0, le=100.0, source="emulator pacing: up to 100× the wall clock (not a safety value)")
 
 
 def fault_flags(bits: int) -> dict[str, bool]:

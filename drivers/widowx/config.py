@@ -54,7 +54,7 @@ PinionRadiusM = finite(gt=0, le=0.05, source="≤ 5 cm: a pinion on an XM430's h
 #: rail offset rate [m/s]
 RailRateMS = finite(gt=0, le=0.24, source="XM430 no-load speed × the largest pinion radius: 4.8 rad/s × 0.05 m")
 #: the bus emulator's pacing (not a safety value)
-RealtimeFactor = finite(gt=0, le=100.0, source="emulator pacing: up to 100× faster than the wall clock")
+RealtimeFactor = finite(gt=0, le=100.0, source="emulator pacing: up to 100× the wall clock (not a safety value)")
 
 
 class DynamixelEmulatorParams(EmulatorParams):
