@@ -80,9 +80,9 @@ class DriverNode(Node):
         estop_sync_s: float = 1.0,
         **node_kw,
     ):
-        super().__init__(keys.driver_node(robot), rig, bus, **node_kw)
-        if pace == "lockstep" and driver.backend != "sim":
+        if pace == "lockstep" and driver.backend != "sim":  # before the session opens: nothing left running
             raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
+        super().__init__(keys.driver_node(robot), rig, bus, **node_kw)
         self.driver = driver
         self.robot = robot
         self.pace = pace

@@ -302,3 +302,13 @@ def test_hil_up_names_the_rig_file_for_its_entrys_typo(tmp_path):
     p = _write(tmp_path, "rig.yaml", "name: r\nrobots: {pm: {config: pointmass, params: {mas_kg: 1}}}\n")
     line = _one_error_line(_hil(["up", str(p), "--steps", "1"]))
     assert line.startswith(f"error: {p}: robots.pm.params.mas_kg: unknown field"), line
+
+
+def test_a_driver_node_refused_for_its_pace_leaves_nothing_running(tmp_path):
+    """The hang behind item 12's lockstep rig: DriverNode refused the pace after opening its
+    Zenoh session and taking SIGTERM, so the process lived on. It now refuses first."""
+    code = ("from hilstack.drivers.bridge import DriverNode\n"
+            "from hilstack.drivers.registry import make_driver\n"
+            "DriverNode(make_driver('velociroach', backend='emulated'), 'r', 'roach', pace='lockstep')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert r.returncode == 1 and "pace 'lockstep' needs a sim backend" in r.stderr, r.stderr[-500:]
