@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -364,7 +365,28 @@ def rig_config(data: Any, file: str | Path | None = None) -> RigConfig:
 
 
 def load_task(name_or_path: str | Path) -> TaskConfig:
-    return load_yaml_model(config_path("tasks", name_or_path), TaskConfig)
+    path = config_path("tasks", name_or_path)
+    return task_config(read_yaml(path), path)
+
+
+def task_config(data: Any, file: str | Path | None = None) -> TaskConfig:
+    """A task config: its task-specific keys are free, but no number in them is inf or NaN
+    (the task's own loader checks their meaning)."""
+    cfg = parse_model(TaskConfig, data, file)
+    bad = _nonfinite(cfg.model_extra or {}, "")
+    if bad:
+        raise ConfigError(file, [(where, f"expected a finite number (got {v!r})") for where, v in bad])
+    return cfg
+
+
+def _nonfinite(v: Any, where: str) -> list[tuple[str, float]]:
+    if isinstance(v, float) and not math.isfinite(v):
+        return [(where, v)]
+    if isinstance(v, dict):
+        return [b for k, x in v.items() for b in _nonfinite(x, f"{where}.{k}" if where else str(k))]
+    if isinstance(v, list):
+        return [b for i, x in enumerate(v) for b in _nonfinite(x, f"{where}[{i}]")]
+    return []
 
 
 def rig_robot_config(rig: RigConfig, key: str) -> RobotConfig:

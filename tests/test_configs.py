@@ -221,6 +221,16 @@ def test_a_top_level_that_is_not_a_mapping_is_one_error(tmp_path, text):
             load(p)
 
 
+def test_a_task_has_no_infinite_numbers(tmp_path):
+    from hilstack.configs.schema import load_task
+
+    p = _write(tmp_path, "t.yaml", "task: path_following\npath_scale: .inf\nspeeds: {low: 0.5, high: .nan}\n")
+    with pytest.raises(ConfigError, match=rf"{p}: path_scale: expected a finite number \(got inf\)"):
+        load_task(p)
+    with pytest.raises(ConfigError, match=r"speeds.high: expected a finite number"):
+        load_task(p)
+
+
 def test_a_reset_section_of_the_wrong_shape_names_it(tmp_path):
     from hilstack.control.reset.config import load_reset
 

@@ -403,7 +403,7 @@ def fuzz_reset_config(data: bytes) -> None:
 
 def fuzz_task_config(data: bytes) -> None:
     """A generated task config: TaskConfig, then the Baoding task's own params and task."""
-    from hilstack.configs.schema import ConfigError, TaskConfig, parse_model, parse_yaml
+    from hilstack.configs.schema import ConfigError, parse_model, parse_yaml, task_config
     from hilstack.learning.baoding import BaodingTaskParams
 
     draw = Draw(data)
@@ -412,9 +412,11 @@ def fuzz_task_config(data: bytes) -> None:
     else:
         doc = {"task": draw.pick(["baoding", "path_following", "", 3])}
         doc.update(gen_section(draw, BaodingTaskParams))
+        if draw.chance(3):  # a task's free keys (path_following's planner settings)
+            doc[draw.pick(["path_scale", "samples", "speeds"])] = draw.pick(PALETTE)
     text = to_yaml(draw, doc)
     try:
-        raw = parse_model(TaskConfig, parse_yaml(text, TASK_FILE), TASK_FILE)
+        raw = task_config(parse_yaml(text, TASK_FILE), TASK_FILE)
         if raw.task == "baoding":
             parse_model(BaodingTaskParams, raw.model_dump(), raw.source)
     except ConfigError as e:
