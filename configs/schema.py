@@ -241,7 +241,7 @@ class TaskConfig(BaseModel):
 def _format_loc(loc: tuple[Any, ...]) -> str:
     out = ""
     for p in loc:
-        if isinstance(p, str) and not re.fullmatch(r"[\w\-/ ]+|\[key\]", p):
+        if isinstance(p, str) and not re.fullmatch(r"[\w\-/ ]+|\[key\]", p):  # '' too
             p = repr(p)  # a key with dots, brackets or control characters: quoted, unambiguous
         out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
     return out
@@ -373,19 +373,19 @@ def task_config(data: Any, file: str | Path | None = None) -> TaskConfig:
     """A task config: its task-specific keys are free, but no number in them is inf or NaN
     (the task's own loader checks their meaning)."""
     cfg = parse_model(TaskConfig, data, file)
-    bad = _nonfinite(cfg.model_extra or {}, "")
+    bad = _nonfinite(cfg.model_extra or {}, ())
     if bad:
-        raise ConfigError(file, [(where, f"expected a finite number (got {v!r})") for where, v in bad])
+        raise ConfigError(file, [(_format_loc(loc), f"expected a finite number (got {v!r})") for loc, v in bad])
     return cfg
 
 
-def _nonfinite(v: Any, where: str) -> list[tuple[str, float]]:
+def _nonfinite(v: Any, loc: tuple[Any, ...]) -> list[tuple[tuple[Any, ...], float]]:
     if isinstance(v, float) and not math.isfinite(v):
-        return [(where, v)]
+        return [(loc, v)]
     if isinstance(v, dict):
-        return [b for k, x in v.items() for b in _nonfinite(x, f"{where}.{k}" if where else str(k))]
+        return [b for k, x in v.items() for b in _nonfinite(x, (*loc, k if isinstance(k, str) else repr(k)))]
     if isinstance(v, list):
-        return [b for i, x in enumerate(v) for b in _nonfinite(x, f"{where}[{i}]")]
+        return [b for i, x in enumerate(v) for b in _nonfinite(x, (*loc, i))]
     return []
 
 

@@ -245,3 +245,15 @@ def test_a_non_finite_argument_is_one_line_exit_2():
         r = CliRunner().invoke(app, args)
         assert r.exit_code == 2 and "expected a finite number" in r.output, (args, r.output)
         assert len([ln for ln in r.output.splitlines() if ln.strip()]) == 1
+
+
+def test_a_nonfinite_value_under_an_empty_key_names_its_field():
+    """Found by `hil bench fuzz --target task_config` (input b9b936b9903636363636): a task's
+    free key '' holding inf gave an error with an empty field; the field is now ''."""
+    from hilstack.configs.schema import ConfigError, task_config
+    from hilstack.tools import fuzz_configs
+
+    fuzz_configs.fuzz_task_config(bytes.fromhex("b9b936b9903636363636"))
+    with pytest.raises(ConfigError) as e:
+        task_config({"task": "x", "": float("inf")}, "/t.yaml")
+    assert e.value.problems == [("''", "expected a finite number (got inf)")]
