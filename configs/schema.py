@@ -281,8 +281,14 @@ def read_yaml(path: str | Path) -> Any:
     return parse_yaml(text, p)
 
 
+#: the most nodes a config document may expand to (aliases counted at each use)
+MAX_NODES = 100_000
+
+
 def parse_yaml(text: str, file: str | Path | None = None) -> Any:
-    """YAML text as Python data (an empty document: ``{}``); a ConfigError naming the line."""
+    """YAML text as Python data (an empty document: ``{}``); a ConfigError naming the line.
+    A recursive alias (``&a [*a]``) or a document whose aliases expand past
+    :data:`MAX_NODES` (a "billion laughs") is refused: no loader walks it."""
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
@@ -291,7 +297,27 @@ def parse_yaml(text: str, file: str | Path | None = None) -> Any:
         raise ConfigError(file, [(where, f"not valid YAML: {getattr(e, 'problem', None) or e}")]) from None
     except (ValueError, TypeError, RecursionError) as e:  # e.g. an unhashable mapping key, a date out of range
         raise ConfigError(file, [("", f"not valid YAML: {type(e).__name__}: {e}")]) from None
+    _check_expansion(data, file)
     return {} if data is None else data
+
+
+def _check_expansion(data: Any, file: str | Path | None) -> None:
+    seen, on_path = 0, set()
+    stack: list[tuple[Any, bool]] = [(data, False)]
+    while stack:
+        v, leaving = stack.pop()
+        if leaving:
+            on_path.discard(id(v))
+            continue
+        seen += 1
+        if seen > MAX_NODES:
+            raise ConfigError(file, [("", f"not valid YAML for a config: its aliases expand past {MAX_NODES} nodes")])
+        if isinstance(v, (dict, list)):
+            if id(v) in on_path:
+                raise ConfigError(file, [("", "not valid YAML for a config: a recursive alias (&x holds *x)")])
+            on_path.add(id(v))
+            stack.append((v, True))
+            stack.extend((c, False) for c in (v.values() if isinstance(v, dict) else v))
 
 
 def _mapping(data: Any, file: str | Path | None) -> dict[str, Any]:

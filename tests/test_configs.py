@@ -322,3 +322,12 @@ def test_a_driver_node_refused_for_its_pace_leaves_nothing_running(tmp_path):
             "DriverNode(make_driver('velociroach', backend='emulated'), 'r', 'roach', pace='lockstep')\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert r.returncode == 1 and "pace 'lockstep' needs a sim backend" in r.stderr, r.stderr[-500:]
+
+
+def test_the_mechanism_range_cannot_collapse(tmp_path):
+    """Found by `hil bench fuzz --target robot_config`: rotate_half_range_deg 1e-300 passed
+    gt=0 and made the action range [-0, 0]."""
+    for field, v in (("rotate_half_range_deg", "1.0e-300"), ("rail_half_travel_m", "1.0e-9")):
+        p = _write(tmp_path, "m.yaml", f"robot: reset_mechanism\nbackend: sim\nparams: {{{field}: {v}}}\n")
+        with pytest.raises(ConfigError, match=rf"{p}: params.{field}: Input should be greater than or equal to"):
+            make_driver(load_robot(p))

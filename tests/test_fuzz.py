@@ -257,3 +257,31 @@ def test_a_nonfinite_value_under_an_empty_key_names_its_field():
     with pytest.raises(ConfigError) as e:
         task_config({"task": "x", "": float("inf")}, "/t.yaml")
     assert e.value.problems == [("''", "expected a finite number (got inf)")]
+
+
+@pytest.mark.parametrize(("target", "hexed"), [
+    # the reset mechanism's rotate_half_range_deg: 1e-300 collapsed its action range to 0 (both rig and robot)
+    ("robot_config", "9494949429949494949191919191919191919191919191919191919191919191919191919191919191919191919191"
+                     "919191919191919191919191"),
+    ("rig_config", "5555555555555555555555555555555555555555555555555555555555555555555555555555555555555555555555"
+                   "5555555555555555555555555555555555555555555555552525252525252525252525252525252525252525252525"
+                   "25252525252525252525252525252525252525dededededede252525"),
+    # a recursive YAML alias: RecursionError in the task's finite-number check
+    ("task_config", "4ac0b67d7d7d7d7d7d7d7d7d7d7d7d7d7d7d7d4a"),
+])
+def test_what_hil_bench_fuzz_found_in_the_configs(target, hexed):
+    """Found by the 100k-input runs of `hil bench fuzz` (docs/platform.md, "Fuzzing")."""
+    fuzz.TARGETS[target][0](bytes.fromhex(hexed))
+
+
+def test_recursive_and_exploding_yaml_is_one_error(tmp_path):
+    from hilstack.configs.schema import ConfigError, load_robot
+
+    bomb = "a: &a [1,1,1,1,1,1,1,1,1,1]\n" + "".join(
+        f"{n}: &{n} [{', '.join([f'*{p}'] * 10)}]\n" for p, n in zip("abcd", "bcde", strict=True))
+    for text, why in (("robot: pointmass\nparams: &p {x: *p}\n", "recursive alias"),
+                      ("robot: pointmass\n" + bomb, "expand past 100000 nodes")):
+        p = tmp_path / "r.yaml"
+        p.write_text(text)
+        with pytest.raises(ConfigError, match=f"{p}: <root>: not valid YAML for a config: .*{why}"):
+            load_robot(p)

@@ -47,6 +47,12 @@ JointAccelRadS2 = finite(gt=0, le=96.0, source=(
     "it would be off"))
 #: slow-down margin before a joint limit [rad]
 LimitMarginRad = finite(ge=0, le=0.5, source="≤ 0.5 rad: a margin wider would eat most of the wrist's 3.9 rad range")
+#: the housing's rotation range, each way [deg]
+RotateHalfRangeDeg = finite(ge=1.0, le=45.0, source=(
+    "≥ 1°: about 11 steps of the XM430's 0.088° resolution, a range it can hold; ≤ 45°: the housing's stops"))
+#: the rail's travel, each way [m]
+RailHalfTravelM = finite(ge=0.001, le=0.1, source=(
+    "≥ 1 mm: a travel the pinion resolves (0.088° on a ≤ 5 cm pinion: 0.08 mm); ≤ 10 cm: the rail's length"))
 #: mechanism housing rotation rate [rad/s]
 RotateRateRadS = finite(gt=0, le=4.8, source="XM430-W350 no-load speed (4.8 rad/s)")
 #: rail pinion radius [m]
@@ -125,8 +131,8 @@ class WidowXParams(BusParams):
 class MechanismParams(BusParams):
     ids: dict[str, int] = Field(default_factory=lambda: dict(MECH_DEFAULT_IDS))
     period_s: PeriodS = 0.05
-    rotate_half_range_deg: float = Field(8.0, gt=0, le=45)
-    rail_half_travel_m: float = Field(0.01, gt=0, le=0.1)
+    rotate_half_range_deg: RotateHalfRangeDeg = 8.0
+    rail_half_travel_m: RailHalfTravelM = 0.01
     rail_pinion_radius_m: PinionRadiusM = Field(0.01, description="rail offset = pinion radius × servo angle")
     rotate_rate_rad_s: RotateRateRadS = Field(0.5, description="rate limit of the rotation target")
     rail_rate_m_s: RailRateMS = Field(0.02, description="rate limit of the offset target")
