@@ -95,6 +95,8 @@ class DriverNode(Node):
         if not (isinstance(resume_ok_readings, int) and 1 <= resume_ok_readings <= MAX_RESUME_OK_READINGS):
             raise ValueError(f"resume_ok_readings must be an integer in [1, {MAX_RESUME_OK_READINGS}], "
                              f"got {resume_ok_readings!r}")
+        if pace == "lockstep" and driver.backend != "sim":  # before the session opens: nothing left running
+            raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
         access = bus is not None and bus.access is not None
         if driver.backend == "real" and not access:
             # who may command and release a real robot is not left open (docs/platform.md, Safety model)
@@ -109,8 +111,6 @@ class DriverNode(Node):
         if not access and driver.backend == "emulated":
             log.warning("rig %s has no bus.access: any process on this host can command %s and release its e-stop",
                         rig, robot)
-        if pace == "lockstep" and driver.backend != "sim":
-            raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
         self.driver = driver
         self.robot = robot
         self.pace = pace

@@ -13,7 +13,7 @@ import importlib
 from importlib.metadata import entry_points
 from typing import TYPE_CHECKING
 
-from hilstack.configs.schema import ConfigError, RobotConfig, load_robot
+from hilstack.configs.schema import ConfigError, RobotConfig, blame_rig, load_robot
 
 if TYPE_CHECKING:
     from hilstack.drivers.base import Driver
@@ -72,5 +72,8 @@ def make_driver(cfg: RobotConfig | str, backend: str | None = None, **params: ob
     try:
         cls = resolve(cfg.robot, cfg.backend)
     except ConfigError as e:
-        raise ConfigError(cfg.source, e.problems) from None
-    return cls.from_config(cfg)
+        raise blame_rig(cfg, ConfigError(cfg.source, e.problems)) from None
+    try:
+        return cls.from_config(cfg)
+    except ConfigError as e:  # what a rig's entry set is the rig file's fault
+        raise blame_rig(cfg, e) from None

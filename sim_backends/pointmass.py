@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from hilstack.configs.schema import Params, RobotConfig, parse_params
+from hilstack.configs.schema import Params, PeriodS, RobotConfig, finite, parse_params
 from hilstack.drivers.base import Health, Observation, RobotSpec, Space
 from hilstack.sim_backends.base import LockstepSim
 
@@ -32,13 +32,24 @@ _XML = """
 """
 
 
+#: MuJoCo time step of the sample robot [s]
+PhysicsDtS = finite(ge=1e-5, le=0.01, source="≥ 10 µs: at most 10⁵ steps per 1 s period; ≤ 10 ms: a stable point mass")
+
+
+#: the sample robot's force limit [N]
+ForceN = finite(gt=0, le=100.0, source="≤ 100 N: 200 m/s² on the default 0.5 kg mass, past anything the 2 m arena holds")
+#: its rate limit [N/s]
+ForceRateNPerS = finite(gt=0, le=10000.0, source=(
+    "the whole force range (±100 N) within one default 20 ms period: a larger rate limit never binds, it would be off"))
+
+
 class PointMassParams(Params):
     mass_kg: float = Field(0.5, gt=0)
     damping_ns_per_m: float = Field(0.5, ge=0)
-    max_force_n: float = Field(2.0, gt=0)
-    max_force_rate_n_per_s: float = Field(40.0, gt=0)
-    period_s: float = Field(0.02, gt=0)
-    physics_dt_s: float = Field(0.002, gt=0)
+    max_force_n: ForceN = 2.0
+    max_force_rate_n_per_s: ForceRateNPerS = 40.0
+    period_s: PeriodS = 0.02
+    physics_dt_s: PhysicsDtS = 0.002
     arena_m: float = Field(2.0, gt=0)
 
 

@@ -84,11 +84,12 @@ def bench_adaptation(
 @user_errors
 def bench_fuzz(
     n: int = typer.Option(1_000_000, "--n", help="inputs per parser"),
-    target: list[str] = typer.Option(None, "--target", help="only these parsers (repeatable): xbee, mavlink, bus"),
+    target: list[str] = typer.Option(None, "--target", help="only these targets (repeatable): xbee, mavlink, bus, "
+                                     "robot_config, rig_config, task_config, reset_config, cli_args"),
     seed: int = typer.Option(1, "--seed", help="libFuzzer seed (same seed, same inputs)"),
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
-    """Fuzz the XBee deframer, the MAVLink decoder and the bus decoders (atheris); exit 1 on a crash."""
+    """Fuzz the parsers (XBee, MAVLink, bus), the config loaders and `hil`'s arguments (atheris); exit 1 on a crash."""
     from hilstack.tools.fuzz import TARGETS, run_bench_fuzz
 
     if n < 1:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import math
 import os
 import signal
 import sys
@@ -87,12 +88,21 @@ def exit_within(code: int, grace_s: float = ERROR_EXIT_GRACE_S) -> None:
         os._exit(code)
 
     threading.Thread(target=hard_exit, daemon=True, name="exit-after-error").start()
+def check_args(params: dict[str, Any]) -> None:
+    """Arguments every verb refuses before it starts anything: a number that is not finite
+    (``--timeout-s inf`` would wait forever, ``--seconds nan`` drive for no time). Raises
+    :class:`UserError` naming the option."""
+    for name, v in params.items():
+        for x in v if isinstance(v, (list, tuple)) else (v,):
+            if isinstance(x, float) and not math.isfinite(x):
+                raise UserError(f"--{name.replace('_', '-')} {x}: expected a finite number")
 
 
 def user_errors(fn: F) -> F:
     """Expected failures as one line on stderr, no traceback. Exit 2: the input is wrong
     (argument, config, missing file, a command the contract refuses). Exit 1: the robot,
-    its link or the rig failed while running (the robot's safety has stopped it)."""
+    its link or the rig failed while running (the robot's safety has stopped it).
+    Non-finite numbers among the arguments are refused first (:func:`check_args`)."""
     from hilstack.bus.access import AccessError
     from hilstack.bus.node import NodeConflict
     from hilstack.bus.session import BusUnavailable
@@ -101,6 +111,7 @@ def user_errors(fn: F) -> F:
     @functools.wraps(fn)
     def wrapper(*a: Any, **kw: Any) -> Any:
         try:
+            check_args(kw)
             return fn(*a, **kw)
         except (UserError, ConfigError, CommandError, FileNotFoundError, AccessError, NodeConflict) as e:
             typer.echo(f"error: {one_line(e)}", err=True)

@@ -208,6 +208,37 @@ TARGETS: dict[str, tuple[Callable[[bytes], None], Callable[[], list[bytes]], lis
     "mavlink": (fuzz_mavlink, seeds_mavlink, ["hilstack.drivers.velociroach.mavlink", "pymavlink"]),
     "bus": (fuzz_bus, seeds_bus, ["hilstack.bus.schemas"]),
 }
+#: the config loaders and `hil`'s arguments (tools/fuzz_configs.py): generated documents
+#: (the generator is instrumented too: its branches are the schema's fields and shapes, so
+#: coverage guidance walks the schemas; pydantic's own validation is compiled code)
+_CONFIG_TARGETS = {
+    "robot_config": ("fuzz_robot_config", ["hilstack.tools.fuzz_configs", "hilstack.configs.schema"]),
+    "rig_config": ("fuzz_rig_config", ["hilstack.tools.fuzz_configs", "hilstack.configs.schema"]),
+    "task_config": ("fuzz_task_config", ["hilstack.tools.fuzz_configs", "hilstack.configs.schema"]),
+    "reset_config": ("fuzz_reset_config", ["hilstack.tools.fuzz_configs", "hilstack.configs.schema",
+                                           "hilstack.control.reset.config"]),
+    "cli_args": ("fuzz_cli_args", ["hilstack.tools.fuzz_configs", "hilstack.tools.common"]),
+}
+
+
+def _config_target(fn: str) -> Callable[[bytes], None]:
+    def run(data: bytes) -> None:
+        from hilstack.tools import fuzz_configs
+
+        getattr(fuzz_configs, fn)(data)
+
+    run.__name__ = fn
+    return run
+
+
+def _config_seeds() -> list[bytes]:
+    from hilstack.tools.fuzz_configs import seeds
+
+    return seeds()
+
+
+for _name, (_fn, _inst) in _CONFIG_TARGETS.items():
+    TARGETS[_name] = (_config_target(_fn), _config_seeds, _inst)
 
 
 def resolve(target: str) -> tuple[Callable[[bytes], None], Callable[[], list[bytes]], list[str]]:
@@ -253,6 +284,8 @@ def run_target(target: str, n: int, *, seed: int = 1, max_len: int = 300,
             (corpus / f"seed{i}").write_bytes(s)
         cmd = [sys.executable, "-m", "hilstack.tools.fuzz", target, f"-runs={n}", f"-seed={seed}", f"-max_len={max_len}",
                f"-artifact_prefix={tmp}/", "-print_final_stats=1", str(corpus)]
+        if target in _CONFIG_TARGETS:  # a generated document needs its choices from the start: full-length inputs
+            cmd.insert(-1, "-len_control=0")
         t0, cpu0 = time.monotonic(), _children_cpu_s()
         env = {**os.environ, "OMP_NUM_THREADS": "1"}
         r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s, env=env)

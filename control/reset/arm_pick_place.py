@@ -24,8 +24,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hilstack.configs.schema import finite
 from hilstack.control.reset.arm_ik import READY_Q_RAD, ArmIK, down_frame
-from hilstack.drivers.reset_arm.config import GRIPPER_OPEN_M
+from hilstack.drivers.reset_arm.config import GRIPPER_OPEN_M, ArmJointRateRadS
+
+#: the tool point's Cartesian speed [m/s]
+ToolSpeedMS = finite(gt=0, le=1.7, source="the Franka Panda's Cartesian translation limit (1.7 m/s), the layout "
+                     "the reset arm copies")
 
 
 class PickPlaceError(RuntimeError):
@@ -56,8 +61,8 @@ class PickPlaceConfig:
     travel_z_m: float = 0.22
     #: the tool point's height above a palm place when the jaws open [m]
     release_above_m: float = 0.02
-    speed_m_s: float = 0.25
-    joint_speed_rad_s: float = 1.2
+    speed_m_s: ToolSpeedMS = 0.25
+    joint_speed_rad_s: ArmJointRateRadS = 1.2
     tolerance_m: float = 0.01
     grip_s: float = 0.5
     open_m: float = 0.07

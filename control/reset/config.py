@@ -23,7 +23,29 @@ from typing import Any, Literal
 
 from pydantic import Field
 
-from hilstack.configs.schema import ConfigError, RigConfig, Strict, parse_model
+from hilstack.configs.schema import (
+    ConfigError,
+    FailAfterS,
+    RigConfig,
+    Strict,
+    TimeoutS,
+    bounded_int,
+    finite,
+    parse_model,
+)
+
+#: an arena's radius [m]
+ArenaRadiusM = finite(gt=0, le=20.0, source="≤ 20 m: larger than any lab's motion-capture volume (the mocap's ±10 m)")
+#: a position tolerance [m]
+PositionTolM = finite(gt=0, le=2.0, source="≤ 2 m: a looser tolerance accepts a robot outside the roach's 2.5 m arena")
+#: a heading tolerance [rad]
+YawTolRad = finite(gt=0, le=3.141592653589793, source="≤ π: any heading is within π")
+#: a height [m]
+HeightM = finite(ge=-10.0, le=10.0, source="within the mocap volume's ±10 m")
+#: a planar position [m]
+PlanarM = finite(ge=-20.0, le=20.0, source="within 20 m of the origin: beyond any lab's motion-capture volume")
+#: retries of a step or of the whole procedure
+Retries = bounded_int(ge=0, le=10, source="≤ 10: each retry moves the robot again; a step failing 11 times is broken")
 
 
 class DetectorConfig(Strict):
@@ -31,16 +53,16 @@ class DetectorConfig(Strict):
 
     kind: Literal["timeout", "arena", "tipped", "drop"]
     #: timeout: episode length [s of robot time]
-    max_s: float | None = Field(None, gt=0)
+    max_s: TimeoutS | None = None
     #: arena: radius [m] around ``center_xy_m`` (world frame, the mocap's)
-    radius_m: float | None = Field(None, gt=0)
-    center_xy_m: tuple[float, float] = (0.0, 0.0)
+    radius_m: ArenaRadiusM | None = None
+    center_xy_m: tuple[PlanarM, PlanarM] = (0.0, 0.0)
     #: tipped: cos_roll or cos_pitch below this ends the episode
     min_cos: float = Field(0.5, ge=-1, le=1)
     #: drop: state channels holding heights [m] (e.g. each ball's z in the hand frame)
     channels: list[str] = Field(default_factory=list)
     #: drop: a channel below this height [m] means a drop
-    min_height_m: float | None = None
+    min_height_m: HeightM | None = None
     #: watch this robot's state instead of the reset robot's (the hand rig: the balls are
     #: in the reset arm's state, which sees them; a camera tracker's, when it is a robot)
     robot: str | None = None
@@ -51,9 +73,9 @@ class StepConfig(Strict):
 
     kind: str
     #: per attempt [s of robot time]
-    timeout_s: float = Field(30.0, gt=0)
+    timeout_s: TimeoutS = 30.0
     #: extra attempts after a timeout or a step error
-    retries: int = Field(0, ge=0)
+    retries: Retries = 0
     #: when every attempt failed, go on with the next step (``skip``) instead of failing
     #: the reset: a best-effort step that a later one backs up (self_right → lab_fixture)
     optional: bool = False
@@ -63,21 +85,21 @@ class StepConfig(Strict):
 class VerifyConfig(Strict):
     """What "reset done" means: the robot is at the start pose, within tolerances."""
 
-    position_tol_m: float = Field(0.25, gt=0)
-    yaw_tol_rad: float | None = Field(None, gt=0)
+    position_tol_m: PositionTolM = 0.25
+    yaw_tol_rad: YawTolRad | None = None
     #: whole-procedure attempts after a failed verification
-    retries: int = Field(0, ge=0)
+    retries: Retries = 0
 
 
 class ResetConfig(Strict):
     robot: str
     #: where a reset puts the robot when the request names no pose ({x, y, yaw}: m, m, rad)
-    start_pose: dict[str, float] = Field(default_factory=lambda: {"x": 0.0, "y": 0.0, "yaw": 0.0})
+    start_pose: dict[str, PlanarM] = Field(default_factory=lambda: {"x": 0.0, "y": 0.0, "yaw": 0.0})
     detectors: list[DetectorConfig] = Field(default_factory=list)
     steps: list[StepConfig] = Field(min_length=1)
     verify: VerifyConfig = VerifyConfig()
     #: no state from the robot for this long (wall clock) during a reset: the reset fails [s]
-    state_timeout_s: float = Field(2.0, gt=0)
+    state_timeout_s: FailAfterS = 2.0
 
     def max_duration_s(self) -> float:
         """Upper bound of one reset in robot time [s]: every attempt of every step, times
@@ -92,7 +114,10 @@ def load_reset(rig: RigConfig) -> ResetConfig | None:
     file and field."""
     if rig.reset is None:
         return None
-    cfg = parse_model(ResetConfig, rig.reset, rig.source)
+    try:
+        cfg = parse_model(ResetConfig, rig.reset, rig.source)
+    except ConfigError as e:
+        raise ConfigError(rig.source, [(f"reset.{f}" if f else "reset", m) for f, m in e.problems]) from None
     if cfg.robot not in rig.robots:
         raise ConfigError(rig.source, [("reset.robot", f"{cfg.robot!r} is not on the rig; robots: {list(rig.robots)}")])
     from hilstack.control.reset.steps import STEP_KINDS
@@ -107,7 +132,7 @@ def load_reset(rig: RigConfig) -> ResetConfig | None:
                                             f"{d.robot!r} is not on the rig; robots: {list(rig.robots)}")])
         need = {"timeout": ("max_s",), "arena": ("radius_m",), "tipped": (), "drop": ("channels", "min_height_m")}[d.kind]
         for f in need:
-            if not getattr(d, f):
+            if getattr(d, f) in (None, []):  # a height of 0 m is a height
                 raise ConfigError(rig.source, [(f"reset.detectors[{i}].{f}", f"required for a {d.kind} detector")])
     return cfg
 

@@ -82,7 +82,7 @@ class StepContext(Protocol):
 class StepParams(BaseModel):
     """A step's ``params`` (``reset.steps[].params``): typed, unknown keys refused."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class ResetStep(ABC):
@@ -490,7 +490,7 @@ def _pick_place_params() -> type[StepParams]:
 
     from hilstack.control.reset.arm_pick_place import PickPlaceConfig
 
-    hints = typing.get_type_hints(PickPlaceConfig)
+    hints = typing.get_type_hints(PickPlaceConfig, include_extras=True)  # keep the bounded types' bounds
     fields: dict[str, Any] = {}
     for f in dataclasses.fields(PickPlaceConfig):
         if f.name == "period_s":

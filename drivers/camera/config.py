@@ -13,15 +13,19 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from hilstack.configs.schema import Params
+from hilstack.configs.schema import FailAfterS, Params, PeriodS, RateHz, StaleS, finite
 from hilstack.drivers.base import RobotSpec, Space
 
 STATE_NAMES = ("ball0_x", "ball0_y", "ball0_z", "ball1_x", "ball1_y", "ball1_z", "ball0_conf", "ball1_conf")
 
 
+#: left/right pairing tolerance [s]
+SkewS = finite(ge=0, le=0.1, source="≤ 0.1 s: frames further apart see a ball moved by centimetres (≤ 0.5 m/s): no pair")
+
+
 class CameraParams(Params):
     camera_id: str = Field("stereo0", description="the pair's id: names its calibration file")
-    period_s: float = Field(0.05, gt=0, description="read period (20 Hz)")
+    period_s: PeriodS = Field(0.05, description="read period (20 Hz)")
     width_px: int = Field(280, gt=0)
     height_px: int = Field(180, gt=0)
     tracker: Literal["color", "learned"] = "learned"
@@ -29,15 +33,15 @@ class CameraParams(Params):
     calibration: str | None = Field(
         None, description="calibration file or directory (<camera_id>.json); sim: None uses the exact one")
     min_confidence: float = Field(0.5, ge=0, le=1, description="below this a ball counts as not seen")
-    stale_after_s: float = Field(0.2, gt=0, description="a frame pair (or a confident ball) older than this is stale")
-    fail_after_s: float = Field(2.0, gt=0, description="real: no frame pair for this long takes the error path")
+    stale_after_s: StaleS = Field(0.2, description="a frame pair (or a confident ball) older than this is stale")
+    fail_after_s: FailAfterS = Field(2.0, description="real: no frame pair for this long takes the error path")
     encoding: Literal["jpeg", "png"] = Field("jpeg", description="how images go on the bus and into recordings")
     jpeg_quality: int = Field(90, ge=1, le=100)
     # real (UVC through OpenCV)
     left_device: int | str = Field(0, description="OpenCV device index, /dev/videoN, or a video file/URL")
     right_device: int | str = 1
-    max_skew_s: float = Field(0.01, ge=0, description="a left/right pair further apart than this is not a pair")
-    fps: float = Field(30.0, gt=0, description="frame rate asked of the cameras")
+    max_skew_s: SkewS = Field(0.01, description="a left/right pair further apart than this is not a pair")
+    fps: RateHz = Field(30.0, description="frame rate asked of the cameras")
     sim: dict = Field(default_factory=dict, description="sim backend parameters (palm tilt, motion)")
 
 

@@ -26,7 +26,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from hilstack.configs.schema import Params, RobotConfig, parse_params
+from hilstack.configs.schema import Params, PeriodS, Periods, RobotConfig, StaleS, finite, parse_params
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, Observation, RobotSpec, Space
 from hilstack.drivers.mocap.base import PoseSource
 
@@ -37,18 +37,19 @@ VolumeCoord = Annotated[float, Field(ge=-100.0, le=100.0)]
 class MocapParams(Params):
     source: Literal["natnet", "udp"] = "udp"
     rigid_body_id: int = Field(1, ge=0)
-    period_s: float = Field(0.01, gt=0, le=1.0, description="how often consumers should read (100 Hz)")
-    stale_after_s: float = Field(0.1, gt=0, le=2.0, description="a pose older than this is not ok")
-    link_timeout_periods: int = Field(
-        100, ge=2, le=1000, description="no usable pose for this many periods (the mocap system frozen, dead or "
-                                        "unreachable, or the body lost): the error path (LinkError, UNCONFIGURED)")
+    period_s: PeriodS = Field(0.01, description="how often consumers should read (100 Hz)")
+    stale_after_s: StaleS = Field(0.1, description="a pose older than this is not ok")
+    link_timeout_periods: Periods = Field(
+        100, description="no usable pose for this many periods (the mocap system frozen, dead or "
+                         "unreachable, or the body lost): the error path (LinkError, UNCONFIGURED)")
     volume_min_m: tuple[VolumeCoord, VolumeCoord, VolumeCoord] = Field(
         (-10.0, -10.0, -1.0), description="the tracked volume's lower corner [m, world frame]; a pose outside is "
                                           "rejected (invalid_input)")
     volume_max_m: tuple[VolumeCoord, VolumeCoord, VolumeCoord] = Field(
         (10.0, 10.0, 5.0), description="the tracked volume's upper corner [m, world frame]")
-    quat_norm_tol: float = Field(
-        0.01, gt=0, le=0.1, description="a quaternion whose norm differs from 1 by more than this is rejected")
+    quat_norm_tol: finite(gt=0, le=0.1, source=(
+        "≤ 0.1: a unit quaternion off by more is not a rotation a tracker sends (a broken or zero packet)")) = Field(
+        0.01, description="a quaternion whose norm differs from 1 by more than this is rejected")
     # udp
     host: str = "127.0.0.1"
     port: int = Field(0, ge=0, le=65535, description="UDP port to listen on (0: ephemeral)")

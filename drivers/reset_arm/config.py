@@ -22,7 +22,7 @@ import math
 import numpy as np
 from pydantic import Field, model_validator
 
-from hilstack.configs.schema import Params
+from hilstack.configs.schema import Params, PeriodS, Periods, StaleS, TimeoutS, finite
 from hilstack.drivers.base import RobotSpec, Space
 
 JOINTS = tuple(f"j{i}" for i in range(1, 8))
@@ -43,23 +43,30 @@ GRIPPER_OPEN_M = 0.08
 BALL_CHANNELS = tuple(f"ball{i}_{a}" for i in (0, 1) for a in "xyz")
 
 
+#: joint target rate limit [rad/s]
+ArmJointRateRadS = finite(gt=0, le=2.61, source=(
+    "the fastest joint velocity limit of the Franka Panda, whose layout this arm copies (2.61 rad/s)"))
+#: gripper opening rate limit [m/s]
+GripperRateMS = finite(gt=0, le=0.2, source="a parallel-jaw gripper's jaws at 0.1 m/s each (the Panda hand's speed)")
+
+
 class ResetArmParams(Params):
     """``params`` of the reset arm (units in names)."""
 
-    period_s: float = Field(0.1, gt=0, description="control period (the hand's: one answer per hand state)")
-    max_joint_rate_rad_s: float = Field(1.5, gt=0, description="rate limit of the joint targets [rad/s]")
-    max_gripper_rate_m_s: float = Field(0.2, gt=0, description="rate limit of the gripper target [m/s]")
+    period_s: PeriodS = Field(0.1, description="control period (the hand's: one answer per hand state)")
+    max_joint_rate_rad_s: ArmJointRateRadS = Field(1.5, description="rate limit of the joint targets [rad/s]")
+    max_gripper_rate_m_s: GripperRateMS = Field(0.2, description="rate limit of the gripper target [m/s]")
     base_pos_m: tuple[float, float, float] = Field((1.62, 0.95, -0.22), description="arm base in the world [m]")
     host: str = Field("127.0.0.1", description="emulated/real: the arm controller's address (UDP)")
     port: int | None = Field(None, ge=1, le=65535, description="emulated/real: the arm controller's UDP port "
                              "(emulated: the hand emulator's params.emulator.arm_port)")
-    state_deadline_s: float = Field(0.2, gt=0, le=2.0, description="a state older than this makes a reading stale")
-    link_timeout_periods: int = Field(
-        10, ge=2, le=100, description="emulated/real: no valid state for this many control periods (the controller "
-                                      "frozen or dead, the link down): the error path (stop, UNCONFIGURED, LinkError)")
-    connect_timeout_s: float = Field(10.0, gt=0, description="configure() waits this long for the first state")
+    state_deadline_s: StaleS = Field(0.2, description="a state older than this makes a reading stale")
+    link_timeout_periods: Periods = Field(
+        10, description="emulated/real: no valid state for this many control periods (the controller "
+                        "frozen or dead, the link down): the error path (stop, UNCONFIGURED, LinkError)")
+    connect_timeout_s: TimeoutS = Field(10.0, description="configure() waits this long for the first state")
     world: str = Field("hand", description="sim: the simulated hand whose scene holds the arm (same process)")
-    world_wait_s: float = Field(10.0, gt=0, description="sim: how long configure() waits for the hand's scene")
+    world_wait_s: TimeoutS = Field(10.0, description="sim: how long configure() waits for the hand's scene")
     sim: dict = Field(default_factory=dict)
 
     @model_validator(mode="after")

@@ -11,7 +11,7 @@ import math
 import numpy as np
 from pydantic import Field, model_validator
 
-from hilstack.configs.schema import EmulatorParams, Params
+from hilstack.configs.schema import EmulatorParams, Params, Periods, StaleS, finite
 from hilstack.drivers.base import RobotSpec, Space
 
 JOINTS = tuple(f"right_j{i}" for i in range(7))
@@ -22,15 +22,26 @@ POSITION_LIMITS_RAD = ((-3.0503, 3.0503), (-3.8, -0.5), (-3.0426, 3.0426), (-3.0
                        (-2.9761, 2.9761), (-2.9761, 2.9761), (-4.7124, 4.7124))
 
 
+#: Sawyer command period [s]
+SawyerPeriodS = finite(ge=0.001, le=0.15, source=(
+    "intera stops the arm when joint commands are more than 0.2 s apart; ≤ 0.15 s leaves a margin for jitter"))
+#: Sawyer joint velocity limit [rad/s]
+SawyerVelRadS = finite(gt=0, le=4.545, source="Rethink's fastest joint velocity limit (right_j6, 4.545 rad/s)")
+#: Sawyer joint velocity rate limit [rad/s²]
+SawyerAccelRadS2 = finite(gt=0, le=180.0, source=(
+    "the fastest joint's whole range (±4.545 rad/s) within one default 50 ms period: a larger rate limit never "
+    "binds at 20 Hz, it would be off"))
+
+
 class SawyerParams(Params):
-    period_s: float = Field(0.05, gt=0, le=0.15, description="command period; intera stops the arm if "
+    period_s: SawyerPeriodS = Field(0.05, description="command period; intera stops the arm if "
                             "commands are more than 0.2 s apart")
-    max_joint_vel_rad_s: float = Field(0.5, gt=0, description="action limit (also capped by each joint's limit)")
-    max_joint_accel_rad_s2: float = Field(3.0, gt=0)
-    joint_states_stale_s: float = Field(0.1, gt=0, le=1.0, description="joint_states older than this: reading not ok")
-    link_timeout_periods: int = Field(
-        20, ge=2, le=200, description="no usable joint_states for this many control periods (a frozen or dead "
-                                      "robot, bridge or link): the error path (stop, UNCONFIGURED, LinkError)")
+    max_joint_vel_rad_s: SawyerVelRadS = Field(0.5, description="action limit (also capped by each joint's limit)")
+    max_joint_accel_rad_s2: SawyerAccelRadS2 = 3.0
+    joint_states_stale_s: StaleS = Field(0.1, description="joint_states older than this: reading not ok")
+    link_timeout_periods: Periods = Field(
+        20, description="no usable joint_states for this many control periods (a frozen or dead "
+                        "robot, bridge or link): the error path (stop, UNCONFIGURED, LinkError)")
     # Zenoh / ROS 2 bridge (real; the emulated backend sets these itself)
     zenoh_mode: str = Field("client", pattern="^(client|peer)$")
     zenoh_connect: list[str] = Field(default_factory=list, description="e.g. ['tcp/192.168.1.20:7447'], "

@@ -22,7 +22,18 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from hilstack.configs.schema import EmulatorParams, Params
+from hilstack.configs.schema import (
+    EmulatorParams,
+    EmulatorS,
+    Params,
+    PeriodS,
+    Periods,
+    RateHz,
+    StaleS,
+    TimeoutS,
+    WatchdogS,
+    finite,
+)
 from hilstack.drivers.base import RobotSpec, Space
 
 JOINT_NAMES: tuple[str, ...] = (
@@ -78,6 +89,15 @@ HOLD_POSE_RAD: dict[str, float] = {
 #: the state channels ``objects_in_state`` appends: ball 0 then ball 1, x y z [m, world frame]
 BALL_CHANNELS: tuple[str, ...] = tuple(f"ball{i}_{c}" for i in range(2) for c in "xyz")
 
+#: rate limit of the normalized joint targets [1/s]
+ActionRatePerS = finite(gt=0, le=20.0, source=(
+    "the whole target range [-1, 1] within one 10 Hz period (2 / 0.1 s): a larger rate limit never binds at the "
+    "hand's period, it would be off"))
+#: hand telemetry rate [Hz]
+HandTelemetryHz = finite(ge=0.1, le=200.0, source=(
+    "the CAN bus load: at 200 Hz the telemetry takes 49.4 % of the 1 Mbit/s bus, the most a CAN bus should carry "
+    "(~50 %; docs/shadow_hand.md, bus load)"))
+
 Transport = Literal["socketcan", "slcan", "udp_multicast"]
 
 
@@ -88,12 +108,12 @@ class HandEmulatorParams(EmulatorParams):
     spawn: bool = Field(True, description="start the emulator; false: ``channel`` names one already running")
     udp_port: int | None = Field(None, ge=0, le=65535, description="udp_multicast transport: the bus's port")
     balls: bool = Field(True, description="the emulator streams its sim's balls as the ball tracker")
-    connect_timeout_s: float = Field(10.0, gt=0, description="time for the first telemetry [s]")
+    connect_timeout_s: TimeoutS = Field(10.0, description="time for the first telemetry [s]")
     corrupt_every: int = Field(0, ge=0, description="every N-th telemetry frame is broken (0: never)")
     drop_every: int = Field(0, ge=0, description="every N-th telemetry frame is not sent (0: never)")
-    bus_off_after_s: float | None = Field(None, ge=0, description="the CAN controller goes bus-off after S s")
-    bus_off_s: float = Field(1.0, gt=0, description="how long the bus-off lasts [s]")
-    motor_fault_after_s: float | None = Field(None, ge=0, description="a motor goes limp after S s")
+    bus_off_after_s: EmulatorS | None = Field(None, description="the CAN controller goes bus-off after S s")
+    bus_off_s: EmulatorS = Field(1.0, description="how long the bus-off lasts [s]")
+    motor_fault_after_s: EmulatorS | None = Field(None, description="a motor goes limp after S s")
     motor_fault_joint: int = Field(0, ge=0, description="index of the actuated joint whose motor fails")
     arm_port: int | None = Field(None, ge=0, le=65535, description="also run the reset arm's controller on this "
                                  "UDP port (needs params.sim.reset_station; sim_backends/reset_arm/server.py)")
@@ -102,23 +122,23 @@ class HandEmulatorParams(EmulatorParams):
 class ShadowHandParams(Params):
     """Everything configurable about the hand and its CAN link. Units in names."""
 
-    period_s: float = Field(0.1, gt=0, description="control period (thesis: planner at 10 Hz, zero-order hold)")
-    max_action_rate_per_s: float = Field(
-        4.0, gt=0, description="rate limit on the normalized targets [1/s]: 4/s crosses a joint's full range in 0.5 s")
+    period_s: PeriodS = Field(0.1, description="control period (thesis: planner at 10 Hz, zero-order hold)")
+    max_action_rate_per_s: ActionRatePerS = Field(
+        4.0, description="rate limit on the normalized targets [1/s]: 4/s crosses a joint's full range in 0.5 s")
     # link (real/emulated)
     transport: Transport = Field("socketcan", description="python-can interface of the CAN link")
     channel: str | None = Field(None, description="can0 (socketcan), /dev/ttyACM0 (slcan), 239.74.163.2 (udp_multicast)")
     bitrate: int = Field(1_000_000, gt=0, description="CAN bit rate [bit/s] (classic CAN, 1 Mbit/s)")
-    telemetry_hz: float = Field(50.0, gt=0, le=200, description="hand telemetry rate (docs/shadow_hand.md: bus load)")
-    heartbeat_hz: float = Field(10.0, gt=0, description="host heartbeat rate (feeds the firmware watchdog)")
-    firmware_watchdog_s: float = Field(0.5, gt=0, description="firmware holds position after this long without commands")
-    driver_watchdog_s: float = Field(
-        1.0, gt=0, description="driver sends stop (hold measured) when the caller has not written for this long")
-    telemetry_deadline_s: float = Field(
-        0.1, gt=0, le=1.0, description="telemetry older than this makes a reading stale (ok=False)")
-    link_timeout_periods: int = Field(
-        10, ge=2, le=100, description="no complete telemetry cycle for this many control periods with the link "
-                                      "open (a frozen or dead hand): the error path (stop, UNCONFIGURED, LinkError)")
+    telemetry_hz: HandTelemetryHz = Field(50.0, description="hand telemetry rate (docs/shadow_hand.md: bus load)")
+    heartbeat_hz: RateHz = Field(10.0, description="host heartbeat rate (feeds the firmware watchdog)")
+    firmware_watchdog_s: WatchdogS = Field(0.5, description="firmware holds position after this long without commands")
+    driver_watchdog_s: WatchdogS = Field(
+        1.0, description="driver sends stop (hold measured) when the caller has not written for this long")
+    telemetry_deadline_s: StaleS = Field(
+        0.1, description="telemetry older than this makes a reading stale (ok=False)")
+    link_timeout_periods: Periods = Field(
+        10, description="no complete telemetry cycle for this many control periods with the link "
+                        "open (a frozen or dead hand): the error path (stop, UNCONFIGURED, LinkError)")
     ball_tracker_ports: list[int] | None = Field(
         None, description="real: UDP ports where a ball tracker streams ball 0 and ball 1 (hilstack.drivers.mocap.udp "
                           "format); emulated: the emulator streams its sim's balls unless emulator.balls is false")

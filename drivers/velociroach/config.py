@@ -12,7 +12,18 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from hilstack.configs.schema import EmulatorParams, Params
+from hilstack.configs.schema import (
+    EmulatorParams,
+    EmulatorS,
+    FailAfterS,
+    Params,
+    Periods,
+    RateHz,
+    StaleS,
+    TimeoutS,
+    WatchdogS,
+    finite,
+)
 from hilstack.drivers.base import Flag, RobotSpec, Space
 from hilstack.drivers.velociroach.mavlink import mav
 
@@ -43,6 +54,21 @@ FAULT_FLAGS: dict[int, Flag] = {
 }
 
 
+#: crank speed limit [rev/s]
+LegVelRps = finite(gt=0, le=20.0, source=(
+    "the 7 mm coreless motors' no-load crank speed, ≈ 20 rev/s at 4 V (docs/velociroach.md, 'Model')"))
+#: leg-velocity rate limit [rev/s²]
+LegAccelRps2 = finite(gt=0, le=120.0, source=(
+    "the largest setpoint step the firmware PID turns into a current spike below its 1.4 A over-current fault "
+    "is 12.3 rev/s; at the slowest allowed period (0.1 s) that is 123 rev/s² (docs/velociroach.md, 'Rate limit')"))
+#: VelociRoACH control period [s]
+RoachPeriodS = finite(ge=0.001, le=0.1, source=(
+    "≤ 0.1 s (the thesis' 10 Hz): the rate limit's bound (≤ 12 rev/s per step at ≤ 120 rev/s²) holds only at "
+    "10 Hz or faster"))
+#: the emulator's pacing [sim s per wall-clock s] (not a safety value)
+RealtimeFactor = finite(gt=0, le=100.0, source="emulator pacing: up to 100× the wall clock (not a safety value)")
+
+
 def fault_flags(bits: int) -> dict[str, bool]:
     """The firmware's fault bitmask as contract flags (all five, each True or False)."""
     return {f.value: bool(bits & bit) for bit, f in FAULT_FLAGS.items()}
@@ -54,9 +80,9 @@ class VelociRoachEmulatorParams(EmulatorParams):
     faults it injects. Unknown keys are errors."""
 
     pose: bool = Field(True, description="stream the sim's mocap pose to the driver over UDP")
-    connect_timeout_s: float = Field(10.0, gt=0, description="time for the first heartbeat and telemetry")
-    realtime_factor: float = Field(1.0, gt=0, description="sim seconds per wall-clock second")
-    pose_hz: float = Field(100.0, gt=0, description="rate of the UDP pose stream")
+    connect_timeout_s: TimeoutS = Field(10.0, description="time for the first heartbeat and telemetry")
+    realtime_factor: RealtimeFactor = Field(1.0, description="sim seconds per wall-clock second")
+    pose_hz: RateHz = Field(100.0, description="rate of the UDP pose stream")
     seed: int = Field(0, description="seed of the fault injection's noise")
     physics: str | None = Field(None, pattern=r"^[\w.]+:\w+$", description="module:Class of the physics")
     lab_fixture: bool = Field(
@@ -66,10 +92,10 @@ class VelociRoachEmulatorParams(EmulatorParams):
     # fault injection
     corrupt_every: int = Field(0, ge=0, description="break every N-th frame sent (0: never)")
     garbage: bool = Field(False, description="noise bytes between frames")
-    silence_after_s: float | None = Field(
-        None, ge=0, description="radio outage both ways S s after the first command (the mocap keeps streaming)")
-    pose_silence_after_s: float | None = Field(
-        None, ge=0, description="mocap outage: the pose stream stops S s after the first command")
+    silence_after_s: EmulatorS | None = Field(
+        None, description="radio outage both ways S s after the first command (the mocap keeps streaming)")
+    pose_silence_after_s: EmulatorS | None = Field(
+        None, description="mocap outage: the pose stream stops S s after the first command")
     nonfinite_telemetry_every: int = Field(0, ge=0, description="every N-th telemetry carries NaN sensor values")
     start_upside_down: bool = Field(False, description="the robot starts on its back, as after a flip")
 
@@ -78,28 +104,28 @@ class VelociRoachParams(Params):
     """Everything configurable about the robot and its link. Units in names."""
 
     action_mode: Literal["leg_velocity", "pwm"] = "leg_velocity"
-    max_leg_vel_rps: float = Field(15.0, gt=0, description="crank rev/s at action +1")
-    max_leg_accel_rps2: float = Field(
-        120.0, gt=0,
+    max_leg_vel_rps: LegVelRps = Field(15.0, description="crank rev/s at action +1")
+    max_leg_accel_rps2: LegAccelRps2 = Field(
+        120.0,
         description="rate limit on leg-velocity commands [rev/s²]; one period's worth (12 rev/s at 10 Hz) is the "
                     "largest setpoint step the firmware PID turns into a current spike below the over-current "
                     "fault (docs/velociroach.md, 'Rate limit')")
-    period_s: float = Field(0.1, gt=0, description="control period (thesis: 10 Hz)")
+    period_s: RoachPeriodS = Field(0.1, description="control period (thesis: 10 Hz)")
     # link (real/emulated)
     port: str | None = Field(None, description="serial port of the base-station XBee, e.g. /dev/ttyUSB0")
     baudrate: int = Field(230400, gt=0)
     robot_addr64: str = Field("0013A20040A1B2C3", pattern=r"^[0-9A-Fa-f]{16}$")
-    telemetry_hz: float = Field(100.0, gt=0)
-    write_timeout_s: float = Field(
-        0.5, gt=0, description="a write to the serial port not done within this is a link failure; pyserial counts "
+    telemetry_hz: RateHz = 100.0
+    write_timeout_s: FailAfterS = Field(
+        0.5, description="a write to the serial port not done within this is a link failure; pyserial counts "
                                "the writing thread's own scheduling stalls in it (docs/reset.md, 'CPU stalls')")
-    telemetry_deadline_s: float = Field(
-        0.3, gt=0, description="telemetry older than this is stale: ok=False, flags.stale_telemetry")
-    link_timeout_periods: int = Field(
-        10, ge=1, le=1000, description="no usable telemetry for this many control periods with the link open: error path")
-    pose_deadline_s: float = Field(
-        0.25, gt=0, description="a mocap pose older than this is stale: ok=False, flags.stale_pose (mocap >= 10 Hz)")
-    firmware_watchdog_s: float = Field(0.5, gt=0)
+    telemetry_deadline_s: StaleS = Field(
+        0.3, description="telemetry older than this is stale: ok=False, flags.stale_telemetry")
+    link_timeout_periods: Periods = Field(
+        10, description="no usable telemetry for this many control periods with the link open: error path")
+    pose_deadline_s: StaleS = Field(
+        0.25, description="a mocap pose older than this is stale: ok=False, flags.stale_pose (mocap >= 10 Hz)")
+    firmware_watchdog_s: WatchdogS = 0.5
     tlog: str | None = Field(None, description="write every MAVLink frame to this .tlog")
     mocap_udp_port: int | None = Field(
         None, ge=0, le=65535, description="real: receive the robot's mocap pose here (hilstack.drivers.mocap.udp stream)")

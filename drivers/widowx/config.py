@@ -20,7 +20,16 @@ import math
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
 
-from hilstack.configs.schema import EmulatorParams, Params
+from hilstack.configs.schema import (
+    EmulatorParams,
+    EmulatorS,
+    JointRangeRad,
+    Params,
+    PeriodS,
+    Periods,
+    StaleS,
+    finite,
+)
 from hilstack.drivers.base import RobotSpec, Space
 from hilstack.drivers.widowx.description import WX250S_LINKS
 
@@ -39,6 +48,30 @@ MECH_JOINTS = ("mech_rotate", "mech_rail")
 MECH_DEFAULT_IDS = {"mech_rotate": 10, "mech_rail": 11}
 
 
+#: XM430-W350 joint velocity limit [rad/s]
+JointVelRadS = finite(gt=0, le=4.8, source="XM430-W350 no-load speed at 12 V: 46 rev/min = 4.8 rad/s (ROBOTIS e-Manual)")
+#: joint velocity rate limit [rad/s²]
+JointAccelRadS2 = finite(gt=0, le=96.0, source=(
+    "the XM430's whole speed (4.8 rad/s) within one default 50 ms period: a larger rate limit never binds at 20 Hz, "
+    "it would be off"))
+#: slow-down margin before a joint limit [rad]
+LimitMarginRad = finite(ge=0, le=0.5, source="≤ 0.5 rad: a margin wider would eat most of the wrist's 3.9 rad range")
+#: the housing's rotation range, each way [deg]
+RotateHalfRangeDeg = finite(ge=1.0, le=45.0, source=(
+    "≥ 1°: about 11 steps of the XM430's 0.088° resolution, a range it can hold; ≤ 45°: the housing's stops"))
+#: the rail's travel, each way [m]
+RailHalfTravelM = finite(ge=0.001, le=0.1, source=(
+    "≥ 1 mm: a travel the pinion resolves (0.088° on a ≤ 5 cm pinion: 0.08 mm); ≤ 10 cm: the rail's length"))
+#: mechanism housing rotation rate [rad/s]
+RotateRateRadS = finite(gt=0, le=4.8, source="XM430-W350 no-load speed (4.8 rad/s)")
+#: rail pinion radius [m]
+PinionRadiusM = finite(gt=0, le=0.05, source="≤ 5 cm: a pinion on an XM430's horn")
+#: rail offset rate [m/s]
+RailRateMS = finite(gt=0, le=0.24, source="XM430 no-load speed × the largest pinion radius: 4.8 rad/s × 0.05 m")
+#: the bus emulator's pacing (not a safety value)
+RealtimeFactor = finite(gt=0, le=100.0, source="emulator pacing: up to 100× the wall clock (not a safety value)")
+
+
 class DynamixelEmulatorParams(EmulatorParams):
     """``params.emulator``: the bus emulator's faults (sim_backends/widowx/emulator.py;
     docs/arms.md). Robots of one bus share one emulator: the first to open the bus starts it."""
@@ -52,12 +85,12 @@ class DynamixelEmulatorParams(EmulatorParams):
     garbage_every: int = Field(0, ge=0, description="noise bytes before every N-th status packet (0: never)")
     start_holding: dict[str, float] | None = Field(None, description="start torqued in position mode at these "
                                                    "joint angles [rad] (default: limp in the sleep pose)")
-    realtime_factor: float = Field(1.0, gt=0, description="sim seconds per wall-clock second")
+    realtime_factor: RealtimeFactor = Field(1.0, description="sim seconds per wall-clock second")
     state_file: str | None = Field(None, description="tests: append the servos' state (position, velocity, "
                                    "Bus Watchdog) as JSON lines to this file, without bus traffic")
-    state_every_s: float = Field(0.02, gt=0, le=1.0, description="period of the state_file lines [s]")
-    linger_s: float = Field(0.0, ge=0, le=60.0, description="tests of host death: keep simulating the servos "
-                            "this long after the driver's process died [s]")
+    state_every_s: EmulatorS = Field(0.02, description="period of the state_file lines [s]")
+    linger_s: EmulatorS = Field(0.0, description="tests of host death: keep simulating the servos "
+                                "this long after the driver's process died [s]")
 
 
 class BusParams(Params):
@@ -68,13 +101,15 @@ class BusParams(Params):
     #: robots built with the same bus name share one port/emulator/sim world in a process
     bus_name: str = "widowx"
     latency_timer_ms: int = Field(1, ge=1, le=16, description="USB-serial latency timer (docs/arms.md)")
-    telemetry_stale_s: float = Field(0.25, gt=0, le=5.0, description="a reading older than this is not ok")
-    link_timeout_periods: int = Field(10, ge=2, le=100, description="no status from every servo for this many "
-                                      "control periods: the device is gone (frozen, unpowered, unplugged): "
-                                      "error path")
-    bus_watchdog_s: float = Field(0.2, ge=0.04, le=2.54, description="the servos' Bus Watchdog: with no "
-                                  "instruction packet for this long they stop by themselves (host died); "
-                                  "rounded up to 20 ms, at least 2 control periods")
+    telemetry_stale_s: StaleS = Field(0.25, description="a reading older than this is not ok")
+    link_timeout_periods: Periods = Field(10, description="no status from every servo for this many "
+                                          "control periods: the device is gone (frozen, unpowered, unplugged): "
+                                          "error path")
+    bus_watchdog_s: finite(ge=0.04, le=2.54, source=(
+        "the X-series Bus Watchdog register (98): 1..127 units of 20 ms, 0.02..2.54 s; ≥ 2 control periods "
+        "so a live host never trips it")) = Field(
+        0.2, description="the servos' Bus Watchdog: with no instruction packet for this long they stop by "
+                         "themselves (host died); rounded up to 20 ms, at least 2 control periods")
     reboot_on_hardware_error: bool = Field(False, description="reboot a servo with a latched hardware error "
                                            "at configure (after the operator checked why)")
     emulator: DynamixelEmulatorParams = Field(default_factory=DynamixelEmulatorParams,
@@ -93,13 +128,13 @@ def _check_watchdog(period_s: float, info: ValidationInfo) -> float:
 
 class WidowXParams(BusParams):
     ids: dict[str, int] = Field(default_factory=lambda: {n: i for n, i, _, _ in JOINTS})
-    period_s: float = Field(0.05, gt=0, le=1.0, description="driver control period (MELD acts at 3.3 Hz above it)")
-    max_joint_vel_rad_s: float = Field(1.0, gt=0, le=4.8, description="action limit (XM430 no-load: 4.8 rad/s)")
-    max_joint_accel_rad_s2: float = Field(6.0, gt=0, description="rate limit on velocity commands")
+    period_s: PeriodS = Field(0.05, description="driver control period (MELD acts at 3.3 Hz above it)")
+    max_joint_vel_rad_s: JointVelRadS = Field(1.0, description="action limit (XM430 no-load: 4.8 rad/s)")
+    max_joint_accel_rad_s2: JointAccelRadS2 = Field(6.0, description="rate limit on velocity commands")
     #: joints slow to zero when moving towards a limit within this margin
-    limit_margin_rad: float = Field(0.05, ge=0)
-    joint_limits_rad: dict[str, tuple[float, float]] = Field(default_factory=dict,
-                                                             description="override the description's limits")
+    limit_margin_rad: LimitMarginRad = 0.05
+    joint_limits_rad: dict[str, JointRangeRad] = Field(
+        default_factory=dict, description="narrow the description's limits (within them; low < high)")
 
     @field_validator("ids")
     @classmethod
@@ -115,16 +150,27 @@ class WidowXParams(BusParams):
     @classmethod
     def _watchdog_vs_period(cls, v: float, info: ValidationInfo) -> float:
         return _check_watchdog(v, info)
+    @field_validator("joint_limits_rad")
+    @classmethod
+    def _limits(cls, v: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+        hw = {name: rng for name, _, _, rng, *_ in WX250S_LINKS}
+        for n, (lo, hi) in v.items():
+            if n not in hw:
+                raise ValueError(f"unknown joint {n!r}; joints: {list(hw)}")
+            if lo < hw[n][0] or hi > hw[n][1]:
+                raise ValueError(f"{n}: [{lo:g}, {hi:g}] leaves the hardware's range "
+                                 f"[{hw[n][0]:g}, {hw[n][1]:g}] rad")
+        return v
 
 
 class MechanismParams(BusParams):
     ids: dict[str, int] = Field(default_factory=lambda: dict(MECH_DEFAULT_IDS))
-    period_s: float = Field(0.05, gt=0, le=1.0)
-    rotate_half_range_deg: float = Field(8.0, gt=0, le=45)
-    rail_half_travel_m: float = Field(0.01, gt=0, le=0.1)
-    rail_pinion_radius_m: float = Field(0.01, gt=0, description="rail offset = pinion radius × servo angle")
-    rotate_rate_rad_s: float = Field(0.5, gt=0, description="rate limit of the rotation target")
-    rail_rate_m_s: float = Field(0.02, gt=0, description="rate limit of the offset target")
+    period_s: PeriodS = 0.05
+    rotate_half_range_deg: RotateHalfRangeDeg = 8.0
+    rail_half_travel_m: RailHalfTravelM = 0.01
+    rail_pinion_radius_m: PinionRadiusM = Field(0.01, description="rail offset = pinion radius × servo angle")
+    rotate_rate_rad_s: RotateRateRadS = Field(0.5, description="rate limit of the rotation target")
+    rail_rate_m_s: RailRateMS = Field(0.02, description="rate limit of the offset target")
 
     @field_validator("period_s")
     @classmethod

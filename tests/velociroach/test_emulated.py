@@ -152,7 +152,7 @@ def test_corrupt_frames_both_ways_and_emulator_death():
 def test_radio_silence_shows_in_health_and_the_watchdog_stops_the_robot():
     # the error path for a frozen robot is tested below; here the outage may last
     # 1 s of radio before the outage: the robot moves first, even when the machine is loaded
-    drv = make(emulator={"silence_after_s": 1.0}, link_timeout_periods=1000)
+    drv = make(emulator={"silence_after_s": 1.0}, link_timeout_periods=100)  # 10 s: the most allowed
     with drv:
         cmd = np.array([9.0, 9.0])
 
