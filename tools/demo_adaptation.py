@@ -208,8 +208,38 @@ def run_demo(out: Path, quick: bool = False, full: bool = False, seed: int = 0, 
     return r
 
 
-def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int = 0) -> None:
-    """Entry of `hil demo adaptation` (tools/cmd_demo.py OTHER_DEMOS)."""
+def run_gym_demo(out: Path, quick: bool = False, seed: int = 0, tiny: bool = False,
+                 overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """`--suite gym`: the half-cheetah benchmarks (learning/adaptation/gym_suite.py)."""
+    from hilstack.learning.adaptation import gym_suite
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = gym_suite.config_for(quick, tiny, seed, **(overrides or {}))
+    with (out / "demo.log").open("w") as log_file:
+        def log(msg: str) -> None:
+            line = f"[{time.strftime('%H:%M:%S')} cpu {time.process_time():.0f} s] {msg}"
+            print(line, flush=True)
+            log_file.write(line + "\n")
+            log_file.flush()
+
+        r = gym_suite.run(cfg, out, log, preset="tiny" if tiny else ("quick" if quick else "full"))
+        log(f"done in {r['elapsed_s'] / 60:.1f} min: {out / 'report.md'}")
+    return r
+
+
+def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int = 0, suite: str = "roach") -> None:
+    """Entry of `hil demo adaptation` (tools/cmd_demo.py OTHER_DEMOS); ``suite``: roach | gym."""
+    if suite == "gym":
+        r = run_gym_demo(out, quick=quick, seed=seed)
+        for name, row in r["benchmarks"].items():
+            print(f"{name}: " + ", ".join(f"{m} {c['return_mean']:.0f}"
+                                          + (f" ({c['normalized']:.2f})" if c.get("normalized") is not None else "")
+                                          for m, c in row.items()))
+        print(f"report: {Path(out) / 'report.md'}")
+        return
+    if suite != "roach":
+        raise ValueError(f"unknown adaptation suite {suite!r} (roach | gym)")
     r = run_demo(out, quick=quick, full=full, seed=seed)
     for p, row in r["perturbations"].items():
         best = min(METHODS, key=lambda m: (-row[m]["completed"], row[m]["cost_per_m"]))
