@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from hilstack.learning.adaptation.experiment import METHODS, SWITCHING_METHODS, AdaptationConfig, run
 
 
@@ -91,13 +93,23 @@ def _plots(r: dict[str, Any], out: Path) -> list[str]:
     return files
 
 
-def _rank(cell: dict[str, Any]) -> tuple[float, float]:
-    """Completions first (more is better), then cost per metre (lower is better)."""
-    return (-cell["completed"], cell["cost_per_m"])
+#: progress along the paths is compared in bins of this size (m): methods that all complete
+#: every path differ by centimetres at the goal, and cost per metre decides between them
+PROGRESS_BIN_M = 0.05
+
+
+def _rank(cell: dict[str, Any]) -> tuple[float, float, float]:
+    """Sort key, lower is better: completions first (more is better), then progress along
+    the paths (more is better, in :data:`PROGRESS_BIN_M` bins), then cost per metre (lower
+    is better). Progress before cost: among robots that complete no path, one that never
+    moves has cost 0 per metre (it sits on the line) and would otherwise rank first (issue
+    24, item 1); with progress first a robot that does not move ranks below every robot
+    that moved further along the path."""
+    return (-cell["completed"], -float(np.floor(cell["progress_m"] / PROGRESS_BIN_M)), cell["cost_per_m"])
 
 
 def ranking_line(r: dict[str, Any], other: str, method: str = "grbal") -> str:
-    """How often ``method`` ranks above ``other`` (completions, then cost per metre): on the
+    """How often ``method`` ranks above ``other`` (completions, progress, then cost per metre): on the
     means over seeds, and per seed."""
     perts = list(r["perturbations"])
     above = [p for p in perts if _rank(r["perturbations"][p][method]) < _rank(r["perturbations"][p][other])]
@@ -242,7 +254,7 @@ def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int
         raise ValueError(f"unknown adaptation suite {suite!r} (roach | gym)")
     r = run_demo(out, quick=quick, full=full, seed=seed)
     for p, row in r["perturbations"].items():
-        best = min(METHODS, key=lambda m: (-row[m]["completed"], row[m]["cost_per_m"]))
+        best = min(METHODS, key=lambda m: _rank(row[m]))
         print(f"{p}: best {best}; cost_per_m " + ", ".join(f"{m} {row[m]['cost_per_m']:.1f}" for m in METHODS))
 
 

@@ -79,13 +79,29 @@ def test_oracle_is_an_mb_model_of_the_tested_condition():
     assert ad.name == "mb" and ad.model is oracle  # no adaptation: θ of the oracle every step
 
 
-def test_ranking_counts_completions_first_then_cost():
-    cell = lambda c, k: {"completed": c, "cost_per_m": k}  # noqa: E731
-    seed = {"perturbations": {"a": {"grbal": cell(1, 90.0), "mb": cell(0, 10.0)},     # more completions wins
-                              "b": {"grbal": cell(1, 20.0), "mb": cell(1, 10.0)},     # tie: lower cost wins
-                              "c": {"grbal": cell(0, 5.0), "mb": cell(0, 6.0)}}}
+def test_ranking_counts_completions_first_then_progress_then_cost():
+    cell = lambda c, k, p: {"completed": c, "cost_per_m": k, "progress_m": p}  # noqa: E731
+    seed = {"perturbations": {"a": {"grbal": cell(1, 90.0, 2.0), "mb": cell(0, 10.0, 3.0)},   # more completions wins
+                              "b": {"grbal": cell(1, 20.0, 4.51), "mb": cell(1, 10.0, 4.52)},  # same progress: cost
+                              "c": {"grbal": cell(0, 5.0, 1.0), "mb": cell(0, 6.0, 1.0)}}}
     r = {**seed, "per_seed": [seed, seed]}
     assert ranking_line(r, "mb") == "grbal ranks above mb on 2 of 3 (a, c) on the means; per seed: [2, 2]."
+
+
+def test_ranking_never_favours_a_robot_that_does_not_move():
+    """Issue 24, item 1: no completions; the parked robot (0 m, 0 per m: it sits on the line)
+    against one that walked 1.45 m at 20 per m. The walker ranks above it, and so does any
+    robot that moved further along the path, whatever its cost per metre."""
+    parked = {"completed": 0, "cost_per_m": 0.0, "progress_m": 0.0}
+    seed = {"perturbations": {"miscalibration": {"grbal": {"completed": 0, "cost_per_m": 20.0, "progress_m": 1.45},
+                                                 "mb": parked}}}
+    r = {**seed, "per_seed": [seed]}
+    assert ranking_line(r, "mb").startswith("grbal ranks above mb on 1 of 1")
+    for progress in (0.06, 0.5, 3.0):
+        for cost in (0.01, 1e3, 1e9):
+            seed["perturbations"]["miscalibration"]["grbal"] = {"completed": 0, "cost_per_m": cost, "progress_m": progress}
+            assert ranking_line(r, "mb").startswith("grbal ranks above mb on 1 of 1")
+            assert ranking_line(r, "grbal", method="mb").startswith("mb ranks above grbal on 0 of 1")
 
 
 def test_config_overrides_change_only_the_named_fields():
