@@ -60,7 +60,8 @@ from hilstack.learning.datasets import Episode
 
 JOINT_METHODS = ("mb", "mb_de", "grbal", "rebal", "oracle")
 MOLE_METHODS = ("mole", "continued", "k_shot", "mb", "mb_online")
-BENCHMARKS = ("hc_disabled_joint", "hc_disabled_joint_switch", "hc_malfunction_switch")
+BENCHMARKS = ("hc_disabled_joint", "hc_disabled_joint_switch", "hc_malfunction_switch", "hc_disabled_joint_next_k")
+JOINT_BENCHMARKS = ("hc_disabled_joint", "hc_disabled_joint_switch", "hc_disabled_joint_next_k")
 MALFUNCTION_A = (0, 1, 2)  # the back leg's motors, negated
 
 
@@ -102,7 +103,8 @@ class GymSuiteConfig:
 
     @classmethod
     def tiny(cls, **kw: Any) -> GymSuiteConfig:
-        base = dict(benchmarks=("hc_disabled_joint", "hc_malfunction_switch"), seeds=(0,), hidden=(32, 32),
+        base = dict(benchmarks=("hc_disabled_joint", "hc_malfunction_switch", "hc_disabled_joint_next_k"), seeds=(0,),
+                    hidden=(32, 32),
                     random_rollouts=4, onpolicy_rollouts=1, rollout_len=40, epochs=2, window=8, future=8,
                     meta_steps=5, meta_batch=4, rebal_steps=5, context_dim=4, samples=20, horizon=4,
                     rs_samples=20, test_steps=30, switch_every=15, switch_segments=3)
@@ -297,6 +299,11 @@ def run_disabled_joint(cfg: GymSuiteConfig, seed: int, log: Callable[[str], None
                 "oracle": {s: MbAdapter(oracles[j], cfg.window) for s, j in zip(schedule_steps, joints, strict=True)}}
 
     out: dict[str, Any] = {}
+    if "hc_disabled_joint_next_k" in cfg.benchmarks:
+        out["hc_disabled_joint_next_k"] = next_k_errors(env, cfg, seed, mb, gmodel, psi, rmodel, enc, oracles[0])
+        t = _timed(timing, "hc_disabled_joint_next_k", t)
+        log(f"  seed {seed} next-K error under joint 0: " + ", ".join(
+            f"{m} {v['next_k_error']:.4f}" for m, v in out["hc_disabled_joint_next_k"].items()))
     tests = {"hc_disabled_joint": ([0], [0]), "hc_disabled_joint_switch": ([0, cfg.test_steps // 2], [2, 0])}
     for name, (steps, joints) in tests.items():
         if name not in cfg.benchmarks:
@@ -318,6 +325,35 @@ def run_disabled_joint(cfg: GymSuiteConfig, seed: int, log: Callable[[str], None
             "training": {"mb": mb_hist, "grbal": ghist[-1], "rebal": rhist[-1] if rhist else {},
                          "grbal_psi_mean": float(torch.cat([v.reshape(-1) for v in psi.values()]).mean()),
                          "transitions": int(sum(len(e) for e in eps))}}
+
+
+def next_k_errors(env, cfg: GymSuiteConfig, seed: int, mb, gmodel, psi, rmodel, enc, oracle) -> dict[str, Any]:
+    """Open loop, under the unseen disabled joint 0 (thesis Figs 5.4, 5.5): on windows of
+    random rollouts (the same for every method), each method's loss on the next K
+    transitions after its update from the past M: MB θ*; MB+DE one SGD step of ``de_lr``
+    from θ* (its first step); GrBAL θ* − ψ ⊙ ∇L; ReBAL the GRU context; the oracle's θ."""
+    A = env.spec.action_dim
+    rng = np.random.default_rng([seed, 77])
+    eps = collect(env, cfg, [disabled_joint(A, 0)] * 10, rng, 700_000 + 100 * seed)
+    seg = grbal.segments(eps, cfg.window, cfg.future, stride=4)
+
+    def ev(model, step: float | None, p=None) -> float:
+        ps = p if p is not None else {k: torch.full_like(v, step or 0.0) for k, v in model.params().items()}
+        e = grbal.evaluate(model, model.params(), ps, seg, max_tasks=512)
+        return e["after"] if (step or p is not None) else e["before"]
+    return {"mb": {"next_k_error": ev(mb, None)}, "mb_de": {"next_k_error": ev(mb, cfg.de_lr)},
+            "grbal": {"next_k_error": ev(gmodel, None, psi), "grbal_before": ev(gmodel, None)},
+            "rebal": {"next_k_error": rebal.evaluate(rmodel, enc, seg, max_tasks=512)["after"]},
+            "oracle": {"next_k_error": _raw_next_k(oracle, mb, seg)}}
+
+
+def _raw_next_k(model: AdaptiveMLP, ref: AdaptiveMLP, seg) -> float:
+    """``model``'s (θ, no update) loss on the next K in ``ref``'s normalized delta units (the
+    oracle has its own normalization; the others share MB's)."""
+    s, a, n = seg.future(torch.arange(min(len(seg), 512)))
+    with torch.no_grad():
+        pred = model.step(model.params(), s, a)
+    return float((((pred - n) / ref.delta_std) ** 2).mean())
 
 
 def run_malfunction(cfg: GymSuiteConfig, seed: int, log: Callable[[str], None]) -> dict[str, Any]:
@@ -367,7 +403,7 @@ def run_malfunction(cfg: GymSuiteConfig, seed: int, log: Callable[[str], None]) 
 def run_seed(cfg: GymSuiteConfig, seed: int, log: Callable[[str], None]) -> dict[str, Any]:
     torch.manual_seed(seed)
     r: dict[str, Any] = {"seed": seed, "results": {}, "timing_s": {}, "training": {}}
-    if {"hc_disabled_joint", "hc_disabled_joint_switch"} & set(cfg.benchmarks):
+    if set(JOINT_BENCHMARKS) & set(cfg.benchmarks):
         d = run_disabled_joint(cfg, seed, log)
         r["results"].update(d["results"])
         r["timing_s"]["disabled_joint"] = d["timing_s"]
@@ -393,6 +429,10 @@ def aggregate(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
         out[name] = {}
         for m in per_seed[0]["results"][name]:
             rows = [s["results"][name][m] for s in per_seed]
+            if "return" not in rows[0]:  # open-loop numbers: mean, std and the seeds of each
+                out[name][m] = {k: {"mean": _ms([x[k] for x in rows])[0], "std": _ms([x[k] for x in rows])[1],
+                                    "seeds": [x[k] for x in rows]} for k in rows[0]}
+                continue
             rm, rs = _ms([x["return"] for x in rows])
             cell: dict[str, Any] = {"return_mean": rm, "return_std": rs, "seeds": [x["return"] for x in rows],
                                     "return_per_segment_mean": np.mean([x["return_per_segment"] for x in rows],
@@ -406,7 +446,7 @@ def aggregate(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
                 cell["task_per_segment"] = [x["task_per_segment"] for x in rows]
                 cell["posterior_trace"] = [x["posterior_trace"] for x in rows]
             out[name][m] = cell
-        if "oracle" not in out[name]:
+        if "oracle" not in out[name] and all("return_mean" in c for c in out[name].values()):
             best = max(c["return_mean"] for c in out[name].values())
             for c in out[name].values():
                 c["normalized"] = c["return_mean"] / best if best > 0 else None
@@ -466,6 +506,13 @@ def plots(report: dict[str, Any], out: Path) -> list[str]:
 def report_markdown(r: dict[str, Any]) -> str:
     lines = [f"# Gym adaptation suite ({r['preset']}, seeds {r['seeds']}, {r['elapsed_s'] / 60:.1f} min)", ""]
     for name, row in r["benchmarks"].items():
+        if not all("return_mean" in c for c in row.values()):
+            lines += [f"## {name} (open loop)", "", "| method | " + " | ".join(next(iter(row.values()))) + " |",
+                      "|---" * (1 + len(next(iter(row.values())))) + "|"]
+            for m, c in row.items():
+                lines.append(f"| {m} | " + " | ".join(f"{v['mean']:.4f} ± {v['std']:.4f}" for v in c.values()) + " |")
+            lines.append("")
+            continue
         lines += [f"## {name}", "", "| method | return (mean ± std) | normalized | per seed |", "|---|---|---|---|"]
         for m, c in row.items():
             n = c.get("normalized")
@@ -545,7 +592,8 @@ def config_for(quick: bool, tiny: bool = False, seed: int = 0, **kw: Any) -> Gym
     return replace(GymSuiteConfig(), seeds=(seed, seed + 1, seed + 2), **kw)
 
 
-PARTS = {"joint": ("hc_disabled_joint", "hc_disabled_joint_switch"), "malfunction": ("hc_malfunction_switch",)}
+PARTS = {"joint": ("hc_disabled_joint", "hc_disabled_joint_switch"), "malfunction": ("hc_malfunction_switch",),
+         "openloop": ("hc_disabled_joint_next_k",)}
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -74,9 +74,13 @@ def test_tiny_gym_suite_writes_the_issue_report(tmp_path):
     run_gym_demo(tmp_path, tiny=True)
     r = json.loads((tmp_path / "report.json").read_text())
     b = r["benchmarks"]
-    assert set(b) == {"hc_disabled_joint", "hc_malfunction_switch"}
+    assert set(b) == {"hc_disabled_joint", "hc_malfunction_switch", "hc_disabled_joint_next_k"}
     assert set(b["hc_disabled_joint"]) == set(gym_suite.JOINT_METHODS)
     assert set(b["hc_malfunction_switch"]) == set(gym_suite.MOLE_METHODS)
+    nk = b.pop("hc_disabled_joint_next_k")
+    assert set(nk) == set(gym_suite.JOINT_METHODS)
+    for cell in nk.values():
+        assert cell["next_k_error"]["mean"] > 0 and len(cell["next_k_error"]["seeds"]) == 1
     for row in b.values():
         for cell in row.values():
             assert {"return_mean", "return_std", "normalized", "seeds"} <= set(cell)
