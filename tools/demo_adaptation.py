@@ -243,11 +243,11 @@ def run_gym_demo(out: Path, quick: bool = False, seed: int = 0, tiny: bool = Fal
 def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int = 0, suite: str = "roach") -> None:
     """Entry of `hil demo adaptation` (tools/cmd_demo.py OTHER_DEMOS); ``suite``: roach | gym."""
     if suite == "gym":
+        from hilstack.learning.adaptation.gym_suite import summary_lines
+
         r = run_gym_demo(out, quick=quick, seed=seed)
-        for name, row in r["benchmarks"].items():
-            print(f"{name}: " + ", ".join(f"{m} {c['return_mean']:.0f}"
-                                          + (f" ({c['normalized']:.2f})" if c.get("normalized") is not None else "")
-                                          for m, c in row.items()))
+        for line in summary_lines(r):
+            print(line)
         print(f"report: {Path(out) / 'report.md'}")
         return
     if suite != "roach":

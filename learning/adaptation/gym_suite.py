@@ -503,14 +503,30 @@ def plots(report: dict[str, Any], out: Path) -> list[str]:
     return files
 
 
+def summary_lines(r: dict[str, Any]) -> list[str]:
+    """One line per benchmark (what the CLI prints)."""
+    out = []
+    for name, row in r["benchmarks"].items():
+        cells = []
+        for m, c in row.items():
+            if "return_mean" in c:
+                n = c.get("normalized")
+                cells.append(f"{m} {c['return_mean']:.0f}" + (f" ({n:.2f})" if n is not None else ""))
+            else:
+                cells.append(f"{m} {c['next_k_error']['mean']:.4f}")
+        out.append(f"{name}: " + ", ".join(cells))
+    return out
+
+
 def report_markdown(r: dict[str, Any]) -> str:
     lines = [f"# Gym adaptation suite ({r['preset']}, seeds {r['seeds']}, {r['elapsed_s'] / 60:.1f} min)", ""]
     for name, row in r["benchmarks"].items():
         if not all("return_mean" in c for c in row.values()):
-            lines += [f"## {name} (open loop)", "", "| method | " + " | ".join(next(iter(row.values()))) + " |",
-                      "|---" * (1 + len(next(iter(row.values())))) + "|"]
+            keys = list(dict.fromkeys(k for c in row.values() for k in c))
+            lines += [f"## {name} (open loop)", "", "| method | " + " | ".join(keys) + " |", "|---" * (1 + len(keys)) + "|"]
             for m, c in row.items():
-                lines.append(f"| {m} | " + " | ".join(f"{v['mean']:.4f} ± {v['std']:.4f}" for v in c.values()) + " |")
+                lines.append(f"| {m} | " + " | ".join(f"{c[k]['mean']:.4f} ± {c[k]['std']:.4f}" if k in c else "-"
+                                                      for k in keys) + " |")
             lines.append("")
             continue
         lines += [f"## {name}", "", "| method | return (mean ± std) | normalized | per seed |", "|---|---|---|---|"]

@@ -93,6 +93,10 @@ def test_tiny_gym_suite_writes_the_issue_report(tmp_path):
         assert abs(sum(p) - 1) < 1e-3
     assert r["switch_conditions"] == ["normal", "malfunction", "normal"]
     assert (tmp_path / "gym_mole_posterior.png").is_file() and (tmp_path / "report.md").is_file()
+    # what the CLI prints: one line per benchmark, open-loop rows included
+    lines = gym_suite.summary_lines(json.loads((tmp_path / "report.json").read_text()))
+    assert len(lines) == 3 and any(ln.startswith("hc_disabled_joint_next_k: mb ") for ln in lines)
+    assert "| grbal |" in (tmp_path / "report.md").read_text()
 
 
 def test_cli_refuses_an_unknown_suite(tmp_path):
