@@ -35,6 +35,8 @@ def register(app: typer.Typer) -> None:
                                                   "uniform steps (no holds, no forward commands, no rate limit)"),
         seed: int = typer.Option(0, "--seed"),
         part: str = typer.Option("all", "--part", help="transfer only: all | sidm | garat (one half of the demo)"),
+        suite: str = typer.Option("roach", "--suite", help="adaptation only: roach (the sim VelociRoACH) | gym "
+                                  "(half-cheetah benchmarks of the thesis)"),
         planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
         rig: str = typer.Option("roach_sim", "--rig", help="rig config: roach_sim (lockstep), roach_emulated, roach_real"),
         operator_resets: bool = typer.Option(False, "--operator-resets",
@@ -49,11 +51,15 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"hil demo {what}: --part is for the transfer demo only")
         if part not in ("all", "sidm", "garat"):
             raise UserError(f"hil demo transfer: unknown --part {part!r} (all | sidm | garat)")
+        if suite != "roach" and what != "adaptation":
+            raise UserError(f"hil demo {what}: --suite is for the adaptation demo only")
+        if suite not in ("roach", "gym"):
+            raise UserError(f"hil demo adaptation: unknown --suite {suite!r} (roach | gym)")
         if what in OTHER_DEMOS:
             import importlib
 
             module, fn, _ = OTHER_DEMOS[what]
-            kw = {"part": part} if what == "transfer" else {}
+            kw = {"part": part} if what == "transfer" else ({"suite": suite} if what == "adaptation" else {})
             return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed, **kw)
         if what != "roach":
             raise UserError(f"hil demo: unknown demo {what!r} ({' | '.join(['roach', *OTHER_DEMOS])})")

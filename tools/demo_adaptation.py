@@ -6,6 +6,9 @@ k-shot and continued adaptation (learning/adaptation/experiment.py). Writes
 ``report.json`` (keys of issue 12), ``report.md``, PNG plots and the checkpoints.
 Presets: default and ``--full`` (the quick run over 3 seeds, ≈ 40 min on one core), ``--quick``
 (seed 0 of it; ≤ 15 min on 2 cores) and ``tiny`` (the CLI test). docs/adaptation.md.
+
+``--suite gym``: the thesis' half-cheetah benchmarks instead (``learning/adaptation/gym_suite.py``;
+report.json ``benchmarks: {env: {method: {return_mean, return_std, normalized, seeds}}}``).
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import json
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from hilstack.learning.adaptation.experiment import METHODS, SWITCHING_METHODS, AdaptationConfig, run
 
@@ -91,13 +96,23 @@ def _plots(r: dict[str, Any], out: Path) -> list[str]:
     return files
 
 
-def _rank(cell: dict[str, Any]) -> tuple[float, float]:
-    """Completions first (more is better), then cost per metre (lower is better)."""
-    return (-cell["completed"], cell["cost_per_m"])
+#: progress along the paths is compared in bins of this size (m): methods that all complete
+#: every path differ by centimetres at the goal, and cost per metre decides between them
+PROGRESS_BIN_M = 0.05
+
+
+def _rank(cell: dict[str, Any]) -> tuple[float, float, float]:
+    """Sort key, lower is better: completions first (more is better), then progress along
+    the paths (more is better, in :data:`PROGRESS_BIN_M` bins), then cost per metre (lower
+    is better). Progress before cost: among robots that complete no path, one that never
+    moves has cost 0 per metre (it sits on the line) and would otherwise rank first (issue
+    24, item 1); with progress first a robot that does not move ranks below every robot
+    that moved further along the path."""
+    return (-cell["completed"], -float(np.floor(cell["progress_m"] / PROGRESS_BIN_M)), cell["cost_per_m"])
 
 
 def ranking_line(r: dict[str, Any], other: str, method: str = "grbal") -> str:
-    """How often ``method`` ranks above ``other`` (completions, then cost per metre): on the
+    """How often ``method`` ranks above ``other`` (completions, progress, then cost per metre): on the
     means over seeds, and per seed."""
     perts = list(r["perturbations"])
     above = [p for p in perts if _rank(r["perturbations"][p][method]) < _rank(r["perturbations"][p][other])]
@@ -208,11 +223,41 @@ def run_demo(out: Path, quick: bool = False, full: bool = False, seed: int = 0, 
     return r
 
 
-def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int = 0) -> None:
-    """Entry of `hil demo adaptation` (tools/cmd_demo.py OTHER_DEMOS)."""
+def run_gym_demo(out: Path, quick: bool = False, seed: int = 0, tiny: bool = False,
+                 overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """`--suite gym`: the half-cheetah benchmarks (learning/adaptation/gym_suite.py)."""
+    from hilstack.learning.adaptation import gym_suite
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = gym_suite.config_for(quick, tiny, seed, **(overrides or {}))
+    with (out / "demo.log").open("w") as log_file:
+        def log(msg: str) -> None:
+            line = f"[{time.strftime('%H:%M:%S')} cpu {time.process_time():.0f} s] {msg}"
+            print(line, flush=True)
+            log_file.write(line + "\n")
+            log_file.flush()
+
+        r = gym_suite.run(cfg, out, log, preset="tiny" if tiny else ("quick" if quick else "full"))
+        log(f"done in {r['elapsed_s'] / 60:.1f} min: {out / 'report.md'}")
+    return r
+
+
+def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int = 0, suite: str = "roach") -> None:
+    """Entry of `hil demo adaptation` (tools/cmd_demo.py OTHER_DEMOS); ``suite``: roach | gym."""
+    if suite == "gym":
+        from hilstack.learning.adaptation.gym_suite import summary_lines
+
+        r = run_gym_demo(out, quick=quick, seed=seed)
+        for line in summary_lines(r):
+            print(line)
+        print(f"report: {Path(out) / 'report.md'}")
+        return
+    if suite != "roach":
+        raise ValueError(f"unknown adaptation suite {suite!r} (roach | gym)")
     r = run_demo(out, quick=quick, full=full, seed=seed)
     for p, row in r["perturbations"].items():
-        best = min(METHODS, key=lambda m: (-row[m]["completed"], row[m]["cost_per_m"]))
+        best = min(METHODS, key=lambda m: _rank(row[m]))
         print(f"{p}: best {best}; cost_per_m " + ", ".join(f"{m} {row[m]['cost_per_m']:.1f}" for m in METHODS))
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import inspect
 import json
 
+import numpy as np
+
 from hilstack.learning.adaptation import load_adapter
 from hilstack.learning.adaptation.experiment import METHODS, SWITCHING_METHODS, load_episodes
 from hilstack.tools.cmd_demo import OTHER_DEMOS
@@ -14,7 +16,7 @@ from hilstack.tools.demo_adaptation import cli_adaptation, ranking_line, report_
 def test_registered_with_the_demo_signature():
     module, fn, _ = OTHER_DEMOS["adaptation"]
     assert (module, fn) == ("hilstack.tools.demo_adaptation", "cli_adaptation")
-    assert list(inspect.signature(cli_adaptation).parameters) == ["out", "quick", "full", "seed"]
+    assert list(inspect.signature(cli_adaptation).parameters) == ["out", "quick", "full", "seed", "suite"]
 
 
 def test_tiny_run_writes_the_issue_report(tmp_path):
@@ -79,13 +81,29 @@ def test_oracle_is_an_mb_model_of_the_tested_condition():
     assert ad.name == "mb" and ad.model is oracle  # no adaptation: θ of the oracle every step
 
 
-def test_ranking_counts_completions_first_then_cost():
-    cell = lambda c, k: {"completed": c, "cost_per_m": k}  # noqa: E731
-    seed = {"perturbations": {"a": {"grbal": cell(1, 90.0), "mb": cell(0, 10.0)},     # more completions wins
-                              "b": {"grbal": cell(1, 20.0), "mb": cell(1, 10.0)},     # tie: lower cost wins
-                              "c": {"grbal": cell(0, 5.0), "mb": cell(0, 6.0)}}}
+def test_ranking_counts_completions_first_then_progress_then_cost():
+    cell = lambda c, k, p: {"completed": c, "cost_per_m": k, "progress_m": p}  # noqa: E731
+    seed = {"perturbations": {"a": {"grbal": cell(1, 90.0, 2.0), "mb": cell(0, 10.0, 3.0)},   # more completions wins
+                              "b": {"grbal": cell(1, 20.0, 4.51), "mb": cell(1, 10.0, 4.52)},  # same progress: cost
+                              "c": {"grbal": cell(0, 5.0, 1.0), "mb": cell(0, 6.0, 1.0)}}}
     r = {**seed, "per_seed": [seed, seed]}
     assert ranking_line(r, "mb") == "grbal ranks above mb on 2 of 3 (a, c) on the means; per seed: [2, 2]."
+
+
+def test_ranking_never_favours_a_robot_that_does_not_move():
+    """Issue 24, item 1: no completions; the parked robot (0 m, 0 per m: it sits on the line)
+    against one that walked 1.45 m at 20 per m. The walker ranks above it, and so does any
+    robot that moved further along the path, whatever its cost per metre."""
+    parked = {"completed": 0, "cost_per_m": 0.0, "progress_m": 0.0}
+    seed = {"perturbations": {"miscalibration": {"grbal": {"completed": 0, "cost_per_m": 20.0, "progress_m": 1.45},
+                                                 "mb": parked}}}
+    r = {**seed, "per_seed": [seed]}
+    assert ranking_line(r, "mb").startswith("grbal ranks above mb on 1 of 1")
+    for progress in (0.06, 0.5, 3.0):
+        for cost in (0.01, 1e3, 1e9):
+            seed["perturbations"]["miscalibration"]["grbal"] = {"completed": 0, "cost_per_m": cost, "progress_m": progress}
+            assert ranking_line(r, "mb").startswith("grbal ranks above mb on 1 of 1")
+            assert ranking_line(r, "grbal", method="mb").startswith("mb ranks above grbal on 0 of 1")
 
 
 def test_config_overrides_change_only_the_named_fields():
@@ -94,3 +112,31 @@ def test_config_overrides_change_only_the_named_fields():
     base, cfg = config_for(True, False), config_for(True, False, train_leg_speed_scale=(0.6, 1.4))
     assert cfg.train_leg_speed_scale == (0.6, 1.4) and base.train_leg_speed_scale is None
     assert {**vars(cfg), "train_leg_speed_scale": None} == vars(base)
+
+
+def test_time_limits_leave_headroom_below_random_shootings_speed():
+    """Issue 24, item 3: a limit at 0.15 m/s, within 25 % of random shooting's 0.19 m/s,
+    decided completions; the presets run the paths with at least 1.5x that time."""
+    from hilstack.learning.adaptation.experiment import RANDOM_SHOOTING_SPEED_MPS, AdaptationConfig
+
+    for cfg in (AdaptationConfig.quick(), AdaptationConfig.full()):
+        assert cfg.time_limit_speed_mps * 1.5 <= RANDOM_SHOOTING_SPEED_MPS
+
+
+def test_every_method_meets_the_same_noise_from_the_same_start():
+    """Issue 24, item 5: the env is reused between methods; a start reseeds the sim's noise
+    streams, so the same actions from the same start give the same states whatever ran before."""
+    from hilstack.learning.adaptation.experiment import RoachSim
+    from hilstack.sim_backends.velociroach.perturbations import PerturbationSettings
+
+    env = RoachSim("carpet", 0)
+    rng = np.random.default_rng(0)
+    acts = rng.uniform(-1, 1, (15, 2)).astype(np.float32)
+    runs = []
+    for _ in range(2):
+        env.start({"x": 0.0, "y": 0.0, "yaw": 0.0}, PerturbationSettings())
+        runs.append(np.array([env.step(a)[1] for a in acts]))
+        for a in rng.uniform(-1, 1, (7, 2)):  # another method's steps in between
+            env.step(a.astype(np.float32))
+    env.close()
+    np.testing.assert_array_equal(runs[0], runs[1])
