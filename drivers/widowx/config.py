@@ -26,8 +26,8 @@ from hilstack.configs.schema import (
     JointRangeRad,
     Params,
     PeriodS,
-    Periods,
     StaleS,
+    bounded_int,
     finite,
 )
 from hilstack.drivers.base import RobotSpec, Space
@@ -102,7 +102,10 @@ class BusParams(Params):
     bus_name: str = "widowx"
     latency_timer_ms: int = Field(1, ge=1, le=16, description="USB-serial latency timer (docs/arms.md)")
     telemetry_stale_s: StaleS = Field(0.25, description="a reading older than this is not ok")
-    link_timeout_periods: Periods = Field(10, description="no status from every servo for this many "
+    link_timeout_periods: bounded_int(ge=2, le=100, source=(
+        "≥ 2 periods: one missed status packet is noise on a loaded bus; ≤ 100 periods (5 s at 20 Hz), and the "
+        "count times period_s ≤ 10 s (FailAfterS): the servos' own Bus Watchdog stops them after 0.2 s, the "
+        "host must not command a silent bus for long")) = Field(10, description="no status from every servo for this many "
                                           "control periods: the device is gone (frozen, unpowered, unplugged): "
                                           "error path")
     bus_watchdog_s: finite(ge=0.04, le=2.54, source=(

@@ -336,9 +336,10 @@ class HandTracker:
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, opts: TrackerOptions, period_s: float):
         self.opts = opts
         self.renderer = StereoRenderer(model)
+        # no error deadline here: the hand sim owns its balls' freshness (a lost ball is not a dead
+        # device), and nothing asks this pipeline's inputs whether they expired
         cp = CameraParams(tracker=opts.kind, weights=opts.weights, min_confidence=opts.min_confidence,
-                          stale_after_s=opts.stale_after_s, fail_after_s=1e9, encoding=opts.encoding,
-                          period_s=period_s)
+                          stale_after_s=opts.stale_after_s, encoding=opts.encoding, period_s=period_s)
         self.pipeline = CameraPipeline(cp, truth_calibration(model, data))
         self.world_from_hand = world_from_hand(model, data)
         self._rendered_t = None

@@ -19,7 +19,7 @@ def rig_file(tmp_path, name: str = RIG):
     """A rig config without robots, so that `hil record --rig FILE` records hil/<name>/**
     (`hil record` takes a rig config: a mistyped name is an error)."""
     p = tmp_path / f"{name}.yaml"
-    p.write_text(f"name: {name}\nrobots: {{}}\n")
+    p.write_text(f"name: {name}\nrobots:\n  pm:\n    config: pointmass\n    backend: sim\n")
     return p
 
 

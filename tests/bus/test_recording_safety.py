@@ -191,7 +191,7 @@ def test_mcap_log_refuses_an_existing_file_when_asked(tmp_path):
 
 def _rig_file(tmp_path):
     p = tmp_path / f"{RIG}.yaml"
-    p.write_text(f"name: {RIG}\nrobots: {{}}\n")
+    p.write_text(f"name: {RIG}\nrobots:\n  pm:\n    config: pointmass\n    backend: sim\n")
     return p
 
 

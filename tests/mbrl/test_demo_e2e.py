@@ -75,10 +75,15 @@ def test_a_rig_that_never_comes_up_is_a_clear_error(tmp_path):
 
     from hilstack.learning.mbrl import RigError
 
+    # a real robot's rig has access control (docs/platform.md): the operator's credentials
+    cred = tmp_path / "broken.credentials"
+    cred.write_text("operator:test-password\n")
+    cred.chmod(0o600)
     rig = tmp_path / "broken.yaml"
     rig.write_text(
         "name: broken\nrobots:\n  roach:\n    config: velociroach\n    backend: real\n"
         "    params: {port: /dev/hilstack-no-such-port}\npace: realtime\n"
+        f"bus:\n  access:\n    credentials: {cred}\n"
     )
     with pytest.raises(RigError, match="driver log") as e:
         # operator resets: this rig is about the driver never coming up, not about resets
