@@ -63,13 +63,19 @@ class _Inbox:
     dropped and counted in ``overflow``) and, when the node's thread is blocked in
     :meth:`wait`, rings a doorbell (a ``queue.SimpleQueue``) that wakes it. No
     decoding and no Python-level locking run in the callback: both calls are atomic
-    C operations.
+    C operations. :meth:`close` rings too, so a thread blocked in :meth:`wait` returns at
+    once; later timed waits on a closed inbox sleep out their timeout (a caller looping
+    until a deadline must not spin) and an untimed one returns False at once.
+
+    The node-thread side avoids exceptions on its hot path (an empty deque or bell is
+    tested, not caught): each wait and each take is a few C calls (``hil bench bus``).
     """
 
     def __init__(self, capacity: int):
         self._q: deque[zenoh.Sample] = deque(maxlen=capacity)
         self._bell: queue.SimpleQueue[None] = queue.SimpleQueue()
         self._waiting = False
+        self.closed = False
         self.overflow = 0
 
     def push(self, sample: zenoh.Sample) -> None:
@@ -80,30 +86,32 @@ class _Inbox:
             self._bell.put(None)
 
     def pop(self) -> zenoh.Sample | None:
-        try:
-            return self._q.popleft()
-        except IndexError:
-            return None
+        # one consumer thread: a non-empty deque stays non-empty until it pops
+        return self._q.popleft() if self._q else None
 
     def wait(self, timeout_s: float | None) -> bool:
-        """Block until something is queued (True) or ``timeout_s`` passes (False)."""
+        """Block until something is queued (True) or ``timeout_s`` passes or the inbox closes (False)."""
         # announce the wait before looking, so a push after the look rings the bell
         self._waiting = True
         try:
             if self._q:
                 return True
+            if self.closed and timeout_s is None:
+                return False  # nothing can arrive: waiting forever would hang
             try:
                 self._bell.get(timeout=timeout_s)
             except queue.Empty:
-                return bool(self._q)
-            return True
+                pass
+            return bool(self._q)
         finally:
             self._waiting = False
-            while True:  # rings that came after we woke: drop them (no spurious wakeups later)
-                try:
-                    self._bell.get_nowait()
-                except queue.Empty:
-                    break
+            bell = self._bell
+            while not bell.empty():  # rings that came after we woke: drop them (no spurious wakeups later)
+                bell.get_nowait()
+
+    def close(self) -> None:
+        self.closed = True
+        self._bell.put(None)
 
 
 class Subscription(Generic[T]):
@@ -131,12 +139,17 @@ class Subscription(Generic[T]):
         # network threads never wait for the GIL; the callback only queues the sample
         self._sub = session.declare_subscriber(key, self._inbox.push)
         self.last: T | None = None
-        self.last_key: str | None = None
+        self._last_key_expr: zenoh.KeyExpr | None = None
         #: monotonic time at which ``last`` was taken from the queue
         self.last_rx_s: float | None = None
         self.received = 0
         self.malformed = 0
         self.last_error: str | None = None
+
+    @property
+    def last_key(self) -> str | None:
+        """Key of ``last`` (turned into a string when asked, not per message)."""
+        return None if self._last_key_expr is None else str(self._last_key_expr)
 
     @property
     def dropped(self) -> int:
@@ -152,7 +165,7 @@ class Subscription(Generic[T]):
             return None
         self.received += 1
         self.last = msg
-        self.last_key = str(sample.key_expr)
+        self._last_key_expr = sample.key_expr
         self.last_rx_s = time.monotonic()
         return msg
 
@@ -166,24 +179,29 @@ class Subscription(Generic[T]):
         return newest
 
     def wait(self, timeout_s: float | None = None) -> T | None:
-        """Block until a new valid message arrives or ``timeout_s`` passes (None: forever).
+        """Block until a new valid message arrives or ``timeout_s`` passes (None: forever)
+        or the subscription is closed (None).
 
-        Sleeps on a condition the Zenoh callback notifies: no polling.
+        Sleeps on a doorbell the Zenoh callback rings: no polling.
         """
+        m = self.poll()
+        if m is not None:
+            return m
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        left = None if timeout_s is None else max(0.0, timeout_s)
         while True:
+            if not self._inbox.wait(left):
+                return None
             m = self.poll()
             if m is not None:
                 return m
             left = None if deadline is None else deadline - time.monotonic()
             if left is not None and left <= 0:
                 return None
-            if not self._inbox.wait(left):
-                return None
 
     def wait_queued(self, timeout_s: float | None) -> bool:
         """Block until a sample is queued, without taking it (True), or ``timeout_s`` passes."""
-        return self._inbox.wait(timeout_s)
+        return self._inbox.wait(None if timeout_s is None else max(0.0, timeout_s))
 
     def drain(self, max_items: int | None = None) -> list[tuple[str, bytes]]:
         """FIFO mode: raw (key, payload) pairs, undecoded (for recorders)."""
@@ -196,7 +214,11 @@ class Subscription(Generic[T]):
         return float("inf") if self.last_rx_s is None else time.monotonic() - self.last_rx_s
 
     def close(self) -> None:
-        self._sub.undeclare()
+        """Stop listening; a thread blocked in :meth:`wait` returns None at once (see :class:`_Inbox`)."""
+        try:
+            self._sub.undeclare()
+        finally:
+            self._inbox.close()
 
 
 class NodeConflict(ValueError):

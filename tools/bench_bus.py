@@ -2,7 +2,10 @@
 
 Two processes on loopback. The pong process echoes; the ping process measures the
 round trip. Both stacks run in the same invocation with the same payload sizes, so
-``ratio_p50`` (ours / raw) compares like with like on the same machine and load.
+``ratio_p50`` and ``ratio_p99`` (ours / raw) compare like with like on the same machine
+and load. A bare TCP ping-pong over loopback between two Python processes (``tcp``, same
+sizes) is the floor: ``raw_over_tcp_p50`` says how far raw Zenoh is above what the
+machine does with the least possible work.
 """
 
 from __future__ import annotations
@@ -30,7 +33,35 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def _recv_exact(conn: socket.socket, n: int) -> bytes:
+    buf = bytearray()
+    while len(buf) < n:
+        chunk = conn.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError("bench: tcp peer closed")
+        buf += chunk
+    return bytes(buf)
+
+
+def _tcp_addr(endpoint: str) -> tuple[str, int]:
+    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+    return host, int(port)
+
+
 def _pong(mode: str, endpoint: str) -> None:
+    if mode == "tcp":
+        # length-prefixed echo on a plain socket: the floor of a loopback round trip
+        with socket.create_server(_tcp_addr(endpoint)) as srv:
+            print("ready", flush=True)
+            conn, _ = srv.accept()
+            with conn:
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                while True:
+                    n = int.from_bytes(_recv_exact(conn, 4), "little")
+                    if n == 0:
+                        break
+                    conn.sendall(n.to_bytes(4, "little") + _recv_exact(conn, n))
+        return
     bus = BusConfig(endpoint=endpoint)
     if mode == "node":
         node = Node("pong", "bench", bus)
@@ -38,7 +69,9 @@ def _pong(mode: str, endpoint: str) -> None:
         pub = node.publisher(PONG, Ping)
         print("ready", flush=True)
         while True:
-            m = sub.wait(None)
+            m = sub.wait(5.0)
+            if m is None:
+                continue
             if m.data == b"quit":
                 break
             pub.put(m)
@@ -57,41 +90,63 @@ def _pong(mode: str, endpoint: str) -> None:
         s.close()
 
 
-def _ping(mode: str, endpoint: str, size: int, n: int, warmup: int) -> np.ndarray:
-    bus = BusConfig(endpoint=endpoint)
-    lat = np.empty(n)
-    if mode == "node":
-        node = Node("ping", "bench", bus, handle_signals=False)
-        sub = node.subscribe(PONG, Ping)
-        pub = node.publisher(PING, Ping)
-        msg = Ping(data=b"x" * size)
-        _wait_link(lambda: pub.put(msg), lambda: sub.wait(0.05))
-        for i in range(warmup + n):
-            t = time.perf_counter()
-            pub.put(msg)
-            got = sub.wait(None)
-            if i >= warmup:
-                lat[i - warmup] = time.perf_counter() - t
-            assert got is not None
-        pub.put(Ping(data=b"quit"))
-        time.sleep(0.05)
-        node.close()
-    else:
-        s = open_session(bus)
-        sub = s.declare_subscriber(PONG)
-        pub = s.declare_publisher(PING, express=True)
-        payload = b"x" * size
-        _wait_link(lambda: pub.put(payload), lambda: sub.try_recv() or (time.sleep(0.05) or sub.try_recv()))
-        for i in range(warmup + n):
-            t = time.perf_counter()
-            pub.put(payload)
-            sub.recv()
-            if i >= warmup:
-                lat[i - warmup] = time.perf_counter() - t
-        pub.put(b"quit")
-        time.sleep(0.05)
-        s.close()
-    return lat
+class _Client:
+    """The ping side of one stack: ``round_trip()`` sends one message and waits for its echo."""
+
+    def __init__(self, mode: str, endpoint: str, size: int):
+        self.mode = mode
+        if mode == "tcp":
+            deadline = time.monotonic() + 10
+            while True:
+                try:
+                    self._conn = socket.create_connection(_tcp_addr(endpoint), timeout=10)
+                    break
+                except ConnectionRefusedError:
+                    if time.monotonic() > deadline:
+                        raise
+                    time.sleep(0.05)
+            self._conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            frame = size.to_bytes(4, "little") + b"x" * size
+
+            def rt() -> None:
+                self._conn.sendall(frame)
+                _recv_exact(self._conn, 4 + size)
+        elif mode == "node":
+            self._node = Node("ping", "bench", BusConfig(endpoint=endpoint), handle_signals=False)
+            sub = self._node.subscribe(PONG, Ping)
+            pub = self._pub = self._node.publisher(PING, Ping)
+            msg = Ping(data=b"x" * size)
+            _wait_link(lambda: pub.put(msg), lambda: sub.wait(0.05))
+
+            def rt() -> None:
+                pub.put(msg)
+                # a finite timeout, as the nodes wait (the timed path is the one callers use)
+                if sub.wait(5.0) is None:
+                    raise RuntimeError("bench: node echo lost")
+        else:
+            self._s = open_session(BusConfig(endpoint=endpoint))
+            rsub = self._s.declare_subscriber(PONG)
+            rpub = self._rpub = self._s.declare_publisher(PING, express=True)
+            payload = b"x" * size
+            _wait_link(lambda: rpub.put(payload), lambda: rsub.try_recv() or (time.sleep(0.05) or rsub.try_recv()))
+
+            def rt() -> None:
+                rpub.put(payload)
+                rsub.recv()
+        self.round_trip = rt
+
+    def close(self) -> None:
+        if self.mode == "tcp":
+            self._conn.sendall((0).to_bytes(4, "little"))
+            self._conn.close()
+        elif self.mode == "node":
+            self._pub.put(Ping(data=b"quit"))
+            time.sleep(0.05)
+            self._node.close()
+        else:
+            self._rpub.put(b"quit")
+            time.sleep(0.05)
+            self._s.close()
 
 
 def _wait_link(send, recv, timeout_s: float = 10.0) -> None:
@@ -107,30 +162,62 @@ def _wait_link(send, recv, timeout_s: float = 10.0) -> None:
     raise RuntimeError("bench: no echo from the pong process (is the port free?)")
 
 
-def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: int = 200) -> dict:
+MODES = ("tcp", "raw", "node")
+
+
+def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: int = 200, block: int = 100) -> dict:
+    """Per size, the three stacks run at once (one pong process each) and take turns in
+    blocks of ``block`` round trips, so a change of load on the machine hits each alike."""
     out: dict = {"n": n}
     for size in sizes:
-        row = {}
-        for mode in ("raw", "node"):
-            ep = f"tcp/127.0.0.1:{free_port()}"
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "hilstack.tools.bench_bus", "pong", mode, ep],
-                stdout=subprocess.PIPE,
-                text=True,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            )
-            try:
-                assert proc.stdout.readline().strip() == "ready"
-                lat = _ping(mode, ep, size, n, warmup) * 1e6
-            finally:
+        procs, clients = [], {}
+        try:
+            for mode in MODES:
+                ep = f"tcp/127.0.0.1:{free_port()}"
+                proc = subprocess.Popen(
+                    [sys.executable, "-m", "hilstack.tools.bench_bus", "pong", mode, ep],
+                    stdout=subprocess.PIPE,
+                    text=True,
+                    env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                )
+                procs.append(proc)
+                if proc.stdout.readline().strip() != "ready":
+                    raise RuntimeError(f"bench: the {mode} pong process did not start")
+                clients[mode] = _Client(mode, ep, size)
+            lat = {m: np.empty(n) for m in MODES}
+            for c in clients.values():
+                for _ in range(warmup):
+                    c.round_trip()
+            for start in range(0, n, block):
+                for m, c in clients.items():
+                    rt, arr = c.round_trip, lat[m]
+                    for i in range(start, min(n, start + block)):
+                        t = time.perf_counter()
+                        rt()
+                        arr[i] = time.perf_counter() - t
+        finally:
+            for c in clients.values():
+                try:
+                    c.close()
+                except Exception:
+                    pass
+            for proc in procs:
                 try:
                     proc.wait(5)
                 except subprocess.TimeoutExpired:
                     proc.kill()
-            row[mode] = {"p50_us": float(np.percentile(lat, 50)), "p99_us": float(np.percentile(lat, 99))}
-        row["ratio_p50"] = row["node"]["p50_us"] / row["raw"]["p50_us"]
+                    proc.wait()
+        row: dict = {
+            m: {"p50_us": float(np.percentile(lat[m] * 1e6, 50)), "p99_us": float(np.percentile(lat[m] * 1e6, 99))}
+            for m in MODES
+        }
+        for q in ("p50", "p99"):
+            row[f"ratio_{q}"] = row["node"][f"{q}_us"] / row["raw"][f"{q}_us"]
+        row["raw_over_tcp_p50"] = row["raw"]["p50_us"] / row["tcp"]["p50_us"]
         out[f"{size}B"] = row
-    out["ratio_p50"] = max(out[f"{s}B"]["ratio_p50"] for s in sizes)
+    for q in ("ratio_p50", "ratio_p99"):
+        out[q] = max(out[f"{s}B"][q] for s in sizes)
+    out["loadavg_1min"] = os.getloadavg()[0]
     return out
 
 

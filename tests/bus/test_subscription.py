@@ -85,3 +85,34 @@ def test_latest_keeps_the_newest_fifo_keeps_all_and_malformed_are_counted(bus):
             assert latest.poll() is None
             time.sleep(0.01)
         assert latest.malformed == 1 and "not a valid Command" in latest.last_error
+
+
+def test_close_wakes_a_waiter_and_negative_timeouts_do_not_block(bus):
+    with Node("sub", RIG, bus, handle_signals=False) as node:
+        sub = node.subscribe(keys.cmd(RIG, "pm"), Command)
+        fifo = node.subscribe(keys.cmd(RIG, "pm"), Command, latest=False, capacity=4)
+        assert sub.wait(-1.0) is None and fifo.wait_queued(-1.0) is False
+        got: dict = {}
+        started = threading.Event()
+
+        def waiter():
+            started.set()
+            got["msg"] = sub.wait(60.0)
+            got["queued"] = fifo.wait_queued(60.0)
+
+        th = threading.Thread(target=waiter, daemon=True)
+        th.start()
+        assert started.wait(10)
+        time.sleep(0.2)  # let it block (a close before the wait must return at once too)
+        sub.close()
+        fifo.close()
+        # before close() rang the doorbell the waiter slept its whole 60 s timeout
+        th.join(20.0)
+        assert not th.is_alive(), "close() did not wake the thread blocked in wait()"
+        assert got == {"msg": None, "queued": False}
+        # closed: an untimed wait cannot hang; a timed one sleeps out its timeout (no spinning
+        # in a caller's loop until its deadline)
+        assert sub.wait(None) is None
+        t0 = time.monotonic()
+        got, calls = _calls_made_by(lambda: sub.wait(0.3))
+        assert got is None and time.monotonic() - t0 >= 0.25 and calls < 200

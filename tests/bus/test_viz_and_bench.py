@@ -49,4 +49,6 @@ def test_bench_bus_prints_json_with_ratio():
         row = out[size]
         assert row["raw"]["p50_us"] > 0 and row["node"]["p99_us"] >= row["node"]["p50_us"]
         assert row["ratio_p50"] == row["node"]["p50_us"] / row["raw"]["p50_us"]
-    assert "ratio_p50" in out
+        assert row["ratio_p99"] == row["node"]["p99_us"] / row["raw"]["p99_us"]
+        assert row["raw_over_tcp_p50"] == row["raw"]["p50_us"] / row["tcp"]["p50_us"] and row["tcp"]["p50_us"] > 0
+    assert "ratio_p50" in out and "ratio_p99" in out and out["loadavg_1min"] >= 0
