@@ -368,7 +368,8 @@ def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float 
     episode is cut at the first drop (it ends there, penalty counted once). Returns
     ``return`` (Σ r), ``dropped``, ``steps`` (steps held: until the drop or the end),
     ``rotation_deg`` (how far the pair turned along the targets' direction by the end,
-    unwrapped, before any drop), ``max_rotation_deg`` (the most it had turned at any step)
+    unwrapped, before any drop, counting only steps with both balls in the palm:
+    ``task.in_palm``, so the spin of a ball flying off is not a turn), ``max_rotation_deg`` (the most it had turned at any step)
     and ``turned_90`` / ``turned_180`` (1.0 when the pair turned at least 90° / 180° along
     the targets without a drop first: the thesis' success measure for its real-hand turns).
     """
@@ -388,7 +389,8 @@ def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float 
         if task.dropped(b[k]):
             dropped = True
             break
-        rot += task.rotation_rad(b[k - 1], b[k])
+        if task.in_palm(b[k - 1]) and task.in_palm(b[k]):  # a ball flying off spins; that is no turn
+            rot += task.rotation_rad(b[k - 1], b[k])
         best = max(best, rot)
     return {"return": float(ret), "dropped": float(dropped), "steps": float(steps),
             "rotation_deg": float(np.degrees(rot)), "max_rotation_deg": float(np.degrees(best)),

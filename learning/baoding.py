@@ -315,6 +315,10 @@ class BaodingConfig:
     val_fraction: float = 0.1
     progress: bool = True
     rig_timeout_s: float = 60.0
+    #: fields of the task (configs/tasks/<task>.yaml) replaced for this run, e.g.
+    #: {"max_lead_rad": None} (targets by the clock alone), {"distance": "3d"}: the ablations
+    #: of docs/baoding.md
+    task_overrides: dict[str, Any] = field(default_factory=dict)
     #: the label of this run's scale in the report ("thesis", "quick", "tiny")
     preset: str = "thesis"
     notes: list[str] = field(default_factory=list)
@@ -434,7 +438,7 @@ class BaodingRun(MbrlRun):
     def __init__(self, cfg: BaodingConfig, out_dir: Path, bus: BusConfig):
         super().__init__(cfg.mbrl(), out_dir, bus)
         self.bcfg = cfg
-        self.task = load_baoding_task(cfg.task)
+        self.task = replace(load_baoding_task(cfg.task), **cfg.task_overrides)
         self.plan_times_s: list[float] = []
         #: (ESS, mean shift) of every PDDM plan of the current phase (run_episodes)
         self.plan_stats: list[tuple[float, float]] = []

@@ -49,6 +49,10 @@ class BaodingTask:
     distance: str = "3d"
     wrist_limit_rad: float | None = None
     max_lead_rad: float | None = None
+    #: a ball is "in the palm" (its turns count) within this of the palm centre sideways and
+    #: no lower than ``in_palm_below_m`` below it; a ball flying off spins but is not turned
+    in_palm_radius_m: float = 0.06
+    in_palm_below_m: float = 0.02
 
     def __post_init__(self) -> None:
         if self.distance not in ("3d", "plane"):
@@ -107,6 +111,14 @@ class BaodingTask:
         h = d @ n
         side = np.linalg.norm(d - np.outer(h, n), axis=1)
         return bool(np.any(h < -self.drop_below_m) or np.any(side > self.drop_radius_m))
+
+    def in_palm(self, balls_m: np.ndarray) -> bool:
+        """True when both balls are in the palm (see the fields); stricter than not dropped."""
+        _, _, n = self._basis()
+        d = np.asarray(balls_m, dtype=np.float64).reshape(2, 3) - np.asarray(self.center_m)
+        h = d @ n
+        side = np.linalg.norm(d - np.outer(h, n), axis=1)
+        return bool(np.all(h >= -self.in_palm_below_m) and np.all(side <= self.in_palm_radius_m))
 
     def reward(self, balls_m: np.ndarray, t_s: float | None = None, wrist_rad: float | None = None,
                phase_rad: float | None = None) -> float:

@@ -232,3 +232,20 @@ def test_a_policy_that_holds_still_does_not_rank_above_one_that_turns():
     ranked = sorted([("hold", hold), ("turns", turns)], key=lambda kv: turn_rank_key(kv[1]))
     assert ranked[0][0] == "turns"
     assert turns["mean_steps"] == 41 and hold["mean_steps"] == n
+
+
+def test_a_pair_spinning_as_it_flies_off_is_not_a_turn():
+    """Random flicks throw the balls out spinning: the steps with a ball outside the palm
+    (task.in_palm) add no rotation, so a throw scores no 90° turn (it did before: the random
+    policy had 20 % of 90° turns in a quick run)."""
+    t = flat_task()
+    ang = np.radians(np.arange(12) * 15.0)  # 165° of spin ...
+    b = t.targets_at(ang)
+    out = np.linspace(0.0, 0.1, 12)[:, None]  # ... while both balls leave sideways (10 cm)
+    b[:, 0, :2] += out * [1, 0]
+    b[:, 1, :2] -= out * [1, 0]
+    m = baoding_episode_metrics(t, b, np.arange(12) * DT)
+    assert m["turned_90"] == 0.0 and m["rotation_deg"] < 60
+    circle = flat_task(radius_v_m=None)  # the same spin in the palm (a circle: the angle is the phase)
+    held = baoding_episode_metrics(circle, circle.targets_at(ang), np.arange(12) * DT)
+    assert held["turned_90"] == 1.0 and held["rotation_deg"] == pytest.approx(165.0)

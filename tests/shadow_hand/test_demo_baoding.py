@@ -162,7 +162,7 @@ def test_demo_baoding_tiny_end_to_end(tmp_path):
     rs = r["resets"]
     assert rs["requested"] >= 3 + 2 + 2 + 2  # one per episode: random walk, random, hold, PDDM
     assert rs["completed"] == rs["requested"] and rs["failed"] == 0 and rs["mean_duration_s"] > 0
-    for f in ("report.md", "returns.png", "demo.rrd", "model.pt"):
+    for f in ("report.md", "turns.png", "demo.rrd", "model.pt"):
         assert (tmp_path / f).is_file(), f
     assert all(p.endswith(".mcap") for p in r["recordings"]) and len(r["recordings"]) == 4
 
