@@ -238,12 +238,11 @@ def test_a_pair_spinning_as_it_flies_off_is_not_a_turn():
     """Random flicks throw the balls out spinning: the steps with a ball outside the palm
     (task.in_palm) add no rotation, so a throw scores no 90° turn (it did before: the random
     policy had 20 % of 90° turns in a quick run)."""
-    t = flat_task()
+    t = flat_task(radius_v_m=None)
     ang = np.radians(np.arange(12) * 15.0)  # 165° of spin ...
-    b = t.targets_at(ang)
-    out = np.linspace(0.0, 0.1, 12)[:, None]  # ... while both balls leave sideways (10 cm)
-    b[:, 0, :2] += out * [1, 0]
-    b[:, 1, :2] -= out * [1, 0]
+    grow = np.r_[np.ones(2), np.linspace(1.0, 5.0, 10)][:, None, None]  # ... while the pair flies apart
+    b = t.center_m + (t.targets_at(ang) - t.center_m) * grow  # (to 10 cm from the centre, not yet a drop)
+    assert not any(t.dropped(x) for x in b)
     m = baoding_episode_metrics(t, b, np.arange(12) * DT)
     assert m["turned_90"] == 0.0 and m["rotation_deg"] < 60
     circle = flat_task(radius_v_m=None)  # the same spin in the palm (a circle: the angle is the phase)
