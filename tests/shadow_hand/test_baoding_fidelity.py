@@ -240,7 +240,7 @@ def test_a_pair_spinning_as_it_flies_off_is_not_a_turn():
     policy had 20 % of 90° turns in a quick run)."""
     t = flat_task(radius_v_m=None)
     ang = np.radians(np.arange(12) * 15.0)  # 165° of spin ...
-    grow = np.r_[np.ones(2), np.linspace(1.0, 5.0, 10)][:, None, None]  # ... while the pair flies apart
+    grow = np.r_[np.ones(4), np.linspace(3.5, 5.0, 8)][:, None, None]  # ... while the pair flies apart
     b = t.center_m + (t.targets_at(ang) - t.center_m) * grow  # (to 10 cm from the centre, not yet a drop)
     assert not any(t.dropped(x) for x in b)
     m = baoding_episode_metrics(t, b, np.arange(12) * DT)
