@@ -310,6 +310,10 @@ class BaodingConfig:
     # training (thesis: 40 epochs, Adam 1e-3, batch 500)
     epochs: int = 40
     retrain_epochs: int = 40
+    #: a fixed number of gradient steps per iteration instead of the epochs (None: the
+    #: epochs): the epochs become ceil(train_steps · batch / points), so training does not
+    #: grow with the data (a lever for the thesis' scale on 2 cores, docs/baoding.md)
+    train_steps: int | None = None
     batch_size: int = 500
     input_noise_std: float = 0.0
     val_fraction: float = 0.1
@@ -337,6 +341,8 @@ class BaodingConfig:
             problems.append(f"low_noise_fraction must be in [0, 1], got {self.low_noise_fraction}")
         if not 0.0 < self.beta <= 1.0:
             problems.append(f"beta must be in (0, 1], got {self.beta}")
+        if self.train_steps is not None and self.train_steps < 1:
+            problems.append(f"train_steps must be >= 1 or None, got {self.train_steps}")
         for f in ("random_rollouts", "episode_steps", "horizon", "samples", "ensemble", "rollouts_per_iteration"):
             if getattr(self, f) < 1:
                 problems.append(f"{f} must be >= 1, got {getattr(self, f)}")
@@ -555,6 +561,15 @@ class BaodingRun(MbrlRun):
         finally:
             self.ctl = ctl
 
+    def epochs_for(self, data: list[Episode], iteration: int) -> int:
+        """The epochs of an iteration's training: the configured ones, or with ``train_steps``
+        as many as make about that many gradient steps over ``data``."""
+        c = self.bcfg
+        if c.train_steps is None:
+            return c.epochs if iteration == 1 else c.retrain_epochs
+        points = max(1, int(sum(len(e) for e in data) * (1.0 - self.cfg.val_fraction)))
+        return max(1, int(np.ceil(c.train_steps * c.batch_size / points)))
+
     def plan_summary(self) -> dict[str, float]:
         """Per-plan weighting of the phase just run: effective sample size (mean, and as a
         share of K) and the mean's RMS shift (mean)."""
@@ -605,7 +620,7 @@ class BaodingRun(MbrlRun):
             samples = self.fit_pddm_to_period(model)  # timing needs the architecture, not trained weights
             iterations = []
             for it in range(1, c.iterations + 1):
-                train = self.train(model, self.model_episodes(data), c.epochs if it == 1 else c.retrain_epochs)
+                train = self.train(model, self.model_episodes(data), self.epochs_for(data, it))
                 path, scores = self.run_episodes(
                     lambda i, m=model, it=it: self.pddm_policy(m, self._seed(10 + it, i), samples),
                     c.rollouts_per_iteration, f"{it:03d}-mpc", f"iteration {it}: PDDM rollouts")

@@ -248,3 +248,15 @@ def test_a_pair_spinning_as_it_flies_off_is_not_a_turn():
     circle = flat_task(radius_v_m=None)  # the same spin in the palm (a circle: the angle is the phase)
     held = baoding_episode_metrics(circle, circle.targets_at(ang), np.arange(12) * DT)
     assert held["turned_90"] == 1.0 and held["rotation_deg"] == pytest.approx(165.0)
+
+
+def test_fixed_gradient_steps_per_iteration_do_not_grow_with_the_data(bus, tmp_path):
+    from hilstack.learning.baoding import BaodingConfig, BaodingRun
+
+    ep = lambda n: Episode(states=np.zeros((n + 1, 3)), actions=np.zeros((n, 1)), name="e")  # noqa: E731
+    run = BaodingRun(BaodingConfig.tiny(train_steps=100, batch_size=500), tmp_path, bus)
+    small, big = run.epochs_for([ep(1000)], 1), run.epochs_for([ep(100_000)], 5)
+    assert small == int(np.ceil(100 * 500 / 900)) and big == 1  # ~100 steps either way
+    assert BaodingRun(BaodingConfig.tiny(epochs=7, retrain_epochs=3), tmp_path / "b", bus).epochs_for([ep(10)], 2) == 3
+    with pytest.raises(ValueError, match="train_steps"):
+        BaodingConfig(train_steps=0)
