@@ -305,9 +305,79 @@ def compare_choices(run_dir: Path, out: Path | None = None, widths: tuple[int, .
     return out_d
 
 
-if __name__ == "__main__":  # python -m hilstack.tools.demo_baoding compare RUN_DIR
+def thesis_scale_cost(calls: int = 15, sizes: tuple[int, ...] = (700, 400, 200),
+                      train_points: int = 4000) -> dict[str, Any]:
+    """The levers of the thesis-scale run, measured on this machine (docs/baoding.md): the plan
+    time of :data:`~hilstack.control.planners.BAODING_PDDM` (through a random-init ensemble of
+    its size, on the 36-D model state) for each K in ``sizes``, fp32 and bf16, 1 and 2 torch
+    threads; one training step of that ensemble (batch 500 per member); one lockstep period
+    of the MuJoCo hand in-process. bf16 only runs natively where :func:`cpu_bf16_support` finds
+    it (AMX, AVX512-BF16); elsewhere it is skipped. The load average is recorded."""
+    import torch
+
+    from hilstack.control.costs import BaodingCost
+    from hilstack.control.planners import BAODING_PDDM
+    from hilstack.drivers.shadow_hand.config import ShadowHandParams, shadow_hand_spec
+    from hilstack.learning.baoding import BaodingFeatures, load_baoding_task
+    from hilstack.learning.datasets import Episode
+    from hilstack.learning.dynamics import EnsembleDynamics, cpu_bf16_support
+    from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
+
+    threads0 = torch.get_num_threads()
+    out: dict[str, Any] = {"cpu_bf16": cpu_bf16_support(), "loadavg_start": open("/proc/loadavg").read().split()[:3]}
+    names = list(shadow_hand_spec(ShadowHandParams(objects_in_state=True)).state.names)
+    f, task = BaodingFeatures(names, 0.1), load_baoding_task()
+    rng = np.random.default_rng(0)
+    eps = [Episode(states=rng.normal(size=(101, f.dim)), actions=rng.uniform(-1, 1, (100, 20)), name=f"e{i}")
+           for i in range(max(1, train_points // 100))]
+    m = EnsembleDynamics(f.dim, 20, ensemble=BAODING_PDDM.ensemble, hidden=BAODING_PDDM.hidden,
+                         state_names=f.names, seed=0)
+    t0 = time.perf_counter()
+    m.fit(eps, epochs=2, batch_size=500, progress=False)
+    out["train_ms_per_step"] = 1e3 * (time.perf_counter() - t0) / (2 * int(np.ceil(len(eps) * 100 / 500)))
+    x0 = np.zeros(f.dim)
+    x0[24:27] = x0[30:33] = task.center_m
+    dtypes = ("fp32", "bf16") if out["cpu_bf16"] else ("fp32",)
+    out["plan_ms"] = {}
+    for k in sizes:
+        for dt in dtypes:
+            for th in (1, 2):
+                torch.set_num_threads(th)
+                m.set_inference_dtype(dt)
+                pl = replace(BAODING_PDDM, samples=k).planner(seed=0, init_mean=np.zeros(20))
+                cost = BaodingCost(task, f.names, 0.1)
+                cost.observe(None)
+                for _ in range(3):
+                    pl(m.predict, cost, x0)
+                ts = []
+                for _ in range(calls):
+                    t0 = time.perf_counter()
+                    pl(m.predict, cost, x0)
+                    ts.append(time.perf_counter() - t0)
+                out["plan_ms"][f"K{k}_{dt}_{th}thread"] = {"p50": 1e3 * float(np.median(ts)),
+                                                           "p99": 1e3 * float(np.percentile(ts, 99))}
+    torch.set_num_threads(threads0)
+    sim = ShadowHandSim(ShadowHandParams(objects_in_state=True))
+    sim.configure()
+    sim.activate()
+    held = sim.held_command
+    t0 = time.perf_counter()
+    for _ in range(100):
+        sim.write(held)
+        sim.tick()
+        sim.read()
+    out["sim_ms_per_period"] = 1e3 * (time.perf_counter() - t0) / 100
+    sim.cleanup()
+    out["loadavg_end"] = open("/proc/loadavg").read().split()[:3]
+    return out
+
+
+if __name__ == "__main__":  # python -m hilstack.tools.demo_baoding compare RUN_DIR | cost
     import sys
 
-    if len(sys.argv) != 3 or sys.argv[1] != "compare":
-        raise SystemExit("usage: python -m hilstack.tools.demo_baoding compare RUN_DIR")
-    print(json.dumps(compare_choices(Path(sys.argv[2])), indent=1))
+    if len(sys.argv) == 2 and sys.argv[1] == "cost":
+        print(json.dumps(thesis_scale_cost(), indent=1))
+    elif len(sys.argv) == 3 and sys.argv[1] == "compare":
+        print(json.dumps(compare_choices(Path(sys.argv[2])), indent=1))
+    else:
+        raise SystemExit("usage: python -m hilstack.tools.demo_baoding compare RUN_DIR | cost")

@@ -260,3 +260,16 @@ def test_fixed_gradient_steps_per_iteration_do_not_grow_with_the_data(bus, tmp_p
     assert BaodingRun(BaodingConfig.tiny(epochs=7, retrain_epochs=3), tmp_path / "b", bus).epochs_for([ep(10)], 2) == 3
     with pytest.raises(ValueError, match="train_steps"):
         BaodingConfig(train_steps=0)
+
+
+def test_the_thesis_scale_cost_command_measures_every_lever():
+    """`python -m hilstack.tools.demo_baoding cost` at a seconds-long size: plan times per K,
+    dtype (bf16 only where the CPU has it natively) and thread count, training, the sim."""
+    from hilstack.learning.dynamics import cpu_bf16_support
+    from hilstack.tools.demo_baoding import thesis_scale_cost
+
+    out = thesis_scale_cost(calls=2, sizes=(16,), train_points=100)
+    want = {f"K16_{dt}_{th}thread" for dt in (("fp32", "bf16") if cpu_bf16_support() else ("fp32",)) for th in (1, 2)}
+    assert set(out["plan_ms"]) == want
+    assert all(0 < v["p50"] <= v["p99"] for v in out["plan_ms"].values())
+    assert out["train_ms_per_step"] > 0 and out["sim_ms_per_period"] > 0
