@@ -305,6 +305,45 @@ def compare_choices(run_dir: Path, out: Path | None = None, widths: tuple[int, .
     return out_d
 
 
+#: the quick preset with one setting put back as it was before issue 30 (docs/baoding.md)
+ABLATIONS: dict[str, dict[str, Any]] = {
+    "ref": {},
+    "clock_targets": {"task_overrides": {"max_lead_rad": None}},
+    "old_sampler": {"sigma": 0.05, "filter": "noise", "beta": 0.7, "low_noise_fraction": 0.0},
+    "paper_filter": {"filter": "noise", "beta": 0.7},
+    "range_units": {"action_units": "range"},
+    "joint_vel": {"joint_velocities": True},
+    "no_low_noise": {"low_noise_fraction": 0.0},
+    "reward_3d_nowrist": {"task_overrides": {"distance": "3d", "wrist_limit_rad": None}},
+    "old_targets": {"task_overrides": {"radius_m": 0.025, "radius_v_m": None, "rate_rad_s": float(np.pi / 5)}},
+}
+
+
+def ablate(out: Path, names: tuple[str, ...] = tuple(ABLATIONS), seed: int = 0, preset: str = "quick") -> list[dict]:
+    """The ablations of :data:`ABLATIONS`, one run each (``out/<name>/``), one JSON line per run
+    appended to ``out/results.jsonl``: the final iteration's and the pooled (all iterations')
+    success_90 / success_180 / mean rotation / drop rate / steps held, hold's and random's, the
+    per-iteration ESS and mean shift, the plan time and the load average."""
+    out = Path(out)
+    rows = []
+    for n in names:
+        t0 = time.time()
+        r = run_baoding_demo(out / n, preset=preset, seed=seed, progress=False, **ABLATIONS[n])
+        its = r["iterations"]
+        keys = ("success_90", "success_180", "mean_rotation_deg", "drop_rate", "mean_steps")
+        row = {"run": n, "overrides": ABLATIONS[n], "wall_s": time.time() - t0,
+               "final": {k: its[-1][k] for k in keys},
+               "pooled": {k: float(np.mean([it[k] for it in its])) for k in keys},
+               "hold": {k: r["hold_policy"][k] for k in keys}, "random": {k: r["random_policy"][k] for k in keys},
+               "ess_mean": [it["weights"].get("ess_mean") for it in its],
+               "shift": [it["weights"].get("mean_shift_rms") for it in its],
+               "plan_ms_p50": r["planner"]["plan_ms_p50"], "load": open("/proc/loadavg").read().split()[:3]}
+        with open(out / "results.jsonl", "a") as f:
+            f.write(json.dumps(row) + "\n")
+        rows.append(row)
+    return rows
+
+
 def thesis_scale_cost(calls: int = 15, sizes: tuple[int, ...] = (700, 400, 200),
                       train_points: int = 4000) -> dict[str, Any]:
     """The levers of the thesis-scale run, measured on this machine (docs/baoding.md): the plan
@@ -372,12 +411,14 @@ def thesis_scale_cost(calls: int = 15, sizes: tuple[int, ...] = (700, 400, 200),
     return out
 
 
-if __name__ == "__main__":  # python -m hilstack.tools.demo_baoding compare RUN_DIR | cost
+if __name__ == "__main__":  # python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | ablate OUT [NAME...]
     import sys
 
     if len(sys.argv) == 2 and sys.argv[1] == "cost":
         print(json.dumps(thesis_scale_cost(), indent=1))
+    elif len(sys.argv) >= 3 and sys.argv[1] == "ablate":
+        print(json.dumps(ablate(Path(sys.argv[2]), tuple(sys.argv[3:]) or tuple(ABLATIONS)), indent=1))
     elif len(sys.argv) == 3 and sys.argv[1] == "compare":
         print(json.dumps(compare_choices(Path(sys.argv[2])), indent=1))
     else:
-        raise SystemExit("usage: python -m hilstack.tools.demo_baoding compare RUN_DIR | cost")
+        raise SystemExit("usage: python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | ablate OUT [NAME...]")

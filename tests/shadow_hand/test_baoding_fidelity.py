@@ -273,3 +273,16 @@ def test_the_thesis_scale_cost_command_measures_every_lever():
     assert set(out["plan_ms"]) == want
     assert all(0 < v["p50"] <= v["p99"] for v in out["plan_ms"].values())
     assert out["train_ms_per_step"] > 0 and out["sim_ms_per_period"] > 0
+
+
+def test_every_ablation_is_a_valid_config():
+    from hilstack.learning.baoding import BaodingConfig
+    from hilstack.tools.demo_baoding import ABLATIONS
+
+    for name, kw in ABLATIONS.items():
+        c = BaodingConfig.quick(**kw)
+        replace_task = kw.get("task_overrides", {})
+        from dataclasses import replace
+
+        replace(load_baoding_task(), **replace_task)  # the task accepts the overrides
+        assert c.preset == "quick", name
