@@ -63,7 +63,7 @@ class BaodingTaskParams(Strict):
     rate_rad_s: float
     phase0_rad: float = 0.0
     distance: Literal["3d", "plane"] = "3d"
-    wrist_limit_rad: float | None = None
+    wrist_limit_rad: float | None = Field(None, ge=-0.7, le=0.5, description="WRJ0's range is [-0.698, 0.489] rad")
     max_lead_rad: float | None = Field(None, gt=0, le=np.pi)
     source: str | None = None
 
