@@ -314,6 +314,12 @@ class BaodingConfig:
     #: epochs): the epochs become ceil(train_steps · batch / points), so training does not
     #: grow with the data (a lever for the thesis' scale on 2 cores, docs/baoding.md)
     train_steps: int | None = None
+    #: the model's inference precision in the planner: "fp32", or "auto" (bf16 where the CPU
+    #: has AMX, learning/dynamics.py: cpu_bf16_support) / "bf16"; training stays fp32
+    inference_dtype: str = "fp32"
+    #: torch threads for the whole run (None: torch's default); on a loaded 2-core machine one
+    #: thread planned 2-8x faster than two (docs/baoding.md, "The full run")
+    torch_threads: int | None = None
     batch_size: int = 500
     input_noise_std: float = 0.0
     val_fraction: float = 0.1
@@ -341,6 +347,10 @@ class BaodingConfig:
             problems.append(f"low_noise_fraction must be in [0, 1], got {self.low_noise_fraction}")
         if not 0.0 < self.beta <= 1.0:
             problems.append(f"beta must be in (0, 1], got {self.beta}")
+        if self.inference_dtype not in ("fp32", "bf16", "auto"):
+            problems.append(f"inference_dtype must be 'fp32', 'bf16' or 'auto', got {self.inference_dtype!r}")
+        if self.torch_threads is not None and self.torch_threads < 1:
+            problems.append(f"torch_threads must be >= 1 or None, got {self.torch_threads}")
         if self.train_steps is not None and self.train_steps < 1:
             problems.append(f"train_steps must be >= 1 or None, got {self.train_steps}")
         for f in ("random_rollouts", "episode_steps", "horizon", "samples", "ensemble", "rollouts_per_iteration"):
@@ -581,6 +591,15 @@ class BaodingRun(MbrlRun):
                 "ess_frac_mean": float(a[:, 0].mean() / k), "mean_shift_rms": float(a[:, 1].mean())}
 
     def run(self) -> dict[str, Any]:
+        threads = torch.get_num_threads()
+        if self.bcfg.torch_threads is not None:
+            torch.set_num_threads(self.bcfg.torch_threads)
+        try:
+            return self._run_baoding()
+        finally:
+            torch.set_num_threads(threads)
+
+    def _run_baoding(self) -> dict[str, Any]:
         torch.manual_seed(self.bcfg.seed)
         t0 = time.monotonic()
         report: dict[str, Any] = {"config": _jsonable(asdict(self.bcfg)), "rig": self.rig.name}
@@ -617,6 +636,7 @@ class BaodingRun(MbrlRun):
             _log(self.cfg, f"random policy: {report['random_policy']['mean_return']:.1f} mean return, "
                            f"{report['random_policy']['drops']} drops")
             model = make_model(self.cfg, self.features.names, self.action_names)
+            report["inference_dtype"] = str(model.set_inference_dtype(c.inference_dtype)).removeprefix("torch.")
             samples = self.fit_pddm_to_period(model)  # timing needs the architecture, not trained weights
             iterations = []
             for it in range(1, c.iterations + 1):

@@ -137,9 +137,13 @@ def test_a_drop_ends_the_episode_through_the_supervisor(bus, tmp_path):
 
 
 def test_demo_baoding_tiny_end_to_end(tmp_path):
+    from hilstack.learning.dynamics import cpu_bf16_support
     from hilstack.tools.demo_baoding import run_baoding_demo
 
-    r = run_baoding_demo(tmp_path, preset="tiny")
+    threads = torch.get_num_threads()
+    r = run_baoding_demo(tmp_path, preset="tiny", torch_threads=1, inference_dtype="auto")
+    assert torch.get_num_threads() == threads  # the run's thread count is restored
+    assert r["inference_dtype"] == ("bfloat16" if cpu_bf16_support() == "amx" else "float32")
     saved = json.loads((tmp_path / "report.json").read_text())
     # as JSON: a metric without data is NaN (drop recall with no drop window), and NaN != NaN
     assert json.dumps(saved["iterations"], sort_keys=True) == json.dumps(r["iterations"], sort_keys=True)
