@@ -286,3 +286,15 @@ def test_every_ablation_is_a_valid_config():
 
         replace(load_baoding_task(), **replace_task)  # the task accepts the overrides
         assert c.preset == "quick", name
+
+
+def test_the_quick_preset_is_the_old_sampler_ablation_and_ref_the_reference_sampler():
+    """The docs' quick numbers are the `old_sampler` row: the same config as the preset."""
+    from hilstack.learning.baoding import BaodingConfig
+    from hilstack.tools.demo_baoding import ABLATIONS
+
+    assert BaodingConfig.quick() == BaodingConfig.quick(**ABLATIONS["old_sampler"])
+    ref = BaodingConfig.quick(**ABLATIONS["ref"])
+    assert (ref.sigma, ref.filter, ref.beta, ref.low_noise_fraction) == (0.9, "actions", 0.6, 0.1)
+    d = BaodingConfig()
+    assert (d.sigma, d.filter, d.beta, d.low_noise_fraction) == (0.9, "actions", 0.6, 0.1)
