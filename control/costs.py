@@ -278,85 +278,120 @@ def rank_key(summary: dict[str, float]) -> tuple[int, float]:
 # ---------------------------------------------------------------------------- Baoding balls
 class BaodingCost:
     """PDDM's Baoding cost (Nagabandi et al. 2019; thesis ch. 4) over predicted states:
-    ``cost(states [E,N,H+1,S], actions [N,H,A]) -> [E,N]`` = −Σ_{h=1..H} r(s_h, t_h) with
+    ``cost(states [E,N,H+1,S], actions [N,H,A]) -> [E,N]`` = −Σ_{h=1..H} r(s_h, φ_h) with
 
-        r(s, t) = −5·Σ_i ‖ball_i − target_i(t)‖ − 500·1(drop)      (positions in m)
+        r(s, φ) = −5·Σ_i d(ball_i, target_i(φ)) − 500·1(drop) − 10·1(WRJ0 > limit)
 
-    the reward of :class:`hilstack.sim_backends.shadow_hand.baoding.BaodingTask` (targets and drop rule
-    from it), evaluated on the ball channels ``ball{0,1}_{x,y,z}`` of the state. ``t_h`` is
-    task time: ``(k + h)·period_s`` with ``k`` the control steps of this episode so far
-    (:meth:`observe` is called once per step by :class:`~hilstack.control.policies.MpcPolicy`;
-    :meth:`reset` at the start of an episode).
+    the reward of :class:`hilstack.sim_backends.shadow_hand.baoding.BaodingTask` (targets, distance,
+    drop rule and wrist term from it), evaluated on the ball channels ``ball{0,1}_{x,y,z}``
+    of the state (and ``WRJ0_pos`` for the wrist term). The targets' phases ``φ_h`` come
+    from :class:`~hilstack.sim_backends.shadow_hand.baoding.TargetPhase`: the clock at step
+    ``k + h`` (``k`` the control steps of this episode so far), led by at most the task's
+    ``max_lead_rad`` ahead of the pair's measured phase. :meth:`observe` is called once per
+    step with the state planned from (:class:`~hilstack.control.policies.MpcPolicy`);
+    :meth:`reset` at the start of an episode.
     """
 
     def __init__(self, task, state_names: Sequence[str], period_s: float):
-        from hilstack.sim_backends.shadow_hand.baoding import REWARD_DIST_WEIGHT, REWARD_DROP_PENALTY
+        from hilstack.sim_backends.shadow_hand.baoding import (
+            REWARD_DIST_WEIGHT,
+            REWARD_DROP_PENALTY,
+            REWARD_WRIST_PENALTY,
+            TargetPhase,
+        )
 
         names = list(state_names)
         missing = [f"ball{i}_{c}" for i in range(2) for c in "xyz" if f"ball{i}_{c}" not in names]
         if missing:
             raise ValueError(f"Baoding cost: the state has no {missing} (set objects_in_state on the hand)")
         self.idx = torch.tensor([names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"])
+        self.wrist = names.index("WRJ0_pos") if task.wrist_limit_rad is not None and "WRJ0_pos" in names else None
+        if task.wrist_limit_rad is not None and self.wrist is None:
+            raise ValueError("Baoding cost: the task has a wrist term and the state has no WRJ0_pos")
         self.task = task
         self.period_s = float(period_s)
-        self.w_dist, self.w_drop = REWARD_DIST_WEIGHT, REWARD_DROP_PENALTY
+        self.w_dist, self.w_drop, self.w_wrist = REWARD_DIST_WEIGHT, REWARD_DROP_PENALTY, REWARD_WRIST_PENALTY
         self.center = torch.as_tensor(np.asarray(task.center_m), dtype=torch.float32)
         n = np.asarray(task.axis, dtype=np.float64)
         self.normal = torch.as_tensor(n / np.linalg.norm(n), dtype=torch.float32)
-        self.steps = 0
+        self.phase = TargetPhase(task, period_s)
+
+    @property
+    def steps(self) -> int:
+        return self.phase.steps
 
     def reset(self) -> None:
-        self.steps = 0
+        self.phase.reset()
 
     def observe(self, state) -> None:
-        """One control step passed (the state is the one the planner plans from)."""
-        del state
-        self.steps += 1
+        """One control step passed (the state is the one the planner plans from; None: no
+        measurement, the targets follow the clock)."""
+        balls = None if state is None else np.asarray(state, dtype=np.float64)[self.idx.numpy()].reshape(2, 3)
+        self.phase.observe(balls)
 
     def targets(self, horizon: int) -> torch.Tensor:
         """[H, 2, 3] targets of the predicted states 1..H (m, world frame)."""
-        k = max(self.steps - 1, 0)  # observe() was called for the current state already
-        t = [(k + h) * self.period_s for h in range(1, horizon + 1)]
-        return torch.as_tensor(np.stack([self.task.targets(ti) for ti in t]), dtype=torch.float32)
+        return torch.as_tensor(self.task.targets_at(self.phase.phases(horizon)), dtype=torch.float32)
 
-    def step_reward(self, balls: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
-        """r for balls ``[..., 2, 3]`` and targets broadcastable to them -> ``[...]``."""
-        dist = torch.linalg.vector_norm(balls - targets, dim=-1).sum(-1)
+    def step_reward(self, balls: torch.Tensor, targets: torch.Tensor, wrist: torch.Tensor | None = None) -> torch.Tensor:
+        """r for balls ``[..., 2, 3]``, targets broadcastable to them and the wrist angle
+        ``[...]`` (rad; None: no wrist term) -> ``[...]``."""
+        diff = balls - targets
+        if self.task.distance == "plane":
+            diff = diff - (diff @ self.normal).unsqueeze(-1) * self.normal
+        dist = torch.linalg.vector_norm(diff, dim=-1).sum(-1)
         d = balls - self.center
         h = d @ self.normal  # height above the palm centre along its normal [..., 2]
         side = torch.linalg.vector_norm(d - h.unsqueeze(-1) * self.normal, dim=-1)
         drop = ((h < -self.task.drop_below_m) | (side > self.task.drop_radius_m)).any(-1)
-        return -self.w_dist * dist - self.w_drop * drop.to(dist.dtype)
+        r = -self.w_dist * dist - self.w_drop * drop.to(dist.dtype)
+        if wrist is not None and self.task.wrist_limit_rad is not None:
+            r = r - self.w_wrist * (wrist > self.task.wrist_limit_rad).to(dist.dtype)
+        return r
 
     def __call__(self, states: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
         H = states.shape[-2] - 1
-        balls = states[..., 1:, :][..., self.idx].reshape(*states.shape[:-2], H, 2, 3)
-        return -self.step_reward(balls, self.targets(H)).sum(-1)
+        nxt = states[..., 1:, :]
+        balls = nxt[..., self.idx].reshape(*states.shape[:-2], H, 2, 3)
+        wrist = None if self.wrist is None else nxt[..., self.wrist]
+        return -self.step_reward(balls, self.targets(H), wrist).sum(-1)
 
 
-def baoding_episode_metrics(task, balls_m, t_s) -> dict[str, float]:
+def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float = 0.1) -> dict[str, float]:
     """Score one executed Baoding episode with the task's own reward (numpy).
 
     ``balls_m``: ``[T+1, 2, 3]`` ball positions (m, world frame) of the episode's states,
-    ``t_s``: their times (s); reward step t uses task time ``t_s[t] − t_s[0]``. The episode is
-    cut at the first drop (it ends there, penalty counted once). Returns ``return`` (Σ r),
-    ``dropped``, ``steps``, ``rotation_deg`` (how far the pair turned along the targets'
-    direction by the end, unwrapped, before any drop) and ``turned_90`` / ``turned_180``
-    (1.0 when the pair turned at least 90° / 180° along the targets without a drop first:
-    the thesis' success measure for its real-hand turns).
+    ``t_s``: their times (s); ``wrist_rad``: ``[T+1]`` WRJ0 angles (the wrist term; None:
+    none). Reward step ``k`` uses the targets' phase the planner had for it (the clock, led
+    by at most ``max_lead_rad`` ahead of the pair measured at step ``k − 1``:
+    :class:`~hilstack.sim_backends.shadow_hand.baoding.TargetPhase` at ``period_s``). The
+    episode is cut at the first drop (it ends there, penalty counted once). Returns
+    ``return`` (Σ r), ``dropped``, ``steps`` (steps held: until the drop or the end),
+    ``rotation_deg`` (how far the pair turned along the targets' direction by the end,
+    unwrapped, before any drop, counting only steps with both balls in the palm:
+    ``task.in_palm``, so the spin of a ball flying off is not a turn), ``max_rotation_deg`` (the most it had turned at any step)
+    and ``turned_90`` / ``turned_180`` (1.0 when the pair turned at least 90° / 180° along
+    the targets without a drop first: the thesis' success measure for its real-hand turns).
     """
+    from hilstack.sim_backends.shadow_hand.baoding import TargetPhase
+
     b = np.asarray(balls_m, dtype=np.float64).reshape(-1, 2, 3)
-    t = np.asarray(t_s, dtype=np.float64) - float(t_s[0])
+    del t_s  # the steps are the control periods; the phase replays them
+    ph = TargetPhase(task, period_s)
     ret, dropped, rot, best = 0.0, False, 0.0, 0.0
     steps = 0
+    ph.observe(b[0])
     for k in range(1, len(b)):
         steps = k
-        ret += task.reward(b[k], t[k])
+        ret += task.reward(b[k], wrist_rad=None if wrist_rad is None else float(wrist_rad[k]),
+                           phase_rad=float(ph.phases(1)[0]))
+        ph.observe(b[k])
         if task.dropped(b[k]):
             dropped = True
             break
-        rot += task.rotation_rad(b[k - 1], b[k])
+        if task.in_palm(b[k - 1]) and task.in_palm(b[k]):  # a ball flying off spins; that is no turn
+            rot += task.rotation_rad(b[k - 1], b[k])
         best = max(best, rot)
     return {"return": float(ret), "dropped": float(dropped), "steps": float(steps),
-            "rotation_deg": float(np.degrees(rot)), "turned_90": float(np.degrees(best) >= 90.0),
-            "turned_180": float(np.degrees(best) >= 180.0)}
+            "rotation_deg": float(np.degrees(rot)), "max_rotation_deg": float(np.degrees(best)),
+            "turned_90": float(np.degrees(best) >= 90.0), "turned_180": float(np.degrees(best) >= 180.0)}

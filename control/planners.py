@@ -349,30 +349,52 @@ class PDDM(Planner):
 
     For ``iterations`` rounds (1 in the paper):
 
-        u_{n,t} ~ N(0, σ²)                                  white noise [N, H, A]
-        n_{n,t} = β u_{n,t} + (1-β) n_{n,t-1},  n_{n,-1}=0  smooth along the horizon
-        a_n     = clip(μ + n_n)
+        u_{n,t} ~ N(0, σ_n²)                                white noise [N, H, A]
+        filter="noise" (the paper's text):
+            n_{n,t} = β u_{n,t} + (1-β) n_{n,t-1},  n_{n,-1}=0;   a_n = clip(μ + n_n)
+        filter="actions" (the reference code, google-research/pddm ``mppi.py``):
+            a_{n,t} = β (μ_t + u_{n,t}) + (1-β) a_{n,t-1},  a_{n,-1} = the action executed last
+            (``init_mean`` after :meth:`reset`);             a_n = clip(a_n)
         R_n     = -cost_n
-        μ      ← Σ_n e^{γ (R_n - max R)} a_n / Σ_n e^{γ (R_n - max R)}
+        w_n     = e^{γ (R_n - max R)};   μ ← Σ_n w_n a_n / Σ_n w_n
 
-    Returns ``μ_0``; warm start shifts ``μ`` one step and repeats the last action.
+    σ_n = σ except for the last ``low_noise_fraction`` of the samples, which get
+    ``low_noise_scale``·σ (the reference code keeps 10 % at 0.3 σ). Returns ``μ_0``; warm
+    start shifts ``μ`` one step and repeats the last action.
+
+    After each plan ``last_ess`` (effective sample size of the weights, (Σw)²/Σw², in [1, N])
+    and ``last_shift`` (RMS over [H, A] of the new mean minus the mean sampled about) are set,
+    and appended to ``history`` (cleared by :meth:`reset`): a near-uniform weighting (ESS ≈ N)
+    with a tiny shift is the "too soft, minimal movement" case of the thesis.
 
     Args (beyond :class:`Planner`):
         gamma: reward-weighting sharpness γ (large → best sample only, 0 → plain mean).
-        beta: filter coefficient β in (0, 1] (1 → white noise).
+        beta: filter coefficient β in (0, 1] (1 → no filtering).
         sigma: std of ``u``, scalar or ``[A]``; default a quarter of the action range.
         init_mean: first mean action ``[A]`` (default: middle of the bounds).
+        filter: ``"noise"`` or ``"actions"`` (above).
+        low_noise_fraction, low_noise_scale: the low-noise share of the samples (above).
     """
 
     name = "pddm"
 
     def __init__(self, *args, gamma: float = 20.0, beta: float = 0.7,
                  sigma: float | Sequence[float] | None = None,
-                 init_mean: Sequence[float] | None = None, **kwargs) -> None:
+                 init_mean: Sequence[float] | None = None, filter: str = "noise",
+                 low_noise_fraction: float = 0.0, low_noise_scale: float = 0.3, **kwargs) -> None:
         if not 0.0 < beta <= 1.0:
             raise ValueError(f"beta must be in (0, 1], got {beta}")
+        if filter not in ("noise", "actions"):
+            raise ValueError(f"filter must be 'noise' or 'actions', got {filter!r}")
+        if not 0.0 <= low_noise_fraction <= 1.0:
+            raise ValueError(f"low_noise_fraction must be in [0, 1], got {low_noise_fraction}")
+        if not low_noise_scale >= 0.0:
+            raise ValueError(f"low_noise_scale must be >= 0, got {low_noise_scale}")
         self.gamma = float(gamma)
         self.beta = float(beta)
+        self.filter = filter
+        self.low_noise_fraction = float(low_noise_fraction)
+        self.low_noise_scale = float(low_noise_scale)
         self._sigma_arg = sigma
         self._init_mean = init_mean
         super().__init__(*args, **kwargs)
@@ -383,9 +405,16 @@ class PDDM(Planner):
         init = (self.action_low + self.action_high) / 2 if self._init_mean is None else _vec(
             self._init_mean, self.action_dim, "init_mean")
         self.mean = init.expand(self.horizon, -1).clone()
+        #: the action executed last (the anchor of filter="actions"); the first mean after a reset
+        self.previous = self.mean[0].clone()
+        self.last_ess: float | None = None
+        self.last_shift: float | None = None
+        self.history: list[tuple[float, float]] = []
 
     def config(self) -> dict:
-        return {**super().config(), "gamma": self.gamma, "beta": self.beta, "sigma": self.sigma.tolist()}
+        return {**super().config(), "gamma": self.gamma, "beta": self.beta, "sigma": self.sigma.tolist(),
+                "filter": self.filter, "low_noise_fraction": self.low_noise_fraction,
+                "low_noise_scale": self.low_noise_scale}
 
     def sample(self, mean: torch.Tensor) -> torch.Tensor:
         """Candidate sequences ``[N, H, A]`` around ``mean`` (a reused buffer)."""
@@ -393,11 +422,21 @@ class PDDM(Planner):
         u = self._buffer("noise", (N, H, A))
         torch.randn(u.shape, generator=self.generator, out=u)
         u.mul_(self.sigma)
+        n_low = int(self.low_noise_fraction * N)
+        if n_low:
+            u[N - n_low:].mul_(self.low_noise_scale)
         actions = self._buffer("actions", (N, H, A))
-        # filtered noise written straight into the action buffer, then shifted by the mean
+        b = self.beta
+        if self.filter == "actions":  # smooth the actions, from the one executed last
+            prev = self.previous.expand(N, A)
+            for t in range(H):
+                prev = b * (mean[t] + u[:, t]) + (1.0 - b) * prev
+                actions[:, t] = prev
+            return self._clip(actions)
+        # smooth the noise, written straight into the action buffer, then shifted by the mean
         prev = torch.zeros(N, A)
         for t in range(H):
-            prev = self.beta * u[:, t] + (1.0 - self.beta) * prev
+            prev = b * u[:, t] + (1.0 - b) * prev
             actions[:, t] = prev
         return self._clip(actions.add_(mean))
 
@@ -406,8 +445,14 @@ class PDDM(Planner):
         for _ in range(self.iterations):
             actions = self.sample(mean)
             total, _ = self._evaluate(dynamics, cost, s0, actions)
-            mean = reward_weighted_mean(actions, -total, self.gamma)
+            w = torch.exp(self.gamma * (total.min() - total))  # e^{γ (R - max R)}, R = -cost
+            new = torch.einsum("n,nha->ha", w, actions) / w.sum()
+            self.last_ess = float(w.sum() ** 2 / (w * w).sum())
+            self.last_shift = float((new - mean).pow(2).mean().sqrt())
+            self.history.append((self.last_ess, self.last_shift))
+            mean = new
         plan = self._clip(mean.clone())
+        self.previous = plan[0].clone()
         self.mean = self._shift(plan)
         return plan
 
@@ -434,22 +479,30 @@ class PddmConfig:
     sigma: float | None = None
     action_low: float = -1.0
     action_high: float = 1.0
+    #: "noise" (the paper's text) or "actions" (the reference code): see :class:`PDDM`
+    filter: str = "noise"
+    low_noise_fraction: float = 0.0
+    low_noise_scale: float = 0.3
 
     def planner(self, seed: int | None = 0, init_mean: Sequence[float] | None = None) -> PDDM:
         """The planner; ``init_mean``: its first mean action (default the middle of the bounds)."""
         return PDDM(self.action_low, self.action_high, horizon=self.horizon, samples=self.samples,
                     gamma=self.gamma, beta=self.beta, sigma=self.sigma, action_dim=self.action_dim,
-                    seed=seed, init_mean=init_mean)
+                    seed=seed, init_mean=init_mean, filter=self.filter,
+                    low_noise_fraction=self.low_noise_fraction, low_noise_scale=self.low_noise_scale)
 
     def model_kwargs(self) -> dict:
         return {"state_dim": self.state_dim, "action_dim": self.action_dim,
                 "ensemble": self.ensemble, "hidden": self.hidden}
 
 
-#: PDDM on the Shadow Hand Baoding balls: the thesis settings (H=7, K=700, γ=20, β=0.7, an
-#: ensemble of 3 ReLU MLPs of 2x500; the public reference code used 2x250 and β=0.6) on our
-#: hand sim's state (24 joint angles + 24 velocities + 2 balls x 3 = 54) and action (20
-#: position targets). The single definition used by ``hil bench plan`` (its ``baoding``
-#: entry) and meant for ``hil demo baoding``.
-BAODING_PDDM = PddmConfig(horizon=7, samples=700, gamma=20.0, beta=0.7, ensemble=3,
-                          hidden=(500, 500), state_dim=54, action_dim=20)
+#: PDDM on the Shadow Hand Baoding balls: the thesis' sizes (H=7, K=700, γ=20, an ensemble of
+#: 3 ReLU MLPs of 2x500; the public reference code used 2x250) with the reference code's
+#: sampler (google-research/pddm: the actions filtered from the one executed last, β=0.6,
+#: noise 0.9 about the hold pose, 10 % of the samples at 0.3 of it) on the model's state of
+#: learning/baoding.py (``BaodingFeatures``: 24 joint angles + 2 balls x (position, velocity)
+#: = 36) and the hand's 20 position targets. The single definition used by ``hil bench
+#: plan`` (its ``baoding`` entry) and by ``hil demo baoding`` (learning/baoding.py).
+BAODING_PDDM = PddmConfig(horizon=7, samples=700, gamma=20.0, beta=0.6, ensemble=3,
+                          hidden=(500, 500), state_dim=36, action_dim=20, sigma=0.9, filter="actions",
+                          low_noise_fraction=0.1)

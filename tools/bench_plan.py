@@ -7,8 +7,9 @@ Workloads (the two systems of the research):
 * **B** Shadow Hand / PDDM: state 40, action 24, ensemble of 3, 700 samples, horizon 7, PDDM
   (γ=20, β=0.7), quadratic goal cost on the first 6 state channels (two ball positions).
 * **baoding**: the planner and ensemble exactly as ``hilstack.control.planners.BAODING_PDDM``
-  configures them (the one definition the Baoding demo uses): state 54, action 20, the same
-  PDDM settings as B, quadratic goal cost on the two balls (the last 6 state channels).
+  configures them (the one definition the Baoding demo uses): state 36, action 20, the
+  reference code's sampler (β=0.6, the action filter, σ 0.9, 10 % low noise), quadratic goal
+  cost on the last 6 state channels.
 
 All use a 2x500 ReLU MLP (:class:`hilstack.learning.dynamics.EnsembleDynamics`, random init).
 The peer is ``pytorch_mppi.MPPI`` with the same cost (as its ``terminal_state_cost``,

@@ -65,8 +65,11 @@ class SimParams(Params):
     kd_nms_per_rad: float = Field(0.0, ge=0, description="extra derivative gain of the firmware loop")
     ki_wrist_nm_per_rad_s: float = Field(20.0, ge=0, description="integral gain (removes the sag under gravity)")
     ki_finger_nm_per_rad_s: float = Field(4.0, ge=0)
-    ball_target_radius_m: float = Field(0.025, gt=0)
-    ball_target_rate_rad_s: float = Field(float(np.pi / 5), description="target rotation rate (+: counter-clockwise)")
+    # the targets' ellipse and rate: the reference code's (google-research/pddm baoding_env.py)
+    ball_target_radius_m: float = Field(0.02, gt=0, description="targets' semi-axis across the palm [m]")
+    ball_target_radius_v_m: float = Field(0.036, gt=0, description="targets' semi-axis along the fingers [m]")
+    ball_target_rate_rad_s: float = Field(float(2 * np.pi / 6), description="target rotation rate (+: counter-"
+                                          "clockwise): a turn per 6 s (60 steps)")
     tracker: dict | None = Field(None, description="camera tracker options (sim_backends/shadow_hand/cameras.py: "
                                                    "TrackerOptions): balls_m from rendered stereo images, not truth")
     reset_station: bool = Field(False, description="add the ramp and the reset arm to the scene (docs/reset.md)")
@@ -220,7 +223,7 @@ class ShadowHandSim(LockstepSim):
             d.qpos[adr + 3:adr + 7] = (1.0, 0.0, 0.0, 0.0)
         mujoco.mj_forward(m, d)
         self.task = BaodingTask(center_m=center, axis=normal, radius_m=self.sim.ball_target_radius_m,
-                                rate_rad_s=self.sim.ball_target_rate_rad_s)
+                                radius_v_m=self.sim.ball_target_radius_v_m, rate_rad_s=self.sim.ball_target_rate_rad_s)
         self.firmware.reset(d.qpos[self._act_qadr].copy())
         # the hand has been holding this pose: the loops' integrals carry the gravity load
         self.firmware.preload(d.qfrc_bias[self._act_dadr])

@@ -30,8 +30,8 @@ def test_run_bench_plan_reports_all_workloads_and_levers():
     assert out["B"]["ensemble"] == 3 and out["B"]["samples"] == 700 and out["B"]["horizon"] == 7
     assert out["A"]["state_dim"] == 24 and out["A"]["samples"] == 500 and out["A"]["horizon"] == 4
     b = out["baoding"]
-    assert (b["state_dim"], b["action_dim"], b["ensemble"], b["samples"], b["horizon"]) == (54, 20, 3, 700, 7)
-    assert b["gflop_per_plan"] == pytest.approx(plan_flops(3, 700, 7, [74, 500, 500, 54]) / 1e9)
+    assert (b["state_dim"], b["action_dim"], b["ensemble"], b["samples"], b["horizon"]) == (36, 20, 3, 700, 7)
+    assert b["gflop_per_plan"] == pytest.approx(plan_flops(3, 700, 7, [56, 500, 500, 36]) / 1e9)
     assert b["p99_within_budget"] == (b["p99_ms"] < 100.0)
     assert b["within_half_plain_peer"] == (b["p50_ms"] <= 0.5 * b["peer_plain_model_p50_ms"])
     lev = b["levers"]
@@ -84,7 +84,9 @@ def test_baoding_workload_is_the_one_baoding_config():
     assert {k: w[k] for k in ("state_dim", "action_dim", "ensemble", "hidden")} == BAODING_PDDM.model_kwargs()
     assert (w["samples"], w["horizon"]) == (BAODING_PDDM.samples, BAODING_PDDM.horizon)
     c = BAODING_PDDM
-    assert (c.horizon, c.samples, c.gamma, c.beta, c.ensemble, c.hidden) == (7, 700, 20.0, 0.7, 3, (500, 500))
+    assert (c.horizon, c.samples, c.gamma, c.beta, c.ensemble, c.hidden) == (7, 700, 20.0, 0.6, 3, (500, 500))
+    # the reference code's sampler (google-research/pddm mppi.py, config/baoding.txt)
+    assert (c.sigma, c.filter, c.low_noise_fraction) == (0.9, "actions", 0.1)
 
 
 def test_tune_inference_pins_a_measured_chunk_count_without_changing_the_function():

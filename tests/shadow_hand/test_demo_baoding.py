@@ -94,7 +94,8 @@ def test_the_task_config_matches_the_sim_task():
     cfg = load_baoding_task()
     np.testing.assert_allclose(cfg.center_m, sim.task.center_m, atol=1e-5)
     np.testing.assert_allclose(cfg.axis, sim.task.axis, atol=1e-5)
-    assert (cfg.radius_m, cfg.rate_rad_s) == pytest.approx((sim.task.radius_m, sim.task.rate_rad_s))
+    assert (cfg.radius_m, cfg.radius_v_m, cfg.rate_rad_s) == pytest.approx(
+        (sim.task.radius_m, sim.task.radius_v_m, sim.task.rate_rad_s))
 
 
 def test_balls_in_the_state_on_the_demo_rig_and_the_drop_threshold_matches_the_task():
@@ -136,9 +137,13 @@ def test_a_drop_ends_the_episode_through_the_supervisor(bus, tmp_path):
 
 
 def test_demo_baoding_tiny_end_to_end(tmp_path):
+    from hilstack.learning.dynamics import cpu_bf16_support
     from hilstack.tools.demo_baoding import run_baoding_demo
 
-    r = run_baoding_demo(tmp_path, preset="tiny")
+    threads = torch.get_num_threads()
+    r = run_baoding_demo(tmp_path, preset="tiny", torch_threads=1, inference_dtype="auto")
+    assert torch.get_num_threads() == threads  # the run's thread count is restored
+    assert r["inference_dtype"] == ("bfloat16" if cpu_bf16_support() == "amx" else "float32")
     saved = json.loads((tmp_path / "report.json").read_text())
     # as JSON: a metric without data is NaN (drop recall with no drop window), and NaN != NaN
     assert json.dumps(saved["iterations"], sort_keys=True) == json.dumps(r["iterations"], sort_keys=True)
@@ -149,13 +154,19 @@ def test_demo_baoding_tiny_end_to_end(tmp_path):
     assert metrics - {"points", "model"} <= set(r["random_policy"]) and metrics - {"points", "model"} <= set(r["hold_policy"])
     assert r["random_data"]["rollouts"] == 3 and r["random_data"]["points"] > 0
     assert r["random_policy"]["episodes"] == 2 and r["iterations"][0]["episodes"] == 2
+    # hold still: as many episodes as PDDM's per iteration; the policies ranked by turns
+    assert r["hold_policy"]["episodes"] == 2
+    assert set(r["ranking_by_turns"]) == {"hold (keep the start pose)", "random (uniform actions)", "PDDM iteration 1"}
+    w = r["iterations"][0]["weights"]
+    assert w["plans"] > 0 and 1.0 <= w["ess_mean"] <= 16 and w["mean_shift_rms"] >= 0
+    assert "ball0_vx" in r["model_state"] and len(r["model_state"]) == 36
     p = r["planner"]
     assert (p["horizon"], p["samples"], p["ensemble"], p["hidden"]) == (7, 16, 3, (16, 16))
     assert p["plans"] > 0 and 0 < p["plan_ms_p50"] <= p["plan_ms_p99"]
     rs = r["resets"]
-    assert rs["requested"] >= 3 + 2 + 1 + 2  # one per episode: random walk, random, hold, PDDM
+    assert rs["requested"] >= 3 + 2 + 2 + 2  # one per episode: random walk, random, hold, PDDM
     assert rs["completed"] == rs["requested"] and rs["failed"] == 0 and rs["mean_duration_s"] > 0
-    for f in ("report.md", "returns.png", "demo.rrd", "model.pt"):
+    for f in ("report.md", "turns.png", "demo.rrd", "model.pt"):
         assert (tmp_path / f).is_file(), f
     assert all(p.endswith(".mcap") for p in r["recordings"]) and len(r["recordings"]) == 4
 
@@ -262,7 +273,7 @@ def test_a_wall_clock_hand_fits_pddm_k_to_the_period_and_the_sim_keeps_it(bus, t
         run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
         run.ctl = SimpleNamespace(next_state=lambda: SimpleNamespace(state=np.zeros(len(NAMES))))
         run.period_s = 1e-9
-        model = make_model(run.cfg, run.state_names, run.action_names)
+        model = make_model(run.cfg, run.features.names, run.action_names)  # the model's state: the features
         k = run.fit_pddm_to_period(model)
         assert k == want
         assert run.pddm_policy(model, seed=0, samples=k).planner.samples == (want or 200)

@@ -1,0 +1,300 @@
+"""Baoding as the reference code (google-research/pddm) poses it (issue 30): the model's state
+with the balls' velocities, actions about the hold pose, the targets' ellipse and period,
+the x-y distance and the wrist term, targets that do not drag a lagging pair backwards,
+and turns (not return) ranking the policies."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from hilstack.control.costs import BaodingCost, baoding_episode_metrics
+from hilstack.drivers.shadow_hand.config import (
+    BALL_CHANNELS,
+    JOINT_NAMES,
+    ShadowHandParams,
+    hold_pose_action,
+    shadow_hand_spec,
+)
+from hilstack.learning.baoding import (
+    BaodingFeatures,
+    BaodingPolicy,
+    HoldActionMap,
+    hold_action_map,
+    load_baoding_task,
+    summarize,
+    turn_rank_key,
+)
+from hilstack.learning.datasets import Episode
+from hilstack.sim_backends.shadow_hand.baoding import BaodingTask, TargetPhase
+
+NAMES = list(shadow_hand_spec(ShadowHandParams(objects_in_state=True)).state.names)
+DT = 0.1
+
+
+def raw_state(balls: np.ndarray, q: float = 0.1) -> np.ndarray:
+    s = np.full(len(NAMES), q)
+    s[[NAMES.index(c) for c in BALL_CHANNELS]] = np.asarray(balls).reshape(-1)
+    return s
+
+
+def flat_task(**kw) -> BaodingTask:
+    base = dict(center_m=np.array([0.0, 0.0, 0.1]), axis=np.array([0.0, 0.0, 1.0]), radius_m=0.02, radius_v_m=0.036,
+                rate_rad_s=2 * np.pi / 6, distance="plane", wrist_limit_rad=0.15)
+    base.update(kw)
+    return BaodingTask(**base)
+
+
+# ---------------------------------------------------------------------------- the model's state
+def test_the_model_state_has_joint_angles_and_each_balls_position_and_velocity():
+    f = BaodingFeatures(NAMES, DT)
+    want_balls = [f"ball{i}_{q}" for i in range(2) for q in ("x", "y", "z", "vx", "vy", "vz")]
+    assert f.names == [f"{j}_pos" for j in JOINT_NAMES] + want_balls and f.dim == 36  # the reference's 40 less targets
+    assert len(BaodingFeatures(NAMES, DT, joint_velocities=True).names) == 60
+    # velocities: finite differences over the period, zero at the episode's first state
+    p = np.array([[[0.0, 0.0, 0.1], [0.01, 0.0, 0.1]], [[0.002, 0.001, 0.1], [0.01, -0.003, 0.099]],
+                  [[0.005, 0.001, 0.1], [0.01, -0.003, 0.099]]])
+    states = np.stack([raw_state(b) for b in p])
+    x = f.transform(states)
+    vel = np.stack([x[:, 27:30], x[:, 33:36]], 1)
+    np.testing.assert_allclose(vel[0], 0.0)
+    np.testing.assert_allclose(vel[1:], (p[1:] - p[:-1]) / DT, atol=1e-12)
+    np.testing.assert_allclose(np.stack([x[:, 24:27], x[:, 30:33]], 1), p)
+    # the per-step call of a running episode gives the same as the recorded episode's
+    f.reset()
+    np.testing.assert_allclose(np.stack([f(s) for s in states]), x, atol=1e-12)
+    ep = f.episode(Episode(states=states, actions=np.zeros((2, 20)), times=np.arange(3) * DT, name="e"))
+    assert ep.meta["state_names"] == f.names and ep.states.shape == (3, 36)
+
+
+def test_the_planner_plans_from_the_balls_velocities():
+    """The state the planner rolls the model out from (its dynamics' first input) carries the
+    balls' measured velocities: a model without them could not tell a ball rolling off from
+    one at rest."""
+    from hilstack.control.planners import PDDM
+    from hilstack.control.policies import MpcPolicy
+
+    seen = []
+
+    class Model:
+        def predict(self, s, a):
+            if s.dim() == 2:
+                seen.append(s[0].clone())
+            return s.clone()
+
+    f = BaodingFeatures(NAMES, DT)
+    tk = load_baoding_task()
+    planner = PDDM(-1.0, 1.0, horizon=3, samples=8, action_dim=20, init_mean=np.zeros(20), filter="actions")
+    pol = BaodingPolicy(MpcPolicy(Model(), planner, BaodingCost(tk, f.names, DT)), f, hold_action_map())
+    pol.reset()
+    b0 = np.stack([tk.center_m, tk.center_m]) + [[0.02, 0, 0], [-0.02, 0, 0]]
+    b1 = b0 + [[0.0, 0.003, 0.0], [0.0, -0.003, 0.0]]  # the pair turning: 3 cm/s each way
+    pol(raw_state(b0))
+    pol(raw_state(b1))
+    vx = [f.names.index(f"ball{i}_v{c}") for i in range(2) for c in "xyz"]
+    np.testing.assert_allclose(seen[0][vx].numpy(), 0.0, atol=1e-6)
+    np.testing.assert_allclose(seen[-1][vx].numpy(), [0, 0.03, 0, 0, -0.03, 0], atol=1e-5)
+
+
+def test_the_run_trains_and_plans_on_the_features(bus, tmp_path):
+    from hilstack.learning.baoding import BaodingConfig, BaodingRun
+
+    run = BaodingRun(BaodingConfig.tiny(), tmp_path, bus)
+    run.state_names = NAMES
+    run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
+    assert run.pddm_config().state_dim == 36
+    assert {"ball0_vx", "ball1_vz"} <= set(run.features.names)
+    ep = Episode(states=np.stack([raw_state(np.zeros((2, 3)))] * 3), actions=np.tile(hold_pose_action(), (2, 1)),
+                 times=np.arange(3) * DT, name="e")
+    m = run.model_episodes([ep])[0]
+    assert m.states.shape[1] == 36
+    np.testing.assert_allclose(m.actions, 0.0, atol=1e-6)  # the hold pose is z = 0
+
+
+# ---------------------------------------------------------------------------- actions about the hold pose
+def test_the_baoding_run_starts_every_pddm_rollout_at_the_hold_pose(bus, tmp_path):
+    """learning/baoding.py gives the planner init_mean: z = 0, the hold pose in the planner's
+    units (the reference code's zero mean); "mid" is the middle of every joint's range."""
+    from hilstack.learning.baoding import BaodingConfig, BaodingRun
+
+    for init, want in (("hold", hold_pose_action()), ("mid", np.zeros(20))):
+        run = BaodingRun(BaodingConfig.tiny(init_mean=init), tmp_path / init, bus)
+        run.state_names = NAMES
+        run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
+        pol = run.pddm_policy(model=None, seed=0)
+        first = pol.planner.mean.numpy()
+        assert np.allclose(first, first[0]) and pol.planner.previous.numpy() == pytest.approx(first[0])
+        np.testing.assert_allclose(run.amap.to_driver(first[0]), want, atol=1e-6)
+    np.testing.assert_allclose(hold_action_map().to_driver(np.zeros(20)), hold_pose_action(), atol=1e-9)
+
+
+def test_actions_about_the_hold_pose():
+    h = np.array([-0.5, 0.0, 0.8])
+    m = HoldActionMap(h, 0.9)
+    np.testing.assert_allclose(m.to_driver(np.zeros(3)), h)
+    np.testing.assert_allclose(m.to_driver(np.ones(3)), h + 0.9 * (1 - h))  # 0.9 of the way to the upper limit
+    np.testing.assert_allclose(m.to_driver(-np.ones(3)), h - 0.9 * (h + 1))
+    z = np.array([0.3, -0.7, 0.05])
+    np.testing.assert_allclose(m.from_driver(m.to_driver(z)), z, atol=1e-12)
+    assert np.all(np.abs(m.to_driver(np.array([5.0, -5.0, 2.0]))) <= 1.0)
+
+
+# ---------------------------------------------------------------------------- the task
+def test_targets_on_the_reference_ellipse_at_a_turn_per_60_steps():
+    tk = load_baoding_task()
+    assert tk.radii == pytest.approx((0.02, 0.036)) and 2 * np.pi / tk.rate_rad_s == pytest.approx(6.0)
+    t = flat_task()
+    np.testing.assert_allclose(t.targets(0.0), [[0.02, 0, 0.1], [-0.02, 0, 0.1]], atol=1e-12)
+    np.testing.assert_allclose(t.targets(1.5), [[0, 0.036, 0.1], [0, -0.036, 0.1]], atol=1e-12)  # a quarter turn
+    np.testing.assert_allclose(t.targets(6.0), t.targets(0.0), atol=1e-12)
+    assert t.pair_phase(t.targets(1.0)) == pytest.approx(2 * np.pi / 6)
+
+
+def test_reward_x_y_distance_and_wrist_term():
+    t = flat_task()
+    on = t.targets(0.5)
+    assert t.reward(on, 0.5) == pytest.approx(0.0)
+    up = on + [0, 0, 0.01]  # 1 cm above the targets: no x-y distance
+    assert t.reward(up, 0.5) == pytest.approx(0.0)
+    assert flat_task(distance="3d").reward(up, 0.5) == pytest.approx(-5 * 0.02)
+    side = on + [[0.01, 0, 0], [0, 0, 0]]
+    assert t.reward(side, 0.5) == pytest.approx(-0.05)
+    assert t.reward(on, 0.5, wrist_rad=0.2) == pytest.approx(-10.0)
+    assert t.reward(on, 0.5, wrist_rad=0.1) == pytest.approx(0.0)
+    # the cost reads the wrist from WRJ0_pos
+    f = BaodingFeatures(NAMES, DT)
+    cost = BaodingCost(t, f.names, DT)
+    cost.observe(None)
+    s = np.zeros((2, f.dim))
+    s[:, 24:27], s[:, 30:33] = t.targets(DT)[0], t.targets(DT)[1]
+    s[1, f.names.index("WRJ0_pos")] = 0.3
+    c = cost(torch.tensor(s, dtype=torch.float32)[None, None], None)
+    assert float(c) == pytest.approx(10.0, abs=1e-4)
+
+
+def test_targets_lead_a_lagging_pair_forward_not_back():
+    """The pair stayed where it started while the clock's targets went 200° round: by the
+    clock the short way to them is backwards (−160°); the led targets are ahead of the pair."""
+    t = flat_task(max_lead_rad=np.pi / 3)
+    ph = TargetPhase(t, DT)
+    start = t.targets(0.0)
+    steps = int(round(np.radians(200) / (t.rate_rad_s * DT)))
+    for _ in range(steps + 1):
+        ph.observe(start)
+    lead = ph.phases(3)
+    assert lead[0] == pytest.approx(np.pi / 3 + t.rate_rad_s * DT)  # 60° ahead of the pair, plus one step
+    assert np.all(np.diff(lead) > 0)
+    clock = TargetPhase(flat_task(), DT)
+    for _ in range(steps + 1):
+        clock.observe(start)
+    wrapped = (clock.phases(1)[0] + np.pi) % (2 * np.pi) - np.pi
+    assert wrapped < 0  # by the clock alone the nearest way to the targets is backwards
+    # a pair that keeps up follows the clock exactly
+    ph.reset()
+    for k in range(10):
+        ph.observe(t.targets(k * DT))
+    np.testing.assert_allclose(ph.phases(2), t.rate_rad_s * DT * np.array([10, 11]))
+
+
+def test_the_cost_prefers_turning_forward_when_the_pair_lags():
+    t = flat_task(max_lead_rad=np.pi / 3)
+    f = BaodingFeatures(NAMES, DT)
+    cost = BaodingCost(t, f.names, DT)
+    start = t.targets(0.0)
+    for _ in range(34):  # 200° of clock
+        cost.observe(np.concatenate([np.zeros(24), start[0], np.zeros(3), start[1], np.zeros(3)]))
+
+    def seq(step_rad):
+        s = np.zeros((4, f.dim))
+        for h in range(4):
+            b = t.targets_at(h * step_rad)
+            s[h, 24:27], s[h, 30:33] = b[0], b[1]
+        return s
+
+    c = cost(torch.tensor(np.stack([seq(0.2), seq(-0.2)]), dtype=torch.float32)[None], None)[0]
+    assert c[0] < c[1]  # forward is cheaper
+
+
+# ---------------------------------------------------------------------------- turns rank the policies
+def test_a_policy_that_holds_still_does_not_rank_above_one_that_turns():
+    t = flat_task(max_lead_rad=np.pi / 3)
+    n = 60
+    still = np.stack([t.targets(0.0)] * (n + 1))
+    ang = np.radians(np.arange(n + 1) * 3.0)  # turns 3° a step: 120° in 4 s, then drops
+    turn = t.targets_at(ang)
+    turn[41:, 0, 2] = 0.0
+    turn = turn[:42]
+    hold = summarize([baoding_episode_metrics(t, still, np.arange(n + 1) * DT)] * 3)
+    turns = summarize([baoding_episode_metrics(t, turn, np.arange(42) * DT)] * 3)
+    assert turns["success_90"] == 1.0 and turns["drop_rate"] == 1.0 and hold["success_90"] == 0.0
+    assert turns["mean_return"] < hold["mean_return"]  # the return would rank holding first
+    ranked = sorted([("hold", hold), ("turns", turns)], key=lambda kv: turn_rank_key(kv[1]))
+    assert ranked[0][0] == "turns"
+    assert turns["mean_steps"] == 41 and hold["mean_steps"] == n
+
+
+def test_a_pair_spinning_as_it_flies_off_is_not_a_turn():
+    """Random flicks throw the balls out spinning: the steps with a ball outside the palm
+    (task.in_palm) add no rotation, so a throw scores no 90° turn (it did before: the random
+    policy had 20 % of 90° turns in a quick run)."""
+    t = flat_task(radius_v_m=None)
+    ang = np.radians(np.arange(12) * 15.0)  # 165° of spin ...
+    grow = np.r_[np.ones(4), np.linspace(3.5, 5.0, 8)][:, None, None]  # ... while the pair flies apart
+    b = t.center_m + (t.targets_at(ang) - t.center_m) * grow  # (to 10 cm from the centre, not yet a drop)
+    assert not any(t.dropped(x) for x in b)
+    m = baoding_episode_metrics(t, b, np.arange(12) * DT)
+    assert m["turned_90"] == 0.0 and m["rotation_deg"] < 60
+    circle = flat_task(radius_v_m=None)  # the same spin in the palm (a circle: the angle is the phase)
+    held = baoding_episode_metrics(circle, circle.targets_at(ang), np.arange(12) * DT)
+    assert held["turned_90"] == 1.0 and held["rotation_deg"] == pytest.approx(165.0)
+
+
+def test_fixed_gradient_steps_per_iteration_do_not_grow_with_the_data(bus, tmp_path):
+    from hilstack.learning.baoding import BaodingConfig, BaodingRun
+
+    ep = lambda n: Episode(states=np.zeros((n + 1, 3)), actions=np.zeros((n, 1)), name="e")  # noqa: E731
+    run = BaodingRun(BaodingConfig.tiny(train_steps=100, batch_size=500), tmp_path, bus)
+    small, big = run.epochs_for([ep(1000)], 1), run.epochs_for([ep(100_000)], 5)
+    assert small == int(np.ceil(100 * 500 / 900)) and big == 1  # ~100 steps either way
+    assert BaodingRun(BaodingConfig.tiny(epochs=7, retrain_epochs=3), tmp_path / "b", bus).epochs_for([ep(10)], 2) == 3
+    with pytest.raises(ValueError, match="train_steps"):
+        BaodingConfig(train_steps=0)
+
+
+def test_the_thesis_scale_cost_command_measures_every_lever():
+    """`python -m hilstack.tools.demo_baoding cost` at a seconds-long size: plan times per K,
+    dtype (bf16 only where the CPU has it natively) and thread count, training, the sim."""
+    from hilstack.learning.dynamics import cpu_bf16_support
+    from hilstack.tools.demo_baoding import thesis_scale_cost
+
+    out = thesis_scale_cost(calls=2, sizes=(16,), train_points=100)
+    want = {f"K16_{dt}_{th}thread" for dt in (("fp32", "bf16") if cpu_bf16_support() else ("fp32",)) for th in (1, 2)}
+    assert set(out["plan_ms"]) == want
+    assert all(0 < v["p50"] <= v["p99"] for v in out["plan_ms"].values())
+    assert out["train_ms_per_step"] > 0 and out["sim_ms_per_period"] > 0
+
+
+def test_every_ablation_is_a_valid_config():
+    from hilstack.learning.baoding import BaodingConfig
+    from hilstack.tools.demo_baoding import ABLATIONS
+
+    for name, kw in ABLATIONS.items():
+        c = BaodingConfig.quick(**kw)
+        replace_task = kw.get("task_overrides", {})
+        from dataclasses import replace
+
+        replace(load_baoding_task(), **replace_task)  # the task accepts the overrides
+        assert c.preset == "quick", name
+
+
+def test_the_quick_preset_is_the_old_sampler_ablation_and_ref_the_reference_sampler():
+    """The docs' quick numbers are the `old_sampler` row: the same config as the preset."""
+    from hilstack.learning.baoding import BaodingConfig
+    from hilstack.tools.demo_baoding import ABLATIONS
+
+    assert BaodingConfig.quick() == BaodingConfig.quick(**ABLATIONS["old_sampler"])
+    ref = BaodingConfig.quick(**ABLATIONS["ref"])
+    assert (ref.sigma, ref.filter, ref.beta, ref.low_noise_fraction) == (0.9, "actions", 0.6, 0.1)
+    d = BaodingConfig()
+    assert (d.sigma, d.filter, d.beta, d.low_noise_fraction) == (0.9, "actions", 0.6, 0.1)
