@@ -161,27 +161,30 @@ def plot_diagnostics(path, diag_before: dict, preps, params) -> None:
     d = _rows(preps, params)
     fig, ax = plt.subplots(1, 5, figsize=(20, 3.4))
 
-    def binned(a, xv, yv, label):
-        edges = np.unique(np.quantile(xv, np.linspace(0, 1, 41)))
-        mids, means = [], []
-        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-            m = (xv >= lo) & (xv <= hi)
-            if m.any():
-                mids.append(0.5 * (lo + hi))
-                means.append(yv[m].mean())
-        a.plot(mids, means, ".-")
-        a.axhline(0, color="k", lw=0.5)
-        a.set_xlabel(label)
-
-    binned(ax[0], d["v"], d["r"], "velocity: step=dry, slope=viscous, dip=Stribeck")
+    binned_plot(ax[0], d["v"], d["r"], "velocity: step=dry, slope=viscous, dip=Stribeck")
     ax[0].set_ylabel("mean residual [x/s²]")
-    binned(ax[1], d["x"], d["r"], "position: sin=gravity, periodic=cogging")
-    binned(ax[2], d["u"], d["r"], "command: flat near 0 = deadband")
+    binned_plot(ax[1], d["x"], d["r"], "position: sin=gravity, periodic=cogging")
+    binned_plot(ax[2], d["u"], d["r"], "command: flat near 0 = deadband")
     cc = diag_before.get("command_history", {}).get("xcorr", [])
     ax[3].stem(np.arange(len(cc)), cc)
     ax[3].set_xlabel("lag [samples]: peak = delay/lag")
     rev = np.minimum(d["rev"], 60)
-    binned(ax[4], rev, np.abs(d["r"]), "samples since command reversal (backlash)")
+    binned_plot(ax[4], rev, np.abs(d["r"]), "samples since command reversal (backlash)")
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
+
+
+def binned_plot(a, xv, yv, label: str) -> None:
+    """The mean of ``yv`` in 40 quantile bins of ``xv`` on axes ``a`` (a residual against a
+    variable: the plot a physicist reads an effect from)."""
+    edges = np.unique(np.quantile(xv, np.linspace(0, 1, 41)))
+    mids, means = [], []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        m = (xv >= lo) & (xv <= hi)
+        if m.any():
+            mids.append(0.5 * (lo + hi))
+            means.append(yv[m].mean())
+    a.plot(mids, means, ".-")
+    a.axhline(0, color="k", lw=0.5)
+    a.set_xlabel(label)

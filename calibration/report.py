@@ -495,23 +495,13 @@ def _plots(out: Path, sel, preps, pool, test) -> None:
             VB.append(q.ep.vbat_v[k])
     R, V, U = np.concatenate(R), np.concatenate(V), np.concatenate(U)
     n_pan = 4 if VB else 3
+    from hilstack.calibration.diagnostics import binned_plot
+
     fig, ax = plt.subplots(1, n_pan, figsize=(4 * n_pan, 3.4))
 
-    def binned(a, xv, yv, label):
-        edges = np.quantile(xv, np.linspace(0, 1, 41))
-        mids, means = [], []
-        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-            m = (xv >= lo) & (xv <= hi)
-            if m.any():
-                mids.append(0.5 * (lo + hi))
-                means.append(yv[m].mean())
-        a.plot(mids, means, ".-")
-        a.axhline(0, color="k", lw=0.5)
-        a.set_xlabel(label)
-        a.set_ylabel("mean nominal residual [x/s²]")
-
-    binned(ax[0], V, R, "velocity (coulomb/stribeck/viscous)")
-    binned(ax[1], U, R, "command (deadband/saturation)")
+    binned_plot(ax[0], V, R, "velocity (coulomb/stribeck/viscous)")
+    ax[0].set_ylabel("mean nominal residual [x/s²]")
+    binned_plot(ax[1], U, R, "command (deadband/saturation)")
     # Cross-correlation with the command rate: a peak at positive lag means delay/lag.
     du = np.concatenate(DU)
     lags = np.arange(-10, 31)
@@ -523,7 +513,7 @@ def _plots(out: Path, sel, preps, pool, test) -> None:
     ax[2].set_xlabel("lag [samples] (residual after command change)")
     ax[2].set_ylabel("corr(residual, Δu)")
     if VB:
-        binned(ax[3], np.concatenate(VB), R, "battery voltage (battery_sag)")
+        binned_plot(ax[3], np.concatenate(VB), R, "battery voltage (battery_sag)")
     fig.tight_layout()
     fig.savefig(out / "diagnostics.png", dpi=90)
     plt.close(fig)
@@ -553,3 +543,4 @@ def _candidate_plot(out: Path, sel) -> None:
     fig.tight_layout()
     fig.savefig(out / "candidates.png", dpi=90)
     plt.close(fig)
+
