@@ -113,6 +113,23 @@ def generate(path: Path, users: list[str]) -> list[str]:
     return added
 
 
+def provision(rig: str, bus: BusConfig, backends: list[str]) -> str | None:
+    """Create the credentials file of a rig without real hardware when it is missing, so an
+    emulated rig runs unattended (CI, a fresh clone): a random password for ``bus.access.user``
+    and every command and release user, mode 600, where the rig (or HIL_CREDENTIALS) says.
+    Returns the one line to tell the user, or None (no access control, the file exists, or a
+    real robot: its file is made on purpose with `hil credentials RIG`, and its absence stays
+    the one-line error of :func:`read_credentials`)."""
+    acc = bus.access
+    if acc is None or "real" in backends:
+        return None
+    path = credentials_path(acc)
+    if path.exists():
+        return None
+    added = generate(path, [acc.user, *acc.command, *acc.release])
+    return f"created credentials for rig {rig} in {path} (users {', '.join(added)}; mode 600)"
+
+
 def acl(rig: str, robots: list[str], access: BusAccess) -> dict[str, Any]:
     """The Zenoh ``access_control`` section of the rig's router (see the module docstring)."""
     bad = sorted(set(robots) & set(RESERVED))

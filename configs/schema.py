@@ -140,7 +140,8 @@ class BusAccess(Strict):
     ``release`` users may release the e-stop, every authenticated session may engage it
     and listen. A session without the rig's credentials cannot connect at all. The file
     holds ``user:password`` lines (Zenoh's usrpwd dictionary), is never in the repository
-    and must be readable by its owner only; ``hil credentials RIG`` creates it."""
+    and must be readable by its owner only; ``hil credentials RIG`` creates it, and ``hil up``
+    (or a demo) does when it is missing on a rig without real robots."""
 
     #: the credentials file (``~`` and ``$VARS`` expanded); the environment variable
     #: HIL_CREDENTIALS overrides it
@@ -176,7 +177,7 @@ class BusConfig(Strict):
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
     gossip: bool = True
-    #: access control (authentication + ACL); required for rigs with real robots
+    #: access control (authentication + ACL); required for rigs with real or emulated robots
     access: BusAccess | None = None
 
     @field_validator("listen", "connect")

@@ -98,19 +98,18 @@ class DriverNode(Node):
         if pace == "lockstep" and driver.backend != "sim":  # before the session opens: nothing left running
             raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
         access = bus is not None and bus.access is not None
-        if driver.backend == "real" and not access:
-            # who may command and release a real robot is not left open (docs/platform.md, Safety model)
+        if driver.backend in ("real", "emulated") and not access:
+            # who may command and release a real robot, or one behind a device emulator, is not
+            # left open (docs/platform.md, "Who may command and who may release")
             from hilstack.bus.access import AccessError
 
-            raise AccessError(f"rig {rig}: robot {robot} is real hardware; its rig needs a bus.access section "
+            what = "real hardware" if driver.backend == "real" else "emulated hardware"
+            raise AccessError(f"rig {rig}: robot {robot} is {what}; its rig needs a bus.access section "
                               "(who may command and release it; docs/platform.md)")
         if "session" not in node_kw:  # on an access rig the driver node is the rig's router (bus/session.py)
             node_kw.update(server=access, robots=[robot])
         node_kw.setdefault("unique", True)  # one driver node per robot and rig (bus/node.py: NodeConflict)
         super().__init__(keys.driver_node(robot), rig, bus, **node_kw)
-        if not access and driver.backend == "emulated":
-            log.warning("rig %s has no bus.access: any process on this host can command %s and release its e-stop",
-                        rig, robot)
         self.driver = driver
         self.robot = robot
         self.pace = pace

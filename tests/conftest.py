@@ -1,4 +1,8 @@
+import atexit
 import os
+import shutil
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -12,6 +16,16 @@ try:
     torch.set_num_threads(1)
 except ImportError:  # pragma: no cover
     pass
+
+# Credentials of the access-controlled rigs (configs/rigs/*: ~/.config/hilstack/<rig>.credentials,
+# created by `hil up` when missing) go to a private HOME of this test session, never the user's:
+# every test process, and every `hil` process a test starts, sees it. Caches stay where they were.
+os.environ.setdefault("XDG_CACHE_HOME", str(Path.home() / ".cache"))
+os.environ.pop("HIL_CREDENTIALS", None)
+os.environ.pop("HIL_BUS_USER", None)
+TEST_HOME = tempfile.mkdtemp(prefix="hil-test-home-")
+os.environ["HOME"] = TEST_HOME
+atexit.register(shutil.rmtree, TEST_HOME, ignore_errors=True)
 
 
 @pytest.fixture
@@ -40,3 +54,12 @@ def spawn():
         if pr.p.poll() is None:
             pr.p.kill()
             pr.p.wait()
+
+
+@pytest.fixture
+def rig_bus():
+    """``rig_bus("roach_emulated")``: that rig's bus (access control included) on a private
+    endpoint, its credentials created in the session's HOME (tests/helpers.py: private_rig_bus)."""
+    from tests.helpers import private_rig_bus
+
+    return private_rig_bus

@@ -94,3 +94,32 @@ def hil_drive_with_device_signal(robot: str, emulator_module: str, sig: int, tim
                     os.kill(emu, s)
                 except ProcessLookupError:
                     break
+
+
+def private_rig_bus(rig: str):
+    """A rig config's bus (its access control included) on a private endpoint, with the rig's
+    credentials created when missing, as `hil up` does (in the test session's HOME:
+    tests/conftest.py). Nodes built in-process on an emulated rig use this, not a plain BusConfig."""
+    from hilstack.tools.common import provision_credentials, rig_bus
+
+    name, bus, cfg = rig_bus(rig, f"tcp/127.0.0.1:{free_port()}", need_config=True)
+    provision_credentials(name, bus, cfg)
+    return bus
+
+
+def wait_rig_router(bus, timeout_s: float = 90.0) -> None:
+    """On an access rig: until its driver node (the rig's router) admits this process's credentials.
+    A client on an access rig needs the router up when it opens (bus/session.py)."""
+    if bus.access is None:
+        return
+    from hilstack.bus.session import BusUnavailable, open_session
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            open_session(bus).close()
+            return
+        except BusUnavailable:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)

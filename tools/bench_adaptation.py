@@ -41,7 +41,7 @@ import yaml
 from hilstack.bus import keys
 from hilstack.bus.node import alive_nodes
 from hilstack.bus.schemas import ModelUpdate
-from hilstack.configs.schema import BusConfig, load_rig, rig_robot_config
+from hilstack.configs.schema import load_rig, rig_robot_config
 from hilstack.control.controller_node import ControllerNode
 from hilstack.control.policies import SafeRandomPolicy
 from hilstack.drivers.registry import make_driver
@@ -156,7 +156,10 @@ def run_bench_adaptation(rig: str = "roach_emulated", updates: int = 100, hidden
     spec = make_driver(rig_robot_config(cfg, robot)).spec
     period_ms = spec.period_s * 1e3
     ep = f"tcp/127.0.0.1:{free_port()}"
-    bus = BusConfig(endpoint=ep)
+    from hilstack.tools.common import provision_credentials, with_endpoint
+
+    bus = with_endpoint(cfg.bus, ep)  # the rig's own bus (its access control) on a private port
+    provision_credentials(cfg.name, bus, cfg)
     out: dict[str, Any] = {"rig": cfg.name, "pace": cfg.pace, "backend": cfg.robots[robot].backend, "period_ms": period_ms, "updates": updates, "hidden": list(hidden),
                            "window": window, "cpus": os.cpu_count(), "load_avg_1min": os.getloadavg()[0]}
     with tmpdir as tmp:

@@ -17,6 +17,7 @@ from hilstack.tools.common import (
     UserError,
     echo_json,
     exit_with_parent,
+    provision_credentials,
     rig_bus,
     setup_logging,
     user_errors,
@@ -145,6 +146,7 @@ def register(app: typer.Typer) -> None:
         setup_logging()
         exit_with_parent()
         _, bus, cfg = rig_bus(rig, endpoint, need_config=True)
+        provision_credentials(cfg.name, bus, cfg)
         names = robot.split(",") if robot else list(cfg.robots)
         for n in names:
             if n not in cfg.robots:

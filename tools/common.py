@@ -169,6 +169,16 @@ def rig_bus(rig: str, endpoint: str | None = None, need_config: bool = False) ->
     return cfg.name, with_endpoint(cfg.bus, endpoint), cfg
 
 
+def provision_credentials(rig: str, bus: BusConfig, cfg: Any) -> None:
+    """A rig without real hardware whose credentials file is missing gets one (bus/access.py:
+    provision), said in one line on stderr; a real rig's missing file stays an error."""
+    from hilstack.bus.access import provision
+
+    line = provision(rig, bus, [r.backend for r in cfg.robots.values()] if cfg is not None else [])
+    if line:
+        typer.echo(line, err=True)
+
+
 def bus_config(endpoint: str | None, connect: list[str] | None = None) -> BusConfig:
     kw: dict[str, Any] = {}
     if endpoint:

@@ -54,11 +54,14 @@ def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full:
         cfg = MbrlConfig(**{"random_rollouts": 400, **overrides})
     # a private rendezvous port: a demo never talks to another rig by accident; the rig's
     # bus settings otherwise (its access control: a real rig's driver admits only its credentials)
-    if bus is None:
-        from hilstack.configs.schema import load_rig
-        from hilstack.tools.common import with_endpoint
+    from hilstack.configs.schema import load_rig
+    from hilstack.tools.common import provision_credentials, with_endpoint
 
-        bus = with_endpoint(load_rig(cfg.rig).bus, free_endpoint())
+    rig_cfg = load_rig(cfg.rig)
+    if bus is None:
+        bus = with_endpoint(rig_cfg.bus, free_endpoint())
+    # an emulated rig's credentials, made here when missing: every node of the demo needs them
+    provision_credentials(rig_cfg.name, bus, rig_cfg)
     report = MbrlRun(cfg, out, bus).run()
     report["quick"] = quick
     report["full"] = full

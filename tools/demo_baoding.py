@@ -44,8 +44,16 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg = make_config(preset, seed, **overrides)
-    # a private rendezvous port: a demo never talks to another rig by accident
-    report = BaodingRun(cfg, out, bus or BusConfig(endpoint=free_endpoint())).run()
+    # a private rendezvous port: a demo never talks to another rig by accident; the rig's bus
+    # settings otherwise (an emulated hand's access control, its credentials made when missing)
+    if bus is None:
+        from hilstack.configs.schema import load_rig
+        from hilstack.tools.common import provision_credentials, with_endpoint
+
+        rig_cfg = load_rig(cfg.rig)
+        bus = with_endpoint(rig_cfg.bus, free_endpoint())
+        provision_credentials(rig_cfg.name, bus, rig_cfg)
+    report = BaodingRun(cfg, out, bus).run()
     report["command"] = f"hil demo baoding{' --quick' if preset == 'quick' else ''} --seed {seed} --out {out}"
     report["created"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     report["plots"] = [write_plot(report, out)]

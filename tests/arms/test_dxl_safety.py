@@ -42,7 +42,7 @@ from hilstack.drivers.dynamixel.control_table import OPERATING_MODES, control_ta
 from hilstack.drivers.registry import make_driver
 from hilstack.sim_backends.widowx.firmware import Servo
 from hilstack.tools.cli import app
-from tests.helpers import ROOT, wait_for
+from tests.helpers import ROOT, wait_for, wait_rig_router
 
 ARM_IDS = ["1", "2", "4", "6", "7", "8"]
 MECH_IDS = ["10", "11"]
@@ -330,9 +330,11 @@ def test_a_second_process_opening_the_port_is_refused():
         bus.close()
 
 
-def test_hil_up_of_the_emulated_one_bus_rig_runs_both_robots(bus):
+def test_hil_up_of_the_emulated_one_bus_rig_runs_both_robots(rig_bus):
     rig = "arm_widowx_emulated"
+    bus = rig_bus(rig)  # its access control: this test's nodes log in as operator
     up = _hil("up", rig, "--endpoint", bus.endpoint)
+    wait_rig_router(bus)
     got: dict[str, list[float]] = {"arm": [], "mechanism": []}
     try:
         with Node("watch", rig, bus, handle_signals=False) as node:
@@ -371,10 +373,12 @@ def test_hil_up_of_the_emulated_one_bus_rig_runs_both_robots(bus):
 
 
 # ---------------------------------------------------------------------- e-stop confirmation
-def test_estop_while_the_servo_bus_is_frozen_is_not_confirmed(bus):
+def test_estop_while_the_servo_bus_is_frozen_is_not_confirmed(rig_bus):
     from hilstack.drivers.bridge import DriverNode
 
-    rig = "t_estop_dxl"
+    # the emulated arm's rig (its access control: `hil estop` below logs in through the rig config)
+    rig = "arm_widowx_emulated"
+    bus = rig_bus(rig)
     # a long link timeout: the e-stop must arrive while the frozen bus is still open
     d = make_driver("widowx", backend="emulated", bus_name="t_estop_dxl", link_timeout_periods=100)
     node = DriverNode(d, rig, "arm", bus, handle_signals=False, estop_sync_s=0.3)

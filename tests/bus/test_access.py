@@ -20,13 +20,14 @@ import zenoh
 from typer.testing import CliRunner
 
 from hilstack.bus import keys
-from hilstack.bus.access import AccessError, acl, generate, read_credentials
+from hilstack.bus.access import AccessError, acl, generate, provision, read_credentials
 from hilstack.bus.estop import command_estop
 from hilstack.bus.node import Node
 from hilstack.bus.schemas import Command, EStop, RobotState, decode, encode
 from hilstack.bus.session import BusUnavailable, zenoh_config
 from hilstack.configs.schema import BusAccess, BusConfig, load_rig
 from hilstack.tools.cli import app
+from hilstack.tools.common import with_endpoint
 from tests.helpers import ROOT, free_port, wait_for
 
 
@@ -330,3 +331,109 @@ def test_a_second_driver_node_of_the_same_rig_and_robot_is_refused(spawn):
     assert r.stderr.strip().splitlines()[-1] == (
         f"error: a node driver-pm is already alive on rig pointmass_sim at {ep}: another process (another user's "
         "rig of the same name?) drives it; give each rig its own bus.endpoint")
+
+
+# ---------------------------------------------------------------------------- the rigs as shipped
+def test_the_shipped_emulated_roach_rig_admits_only_its_credentials(tmp_path, spawn, monkeypatch):
+    """configs/rigs/roach_emulated.yaml as shipped (only the endpoint private, so parallel runs do
+    not meet): `hil up` on a fresh HOME creates its credentials unattended; a plain Zenoh session
+    can neither command nor release; the operator engages, releases and drives."""
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))  # this test's nodes and the `hil up` it starts
+    rig = "roach_emulated"
+    bus = with_endpoint(load_rig(rig).bus, f"tcp/127.0.0.1:{free_port()}")
+    creds = home / ".config" / "hilstack" / "roach_emulated.credentials"
+    assert not creds.exists()
+    up = spawn("up", rig, "--endpoint", bus.endpoint)
+    wait_for(lambda: creds.is_file() and creds.stat().st_size > 0, 60, "hil up to create the credentials")
+    _wait_up(bus, rig, "roach")
+    assert (creds.stat().st_mode & 0o777) == 0o600 and set(read_credentials(creds)) == {"operator"}
+    op = Node("test-operator", rig, bus, handle_signals=False)
+    plain = None
+    try:
+        states = States(op, rig, "roach")
+        first = states.until(lambda s: s.ok, "the roach's first state", 90)
+
+        def intrude(n: int) -> None:
+            for _ in range(n):  # full-speed commands, and releases on every release key
+                plain.put(keys.cmd(rig, "roach"), encode(Command(robot="roach", action=[1.0, 1.0])))
+                plain.put(keys.estop_release(rig, "operator"), encode(EStop(engaged=False, sender="operator")))
+                plain.put(keys.estop(rig), encode(EStop(engaged=False)))
+                time.sleep(0.05)
+
+        plain = _plain_session(bus)
+        intrude(40)
+        states.new()
+        during = [s for s in states.got if s.stamp_s > first.stamp_s]
+        assert during and all(_still(s) for s in during), "an uncredentialed command was applied"
+
+        assert command_estop(op, engaged=True, reason="test", timeout_s=10).ok
+        states.until(lambda s: s.stopped_reason == "estop", "the e-stop")
+        intrude(20)
+        t_mark = time.time()
+        late = states.until(lambda s: s.stamp_s > t_mark, "a state after the release attempts")
+        assert late.stopped_reason == "estop" and not late.active and _still(late)
+
+        res = command_estop(op, engaged=False, timeout_s=10)
+        assert res.ok, res
+        states.until(lambda s: s.active, "the operator's release")
+        cmd = op.publisher(keys.cmd(rig, "roach"), Command)
+
+        def moving():
+            cmd.put(Command(robot="roach", action=[0.6, 0.6]))
+            return any(s.action and s.action[0] > 0.1 for s in states.new())
+
+        wait_for(moving, 30, "the operator's command applied")
+    finally:
+        op.close()
+        if plain is not None:
+            plain.close()
+        assert up.stop(30) == 0
+    err = up.p.stderr.read()
+    assert f"created credentials for rig roach_emulated in {creds} (users operator; mode 600)" in err
+
+
+def test_every_rig_with_hardware_has_access_control_on_its_own_endpoint():
+    """Emulated and real robots: bus.access and an endpoint no other rig config uses; sim-only rigs stay open."""
+    seen: dict[str, str] = {}
+    for path in sorted((ROOT / "configs" / "rigs").glob("*.yaml")):
+        cfg = load_rig(path)
+        hardware = any(r.backend in ("emulated", "real") for r in cfg.robots.values())
+        assert (cfg.bus.access is not None) == hardware, f"{path.name}: access {cfg.bus.access}"
+        if hardware:
+            assert cfg.bus.endpoint not in seen, f"{path.name} and {seen.get(cfg.bus.endpoint)} share an endpoint"
+            seen[cfg.bus.endpoint] = path.name
+    assert len(seen) >= 6
+
+
+def test_an_emulated_robot_on_a_rig_without_access_is_refused(tmp_path):
+    rig = tmp_path / "open_roach.yaml"
+    rig.write_text(f"name: open_roach\nrobots:\n{ROACH}\nwatchdog_periods: 3\npace: realtime\n")
+    r = _hil("up", str(rig), "--endpoint", f"tcp/127.0.0.1:{free_port()}", "--steps", "5")
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == (
+        "error: rig open_roach: robot roach is emulated hardware; its rig needs a bus.access section "
+        "(who may command and release it; docs/platform.md)")
+
+
+def test_credentials_are_created_unattended_for_emulated_rigs_only(tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    real = load_rig("roach_real")
+    r = CliRunner().invoke(app, ["up", "roach_real", "--endpoint", f"tcp/127.0.0.1:{free_port()}", "--steps", "1"])
+    assert r.exit_code == 2
+    path = tmp_path / ".config" / "hilstack" / "roach_real.credentials"
+    assert r.output.strip().splitlines()[-1] == (
+        f"error: credentials file {path} not found: create it with `hil credentials RIG` "
+        "(or point HIL_CREDENTIALS at yours)")
+    assert provision("roach_real", real.bus, ["real"]) is None and not path.exists()
+    emu = load_rig("hand_emulated")
+    line = provision("hand_emulated", emu.bus, ["emulated"])
+    path = tmp_path / ".config" / "hilstack" / "hand_emulated.credentials"
+    assert line == f"created credentials for rig hand_emulated in {path} (users operator; mode 600)"
+    assert (path.stat().st_mode & 0o777) == 0o600 and set(read_credentials(path)) == {"operator"}
+    before = path.read_text()
+    assert provision("hand_emulated", emu.bus, ["emulated"]) is None and path.read_text() == before  # kept
+    # HIL_CREDENTIALS names the file instead (an operator's own copy, a CI secret)
+    monkeypatch.setenv("HIL_CREDENTIALS", str(tmp_path / "ci.credentials"))
+    assert "in " + str(tmp_path / "ci.credentials") in provision("hand_emulated", emu.bus, ["emulated"])

@@ -15,7 +15,7 @@ from hilstack.bus.node import Node
 from hilstack.bus.schemas import Command, RobotState, decode
 from hilstack.drivers.bridge import DriverNode
 from hilstack.drivers.mocap.udp import encode_pose
-from tests.helpers import free_port
+from tests.helpers import free_port, wait_rig_router
 from tests.test_driver_base import HoldsMeasured
 
 RIG = "unhealthy_roach"
@@ -54,7 +54,7 @@ class MocapSource:
 
 
 @pytest.fixture
-def roach_rig(bus, spawn, tmp_path):
+def roach_rig(rig_bus, spawn, tmp_path):
     """`hil up` of the emulated VelociRoACH (its firmware emulator in its own process, the real
     radio driver over a pty) whose mocap pose comes from this test over UDP."""
     port = free_port()
@@ -67,9 +67,13 @@ robots:
     params: {{mocap_udp_port: {port}, link_timeout_periods: 30, write_timeout_s: 3.0, emulator: {{pose: false}}}}
 watchdog_periods: 3
 pace: realtime
+bus:
+  access: {{credentials: {tmp_path / 'rig.credentials'}}}
 """)
+    bus = rig_bus(str(rig))  # emulated hardware: access control; `hil up` and this test log in as operator
     mocap = MocapSource(port)
     proc = spawn("up", str(rig), "--endpoint", bus.endpoint)
+    wait_rig_router(bus)
     node = Node("test-ctl", RIG, bus, handle_signals=False)
     state = node.subscribe(keys.state(RIG, "roach"), RobotState, latest=False, capacity=4096)
     cmd = node.publisher(keys.cmd(RIG, "roach"), Command)

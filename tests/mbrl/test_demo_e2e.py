@@ -73,13 +73,12 @@ def test_tiny_demo_writes_a_complete_report(tmp_path):
 def test_a_rig_that_never_comes_up_is_a_clear_error(tmp_path):
     import pytest
 
+    from hilstack.bus.access import generate
     from hilstack.learning.mbrl import RigError
 
-    # a real robot's rig has access control (docs/platform.md): the operator's credentials
-    cred = tmp_path / "broken.credentials"
-    cred.write_text("operator:test-password\n")
-    cred.chmod(0o600)
     rig = tmp_path / "broken.yaml"
+    cred = tmp_path / "broken.credentials"  # a real robot's rig has access control (docs/platform.md)
+    generate(cred, ["operator"])
     rig.write_text(
         "name: broken\nrobots:\n  roach:\n    config: velociroach\n    backend: real\n"
         "    params: {port: /dev/hilstack-no-such-port}\npace: realtime\n"

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from hilstack.bus.session import open_session
 from hilstack.configs.schema import RigConfig, parse_model, rig_robot_config
 from hilstack.control.controller_node import ControllerNode
 from hilstack.control.reset.config import load_reset
@@ -34,14 +35,16 @@ def rig_config() -> RigConfig:
     return parse_model(RigConfig, copy.deepcopy(data), RIG)
 
 
-def test_the_emulated_hand_resets_itself_through_the_arm_on_the_wall_clock(bus):
+def test_the_emulated_hand_resets_itself_through_the_arm_on_the_wall_clock(rig_bus):
     rig = rig_config()
+    bus = rig_bus(str(RIG))  # its access control: both driver nodes share the rig's router, as in `hil up`
+    router = open_session(bus, server=True, rig=rig.name, robots=["hand", "arm"])
     nodes, threads = [], []
     sup = ctl = None
     try:
         for name in ("hand", "arm"):  # the hand's driver starts the emulator the arm talks to
             node = DriverNode(make_driver(rig_robot_config(rig, name)), rig.name, name, bus, pace="realtime",
-                              handle_signals=False, estop_sync_s=0.3)
+                              handle_signals=False, estop_sync_s=0.3, session=router)
             th = threading.Thread(target=node.serve, daemon=True, name=f"driver-{name}")
             th.start()
             nodes.append(node)
@@ -77,3 +80,4 @@ def test_the_emulated_hand_resets_itself_through_the_arm_on_the_wall_clock(bus):
             node.stop_event.set()
             th.join(15)
             node.close()
+        router.close()

@@ -20,7 +20,7 @@ from hilstack.drivers.emulator_process import EmulatorProcess
 from hilstack.drivers.mocap.udp import UdpPoseClient
 from hilstack.drivers.velociroach.config import quat_to_rpy
 from hilstack.drivers.velociroach.fixture import FixtureClient
-from tests.helpers import wait_for
+from tests.helpers import wait_for, wait_rig_router
 
 
 def _cos_roll(pc: UdpPoseClient) -> float:
@@ -58,7 +58,7 @@ def test_the_emulator_fixture_puts_a_robot_on_its_back_onto_its_legs():
             emu.stop()
 
 
-def test_the_supervisor_rights_the_emulated_roach_through_the_fixture_and_drives_it_back(bus, spawn, tmp_path):
+def test_the_supervisor_rights_the_emulated_roach_through_the_fixture_and_drives_it_back(rig_bus, spawn, tmp_path):
     rig = yaml.safe_load(Path(load_rig("roach_emulated").source).read_text())
     rig["name"] = "roach_flipped"
     rig["robots"]["roach"]["params"] = {**rig["robots"]["roach"].get("params", {}),
@@ -68,7 +68,9 @@ def test_the_supervisor_rights_the_emulated_roach_through_the_fixture_and_drives
     rig["reset"]["steps"][0].update(timeout_s=1.5, params={"hold_first_s": 2.0})
     path = tmp_path / "roach_flipped.yaml"
     path.write_text(yaml.safe_dump(rig))
+    bus = rig_bus(str(path))  # roach_emulated's access control: the supervisor and controller log in
     spawn("up", str(path), "--endpoint", bus.endpoint)
+    wait_rig_router(bus)
     cfg = require_reset(load_rig(path), "roach")
     sup = ResetSupervisor("roach_flipped", cfg, bus, handle_signals=False)
     th = threading.Thread(target=sup.serve, daemon=True)

@@ -16,10 +16,13 @@ from hilstack.control.controller_node import ControllerNode
 from hilstack.control.reset.config import require_reset
 from hilstack.control.reset.supervisor import ResetSupervisor
 from hilstack.learning.mbrl import MbrlConfig, MbrlRun, RigError
+from tests.helpers import wait_rig_router
 
 
-def test_the_emulated_roach_is_driven_back_and_a_new_episode_starts(bus, spawn):
+def test_the_emulated_roach_is_driven_back_and_a_new_episode_starts(rig_bus, spawn):
+    bus = rig_bus("roach_emulated")  # its access control: the supervisor and controller log in as operator
     spawn("up", "roach_emulated", "--endpoint", bus.endpoint)
+    wait_rig_router(bus)
     cfg = require_reset(load_rig("roach_emulated"), "roach")
     sup = ResetSupervisor("roach_emulated", cfg, bus, handle_signals=False)
     th = threading.Thread(target=sup.serve, daemon=True)

@@ -315,7 +315,7 @@ def test_hil_drive_shows_why_the_emulator_did_not_start_and_keeps_its_log(tmp_pa
         log.unlink(missing_ok=True)
 
 
-def test_bridge_states_carry_the_command_that_moved_the_robot(bus):
+def test_bridge_states_carry_the_command_that_moved_the_robot(rig_bus):
     """On the wall clock the driver node must stamp each state with the command held during
     the period that ended with it (what ``learning/recordings.py`` pairs as the action of a
     transition). It used to apply the newest command first and read right after, so the
@@ -331,6 +331,7 @@ def test_bridge_states_carry_the_command_that_moved_the_robot(bus):
     from hilstack.drivers.registry import make_driver
 
     rig = load_rig("roach_emulated")
+    bus = rig_bus("roach_emulated")  # its access control: this driver node is the rig's router
     node = DriverNode(make_driver(rig_robot_config(rig, "roach")), rig.name, "roach", bus,
                       handle_signals=False, estop_sync_s=0.3)
     th = threading.Thread(target=node.serve, daemon=True)
