@@ -485,7 +485,10 @@ class Driver(ABC):
         (a crashed reader thread, a frozen robot): only a dead link excuses it."""
         self.last_error = str(error)
         try:
-            self._stop()
+            # a position robot holds its held target, as stop() does: the measured pose of a
+            # device that stopped answering is stale, and holding it would be a jump back
+            if not self._hold_held_target():
+                self._stop()
         except Exception as e:  # the link may be the thing that failed; keep going to cleanup
             self.last_error = f"{self.last_error}; the stop was not sent: {type(e).__name__}: {e}"
         try:
@@ -636,21 +639,28 @@ class Driver(ABC):
         restarts from what is held."""
         if self._lifecycle is Lifecycle.UNCONFIGURED:
             return
-        held = None
-        if self.spec.safe_action is None and self._held is not None and self._lifecycle is Lifecycle.ACTIVE:
-            try:
-                self._hold_target(self._held)
-                held = self._held.copy()
-            except LinkError:
-                raise
-            except Exception:  # the device refused the target: its own stop
-                held = None
+        held = self._held.copy() if self._hold_held_target() else None
         if held is None:
             held = self._stop()
         if held is None:
             held = self.spec.safe_action
         if held is not None:
             self._anchor(held, self.now())
+
+    def _hold_held_target(self) -> bool:
+        """A position robot (no ``safe_action``) that is ACTIVE re-sends its held target
+        (:meth:`_hold_target`); True when it did. A refused target (the device's own
+        limits) is False, so the caller falls back to the backend's ``_stop()``; a dead link
+        raises :class:`LinkError`."""
+        if self.spec.safe_action is not None or self._held is None or self._lifecycle is not Lifecycle.ACTIVE:
+            return False
+        try:
+            self._hold_target(self._held)
+        except LinkError:
+            raise
+        except Exception:  # the device refused the target: its own stop
+            return False
+        return True
 
     def _hold_target(self, target: np.ndarray) -> None:
         """The stop of a position robot: send its held target again (default: as a write).

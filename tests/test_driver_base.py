@@ -292,6 +292,22 @@ def test_a_position_stop_holds_the_held_target_not_a_stale_measured_pose():
     assert d2.stopped == 1 and d2.sent[-1] == pytest.approx([0.3])
     d2.cleanup()
 
+def test_the_error_path_of_a_position_robot_holds_the_held_target_not_a_stale_measured_pose():
+    """A device that stopped answering (the error path, fail_link): its measured pose is the
+    stale 0.3 while the target had ramped to 0.8; the stop sent on the way down holds 0.8."""
+    d = HoldsMeasured(rate=1.0)
+    d.configure()
+    d.activate()
+    for _ in range(5):
+        d.write([1.0])
+        d.t += 0.1
+    last = d.held_command
+    with pytest.raises(LinkError):
+        d.fail_link("no usable telemetry")
+    assert d.lifecycle is Lifecycle.UNCONFIGURED and d.stopped == 0
+    assert d.sent[-1] == pytest.approx(last), f"error path sent {d.sent[-1]} after {last}"
+
+
 def test_rejected_samples_are_flagged_counted_and_do_not_refresh():
     pose = Freshness("pose", deadline_s=0.2, stale_flag=Flag.STALE_POSE)
     ins = Inputs(pose)
@@ -346,10 +362,13 @@ def test_an_input_silent_for_its_periods_takes_the_error_path_from_read_and_writ
         d.tick()
         d.tick()
         d.tick()  # 0.6 s > 5 periods
+        held = d.held_command
         with pytest.raises(LinkError, match=r"no usable telemetry for 0.60 s \(limit: 5 control periods"):
             d.write([0.3])  # a dead robot is never commanded
-        assert d.lifecycle is Lifecycle.UNCONFIGURED and d.stopped == 1 and d.cleaned == 1
-        assert "no usable telemetry" in d.last_error and d.sent == []
+        # the error path's stop: a position robot holds its held target (not a stale measured pose)
+        assert d.lifecycle is Lifecycle.UNCONFIGURED and d.cleaned == 1
+        assert "no usable telemetry" in d.last_error
+        assert d.stopped == 0 and len(d.sent) == 1 and d.sent[0] == pytest.approx(held), "0.3 was never sent"
         with pytest.raises(LifecycleError):
             d.read()
     d = Streaming()
