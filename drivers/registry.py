@@ -32,13 +32,8 @@ def _registered() -> dict[tuple[str, str], str]:
 
 
 #: (robot, backend) -> "module:Class", read from the installed package's entry points (so this
-#: module names no backend package: drivers never import sim_backends) plus register_backend()
+#: module names no backend package: drivers never import sim_backends)
 BACKENDS: dict[tuple[str, str], str] = _registered()
-
-
-def register_backend(robot: str, backend: str, target: str) -> None:
-    """Add a backend (``target`` is ``"package.module:Class"``)."""
-    BACKENDS[(robot, backend)] = target
 
 
 def backends_of(robot: str) -> list[str]:
