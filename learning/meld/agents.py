@@ -78,8 +78,8 @@ class MeldAgent:
         obs, nxt = b[:, :-1].reshape(-1, zd), b[:, 1:].reshape(-1, zd)
         stats = self.sac.update(obs, actions.reshape(-1, actions.shape[-1]), rewards[:, 1:].reshape(-1), nxt,
                                 torch.ones(obs.shape[0]))
-        return {"elbo": float(terms["elbo"].mean()), "kl": float(terms["kl"].mean()),
-                "reward_ll": float(terms["reward_ll"].mean()), **stats}
+        return {"elbo": terms["elbo"].mean().item(), "kl": terms["kl"].mean().item(),
+                "reward_ll": terms["reward_ll"].mean().item(), **stats}
 
 
 class HistoryEncoder(torch.nn.Module):

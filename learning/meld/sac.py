@@ -111,8 +111,8 @@ class Sac(nn.Module):
         with torch.no_grad():
             for p, pt in zip(self.critic.parameters(), self.critic_target.parameters(), strict=True):
                 pt.lerp_(p, self.cfg.tau)
-        return {"critic_loss": float(lc), "actor_loss": float(la), "alpha": float(self.alpha),
-                "entropy": float(-logp.mean())}
+        return {"critic_loss": lc.item(), "actor_loss": la.item(), "alpha": self.alpha.item(),
+                "entropy": float(-logp.detach().mean())}
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, deterministic: bool = False):
