@@ -36,6 +36,12 @@ class _DriverTask:
     hold: int = 1
     success_m: float = 0.1
 
+    def _setup_images(self, camera_px: int, cameras: bool) -> dict:
+        """``cameras=False``: a constant black image (the benchmark's peer without rendering)."""
+        self.cameras = cameras
+        self._blank = np.zeros((camera_px, 2 * camera_px, 3), np.uint8)
+        return {"cameras": cameras, "camera_px": camera_px}
+
     def _episode_start(self) -> None:
         self.arm.reset()
         if not self.arm.active:
@@ -46,7 +52,8 @@ class _DriverTask:
         if not o.ok:
             raise RuntimeError(f"{self.arm.spec.name}: observation not ok ({o.flags})")
         d = float(np.linalg.norm(self.fk.position(o.state[self.q_idx]) - self.goal))
-        return o.extras["image"], reach_reward(d), d
+        img = o.extras["image"] if self.cameras else self._blank
+        return img, reach_reward(d), d
 
     def reset(self) -> tuple[np.ndarray, float]:
         self._episode_start()
@@ -77,8 +84,8 @@ class WidowXPortTask(_DriverTask):
     success_m = 0.01
     settle_periods = 30   # driver periods for the mechanism to reach a new pose
 
-    def __init__(self, camera_px: int = 64, seed: int = 0):
-        self.arm = make_driver("widowx", backend="sim", sim={"cameras": True, "camera_px": camera_px})
+    def __init__(self, camera_px: int = 64, seed: int = 0, cameras: bool = True):
+        self.arm = make_driver("widowx", backend="sim", sim=self._setup_images(camera_px, cameras))
         self.mech = make_driver("reset_mechanism", backend="sim")
         for drv in (self.arm, self.mech):
             drv.configure()
@@ -127,8 +134,8 @@ class SawyerReachTask(_DriverTask):
     hold = 5              # 4 Hz policy on the 20 Hz driver (thesis: 4 Hz)
     success_m = 0.10      # thesis: reacher within 10 cm
 
-    def __init__(self, camera_px: int = 64, seed: int = 0):
-        self.arm = make_driver("sawyer", backend="sim", sim={"cameras": True, "camera_px": camera_px})
+    def __init__(self, camera_px: int = 64, seed: int = 0, cameras: bool = True):
+        self.arm = make_driver("sawyer", backend="sim", sim=self._setup_images(camera_px, cameras))
         self.arm.configure()
         self.arm.activate()
         rng = np.random.default_rng([seed, 7])
