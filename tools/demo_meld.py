@@ -77,10 +77,13 @@ def belief_trace(env: Any, agent: Any, held_out: int) -> dict[str, Any]:
         run_episode(env, task, lambda: agent.act(deterministic=True), agent)
         f = agent.task_features()
         feats.append(f), params.append(np.repeat(env.task_params[task][None], len(f), 0))
-    w = task_probe(np.concatenate(feats), np.concatenate(params))
+    params = np.concatenate(params)
+    mu, sd = params.mean(0), params.std(0) + 1e-12  # the probe on standardized parameters
+    w = task_probe(np.concatenate(feats), (params - mu) / sd)
     ep, info = run_episode(env, held_out, lambda: agent.act(deterministic=True), agent)
-    est = apply_probe(w, agent.task_features())
-    return {"task": held_out, "true": env.task_params[held_out].tolist(), "estimate": est.tolist(),
+    est = apply_probe(w, agent.task_features()) * sd + mu
+    return {"task": held_out, "names": list(env.task_param_names), "true": env.task_params[held_out].tolist(),
+            "estimate": est.tolist(),
             "success": ep.success, "final_distance_m": info.get("distance_m")}
 
 
@@ -214,7 +217,7 @@ def _plots(out: Path, meta: dict[str, Any]) -> None:
         for ax, (task, tr) in zip(axes[0], meta["belief"].items(), strict=True):
             est = np.asarray(tr["estimate"])
             for i in range(est.shape[1]):
-                line, = ax.plot(est[:, i], label=f"estimate {i}")
+                line, = ax.plot(est[:, i], label=tr["names"][i])
                 ax.axhline(tr["true"][i], ls="--", c=line.get_color())
             ax.set(title=f"{task}: MELD belief's task estimate (held-out task {tr['task']})", xlabel="step",
                    ylabel="task parameter (dashed: true)")

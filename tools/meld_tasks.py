@@ -80,6 +80,7 @@ class _DriverTask:
 
 class WidowXPortTask(_DriverTask):
     name = "widowx_port"
+    task_param_names = ("rotation_rad", "offset_m")
     hold = 6              # 3.3 Hz policy on the 20 Hz driver (thesis: 3.3 Hz on the real WidowX)
     success_m = 0.01
     settle_periods = 30   # driver periods for the mechanism to reach a new pose
@@ -131,6 +132,7 @@ SAWYER_GOAL_HI = np.array([0.25, 0.85, 0.30])
 
 class SawyerReachTask(_DriverTask):
     name = "sawyer_reach"
+    task_param_names = ("goal_x_m", "goal_y_m", "goal_z_m")
     hold = 5              # 4 Hz policy on the 20 Hz driver (thesis: 4 Hz)
     success_m = 0.10      # thesis: reacher within 10 cm
 

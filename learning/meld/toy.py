@@ -15,6 +15,7 @@ class ToyReach:
     Reward ``−(d² + log(d + 1e-5))`` (thesis ch. 7); success ``d < success_d`` at the end."""
 
     action_dim = 2
+    task_param_names = ("goal_x", "goal_y")
 
     def __init__(self, hw: tuple[int, int] = (8, 16), episode_steps: int = 10, n_train: int = 4, n_test: int = 2,
                  step: float = 0.25, success_d: float = 0.25, seed: int = 0):

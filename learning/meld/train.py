@@ -33,6 +33,7 @@ class ImageTaskEnv(Protocol):
     action_dim: int
     episode_steps: int
     task_params: np.ndarray          #: [n_tasks, P] what distinguishes the tasks (for the task probe)
+    task_param_names: Sequence[str]
     train_tasks: Sequence[int]
     test_tasks: Sequence[int]
 

@@ -61,3 +61,13 @@ def test_task_probe_recovers_a_linear_map():
     w = rng.normal(size=(4, 2))
     p = f @ w + 0.5
     assert np.allclose(apply_probe(task_probe(f, p, ridge=1e-9), f), p, atol=1e-5)
+
+
+def test_demo_never_overwrites_a_report(tmp_path):
+    from hilstack.tools.common import UserError
+    from hilstack.tools.demo_meld import cli_meld
+
+    (tmp_path / "report.json").write_text("{}")
+    with pytest.raises(UserError, match="exists"):
+        cli_meld(tmp_path, quick=True)
+    assert (tmp_path / "report.json").read_text() == "{}"
