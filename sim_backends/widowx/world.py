@@ -131,3 +131,9 @@ def shared_world(bus_name: str, arm_ids: dict[str, int] | None = None,
             if ids is not None and ids != have:
                 raise ValueError(f"bus {bus_name!r} already has {name} IDs {have}, config asks for {ids}")
     return w
+
+
+def kinematics_model():
+    """The arm's world as a MuJoCo model for kinematics above the drivers (the reach task's
+    end effector and the mechanism's port): the ``widowx.kinematics`` skill (pyproject.toml)."""
+    return ArmWorld().model
