@@ -27,12 +27,13 @@ def config_models(sim: bool = False) -> list[type[BaseModel]]:
     from hilstack.control.reset.config import DetectorConfig, ResetConfig, StepConfig, VerifyConfig
     from hilstack.control.reset.steps import STEP_KINDS
     from hilstack.drivers.camera.config import CameraParams
+    from hilstack.drivers.dynamixel.params import DynamixelEmulatorParams
     from hilstack.drivers.mocap.driver import MocapParams
     from hilstack.drivers.reset_arm.config import ResetArmParams
     from hilstack.drivers.sawyer.config import SawyerParams
     from hilstack.drivers.shadow_hand.config import HandEmulatorParams, ShadowHandParams
     from hilstack.drivers.velociroach.config import VelociRoachEmulatorParams, VelociRoachParams
-    from hilstack.drivers.widowx.config import DynamixelEmulatorParams, MechanismParams, WidowXParams
+    from hilstack.drivers.widowx.config import MechanismParams, WidowXParams
     from hilstack.sim_backends.pointmass import PointMassParams
 
     out: list[type[BaseModel]] = [
