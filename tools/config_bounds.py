@@ -42,6 +42,7 @@ def config_models(sim: bool = False) -> list[type[BaseModel]]:
         MocapParams, PointMassParams, RigConfig, RigRobot, BusConfig, ResetConfig, DetectorConfig, StepConfig,
         VerifyConfig]
     out += [k.params_model() for k in STEP_KINDS.values() if k.params_model() not in out]
+    out += [m for m in _registered_robot_params() if m not in out]
     if sim:
         from hilstack.learning.baoding import BaodingTaskParams
         from hilstack.sim_backends.shadow_hand.backend import SimParams as HandSimParams
@@ -49,6 +50,20 @@ def config_models(sim: bool = False) -> list[type[BaseModel]]:
         from hilstack.sim_backends.velociroach.backend import SimParams as RoachSimParams
 
         out += [RoachSimParams, HandSimParams, CameraSimParams, TrackerOptions, BaodingTaskParams]
+    return out
+
+
+def _registered_robot_params() -> list[type[BaseModel]]:
+    """The params model of every registered robot (a robot added later is checked without an
+    edit here): its driver built from ``configs/robots/<robot>.yaml``, never connected."""
+    from hilstack.drivers.registry import backends_of, make_driver, robots
+
+    out = []
+    for robot in robots():
+        backend = "real" if "real" in backends_of(robot) else "sim"
+        model = type(getattr(make_driver(robot, backend), "params", None))
+        if isinstance(model, type) and issubclass(model, BaseModel):
+            out.append(model)
     return out
 
 
