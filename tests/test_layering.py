@@ -3,7 +3,9 @@
 The whole rule set, per package: which hilstack packages it may depend on. A dependency is an
 import statement anywhere in a file (inside functions too) or a module name ``hilstack.<pkg>``
 in a string that is not a docstring (an import string, ``python -m`` line or registry entry is a
-dependency as real as an import). A static check names the file and line of a violation; a
+dependency as real as an import). control/ and learning/ also never name a robot's own
+sub-package of drivers/ or sim_backends/ (ROBOT_FREE), counted the same way, with no list of
+exceptions. A static check names the file and line of a violation; a
 runtime check imports every module of the low packages in a fresh interpreter and checks what
 they pulled in, transitively.
 """
