@@ -128,9 +128,9 @@ def test_sac_entropy_temperature_moves_towards_the_target():
         sac.actor.net[-1].bias[2:] = -8.0  # log σ = −8: entropy far below the target
         sac.actor.net[-1].weight[2:] = 0.0
     obs, a, r = torch.randn(64, 4), torch.rand(64, 2) * 2 - 1, torch.randn(64)
-    alpha0 = float(sac.alpha)
+    alpha0 = sac.alpha.item()
     losses = [sac.update(obs, a, r, obs, torch.zeros(64))["critic_loss"] for _ in range(30)]
-    assert float(sac.alpha) > alpha0
+    assert sac.alpha.item() > alpha0
     assert losses[-1] < losses[0]
 
 
