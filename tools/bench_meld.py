@@ -56,6 +56,28 @@ def _grad_rate(method: str, camera_px: int, steps: int, batch: int, seq_len: int
     return steps / (time.perf_counter() - t)
 
 
+def _policy_step_ms(camera_px: int, n: int = 50) -> dict[str, float]:
+    """One acting step of a MELD policy: the belief update on a new image and reward + the actor
+    (what a controller node would run each 0.3 s period on the WidowX), p50/p99 [ms]."""
+    import torch
+
+    from hilstack.learning.meld.agents import AgentConfig, MeldAgent
+    from hilstack.learning.meld.model import LatentConfig
+
+    agent = MeldAgent(AgentConfig(latent=LatentConfig(image_hw=(camera_px, 2 * camera_px), action_dim=6)))
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (camera_px, 2 * camera_px, 3), dtype=np.uint8)
+    agent.reset()
+    ts = []
+    with torch.no_grad():
+        for _ in range(n):
+            t = time.perf_counter()
+            agent.observe(img, 0.5)
+            agent.act(deterministic=True)
+            ts.append(time.perf_counter() - t)
+    return {"p50": 1e3 * float(np.percentile(ts, 50)), "p99": 1e3 * float(np.percentile(ts, 99))}
+
+
 def run_bench_meld(episodes: int = 2, steps: int = 3, sizes: tuple[int, ...] = (32, 64), threads: int = 2,
                    batch: int = 32, seq_len: int = 8, tasks: tuple[str, ...] = ("widowx_port", "sawyer_reach")) -> dict[str, Any]:
     import torch
@@ -74,6 +96,8 @@ def run_bench_meld(episodes: int = 2, steps: int = 3, sizes: tuple[int, ...] = (
     for px in sizes:
         for m in ("meld", "slac", "sac_history"):
             g[f"{m}_{px}x{2 * px}"] = _grad_rate(m, px, steps, batch, seq_len)
+    out["policy_step_ms"] = {f"{px}x{2 * px}": _policy_step_ms(px) for px in sizes}
+    out["policy_period_ms_widowx"] = 300.0
     peer = g[f"meld_{sizes[0]}x{2 * sizes[0]}"]
     out["gradient_ratio_vs_meld_smallest"] = {k: v / peer for k, v in g.items()}
     out["load_avg_1min_after"] = os.getloadavg()[0]

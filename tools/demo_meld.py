@@ -197,17 +197,21 @@ def _plots(out: Path, meta: dict[str, Any]) -> None:
     import matplotlib.pyplot as plt
 
     curves = meta["curves"]
-    fig, axes = plt.subplots(1, len(curves), figsize=(5.5 * len(curves), 4), squeeze=False)
-    for ax, (task, by_method) in zip(axes[0], curves.items(), strict=True):
+    fig, axes = plt.subplots(2, len(curves), figsize=(5.5 * len(curves), 7), squeeze=False)
+    for col, (task, by_method) in enumerate(curves.items()):
+        ax, axr = axes[0][col], axes[1][col]
         for m, rs in by_method.items():
             for r in rs:
                 c = r["curve"]
-                ax.plot([p["samples"] for p in c], [p["success_rate"] for p in c], marker="o", label=f"{m} s{r['seed']}")
+                x = [p["samples"] for p in c]
+                ax.plot(x, [p["success_rate"] for p in c], marker="o", label=f"{m} s{r['seed']}")
+                axr.plot(x, [p["reward"] for p in c], marker="o", label=f"{m} s{r['seed']}")
         if task == "widowx_port":
             ax.scatter([THESIS_WIDOWX["samples"]], [THESIS_WIDOWX["success_rate"]], marker="*", s=150, c="k",
-                       label="thesis WidowX (Fig. 7.13)")
-        ax.set_xscale("symlog", linthresh=1000)
-        ax.set(title=task, xlabel="environment samples", ylabel="held-out success", ylim=(-0.05, 1.05))
+                       label="thesis WidowX insertion (Fig. 7.13)")
+            ax.set_xscale("symlog", linthresh=1000)
+        ax.set(title=task, ylabel="held-out success", ylim=(-0.05, 1.05))
+        axr.set(xlabel="environment samples", ylabel="held-out episode reward")
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "curves.png", dpi=100)
@@ -266,10 +270,10 @@ def run_task_inference(seeds: tuple[int, ...] = (0, 1), steps: int = 200, log=pr
     torch.set_num_threads(1)
     out: dict[str, Any] = {"steps": steps, "seeds": list(seeds), "by_seed": []}
     for seed in seeds:
-        env = ToyReach(hw=(16, 32), episode_steps=20, n_train=8, n_test=4, seed=seed)
+        env = ToyReach(hw=(16, 32), episode_steps=20, n_train=32, n_test=8, seed=seed)
         rng = np.random.default_rng(seed)
-        train = [run_episode(env, t, None, rng=rng)[0] for t in env.train_tasks for _ in range(6)]
-        test = [run_episode(env, t, None, rng=rng)[0] for t in env.test_tasks for _ in range(4)]
+        train = [run_episode(env, t, None, rng=rng)[0] for t in env.train_tasks for _ in range(3)]
+        test = [run_episode(env, t, None, rng=rng)[0] for t in env.test_tasks for _ in range(2)]
         rp = TaskReplay()
         for ep in train:
             rp.add(ep)
@@ -299,8 +303,10 @@ def run_task_inference(seeds: tuple[int, ...] = (0, 1), steps: int = 200, log=pr
                         f.act(ep.actions[i])
                 return f.mu[0].numpy()
 
-            w = task_probe(np.stack([final_belief(e) for e in train]), goals_tr)
-            est = apply_probe(w, np.stack([final_belief(e) for e in test]))
+            ftr, fte = np.stack([final_belief(e) for e in train]), np.stack([final_belief(e) for e in test])
+            mu, sd = ftr.mean(0), ftr.std(0) + 1e-6
+            w = task_probe((ftr - mu) / sd, goals_tr, ridge=1.0)
+            est = apply_probe(w, (fte - mu) / sd)
             row[name] = {"held_out_rms": float(np.sqrt(((est - goals_te) ** 2).sum(1).mean())),
                          "train_s": time.perf_counter() - t0}
             log(f"[task inference] seed {seed} {name}: held-out goal RMS {row[name]['held_out_rms']:.3f} "
