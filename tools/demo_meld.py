@@ -54,6 +54,40 @@ class DemoConfig:
         return replace(cls(seeds=(0, 1, 2), camera_px=64, time_budget_s=None, batch=64, seq_len=8), **kw)
 
 
+class DoNothing:
+    """The do-nothing reference: zero joint velocity, the arm stays at its start pose."""
+
+    name = "do_nothing"
+
+    def __init__(self, action_dim: int):
+        self.dim = action_dim
+
+    def reset(self) -> None:
+        pass
+
+    def observe(self, image_u8: np.ndarray, reward: float) -> None:
+        pass
+
+    def act(self, deterministic: bool = False) -> np.ndarray:
+        return np.zeros(self.dim)
+
+
+def do_nothing_scores(tasks: tuple[str, ...] = ("sawyer_reach", "widowx_port"), seed: int = 0,
+                      camera_px: int = 32) -> dict[str, Any]:
+    """Held-out success and reward of :class:`DoNothing` on each task (Algorithm 8's episodes)."""
+    from hilstack.learning.meld.train import meta_test
+    from hilstack.tools.meld_tasks import TASKS
+
+    out = {}
+    for name in tasks:
+        env = TASKS[name](camera_px=camera_px, seed=seed)
+        try:
+            out[name] = meta_test(env, DoNothing(env.action_dim), env.test_tasks)
+        finally:
+            env.close()
+    return out
+
+
 def reproduce_command(out: Path, quick: bool, full: bool, seed: int) -> str:
     flags = " --quick" if quick else " --full" if full else ""
     return f"MUJOCO_GL=egl hil demo meld{flags} --seed {seed} --out {out}"
@@ -104,6 +138,7 @@ def run_meld_demo(out: Path, cfg: DemoConfig, command: str, log=print) -> dict[s
     traces: dict[str, Any] = {}
     for task_name in cfg.tasks:
         report[task_name], runs[task_name] = {}, {}
+        still: list[dict[str, Any]] = []
         for seed in cfg.seeds:
             env = TASKS[task_name](camera_px=cfg.camera_px, seed=seed)
             try:
@@ -114,6 +149,9 @@ def run_meld_demo(out: Path, cfg: DemoConfig, command: str, log=print) -> dict[s
                     for _ in range(cfg.initial_episodes):
                         shared.add(run_episode(env, task, None, rng=rng)[0])
                 random_s = time.monotonic() - t0
+                from hilstack.learning.meld.train import meta_test
+
+                still.append({"seed": seed, **meta_test(env, DoNothing(env.action_dim), env.test_tasks)})
                 spread = np.linalg.norm(_goals(env) - _goals(env).mean(0), axis=1)
                 log(f"[meld demo] {task_name} seed {seed}: {shared.n_samples} random samples in {random_s:.0f} s")
                 for method in cfg.methods:
@@ -133,6 +171,11 @@ def run_meld_demo(out: Path, cfg: DemoConfig, command: str, log=print) -> dict[s
                 report[task_name]["success_m"] = env.success_m
             finally:
                 env.close()
+        report[task_name]["do_nothing"] = {
+            "success_rate": float(np.mean([r["success_rate"] for r in still])),
+            "reward": float(np.mean([r["reward"] for r in still])), "reward_std": float(np.std([r["reward"] for r in still])),
+            "final_distance_m": float(np.mean([r["final_distance_m"] for r in still])),
+            "episodes": int(sum(r["episodes"] for r in still)), "seeds": [r["seed"] for r in still], "samples": 0}
         for method, rs in runs[task_name].items():
             fin = [r["final"] for r in rs]
             sr = np.array([f["success_rate"] for f in fin])
@@ -184,7 +227,9 @@ def markdown(report: dict[str, Any], meta: dict[str, Any]) -> str:
             lines.append(f"| {names[m]} | {100 * r['success_rate']:.0f} ± {100 * r['success_rate_std']:.0f} % | "
                          f"{r['reward']:.1f} ± {r['reward_std']:.1f} | {100 * r['final_distance_m']:.1f} | "
                          f"{r['samples']} | {r['gradient_steps']} |")
-        lines.append("")
+        d = v["do_nothing"]
+        lines += [f"| do nothing (zero velocity) | {100 * d['success_rate']:.0f} % | {d['reward']:.1f} | "
+                  f"{100 * d['final_distance_m']:.1f} | 0 | 0 |", ""]
     lines.append(f"Thesis reference: WidowX cable insertion {100 * THESIS_WIDOWX['success_rate']:.0f} % on 10 unseen tasks "
                  f"after {THESIS_WIDOWX['samples']} samples ({THESIS_WIDOWX['source']}).")
     return "\n".join(lines) + "\n"
@@ -221,7 +266,7 @@ def _plots(out: Path, meta: dict[str, Any]) -> None:
         for ax, (task, tr) in zip(axes[0], meta["belief"].items(), strict=True):
             est = np.asarray(tr["estimate"])
             for i in range(est.shape[1]):
-                line, = ax.plot(est[:, i], label=tr["names"][i])
+                line, = ax.plot(est[:, i], label=tr.get("names", [f"parameter {j}" for j in range(est.shape[1])])[i])
                 ax.axhline(tr["true"][i], ls="--", c=line.get_color())
             ax.set(title=f"{task}: MELD belief's task estimate (held-out task {tr['task']})", xlabel="step",
                    ylabel="task parameter (dashed: true)")
@@ -323,11 +368,15 @@ def run_task_inference(seeds: tuple[int, ...] = (0, 1), steps: int = 200, log=pr
 if __name__ == "__main__":  # python -m hilstack.tools.demo_meld toy OUT.json [steps]
     import sys
 
-    if len(sys.argv) >= 3 and sys.argv[1] == "toy":
+    if len(sys.argv) >= 3 and sys.argv[1] in ("toy", "still"):
         dest = Path(sys.argv[2])
         if dest.exists():
             raise SystemExit(f"{dest} exists; choose another path")
-        res = run_task_inference(steps=int(sys.argv[3]) if len(sys.argv) > 3 else 200)
+        os.environ.setdefault("MUJOCO_GL", "egl")
+        if sys.argv[1] == "still":
+            res = do_nothing_scores()
+        else:
+            res = run_task_inference(steps=int(sys.argv[3]) if len(sys.argv) > 3 else 200)
         dest.write_text(json.dumps(res, indent=1))
     else:
-        raise SystemExit("usage: python -m hilstack.tools.demo_meld toy OUT.json [steps]")
+        raise SystemExit("usage: python -m hilstack.tools.demo_meld {toy OUT.json [steps] | still OUT.json}")
