@@ -13,6 +13,7 @@ import torch
 
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.datasets import Episode
+from hilstack.learning.early_stopping import EarlyStopping
 
 
 def transitions(episodes: Sequence[Episode]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -53,9 +54,9 @@ def fit_plain(model: AdaptiveMLP, episodes: Sequence[Episode], epochs: int = 30,
     gen = torch.Generator().manual_seed(seed)
     params = dict(model.net.named_parameters())
     vt = None if not val else tuple(torch.as_tensor(x) for x in transitions(val))
-    best, best_ep, best_sd, vhist = float("inf"), 0, None, []
+    es, vhist = EarlyStopping(params, patience=patience), []
     hist = []
-    for ep in range(epochs):
+    for _ in range(epochs):
         perm = torch.randperm(s.shape[0], generator=gen)
         tot, cnt = 0.0, 0
         for i in range(0, s.shape[0], batch_size):
@@ -71,16 +72,10 @@ def fit_plain(model: AdaptiveMLP, episodes: Sequence[Episode], epochs: int = 30,
             with torch.no_grad():
                 v = float(model.loss(params, *vt))
             vhist.append(v)
-            if v < best:
-                best, best_ep = v, ep + 1
-                best_sd = {k: p.detach().clone() for k, p in params.items()}
-            elif ep + 1 - best_ep >= patience:
+            if es.update(v):
                 break
-    if best_sd is not None:
-        with torch.no_grad():
-            for k, p in params.items():
-                p.copy_(best_sd[k])
+    es.restore()
     if history is not None:
-        history.update({"val": vhist, "best_epoch": best_ep, "best_val": best if vt is not None else None,
+        history.update({"val": vhist, "best_epoch": es.best_index, "best_val": es.best if vt is not None else None,
                         "epochs_run": len(hist)})
     return hist
