@@ -22,12 +22,23 @@ import time
 import numpy as np
 
 
-def _one_core() -> None:
-    # the benchmark claims "one core": pin the process where the OS allows it
+def _one_core() -> set[int] | None:
+    """Pin the process to one core where the OS allows it (the contract loop's claim is
+    "one core"); returns the cores it had, for :func:`_restore_cores`."""
     try:
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+        before = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, {min(before)})
+        return before
     except (AttributeError, OSError):
-        pass
+        return None
+
+
+def _restore_cores(cores: set[int] | None) -> None:
+    if cores is not None:
+        try:
+            os.sched_setaffinity(0, cores)
+        except OSError:
+            pass
 
 
 def run_bench_sim(seconds_of_robot_time: float = 60.0, terrain: str = "carpet", seed: int = 0,
@@ -43,7 +54,7 @@ def run_bench_sim(seconds_of_robot_time: float = 60.0, terrain: str = "carpet", 
     from hilstack.drivers.velociroach.config import VelociRoachParams
     from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
-    _one_core()
+    cores = _one_core()
 
     def make() -> VelociRoachSim:
         s = VelociRoachSim(VelociRoachParams(sim={"terrain": terrain, "seed": seed}))
@@ -122,8 +133,47 @@ def run_bench_sim(seconds_of_robot_time: float = 60.0, terrain: str = "carpet", 
         "mujoco": mujoco.__version__,
         "loadavg_1min": os.getloadavg()[0],
     }
+    _restore_cores(cores)  # the batched rollouts may use both cores
+    out["batch"] = run_bench_batch(seed=seed)
     if prof_text is not None:
         out["profile"] = prof_text
+    return out
+
+
+def run_bench_batch(batch: int = 64, steps: int = 100, seed: int = 0) -> dict:
+    """Random-data collection on the point mass (the backend whose command goes straight to
+    ``data.ctrl``): transitions per second through the contract loop (read, write, tick:
+    serial, one rollout after another) vs ``mujoco.rollout`` on the same rate-bounded random
+    commands (sim_backends/batch.py), on 1 and 2 threads. Both give the same states
+    (tests/test_sim_batch.py). The VelociRoACH does not qualify: its firmware PID runs in
+    Python every 1 ms tick."""
+    from hilstack.sim_backends.batch import rate_bounded_walk
+    from hilstack.sim_backends.pointmass import PointMassParams, PointMassSim
+
+    sim = PointMassSim(PointMassParams())
+    sim.configure()
+    sim.activate()
+    sp = sim.spec
+    cmds = rate_bounded_walk(sp.action.low, sp.action.high, sp.action_rate_per_s * sp.period_s, batch, steps,
+                             np.random.default_rng(seed))
+    n_serial = max(1, batch // 8)  # a slice of the batch serially: the rate is per transition
+    t0 = time.perf_counter()
+    for b in range(n_serial):
+        sim.reset()
+        for k in range(steps):
+            sim.read()
+            sim.write(cmds[b, k])
+            sim.tick()
+    serial = n_serial * steps / (time.perf_counter() - t0)
+    sim.reset()
+    out = {"robot": "pointmass", "batch": batch, "steps": steps, "serial_samples_per_s": serial}
+    for threads in (1, 2):
+        t0 = time.perf_counter()
+        sim.rollout_batch(cmds, threads=threads)
+        rate = batch * steps / (time.perf_counter() - t0)
+        out[f"rollout_{threads}thread_samples_per_s"] = rate
+        out[f"rollout_{threads}thread_over_serial"] = rate / serial
+    sim.cleanup()
     return out
 
 
