@@ -27,7 +27,7 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -35,6 +35,7 @@ import torch
 from hilstack.bus import keys
 from hilstack.bus.recording import Recorder
 from hilstack.bus.schemas import ResetTransition, decode
+from hilstack.configs.presets import Presets
 from hilstack.configs.schema import BusConfig, load_rig
 from hilstack.control.baselines import DifferentialDriveController
 from hilstack.control.controller_node import ControllerNode, EpisodeLog
@@ -61,7 +62,14 @@ EXPERIMENTS = ("table_3_1", "speed_sweep", "table_3_2")
 
 
 @dataclass
-class MbrlConfig:
+class MbrlConfig(Presets):
+    #: the presets of ``from_preset(name, **overrides)`` (configs/presets.py): overrides of the defaults
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        # `hil demo --full`: the thesis' data sizes and every experiment over three seeds.
+        "full": dict(random_rollouts=400, experiments=EXPERIMENTS),
+        "quick": dict(random_rollouts=60, epochs=40, retrain_epochs=10, baseline_candidates=20),
+    }
+
     rig: str = "roach_sim"
     robot: str = "roach"
     seed: int = 0
@@ -153,19 +161,6 @@ class MbrlConfig:
             problems.append("seeds: the experiments need at least one seed")
         if problems:
             raise ValueError("MbrlConfig: " + "; ".join(problems))
-
-    @classmethod
-    def full(cls, **kw: Any) -> MbrlConfig:
-        """`hil demo --full`: the thesis' data sizes and every experiment over three seeds."""
-        base = dict(random_rollouts=400, experiments=EXPERIMENTS)
-        base.update(kw)
-        return cls(**base)
-
-    @classmethod
-    def quick(cls, **kw: Any) -> MbrlConfig:
-        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, baseline_candidates=20)
-        base.update(kw)
-        return cls(**base)
 
 
 def _log(cfg: MbrlConfig, msg: str) -> None:

@@ -27,10 +27,10 @@ def config_for(quick: bool, full: bool, tiny: bool = False, seed: int = 0, **ove
     """The preset's config; ``overrides``: fields to change (experiments from Python, e.g.
     ``run_demo(out, quick=True, overrides={"train_leg_speed_scale": (0.6, 1.4)})``)."""
     if tiny:
-        return AdaptationConfig.tiny(seeds=(seed,), **overrides)
+        return AdaptationConfig.from_preset("tiny", seeds=(seed,), **overrides)
     if quick:
-        return AdaptationConfig.quick(seeds=(seed,), **overrides)
-    return AdaptationConfig.full(seeds=(seed, seed + 1, seed + 2), **overrides)
+        return AdaptationConfig.from_preset("quick", seeds=(seed,), **overrides)
+    return AdaptationConfig.from_preset("full", seeds=(seed, seed + 1, seed + 2), **overrides)
 
 
 def _plots(r: dict[str, Any], out: Path) -> list[str]:

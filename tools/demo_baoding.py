@@ -2,7 +2,7 @@
 
 Writes ``OUT/report.json``, ``OUT/report.md``, ``OUT/turns.png``, the MCAP recordings of
 every phase and a rerun ``OUT/demo.rrd`` of the last PDDM iteration (docs/baoding.md).
-``--quick``: the scaled-down preset (:meth:`hilstack.learning.baoding.BaodingConfig.quick`, ≤10 min on
+``--quick``: the scaled-down preset (``BaodingConfig.from_preset("quick")``, ≤10 min on
 2 cores); default: the thesis' settings, one seed; ``--full``: the thesis' settings over
 seeds 0, 1, 2 (``OUT/seed_<k>/``) with mean ± std across seeds in ``OUT/report.json``.
 """
@@ -30,9 +30,9 @@ FULL_RIG = "hand_sim"
 
 def make_config(preset: str, seed: int, **overrides: Any) -> BaodingConfig:
     if preset == "quick":
-        return BaodingConfig.quick(seed=seed, **overrides)
+        return BaodingConfig.from_preset("quick", seed=seed, **overrides)
     if preset == "tiny":
-        return BaodingConfig.tiny(seed=seed, **overrides)
+        return BaodingConfig.from_preset("tiny", seed=seed, **overrides)
     if preset == "thesis":
         return BaodingConfig(seed=seed, **overrides)
     raise ValueError(f"unknown preset {preset!r}: quick | thesis | tiny")

@@ -77,7 +77,7 @@ def data(cfg: PendulumConfig, n_target: int, tmp: Path):
 
 
 def main(argv: list[str]) -> None:
-    from hilstack.tools.demo_transfer import PRESETS
+    from hilstack.tools.demo_transfer import TransferDemoConfig
 
     torch.set_num_threads(1)
     what = argv[0] if argv else "gat"
@@ -85,12 +85,12 @@ def main(argv: list[str]) -> None:
         from hilstack.tools.demo_transfer import _pendulum_over_seeds
 
         seeds = tuple(int(x) for x in argv[1].split(","))
-        r = _pendulum_over_seeds(PRESETS["full"]["pendulum"], seeds, print)
+        r = _pendulum_over_seeds(TransferDemoConfig.from_preset("full").pendulum, seeds, print)
         Path(argv[2]).write_text(json.dumps(r, indent=2))
         print(json.dumps(r["curve"], indent=1), flush=True)
         return
     # seed 0 at both of the full preset's sizes (the quick preset has 3000 only; GAT's grid ran at 500 and 3000)
-    cfg = replace(PRESETS["quick"]["pendulum"], seed=0, target_sizes=PRESETS["full"]["pendulum"].target_sizes)
+    cfg = replace(TransferDemoConfig.from_preset("quick").pendulum, seed=0, target_sizes=TransferDemoConfig.from_preset("full").pendulum.target_sizes)
     low, high = np.array([-3.0]), np.array([3.0])
     with tempfile.TemporaryDirectory() as tmp:
         src, agent, target, val, source = data(cfg, max(cfg.target_sizes), Path(tmp))

@@ -65,8 +65,8 @@ def closed_loop(ckpt_dir: str, names: list[str], seed: int, cache: Path) -> None
     from hilstack.learning.adaptation.experiment import Trained, run_paths
     from hilstack.learning.adaptation.training import transitions
 
-    cfg = AdaptationConfig.full()
-    train, _, _ = data(AdaptationConfig.quick(), seed, cache)
+    cfg = AdaptationConfig.from_preset("full")
+    train, _, _ = data(AdaptationConfig.from_preset("quick"), seed, cache)
     plain = load_adapter(Path(ckpt_dir) / f"seed{seed}_mb_de.pt").model
     g = load_adapter(Path(ckpt_dir) / f"seed{seed}_grbal.pt")
     s, _, n = transitions(train)
@@ -103,7 +103,7 @@ def main() -> None:
     torch.set_num_threads(1)
     if a.closed_loop:
         return closed_loop(a.closed_loop[0], a.closed_loop[1:], a.seed, Path(a.cache))
-    cfg = AdaptationConfig.quick(presets=a.presets, M=a.M, conditions_per_terrain=a.conditions,
+    cfg = AdaptationConfig.from_preset("quick", presets=a.presets, M=a.M, conditions_per_terrain=a.conditions,
                                  rollouts_per_condition=a.rollouts, before_after_rollouts=a.test_rollouts)
     train, tests, names = data(cfg, a.seed, Path(a.cache))
     plain = AdaptiveMLP(names, 2, hidden=cfg.hidden, seed=a.seed)

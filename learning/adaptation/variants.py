@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("variants", nargs="+", choices=list(VARIANTS))
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
-    cfg = AdaptationConfig.quick()
+    cfg = AdaptationConfig.from_preset("quick")
     episodes = load_episodes(a.data)
     p = load_presets(cfg.presets)
     a.cache.mkdir(parents=True, exist_ok=True)
