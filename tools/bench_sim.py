@@ -14,9 +14,9 @@ the top cProfile entries (cumulative) of the contract loop.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
-import sys
 import time
 
 import numpy as np
@@ -177,6 +177,13 @@ def run_bench_batch(batch: int = 64, steps: int = 100, seed: int = 0) -> dict:
     return out
 
 
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.bench_sim", description=__doc__.split("\n")[0])
+    ap.add_argument("seconds", nargs="?", type=float, default=60.0, help="robot seconds to simulate (default 60)")
+    ap.add_argument("--profile", action="store_true", help="add the top cProfile entries of the contract loop")
+    a = ap.parse_args(argv)
+    print(json.dumps(run_bench_sim(a.seconds, profile=a.profile), indent=2))
+
+
 if __name__ == "__main__":
-    secs = float(sys.argv[1]) if len(sys.argv) > 1 else 60.0
-    print(json.dumps(run_bench_sim(secs), indent=2))
+    main()

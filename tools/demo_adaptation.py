@@ -261,9 +261,15 @@ def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int
         print(f"{p}: best {best}; cost_per_m " + ", ".join(f"{m} {row[m]['cost_per_m']:.1f}" for m in METHODS))
 
 
-if __name__ == "__main__":
-    import sys
+def main(argv: list[str] | None = None) -> None:
+    import argparse
 
-    if len(sys.argv) != 2:
-        raise SystemExit("usage: python -m hilstack.tools.demo_adaptation OUT_DIR   (tables of the seeds finished so far)")
-    print(report_markdown(report_from_seeds(Path(sys.argv[1]))))
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_adaptation",
+                                 description="The report tables of the seeds a demo run finished so far "
+                                             "(the demo itself: hil demo adaptation).")
+    ap.add_argument("out_dir", type=Path, help="the demo's output directory")
+    print(report_markdown(report_from_seeds(ap.parse_args(argv).out_dir)))
+
+
+if __name__ == "__main__":
+    main()

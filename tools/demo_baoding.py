@@ -424,14 +424,30 @@ def thesis_scale_cost(calls: int = 15, sizes: tuple[int, ...] = (700, 400, 200),
     return out
 
 
-if __name__ == "__main__":  # python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | ablate OUT [NAME...]
-    import sys
+def main(argv: list[str] | None = None) -> None:
+    """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | ablate OUT [NAME...]``."""
+    import argparse
 
-    if len(sys.argv) == 2 and sys.argv[1] == "cost":
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_baoding",
+                                 description="Baoding demo studies (the demo itself: hil demo baoding).")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    c = sub.add_parser("compare", help="compare the sampler choices of a finished run")
+    c.add_argument("run_dir", type=Path)
+    sub.add_parser("cost", help="what the thesis-scale run would cost here")
+    ab = sub.add_parser("ablate", help="run the ablations (all when no NAME is given)")
+    ab.add_argument("out", type=Path)
+    ab.add_argument("names", nargs="*", metavar="NAME", help="ablation names")
+    a = ap.parse_args(argv)
+    if a.cmd == "cost":
         print(json.dumps(thesis_scale_cost(), indent=1))
-    elif len(sys.argv) >= 3 and sys.argv[1] == "ablate":
-        print(json.dumps(ablate(Path(sys.argv[2]), tuple(sys.argv[3:]) or tuple(ABLATIONS)), indent=1))
-    elif len(sys.argv) == 3 and sys.argv[1] == "compare":
-        print(json.dumps(compare_choices(Path(sys.argv[2])), indent=1))
+    elif a.cmd == "ablate":
+        unknown = [n for n in a.names if n not in ABLATIONS]
+        if unknown:
+            ap.error(f"unknown ablation(s) {unknown}; known: {', '.join(ABLATIONS)}")
+        print(json.dumps(ablate(a.out, tuple(a.names) or tuple(ABLATIONS)), indent=1))
     else:
-        raise SystemExit("usage: python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | ablate OUT [NAME...]")
+        print(json.dumps(compare_choices(a.run_dir), indent=1))
+
+
+if __name__ == "__main__":
+    main()

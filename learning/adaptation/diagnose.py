@@ -87,8 +87,8 @@ def closed_loop(ckpt_dir: str, names: list[str], seed: int, cache: Path) -> None
         env.close()
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m hilstack.learning.adaptation.diagnose", description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--cache", default="/tmp/adapt_diag")
@@ -99,7 +99,7 @@ def main() -> None:
     ap.add_argument("--test-rollouts", type=int, default=3, help="per test condition (quick: 3)")
     ap.add_argument("--variants", default="all,all_psi_lr,last,last_psi_lr,last_psi1")
     ap.add_argument("--closed-loop", nargs="+", metavar=("CKPT_DIR", "NAME"))
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     torch.set_num_threads(1)
     if a.closed_loop:
         return closed_loop(a.closed_loop[0], a.closed_loop[1:], a.seed, Path(a.cache))

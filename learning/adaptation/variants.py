@@ -44,7 +44,7 @@ VARIANTS = {"default": (1e-4, 0.5), "uncapped": (1e-3, None), "theta1e-4": (1e-4
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m hilstack.learning.adaptation.variants", description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/adapt_variants"))
