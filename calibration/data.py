@@ -80,6 +80,23 @@ class Episode:
     def n(self) -> int:
         return int(self.t_s.shape[0])
 
+    def transitions(self, state_names: tuple[str, ...] | list[str] | None = None,
+                    action_names: tuple[str, ...] | list[str] | None = None):
+        """The multi-channel part as a :class:`hilstack.learning.datasets.Episode`, the one
+        episode type of learning: ``N`` states and the ``N − 1`` actions between them
+        (``actions[k]``, held from t_k to t_{k+1}, leads from ``states[k]`` to ``states[k+1]``;
+        the repeated last row is dropped). ``state_names``/``action_names``: the channels to
+        keep, in that order (default all)."""
+        from hilstack.learning.datasets import Episode as Transitions
+
+        if self.states is None or self.actions is None:
+            raise DataError(f"{self.name}: no state/action channels (an .mcap recording or a mapped table has them)")
+        si = [self.state_names.index(n) for n in state_names] if state_names is not None else slice(None)
+        ai = [self.action_names.index(n) for n in action_names] if action_names is not None else slice(None)
+        return Transitions(self.states[:, si], self.actions[:-1, ai], times=self.t_s, name=self.name,
+                           meta={**self.meta, "state_names": list(state_names or self.state_names),
+                                 "action_names": list(action_names or self.action_names)})
+
     @property
     def period_s(self) -> float:
         """Sample period [s]: the median time step (robust to a few jittered stamps)."""

@@ -433,10 +433,8 @@ class CheckpointModel:
                     + f" (data has states {list(e.state_names)}, actions {list(e.action_names)})")
             if e.n < 3:
                 raise DataError(f"{e.name}: only {e.n} samples; need at least 3")
-            si = [e.state_names.index(n) for n in self.state_names]
-            ai = [e.action_names.index(n) for n in self.action_names]
-            states = np.asarray(e.states[:, si], np.float32)
-            actions = np.asarray(e.actions[:-1, ai], np.float32)  # the last row repeats: no next state
+            tr = e.transitions(self.state_names, self.action_names)  # N states, the N-1 actions between
+            states, actions = tr.states, tr.actions
             feats = candidate_features(states, actions, e.t_s, e.vbat_v)
             out.append(LearnedPrepared(e, i, e.period_s, states, actions, feats))
         return out

@@ -68,11 +68,10 @@ def train_checkpoint(path: str | Path, n_episodes: int = 40, steps: int = 100, s
     """
     import torch
 
-    from hilstack.learning.datasets import Episode as LEpisode
     from hilstack.learning.dynamics import EnsembleDynamics
 
     eps = generate(n_episodes, steps, hidden=data_hidden, seed=seed)
-    train = [LEpisode(e.states, e.actions[:-1], times=e.t_s, name=e.name) for e in eps]
+    train = [e.transitions() for e in eps]
     torch.manual_seed(seed)
     net = EnsembleDynamics(2, 1, ensemble, hidden_sizes, state_names=STATE_NAMES, action_names=ACTION_NAMES,
                            state_units=["m", "m/s"], action_units=["1"], seed=seed)

@@ -45,7 +45,7 @@ from hilstack.control.planners import CEM, PDDM, RandomShooting
 from hilstack.control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from hilstack.control.reset.config import ResetConfig, ResetUnavailable, require_reset
 from hilstack.control.reset.supervisor import ResetSupervisor
-from hilstack.learning.datasets import Episode
+from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.dynamics import EnsembleDynamics
 from hilstack.learning.frames import BodyFrameDynamics
 from hilstack.learning.progress import progress
@@ -246,25 +246,6 @@ def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str])
     if ignore:
         model.ignore_inputs(ignore)
     return model
-
-
-def split_episodes(eps: list[Episode], val_fraction: float, rng: np.random.Generator,
-                   assigned: dict[str, bool]) -> tuple[list[Episode], list[Episode]]:
-    """Train and validation episodes; each episode is assigned once, for good.
-
-    ``assigned`` maps episode name → ``True`` (validation) and is updated in place: only
-    episodes not seen before are drawn (``val_fraction`` of them, at least one when more
-    than one is new), so a validation episode never becomes training data when the list
-    grows between MBRL iterations, and vice versa.
-    """
-    new = [e.name for e in eps if e.name not in assigned]
-    if len(set(new)) != len(new):
-        raise ValueError("episode names must be unique to keep the validation split fixed")
-    n_val = max(1, int(round(val_fraction * len(new)))) if len(new) > 1 else 0
-    val_idx = set(rng.permutation(len(new))[:n_val].tolist())
-    for i, name in enumerate(new):
-        assigned[name] = i in val_idx
-    return [e for e in eps if not assigned[e.name]], [e for e in eps if assigned[e.name]]
 
 
 #: differential-drive search space: (low, high, scaled by the speed setting?). Gains in

@@ -247,8 +247,8 @@ def compare_choices(run_dir: Path, out: Path | None = None, widths: tuple[int, .
         load_baoding_task,
         summarize,
     )
+    from hilstack.learning.datasets import split_episodes
     from hilstack.learning.dynamics import EnsembleDynamics
-    from hilstack.learning.mbrl import split_episodes
     from hilstack.learning.recordings import episodes_from_mcap
     from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
 

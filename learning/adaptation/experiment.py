@@ -44,8 +44,8 @@ from hilstack.learning.adaptation.grbal import GrbalAdapter, segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.mole import MoleAdapter
 from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from hilstack.learning.adaptation.training import fit_plain, split_episodes, transitions
-from hilstack.learning.datasets import Episode
+from hilstack.learning.adaptation.training import fit_plain, transitions
+from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.experiments import mean_std
 from hilstack.learning.mbrl import MbrlConfig, PathEnd, _jsonable, make_planner, path_start_pose
 from hilstack.tasks.perturbations import (

@@ -56,8 +56,8 @@ from hilstack.learning.adaptation.gym_envs import ENVS, GymBenchmarkEnv, disable
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.mole import MoleAdapter
 from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from hilstack.learning.adaptation.training import fit_plain, split_episodes
-from hilstack.learning.datasets import Episode
+from hilstack.learning.adaptation.training import fit_plain
+from hilstack.learning.datasets import Episode, split_episodes
 
 JOINT_METHODS = ("mb", "mb_de", "grbal", "rebal", "oracle")
 MOLE_METHODS = ("mole", "continued", "k_shot", "mb", "mb_online")

@@ -24,20 +24,6 @@ def transitions(episodes: Sequence[Episode]) -> tuple[np.ndarray, np.ndarray, np
     return s, a, n
 
 
-def split_episodes(episodes: Sequence[Episode], val_fraction: float, seed: int) -> tuple[list[Episode], list[Episode]]:
-    """(train, held-out): a random ``val_fraction`` of the rollouts (whole rollouts, never
-    transitions of one rollout on both sides), at least one of each when there are two."""
-    if not 0.0 <= val_fraction < 1.0:
-        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
-    n = len(episodes)
-    k = int(round(val_fraction * n))
-    if val_fraction > 0 and n >= 2:
-        k = min(max(k, 1), n - 1)
-    perm = np.random.default_rng([seed, 11]).permutation(n)
-    val = set(perm[:k].tolist())
-    return [e for i, e in enumerate(episodes) if i not in val], [e for i, e in enumerate(episodes) if i in val]
-
-
 def fit_plain(model: AdaptiveMLP, episodes: Sequence[Episode], epochs: int = 30, batch_size: int = 256,
               lr: float = 1e-3, seed: int = 0, normalize: bool = True, val: Sequence[Episode] | None = None,
               patience: int = 5, history: dict | None = None) -> list[float]:

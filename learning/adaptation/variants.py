@@ -35,7 +35,7 @@ from hilstack.learning.adaptation.experiment import (
 )
 from hilstack.learning.adaptation.grbal import segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
-from hilstack.learning.adaptation.training import split_episodes
+from hilstack.learning.datasets import split_episodes
 from hilstack.tasks.perturbations import load_presets
 
 # variant -> (θ's meta learning rate, cap quantile or None)

@@ -7,12 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hilstack.learning.datasets import Episode
+from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.mbrl import (
     BASELINE_SEARCH,
     baseline_candidates,
     default_baseline_params,
-    split_episodes,
 )
 
 
