@@ -122,7 +122,7 @@ def test_action_alignment_actions_t_leads_from_states_t_to_states_t_plus_1():
     """The one alignment of learning's Episode (and of a calibration recording's transitions):
     ``actions[t]`` is applied at ``states[t]`` and leads to ``states[t+1]``. On s' = s + a the
     deltas equal the actions exactly; any off-by-one pairing breaks that."""
-    from hilstack.calibration.data import Episode as Recording
+    from hilstack.calibration.data import Recording
     from hilstack.learning.datasets import Episode as Ep
     from hilstack.learning.datasets import TransitionDataset as TD
 
