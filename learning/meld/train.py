@@ -98,6 +98,9 @@ def meta_train(env: ImageTaskEnv, agent: Any, cfg: MetaTrainConfig, log: Callabl
     """Algorithm 7. Returns the learning curve ``[{samples, success_rate, reward, ...}]``, the
     final held-out evaluation and wall times. ``initial_replay``: start from these episodes
     (several methods sharing one random start); its samples count in the budget."""
+    if not 1 <= cfg.tasks_per_epoch <= len(env.train_tasks):
+        raise ValueError(f"MetaTrainConfig.tasks_per_epoch {cfg.tasks_per_epoch}: must be 1..{len(env.train_tasks)} "
+                         "(the number of training tasks)")
     rng = np.random.default_rng(cfg.seed)
     replay = initial_replay if initial_replay is not None else TaskReplay()
     t0 = time.perf_counter()

@@ -31,6 +31,12 @@ def test_meta_train_runs_algorithm_7_and_8(name):
     assert np.isfinite(res["last_stats"]["critic_loss"])
 
 
+def test_meta_train_refuses_more_tasks_per_epoch_than_tasks():
+    env = ToyReach(episode_steps=3, n_train=2, n_test=1)
+    with pytest.raises(ValueError, match="tasks_per_epoch 3: must be 1..2"):
+        meta_train(env, AGENTS["meld"](CFG), MetaTrainConfig(env_samples=10, tasks_per_epoch=3))
+
+
 def test_meta_test_success_is_the_tasks_own_test():
     """A controller that knows the goal succeeds on every held-out task, one that stays put fails."""
     env = ToyReach(episode_steps=8, n_train=2, n_test=3)
