@@ -45,6 +45,8 @@ from hilstack.calibration.data import DataError, Episode
 
 #: the candidate effects, in the order ties are broken (simplest physics first)
 CANDIDATES = ("joint_frictionloss", "joint_damping", "joint_armature", "input_delay", "servo_gain")
+#: effects that may each look useless alone and only help together; tried jointly when no single one enters
+PAIRS = (("joint_frictionloss", "input_delay"), ("joint_frictionloss", "joint_damping"))
 #: the bench turns this numeric into its servos' goal delay (sim_backends/widowx/world.py DELAY_NUMERIC)
 DELAY_NUMERIC = "hilstack_input_delay_s"
 
@@ -106,7 +108,7 @@ class Blocks:
 
 
 def make_blocks(episodes: list[Episode], bench: Bench, dt_s: float, horizon_s: float = 2.0,
-                gap_blocks: int = 1) -> Blocks:
+                gap_blocks: int = 1, split: bool = True) -> Blocks:
     """Cut episodes into blocks of ``horizon_s``; blocks alternate train, gap, test, gap (a block
     next to a held-out block never trains: its samples are correlated with the test's)."""
     if not episodes:
@@ -126,7 +128,11 @@ def make_blocks(episodes: list[Episode], bench: Bench, dt_s: float, horizon_s: f
     cycle = 2 * (gap_blocks + 1)
     train = [k for k in range(len(spans)) if k % cycle == 0]
     test = [k for k in range(len(spans)) if k % cycle == gap_blocks + 1]
-    if len(test) < 4 or len(train) < 2:
+    if not split:  # score every block (a new recording: nothing trains)
+        train, test = [], list(range(len(spans)))
+        if not test:
+            raise DataError(f"recording shorter than one block of {horizon_s:g} s")
+    elif len(test) < 4 or len(train) < 2:
         raise DataError(f"recording too short: {len(spans)} blocks of {horizon_s:g} s; need at least "
                         f"{4 * cycle} (≈{4 * cycle * horizon_s:g} s) for 4 held-out blocks")
     allq = np.concatenate([e.states[:, bench.q] for e in episodes])
@@ -365,7 +371,7 @@ def _param_dict(sysid, bench: Bench, effects: list[str], start: dict | None = No
     return pd
 
 
-def fit_effects(replay: Replay, effects: list[str], max_fit_blocks: int = 16, max_iters: int = 12,
+def fit_effects(replay: Replay, effects: list[str], max_fit_blocks: int = 8, max_iters: int = 12,
                 start: dict | None = None, seed: int = 0) -> Fit:
     """Fit the parameters of ``effects`` together on (up to ``max_fit_blocks``) training blocks with
     ``mujoco.sysid``; confidence intervals from its Jacobian; held-out errors on the test blocks."""
@@ -440,7 +446,7 @@ def nrmse(sse: np.ndarray, samples: int) -> float:
 
 
 def select(replay: Replay, candidates: tuple[str, ...] = CANDIDATES, max_rounds: int = 3, seed: int = 0,
-           log: Callable[[str], None] = lambda m: None, max_fit_blocks: int = 16) -> dict:
+           log: Callable[[str], None] = lambda m: None, max_fit_blocks: int = 8) -> dict:
     """Stepwise: each round fits every remaining candidate together with the accepted effects (all
     refitted), accepts the best at "moderate" or better; then a pruning pass. Returns the report."""
     from hilstack.calibration.selection import LEVELS, SelectionConfig, gain_evidence
@@ -469,7 +475,18 @@ def select(replay: Replay, candidates: tuple[str, ...] = CANDIDATES, max_rounds:
         rounds.append([{"effects": f.effects, "added": f.effects[-1], "evidence": ev.to_dict()} for f, ev in tried])
         best, ev = tried[0]
         if not ev.at_least("moderate"):
-            break
+            # effects that may only show together (friction + delay, friction + damping): fitted jointly
+            pairs = [pr for pr in PAIRS if all(e in candidates and e not in current.effects for e in pr)]
+            for pr in pairs:
+                f = fit_effects(replay, current.effects + list(pr), max_fit_blocks=max_fit_blocks,
+                                start=current.values, seed=seed)
+                pev = gain_evidence(current.test_sse, f.test_sse, cfg, seed=seed)
+                log(f"round {r + 1} pair: {'+'.join(f.effects)}: held-out gain {pev.gain:+.3f} {pev.level}")
+                rounds[-1].append({"effects": f.effects, "added": "+".join(pr), "evidence": pev.to_dict()})
+                if pev.at_least("moderate") and (not ev.at_least("moderate") or pev.gain > ev.gain):
+                    best, ev = f, pev
+            if not ev.at_least("moderate"):
+                break
         current = best
     pruned = []
     if len(current.effects) > 1:
@@ -511,8 +528,7 @@ def evaluate(bench: Bench, episodes: list[Episode], values: dict[str, list[float
     """Multi-step position NRMSE of the bench model (with ``values`` applied) on every block of
     ``episodes`` (e.g. a NEW recording): all blocks are scored, none trains."""
     sysid = _sysid()
-    blocks = make_blocks(episodes, bench, float(bench.spec.option.timestep), horizon_s=horizon_s)
-    blocks.test = list(range(len(blocks.spans)))
+    blocks = make_blocks(episodes, bench, float(bench.spec.option.timestep), horizon_s=horizon_s, split=False)
     rp = Replay(bench, blocks)
     pd = _param_dict(sysid, bench, list((values or {}).keys()), values)
     sse = heldout_sse(rp, pd)
@@ -522,7 +538,7 @@ def evaluate(bench: Bench, episodes: list[Episode], values: dict[str, list[float
 def run_mjcf_calibration(data_path: str | Path, robot_config: str | Path, out_dir: str | Path, seed: int = 0,
                          progress: bool = True, horizon_s: float = 2.0, force: bool = False,
                          candidates: tuple[str, ...] = CANDIDATES, max_rounds: int = 3,
-                         max_fit_blocks: int = 16) -> dict:
+                         max_fit_blocks: int = 8) -> dict:
     """`hil calibrate --model <robot config>`: select and fit the missing effect, write
     ``calibrated.xml``, ``report.json`` and ``report.md`` to ``out_dir``."""
     import sys

@@ -45,23 +45,30 @@ def excitation_targets(n_joints: int, duration_s: float, seed: int, amplitude_ra
 
 def record_excitation(path: str | Path, duration_s: float = 60.0, seed: int = 0, robot: str = "widowx",
                       effects: dict[str, float] | None = None, period_s: float = 0.02, gain_1_s: float = 2.0,
-                      rig: str = "calib", overwrite: bool = False, mjcf: str | None = None) -> Path:
+                      rig: str = "calib", overwrite: bool = False, mjcf: str | None = None,
+                      backend: str = "sim") -> Path:
     """Drive ``robot``'s sim bench with a random multi-sine for ``duration_s`` (sim time) and write
     the rig recording to ``path`` (an existing file is refused unless ``overwrite``).
 
     Commands: joint velocities ``dq_ref + gain_1_s·(q_mid + q_ref − q)``, within the driver's
     limits (the driver clamps and rate-limits them as on the rig; the applied action is recorded).
+
+    ``backend="emulated"``: the real driver over a pty to the bus emulator process, whose servos
+    carry ``effects`` (``params.emulator.effects``); paced in real time (``duration_s`` of wall clock).
     """
     from hilstack.bus import keys
     from hilstack.bus.recording import McapLog
     from hilstack.bus.schemas import RobotState, SpecMsg
     from hilstack.drivers.registry import make_driver
 
-    sim = {"start_holding": WIDOWX_MID_POSE, "effects": dict(effects or {})}
+    bench = {"start_holding": WIDOWX_MID_POSE, "effects": dict(effects or {})}
     if mjcf is not None:
-        sim["mjcf"] = str(mjcf)
+        bench["mjcf"] = str(mjcf)
+    if backend not in ("sim", "emulated"):
+        raise ValueError(f"backend must be 'sim' or 'emulated', got {backend!r}")
     # a bus name of its own: never share a world with another robot of this process
-    d = make_driver(robot, backend="sim", bus_name=f"excite-{seed}-{id(sim)}", period_s=period_s, sim=sim)
+    d = make_driver(robot, backend=backend, bus_name=f"excite-{seed}-{id(bench)}", period_s=period_s,
+                    **({"sim": bench} if backend == "sim" else {"emulator": bench}))
     names = list(d.spec.state.names)
     n = d.spec.action.dim
     mid = np.array([WIDOWX_MID_POSE.get(nm, 0.0) for nm in names[:n]])

@@ -91,6 +91,10 @@ class DynamixelEmulatorParams(EmulatorParams):
     state_every_s: EmulatorS = Field(0.02, description="period of the state_file lines [s]")
     linger_s: EmulatorS = Field(0.0, description="tests of host death: keep simulating the servos "
                                 "this long after the driver's process died [s]")
+    effects: dict[str, float] = Field(default_factory=dict, description="what the arm's servos have that the "
+                                      "MuJoCo model lacks, for calibration: joint_friction_nm, joint_damping_nm_s, "
+                                      "input_delay_s (checked by the emulator: sim_backends/widowx/firmware.py)")
+    mjcf: str | None = Field(None, description="the bench from this MJCF file (e.g. a calibrated one)")
 
 
 class BusParams(Params):

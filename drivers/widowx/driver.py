@@ -57,8 +57,7 @@ class WidowXDriver(DynamixelRobot):
         return cls(parse_params(cfg, WidowXParams), backend=cfg.backend, source=cfg.source)
 
     def _emulator_config(self) -> dict:
-        # the bench's effects / calibrated MJCF (params.sim) hold for the emulated bench too
-        return {"arm_ids": self.ids, **{k: self.params.sim[k] for k in ("effects", "mjcf") if k in self.params.sim}}
+        return {"arm_ids": self.ids}
 
     def _on_bus_ready(self) -> None:
         self._vel_limit_counts = {i: self.bus.read(i, "Velocity Limit") for i in self.ids.values()}
