@@ -6,7 +6,7 @@ bus emulator process runs, without the pty's real-time pacing) with a smooth ran
 multi-sine tracked by a proportional command, and writes what a rig recording holds (a
 spec message, then one RobotState per period with the action held during it) to an MCAP.
 The bench can carry effects its MuJoCo model lacks (``effects``: for the WidowX, gearbox
-friction, damping, an input delay, see :data:`hilstack.sim_backends.widowx.firmware.EFFECTS`),
+friction, damping, an input delay, see :data:`hilstack.sim_backends.dynamixel.firmware.EFFECTS`),
 so that calibration has something to find.
 
 The robot comes from the driver registry, so this works for any robot whose sim backend

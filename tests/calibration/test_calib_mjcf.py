@@ -15,8 +15,8 @@ from hilstack.calibration.data import DataError, load_episodes
 from hilstack.calibration.robot_rig import record_excitation
 from hilstack.drivers.dynamixel.control_table import OPERATING_MODES
 from hilstack.drivers.registry import make_driver
+from hilstack.sim_backends.dynamixel.firmware import Servo, ServoPhysics, effect_fields
 from hilstack.sim_backends.widowx import emulator
-from hilstack.sim_backends.widowx.firmware import Servo, ServoPhysics, effect_fields
 
 try:
     from hilstack.calibration import mjcf_robot as M
