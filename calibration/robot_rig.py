@@ -67,7 +67,9 @@ def record_excitation(path: str | Path, duration_s: float = 60.0, seed: int = 0,
     if backend not in ("sim", "emulated"):
         raise ValueError(f"backend must be 'sim' or 'emulated', got {backend!r}")
     # a bus name of its own: never share a world with another robot of this process
+    # a reading older than 5 periods is stale (it must be shorter than the link's error deadline)
     d = make_driver(robot, backend=backend, bus_name=f"excite-{seed}-{id(bench)}", period_s=period_s,
+                    telemetry_stale_s=min(0.25, 5 * period_s),
                     **({"sim": bench} if backend == "sim" else {"emulator": bench}))
     names = list(d.spec.state.names)
     n = d.spec.action.dim
