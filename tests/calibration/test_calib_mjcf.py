@@ -186,3 +186,21 @@ def test_short_recording_and_overwrite_are_refused(tmp):
     with pytest.raises(DataError, match="exists"):
         M.run_mjcf_calibration(rec, "widowx", out, progress=False)
     assert open(f"{out}/calibrated.xml").read() == "keep"
+
+
+@needs_sysid
+def test_cli_robot_config_errors_are_one_line(tmp, tmp_path):
+    from typer.testing import CliRunner
+
+    from hilstack.tools.cli import app
+
+    runner = CliRunner()
+    res = runner.invoke(app, ["calibrate", "--model", "configs/robots/widowx.yaml", "--data",
+                              str(tmp_path / "none.mcap"), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "no such file" in res.output
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / "calibrated.xml").write_text("keep")
+    res = runner.invoke(app, ["calibrate", "--model", "configs/robots/widowx.yaml", "--data",
+                              _recording(tmp, (), 3, 6.0), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "exists (pass --force" in res.output
+    assert (tmp_path / "o" / "calibrated.xml").read_text() == "keep"
