@@ -263,7 +263,6 @@ class Replay:
         """(blocks, steps, nu): each block's recorded goals, zero-order held and delayed by ``delay_s``
         (linear between neighbouring whole steps, so the fit sees a smooth function of the delay)."""
         b = self.blocks
-        out = np.zeros((len(blocks), 0, self.nu))
         rows = []
         m, frac = divmod(delay_s / self.dt, 1.0)
         m = int(m)
@@ -281,8 +280,7 @@ class Replay:
             c[:, self.i_int] = u
             c[:, self.i_ff] = u
             rows.append(c)
-        out = np.stack(rows) if rows else out
-        return out
+        return np.stack(rows) if rows else np.zeros((0, 0, self.nu))
 
     def _initial(self, model, blocks: list[int], delay_s: float) -> np.ndarray:
         """Full-physics states at the blocks' first samples: measured q, qd; the PI integrator from the

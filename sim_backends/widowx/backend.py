@@ -71,8 +71,7 @@ class WidowXSim(DynamixelSim, WidowXDriver):
                         "tau_max_nm": ph.stall_torque_nm, "kt_nm_per_a": ph.kt_nm_per_a}
         k = len(names)
         return {"spec": spec, "joints": names, "loops": loops, "q": list(range(0, k)), "qd": list(range(k, 2 * k)),
-                "current": list(range(2 * k, 3 * k)), "action": "goal_velocity",
-                "hold_pose": params.sim.get("start_holding")}
+                "current": list(range(2 * k, 3 * k)), "action": "goal_velocity"}
 
     def _world(self) -> ArmWorld:
         return shared_world(self.params.bus_name, arm_ids=self.ids, start_holding=self.params.sim.get("start_holding"),
