@@ -80,11 +80,10 @@ PRESETS: dict[str, dict] = {
 _WHEELED_MODEL = SidmConfig(latent_dim=128, width=128, enc_layers=0, warm_rounds=10, max_rounds=30,
                             patience_rounds=5)
 WHEELED_PRESETS: dict[str, tuple[SidmExperiment, SidmConfig]] = {
-    "full": (SidmExperiment(expert_minutes=20.0, novice_minutes=(0.5, 2.0, 8.0), validation_minutes=2.0,
-                            trials=3, ablation_minutes=(0.5,), paper_sidm=True, finetune=True, drift_steps=0),
-             _WHEELED_MODEL),
-    "quick": (SidmExperiment(expert_minutes=10.0, novice_minutes=(0.5, 2.0), validation_minutes=1.0,
-                             trials=2, paper_sidm=True, finetune=True, drift_steps=0), _WHEELED_MODEL),
+    "full": (SidmExperiment(expert_minutes=10.0, novice_minutes=(0.5, 1.5, 4.5), validation_minutes=1.0,
+                            trials=2, paper_sidm=True, finetune=True, drift_steps=0), _WHEELED_MODEL),
+    "quick": (SidmExperiment(expert_minutes=5.0, novice_minutes=(0.5, 1.5), validation_minutes=1.0,
+                             trials=1, paper_sidm=True, finetune=True, drift_steps=0), _WHEELED_MODEL),
     "tiny": (SidmExperiment(expert_minutes=0.1, novice_minutes=(0.05, 0.1), validation_minutes=0.05, trials=1,
                             episode_s=3.0, paper_sidm=True, finetune=True, drift_steps=0),
              SidmConfig(latent_dim=8, width=16, enc_layers=0, pred_iters=10, match_iters=2, warm_rounds=1,
@@ -214,9 +213,10 @@ def _roach_over_seeds(cfg: RoachGaratConfig, seeds: tuple[int, ...], log) -> dic
 
 
 def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print, part: str = "all",
-                      setting: str = "roach") -> dict:
+                      setting: str = "roach", pairs: tuple[str, ...] | None = None) -> dict:
     """Run the preset (``part``: all, sidm or garat), write report.json and the plots into ``out``.
-    ``setting`` "wheeled" (with ``part`` "sidm" only): SIDM on the paper's wheeled robots."""
+    ``setting`` "wheeled" (with ``part`` "sidm" only): SIDM on the paper's wheeled robots.
+    ``pairs``: only these SIDM pairs (e.g. one per process, to use both cores)."""
     import torch
 
     from hilstack.learning.transfer.roach_pairs import run_sidm
@@ -233,6 +233,11 @@ def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print
     p = PRESETS[preset]
     sidm_exp, sidm_cfg = (p["sidm_exp"], p["sidm"]) if setting == "roach" else WHEELED_PRESETS[preset]
     sidm_exp, pend = replace(sidm_exp, seed=seed), replace(p["pendulum"], seed=seed)
+    if pairs is not None:
+        unknown = set(pairs) - {k for k, _ in sidm_exp.p_e}
+        if unknown:
+            raise ValueError(f"unknown SIDM pair(s) {sorted(unknown)}: choose from {[k for k, _ in sidm_exp.p_e]}")
+        sidm_exp = replace(sidm_exp, p_e=tuple((k, v) for k, v in sidm_exp.p_e if k in pairs))
     garat_seeds = tuple(p["garat_seeds"] or (seed,))
     report: dict = {"preset": preset, "seed": seed, "part": part, "setting": setting, "settings": {}, "timing_s": {},
                     "checks": {}}

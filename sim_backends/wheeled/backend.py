@@ -94,11 +94,11 @@ def _xml(p: WheeledParams, zmax: float) -> str:
         <joint name="susp_{name}" type="slide" axis="0 0 1" range="{-p.travel_m} {p.travel_m}" limited="true"
                stiffness="{p.stiffness_n_per_m}" springref="{-springref}" damping="{p.damping_ns_per_m}"
                armature="0.001"/>
-        <geom type="cylinder" size="0.01 0.03" mass="0.1" contype="0" conaffinity="0" rgba=".3 .3 .3 1"/>
+        <geom type="cylinder" size="0.01 0.03" mass="0.1" contype="0" conaffinity="0" group="1" rgba=".3 .3 .3 1"/>
         <body name="wheel_{name}" pos="0 0 -0.03">
           <joint name="spin_{name}" type="hinge" axis="0 1 0" damping="0.001"/>
           <geom type="sphere" size="{r}" mass="{p.wheel_mass_kg}" friction="{p.friction} 0.01 0.001"
-                condim="3" contype="1" conaffinity="1" rgba=".1 .1 .1 1"/>
+                condim="3" contype="1" conaffinity="1" group="1" rgba=".1 .1 .1 1"/>
         </body>
       </body>""")
     acts = "\n".join(
@@ -117,7 +117,7 @@ def _xml(p: WheeledParams, zmax: float) -> str:
     <body name="chassis" pos="0 0 0.3">
       <freejoint name="root"/>
       <geom type="box" size="{p.wheelbase_m / 2 + 0.02} {max(p.track_m / 2 - p.wheel_radius_m - 0.01, 0.02)} 0.04" mass="{p.chassis_mass_kg}"
-            contype="2" conaffinity="0" rgba=".2 .4 .8 1"/>{"".join(units)}
+            contype="2" conaffinity="0" group="1" rgba=".2 .4 .8 1"/>{"".join(units)}
     </body>
   </worldbody>
   <actuator>
