@@ -111,7 +111,7 @@ def _sidm_plot(report: dict, out: Path, plt) -> str:
         ax.set_xlabel("novice data [min of robot time]")
         ax.set_ylabel("validation MSE (normalised Δs)")
         med = r["data_multiplier"]["median_interpolated"]
-        ax.set_title(f"SIDM, {pair} pair (warm SIDM: median interpolated multiplier "
+        ax.set_title(f"SIDM, {pair} pair\n(warm SIDM: median interpolated multiplier "
                      f"{'n/a' if med is None else f'{med:.2g}x'}, {r['data_multiplier']['beyond_grid']} beyond the grid)",
                      fontsize=8)
         ax.legend()
