@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any, ClassVar
 
+from hilstack.configs.presets import Presets
 from hilstack.learning.transfer.grounding import GaratConfig
 from hilstack.learning.transfer.pendulum import PendulumConfig
 from hilstack.learning.transfer.roach_garat import RoachGaratConfig
@@ -32,7 +34,7 @@ _PENDULUM = PendulumConfig(agent_timesteps=20000, target_sizes=(500, 3000), sour
 _ROACH = RoachGaratConfig(cem_population=8, cem_iterations=6, gat_fit_steps=4000, gat_val_frac=0.2,
                           garat=GaratConfig(total_timesteps=12288, n_steps=256, log_std_init=-2.0))
 
-PRESETS: dict[str, dict] = {
+_PRESETS: dict[str, dict[str, Any]] = {
     "full": {
         # sized for about 45 min on one loaded core (docs/transfer.md "What ran")
         "sidm_exp": SidmExperiment(expert_minutes=20.0, novice_minutes=(1.0, 2.0, 4.0, 8.0, 16.0, 32.0),
@@ -79,16 +81,38 @@ PRESETS: dict[str, dict] = {
 #: warm-started SIDM and fine-tuning from the expert's model, beside the novice-only baseline
 _WHEELED_MODEL = SidmConfig(latent_dim=128, width=128, enc_layers=0, warm_rounds=10, max_rounds=30,
                             patience_rounds=5)
-WHEELED_PRESETS: dict[str, tuple[SidmExperiment, SidmConfig]] = {
-    "full": (SidmExperiment(expert_minutes=10.0, novice_minutes=(0.5, 1.5, 4.5), validation_minutes=1.0,
-                            trials=2, paper_sidm=True, finetune=True, drift_steps=0), _WHEELED_MODEL),
-    "quick": (SidmExperiment(expert_minutes=5.0, novice_minutes=(0.5, 1.5), validation_minutes=1.0,
-                             trials=1, paper_sidm=True, finetune=True, drift_steps=0), _WHEELED_MODEL),
-    "tiny": (SidmExperiment(expert_minutes=0.1, novice_minutes=(0.05, 0.1), validation_minutes=0.05, trials=1,
-                            episode_s=3.0, paper_sidm=True, finetune=True, drift_steps=0),
-             SidmConfig(latent_dim=8, width=16, enc_layers=0, pred_iters=10, match_iters=2, warm_rounds=1,
-                        max_rounds=2, patience_rounds=2)),
-}
+_PRESETS["full"].update(
+    wheeled_exp=SidmExperiment(expert_minutes=10.0, novice_minutes=(0.5, 1.5, 4.5), validation_minutes=1.0,
+                               trials=2, paper_sidm=True, finetune=True, drift_steps=0),
+    wheeled=_WHEELED_MODEL)
+_PRESETS["quick"].update(
+    wheeled_exp=SidmExperiment(expert_minutes=5.0, novice_minutes=(0.5, 1.5), validation_minutes=1.0,
+                               trials=1, paper_sidm=True, finetune=True, drift_steps=0),
+    wheeled=_WHEELED_MODEL)
+_PRESETS["tiny"].update(
+    wheeled_exp=SidmExperiment(expert_minutes=0.1, novice_minutes=(0.05, 0.1), validation_minutes=0.05, trials=1,
+                               episode_s=3.0, paper_sidm=True, finetune=True, drift_steps=0),
+    wheeled=SidmConfig(latent_dim=8, width=16, enc_layers=0, pred_iters=10, match_iters=2, warm_rounds=1,
+                       max_rounds=2, patience_rounds=2))
+
+
+@dataclass(frozen=True)
+class TransferDemoConfig(Presets):
+    """What one transfer demo runs: ``TransferDemoConfig.from_preset("full" | "quick" | "tiny")``.
+    ``garat_seeds``/``roach_seeds`` None: the run's ``--seed`` (roach: the GARAT seeds)."""
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = _PRESETS
+
+    sidm_exp: SidmExperiment
+    sidm: SidmConfig
+    pendulum: PendulumConfig
+    roach: RoachGaratConfig
+    garat_seeds: tuple[int, ...] | None = None
+    roach_seeds: tuple[int, ...] | None = None
+    #: SIDM on the paper's wheeled robots (`setting="wheeled"`): the sweep and the model
+    wheeled_exp: SidmExperiment | None = None
+    wheeled: SidmConfig | None = None
+
 
 PARTS = ("all", "sidm", "garat")
 SETTINGS = ("roach", "wheeled")
@@ -221,8 +245,7 @@ def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print
 
     from hilstack.learning.transfer.roach_pairs import run_sidm
 
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)}")
+    p = TransferDemoConfig.from_preset(preset)  # one-line error naming the presets
     if part not in PARTS:
         raise ValueError(f"unknown part {part!r}: choose one of {', '.join(PARTS)}")
     if setting not in SETTINGS or (setting != "roach" and part != "sidm"):
@@ -230,15 +253,14 @@ def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print
     torch.set_num_threads(1)  # two shared cores: one thread each is faster under load (PLATFORM_NOTES)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    p = PRESETS[preset]
-    sidm_exp, sidm_cfg = (p["sidm_exp"], p["sidm"]) if setting == "roach" else WHEELED_PRESETS[preset]
-    sidm_exp, pend = replace(sidm_exp, seed=seed), replace(p["pendulum"], seed=seed)
+    sidm_exp, sidm_cfg = (p.sidm_exp, p.sidm) if setting == "roach" else (p.wheeled_exp, p.wheeled)
+    sidm_exp, pend = replace(sidm_exp, seed=seed), replace(p.pendulum, seed=seed)
     if pairs is not None:
         unknown = set(pairs) - {k for k, _ in sidm_exp.p_e}
         if unknown:
             raise ValueError(f"unknown SIDM pair(s) {sorted(unknown)}: choose from {[k for k, _ in sidm_exp.p_e]}")
         sidm_exp = replace(sidm_exp, p_e=tuple((k, v) for k, v in sidm_exp.p_e if k in pairs))
-    garat_seeds = tuple(p["garat_seeds"] or (seed,))
+    garat_seeds = tuple(p.garat_seeds or (seed,))
     report: dict = {"preset": preset, "seed": seed, "part": part, "setting": setting, "settings": {}, "timing_s": {},
                     "checks": {}}
     t0 = time.monotonic()
@@ -261,10 +283,10 @@ def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print
         t = time.monotonic()
         pendulum = _pendulum_over_seeds(pend, garat_seeds, log)
         t1 = time.monotonic()
-        roach_seeds = tuple(p.get("roach_seeds") or garat_seeds)
-        roach = _roach_over_seeds(p["roach"], roach_seeds, log)
+        roach_seeds = tuple(p.roach_seeds or garat_seeds)
+        roach = _roach_over_seeds(p.roach, roach_seeds, log)
         report["garat"] = {"pendulum": pendulum, "roach": roach}
-        report["settings"].update(pendulum=asdict(pend), roach=asdict(p["roach"]), garat_seeds=list(garat_seeds),
+        report["settings"].update(pendulum=asdict(pend), roach=asdict(p.roach), garat_seeds=list(garat_seeds),
                                   roach_seeds=list(roach_seeds))
         report["timing_s"].update(garat_pendulum=t1 - t, garat_roach=time.monotonic() - t1)
         ge = pendulum["grounding_error"]
