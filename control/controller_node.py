@@ -257,7 +257,8 @@ class ControllerNode(Node):
         A policy with ``delay_steps`` > 0 (:class:`hilstack.control.policies.MpcPolicy` on a
         wall-clock robot) is called as ``policy(state, committed=...)`` with the last
         ``delay_steps`` commands sent (normalized, oldest first): those act before the one
-        it plans. A plan that comes in late is used shifted by the cycles it missed.
+        it plans. A plan that comes in late is used shifted by the cycles it missed, and the
+        policy's ``shift(n)`` (the planner's warm start) is told so.
         """
         spec = self.wait_ready()
         period = period_s or spec["period_s"]
@@ -339,6 +340,8 @@ class ControllerNode(Node):
                     steps_left = [] if plan is None else [np.asarray(p) for p in plan]
                     if skip and len(steps_left) > skip:
                         a = steps_left[skip]
+                    if skip and hasattr(policy, "shift"):
+                        policy.shift(skip)  # the planner's warm start moves on with it
                     fallback = steps_left[skip + 1:]
                     self.publish_plan(policy, dt, False)
                     log.plan_times_s.append(dt)

@@ -240,6 +240,47 @@ class Inputs:
         return next((i for i in self if i.expired(now_s)), None)
 
 
+class Pacing(enum.StrEnum):
+    """The time model of a backend: when its robot moves relative to the contract's calls.
+
+    One read → update → write loop runs every backend (the driver node's ``step``,
+    drivers/bridge.py); the pacing decides only the order of its parts and how many
+    control periods a command lands after the state it was planned from (as ros2_control
+    puts blocking, simulated or periodic time in a pacing policy, not in the loop).
+
+    * ``STEPPED`` (sim backends): the world stands still between calls and advances one
+      period in ``tick()``. The loop applies the newest command, ticks, then reads: the
+      state published at period k+1 is the effect of the command planned from the state of
+      period k. Command delay 0.
+    * ``WALL_CLOCK`` (real, emulated): the device moves on its own clock, under the command
+      it holds. The loop reads and publishes first (the state the previous period's command
+      produced), then applies the newest command, which acts during the next period: the
+      command planned from the state of period k lands at period k+1, while the one sent
+      before it acts. Command delay 1. (Applying before reading stamped every state with a
+      command that had not acted yet: recorded transitions one period off; docs/mbrl.md.)
+    """
+
+    STEPPED = "stepped"
+    WALL_CLOCK = "wall_clock"
+
+    @classmethod
+    def of_backend(cls, backend: str) -> Pacing:
+        """The pacing of a backend kind ("sim", "emulated", "real"): the one place that maps them."""
+        return cls.STEPPED if backend == "sim" else cls.WALL_CLOCK
+
+    @property
+    def read_before_apply(self) -> bool:
+        """The loop reads and publishes before applying the newest command (the device moved
+        during the period that just ended); else it applies, ticks, then reads."""
+        return self is Pacing.WALL_CLOCK
+
+    @property
+    def command_delay_periods(self) -> int:
+        """Commands already on their way when a state is published: a plan from that state
+        starts acting after this many periods (the MPC predicts through them first)."""
+        return 1 if self is Pacing.WALL_CLOCK else 0
+
+
 class Lifecycle(enum.Enum):
     UNCONFIGURED = "unconfigured"
     CONFIGURED = "configured"
@@ -706,6 +747,12 @@ class Driver(ABC):
         if self.last_error and not h.last_error:
             h.last_error = self.last_error
         return h
+
+    @property
+    def pacing(self) -> Pacing:
+        """This backend's time model (:class:`Pacing`): the driver node's loop order and the
+        command delay a planner must predict through."""
+        return Pacing.of_backend(self.backend)
 
     @property
     def held_command(self) -> np.ndarray | None:

@@ -10,7 +10,9 @@ consecutive readings are ok again, default 3), whatever other nodes do. At start
 node asks the rig's other nodes for a latched e-stop (``estop_sync_s``) and, when one
 is engaged, starts stopped and refuses commands until a release (bus/estop.py).
 
-Pacing: wall-clock backends (real, emulated) and sim backends in ``realtime`` pace
+One loop, ``step()`` (read → update → write); the driver's
+:class:`~hilstack.drivers.base.Pacing` orders it (docs/platform.md, "Time model").
+Wall-clock backends (real, emulated) and sim backends in ``realtime`` pace
 run on the wall clock. In ``lockstep`` pace (sim only) the simulation advances one
 period when the command answering the last published state arrives, so a whole rig
 runs faster than real time with the same nodes; staleness is then counted in
@@ -41,7 +43,7 @@ from hilstack.bus.schemas import (
     decode,
 )
 from hilstack.configs.schema import BusConfig
-from hilstack.drivers.base import CommandError, Driver, LinkError
+from hilstack.drivers.base import CommandError, Driver, LinkError, Pacing
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +97,7 @@ class DriverNode(Node):
         if not (isinstance(resume_ok_readings, int) and 1 <= resume_ok_readings <= MAX_RESUME_OK_READINGS):
             raise ValueError(f"resume_ok_readings must be an integer in [1, {MAX_RESUME_OK_READINGS}], "
                              f"got {resume_ok_readings!r}")
-        if pace == "lockstep" and driver.backend != "sim":  # before the session opens: nothing left running
+        if pace == "lockstep" and driver.pacing is not Pacing.STEPPED:  # before the session opens
             raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
         access = bus is not None and bus.access is not None
         if driver.backend in ("real", "emulated") and not access:
@@ -382,28 +384,42 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------------ loops
     def step(self) -> None:
-        """One realtime period (sections timed by the cycle timer of ``run()``: ``hil up`` prints them).
+        """One period: read → update → write, in the order the driver's pacing says.
 
-        Each published state carries the action held during the period that ended with it
+        Sections are timed by the cycle timer of ``run()`` (``hil up`` prints them). Each
+        published state carries the action held during the period that ended with it
         (``RobotState.action``; ``learning/recordings.py`` pairs ``(s_t, s_{t+1}.action,
-        s_{t+1})``). A sim backend advances inside the step, after the command is applied,
-        so it reads after the tick. A wall-clock robot (real, emulated) moved during the
-        period before this step, under the command held then: it is read and published
-        *before* the newest command is applied. (Applying first stamped every state with
-        the command that had not acted yet: the recorded transitions were one period off
-        and a model trained on them learned a wrong action effect; docs/mbrl.md.)
+        s_{t+1})``). The driver's :class:`~hilstack.drivers.base.Pacing` decides the order:
+
+        * ``STEPPED`` (sim): apply the newest command, ``tick()`` (physics advances one
+          period under it), read and publish.
+        * ``WALL_CLOCK`` (real, emulated): the robot moved during the period before this
+          step, under the command held then: read and publish *first*, then apply the newest
+          command. (Applying first stamped every state with the command that had not acted
+          yet: the recorded transitions were one period off and a model trained on them
+          learned a wrong action effect; docs/mbrl.md.)
+
+        The rig's pace only decides where the command comes from: ``realtime`` takes the
+        newest one (the loop is paced on the wall clock by ``run()``), ``lockstep`` (sim only)
+        waits for the answer to the last published state (``lockstep_timeout_s``).
         """
         timer = self.cycle
-        wall_clock = self.driver.backend != "sim"
-        with timer.section("control") if timer else nullcontext():
-            self._handle_estop()
-            self._handle_reset()
-        if wall_clock:
+        read_first = self.driver.pacing.read_before_apply
+        if self.pace == "lockstep":
+            if self._last_state is None:
+                self.publish_state()
+            cmd = self._await_answer()
+        else:
+            with timer.section("control") if timer else nullcontext():
+                self._handle_estop()
+                self._handle_reset()
+            cmd = self._cmd.poll()
+        if read_first:
             with timer.section("read_publish") if timer else nullcontext():
                 self.publish_state()
         with timer.section("apply") if timer else nullcontext():
-            self._apply(self._cmd.poll())
-        if not wall_clock:
+            self._apply(cmd)
+        if not read_first:
             with timer.section("sim_tick") if timer else nullcontext():
                 self.driver.tick()
             with timer.section("read_publish") if timer else nullcontext():
@@ -411,12 +427,10 @@ class DriverNode(Node):
         self.stats.steps += 1
         self._maybe_publish_spec()
 
-    def step_lockstep(self) -> None:
-        """Publish state, wait for its answer, apply, advance one period."""
-        if self._last_state is None:
-            self.publish_state()
+    def _await_answer(self) -> Command | None:
+        """Lockstep: serve e-stops and resets while waiting for the command that answers the
+        last published state; None after ``lockstep_timeout_s`` (counted)."""
         want = self._last_state.seq
-        cmd = None
         deadline = time.monotonic() + self.lockstep_timeout_s
         while not self.stop_event.is_set():
             self._handle_estop()
@@ -426,16 +440,11 @@ class DriverNode(Node):
                 deadline = time.monotonic() + self.lockstep_timeout_s
             m = self._cmd.wait(min(0.05, max(0.0, deadline - time.monotonic())))
             if m is not None and m.state_seq >= want:
-                cmd = m
-                break
+                return m
             if time.monotonic() >= deadline:
                 self.stats.lockstep_timeouts += 1
-                break
-        self._apply(cmd)
-        self.driver.tick()
-        self.publish_state()
-        self.stats.steps += 1
-        self._maybe_publish_spec()
+                return None
+        return None
 
     def serve(self, max_steps: int | None = None) -> BridgeStats:
         """Run until stopped (signal, ``stop_event``) or ``max_steps``. Always stops the robot."""
@@ -452,10 +461,10 @@ class DriverNode(Node):
                 d.activate()
             d.stop()  # nothing moves until the first command
             self.publish_spec()
-            if self.pace == "lockstep":
+            if self.pace == "lockstep":  # paced by the answers, not by a clock
                 n = 0
                 while not self.stop_event.is_set() and (max_steps is None or n < max_steps):
-                    self.step_lockstep()
+                    self.step()
                     n += 1
             else:
                 self.run(self.step, d.spec.period_s, max_steps)

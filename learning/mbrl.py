@@ -393,16 +393,17 @@ def fit_planner_samples(make, samples: int, predict, cost, state: np.ndarray, bu
 
 def command_delay_steps(rig: Any, robot: str) -> int:
     """Control periods between the state a realtime plan starts from and the period its
-    command acts in, minus one: 0 on sim backends (lockstep, or a realtime sim that
-    advances right after applying the command), 1 on wall-clock robots (real,
-    emulated), whose driver node publishes the state of period k and applies the command
-    planned from it at period k+1 (drivers/bridge.py). The MPC then plans from the state
-    its model predicts after the command already sent (:class:`hilstack.control.policies.MpcPolicy`)."""
+    command acts in, minus one: the robot's pacing says it
+    (:attr:`hilstack.drivers.base.Pacing.command_delay_periods`: 0 on sim backends, which
+    advance right after applying the command, lockstep or realtime; 1 on wall-clock
+    robots, real or emulated, whose driver node publishes the state of period k and
+    applies the command planned from it at period k+1). The MPC then plans from the state
+    its model predicts after the command already sent
+    (:class:`hilstack.control.policies.MpcPolicy`)."""
     from hilstack.configs.schema import rig_robot_config
+    from hilstack.drivers.base import Pacing
 
-    if rig.pace == "lockstep" or rig_robot_config(rig, robot).backend == "sim":
-        return 0
-    return 1
+    return Pacing.of_backend(rig_robot_config(rig, robot).backend).command_delay_periods
 
 
 def max_step_normalized(spec: dict[str, Any]) -> np.ndarray | None:
