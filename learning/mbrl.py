@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from hilstack.bus import keys
+from hilstack.bus.lifetime import child_env
 from hilstack.bus.recording import Recorder
 from hilstack.bus.schemas import ResetTransition, decode
 from hilstack.configs.schema import BusConfig, load_rig
@@ -183,9 +184,9 @@ def rig_processes(rig: str, bus: BusConfig, log_dir: Path) -> Iterator[subproces
         [sys.executable, "-m", "hilstack", "up", rig, "--endpoint", bus.endpoint],
         stdout=err,
         stderr=subprocess.STDOUT,
-        # HIL_PARENT_PID: the rig stops itself if this process dies without stopping it
-        # (SIGKILL, a crash): tools/common.py, exit_with_parent
-        env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1", "HIL_PARENT_PID": str(os.getpid())},
+        # the rig stops itself if this process dies without stopping it (SIGKILL, a crash):
+        # bus/lifetime.py, exit_with_parent
+        env=child_env({**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}),
     )
     try:
         yield p
