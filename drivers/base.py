@@ -321,6 +321,33 @@ class Space:
         except ValueError:
             raise KeyError(f"no channel {name!r}; channels are {list(self.names)}") from None
 
+    # -- normalization: the one place an action (or state) maps onto [-1, 1] --------------
+    def _finite_box(self) -> tuple[np.ndarray, np.ndarray]:
+        if not (np.all(np.isfinite(self.low)) and np.all(np.isfinite(self.high))):
+            bad = [n for n, lo, hi in zip(self.names, self.low, self.high, strict=True)
+                   if not (math.isfinite(lo) and math.isfinite(hi))]
+            raise ValueError(f"channels {bad} are unbounded: no normalized range")
+        return (self.high + self.low) / 2, (self.high - self.low) / 2
+
+    def normalize(self, x: Any) -> np.ndarray:
+        """Values in the space's units → normalized: ``[low, high]`` onto ``[-1, 1]`` per
+        channel, symmetric about the centre (not clipped: a value outside stays outside)."""
+        mid, half = self._finite_box()
+        return (np.asarray(x, dtype=np.float64) - mid) / half
+
+    def denormalize(self, x_norm: Any) -> np.ndarray:
+        """Normalized → the space's units, clipped to ``[-1, 1]`` first (so to ``[low, high]``)."""
+        mid, half = self._finite_box()
+        return mid + half * np.clip(np.asarray(x_norm, dtype=np.float64), -1.0, 1.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"names": list(self.names), "units": list(self.units),
+                "low": [float(x) for x in self.low], "high": [float(x) for x in self.high]}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Space:
+        return cls(tuple(d["names"]), tuple(d["units"]), np.array(d["low"], float), np.array(d["high"], float))
+
     @classmethod
     def build(cls, channels: list[tuple[str, str, float, float]]) -> Space:
         """From ``[(name, unit, low, high), ...]``."""
@@ -353,26 +380,48 @@ class RobotSpec:
                     raise ValueError(f"{attr} has {v.size} entries, action space has {self.action.dim}")
                 object.__setattr__(self, attr, v)
 
-    def to_dict(self) -> dict[str, Any]:
-        def sp(s: Space) -> dict[str, Any]:
-            return {
-                "names": list(s.names),
-                "units": list(s.units),
-                "low": [float(x) for x in s.low],
-                "high": [float(x) for x in s.high],
-            }
+    def max_step_normalized(self) -> np.ndarray | None:
+        """The action rate limit as the largest change per control period in normalized
+        action units (``[-1, 1]`` spans each channel's range: ``rate · period_s / half
+        range``), or None when the robot has none. Planners bound their sequences by it."""
+        if self.action_rate_per_s is None:
+            return None
+        _, half = self.action._finite_box()
+        return self.action_rate_per_s * self.period_s / half
 
+    def to_dict(self) -> dict[str, Any]:
+        """The spec as it crosses the bus (``SpecMsg.spec``) and sits in recordings."""
         return {
             "name": self.name,
             "period_s": self.period_s,
-            "state": sp(self.state),
-            "action": sp(self.action),
+            "state": self.state.to_dict(),
+            "action": self.action.to_dict(),
             "action_rate_per_s": None
             if self.action_rate_per_s is None
             else [float(x) for x in self.action_rate_per_s],
             # None: the robot stops by holding its measured position (hand, arm joints)
             "safe_action": None if self.safe_action is None else [float(x) for x in self.safe_action],
         }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> RobotSpec:
+        """The typed spec again, from :meth:`to_dict`'s dict (a ``SpecMsg`` from the bus, a
+        recording). A malformed one is a ValueError naming what is wrong."""
+        try:
+            return cls(
+                name=str(d["name"]),
+                state=Space.from_dict(d["state"]),
+                action=Space.from_dict(d["action"]),
+                period_s=float(d["period_s"]),
+                action_rate_per_s=None if d.get("action_rate_per_s") is None
+                else np.array(d["action_rate_per_s"], float),
+                safe_action=None if d.get("safe_action") is None else np.array(d["safe_action"], float),
+                description=str(d.get("description", "")),
+            )
+        except KeyError as e:
+            raise ValueError(f"robot spec {d.get('name', '?')!r}: missing {e}") from None
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"robot spec {d.get('name', '?') if isinstance(d, dict) else d!r}: {e}") from None
 
 
 @dataclass

@@ -38,8 +38,10 @@ from hilstack.bus.schemas import (
     Image,
     MalformedMessage,
     ResetEvent,
+    ResetPhase,
     RobotState,
     SpecMsg,
+    StoppedReason,
     decode,
 )
 from hilstack.configs.schema import BusConfig
@@ -124,7 +126,7 @@ class DriverNode(Node):
         self.estop_sync_s = estop_sync_s
         self.stats = BridgeStats()
         self.estopped = False
-        self.stopped_reason = "waiting"
+        self.stopped_reason = StoppedReason.WAITING
         #: consecutive ok readings needed before commands are taken again after a not-ok one
         self.resume_ok_readings = resume_ok_readings
         #: the newest reading was not ok, or fewer than resume_ok_readings ok ones followed it
@@ -167,7 +169,7 @@ class DriverNode(Node):
         log.warning("e-stop from %s: %s", m.source or "?", m.reason)
         self.driver.stop()
         self.driver.deactivate()
-        self.stopped_reason = "estop"
+        self.stopped_reason = StoppedReason.ESTOP
 
     def _release(self, m: EStop) -> str:
         """Re-activate holding the measured state; commands must come anew. '' or why not."""
@@ -181,7 +183,7 @@ class DriverNode(Node):
         log.warning("e-stop released by %s (node %s)", m.sender or "?", m.source or "?")
         self.estopped = False
         self._last_cmd_t = None
-        self.stopped_reason = "waiting"
+        self.stopped_reason = StoppedReason.WAITING
         return ""
 
     def _handle_estop(self) -> None:
@@ -219,27 +221,27 @@ class DriverNode(Node):
                 continue
             reset = getattr(self.driver, "reset", None)
             if self.estopped:
-                ans = ResetEvent(robot=self.robot, phase="failed", detail="e-stop engaged")
-            elif m.phase == "teleport" and reset is not None:
+                ans = ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, detail="e-stop engaged")
+            elif m.phase == ResetPhase.TELEPORT and reset is not None:
                 self.driver.stop()
                 try:
                     reset(**m.pose)
                 except (TypeError, ValueError) as e:  # a pose this robot cannot take: say so, keep serving
-                    ans = ResetEvent(robot=self.robot, phase="failed", detail=f"teleport refused: {e}")
+                    ans = ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, detail=f"teleport refused: {e}")
                 else:
                     self._last_cmd_t = None
-                    self.stopped_reason = "waiting"
+                    self.stopped_reason = StoppedReason.WAITING
                     jumped = True
-                    ans = ResetEvent(robot=self.robot, phase="done", pose=m.pose)
-            elif m.phase == "teleport":
-                ans = ResetEvent(robot=self.robot, phase="unsupported",
+                    ans = ResetEvent(robot=self.robot, phase=ResetPhase.DONE, pose=m.pose)
+            elif m.phase == ResetPhase.TELEPORT:
+                ans = ResetEvent(robot=self.robot, phase=ResetPhase.UNSUPPORTED,
                                  detail=f"{self.driver.backend} backend cannot teleport")
-            elif m.phase == "episode":
+            elif m.phase == ResetPhase.EPISODE:
                 self.episode += 1
                 jumped = True
-                ans = ResetEvent(robot=self.robot, phase="done", pose=m.pose)
+                ans = ResetEvent(robot=self.robot, phase=ResetPhase.DONE, pose=m.pose)
             else:
-                ans = ResetEvent(robot=self.robot, phase="failed", detail=f"unknown phase {m.phase!r}")
+                ans = ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, detail=f"unknown phase {m.phase!r}")
             ans.episode = self.episode
             ans.detail = ans.detail or m.detail
             self._sup_done.put(ans)
@@ -266,17 +268,17 @@ class DriverNode(Node):
                 f"{self.driver.backend} backend cannot reset itself and no reset supervisor is running "
                 "(add a reset: section to the rig config, docs/reset.md)"
             )
-            self._reset_done.put(ResetEvent(robot=self.robot, phase="unsupported", episode=self.episode, detail=why))
+            self._reset_done.put(ResetEvent(robot=self.robot, phase=ResetPhase.UNSUPPORTED, episode=self.episode, detail=why))
             return jumped
         try:
             reset(**m.pose)
         except TypeError as e:
-            self._reset_done.put(ResetEvent(robot=self.robot, phase="failed", episode=self.episode, detail=str(e)))
+            self._reset_done.put(ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, episode=self.episode, detail=str(e)))
             return False
         self.episode += 1
         self._last_cmd_t = None
-        self.stopped_reason = "waiting"
-        self._reset_done.put(ResetEvent(robot=self.robot, phase="done", episode=self.episode, pose=m.pose))
+        self.stopped_reason = StoppedReason.WAITING
+        self._reset_done.put(ResetEvent(robot=self.robot, phase=ResetPhase.DONE, episode=self.episode, pose=m.pose))
         return True
 
     def _apply(self, cmd: Command | None) -> None:
@@ -296,17 +298,17 @@ class DriverNode(Node):
                 self.stats.last_reject = str(e)
                 log.warning("rejected command: %s", e)
                 self.driver.stop()
-                self.stopped_reason = "bad_command"
+                self.stopped_reason = StoppedReason.BAD_COMMAND
                 return
             self.stats.commands_applied += 1
             self._last_cmd_t = self._clock()
-            self.stopped_reason = ""
+            self.stopped_reason = StoppedReason.RUNNING
             return
         stale = self._last_cmd_t is None or self._clock() - self._last_cmd_t > self.watchdog_s
-        if stale and self.stopped_reason == "":
+        if stale and self.stopped_reason is StoppedReason.RUNNING:
             self.stats.stale_stops += 1
             self.driver.stop()
-            self.stopped_reason = "stale"
+            self.stopped_reason = StoppedReason.STALE
 
     def _assess_reading(self, ok: bool, flags: dict[str, bool]) -> None:
         """Control on unhealthy states: a reading that is not ok (a stale or non-finite
@@ -320,20 +322,20 @@ class DriverNode(Node):
             if self.unhealthy and self._ok_run >= self.resume_ok_readings:
                 self.unhealthy = False
                 self._last_cmd_t = None
-                if self.stopped_reason == "unhealthy":
-                    self.stopped_reason = "waiting"
+                if self.stopped_reason is StoppedReason.UNHEALTHY:
+                    self.stopped_reason = StoppedReason.WAITING
                 log.warning("%s: %d ok readings: taking commands again", self.robot, self._ok_run)
             return
         self._ok_run = 0
         self.stats.last_unhealthy = ",".join(sorted(k for k, v in flags.items() if v)) or "health"
         self.unhealthy = True
-        if self.estopped or self.stopped_reason == "unhealthy":
+        if self.estopped or self.stopped_reason is StoppedReason.UNHEALTHY:
             return
         self.stats.unhealthy_stops += 1
         log.warning("%s: reading not ok (%s): holding, commands refused", self.robot, self.stats.last_unhealthy)
         if self.driver.active:
             self.driver.stop()
-        self.stopped_reason = "unhealthy"
+        self.stopped_reason = StoppedReason.UNHEALTHY
 
     def publish_state(self) -> RobotState:
         obs = self.driver.read()
@@ -455,7 +457,7 @@ class DriverNode(Node):
             if latched is not None:
                 # a late (or restarted) driver: the rig's e-stop is engaged, start stopped
                 self.estopped = True
-                self.stopped_reason = "estop"
+                self.stopped_reason = StoppedReason.ESTOP
                 log.warning("starting with the rig's e-stop engaged (%s: %s)", latched.source or "?", latched.reason)
             else:
                 d.activate()

@@ -45,6 +45,7 @@ from hilstack.control.planners import CEM, PDDM, RandomShooting
 from hilstack.control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from hilstack.control.reset.config import ResetConfig, ResetUnavailable, require_reset
 from hilstack.control.reset.supervisor import ResetSupervisor
+from hilstack.drivers.base import RobotSpec
 from hilstack.learning.datasets import Episode
 from hilstack.learning.dynamics import EnsembleDynamics
 from hilstack.learning.frames import BodyFrameDynamics
@@ -407,16 +408,6 @@ def command_delay_steps(rig: Any, robot: str) -> int:
     return Pacing.of_backend(rig_robot_config(rig, robot).backend).command_delay_periods
 
 
-def max_step_normalized(spec: dict[str, Any]) -> np.ndarray | None:
-    """The spec's action rate limit as the largest change per control period in normalized
-    action units ([-1, 1] spans the action range), or None when the robot has none."""
-    rate = spec.get("action_rate_per_s")
-    if rate is None:
-        return None
-    low, high = np.asarray(spec["action"]["low"], float), np.asarray(spec["action"]["high"], float)
-    return np.asarray(rate, float) * float(spec["period_s"]) / ((high - low) / 2)
-
-
 # ---------------------------------------------------------------------------- the loop
 class MbrlRun:
     def __init__(self, cfg: MbrlConfig, out_dir: Path, bus: BusConfig):
@@ -445,7 +436,7 @@ class MbrlRun:
         self._ended = False  # the supervisor ended the current episode (_scan_transitions)
         self._episode_no = 0  # the robot's episode counter of the current episode
 
-    def _wait_for_rig(self, ctl: ControllerNode, proc: subprocess.Popen) -> dict[str, Any]:
+    def _wait_for_rig(self, ctl: ControllerNode, proc: subprocess.Popen) -> RobotSpec:
         """The robot's spec once its driver node is up; a rig process that exits first (a
         wrong port, a bad config) is a :class:`RigError` at once, with its log's last line."""
         deadline = time.monotonic() + self.cfg.rig_timeout_s
@@ -478,10 +469,10 @@ class MbrlRun:
             self._transitions = ctl.subscribe(keys.reset_transition(self.rig.name), ResetTransition,
                                               latest=False, capacity=256)
             spec = self._wait_for_rig(ctl, proc)
-            self.state_names = list(spec["state"]["names"])
-            self.action_names = list(spec["action"]["names"])
-            self.period_s = float(spec["period_s"])
-            self.max_step = max_step_normalized(spec)
+            self.state_names = list(spec.state.names)
+            self.action_names = list(spec.action.names)
+            self.period_s = spec.period_s
+            self.max_step = spec.max_step_normalized()
             self.command_delay = command_delay_steps(self.rig, cfg.robot)
             try:
                 yield ctl

@@ -36,7 +36,7 @@ from typing import Any, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from hilstack.bus.schemas import ResetEvent, RobotState
+from hilstack.bus.schemas import ResetEvent, ResetPhase, RobotState
 from hilstack.configs.schema import ConfigError, parse_model
 from hilstack.control.baselines import DifferentialDriveController
 from hilstack.control.reset.config import StepConfig
@@ -69,7 +69,7 @@ class StepContext(Protocol):
         """Another robot of the rig (:class:`hilstack.control.reset.supervisor.RobotLink`): its state,
         spec, command key and liveliness."""
 
-    def request_driver(self, phase: str, pose: dict[str, float]) -> None:
+    def request_driver(self, phase: ResetPhase, pose: dict[str, float]) -> None:
         """Send the robot's driver node a reset request (``teleport``)."""
 
     def driver_answer(self) -> ResetEvent | None:
@@ -311,7 +311,7 @@ class LabFixture(ResetStep):
             n, s = self._names, state.state
             here = {"x": s[n.index("x")], "y": s[n.index("y")],
                     "yaw": math.atan2(s[n.index("sin_yaw")], s[n.index("cos_yaw")])}
-            ctx.request_driver("teleport", here)
+            ctx.request_driver(ResetPhase.TELEPORT, here)
         self._asked_s, self._waiting = state.t_s, True
 
     def _answer(self, ctx: StepContext) -> tuple[bool, bool] | None:
@@ -326,7 +326,7 @@ class LabFixture(ResetStep):
         ans = ctx.driver_answer()
         if ans is None:
             return None
-        if ans.phase != "done":
+        if ans.phase != ResetPhase.DONE:
             raise StepError(f"the robot is not upright and this rig has no lab fixture ({ans.phase}: {ans.detail}); "
                             "an operator must put it on its legs")
         return True, True
@@ -413,13 +413,13 @@ class Teleport(ResetStep):
     kind = "teleport"
 
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
-        ctx.request_driver("teleport", pose)
+        ctx.request_driver(ResetPhase.TELEPORT, pose)
 
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
         ans = ctx.driver_answer()
         if ans is None:
             return HOLD
-        if ans.phase != "done":
+        if ans.phase != ResetPhase.DONE:
             raise StepError(f"teleport {ans.phase}: {ans.detail}")
         return DONE
 
@@ -551,7 +551,7 @@ class ArmPickPlace(ResetStep):
             raise StepError(f"arm_pick_place: no state from robot {self.arm!r}")
         if self.script is None:
             spec = self._link.spec()
-            cfg = dataclasses.replace(self.pp_cfg, period_s=float(spec["period_s"]))
+            cfg = dataclasses.replace(self.pp_cfg, period_s=spec.period_s)
             self.script = PickPlaceScript(cfg)  # builds the IK model once
         self.script.start(s.t_s, np.asarray(s.state))
         self._hold = hold_pose_action()
