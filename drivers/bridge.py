@@ -45,7 +45,7 @@ from hilstack.bus.schemas import (
     decode,
 )
 from hilstack.configs.schema import BusConfig
-from hilstack.drivers.base import CommandError, Driver, LinkError, Pacing
+from hilstack.drivers.base import CommandError, Driver, LinkError, Pacing, sim_controls
 
 log = logging.getLogger(__name__)
 
@@ -219,7 +219,7 @@ class DriverNode(Node):
                 continue
             if m.robot != self.robot:
                 continue
-            reset = getattr(self.driver, "reset", None)
+            reset = sim.reset if (sim := sim_controls(self.driver)) is not None else None
             if self.estopped:
                 ans = ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, detail="e-stop engaged")
             elif m.phase == ResetPhase.TELEPORT and reset is not None:
@@ -261,7 +261,7 @@ class DriverNode(Node):
         m = self._reset_req.poll()
         if m is None or m.robot != self.robot or self.supervisor_alive:
             return jumped
-        reset = getattr(self.driver, "reset", None)
+        reset = sim.reset if (sim := sim_controls(self.driver)) is not None else None
         self.driver.stop()
         if reset is None or self.estopped:
             why = "e-stop engaged" if self.estopped else (

@@ -266,6 +266,8 @@ class ResetSupervisor(Node):
         for d in self.detectors:
             if d.robot:
                 self.robot_link(d.robot)
+        #: the robot's spec (typed, from its driver node's SpecMsg); None before it arrived
+        self.spec: RobotSpec | None = None
         self.state_names: list[str] = []
         #: the robot's action space (from its spec): normalized actions of the steps → units
         self.action_space: Space | None = None
@@ -315,6 +317,7 @@ class ResetSupervisor(Node):
 
     def _bind_spec(self, spec: dict[str, Any]) -> None:
         typed = RobotSpec.from_dict(spec)
+        self.spec = typed
         self.state_names = list(typed.state.names)
         self.action_space = typed.action
         # what "hold" sends: the safe action (legs stopped); for a robot that stops by holding
