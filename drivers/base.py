@@ -35,6 +35,9 @@ Shape (after ros2_control's hardware lifecycle and LeRobot's robot base):
 * ``tick()`` waits for the next control period: wall-clock backends sleep until the
   next period boundary; the sim backend advances physics by one period. A loop written
   as ``read → write → tick`` therefore runs unchanged on every backend.
+* ``pacing`` (:class:`Pacing`) is the backend's time model: whether its robot moves in
+  ``tick()`` (sim) or on its own clock (real, emulated). It orders the driver node's one
+  step and gives the command delay a planner predicts through.
 
 Subclasses implement the underscore hooks; the public methods hold the checks.
 """

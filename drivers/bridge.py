@@ -363,6 +363,9 @@ class DriverNode(Node):
                 "unhealthy_refused": self.stats.unhealthy_refused,
                 "unhealthy_reason": self.stats.last_unhealthy,
                 "estop_releases_refused": self.estop.refused_releases,
+                # the node's own period on the wall clock (realtime pace): late starts and
+                # periods skipped after a stall (bus/cycle.py's catch-up rule)
+                **({"cycle_late": self.cycle.late, "cycle_missed": self.cycle.missed} if self.cycle else {}),
             },
         )
         self._last_state = self._state_pub.put(msg)
