@@ -410,7 +410,8 @@ class DriverNode(Node):
         """
         timer = self.cycle
         read_first = self.driver.pacing.read_before_apply
-        if self.pace == "lockstep":
+        lockstep = self.pace == "lockstep"
+        if lockstep:
             if self._last_state is None:
                 self.publish_state()
             cmd = self._await_answer()
@@ -418,12 +419,11 @@ class DriverNode(Node):
             with timer.section("control") if timer else nullcontext():
                 self._handle_estop()
                 self._handle_reset()
-            cmd = self._cmd.poll()
         if read_first:
             with timer.section("read_publish") if timer else nullcontext():
                 self.publish_state()
         with timer.section("apply") if timer else nullcontext():
-            self._apply(cmd)
+            self._apply(cmd if lockstep else self._cmd.poll())  # realtime: the newest, taken now
         if not read_first:
             with timer.section("sim_tick") if timer else nullcontext():
                 self.driver.tick()
