@@ -113,3 +113,15 @@ def test_cli_refuses_an_unknown_suite(tmp_path):
     assert res.exit_code == 2 and "unknown --suite 'mars'" in res.output
     res = CliRunner().invoke(app, ["demo", "transfer", "--suite", "gym", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "--suite is for the adaptation demo only" in res.output
+
+
+def test_part_overrides_are_typed_like_the_config_and_refuse_unknown_fields():
+    o = gym_suite.parse_overrides(["onpolicy_rounds=4", "hidden=256,256", "gamma=10"])
+    assert o == {"onpolicy_rounds": 4, "hidden": (256, 256), "gamma": 10.0}
+    assert gym_suite.GymSuiteConfig(**o).hidden == (256, 256)
+    with pytest.raises(ValueError, match="FIELD one of"):
+        gym_suite.parse_overrides(["epoch=3"])
+    with pytest.raises(ValueError, match="is not a int"):
+        gym_suite.parse_overrides(["onpolicy_rounds=many"])
+    with pytest.raises(ValueError, match="not finite"):
+        gym_suite.parse_overrides(["gamma=nan"])
