@@ -4,8 +4,8 @@
 
 1. **Data** (the same for every method): ``random_rollouts`` rollouts of uniform random
    actions, each under one training condition, then ``onpolicy_rollouts`` rollouts of the
-   MB controller (the plain model fit on the random data) under training conditions: one
-   round of on-policy aggregation. The oracle gets the same budget (same counts, the same
+   MB controller under training conditions, in ``onpolicy_rounds`` rounds (each followed by
+   a refit of the plain model on everything so far). The oracle gets the same budget (same counts, the same
    procedure) under the test condition.
 2. **Models** (one architecture, ``hidden``; fixed unit variance): MB = the plain model
    (:func:`~hilstack.learning.adaptation.training.fit_plain`); MB+DE = MB's θ* with one SGD
@@ -15,10 +15,13 @@
 3. **Closed loop**: every method plans with the same MPPI/PDDM planner
    (``control/planners.PDDM``, the same seed), from the same gymnasium start (same reset
    seed), and the return is the sum of the reference code's reward over ``test_steps``.
-   ``normalized`` = return / the oracle's return of the same seed.
+   ``normalized`` = return / the oracle's return of the same seed. Every disabled-joint
+   benchmark also reports ``zero_action`` (the do-nothing floor, same condition and start).
 
 Benchmarks (``benchmarks`` in the config):
 
+* ``hc_normal``: the sanity check before any adaptation: MB's MPC on the unperturbed robot
+  beside the do-nothing controller (zero action, the floor); no oracle, no ratio.
 * ``hc_disabled_joint``: joint 0 (never disabled in training: 1..5 are) disabled from the
   start (the thesis' generalisation test).
 * ``hc_disabled_joint_switch``: joint 2 (a training condition) for the first half, then
