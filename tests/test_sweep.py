@@ -75,8 +75,17 @@ def test_bad_tasks_are_named():
         run_sweep([Task("a", tiny_fit), Task("a", tiny_fit)], "unused")
 
 
-def test_ray_gives_the_serial_results_and_resumes(tmp_path):
-    pytest.importorskip("ray", reason="Ray is the cluster extra (pip install hilstack[cluster])")
+@pytest.fixture
+def local_ray():
+    """One local Ray runtime (2 CPUs) for the test: starting one takes seconds, so both sweeps share it
+    (run_sweep joins a runtime already started in its process and leaves it running)."""
+    ray = pytest.importorskip("ray", reason="Ray is the cluster extra (pip install hilstack[cluster])")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    yield ray
+    ray.shutdown()
+
+
+def test_ray_gives_the_serial_results_and_resumes(tmp_path, local_ray):
     calls = tmp_path / "calls"
     calls.mkdir()
     serial = run_sweep(_tasks(calls, threads=2), tmp_path / "serial", log=lambda s: None)
