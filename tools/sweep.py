@@ -102,7 +102,7 @@ def execute(fn: Callable[..., Any], kwargs: dict[str, Any], threads: int, echo: 
     try:
         with _pinned_threads(threads), contextlib.redirect_stdout(tee), contextlib.redirect_stderr(tee):
             result = fn(**kwargs)
-        json.dumps(result)  # a result that cannot be written is the task's failure, said here
+        json.dumps(result, default=str)  # a result that cannot be written is the task's failure, said here
         return {"ok": True, "result": result, "elapsed_s": time.perf_counter() - t0, "host": os.uname().nodename}
     except Exception:  # noqa: BLE001 - any task failure is reported, the sweep goes on
         return {"ok": False, "error": traceback.format_exc(),
@@ -113,7 +113,9 @@ def require_ray():
     try:
         import ray
     except ImportError:
-        raise RuntimeError("--ray needs Ray: install hilstack[cluster]") from None
+        from hilstack.tools.common import UserError
+
+        raise UserError("--ray needs Ray: install hilstack[cluster]") from None
     return ray
 
 
@@ -139,8 +141,9 @@ class _Progress:
 
 
 def run_sweep(tasks: Iterable[Task], out: str | Path, executor: str | None = None, workers: int | None = None,
-              log: Callable[[str], Any] = print) -> dict[str, Any]:
-    """Run the ``tasks`` missing under ``out``; returns ``{"results": {key: result}, "failed": {key:
+              log: Callable[[str], Any] = print,
+              on_result: Callable[[str, Any], Any] | None = None) -> dict[str, Any]:
+    """Run the ``tasks`` missing under ``out`` (``on_result(key, result)`` as each succeeds); returns ``{"results": {key: result}, "failed": {key:
     outcome}, "sweep": record}`` with the results of every task done so far (earlier runs included)."""
     tasks = list(tasks)
     keys = [t.key for t in tasks]
@@ -161,6 +164,8 @@ def run_sweep(tasks: Iterable[Task], out: str | Path, executor: str | None = Non
             _write(tdir / f"{task.key}.json", {"key": task.key, "kwargs": task.kwargs, **outcome})
             stale.unlink(missing_ok=True)
             prog.done += 1
+            if on_result is not None:
+                on_result(task.key, json.loads(json.dumps(outcome["result"], default=str)))
         else:
             _write(stale, {"key": task.key, "kwargs": task.kwargs, **outcome})
             failed[task.key] = outcome
