@@ -16,12 +16,14 @@ bench_app = typer.Typer(help="Benchmarks (ratios against a peer in the same run)
 @user_errors
 def bench_bus(
     n: int = typer.Option(2000, "--n", help="round trips per payload size"),
+    via_router: bool = typer.Option(False, "--via-router", help="also raw Zenoh through a router process "
+                                    "(`hil router`'s extra hop) beside the direct peer hop"),
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """Ping-pong latency: hilstack node layer vs raw zenoh-python (64 B and 4 KB)."""
     from hilstack.tools.bench_bus import run_bench_bus
 
-    r = run_bench_bus(n=n)
+    r = run_bench_bus(n=n, via_router=via_router)
     if json_out:
         echo_json(r)
     else:
