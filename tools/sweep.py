@@ -214,7 +214,9 @@ def run_sweep(tasks: Iterable[Task], out: str | Path, executor: str | None = Non
 
 
 def executor_from(ray: str | None) -> str | None:
-    """The executor for a command's ``--ray`` value (None: serial; ``local`` or empty: a local runtime)."""
-    if ray is None:
-        return None
-    return "local" if ray in ("", "local") else ray
+    """The executor for a command's ``--ray`` value (None: serial; ``local``: a local runtime; else an address)."""
+    if ray is not None and not ray.strip():
+        from hilstack.tools.common import UserError
+
+        raise UserError("--ray: give 'local' or a Ray cluster's address (host:6379)")
+    return ray
