@@ -131,13 +131,15 @@ class _Progress:
         self.done = self.failed = 0
         self.t0 = time.perf_counter()
 
-    def line(self, running: int, last: str) -> str:
+    def line(self, pending: int, last: str) -> str:
+        """``pending``: submitted and not finished; at most ``workers`` of them run, the rest wait."""
+        running = min(pending, self.workers)
         finished = self.done + self.failed
         left = self.total - self.skipped - finished
         elapsed = time.perf_counter() - self.t0
         eta = f"{elapsed / finished * left:.0f} s" if finished else "?"
         return (f"sweep: {self.skipped + self.done}/{self.total} done ({self.skipped} from before), "
-                f"{running} running, {self.failed} failed, ETA {eta} [{last}]")
+                f"{running} running, {pending - running} queued, {self.failed} failed, ETA {eta} [{last}]")
 
 
 def run_sweep(tasks: Iterable[Task], out: str | Path, executor: str | None = None, workers: int | None = None,
@@ -158,7 +160,7 @@ def run_sweep(tasks: Iterable[Task], out: str | Path, executor: str | None = Non
     failed: dict[str, Any] = {}
     t0 = time.perf_counter()
 
-    def finish(task: Task, outcome: dict[str, Any], prog: _Progress, running: int) -> None:
+    def finish(task: Task, outcome: dict[str, Any], prog: _Progress, pending: int) -> None:
         stale = tdir / f"{task.key}.failed.json"
         if outcome["ok"]:
             _write(tdir / f"{task.key}.json", {"key": task.key, "kwargs": task.kwargs, **outcome})
@@ -172,13 +174,13 @@ def run_sweep(tasks: Iterable[Task], out: str | Path, executor: str | None = Non
             prog.failed += 1
             log(f"task {task.key} failed on {outcome['host']}:\n" + "\n".join(
                 f"  | {ln}" for ln in outcome["log_tail"] + outcome["error"].rstrip().splitlines()[-3:]))
-        log(prog.line(running, task.key))
+        log(prog.line(pending, task.key))
 
     if executor is None:
         record["workers"] = 1
         prog = _Progress(len(tasks), record["resumed"], 1, log)
-        for task in todo:
-            finish(task, execute(task.fn, task.kwargs, task.threads, echo=True), prog, 0)
+        for i, task in enumerate(todo):
+            finish(task, execute(task.fn, task.kwargs, task.threads, echo=True), prog, len(todo) - i - 1)
     else:
         ray = require_ray()
         started_here = not ray.is_initialized()
@@ -192,7 +194,7 @@ def run_sweep(tasks: Iterable[Task], out: str | Path, executor: str | None = Non
             record.update(ray_version=ray.__version__, address=executor,
                           workers=int(ray.cluster_resources().get("CPU", 0)),
                           nodes=len([n for n in ray.nodes() if n.get("Alive")]))
-            prog = _Progress(len(tasks), record["resumed"], record["workers"], log)
+            prog = _Progress(len(tasks), record["resumed"], max(1, record["workers"]), log)
             remote = ray.remote(execute)
             pending = {remote.options(num_cpus=t.num_cpus).remote(t.fn, t.kwargs, t.threads): t for t in todo}
             while pending:
