@@ -35,6 +35,8 @@ def register(app: typer.Typer) -> None:
                                                   "uniform steps (no holds, no forward commands, no rate limit)"),
         seed: int = typer.Option(0, "--seed"),
         part: str = typer.Option("all", "--part", help="transfer only: all | sidm | garat (one half of the demo)"),
+        setting: str = typer.Option("roach", "--setting", help="transfer --part sidm only: roach (VelociRoACH pairs) | "
+                                    "wheeled (the SIDM paper's wheeled robots with suspension)"),
         suite: str = typer.Option("roach", "--suite", help="adaptation only: roach (the sim VelociRoACH) | gym "
                                   "(half-cheetah benchmarks of the thesis)"),
         planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
@@ -53,6 +55,10 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"hil demo {what}: --part is for the transfer demo only")
         if part not in ("all", "sidm", "garat"):
             raise UserError(f"hil demo transfer: unknown --part {part!r} (all | sidm | garat)")
+        if setting not in ("roach", "wheeled"):
+            raise UserError(f"hil demo transfer: unknown --setting {setting!r} (roach | wheeled)")
+        if setting != "roach" and (what != "transfer" or part != "sidm"):
+            raise UserError("hil demo: --setting is for `hil demo transfer --part sidm` only")
         if suite != "roach" and what != "adaptation":
             raise UserError(f"hil demo {what}: --suite is for the adaptation demo only")
         if suite not in ("roach", "gym"):
@@ -63,7 +69,7 @@ def register(app: typer.Typer) -> None:
             import importlib
 
             module, fn, _ = OTHER_DEMOS[what]
-            kw = {"part": part} if what == "transfer" else (
+            kw = {"part": part, "setting": setting} if what == "transfer" else (
                 {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else {})
             return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed, **kw)
         if what != "roach":
