@@ -65,6 +65,8 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"hil demo adaptation: unknown --suite {suite!r} (roach | gym)")
         if ray is not None and what != "adaptation":
             raise UserError(f"hil demo {what}: --ray is for the adaptation demo only so far (docs/scaling.md)")
+        if ray is not None and suite == "gym":
+            raise UserError("hil demo adaptation --suite gym: --ray is for the roach suite only so far")
         if what in OTHER_DEMOS:
             import importlib
 

@@ -283,8 +283,6 @@ def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int
     if suite == "gym":
         from hilstack.learning.adaptation.gym_suite import summary_lines
 
-        if ray is not None:
-            raise ValueError("--ray: the gym suite runs its seeds in one process (not a sweep yet)")
         r = run_gym_demo(out, quick=quick, seed=seed)
         for line in summary_lines(r):
             print(line)
