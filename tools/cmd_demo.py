@@ -63,15 +63,16 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"hil demo {what}: --suite is for the adaptation demo only")
         if suite not in ("roach", "gym"):
             raise UserError(f"hil demo adaptation: unknown --suite {suite!r} (roach | gym)")
-        if ray is not None and what != "adaptation":
-            raise UserError(f"hil demo {what}: --ray is for the adaptation demo only so far (docs/scaling.md)")
+        if ray is not None and what not in ("adaptation", "transfer"):
+            raise UserError(f"hil demo {what}: --ray is for the adaptation and transfer demos only so far "
+                            "(docs/scaling.md)")
         if ray is not None and suite == "gym":
             raise UserError("hil demo adaptation --suite gym: --ray is for the roach suite only so far")
         if what in OTHER_DEMOS:
             import importlib
 
             module, fn, _ = OTHER_DEMOS[what]
-            kw = {"part": part, "setting": setting} if what == "transfer" else (
+            kw = {"part": part, "setting": setting, "ray": ray, "workers": workers} if what == "transfer" else (
                 {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else {})
             return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed, **kw)
         if what != "roach":
