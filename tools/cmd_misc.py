@@ -136,6 +136,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Run the rig's Zenoh router (bus.router): every node of the rig, on any host, is its client;
         with bus.access it authenticates them and applies the rig's ACL (docs/scaling.md)."""
+        from pathlib import Path
+
         import zenoh
 
         from hilstack.bus.session import router_config
@@ -150,7 +152,7 @@ def register(app: typer.Typer) -> None:
         if tls is None and bus.router.startswith("tls/"):
             raise UserError(f"bus.router {bus.router} is a TLS endpoint: give --tls-cert and --tls-key")
         for f in (tls_cert, tls_key, tls_ca):
-            if f and not os.path.isfile(f):
+            if f and not Path(f).is_file():
                 raise UserError(f"TLS file {f} does not exist")
         provision_credentials(cfg.name, bus, cfg)
         try:
