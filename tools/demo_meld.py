@@ -366,18 +366,21 @@ def run_task_inference(seeds: tuple[int, ...] = (0, 1), steps: int = 200, log=pr
     return out
 
 
-if __name__ == "__main__":  # python -m hilstack.tools.demo_meld toy OUT.json [steps]
-    import sys
+def main(argv: list[str] | None = None) -> None:
+    """The probes behind docs/meld.md: task inference without RL (toy) and the do-nothing scores (still)."""
+    import argparse
 
-    if len(sys.argv) >= 3 and sys.argv[1] in ("toy", "still"):
-        dest = Path(sys.argv[2])
-        if dest.exists():
-            raise SystemExit(f"{dest} exists; choose another path")
-        os.environ.setdefault("MUJOCO_GL", "egl")
-        if sys.argv[1] == "still":
-            res = do_nothing_scores()
-        else:
-            res = run_task_inference(steps=int(sys.argv[3]) if len(sys.argv) > 3 else 200)
-        dest.write_text(json.dumps(res, indent=1))
-    else:
-        raise SystemExit("usage: python -m hilstack.tools.demo_meld {toy OUT.json [steps] | still OUT.json}")
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_meld", description=main.__doc__)
+    ap.add_argument("probe", choices=("toy", "still"))
+    ap.add_argument("out", type=Path, help="JSON file to write (never overwritten)")
+    ap.add_argument("steps", type=int, nargs="?", default=200, help="model-only training steps (toy)")
+    args = ap.parse_args(argv)
+    if args.out.exists():
+        raise SystemExit(f"{args.out} exists; choose another path")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    res = do_nothing_scores() if args.probe == "still" else run_task_inference(steps=args.steps)
+    args.out.write_text(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()
