@@ -35,6 +35,7 @@ _VERB_MODULES = [
     "hilstack.tools.cmd_data",
     "hilstack.tools.cmd_bench",
     "hilstack.tools.cmd_misc",
+    "hilstack.tools.cmd_doctor",
 ]
 
 def version() -> str:
