@@ -30,6 +30,7 @@ _VERB_MODULES = [
     "hilstack.tools.cmd_mpc",
     "hilstack.tools.cmd_adapt",
     "hilstack.tools.cmd_record",
+    "hilstack.tools.cmd_export",
     "hilstack.tools.cmd_viz",
     "hilstack.tools.cmd_calibrate",
     "hilstack.tools.cmd_data",
