@@ -158,6 +158,65 @@ def foxglove_image(topic: str, msg: Msg, log_ns: int) -> tuple[str, Any, int] | 
             stamp_ns)
 
 
+def state_fields_topic(rig: str, robot: str) -> str:
+    """Channel of a robot's named state fields (:class:`StateFields`), beside its poses."""
+    return f"{keys.root(rig)}/foxglove/{robot}/fields"
+
+
+def _num(v: Any) -> float | None:
+    return float(v) if math.isfinite(v) else None  # JSON has no NaN: null, a gap in a plot
+
+
+class StateFields:
+    """Each robot's state, action and numeric health counters as *named* JSON fields, on a
+    JSON schema made per robot from its spec: Foxglove plots ``state.crank_vel_l`` instead of
+    ``.state[19]``. A derived channel (:func:`state_fields_topic`, schema ``hil.StateFields/<robot>``,
+    not replayed, not read back by :func:`iter_messages`): the ``hil.RobotState`` channel stays
+    the record. The health counters (dropped frames, stale stops, refused commands...) are the
+    numeric entries of the robot's first health report."""
+
+    def __init__(self) -> None:
+        self._spec: dict[str, tuple[list[str], list[str]]] = {}
+        self._health: dict[str, list[str]] = {}
+
+    def derive(self, topic: str, msg: Msg) -> tuple[str, str, dict[str, Any] | None, bytes] | None:
+        """(topic, schema name, schema or None if already given for this robot, JSON payload)."""
+        if isinstance(msg, SpecMsg):
+            try:
+                self._spec[msg.robot] = (list(msg.spec["state"]["names"]), list(msg.spec["action"]["names"]))
+            except (KeyError, TypeError):
+                pass
+            return None
+        if not isinstance(msg, RobotState) or msg.robot not in self._spec:
+            return None
+        sn, an = self._spec[msg.robot]
+        if len(msg.state) != len(sn):
+            return None
+        schema = None
+        if msg.robot not in self._health:
+            self._health[msg.robot] = sorted(k for k, v in msg.health.items()
+                                             if isinstance(v, (int, float)) and not isinstance(v, bool))
+            num = {"type": "number"}
+            schema = {"type": "object", "title": f"hil.StateFields/{msg.robot}", "properties": {
+                "robot": {"type": "string"}, "t_s": num, "ok": {"type": "boolean"}, "active": {"type": "boolean"},
+                "episode": {"type": "integer"}, "obs_seq": {"type": "integer"},
+                "state": {"type": "object", "properties": {n: num for n in sn}},
+                "action": {"type": "object", "properties": {n: num for n in an}},
+                "health": {"type": "object", "properties": {n: num for n in self._health[msg.robot]}},
+            }}
+        act = msg.action if len(msg.action) == len(an) else []
+        payload = {
+            "robot": msg.robot, "t_s": _num(msg.t_s), "ok": msg.ok, "active": msg.active, "episode": msg.episode,
+            "obs_seq": msg.obs_seq, "state": {n: _num(v) for n, v in zip(sn, msg.state, strict=True)},
+            "action": {n: _num(v) for n, v in zip(an, act, strict=False)},
+            "health": {k: _num(msg.health[k]) for k in self._health[msg.robot]
+                       if isinstance(msg.health.get(k), (int, float)) and not isinstance(msg.health.get(k), bool)},
+        }
+        parts = topic.split("/")
+        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+        return state_fields_topic(rig, msg.robot), f"hil.StateFields/{msg.robot}", schema, json.dumps(payload).encode()
+
+
 class _McapFoxglovePoses:
     """Writes :class:`FoxglovePoses` messages to an mcap ``Writer`` (protobuf channels)."""
 
@@ -166,6 +225,7 @@ class _McapFoxglovePoses:
         self._poses = FoxglovePoses()
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
+        self._fields = StateFields()
 
     def _channel(self, topic: str, cls: Any) -> int:
         cid = self._channels.get(topic)
@@ -185,6 +245,17 @@ class _McapFoxglovePoses:
             out.append(img)
         for t, m, stamp_ns in out:
             self._w.add_message(self._channel(t, type(m)), log_time=log_ns, data=m.encode(), publish_time=stamp_ns)
+        fields = self._fields.derive(topic, msg)
+        if fields is not None:
+            t, name, schema, data = fields
+            if t not in self._channels:
+                if schema is None:
+                    return len(out)  # a second rig's robot of the same name: its schema is the first one's
+                sid = self._w.register_schema(name, "jsonschema", json.dumps(schema).encode())
+                self._channels[t] = self._w.register_channel(t, "json", sid)
+            pub = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+            self._w.add_message(self._channels[t], log_time=log_ns, data=data, publish_time=pub)
+            return len(out) + 1
         return len(out)
 
 
