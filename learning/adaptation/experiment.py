@@ -646,7 +646,37 @@ def aggregate(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
                  (rows.std(0, ddof=1) if len(rows) > 1 else np.zeros(rows.shape[1])).tolist(),
                  "tasks_created": None if tc[0] is None else float(np.mean(tc)),
                  "conditions": first["switching"][m]["conditions"]}
-    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw}
+    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw,
+            "benchmarks": benchmarks(per_seed)}
+
+
+def benchmarks(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
+    """Issue 24's cross-suite view: ``{condition: {method: {return_mean, return_std,
+    normalized, normalized_std, seeds}}}``. The roach's return is the progress along the
+    paths within their time limits (m, summed over the paths; higher is better, 0 for a robot
+    that does not move); ``normalized`` = return / the oracle's return of the same seed (None
+    when the oracle made no progress), mean ± sample std over seeds. ``switching``: the
+    progress summed over the segments (no oracle: ``normalized`` is None)."""
+    out: dict[str, Any] = {}
+    for name in per_seed[0]["perturbations"]:
+        row = {}
+        for m in METHODS:
+            ret = [float(r["perturbations"][name][m]["progress_m"]) for r in per_seed]
+            orc = [float(r["perturbations"][name]["oracle"]["progress_m"]) for r in per_seed]
+            ms = mean_std(ret)
+            cell = {"return_mean": ms["mean"], "return_std": ms["std"], "seeds": ret, "normalized": None}
+            if all(o > 0 for o in orc):
+                ns = mean_std([x / o for x, o in zip(ret, orc, strict=True)])
+                cell["normalized"], cell["normalized_std"] = ns["mean"], ns["std"]
+            row[m] = cell
+        out[name] = row
+    sw = {}
+    for m in SWITCHING_METHODS:
+        ret = [float(sum(r["switching"][m]["reward_per_segment"])) for r in per_seed]
+        ms = mean_std(ret)
+        sw[m] = {"return_mean": ms["mean"], "return_std": ms["std"], "seeds": ret, "normalized": None}
+    out["switching"] = sw
+    return out
 
 
 
