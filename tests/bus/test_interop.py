@@ -245,7 +245,7 @@ def test_state_fields_are_named_for_foxglove(tmp_path):
     states = [m for _, m in msgs if isinstance(m, RobotState)]
     got = []
     with open(path, "rb") as f:
-        for schema, channel, message in make_reader(f).iter_messages(topics=[state_fields_topic(RIG, "bot")]):
+        for schema, _channel, message in make_reader(f).iter_messages(topics=[state_fields_topic(RIG, "bot")]):
             dt = foxglove_parse_json_schema(json.loads(schema.data), schema.name)
             got.append(json.loads(message.data))
     assert schema.name == "hil.StateFields/bot"
