@@ -102,20 +102,24 @@ class FoxglovePoses:
 
     def __init__(self) -> None:
         self._names: dict[str, tuple[str, ...]] = {}
+        self._chains: dict[str, list[dict[str, Any]]] = {}
 
     def derive(self, topic: str, msg: Msg, log_ns: int) -> list[tuple[str, Any, int]]:
         """[(topic, foxglove message, its stamp [ns since the epoch])] derived from ``msg``."""
         if isinstance(msg, SpecMsg):
             try:
                 self._names[msg.robot] = tuple(msg.spec["state"]["names"])
-            except (KeyError, TypeError):
+                if msg.spec.get("chain"):
+                    self._chains[msg.robot] = list(msg.spec["chain"])
+            except (KeyError, TypeError, AttributeError):
                 pass  # a spec without state names: no pose for this robot
             return []
         if not isinstance(msg, RobotState) or msg.robot not in self._names:
             return []
+        links = self._links(topic, msg, log_ns)
         pose = planar_pose(self._names[msg.robot], msg.state)
         if pose is None or not all(math.isfinite(v) for v in pose):
-            return []
+            return links
         x, y, z, yaw = pose
         parts = topic.split("/")
         rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
@@ -131,7 +135,50 @@ class FoxglovePoses:
              fg.FrameTransform(timestamp=ts, parent_frame_id=WORLD_FRAME, child_frame_id=msg.robot,
                                translation=pos, rotation=q),
              stamp_ns),
+            *links,
         ]
+
+    def _links(self, topic: str, msg: RobotState, log_ns: int) -> list[tuple[str, Any, int]]:
+        """The FrameTransforms of a robot's kinematic chain (an arm in Foxglove's 3D panel); a
+        robot without a planar pose is placed at the world's origin."""
+        chain = self._chains.get(msg.robot)
+        tfs = None if chain is None else chain_transforms(msg.robot, chain, self._names[msg.robot], msg.state)
+        if not tfs:
+            return []
+        parts = topic.split("/")
+        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+        stamp_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+        ts = fg.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+        if planar_pose(self._names[msg.robot], msg.state) is None:
+            tfs = [(WORLD_FRAME, msg.robot, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)), *tfs]
+        return [(foxglove_tf_topic(rig),
+                 fg.FrameTransform(timestamp=ts, parent_frame_id=a, child_frame_id=b,
+                                   translation=fg.Vector3(x=t[0], y=t[1], z=t[2]),
+                                   rotation=fg.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])), stamp_ns)
+                for a, b, t, q in tfs]
+
+
+def chain_transforms(robot: str, chain: list[dict[str, Any]], names: list[str] | tuple[str, ...],
+                     state: list[float]) -> list[tuple[str, str, tuple[float, float, float],
+                                                       tuple[float, float, float, float]]] | None:
+    """(parent frame, child frame, translation [m], rotation quaternion x, y, z, w) of each link
+    of a spec's kinematic ``chain`` (``RobotSpec.chain``): link ``<robot>/<joint>_link`` sits at
+    the joint's offset in its parent link and turns about the joint's axis by the state's
+    ``<joint>_pos`` (or ``<joint>``) angle. None if an angle is missing or not finite."""
+    idx = {n: i for i, n in enumerate(names)}
+    out, parent = [], robot
+    for link in chain:
+        j = link["joint"]
+        i = idx.get(f"{j}_pos", idx.get(j))
+        if i is None or i >= len(state) or not math.isfinite(state[i]):
+            return None
+        ax = link["axis"]
+        norm = math.sqrt(sum(a * a for a in ax)) or 1.0
+        s, c = math.sin(state[i] / 2), math.cos(state[i] / 2)
+        child = f"{robot}/{j}_link"
+        out.append((parent, child, tuple(link["xyz"]), (ax[0] / norm * s, ax[1] / norm * s, ax[2] / norm * s, c)))
+        parent = child
+    return out
 
 
 def foxglove_image_topic(rig: str, camera: str) -> str:

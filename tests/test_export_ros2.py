@@ -103,3 +103,14 @@ def test_export_never_overwrites_without_force(recording, tmp_path):
     assert r.exit_code == 2 and "--force" in r.output and (bag / "keep").exists()
     r = CliRunner().invoke(app, ["export", "ros2", str(recording), "--out", str(bag), "--force"])
     assert r.exit_code == 0 and not (bag / "keep").exists()
+
+
+def test_arm_joints_pair_positions_with_velocities():
+    from hilstack.drivers.widowx.config import WidowXParams, widowx_spec
+    from hilstack.tools.export import _layout
+
+    st = widowx_spec(WidowXParams()).to_dict()["state"]
+    lay = _layout(st["names"], st["units"])
+    assert lay["pose"] is None and lay["twist"] is None
+    joints = {j: (st["names"][src[1]], st["names"][vel[0]]) for j, src, vel in lay["joints"]}
+    assert joints["waist"] == ("waist_pos", "waist_vel") and len(joints) == 6

@@ -8,7 +8,7 @@ be installed. Per robot, from its spec's channel names and units (``hil.Spec``):
 |---|---|---|
 | state: x, y, z [m] and roll/pitch/yaw (or their cos_/sin_ pairs; ZYX Euler, as every backend's ``quat_to_rpy``) | ``/<rig>/<robot>/pose`` | ``geometry_msgs/msg/PoseStamped`` (frame ``world``) |
 | state: vx, vy, vz [m/s, world frame: mocap, MuJoCo's free joint] rotated into the body frame by the pose's orientation, and wx, wy, wz [rad/s, body frame: the gyro] | ``/<rig>/<robot>/twist`` | ``geometry_msgs/msg/TwistStamped`` (frame ``<robot>``) |
-| state: joint angles [rad] (or cos_/sin_ pairs that are no body angle), their velocities ``<j>_vel`` / ``<j>_vel_<side>`` [rad/s, rev/s → rad/s] | ``/<rig>/<robot>/joint_states`` | ``sensor_msgs/msg/JointState`` |
+| state: joint angles ``<j>`` or ``<j>_pos`` [rad] (or cos_/sin_ pairs that are no body angle), their velocities ``<j>_vel`` / ``<head>_vel_<side>`` [rad/s, rev/s → rad/s] | ``/<rig>/<robot>/joint_states`` | ``sensor_msgs/msg/JointState`` |
 | state, whole (names, units, values, ok, active, episode) | ``/<rig>/<robot>/state`` | ``hilstack_msgs/msg/RobotState`` |
 | command | ``/<rig>/<robot>/cmd`` | ``hilstack_msgs/msg/Command`` (names and action in the spec's units) |
 | camera image (JPEG/PNG) | ``/<rig>/<camera>/image/compressed`` (image_transport's name) | ``sensor_msgs/msg/CompressedImage`` |
@@ -73,9 +73,10 @@ def _layout(names: list[str], units: list[str]) -> dict[str, Any]:
     if any(i is not None for i in lin + ang):
         twist = {"lin": lin, "ang": ang}
     joints = []
-    for j, src in angles.items():
-        if j in _BODY_ANGLES:
+    for name, src in angles.items():
+        if name in _BODY_ANGLES:
             continue
+        j = name[:-4] if name.endswith("_pos") else name  # the arms' <joint>_pos beside <joint>_vel
         head, _, side = j.rpartition("_")
         vel = None
         for cand in (f"{j}_vel", f"vel_{j}", f"{head}_vel_{side}" if head else None):
