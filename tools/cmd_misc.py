@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -11,12 +10,11 @@ import threading
 
 import typer
 
+from hilstack.bus.lifetime import child_env, exit_with_parent
 from hilstack.tools.common import (
-    PARENT_PID_ENV,
     EndpointOpt,
     UserError,
     echo_json,
-    exit_with_parent,
     provision_credentials,
     rig_bus,
     setup_logging,
@@ -175,7 +173,7 @@ def register(app: typer.Typer) -> None:
                     cmd += ["--steps", str(steps)]
                 if endpoint:
                     cmd += ["--endpoint", endpoint]
-                procs.append(subprocess.Popen(cmd, env={**os.environ, PARENT_PID_ENV: str(os.getpid())}))
+                procs.append(subprocess.Popen(cmd, env=child_env()))
 
             def forward(signum, _frame):  # Ctrl-C, or a supervisor's SIGTERM: every robot's node stops its robot
                 for p in procs:

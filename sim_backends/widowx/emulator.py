@@ -12,8 +12,8 @@ of its own process (docs/arms.md).
     python -m hilstack.sim_backends.widowx.emulator --print-pty --config '{"missing_ids": [8]}'
 
 On start it prints one JSON line ``{"pty": ..., "pid": ...}`` on stdout; logs go to
-stderr. It stops on SIGTERM, on SIGINT unless it has a ``--parent-pid`` (Ctrl-C in the
-driver's terminal must not cut the bus before the driver's stop), or when the parent dies.
+stderr. It stops on SIGTERM, on SIGINT unless a parent started it (bus/lifetime.py: Ctrl-C
+in the driver's terminal must not cut the bus before the driver's stop), or when the parent dies.
 
 Fault injection (config keys): ``missing_ids`` (these IDs never answer, as an unplugged
 servo), ``hardware_errors`` ({id: bits}: latched at power-on, cleared by a reboot

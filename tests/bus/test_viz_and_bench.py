@@ -7,6 +7,7 @@ import json
 from hilstack.bus import keys
 from hilstack.bus.recording import McapLog
 from hilstack.bus.schemas import Command, Image, Plan, RobotState, SpecMsg
+from tests.helpers import spec_dict
 
 
 def _entities(rrd) -> set[str]:
@@ -21,7 +22,7 @@ def test_viz_recording_to_rrd_with_layout(tmp_path):
     from hilstack.tools.cli import app
 
     mc = tmp_path / "a.mcap"
-    spec = {"state": {"names": ["x", "y", "vx", "vy"]}, "action": {"names": ["fx", "fy"]}}
+    spec = spec_dict("pm", ["x", "y", "vx", "vy"], ["fx", "fy"])
     with McapLog(mc) as log:
         log.write(keys.spec("r", "pm"), SpecMsg(robot="pm", spec=spec))
         for i in range(20):
