@@ -436,6 +436,8 @@ class RobotSpec:
                 safe_action=None if d.get("safe_action") is None else np.array(d["safe_action"], float),
                 home_action=None if d.get("home_action") is None else np.array(d["home_action"], float),
                 description=str(d.get("description", "")),
+                chain=tuple((str(c["joint"]), tuple(float(v) for v in c["xyz"]), tuple(float(v) for v in c["axis"]))
+                            for c in d.get("chain") or ()),
             )
         except KeyError as e:
             raise ValueError(f"robot spec {d.get('name', '?')!r}: missing {e}") from None

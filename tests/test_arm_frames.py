@@ -57,3 +57,29 @@ def test_link_frames_match_mujoco_forward_kinematics(tmp_path):
     pairs = [(t.parent_frame_id, t.child_frame_id) for t in tfs]
     assert pairs[0] == ("world", "widowx") and pairs[-1] == ("widowx/wrist_angle_link", "widowx/wrist_rotate_link")
     assert len(pairs) == 1 + len(JOINT_NAMES)
+
+
+def test_rerun_gets_the_arm_as_nested_transforms(tmp_path):
+    import rerun as rr
+
+    from hilstack.tools.viz import viz_recording
+
+    spec = widowx_spec(WidowXParams()).to_dict()
+    names = spec["state"]["names"]
+    state = [0.3 if n == "shoulder_pos" else 0.0 for n in names]
+    path = tmp_path / "arm.mcap"
+    with McapLog(path) as log:
+        log.write("hil/arm/widowx/spec", SpecMsg(robot="widowx", spec=spec), 1)
+        log.write("hil/arm/widowx/state", RobotState(robot="widowx", t_s=0.0, state=state, stamp_s=1.0), 2)
+    rrd = tmp_path / "arm.rrd"
+    viz_recording(path, rrd)
+    cols: dict[str, dict] = {}
+    for c in rr.chunk.RrdReader(str(rrd)).stream().to_chunks():
+        rb = c.to_record_batch()
+        cols.setdefault(str(c.entity_path), {}).update({n: rb.column(n).to_pylist() for n in rb.schema.names})
+    shoulder = "/world/widowx/links/waist_link/shoulder_link"
+    assert f"{shoulder}/elbow_link/forearm_roll_link/wrist_angle_link/wrist_rotate_link" in cols
+    t = next(v for k, v in cols[shoulder].items() if k.endswith("translation"))
+    q = next(v for k, v in cols[shoulder].items() if k.endswith("quaternion"))
+    np.testing.assert_allclose(t[0][0] if isinstance(t[0][0], list) else t[0], spec["chain"][1]["xyz"], atol=1e-6)
+    np.testing.assert_allclose(np.ravel(q[0]), [0, np.sin(0.15), 0, np.cos(0.15)], atol=1e-6)  # 0.3 rad about y
