@@ -36,6 +36,7 @@ from hilstack.bus import keys
 from hilstack.bus.lifetime import child_env
 from hilstack.bus.recording import Recorder
 from hilstack.bus.schemas import ResetTransition, decode
+from hilstack.bus.session import BusUnavailable
 from hilstack.configs.presets import Presets
 from hilstack.configs.schema import BusConfig, load_rig
 from hilstack.control.baselines import DifferentialDriveController
@@ -421,13 +422,32 @@ class MbrlRun:
                 return ctl.wait_ready(timeout_s=0.5)
             except TimeoutError:
                 if proc.poll() is not None:
-                    log = self.out / "logs" / "driver.log"
-                    lines = [ln for ln in log.read_text(errors="replace").splitlines() if ln.strip()]
-                    why = lines[-1].strip() if lines else "it printed nothing"
-                    raise RigError(f"the rig's process exited (code {proc.returncode}) before its driver came up: "
-                                   f"{why} (driver log: {log})") from None
+                    raise self._rig_exited(proc) from None
                 if time.monotonic() > deadline:
                     raise
+
+    def _rig_exited(self, proc: subprocess.Popen) -> RigError:
+        log = self.out / "logs" / "driver.log"
+        lines = [ln for ln in log.read_text(errors="replace").splitlines() if ln.strip()] if log.exists() else []
+        why = lines[-1].strip() if lines else "it printed nothing"
+        return RigError(f"the rig's process exited (code {proc.returncode}) before its driver came up: "
+                        f"{why} (driver log: {log})")
+
+    def _controller(self, proc: subprocess.Popen) -> ControllerNode:
+        """This loop's controller node. On an access-controlled rig the driver node is the router:
+        joining fails until it listens, and for good when the rig's process exits first (a
+        :class:`RigError` naming the driver's reason, not a bus error)."""
+        deadline = time.monotonic() + self.cfg.rig_timeout_s
+        while True:
+            try:
+                return ControllerNode(self.rig.name, self.cfg.robot, self.bus, name="mbrl-controller",
+                                      handle_signals=False, state_timeout_s=20.0)
+            except BusUnavailable:
+                if proc.poll() is not None:
+                    raise self._rig_exited(proc) from None
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
 
     @contextlib.contextmanager
     def session(self) -> Iterator[ControllerNode]:
@@ -438,8 +458,7 @@ class MbrlRun:
         except ResetUnavailable as e:
             raise RigError(str(e)) from None
         with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs") as proc, \
-                ControllerNode(self.rig.name, cfg.robot, self.bus, name="mbrl-controller",
-                               handle_signals=False, state_timeout_s=20.0) as ctl, \
+                self._controller(proc) as ctl, \
                 self._supervised(reset_cfg):
             self.ctl = ctl
             self._transitions = ctl.subscribe(keys.reset_transition(self.rig.name), ResetTransition,

@@ -218,7 +218,11 @@ def main(argv: list[str] | None, make_world: Callable[[dict[str, Any]], ServoWor
     ap.add_argument("--config", default="{}", help="JSON: the bench's keys, missing_ids, hardware_errors, ...")
     args = ap.parse_args(argv)
     cfg = json.loads(args.config)
-    world = make_world(cfg)
+    try:
+        world = make_world(cfg)
+    except ValueError as e:  # a bad bench key (effects, mjcf, ...): one line, exit 2
+        print(f"error: --config {str(e).splitlines()[0]}", file=sys.stderr)
+        return 2
     bus = BusEmulator(world, missing_ids=[int(i) for i in cfg.get("missing_ids", [])],
                       hardware_errors={int(k): int(v) for k, v in cfg.get("hardware_errors", {}).items()},
                       persistent_errors=bool(cfg.get("persistent_errors", False)),

@@ -22,6 +22,11 @@ CRC), ``garbage_every`` (noise bytes before every N-th status packet). ``start_h
 ({joint: rad}) starts the arm torqued in position mode at that pose instead of limp in
 its sleep pose.
 
+Effects the MuJoCo model lacks (config ``effects``, on the arm's servos; for calibration,
+docs/calibration.md "The robots' own MuJoCo models"): ``joint_friction_nm`` (Coulomb
+friction in each gearbox), ``joint_damping_nm_s`` (viscous), ``input_delay_s`` (a goal acts
+this long after it was written). ``mjcf``: the bench from an MJCF file (a calibrated one).
+
 Host death (tests): ``state_file`` (a path) gets one JSON line every ``state_every_s``
 wall-clock seconds: ``{"t": monotonic [s], "sim_t": [s], "servos": {id: [position
 rad, velocity rad/s, Bus Watchdog]}}``, read without sending the servos a packet (a
@@ -40,7 +45,8 @@ from hilstack.sim_backends.widowx.world import ArmWorld
 
 
 def make_world(cfg: dict[str, Any]) -> ArmWorld:
-    return ArmWorld(cfg.get("arm_ids"), cfg.get("mech_ids"), start_holding=cfg.get("start_holding"))
+    return ArmWorld(cfg.get("arm_ids"), cfg.get("mech_ids"), start_holding=cfg.get("start_holding"),
+                    effects=cfg.get("effects"), mjcf=cfg.get("mjcf"))
 
 
 def main(argv: list[str] | None = None) -> int:
