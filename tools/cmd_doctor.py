@@ -2,7 +2,7 @@
 the USB serial devices, named by vendor and product (tools/doctor.py).
 
     hil doctor roach_real              # one line per item; exit 0 only when the rig can start
-    hil doctor arm_widowx_real --scan  # also ask the devices: Dynamixel IDs, XBee AT settings
+    hil doctor my_arm_rig.yaml --scan  # also ask the devices: Dynamixel IDs, XBee AT settings
     hil find-port --json
 """
 
