@@ -24,6 +24,13 @@ class UserError(Exception):
     """A problem the user can fix (bad argument, missing file): one line, exit 2."""
 
 
+#: ``--ray`` of the sweep commands: ``local``, a local Ray runtime (``--workers`` CPUs); an ADDRESS,
+#: a running cluster (docs/scaling.md). Without it the sweep runs serially in the process.
+RAY_OPTION = typer.Option(None, "--ray", metavar="local|ADDRESS",
+                          help="run the sweep's tasks on Ray: 'local' starts a runtime with --workers CPUs; "
+                               "an ADDRESS (ray start --head printed it) joins that cluster (docs/scaling.md)")
+
+
 #: Exit codes of every `hil` verb besides 0 (docs/platform.md, "Exit codes").
 EXIT_RUNTIME, EXIT_USAGE = 1, 2
 
