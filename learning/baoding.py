@@ -280,7 +280,8 @@ class BaodingConfig:
     random_eval_rollouts: int = 10
     #: 10 s at 10 Hz (T=100); the supervisor's timeout ends episodes at 10 s too
     episode_steps: int = 100
-    iterations: int = 10
+    #: 33 x R=30 x T=100 ≈ 100k points: the thesis' budget (Fig. 4.9: solved at ~100k)
+    iterations: int = 33
     #: PDDM rollouts per iteration (thesis R=30)
     rollouts_per_iteration: int = 30
     # the planner and its ensemble (thesis: H=7, K=700, γ=20, β=0.7, 3 x 2x500 ReLU MLP)
@@ -313,13 +314,13 @@ class BaodingConfig:
     #: a fixed number of gradient steps per iteration instead of the epochs (None: the
     #: epochs): the epochs become ceil(train_steps · batch / points), so training does not
     #: grow with the data (a lever for the thesis' scale on 2 cores, docs/baoding.md)
-    train_steps: int | None = None
+    train_steps: int | None = 200
     #: the model's inference precision in the planner: "fp32", or "auto" (bf16 where the CPU
     #: has AMX, learning/dynamics.py: cpu_bf16_support) / "bf16"; training stays fp32
-    inference_dtype: str = "fp32"
+    inference_dtype: str = "auto"
     #: torch threads for the whole run (None: torch's default); on a loaded 2-core machine one
     #: thread planned 2-8x faster than two (docs/baoding.md, "The full run")
-    torch_threads: int | None = None
+    torch_threads: int | None = 1
     batch_size: int = 500
     input_noise_std: float = 0.0
     val_fraction: float = 0.1
@@ -369,7 +370,7 @@ class BaodingConfig:
         low-noise share; the reference code's (σ 0.9, the action filter) dropped 28 of 30
         episodes at ~2.5k points, this one 1 of 30 with as many 90° turns."""
         base = dict(random_rollouts=200, random_eval_rollouts=10, iterations=6, rollouts_per_iteration=5,
-                    samples=200, hidden=(250, 250), epochs=30, retrain_epochs=20, preset="quick",
+                    samples=200, hidden=(250, 250), epochs=30, retrain_epochs=20, train_steps=None, preset="quick",
                     sigma=0.05, filter="noise", beta=0.7, low_noise_fraction=0.0,
                     notes=["scaled down from the thesis to fit 10 min on 2 cores: 200 random-walk rollouts x 30 "
                            "steps, K=200 (thesis 700), 2x250 (thesis 2x500), 6 iterations x 5 rollouts (thesis R=30 "
@@ -383,7 +384,7 @@ class BaodingConfig:
     def tiny(cls, **kw: Any) -> BaodingConfig:
         """A seconds-long smoke run of every stage (tests)."""
         base = dict(random_rollouts=3, random_steps=8, random_eval_rollouts=2, episode_steps=12, iterations=1,
-                    rollouts_per_iteration=2, samples=16, hidden=(16, 16), epochs=2, retrain_epochs=1,
+                    rollouts_per_iteration=2, samples=16, hidden=(16, 16), epochs=2, retrain_epochs=1, train_steps=None,
                     batch_size=64, preset="tiny", progress=False, notes=["smoke-test scale, not a result"])
         base.update(kw)
         return cls(**base)
@@ -596,6 +597,16 @@ class BaodingRun(MbrlRun):
         return {"plans": int(len(a)), "ess_mean": float(a[:, 0].mean()), "ess_p10": float(np.percentile(a[:, 0], 10)),
                 "ess_frac_mean": float(a[:, 0].mean() / k), "mean_shift_rms": float(a[:, 1].mean())}
 
+    def write_partial(self, report: dict[str, Any], t0: float) -> None:
+        """``OUT/report.json`` after every iteration (``"partial": true``), so a run stopped
+        early keeps its curve; the finished run's report replaces it."""
+        import json
+
+        part = {**report, "partial": True, "wall_s": time.monotonic() - t0, "recordings": list(self.recordings)}
+        tmp = self.out / "report.json.tmp"
+        tmp.write_text(json.dumps(_jsonable(part), indent=1))
+        tmp.replace(self.out / "report.json")
+
     def run(self) -> dict[str, Any]:
         threads = torch.get_num_threads()
         if self.bcfg.torch_threads is not None:
@@ -644,9 +655,11 @@ class BaodingRun(MbrlRun):
             model = make_model(self.cfg, self.features.names, self.action_names)
             report["inference_dtype"] = str(model.set_inference_dtype(c.inference_dtype)).removeprefix("torch.")
             samples = self.fit_pddm_to_period(model)  # timing needs the architecture, not trained weights
-            iterations = []
+            report["iterations"] = iterations = []
             for it in range(1, c.iterations + 1):
+                t_it = time.monotonic()
                 train = self.train(model, self.model_episodes(data), self.epochs_for(data, it))
+                t_train = time.monotonic() - t_it
                 path, scores = self.run_episodes(
                     lambda i, m=model, it=it: self.pddm_policy(m, self._seed(10 + it, i), samples),
                     c.rollouts_per_iteration, f"{it:03d}-mpc", f"iteration {it}: PDDM rollouts")
@@ -656,8 +669,11 @@ class BaodingRun(MbrlRun):
                 row = {"iteration": it, "points": int(sum(len(e) for e in data)),
                        "model": {**{k: train[k] for k in ("train_loss", "val_1step", "val_h") if k in train},
                                  **drop_prediction(model, val, self.task, idx, c.horizon)},
-                       **summarize(scores), "weights": self.plan_summary()}
+                       **summarize(scores), "weights": self.plan_summary(),
+                       "wall_s": {"train": t_train, "iteration": time.monotonic() - t_it,
+                                  "since_start": time.monotonic() - t0}}
                 iterations.append(row)
+                self.write_partial(report, t0)
                 data += new
                 _log(self.cfg, f"iteration {it}: trained on {row['points']} points (val_h {train.get('val_h', float('nan')):.3f}); "
                                f"PDDM {row['mean_return']:.1f} mean return, {row['drops']}/{len(scores)} drops, "
