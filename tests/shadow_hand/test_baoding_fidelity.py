@@ -298,3 +298,30 @@ def test_the_quick_preset_is_the_old_sampler_ablation_and_ref_the_reference_samp
     assert (ref.sigma, ref.filter, ref.beta, ref.low_noise_fraction) == (0.9, "actions", 0.6, 0.1)
     d = BaodingConfig()
     assert (d.sigma, d.filter, d.beta, d.low_noise_fraction) == (0.9, "actions", 0.6, 0.1)
+
+
+def test_a_run_stopped_after_an_iteration_keeps_that_iteration_in_report_json(bus, tmp_path):
+    """A thesis-scale run takes hours: report.json is rewritten after every iteration
+    (``partial: true``), so a run stopped early keeps its curve so far."""
+    import json
+
+    from hilstack.learning.baoding import BaodingConfig, BaodingRun
+
+    run = BaodingRun(BaodingConfig.tiny(iterations=3), tmp_path, bus)
+    real_train, calls = run.train, []
+
+    def train(*a, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # stopped during the second iteration's training
+        return real_train(*a, **kw)
+
+    run.train = train
+    with pytest.raises(KeyboardInterrupt):
+        run.run()
+    r = json.loads((tmp_path / "report.json").read_text())
+    assert r["partial"] is True and [it["iteration"] for it in r["iterations"]] == [1]
+    it = r["iterations"][0]
+    assert it["episodes"] == 2 and {"success_90", "mean_rotation_deg", "points"} <= set(it)
+    assert 0 < it["wall_s"]["train"] <= it["wall_s"]["iteration"] <= it["wall_s"]["since_start"]
+    assert r["hold_policy"]["episodes"] == 2 and any(p.endswith("001-mpc.mcap") for p in r["recordings"])
