@@ -322,6 +322,9 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "ref": dict(REF_SAMPLER),
     "clock_targets": {**REF_SAMPLER, "task_overrides": {"max_lead_rad": None}},
     "old_sampler": {"sigma": 0.05, "filter": "noise", "beta": 0.7, "low_noise_fraction": 0.0},
+    # the quick preset with a bolder sampler, or sharper weights (docs/baoding.md, the balls at rest)
+    "sigma_02": {"sigma": 0.2, "filter": "noise", "beta": 0.7, "low_noise_fraction": 0.0},
+    "gamma_100": {"sigma": 0.05, "filter": "noise", "beta": 0.7, "low_noise_fraction": 0.0, "gamma": 100.0},
     "paper_filter": {**REF_SAMPLER, "filter": "noise", "beta": 0.7},
     "range_units": {**REF_SAMPLER, "action_units": "range"},
     "joint_vel": {**REF_SAMPLER, "joint_velocities": True},
