@@ -288,16 +288,18 @@ def test_every_ablation_is_a_valid_config():
         assert c.preset == "quick", name
 
 
-def test_the_quick_preset_is_the_old_sampler_ablation_and_ref_the_reference_sampler():
-    """The docs' quick numbers are the `old_sampler` row: the same config as the preset."""
+def test_the_quick_preset_is_the_gamma_100_ablation_and_ref_the_reference_sampler():
+    """The docs' quick numbers are the `gamma_100` row (the same config as the preset), and
+    `old_sampler` is the quick preset of before, with the thesis' γ 20."""
     from hilstack.learning.baoding import BaodingConfig
     from hilstack.tools.demo_baoding import ABLATIONS
 
-    assert BaodingConfig.quick() == BaodingConfig.quick(**ABLATIONS["old_sampler"])
+    assert BaodingConfig.quick() == BaodingConfig.quick(**ABLATIONS["gamma_100"])
+    assert BaodingConfig.quick(**ABLATIONS["old_sampler"]).gamma == 20.0
     ref = BaodingConfig.quick(**ABLATIONS["ref"])
-    assert (ref.sigma, ref.filter, ref.beta, ref.low_noise_fraction) == (0.9, "actions", 0.6, 0.1)
+    assert (ref.sigma, ref.filter, ref.beta, ref.low_noise_fraction, ref.gamma) == (0.9, "actions", 0.6, 0.1, 20.0)
     d = BaodingConfig()
-    assert (d.sigma, d.filter, d.beta, d.low_noise_fraction) == (0.9, "actions", 0.6, 0.1)
+    assert (d.sigma, d.filter, d.beta, d.low_noise_fraction, d.gamma) == (0.9, "actions", 0.6, 0.1, 20.0)
 
 
 def test_a_run_stopped_after_an_iteration_keeps_that_iteration_in_report_json(bus, tmp_path):
