@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from hilstack.calibration import axis
-from hilstack.calibration.data import Episode
+from hilstack.calibration.data import Recording
 from hilstack.calibration.effects import CATALOGUE, LOOK_ALIKES
 
 
@@ -64,7 +64,7 @@ class Model(Protocol):
     look_alikes: dict
     segmentable: bool
 
-    def prepare(self, episodes: list[Episode]) -> list: ...
+    def prepare(self, episodes: list[Recording]) -> list: ...
 
     def fit(self, episodes: list, effects: list[str], **kw) -> FittedModel: ...
 
@@ -107,11 +107,11 @@ class FittedAxis:
         """Primary of a position-periodic load along ``ref``'s phase (see AxisParams.primary_along)."""
         return self.params.primary_along(name, ref.params)
 
-    def predict_one_step(self, episode: axis.Prepared | Episode) -> dict:
+    def predict_one_step(self, episode: axis.Prepared | Recording) -> dict:
         p = episode if isinstance(episode, axis.Prepared) else self._prep(episode)
         return axis.predict_one_step(p, self.params)
 
-    def simulate(self, episode: axis.Prepared | Episode, horizon: int | None = None) -> dict:
+    def simulate(self, episode: axis.Prepared | Recording, horizon: int | None = None) -> dict:
         """Open-loop replay of the logged commands; whole episode when ``horizon`` is None."""
         p = episode if isinstance(episode, axis.Prepared) else self._prep(episode)
         if horizon is None:
@@ -121,7 +121,7 @@ class FittedAxis:
             return axis.simulate_windows(p, self.params, h, starts=np.array([p.margin]))
         return axis.simulate_windows(p, self.params, horizon)
 
-    def _prep(self, ep: Episode) -> axis.Prepared:
+    def _prep(self, ep: Recording) -> axis.Prepared:
         return axis.prepare([ep], sg_window=self.params.sg_window)[0]
 
     def to_dict(self) -> dict:
@@ -184,7 +184,7 @@ class AxisModel:
                       "v": float(np.std(np.concatenate([p.v_obs for p in preps]))) + 1e-300},
         }
 
-    def prepare(self, episodes: list[Episode]) -> list[axis.Prepared]:
+    def prepare(self, episodes: list[Recording]) -> list[axis.Prepared]:
         return axis.prepare(episodes, sg_window=self.sg_window)
 
     def fit(self, episodes: list[axis.Prepared], effects: list[str], weights=None, refine: bool = True,

@@ -25,12 +25,13 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import torch
 from pydantic import Field
 
+from hilstack.configs.presets import Presets
 from hilstack.configs.schema import BusConfig, Strict, load_task, parse_model
 from hilstack.control.costs import BaodingCost, baoding_episode_metrics
 from hilstack.control.planners import PddmConfig
@@ -277,8 +278,35 @@ def turn_rank_key(summary: dict[str, Any]) -> tuple[float, ...]:
 
 
 @dataclass
-class BaodingConfig:
-    """One PDDM-on-Baoding run. Defaults are the thesis' (ch. 4); :meth:`quick` scales down."""
+class BaodingConfig(Presets):
+    """One PDDM-on-Baoding run. Defaults are the thesis' (ch. 4); its "quick" preset scales down."""
+
+    #: the presets of ``from_preset(name, **overrides)`` (configs/presets.py): overrides of the defaults
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        # `hil demo baoding --quick`: ≤10 min on an idle 2-core machine. Scaled down from the
+        # thesis: K=200 samples, 2x250 networks (the reference code's width), 6 iterations of 5
+        # rollouts, 30/20 epochs; H and the ensemble of 3 as the default. The sampler is the
+        # one measured best at this data size (docs/baoding.md, "Our numbers (quick run)"):
+        # noise σ = 0.05 about the mean (planner units), the paper's noise filter with β = 0.7,
+        # no low-noise share, and γ = 100 (thesis 20); the reference code's sampler (σ 0.9, the
+        # action filter) and σ 0.2 dropped most episodes at ~3-5k points, and with γ 20 the
+        # weights went soft (ESS 91-164 of 200) and the pair turned half as far.
+        "quick": dict(random_rollouts=200, random_eval_rollouts=10, iterations=6, rollouts_per_iteration=5,
+                      samples=200, hidden=(250, 250), epochs=30, retrain_epochs=20, train_steps=None, preset="quick",
+                      sigma=0.05, filter="noise", beta=0.7, low_noise_fraction=0.0, gamma=100.0,
+                      notes=["scaled down from the thesis to fit 10 min on 2 cores: 200 random-walk rollouts x 30 "
+                             "steps, K=200 (thesis 700), 2x250 (thesis 2x500), 6 iterations x 5 rollouts (thesis R=30 "
+                             "each), 30/20 epochs (40)",
+                             "sampler sigma 0.05, noise filter, beta 0.7 (the reference code's sigma 0.9 and action "
+                             "filter dropped 28 of 30 episodes at this data size; docs/baoding.md)",
+                             "gamma 100 (thesis 20): with sigma 0.05 the samples' returns differ too little for gamma 20 "
+                             "to move the mean (ESS rose to 91-164 of 200); gamma 100 turned the pair 2x further, "
+                             "3 seeds (docs/baoding.md)"]),
+        # A seconds-long smoke run of every stage (tests).
+        "tiny": dict(random_rollouts=3, random_steps=8, random_eval_rollouts=2, episode_steps=12, iterations=1,
+                     rollouts_per_iteration=2, samples=16, hidden=(16, 16), epochs=2, retrain_epochs=1,
+                     train_steps=None, batch_size=64, preset="tiny", progress=False, notes=["smoke-test scale, not a result"]),
+    }
 
     rig: str = "hand_sim"
     robot: str = "hand"
@@ -371,39 +399,6 @@ class BaodingConfig:
                 problems.append(f"{f} must be >= 1, got {getattr(self, f)}")
         if problems:
             raise ValueError("BaodingConfig: " + "; ".join(problems))
-
-    @classmethod
-    def quick(cls, **kw: Any) -> BaodingConfig:
-        """`hil demo baoding --quick`: ≤10 min on an idle 2-core machine. Scaled down from the
-        thesis: K=200 samples, 2x250 networks (the reference code's width), 6 iterations of 5
-        rollouts, 30/20 epochs; H and the ensemble of 3 as the default. The sampler is the
-        one measured best at this data size (docs/baoding.md, "Our numbers (quick run)"):
-        noise σ = 0.05 about the mean (planner units), the paper's noise filter with β = 0.7,
-        no low-noise share, and γ = 100 (thesis 20); the reference code's sampler (σ 0.9, the
-        action filter) and σ 0.2 dropped most episodes at ~3-5k points, and with γ 20 the
-        weights went soft (ESS 91-164 of 200) and the pair turned half as far."""
-        base = dict(random_rollouts=200, random_eval_rollouts=10, iterations=6, rollouts_per_iteration=5,
-                    samples=200, hidden=(250, 250), epochs=30, retrain_epochs=20, train_steps=None, preset="quick",
-                    sigma=0.05, filter="noise", beta=0.7, low_noise_fraction=0.0, gamma=100.0,
-                    notes=["scaled down from the thesis to fit 10 min on 2 cores: 200 random-walk rollouts x 30 "
-                           "steps, K=200 (thesis 700), 2x250 (thesis 2x500), 6 iterations x 5 rollouts (thesis R=30 "
-                           "each), 30/20 epochs (40)",
-                           "sampler sigma 0.05, noise filter, beta 0.7 (the reference code's sigma 0.9 and action "
-                           "filter dropped 28 of 30 episodes at this data size; docs/baoding.md)",
-                           "gamma 100 (thesis 20): with sigma 0.05 the samples' returns differ too little for gamma 20 "
-                           "to move the mean (ESS rose to 91-164 of 200); gamma 100 turned the pair 2x further, "
-                           "3 seeds (docs/baoding.md)"])
-        base.update(kw)
-        return cls(**base)
-
-    @classmethod
-    def tiny(cls, **kw: Any) -> BaodingConfig:
-        """A seconds-long smoke run of every stage (tests)."""
-        base = dict(random_rollouts=3, random_steps=8, random_eval_rollouts=2, episode_steps=12, iterations=1,
-                    rollouts_per_iteration=2, samples=16, hidden=(16, 16), epochs=2, retrain_epochs=1, train_steps=None,
-                    batch_size=64, preset="tiny", progress=False, notes=["smoke-test scale, not a result"])
-        base.update(kw)
-        return cls(**base)
 
     def pddm(self, state_dim: int, action_dim: int) -> PddmConfig:
         return PddmConfig(horizon=self.horizon, samples=self.samples, gamma=self.gamma, beta=self.beta,

@@ -27,7 +27,7 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -35,6 +35,7 @@ import torch
 from hilstack.bus import keys
 from hilstack.bus.recording import Recorder
 from hilstack.bus.schemas import ResetTransition, decode
+from hilstack.configs.presets import Presets
 from hilstack.configs.schema import BusConfig, load_rig
 from hilstack.control.baselines import DifferentialDriveController
 from hilstack.control.controller_node import ControllerNode, EpisodeLog
@@ -44,7 +45,7 @@ from hilstack.control.planners import CEM, PDDM, RandomShooting
 from hilstack.control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from hilstack.control.reset.config import ResetConfig, ResetUnavailable, require_reset
 from hilstack.control.reset.supervisor import ResetSupervisor
-from hilstack.learning.datasets import Episode
+from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.dynamics import EnsembleDynamics
 from hilstack.learning.frames import BodyFrameDynamics
 from hilstack.learning.progress import progress
@@ -61,7 +62,14 @@ EXPERIMENTS = ("table_3_1", "speed_sweep", "table_3_2")
 
 
 @dataclass
-class MbrlConfig:
+class MbrlConfig(Presets):
+    #: the presets of ``from_preset(name, **overrides)`` (configs/presets.py): overrides of the defaults
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        # `hil demo --full`: the thesis' data sizes and every experiment over three seeds.
+        "full": dict(random_rollouts=400, experiments=EXPERIMENTS),
+        "quick": dict(random_rollouts=60, epochs=40, retrain_epochs=10, baseline_candidates=20),
+    }
+
     rig: str = "roach_sim"
     robot: str = "roach"
     seed: int = 0
@@ -154,19 +162,6 @@ class MbrlConfig:
         if problems:
             raise ValueError("MbrlConfig: " + "; ".join(problems))
 
-    @classmethod
-    def full(cls, **kw: Any) -> MbrlConfig:
-        """`hil demo --full`: the thesis' data sizes and every experiment over three seeds."""
-        base = dict(random_rollouts=400, experiments=EXPERIMENTS)
-        base.update(kw)
-        return cls(**base)
-
-    @classmethod
-    def quick(cls, **kw: Any) -> MbrlConfig:
-        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, baseline_candidates=20)
-        base.update(kw)
-        return cls(**base)
-
 
 def _log(cfg: MbrlConfig, msg: str) -> None:
     if cfg.progress:
@@ -251,25 +246,6 @@ def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str])
     if ignore:
         model.ignore_inputs(ignore)
     return model
-
-
-def split_episodes(eps: list[Episode], val_fraction: float, rng: np.random.Generator,
-                   assigned: dict[str, bool]) -> tuple[list[Episode], list[Episode]]:
-    """Train and validation episodes; each episode is assigned once, for good.
-
-    ``assigned`` maps episode name → ``True`` (validation) and is updated in place: only
-    episodes not seen before are drawn (``val_fraction`` of them, at least one when more
-    than one is new), so a validation episode never becomes training data when the list
-    grows between MBRL iterations, and vice versa.
-    """
-    new = [e.name for e in eps if e.name not in assigned]
-    if len(set(new)) != len(new):
-        raise ValueError("episode names must be unique to keep the validation split fixed")
-    n_val = max(1, int(round(val_fraction * len(new)))) if len(new) > 1 else 0
-    val_idx = set(rng.permutation(len(new))[:n_val].tolist())
-    for i, name in enumerate(new):
-        assigned[name] = i in val_idx
-    return [e for e in eps if not assigned[e.name]], [e for e in eps if assigned[e.name]]
 
 
 #: differential-drive search space: (low, high, scaled by the speed setting?). Gains in

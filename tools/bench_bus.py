@@ -221,8 +221,21 @@ def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: in
     return out
 
 
-if __name__ == "__main__":
-    if len(sys.argv) >= 4 and sys.argv[1] == "pong":
-        _pong(sys.argv[2], sys.argv[3])
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.bench_bus", description=__doc__.split("\n")[0])
+    ap.add_argument("--n", type=int, default=2000, help="round trips per payload size (default 2000)")
+    sub = ap.add_subparsers(dest="cmd")
+    pong = sub.add_parser("pong", help="the echo process the benchmark starts itself")
+    pong.add_argument("mode", choices=MODES)
+    pong.add_argument("endpoint", help="tcp/HOST:PORT")
+    a = ap.parse_args(argv)
+    if a.cmd == "pong":
+        _pong(a.mode, a.endpoint)
     else:
-        print(json.dumps(run_bench_bus()))
+        print(json.dumps(run_bench_bus(n=a.n)))
+
+
+if __name__ == "__main__":
+    main()

@@ -269,14 +269,22 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":
-    import sys
+def main(argv: list[str] | None = None) -> None:
+    import argparse
 
-    if len(sys.argv) > 2 and sys.argv[1] == "--summarize":
-        # tabulate the rows.jsonl of a run (also one stopped early)
-        rows = [json.loads(line) for d in sys.argv[2:] for line in open(Path(d) / "rows.jsonl") if line.strip()]
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.bench_calibrate", description=__doc__.split("\n")[0])
+    ap.add_argument("seeds", nargs="?", type=int, default=2, help="seeds per case (default 2)")
+    ap.add_argument("--summarize", nargs="+", metavar="RUN_DIR",
+                    help="tabulate the rows.jsonl of runs (also ones stopped early) instead of running")
+    a = ap.parse_args(argv)
+    if a.summarize:
+        rows = [json.loads(line) for d in a.summarize for line in open(Path(d) / "rows.jsonl") if line.strip()]
         print(format_table(summarize(rows)))
     else:
-        res = run_bench_calibrate(seeds=int(sys.argv[1]) if len(sys.argv) > 1 else 2)
+        res = run_bench_calibrate(seeds=a.seeds)
         print(format_table(res))
         print(json.dumps(res["totals"]))
+
+
+if __name__ == "__main__":
+    main()

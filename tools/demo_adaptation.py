@@ -27,10 +27,10 @@ def config_for(quick: bool, full: bool, tiny: bool = False, seed: int = 0, **ove
     """The preset's config; ``overrides``: fields to change (experiments from Python, e.g.
     ``run_demo(out, quick=True, overrides={"train_leg_speed_scale": (0.6, 1.4)})``)."""
     if tiny:
-        return AdaptationConfig.tiny(seeds=(seed,), **overrides)
+        return AdaptationConfig.from_preset("tiny", seeds=(seed,), **overrides)
     if quick:
-        return AdaptationConfig.quick(seeds=(seed,), **overrides)
-    return AdaptationConfig.full(seeds=(seed, seed + 1, seed + 2), **overrides)
+        return AdaptationConfig.from_preset("quick", seeds=(seed,), **overrides)
+    return AdaptationConfig.from_preset("full", seeds=(seed, seed + 1, seed + 2), **overrides)
 
 
 def _plots(r: dict[str, Any], out: Path) -> list[str]:
@@ -261,9 +261,15 @@ def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int
         print(f"{p}: best {best}; cost_per_m " + ", ".join(f"{m} {row[m]['cost_per_m']:.1f}" for m in METHODS))
 
 
-if __name__ == "__main__":
-    import sys
+def main(argv: list[str] | None = None) -> None:
+    import argparse
 
-    if len(sys.argv) != 2:
-        raise SystemExit("usage: python -m hilstack.tools.demo_adaptation OUT_DIR   (tables of the seeds finished so far)")
-    print(report_markdown(report_from_seeds(Path(sys.argv[1]))))
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_adaptation",
+                                 description="The report tables of the seeds a demo run finished so far "
+                                             "(the demo itself: hil demo adaptation).")
+    ap.add_argument("out_dir", type=Path, help="the demo's output directory")
+    print(report_markdown(report_from_seeds(ap.parse_args(argv).out_dir)))
+
+
+if __name__ == "__main__":
+    main()

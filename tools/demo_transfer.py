@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any, ClassVar
 
+from hilstack.configs.presets import Presets
 from hilstack.learning.transfer.grounding import GaratConfig
 from hilstack.learning.transfer.pendulum import PendulumConfig
 from hilstack.learning.transfer.roach_garat import RoachGaratConfig
@@ -32,7 +34,7 @@ _PENDULUM = PendulumConfig(agent_timesteps=20000, target_sizes=(500, 3000), sour
 _ROACH = RoachGaratConfig(cem_population=8, cem_iterations=6, gat_fit_steps=4000, gat_val_frac=0.2,
                           garat=GaratConfig(total_timesteps=12288, n_steps=256, log_std_init=-2.0))
 
-PRESETS: dict[str, dict] = {
+_PRESETS: dict[str, dict[str, Any]] = {
     "full": {
         # sized for about 45 min on one loaded core (docs/transfer.md "What ran")
         "sidm_exp": SidmExperiment(expert_minutes=20.0, novice_minutes=(1.0, 2.0, 4.0, 8.0, 16.0, 32.0),
@@ -72,6 +74,21 @@ PRESETS: dict[str, dict] = {
         "garat_seeds": None,
     },
 }
+
+@dataclass(frozen=True)
+class TransferDemoConfig(Presets):
+    """What one transfer demo runs: ``TransferDemoConfig.from_preset("full" | "quick" | "tiny")``.
+    ``garat_seeds``/``roach_seeds`` None: the run's ``--seed`` (roach: the GARAT seeds)."""
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = _PRESETS
+
+    sidm_exp: SidmExperiment
+    sidm: SidmConfig
+    pendulum: PendulumConfig
+    roach: RoachGaratConfig
+    garat_seeds: tuple[int, ...] | None = None
+    roach_seeds: tuple[int, ...] | None = None
+
 
 PARTS = ("all", "sidm", "garat")
 
@@ -194,23 +211,21 @@ def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print
 
     from hilstack.learning.transfer.roach_pairs import run_sidm
 
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)}")
+    p = TransferDemoConfig.from_preset(preset)  # one-line error naming the presets
     if part not in PARTS:
         raise ValueError(f"unknown part {part!r}: choose one of {', '.join(PARTS)}")
     torch.set_num_threads(1)  # two shared cores: one thread each is faster under load (PLATFORM_NOTES)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    p = PRESETS[preset]
-    sidm_exp, pend = replace(p["sidm_exp"], seed=seed), replace(p["pendulum"], seed=seed)
-    garat_seeds = tuple(p["garat_seeds"] or (seed,))
+    sidm_exp, pend = replace(p.sidm_exp, seed=seed), replace(p.pendulum, seed=seed)
+    garat_seeds = tuple(p.garat_seeds or (seed,))
     report: dict = {"preset": preset, "seed": seed, "part": part, "settings": {}, "timing_s": {}, "checks": {}}
     t0 = time.monotonic()
     if part in ("all", "sidm"):
         t = time.monotonic()
-        sidm = run_sidm(sidm_exp, p["sidm"], log)
+        sidm = run_sidm(sidm_exp, p.sidm, log)
         report["sidm"] = sidm
-        report["settings"].update(sidm_experiment=asdict(sidm_exp), sidm_model=asdict(p["sidm"]))
+        report["settings"].update(sidm_experiment=asdict(sidm_exp), sidm_model=asdict(p.sidm))
         report["timing_s"]["sidm"] = time.monotonic() - t
         mults = {k: v["data_multiplier"] for k, v in sidm["pairs"].items()}
         report["checks"]["sidm_multiplier_above_1_on_a_pair"] = any(m is not None and m > 1 for m in mults.values())
@@ -218,10 +233,10 @@ def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print
         t = time.monotonic()
         pendulum = _pendulum_over_seeds(pend, garat_seeds, log)
         t1 = time.monotonic()
-        roach_seeds = tuple(p.get("roach_seeds") or garat_seeds)
-        roach = _roach_over_seeds(p["roach"], roach_seeds, log)
+        roach_seeds = tuple(p.roach_seeds or garat_seeds)
+        roach = _roach_over_seeds(p.roach, roach_seeds, log)
         report["garat"] = {"pendulum": pendulum, "roach": roach}
-        report["settings"].update(pendulum=asdict(pend), roach=asdict(p["roach"]), garat_seeds=list(garat_seeds),
+        report["settings"].update(pendulum=asdict(pend), roach=asdict(p.roach), garat_seeds=list(garat_seeds),
                                   roach_seeds=list(roach_seeds))
         report["timing_s"].update(garat_pendulum=t1 - t, garat_roach=time.monotonic() - t1)
         ge = pendulum["grounding_error"]

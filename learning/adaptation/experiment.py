@@ -26,11 +26,12 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
+from hilstack.configs.presets import Presets
 from hilstack.control.controller_node import ActionScale
 from hilstack.control.costs import PathCost, evaluate_path_following, summarize_paths
 from hilstack.control.paths import fillet, make_path, path_length, straight
@@ -43,8 +44,8 @@ from hilstack.learning.adaptation.grbal import GrbalAdapter, segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.mole import MoleAdapter
 from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from hilstack.learning.adaptation.training import fit_plain, split_episodes, transitions
-from hilstack.learning.datasets import Episode
+from hilstack.learning.adaptation.training import fit_plain, transitions
+from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.experiments import mean_std
 from hilstack.learning.mbrl import MbrlConfig, PathEnd, _jsonable, make_planner, path_start_pose
 from hilstack.tasks.perturbations import (
@@ -60,9 +61,37 @@ RANDOM_SHOOTING_SPEED_MPS = 0.19
 SWITCHING_METHODS = ("mole", "k_shot", "continued")
 
 
+#: the data and training sizes of the quick and full presets: 15 min of random robot time per
+#: training terrain (12 conditions x 15 rollouts x 5 s, half of the conditions unperturbed;
+#: the thesis: ~30 min, terrains only), 10 % of the rollouts held out for early stopping of MB,
+#: GrBAL and ReBAL; the oracle gets 100 rollouts (8.3 min) of its one condition. GrBAL: its
+#: inner gradient's norm capped at the median of the training windows' (``grbal_clip_quantile``),
+#: θ's meta learning rate 1e-4 (ψ's 1e-2): the open-loop screen in docs/adaptation.md, "Why one
+#: GrBAL step ...". docs/adaptation.md, "Sizes".
+_SCALED: dict[str, Any] = dict(
+    conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=15, hidden=(256, 256, 256),
+    plain_epochs=200, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
+    meta_eval_every=50, meta_patience=4, oracle_rollouts=100, paths=("straight", "left"),
+    path_scale=1.0, before_after_rollouts=10, switching_every_steps=100, switching_segments=4,
+    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4)
+
+
 @dataclass
-class AdaptationConfig:
-    """Sizes of one run. ``quick()``/``full()``/``tiny()`` are the presets of the demo."""
+class AdaptationConfig(Presets):
+    """Sizes of one run. ``AdaptationConfig.from_preset("quick" | "full" | "tiny")`` are the demo's presets."""
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        # quick over 3 seeds (≈ 40 min on one core; seed 0 is the quick run exactly): the
+        # dataclass defaults (3 x 512, 3 paths, switching every 500 steps) take hours here
+        "full": {**_SCALED, "seeds": (0, 1, 2)},
+        "quick": {**_SCALED, "seeds": (0,)},
+        # seconds: the CLI test (numbers meaningless); the last two run those code paths
+        "tiny": dict(seeds=(0,), conditions_per_terrain=2, rollouts_per_condition=1, rollout_steps=12,
+                     before_after_rollouts=1, hidden=(16, 16), M=4, K=4, plain_epochs=2, meta_steps=2, rebal_steps=2,
+                     context_dim=4, samples=32, paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.5,
+                     switching_every_steps=4, switching_segments=2, grbal_clip_quantile=0.5,
+                     train_leg_speed_scale=(0.8, 1.2)),
+    }
 
     presets: str = "velociroach"
     seeds: tuple[int, ...] = (0, 1, 2)
@@ -121,47 +150,6 @@ class AdaptationConfig:
     switching_every_steps: int | None = None
     switching_segments: int | None = None
     threads: int = 1
-
-    @classmethod
-    def full(cls, **kw: Any) -> AdaptationConfig:
-        """``quick`` over 3 seeds (≈ 40 min on one core; seed 0 is the quick run exactly): the
-        dataclass defaults (3 x 512, 3 paths, switching every 500 steps) take hours here."""
-        base = dict(cls._scaled(), seeds=(0, 1, 2))
-        base.update(kw)
-        return cls(**base)
-
-    @classmethod
-    def quick(cls, **kw: Any) -> AdaptationConfig:
-        base = dict(cls._scaled(), seeds=(0,))
-        base.update(kw)
-        return cls(**base)
-
-    @staticmethod
-    def _scaled() -> dict[str, Any]:
-        """The data and training sizes of quick and full: 15 min of random robot time per
-        training terrain (12 conditions x 15 rollouts x 5 s, half of the conditions
-        unperturbed; the thesis: ~30 min, terrains only), 10 % of the
-        rollouts held out for early stopping of MB, GrBAL and ReBAL; the oracle gets 100
-        rollouts (8.3 min) of its one condition. GrBAL: its inner gradient's norm capped at
-        the median of the training windows' (``grbal_clip_quantile``), θ's meta learning rate
-        1e-4 (ψ's 1e-2): the open-loop screen in docs/adaptation.md, "Why one GrBAL step ...".
-        docs/adaptation.md, "Sizes"."""
-        return dict(conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=15, hidden=(256, 256, 256),
-                    plain_epochs=200, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
-                    meta_eval_every=50, meta_patience=4, oracle_rollouts=100, paths=("straight", "left"),
-                    path_scale=1.0, before_after_rollouts=10, switching_every_steps=100, switching_segments=4,
-                    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4)
-
-    @classmethod
-    def tiny(cls, **kw: Any) -> AdaptationConfig:
-        """Seconds: the CLI test (numbers meaningless)."""
-        base = dict(seeds=(0,), conditions_per_terrain=2, rollouts_per_condition=1, rollout_steps=12,
-                    before_after_rollouts=1, hidden=(16, 16), M=4, K=4, plain_epochs=2, meta_steps=2, rebal_steps=2,
-                    context_dim=4, samples=32, paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.5,
-                    switching_every_steps=4, switching_segments=2, grbal_clip_quantile=0.5,
-                    train_leg_speed_scale=(0.8, 1.2))  # the last two: run those code paths
-        base.update(kw)
-        return cls(**base)
 
 
 # ---------------------------------------------------------------------------- the sim

@@ -42,11 +42,12 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
+from hilstack.configs.presets import Presets
 from hilstack.control.planners import PDDM, RandomShooting
 from hilstack.learning.adaptation import grbal, rebal
 from hilstack.learning.adaptation.base import Adapter
@@ -55,8 +56,8 @@ from hilstack.learning.adaptation.gym_envs import ENVS, GymBenchmarkEnv, disable
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.mole import MoleAdapter
 from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from hilstack.learning.adaptation.training import fit_plain, split_episodes
-from hilstack.learning.datasets import Episode
+from hilstack.learning.adaptation.training import fit_plain
+from hilstack.learning.datasets import Episode, split_episodes
 
 JOINT_METHODS = ("mb", "mb_de", "grbal", "rebal", "oracle")
 MOLE_METHODS = ("mole", "continued", "k_shot", "mb", "mb_online")
@@ -66,7 +67,18 @@ MALFUNCTION_A = (0, 1, 2)  # the back leg's motors, negated
 
 
 @dataclass(frozen=True)
-class GymSuiteConfig:
+class GymSuiteConfig(Presets):
+    #: the presets of ``from_preset(name, **overrides)`` (configs/presets.py): overrides of the defaults
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        "quick": dict(seeds=(0,), random_rollouts=30, onpolicy_rollouts=5, meta_steps=300, rebal_steps=800,
+                      test_steps=300, switch_every=500, switch_segments=3, rs_samples=300),
+        "tiny": dict(benchmarks=("hc_disabled_joint", "hc_malfunction_switch", "hc_disabled_joint_next_k"), seeds=(0,),
+                     hidden=(32, 32),
+                     random_rollouts=4, onpolicy_rollouts=1, rollout_len=40, epochs=2, window=8, future=8,
+                     meta_steps=5, meta_batch=4, rebal_steps=5, context_dim=4, samples=20, horizon=4,
+                     rs_samples=20, test_steps=30, switch_every=15, switch_segments=3),
+    }
+
     benchmarks: tuple[str, ...] = BENCHMARKS
     seeds: tuple[int, ...] = (0, 1, 2)
     hidden: tuple[int, ...] = (128, 128, 128)
@@ -94,21 +106,6 @@ class GymSuiteConfig:
     switch_every: int = 500
     switch_segments: int = 3  # normal, malfunction, normal: the return to a condition met before
     threads: int = 1
-
-    @classmethod
-    def quick(cls, **kw: Any) -> GymSuiteConfig:
-        base = dict(seeds=(0,), random_rollouts=30, onpolicy_rollouts=5, meta_steps=300, rebal_steps=800,
-                    test_steps=300, switch_every=500, switch_segments=3, rs_samples=300)
-        return cls(**{**base, **kw})
-
-    @classmethod
-    def tiny(cls, **kw: Any) -> GymSuiteConfig:
-        base = dict(benchmarks=("hc_disabled_joint", "hc_malfunction_switch", "hc_disabled_joint_next_k"), seeds=(0,),
-                    hidden=(32, 32),
-                    random_rollouts=4, onpolicy_rollouts=1, rollout_len=40, epochs=2, window=8, future=8,
-                    meta_steps=5, meta_batch=4, rebal_steps=5, context_dim=4, samples=20, horizon=4,
-                    rs_samples=20, test_steps=30, switch_every=15, switch_segments=3)
-        return cls(**{**base, **kw})
 
 
 # -- pieces -------------------------------------------------------------------------------------------
@@ -602,9 +599,9 @@ def run(cfg: GymSuiteConfig, out: Path, log: Callable[[str], None] = print, pres
 
 def config_for(quick: bool, tiny: bool = False, seed: int = 0, **kw: Any) -> GymSuiteConfig:
     if tiny:
-        return GymSuiteConfig.tiny(seeds=(seed,), **kw)
+        return GymSuiteConfig.from_preset("tiny", seeds=(seed,), **kw)
     if quick:
-        return GymSuiteConfig.quick(seeds=(seed,), **kw)
+        return GymSuiteConfig.from_preset("quick", seeds=(seed,), **kw)
     return replace(GymSuiteConfig(), seeds=(seed, seed + 1, seed + 2), **kw)
 
 

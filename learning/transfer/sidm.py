@@ -25,13 +25,14 @@ system's units never leak into the shared network.
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
+
+from hilstack.learning.early_stopping import EarlyStopping
 
 
 @dataclass(frozen=True)
@@ -216,7 +217,7 @@ def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None 
             opt.step()
         model.enc["novice"].load_state_dict(model.enc["expert"].state_dict())
         model.dec["novice"].load_state_dict(model.dec["expert"].state_dict())
-    best, best_state, stale = math.inf, copy.deepcopy(model.state_dict()), 0
+    es = EarlyStopping(model, patience=cfg.patience_rounds, min_delta=1e-6, keep_initial=True)
     for _ in range(cfg.max_rounds):
         model.train()
         for _ in range(cfg.pred_iters):
@@ -231,13 +232,9 @@ def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None 
                 adversarial_step(model, disc, opt_d, opt_enc, batch("expert")[0], batch("novice")[0], cfg.adv_weight)
         with torch.no_grad():
             test = float(model.loss("novice", tx, ty))
-        if test < best - 1e-6:
-            best, best_state, stale = test, copy.deepcopy(model.state_dict()), 0
-        else:
-            stale += 1
-            if stale >= cfg.patience_rounds:
-                break
-    model.load_state_dict(best_state)
+        if es.update(test):
+            break
+    es.restore()
     model.eval()
     return model
 

@@ -72,7 +72,7 @@ def test_oracle_is_an_mb_model_of_the_tested_condition():
     names = ["x", "y", "vx", "vy", "cos_yaw", "sin_yaw"]
     plain, oracle = AdaptiveMLP(names, 2, hidden=(8,), seed=0), AdaptiveMLP(names, 2, hidden=(8,), seed=1)
     tr = Trained(plain, plain, {}, plain, None, np.ones(6))
-    cfg = AdaptationConfig.tiny()
+    cfg = AdaptationConfig.from_preset("tiny")
     assert "oracle" in METHODS
     with pytest.raises(ValueError, match="no oracle model"):
         tr.adapter("oracle", cfg)
@@ -119,7 +119,7 @@ def test_time_limits_leave_headroom_below_random_shootings_speed():
     decided completions; the presets run the paths with at least 1.5x that time."""
     from hilstack.learning.adaptation.experiment import RANDOM_SHOOTING_SPEED_MPS, AdaptationConfig
 
-    for cfg in (AdaptationConfig.quick(), AdaptationConfig.full()):
+    for cfg in (AdaptationConfig.from_preset("quick"), AdaptationConfig.from_preset("full")):
         assert cfg.time_limit_speed_mps * 1.5 <= RANDOM_SHOOTING_SPEED_MPS
 
 

@@ -7,12 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hilstack.learning.datasets import Episode
+from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.mbrl import (
     BASELINE_SEARCH,
     baseline_candidates,
     default_baseline_params,
-    split_episodes,
 )
 
 
@@ -112,7 +111,7 @@ def test_full_config_runs_every_experiment_over_three_seeds():
     from hilstack.learning.experiments import EXPERIMENTS
     from hilstack.learning.mbrl import MbrlConfig
 
-    cfg = MbrlConfig.full()
+    cfg = MbrlConfig.from_preset("full")
     assert set(cfg.experiments) == set(EXPERIMENTS) and len(cfg.seeds) >= 3
     assert cfg.table_sizes == (50, 200, 400) and cfg.random_rollouts >= max(cfg.table_sizes)
     assert len(cfg.sweep_speeds) >= 4 and cfg.terrains == ("carpet", "styrofoam")
@@ -261,7 +260,7 @@ def test_a_supervisor_timeout_shorter_than_a_path_is_refused_before_the_rig_star
     assert "max_s: 60" in src  # the shipped rig leaves the figure-8 its 45.7 s
     rig = tmp_path / "roach_emulated_short.yaml"
     rig.write_text(src.replace("max_s: 60", "max_s: 30").replace("name: roach_emulated", "name: roach_emu_short"))
-    run = MbrlRun(MbrlConfig.quick(rig=str(rig), progress=False), tmp_path / "out", BusConfig())
+    run = MbrlRun(MbrlConfig.from_preset("quick", rig=str(rig), progress=False), tmp_path / "out", BusConfig())
     with pytest.raises(RigError, match=r"timeout, max_s 30 s\) would end the figure8 path before its time limit "
                                        r"of 45\.7 s"):
         run.run()

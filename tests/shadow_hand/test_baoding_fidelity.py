@@ -100,7 +100,7 @@ def test_the_planner_plans_from_the_balls_velocities():
 def test_the_run_trains_and_plans_on_the_features(bus, tmp_path):
     from hilstack.learning.baoding import BaodingConfig, BaodingRun
 
-    run = BaodingRun(BaodingConfig.tiny(), tmp_path, bus)
+    run = BaodingRun(BaodingConfig.from_preset("tiny"), tmp_path, bus)
     run.state_names = NAMES
     run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
     assert run.pddm_config().state_dim == 36
@@ -119,7 +119,7 @@ def test_the_baoding_run_starts_every_pddm_rollout_at_the_hold_pose(bus, tmp_pat
     from hilstack.learning.baoding import BaodingConfig, BaodingRun
 
     for init, want in (("hold", hold_pose_action()), ("mid", np.zeros(20))):
-        run = BaodingRun(BaodingConfig.tiny(init_mean=init), tmp_path / init, bus)
+        run = BaodingRun(BaodingConfig.from_preset("tiny", init_mean=init), tmp_path / init, bus)
         run.state_names = NAMES
         run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
         pol = run.pddm_policy(model=None, seed=0)
@@ -254,10 +254,10 @@ def test_fixed_gradient_steps_per_iteration_do_not_grow_with_the_data(bus, tmp_p
     from hilstack.learning.baoding import BaodingConfig, BaodingRun
 
     ep = lambda n: Episode(states=np.zeros((n + 1, 3)), actions=np.zeros((n, 1)), name="e")  # noqa: E731
-    run = BaodingRun(BaodingConfig.tiny(train_steps=100, batch_size=500), tmp_path, bus)
+    run = BaodingRun(BaodingConfig.from_preset("tiny", train_steps=100, batch_size=500), tmp_path, bus)
     small, big = run.epochs_for([ep(1000)], 1), run.epochs_for([ep(100_000)], 5)
     assert small == int(np.ceil(100 * 500 / 900)) and big == 1  # ~100 steps either way
-    assert BaodingRun(BaodingConfig.tiny(epochs=7, retrain_epochs=3), tmp_path / "b", bus).epochs_for([ep(10)], 2) == 3
+    assert BaodingRun(BaodingConfig.from_preset("tiny", epochs=7, retrain_epochs=3), tmp_path / "b", bus).epochs_for([ep(10)], 2) == 3
     with pytest.raises(ValueError, match="train_steps"):
         BaodingConfig(train_steps=0)
 
@@ -280,7 +280,7 @@ def test_every_ablation_is_a_valid_config():
     from hilstack.tools.demo_baoding import ABLATIONS
 
     for name, kw in ABLATIONS.items():
-        c = BaodingConfig.quick(**kw)
+        c = BaodingConfig.from_preset("quick", **kw)
         replace_task = kw.get("task_overrides", {})
         from dataclasses import replace
 
@@ -294,9 +294,9 @@ def test_the_quick_preset_is_the_gamma_100_ablation_and_ref_the_reference_sample
     from hilstack.learning.baoding import BaodingConfig
     from hilstack.tools.demo_baoding import ABLATIONS
 
-    assert BaodingConfig.quick() == BaodingConfig.quick(**ABLATIONS["gamma_100"])
-    assert BaodingConfig.quick(**ABLATIONS["old_sampler"]).gamma == 20.0
-    ref = BaodingConfig.quick(**ABLATIONS["ref"])
+    assert BaodingConfig.from_preset("quick") == BaodingConfig.from_preset("quick", **ABLATIONS["gamma_100"])
+    assert BaodingConfig.from_preset("quick", **ABLATIONS["old_sampler"]).gamma == 20.0
+    ref = BaodingConfig.from_preset("quick", **ABLATIONS["ref"])
     assert (ref.sigma, ref.filter, ref.beta, ref.low_noise_fraction, ref.gamma) == (0.9, "actions", 0.6, 0.1, 20.0)
     d = BaodingConfig()
     assert (d.sigma, d.filter, d.beta, d.low_noise_fraction, d.gamma) == (0.9, "actions", 0.6, 0.1, 20.0)
@@ -309,7 +309,7 @@ def test_a_run_stopped_after_an_iteration_keeps_that_iteration_in_report_json(bu
 
     from hilstack.learning.baoding import BaodingConfig, BaodingRun
 
-    run = BaodingRun(BaodingConfig.tiny(iterations=3), tmp_path, bus)
+    run = BaodingRun(BaodingConfig.from_preset("tiny", iterations=3), tmp_path, bus)
     real_train, calls = run.train, []
 
     def train(*a, **kw):
