@@ -32,7 +32,6 @@ import numpy as np
 import torch
 
 from hilstack.configs.presets import Presets
-from hilstack.control.controller_node import ActionScale
 from hilstack.control.costs import PathCost, evaluate_path_following, summarize_paths
 from hilstack.control.paths import fillet, make_path, path_length, straight
 from hilstack.control.policies import SafeRandomPolicy
@@ -162,10 +161,9 @@ class RoachSim:
         self.sim.activate()
         spec = self.sim.spec
         self.state_names = list(spec.state.names)
-        self.scale = ActionScale(spec.action.low, spec.action.high)
+        self.action_space = spec.action
         self.period_s = float(spec.period_s)
-        rate = spec.action_rate_per_s
-        self.max_step = None if rate is None else np.asarray(rate, float) * self.period_s / self.scale.half
+        self.max_step = spec.max_step_normalized()
 
     def start(self, pose: dict[str, float], settings: PerturbationSettings) -> np.ndarray:
         self.sim.apply_perturbations(settings)
@@ -181,9 +179,9 @@ class RoachSim:
 
     def step(self, a_norm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Apply a normalized action; returns (the action actually applied, normalized; next state)."""
-        applied = self.sim.write(self.scale.to_robot(a_norm))
+        applied = self.sim.write(self.action_space.denormalize(a_norm))
         self.sim.tick()
-        return self.scale.to_norm(applied).astype(np.float32), self.sim.read().state.copy()
+        return self.action_space.normalize(applied).astype(np.float32), self.sim.read().state.copy()
 
     def close(self) -> None:
         self.sim.deactivate()
@@ -646,7 +644,37 @@ def aggregate(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
                  (rows.std(0, ddof=1) if len(rows) > 1 else np.zeros(rows.shape[1])).tolist(),
                  "tasks_created": None if tc[0] is None else float(np.mean(tc)),
                  "conditions": first["switching"][m]["conditions"]}
-    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw}
+    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw,
+            "benchmarks": benchmarks(per_seed)}
+
+
+def benchmarks(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
+    """Issue 24's cross-suite view: ``{condition: {method: {return_mean, return_std,
+    normalized, normalized_std, seeds}}}``. The roach's return is the progress along the
+    paths within their time limits (m, summed over the paths; higher is better, 0 for a robot
+    that does not move); ``normalized`` = return / the oracle's return of the same seed (None
+    when the oracle made no progress), mean ± sample std over seeds. ``switching``: the
+    progress summed over the segments (no oracle: ``normalized`` is None)."""
+    out: dict[str, Any] = {}
+    for name in per_seed[0]["perturbations"]:
+        row = {}
+        for m in METHODS:
+            ret = [float(r["perturbations"][name][m]["progress_m"]) for r in per_seed]
+            orc = [float(r["perturbations"][name]["oracle"]["progress_m"]) for r in per_seed]
+            ms = mean_std(ret)
+            cell = {"return_mean": ms["mean"], "return_std": ms["std"], "seeds": ret, "normalized": None}
+            if all(o > 0 for o in orc):
+                ns = mean_std([x / o for x, o in zip(ret, orc, strict=True)])
+                cell["normalized"], cell["normalized_std"] = ns["mean"], ns["std"]
+            row[m] = cell
+        out[name] = row
+    sw = {}
+    for m in SWITCHING_METHODS:
+        ret = [float(sum(r["switching"][m]["reward_per_segment"])) for r in per_seed]
+        ms = mean_std(ret)
+        sw[m] = {"return_mean": ms["mean"], "return_std": ms["std"], "seeds": ret, "normalized": None}
+    out["switching"] = sw
+    return out
 
 
 

@@ -6,6 +6,7 @@ import inspect
 import json
 
 import numpy as np
+import pytest
 
 from hilstack.learning.adaptation import load_adapter
 from hilstack.learning.adaptation.experiment import METHODS, SWITCHING_METHODS, load_episodes
@@ -16,7 +17,7 @@ from hilstack.tools.demo_adaptation import cli_adaptation, ranking_line, report_
 def test_registered_with_the_demo_signature():
     module, fn, _ = OTHER_DEMOS["adaptation"]
     assert (module, fn) == ("hilstack.tools.demo_adaptation", "cli_adaptation")
-    assert list(inspect.signature(cli_adaptation).parameters) == ["out", "quick", "full", "seed", "suite"]
+    assert list(inspect.signature(cli_adaptation).parameters) == ["out", "quick", "full", "seed", "suite", "ray", "workers"]
 
 
 def test_tiny_run_writes_the_issue_report(tmp_path):
@@ -140,3 +141,23 @@ def test_every_method_meets_the_same_noise_from_the_same_start():
             env.step(a.astype(np.float32))
     env.close()
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_report_benchmarks_are_progress_normalized_by_the_oracle_of_the_same_seed():
+    from hilstack.learning.adaptation.experiment import benchmarks
+
+    def seed(prog: dict[str, float], oracle_slope: float, oracle_normal: float) -> dict:
+        p = {"normal": {m: {"progress_m": prog[m] if m in prog else 1.0} for m in METHODS},
+             "slope": {m: {"progress_m": 0.5} for m in METHODS}}
+        p["normal"]["oracle"]["progress_m"] = oracle_normal
+        p["slope"]["oracle"]["progress_m"] = oracle_slope
+        return {"perturbations": p, "switching": {m: {"reward_per_segment": [0.5, 0.25]} for m in SWITCHING_METHODS}}
+
+    b = benchmarks([seed({"grbal": 1.0}, 1.0, 2.0), seed({"grbal": 3.0}, 0.0, 4.0)])
+    g = b["normal"]["grbal"]
+    assert g["seeds"] == [1.0, 3.0] and g["return_mean"] == 2.0 and g["return_std"] == pytest.approx(2 ** 0.5)
+    # the mean of the per-seed ratios (0.5, 0.75), not the ratio of the means (2 / 3)
+    assert g["normalized"] == pytest.approx(0.625) and g["normalized_std"] == pytest.approx(0.125 * 2 ** 0.5)
+    assert b["normal"]["oracle"]["normalized"] == 1.0
+    assert all(c["normalized"] is None for c in b["slope"].values())  # an oracle that made no progress: no ratio
+    assert b["switching"]["mole"]["return_mean"] == 0.75 and b["switching"]["mole"]["normalized"] is None
