@@ -28,6 +28,7 @@ _VERB_MODULES = [
     "hilstack.tools.cmd_demo",
     "hilstack.tools.cmd_drive",
     "hilstack.tools.cmd_mpc",
+    "hilstack.tools.cmd_teleop",
     "hilstack.tools.cmd_adapt",
     "hilstack.tools.cmd_record",
     "hilstack.tools.cmd_viz",
