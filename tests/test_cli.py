@@ -13,7 +13,7 @@ def test_help_lists_the_verbs():
     r = CliRunner().invoke(app, ["--help"])
     assert r.exit_code == 0
     for verb in ("demo", "drive", "record", "replay", "inspect", "viz", "calibrate", "bench", "up", "estop",
-                 "nodes", "mpc", "find-port", "data"):
+                 "nodes", "mpc", "teleop", "find-port", "data"):
         assert f" {verb} " in r.output, verb
     r = CliRunner().invoke(app, ["bench", "--help"])
     assert all(w in r.output for w in ("bus", "plan", "sim"))
