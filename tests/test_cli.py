@@ -19,6 +19,16 @@ def test_help_lists_the_verbs():
     assert all(w in r.output for w in ("bus", "plan", "sim"))
 
 
+def test_boolean_flags_are_shown_as_flags():
+    """Issue 27 item 6: `--json`, not `--json <bool>` (typer 0.29 gives flags a type column)."""
+    for verb in (["mpc"], ["drive"], ["estop"], ["teleop"]):
+        r = CliRunner().invoke(app, [*verb, "--help"], env={"COLUMNS": "200"})
+        assert r.exit_code == 0 and "--help" in r.output
+        assert "<bool>" not in r.output, verb
+    r = CliRunner().invoke(app, ["mpc", "--help"], env={"COLUMNS": "200"})
+    assert "--json" in r.output and "--no-reset" in r.output and "<int>" in r.output  # values keep their type
+
+
 def test_user_errors_are_one_line_exit_2():
     r = CliRunner().invoke(app, ["up", "no_such_rig"])
     assert r.exit_code == 2 and "no such rig config" in r.output and "Traceback" not in r.output
