@@ -19,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
+import numpy as np
+
 from hilstack.calibration import axis
 from hilstack.calibration.data import Recording
 from hilstack.calibration.effects import CATALOGUE, LOOK_ALIKES
@@ -130,6 +132,27 @@ class FittedAxis:
 
 #: Fewest radians the position must span before a gravity (sine) load is a candidate.
 GRAVITY_MIN_SPAN_RAD = 1.5
+#: A position passed in both directions over less than this fraction of the visited range is a
+#: one-way travel (a distance driven), not a joint angle: a gravity sine of it is not offered.
+TWO_WAY_MIN_FRACTION = 0.1
+
+
+def two_way_fraction(episodes: list[axis.Prepared], n_bins: int = 50) -> float:
+    """Fraction of the visited position bins (``n_bins`` over the whole range) passed both moving up
+    and moving down. A swinging joint or a stroke back and forth: near 1; a vehicle's distance
+    travelled forward: near 0 (odometry noise at standstill does not count: only moving rows)."""
+    xs = np.concatenate([p.ep.x for p in episodes])
+    lo, hi = float(xs.min()), float(xs.max())
+    if not hi > lo:
+        return 0.0
+    up, down = np.zeros(n_bins, bool), np.zeros(n_bins, bool)
+    for p in episodes:
+        v, x, mv = p.v_obs, p.ep.x, p.moving
+        b = np.clip(((x - lo) / (hi - lo) * n_bins).astype(int), 0, n_bins - 1)
+        up[b[mv & (v > 0)]] = True
+        down[b[mv & (v < 0)]] = True
+    visited = up | down
+    return float((up & down).sum() / max(1, visited.sum()))
 
 
 class AxisModel:
@@ -218,6 +241,12 @@ class AxisModel:
                 skipped[name] = (f"positions span only {span_x:.3g} (< {GRAVITY_MIN_SPAN_RAD:.3g} rad): a sine load "
                                  "cannot be told from an offset and a spring; needs a rotary joint moving over a "
                                  "wide angle, x in rad")
+            elif name == "gravity_load" and (two_way := two_way_fraction(episodes)) < TWO_WAY_MIN_FRACTION:
+                # A sine of the position is a gravity load only for an angle that swings through it;
+                # a distance travelled one way (a vehicle's odometry) has no angle to load.
+                skipped[name] = (f"the position is a one-way travel (passed in both directions over "
+                                 f"{100 * two_way:.0f} % < {100 * TWO_WAY_MIN_FRACTION:.0f} % of its range: a "
+                                 "distance, not a joint angle); a sine load of it has no physical meaning")
             elif name == "cogging" and axis.cogging_grid(episodes).size == 0:
                 skipped[name] = ("the stroke is too short for two periods of a load the sample rate can resolve "
                                  f"(at least {axis.COG_MIN_TRAVEL_SAMPLES} samples of travel per period)")

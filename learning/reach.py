@@ -318,8 +318,7 @@ class ReachRun:
             if abs(self.hold * self.loop.period_s - self.task.policy_period_s) > 1e-6:
                 raise ValueError(f"{self.task.name}: the driver period {self.loop.period_s} s does not divide "
                                  f"the policy period {self.task.policy_period_s} s")
-            spec = self.loop.ctl.spec
-            self.vel_limit = np.asarray(spec["action"]["high"], dtype=np.float64)
+            self.vel_limit = self.loop.ctl.spec.action.high.copy()
             if self.task.mechanism:
                 with ControllerNode(self.loop.rig.name, self.task.mechanism, self.loop.bus, name="reach-mechanism",
                                     handle_signals=False, state_timeout_s=20.0) as mech:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import UserError, user_errors
+from hilstack.tools.common import RAY_OPTION, UserError, user_errors
 
 #: The demos besides the roach MBRL one: name → (module, function, one-line help). Each
 #: function takes ``(out, quick=, full=, seed=)`` and prints its own summary.
@@ -43,6 +43,8 @@ def register(app: typer.Typer) -> None:
         rig: str = typer.Option("roach_sim", "--rig", help="rig config: roach_sim (lockstep), roach_emulated, roach_real"),
         operator_resets: bool = typer.Option(False, "--operator-resets",
                                              help="rigs without a reset: section (docs/reset.md): prompt an operator to place the robot"),
+        ray: str | None = RAY_OPTION,
+        workers: int = typer.Option(1, "--workers", help="with --ray local: the local runtime's CPUs"),
     ) -> None:
         """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
 
@@ -61,11 +63,17 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"hil demo {what}: --suite is for the adaptation demo only")
         if suite not in ("roach", "gym"):
             raise UserError(f"hil demo adaptation: unknown --suite {suite!r} (roach | gym)")
+        if ray is not None and what not in ("adaptation", "transfer"):
+            raise UserError(f"hil demo {what}: --ray is for the adaptation and transfer demos only so far "
+                            "(docs/scaling.md)")
+        if ray is not None and suite == "gym":
+            raise UserError("hil demo adaptation --suite gym: --ray is for the roach suite only so far")
         if what in OTHER_DEMOS:
             import importlib
 
             module, fn, _ = OTHER_DEMOS[what]
-            kw = {"part": part, "setting": setting} if what == "transfer" else ({"suite": suite} if what == "adaptation" else {})
+            kw = {"part": part, "setting": setting, "ray": ray, "workers": workers} if what == "transfer" else (
+                {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else {})
             return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed, **kw)
         if what != "roach":
             raise UserError(f"hil demo: unknown demo {what!r} ({' | '.join(['roach', *OTHER_DEMOS])})")

@@ -82,12 +82,11 @@ def drive_run(robot: str, backend: str | None, action: str | None, seconds: floa
     # the command held at activation (the measured state); others drive at DEFAULT_ACTION
     if action is None and sp.safe_action is not None:
         action = ",".join([str(DEFAULT_ACTION)] * sp.action.dim)
-    lo, hi = sp.action.low, sp.action.high
     if action is None:
         a = a_norm = None
     else:
         a_norm = np.array(parse_action(action, sp.action.dim, sp.action.names))
-        a = (lo + hi) / 2 + a_norm * (hi - lo) / 2
+        a = sp.action.denormalize(a_norm)
     # action channels that are measured too (joint velocities): tracking error
     tracked = [(i, sp.state.names.index(n)) for i, n in enumerate(sp.action.names) if n in sp.state.names]
     sq_err = np.zeros(len(tracked))

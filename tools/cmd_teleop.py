@@ -80,7 +80,7 @@ def register(app: typer.Typer) -> None:
         try:
             with ControllerNode(name, robot, bus, name="teleop", state_timeout_s=1.0) as ctl:
                 try:
-                    spec = ctl.wait_ready(timeout_s)
+                    spec = ctl.wait_ready(timeout_s).to_dict()  # the spec as published on the bus
                 except TimeoutError as e:
                     typer.echo(f"error: {e}", err=True)
                     raise typer.Exit(1) from None

@@ -201,14 +201,44 @@ def _plots(report: dict, out: Path) -> list[str]:
     return files
 
 
-def _pendulum_over_seeds(cfg: PendulumConfig, seeds: tuple[int, ...], log) -> dict:
+def _pendulum_task(cfg: PendulumConfig) -> dict:
+    from hilstack.learning.transfer.pendulum import run as run_pendulum
+
+    return run_pendulum(cfg, print)
+
+
+def _roach_task(cfg: RoachGaratConfig) -> dict:
+    from hilstack.learning.transfer.roach_garat import run_seed
+
+    return run_seed(cfg, print)
+
+
+def _over_seeds(name: str, fn, cfgs: list, log, ray: dict | None, out: Path | None) -> list:
+    """``fn(cfg)`` for each seed's config: in this process (``ray`` None, as before), or each a sweep
+    task (tools/sweep.py; ``ray``: ``{"ray": "local" | ADDRESS, "workers": N}``) with its result in
+    ``out/tasks/<name>-seed<N>.json`` as it finishes and a re-run doing only the seeds missing."""
+    if ray is None:
+        return [fn(c, log) for c in cfgs]
+    from hilstack.tools.sweep import Task, executor_from, run_sweep
+
+    worker = {"pendulum": _pendulum_task, "roach": _roach_task}[name]
+    tasks = [Task(f"{name}-seed{c.seed}", worker, {"cfg": c}) for c in cfgs]
+    sw = run_sweep(tasks, out, executor=executor_from(ray["ray"]), workers=ray.get("workers", 1), log=log)
+    if sw["failed"]:
+        raise RuntimeError(f"{name} seeds {sorted(sw['failed'])} failed (their log tails above); the same command "
+                           "again re-runs only those")
+    return [sw["results"][t.key] for t in tasks]
+
+
+def _pendulum_over_seeds(cfg: PendulumConfig, seeds: tuple[int, ...], log, ray: dict | None = None,
+                         out: Path | None = None) -> dict:
     """The Fig. 1 experiment per seed; the curve carries mean and std over seeds, and
     ``grounding_error`` the mean at the largest target data size."""
     import numpy as np
 
     from hilstack.learning.transfer.pendulum import run as run_pendulum
 
-    runs = [run_pendulum(replace(cfg, seed=s), log) for s in seeds]
+    runs = _over_seeds("pendulum", run_pendulum, [replace(cfg, seed=s) for s in seeds], log, ray, out)
     curve = []
     for i, row in enumerate(runs[0]["curve"]):
         agg = {"target_transitions": row["target_transitions"]}
@@ -226,10 +256,11 @@ def _pendulum_over_seeds(cfg: PendulumConfig, seeds: tuple[int, ...], log) -> di
             "angle_traces_rad": runs[0]["angle_traces_rad"], "target_pole_mass_kg": runs[0]["target_pole_mass_kg"]}
 
 
-def _roach_over_seeds(cfg: RoachGaratConfig, seeds: tuple[int, ...], log) -> dict:
+def _roach_over_seeds(cfg: RoachGaratConfig, seeds: tuple[int, ...], log, ray: dict | None = None,
+                      out_dir: Path | None = None) -> dict:
     from hilstack.learning.transfer.roach_garat import run_seed, summarise, target_description
 
-    out = summarise([run_seed(replace(cfg, seed=s), log) for s in seeds])
+    out = summarise(_over_seeds("roach", run_seed, [replace(cfg, seed=s) for s in seeds], log, ray, out_dir))
     out["missing_leg"] = cfg.missing_leg
     out["leg_speed_scale"] = None if cfg.leg_speed_scale is None else list(cfg.leg_speed_scale)
     out["target"] = target_description(cfg)
@@ -237,8 +268,9 @@ def _roach_over_seeds(cfg: RoachGaratConfig, seeds: tuple[int, ...], log) -> dic
 
 
 def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print, part: str = "all",
-                      setting: str = "roach", pairs: tuple[str, ...] | None = None) -> dict:
+                      setting: str = "roach", pairs: tuple[str, ...] | None = None, ray: dict | None = None) -> dict:
     """Run the preset (``part``: all, sidm or garat), write report.json and the plots into ``out``.
+    ``ray`` (``{"ray": "local" | ADDRESS, "workers": N}``): GARAT's seeds as Ray tasks (docs/scaling.md).
     ``setting`` "wheeled" (with ``part`` "sidm" only): SIDM on the paper's wheeled robots.
     ``pairs``: only these SIDM pairs (e.g. one per process, to use both cores)."""
     import torch
@@ -281,10 +313,10 @@ def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print
             for v in sidm["pairs"].values() for e in v["data_multiplier_per_size"])
     if part in ("all", "garat"):
         t = time.monotonic()
-        pendulum = _pendulum_over_seeds(pend, garat_seeds, log)
+        pendulum = _pendulum_over_seeds(pend, garat_seeds, log, ray, out)
         t1 = time.monotonic()
         roach_seeds = tuple(p.roach_seeds or garat_seeds)
-        roach = _roach_over_seeds(p.roach, roach_seeds, log)
+        roach = _roach_over_seeds(p.roach, roach_seeds, log, ray, out)
         report["garat"] = {"pendulum": pendulum, "roach": roach}
         report["settings"].update(pendulum=asdict(pend), roach=asdict(p.roach), garat_seeds=list(garat_seeds),
                                   roach_seeds=list(roach_seeds))
@@ -297,7 +329,8 @@ def run_transfer_demo(out: Path, preset: str = "quick", seed: int = 0, log=print
     return report
 
 
-def cli_transfer(out: Path, quick: bool, full: bool, seed: int, part: str = "all", setting: str = "roach") -> None:
+def cli_transfer(out: Path, quick: bool, full: bool, seed: int, part: str = "all", setting: str = "roach",
+                 ray: str | None = None, workers: int = 1) -> None:
     """The `hil demo transfer` verb (registered in tools/cmd_demo.py)."""
     import os
 
@@ -307,7 +340,8 @@ def cli_transfer(out: Path, quick: bool, full: bool, seed: int, part: str = "all
     preset = os.environ.get("HIL_TRANSFER_PRESET") or ("quick" if quick else "full")
     if out == Path("out/demo"):
         out = Path("out/transfer")
-    r = run_transfer_demo(out, preset=preset, seed=seed, log=typer.echo, part=part, setting=setting)
+    r = run_transfer_demo(out, preset=preset, seed=seed, log=typer.echo, part=part, setting=setting,
+                          ray=None if ray is None else {"ray": ray, "workers": workers})
     for pair, v in r.get("sidm", {}).get("pairs", {}).items():
         for k in r["sidm"]["variants"]:
             if k == "without_sidm":

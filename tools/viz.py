@@ -31,6 +31,7 @@ from hilstack.bus.schemas import (
     TaskPosterior,
     decode,
 )
+from hilstack.drivers.base import RobotSpec
 
 
 def blueprint(has_images: bool = True) -> rrb.Blueprint:
@@ -93,8 +94,9 @@ class RigVisualizer:
 
     def log(self, topic: str, msg: Msg) -> None:
         if isinstance(msg, SpecMsg):
-            self.names[msg.robot] = tuple(msg.spec["state"]["names"])
-            self.action_names[msg.robot] = tuple(msg.spec["action"]["names"])
+            spec = RobotSpec.from_dict(msg.spec)
+            self.names[msg.robot] = spec.state.names
+            self.action_names[msg.robot] = spec.action.names
             return
         if isinstance(msg, RobotState):
             self._time(msg, msg.t_s)

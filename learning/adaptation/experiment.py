@@ -32,7 +32,6 @@ import numpy as np
 import torch
 
 from hilstack.configs.presets import Presets
-from hilstack.control.controller_node import ActionScale
 from hilstack.control.costs import PathCost, evaluate_path_following, summarize_paths
 from hilstack.control.paths import fillet, make_path, path_length, straight
 from hilstack.control.policies import SafeRandomPolicy
@@ -162,10 +161,9 @@ class RoachSim:
         self.sim.activate()
         spec = self.sim.spec
         self.state_names = list(spec.state.names)
-        self.scale = ActionScale(spec.action.low, spec.action.high)
+        self.action_space = spec.action
         self.period_s = float(spec.period_s)
-        rate = spec.action_rate_per_s
-        self.max_step = None if rate is None else np.asarray(rate, float) * self.period_s / self.scale.half
+        self.max_step = spec.max_step_normalized()
 
     def start(self, pose: dict[str, float], settings: PerturbationSettings) -> np.ndarray:
         self.sim.apply_perturbations(settings)
@@ -181,9 +179,9 @@ class RoachSim:
 
     def step(self, a_norm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Apply a normalized action; returns (the action actually applied, normalized; next state)."""
-        applied = self.sim.write(self.scale.to_robot(a_norm))
+        applied = self.sim.write(self.action_space.denormalize(a_norm))
         self.sim.tick()
-        return self.scale.to_norm(applied).astype(np.float32), self.sim.read().state.copy()
+        return self.action_space.normalize(applied).astype(np.float32), self.sim.read().state.copy()
 
     def close(self) -> None:
         self.sim.deactivate()

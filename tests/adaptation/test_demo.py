@@ -17,7 +17,7 @@ from hilstack.tools.demo_adaptation import cli_adaptation, ranking_line, report_
 def test_registered_with_the_demo_signature():
     module, fn, _ = OTHER_DEMOS["adaptation"]
     assert (module, fn) == ("hilstack.tools.demo_adaptation", "cli_adaptation")
-    assert list(inspect.signature(cli_adaptation).parameters) == ["out", "quick", "full", "seed", "suite"]
+    assert list(inspect.signature(cli_adaptation).parameters) == ["out", "quick", "full", "seed", "suite", "ray", "workers"]
 
 
 def test_tiny_run_writes_the_issue_report(tmp_path):

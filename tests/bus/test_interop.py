@@ -21,11 +21,12 @@ from hilstack.bus.recording import (
     summarize,
 )
 from hilstack.bus.schemas import ALL_TYPES, Command, Image, Plan, RobotState, SpecMsg, json_schema, type_name
+from tests.helpers import spec_dict
 
 RIG = "fox"
 NAMES = ["x", "y", "cos_yaw", "sin_yaw", "v"]
-SPEC = {"name": "bot", "state": {"names": NAMES, "units": ["m", "m", "1", "1", "m/s"]},
-        "action": {"names": ["u"], "low": [-1.0], "high": [1.0]}}
+SPEC = {**spec_dict("bot", NAMES, ["u"]),
+        "state": {"names": NAMES, "units": ["m", "m", "1", "1", "m/s"], "low": [-1e9] * 5, "high": [1e9] * 5}}
 
 
 # --------------------------------------------------------------------------- Foxglove's rules

@@ -5,6 +5,7 @@ import pandas as pd
 import pytest
 
 from hilstack.learning.datasets import Episode, TransitionDataset, episodes_from_table, load_episodes
+from tests.helpers import spec_dict
 
 
 def make_episode(T, offset, name=""):
@@ -107,7 +108,7 @@ def test_mcap_recordings_load_through_the_same_entry_point(tmp_path):
     from hilstack.bus.recording import McapLog
     from hilstack.bus.schemas import RobotState, SpecMsg
 
-    spec = {"state": {"names": ["x"]}, "action": {"names": ["u"], "low": [-1.0], "high": [1.0]}}
+    spec = spec_dict("roach", ["x"], ["u"])
     with McapLog(tmp_path / "session.mcap") as log:
         log.write(keys.spec("r", "roach"), SpecMsg(robot="roach", spec=spec))
         for i in range(5):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -55,14 +56,15 @@ def test_baseline_candidates_start_at_the_default_and_cover_the_ranges():
 
 
 def test_rate_limit_in_normalized_units_per_step():
+    from hilstack.drivers.base import RobotSpec
     from hilstack.drivers.velociroach.config import VelociRoachParams, velociroach_spec
-    from hilstack.learning.mbrl import MbrlConfig, make_planner, max_step_normalized
+    from hilstack.learning.mbrl import MbrlConfig, make_planner
 
-    spec = velociroach_spec(VelociRoachParams(max_leg_accel_rps2=60.0, max_leg_vel_rps=15.0)).to_dict()
-    # 60 rev/s² for 0.1 s is 6 rev/s, and [-1, 1] spans ±15 rev/s
-    np.testing.assert_allclose(max_step_normalized(spec), [0.4, 0.4])
-    spec["action_rate_per_s"] = None
-    assert max_step_normalized(spec) is None
+    spec = velociroach_spec(VelociRoachParams(max_leg_accel_rps2=60.0, max_leg_vel_rps=15.0))
+    # 60 rev/s² for 0.1 s is 6 rev/s, and [-1, 1] spans ±15 rev/s; the same after the bus
+    np.testing.assert_allclose(spec.max_step_normalized(), [0.4, 0.4])
+    np.testing.assert_allclose(RobotSpec.from_dict(spec.to_dict()).max_step_normalized(), [0.4, 0.4])
+    assert dataclasses.replace(spec, action_rate_per_s=None).max_step_normalized() is None
     rs = make_planner(MbrlConfig(planner="random_shooting"), 0.5, 2, np.array([0.4, 0.4]))
     np.testing.assert_allclose(rs.max_step.numpy(), [0.4, 0.4])
     assert make_planner(MbrlConfig(planner="random_shooting", reachable_set=False), 0.5, 2,
