@@ -178,8 +178,13 @@ def test_teleop_drives_the_roach_in_a_terminal(spawn, bus, rig_bus, rig, tmp_pat
 
 
 @needs_tmux
-def test_teleop_jogs_a_widowx_joint_in_a_terminal(spawn, bus):
-    node, sub, term = _teleop_session(spawn, bus, "arm_widowx_sim", "arm", ["--robot", "arm"])
+@pytest.mark.parametrize("rig", ["arm_widowx_sim", "arm_widowx_emulated"])
+def test_teleop_jogs_a_widowx_joint_in_a_terminal(spawn, bus, rig_bus, rig):
+    """The sim WidowX and the emulated one (the real Dynamixel driver over a virtual link, the
+    rig's access control), its e-stop engaged from the keyboard."""
+    if rig != "arm_widowx_sim":
+        bus = rig_bus(rig)
+    node, sub, term = _teleop_session(spawn, bus, rig, "arm", ["--robot", "arm"])
     try:
         names = ARM["state"]["names"]
         i = names.index("shoulder_pos")
