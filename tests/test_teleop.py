@@ -75,6 +75,22 @@ def test_jog_of_a_position_channel_steps_its_target_from_the_held_command():
     np.testing.assert_allclose(m.action([0.2, -0.3]), [0.2, 1.0])
 
 
+def test_status_line_shows_the_pose_the_state_and_a_silent_driver():
+    from hilstack.bus.schemas import RobotState
+    from hilstack.tools.teleop import status_line
+
+    names = ROACH["state"]["names"]
+    st = [0.0] * len(names)
+    st[names.index("x")], st[names.index("cos_yaw")] = 1.5, 1.0
+    m = TeleopMapper(ROACH)
+    m.key("w")
+    m.action([0, 0])
+    s = RobotState(robot="roach", t_s=0.0, state=st, active=False, stopped_reason="estop")
+    line = status_line("roach", m, s, names, "")
+    assert "speed +0.25" in line and "cmd +3.75 +3.75" in line and "x +1.500" in line and "stopped (estop)" in line
+    assert "NO STATE" not in line and "NO STATE for 3 s" in status_line("roach", m, s, names, "", 3.2)
+
+
 def test_refusals_are_one_line(monkeypatch):
     r = CliRunner().invoke(app, ["teleop", "roach_sim", "--step", "0"])
     assert r.exit_code == 2 and "--step 0.0" in r.output

@@ -91,6 +91,7 @@ def register(app: typer.Typer) -> None:
                 state = None
                 estop = ""
                 last_seq = -1
+                state_t = time.monotonic()
                 next_draw = 0.0
                 # one command per control period of wall clock, on every pace: a lockstep sim
                 # then runs in real time for the operator instead of as fast as the CPU goes
@@ -116,11 +117,13 @@ def register(app: typer.Typer) -> None:
                                 pass  # no new state: keep reading keys (q still quits)
                             else:
                                 last_seq = state.seq
+                                state_t = time.monotonic()
                                 ctl.send_action(mapper.action(list(state.action)), state.seq)
                             now = time.monotonic()
                             if now >= next_draw:
                                 next_draw = now + 1.0 / STATUS_HZ
-                                out.write("\r" + status_line(robot, mapper, state, names, estop) + "\x1b[K")
+                                line = status_line(robot, mapper, state, names, estop, now - state_t)
+                                out.write("\r" + line + "\x1b[K")
                                 out.flush()
                             timer.wait()
                     except KeyboardInterrupt:

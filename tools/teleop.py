@@ -233,8 +233,10 @@ HELP = {
 }
 
 
-def status_line(robot: str, mapper: TeleopMapper, state: Any, state_names: list[str], estop: str) -> str:
-    """One line: what teleop commands and what the robot reports (its pose or the selected joint)."""
+def status_line(robot: str, mapper: TeleopMapper, state: Any, state_names: list[str], estop: str,
+                state_age_s: float = 0.0) -> str:
+    """One line: what teleop commands and what the robot reports (its pose or the selected joint);
+    a state older than a second says so (the driver node stopped publishing)."""
     from hilstack.bus.recording import planar_pose
 
     parts = [robot, mapper.mode, mapper.describe()]
@@ -253,6 +255,8 @@ def status_line(robot: str, mapper: TeleopMapper, state: Any, state_names: list[
             if pos in state_names:
                 parts.append(f"{pos} {state.state[state_names.index(pos)]:+.3f}")
         parts.append("active" if state.active else f"stopped ({state.stopped_reason or '?'})")
+        if state_age_s > 1.0:
+            parts.append(f"NO STATE for {state_age_s:.0f} s (is the driver node up?)")
     if estop:
         parts.append(estop)
     return " | ".join(parts)
