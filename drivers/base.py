@@ -379,6 +379,10 @@ class RobotSpec:
     #: the action of the robot's home pose, where its episodes start (the hand's cupped hold
     #: pose), in the action space's units; None: the robot has none
     home_action: np.ndarray | None = None
+    #: the kinematic chain for viewers, base to tip: (joint, its link's offset from the parent
+    #: link [m], rotation axis); joint angles are the state channels ``<joint>_pos`` (or
+    #: ``<joint>``) in rad. Recordings derive each link's frame transform from it (bus/recording.py)
+    chain: tuple[tuple[str, tuple[float, float, float], tuple[float, float, float]], ...] = ()
 
     def __post_init__(self) -> None:
         if not (self.period_s > 0 and math.isfinite(self.period_s)):
@@ -413,6 +417,8 @@ class RobotSpec:
             # None: the robot stops by holding its measured position (hand, arm joints)
             "safe_action": None if self.safe_action is None else [float(x) for x in self.safe_action],
             "home_action": None if self.home_action is None else [float(x) for x in self.home_action],
+            **({"chain": [{"joint": j, "xyz": [float(v) for v in xyz], "axis": [float(v) for v in ax]}
+                          for j, xyz, ax in self.chain]} if self.chain else {}),
         }
 
     @classmethod
@@ -430,6 +436,8 @@ class RobotSpec:
                 safe_action=None if d.get("safe_action") is None else np.array(d["safe_action"], float),
                 home_action=None if d.get("home_action") is None else np.array(d["home_action"], float),
                 description=str(d.get("description", "")),
+                chain=tuple((str(c["joint"]), tuple(float(v) for v in c["xyz"]), tuple(float(v) for v in c["axis"]))
+                            for c in d.get("chain") or ()),
             )
         except KeyError as e:
             raise ValueError(f"robot spec {d.get('name', '?')!r}: missing {e}") from None

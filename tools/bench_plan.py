@@ -156,10 +156,9 @@ def _make_planner(w: dict):
 
 
 def _make_peer(cost, w: dict, s0: torch.Tensor, predict, sigma: float):
-    try:
-        from pytorch_mppi import MPPI  # noqa: PLC0415 - optional peer
-    except ImportError:
-        raise ModuleNotFoundError("hil bench plan compares with pytorch-mppi: pip install 'hilstack[bench]'") from None
+    from hilstack.configs.extras import require
+
+    MPPI = require("pytorch_mppi", "hil bench plan's peer").MPPI  # noqa: N806 - the peer's class
 
     E, S, A = w["ensemble"], w["state_dim"], w["action_dim"]
     K = w["samples"]

@@ -51,11 +51,13 @@ _VERB_MODULES = [
     "hilstack.tools.cmd_teleop",
     "hilstack.tools.cmd_adapt",
     "hilstack.tools.cmd_record",
+    "hilstack.tools.cmd_export",
     "hilstack.tools.cmd_viz",
     "hilstack.tools.cmd_calibrate",
     "hilstack.tools.cmd_data",
     "hilstack.tools.cmd_bench",
     "hilstack.tools.cmd_misc",
+    "hilstack.tools.cmd_doctor",
 ]
 
 def version() -> str:

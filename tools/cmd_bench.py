@@ -1,4 +1,4 @@
-"""hil bench bus | plan | sim | adaptation | tracker: speed goals as ratios against a peer in the same run;
+"""hil bench bus | plan | sim | adaptation | tracker | meld: speed goals as ratios against a peer in the same run;
 hil bench fuzz: every parser of untrusted bytes under atheris; calibrate: a gauntlet."""
 
 from __future__ import annotations
@@ -79,6 +79,22 @@ def bench_adaptation(
     except RuntimeError as e:  # the rig or the node failed: one line, exit 1
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from None
+    echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
+
+
+@bench_app.command("meld")
+@user_errors
+def bench_meld(
+    episodes: int = typer.Option(2, "--episodes", help="random episodes per collection measurement"),
+    steps: int = typer.Option(3, "--steps", help="gradient steps per learner and image size"),
+    threads: int = typer.Option(2, "--threads", help="torch threads"),
+    json_out: bool = typer.Option(False, "--json"),
+) -> None:
+    """MELD: collection samples/s with rendering (vs cameras off) and gradient steps/s per learner
+    and image size (vs MELD at 32×64), on this machine."""
+    from hilstack.tools.bench_meld import run_bench_meld
+
+    r = run_bench_meld(episodes=episodes, steps=steps, threads=threads)
     echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
 
 

@@ -15,6 +15,7 @@ OTHER_DEMOS: dict[str, tuple[str, str, str]] = {
     "adaptation": ("hilstack.tools.demo_adaptation", "cli_adaptation", "GrBAL, ReBAL, MB+DE, MOLe (docs/adaptation.md)"),
     "baoding": ("hilstack.tools.demo_baoding", "cli_baoding", "PDDM on the Shadow Hand's Baoding balls (docs/baoding.md)"),
     "arms": ("hilstack.tools.demo_arms", "cli_arms", "reach with a learned model + MPC vs IK and random, WidowX and Sawyer (docs/arms.md)"),
+    "meld": ("hilstack.tools.demo_meld", "cli_meld", "MELD vs SLAC and SAC on image history, WidowX port and Sawyer reacher from cameras (docs/meld.md)"),
 }
 
 

@@ -88,6 +88,7 @@ def user_errors(fn: F) -> F:
     from hilstack.bus.access import AccessError
     from hilstack.bus.node import NodeConflict
     from hilstack.bus.session import BusUnavailable
+    from hilstack.configs.extras import MissingExtra, install_hint, missing_extra
     from hilstack.drivers.base import CommandError, LifecycleError, LinkError
 
     @functools.wraps(fn)
@@ -97,6 +98,15 @@ def user_errors(fn: F) -> F:
             return fn(*a, **kw)
         except (UserError, ConfigError, CommandError, FileNotFoundError, AccessError, NodeConflict) as e:
             typer.echo(f"error: {one_line(e)}", err=True)
+            exit_within(EXIT_USAGE)
+            raise typer.Exit(EXIT_USAGE) from None
+        except ModuleNotFoundError as e:
+            # an optional dependency (configs/extras.py): one line naming what installs it
+            hint = e if isinstance(e, MissingExtra) else (
+                missing_extra("this command", e.name) if e.name and install_hint(e.name) else None)
+            if hint is None:
+                raise
+            typer.echo(f"error: {one_line(hint)}", err=True)
             exit_within(EXIT_USAGE)
             raise typer.Exit(EXIT_USAGE) from None
         except (LinkError, LifecycleError, BusUnavailable) as e:

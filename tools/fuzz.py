@@ -272,10 +272,9 @@ def run_target(target: str, n: int, *, seed: int = 1, max_len: int = 300,
     and the input that crashed, in hex) only when one was found. libFuzzer
     stops at the first crash, so ``crashes`` is 0 or 1.
     """
-    try:
-        import atheris  # noqa: F401
-    except ImportError:
-        raise ModuleNotFoundError("hil bench fuzz runs atheris: pip install 'hilstack[fuzz]'") from None
+    from hilstack.configs.extras import require
+
+    require("atheris", "hil bench fuzz")
     _, seeds, _ = resolve(target)
     with tempfile.TemporaryDirectory(prefix="hil-fuzz-") as tmp:
         corpus = Path(tmp) / "corpus"
