@@ -314,14 +314,19 @@ def compare_choices(run_dir: Path, out: Path | None = None, widths: tuple[int, .
 
 
 #: the reference code's sampler (google-research/pddm): the default's, not the quick preset's
-REF_SAMPLER: dict[str, Any] = {"sigma": 0.9, "filter": "actions", "beta": 0.6, "low_noise_fraction": 0.1}
+REF_SAMPLER: dict[str, Any] = {"sigma": 0.9, "filter": "actions", "beta": 0.6, "low_noise_fraction": 0.1, "gamma": 20.0}
 #: the quick preset with all of issue 30 and the reference sampler ("ref"), and with one
-#: setting of it put back as it was before issue 30 (docs/baoding.md, "One change at a time");
-#: "old_sampler" is the quick preset as it now is
+#: setting of it put back as it was before issue 30; "gamma_100" is the quick preset as it now
+#: is (docs/baoding.md, "Our numbers (quick run)")
+OLD_SAMPLER: dict[str, Any] = {"sigma": 0.05, "filter": "noise", "beta": 0.7, "low_noise_fraction": 0.0, "gamma": 20.0}
 ABLATIONS: dict[str, dict[str, Any]] = {
     "ref": dict(REF_SAMPLER),
     "clock_targets": {**REF_SAMPLER, "task_overrides": {"max_lead_rad": None}},
-    "old_sampler": {"sigma": 0.05, "filter": "noise", "beta": 0.7, "low_noise_fraction": 0.0},
+    # the quick preset of before this round (γ 20), a bolder sampler, and sharper weights (=
+    # the quick preset now); docs/baoding.md, "Our numbers (quick run)"
+    "old_sampler": dict(OLD_SAMPLER),
+    "sigma_02": {**OLD_SAMPLER, "sigma": 0.2},
+    "gamma_100": {**OLD_SAMPLER, "gamma": 100.0},
     "paper_filter": {**REF_SAMPLER, "filter": "noise", "beta": 0.7},
     "range_units": {**REF_SAMPLER, "action_units": "range"},
     "joint_vel": {**REF_SAMPLER, "joint_velocities": True},
