@@ -11,7 +11,12 @@ follows the branch it is on:
     d     = clip(k_ψ e_ψ − k_⊥ e_⊥, −d_max, d_max)
     left  = ω_nom − d,   right = ω_nom + d  (clipped to ±max_action, the speed setting)
 
-A positive ``d`` turns the robot left (right legs faster). Actions are normalized leg
+A positive ``d`` turns the robot left (right legs faster).
+
+Tipping (issue 29): given ``tip_threshold_rad`` (the MPC cost's θ_tip, the same
+information), the correction is scaled by ``max(0, 1 − e/θ_tip)`` where ``e`` is the
+measured roll and pitch beyond θ_tip (:func:`hilstack.control.costs.tilt_excess_rad`): the
+robot stops turning harder as it rolls past the threshold and runs straight at 2·θ_tip. Actions are normalized leg
 speed commands in [−1, 1] (the driver maps them to rad/s).
 
 Default gains (normalized action per unit error): ``omega_nom = 0.6``, ``k_heading = 0.8``
@@ -28,7 +33,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from hilstack.control.costs import PathCost
+from hilstack.control.costs import PathCost, state_index, tilt_excess_rad
 
 __all__ = ["DifferentialDriveController"]
 
@@ -46,6 +51,7 @@ class DifferentialDriveController:
         d_max: float = 0.4,
         *,
         max_action: float = 1.0,
+        tip_threshold_rad: float | None = None,
         x: str = "x",
         y: str = "y",
         cos_yaw: str = "cos_yaw",
@@ -57,6 +63,15 @@ class DifferentialDriveController:
         self.ix, self.iy, self.ic, self.is_ = path.ix, path.iy, path.ic, path.is_
         self.omega_nom, self.k_heading, self.k_perp, self.d_max = omega_nom, k_heading, k_perp, d_max
         self.max_action = float(max_action)  # the speed setting: the same bound MPC plans within
+        self.tip_threshold_rad = None if tip_threshold_rad is None else float(tip_threshold_rad)
+        if self.tip_threshold_rad is not None:
+            if not 0.0 < self.tip_threshold_rad < np.pi / 2:
+                raise ValueError(f"tip_threshold_rad must be in (0, pi/2), got {tip_threshold_rad}")
+            try:
+                self.tilt_idx = tuple(state_index(state_names, n)
+                                      for n in ("cos_roll", "sin_roll", "cos_pitch", "sin_pitch"))
+            except KeyError as e:
+                raise ValueError(f"tip_threshold_rad needs roll and pitch channels: {e.args[0]}") from None
 
     def params(self) -> dict[str, float]:
         """The tunable gains (what a tuning search records)."""
@@ -85,5 +100,9 @@ class DifferentialDriveController:
     def __call__(self, state) -> np.ndarray:
         e_h, e_p = self.errors(state)
         d = float(np.clip(self.k_heading * e_h - self.k_perp * e_p, -self.d_max, self.d_max))
+        if self.tip_threshold_rad is not None:
+            s = torch.as_tensor(np.asarray(state, dtype=np.float32))
+            excess = float(tilt_excess_rad(s, self.tilt_idx, self.tip_threshold_rad))
+            d *= max(0.0, 1.0 - excess / self.tip_threshold_rad)
         a = np.array([self.omega_nom - d, self.omega_nom + d], dtype=np.float32)
         return np.clip(a, -self.max_action, self.max_action)

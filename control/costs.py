@@ -14,6 +14,18 @@ Path following (Nagabandi et al. 2018, VelociRoACH). For each predicted state ``
 
 with the thesis weights f_p = 50, f_f = 10, f_h = 5.
 
+**Tipping term** (issue 29; off by default, the thesis has none). A roach turning hard at
+speed rolls over (the emulated rig ends an episode at cos_roll < 0.7, |roll| > 46°). With
+``f_tip > 0`` each step adds
+
+    f_tip · ( max(0, |roll_h| − θ_tip) + max(0, |pitch_h| − θ_tip) )
+
+from the state's ``cos_roll``/``sin_roll`` and ``cos_pitch``/``sin_pitch`` channels: free
+below ``θ_tip`` (straight running pitches ~11° on the sim), linear in the excess beyond it,
+so the planner prefers a plan that turns less at speed or slows into the turn.
+:class:`~hilstack.control.baselines.DifferentialDriveController` is given the same
+threshold (:func:`tilt_excess_rad` on its measured state).
+
 **Progress window.** The thesis matches each state to the globally closest segment; on a
 self-crossing path (figure-8) a state at the crossing then jumps to the other branch, and
 a robot near a corner can be matched to a segment it has not reached. Here the robot's
@@ -40,7 +52,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-__all__ = ["PathCost", "closest_segment", "evaluate_path_following", "rank_key", "state_index",
+__all__ = ["PathCost", "closest_segment", "tilt_excess_rad", "evaluate_path_following", "rank_key", "state_index",
            "summarize_paths", "MIN_PROGRESS_M"]
 
 #: ``cost_per_m`` divides by at least this much progress (m), so a robot that never moved
@@ -76,6 +88,14 @@ def closest_segment(p: torch.Tensor, a: torch.Tensor, d: torch.Tensor):
     return idx, dist2_min.sqrt(), unit[idx]
 
 
+def tilt_excess_rad(states: torch.Tensor, idx: tuple[int, int, int, int], threshold_rad: float) -> torch.Tensor:
+    """``max(0, |roll| − θ) + max(0, |pitch| − θ)`` (rad) of ``states [..., S]`` → ``[...]``;
+    ``idx`` = the (cos_roll, sin_roll, cos_pitch, sin_pitch) channels."""
+    cr, sr, cp, sp = (states[..., i] for i in idx)
+    roll, pitch = torch.atan2(sr, cr).abs(), torch.atan2(sp, cp).abs()
+    return (roll - threshold_rad).clamp_min(0.0) + (pitch - threshold_rad).clamp_min(0.0)
+
+
 class PathCost:
     """Path-following cost ``cost(states [E,N,H+1,S], actions [N,H,A]) -> [E,N]``.
 
@@ -91,6 +111,10 @@ class PathCost:
             closest segment (the thesis' definition; wrong at self-crossings).
         end_tol_m: the path counts as completed once the robot is past the last waypoint
             along the last segment or within this distance (m) of it.
+        f_tip: weight (1/rad) of the tipping term (module docstring); 0 (default): none,
+            the thesis' cost. > 0 needs ``cos_roll``, ``sin_roll``, ``cos_pitch``,
+            ``sin_pitch`` channels.
+        tip_threshold_rad: roll or pitch (rad) beyond which the tipping term counts.
 
     The object is stateful (the tracked segment): use one per episode, or :meth:`reset`.
     """
@@ -105,6 +129,8 @@ class PathCost:
         *,
         window_m: float | None = 0.5,
         end_tol_m: float = 0.05,
+        f_tip: float = 0.0,
+        tip_threshold_rad: float = 0.35,
         x: str = "x",
         y: str = "y",
         cos_yaw: str = "cos_yaw",
@@ -130,6 +156,18 @@ class PathCost:
         self.iy = state_index(state_names, y)
         self.ic = state_index(state_names, cos_yaw, "cos yaw", "yaw_cos")
         self.is_ = state_index(state_names, sin_yaw, "sin yaw", "yaw_sin")
+        if not (np.isfinite(f_tip) and f_tip >= 0):
+            raise ValueError(f"f_tip must be finite and >= 0, got {f_tip}")
+        if not (np.isfinite(tip_threshold_rad) and 0.0 <= tip_threshold_rad < np.pi / 2):
+            raise ValueError(f"tip_threshold_rad must be in [0, pi/2), got {tip_threshold_rad}")
+        self.f_tip, self.tip_threshold_rad = float(f_tip), float(tip_threshold_rad)
+        self.tilt_idx: tuple[int, int, int, int] | None = None
+        if self.f_tip > 0:
+            try:
+                self.tilt_idx = tuple(state_index(state_names, n)  # type: ignore[assignment]
+                                      for n in ("cos_roll", "sin_roll", "cos_pitch", "sin_pitch"))
+            except KeyError as e:
+                raise ValueError(f"f_tip > 0 needs roll and pitch channels: {e.args[0]}") from None
         self.segment = 0
 
     # -- tracking the robot's place on the path ---------------------------------------------
@@ -206,12 +244,18 @@ class PathCost:
         c, s = states[..., 1:, self.ic], states[..., 1:, self.is_]
         # angle between the heading (c, s) and the segment direction, without unwrapping
         heading = torch.atan2(c * unit[..., 1] - s * unit[..., 0], c * unit[..., 0] + s * unit[..., 1]).abs()
-        return {"perp_m": perp, "heading_rad": heading, "progress_m": progress}
+        out = {"perp_m": perp, "heading_rad": heading, "progress_m": progress}
+        if self.tilt_idx is not None:
+            out["tilt_excess_rad"] = tilt_excess_rad(states[..., 1:, :], self.tilt_idx, self.tip_threshold_rad)
+        return out
 
     def step_cost(self, states: torch.Tensor, segments: torch.Tensor | None = None) -> torch.Tensor:
         """Cost of each step ``[..., H]`` for ``states [..., H+1, S]``."""
         t = self.terms(states, segments)
-        return self.f_p * t["perp_m"] + self.f_h * t["heading_rad"] - self.f_f * t["progress_m"]
+        c = self.f_p * t["perp_m"] + self.f_h * t["heading_rad"] - self.f_f * t["progress_m"]
+        if "tilt_excess_rad" in t:
+            c = c + self.f_tip * t["tilt_excess_rad"]
+        return c
 
     def __call__(self, states: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
         """``states [E, N, H+1, S]`` (actions unused) → ``[E, N]``."""

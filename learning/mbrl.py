@@ -17,6 +17,7 @@ on a real or emulated rig the same code runs on the wall clock (``realtime=True`
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import signal
 import subprocess
@@ -118,6 +119,11 @@ class MbrlConfig(Presets):
     #: time limit of an evaluation episode = path length / this speed (m/s): long enough for
     #: a slow but correct controller (the sim walks ~0.68 m/s at command 0.5, docs/mbrl.md)
     time_limit_speed_mps: float = 0.15
+    #: stability (issue 29): the planner's path cost adds tip_weight (1/rad) times the predicted
+    #: roll and pitch beyond tip_threshold_deg (hilstack.control.costs, tipping term), and the
+    #: differential drive stops turning harder beyond the same threshold. 0: the thesis' cost
+    tip_weight: float = 50.0
+    tip_threshold_deg: float = 20.0
     # the differential-drive baseline is tuned per speed by a random search (Latin hypercube)
     # on tuning paths that are not the evaluation paths (other shapes and scale)
     baseline_candidates: int = 24
@@ -160,10 +166,22 @@ class MbrlConfig(Presets):
             problems.append(f"random_forward_fraction must be in [0, 1], got {self.random_forward_fraction}")
         if self.reference_corner_radius_m < 0:
             problems.append(f"reference_corner_radius_m must be >= 0, got {self.reference_corner_radius_m}")
+        if not (math.isfinite(self.tip_weight) and 0.0 <= self.tip_weight <= 1e4):
+            problems.append(f"tip_weight must be in [0, 1e4], got {self.tip_weight}")
+        if not (math.isfinite(self.tip_threshold_deg) and 0.0 < self.tip_threshold_deg < 90.0):
+            problems.append(f"tip_threshold_deg must be in (0, 90), got {self.tip_threshold_deg}")
         if self.experiments and not self.seeds:
             problems.append("seeds: the experiments need at least one seed")
         if problems:
             raise ValueError("MbrlConfig: " + "; ".join(problems))
+
+
+def task_cost(cfg: MbrlConfig, waypoints, state_names) -> PathCost:
+    """The path cost the planner optimizes: the thesis' terms plus the tipping term
+    (``cfg.tip_weight`` beyond ``cfg.tip_threshold_deg``) when the state has roll and pitch."""
+    tilt = {"cos_roll", "sin_roll", "cos_pitch", "sin_pitch"} <= {n.lower() for n in state_names}
+    return PathCost(waypoints, state_names, f_tip=cfg.tip_weight if tilt else 0.0,
+                    tip_threshold_rad=math.radians(cfg.tip_threshold_deg))
 
 
 def _log(cfg: MbrlConfig, msg: str) -> None:
@@ -586,7 +604,7 @@ class MbrlRun:
             ref = fillet(wp, self.cfg.reference_corner_radius_m)  # what the controllers track
             limit_s = self.time_limit_s(wp)
             steps = int(np.ceil(limit_s / self.period_s - 1e-9))
-            log = self.episode(policy_for(ref, PathCost(ref, self.state_names), speed), steps, path_start_pose(wp),
+            log = self.episode(policy_for(ref, self.task_cost(ref), speed), steps, path_start_pose(wp),
                                stop_if=PathEnd(PathCost(wp, self.state_names)))
             states = np.array(log.states)
             m = evaluate_path_following(states, cost, period_s=self.period_s, time_limit_s=limit_s)
@@ -601,6 +619,10 @@ class MbrlRun:
             m["waypoints"] = wp.tolist()
             out[name] = m
         return out
+
+    def task_cost(self, waypoints) -> PathCost:
+        """The path cost the planner optimizes (:func:`task_cost`)."""
+        return task_cost(self.cfg, waypoints, self.state_names)
 
     def mpc_for(self, model):
         samples = self.realtime_samples(model)
@@ -638,7 +660,9 @@ class MbrlRun:
         """Differential drive with ``params`` (gains; default: the untuned defaults scaled to the speed)."""
         def make(wp, cost, speed):
             p = params or default_baseline_params(speed)
-            return BaselinePolicy(DifferentialDriveController(wp, self.state_names, max_action=speed, **p))
+            tip = math.radians(self.cfg.tip_threshold_deg) if self.cfg.tip_weight > 0 else None
+            return BaselinePolicy(DifferentialDriveController(wp, self.state_names, max_action=speed,
+                                                              tip_threshold_rad=tip, **p))
         return make
 
     def tune_baseline(self, speed: float) -> dict[str, Any]:

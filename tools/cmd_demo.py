@@ -35,6 +35,9 @@ def register(app: typer.Typer) -> None:
                                              help="random data and random shooting as in the thesis: independent "
                                                   "uniform steps (no holds, no forward commands, no rate limit)"),
         seed: int = typer.Option(0, "--seed"),
+        tip_weight: float | None = typer.Option(None, "--tip-weight",
+                                                help="roach: weight (1/rad) of the planner's tipping term "
+                                                     "(docs/mbrl.md; 0 = the thesis' cost) [default: 50]"),
         part: str = typer.Option("all", "--part", help="transfer only: all | sidm | garat (one half of the demo)"),
         setting: str = typer.Option("roach", "--setting", help="transfer --part sidm only: roach (VelociRoACH pairs) | "
                                     "wheeled (the SIDM paper's wheeled robots with suspension)"),
@@ -84,6 +87,8 @@ def register(app: typer.Typer) -> None:
         variant: dict = {}
         if world_frame:
             variant["body_frame"] = False
+        if tip_weight is not None:
+            variant["tip_weight"] = tip_weight
         if thesis_sampling:
             variant.update(random_hold_steps=1, random_forward_fraction=0.0, reachable_set=False)
         try:

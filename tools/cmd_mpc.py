@@ -50,6 +50,7 @@ def register(app: typer.Typer) -> None:
             fit_planner_to_period,
             make_planner,
             path_start_pose,
+            task_cost,
         )
 
         if (model is None) == (adapt is None):
@@ -98,7 +99,7 @@ def register(app: typer.Typer) -> None:
             cost = PathCost(wp, names)
             # as in `hil demo`: track the path with rounded corners, score on the path itself
             mcfg = MbrlConfig(planner=planner)
-            ref = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
+            ref = task_cost(mcfg, fillet(wp, mcfg.reference_corner_radius_m), names)
             n_act, max_step = spec.action.dim, spec.max_step_normalized()
             samples = None
             if cfg.pace != "lockstep":  # as in `hil demo`: the planner must fit the period on this machine
