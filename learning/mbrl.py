@@ -184,6 +184,16 @@ def task_cost(cfg: MbrlConfig, waypoints, state_names) -> PathCost:
                     tip_threshold_rad=math.radians(cfg.tip_threshold_deg))
 
 
+def max_tilt_deg(states, state_names) -> float:
+    """The largest |roll| or |pitch| (degrees) over ``states [T, S]``; NaN without those channels."""
+    names = [n.lower() for n in state_names]
+    if not {"cos_roll", "sin_roll", "cos_pitch", "sin_pitch"} <= set(names):
+        return float("nan")
+    s = np.asarray(states, dtype=np.float64)
+    ang = [np.arctan2(s[:, names.index(f"sin_{a}")], s[:, names.index(f"cos_{a}")]) for a in ("roll", "pitch")]
+    return float(np.degrees(np.abs(np.stack(ang)).max()))
+
+
 def _log(cfg: MbrlConfig, msg: str) -> None:
     if cfg.progress:
         print(f"[mbrl {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
@@ -616,6 +626,7 @@ class MbrlRun:
             m["end"] = ("completed" if m["completed"] else self.last_end_reason
                         or ("time_limit" if len(log.actions) + log.unhealthy_states >= steps else "stopped"))
             m["xy"] = states[:, [self.state_names.index("x"), self.state_names.index("y")]].tolist()
+            m["max_tilt_deg"] = max_tilt_deg(states, self.state_names)
             m["waypoints"] = wp.tolist()
             out[name] = m
         return out

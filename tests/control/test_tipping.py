@@ -145,3 +145,11 @@ def test_config_default_and_bad_values():
         PathCost(np.array([[0.0, 0.0], [1.0, 0.0]]), ["x", "y", "cos_yaw", "sin_yaw"], f_tip=1.0)
     with pytest.raises(ValueError, match="tip_threshold_rad"):
         DifferentialDriveController(np.array([[0.0, 0.0], [1.0, 0.0]]), NAMES, tip_threshold_rad=2.0)
+
+
+def test_report_max_tilt_degrees():
+    from hilstack.learning.mbrl import max_tilt_deg
+
+    s = torch.stack([state(), state(roll=math.radians(-33)), state(pitch=math.radians(12))]).numpy()
+    assert max_tilt_deg(s, NAMES) == pytest.approx(33.0, abs=1e-3)
+    assert math.isnan(max_tilt_deg(s[:, :4], ["x", "y", "z", "vx"]))
