@@ -101,26 +101,26 @@ class MbmfConfig:
 
     episode_len: int = 250
     # MB
-    random_rollouts: int = 10
-    mb_iterations: int = 3
-    mpc_rollouts: int = 3            # per MB iteration
+    random_rollouts: int = 8
+    mb_iterations: int = 2
+    mpc_rollouts: int = 2            # per MB iteration
     hidden: tuple[int, ...] = (256, 256)
-    epochs: int = 40
+    epochs: int = 100               # ~500-700 Adam steps per fit at these data sizes
     batch_size: int = 512
     val_fraction: float = 0.1
-    samples: int = 500               # random shooting N
+    samples: int = 300               # random shooting N
     horizon: int = 10                # H
     # Mb-Mf (thesis Table 2.7: 30 saved rollouts, 3 DAgger iterations, Adam 1e-4, batch 500)
-    saved_rollouts: int = 6
+    saved_rollouts: int = 4
     dagger_iters: int = 3
     dagger_rollouts: int = 1
-    bc_epochs: int = 200             # passes over the aggregated data per (re)fit
+    bc_epochs: int = 1000            # passes over the aggregated data per (re)fit (2-4k Adam steps)
     bc_lr: float = 1e-4
     bc_batch: int = 500
     policy_hidden: tuple[int, ...] = (64, 64)
     # TRPO (MF, and Mb-Mf's fine-tuning); sb3-contrib defaults otherwise
-    mf_steps: int = 120_000
-    ft_steps: int = 34_000           # with MB's ~5.5k: Mb-Mf uses ≤ a third of MF's budget
+    mf_steps: int = 60_000
+    ft_steps: int = 16_000           # with MB's ≤ 3.75k: Mb-Mf uses ≤ a third of MF's budget
     n_steps: int = 1024
     eval_every: int = 5_000
     eval_episodes: int = 3
@@ -128,8 +128,7 @@ class MbmfConfig:
 
     @classmethod
     def quick(cls, **kw: Any) -> MbmfConfig:
-        base = dict(random_rollouts=8, mb_iterations=2, mpc_rollouts=3, epochs=30, mf_steps=60_000,
-                    ft_steps=15_000)
+        base = dict(mf_steps=30_000, ft_steps=8_000, eval_every=3_000)
         return cls(**{**base, **kw})
 
     @classmethod
