@@ -459,19 +459,22 @@ def run_seed(name: str, cfg: MbmfConfig, seed: int, out: Path, log: Callable[[st
         tmp.replace(p)
         return d
 
+    def timing(t: float, c: float) -> dict[str, float]:
+        return {"wall_s": round(time.monotonic() - t, 1), "cpu_s": round(time.process_time() - c, 1)}
+
     mb_d, mbmf_d = cached("mb"), cached("mbmf")
     if mb_d is None or mbmf_d is None:
-        t = time.monotonic()
+        t, c = time.monotonic(), time.process_time()
         mb = run_mb(name, cfg, seed, log)
-        mb_d = save("mb", {"curve": mb.curve, "wall_s": round(time.monotonic() - t, 1)})
-        t = time.monotonic()
+        mb_d = save("mb", {"curve": mb.curve, **timing(t, c)})
+        t, c = time.monotonic(), time.process_time()
         curve, info = run_mbmf(name, cfg, seed, mb, log)
-        mbmf_d = save("mbmf", {"curve": curve, "info": info, "wall_s": round(time.monotonic() - t, 1)})
+        mbmf_d = save("mbmf", {"curve": curve, "info": info, **timing(t, c)})
     res["mb"], res["mbmf"] = mb_d, mbmf_d
     mf_d = cached("mf")
     if mf_d is None:
-        t = time.monotonic()
-        mf_d = save("mf", {"curve": run_mf(name, cfg, seed, log), "wall_s": round(time.monotonic() - t, 1)})
+        t, c = time.monotonic(), time.process_time()
+        mf_d = save("mf", {"curve": run_mf(name, cfg, seed, log), **timing(t, c)})
     res["mf"] = mf_d
     return res
 
