@@ -422,7 +422,7 @@ def run_mbmf(name: str, cfg: MbmfConfig, seed: int, mb: MbResult,
         log(f"  mbmf {name} s{seed} DAgger {it}: policy return {np.mean(rets):.1f}, {steps} steps, "
             f"bc loss {info['bc_loss'][-1]:.3g}")
     env.close()
-    info["std_before_finetune"] = float(torch.exp(pol.log_std).mean())
+    info["std_before_finetune"] = float(pol.log_std.detach().exp().mean())
     reset_policy_std(pol, 1.0)
     info["imitation_steps"] = steps
     _trpo_curve(algo, name, cfg, cfg.ft_steps, steps, seed, curve, log, "mbmf")
