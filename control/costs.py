@@ -282,10 +282,10 @@ class BaodingCost:
 
         r(s, φ) = −5·Σ_i d(ball_i, target_i(φ)) − 500·1(drop) − 10·1(WRJ0 > limit)
 
-    the reward of :class:`hilstack.sim_backends.shadow_hand.baoding.BaodingTask` (targets, distance,
+    the reward of :class:`hilstack.tasks.baoding.BaodingTask` (targets, distance,
     drop rule and wrist term from it), evaluated on the ball channels ``ball{0,1}_{x,y,z}``
     of the state (and ``WRJ0_pos`` for the wrist term). The targets' phases ``φ_h`` come
-    from :class:`~hilstack.sim_backends.shadow_hand.baoding.TargetPhase`: the clock at step
+    from :class:`~hilstack.tasks.baoding.TargetPhase`: the clock at step
     ``k + h`` (``k`` the control steps of this episode so far), led by at most the task's
     ``max_lead_rad`` ahead of the pair's measured phase. :meth:`observe` is called once per
     step with the state planned from (:class:`~hilstack.control.policies.MpcPolicy`);
@@ -293,7 +293,7 @@ class BaodingCost:
     """
 
     def __init__(self, task, state_names: Sequence[str], period_s: float):
-        from hilstack.sim_backends.shadow_hand.baoding import (
+        from hilstack.tasks.baoding import (
             REWARD_DIST_WEIGHT,
             REWARD_DROP_PENALTY,
             REWARD_WRIST_PENALTY,
@@ -364,7 +364,7 @@ def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float 
     ``t_s``: their times (s); ``wrist_rad``: ``[T+1]`` WRJ0 angles (the wrist term; None:
     none). Reward step ``k`` uses the targets' phase the planner had for it (the clock, led
     by at most ``max_lead_rad`` ahead of the pair measured at step ``k − 1``:
-    :class:`~hilstack.sim_backends.shadow_hand.baoding.TargetPhase` at ``period_s``). The
+    :class:`~hilstack.tasks.baoding.TargetPhase` at ``period_s``). The
     episode is cut at the first drop (it ends there, penalty counted once). Returns
     ``return`` (Σ r), ``dropped``, ``steps`` (steps held: until the drop or the end),
     ``rotation_deg`` (how far the pair turned along the targets' direction by the end,
@@ -373,7 +373,7 @@ def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float 
     and ``turned_90`` / ``turned_180`` (1.0 when the pair turned at least 90° / 180° along
     the targets without a drop first: the thesis' success measure for its real-hand turns).
     """
-    from hilstack.sim_backends.shadow_hand.baoding import TargetPhase
+    from hilstack.tasks.baoding import TargetPhase
 
     b = np.asarray(balls_m, dtype=np.float64).reshape(-1, 2, 3)
     del t_s  # the steps are the control periods; the phase replays them

@@ -27,6 +27,11 @@ Shape (after ros2_control's hardware lifecycle and LeRobot's robot base):
   activation the held command is what the device is running (``_hold_command``, from the
   measured state and what the backend knows of the device), so nothing jumps.
 * ``stop()`` brings the robot to its safe state (the spec's ``safe_action``).
+* Sim controls (an optional capability, :class:`SimControls`): a simulated backend can also
+  ``reset(**pose)`` (put the robot at a pose: a new episode) and, when it models them,
+  set perturbations (:class:`Perturbable`). Code above the drivers asks
+  :func:`sim_controls` / :func:`perturbable` instead of probing attributes; a real or emulated
+  backend has neither.
 * ``tick()`` waits for the next control period: wall-clock backends sleep until the
   next period boundary; the sim backend advances physics by one period. A loop written
   as ``read → write → tick`` therefore runs unchanged on every backend.
@@ -42,7 +47,7 @@ import math
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, NoReturn
+from typing import Any, NoReturn, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -300,11 +305,14 @@ class RobotSpec:
     #: the action that brings the robot to rest (zero leg velocity...); None: hold position
     safe_action: np.ndarray | None = None
     description: str = ""
+    #: the action of the robot's home pose, where its episodes start (the hand's cupped hold
+    #: pose), in the action space's units; None: the robot has none
+    home_action: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not (self.period_s > 0 and math.isfinite(self.period_s)):
             raise ValueError(f"period_s must be a positive number, got {self.period_s}")
-        for attr in ("action_rate_per_s", "safe_action"):
+        for attr in ("action_rate_per_s", "safe_action", "home_action"):
             v = getattr(self, attr)
             if v is not None:
                 v = np.asarray(v, dtype=np.float64).reshape(-1)
@@ -331,7 +339,12 @@ class RobotSpec:
             else [float(x) for x in self.action_rate_per_s],
             # None: the robot stops by holding its measured position (hand, arm joints)
             "safe_action": None if self.safe_action is None else [float(x) for x in self.safe_action],
+            "home_action": None if self.home_action is None else [float(x) for x in self.home_action],
         }
+
+    def joint_names(self) -> list[str]:
+        """The joints of a joint-space robot: the state channels ``<joint>_pos``, in order."""
+        return [n[: -len("_pos")] for n in self.state.names if n.endswith("_pos")]
 
 
 @dataclass
@@ -386,6 +399,36 @@ class Health:
             "last_error": self.last_error,
             **self.extra,
         }
+
+
+@runtime_checkable
+class SimControls(Protocol):
+    """Optional capability of a simulated backend (every ``LockstepSim``): put the robot at a
+    pose, at rest, as a new episode starts (keywords are the robot's: ``x, y, yaw`` for the
+    roach, a joint vector for the hand...; a pose it cannot take raises TypeError/ValueError)."""
+
+    def reset(self, **pose: Any) -> None: ...
+
+
+@runtime_checkable
+class Perturbable(Protocol):
+    """Optional capability of a simulated backend that models perturbations (the roach's
+    missing leg, payload, slope...): one by name, or a whole condition
+    (:class:`hilstack.tasks.perturbations.PerturbationSettings`), mid-episode included."""
+
+    def set_perturbation(self, name: str, value: Any) -> None: ...
+
+    def apply_perturbations(self, settings: Any) -> None: ...
+
+
+def sim_controls(driver: Driver) -> SimControls | None:
+    """The driver's sim controls, or None when it has none (real and emulated backends)."""
+    return driver if getattr(driver, "backend", None) == "sim" and isinstance(driver, SimControls) else None
+
+
+def perturbable(driver: Driver) -> Perturbable | None:
+    """The driver's perturbation controls, or None when it models none."""
+    return driver if sim_controls(driver) is not None and isinstance(driver, Perturbable) else None
 
 
 class Driver(ABC):

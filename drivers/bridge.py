@@ -41,7 +41,7 @@ from hilstack.bus.schemas import (
     decode,
 )
 from hilstack.configs.schema import BusConfig
-from hilstack.drivers.base import CommandError, Driver, LinkError
+from hilstack.drivers.base import CommandError, Driver, LinkError, sim_controls
 
 log = logging.getLogger(__name__)
 
@@ -215,7 +215,7 @@ class DriverNode(Node):
                 continue
             if m.robot != self.robot:
                 continue
-            reset = getattr(self.driver, "reset", None)
+            reset = sim.reset if (sim := sim_controls(self.driver)) is not None else None
             if self.estopped:
                 ans = ResetEvent(robot=self.robot, phase="failed", detail="e-stop engaged")
             elif m.phase == "teleport" and reset is not None:
@@ -257,7 +257,7 @@ class DriverNode(Node):
         m = self._reset_req.poll()
         if m is None or m.robot != self.robot or self.supervisor_alive:
             return jumped
-        reset = getattr(self.driver, "reset", None)
+        reset = sim.reset if (sim := sim_controls(self.driver)) is not None else None
         self.driver.stop()
         if reset is None or self.estopped:
             why = "e-stop engaged" if self.estopped else (

@@ -34,10 +34,11 @@ EMULATORS = "hilstack.emulators"
 
 def emulator_module(name: str) -> str:
     """The module of the device emulator registered as ``name`` (run as ``python -m``)."""
-    from importlib.metadata import entry_points
+    from hilstack.drivers.registry import entry_point_map
 
-    for ep in entry_points(group=EMULATORS, name=name):
-        return ep.value
+    mod = entry_point_map(EMULATORS).get(name)
+    if mod is not None:
+        return mod
     raise LinkError(f"no device emulator registered as {name!r} (entry points {EMULATORS!r}): "
                     "install hilstack (pip install -e .)")
 

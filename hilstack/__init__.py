@@ -14,7 +14,7 @@ except PackageNotFoundError:  # a source tree that was never installed
     __version__ = "0+unknown"
 
 #: the subpackages, each a top-level folder of the repository
-SUBPACKAGES = ("bus", "configs", "perception", "drivers", "sim_backends", "control", "learning", "calibration",
+SUBPACKAGES = ("bus", "configs", "tasks", "perception", "drivers", "sim_backends", "control", "learning", "calibration",
                "tools")
 
 # A source checkout (the folders beside this package, e.g. a git worktree run with
@@ -22,6 +22,10 @@ SUBPACKAGES = ("bus", "configs", "perception", "drivers", "sim_backends", "contr
 # tree, not whichever tree an editable install points at. An installed wheel holds them
 # inside this package and has no pyproject.toml beside it.
 _tree = __import__("pathlib").Path(__file__).resolve().parent.parent
+#: the source checkout this package runs from (its pyproject.toml's entry points count before an
+#: install has caught up with them, drivers/registry.py); None for an installed wheel
+SOURCE_TREE = None
 if (_tree / "pyproject.toml").is_file() and (_tree / "drivers" / "__init__.py").is_file():
     __path__.append(str(_tree))
+    SOURCE_TREE = _tree
 del _tree

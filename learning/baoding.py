@@ -69,8 +69,8 @@ class BaodingTaskParams(Strict):
 
 
 def load_baoding_task(name: str = "baoding"):
-    """The :class:`~hilstack.sim_backends.shadow_hand.baoding.BaodingTask` of a task config."""
-    from hilstack.sim_backends.shadow_hand.baoding import BaodingTask
+    """The :class:`~hilstack.tasks.baoding.BaodingTask` of a task config."""
+    from hilstack.tasks.baoding import BaodingTask
 
     raw = load_task(name)
     p = parse_model(BaodingTaskParams, raw.model_dump(), raw.source)
@@ -149,9 +149,20 @@ class HoldActionMap:
         return np.clip(z, -1.0, 1.0)
 
 
-def hold_action_map(frac: float = 0.9) -> HoldActionMap:
-    from hilstack.drivers.shadow_hand.config import hold_pose_action
+#: the robot config the Baoding task runs on (its spec gives the joints and the hold pose)
+HAND = "shadow_hand"
 
+
+def hold_pose_action() -> np.ndarray:
+    """The hand's hold pose (its spec's ``home_action``) in normalized action units [-1, 1]."""
+    from hilstack.drivers.registry import spec_of
+
+    spec = spec_of(HAND)
+    low, high = spec.action.low, spec.action.high
+    return (np.asarray(spec.home_action, dtype=np.float64) - (high + low) / 2) / ((high - low) / 2)
+
+
+def hold_action_map(frac: float = 0.9) -> HoldActionMap:
     return HoldActionMap(hold_pose_action(), frac)
 
 
@@ -165,8 +176,9 @@ class BaodingFeatures:
     (:meth:`reset` per episode); :meth:`episode` maps a recorded episode."""
 
     def __init__(self, state_names: list[str], period_s: float, joint_velocities: bool = False):
-        from hilstack.drivers.shadow_hand.config import JOINT_NAMES
+        from hilstack.drivers.registry import spec_of
 
+        JOINT_NAMES = spec_of(HAND).joint_names()  # noqa: N806 - the hand's joints, in its spec's order
         names = list(state_names)
         want = [f"{j}_pos" for j in JOINT_NAMES] + (
             [f"{j}_vel" for j in JOINT_NAMES] if joint_velocities else []) + list(BALL_NAMES)
@@ -517,14 +529,10 @@ class BaodingRun(MbrlRun):
     def random_walk(self, i: int):
         """The reference code's random walk from the hold pose, in the planner's units."""
         if self.amap is None:
-            from hilstack.drivers.shadow_hand.config import hold_pose_action  # where every episode starts
-
-            return RandomWalkPolicy(hold_pose_action(), seed=self._seed(1, i))
+            return RandomWalkPolicy(hold_pose_action(), seed=self._seed(1, i))  # where every episode starts
         return MappedPolicy(RandomWalkPolicy(np.zeros(len(self.action_names)), seed=self._seed(1, i)), self.amap)
 
     def hold_policy(self, i: int) -> ConstantPolicy:
-        from hilstack.drivers.shadow_hand.config import hold_pose_action
-
         return ConstantPolicy(hold_pose_action())
 
     def pddm_config(self, samples: int | None = None) -> PddmConfig:
@@ -536,8 +544,6 @@ class BaodingRun(MbrlRun):
     def _init_mean(self) -> np.ndarray:
         # "hold": the first plan is centred on the pose the episode starts in, so a planner
         # with an untrained model perturbs a grasp instead of swinging every joint to mid-range
-        from hilstack.drivers.shadow_hand.config import hold_pose_action
-
         if self.bcfg.init_mean == "hold":
             a = hold_pose_action()
         else:

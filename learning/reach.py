@@ -80,19 +80,20 @@ class ArmTask:
     random_scaled: bool = False
 
     def model(self):
-        if self.name == "widowx":
-            from hilstack.sim_backends.widowx.world import ArmWorld
+        """The arm's kinematics skill (registry: ``<robot>.kinematics``)."""
+        from hilstack.drivers.registry import skill
 
-            return ArmWorld().model
-        from hilstack.sim_backends.sawyer.model import build_model
+        return skill(self.name, "kinematics").kinematics_model()
 
-        return build_model()
+
+def _joints(robot: str) -> tuple[str, ...]:
+    from hilstack.drivers.registry import spec_of
+
+    return tuple(spec_of(robot).joint_names())
 
 
 def widowx_task() -> ArmTask:
-    from hilstack.drivers.widowx.config import JOINT_NAMES
-
-    return ArmTask("widowx", "arm_widowx_sim", "arm", JOINT_NAMES, "ee", 0.3, mechanism="mechanism")
+    return ArmTask("widowx", "arm_widowx_sim", "arm", _joints("widowx"), "ee", 0.3, mechanism="mechanism")
 
 
 #: three boxes in front of the Sawyer at table height, 15 cm apart (our choice: the thesis
@@ -101,9 +102,7 @@ SAWYER_BOXES = ((-0.15, 0.75, 0.10), (0.0, 0.80, 0.10), (0.15, 0.75, 0.10))
 
 
 def sawyer_task() -> ArmTask:
-    from hilstack.drivers.sawyer.config import JOINTS
-
-    return ArmTask("sawyer", "arm_sawyer_sim", "arm", JOINTS, "endEffector", 0.25, boxes=SAWYER_BOXES,
+    return ArmTask("sawyer", "arm_sawyer_sim", "arm", _joints("sawyer"), "endEffector", 0.25, boxes=SAWYER_BOXES,
                    random_scaled=True)
 
 

@@ -197,7 +197,8 @@ def test_every_safety_parameter_is_finite_bounded_and_says_why():
     assert len(checked) > 40, checked  # every robot's periods, deadlines, watchdogs, rates...
     for must in ("VelociRoachParams.max_leg_accel_rps2", "RigConfig.watchdog_periods",
                  "ShadowHandParams.telemetry_deadline_s", "WidowXParams.max_joint_vel_rad_s",
-                 "SawyerParams.joint_states_stale_s", "StepConfig.timeout_s"):
+                 "SawyerParams.joint_states_stale_s", "StepConfig.timeout_s",
+                 "PanUnitParams.pan_rate_rad_s"):  # a robot found through the registry (tools/config_bounds.py)
         assert must in checked
 
 

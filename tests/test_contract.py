@@ -43,6 +43,8 @@ CONTRACT_BACKENDS = [
     # the hand's reset arm lives in the hand's scene: the fixture brings the hand up first
     ("reset_arm", "sim", {"world": "contract"}),
     ("reset_arm", "emulated", {}),
+    ("pan_unit", "sim", {}),  # docs/adding_a_robot.md
+    ("pan_unit", "emulated", {}),
 ]
 
 

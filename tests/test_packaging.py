@@ -30,7 +30,8 @@ def test_the_wheel_installs_hilstack_alone_with_its_data(tmp_path):
     assert {t for t in top if not t.endswith(".dist-info")} == {"hilstack"}
     # every folder under its hilstack name, data files included (configs, MJCF, DBC, weights)
     for must in ("hilstack/control/planners.py", "hilstack/tools/cli.py", "hilstack/configs/robots/widowx.yaml",
-                 "hilstack/perception/weights/keypoint_net.pt", "hilstack/drivers/velociroach/driver.py"):
+                 "hilstack/perception/weights/keypoint_net.pt", "hilstack/drivers/velociroach/driver.py",
+                 "hilstack/tasks/baoding.py", "hilstack/sim_backends/dynamixel/firmware.py"):
         assert must in names, must
     assert not any(n.startswith(("hilstack/tests/", "tests/")) for n in names)
     entry = next(n for n in names if n.endswith("entry_points.txt"))

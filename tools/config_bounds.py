@@ -27,12 +27,13 @@ def config_models(sim: bool = False) -> list[type[BaseModel]]:
     from hilstack.control.reset.config import DetectorConfig, ResetConfig, StepConfig, VerifyConfig
     from hilstack.control.reset.steps import STEP_KINDS
     from hilstack.drivers.camera.config import CameraParams
+    from hilstack.drivers.dynamixel.params import DynamixelEmulatorParams
     from hilstack.drivers.mocap.driver import MocapParams
     from hilstack.drivers.reset_arm.config import ResetArmParams
     from hilstack.drivers.sawyer.config import SawyerParams
     from hilstack.drivers.shadow_hand.config import HandEmulatorParams, ShadowHandParams
     from hilstack.drivers.velociroach.config import VelociRoachEmulatorParams, VelociRoachParams
-    from hilstack.drivers.widowx.config import DynamixelEmulatorParams, MechanismParams, WidowXParams
+    from hilstack.drivers.widowx.config import MechanismParams, WidowXParams
     from hilstack.sim_backends.pointmass import PointMassParams
 
     out: list[type[BaseModel]] = [
@@ -41,6 +42,7 @@ def config_models(sim: bool = False) -> list[type[BaseModel]]:
         MocapParams, PointMassParams, RigConfig, RigRobot, BusConfig, ResetConfig, DetectorConfig, StepConfig,
         VerifyConfig]
     out += [k.params_model() for k in STEP_KINDS.values() if k.params_model() not in out]
+    out += [m for m in _registered_robot_params() if m not in out]
     if sim:
         from hilstack.learning.baoding import BaodingTaskParams
         from hilstack.sim_backends.shadow_hand.backend import SimParams as HandSimParams
@@ -48,6 +50,20 @@ def config_models(sim: bool = False) -> list[type[BaseModel]]:
         from hilstack.sim_backends.velociroach.backend import SimParams as RoachSimParams
 
         out += [RoachSimParams, HandSimParams, CameraSimParams, TrackerOptions, BaodingTaskParams]
+    return out
+
+
+def _registered_robot_params() -> list[type[BaseModel]]:
+    """The params model of every registered robot (a robot added later is checked without an
+    edit here): its driver built from ``configs/robots/<robot>.yaml``, never connected."""
+    from hilstack.drivers.registry import backends_of, make_driver, robots
+
+    out = []
+    for robot in robots():
+        backend = "real" if "real" in backends_of(robot) else "sim"
+        model = type(getattr(make_driver(robot, backend), "params", None))
+        if isinstance(model, type) and issubclass(model, BaseModel):
+            out.append(model)
     return out
 
 

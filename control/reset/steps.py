@@ -11,7 +11,7 @@ bus; steps own only their own motion.
 Kinds (``reset.steps[].kind`` in a rig config):
 
 - ``self_right``: hold still, then kick the legs at random until the robot is upright again.
-- ``lab_fixture``: the lab puts the robot on its legs (drivers/velociroach/fixture.py: the
+- ``lab_fixture``: the lab puts the robot on its legs (drivers/fixture.py: the
   emulator's fixture service; on a sim the driver's teleport where the robot lies; on a
   real rig without a fixture the step fails and an operator must).
 - ``drive_to_start``: drive back to the start position with the differential-drive
@@ -64,6 +64,8 @@ class StepContext(Protocol):
     """What the supervisor offers a step."""
 
     state_names: list[str]
+    #: the robot's spec (``RobotSpec.to_dict``), as its driver node published it
+    spec: dict[str, Any]
 
     def robot_link(self, robot: str) -> Any:
         """Another robot of the rig (:class:`hilstack.control.reset.supervisor.RobotLink`): its state,
@@ -269,7 +271,7 @@ class LabFixture(ResetStep):
     leg pattern tried (docs/reset.md). Done at once when the robot is upright.
 
     Where the fixture is: the robot's health names ``lab_fixture_port`` (the emulated
-    VelociRoACH: the emulator's UDP service, :mod:`hilstack.drivers.velociroach.fixture`); otherwise the
+    VelociRoACH: the emulator's UDP service, :mod:`hilstack.drivers.fixture`); otherwise the
     driver node's teleport to where the robot lies (sim backends). A real rig has neither:
     the driver answers ``unsupported``, the step fails, the rig stops and the operator
     is told to put the robot on its legs. Each use counts as ``fixture_recoveries`` (an
@@ -299,7 +301,7 @@ class LabFixture(ResetStep):
         self._upright_since_s: float | None = None
 
     def _ask(self, ctx: StepContext, state: RobotState) -> None:
-        from hilstack.drivers.velociroach.fixture import FixtureClient
+        from hilstack.drivers.fixture import FixtureClient
 
         port = (state.health or {}).get("lab_fixture_port")
         if port:
@@ -479,17 +481,28 @@ class TaskReset(ResetStep):
         self.mechanism.abort()
 
 
+#: the robot whose ``pick_place`` skill the ``arm_pick_place`` step runs (the registry finds it:
+#: entry points ``hilstack.skills``; the script and its IK live with the arm, sim_backends/reset_arm/)
+PICK_PLACE_ARM = "reset_arm"
+
+
+def _pick_place():
+    """The reset arm's pick-and-place module (PickPlaceConfig, PickPlaceScript, PickPlaceError)."""
+    from hilstack.drivers.registry import skill
+
+    return skill(PICK_PLACE_ARM, "pick_place")
+
+
 @functools.cache
 def _pick_place_params() -> type[StepParams]:
     """ArmPickPlace's params: the rig-robot name of the arm, the sync wait, and the
-    script's :class:`~hilstack.control.reset.arm_pick_place.PickPlaceConfig` fields (its period
+    script's ``PickPlaceConfig`` fields (the reset arm's ``pick_place`` skill) (its period
     comes from the arm's spec, not from the config)."""
     import typing
 
     from pydantic import create_model
 
-    from hilstack.control.reset.arm_pick_place import PickPlaceConfig
-
+    PickPlaceConfig = _pick_place().PickPlaceConfig
     hints = typing.get_type_hints(PickPlaceConfig, include_extras=True)  # keep the bounded types' bounds
     fields: dict[str, Any] = {}
     for f in dataclasses.fields(PickPlaceConfig):
@@ -508,7 +521,7 @@ def _pick_place_params() -> type[StepParams]:
 class ArmPickPlace(ResetStep):
     """The Shadow Hand's reset: the reset arm (its own robot on the bus, rig-robot name
     ``arm``) picks each ball from the ramp's pick-up spot and puts it in the palm
-    (control/reset/arm_pick_place.py: the script, IK on MuJoCo's Jacobian). Meanwhile
+    (sim_backends/reset_arm/pick_place.py: the script, IK on MuJoCo's Jacobian). Meanwhile
     the hand holds its cupped pose. Done when both balls are in the palm and the arm is
     parked; :meth:`verify` checks both balls are in the palm before the episode resumes.
 
@@ -531,8 +544,7 @@ class ArmPickPlace(ResetStep):
         return _pick_place_params()  # built on first use: the script's module loads MuJoCo
 
     def __init__(self, cfg: StepConfig):
-        from hilstack.control.reset.arm_pick_place import PickPlaceConfig
-
+        PickPlaceConfig = _pick_place().PickPlaceConfig
         super().__init__(cfg)
         self.pp_cfg = PickPlaceConfig(**self.params.model_dump(exclude={"arm", "sync_wait_s"}))
         self.script = None
@@ -540,9 +552,13 @@ class ArmPickPlace(ResetStep):
         self._hold: np.ndarray | None = None
 
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
-        from hilstack.control.reset.arm_pick_place import PickPlaceScript
-        from hilstack.drivers.shadow_hand.config import hold_pose_action
+        from hilstack.control.controller_node import ActionScale
+        PickPlaceScript = _pick_place().PickPlaceScript
 
+        home = (ctx.spec or {}).get("home_action")
+        if home is None:
+            raise StepError("arm_pick_place: the robot's spec has no home_action (the pose it holds while the "
+                            "arm places the balls)")
         self._link = ctx.robot_link(self.arm)
         if self._link.spec(timeout_s=2.0) is None:
             raise StepError(f"arm_pick_place: no spec from robot {self.arm!r}: is its driver node on the bus?")
@@ -554,11 +570,10 @@ class ArmPickPlace(ResetStep):
             cfg = dataclasses.replace(self.pp_cfg, period_s=float(spec["period_s"]))
             self.script = PickPlaceScript(cfg)  # builds the IK model once
         self.script.start(s.t_s, np.asarray(s.state))
-        self._hold = hold_pose_action()
+        self._hold = ActionScale.from_spec(ctx.spec).to_norm(np.asarray(home, dtype=np.float64))
 
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
-        from hilstack.control.reset.arm_pick_place import PickPlaceError
-
+        PickPlaceError = _pick_place().PickPlaceError
         s = self._link.state(not_before_t_s=state.t_s, timeout_s=self.sync_wait_s)
         try:
             a = self.script.update(s.t_s, np.asarray(s.state))
@@ -574,8 +589,7 @@ class ArmPickPlace(ResetStep):
         s = link.state()
         if s is None:
             return f"no state from robot {self.arm!r} (it sees the balls)"
-        from hilstack.control.reset.arm_pick_place import PickPlaceScript
-
+        PickPlaceScript = _pick_place().PickPlaceScript
         balls = PickPlaceScript.balls(np.asarray(s.state))
         d = np.linalg.norm(balls - np.asarray(self.pp_cfg.palm_center_m), axis=1)
         out = [f"ball{i} is {d[i]:.3f} m from the palm centre" for i in range(2)

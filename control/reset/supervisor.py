@@ -263,6 +263,7 @@ class ResetSupervisor(Node):
         for d in self.detectors:
             if d.robot:
                 self.robot_link(d.robot)
+        self.spec: dict[str, Any] = {}
         self.state_names: list[str] = []
         self.scale: ActionScale | None = None
         self._zero: np.ndarray | None = None
@@ -310,6 +311,7 @@ class ResetSupervisor(Node):
         )
 
     def _bind_spec(self, spec: dict[str, Any]) -> None:
+        self.spec = spec
         self.state_names = list(spec["state"]["names"])
         self.scale = ActionScale.from_spec(spec)
         # what "hold" sends: the safe action (legs stopped); for a robot that stops by holding

@@ -321,7 +321,7 @@ def start_emulator(config: dict[str, Any], baudrate: int, start_timeout_s: float
                    module: str | None = None,
                    timeout_margin_ms: float = EMULATED_TIMEOUT_MARGIN_MS, keep_log: bool = False) -> DynamixelBus:
     """Start the bus emulator process on a pty and open a bus on it."""
-    emu = EmulatorProcess(module or emulator_module("dynamixel"), ["--print-pty", "--config", json.dumps(config)], start_timeout_s=start_timeout_s,
+    emu = EmulatorProcess(module or emulator_module("widowx"), ["--print-pty", "--config", json.dumps(config)], start_timeout_s=start_timeout_s,
                           keep_log=keep_log)
     info = emu.start()
     bus = DynamixelBus(info["pty"], baudrate, timeout_margin_ms=timeout_margin_ms)

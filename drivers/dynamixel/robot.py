@@ -5,8 +5,8 @@ What it does for a subclass (which names its joints/IDs and maps servo units to 
 state and action):
 
 * opens the bus (``real``: ``params.port``; ``emulated``: starts the bus emulator
-  process; ``sim``: an in-process bus on the MuJoCo world, see
-  sim_backends/widowx/backend.py), shared with the other robots of the same bus;
+  process, the robot's ``EMULATOR``; ``sim``: an in-process bus on the MuJoCo world, see
+  sim_backends/dynamixel/backend.py), shared with the other robots of the same bus;
 * at configure: pings every ID (a missing servo is a one-line error naming joint, ID and
   port), checks Hardware Error Status (reboots only if the config allows it), reads the
   limits, does a first sync read;
@@ -53,6 +53,7 @@ from hilstack.drivers.dynamixel.control_table import (
     pos_rad,
     vel_rad_s,
 )
+from hilstack.drivers.emulator_process import emulator_module
 
 BLOCK = ("Bus Watchdog", "Present Temperature")
 #: a read waits for the servos' answers at most this fraction of a control period
@@ -64,6 +65,11 @@ REBOOT_WAIT_S = 0.5
 class DynamixelRobot(Driver):
     #: joint name -> Dynamixel ID, set by the subclass
     ids: dict[str, int]
+    #: the device emulator of this robot's bench (entry points ``hilstack.emulators``): the
+    #: Dynamixel bus emulator (sim_backends/dynamixel/emulator.py) on the bench's MuJoCo world
+    EMULATOR = "widowx"
+    #: the default ``params.bus_name`` of the robot's params (robots of one bus share it)
+    BUS_NAME = "widowx"
 
     def __init__(self, params: Any, backend: str, source: str | None):
         super().__init__()
@@ -102,7 +108,7 @@ class DynamixelRobot(Driver):
         if cfg.backend == "real":
             return f"dynamixel:{p.get('port')}"
         if cfg.backend == "emulated":
-            return f"dynamixel-emulated:{p.get('bus_name', 'widowx')}"
+            return f"dynamixel-emulated:{p.get('bus_name', cls.BUS_NAME)}"
         return None
 
     def _emulator_config(self) -> dict[str, Any]:
@@ -114,8 +120,9 @@ class DynamixelRobot(Driver):
             key = f"emulated:{p.bus_name}"
             e = p.emulator
             cfg = {**self._emulator_config(), **e.model_dump(exclude={"start_timeout_s", "keep_log"})}
+            module = emulator_module(self.EMULATOR)
             return key, acquire_bus(key, lambda: start_emulator(cfg, p.baudrate, start_timeout_s=e.start_timeout_s,
-                                                                keep_log=e.keep_log))
+                                                                module=module, keep_log=e.keep_log))
         if not p.port:
             raise ConfigError(self.source, [("params.port", "no serial port: set params.port (e.g. /dev/ttyUSB0) "
                                                             "or pass --port; see docs/arms.md")])

@@ -193,6 +193,7 @@ def shadow_hand_spec(p: ShadowHandParams) -> RobotSpec:
         action_rate_per_s=np.full(action.dim, p.max_action_rate_per_s),
         safe_action=None,  # stop = hold the measured position
         description="Shadow Dexterous Hand, 24 joints (20 actuated), joint position control",
+        home_action=hold_pose_action(),  # where every Baoding episode starts
     )
 
 

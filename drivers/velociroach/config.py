@@ -86,7 +86,7 @@ class VelociRoachEmulatorParams(EmulatorParams):
     seed: int = Field(0, description="seed of the fault injection's noise")
     physics: str | None = Field(None, pattern=r"^[\w.]+:\w+$", description="module:Class of the physics")
     lab_fixture: bool = Field(
-        True, description="serve the lab fixture beside the robot (drivers/velociroach/fixture.py): the stand-in for "
+        True, description="serve the lab fixture beside the robot (drivers/fixture.py): the stand-in for "
                           "the lab's hands that puts a robot on its back onto its legs; its UDP port is in the "
                           "driver's health as lab_fixture_port")
     # fault injection

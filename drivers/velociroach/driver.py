@@ -90,7 +90,7 @@ class VelociRoachDriver(Driver):
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self._emu: EmulatorProcess | None = None
-        #: UDP port of the emulator's lab fixture (backend emulated; drivers/velociroach/fixture.py)
+        #: UDP port of the emulator's lab fixture (backend emulated; drivers/fixture.py)
         self._fixture_port: int | None = None
         self._pose_client: Any = None
         self._pose = PoseFilter()
@@ -166,7 +166,7 @@ class VelociRoachDriver(Driver):
                                     keep_log=self.params.emulator.keep_log)
         ready = self._emu.start()
         # the lab fixture is beside the robot, not on its radio: the reset supervisor finds
-        # it in the health (drivers/velociroach/fixture.py)
+        # it in the health (drivers/fixture.py)
         self._fixture_port = ready.get("fixture_port")
         return ready["pty"]
 

@@ -27,6 +27,7 @@ import numpy as np
 from hilstack.configs.schema import RobotConfig, parse_params
 from hilstack.drivers.base import Observation
 from hilstack.drivers.dynamixel.control_table import OPERATING_MODES, pos_counts, vel_counts
+from hilstack.drivers.dynamixel.position import PositionRobot
 from hilstack.drivers.dynamixel.robot import DynamixelRobot
 from hilstack.drivers.widowx.config import (
     JOINT_NAMES,
@@ -126,7 +127,7 @@ class WidowXDriver(DynamixelRobot):
                 self._stop_confirmed = self._confirm_hold(before, {i: c for i, (_, c) in hold.items()})
 
 
-class MechanismDriver(DynamixelRobot):
+class MechanismDriver(PositionRobot):
     def __init__(self, params: MechanismParams | None = None, backend: str = "real", source: str | None = None):
         params = params or MechanismParams()
         self.ids = {n: params.ids[n] for n in MECH_JOINTS}
@@ -141,52 +142,6 @@ class MechanismDriver(DynamixelRobot):
 
     def _emulator_config(self) -> dict:
         return {"mech_ids": self.ids}
-
-    def _read(self) -> Observation:
-        self._read_bus()
-        pose = self._q / self._scale
-        state = np.concatenate([pose, self._qd / self._scale])
-        return self._observation(state, {"temperatures_c": self._temp_c.tolist()})
-
-    def _hold_command(self, obs: Observation) -> np.ndarray:
-        return np.clip(obs.state[:2], self.spec.action.low, self.spec.action.high)
-
-    def _on_activate(self) -> None:
-        self._send_pose(self._held)
-
-    def _write(self, action: np.ndarray) -> None:
-        self._send_pose(action)
-
-    def _send_pose(self, pose: np.ndarray) -> dict[int, int]:
-        goal = {i: self.clamp_goal_position(i, pos_counts(float(x * s), self.bus.table.zero_count))
-                for i, x, s in zip(self.ids.values(), pose, self._scale, strict=True)}
-        self._stop_confirmed = False
-        if self._mode != OPERATING_MODES["position"]:
-            self._send(self.set_mode, "position", {i: ("Goal Position", c) for i, c in goal.items()})
-        else:
-            self._send(self.bus.sync_write, "Goal Position", goal)
-        return goal
-
-    def _hold_target(self, target: np.ndarray) -> None:
-        """The stop at the held target (``Driver.stop``), read back (``stop_confirmed``)."""
-        before = self._answers.copy()
-        goal = self._send_pose(target)
-        self._stop_confirmed = self._confirm_hold(before, goal)
-
-    def _stop(self) -> np.ndarray | None:
-        """Hold the measured pose, read back (``stop_confirmed``); returns it (the held
-        command and the rate limit restart there)."""
-        self._stop_confirmed = False
-        if self.bus is None or self.bus.closed:
-            return None
-        self._sync_read()
-        pose = self._q / self._scale
-        if not np.all(np.isfinite(pose)):
-            return None
-        before = self._answers.copy()
-        goal = self._send_pose(pose)
-        self._stop_confirmed = self._confirm_hold(before, goal)
-        return np.clip(pose, self.spec.action.low, self.spec.action.high)
 
     def pose(self) -> tuple[float, float]:
         """(rotation [rad], offset [m]) as last measured."""

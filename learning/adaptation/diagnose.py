@@ -26,7 +26,7 @@ from hilstack.learning.adaptation.experiment import AdaptationConfig, RoachSim, 
 from hilstack.learning.adaptation.grbal import segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.training import fit_plain
-from hilstack.sim_backends.velociroach.perturbations import PerturbationSettings, load_presets
+from hilstack.tasks.perturbations import PerturbationSettings, load_presets
 
 
 def data(cfg: AdaptationConfig, seed: int, cache: Path):

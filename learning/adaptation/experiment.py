@@ -31,11 +31,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from hilstack.configs.schema import load_robot
 from hilstack.control.controller_node import ActionScale
 from hilstack.control.costs import PathCost, evaluate_path_following, summarize_paths
 from hilstack.control.paths import fillet, make_path, path_length, straight
 from hilstack.control.policies import SafeRandomPolicy
+from hilstack.drivers.registry import make_backend
 from hilstack.learning.adaptation import grbal, rebal
 from hilstack.learning.adaptation.base import Adapter
 from hilstack.learning.adaptation.baselines import MbAdapter, MbDeAdapter
@@ -47,8 +47,7 @@ from hilstack.learning.adaptation.training import fit_plain, split_episodes, tra
 from hilstack.learning.datasets import Episode
 from hilstack.learning.experiments import mean_std
 from hilstack.learning.mbrl import MbrlConfig, PathEnd, _jsonable, make_planner, path_start_pose
-from hilstack.sim_backends.velociroach.backend import VelociRoachSim
-from hilstack.sim_backends.velociroach.perturbations import (
+from hilstack.tasks.perturbations import (
     PerturbationPresets,
     PerturbationSettings,
     load_presets,
@@ -170,7 +169,7 @@ class RoachSim:
     """The VelociRoACH MuJoCo backend on one terrain, driven through the driver contract."""
 
     def __init__(self, terrain: str, seed: int):
-        self.sim = VelociRoachSim.from_config(load_robot("velociroach", params={"sim": {"terrain": terrain, "seed": seed}}))
+        self.sim = make_backend("velociroach", "sim", sim={"terrain": terrain, "seed": seed})
         self.sim.configure()
         self.sim.activate()
         spec = self.sim.spec

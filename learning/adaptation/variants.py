@@ -36,7 +36,7 @@ from hilstack.learning.adaptation.experiment import (
 from hilstack.learning.adaptation.grbal import segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.training import split_episodes
-from hilstack.sim_backends.velociroach.perturbations import load_presets
+from hilstack.tasks.perturbations import load_presets
 
 # variant -> (θ's meta learning rate, cap quantile or None)
 VARIANTS = {"default": (1e-4, 0.5), "uncapped": (1e-3, None), "theta1e-4": (1e-4, None), "cap1e-3": (1e-3, 0.5),

@@ -36,18 +36,20 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from hilstack.drivers.velociroach.config import STATE_NAMES, VelociRoachParams
+from hilstack.drivers.registry import make_backend, spec_of
 from hilstack.learning.transfer.grounding import GaratConfig, Gat, TransitionSet, train_garat
-from hilstack.sim_backends.velociroach.backend import VelociRoachSim
-from hilstack.sim_backends.velociroach.model import LEG_NAMES
+from hilstack.tasks.perturbations import LEG_NAMES
 
-_I = {n: i for i, n in enumerate(STATE_NAMES)}
+#: the roach's state channel -> index (its spec's, filled on first use: the registry builds its driver)
+_I: dict[str, int] = {}
 FEATURE_NAMES = ("v_fwd", "v_lat", "wz", "crank_vel_l", "crank_vel_r", "cos_dphase", "sin_dphase")
 
 
 def features(state: np.ndarray) -> np.ndarray:
     """Heading-invariant features of the 24-D state: body-frame velocity [m/s], yaw rate
     [rad/s], crank rates [rev/s], cos/sin of the left minus right crank angle."""
+    if not _I:
+        _I.update({n: i for i, n in enumerate(spec_of("velociroach").state.names)})
     s = np.asarray(state, float)
     c, si = s[_I["cos_yaw"]], s[_I["sin_yaw"]]
     n = math.hypot(c, si) or 1.0
@@ -71,8 +73,8 @@ class RoachStep:
         sim: dict = {"seed": seed}
         if leg_speed_scale is not None:
             sim["leg_speed_scale"] = tuple(leg_speed_scale)  # validated by the sim's params
-        self.params = VelociRoachParams(sim=sim)
-        self.sim = VelociRoachSim(self.params)
+        self.sim = make_backend("velociroach", "sim", sim=sim)
+        self.params = self.sim.params
         self.sim.configure()
         self.sim.activate()
         if missing_leg is not None:

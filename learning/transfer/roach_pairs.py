@@ -26,8 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from hilstack.drivers.velociroach.config import VelociRoachParams
-from hilstack.sim_backends.velociroach.backend import VelociRoachSim
+from hilstack.drivers.registry import make_backend
 
 #: the nominal contact of ``gravel`` (sim_backends/velociroach/backend.py TERRAINS)
 _GRAVEL_SOLREF = (0.006, 1.0)
@@ -47,7 +46,7 @@ PAIRS: dict[str, dict] = {
 PATCH_XY_M = np.array([(dx, dy) for dx in (-0.02, 0.0, 0.02) for dy in (-0.02, 0.0, 0.02)])
 
 
-def terrain_patch_m(sim: VelociRoachSim) -> np.ndarray:
+def terrain_patch_m(sim) -> np.ndarray:
     """Ground heights [m] at ``PATCH_XY_M`` around the chassis (zeros on a plane)."""
     m, d = sim.model, sim.data
     if m.nhfield == 0:
@@ -80,8 +79,8 @@ def collect(overrides: dict, minutes: float, seed: int, episode_s: float = 10.0)
     """Random-action rollouts of the robot configured by ``overrides`` (``VelociRoachParams``
     fields, ``sim`` merged into the backend's ``params.sim``), ``minutes`` of robot time."""
     sim_cfg = {**overrides.get("sim", {}), "seed": seed}
-    params = VelociRoachParams(**{**overrides, "sim": sim_cfg})
-    sim = VelociRoachSim(params)
+    sim = make_backend("velociroach", "sim", **{**overrides, "sim": sim_cfg})
+    params = sim.params
     sim.configure()
     sim.activate()
     steps = int(round(episode_s / params.period_s))

@@ -46,3 +46,9 @@ def build_model(kv_nm_s: float = 80.0, max_torque_nm: float = 80.0) -> mujoco.Mj
                           forcelimited=mujoco.mjtLimited.mjLIMITED_TRUE)
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST  # stiff velocity servos at 2.5 ms
     return spec.compile()
+
+
+def kinematics_model() -> mujoco.MjModel:
+    """The arm as a MuJoCo model for kinematics above the drivers (the reach task's end
+    effector): the ``sawyer.kinematics`` skill (pyproject.toml)."""
+    return build_model()

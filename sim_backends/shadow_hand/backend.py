@@ -39,10 +39,10 @@ from hilstack.drivers.shadow_hand.config import (
     to_joint_rad,
 )
 from hilstack.sim_backends.base import LockstepSim
-from hilstack.sim_backends.shadow_hand.baoding import BaodingTask
 from hilstack.sim_backends.shadow_hand.firmware import TICK_S, FirmwareConfig, HandFirmware
 from hilstack.sim_backends.shadow_hand.model import PHYSICS_DT_S, build_scene
 from hilstack.sim_backends.shadow_hand.station import StationGeometry
+from hilstack.tasks.baoding import BaodingTask
 
 #: configured hand sims with a reset station, by ``params.sim.world``: the reset arm's sim
 #: backend (sim_backends/reset_arm/backend.py) joins the scene of the one it names

@@ -207,9 +207,9 @@ class HandCameraScene:
 def baoding_motion(t_s: np.ndarray, radius_m: float = 0.025, rate_rad_s: float = np.pi / 5,
                    bob_m: float = 0.004) -> np.ndarray:
     """Ball centres (len(t), 2, 3) in the hand frame for a Baoding turn: the task's targets
-    (:class:`hilstack.sim_backends.shadow_hand.baoding.BaodingTask` about the palm centre, palm normal
+    (:class:`hilstack.tasks.baoding.BaodingTask` about the palm centre, palm normal
     = the hand frame's −y) bobbing ``bob_m`` along the normal (rolling over the fingers)."""
-    from hilstack.sim_backends.shadow_hand.baoding import BaodingTask
+    from hilstack.tasks.baoding import BaodingTask
 
     task = BaodingTask(center_m=np.asarray(PALM_CENTER_IN_HAND_M), axis=np.array([0.0, -1.0, 0.0]),
                        radius_m=radius_m, rate_rad_s=rate_rad_s)

@@ -13,7 +13,7 @@ simulator, crank angles/velocities from the (14-bit) encoders, back-EMF and batt
 Public API for the emulator: ``VelociRoachSim(params)``, ``configure()``, ``reset()``,
 ``firmware``, ``advance(duration_s)``, ``telemetry()``, ``mocap_pose()``, ``sim_time_s``,
 ``set_perturbation(name, value)``, ``apply_perturbations(settings)`` (typed settings,
-:mod:`.perturbations`).
+:mod:`hilstack.tasks.perturbations`).
 """
 
 from __future__ import annotations
@@ -354,7 +354,7 @@ class VelociRoachSim(LockstepSim):
             self.perturbations[name] = float(value)
 
     def apply_perturbations(self, settings: Any) -> None:
-        """Set every perturbation from a :class:`.perturbations.PerturbationSettings`
+        """Set every perturbation from a :class:`hilstack.tasks.perturbations.PerturbationSettings`
         (validated; unset fields go back to none), mid-episode included."""
         for name, value in settings.as_backend().items():
             self.set_perturbation(name, value)

@@ -24,7 +24,7 @@ stream stops S seconds after the first command, the radio keeps going) and
 ``nonfinite_telemetry_every`` (every N-th telemetry packet carries NaN sensor values) and
 ``start_upside_down`` (the robot starts on its back, as after a flip).
 
-Lab fixture (``--fixture-port``, drivers/velociroach/fixture.py): a UDP service beside the
+Lab fixture (``--fixture-port``, drivers/fixture.py): a UDP service beside the
 robot, not on its radio, that puts a robot lying on its back or side upright where it
 lies. It stands in for the lab's hands: the MuJoCo roach cannot right itself from its
 back (docs/reset.md), and the reset supervisor calls it only when its own ``self_right``
@@ -46,7 +46,7 @@ import tty
 from pathlib import Path
 from typing import Any
 
-from hilstack.drivers.velociroach import fixture as fixture_proto
+from hilstack.drivers import fixture as fixture_proto
 from hilstack.drivers.velociroach.config import VelociRoachParams, quat_to_rpy
 from hilstack.drivers.velociroach.link import FdPort, RadioLink, open_serial, xbee_rx64
 from hilstack.drivers.velociroach.mavlink import ROBOT_COMPID, ROBOT_SYSID, EncodeError, MavEncoder, mav
@@ -68,7 +68,7 @@ def log(msg: str) -> None:
 
 
 class LabFixture:
-    """The lab-fixture service (drivers/velociroach/fixture.py) on the emulator's MuJoCo model:
+    """The lab-fixture service (drivers/fixture.py) on the emulator's MuJoCo model:
     like a person in the lab it picks the robot up and sets it down on its legs at the
     same spot and heading, at rest. The firmware, battery and clock run on untouched."""
 
@@ -379,7 +379,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--garbage", action="store_true", default=None, help="noise bytes between frames")
     ap.add_argument("--silence-after", type=float, default=None, help="stop transmitting S s after the first command")
     ap.add_argument("--fixture-port", type=int, default=None,
-                    help="serve the lab fixture on this UDP port (0: any free port; drivers/velociroach/fixture.py)")
+                    help="serve the lab fixture on this UDP port (0: any free port; drivers/fixture.py)")
     ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args(argv)
 

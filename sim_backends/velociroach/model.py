@@ -39,6 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hilstack.tasks import perturbations
+
 #: legs: name, side (+1 left, -1 right), hip x [m], phase offset [rad] of the drawn arc
 LEGS: tuple[tuple[str, int, float, float], ...] = (
     ("lf", +1, +1, 0.0),
@@ -49,6 +51,7 @@ LEGS: tuple[tuple[str, int, float, float], ...] = (
     ("ra", -1, -1, 0.0),
 )
 LEG_NAMES = tuple(n for n, *_ in LEGS)
+assert LEG_NAMES == perturbations.LEG_NAMES  # one list of legs (the conditions name them)
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
 """The simulated bench: WidowX + mechanism + switch in MuJoCo, each joint driven by a
-:class:`~hilstack.sim_backends.widowx.firmware.Servo` at 1 kHz.
+:class:`~hilstack.sim_backends.dynamixel.firmware.Servo` at 1 kHz (a
+:class:`~hilstack.sim_backends.dynamixel.world.ServoWorld`).
 
 Used by the sim backends in-process (lockstep) and by the bus emulator process (real
 time). Servos are addressed by Dynamixel ID, as on the wire.
@@ -13,11 +14,11 @@ from __future__ import annotations
 
 import weakref
 
-import mujoco
 import numpy as np
 
 from hilstack.drivers.widowx.config import JOINTS, MECH_DEFAULT_IDS
-from hilstack.sim_backends.widowx.firmware import TICK_S, Servo, ServoPhysics
+from hilstack.sim_backends.dynamixel.firmware import ServoPhysics
+from hilstack.sim_backends.dynamixel.world import ServoWorld
 from hilstack.sim_backends.widowx.model import WX250S_LINKS, MechanismGeometry, build_spec
 
 #: Interbotix' sleep pose: shoulder and elbow on their limits, so gravity keeps it there
@@ -26,7 +27,7 @@ SLEEP_POSE_RAD = {"shoulder": -1.88, "elbow": 1.60, "wrist_angle": -1.74}
 _WORLDS: weakref.WeakValueDictionary[str, ArmWorld] = weakref.WeakValueDictionary()
 
 
-class ArmWorld:
+class ArmWorld(ServoWorld):
     def __init__(self, arm_ids: dict[str, int] | None = None, mech_ids: dict[str, int] | None = None,
                  mech: MechanismGeometry | None = None, start_holding: dict[str, float] | None = None):
         """``start_holding``: start with the arm torqued and holding these joint angles
@@ -37,77 +38,26 @@ class ArmWorld:
         self.mech_ids = mech_ids or dict(MECH_DEFAULT_IDS)
         self.mech = mech or MechanismGeometry()
         torques = {n: t for n, _, _, t in JOINTS}
-        self.model = build_spec(torques, self.mech).compile()
-        self.data = mujoco.MjData(self.model)
+        model = build_spec(torques, self.mech).compile()
         limits = {name: rng for name, _, _, rng, *_ in WX250S_LINKS}
         r = self.mech.rail_pinion_radius_m
         limits["mech_rotate"] = (-self.mech.rotate_half_range_rad, self.mech.rotate_half_range_rad)
         limits["mech_rail"] = (-self.mech.rail_half_travel_m / r, self.mech.rail_half_travel_m / r)
         torques.update({"mech_rotate": 4.1, "mech_rail": 4.1})
-        self.servos: dict[int, Servo] = {}
-        self._act: dict[int, int] = {}
-        for name, dxl_id in {**self.arm_ids, **self.mech_ids}.items():
-            phys = ServoPhysics(stall_torque_nm=torques[name])
-            self.servos[dxl_id] = Servo(dxl_id, physics=phys, position_limits_rad=limits[name])
-            self._act[dxl_id] = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_ACTUATOR, name)
-        self.reset()
+        super().__init__(model, {name: (dxl_id, ServoPhysics(stall_torque_nm=torques[name]), limits[name])
+                                 for name, dxl_id in {**self.arm_ids, **self.mech_ids}.items()})
 
-    @property
-    def time_s(self) -> float:
-        return float(self.data.time)
+    def start_pose(self) -> dict[str, float]:
+        """Arm in its sleep pose, resting on the shoulder and elbow limits (where a real
+        WidowX rests with torque off), or the ``start_holding`` pose."""
+        return self.start_holding if self.start_holding is not None else SLEEP_POSE_RAD
 
     def reset(self) -> None:
-        """Arm in its sleep pose, resting on the shoulder and elbow limits (where a real
-        WidowX rests with torque off), servos powered on with torque off."""
-        mujoco.mj_resetData(self.model, self.data)
-        pose = self.start_holding if self.start_holding is not None else SLEEP_POSE_RAD
-        for name, q in pose.items():
-            self.data.joint(name).qpos[0] = q
-        mujoco.mj_forward(self.model, self.data)
-        for s in self.servos.values():
-            s.mem[:] = bytes(len(s.mem))
-            s.power_on()
-        self._sync_servos()
+        """The start pose, servos powered on with torque off (holding, torqued, with
+        ``start_holding``)."""
+        super().reset()
         if self.start_holding is not None:
-            for dxl_id in self.arm_ids.values():
-                s = self.servos[dxl_id]
-                s.publish()
-                s.set("Goal Position", s.get("Present Position"))
-                s.set("Torque Enable", 1)
-
-    def reset_robot(self, names: list[str] | tuple[str, ...], ids: list[int]) -> None:
-        """Put some joints back to their start pose at rest and power-cycle their servos,
-        leaving the rest of the bench as it is (one robot's reset)."""
-        pose = self.start_holding if self.start_holding is not None else SLEEP_POSE_RAD
-        for name in names:
-            j = self.data.joint(name)
-            j.qpos[0] = pose.get(name, 0.0)
-            j.qvel[0] = 0.0
-        mujoco.mj_forward(self.model, self.data)
-        for dxl_id in ids:
-            s = self.servos[dxl_id]
-            s.mem[:] = bytes(len(s.mem))
-            s.power_on()
-            a = self._act[dxl_id]
-            s.tick(float(self.data.actuator_length[a]), float(self.data.actuator_velocity[a]), 0.0)
-
-    def _sync_servos(self) -> None:
-        """Present registers from the current state (no torque: used after reset)."""
-        for i, s in self.servos.items():
-            a = self._act[i]
-            s.tick(float(self.data.actuator_length[a]), float(self.data.actuator_velocity[a]), 0.0)
-
-    def step(self) -> None:
-        """One 1 ms servo tick on every servo, then one MuJoCo step."""
-        d = self.data
-        for i, s in self.servos.items():
-            a = self._act[i]
-            d.ctrl[a] = s.tick(float(d.actuator_length[a]), float(d.actuator_velocity[a]), TICK_S)
-        mujoco.mj_step(self.model, d)
-
-    def advance(self, duration_s: float) -> None:
-        for _ in range(int(round(duration_s / TICK_S))):
-            self.step()
+            self.hold_start_pose(list(self.arm_ids.values()))
 
     # ------------------------------------------------------------------ readouts
     def ee_pos(self) -> np.ndarray:
@@ -131,3 +81,9 @@ def shared_world(bus_name: str, arm_ids: dict[str, int] | None = None,
             if ids is not None and ids != have:
                 raise ValueError(f"bus {bus_name!r} already has {name} IDs {have}, config asks for {ids}")
     return w
+
+
+def kinematics_model():
+    """The arm's world as a MuJoCo model for kinematics above the drivers (the reach task's
+    end effector and the mechanism's port): the ``widowx.kinematics`` skill (pyproject.toml)."""
+    return ArmWorld().model

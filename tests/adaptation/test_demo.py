@@ -127,7 +127,7 @@ def test_every_method_meets_the_same_noise_from_the_same_start():
     """Issue 24, item 5: the env is reused between methods; a start reseeds the sim's noise
     streams, so the same actions from the same start give the same states whatever ran before."""
     from hilstack.learning.adaptation.experiment import RoachSim
-    from hilstack.sim_backends.velociroach.perturbations import PerturbationSettings
+    from hilstack.tasks.perturbations import PerturbationSettings
 
     env = RoachSim("carpet", 0)
     rng = np.random.default_rng(0)

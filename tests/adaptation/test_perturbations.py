@@ -9,7 +9,7 @@ import pytest
 
 from hilstack.configs.schema import ConfigError, load_robot, parse_model
 from hilstack.sim_backends.velociroach.backend import VelociRoachSim
-from hilstack.sim_backends.velociroach.perturbations import PerturbationSettings, load_presets
+from hilstack.tasks.perturbations import PerturbationSettings, load_presets
 
 
 def _sim(**sim) -> VelociRoachSim:

@@ -9,7 +9,7 @@ import pytest
 from hilstack.drivers.base import LinkError
 from hilstack.drivers.dynamixel.bus import ServoError, start_emulator
 from hilstack.drivers.dynamixel.control_table import OPERATING_MODES, control_table, vel_rad_s
-from hilstack.sim_backends.widowx.firmware import Servo
+from hilstack.sim_backends.dynamixel.firmware import Servo
 
 ARM = [1, 2, 4, 6, 7, 8]
 

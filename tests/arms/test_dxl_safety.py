@@ -40,7 +40,7 @@ from hilstack.drivers.dynamixel import protocol as p
 from hilstack.drivers.dynamixel.bus import start_emulator
 from hilstack.drivers.dynamixel.control_table import OPERATING_MODES, control_table, vel_counts
 from hilstack.drivers.registry import make_driver
-from hilstack.sim_backends.widowx.firmware import Servo
+from hilstack.sim_backends.dynamixel.firmware import Servo
 from hilstack.tools.cli import app
 from tests.helpers import ROOT, wait_for, wait_rig_router
 

@@ -6,11 +6,12 @@ from __future__ import annotations
 import pytest
 
 from hilstack.configs.schema import ConfigError, EmulatorParams
+from hilstack.drivers.dynamixel.params import DynamixelEmulatorParams
 from hilstack.drivers.registry import make_driver
 from hilstack.drivers.sawyer.config import SawyerParams
 from hilstack.drivers.shadow_hand.config import HandEmulatorParams, ShadowHandParams
 from hilstack.drivers.velociroach.config import VelociRoachEmulatorParams, VelociRoachParams
-from hilstack.drivers.widowx.config import DynamixelEmulatorParams, MechanismParams, WidowXParams
+from hilstack.drivers.widowx.config import MechanismParams, WidowXParams
 
 #: robot config → a typo of one of its emulator's real options
 TYPOS = {

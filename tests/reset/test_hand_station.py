@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import yaml
 
-from hilstack.control.reset.arm_ik import READY_Q_RAD, ArmIK, down_frame
 from hilstack.drivers.base import LinkError
 from hilstack.drivers.reset_arm.config import ResetArmParams
 from hilstack.drivers.shadow_hand.config import ShadowHandParams, hold_pose_action
 from hilstack.sim_backends.reset_arm.backend import ResetArmSim
+from hilstack.sim_backends.reset_arm.ik import READY_Q_RAD, ArmIK, down_frame
 from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
 from hilstack.sim_backends.shadow_hand.model import BALL_RADIUS_M
 

@@ -17,9 +17,9 @@ from hilstack.control.controller_node import ControllerNode
 from hilstack.control.reset.config import require_reset
 from hilstack.control.reset.supervisor import ResetSupervisor
 from hilstack.drivers.emulator_process import EmulatorProcess
+from hilstack.drivers.fixture import FixtureClient
 from hilstack.drivers.mocap.udp import UdpPoseClient
 from hilstack.drivers.velociroach.config import quat_to_rpy
-from hilstack.drivers.velociroach.fixture import FixtureClient
 from tests.helpers import wait_for, wait_rig_router
 
 

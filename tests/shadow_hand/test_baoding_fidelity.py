@@ -27,7 +27,7 @@ from hilstack.learning.baoding import (
     turn_rank_key,
 )
 from hilstack.learning.datasets import Episode
-from hilstack.sim_backends.shadow_hand.baoding import BaodingTask, TargetPhase
+from hilstack.tasks.baoding import BaodingTask, TargetPhase
 
 NAMES = list(shadow_hand_spec(ShadowHandParams(objects_in_state=True)).state.names)
 DT = 0.1

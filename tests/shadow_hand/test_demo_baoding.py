@@ -17,7 +17,7 @@ from hilstack.drivers.registry import make_driver
 from hilstack.drivers.shadow_hand.config import BALL_CHANNELS, ShadowHandParams, shadow_hand_spec
 from hilstack.learning.baoding import BaodingConfig, BaodingRun, UniformRandomPolicy, load_baoding_task
 from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
-from hilstack.sim_backends.shadow_hand.baoding import BaodingTask
+from hilstack.tasks.baoding import BaodingTask
 
 NAMES = list(shadow_hand_spec(ShadowHandParams(objects_in_state=True)).state.names)
 

@@ -15,7 +15,6 @@ from hilstack.drivers.shadow_hand.config import (
     to_joint_rad,
 )
 from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
-from hilstack.sim_backends.shadow_hand.baoding import BaodingTask
 from hilstack.sim_backends.shadow_hand.firmware import (
     FAULT_ESTOP,
     FAULT_MOTOR,
@@ -27,6 +26,7 @@ from hilstack.sim_backends.shadow_hand.firmware import (
     HandFirmware,
 )
 from hilstack.sim_backends.shadow_hand.model import BALL_MASS_KG, BALL_RADIUS_M, build_scene
+from hilstack.tasks.baoding import BaodingTask
 
 
 @pytest.fixture(scope="module")

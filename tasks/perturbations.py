@@ -21,11 +21,11 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from hilstack.configs.schema import Params, config_path, load_yaml_model
-from hilstack.sim_backends.velociroach.model import LEG_NAMES
 
+#: the robot's six legs (the sim model checks its legs are these: sim_backends/velociroach/model.py)
 Leg = Literal["lf", "lm", "la", "rf", "rm", "ra"]
+LEG_NAMES: tuple[str, ...] = Leg.__args__
 Terrain = Literal["carpet", "styrofoam", "gravel", "turf"]
-assert set(Leg.__args__) == set(LEG_NAMES)  # one list of legs (model.LEGS)
 
 
 class PerturbationSettings(Params):

@@ -10,7 +10,7 @@ When both balls are in the palm the arm goes back to its parked pose (q = 0, upr
 out of the balls' way) and the script is done.
 
 Cartesian moves run the tool centre point along a straight line at ``speed_m_s`` with
-IK (control/reset/arm_ik.py) every period, warm-started from the last command;
+IK (sim_backends/reset_arm/ik.py) every period, warm-started from the last command;
 joint-space moves interpolate at ``joint_speed_rad_s``. A phase ends when the command has
 reached its goal and the measured tool point (forward kinematics of the measured joints)
 is within ``tolerance_m`` of it.
@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hilstack.configs.schema import finite
-from hilstack.control.reset.arm_ik import READY_Q_RAD, ArmIK, down_frame
 from hilstack.drivers.reset_arm.config import GRIPPER_OPEN_M, ArmJointRateRadS
+from hilstack.sim_backends.reset_arm.ik import READY_Q_RAD, ArmIK, down_frame
 
 #: the tool point's Cartesian speed [m/s]
 ToolSpeedMS = finite(gt=0, le=1.7, source="the Franka Panda's Cartesian translation limit (1.7 m/s), the layout "
