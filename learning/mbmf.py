@@ -355,8 +355,10 @@ def evaluate(env, act, episodes: int, seed: int) -> tuple[float, float]:
 
 
 def _trpo_curve(algo, name: str, cfg: MbmfConfig, steps: int, offset: int, seed: int,
-                curve: list[dict[str, float]], log: Callable[[str], None], tag: str) -> None:
-    """``algo.learn(steps)`` with an evaluation every ``eval_every`` steps (and at 0)."""
+                curve: list[dict[str, float]], log: Callable[[str], None], tag: str,
+                on_point: Callable[[list], None] | None = None) -> None:
+    """``algo.learn(steps)`` with an evaluation every ``eval_every`` steps (and at 0);
+    ``on_point(curve)`` after each evaluation."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     eval_env = make_env(name, cfg.episode_len)
@@ -367,6 +369,8 @@ def _trpo_curve(algo, name: str, cfg: MbmfConfig, steps: int, offset: int, seed:
         m, s = evaluate(eval_env, policy_act(algo.policy), cfg.eval_episodes, 50_000 + 100 * seed)
         curve.append({"steps": offset + n, "return_mean": m, "return_std": s})
         log(f"  {tag} {name} s{seed}: {offset + n} steps, return {m:.1f}")
+        if on_point is not None:
+            on_point(curve)
 
     class Every(BaseCallback):
         def __init__(self):
@@ -388,19 +392,22 @@ def _trpo_curve(algo, name: str, cfg: MbmfConfig, steps: int, offset: int, seed:
     eval_env.close()
 
 
-def run_mf(name: str, cfg: MbmfConfig, seed: int, log: Callable[[str], None] = print) -> list[dict[str, float]]:
+def run_mf(name: str, cfg: MbmfConfig, seed: int, log: Callable[[str], None] = print,
+           on_point: Callable[[list], None] | None = None) -> list[dict[str, float]]:
     """TRPO from scratch: its evaluation curve."""
     torch.manual_seed(seed)
     algo = new_trpo(name, cfg, seed)
     curve: list[dict[str, float]] = []
-    _trpo_curve(algo, name, cfg, cfg.mf_steps, 0, seed, curve, log, "mf")
+    _trpo_curve(algo, name, cfg, cfg.mf_steps, 0, seed, curve, log, "mf", on_point)
     algo.env.close()
     return curve
 
 
-def run_mbmf(name: str, cfg: MbmfConfig, seed: int, mb: MbResult,
-             log: Callable[[str], None] = print) -> tuple[list[dict[str, float]], dict[str, Any]]:
-    """Imitation of MB's MPC with DAgger, std → 1, TRPO fine-tuning: (curve, info)."""
+def run_mbmf(name: str, cfg: MbmfConfig, seed: int, mb: MbResult, log: Callable[[str], None] = print,
+             on_point: Callable[[list], None] | None = None) -> tuple[list[dict[str, float]], dict[str, Any]]:
+    """Imitation of MB's MPC with DAgger, std → 1, TRPO fine-tuning: (curve, info). The
+    curve's first points are the DAgger rollouts' returns (the policy's mean action, counted
+    steps), then the fine-tuning's evaluations."""
     torch.manual_seed(seed)
     algo = new_trpo(name, cfg, seed)
     pol = algo.policy
@@ -418,6 +425,7 @@ def run_mbmf(name: str, cfg: MbmfConfig, seed: int, mb: MbResult,
         steps += n
         X, Y = np.concatenate([X, xs]), np.concatenate([Y, ys])
         info["dagger_returns"].append(float(np.mean(rets)))
+        curve.append({"steps": steps, "return_mean": float(np.mean(rets)), "return_std": float(np.std(rets))})
         info["bc_loss"].append(behaviour_clone(pol, X, Y, cfg.bc_epochs, cfg.bc_lr, cfg.bc_batch, seed + it + 1))
         log(f"  mbmf {name} s{seed} DAgger {it}: policy return {np.mean(rets):.1f}, {steps} steps, "
             f"bc loss {info['bc_loss'][-1]:.3g}")
@@ -425,7 +433,8 @@ def run_mbmf(name: str, cfg: MbmfConfig, seed: int, mb: MbResult,
     info["std_before_finetune"] = float(pol.log_std.detach().exp().mean())
     reset_policy_std(pol, 1.0)
     info["imitation_steps"] = steps
-    _trpo_curve(algo, name, cfg, cfg.ft_steps, steps, seed, curve, log, "mbmf")
+    info["finetune_start_index"] = len(curve)  # the curve's points before: the DAgger rollouts
+    _trpo_curve(algo, name, cfg, cfg.ft_steps, steps, seed, curve, log, "mbmf", on_point)
     algo.env.close()
     return curve, info
 
@@ -459,6 +468,14 @@ def run_seed(name: str, cfg: MbmfConfig, seed: int, out: Path, log: Callable[[st
         tmp.replace(p)
         return d
 
+    def partial(method: str):
+        """Writes the curve so far to ``<env>_<method>_s<seed>.partial.json`` (kept if the run is
+        interrupted; not read by the report)."""
+        def write(curve: list) -> None:
+            p = runs / f"{name}_{method}_s{seed}.partial.json"
+            p.write_text(json.dumps(_jsonable({"env": name, "method": method, "seed": seed, "curve": curve})))
+        return write
+
     def timing(t: float, c: float) -> dict[str, float]:
         return {"wall_s": round(time.monotonic() - t, 1), "cpu_s": round(time.process_time() - c, 1)}
 
@@ -468,13 +485,13 @@ def run_seed(name: str, cfg: MbmfConfig, seed: int, out: Path, log: Callable[[st
         mb = run_mb(name, cfg, seed, log)
         mb_d = save("mb", {"curve": mb.curve, **timing(t, c)})
         t, c = time.monotonic(), time.process_time()
-        curve, info = run_mbmf(name, cfg, seed, mb, log)
+        curve, info = run_mbmf(name, cfg, seed, mb, log, partial("mbmf"))
         mbmf_d = save("mbmf", {"curve": curve, "info": info, **timing(t, c)})
     res["mb"], res["mbmf"] = mb_d, mbmf_d
     mf_d = cached("mf")
     if mf_d is None:
         t, c = time.monotonic(), time.process_time()
-        mf_d = save("mf", {"curve": run_mf(name, cfg, seed, log), **timing(t, c)})
+        mf_d = save("mf", {"curve": run_mf(name, cfg, seed, log, partial("mf")), **timing(t, c)})
     res["mf"] = mf_d
     return res
 
@@ -544,7 +561,8 @@ def compare(runs: dict[str, list[dict[str, Any]]], ratio: float = 3.0) -> dict[s
         "mbmf_final": c["mbmf"][-1]["return_mean"], "mbmf_final_std": c["mbmf"][-1]["return_std"],
         "mbmf_steps_to_mf_final": at, "mbmf_steps_to_mf_final_per_seed": per_seed,
         "mbmf_imitation_steps": float(np.mean([r["info"]["imitation_steps"] for r in runs["mbmf"]])),
-        "mbmf_after_imitation": c["mbmf"][0]["return_mean"],
+        "mbmf_after_imitation": c["mbmf"][min(runs["mbmf"][0]["info"].get("finetune_start_index", 0),
+                                             len(c["mbmf"]) - 1)]["return_mean"],
         "speedup_vs_mf_budget": None if at is None else budget / at,
         "speedup_vs_mf_first_reach": None if at is None or first is None else first / at,
     })

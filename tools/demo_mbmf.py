@@ -49,6 +49,8 @@ def load_runs(out: Path, cfg: MbmfConfig) -> dict[str, dict[str, list[dict[str, 
     conf = _jsonable(asdict(cfg))
     res: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for p in sorted((out / "runs").glob("*.json")):
+        if p.name.endswith(".partial.json"):
+            continue
         d = json.loads(p.read_text())
         if d.get("config") != conf:
             continue
@@ -83,7 +85,8 @@ def report_markdown(r: dict[str, Any]) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for e, v in r["envs"].items():
         if "mf_final" not in v:
-            lines.append(f"| {e} | {v['seeds']} | {THESIS_SPEEDUP[e]:g}× | | | (incomplete) | | | | | |")
+            seeds = ", ".join(f"{m} {len(v['seeds'][m])}" for m in METHODS if m in v["seeds"])
+            lines.append(f"| {e} | {seeds} | {THESIS_SPEEDUP[e]:g}× | | | (incomplete) | | | | | |")
             continue
         mb = v["curves"].get("mb") or [{"return_mean": float("nan"), "return_std": float("nan")}]
         dn = v["do_nothing"] or {}

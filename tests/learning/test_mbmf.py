@@ -120,6 +120,10 @@ def test_demo_cli_tiny_writes_the_report_and_reuses_finished_runs(tmp_path, caps
     assert (tmp_path / "rewards.png").stat().st_size > 0 and "| swimmer |" in (tmp_path / "report.md").read_text()
     run = json.loads((tmp_path / "runs" / "swimmer_mf_s0.json").read_text())
     assert run["curve"][0]["steps"] == 0 and run["curve"][-1]["steps"] >= MbmfConfig.tiny().mf_steps
+    mb_mf = json.loads((tmp_path / "runs" / "swimmer_mbmf_s0.json").read_text())
+    assert mb_mf["info"]["finetune_start_index"] == 1  # one DAgger point, then the fine-tuning's
+    assert mb_mf["curve"][0]["steps"] == mb_mf["info"]["imitation_steps"]
+    assert json.loads((tmp_path / "runs" / "swimmer_mf_s0.partial.json").read_text())["curve"] == run["curve"]
     mtimes = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "runs").glob("*.json")}
     demo_mbmf.run_demo(tmp_path, tiny=True, envs=("swimmer",))
     assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "runs").glob("*.json")} == mtimes
