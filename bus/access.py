@@ -126,12 +126,14 @@ def provision(rig: str, bus: BusConfig, backends: list[str]) -> str | None:
     path = credentials_path(acc)
     if path.exists():
         return None
-    added = generate(path, [acc.user, *acc.command, *acc.release])
+    added = generate(path, [acc.user, *acc.command, *acc.release, *(acc.drive if bus.router else [])])
     return f"created credentials for rig {rig} in {path} (users {', '.join(added)}; mode 600)"
 
 
-def acl(rig: str, robots: list[str], access: BusAccess) -> dict[str, Any]:
-    """The Zenoh ``access_control`` section of the rig's router (see the module docstring)."""
+def acl(rig: str, robots: list[str], access: BusAccess, drivers: bool = False) -> dict[str, Any]:
+    """The Zenoh ``access_control`` section of the rig's router (see the module docstring).
+    ``drivers`` (a separate router, ``hil router``): the driver nodes are its clients too, and
+    ``access.drive`` users may publish anything under the rig's root (states, specs, e-stop acks)."""
     bad = sorted(set(robots) & set(RESERVED))
     if bad:
         raise AccessError(f"rig {rig}: robot name(s) {bad} are reserved on a rig with access control ({RESERVED})")
@@ -150,6 +152,11 @@ def acl(rig: str, robots: list[str], access: BusAccess) -> dict[str, Any]:
     if access.command:
         subjects.append({"id": "commanders", "usernames": list(access.command)})
         policies.append({"id": "commanders", "rules": ["command"], "subjects": ["commanders"]})
+    if drivers:
+        rules.append({"id": "drive", "permission": "allow", "flows": ["ingress"], "messages": ["put", "delete"],
+                      "key_exprs": [f"{root}/**"]})
+        subjects.append({"id": "drivers", "usernames": list(access.drive)})
+        policies.append({"id": "drivers", "rules": ["drive"], "subjects": ["drivers"]})
     for u in access.release:
         rules.append({"id": f"release-{u}", "permission": "allow", "flows": ["ingress"], "messages": ["put"],
                       "key_exprs": [keys.estop_release(rig, u)]})

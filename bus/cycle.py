@@ -14,6 +14,12 @@ Catch-up rule (the only one in the code base):
   burst of catch-up cycles after a stall. The grid (the phase) is kept, so the cycle
   after the late one starts on the next boundary still ahead.
 
+:class:`Rate` applies the same rule to a deadline that a loop polls among others (an
+emulator serving telemetry, pose and heartbeat at their own rates, a camera's frames, a
+driver's heartbeat): ``due(now)`` is True once per boundary reached, a boundary served
+more than a period late skips (and counts) the ones it passed. Loops expose the counts
+(``missed``, ``overruns``) in their ``health()`` / summaries.
+
 Section timing: ``with timer.section("plan"): ...`` records how long each named part
 of a cycle took; ``summary()`` gives p50/p99/max per section and of the cycle period
 itself, plus counts of late cycles and missed periods.
@@ -30,6 +36,15 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
+
+
+def _catch_up(next_s: float, now_s: float, period_s: float) -> tuple[int, float]:
+    """The catch-up rule for a boundary ``next_s`` reached at ``now_s``: (boundaries skipped,
+    the next boundary). The cycle of ``next_s`` runs now; boundaries also passed are skipped,
+    never made up; the grid's phase is kept."""
+    missed = int((now_s - next_s) // period_s)
+    return missed, next_s + (missed + 1) * period_s
+
 
 #: samples kept per section for the p50/p99 summary (about 3 min at 50 Hz)
 _HISTORY = 10_000
@@ -83,7 +98,6 @@ class CycleTimer:
             self.start()
         now = self._clock()
         target = self._next_s
-        missed = 0
         if now < target:
             self._sleep(target - now)
             start = self._clock()
@@ -91,11 +105,9 @@ class CycleTimer:
             # overran: this cycle starts late, right now; boundaries already behind us
             # (beyond the one this cycle belongs to) are skipped, never made up
             self.late += 1
-            missed = int((now - target) // self.period_s)
-            target += missed * self.period_s
             start = now
+        missed, self._next_s = _catch_up(target, max(now, target), self.period_s)
         self.missed += missed
-        self._next_s = target + self.period_s
         if self.cycle_start_s is not None:
             self._record("cycle", start - self.cycle_start_s)
         self.cycle_start_s = start
@@ -150,6 +162,49 @@ class CycleTimer:
             if isinstance(v, dict):
                 parts.append(f"{name} p50 {v['p50_s'] * 1e3:.2f} ms p99 {v['p99_s'] * 1e3:.2f} ms")
         return " | ".join(parts)
+
+
+class Rate:
+    """A recurring deadline on a fixed grid, polled by a loop that serves several of them.
+
+    ``due(now_s)`` is True once for each boundary reached (the first at ``first_s``, then
+    every ``period_s``) and moves on to the next; after a stall the late boundary fires once
+    and every further boundary already passed is skipped, counted in ``missed`` (and the
+    firing in ``overruns``), never made up in a burst: the CycleTimer's rule. ``left_s(now)``
+    is how long the loop may sleep before this deadline. Times are seconds of the caller's
+    clock (``time.monotonic`` in the emulators; tests pass numbers)."""
+
+    def __init__(self, period_s: float, first_s: float):
+        if not (period_s > 0 and math.isfinite(period_s)):
+            raise ValueError(f"rate period_s must be a positive number of seconds, got {period_s!r}")
+        self.period_s = float(period_s)
+        #: the next boundary [s]
+        self.next_s = float(first_s)
+        #: boundaries served
+        self.fired = 0
+        #: boundaries skipped after a stall, never made up
+        self.missed = 0
+        #: firings that skipped at least one boundary
+        self.overruns = 0
+
+    def due(self, now_s: float) -> bool:
+        """True when the next boundary has been reached (then it moves on, by the catch-up rule)."""
+        if now_s < self.next_s:
+            return False
+        missed, self.next_s = _catch_up(self.next_s, now_s, self.period_s)
+        self.fired += 1
+        if missed:
+            self.missed += missed
+            self.overruns += 1
+        return True
+
+    def left_s(self, now_s: float) -> float:
+        """Seconds until the next boundary (0 when it is due)."""
+        return max(0.0, self.next_s - now_s)
+
+    def counts(self, prefix: str) -> dict[str, int]:
+        """``{prefix_missed, prefix_overruns}`` for a health() or summary dict."""
+        return {f"{prefix}_missed": self.missed, f"{prefix}_overruns": self.overruns}
 
 
 def _quantile(sorted_vals: list[float], q: float) -> float:

@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING
 import zenoh
 
 from hilstack.bus import keys
+from hilstack.bus.cycle import Rate
 from hilstack.bus.schemas import EStop, EStopAck, MalformedMessage, decode, encode
 
 if TYPE_CHECKING:
@@ -255,13 +256,15 @@ def command_estop(
     res = EStopResult(rig=rig, engaged=engaged, estop_id=uuid.uuid4().hex)
     msg = EStop(engaged=engaged, reason=reason, source=node.name, id=res.estop_id, sender=node.user)
     t0 = time.monotonic()
-    next_alive_s = t0
+    # the one scheduler (bus/cycle.py): repeats and liveliness queries on their own grids,
+    # a late one skips what it missed (no burst of repeats after a slow query)
+    repeat, alive = Rate(repeat_s, t0), Rate(0.2, t0)
     while True:
         now = time.monotonic()
-        pub.put(msg)
-        if now >= next_alive_s:
+        if repeat.due(now):
+            pub.put(msg)
+        if alive.due(now):
             res.drivers |= _driver_nodes(node, min(0.2, max(0.05, t0 + timeout_s - now)))
-            next_alive_s = time.monotonic() + 0.2
         for _, payload in acks.drain():
             try:
                 ack = decode(payload, EStopAck)
@@ -277,7 +280,7 @@ def command_estop(
         elapsed = time.monotonic() - t0
         if (res.ok and elapsed >= settle_s) or elapsed >= timeout_s:
             return res
-        acks.wait_queued(repeat_s)
+        acks.wait_queued(min(repeat.left_s(time.monotonic()), alive.left_s(time.monotonic())))
 
 
 def _driver_nodes(node: Node, timeout_s: float) -> set[str]:

@@ -102,20 +102,24 @@ class FoxglovePoses:
 
     def __init__(self) -> None:
         self._names: dict[str, tuple[str, ...]] = {}
+        self._chains: dict[str, list[dict[str, Any]]] = {}
 
     def derive(self, topic: str, msg: Msg, log_ns: int) -> list[tuple[str, Any, int]]:
         """[(topic, foxglove message, its stamp [ns since the epoch])] derived from ``msg``."""
         if isinstance(msg, SpecMsg):
             try:
                 self._names[msg.robot] = tuple(msg.spec["state"]["names"])
-            except (KeyError, TypeError):
+                if msg.spec.get("chain"):
+                    self._chains[msg.robot] = list(msg.spec["chain"])
+            except (KeyError, TypeError, AttributeError):
                 pass  # a spec without state names: no pose for this robot
             return []
         if not isinstance(msg, RobotState) or msg.robot not in self._names:
             return []
+        links = self._links(topic, msg, log_ns)
         pose = planar_pose(self._names[msg.robot], msg.state)
         if pose is None or not all(math.isfinite(v) for v in pose):
-            return []
+            return links
         x, y, z, yaw = pose
         parts = topic.split("/")
         rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
@@ -131,7 +135,50 @@ class FoxglovePoses:
              fg.FrameTransform(timestamp=ts, parent_frame_id=WORLD_FRAME, child_frame_id=msg.robot,
                                translation=pos, rotation=q),
              stamp_ns),
+            *links,
         ]
+
+    def _links(self, topic: str, msg: RobotState, log_ns: int) -> list[tuple[str, Any, int]]:
+        """The FrameTransforms of a robot's kinematic chain (an arm in Foxglove's 3D panel); a
+        robot without a planar pose is placed at the world's origin."""
+        chain = self._chains.get(msg.robot)
+        tfs = None if chain is None else chain_transforms(msg.robot, chain, self._names[msg.robot], msg.state)
+        if not tfs:
+            return []
+        parts = topic.split("/")
+        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+        stamp_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+        ts = fg.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+        if planar_pose(self._names[msg.robot], msg.state) is None:
+            tfs = [(WORLD_FRAME, msg.robot, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)), *tfs]
+        return [(foxglove_tf_topic(rig),
+                 fg.FrameTransform(timestamp=ts, parent_frame_id=a, child_frame_id=b,
+                                   translation=fg.Vector3(x=t[0], y=t[1], z=t[2]),
+                                   rotation=fg.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])), stamp_ns)
+                for a, b, t, q in tfs]
+
+
+def chain_transforms(robot: str, chain: list[dict[str, Any]], names: list[str] | tuple[str, ...],
+                     state: list[float]) -> list[tuple[str, str, tuple[float, float, float],
+                                                       tuple[float, float, float, float]]] | None:
+    """(parent frame, child frame, translation [m], rotation quaternion x, y, z, w) of each link
+    of a spec's kinematic ``chain`` (``RobotSpec.chain``): link ``<robot>/<joint>_link`` sits at
+    the joint's offset in its parent link and turns about the joint's axis by the state's
+    ``<joint>_pos`` (or ``<joint>``) angle. None if an angle is missing or not finite."""
+    idx = {n: i for i, n in enumerate(names)}
+    out, parent = [], robot
+    for link in chain:
+        j = link["joint"]
+        i = idx.get(f"{j}_pos", idx.get(j))
+        if i is None or i >= len(state) or not math.isfinite(state[i]):
+            return None
+        ax = link["axis"]
+        norm = math.sqrt(sum(a * a for a in ax)) or 1.0
+        s, c = math.sin(state[i] / 2), math.cos(state[i] / 2)
+        child = f"{robot}/{j}_link"
+        out.append((parent, child, tuple(link["xyz"]), (ax[0] / norm * s, ax[1] / norm * s, ax[2] / norm * s, c)))
+        parent = child
+    return out
 
 
 def foxglove_image_topic(rig: str, camera: str) -> str:
@@ -158,6 +205,65 @@ def foxglove_image(topic: str, msg: Msg, log_ns: int) -> tuple[str, Any, int] | 
             stamp_ns)
 
 
+def state_fields_topic(rig: str, robot: str) -> str:
+    """Channel of a robot's named state fields (:class:`StateFields`), beside its poses."""
+    return f"{keys.root(rig)}/foxglove/{robot}/fields"
+
+
+def _num(v: Any) -> float | None:
+    return float(v) if math.isfinite(v) else None  # JSON has no NaN: null, a gap in a plot
+
+
+class StateFields:
+    """Each robot's state, action and numeric health counters as *named* JSON fields, on a
+    JSON schema made per robot from its spec: Foxglove plots ``state.crank_vel_l`` instead of
+    ``.state[19]``. A derived channel (:func:`state_fields_topic`, schema ``hil.StateFields/<robot>``,
+    not replayed, not read back by :func:`iter_messages`): the ``hil.RobotState`` channel stays
+    the record. The health counters (dropped frames, stale stops, refused commands...) are the
+    numeric entries of the robot's first health report."""
+
+    def __init__(self) -> None:
+        self._spec: dict[str, tuple[list[str], list[str]]] = {}
+        self._health: dict[str, list[str]] = {}
+
+    def derive(self, topic: str, msg: Msg) -> tuple[str, str, dict[str, Any] | None, bytes] | None:
+        """(topic, schema name, schema or None if already given for this robot, JSON payload)."""
+        if isinstance(msg, SpecMsg):
+            try:
+                self._spec[msg.robot] = (list(msg.spec["state"]["names"]), list(msg.spec["action"]["names"]))
+            except (KeyError, TypeError):
+                pass
+            return None
+        if not isinstance(msg, RobotState) or msg.robot not in self._spec:
+            return None
+        sn, an = self._spec[msg.robot]
+        if len(msg.state) != len(sn):
+            return None
+        schema = None
+        if msg.robot not in self._health:
+            self._health[msg.robot] = sorted(k for k, v in msg.health.items()
+                                             if isinstance(v, (int, float)) and not isinstance(v, bool))
+            num = {"type": "number"}
+            schema = {"type": "object", "title": f"hil.StateFields/{msg.robot}", "properties": {
+                "robot": {"type": "string"}, "t_s": num, "ok": {"type": "boolean"}, "active": {"type": "boolean"},
+                "episode": {"type": "integer"}, "obs_seq": {"type": "integer"},
+                "state": {"type": "object", "properties": {n: num for n in sn}},
+                "action": {"type": "object", "properties": {n: num for n in an}},
+                "health": {"type": "object", "properties": {n: num for n in self._health[msg.robot]}},
+            }}
+        act = msg.action if len(msg.action) == len(an) else []
+        payload = {
+            "robot": msg.robot, "t_s": _num(msg.t_s), "ok": msg.ok, "active": msg.active, "episode": msg.episode,
+            "obs_seq": msg.obs_seq, "state": {n: _num(v) for n, v in zip(sn, msg.state, strict=True)},
+            "action": {n: _num(v) for n, v in zip(an, act, strict=False)},
+            "health": {k: _num(msg.health[k]) for k in self._health[msg.robot]
+                       if isinstance(msg.health.get(k), (int, float)) and not isinstance(msg.health.get(k), bool)},
+        }
+        parts = topic.split("/")
+        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+        return state_fields_topic(rig, msg.robot), f"hil.StateFields/{msg.robot}", schema, json.dumps(payload).encode()
+
+
 class _McapFoxglovePoses:
     """Writes :class:`FoxglovePoses` messages to an mcap ``Writer`` (protobuf channels)."""
 
@@ -166,6 +272,7 @@ class _McapFoxglovePoses:
         self._poses = FoxglovePoses()
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
+        self._fields = StateFields()
 
     def _channel(self, topic: str, cls: Any) -> int:
         cid = self._channels.get(topic)
@@ -185,6 +292,17 @@ class _McapFoxglovePoses:
             out.append(img)
         for t, m, stamp_ns in out:
             self._w.add_message(self._channel(t, type(m)), log_time=log_ns, data=m.encode(), publish_time=stamp_ns)
+        fields = self._fields.derive(topic, msg)
+        if fields is not None:
+            t, name, schema, data = fields
+            if t not in self._channels:
+                if schema is None:
+                    return len(out)  # a second rig's robot of the same name: its schema is the first one's
+                sid = self._w.register_schema(name, "jsonschema", json.dumps(schema).encode())
+                self._channels[t] = self._w.register_channel(t, "json", sid)
+            pub = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+            self._w.add_message(self._channels[t], log_time=log_ns, data=data, publish_time=pub)
+            return len(out) + 1
         return len(out)
 
 

@@ -8,6 +8,7 @@ the version in the tag.
 
 from __future__ import annotations
 
+import enum
 import math
 import time
 from typing import Any, TypeVar
@@ -27,6 +28,40 @@ class Msg(msgspec.Struct, tag_field="type", kw_only=True, omit_defaults=False):
     seq: int = 0
 
 
+class StoppedReason(enum.StrEnum):
+    """Why the driver node holds the robot's safe action (``RobotState.stopped_reason``).
+
+    str-valued: the wire and recordings carry these very strings (the field stays ``str``,
+    so a reader meets a newer reason as a string, not as an undecodable state)."""
+
+    #: taking commands: the robot runs the newest one
+    RUNNING = ""
+    #: no command since activation, a reset, a teleport, an e-stop release or a resume
+    WAITING = "waiting"
+    #: commands stopped arriving (``watchdog_periods`` without one)
+    STALE = "stale"
+    #: the rig's e-stop is engaged
+    ESTOP = "estop"
+    #: the newest command was invalid (shape, NaN) and refused
+    BAD_COMMAND = "bad_command"
+    #: the reading is not ok (stale or non-finite input) or not ok long enough again
+    UNHEALTHY = "unhealthy"
+
+
+class ResetPhase(enum.StrEnum):
+    """``ResetEvent.phase``: requests (``request`` from a controller or the supervisor on
+    ``reset/request``; ``teleport`` and ``episode`` from the reset supervisor on
+    ``reset/driver``) and answers (``done``, ``failed``, ``unsupported``). str-valued as
+    :class:`StoppedReason`."""
+
+    REQUEST = "request"
+    TELEPORT = "teleport"
+    EPISODE = "episode"
+    DONE = "done"
+    FAILED = "failed"
+    UNSUPPORTED = "unsupported"
+
+
 class RobotState(Msg, tag="hil.RobotState/1"):
     robot: str
     #: robot clock at measurement (wall clock for real/emulated, sim time for sim) [s]
@@ -36,7 +71,8 @@ class RobotState(Msg, tag="hil.RobotState/1"):
     obs_seq: int = 0
     ok: bool = True
     active: bool = False
-    #: why the driver node is holding the safe action: "", "stale", "estop", "error"
+    #: why the driver node is holding the safe action: a :class:`StoppedReason` value
+    #: ("" while it takes commands; "waiting", "stale", "estop", "bad_command", "unhealthy")
     stopped_reason: str = ""
     #: last applied action (held during the period that ended with this state)
     action: list[float] = []
@@ -220,9 +256,11 @@ class TaskPosterior(Msg, tag="hil.TaskPosterior/1"):
 class ResetEvent(Msg, tag="hil.ResetEvent/1"):
     """Reset protocol: a controller or the reset supervisor sends ``phase="request"``
     (``pose``: where to put the robot, when the backend can) on ``reset/request``;
-    the driver node answers on ``reset/done`` with ``"done"`` or ``"unsupported"``."""
+    the driver node answers on ``reset/done`` with ``"done"``, ``"failed"`` or
+    ``"unsupported"`` (:class:`ResetPhase`)."""
 
     robot: str
+    #: a :class:`ResetPhase` value
     phase: str
     pose: dict[str, float] = {}
     episode: int = 0

@@ -9,6 +9,7 @@ every other node is a client of it with its credentials.
 from __future__ import annotations
 
 import json
+import os
 import re
 
 import zenoh
@@ -27,6 +28,14 @@ def zenoh_config(bus: BusConfig | None = None, server: bool = False, rig: str | 
     if bus.access is not None:
         return _access_config(bus, server, rig, robots or [])
     c = zenoh.Config()
+    if bus.router is not None:  # the rig's own router (`hil router`): every node is its client
+        c.insert_json5("mode", json.dumps("client"))
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("listen/endpoints", "[]")
+        c.insert_json5("connect/endpoints", json.dumps([bus.router, *bus.connect]))
+        c.insert_json5("connect/exit_on_failure", "false")
+        c.insert_json5("connect/timeout_ms", "0")
+        return c
     c.insert_json5("mode", json.dumps(bus.mode))
     c.insert_json5("scouting/multicast/enabled", json.dumps(bus.multicast_scouting))
     c.insert_json5("scouting/gossip/enabled", json.dumps(bus.gossip))
@@ -59,7 +68,7 @@ def _access_config(bus: BusConfig, server: bool, rig: str | None, robots: list[s
     c = zenoh.Config()
     c.insert_json5("scouting/multicast/enabled", "false")
     c.insert_json5("scouting/gossip/enabled", "false")
-    if server:
+    if server and bus.router is None:
         if rig is None:
             raise ValueError("the rig's router needs the rig name")
         c.insert_json5("mode", json.dumps("router"))
@@ -71,17 +80,47 @@ def _access_config(bus: BusConfig, server: bool, rig: str | None, robots: list[s
         c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(path)))
         c.insert_json5("access_control", json.dumps(access.acl(rig, robots, acc)))
         return c
-    user = access.user_of(acc)
+    # a driver node of a rig with its own router (`hil router`) is a client as a drive user
+    user = acc.drive[0] if server and access.USER_ENV not in os.environ else access.user_of(acc)
     if user not in creds:
         raise access.AccessError(f"credentials file {path} has no line for user {user!r} "
                                  f"(bus.access.user or {access.USER_ENV}); it has {sorted(creds)}")
     c.insert_json5("mode", json.dumps("client"))
     c.insert_json5("listen/endpoints", "[]")
-    c.insert_json5("connect/endpoints", json.dumps([bus.endpoint, *bus.connect]))
+    c.insert_json5("connect/endpoints", json.dumps([bus.router or bus.endpoint, *bus.connect]))
     c.insert_json5("connect/exit_on_failure", "true")
     c.insert_json5("connect/timeout_ms", "5000")
     c.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
     c.insert_json5("transport/auth/usrpwd/password", json.dumps(creds[user]))
+    return c
+
+
+def router_config(bus: BusConfig, rig: str, robots: list[str], tls: dict[str, str] | None = None) -> zenoh.Config:
+    """The rig's own Zenoh router (``hil router``): listens on ``bus.router`` (and ``bus.listen``);
+    with ``bus.access`` it authenticates every session and applies the rig's ACL, the driver
+    nodes being its clients (``access.drive`` users). ``tls``: ``{"cert", "key", "ca"}`` file paths
+    for ``tls/...`` endpoints (mutual TLS when ``ca`` is given)."""
+    if bus.router is None:
+        raise ValueError(f"rig {rig}: bus.router is not set (the endpoint `hil router` listens on)")
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps("router"))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("listen/endpoints", json.dumps([bus.router, *bus.listen]))
+    c.insert_json5("listen/exit_on_failure", "true")
+    c.insert_json5("connect/endpoints", "[]")
+    if bus.access is not None:
+        from hilstack.bus import access
+
+        path = access.credentials_path(bus.access)
+        access.read_credentials(path)  # refuses a missing or world-readable file
+        c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(path)))
+        c.insert_json5("access_control", json.dumps(access.acl(rig, robots, bus.access, drivers=True)))
+    if tls:
+        c.insert_json5("transport/link/tls/listen_certificate", json.dumps(tls["cert"]))
+        c.insert_json5("transport/link/tls/listen_private_key", json.dumps(tls["key"]))
+        if tls.get("ca"):
+            c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls["ca"]))
+            c.insert_json5("transport/link/tls/enable_mtls", "true")
     return c
 
 
@@ -102,7 +141,7 @@ def open_session(bus: BusConfig | None = None, server: bool = False, rig: str | 
         return zenoh.open(cfg)
     except Exception as e:  # zenoh.ZError; the message ends with a Rust source location
         why = re.split(r"\s+at /", str(e), maxsplit=1)[0].strip()
-        if server:
+        if server and bus.router is None:
             raise BusUnavailable(f"rig {rig}: cannot own its endpoint {bus.endpoint} ({why}); another process "
                                  "holds it (another rig on this host? give each rig its own bus.endpoint)") from None
         from hilstack.bus.access import user_of

@@ -5,13 +5,13 @@ Entry points: :func:`run_calibration` (the whole pipeline, also ``hil calibrate`
 (the augmented model saved as ``model.json``). See docs/calibration.md.
 """
 
-from hilstack.calibration.data import DataError, Episode, load_episodes
+from hilstack.calibration.data import DataError, Recording, load_episodes
 from hilstack.calibration.models import ModelNotAvailable, UnknownModel, get_model, load_model
 from hilstack.calibration.report import run_calibration
 
 __all__ = [
     "DataError",
-    "Episode",
+    "Recording",
     "ModelNotAvailable",
     "UnknownModel",
     "get_model",

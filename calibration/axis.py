@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
-from hilstack.calibration.data import Episode, default_sg_window, sg_velocity, sg_velocity_kernel
+from hilstack.calibration.data import Recording, default_sg_window, sg_velocity, sg_velocity_kernel
 from hilstack.calibration.effects import CATALOGUE
 
 #: Hyper-parameters (nonlinear) per effect, and linear coefficients per effect.
@@ -90,7 +90,7 @@ HYPER_NO_EFFECT = {
 class Prepared:
     """An episode with the derived signals the axis model needs (computed once)."""
 
-    ep: Episode
+    ep: Recording
     period_s: float
     v_obs: np.ndarray  # the observed velocity channel [x/s]: measured, or SG-derived from x
     v_from_x: np.ndarray  # SG derivative of position [x/s] (reference for velocity sensor checks)
@@ -107,7 +107,7 @@ class Prepared:
         return self.ep.n
 
 
-def prepare(episodes: list[Episode], sg_window: int | None = None, max_delay_s: float | None = None) -> list[Prepared]:
+def prepare(episodes: list[Recording], sg_window: int | None = None, max_delay_s: float | None = None) -> list[Prepared]:
     """Derive velocities for all episodes (same SG window for all: they share a period)."""
     period_s = float(np.median([e.period_s for e in episodes]))
     window = sg_window or default_sg_window(period_s)
@@ -154,7 +154,7 @@ def segment_margin(period_s: float, sg_window: int | None = None) -> int:
 MAX_LOGGED_VELOCITY_NOISE_RATIO = 3.0
 
 
-def logged_velocity_usable(episodes: list[Episode], period_s: float, window: int) -> bool:
+def logged_velocity_usable(episodes: list[Recording], period_s: float, window: int) -> bool:
     """Whether the logged velocity channel is fit to be the model's velocity state.
 
     Many drives log velocity as the finite difference of a quantised encoder: steps of
@@ -172,7 +172,7 @@ def logged_velocity_usable(episodes: list[Episode], period_s: float, window: int
     return float(np.median(ratios)) <= MAX_LOGGED_VELOCITY_NOISE_RATIO
 
 
-def velocity_noise(e: Episode, period_s: float, window: int, measured: bool, robust: bool = False) -> float:
+def velocity_noise(e: Recording, period_s: float, window: int, measured: bool, robust: bool = False) -> float:
     """Noise std [x/s] of the velocity channel: from the SG residual of the logged signal."""
     from scipy.signal import savgol_coeffs, savgol_filter
 
@@ -187,7 +187,7 @@ def velocity_noise(e: Episode, period_s: float, window: int, measured: bool, rob
     return sigma * float(np.linalg.norm(d))
 
 
-def moving_mask(e: Episode, v: np.ndarray, period_s: float, window: int,
+def moving_mask(e: Recording, v: np.ndarray, period_s: float, window: int,
                 measured: bool | None = None) -> tuple[np.ndarray, float]:
     """Samples used as regression rows: the axis moves, away from stops by a smoothing window.
 

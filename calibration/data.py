@@ -47,7 +47,7 @@ class DataError(ValueError):
 
 
 @dataclass(frozen=True)
-class Episode:
+class Recording:
     """One contiguous single-axis recording, uniformly sampled.
 
     Attributes:
@@ -80,6 +80,23 @@ class Episode:
     def n(self) -> int:
         return int(self.t_s.shape[0])
 
+    def transitions(self, state_names: tuple[str, ...] | list[str] | None = None,
+                    action_names: tuple[str, ...] | list[str] | None = None):
+        """The multi-channel part as a :class:`hilstack.learning.datasets.Episode`, the one
+        episode type of learning: ``N`` states and the ``N − 1`` actions between them
+        (``actions[k]``, held from t_k to t_{k+1}, leads from ``states[k]`` to ``states[k+1]``;
+        the repeated last row is dropped). ``state_names``/``action_names``: the channels to
+        keep, in that order (default all)."""
+        from hilstack.learning.datasets import Episode as Transitions
+
+        if self.states is None or self.actions is None:
+            raise DataError(f"{self.name}: no state/action channels (an .mcap recording or a mapped table has them)")
+        si = [self.state_names.index(n) for n in state_names] if state_names is not None else slice(None)
+        ai = [self.action_names.index(n) for n in action_names] if action_names is not None else slice(None)
+        return Transitions(self.states[:, si], self.actions[:-1, ai], times=self.t_s, name=self.name,
+                           meta={**self.meta, "state_names": list(state_names or self.state_names),
+                                 "action_names": list(action_names or self.action_names)})
+
     @property
     def period_s(self) -> float:
         """Sample period [s]: the median time step (robust to a few jittered stamps)."""
@@ -89,7 +106,7 @@ class Episode:
     def duration_s(self) -> float:
         return float(self.t_s[-1] - self.t_s[0])
 
-    def slice(self, start: int, stop: int, name: str) -> Episode:
+    def slice(self, start: int, stop: int, name: str) -> Recording:
         def cut(a: np.ndarray | None) -> np.ndarray | None:
             return None if a is None else a[start:stop]
 
@@ -225,7 +242,7 @@ MAX_ABS_VALUE = 1e12
 GAP_PERIODS = 5.0
 
 
-def _episodes_from_table(df, mapping: dict[str, str], path: Path, warn: Callable[[str], None]) -> list[Episode]:
+def _episodes_from_table(df, mapping: dict[str, str], path: Path, warn: Callable[[str], None]) -> list[Recording]:
     ep_col = mapping.get("episode", "episode" if "episode" in df.columns else None)
     if ep_col is not None and ep_col not in df.columns:
         raise DataError(f"episode column {ep_col!r} not found in {path}; available: {list(df.columns)}")
@@ -259,7 +276,7 @@ def _episodes_from_table(df, mapping: dict[str, str], path: Path, warn: Callable
 
 
 def _make_episode(name: str, arrays: dict[str, np.ndarray], path: Path | str,
-                  warn: Callable[[str], None]) -> list[Episode]:
+                  warn: Callable[[str], None]) -> list[Recording]:
     """The episode(s) of one clean stretch of rows: split at time gaps, resampled when jittery.
 
     A step longer than :data:`GAP_PERIODS` median periods splits the stretch into separate
@@ -282,7 +299,7 @@ def _make_episode(name: str, arrays: dict[str, np.ndarray], path: Path | str,
         cuts = [0, *(gaps + 1).tolist(), t.size]
         warn(f"{name}: {gaps.size} time gap(s) longer than {GAP_PERIODS:g} median periods ({med:.4g} s) split it "
              f"into {len(cuts) - 1} episodes (largest gap {float(dt.max()):.4g} s after data row {int(gaps[0])})")
-        out: list[Episode] = []
+        out: list[Recording] = []
         for j, (a, b) in enumerate(itertools.pairwise(cuts)):
             out.extend(_make_episode(f"{name}[part{j}]", {k: v[a:b] for k, v in arrays.items()}, path, warn))
         return out
@@ -294,7 +311,7 @@ def _make_episode(name: str, arrays: dict[str, np.ndarray], path: Path | str,
     if float(np.ptp(arrays["x"])) <= 1e-12 * max(1.0, float(np.max(np.abs(arrays["x"])))):
         warn(f"{name}: skipped, position is constant ({float(arrays['x'][0]):.6g}) over all {t.size} samples")
         return []
-    return [Episode(
+    return [Recording(
         name=name,
         t_s=arrays["t"],
         u=arrays["u"],
@@ -314,7 +331,7 @@ def _warn_default(msg: str) -> None:
 
 def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
                   robot: str | None = None, normalize_actions: bool = False,
-                  warn: Callable[[str], None] | None = None) -> list[Episode]:
+                  warn: Callable[[str], None] | None = None) -> list[Recording]:
     """Load episodes from a .csv/.parquet file, a directory of those, or an .mcap recording.
 
     Args:
@@ -346,7 +363,7 @@ def load_episodes(path: str | Path, column_map: str | dict | Path | None = None,
     else:
         files = [p]
     warn = warn or _warn_default
-    episodes: list[Episode] = []
+    episodes: list[Recording] = []
     for f in files:
         episodes.extend(_episodes_from_table(_read_table(f), mapping, f, warn))
     if not episodes:
@@ -365,7 +382,7 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None,
-               normalize_actions: bool = False) -> list[Episode]:
+               normalize_actions: bool = False) -> list[Recording]:
     """Episodes of one robot from an MCAP recording (hilstack.learning.recordings.episodes_from_mcap).
 
     Actions stay in robot units (``normalize=False``): the nominal models replay them as
@@ -422,7 +439,7 @@ def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None,
         if np.any(dt <= 0):
             raise DataError(f"{path}: time stamps not strictly increasing in episode {le.name} "
                             f"at step {int(np.flatnonzero(dt <= 0)[0]) + 1}")
-        out.append(Episode(
+        out.append(Recording(
             name=le.name,
             t_s=t,
             u=channel("u", anames[0]),
@@ -471,7 +488,7 @@ def sg_velocity_kernel(window: int) -> np.ndarray:
     return kernel / kernel.sum()
 
 
-def resample(e: Episode, period_s: float) -> Episode:
+def resample(e: Recording, period_s: float) -> Recording:
     """``e`` on a uniform grid of ``period_s`` [s] (coarser than its own).
 
     The command is a zero-order hold, so the new command of interval k is its exact average over
@@ -495,8 +512,8 @@ def resample(e: Episode, period_s: float) -> Episode:
                    payload=interp(e.payload), meta={**e.meta, "resampled_from_period_s": e.period_s})
 
 
-def harmonize_rates(episodes: list[Episode], warn: Callable[[str], None] | None = None,
-                    rtol: float = 0.01) -> list[Episode]:
+def harmonize_rates(episodes: list[Recording], warn: Callable[[str], None] | None = None,
+                    rtol: float = 0.01) -> list[Recording]:
     """One sample period for all episodes: the models are discrete-time with a single period.
 
     Episodes whose period differs by more than ``rtol`` are resampled to the slowest period
@@ -543,8 +560,8 @@ MIN_HORIZON_STEPS = 10
 MIN_SEGMENT_SAMPLES = 40
 
 
-def segment_episodes(episodes: list[Episode], min_episodes: int, horizon_steps: int, margin: int,
-                     test_fraction: float = 0.2) -> tuple[list[Episode], SegmentPlan]:
+def segment_episodes(episodes: list[Recording], min_episodes: int, horizon_steps: int, margin: int,
+                     test_fraction: float = 0.2) -> tuple[list[Recording], SegmentPlan]:
     """Cut long recordings into contiguous segments so there are >= ``min_episodes`` units.
 
     Blocked time-series folds: every recording is cut into contiguous segments in time order and
@@ -577,7 +594,7 @@ def segment_episodes(episodes: list[Episode], min_episodes: int, horizon_steps: 
                         f"({(total + 2 * margin * len(episodes)) * period:.3g} s) in {len(episodes)} episode(s); need "
                         f"at least {need} samples ({need * period:.3g} s) in one recording at this rate, for "
                         f"{MIN_UNITS} segments; record longer or more episodes")
-    out: list[Episode] = []
+    out: list[Recording] = []
     n_test = 0
     per = max(core(h), total // n_units)
     for e in episodes:
@@ -605,7 +622,7 @@ def segment_episodes(episodes: list[Episode], min_episodes: int, horizon_steps: 
     return out, SegmentPlan(segmented, h, len(out), n_test, note)
 
 
-def summarize(episodes: list[Episode]) -> dict:
+def summarize(episodes: list[Recording]) -> dict:
     """Data summary for the report (units are those of the log)."""
     u = np.concatenate([e.u for e in episodes])
     x = np.concatenate([e.x for e in episodes])
@@ -626,7 +643,7 @@ def summarize(episodes: list[Episode]) -> dict:
 __all__ = [
     "COLUMN_KEYS",
     "DataError",
-    "Episode",
+    "Recording",
     "default_sg_window",
     "load_episodes",
     "parse_column_map",

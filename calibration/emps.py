@@ -147,12 +147,14 @@ def emps_to_csv(mat_path: str | Path, out_path: str | Path) -> Path:
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m hilstack.calibration.emps DATA_EMPS.mat emps.csv``."""
-    import sys
+    import argparse
 
-    args = sys.argv[1:] if argv is None else argv
-    if len(args) != 2:
-        raise SystemExit("usage: python -m hilstack.calibration.emps DATA_EMPS.mat out.csv")
-    print(emps_to_csv(args[0], args[1]))
+    ap = argparse.ArgumentParser(prog="python -m hilstack.calibration.emps",
+                                 description="Convert the EMPS benchmark's DATA_EMPS.mat to a calibration CSV.")
+    ap.add_argument("mat", help="DATA_EMPS.mat")
+    ap.add_argument("csv", help="the CSV to write")
+    a = ap.parse_args(argv)
+    print(emps_to_csv(a.mat, a.csv))
 
 
 if __name__ == "__main__":

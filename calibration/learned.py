@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from hilstack.calibration import axis
-from hilstack.calibration.data import DataError, Episode
+from hilstack.calibration.data import DataError, Recording
 from hilstack.calibration.effects import EffectSpec
 
 
@@ -97,7 +97,7 @@ def _lagged(a: np.ndarray, lag: int) -> np.ndarray:
 class LearnedPrepared:
     """One episode in the checkpoint's channel order, with every candidate input precomputed."""
 
-    ep: Episode
+    ep: Recording
     key: int
     period_s: float
     states: np.ndarray  # [T+1, S] float32, checkpoint state order
@@ -406,7 +406,7 @@ class CheckpointModel:
         self.n_fits = 0
 
     # ------------------------------------------------------------------ data
-    def load_episodes(self, path, column_map=None, robot: str | None = None) -> list[Episode]:
+    def load_episodes(self, path, column_map=None, robot: str | None = None) -> list[Recording]:
         """MCAP via hilstack.calibration.data.load_episodes, CSV/Parquet via :func:`load_state_action_table`."""
         from hilstack.calibration.data import load_episodes
 
@@ -415,7 +415,7 @@ class CheckpointModel:
             return load_episodes(p, column_map, robot=robot, normalize_actions=self.normalized_actions)
         return load_state_action_table(p, self.state_names, self.action_names, column_map)
 
-    def prepare(self, episodes: list[Episode]) -> list[LearnedPrepared]:
+    def prepare(self, episodes: list[Recording]) -> list[LearnedPrepared]:
         if len(episodes) < self.min_episodes:
             raise DataError(f"too few episodes: {len(episodes)}; the checkpoint model needs at least "
                             f"{self.min_episodes} whole episodes (a locked test set and cross-validation "
@@ -433,10 +433,8 @@ class CheckpointModel:
                     + f" (data has states {list(e.state_names)}, actions {list(e.action_names)})")
             if e.n < 3:
                 raise DataError(f"{e.name}: only {e.n} samples; need at least 3")
-            si = [e.state_names.index(n) for n in self.state_names]
-            ai = [e.action_names.index(n) for n in self.action_names]
-            states = np.asarray(e.states[:, si], np.float32)
-            actions = np.asarray(e.actions[:-1, ai], np.float32)  # the last row repeats: no next state
+            tr = e.transitions(self.state_names, self.action_names)  # N states, the N-1 actions between
+            states, actions = tr.states, tr.actions
             feats = candidate_features(states, actions, e.t_s, e.vbat_v)
             out.append(LearnedPrepared(e, i, e.period_s, states, actions, feats))
         return out
@@ -667,7 +665,7 @@ class CheckpointModel:
 
 
 def load_state_action_table(path: str | Path, state_names: list[str], action_names: list[str],
-                            column_map: str | dict | Path | None = None) -> list[Episode]:
+                            column_map: str | dict | Path | None = None) -> list[Recording]:
     """CSV/Parquet (a file or a directory) with one column per checkpoint channel.
 
     ``column_map``: ``NAME=column`` pairs (``x=pos_m,u=cmd``) for checkpoint channel names whose
@@ -689,7 +687,7 @@ def load_state_action_table(path: str | Path, state_names: list[str], action_nam
     files = sorted(f for f in p.iterdir() if f.suffix.lower() in (".csv", ".parquet", ".pq")) if p.is_dir() else [p]
     if not files:
         raise DataError(f"no .csv or .parquet files in directory {p}")
-    out: list[Episode] = []
+    out: list[Recording] = []
     for f in files:
         df = _read_table(f)
         cols = list(df.columns)
@@ -730,7 +728,7 @@ def load_state_action_table(path: str | Path, state_names: list[str], action_nam
             states = np.stack([arr(col(n)) for n in state_names], axis=1)
             actions = np.stack([arr(col(n)) for n in action_names], axis=1)
             vb = arr(vcol) if vcol is not None else None
-            out.append(Episode(name=name, t_s=t, u=actions[:, 0], x=states[:, 0], vbat_v=vb,
+            out.append(Recording(name=name, t_s=t, u=actions[:, 0], x=states[:, 0], vbat_v=vb,
                                meta={"source": str(f)}, states=states, actions=actions,
                                state_names=tuple(state_names), action_names=tuple(action_names)))
     return out

@@ -19,8 +19,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
+import numpy as np
+
 from hilstack.calibration import axis
-from hilstack.calibration.data import Episode
+from hilstack.calibration.data import Recording
 from hilstack.calibration.effects import CATALOGUE, LOOK_ALIKES
 
 
@@ -64,7 +66,7 @@ class Model(Protocol):
     look_alikes: dict
     segmentable: bool
 
-    def prepare(self, episodes: list[Episode]) -> list: ...
+    def prepare(self, episodes: list[Recording]) -> list: ...
 
     def fit(self, episodes: list, effects: list[str], **kw) -> FittedModel: ...
 
@@ -107,11 +109,11 @@ class FittedAxis:
         """Primary of a position-periodic load along ``ref``'s phase (see AxisParams.primary_along)."""
         return self.params.primary_along(name, ref.params)
 
-    def predict_one_step(self, episode: axis.Prepared | Episode) -> dict:
+    def predict_one_step(self, episode: axis.Prepared | Recording) -> dict:
         p = episode if isinstance(episode, axis.Prepared) else self._prep(episode)
         return axis.predict_one_step(p, self.params)
 
-    def simulate(self, episode: axis.Prepared | Episode, horizon: int | None = None) -> dict:
+    def simulate(self, episode: axis.Prepared | Recording, horizon: int | None = None) -> dict:
         """Open-loop replay of the logged commands; whole episode when ``horizon`` is None."""
         p = episode if isinstance(episode, axis.Prepared) else self._prep(episode)
         if horizon is None:
@@ -121,7 +123,7 @@ class FittedAxis:
             return axis.simulate_windows(p, self.params, h, starts=np.array([p.margin]))
         return axis.simulate_windows(p, self.params, horizon)
 
-    def _prep(self, ep: Episode) -> axis.Prepared:
+    def _prep(self, ep: Recording) -> axis.Prepared:
         return axis.prepare([ep], sg_window=self.params.sg_window)[0]
 
     def to_dict(self) -> dict:
@@ -130,6 +132,27 @@ class FittedAxis:
 
 #: Fewest radians the position must span before a gravity (sine) load is a candidate.
 GRAVITY_MIN_SPAN_RAD = 1.5
+#: A position passed in both directions over less than this fraction of the visited range is a
+#: one-way travel (a distance driven), not a joint angle: a gravity sine of it is not offered.
+TWO_WAY_MIN_FRACTION = 0.1
+
+
+def two_way_fraction(episodes: list[axis.Prepared], n_bins: int = 50) -> float:
+    """Fraction of the visited position bins (``n_bins`` over the whole range) passed both moving up
+    and moving down. A swinging joint or a stroke back and forth: near 1; a vehicle's distance
+    travelled forward: near 0 (odometry noise at standstill does not count: only moving rows)."""
+    xs = np.concatenate([p.ep.x for p in episodes])
+    lo, hi = float(xs.min()), float(xs.max())
+    if not hi > lo:
+        return 0.0
+    up, down = np.zeros(n_bins, bool), np.zeros(n_bins, bool)
+    for p in episodes:
+        v, x, mv = p.v_obs, p.ep.x, p.moving
+        b = np.clip(((x - lo) / (hi - lo) * n_bins).astype(int), 0, n_bins - 1)
+        up[b[mv & (v > 0)]] = True
+        down[b[mv & (v < 0)]] = True
+    visited = up | down
+    return float((up & down).sum() / max(1, visited.sum()))
 
 
 class AxisModel:
@@ -184,7 +207,7 @@ class AxisModel:
                       "v": float(np.std(np.concatenate([p.v_obs for p in preps]))) + 1e-300},
         }
 
-    def prepare(self, episodes: list[Episode]) -> list[axis.Prepared]:
+    def prepare(self, episodes: list[Recording]) -> list[axis.Prepared]:
         return axis.prepare(episodes, sg_window=self.sg_window)
 
     def fit(self, episodes: list[axis.Prepared], effects: list[str], weights=None, refine: bool = True,
@@ -218,6 +241,12 @@ class AxisModel:
                 skipped[name] = (f"positions span only {span_x:.3g} (< {GRAVITY_MIN_SPAN_RAD:.3g} rad): a sine load "
                                  "cannot be told from an offset and a spring; needs a rotary joint moving over a "
                                  "wide angle, x in rad")
+            elif name == "gravity_load" and (two_way := two_way_fraction(episodes)) < TWO_WAY_MIN_FRACTION:
+                # A sine of the position is a gravity load only for an angle that swings through it;
+                # a distance travelled one way (a vehicle's odometry) has no angle to load.
+                skipped[name] = (f"the position is a one-way travel (passed in both directions over "
+                                 f"{100 * two_way:.0f} % < {100 * TWO_WAY_MIN_FRACTION:.0f} % of its range: a "
+                                 "distance, not a joint angle); a sine load of it has no physical meaning")
             elif name == "cogging" and axis.cogging_grid(episodes).size == 0:
                 skipped[name] = ("the stroke is too short for two periods of a load the sample rate can resolve "
                                  f"(at least {axis.COG_MIN_TRAVEL_SAMPLES} samples of travel per period)")

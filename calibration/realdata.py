@@ -6,7 +6,7 @@ torque-limited simple pendulum) and ``dart_rccar`` (DART 1:10 RC car). :func:`fi
 folder through the project's data path (``$HIL_DATA/<name>``, ``$HIL_DATA/real/<name>``, the
 cache, ``shared/data/real/<name>`` beside the repository or one of its parents) and raises
 :class:`~hilstack.calibration.emps.DataNotFound` naming the places it looked. The loaders turn
-each source's files into single-axis :class:`~hilstack.calibration.data.Episode` s for the
+each source's files into single-axis :class:`~hilstack.calibration.data.Recording` s for the
 ``axis`` model:
 
 * DFKI pendulum: ``u`` = the measured output-shaft torque [N·m] (what the motor applied,
@@ -22,7 +22,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from hilstack.calibration.data import Episode, _make_episode
+from hilstack.calibration.data import Recording, _make_episode
 from hilstack.calibration.emps import DataNotFound
 
 #: The real data sets and the file each must hold to count as found.
@@ -68,7 +68,7 @@ def _warn(msg: str) -> None:
 DFKI_EXCLUDED = {"control_method_gravity_compensation": "moved by hand: the hand's torque was not recorded"}
 
 
-def dfki_episodes(root: Path, include_hand: bool = False, warn=None) -> list[Episode]:
+def dfki_episodes(root: Path, include_hand: bool = False, warn=None) -> list[Recording]:
     """Every measured DFKI run (``data_measured*.csv``) as an episode: u = torque, x = angle, v = velocity."""
     import pandas as pd
 
@@ -89,7 +89,7 @@ def dfki_episodes(root: Path, include_hand: bool = False, warn=None) -> list[Epi
 DART_STEP_FOLDERS = ("10_step_input_data_rubbery_floor", "19_step_input_data")
 
 
-def dart_episodes(root: Path, folders: tuple[str, ...] = DART_STEP_FOLDERS, warn=None) -> list[Episode]:
+def dart_episodes(root: Path, folders: tuple[str, ...] = DART_STEP_FOLDERS, warn=None) -> list[Recording]:
     """DART throttle-step runs: u = throttle, v = encoder speed, x = distance (integral of the speed)."""
     import pandas as pd
     from scipy.integrate import cumulative_trapezoid

@@ -14,7 +14,7 @@ import numpy as np
 from hilstack.calibration import axis
 from hilstack.calibration.data import (
     DataError,
-    Episode,
+    Recording,
     harmonize_rates,
     load_episodes,
     segment_episodes,
@@ -89,7 +89,7 @@ def _clean(o):
 
 
 def run_calibration(
-    data_path: str | Path | list[Episode],
+    data_path: str | Path | list[Recording],
     model: str = "axis",
     column_map: str | dict | Path | None = None,
     out_dir: str | Path = "calibration_out",
@@ -330,7 +330,7 @@ def _resolution(model, preps, sel, cfg, warn) -> dict:
 MIN_HELDOUT_UNITS = 4
 
 
-def _drop_motionless(model, episodes: list[Episode], warn) -> list[Episode]:
+def _drop_motionless(model, episodes: list[Recording], warn) -> list[Recording]:
     """Skip episodes in which the axis never moves (no regression row), with a warning.
 
     Slow friction tests and idle stretches produce such episodes; they say nothing about the

@@ -299,7 +299,7 @@ def purge_neighbours(preps, folds: list[np.ndarray], gap: int) -> dict[int, set[
     return out
 
 
-def split_episodes(n: int, cfg: SelectionConfig, seed: int,
+def cv_split(n: int, cfg: SelectionConfig, seed: int,
                    locked: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
     """(locked test indices, list of K fold index arrays over the training pool).
 
@@ -456,7 +456,7 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
                    log: Callable[[str], None] = lambda s: None) -> SelectionResult:
     """Stepwise selection of effects by held-out evidence (see module docstring)."""
     locked = np.array([bool(getattr(getattr(p, "ep", None), "meta", {}).get("locked_test")) for p in preps])
-    test_idx, raw_folds = split_episodes(len(preps), cfg, seed, locked)
+    test_idx, raw_folds = cv_split(len(preps), cfg, seed, locked)
     pool_idx = np.concatenate(raw_folds)
     segmented = any(o is not None for o in _unit_order(preps))
     # Neighbouring time blocks of one recording are correlated: resample runs of them.

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hilstack.calibration.data import Episode
+from hilstack.calibration.data import Recording
 
 
 @dataclass(frozen=True)
@@ -127,7 +127,7 @@ def _commands(rng: np.random.Generator, n: int, period_s: float, u_max: float, k
     return u
 
 
-def generate(cfg: SynthConfig) -> list[Episode]:
+def generate(cfg: SynthConfig) -> list[Recording]:
     """Simulate ``cfg.n_episodes`` episodes; returns Episodes with ``meta['truth']``."""
     rng = np.random.default_rng(cfg.seed)
     n = int(round(cfg.duration_s / cfg.period_s))
@@ -233,7 +233,7 @@ def generate(cfg: SynthConfig) -> list[Episode]:
         if cfg.velocity_from_differences:
             v_meas = np.concatenate([[0.0], np.diff(x_meas) / cfg.period_s])
         episodes.append(
-            Episode(
+            Recording(
                 name=f"synthetic#episode={e}",
                 t_s=t.copy(),
                 u=u[e].copy(),
@@ -247,7 +247,7 @@ def generate(cfg: SynthConfig) -> list[Episode]:
     return episodes
 
 
-def write_csv(episodes: list[Episode], path: str | Path) -> Path:
+def write_csv(episodes: list[Recording], path: str | Path) -> Path:
     """One CSV with an ``episode`` column; columns time, volts, position[, velocity, vbat, payload]."""
     import pandas as pd
 

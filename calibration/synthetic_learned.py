@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hilstack.calibration.data import Episode
+from hilstack.calibration.data import Recording
 
 PERIOD_S = 0.05
 STATE_NAMES = ("x", "v")
@@ -28,7 +28,7 @@ VBAT_NOMINAL_V = 7.4
 
 
 def generate(n_episodes: int = 24, steps: int = 100, hidden: str = "none", seed: int = 0,
-             gain: float = 4.0, drag: float = 1.5, noise_mps: float = 0.01) -> list[Episode]:
+             gain: float = 4.0, drag: float = 1.5, noise_mps: float = 0.01) -> list[Recording]:
     """Calibration episodes (states/actions with names; vbat logged in every case)."""
     if hidden not in ("none", "delay", "vbat"):
         raise ValueError(f"hidden must be none, delay or vbat, got {hidden!r}")
@@ -52,7 +52,7 @@ def generate(n_episodes: int = 24, steps: int = 100, hidden: str = "none", seed:
         t_s = PERIOD_S * np.arange(steps + 1)
         states = np.stack([x, v], axis=1)
         actions = np.concatenate([u, u[-1:]])[:, None]  # last row repeats: no next state
-        out.append(Episode(name=f"{hidden}{i:03d}", t_s=t_s, u=actions[:, 0], x=x, vbat_v=vbat,
+        out.append(Recording(name=f"{hidden}{i:03d}", t_s=t_s, u=actions[:, 0], x=x, vbat_v=vbat,
                            meta={"source": "synthetic_learned", "hidden": hidden}, states=states, actions=actions,
                            state_names=STATE_NAMES, action_names=ACTION_NAMES))
     return out
@@ -68,11 +68,10 @@ def train_checkpoint(path: str | Path, n_episodes: int = 40, steps: int = 100, s
     """
     import torch
 
-    from hilstack.learning.datasets import Episode as LEpisode
     from hilstack.learning.dynamics import EnsembleDynamics
 
     eps = generate(n_episodes, steps, hidden=data_hidden, seed=seed)
-    train = [LEpisode(e.states, e.actions[:-1], times=e.t_s, name=e.name) for e in eps]
+    train = [e.transitions() for e in eps]
     torch.manual_seed(seed)
     net = EnsembleDynamics(2, 1, ensemble, hidden_sizes, state_names=STATE_NAMES, action_names=ACTION_NAMES,
                            state_units=["m", "m/s"], action_units=["1"], seed=seed)
@@ -82,7 +81,7 @@ def train_checkpoint(path: str | Path, n_episodes: int = 40, steps: int = 100, s
     return path
 
 
-def write_csv(episodes: list[Episode], path: str | Path) -> Path:
+def write_csv(episodes: list[Recording], path: str | Path) -> Path:
     """One CSV with columns episode, time, pos_m, vel_mps, cmd, vbat_v (names differ from the
     checkpoint's x, v, u on purpose: the CLI maps them with --map x=pos_m,v=vel_mps,u=cmd,t=time)."""
     import pandas as pd

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hilstack.calibration.data import Episode
+from hilstack.calibration.data import Recording
 
 
 @dataclass
@@ -30,7 +30,7 @@ class RoachSynthConfig:
     arena_m: float = 1.0
 
 
-def generate(cfg: RoachSynthConfig) -> list[Episode]:
+def generate(cfg: RoachSynthConfig) -> list[Recording]:
     from hilstack.drivers.velociroach.config import STATE_NAMES, VelociRoachParams
     from hilstack.sim_backends.velociroach.backend import VelociRoachSim
 
@@ -61,7 +61,7 @@ def generate(cfg: RoachSynthConfig) -> list[Episode]:
             states.append(obs.state)
             times.append(obs.t_s)
         acts = np.asarray(actions)
-        out.append(Episode(
+        out.append(Recording(
             name=f"roach_seed{cfg.seed}_ep{i}",
             t_s=np.asarray(times) - times[0],
             u=np.concatenate([acts[:, 0], acts[-1:, 0]]),
@@ -76,7 +76,7 @@ def generate(cfg: RoachSynthConfig) -> list[Episode]:
     return out
 
 
-def write_mcap(episodes: list[Episode], path: str | Path, robot: str = "roach", rig: str = "calib") -> Path:
+def write_mcap(episodes: list[Recording], path: str | Path, robot: str = "roach", rig: str = "calib") -> Path:
     """Write episodes as a rig recording: a spec message, then one RobotState per period
     carrying the action held during the period that ended with it and an episode counter."""
     from hilstack.bus import keys

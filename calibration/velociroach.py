@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from hilstack.calibration import axis
-from hilstack.calibration.data import DataError, Episode
+from hilstack.calibration.data import DataError, Recording
 from hilstack.calibration.effects import GENERIC_EXCITATION, EffectSpec
 
 #: channels compared, with units
@@ -109,7 +109,7 @@ VR_LOOK_ALIKES: dict[frozenset, str] = {
 class Prepared:
     """An episode ready for replay: commands, recorded channels, start pose."""
 
-    ep: Episode
+    ep: Recording
     key: int  # cache key of the episode
     period_s: float
     actions: np.ndarray  # [T, A] commands in robot units (rev/s)
@@ -325,7 +325,7 @@ class VelociRoachModel:
         self.workers = workers if workers is not None else min(2, os.cpu_count() or 1)
 
     # ------------------------------------------------------------------ data
-    def prepare(self, episodes: list[Episode]) -> list[Prepared]:
+    def prepare(self, episodes: list[Recording]) -> list[Prepared]:
         out = []
         for i, e in enumerate(episodes):
             if e.states is None or e.actions is None:

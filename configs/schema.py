@@ -152,8 +152,11 @@ class BusAccess(Strict):
     command: list[str] = Field(default_factory=lambda: ["operator"])
     #: users that may release the e-stop (each release names its sender)
     release: list[str] = Field(default_factory=lambda: ["operator"])
+    #: users that may run the rig's driver nodes when a separate router (``bus.router``, ``hil
+    #: router``) owns the bus: they publish the robots' states; the first is the driver nodes' user
+    drive: list[str] = Field(default_factory=lambda: ["driver"], min_length=1)
 
-    @field_validator("command", "release")
+    @field_validator("command", "release", "drive")
     @classmethod
     def _names(cls, v: list[str]) -> list[str]:
         for n in v:
@@ -168,11 +171,14 @@ class BusConfig(Strict):
     Every node tries to listen on ``endpoint`` and also connects to it: the first node
     of a rig to start owns the port, the others connect to it and find each other by
     gossip over that link (gossip is not multicast: it only uses established links).
-    A lab spreads nodes over hosts with ``mode: client`` and ``connect`` set to a
-    Zenoh router (``tcp/10.0.0.2:7447``)."""
+    A lab spreads nodes over hosts with ``router`` (``tcp/10.0.0.2:7447``): ``hil router RIG``
+    listens there (with ``access``: authentication and the rig's ACL) and every node, the
+    driver nodes too, is its client (docs/scaling.md)."""
 
     mode: Literal["peer", "client"] = "peer"
     endpoint: str = "tcp/127.0.0.1:7447"
+    #: the endpoint of the rig's own Zenoh router (``hil router``); every node is its client
+    router: str | None = None
     listen: list[str] = Field(default_factory=list)
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
@@ -191,6 +197,11 @@ class BusConfig(Strict):
     @classmethod
     def _endpoint(cls, v: str) -> str:
         return _check_endpoint(v)
+
+    @field_validator("router")
+    @classmethod
+    def _router(cls, v: str | None) -> str | None:
+        return v if v is None else _check_endpoint(v)
 
 
 def _check_endpoint(e: str) -> str:

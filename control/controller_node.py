@@ -37,30 +37,11 @@ import numpy as np
 from hilstack.bus import keys
 from hilstack.bus.cycle import CycleTimer
 from hilstack.bus.node import Node
-from hilstack.bus.schemas import Command, Plan, ResetEvent, RobotState, SpecMsg
+from hilstack.bus.schemas import Command, Plan, ResetEvent, ResetPhase, RobotState, SpecMsg
 from hilstack.configs.schema import BusConfig
+from hilstack.drivers.base import RobotSpec
 
 Policy = Callable[[np.ndarray], np.ndarray]
-
-
-class ActionScale:
-    """Normalized [-1, 1] ↔ spec units, per channel (symmetric about the range centre)."""
-
-    def __init__(self, low, high):
-        self.low = np.asarray(low, dtype=np.float64)
-        self.high = np.asarray(high, dtype=np.float64)
-        self.mid = (self.high + self.low) / 2
-        self.half = (self.high - self.low) / 2
-
-    def to_robot(self, a_norm: np.ndarray) -> np.ndarray:
-        return self.mid + self.half * np.clip(np.asarray(a_norm, dtype=np.float64), -1.0, 1.0)
-
-    def to_norm(self, a: np.ndarray) -> np.ndarray:
-        return (np.asarray(a, dtype=np.float64) - self.mid) / self.half
-
-    @classmethod
-    def from_spec(cls, spec: dict[str, Any]) -> ActionScale:
-        return cls(spec["action"]["low"], spec["action"]["high"])
 
 
 @dataclass
@@ -105,19 +86,18 @@ class ControllerNode(Node):
         self._plan = self.publisher(keys.plan(rig), Plan)
         self._reset_req = self.publisher(keys.reset(rig, "request"), ResetEvent, reliable=True)
         self._reset_done = self.subscribe(keys.reset(rig, "done"), ResetEvent)
-        self.spec: dict[str, Any] | None = None
-        self.scale: ActionScale | None = None
+        #: the robot's spec, typed again from its driver node's SpecMsg (wait_ready)
+        self.spec: RobotSpec | None = None
         self.late_count = 0
 
     # ------------------------------------------------------------------ plumbing
-    def wait_ready(self, timeout_s: float = 20.0) -> dict[str, Any]:
+    def wait_ready(self, timeout_s: float = 20.0) -> RobotSpec:
         """Wait for the robot's spec (published by its driver node)."""
         deadline = time.monotonic() + timeout_s
         while self.spec is None:
             m = self._spec.wait(0.1)
             if m is not None:
-                self.spec = m.spec
-                self.scale = ActionScale.from_spec(m.spec)
+                self.spec = RobotSpec.from_dict(m.spec)
             elif time.monotonic() > deadline:
                 raise TimeoutError(
                     f"no spec from {keys.spec(self.rig, self.robot)} within {timeout_s} s: is the driver node up?"
@@ -125,7 +105,7 @@ class ControllerNode(Node):
         return self.spec
 
     def state_names(self) -> tuple[str, ...]:
-        return tuple(self.wait_ready()["state"]["names"])
+        return self.wait_ready().state.names
 
     def next_state(self, after_seq: int = -1, timeout_s: float | None = None) -> RobotState:
         """The newest state with a sequence number above ``after_seq``."""
@@ -145,9 +125,8 @@ class ControllerNode(Node):
     def held_norm(self, s: RobotState) -> np.ndarray | None:
         """The command the robot runs now, normalized: the state's ``action`` (the driver's
         held command), else the spec's safe action; None when neither is known."""
-        n = len(self.spec["action"]["names"])
-        if len(s.action) == n and np.all(np.isfinite(s.action)):
-            return self.scale.to_norm(np.asarray(s.action, dtype=np.float64))
+        if len(s.action) == self.spec.action.dim and np.all(np.isfinite(s.action)):
+            return self.spec.action.normalize(s.action)
         return self.safe_norm(s, held=False)
 
     def safe_norm(self, s: RobotState, held: bool = True) -> np.ndarray | None:
@@ -156,14 +135,16 @@ class ControllerNode(Node):
         position-controlled robot, the command it holds (its current target); None when
         neither is known (then nothing may be sent). Never the normalized zero: that is the
         middle of each range, a jump for a position robot and not a stop for an asymmetric one."""
-        n = len(self.spec["action"]["names"])
-        safe = self.spec.get("safe_action")
-        if safe is not None and len(safe) == n:
-            return self.scale.to_norm(np.asarray(safe, dtype=np.float64))
+        if self.spec.safe_action is not None:
+            return self.spec.action.normalize(self.spec.safe_action)
         return self.held_norm(s) if held else None
 
     def send(self, action_norm: np.ndarray, state_seq: int) -> np.ndarray:
-        a = self.scale.to_robot(action_norm)
+        return self.send_action(self.spec.action.denormalize(action_norm), state_seq)
+
+    def send_action(self, action: np.ndarray, state_seq: int) -> np.ndarray:
+        """Publish a command in the robot's units (the driver node applies the contract's limits)."""
+        a = np.asarray(action, dtype=np.float64)
         self._cmd.put(Command(robot=self.robot, action=a.tolist(), state_seq=state_seq, source=self.name))
         return a
 
@@ -171,12 +152,12 @@ class ControllerNode(Node):
         """Ask the driver node to reset the robot (sim) and return the first state of the new episode."""
         self.wait_ready()
         self._reset_done.poll()
-        self._reset_req.put(ResetEvent(robot=self.robot, phase="request", pose={k: float(v) for k, v in pose.items()}))
+        self._reset_req.put(ResetEvent(robot=self.robot, phase=ResetPhase.REQUEST, pose={k: float(v) for k, v in pose.items()}))
         deadline = time.monotonic() + timeout_s
         while True:
             m = self._reset_done.wait(max(0.0, deadline - time.monotonic()))
             if m is not None and m.robot == self.robot:
-                if m.phase != "done":
+                if m.phase != ResetPhase.DONE:
                     raise RuntimeError(f"reset of {self.robot} {m.phase}: {m.detail}")
                 break
             if time.monotonic() >= deadline:
@@ -228,7 +209,7 @@ class ControllerNode(Node):
             self.publish_plan(policy, dt, False)
             log.states.append(x)
             log.actions.append(a)
-            log.actions_norm.append(self.scale.to_norm(a))
+            log.actions_norm.append(self.spec.action.normalize(a))
             log.times_s.append(s.t_s)
             log.plan_times_s.append(dt)
             s = self.next_state(after_seq=s.seq)
@@ -257,10 +238,11 @@ class ControllerNode(Node):
         A policy with ``delay_steps`` > 0 (:class:`hilstack.control.policies.MpcPolicy` on a
         wall-clock robot) is called as ``policy(state, committed=...)`` with the last
         ``delay_steps`` commands sent (normalized, oldest first): those act before the one
-        it plans. A plan that comes in late is used shifted by the cycles it missed.
+        it plans. A plan that comes in late is used shifted by the cycles it missed, and the
+        policy's ``shift(n)`` (the planner's warm start) is told so.
         """
         spec = self.wait_ready()
-        period = period_s or spec["period_s"]
+        period = period_s or spec.period_s
         log = EpisodeLog()
         job: dict[str, Any] = {}
         done = threading.Event()
@@ -339,6 +321,8 @@ class ControllerNode(Node):
                     steps_left = [] if plan is None else [np.asarray(p) for p in plan]
                     if skip and len(steps_left) > skip:
                         a = steps_left[skip]
+                    if skip and hasattr(policy, "shift"):
+                        policy.shift(skip)  # the planner's warm start moves on with it
                     fallback = steps_left[skip + 1:]
                     self.publish_plan(policy, dt, False)
                     log.plan_times_s.append(dt)
@@ -351,10 +335,10 @@ class ControllerNode(Node):
                     if a is None:
                         continue
                 a_sent = self.send(a, s.seq)
-                sent = (sent + [self.scale.to_norm(a_sent)])[-max(delay, 1):]
+                sent = (sent + [self.spec.action.normalize(a_sent)])[-max(delay, 1):]
                 log.states.append(x)
                 log.actions.append(a_sent)
-                log.actions_norm.append(self.scale.to_norm(a_sent))
+                log.actions_norm.append(self.spec.action.normalize(a_sent))
                 log.times_s.append(s.t_s)
         finally:
             done.set()

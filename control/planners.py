@@ -154,6 +154,7 @@ class Planner:
         else:
             self.generator.manual_seed(int(self.seed))
         self.last_plan: torch.Tensor | None = None
+        self._applied = 0  # periods moved along last_plan (shift)
         self.last_predicted_states: torch.Tensor | None = None
         self.last_costs: torch.Tensor | None = None
         self._reset_distribution()
@@ -188,7 +189,42 @@ class Planner:
             s0 = torch.as_tensor(state, dtype=torch.float32).reshape(-1)
             plan = self._plan(dynamics, cost, s0)
             self.last_plan = plan.clone()
+            self._applied = 0
+            self._warm_start(plan, 0)
             return plan[0].numpy().copy()
+
+    # -- moving in time: the planner owns its warm start ---------------------------------
+    def shift(self, n: int = 1) -> None:
+        """Move ``n`` more control periods along the last plan (as pytorch_mppi's
+        ``shift_nominal_trajectory``).
+
+        A plan is taken as applied from its first step at once (``__call__`` warm-starts the
+        next plan from ``last_plan[1:]``). When it was applied late (a realtime plan that came
+        in ``n`` periods after its state: its first ``n`` steps were never sent), the step
+        acting now is ``last_plan[n]``: the warm start moves on to ``last_plan[n+1:]`` (the
+        last step repeated) and a rate-limited sampler anchors at ``last_plan[n]``.
+        Shifts add up until the next plan; no-op before the first plan."""
+        if n < 0:
+            raise ValueError(f"shift needs n >= 0 control periods, got {n}")
+        if n == 0 or self.last_plan is None:
+            return
+        self._applied += n
+        self._warm_start(self.last_plan, self._applied)
+
+    def _warm_start(self, plan: torch.Tensor, k: int) -> None:
+        """Set what the next plan starts from, with ``plan[k]`` the step acting now
+        (``plan[-1]`` past its end). Default: a planner without memory."""
+
+    @staticmethod
+    def _after(plan: torch.Tensor, k: int) -> torch.Tensor:
+        """``plan`` from step ``k + 1`` on, its last step repeated to keep the length."""
+        H = plan.shape[0]
+        rest = plan[k + 1:] if k + 1 < H else plan[-1:]
+        return torch.cat([rest, rest[-1:].expand(H - rest.shape[0], -1)], dim=0)
+
+    @staticmethod
+    def _step(plan: torch.Tensor, k: int) -> torch.Tensor:
+        return plan[min(k, plan.shape[0] - 1)].clone()
 
     def _plan(self, dynamics: DynamicsFn, cost: CostFn, s0: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
@@ -236,9 +272,6 @@ class Planner:
     def _clip(self, actions: torch.Tensor) -> torch.Tensor:
         return torch.maximum(torch.minimum(actions, self.action_high), self.action_low, out=actions)
 
-    def _shift(self, seq: torch.Tensor) -> torch.Tensor:
-        """Warm start: drop the executed step, repeat the last one."""
-        return torch.cat([seq[1:], seq[-1:]], dim=0)
 
 
 class RandomShooting(Planner):
@@ -289,9 +322,10 @@ class RandomShooting(Planner):
                 actions[:, h].mul_(hi - lo).add_(lo)
                 prev = actions[:, h]
         _, best = self._evaluate(dynamics, cost, s0, actions)
-        plan = actions[best].clone()
-        self.previous = plan[0].clone()
-        return plan
+        return actions[best].clone()
+
+    def _warm_start(self, plan, k):
+        self.previous = self._step(plan, k)
 
 
 class CEM(Planner):
@@ -339,9 +373,10 @@ class CEM(Planner):
             elite = actions[torch.topk(total, self.elites, largest=False).indices]  # [K, H, A]
             mean = self.alpha * mean + (1 - self.alpha) * elite.mean(dim=0)
             std = self.alpha * std + (1 - self.alpha) * elite.std(dim=0, unbiased=False)
-        plan = mean.clone()
-        self.mean = self._shift(mean)
-        return plan
+        return mean.clone()
+
+    def _warm_start(self, plan, k):
+        self.mean = self._after(plan, k)
 
 
 class PDDM(Planner):
@@ -451,10 +486,11 @@ class PDDM(Planner):
             self.last_shift = float((new - mean).pow(2).mean().sqrt())
             self.history.append((self.last_ess, self.last_shift))
             mean = new
-        plan = self._clip(mean.clone())
-        self.previous = plan[0].clone()
-        self.mean = self._shift(plan)
-        return plan
+        return self._clip(mean.clone())
+
+    def _warm_start(self, plan, k):
+        self.previous = self._step(plan, k)
+        self.mean = self._after(plan, k)
 
 
 @dataclass(frozen=True)

@@ -143,6 +143,11 @@ class MpcPolicy:
         return a
 
 
+    def shift(self, n: int) -> None:
+        """The last plan is applied ``n`` periods late: the planner moves along it
+        (:meth:`hilstack.control.planners.Planner.shift`)."""
+        self.planner.shift(n)
+
     @staticmethod
     def predict_after(dynamics: Callable[..., torch.Tensor], state: np.ndarray,
                       actions: Sequence[np.ndarray]) -> np.ndarray:

@@ -35,6 +35,9 @@ Shape (after ros2_control's hardware lifecycle and LeRobot's robot base):
 * ``tick()`` waits for the next control period: wall-clock backends sleep until the
   next period boundary; the sim backend advances physics by one period. A loop written
   as ``read → write → tick`` therefore runs unchanged on every backend.
+* ``pacing`` (:class:`Pacing`) is the backend's time model: whether its robot moves in
+  ``tick()`` (sim) or on its own clock (real, emulated). It orders the driver node's one
+  step and gives the command delay a planner predicts through.
 
 Subclasses implement the underscore hooks; the public methods hold the checks.
 """
@@ -245,6 +248,47 @@ class Inputs:
         return next((i for i in self if i.expired(now_s)), None)
 
 
+class Pacing(enum.StrEnum):
+    """The time model of a backend: when its robot moves relative to the contract's calls.
+
+    One read → update → write loop runs every backend (the driver node's ``step``,
+    drivers/bridge.py); the pacing decides only the order of its parts and how many
+    control periods a command lands after the state it was planned from (as ros2_control
+    puts blocking, simulated or periodic time in a pacing policy, not in the loop).
+
+    * ``STEPPED`` (sim backends): the world stands still between calls and advances one
+      period in ``tick()``. The loop applies the newest command, ticks, then reads: the
+      state published at period k+1 is the effect of the command planned from the state of
+      period k. Command delay 0.
+    * ``WALL_CLOCK`` (real, emulated): the device moves on its own clock, under the command
+      it holds. The loop reads and publishes first (the state the previous period's command
+      produced), then applies the newest command, which acts during the next period: the
+      command planned from the state of period k lands at period k+1, while the one sent
+      before it acts. Command delay 1. (Applying before reading stamped every state with a
+      command that had not acted yet: recorded transitions one period off; docs/mbrl.md.)
+    """
+
+    STEPPED = "stepped"
+    WALL_CLOCK = "wall_clock"
+
+    @classmethod
+    def of_backend(cls, backend: str) -> Pacing:
+        """The pacing of a backend kind ("sim", "emulated", "real"): the one place that maps them."""
+        return cls.STEPPED if backend == "sim" else cls.WALL_CLOCK
+
+    @property
+    def read_before_apply(self) -> bool:
+        """The loop reads and publishes before applying the newest command (the device moved
+        during the period that just ended); else it applies, ticks, then reads."""
+        return self is Pacing.WALL_CLOCK
+
+    @property
+    def command_delay_periods(self) -> int:
+        """Commands already on their way when a state is published: a plan from that state
+        starts acting after this many periods (the MPC predicts through them first)."""
+        return 1 if self is Pacing.WALL_CLOCK else 0
+
+
 class Lifecycle(enum.Enum):
     UNCONFIGURED = "unconfigured"
     CONFIGURED = "configured"
@@ -285,6 +329,33 @@ class Space:
         except ValueError:
             raise KeyError(f"no channel {name!r}; channels are {list(self.names)}") from None
 
+    # -- normalization: the one place an action (or state) maps onto [-1, 1] --------------
+    def _finite_box(self) -> tuple[np.ndarray, np.ndarray]:
+        if not (np.all(np.isfinite(self.low)) and np.all(np.isfinite(self.high))):
+            bad = [n for n, lo, hi in zip(self.names, self.low, self.high, strict=True)
+                   if not (math.isfinite(lo) and math.isfinite(hi))]
+            raise ValueError(f"channels {bad} are unbounded: no normalized range")
+        return (self.high + self.low) / 2, (self.high - self.low) / 2
+
+    def normalize(self, x: Any) -> np.ndarray:
+        """Values in the space's units → normalized: ``[low, high]`` onto ``[-1, 1]`` per
+        channel, symmetric about the centre (not clipped: a value outside stays outside)."""
+        mid, half = self._finite_box()
+        return (np.asarray(x, dtype=np.float64) - mid) / half
+
+    def denormalize(self, x_norm: Any) -> np.ndarray:
+        """Normalized → the space's units, clipped to ``[-1, 1]`` first (so to ``[low, high]``)."""
+        mid, half = self._finite_box()
+        return mid + half * np.clip(np.asarray(x_norm, dtype=np.float64), -1.0, 1.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"names": list(self.names), "units": list(self.units),
+                "low": [float(x) for x in self.low], "high": [float(x) for x in self.high]}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Space:
+        return cls(tuple(d["names"]), tuple(d["units"]), np.array(d["low"], float), np.array(d["high"], float))
+
     @classmethod
     def build(cls, channels: list[tuple[str, str, float, float]]) -> Space:
         """From ``[(name, unit, low, high), ...]``."""
@@ -308,6 +379,10 @@ class RobotSpec:
     #: the action of the robot's home pose, where its episodes start (the hand's cupped hold
     #: pose), in the action space's units; None: the robot has none
     home_action: np.ndarray | None = None
+    #: the kinematic chain for viewers, base to tip: (joint, its link's offset from the parent
+    #: link [m], rotation axis); joint angles are the state channels ``<joint>_pos`` (or
+    #: ``<joint>``) in rad. Recordings derive each link's frame transform from it (bus/recording.py)
+    chain: tuple[tuple[str, tuple[float, float, float], tuple[float, float, float]], ...] = ()
 
     def __post_init__(self) -> None:
         if not (self.period_s > 0 and math.isfinite(self.period_s)):
@@ -320,27 +395,54 @@ class RobotSpec:
                     raise ValueError(f"{attr} has {v.size} entries, action space has {self.action.dim}")
                 object.__setattr__(self, attr, v)
 
-    def to_dict(self) -> dict[str, Any]:
-        def sp(s: Space) -> dict[str, Any]:
-            return {
-                "names": list(s.names),
-                "units": list(s.units),
-                "low": [float(x) for x in s.low],
-                "high": [float(x) for x in s.high],
-            }
+    def max_step_normalized(self) -> np.ndarray | None:
+        """The action rate limit as the largest change per control period in normalized
+        action units (``[-1, 1]`` spans each channel's range: ``rate · period_s / half
+        range``), or None when the robot has none. Planners bound their sequences by it."""
+        if self.action_rate_per_s is None:
+            return None
+        _, half = self.action._finite_box()
+        return self.action_rate_per_s * self.period_s / half
 
+    def to_dict(self) -> dict[str, Any]:
+        """The spec as it crosses the bus (``SpecMsg.spec``) and sits in recordings."""
         return {
             "name": self.name,
             "period_s": self.period_s,
-            "state": sp(self.state),
-            "action": sp(self.action),
+            "state": self.state.to_dict(),
+            "action": self.action.to_dict(),
             "action_rate_per_s": None
             if self.action_rate_per_s is None
             else [float(x) for x in self.action_rate_per_s],
             # None: the robot stops by holding its measured position (hand, arm joints)
             "safe_action": None if self.safe_action is None else [float(x) for x in self.safe_action],
             "home_action": None if self.home_action is None else [float(x) for x in self.home_action],
+            **({"chain": [{"joint": j, "xyz": [float(v) for v in xyz], "axis": [float(v) for v in ax]}
+                          for j, xyz, ax in self.chain]} if self.chain else {}),
         }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> RobotSpec:
+        """The typed spec again, from :meth:`to_dict`'s dict (a ``SpecMsg`` from the bus, a
+        recording). A malformed one is a ValueError naming what is wrong."""
+        try:
+            return cls(
+                name=str(d["name"]),
+                state=Space.from_dict(d["state"]),
+                action=Space.from_dict(d["action"]),
+                period_s=float(d["period_s"]),
+                action_rate_per_s=None if d.get("action_rate_per_s") is None
+                else np.array(d["action_rate_per_s"], float),
+                safe_action=None if d.get("safe_action") is None else np.array(d["safe_action"], float),
+                home_action=None if d.get("home_action") is None else np.array(d["home_action"], float),
+                description=str(d.get("description", "")),
+                chain=tuple((str(c["joint"]), tuple(float(v) for v in c["xyz"]), tuple(float(v) for v in c["axis"]))
+                            for c in d.get("chain") or ()),
+            )
+        except KeyError as e:
+            raise ValueError(f"robot spec {d.get('name', '?')!r}: missing {e}") from None
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"robot spec {d.get('name', '?') if isinstance(d, dict) else d!r}: {e}") from None
 
     def joint_names(self) -> list[str]:
         """The joints of a joint-space robot: the state channels ``<joint>_pos``, in order."""
@@ -749,6 +851,12 @@ class Driver(ABC):
         if self.last_error and not h.last_error:
             h.last_error = self.last_error
         return h
+
+    @property
+    def pacing(self) -> Pacing:
+        """This backend's time model (:class:`Pacing`): the driver node's loop order and the
+        command delay a planner must predict through."""
+        return Pacing.of_backend(self.backend)
 
     @property
     def held_command(self) -> np.ndarray | None:

@@ -10,7 +10,9 @@ consecutive readings are ok again, default 3), whatever other nodes do. At start
 node asks the rig's other nodes for a latched e-stop (``estop_sync_s``) and, when one
 is engaged, starts stopped and refuses commands until a release (bus/estop.py).
 
-Pacing: wall-clock backends (real, emulated) and sim backends in ``realtime`` pace
+One loop, ``step()`` (read → update → write); the driver's
+:class:`~hilstack.drivers.base.Pacing` orders it (docs/platform.md, "Time model").
+Wall-clock backends (real, emulated) and sim backends in ``realtime`` pace
 run on the wall clock. In ``lockstep`` pace (sim only) the simulation advances one
 period when the command answering the last published state arrives, so a whole rig
 runs faster than real time with the same nodes; staleness is then counted in
@@ -36,12 +38,14 @@ from hilstack.bus.schemas import (
     Image,
     MalformedMessage,
     ResetEvent,
+    ResetPhase,
     RobotState,
     SpecMsg,
+    StoppedReason,
     decode,
 )
 from hilstack.configs.schema import BusConfig
-from hilstack.drivers.base import CommandError, Driver, LinkError, sim_controls
+from hilstack.drivers.base import CommandError, Driver, LinkError, Pacing, sim_controls
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +99,7 @@ class DriverNode(Node):
         if not (isinstance(resume_ok_readings, int) and 1 <= resume_ok_readings <= MAX_RESUME_OK_READINGS):
             raise ValueError(f"resume_ok_readings must be an integer in [1, {MAX_RESUME_OK_READINGS}], "
                              f"got {resume_ok_readings!r}")
-        if pace == "lockstep" and driver.backend != "sim":  # before the session opens: nothing left running
+        if pace == "lockstep" and driver.pacing is not Pacing.STEPPED:  # before the session opens
             raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
         access = bus is not None and bus.access is not None
         if driver.backend in ("real", "emulated") and not access:
@@ -122,7 +126,7 @@ class DriverNode(Node):
         self.estop_sync_s = estop_sync_s
         self.stats = BridgeStats()
         self.estopped = False
-        self.stopped_reason = "waiting"
+        self.stopped_reason = StoppedReason.WAITING
         #: consecutive ok readings needed before commands are taken again after a not-ok one
         self.resume_ok_readings = resume_ok_readings
         #: the newest reading was not ok, or fewer than resume_ok_readings ok ones followed it
@@ -165,7 +169,7 @@ class DriverNode(Node):
         log.warning("e-stop from %s: %s", m.source or "?", m.reason)
         self.driver.stop()
         self.driver.deactivate()
-        self.stopped_reason = "estop"
+        self.stopped_reason = StoppedReason.ESTOP
 
     def _release(self, m: EStop) -> str:
         """Re-activate holding the measured state; commands must come anew. '' or why not."""
@@ -179,7 +183,7 @@ class DriverNode(Node):
         log.warning("e-stop released by %s (node %s)", m.sender or "?", m.source or "?")
         self.estopped = False
         self._last_cmd_t = None
-        self.stopped_reason = "waiting"
+        self.stopped_reason = StoppedReason.WAITING
         return ""
 
     def _handle_estop(self) -> None:
@@ -217,27 +221,27 @@ class DriverNode(Node):
                 continue
             reset = sim.reset if (sim := sim_controls(self.driver)) is not None else None
             if self.estopped:
-                ans = ResetEvent(robot=self.robot, phase="failed", detail="e-stop engaged")
-            elif m.phase == "teleport" and reset is not None:
+                ans = ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, detail="e-stop engaged")
+            elif m.phase == ResetPhase.TELEPORT and reset is not None:
                 self.driver.stop()
                 try:
                     reset(**m.pose)
                 except (TypeError, ValueError) as e:  # a pose this robot cannot take: say so, keep serving
-                    ans = ResetEvent(robot=self.robot, phase="failed", detail=f"teleport refused: {e}")
+                    ans = ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, detail=f"teleport refused: {e}")
                 else:
                     self._last_cmd_t = None
-                    self.stopped_reason = "waiting"
+                    self.stopped_reason = StoppedReason.WAITING
                     jumped = True
-                    ans = ResetEvent(robot=self.robot, phase="done", pose=m.pose)
-            elif m.phase == "teleport":
-                ans = ResetEvent(robot=self.robot, phase="unsupported",
+                    ans = ResetEvent(robot=self.robot, phase=ResetPhase.DONE, pose=m.pose)
+            elif m.phase == ResetPhase.TELEPORT:
+                ans = ResetEvent(robot=self.robot, phase=ResetPhase.UNSUPPORTED,
                                  detail=f"{self.driver.backend} backend cannot teleport")
-            elif m.phase == "episode":
+            elif m.phase == ResetPhase.EPISODE:
                 self.episode += 1
                 jumped = True
-                ans = ResetEvent(robot=self.robot, phase="done", pose=m.pose)
+                ans = ResetEvent(robot=self.robot, phase=ResetPhase.DONE, pose=m.pose)
             else:
-                ans = ResetEvent(robot=self.robot, phase="failed", detail=f"unknown phase {m.phase!r}")
+                ans = ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, detail=f"unknown phase {m.phase!r}")
             ans.episode = self.episode
             ans.detail = ans.detail or m.detail
             self._sup_done.put(ans)
@@ -264,17 +268,17 @@ class DriverNode(Node):
                 f"{self.driver.backend} backend cannot reset itself and no reset supervisor is running "
                 "(add a reset: section to the rig config, docs/reset.md)"
             )
-            self._reset_done.put(ResetEvent(robot=self.robot, phase="unsupported", episode=self.episode, detail=why))
+            self._reset_done.put(ResetEvent(robot=self.robot, phase=ResetPhase.UNSUPPORTED, episode=self.episode, detail=why))
             return jumped
         try:
             reset(**m.pose)
         except TypeError as e:
-            self._reset_done.put(ResetEvent(robot=self.robot, phase="failed", episode=self.episode, detail=str(e)))
+            self._reset_done.put(ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, episode=self.episode, detail=str(e)))
             return False
         self.episode += 1
         self._last_cmd_t = None
-        self.stopped_reason = "waiting"
-        self._reset_done.put(ResetEvent(robot=self.robot, phase="done", episode=self.episode, pose=m.pose))
+        self.stopped_reason = StoppedReason.WAITING
+        self._reset_done.put(ResetEvent(robot=self.robot, phase=ResetPhase.DONE, episode=self.episode, pose=m.pose))
         return True
 
     def _apply(self, cmd: Command | None) -> None:
@@ -294,17 +298,17 @@ class DriverNode(Node):
                 self.stats.last_reject = str(e)
                 log.warning("rejected command: %s", e)
                 self.driver.stop()
-                self.stopped_reason = "bad_command"
+                self.stopped_reason = StoppedReason.BAD_COMMAND
                 return
             self.stats.commands_applied += 1
             self._last_cmd_t = self._clock()
-            self.stopped_reason = ""
+            self.stopped_reason = StoppedReason.RUNNING
             return
         stale = self._last_cmd_t is None or self._clock() - self._last_cmd_t > self.watchdog_s
-        if stale and self.stopped_reason == "":
+        if stale and self.stopped_reason is StoppedReason.RUNNING:
             self.stats.stale_stops += 1
             self.driver.stop()
-            self.stopped_reason = "stale"
+            self.stopped_reason = StoppedReason.STALE
 
     def _assess_reading(self, ok: bool, flags: dict[str, bool]) -> None:
         """Control on unhealthy states: a reading that is not ok (a stale or non-finite
@@ -318,20 +322,20 @@ class DriverNode(Node):
             if self.unhealthy and self._ok_run >= self.resume_ok_readings:
                 self.unhealthy = False
                 self._last_cmd_t = None
-                if self.stopped_reason == "unhealthy":
-                    self.stopped_reason = "waiting"
+                if self.stopped_reason is StoppedReason.UNHEALTHY:
+                    self.stopped_reason = StoppedReason.WAITING
                 log.warning("%s: %d ok readings: taking commands again", self.robot, self._ok_run)
             return
         self._ok_run = 0
         self.stats.last_unhealthy = ",".join(sorted(k for k, v in flags.items() if v)) or "health"
         self.unhealthy = True
-        if self.estopped or self.stopped_reason == "unhealthy":
+        if self.estopped or self.stopped_reason is StoppedReason.UNHEALTHY:
             return
         self.stats.unhealthy_stops += 1
         log.warning("%s: reading not ok (%s): holding, commands refused", self.robot, self.stats.last_unhealthy)
         if self.driver.active:
             self.driver.stop()
-        self.stopped_reason = "unhealthy"
+        self.stopped_reason = StoppedReason.UNHEALTHY
 
     def publish_state(self) -> RobotState:
         obs = self.driver.read()
@@ -359,6 +363,9 @@ class DriverNode(Node):
                 "unhealthy_refused": self.stats.unhealthy_refused,
                 "unhealthy_reason": self.stats.last_unhealthy,
                 "estop_releases_refused": self.estop.refused_releases,
+                # the node's own period on the wall clock (realtime pace): late starts and
+                # periods skipped after a stall (bus/cycle.py's catch-up rule)
+                **({"cycle_late": self.cycle.late, "cycle_missed": self.cycle.missed} if self.cycle else {}),
             },
         )
         self._last_state = self._state_pub.put(msg)
@@ -382,28 +389,42 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------------ loops
     def step(self) -> None:
-        """One realtime period (sections timed by the cycle timer of ``run()``: ``hil up`` prints them).
+        """One period: read → update → write, in the order the driver's pacing says.
 
-        Each published state carries the action held during the period that ended with it
+        Sections are timed by the cycle timer of ``run()`` (``hil up`` prints them). Each
+        published state carries the action held during the period that ended with it
         (``RobotState.action``; ``learning/recordings.py`` pairs ``(s_t, s_{t+1}.action,
-        s_{t+1})``). A sim backend advances inside the step, after the command is applied,
-        so it reads after the tick. A wall-clock robot (real, emulated) moved during the
-        period before this step, under the command held then: it is read and published
-        *before* the newest command is applied. (Applying first stamped every state with
-        the command that had not acted yet: the recorded transitions were one period off
-        and a model trained on them learned a wrong action effect; docs/mbrl.md.)
+        s_{t+1})``). The driver's :class:`~hilstack.drivers.base.Pacing` decides the order:
+
+        * ``STEPPED`` (sim): apply the newest command, ``tick()`` (physics advances one
+          period under it), read and publish.
+        * ``WALL_CLOCK`` (real, emulated): the robot moved during the period before this
+          step, under the command held then: read and publish *first*, then apply the newest
+          command. (Applying first stamped every state with the command that had not acted
+          yet: the recorded transitions were one period off and a model trained on them
+          learned a wrong action effect; docs/mbrl.md.)
+
+        The rig's pace only decides where the command comes from: ``realtime`` takes the
+        newest one (the loop is paced on the wall clock by ``run()``), ``lockstep`` (sim only)
+        waits for the answer to the last published state (``lockstep_timeout_s``).
         """
         timer = self.cycle
-        wall_clock = self.driver.backend != "sim"
-        with timer.section("control") if timer else nullcontext():
-            self._handle_estop()
-            self._handle_reset()
-        if wall_clock:
+        read_first = self.driver.pacing.read_before_apply
+        lockstep = self.pace == "lockstep"
+        if lockstep:
+            if self._last_state is None:
+                self.publish_state()
+            cmd = self._await_answer()
+        else:
+            with timer.section("control") if timer else nullcontext():
+                self._handle_estop()
+                self._handle_reset()
+        if read_first:
             with timer.section("read_publish") if timer else nullcontext():
                 self.publish_state()
         with timer.section("apply") if timer else nullcontext():
-            self._apply(self._cmd.poll())
-        if not wall_clock:
+            self._apply(cmd if lockstep else self._cmd.poll())  # realtime: the newest, taken now
+        if not read_first:
             with timer.section("sim_tick") if timer else nullcontext():
                 self.driver.tick()
             with timer.section("read_publish") if timer else nullcontext():
@@ -411,12 +432,10 @@ class DriverNode(Node):
         self.stats.steps += 1
         self._maybe_publish_spec()
 
-    def step_lockstep(self) -> None:
-        """Publish state, wait for its answer, apply, advance one period."""
-        if self._last_state is None:
-            self.publish_state()
+    def _await_answer(self) -> Command | None:
+        """Lockstep: serve e-stops and resets while waiting for the command that answers the
+        last published state; None after ``lockstep_timeout_s`` (counted)."""
         want = self._last_state.seq
-        cmd = None
         deadline = time.monotonic() + self.lockstep_timeout_s
         while not self.stop_event.is_set():
             self._handle_estop()
@@ -426,16 +445,11 @@ class DriverNode(Node):
                 deadline = time.monotonic() + self.lockstep_timeout_s
             m = self._cmd.wait(min(0.05, max(0.0, deadline - time.monotonic())))
             if m is not None and m.state_seq >= want:
-                cmd = m
-                break
+                return m
             if time.monotonic() >= deadline:
                 self.stats.lockstep_timeouts += 1
-                break
-        self._apply(cmd)
-        self.driver.tick()
-        self.publish_state()
-        self.stats.steps += 1
-        self._maybe_publish_spec()
+                return None
+        return None
 
     def serve(self, max_steps: int | None = None) -> BridgeStats:
         """Run until stopped (signal, ``stop_event``) or ``max_steps``. Always stops the robot."""
@@ -446,16 +460,16 @@ class DriverNode(Node):
             if latched is not None:
                 # a late (or restarted) driver: the rig's e-stop is engaged, start stopped
                 self.estopped = True
-                self.stopped_reason = "estop"
+                self.stopped_reason = StoppedReason.ESTOP
                 log.warning("starting with the rig's e-stop engaged (%s: %s)", latched.source or "?", latched.reason)
             else:
                 d.activate()
             d.stop()  # nothing moves until the first command
             self.publish_spec()
-            if self.pace == "lockstep":
+            if self.pace == "lockstep":  # paced by the answers, not by a clock
                 n = 0
                 while not self.stop_event.is_set() and (max_steps is None or n < max_steps):
-                    self.step_lockstep()
+                    self.step()
                     n += 1
             else:
                 self.run(self.step, d.spec.period_s, max_steps)

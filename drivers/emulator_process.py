@@ -2,7 +2,8 @@
 
 The emulator prints one JSON line on stdout when it is ready (where to connect: a pty
 path, a UDP port...) and logs to stderr, which goes to a temporary file so that a
-failure can quote its tail. ``--parent-pid`` is passed so that it exits with us.
+failure can quote its tail. It exits with us: its environment names us as its parent
+(bus/lifetime.py, the one convention of every child process).
 
 A failure is one line for the user (what happened, the log's last lines, where the whole
 log is), and a log that explains a failure is kept when the process is stopped.
@@ -21,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from hilstack.bus.lifetime import child_env
 from hilstack.drivers.base import LinkError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -44,7 +46,8 @@ def emulator_module(name: str) -> str:
 
 
 class EmulatorProcess:
-    """``python -m <module> <args> --parent-pid <us>``; ``start()`` returns its ready line."""
+    """``python -m <module> <args>`` with us as its parent (bus/lifetime.py); ``start()``
+    returns its ready line."""
 
     def __init__(self, module: str, args: list[str], *, start_timeout_s: float = 30.0, keep_log: bool = False):
         self.module = module
@@ -59,13 +62,13 @@ class EmulatorProcess:
         fd, log_path = tempfile.mkstemp(prefix=self.module.rsplit(".", 2)[-2] + "-emulator-", suffix=".log")
         os.close(fd)
         self.log_path = Path(log_path)
-        cmd = [sys.executable, "-m", self.module, *self.args, "--parent-pid", str(os.getpid())]
-        env = dict(os.environ)
+        cmd = [sys.executable, "-m", self.module, *self.args]
+        env = child_env()
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), *filter(None, [env.get("PYTHONPATH")])])
         with open(self.log_path, "wb") as errf:
             # its own session (process group): a Ctrl-C in the terminal reaches the driver,
             # which stops the robot and then the emulator (stop()); the emulator itself
-            # must not die first. It still exits with us (--parent-pid).
+            # must not die first. It still exits with us (bus/lifetime.py).
             self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=errf, stdin=subprocess.DEVNULL,
                                          cwd=str(REPO_ROOT), env=env, start_new_session=True)
         assert self.proc.stdout is not None

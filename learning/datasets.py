@@ -30,6 +30,7 @@ __all__ = [
     "TransitionDataset",
     "episodes_from_table",
     "load_episodes",
+    "split_episodes",
 ]
 
 
@@ -82,6 +83,40 @@ class Episode:
     @property
     def action_dim(self) -> int:
         return self.actions.shape[1]
+
+
+
+def split_episodes(episodes: Sequence[Episode], val_fraction: float, rng: np.random.Generator | int,
+                   assigned: dict[str, bool] | None = None) -> tuple[list[Episode], list[Episode]]:
+    """(train, validation): whole episodes, never transitions of one episode on both sides.
+
+    ``round(val_fraction · n)`` of the ``n`` episodes drawn by ``rng.permutation(n)`` are held
+    out, at least one and at most ``n − 1`` when ``val_fraction > 0`` and ``n ≥ 2`` (none when
+    ``n < 2``). ``rng``: a Generator, or an int seed (``default_rng([seed, 11])``).
+
+    ``assigned`` (episode name → True for validation), updated in place: only episodes whose
+    names it does not hold yet are drawn, so an episode keeps its side for good when the list
+    grows between iterations (MBRL); names must then be unique.
+    """
+    if not 0.0 <= val_fraction < 1.0:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    if isinstance(rng, (int, np.integer)):
+        rng = np.random.default_rng([int(rng), 11])
+    if assigned is None:
+        new = list(range(len(episodes)))
+    else:
+        new = [i for i, e in enumerate(episodes) if e.name not in assigned]
+        names = [episodes[i].name for i in new]
+        if len(set(names)) != len(names):
+            raise ValueError("episode names must be unique to keep the validation split fixed")
+    n = len(new)
+    k = min(max(int(round(val_fraction * n)), 1 if val_fraction > 0 else 0), n - 1) if n >= 2 else 0
+    held = set(rng.permutation(n)[:k].tolist())
+    side = {i: j in held for j, i in enumerate(new)}
+    if assigned is not None:
+        assigned.update({episodes[i].name: v for i, v in side.items()})
+        side = {i: assigned[e.name] for i, e in enumerate(episodes)}
+    return [e for i, e in enumerate(episodes) if not side[i]], [e for i, e in enumerate(episodes) if side[i]]
 
 
 @dataclass

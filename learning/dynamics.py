@@ -262,16 +262,22 @@ class EnsembleDynamics(nn.Module):
         with torch.no_grad():
             ws = [w.detach() for w in self.weights]
             bs = [b.detach() for b in self.biases]
-            # first layer: ((x - μ)/σ) W + b = x (W/σ) + (b - (μ/σ) W)
-            w0 = ws[0] / self.input_std[None, :, None]
-            b0 = bs[0] - torch.einsum("i,eio->eo", self.input_mean / self.input_std, ws[0]).unsqueeze(1)
+            dt = self._inference_dtype
+            # first layer: ((x - μ)/σ) W + b = x (W/σ) + (b - (μ/σ) W) in fp32. Not in bf16: its
+            # 8-bit mantissa would round a raw input far from zero (a ball at 1 m: 4-8 mm
+            # steps) before the normalisation; there the inputs are normalised in fp32 first
+            fold = dt == torch.float32
+            w0 = ws[0] / self.input_std[None, :, None] if fold else ws[0]
+            b0 = (bs[0] - torch.einsum("i,eio->eo", self.input_mean / self.input_std, ws[0]).unsqueeze(1)
+                  if fold else bs[0])
             # last layer: (h W + b) σ_Δ + μ_Δ
             wl = ws[-1] * self.delta_std
             bl = bs[-1] * self.delta_std + self.delta_mean
             ws = [w0, *ws[1:-1], wl] if len(ws) > 1 else [w0 * self.delta_std]
             bs = [b0, *bs[1:-1], bl] if len(bs) > 1 else [b0 * self.delta_std + self.delta_mean]
-            dt = self._inference_dtype
             self._fast = {
+                "normalize": None if fold else (self.input_mean[:S].clone(), self.input_std[:S].clone(),
+                                                self.input_mean[S:].clone(), self.input_std[S:].clone()),
                 "w_s": ws[0][:, :S].to(dt).contiguous(),
                 "w_a": ws[0][:, S:].to(dt).contiguous(),
                 "ws": [w.to(dt).contiguous() for w in ws[1:]],
@@ -355,9 +361,11 @@ class EnsembleDynamics(nn.Module):
         dt = self._inference_dtype
         s3 = self._as_ensemble(state, "state")
         a3 = self._as_ensemble(action, "action")
+        norm = self._fused()["normalize"]
+        s_in, a_in = (s3, a3) if norm is None else ((s3 - norm[0]) / norm[1], (a3 - norm[2]) / norm[3])
         # [E, B, .] -> [E*k, B/k, .]: a view when contiguous, a small copy when broadcast
-        s_c = s3.reshape(E * k, B // k, S).to(dt)
-        a_c = a3.reshape(E * k, B // k, a3.shape[-1]).to(dt)
+        s_c = s_in.reshape(E * k, B // k, S).to(dt)
+        a_c = a_in.reshape(E * k, B // k, a3.shape[-1]).to(dt)
         h = torch.baddbmm(w["bs"][0], s_c, w["w_s"])
         h.baddbmm_(a_c, w["w_a"])
         for wi, bi in zip(w["ws"], w["bs"][1:], strict=True):

@@ -27,14 +27,17 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from hilstack.bus import keys
+from hilstack.bus.lifetime import child_env
 from hilstack.bus.recording import Recorder
 from hilstack.bus.schemas import ResetTransition, decode
+from hilstack.bus.session import BusUnavailable
+from hilstack.configs.presets import Presets
 from hilstack.configs.schema import BusConfig, load_rig
 from hilstack.control.baselines import DifferentialDriveController
 from hilstack.control.controller_node import ControllerNode, EpisodeLog
@@ -44,7 +47,8 @@ from hilstack.control.planners import CEM, PDDM, RandomShooting
 from hilstack.control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from hilstack.control.reset.config import ResetConfig, ResetUnavailable, require_reset
 from hilstack.control.reset.supervisor import ResetSupervisor
-from hilstack.learning.datasets import Episode
+from hilstack.drivers.base import RobotSpec
+from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.dynamics import EnsembleDynamics
 from hilstack.learning.frames import BodyFrameDynamics
 from hilstack.learning.progress import progress
@@ -61,7 +65,14 @@ EXPERIMENTS = ("table_3_1", "speed_sweep", "table_3_2")
 
 
 @dataclass
-class MbrlConfig:
+class MbrlConfig(Presets):
+    #: the presets of ``from_preset(name, **overrides)`` (configs/presets.py): overrides of the defaults
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        # `hil demo --full`: the thesis' data sizes and every experiment over three seeds.
+        "full": dict(random_rollouts=400, experiments=EXPERIMENTS),
+        "quick": dict(random_rollouts=60, epochs=40, retrain_epochs=10, baseline_candidates=20),
+    }
+
     rig: str = "roach_sim"
     robot: str = "roach"
     seed: int = 0
@@ -154,19 +165,6 @@ class MbrlConfig:
         if problems:
             raise ValueError("MbrlConfig: " + "; ".join(problems))
 
-    @classmethod
-    def full(cls, **kw: Any) -> MbrlConfig:
-        """`hil demo --full`: the thesis' data sizes and every experiment over three seeds."""
-        base = dict(random_rollouts=400, experiments=EXPERIMENTS)
-        base.update(kw)
-        return cls(**base)
-
-    @classmethod
-    def quick(cls, **kw: Any) -> MbrlConfig:
-        base = dict(random_rollouts=60, epochs=40, retrain_epochs=10, baseline_candidates=20)
-        base.update(kw)
-        return cls(**base)
-
 
 def _log(cfg: MbrlConfig, msg: str) -> None:
     if cfg.progress:
@@ -183,9 +181,9 @@ def rig_processes(rig: str, bus: BusConfig, log_dir: Path) -> Iterator[subproces
         [sys.executable, "-m", "hilstack", "up", rig, "--endpoint", bus.endpoint],
         stdout=err,
         stderr=subprocess.STDOUT,
-        # HIL_PARENT_PID: the rig stops itself if this process dies without stopping it
-        # (SIGKILL, a crash): tools/common.py, exit_with_parent
-        env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1", "HIL_PARENT_PID": str(os.getpid())},
+        # the rig stops itself if this process dies without stopping it (SIGKILL, a crash):
+        # bus/lifetime.py, exit_with_parent
+        env=child_env({**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}),
     )
     try:
         yield p
@@ -251,25 +249,6 @@ def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str])
     if ignore:
         model.ignore_inputs(ignore)
     return model
-
-
-def split_episodes(eps: list[Episode], val_fraction: float, rng: np.random.Generator,
-                   assigned: dict[str, bool]) -> tuple[list[Episode], list[Episode]]:
-    """Train and validation episodes; each episode is assigned once, for good.
-
-    ``assigned`` maps episode name → ``True`` (validation) and is updated in place: only
-    episodes not seen before are drawn (``val_fraction`` of them, at least one when more
-    than one is new), so a validation episode never becomes training data when the list
-    grows between MBRL iterations, and vice versa.
-    """
-    new = [e.name for e in eps if e.name not in assigned]
-    if len(set(new)) != len(new):
-        raise ValueError("episode names must be unique to keep the validation split fixed")
-    n_val = max(1, int(round(val_fraction * len(new)))) if len(new) > 1 else 0
-    val_idx = set(rng.permutation(len(new))[:n_val].tolist())
-    for i, name in enumerate(new):
-        assigned[name] = i in val_idx
-    return [e for e in eps if not assigned[e.name]], [e for e in eps if assigned[e.name]]
 
 
 def fit_episodes(model, eps: list[Episode], epochs: int, batch_size: int, val_fraction: float,
@@ -408,26 +387,17 @@ def fit_planner_samples(make, samples: int, predict, cost, state: np.ndarray, bu
 
 def command_delay_steps(rig: Any, robot: str) -> int:
     """Control periods between the state a realtime plan starts from and the period its
-    command acts in, minus one: 0 on sim backends (lockstep, or a realtime sim that
-    advances right after applying the command), 1 on wall-clock robots (real,
-    emulated), whose driver node publishes the state of period k and applies the command
-    planned from it at period k+1 (drivers/bridge.py). The MPC then plans from the state
-    its model predicts after the command already sent (:class:`hilstack.control.policies.MpcPolicy`)."""
+    command acts in, minus one: the robot's pacing says it
+    (:attr:`hilstack.drivers.base.Pacing.command_delay_periods`: 0 on sim backends, which
+    advance right after applying the command, lockstep or realtime; 1 on wall-clock
+    robots, real or emulated, whose driver node publishes the state of period k and
+    applies the command planned from it at period k+1). The MPC then plans from the state
+    its model predicts after the command already sent
+    (:class:`hilstack.control.policies.MpcPolicy`)."""
     from hilstack.configs.schema import rig_robot_config
+    from hilstack.drivers.base import Pacing
 
-    if rig.pace == "lockstep" or rig_robot_config(rig, robot).backend == "sim":
-        return 0
-    return 1
-
-
-def max_step_normalized(spec: dict[str, Any]) -> np.ndarray | None:
-    """The spec's action rate limit as the largest change per control period in normalized
-    action units ([-1, 1] spans the action range), or None when the robot has none."""
-    rate = spec.get("action_rate_per_s")
-    if rate is None:
-        return None
-    low, high = np.asarray(spec["action"]["low"], float), np.asarray(spec["action"]["high"], float)
-    return np.asarray(rate, float) * float(spec["period_s"]) / ((high - low) / 2)
+    return Pacing.of_backend(rig_robot_config(rig, robot).backend).command_delay_periods
 
 
 # ---------------------------------------------------------------------------- the loop
@@ -458,7 +428,7 @@ class MbrlRun:
         self._ended = False  # the supervisor ended the current episode (_scan_transitions)
         self._episode_no = 0  # the robot's episode counter of the current episode
 
-    def _wait_for_rig(self, ctl: ControllerNode, proc: subprocess.Popen) -> dict[str, Any]:
+    def _wait_for_rig(self, ctl: ControllerNode, proc: subprocess.Popen) -> RobotSpec:
         """The robot's spec once its driver node is up; a rig process that exits first (a
         wrong port, a bad config) is a :class:`RigError` at once, with its log's last line."""
         deadline = time.monotonic() + self.cfg.rig_timeout_s
@@ -467,13 +437,32 @@ class MbrlRun:
                 return ctl.wait_ready(timeout_s=0.5)
             except TimeoutError:
                 if proc.poll() is not None:
-                    log = self.out / "logs" / "driver.log"
-                    lines = [ln for ln in log.read_text(errors="replace").splitlines() if ln.strip()]
-                    why = lines[-1].strip() if lines else "it printed nothing"
-                    raise RigError(f"the rig's process exited (code {proc.returncode}) before its driver came up: "
-                                   f"{why} (driver log: {log})") from None
+                    raise self._rig_exited(proc) from None
                 if time.monotonic() > deadline:
                     raise
+
+    def _rig_exited(self, proc: subprocess.Popen) -> RigError:
+        log = self.out / "logs" / "driver.log"
+        lines = [ln for ln in log.read_text(errors="replace").splitlines() if ln.strip()] if log.exists() else []
+        why = lines[-1].strip() if lines else "it printed nothing"
+        return RigError(f"the rig's process exited (code {proc.returncode}) before its driver came up: "
+                        f"{why} (driver log: {log})")
+
+    def _controller(self, proc: subprocess.Popen) -> ControllerNode:
+        """This loop's controller node. On an access-controlled rig the driver node is the router:
+        joining fails until it listens, and for good when the rig's process exits first (a
+        :class:`RigError` naming the driver's reason, not a bus error)."""
+        deadline = time.monotonic() + self.cfg.rig_timeout_s
+        while True:
+            try:
+                return ControllerNode(self.rig.name, self.cfg.robot, self.bus, name="mbrl-controller",
+                                      handle_signals=False, state_timeout_s=20.0)
+            except BusUnavailable:
+                if proc.poll() is not None:
+                    raise self._rig_exited(proc) from None
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
 
     @contextlib.contextmanager
     def session(self) -> Iterator[ControllerNode]:
@@ -484,17 +473,16 @@ class MbrlRun:
         except ResetUnavailable as e:
             raise RigError(str(e)) from None
         with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs") as proc, \
-                ControllerNode(self.rig.name, cfg.robot, self.bus, name="mbrl-controller",
-                               handle_signals=False, state_timeout_s=20.0) as ctl, \
+                self._controller(proc) as ctl, \
                 self._supervised(reset_cfg):
             self.ctl = ctl
             self._transitions = ctl.subscribe(keys.reset_transition(self.rig.name), ResetTransition,
                                               latest=False, capacity=256)
             spec = self._wait_for_rig(ctl, proc)
-            self.state_names = list(spec["state"]["names"])
-            self.action_names = list(spec["action"]["names"])
-            self.period_s = float(spec["period_s"])
-            self.max_step = max_step_normalized(spec)
+            self.state_names = list(spec.state.names)
+            self.action_names = list(spec.action.names)
+            self.period_s = spec.period_s
+            self.max_step = spec.max_step_normalized()
             self.command_delay = command_delay_steps(self.rig, cfg.robot)
             try:
                 yield ctl

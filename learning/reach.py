@@ -33,11 +33,12 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
+from hilstack.configs.presets import Presets
 from hilstack.configs.schema import BusConfig
 from hilstack.control.controller_node import ControllerNode
 from hilstack.control.planners import CEM
@@ -117,7 +118,13 @@ IK_DEFAULT = {"gain_per_s": 1.0, "damping_m": 0.02}
 
 
 @dataclass
-class ReachConfig:
+class ReachConfig(Presets):
+    #: the presets of ``from_preset(name, **overrides)`` (configs/presets.py): overrides of the defaults
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        "quick": dict(random_episodes=40, eval_goals=5),
+        "full": dict(random_episodes=150, epochs=200, ensemble=3, eval_goals=10, seeds=(0, 1, 2)),
+    }
+
     arm: str = "widowx"
     #: seeds of the evaluation: each trains its own model on its own random data
     seeds: tuple[int, ...] = (0,)
@@ -159,18 +166,6 @@ class ReachConfig:
             raise ValueError("ReachConfig: " + "; ".join(problems))
         if self.tune_candidates <= 0:  # the same robot time as the MPC's data
             self.tune_candidates = int(np.ceil(self.random_episodes / self.tune_goals))
-
-    @classmethod
-    def quick(cls, **kw: Any) -> ReachConfig:
-        base = dict(random_episodes=40, eval_goals=5)
-        base.update(kw)
-        return cls(**base)
-
-    @classmethod
-    def full(cls, **kw: Any) -> ReachConfig:
-        base = dict(random_episodes=150, epochs=200, ensemble=3, eval_goals=10, seeds=(0, 1, 2))
-        base.update(kw)
-        return cls(**base)
 
     def mbrl(self, task: ArmTask, seed: int) -> MbrlConfig:
         """The shared loop's settings (rig, model, planner) for this arm."""
@@ -323,8 +318,7 @@ class ReachRun:
             if abs(self.hold * self.loop.period_s - self.task.policy_period_s) > 1e-6:
                 raise ValueError(f"{self.task.name}: the driver period {self.loop.period_s} s does not divide "
                                  f"the policy period {self.task.policy_period_s} s")
-            spec = self.loop.ctl.spec
-            self.vel_limit = np.asarray(spec["action"]["high"], dtype=np.float64)
+            self.vel_limit = self.loop.ctl.spec.action.high.copy()
             if self.task.mechanism:
                 with ControllerNode(self.loop.rig.name, self.task.mechanism, self.loop.bus, name="reach-mechanism",
                                     handle_signals=False, state_timeout_s=20.0) as mech:

@@ -23,6 +23,7 @@ import numpy as np
 
 from hilstack.bus.recording import iter_messages
 from hilstack.bus.schemas import ResetTransition, RobotState, SpecMsg
+from hilstack.drivers.base import RobotSpec
 from hilstack.learning.datasets import Episode
 
 
@@ -44,7 +45,8 @@ def episodes_from_mcap(
     for rm in iter_messages(path):
         m = rm.msg
         if isinstance(m, SpecMsg):
-            specs.setdefault(m.robot, m.spec)
+            if m.robot not in specs:  # repeated at 1 Hz: the first one, typed
+                specs[m.robot] = RobotSpec.from_dict(m.spec)
         elif isinstance(m, RobotState) and m.state:
             states.setdefault((m.robot, m.episode), []).append(m)
             if resetting.get(m.robot):
@@ -72,9 +74,6 @@ def episodes_from_mcap(
     spec = specs.get(robot)
     if normalize and spec is None:
         raise ValueError(f"{path}: no spec message for {robot!r}, cannot normalize actions")
-    if spec is not None:
-        lo = np.array(spec["action"]["low"])
-        hi = np.array(spec["action"]["high"])
     out = []
     for (r, ep), msgs in sorted(states.items()):
         if r != robot or (episodes is not None and ep not in episodes):
@@ -100,7 +99,7 @@ def episodes_from_mcap(
             st = np.array([m.state for m in seg])
             act = np.array([m.action for m in seg[1:]])
             if normalize:
-                act = (act - (hi + lo) / 2) / ((hi - lo) / 2)
+                act = spec.action.normalize(act)
             out.append(
                 Episode(
                     states=st,
@@ -110,8 +109,8 @@ def episodes_from_mcap(
                     meta={
                         "robot": robot,
                         "episode": ep,
-                        "state_names": None if spec is None else spec["state"]["names"],
-                        "action_names": None if spec is None else spec["action"]["names"],
+                        "state_names": None if spec is None else list(spec.state.names),
+                        "action_names": None if spec is None else list(spec.action.names),
                         "actions_normalized": normalize,
                     },
                 )

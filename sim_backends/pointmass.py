@@ -123,3 +123,26 @@ class PointMassSim(LockstepSim):
 
     def _health(self) -> Health:
         return Health(ok=self.data is not None, extra={"sim_time_s": self.sim_time_s})
+
+    def rollout_batch(self, commands: np.ndarray, threads: int = 1) -> np.ndarray:
+        """States ``[B, T+1, 4]`` of ``B`` open-loop rollouts of ``commands`` ``[B, T, 2]``
+        from the current state, through ``mujoco.rollout`` (sim_backends/batch.py), without
+        the contract loop or the bus; this sim's own state does not move.
+
+        The same states as ``write(commands[b, t]); tick()`` per period, when the commands
+        are what the contract applies (inside the bounds and the rate limit:
+        :func:`hilstack.sim_backends.batch.rate_bounded_walk`); commands outside them are
+        refused, not limited."""
+        from hilstack.sim_backends.batch import physics_state, rollout_held
+
+        if self.data is None:
+            raise RuntimeError("pointmass: rollout_batch() needs configure() first")
+        c = np.asarray(commands, dtype=np.float64)
+        sp = self.spec
+        if c.ndim != 3 or c.shape[2] != 2:
+            raise ValueError(f"pointmass: commands must be [B, T, 2], got shape {c.shape}")
+        if not (np.all(np.isfinite(c)) and np.all(c >= sp.action.low) and np.all(c <= sp.action.high)):
+            raise ValueError(f"pointmass: commands must be finite and within ±{self.params.max_force_n} N")
+        full = rollout_held(self.model, physics_state(self.model, self.data), c, self._substeps, threads=threads)
+        nq = self.model.nq
+        return full[..., 1:1 + nq + self.model.nv]  # (time, qpos, qvel): x, y, vx, vy

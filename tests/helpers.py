@@ -123,3 +123,17 @@ def wait_rig_router(bus, timeout_s: float = 90.0) -> None:
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.2)
+
+
+def spec_dict(name: str, state: list[str], action: list[str], low: float | list[float] = -1.0,
+              high: float | list[float] = 1.0, period_s: float = 0.1, **kw) -> dict:
+    """A complete robot spec as it crosses the bus (``RobotSpec.to_dict()``), for tests that
+    write or publish one by hand: unbounded states, actions in ``[low, high]``."""
+    import numpy as np
+
+    from hilstack.drivers.base import RobotSpec, Space
+
+    n = len(action)
+    lo, hi = np.broadcast_to(np.asarray(low, float), (n,)), np.broadcast_to(np.asarray(high, float), (n,))
+    return RobotSpec(name, Space.build([(s, "", -np.inf, np.inf) for s in state]),
+                     Space.build([(a, "", lo[i], hi[i]) for i, a in enumerate(action)]), period_s, **kw).to_dict()

@@ -44,6 +44,7 @@ CONTRACT_BACKENDS = [
     ("reset_arm", "sim", {"world": "contract"}),
     ("reset_arm", "emulated", {}),
     ("pan_unit", "sim", {}),  # docs/adding_a_robot.md
+    ("wheeled", "sim", {}),  # sim only: the SIDM setting (docs/transfer.md)
     ("pan_unit", "emulated", {}),
 ]
 

@@ -1,5 +1,6 @@
 """A rig started by a `hil` process stops when that process dies without stopping it
-(SIGKILL, a crash): tools/common.py, exit_with_parent."""
+(SIGKILL, a crash), and so does a device emulator a driver started: bus/lifetime.py,
+exit_with_parent (the one convention)."""
 
 from __future__ import annotations
 
@@ -49,3 +50,31 @@ def test_a_killed_demo_does_not_leave_its_rig_running(bus, tmp_path):
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+def test_a_device_emulator_exits_when_its_driver_process_is_killed(tmp_path):
+    """The same convention for the emulator a driver starts (drivers/emulator_process.py)."""
+    code = textwrap.dedent("""
+        import time
+        from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
+        emu = EmulatorProcess(emulator_module("velociroach"), ["--print-pty"], keep_log=True)
+        emu.start()
+        print(emu.proc.pid, emu.log_path, flush=True)
+        time.sleep(600)
+    """)
+    parent = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    emu_pid = None
+    try:
+        pid, log = parent.stdout.readline().split()
+        emu_pid = int(pid)
+        assert _alive(emu_pid)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        wait_for(lambda: not _alive(emu_pid), 20, "the orphaned emulator to exit")
+        assert "parent process is gone: exiting" in open(log).read()
+        os.unlink(log)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+        if emu_pid is not None and _alive(emu_pid):
+            os.kill(emu_pid, signal.SIGKILL)

@@ -221,5 +221,13 @@ def run_bench_adaptation(rig: str = "roach_emulated", updates: int = 100, hidden
     return out
 
 
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.bench_adaptation", description=__doc__.split("\n")[0])
+    ap.add_argument("updates", nargs="?", type=int, default=100, help="model updates to time (default 100)")
+    print(json.dumps(run_bench_adaptation(updates=ap.parse_args(argv).updates), indent=2))
+
+
 if __name__ == "__main__":
-    print(json.dumps(run_bench_adaptation(updates=int(sys.argv[1]) if len(sys.argv) > 1 else 100), indent=2))
+    main()

@@ -62,7 +62,7 @@ def _pong(mode: str, endpoint: str) -> None:
                         break
                     conn.sendall(n.to_bytes(4, "little") + _recv_exact(conn, n))
         return
-    bus = BusConfig(endpoint=endpoint)
+    bus = BusConfig(endpoint=endpoint) if mode != "router" else BusConfig(router=endpoint)
     if mode == "node":
         node = Node("pong", "bench", bus)
         sub = node.subscribe(PING, Ping)
@@ -124,7 +124,8 @@ class _Client:
                 if sub.wait(5.0) is None:
                     raise RuntimeError("bench: node echo lost")
         else:
-            self._s = open_session(BusConfig(endpoint=endpoint))
+            bus = BusConfig(endpoint=endpoint) if mode != "router" else BusConfig(router=endpoint)
+            self._s = open_session(bus)
             rsub = self._s.declare_subscriber(PONG)
             rpub = self._rpub = self._s.declare_publisher(PING, express=True)
             payload = b"x" * size
@@ -165,15 +166,43 @@ def _wait_link(send, recv, timeout_s: float = 10.0) -> None:
 MODES = ("tcp", "raw", "node")
 
 
-def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: int = 200, block: int = 100) -> dict:
-    """Per size, the three stacks run at once (one pong process each) and take turns in
-    blocks of ``block`` round trips, so a change of load on the machine hits each alike."""
+def _router(endpoint: str) -> None:
+    """A Zenoh router with the project's config (bus/session.py: router_config), as `hil router` runs it."""
+    import signal
+    import threading
+
+    import zenoh
+
+    from hilstack.bus.session import router_config
+
+    s = zenoh.open(router_config(BusConfig(router=endpoint), "bench", []))
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    print("ready", flush=True)
+    stop.wait()
+    s.close()
+
+
+def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: int = 200, block: int = 100,
+                  via_router: bool = False) -> dict:
+    """Per size, the stacks run at once (one pong process each) and take turns in blocks of
+    ``block`` round trips, so a change of load on the machine hits each alike. ``via_router``
+    adds ``router``: raw Zenoh with both ends clients of a router process on 127.0.0.2 (the
+    extra hop of a rig spread over hosts, `hil router`), beside ``raw`` (the direct peer hop)."""
     out: dict = {"n": n}
+    modes = MODES + (("router",) if via_router else ())
     for size in sizes:
         procs, clients = [], {}
         try:
-            for mode in MODES:
+            for mode in modes:
                 ep = f"tcp/127.0.0.1:{free_port()}"
+                if mode == "router":
+                    ep = f"tcp/127.0.0.2:{free_port()}"
+                    rp = subprocess.Popen([sys.executable, "-m", "hilstack.tools.bench_bus", "router", ep],
+                                          stdout=subprocess.PIPE, text=True)
+                    procs.append(rp)
+                    if rp.stdout.readline().strip() != "ready":
+                        raise RuntimeError("bench: the router process did not start")
                 proc = subprocess.Popen(
                     [sys.executable, "-m", "hilstack.tools.bench_bus", "pong", mode, ep],
                     stdout=subprocess.PIPE,
@@ -184,7 +213,7 @@ def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: in
                 if proc.stdout.readline().strip() != "ready":
                     raise RuntimeError(f"bench: the {mode} pong process did not start")
                 clients[mode] = _Client(mode, ep, size)
-            lat = {m: np.empty(n) for m in MODES}
+            lat = {m: np.empty(n) for m in modes}
             for c in clients.values():
                 for _ in range(warmup):
                     c.round_trip()
@@ -201,19 +230,23 @@ def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: in
                     c.close()
                 except Exception:
                     pass
-            for proc in procs:
+            for proc in procs[::-1]:
                 try:
+                    if proc.args[3] == "router":
+                        proc.terminate()
                     proc.wait(5)
                 except subprocess.TimeoutExpired:
                     proc.kill()
                     proc.wait()
         row: dict = {
             m: {"p50_us": float(np.percentile(lat[m] * 1e6, 50)), "p99_us": float(np.percentile(lat[m] * 1e6, 99))}
-            for m in MODES
+            for m in modes
         }
         for q in ("p50", "p99"):
             row[f"ratio_{q}"] = row["node"][f"{q}_us"] / row["raw"][f"{q}_us"]
         row["raw_over_tcp_p50"] = row["raw"]["p50_us"] / row["tcp"]["p50_us"]
+        if via_router:
+            row["router_over_raw_p50"] = row["router"]["p50_us"] / row["raw"]["p50_us"]
         out[f"{size}B"] = row
     for q in ("ratio_p50", "ratio_p99"):
         out[q] = max(out[f"{s}B"][q] for s in sizes)
@@ -221,8 +254,25 @@ def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: in
     return out
 
 
-if __name__ == "__main__":
-    if len(sys.argv) >= 4 and sys.argv[1] == "pong":
-        _pong(sys.argv[2], sys.argv[3])
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.bench_bus", description=__doc__.split("\n")[0])
+    ap.add_argument("--n", type=int, default=2000, help="round trips per payload size (default 2000)")
+    sub = ap.add_subparsers(dest="cmd")
+    pong = sub.add_parser("pong", help="the echo process the benchmark starts itself")
+    pong.add_argument("mode", choices=(*MODES, "router"))
+    rt = sub.add_parser("router", help="the router process of --via-router")
+    rt.add_argument("endpoint", help="tcp/HOST:PORT")
+    pong.add_argument("endpoint", help="tcp/HOST:PORT")
+    a = ap.parse_args(argv)
+    if a.cmd == "pong":
+        _pong(a.mode, a.endpoint)
+    elif a.cmd == "router":
+        _router(a.endpoint)
     else:
-        print(json.dumps(run_bench_bus()))
+        print(json.dumps(run_bench_bus(n=a.n)))
+
+
+if __name__ == "__main__":
+    main()

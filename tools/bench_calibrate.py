@@ -32,7 +32,6 @@ from __future__ import annotations
 import json
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -162,8 +161,16 @@ def run_case(case: str, seed: int, hidden: bool, root: str, n_boot: int = 25) ->
 
 
 def run_bench_calibrate(seeds: int = 20, cases: list[str] | None = None, out_dir: str | Path = "bench_calibrate",
-                        workers: int = 1, first_seed: int = 0, n_boot: int = 25) -> dict:
-    """Run the gauntlet; returns per-case counts, totals and every run's row."""
+                        workers: int = 1, first_seed: int = 0, n_boot: int = 25, ray: str | None = None,
+                        log=print) -> dict:
+    """Run the gauntlet; returns per-case counts, totals and every run's row.
+
+    Every (case, seed, hidden or clean) run is a task of :func:`hilstack.tools.sweep.run_sweep`
+    (``OUT/tasks/``): a re-run with the same ``out_dir`` does only the runs not done yet. ``ray``:
+    None (serial, unless ``workers`` > 1: a local Ray runtime with that many workers), ``"local"``
+    or a Ray cluster's address."""
+    from hilstack.tools.sweep import Task, executor_from, run_sweep
+
     names = cases or list(CASES)
     unknown = [c for c in names if c not in CASES]
     if unknown:
@@ -175,21 +182,18 @@ def run_bench_calibrate(seeds: int = 20, cases: list[str] | None = None, out_dir
             for h in (True, False)]
     t0 = time.perf_counter()
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    rows = []
-    with open(Path(out_dir) / "rows.jsonl", "a") as log:
-        if workers > 1:
-            with ProcessPoolExecutor(workers) as ex:
-                it = ex.map(run_case, *zip(*jobs, strict=True))
-                for row in it:
-                    rows.append(row)
-                    log.write(json.dumps(row, default=str) + "\n")
-                    log.flush()
-        else:
-            for j in jobs:
-                rows.append(run_case(*j))
-                log.write(json.dumps(rows[-1], default=str) + "\n")
-                log.flush()
+    tasks = [Task(f"{c}-seed{s}-{'hidden' if h else 'clean'}", run_case,
+                  {"case": c, "seed": s, "hidden": h, "root": root, "n_boot": b}) for c, s, h, root, b in jobs]
+    executor = executor_from(ray) if ray is not None else ("local" if workers > 1 else None)
+    with open(Path(out_dir) / "rows.jsonl", "a") as rows_log:
+        def append(_key, row):
+            rows_log.write(json.dumps(row, default=str) + "\n")
+            rows_log.flush()
+
+        sweep = run_sweep(tasks, out_dir, executor=executor, workers=workers, log=log, on_result=append)
+    rows = [sweep["results"][t.key] for t in tasks if t.key in sweep["results"]]
     result = summarize(rows, names, time.perf_counter() - t0)
+    result["sweep"] = sweep["sweep"]
     (Path(out_dir) / f"gauntlet_seeds{first_seed}-{first_seed + seeds - 1}.json").write_text(
         json.dumps(result, indent=1, default=str))
     return result
@@ -269,14 +273,22 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":
-    import sys
+def main(argv: list[str] | None = None) -> None:
+    import argparse
 
-    if len(sys.argv) > 2 and sys.argv[1] == "--summarize":
-        # tabulate the rows.jsonl of a run (also one stopped early)
-        rows = [json.loads(line) for d in sys.argv[2:] for line in open(Path(d) / "rows.jsonl") if line.strip()]
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.bench_calibrate", description=__doc__.split("\n")[0])
+    ap.add_argument("seeds", nargs="?", type=int, default=2, help="seeds per case (default 2)")
+    ap.add_argument("--summarize", nargs="+", metavar="RUN_DIR",
+                    help="tabulate the rows.jsonl of runs (also ones stopped early) instead of running")
+    a = ap.parse_args(argv)
+    if a.summarize:
+        rows = [json.loads(line) for d in a.summarize for line in open(Path(d) / "rows.jsonl") if line.strip()]
         print(format_table(summarize(rows)))
     else:
-        res = run_bench_calibrate(seeds=int(sys.argv[1]) if len(sys.argv) > 1 else 2)
+        res = run_bench_calibrate(seeds=a.seeds)
         print(format_table(res))
         print(json.dumps(res["totals"]))
+
+
+if __name__ == "__main__":
+    main()

@@ -156,10 +156,9 @@ def _make_planner(w: dict):
 
 
 def _make_peer(cost, w: dict, s0: torch.Tensor, predict, sigma: float):
-    try:
-        from pytorch_mppi import MPPI  # noqa: PLC0415 - optional peer
-    except ImportError:
-        raise ModuleNotFoundError("hil bench plan compares with pytorch-mppi: pip install 'hilstack[bench]'") from None
+    from hilstack.configs.extras import require
+
+    MPPI = require("pytorch_mppi", "hil bench plan's peer").MPPI  # noqa: N806 - the peer's class
 
     E, S, A = w["ensemble"], w["state_dim"], w["action_dim"]
     K = w["samples"]
@@ -422,14 +421,18 @@ def run_bench_plan(calls: int = 50, warmup: int = 5, threads: int | None = None,
     return out
 
 
-if __name__ == "__main__":
+def main(argv: list[str] | None = None) -> None:
     import argparse
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.bench_plan", description=__doc__.splitlines()[0])
     ap.add_argument("--calls", type=int, default=50)
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--dtype", default="auto", choices=["auto", "fp32", "bf16"])
     ap.add_argument("--quality-seeds", type=int, default=5)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     print(json.dumps(run_bench_plan(args.calls, args.warmup, args.threads, args.dtype, args.quality_seeds), indent=2))
+
+
+if __name__ == "__main__":
+    main()

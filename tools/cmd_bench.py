@@ -1,4 +1,4 @@
-"""hil bench bus | plan | sim | adaptation | tracker: speed goals as ratios against a peer in the same run;
+"""hil bench bus | plan | sim | adaptation | tracker | meld: speed goals as ratios against a peer in the same run;
 hil bench fuzz: every parser of untrusted bytes under atheris; calibrate: a gauntlet."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import json
 
 import typer
 
-from hilstack.tools.common import UserError, echo_json, user_errors
+from hilstack.tools.common import RAY_OPTION, UserError, echo_json, user_errors
 
 bench_app = typer.Typer(help="Benchmarks (ratios against a peer in the same run).", no_args_is_help=True)
 
@@ -16,12 +16,14 @@ bench_app = typer.Typer(help="Benchmarks (ratios against a peer in the same run)
 @user_errors
 def bench_bus(
     n: int = typer.Option(2000, "--n", help="round trips per payload size"),
+    via_router: bool = typer.Option(False, "--via-router", help="also raw Zenoh through a router process "
+                                    "(`hil router`'s extra hop) beside the direct peer hop"),
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """Ping-pong latency: hilstack node layer vs raw zenoh-python (64 B and 4 KB)."""
     from hilstack.tools.bench_bus import run_bench_bus
 
-    r = run_bench_bus(n=n)
+    r = run_bench_bus(n=n, via_router=via_router)
     if json_out:
         echo_json(r)
     else:
@@ -80,6 +82,22 @@ def bench_adaptation(
     echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
 
 
+@bench_app.command("meld")
+@user_errors
+def bench_meld(
+    episodes: int = typer.Option(2, "--episodes", help="random episodes per collection measurement"),
+    steps: int = typer.Option(3, "--steps", help="gradient steps per learner and image size"),
+    threads: int = typer.Option(2, "--threads", help="torch threads"),
+    json_out: bool = typer.Option(False, "--json"),
+) -> None:
+    """MELD: collection samples/s with rendering (vs cameras off) and gradient steps/s per learner
+    and image size (vs MELD at 32×64), on this machine."""
+    from hilstack.tools.bench_meld import run_bench_meld
+
+    r = run_bench_meld(episodes=episodes, steps=steps, threads=threads)
+    echo_json(r) if json_out else typer.echo(json.dumps(r, indent=2))
+
+
 @bench_app.command("fuzz")
 @user_errors
 def bench_fuzz(
@@ -116,7 +134,9 @@ def bench_calibrate(
     seeds: int = typer.Option(20, "--seeds", help="seeds per case (each runs an effect and a clean version)"),
     cases: str | None = typer.Option(None, "--cases", help="comma-separated case names (default: all)"),
     out: str = typer.Option("bench_calibrate", "--out", help="directory for the generated data and reports"),
-    workers: int = typer.Option(1, "--workers", help="worker processes"),
+    workers: int = typer.Option(1, "--workers", help="Ray workers of a local runtime (> 1 without --ray: "
+                                "a local Ray runtime)"),
+    ray: str | None = RAY_OPTION,
     first_seed: int = typer.Option(0, "--first-seed", help="first seed (to run the seeds in batches)"),
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
@@ -125,7 +145,7 @@ def bench_calibrate(
 
     try:
         r = run_bench_calibrate(seeds=seeds, cases=cases.split(",") if cases else None, out_dir=out, workers=workers,
-                                first_seed=first_seed)
+                                first_seed=first_seed, ray=ray, log=lambda s: typer.echo(s, err=True))
     except KeyError as e:
         raise UserError(str(e.args[0])) from None
     if json_out:

@@ -10,12 +10,41 @@ from pathlib import Path
 import typer
 
 
+def _calibrate_mjcf(data: Path, model: str, out: Path, seed: int, quiet: bool, as_json: bool, force: bool) -> None:
+    from hilstack.calibration.data import DataError
+    from hilstack.calibration.mjcf_robot import SysidNotAvailable, run_mjcf_calibration
+    from hilstack.configs.schema import ConfigError
+
+    if not data.exists():
+        _fail(f"--data {data}: no such file")
+    try:
+        rep = run_mjcf_calibration(data, model, out, seed=seed, progress=not quiet, force=force)
+    except (DataError, SysidNotAvailable, ConfigError, ValueError) as e:
+        _fail(str(e).splitlines()[0])
+    summary = {k: rep[k] for k in ("effects", "values", "intervals_95", "unidentifiable", "pruned",
+                                   "before_multi_step_nrmse", "after_multi_step_nrmse", "ratio",
+                                   "calibrated_mjcf", "wall_s", "cpu_s")}
+    if as_json:
+        print(json.dumps(summary))
+        return
+    print(f"effects: {', '.join(rep['effects']) or 'none'}")
+    for name, vals in rep["values"].items():
+        ci = rep["intervals_95"][name]
+        shown = ", ".join(f"{v:.4g}±{h:.2g}" for v, h in zip(vals, ci, strict=True))
+        flag = f" (unidentifiable: {', '.join(rep['unidentifiable'][name])})" if name in rep["unidentifiable"] else ""
+        print(f"  {name}: {shown}{flag}")
+    print(f"held-out multi-step NRMSE: {rep['before_multi_step_nrmse']:.4f} -> {rep['after_multi_step_nrmse']:.4f} "
+          f"(x{rep['ratio']:.3f})")
+    print(f"calibrated MJCF: {rep['calibrated_mjcf']}; report: {out / 'report.md'}")
+
+
 def register(app: typer.Typer) -> None:
     @app.command("calibrate")
     def calibrate(
         data: Path = typer.Option(..., "--data", help="CSV/Parquet file, a directory of them, or an .mcap recording"),
         model: str = typer.Option("axis", "--model",
-                                  help="nominal model: axis, velociroach (MuJoCo sim; needs .mcap or full-state "
+                                  help="nominal model: a robot config YAML (its own MuJoCo model: writes "
+                                       "OUT/calibrated.xml), axis, velociroach (MuJoCo sim; needs .mcap or full-state "
                                        "episodes), or a learned dynamics checkpoint PATH.pt (same as --model "
                                        "checkpoint --checkpoint PATH.pt): an effect is then a missing input"),
         checkpoint: Path | None = typer.Option(None, "--checkpoint",
@@ -39,9 +68,14 @@ def register(app: typer.Typer) -> None:
         sg_window: int | None = typer.Option(None, "--sg-window", help="Savitzky-Golay window [samples] for velocity"),
         as_json: bool = typer.Option(False, "--json", help="print one JSON line instead of a summary"),
         quiet: bool = typer.Option(False, "--quiet", help="no progress on stderr"),
+        force: bool = typer.Option(False, "--force", help="robot config: overwrite OUT/calibrated.xml"),
     ) -> None:
         """Replay measured commands through the model, test the effect catalogue, report before/after."""
         from hilstack.calibration import DataError, ModelNotAvailable, UnknownModel, run_calibration
+
+        if model.endswith((".yaml", ".yml")):  # a robot config: calibrate the robot's own MJCF
+            _calibrate_mjcf(data, model, out, seed, quiet, as_json, force)
+            return
 
         if sg_window is not None and (sg_window < 5 or sg_window % 2 == 0):
             _fail("--sg-window must be an odd number of samples >= 5")

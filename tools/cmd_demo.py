@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import UserError, user_errors
+from hilstack.tools.common import RAY_OPTION, UserError, user_errors
 
 #: The demos besides the roach MBRL one: name → (module, function, one-line help). Each
 #: function takes ``(out, quick=, full=, seed=)`` and prints its own summary.
@@ -15,6 +15,7 @@ OTHER_DEMOS: dict[str, tuple[str, str, str]] = {
     "adaptation": ("hilstack.tools.demo_adaptation", "cli_adaptation", "GrBAL, ReBAL, MB+DE, MOLe (docs/adaptation.md)"),
     "baoding": ("hilstack.tools.demo_baoding", "cli_baoding", "PDDM on the Shadow Hand's Baoding balls (docs/baoding.md)"),
     "arms": ("hilstack.tools.demo_arms", "cli_arms", "reach with a learned model + MPC vs IK and random, WidowX and Sawyer (docs/arms.md)"),
+    "meld": ("hilstack.tools.demo_meld", "cli_meld", "MELD vs SLAC and SAC on image history, WidowX port and Sawyer reacher from cameras (docs/meld.md)"),
     "mbrl-gym": ("hilstack.tools.demo_mbmf", "cli_mbrl_gym", "MB, MF (TRPO) and Mb-Mf on swimmer, half-cheetah, hopper, "
                  "ant (docs/mbrl.md)"),
 }
@@ -37,6 +38,8 @@ def register(app: typer.Typer) -> None:
                                                   "uniform steps (no holds, no forward commands, no rate limit)"),
         seed: int = typer.Option(0, "--seed"),
         part: str = typer.Option("all", "--part", help="transfer only: all | sidm | garat (one half of the demo)"),
+        setting: str = typer.Option("roach", "--setting", help="transfer --part sidm only: roach (VelociRoACH pairs) | "
+                                    "wheeled (the SIDM paper's wheeled robots with suspension)"),
         suite: str = typer.Option("roach", "--suite", help="adaptation only: roach (the sim VelociRoACH) | gym "
                                   "(half-cheetah benchmarks of the thesis)"),
         envs: str = typer.Option("", "--envs", help="mbrl-gym only: comma-separated swimmer, half_cheetah, hopper, "
@@ -45,6 +48,8 @@ def register(app: typer.Typer) -> None:
         rig: str = typer.Option("roach_sim", "--rig", help="rig config: roach_sim (lockstep), roach_emulated, roach_real"),
         operator_resets: bool = typer.Option(False, "--operator-resets",
                                              help="rigs without a reset: section (docs/reset.md): prompt an operator to place the robot"),
+        ray: str | None = RAY_OPTION,
+        workers: int = typer.Option(1, "--workers", help="with --ray local: the local runtime's CPUs"),
     ) -> None:
         """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
 
@@ -55,17 +60,27 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"hil demo {what}: --part is for the transfer demo only")
         if part not in ("all", "sidm", "garat"):
             raise UserError(f"hil demo transfer: unknown --part {part!r} (all | sidm | garat)")
+        if setting not in ("roach", "wheeled"):
+            raise UserError(f"hil demo transfer: unknown --setting {setting!r} (roach | wheeled)")
+        if setting != "roach" and (what != "transfer" or part != "sidm"):
+            raise UserError("hil demo: --setting is for `hil demo transfer --part sidm` only")
         if suite != "roach" and what != "adaptation":
             raise UserError(f"hil demo {what}: --suite is for the adaptation demo only")
         if suite not in ("roach", "gym"):
             raise UserError(f"hil demo adaptation: unknown --suite {suite!r} (roach | gym)")
         if envs and what != "mbrl-gym":
             raise UserError(f"hil demo {what}: --envs is for the mbrl-gym demo only")
+        if ray is not None and what not in ("adaptation", "transfer"):
+            raise UserError(f"hil demo {what}: --ray is for the adaptation and transfer demos only so far "
+                            "(docs/scaling.md)")
+        if ray is not None and suite == "gym":
+            raise UserError("hil demo adaptation --suite gym: --ray is for the roach suite only so far")
         if what in OTHER_DEMOS:
             import importlib
 
             module, fn, _ = OTHER_DEMOS[what]
-            kw = {"part": part} if what == "transfer" else ({"suite": suite} if what == "adaptation" else {})
+            kw = {"part": part, "setting": setting, "ray": ray, "workers": workers} if what == "transfer" else (
+                {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else {})
             if what == "mbrl-gym":
                 from hilstack.tools.demo_mbmf import parse_envs
 

@@ -1,4 +1,4 @@
-"""`hil drive`: open-loop driving through the driver contract; `hil find-port`: serial ports.
+"""`hil drive`: open-loop driving through the driver contract.
 
     hil drive velociroach --backend emulated --action 0.6,0.6 --seconds 3 --json
     hil drive velociroach --backend real --port /dev/ttyUSB0 --action 0.3,0.3 --seconds 2
@@ -6,7 +6,6 @@
     hil drive pointmass --backend sim --action 0.5,0 --seconds 2
     hil drive widowx --backend emulated --seconds 2 --json
     hil drive shadow_hand --backend emulated --seconds 2 --json   # hold the pose, report tracking
-    hil find-port
 
 Actions are normalized: -1..1 maps onto each action channel's [low, high] from the spec
 (for the VelociRoACH: ±max_leg_vel_rps, or ±1 duty in pwm mode). The loop is
@@ -82,12 +81,11 @@ def drive_run(robot: str, backend: str | None, action: str | None, seconds: floa
     # the command held at activation (the measured state); others drive at DEFAULT_ACTION
     if action is None and sp.safe_action is not None:
         action = ",".join([str(DEFAULT_ACTION)] * sp.action.dim)
-    lo, hi = sp.action.low, sp.action.high
     if action is None:
         a = a_norm = None
     else:
         a_norm = np.array(parse_action(action, sp.action.dim, sp.action.names))
-        a = (lo + hi) / 2 + a_norm * (hi - lo) / 2
+        a = sp.action.denormalize(a_norm)
     # action channels that are measured too (joint velocities): tracking error
     tracked = [(i, sp.state.names.index(n)) for i, n in enumerate(sp.action.names) if n in sp.state.names]
     sq_err = np.zeros(len(tracked))
@@ -189,28 +187,3 @@ def register(app: typer.Typer) -> None:
                    f"dropped={lk['dropped_frames']} latency={lat}")
         if tlog:
             typer.echo(f"  MAVLink log: {tlog}")
-
-    @app.command("find-port")
-    @user_errors
-    def find_port(json_out: bool = typer.Option(False, "--json", help="print one JSON line")) -> None:
-        """List serial ports that could be the base-station XBee (USB serial adapters first)."""
-        from serial.tools import list_ports
-
-        ports = []
-        for p in sorted(list_ports.comports(), key=lambda p: (p.vid is None, p.device)):
-            ports.append({
-                "device": p.device, "description": p.description, "hwid": p.hwid,
-                "manufacturer": p.manufacturer, "serial_number": p.serial_number,
-                # FTDI (0403) is what Digi's XBee USB boards use
-                "likely_xbee": p.vid == 0x0403 or "xbee" in (p.description or "").lower(),
-            })
-        if json_out:
-            echo_json({"ports": ports})
-            return
-        if not ports:
-            typer.echo("no serial ports found (is the base-station XBee plugged in? "
-                       "on Linux, check `dmesg | tail` and membership of the dialout group)")
-            return
-        for p in ports:
-            mark = "  <- XBee?" if p["likely_xbee"] else ""
-            typer.echo(f"{p['device']}\t{p['description']}\t{p['hwid']}{mark}")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -11,12 +10,11 @@ import threading
 
 import typer
 
+from hilstack.bus.lifetime import child_env, exit_with_parent
 from hilstack.tools.common import (
-    PARENT_PID_ENV,
     EndpointOpt,
     UserError,
     echo_json,
-    exit_with_parent,
     provision_credentials,
     rig_bus,
     setup_logging,
@@ -130,6 +128,47 @@ def _merge_shared_buses(groups: list[list[str]], keys: dict[str, str | None]) ->
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
+    def router(
+        rig: str = typer.Argument(..., help="rig config name or path whose bus.router this router serves"),
+        tls_cert: str = typer.Option(None, "--tls-cert", help="TLS certificate (PEM) for tls/ endpoints"),
+        tls_key: str = typer.Option(None, "--tls-key", help="its private key (PEM)"),
+        tls_ca: str = typer.Option(None, "--tls-ca", help="CA (PEM) that signed the clients' certificates: mutual TLS"),
+    ) -> None:
+        """Run the rig's Zenoh router (bus.router): every node of the rig, on any host, is its client;
+        with bus.access it authenticates them and applies the rig's ACL (docs/scaling.md)."""
+        from pathlib import Path
+
+        import zenoh
+
+        from hilstack.bus.session import router_config
+
+        setup_logging()
+        _, bus, cfg = rig_bus(rig, None, need_config=True)
+        if bus.router is None:
+            raise UserError(f"rig {cfg.name}: bus.router is not set (the endpoint this router listens on)")
+        if bool(tls_cert) != bool(tls_key):
+            raise UserError("--tls-cert and --tls-key go together")
+        tls = {"cert": tls_cert, "key": tls_key, "ca": tls_ca or ""} if tls_cert else None
+        if tls is None and bus.router.startswith("tls/"):
+            raise UserError(f"bus.router {bus.router} is a TLS endpoint: give --tls-cert and --tls-key")
+        for f in (tls_cert, tls_key, tls_ca):
+            if f and not Path(f).is_file():
+                raise UserError(f"TLS file {f} does not exist")
+        provision_credentials(cfg.name, bus, cfg)
+        try:
+            session = zenoh.open(router_config(bus, cfg.name, list(cfg.robots), tls))
+        except Exception as e:  # zenoh.ZError: endpoint taken or unusable
+            raise UserError(f"rig {cfg.name}: cannot listen on {bus.router}: {str(e).split(' at /')[0]}") from None
+        stop = threading.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+        who = f"access control for {', '.join(cfg.robots)}" if bus.access else "no access control"
+        typer.echo(f"router of rig {cfg.name} on {bus.router} ({who}{', TLS' if tls else ''})", err=True)
+        stop.wait()
+        session.close()
+
+    @app.command()
+    @user_errors
     def up(
         rig: str = typer.Argument(..., help="rig config name or path (configs/rigs/)"),
         robot: str = typer.Option(None, "--robot", help="only this robot of the rig, or several: a,b (default: all)"),
@@ -175,7 +214,7 @@ def register(app: typer.Typer) -> None:
                     cmd += ["--steps", str(steps)]
                 if endpoint:
                     cmd += ["--endpoint", endpoint]
-                procs.append(subprocess.Popen(cmd, env={**os.environ, PARENT_PID_ENV: str(os.getpid())}))
+                procs.append(subprocess.Popen(cmd, env=child_env()))
 
             def forward(signum, _frame):  # Ctrl-C, or a supervisor's SIGTERM: every robot's node stops its robot
                 for p in procs:

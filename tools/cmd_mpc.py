@@ -49,7 +49,6 @@ def register(app: typer.Typer) -> None:
             command_delay_steps,
             fit_planner_to_period,
             make_planner,
-            max_step_normalized,
             path_start_pose,
         )
 
@@ -93,19 +92,19 @@ def register(app: typer.Typer) -> None:
                 swap = ModelSwap(adapter, ctl.subscribe(keys.model_update(cfg.name), ModelUpdate))
                 dyn = SimpleNamespace(predict=swap.initial())
             spec = ctl.wait_ready()
-            names = list(spec["state"]["names"])
+            names = list(spec.state.names)
             if adapter is not None and list(adapter.model.state_names) != names:
                 raise UserError(f"{adapt} models states {list(adapter.model.state_names)}; robot {robot} has {names}")
             cost = PathCost(wp, names)
             # as in `hil demo`: track the path with rounded corners, score on the path itself
             mcfg = MbrlConfig(planner=planner)
             ref = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
-            n_act, max_step = len(spec["action"]["names"]), max_step_normalized(spec)
+            n_act, max_step = spec.action.dim, spec.max_step_normalized()
             samples = None
             if cfg.pace != "lockstep":  # as in `hil demo`: the planner must fit the period on this machine
                 timing_cost = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
                 samples, _ = fit_planner_to_period(mcfg, speed, n_act, max_step, dyn.predict, timing_cost,
-                                                   np.asarray(ctl.next_state().state), float(spec["period_s"]))
+                                                   np.asarray(ctl.next_state().state), spec.period_s)
             planner_ = make_planner(mcfg, speed, n_act, max_step, samples)
             pol = MpcPolicy(dyn, planner_, ref, model_source=swap, delay_steps=command_delay_steps(cfg, robot))
             first = ctl.reset(**path_start_pose(wp)) if reset else None
@@ -113,7 +112,7 @@ def register(app: typer.Typer) -> None:
                 log = ctl.run_lockstep(pol, steps, first, stop_if=PathEnd(PathCost(wp, names)))
             else:
                 log = ctl.run_realtime(pol, steps)
-        m = evaluate_path_following(np.array(log.states), cost, period_s=float(spec["period_s"]))
+        m = evaluate_path_following(np.array(log.states), cost, period_s=spec.period_s)
         m.update(samples=planner_.samples, late_plans=log.late_plans, plan_ms_p50=float(np.percentile(log.plan_times_s, 50) * 1e3)
                  if log.plan_times_s else None)
         if swap is not None:

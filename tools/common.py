@@ -7,7 +7,6 @@ import json
 import logging
 import math
 import os
-import signal
 import sys
 import threading
 import time
@@ -21,32 +20,15 @@ from hilstack.configs.schema import BusConfig, ConfigError
 F = TypeVar("F", bound=Callable[..., Any])
 
 
-#: set by a `hil` process in the environment of the rig processes it starts
-#: (learning/mbrl.py: rig_processes; `hil up` of a multi-process rig): its pid
-PARENT_PID_ENV = "HIL_PARENT_PID"
-
-
-def exit_with_parent(poll_s: float = 0.5) -> None:
-    """When this process was started by a `hil` process that set :data:`PARENT_PID_ENV`:
-    once that process is gone (killed with SIGKILL, crashed: its cleanup never ran), send
-    ourselves SIGTERM, so a driver node stops its robot and exits as on Ctrl-C instead of
-    running on with nobody in charge. The variable is taken out of the environment: a
-    process we start is watched only if we set it again."""
-    pid = os.environ.pop(PARENT_PID_ENV, None)
-    if not pid:
-        return
-
-    def watch() -> None:
-        while os.getppid() == int(pid):
-            time.sleep(poll_s)
-        logging.getLogger("hil").warning("the process that started this one (pid %s) is gone: stopping", pid)
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
-
-
 class UserError(Exception):
     """A problem the user can fix (bad argument, missing file): one line, exit 2."""
+
+
+#: ``--ray`` of the sweep commands: ``local``, a local Ray runtime (``--workers`` CPUs); an ADDRESS,
+#: a running cluster (docs/scaling.md). Without it the sweep runs serially in the process.
+RAY_OPTION = typer.Option(None, "--ray", metavar="local|ADDRESS",
+                          help="run the sweep's tasks on Ray: 'local' starts a runtime with --workers CPUs; "
+                               "an ADDRESS (ray start --head printed it) joins that cluster (docs/scaling.md)")
 
 
 #: Exit codes of every `hil` verb besides 0 (docs/platform.md, "Exit codes").
@@ -106,6 +88,7 @@ def user_errors(fn: F) -> F:
     from hilstack.bus.access import AccessError
     from hilstack.bus.node import NodeConflict
     from hilstack.bus.session import BusUnavailable
+    from hilstack.configs.extras import MissingExtra, install_hint, missing_extra
     from hilstack.drivers.base import CommandError, LifecycleError, LinkError
 
     @functools.wraps(fn)
@@ -115,6 +98,15 @@ def user_errors(fn: F) -> F:
             return fn(*a, **kw)
         except (UserError, ConfigError, CommandError, FileNotFoundError, AccessError, NodeConflict) as e:
             typer.echo(f"error: {one_line(e)}", err=True)
+            exit_within(EXIT_USAGE)
+            raise typer.Exit(EXIT_USAGE) from None
+        except ModuleNotFoundError as e:
+            # an optional dependency (configs/extras.py): one line naming what installs it
+            hint = e if isinstance(e, MissingExtra) else (
+                missing_extra("this command", e.name) if e.name and install_hint(e.name) else None)
+            if hint is None:
+                raise
+            typer.echo(f"error: {one_line(hint)}", err=True)
             exit_within(EXIT_USAGE)
             raise typer.Exit(EXIT_USAGE) from None
         except (LinkError, LifecycleError, BusUnavailable) as e:

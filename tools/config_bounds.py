@@ -123,5 +123,13 @@ def bounds_table() -> str:
     return "\n".join(rows)
 
 
-if __name__ == "__main__":
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    argparse.ArgumentParser(prog="python -m hilstack.tools.config_bounds",
+                            description="Print the table of every bounded config value and its source.").parse_args(argv)
     sys.stdout.write(bounds_table() + "\n")
+
+
+if __name__ == "__main__":
+    main()

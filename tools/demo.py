@@ -47,9 +47,9 @@ def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if quick:
-        cfg = MbrlConfig.quick(**{**quick_wall_clock(overrides.get("rig", MbrlConfig.rig)), **overrides})
+        cfg = MbrlConfig.from_preset("quick", **{**quick_wall_clock(overrides.get("rig", MbrlConfig.rig)), **overrides})
     elif full:
-        cfg = MbrlConfig.full(**overrides)
+        cfg = MbrlConfig.from_preset("full", **overrides)
     else:
         cfg = MbrlConfig(**{"random_rollouts": 400, **overrides})
     # a private rendezvous port: a demo never talks to another rig by accident; the rig's

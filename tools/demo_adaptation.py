@@ -27,10 +27,10 @@ def config_for(quick: bool, full: bool, tiny: bool = False, seed: int = 0, **ove
     """The preset's config; ``overrides``: fields to change (experiments from Python, e.g.
     ``run_demo(out, quick=True, overrides={"train_leg_speed_scale": (0.6, 1.4)})``)."""
     if tiny:
-        return AdaptationConfig.tiny(seeds=(seed,), **overrides)
+        return AdaptationConfig.from_preset("tiny", seeds=(seed,), **overrides)
     if quick:
-        return AdaptationConfig.quick(seeds=(seed,), **overrides)
-    return AdaptationConfig.full(seeds=(seed, seed + 1, seed + 2), **overrides)
+        return AdaptationConfig.from_preset("quick", seeds=(seed,), **overrides)
+    return AdaptationConfig.from_preset("full", seeds=(seed, seed + 1, seed + 2), **overrides)
 
 
 def _plots(r: dict[str, Any], out: Path) -> list[str]:
@@ -194,8 +194,42 @@ def _training_lines(per_seed: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def seed_task(cfg: AdaptationConfig, seed: int, out: str) -> dict[str, Any]:
+    """One seed of the experiment as a sweep task (tools/sweep.py): what ``run`` keeps per seed."""
+    import torch
+
+    from hilstack.learning.adaptation.experiment import _jsonable, run_seed
+
+    torch.set_num_threads(cfg.threads)
+    return _jsonable(run_seed(cfg, seed, Path(out), print))
+
+
+def run_seeds_on_sweep(cfg: AdaptationConfig, out: Path, log, ray: str, workers: int) -> dict[str, Any]:
+    """``run`` with every seed a sweep task (``--ray``): each seed's result in ``out/tasks/`` as it
+    finishes, a re-run does only the seeds missing; the same per-seed results and aggregate."""
+    from dataclasses import asdict
+
+    from hilstack.learning.adaptation.experiment import _jsonable, aggregate
+    from hilstack.tools.sweep import Task, executor_from, run_sweep
+
+    t0 = time.monotonic()
+    tasks = [Task(f"seed{s}", seed_task, {"cfg": cfg, "seed": s, "out": str(out)}, threads=cfg.threads)
+             for s in cfg.seeds]
+    sw = run_sweep(tasks, out, executor=executor_from(ray), workers=workers, log=log)
+    if sw["failed"]:
+        raise RuntimeError(f"seeds {sorted(sw['failed'])} failed (their log tails above; {out / 'tasks'}); "
+                           "the same command again re-runs only those")
+    per_seed = [sw["results"][t.key] for t in tasks]
+    for s, r in zip(cfg.seeds, per_seed, strict=True):
+        (out / f"seed{s}.json").write_text(json.dumps(r))
+    return {**aggregate(per_seed), "config": _jsonable(asdict(cfg)), "seeds": list(cfg.seeds),
+            "elapsed_s": time.monotonic() - t0, "per_seed": per_seed, "sweep": sw["sweep"]}
+
+
 def run_demo(out: Path, quick: bool = False, full: bool = False, seed: int = 0, tiny: bool = False,
-             overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+             overrides: dict[str, Any] | None = None, ray: str | None = None, workers: int = 1) -> dict[str, Any]:
+    """``ray``: None (the seeds one after another in this process) or ``local`` / a Ray address:
+    every seed a Ray task (:func:`run_seeds_on_sweep`)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg = config_for(quick, full, tiny, seed, **(overrides or {}))
@@ -209,7 +243,7 @@ def run_demo(out: Path, quick: bool = False, full: bool = False, seed: int = 0, 
         log_file.flush()
 
     try:
-        r = run(cfg, out, log)
+        r = run(cfg, out, log) if ray is None else run_seeds_on_sweep(cfg, out, log, ray, workers)
         r["preset"] = "tiny" if tiny else ("quick" if quick else "full")
         r["overrides"] = overrides or {}
         r["cpu_s"] = time.process_time()
@@ -243,7 +277,8 @@ def run_gym_demo(out: Path, quick: bool = False, seed: int = 0, tiny: bool = Fal
     return r
 
 
-def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int = 0, suite: str = "roach") -> None:
+def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int = 0, suite: str = "roach",
+                   ray: str | None = None, workers: int = 1) -> None:
     """Entry of `hil demo adaptation` (tools/cmd_demo.py OTHER_DEMOS); ``suite``: roach | gym."""
     if suite == "gym":
         from hilstack.learning.adaptation.gym_suite import summary_lines
@@ -255,15 +290,21 @@ def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int
         return
     if suite != "roach":
         raise ValueError(f"unknown adaptation suite {suite!r} (roach | gym)")
-    r = run_demo(out, quick=quick, full=full, seed=seed)
+    r = run_demo(out, quick=quick, full=full, seed=seed, ray=ray, workers=workers)
     for p, row in r["perturbations"].items():
         best = min(METHODS, key=lambda m: _rank(row[m]))
         print(f"{p}: best {best}; cost_per_m " + ", ".join(f"{m} {row[m]['cost_per_m']:.1f}" for m in METHODS))
 
 
-if __name__ == "__main__":
-    import sys
+def main(argv: list[str] | None = None) -> None:
+    import argparse
 
-    if len(sys.argv) != 2:
-        raise SystemExit("usage: python -m hilstack.tools.demo_adaptation OUT_DIR   (tables of the seeds finished so far)")
-    print(report_markdown(report_from_seeds(Path(sys.argv[1]))))
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_adaptation",
+                                 description="The report tables of the seeds a demo run finished so far "
+                                             "(the demo itself: hil demo adaptation).")
+    ap.add_argument("out_dir", type=Path, help="the demo's output directory")
+    print(report_markdown(report_from_seeds(ap.parse_args(argv).out_dir)))
+
+
+if __name__ == "__main__":
+    main()

@@ -59,7 +59,7 @@ def run_arms(out: Path, quick: bool = False, full: bool = False, seed: int = 0,
     for arm in arms:
         kw = {"arm": arm, **overrides}
         kw.setdefault("seeds", (seed, seed + 1, seed + 2) if full else (seed,))
-        cfg = ReachConfig.quick(**kw) if quick else ReachConfig.full(**kw) if full else ReachConfig(**kw)
+        cfg = ReachConfig.from_preset("quick", **kw) if quick else ReachConfig.from_preset("full", **kw) if full else ReachConfig(**kw)
         t0 = time.monotonic()
         r = run_arm(cfg, out / arm, bus or BusConfig(endpoint=_free_endpoint()))
         r.update(command=cmd, wall_s=time.monotonic() - t0, created=time.strftime("%Y-%m-%d %H:%M:%S"),

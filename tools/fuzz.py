@@ -272,10 +272,9 @@ def run_target(target: str, n: int, *, seed: int = 1, max_len: int = 300,
     and the input that crashed, in hex) only when one was found. libFuzzer
     stops at the first crash, so ``crashes`` is 0 or 1.
     """
-    try:
-        import atheris  # noqa: F401
-    except ImportError:
-        raise ModuleNotFoundError("hil bench fuzz runs atheris: pip install 'hilstack[fuzz]'") from None
+    from hilstack.configs.extras import require
+
+    require("atheris", "hil bench fuzz")
     _, seeds, _ = resolve(target)
     with tempfile.TemporaryDirectory(prefix="hil-fuzz-") as tmp:
         corpus = Path(tmp) / "corpus"
@@ -324,12 +323,21 @@ def run_bench_fuzz(n: int = 1_000_000, targets: list[str] | None = None, seed: i
     return {"n": n, "engine": "atheris", "targets": res, "crashes": sum(r["crashes"] for r in res.values())}
 
 
+def main(argv: list[str] | None = None) -> None:
+    """``python -m hilstack.tools.fuzz TARGET [libFuzzer flags] [corpus dir]`` under atheris."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.fuzz", description=__doc__.split("\n")[0],
+                                 epilog="Everything after TARGET goes to libFuzzer (e.g. -runs=100000 CORPUS_DIR).")
+    ap.add_argument("target", help=f"one of {sorted(TARGETS)} or module:function")
+    ap.add_argument("libfuzzer", nargs=argparse.REMAINDER, help="libFuzzer flags and corpus directories")
+    a = ap.parse_args(argv)
+    _atheris_main([a.target, *a.libfuzzer])
+
+
 def _atheris_main(argv: list[str]) -> None:
     import atheris
 
-    if not argv or argv[0].startswith("-"):
-        raise SystemExit(f"usage: python -m hilstack.tools.fuzz TARGET [libFuzzer flags] [corpus dir]; "
-                         f"targets: {sorted(TARGETS)} or module:function")
     target = argv[0]
     include = TARGETS[target][2] if target in TARGETS else [target.partition(":")[0]]
     with atheris.instrument_imports(include=include):
@@ -352,4 +360,4 @@ def _atheris_main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    _atheris_main(sys.argv[1:])
+    main()

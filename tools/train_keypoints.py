@@ -181,7 +181,7 @@ def evaluate(net: KeypointNet, data: Dataset) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.train_keypoints", description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="perception/weights/keypoint_net.pt")
     ap.add_argument("--pairs", type=int, default=300, help="rendered stereo pairs (2 images each)")
     ap.add_argument("--epochs", type=int, default=30)

@@ -15,7 +15,6 @@ settings; the demo's `full` and `quick` presets evaluate on other seeds.
 from __future__ import annotations
 
 import json
-import sys
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -76,8 +75,36 @@ def data(cfg: PendulumConfig, n_target: int, tmp: Path):
     return src, agent, target, val, source
 
 
-def main(argv: list[str]) -> None:
-    from hilstack.tools.demo_transfer import PRESETS
+def _parse(argv: list[str] | None) -> list[str]:
+    """The search and its arguments (the module docstring's forms), checked by argparse."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.tune_pendulum", description=__doc__.split("\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="\n".join(__doc__.split("\n")[2:7]))
+    sub = ap.add_subparsers(dest="what")
+    sub.add_parser("gat", help="the GAT grid (default)")
+    sub.add_parser("floor", help="the floor of the per-step error")
+    g = sub.add_parser("garat-grid", help="GARAT_GRID, or a slice of it, at these sizes")
+    g.add_argument("slice", nargs="?", help="python slice of the grid, e.g. 0::2")
+    g.add_argument("sizes", nargs="?", help="comma-separated target sizes")
+    one = sub.add_parser("garat", help="one GARAT variant")
+    one.add_argument("settings", nargs="?", help="JSON overrides of the GARAT config")
+    one.add_argument("sizes", nargs="?", help="comma-separated target sizes")
+    f = sub.add_parser("fresh", help="the full preset's pendulum part on these seeds")
+    f.add_argument("seeds", help="comma-separated seeds")
+    f.add_argument("out", help="JSON file to write")
+    a = ap.parse_args(argv)
+    what = a.what or "gat"
+    rest = {"garat-grid": ("slice", "sizes"), "garat": ("settings", "sizes"), "fresh": ("seeds", "out")}.get(what, ())
+    vals = [getattr(a, k) for k in rest]
+    return [what, *[v for v in vals if v is not None]]
+
+
+def main(argv: list[str] | None = None) -> None:
+    from hilstack.tools.demo_transfer import TransferDemoConfig
+
+    argv = _parse(argv)
 
     torch.set_num_threads(1)
     what = argv[0] if argv else "gat"
@@ -85,12 +112,12 @@ def main(argv: list[str]) -> None:
         from hilstack.tools.demo_transfer import _pendulum_over_seeds
 
         seeds = tuple(int(x) for x in argv[1].split(","))
-        r = _pendulum_over_seeds(PRESETS["full"]["pendulum"], seeds, print)
+        r = _pendulum_over_seeds(TransferDemoConfig.from_preset("full").pendulum, seeds, print)
         Path(argv[2]).write_text(json.dumps(r, indent=2))
         print(json.dumps(r["curve"], indent=1), flush=True)
         return
     # seed 0 at both of the full preset's sizes (the quick preset has 3000 only; GAT's grid ran at 500 and 3000)
-    cfg = replace(PRESETS["quick"]["pendulum"], seed=0, target_sizes=PRESETS["full"]["pendulum"].target_sizes)
+    cfg = replace(TransferDemoConfig.from_preset("quick").pendulum, seed=0, target_sizes=TransferDemoConfig.from_preset("full").pendulum.target_sizes)
     low, high = np.array([-3.0]), np.array([3.0])
     with tempfile.TemporaryDirectory() as tmp:
         src, agent, target, val, source = data(cfg, max(cfg.target_sizes), Path(tmp))
@@ -141,4 +168,4 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()

@@ -19,6 +19,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from hilstack.bus import keys
+from hilstack.bus.recording import chain_transforms
 from hilstack.bus.schemas import (
     AnyMsg,
     Command,
@@ -31,6 +32,7 @@ from hilstack.bus.schemas import (
     TaskPosterior,
     decode,
 )
+from hilstack.drivers.base import RobotSpec
 
 
 def blueprint(has_images: bool = True) -> rrb.Blueprint:
@@ -63,6 +65,7 @@ class RigVisualizer:
         self.rec.send_blueprint(blueprint())
         self.names: dict[str, tuple[str, ...]] = {}
         self.action_names: dict[str, tuple[str, ...]] = {}
+        self.chains: dict[str, list[dict]] = {}
         self._path: dict[str, list[list[float]]] = {}
         self.logged = 0
 
@@ -91,10 +94,29 @@ class RigVisualizer:
             out.append([state[names.index(k)] for k in keys_])
         return out or None
 
+    def _links(self, robot: str, state: list[float]) -> None:
+        """An arm's kinematic chain (spec ``chain``): one ``Transform3D`` per link, nested as rerun's
+        entity tree (``world/<robot>/links/waist_link/shoulder_link/...``, each relative to its
+        parent), with each link drawn as an arrow from its parent's origin to its own."""
+        chain = self.chains.get(robot)
+        tfs = None if chain is None else chain_transforms(robot, chain, self.names[robot], state)
+        if not tfs:
+            return
+        path = f"world/{robot}/links"
+        for _, child, t, q in tfs:
+            link = child.rsplit("/", 1)[-1]
+            # the segment parent origin -> this link's origin, in the parent's frame
+            self.rec.log(f"{path}/to_{link}", rr.Arrows3D(origins=[[0.0, 0.0, 0.0]], vectors=[list(t)]))
+            path += "/" + link
+            self.rec.log(path, rr.Transform3D(translation=t, quaternion=rr.Quaternion(xyzw=q)))
+
     def log(self, topic: str, msg: Msg) -> None:
         if isinstance(msg, SpecMsg):
-            self.names[msg.robot] = tuple(msg.spec["state"]["names"])
-            self.action_names[msg.robot] = tuple(msg.spec["action"]["names"])
+            spec = RobotSpec.from_dict(msg.spec)
+            self.names[msg.robot] = spec.state.names
+            self.action_names[msg.robot] = spec.action.names
+            if spec.chain:
+                self.chains[msg.robot] = msg.spec["chain"]
             return
         if isinstance(msg, RobotState):
             self._time(msg, msg.t_s)
@@ -105,6 +127,7 @@ class RigVisualizer:
             if balls is not None:
                 self.rec.log(f"world/{msg.robot}/balls", rr.Points3D(balls, radii=0.02,
                                                                      colors=[[220, 50, 50], [50, 80, 220]]))
+            self._links(msg.robot, msg.state)
             p = self._xyz(msg.robot, msg.state)
             if p is not None:
                 path = self._path.setdefault(msg.robot, [])

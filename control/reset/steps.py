@@ -36,10 +36,11 @@ from typing import Any, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from hilstack.bus.schemas import ResetEvent, RobotState
+from hilstack.bus.schemas import ResetEvent, ResetPhase, RobotState
 from hilstack.configs.schema import ConfigError, parse_model
 from hilstack.control.baselines import DifferentialDriveController
 from hilstack.control.reset.config import StepConfig
+from hilstack.drivers.base import RobotSpec
 
 #: ``update`` results besides an action: the step is over / hold (safe action or held command)
 DONE = "done"
@@ -64,14 +65,14 @@ class StepContext(Protocol):
     """What the supervisor offers a step."""
 
     state_names: list[str]
-    #: the robot's spec (``RobotSpec.to_dict``), as its driver node published it
-    spec: dict[str, Any]
+    #: the robot's spec, as its driver node published it (None before it arrived)
+    spec: RobotSpec | None
 
     def robot_link(self, robot: str) -> Any:
         """Another robot of the rig (:class:`hilstack.control.reset.supervisor.RobotLink`): its state,
         spec, command key and liveliness."""
 
-    def request_driver(self, phase: str, pose: dict[str, float]) -> None:
+    def request_driver(self, phase: ResetPhase, pose: dict[str, float]) -> None:
         """Send the robot's driver node a reset request (``teleport``)."""
 
     def driver_answer(self) -> ResetEvent | None:
@@ -313,7 +314,7 @@ class LabFixture(ResetStep):
             n, s = self._names, state.state
             here = {"x": s[n.index("x")], "y": s[n.index("y")],
                     "yaw": math.atan2(s[n.index("sin_yaw")], s[n.index("cos_yaw")])}
-            ctx.request_driver("teleport", here)
+            ctx.request_driver(ResetPhase.TELEPORT, here)
         self._asked_s, self._waiting = state.t_s, True
 
     def _answer(self, ctx: StepContext) -> tuple[bool, bool] | None:
@@ -328,7 +329,7 @@ class LabFixture(ResetStep):
         ans = ctx.driver_answer()
         if ans is None:
             return None
-        if ans.phase != "done":
+        if ans.phase != ResetPhase.DONE:
             raise StepError(f"the robot is not upright and this rig has no lab fixture ({ans.phase}: {ans.detail}); "
                             "an operator must put it on its legs")
         return True, True
@@ -415,13 +416,13 @@ class Teleport(ResetStep):
     kind = "teleport"
 
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
-        ctx.request_driver("teleport", pose)
+        ctx.request_driver(ResetPhase.TELEPORT, pose)
 
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
         ans = ctx.driver_answer()
         if ans is None:
             return HOLD
-        if ans.phase != "done":
+        if ans.phase != ResetPhase.DONE:
             raise StepError(f"teleport {ans.phase}: {ans.detail}")
         return DONE
 
@@ -552,10 +553,9 @@ class ArmPickPlace(ResetStep):
         self._hold: np.ndarray | None = None
 
     def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
-        from hilstack.control.controller_node import ActionScale
         PickPlaceScript = _pick_place().PickPlaceScript
 
-        home = (ctx.spec or {}).get("home_action")
+        home = None if ctx.spec is None else ctx.spec.home_action
         if home is None:
             raise StepError("arm_pick_place: the robot's spec has no home_action (the pose it holds while the "
                             "arm places the balls)")
@@ -567,10 +567,10 @@ class ArmPickPlace(ResetStep):
             raise StepError(f"arm_pick_place: no state from robot {self.arm!r}")
         if self.script is None:
             spec = self._link.spec()
-            cfg = dataclasses.replace(self.pp_cfg, period_s=float(spec["period_s"]))
+            cfg = dataclasses.replace(self.pp_cfg, period_s=spec.period_s)
             self.script = PickPlaceScript(cfg)  # builds the IK model once
         self.script.start(s.t_s, np.asarray(s.state))
-        self._hold = ActionScale.from_spec(ctx.spec).to_norm(np.asarray(home, dtype=np.float64))
+        self._hold = ctx.spec.action.normalize(home)
 
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
         PickPlaceError = _pick_place().PickPlaceError

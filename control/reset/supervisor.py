@@ -62,16 +62,18 @@ from hilstack.bus.schemas import (
     Command,
     MalformedMessage,
     ResetEvent,
+    ResetPhase,
     ResetTransition,
     RobotState,
     SpecMsg,
+    StoppedReason,
     decode,
 )
 from hilstack.configs.schema import BusConfig
-from hilstack.control.controller_node import ActionScale
 from hilstack.control.reset.config import ResetConfig, VerifyConfig
 from hilstack.control.reset.detectors import EpisodeEndDetector, make_detector
 from hilstack.control.reset.steps import DONE, HOLD, ResetStep, StepError, make_step
+from hilstack.drivers.base import RobotSpec, Space
 
 log = logging.getLogger(__name__)
 logging.getLogger("transitions").setLevel(logging.WARNING)  # it logs every callback at INFO
@@ -166,11 +168,12 @@ class RobotLink:
     def _on_alive(self, sample: zenoh.Sample) -> None:
         self.alive = sample.kind == zenoh.SampleKind.PUT  # one store: no work in callbacks
 
-    def spec(self, timeout_s: float = 0.0) -> dict[str, Any] | None:
+    def spec(self, timeout_s: float = 0.0) -> RobotSpec | None:
         m = self._spec.wait(timeout_s) if timeout_s > 0 else (self._spec.poll() or self._spec.last)
         if m is not None:
-            self.state_names = list(m.spec["state"]["names"])
-            return m.spec
+            spec = RobotSpec.from_dict(m.spec)
+            self.state_names = list(spec.state.names)
+            return spec
         return None
 
     def outdate(self) -> None:
@@ -263,9 +266,11 @@ class ResetSupervisor(Node):
         for d in self.detectors:
             if d.robot:
                 self.robot_link(d.robot)
-        self.spec: dict[str, Any] = {}
+        #: the robot's spec (typed, from its driver node's SpecMsg); None before it arrived
+        self.spec: RobotSpec | None = None
         self.state_names: list[str] = []
-        self.scale: ActionScale | None = None
+        #: the robot's action space (from its spec): normalized actions of the steps → units
+        self.action_space: Space | None = None
         self._zero: np.ndarray | None = None
         #: what the operator was told on the last failure
         self.last_failure = ""
@@ -311,17 +316,15 @@ class ResetSupervisor(Node):
         )
 
     def _bind_spec(self, spec: dict[str, Any]) -> None:
-        self.spec = spec
-        self.state_names = list(spec["state"]["names"])
-        self.scale = ActionScale.from_spec(spec)
+        typed = RobotSpec.from_dict(spec)
+        self.spec = typed
+        self.state_names = list(typed.state.names)
+        self.action_space = typed.action
         # what "hold" sends: the safe action (legs stopped); for a robot that stops by holding
         # its position (the hand: safe_action None) the command it holds now (RobotState.action),
         # not zeros, which would be mid-range joint targets
-        if "safe_action" in spec and spec["safe_action"] is None:
-            self._zero = None
-        else:
-            sa = spec.get("safe_action") or np.zeros(len(self.scale.low))
-            self._zero = np.clip(np.asarray(sa, dtype=np.float64), self.scale.low, self.scale.high)
+        self._zero = None if typed.safe_action is None else np.clip(typed.safe_action, typed.action.low,
+                                                                    typed.action.high)
         for d in self.detectors:
             if not d.robot:
                 d.bind(self.state_names)
@@ -346,7 +349,7 @@ class ResetSupervisor(Node):
 
     def _send(self, s: RobotState, action_norm: np.ndarray | None) -> None:
         if action_norm is not None:
-            a = self.scale.to_robot(action_norm)
+            a = self.action_space.denormalize(action_norm)
         elif self._zero is not None:
             a = self._zero
         elif s.action:
@@ -362,7 +365,7 @@ class ResetSupervisor(Node):
             self.links[robot] = RobotLink(self, robot)
         return self.links[robot]
 
-    def request_driver(self, phase: str, pose: dict[str, float]) -> None:
+    def request_driver(self, phase: ResetPhase, pose: dict[str, float]) -> None:
         self._from_driver.poll()  # forget earlier answers
         self._to_driver.put(ResetEvent(robot=self.robot, phase=phase, pose=dict(pose)))
 
@@ -406,7 +409,7 @@ class ResetSupervisor(Node):
                 raise
 
     def spin_once(self, wait_s: float = 0.05) -> None:
-        if self.scale is None:
+        if self.action_space is None:
             m = self._spec.poll()
             if m is not None:
                 self._bind_spec(m.spec)
@@ -422,7 +425,7 @@ class ResetSupervisor(Node):
         if self.state == "estopped":
             self._fire("estop_released")
             return
-        if self.state == "failed" or self.scale is None:
+        if self.state == "failed" or self.action_space is None:
             return
         if self.state == "running":
             self._running(s)
@@ -453,12 +456,12 @@ class ResetSupervisor(Node):
                 m = decode(payload, ResetEvent)
             except MalformedMessage:
                 continue
-            if m.robot != self.robot or m.phase != "request":
+            if m.robot != self.robot or m.phase != ResetPhase.REQUEST:
                 continue
             self.stats["requested"] += 1
             if self.state in ("failed", "estopped"):
                 why = self.last_failure if self.state == "failed" else "e-stop engaged"
-                self._answer("failed", f"rig stopped: {why}; release the e-stop after fixing it")
+                self._answer(ResetPhase.FAILED, f"rig stopped: {why}; release the e-stop after fixing it")
                 continue
             if self._pending is None and self.state in ("running", "episode_end"):
                 self._reset_t0_wall = time.monotonic()
@@ -467,9 +470,9 @@ class ResetSupervisor(Node):
             # with the reset under way; the pose being driven to does not change mid-reset
             self._pending = m
 
-    def _answer(self, phase: str, detail: str = "", episode: int | None = None) -> None:
+    def _answer(self, phase: ResetPhase, detail: str = "", episode: int | None = None) -> None:
         ep = episode if episode is not None else (self._last.episode if self._last else 0)
-        if phase == "failed":  # counted before the answer goes out: whoever acts on it sees the count
+        if phase == ResetPhase.FAILED:  # counted before the answer goes out: whoever acts on it sees the count
             self.stats["failed"] += 1
         self._done.put(ResetEvent(robot=self.robot, phase=phase, pose=dict(self._pose), episode=ep, detail=detail))
         self._pending = None
@@ -487,7 +490,7 @@ class ResetSupervisor(Node):
                 ds = self._detector_state(d, s)
                 if ds is not None:
                     d.start(ds)
-        if not (s.active and s.stopped_reason == ""):
+        if not (s.active and s.stopped_reason == StoppedReason.RUNNING):
             return  # nothing is driving the robot: no episode is running
         for d in self.detectors:
             ds = self._detector_state(d, s)
@@ -608,7 +611,7 @@ class ResetSupervisor(Node):
             self._fire("verified")
             for link in self.links.values():
                 link.outdate()
-            self.request_driver("episode", self._pose)
+            self.request_driver(ResetPhase.EPISODE, self._pose)
             self._answer_wait_s = time.monotonic()
             return
         if self._verify_attempt < self.cfg.verify.retries:
@@ -626,7 +629,7 @@ class ResetSupervisor(Node):
             if time.monotonic() - self._answer_wait_s > self.cfg.state_timeout_s:
                 self._fail(f"driver node {keys.driver_node(self.robot)} did not start the new episode")
             return
-        if ans.phase != "done":
+        if ans.phase != ResetPhase.DONE:
             self._fail(f"driver node refused the new episode: {ans.phase} {ans.detail}")
             return
         self.stats["completed"] += 1
@@ -634,7 +637,7 @@ class ResetSupervisor(Node):
         self._reason = ""
         self._fire("resume")
         if self._pending is not None:
-            self._answer("done", episode=ans.episode)
+            self._answer(ResetPhase.DONE, episode=ans.episode)
 
     def _lost(self) -> str:
         if self.driver_alive is False:
@@ -658,7 +661,7 @@ class ResetSupervisor(Node):
         # stop the rig first, then tell the controller (it may act on the answer at once)
         command_estop(self, True, reason=f"reset failed: {detail}", timeout_s=1.0, settle_s=0.0)
         if self._pending is not None:
-            self._answer("failed", detail)
+            self._answer(ResetPhase.FAILED, detail)
         else:
             self.stats["failed"] += 1
 
@@ -669,7 +672,7 @@ class ResetSupervisor(Node):
         self._abort_step()
         self._fire("estop_engaged", detail=detail)
         if self._pending is not None and was != "failed":
-            self._answer("failed", f"{detail} during the reset")
+            self._answer(ResetPhase.FAILED, f"{detail} during the reset")
 
     def _fire(self, trigger: str, **kw: Any) -> None:
         """Fire a machine trigger (``MachineError`` if the current state does not allow it)."""

@@ -95,5 +95,6 @@ class StereoCameraDriver(Driver):
             dropped_frames=0 if u is None else u.skewed,
             latency_s=None if self.pipeline is None else self.pipeline.inputs["image"].age_s(now),
             last_error=self.last_error,
-            extra={} if self.pipeline is None else self.pipeline.ages(now),
+            extra={**({} if self.pipeline is None else self.pipeline.ages(now)),
+                   **({} if u is None else {"missed_frames": u.left.missed_frames + u.right.missed_frames})},
         )

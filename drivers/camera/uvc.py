@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from hilstack.bus.cycle import CycleTimer
 from hilstack.drivers.base import LinkError
 
 
@@ -67,12 +68,18 @@ class Grabber:
         self.received = 0
         self.bad_frames = 0
         self.error: str | None = None
+        self._pace: CycleTimer | None = None
         self._thread = threading.Thread(target=self._run, name=f"uvc-{name}", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         seq = 0
-        next_t = time.monotonic()
+        # a file is paced by the one scheduler (bus/cycle.py): after a stall the frames it
+        # missed are skipped and counted (``missed_frames``), never read in a burst
+        pace = CycleTimer(self._file_period_s, sleep=self._stop.wait) if self._file_period_s else None
+        self._pace = pace
+        if pace is not None:
+            pace.start()
         while not self._stop.is_set():
             ok, bgr = self._cap.read()
             now = time.monotonic()
@@ -87,9 +94,13 @@ class Grabber:
             with self._lock:
                 self._frames.append(f)
                 self.received += 1
-            if self._file_period_s:
-                next_t += self._file_period_s
-                self._stop.wait(max(0.0, next_t - time.monotonic()))
+            if pace is not None:
+                pace.wait()
+
+    @property
+    def missed_frames(self) -> int:
+        """File playback: frame periods skipped after a stall (a live camera paces itself: 0)."""
+        return 0 if self._pace is None else self._pace.missed
 
     def frames(self) -> list[Frame]:
         with self._lock:

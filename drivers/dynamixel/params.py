@@ -32,6 +32,10 @@ class DynamixelEmulatorParams(EmulatorParams):
     state_every_s: EmulatorS = Field(0.02, description="period of the state_file lines [s]")
     linger_s: EmulatorS = Field(0.0, description="tests of host death: keep simulating the servos "
                                 "this long after the driver's process died [s]")
+    effects: dict[str, float] = Field(default_factory=dict, description="WidowX bench, for calibration: what the "
+                                      "arm's servos have that the MuJoCo model lacks (joint_friction_nm, "
+                                      "joint_damping_nm_s, input_delay_s; checked by sim_backends/dynamixel/firmware.py)")
+    mjcf: str | None = Field(None, description="WidowX bench: built from this MJCF file (e.g. a calibrated one)")
 
 
 class BusParams(Params):

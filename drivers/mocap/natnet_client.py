@@ -92,10 +92,9 @@ class NatNetPoseSource:
         self._last_frame: int | None = None
 
     def connect(self, timeout_s: float = 5.0) -> None:
-        try:
-            import natnet  # imported here: only this backend needs it
-        except ImportError:
-            raise ModuleNotFoundError("the NatNet mocap source needs natnet: pip install 'hilstack[mocap]'") from None
+        from hilstack.configs.extras import require
+
+        natnet = require("natnet", "the NatNet mocap source")  # imported here: only this backend needs it
 
         self._client = natnet.NatNetClient(**self._kw)
         self._client.on_data_frame_received_event.handlers.append(self._on_frame)

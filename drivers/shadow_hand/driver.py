@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from hilstack.bus.cycle import Rate
 from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
 from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
@@ -90,6 +91,7 @@ class ShadowHandDriver(Driver):
         self._send_lock = threading.Lock()
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
+        self._hb_rate: Rate | None = None  # the heartbeat's deadline (reader thread)
         self._emu: EmulatorProcess | None = None
         self._balls: list[Any] = []  # UdpPoseClient per ball, when a tracker streams them
         self._asm = TelemetryAssembler()
@@ -244,16 +246,15 @@ class ShadowHandDriver(Driver):
         import can
 
         bus = self.bus
-        hb_period = 1.0 / self.params.heartbeat_hz
-        next_hb = time.monotonic()
+        # the host heartbeat: one scheduler (bus/cycle.py), a late one skips and counts
+        self._hb_rate = hb = Rate(1.0 / self.params.heartbeat_hz, time.monotonic())
         while not self._stop_evt.is_set():
             try:
                 msg = self._recv_one(bus, timeout_s=0.005)
                 now = time.monotonic()
                 if msg is not None:
                     self._handle(msg, now)
-                if now >= next_hb:
-                    next_hb = now + hb_period
+                if hb.due(now):
                     self._heartbeat()
                 self._driver_watchdog(now)
             except (can.CanError, OSError) as e:
@@ -458,6 +459,7 @@ class ShadowHandDriver(Driver):
             extra={
                 "backend": self.backend,
                 "transport": self.params.transport,
+                **(self._hb_rate.counts("heartbeat") if self._hb_rate else {}),
                 "telemetry_age_s": age,
                 "telemetry_cycles": cycles,
                 "incomplete_cycles": incomplete,

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from hilstack.bus.cycle import Rate
 from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
 from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
@@ -89,6 +90,7 @@ class VelociRoachDriver(Driver):
         self._lock = threading.Lock()
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
+        self._hb_rate: Rate | None = None  # the heartbeat's deadline (reader thread)
         self._emu: EmulatorProcess | None = None
         #: UDP port of the emulator's lab fixture (backend emulated; drivers/fixture.py)
         self._fixture_port: int | None = None
@@ -209,7 +211,8 @@ class VelociRoachDriver(Driver):
     def _reader(self) -> None:
         link = self.link
         assert link is not None
-        next_hb = time.monotonic() + HEARTBEAT_PERIOD_S
+        # the base station's heartbeat: one scheduler (bus/cycle.py), a late one skips and counts
+        self._hb_rate = hb = Rate(HEARTBEAT_PERIOD_S, time.monotonic() + HEARTBEAT_PERIOD_S)
         while not self._stop_evt.is_set():
             try:
                 msgs = link.receive(timeout_s=0.01)
@@ -218,8 +221,7 @@ class VelociRoachDriver(Driver):
                     self._handle(m, now)
                 if self._pose_client is not None:
                     self._poll_pose()
-                if now >= next_hb:
-                    next_hb = now + HEARTBEAT_PERIOD_S
+                if hb.due(now):
                     self._send(self.enc.heartbeat())
             except LinkError as e:
                 with self._lock:
@@ -409,6 +411,7 @@ class VelociRoachDriver(Driver):
             "robot_rx_corrupt": None if tel is None else tel.rx_corrupt,
             "status_text": status,
             "backend": self.backend,
+            **(self._hb_rate.counts("heartbeat") if self._hb_rate else {}),
             **({"lab_fixture_port": self._fixture_port} if self._fixture_port else {}),
         })
         return Health(

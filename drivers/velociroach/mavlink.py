@@ -283,20 +283,30 @@ class MavDecoder:
         self.last_error = why
 
 
-def _main(argv: list[str]) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Usage:
     python -m hilstack.drivers.velociroach.mavlink dump [mavlogdump options] LOG.tlog
         decode a .tlog with pymavlink's mavlogdump, this dialect loaded (``mavlogdump``
         is accepted as an alias of ``dump``; ``dump --help`` lists mavlogdump's options)
     python -m hilstack.drivers.velociroach.mavlink path
         print where the generated dialect module lives"""
-    if not argv or argv[0] in ("-h", "--help"):
-        print(_main.__doc__)
-        return 0
-    if argv[0] == "path":
+    import argparse
+
+    argv = sys.argv[1:] if argv is None else argv
+    ap = argparse.ArgumentParser(prog="python -m hilstack.drivers.velociroach.mavlink",
+                                 description="The VelociRoACH MAVLink dialect's tools.",
+                                 epilog="dump [mavlogdump options] LOG.tlog: decode a .tlog with pymavlink's "
+                                        "mavlogdump, this dialect loaded (mavlogdump is an alias; dump --help lists "
+                                        "its options). path: where the generated dialect module lives.")
+    ap.add_argument("command", choices=["dump", "mavlogdump", "mavlogdump.py", "path"])
+    # everything after the command is mavlogdump's (its own --help included)
+    a = ap.parse_args(argv[:1])
+    if a.command == "path":
+        if argv[1:]:
+            ap.error(f"path takes no arguments, got {argv[1:]}")
         print(mav.__file__)
         return 0
-    if argv[0] in ("dump", "mavlogdump", "mavlogdump.py"):
+    if a.command in ("dump", "mavlogdump", "mavlogdump.py"):
         import runpy
 
         rest = argv[1:]
@@ -315,9 +325,8 @@ def _main(argv: list[str]) -> int:
         except SystemExit as e:
             return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
         return 0
-    print(f"unknown command {argv[0]!r}; try --help", file=sys.stderr)
     return 2
 
 
 if __name__ == "__main__":
-    sys.exit(_main(sys.argv[1:]))
+    sys.exit(main())

@@ -133,7 +133,8 @@ def widowx_spec(p: WidowXParams) -> RobotSpec:
     return RobotSpec(name="widowx", state=state, action=action, period_s=p.period_s,
                      action_rate_per_s=np.full(len(JOINT_NAMES), p.max_joint_accel_rad_s2),
                      safe_action=np.zeros(len(JOINT_NAMES)),
-                     description="Trossen WidowX 250 6DOF, joint velocity control over Dynamixel Protocol 2.0")
+                     description="Trossen WidowX 250 6DOF, joint velocity control over Dynamixel Protocol 2.0",
+                     chain=tuple((n, tuple(off), tuple(axis)) for n, off, axis, *_ in WX250S_LINKS))
 
 
 def mechanism_spec(p: MechanismParams) -> RobotSpec:

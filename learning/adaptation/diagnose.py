@@ -65,8 +65,8 @@ def closed_loop(ckpt_dir: str, names: list[str], seed: int, cache: Path) -> None
     from hilstack.learning.adaptation.experiment import Trained, run_paths
     from hilstack.learning.adaptation.training import transitions
 
-    cfg = AdaptationConfig.full()
-    train, _, _ = data(AdaptationConfig.quick(), seed, cache)
+    cfg = AdaptationConfig.from_preset("full")
+    train, _, _ = data(AdaptationConfig.from_preset("quick"), seed, cache)
     plain = load_adapter(Path(ckpt_dir) / f"seed{seed}_mb_de.pt").model
     g = load_adapter(Path(ckpt_dir) / f"seed{seed}_grbal.pt")
     s, _, n = transitions(train)
@@ -87,8 +87,8 @@ def closed_loop(ckpt_dir: str, names: list[str], seed: int, cache: Path) -> None
         env.close()
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m hilstack.learning.adaptation.diagnose", description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--cache", default="/tmp/adapt_diag")
@@ -99,11 +99,11 @@ def main() -> None:
     ap.add_argument("--test-rollouts", type=int, default=3, help="per test condition (quick: 3)")
     ap.add_argument("--variants", default="all,all_psi_lr,last,last_psi_lr,last_psi1")
     ap.add_argument("--closed-loop", nargs="+", metavar=("CKPT_DIR", "NAME"))
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     torch.set_num_threads(1)
     if a.closed_loop:
         return closed_loop(a.closed_loop[0], a.closed_loop[1:], a.seed, Path(a.cache))
-    cfg = AdaptationConfig.quick(presets=a.presets, M=a.M, conditions_per_terrain=a.conditions,
+    cfg = AdaptationConfig.from_preset("quick", presets=a.presets, M=a.M, conditions_per_terrain=a.conditions,
                                  rollouts_per_condition=a.rollouts, before_after_rollouts=a.test_rollouts)
     train, tests, names = data(cfg, a.seed, Path(a.cache))
     plain = AdaptiveMLP(names, 2, hidden=cfg.hidden, seed=a.seed)

@@ -26,12 +26,12 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from hilstack.control.controller_node import ActionScale
+from hilstack.configs.presets import Presets
 from hilstack.control.costs import PathCost, evaluate_path_following, summarize_paths
 from hilstack.control.paths import fillet, make_path, path_length, straight
 from hilstack.control.policies import SafeRandomPolicy
@@ -43,8 +43,8 @@ from hilstack.learning.adaptation.grbal import GrbalAdapter, segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.mole import MoleAdapter
 from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from hilstack.learning.adaptation.training import fit_plain, split_episodes, transitions
-from hilstack.learning.datasets import Episode
+from hilstack.learning.adaptation.training import fit_plain, transitions
+from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.experiments import mean_std
 from hilstack.learning.mbrl import MbrlConfig, PathEnd, _jsonable, make_planner, path_start_pose
 from hilstack.tasks.perturbations import (
@@ -60,9 +60,37 @@ RANDOM_SHOOTING_SPEED_MPS = 0.19
 SWITCHING_METHODS = ("mole", "k_shot", "continued")
 
 
+#: the data and training sizes of the quick and full presets: 15 min of random robot time per
+#: training terrain (12 conditions x 15 rollouts x 5 s, half of the conditions unperturbed;
+#: the thesis: ~30 min, terrains only), 10 % of the rollouts held out for early stopping of MB,
+#: GrBAL and ReBAL; the oracle gets 100 rollouts (8.3 min) of its one condition. GrBAL: its
+#: inner gradient's norm capped at the median of the training windows' (``grbal_clip_quantile``),
+#: θ's meta learning rate 1e-4 (ψ's 1e-2): the open-loop screen in docs/adaptation.md, "Why one
+#: GrBAL step ...". docs/adaptation.md, "Sizes".
+_SCALED: dict[str, Any] = dict(
+    conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=15, hidden=(256, 256, 256),
+    plain_epochs=200, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
+    meta_eval_every=50, meta_patience=4, oracle_rollouts=100, paths=("straight", "left"),
+    path_scale=1.0, before_after_rollouts=10, switching_every_steps=100, switching_segments=4,
+    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4)
+
+
 @dataclass
-class AdaptationConfig:
-    """Sizes of one run. ``quick()``/``full()``/``tiny()`` are the presets of the demo."""
+class AdaptationConfig(Presets):
+    """Sizes of one run. ``AdaptationConfig.from_preset("quick" | "full" | "tiny")`` are the demo's presets."""
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        # quick over 3 seeds (≈ 40 min on one core; seed 0 is the quick run exactly): the
+        # dataclass defaults (3 x 512, 3 paths, switching every 500 steps) take hours here
+        "full": {**_SCALED, "seeds": (0, 1, 2)},
+        "quick": {**_SCALED, "seeds": (0,)},
+        # seconds: the CLI test (numbers meaningless); the last two run those code paths
+        "tiny": dict(seeds=(0,), conditions_per_terrain=2, rollouts_per_condition=1, rollout_steps=12,
+                     before_after_rollouts=1, hidden=(16, 16), M=4, K=4, plain_epochs=2, meta_steps=2, rebal_steps=2,
+                     context_dim=4, samples=32, paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.5,
+                     switching_every_steps=4, switching_segments=2, grbal_clip_quantile=0.5,
+                     train_leg_speed_scale=(0.8, 1.2)),
+    }
 
     presets: str = "velociroach"
     seeds: tuple[int, ...] = (0, 1, 2)
@@ -122,47 +150,6 @@ class AdaptationConfig:
     switching_segments: int | None = None
     threads: int = 1
 
-    @classmethod
-    def full(cls, **kw: Any) -> AdaptationConfig:
-        """``quick`` over 3 seeds (≈ 40 min on one core; seed 0 is the quick run exactly): the
-        dataclass defaults (3 x 512, 3 paths, switching every 500 steps) take hours here."""
-        base = dict(cls._scaled(), seeds=(0, 1, 2))
-        base.update(kw)
-        return cls(**base)
-
-    @classmethod
-    def quick(cls, **kw: Any) -> AdaptationConfig:
-        base = dict(cls._scaled(), seeds=(0,))
-        base.update(kw)
-        return cls(**base)
-
-    @staticmethod
-    def _scaled() -> dict[str, Any]:
-        """The data and training sizes of quick and full: 15 min of random robot time per
-        training terrain (12 conditions x 15 rollouts x 5 s, half of the conditions
-        unperturbed; the thesis: ~30 min, terrains only), 10 % of the
-        rollouts held out for early stopping of MB, GrBAL and ReBAL; the oracle gets 100
-        rollouts (8.3 min) of its one condition. GrBAL: its inner gradient's norm capped at
-        the median of the training windows' (``grbal_clip_quantile``), θ's meta learning rate
-        1e-4 (ψ's 1e-2): the open-loop screen in docs/adaptation.md, "Why one GrBAL step ...".
-        docs/adaptation.md, "Sizes"."""
-        return dict(conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=15, hidden=(256, 256, 256),
-                    plain_epochs=200, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
-                    meta_eval_every=50, meta_patience=4, oracle_rollouts=100, paths=("straight", "left"),
-                    path_scale=1.0, before_after_rollouts=10, switching_every_steps=100, switching_segments=4,
-                    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4)
-
-    @classmethod
-    def tiny(cls, **kw: Any) -> AdaptationConfig:
-        """Seconds: the CLI test (numbers meaningless)."""
-        base = dict(seeds=(0,), conditions_per_terrain=2, rollouts_per_condition=1, rollout_steps=12,
-                    before_after_rollouts=1, hidden=(16, 16), M=4, K=4, plain_epochs=2, meta_steps=2, rebal_steps=2,
-                    context_dim=4, samples=32, paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.5,
-                    switching_every_steps=4, switching_segments=2, grbal_clip_quantile=0.5,
-                    train_leg_speed_scale=(0.8, 1.2))  # the last two: run those code paths
-        base.update(kw)
-        return cls(**base)
-
 
 # ---------------------------------------------------------------------------- the sim
 class RoachSim:
@@ -174,10 +161,9 @@ class RoachSim:
         self.sim.activate()
         spec = self.sim.spec
         self.state_names = list(spec.state.names)
-        self.scale = ActionScale(spec.action.low, spec.action.high)
+        self.action_space = spec.action
         self.period_s = float(spec.period_s)
-        rate = spec.action_rate_per_s
-        self.max_step = None if rate is None else np.asarray(rate, float) * self.period_s / self.scale.half
+        self.max_step = spec.max_step_normalized()
 
     def start(self, pose: dict[str, float], settings: PerturbationSettings) -> np.ndarray:
         self.sim.apply_perturbations(settings)
@@ -193,9 +179,9 @@ class RoachSim:
 
     def step(self, a_norm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Apply a normalized action; returns (the action actually applied, normalized; next state)."""
-        applied = self.sim.write(self.scale.to_robot(a_norm))
+        applied = self.sim.write(self.action_space.denormalize(a_norm))
         self.sim.tick()
-        return self.scale.to_norm(applied).astype(np.float32), self.sim.read().state.copy()
+        return self.action_space.normalize(applied).astype(np.float32), self.sim.read().state.copy()
 
     def close(self) -> None:
         self.sim.deactivate()
@@ -658,7 +644,37 @@ def aggregate(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
                  (rows.std(0, ddof=1) if len(rows) > 1 else np.zeros(rows.shape[1])).tolist(),
                  "tasks_created": None if tc[0] is None else float(np.mean(tc)),
                  "conditions": first["switching"][m]["conditions"]}
-    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw}
+    return {"perturbations": perts, "k_step_error_before_after": ba, "switching": sw,
+            "benchmarks": benchmarks(per_seed)}
+
+
+def benchmarks(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
+    """Issue 24's cross-suite view: ``{condition: {method: {return_mean, return_std,
+    normalized, normalized_std, seeds}}}``. The roach's return is the progress along the
+    paths within their time limits (m, summed over the paths; higher is better, 0 for a robot
+    that does not move); ``normalized`` = return / the oracle's return of the same seed (None
+    when the oracle made no progress), mean ± sample std over seeds. ``switching``: the
+    progress summed over the segments (no oracle: ``normalized`` is None)."""
+    out: dict[str, Any] = {}
+    for name in per_seed[0]["perturbations"]:
+        row = {}
+        for m in METHODS:
+            ret = [float(r["perturbations"][name][m]["progress_m"]) for r in per_seed]
+            orc = [float(r["perturbations"][name]["oracle"]["progress_m"]) for r in per_seed]
+            ms = mean_std(ret)
+            cell = {"return_mean": ms["mean"], "return_std": ms["std"], "seeds": ret, "normalized": None}
+            if all(o > 0 for o in orc):
+                ns = mean_std([x / o for x, o in zip(ret, orc, strict=True)])
+                cell["normalized"], cell["normalized_std"] = ns["mean"], ns["std"]
+            row[m] = cell
+        out[name] = row
+    sw = {}
+    for m in SWITCHING_METHODS:
+        ret = [float(sum(r["switching"][m]["reward_per_segment"])) for r in per_seed]
+        ms = mean_std(ret)
+        sw[m] = {"return_mean": ms["mean"], "return_std": ms["std"], "seeds": ret, "normalized": None}
+    out["switching"] = sw
+    return out
 
 
 

@@ -31,6 +31,7 @@ from torch.func import grad, vmap
 from hilstack.learning.adaptation.base import Adapter
 from hilstack.learning.adaptation.model import AdaptiveMLP, Params
 from hilstack.learning.datasets import Episode
+from hilstack.learning.early_stopping import EarlyStopping, due
 from hilstack.learning.progress import progress as progress_output
 
 
@@ -158,8 +159,8 @@ def meta_train(model: AdaptiveMLP, seg: Segments, *, steps: int = 500, meta_batc
     gen = torch.Generator().manual_seed(seed)
     hist: list[dict[str, float]] = []
     every = max(1, eval_every or steps // 10)
-    stop = val is not None and patience is not None
-    best, best_n, n_eval, best_state = float("inf"), 0, 0, None
+    # early stopping watches θ and ψ; only with both a held-out set and a patience
+    es = EarlyStopping(params, psi, patience=patience) if val is not None and patience is not None else None
     it_range = progress_output(range(steps), total=steps, desc="GrBAL meta-training") if progress else range(steps)
     for it in it_range:
         idx = torch.randint(len(seg), (min(meta_batch, len(seg)),), generator=gen)
@@ -168,25 +169,14 @@ def meta_train(model: AdaptiveMLP, seg: Segments, *, steps: int = 500, meta_batc
         opt.zero_grad()
         loss.backward()
         opt.step()
-        if (it + 1) % every == 0 or it == steps - 1:
+        if due(it, steps, every):
             ev = evaluate(model, {k: v.detach() for k, v in params.items()}, {k: v.detach() for k, v in psi.items()},
                           val or seg, names=sub, clip=clip)
             hist.append({"step": it + 1, **ev})
-            n_eval += 1
-            if stop:
-                if ev["after"] < best:
-                    best, best_n = ev["after"], n_eval
-                    best_state = ({k: v.detach().clone() for k, v in params.items()},
-                                  {k: v.detach().clone() for k, v in psi.items()})
-                elif n_eval - best_n >= patience:
-                    break
-    if best_state is not None:
-        with torch.no_grad():
-            for k, v in params.items():
-                v.copy_(best_state[0][k])
-            for k, v in psi.items():
-                v.copy_(best_state[1][k])
-        hist.append({"best_step": hist[best_n - 1]["step"], **hist[best_n - 1]})
+            if es is not None and es.update(ev["after"]):
+                break
+    if es is not None and es.restore():
+        hist.append({"best_step": hist[es.best_index - 1]["step"], **hist[es.best_index - 1]})
     return {k: (psi[k].detach().clone() if k in psi else torch.zeros_like(v.detach())) for k, v in params.items()}, hist
 
 

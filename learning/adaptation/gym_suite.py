@@ -4,8 +4,8 @@
 
 1. **Data** (the same for every method): ``random_rollouts`` rollouts of uniform random
    actions, each under one training condition, then ``onpolicy_rollouts`` rollouts of the
-   MB controller (the plain model fit on the random data) under training conditions: one
-   round of on-policy aggregation. The oracle gets the same budget (same counts, the same
+   MB controller under training conditions, in ``onpolicy_rounds`` rounds (each followed by
+   a refit of the plain model on everything so far). The oracle gets the same budget (same counts, the same
    procedure) under the test condition.
 2. **Models** (one architecture, ``hidden``; fixed unit variance): MB = the plain model
    (:func:`~hilstack.learning.adaptation.training.fit_plain`); MB+DE = MB's θ* with one SGD
@@ -15,10 +15,13 @@
 3. **Closed loop**: every method plans with the same MPPI/PDDM planner
    (``control/planners.PDDM``, the same seed), from the same gymnasium start (same reset
    seed), and the return is the sum of the reference code's reward over ``test_steps``.
-   ``normalized`` = return / the oracle's return of the same seed.
+   ``normalized`` = return / the oracle's return of the same seed. Every disabled-joint
+   benchmark also reports ``zero_action`` (the do-nothing floor, same condition and start).
 
 Benchmarks (``benchmarks`` in the config):
 
+* ``hc_normal``: the sanity check before any adaptation: MB's MPC on the unperturbed robot
+  beside the do-nothing controller (zero action, the floor); no oracle, no ratio.
 * ``hc_disabled_joint``: joint 0 (never disabled in training: 1..5 are) disabled from the
   start (the thesis' generalisation test).
 * ``hc_disabled_joint_switch``: joint 2 (a training condition) for the first half, then
@@ -42,11 +45,12 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
+from hilstack.configs.presets import Presets
 from hilstack.control.planners import PDDM, RandomShooting
 from hilstack.learning.adaptation import grbal, rebal
 from hilstack.learning.adaptation.base import Adapter
@@ -55,23 +59,36 @@ from hilstack.learning.adaptation.gym_envs import ENVS, GymBenchmarkEnv, disable
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.mole import MoleAdapter
 from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from hilstack.learning.adaptation.training import fit_plain, split_episodes
-from hilstack.learning.datasets import Episode
+from hilstack.learning.adaptation.training import fit_plain
+from hilstack.learning.datasets import Episode, split_episodes
 
 JOINT_METHODS = ("mb", "mb_de", "grbal", "rebal", "oracle")
 MOLE_METHODS = ("mole", "continued", "k_shot", "mb", "mb_online")
-BENCHMARKS = ("hc_disabled_joint", "hc_disabled_joint_switch", "hc_malfunction_switch", "hc_disabled_joint_next_k")
-JOINT_BENCHMARKS = ("hc_disabled_joint", "hc_disabled_joint_switch", "hc_disabled_joint_next_k")
+BENCHMARKS = ("hc_normal", "hc_disabled_joint", "hc_disabled_joint_switch", "hc_malfunction_switch",
+              "hc_disabled_joint_next_k")
+JOINT_BENCHMARKS = ("hc_normal", "hc_disabled_joint", "hc_disabled_joint_switch", "hc_disabled_joint_next_k")
 MALFUNCTION_A = (0, 1, 2)  # the back leg's motors, negated
 
 
 @dataclass(frozen=True)
-class GymSuiteConfig:
+class GymSuiteConfig(Presets):
+    #: the presets of ``from_preset(name, **overrides)`` (configs/presets.py): overrides of the defaults
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        "quick": dict(seeds=(0,), random_rollouts=30, onpolicy_rollouts=5, meta_steps=300, rebal_steps=800,
+                      test_steps=300, switch_every=500, switch_segments=3, rs_samples=300),
+        "tiny": dict(benchmarks=("hc_normal", "hc_disabled_joint", "hc_malfunction_switch", "hc_disabled_joint_next_k"),
+                     seeds=(0,), onpolicy_rounds=2, hidden=(32, 32),
+                     random_rollouts=4, onpolicy_rollouts=1, rollout_len=40, epochs=2, window=8, future=8,
+                     meta_steps=5, meta_batch=4, rebal_steps=5, context_dim=4, samples=20, horizon=4,
+                     rs_samples=20, test_steps=30, switch_every=15, switch_segments=3),
+    }
+
     benchmarks: tuple[str, ...] = BENCHMARKS
     seeds: tuple[int, ...] = (0, 1, 2)
     hidden: tuple[int, ...] = (128, 128, 128)
     random_rollouts: int = 40
-    onpolicy_rollouts: int = 8
+    onpolicy_rollouts: int = 8   # per on-policy round
+    onpolicy_rounds: int = 1     # rounds of MB's MPC rollouts aggregated into the data, each followed by a refit
     rollout_len: int = 100
     epochs: int = 40
     window: int = 16          # M (and MOLe's K)
@@ -94,21 +111,6 @@ class GymSuiteConfig:
     switch_every: int = 500
     switch_segments: int = 3  # normal, malfunction, normal: the return to a condition met before
     threads: int = 1
-
-    @classmethod
-    def quick(cls, **kw: Any) -> GymSuiteConfig:
-        base = dict(seeds=(0,), random_rollouts=30, onpolicy_rollouts=5, meta_steps=300, rebal_steps=800,
-                    test_steps=300, switch_every=500, switch_segments=3, rs_samples=300)
-        return cls(**{**base, **kw})
-
-    @classmethod
-    def tiny(cls, **kw: Any) -> GymSuiteConfig:
-        base = dict(benchmarks=("hc_disabled_joint", "hc_malfunction_switch", "hc_disabled_joint_next_k"), seeds=(0,),
-                    hidden=(32, 32),
-                    random_rollouts=4, onpolicy_rollouts=1, rollout_len=40, epochs=2, window=8, future=8,
-                    meta_steps=5, meta_batch=4, rebal_steps=5, context_dim=4, samples=20, horizon=4,
-                    rs_samples=20, test_steps=30, switch_every=15, switch_segments=3)
-        return cls(**{**base, **kw})
 
 
 # -- pieces -------------------------------------------------------------------------------------------
@@ -212,13 +214,14 @@ def collect(env, cfg: GymSuiteConfig, conditions: list[np.ndarray], rng: np.rand
     cost = reward_cost(env.name)
     for i, m in enumerate(conditions):
         if model is None:
-            ep, _ = rollout(env, cfg.rollout_len, seed_base + i, {0: m}, lambda t, s: rng.uniform(-1, 1, A))
+            ep, r = rollout(env, cfg.rollout_len, seed_base + i, {0: m}, lambda t, s: rng.uniform(-1, 1, A))
         else:
             ad = MbAdapter(model)
             pl = pddm(cfg, A, planner_seed + i)
             c = Controller(ad, pl, cost)
             c.reset()
-            ep, _ = rollout(env, cfg.rollout_len, seed_base + i, {0: m}, c.act)
+            ep, r = rollout(env, cfg.rollout_len, seed_base + i, {0: m}, c.act)
+        ep.meta["return"] = float(r.sum())
         eps.append(ep)
     return eps
 
@@ -233,17 +236,21 @@ def fit_mb(env_name: str, cfg: GymSuiteConfig, eps: list[Episode], seed: int) ->
 
 def dataset(env, cfg: GymSuiteConfig, sample_condition: Callable[[np.random.Generator], np.ndarray],
             seed: int, tag: int) -> tuple[list[Episode], AdaptiveMLP, dict]:
-    """Random rollouts, MB on them, one on-policy round, MB refit: (episodes, MB model, history)."""
+    """Random rollouts, MB on them, then ``onpolicy_rounds`` rounds of ``onpolicy_rollouts``
+    rollouts of MB's MPC, each aggregated and followed by a refit (the thesis' iterated MBRL):
+    (episodes, MB model, the last fit's history with ``onpolicy_returns`` per round)."""
     rng = np.random.default_rng([seed, tag])
     base = 100_000 * (tag + 1) + 1000 * seed
     eps = collect(env, cfg, [sample_condition(rng) for _ in range(cfg.random_rollouts)], rng, base)
-    model, _ = fit_mb(env.name, cfg, eps, seed)
-    if cfg.onpolicy_rollouts:
-        eps += collect(env, cfg, [sample_condition(rng) for _ in range(cfg.onpolicy_rollouts)], rng, base + 500,
-                       model=model, planner_seed=base)
+    model, h = fit_mb(env.name, cfg, eps, seed)
+    returns = []
+    for k in range(cfg.onpolicy_rounds if cfg.onpolicy_rollouts else 0):
+        new = collect(env, cfg, [sample_condition(rng) for _ in range(cfg.onpolicy_rollouts)], rng,
+                      base + 500 + 50 * k, model=model, planner_seed=base + 50 * k)
+        returns.append(float(np.mean([e.meta["return"] for e in new])))
+        eps += new
         model, h = fit_mb(env.name, cfg, eps, seed)
-    else:
-        h = {}
+    h["onpolicy_returns"] = returns
     return eps, model, h
 
 
@@ -284,6 +291,25 @@ def run_disabled_joint(cfg: GymSuiteConfig, seed: int, log: Callable[[str], None
     t = time.monotonic()
     eps, mb, mb_hist = dataset(env, cfg, lambda r: disabled_joint(A, int(r.integers(1, A))), seed, 0)
     t = _timed(timing, "data_and_mb", t)
+    log(f"  seed {seed}: MB on {sum(len(e) for e in eps)} transitions, held-out {mb_hist.get('best_val', float('nan')):.4f}, "
+        f"mean return of its MPC rollouts per on-policy round {[round(x, 1) for x in mb_hist['onpolicy_returns']]}")
+    out: dict[str, Any] = {}
+    training = {"mb": mb_hist, "transitions": int(sum(len(e) for e in eps))}
+    if "hc_normal" in cfg.benchmarks:
+        # the sanity check before any adaptation: does MB's MPC run on the unperturbed robot at this
+        # budget? The do-nothing controller (zero action) is the floor.
+        sched = {0: disabled_joint(A, None)}
+        r_mb, _ = closed_loop(env, MbAdapter(mb, cfg.window), pddm(cfg, A, 7 + seed), cost, cfg.test_steps,
+                              900_000 + seed, sched)
+        _, r_0 = rollout(env, cfg.test_steps, 900_000 + seed, sched, lambda t, s: np.zeros(A, dtype=np.float32))
+        out["hc_normal"] = {m: {"return": float(r.sum()), "return_per_segment": [float(r.sum())], "normalized": None}
+                            for m, r in (("mb", r_mb), ("zero_action", r_0))}
+        log(f"  seed {seed} hc_normal: MB {r_mb.sum():.1f} ({r_mb.mean():.2f} per step), "
+            f"zero action {r_0.sum():.1f}")
+        t = _timed(timing, "hc_normal", t)
+    if not set(cfg.benchmarks) & {"hc_disabled_joint", "hc_disabled_joint_switch", "hc_disabled_joint_next_k"}:
+        env.close()
+        return {"results": out, "timing_s": timing, "training": training}
     gmodel, psi, ghist = meta_grbal(cfg, mb, eps, seed)
     t = _timed(timing, "grbal_meta_train", t)
     rmodel, enc, rhist = meta_rebal("half_cheetah", cfg, mb, eps, seed)
@@ -298,7 +324,6 @@ def run_disabled_joint(cfg: GymSuiteConfig, seed: int, log: Callable[[str], None
                 "grbal": grbal.GrbalAdapter(gmodel, psi, cfg.window), "rebal": RebalAdapter(rmodel, enc, cfg.window),
                 "oracle": {s: MbAdapter(oracles[j], cfg.window) for s, j in zip(schedule_steps, joints, strict=True)}}
 
-    out: dict[str, Any] = {}
     if "hc_disabled_joint_next_k" in cfg.benchmarks:
         out["hc_disabled_joint_next_k"] = next_k_errors(env, cfg, seed, mb, gmodel, psi, rmodel, enc, oracles[0])
         t = _timed(timing, "hc_disabled_joint_next_k", t)
@@ -316,15 +341,17 @@ def run_disabled_joint(cfg: GymSuiteConfig, seed: int, log: Callable[[str], None
                                                                        zip(steps, [*steps[1:], cfg.test_steps],
                                                                            strict=True)]}
             log(f"  seed {seed} {name} {m}: return {r.sum():.1f}")
+        _, r0 = rollout(env, cfg.test_steps, 900_000 + seed, schedule, lambda t, s: np.zeros(A, dtype=np.float32))
+        res["zero_action"] = {"return": float(r0.sum()), "return_per_segment": [
+            float(r0[a:b].sum()) for a, b in zip(steps, [*steps[1:], cfg.test_steps], strict=True)]}
         for m in res:
             res[m]["normalized"] = res[m]["return"] / res["oracle"]["return"] if res["oracle"]["return"] > 0 else None
         out[name] = res
         t = _timed(timing, name, t)
     env.close()
     return {"results": out, "timing_s": timing,
-            "training": {"mb": mb_hist, "grbal": ghist[-1], "rebal": rhist[-1] if rhist else {},
-                         "grbal_psi_mean": float(torch.cat([v.reshape(-1) for v in psi.values()]).mean()),
-                         "transitions": int(sum(len(e) for e in eps))}}
+            "training": {**training, "grbal": ghist[-1], "rebal": rhist[-1] if rhist else {},
+                         "grbal_psi_mean": float(torch.cat([v.reshape(-1) for v in psi.values()]).mean())}}
 
 
 def next_k_errors(env, cfg: GymSuiteConfig, seed: int, mb, gmodel, psi, rmodel, enc, oracle) -> dict[str, Any]:
@@ -446,7 +473,7 @@ def aggregate(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
                 cell["task_per_segment"] = [x["task_per_segment"] for x in rows]
                 cell["posterior_trace"] = [x["posterior_trace"] for x in rows]
             out[name][m] = cell
-        if "oracle" not in out[name] and all("return_mean" in c for c in out[name].values()):
+        if name != "hc_normal" and "oracle" not in out[name] and all("return_mean" in c for c in out[name].values()):
             best = max(c["return_mean"] for c in out[name].values())
             for c in out[name].values():
                 c["normalized"] = c["return_mean"] / best if best > 0 else None
@@ -602,14 +629,37 @@ def run(cfg: GymSuiteConfig, out: Path, log: Callable[[str], None] = print, pres
 
 def config_for(quick: bool, tiny: bool = False, seed: int = 0, **kw: Any) -> GymSuiteConfig:
     if tiny:
-        return GymSuiteConfig.tiny(seeds=(seed,), **kw)
+        return GymSuiteConfig.from_preset("tiny", seeds=(seed,), **kw)
     if quick:
-        return GymSuiteConfig.quick(seeds=(seed,), **kw)
+        return GymSuiteConfig.from_preset("quick", seeds=(seed,), **kw)
     return replace(GymSuiteConfig(), seeds=(seed, seed + 1, seed + 2), **kw)
 
 
-PARTS = {"joint": ("hc_disabled_joint", "hc_disabled_joint_switch"), "malfunction": ("hc_malfunction_switch",),
-         "openloop": ("hc_disabled_joint_next_k",)}
+PARTS = {"normal": ("hc_normal",), "joint": ("hc_normal", "hc_disabled_joint", "hc_disabled_joint_switch"),
+         "malfunction": ("hc_malfunction_switch",), "openloop": ("hc_disabled_joint_next_k",)}
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``FIELD=VALUE`` strings → GymSuiteConfig overrides, typed like the field's default
+    (tuples: comma-separated). An unknown field or a bad value is a one-line ValueError."""
+    defaults = asdict(GymSuiteConfig())
+    out: dict[str, Any] = {}
+    for it in items:
+        k, sep, v = it.partition("=")
+        if not sep or k not in defaults or k in ("seeds", "benchmarks"):
+            raise ValueError(f"--set {it!r}: expected FIELD=VALUE with FIELD one of "
+                             f"{sorted(set(defaults) - {'seeds', 'benchmarks'})}")
+        d = defaults[k]
+        try:
+            if isinstance(d, tuple):
+                out[k] = tuple(type(d[0])(x) for x in v.split(","))
+            else:
+                out[k] = type(d)(v)
+        except ValueError:
+            raise ValueError(f"--set {it!r}: {v!r} is not a {type(d).__name__}") from None
+        if isinstance(out[k], (int, float)) and not np.isfinite(out[k]):
+            raise ValueError(f"--set {it!r}: not finite")
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -626,16 +676,22 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--part", choices=sorted(PARTS))
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--merge", type=Path, nargs="+")
+    ap.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE",
+                    help="override GymSuiteConfig fields, e.g. onpolicy_rounds=4 hidden=256,256,256")
     a = ap.parse_args(argv)
+    try:
+        over = parse_overrides(a.set)
+    except ValueError as e:
+        ap.error(str(e))
     preset = "quick" if a.quick else "full"
     if a.merge:
-        cfg = config_for(a.quick)
+        cfg = config_for(a.quick, **over)
         r = merge(a.merge, a.out, cfg, preset)
         print((a.out / "report.md").read_text())
         return
     if a.part is None:
         ap.error("give --part (or --merge)")
-    cfg = replace(config_for(a.quick, seed=a.seed), seeds=(a.seed,), benchmarks=PARTS[a.part])
+    cfg = replace(config_for(a.quick, seed=a.seed, **over), seeds=(a.seed,), benchmarks=PARTS[a.part])
     r = run(cfg, a.out, lambda m: print(f"[{time.strftime('%H:%M:%S')} cpu {time.process_time():.0f} s] {m}",
                                         flush=True), preset)
     print(f"done: {r['elapsed_s'] / 60:.1f} min wall, {r['cpu_s'] / 60:.1f} min CPU")

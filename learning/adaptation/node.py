@@ -50,7 +50,7 @@ from hilstack.bus.schemas import (
     decode,
 )
 from hilstack.configs.schema import BusConfig
-from hilstack.control.controller_node import ActionScale
+from hilstack.drivers.base import RobotSpec
 from hilstack.learning.adaptation.base import Adapter
 from hilstack.learning.adaptation.base import ModelUpdate as AdaptedModel
 
@@ -110,10 +110,10 @@ class TransitionBuilder:
     ``new_episode`` is set when the state starts a new episode (the caller clears its window).
     """
 
-    def __init__(self, spec: dict[str, Any], stats: AdaptationStats | None = None):
-        self.scale = ActionScale.from_spec(spec)
-        self.period_s = float(spec["period_s"])
-        self.state_dim = len(spec["state"]["names"])
+    def __init__(self, spec: RobotSpec, stats: AdaptationStats | None = None):
+        self.action_space = spec.action
+        self.period_s = spec.period_s
+        self.state_dim = spec.state.dim
         self.stats = stats or AdaptationStats()
         self.prev: RobotState | None = None
         self.new_episode = False
@@ -161,7 +161,7 @@ class TransitionBuilder:
         if not action:
             st.skipped_no_action += 1
             return None
-        return (np.asarray(prev.state, dtype=np.float64), self.scale.to_norm(action),
+        return (np.asarray(prev.state, dtype=np.float64), self.action_space.normalize(action),
                 np.asarray(m.state, dtype=np.float64))
 
 
@@ -231,7 +231,7 @@ class AdaptationNode(Node):
         self.last: ModelUpdate | None = None
         self._estopped = False
 
-    def wait_ready(self, timeout_s: float = 20.0) -> dict[str, Any]:
+    def wait_ready(self, timeout_s: float = 20.0) -> RobotSpec:
         """Wait for the robot's spec; check it matches the adapter's model."""
         if self.builder is not None:
             return self.spec
@@ -239,14 +239,14 @@ class AdaptationNode(Node):
         if m is None:
             raise TimeoutError(f"no spec from {keys.spec(self.rig, self.robot)} within {timeout_s} s: "
                                "is the driver node up?")
-        names = list(m.spec["state"]["names"])
+        spec = RobotSpec.from_dict(m.spec)
+        names = list(spec.state.names)
         model = self.adapter.model
-        if names != list(model.state_names) or len(m.spec["action"]["names"]) != model.action_dim:
+        if names != list(model.state_names) or spec.action.dim != model.action_dim:
             raise ValueError(f"the {self.adapter.name} checkpoint models states {list(model.state_names)} and "
-                             f"{model.action_dim} actions; robot {self.robot} has {names} and "
-                             f"{len(m.spec['action']['names'])}")
-        self.spec = m.spec
-        self.builder = TransitionBuilder(m.spec, self.stats)
+                             f"{model.action_dim} actions; robot {self.robot} has {names} and {spec.action.dim}")
+        self.spec = spec
+        self.builder = TransitionBuilder(spec, self.stats)
         return self.spec
 
     def _warm_up(self) -> None:

@@ -19,6 +19,7 @@ from torch import nn
 from hilstack.learning.adaptation.base import Adapter, DynamicsFn, ModelUpdate
 from hilstack.learning.adaptation.grbal import Segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
+from hilstack.learning.early_stopping import EarlyStopping, due
 
 
 class ContextEncoder(nn.Module):
@@ -48,31 +49,22 @@ def meta_train(model: AdaptiveMLP, encoder: ContextEncoder, seg: Segments, *, st
     gen = torch.Generator().manual_seed(seed)
     hist = []
     every = max(1, eval_every or steps // 10)
-    stop = val is not None and patience is not None
-    best, best_n, n_eval, best_state = float("inf"), 0, 0, None
+    es = EarlyStopping(model, encoder, patience=patience) if val is not None and patience is not None else None
     for it in range(steps):
         idx = torch.randint(len(seg), (min(batch, len(seg)),), generator=gen)
         loss = _loss(model, encoder, params, seg, idx)
         opt.zero_grad()
         loss.backward()
         opt.step()
-        if (it + 1) % every == 0 or it == steps - 1:
+        if due(it, steps, every):
             h = {"step": it + 1, "loss": float(loss.detach())}
             if val is not None:
                 h["val_loss"] = evaluate(model, encoder, val)["after"]
             hist.append(h)
-            n_eval += 1
-            if stop:
-                if h["val_loss"] < best:
-                    best, best_n = h["val_loss"], n_eval
-                    best_state = ({k: v.detach().clone() for k, v in model.state_dict().items()},
-                                  {k: v.detach().clone() for k, v in encoder.state_dict().items()})
-                elif n_eval - best_n >= patience:
-                    break
-    if best_state is not None:
-        model.load_state_dict(best_state[0])
-        encoder.load_state_dict(best_state[1])
-        hist.append({"best_step": hist[best_n - 1]["step"], **hist[best_n - 1]})
+            if es is not None and es.update(h["val_loss"]):
+                break
+    if es is not None and es.restore():
+        hist.append({"best_step": hist[es.best_index - 1]["step"], **hist[es.best_index - 1]})
     return hist
 
 

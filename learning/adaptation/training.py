@@ -13,6 +13,7 @@ import torch
 
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.datasets import Episode
+from hilstack.learning.early_stopping import EarlyStopping
 
 
 def transitions(episodes: Sequence[Episode]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -21,20 +22,6 @@ def transitions(episodes: Sequence[Episode]) -> tuple[np.ndarray, np.ndarray, np
     a = np.concatenate([e.actions for e in episodes]).astype(np.float32)
     n = np.concatenate([e.states[1:] for e in episodes]).astype(np.float32)
     return s, a, n
-
-
-def split_episodes(episodes: Sequence[Episode], val_fraction: float, seed: int) -> tuple[list[Episode], list[Episode]]:
-    """(train, held-out): a random ``val_fraction`` of the rollouts (whole rollouts, never
-    transitions of one rollout on both sides), at least one of each when there are two."""
-    if not 0.0 <= val_fraction < 1.0:
-        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
-    n = len(episodes)
-    k = int(round(val_fraction * n))
-    if val_fraction > 0 and n >= 2:
-        k = min(max(k, 1), n - 1)
-    perm = np.random.default_rng([seed, 11]).permutation(n)
-    val = set(perm[:k].tolist())
-    return [e for i, e in enumerate(episodes) if i not in val], [e for i, e in enumerate(episodes) if i in val]
 
 
 def fit_plain(model: AdaptiveMLP, episodes: Sequence[Episode], epochs: int = 30, batch_size: int = 256,
@@ -53,9 +40,9 @@ def fit_plain(model: AdaptiveMLP, episodes: Sequence[Episode], epochs: int = 30,
     gen = torch.Generator().manual_seed(seed)
     params = dict(model.net.named_parameters())
     vt = None if not val else tuple(torch.as_tensor(x) for x in transitions(val))
-    best, best_ep, best_sd, vhist = float("inf"), 0, None, []
+    es, vhist = EarlyStopping(params, patience=patience), []
     hist = []
-    for ep in range(epochs):
+    for _ in range(epochs):
         perm = torch.randperm(s.shape[0], generator=gen)
         tot, cnt = 0.0, 0
         for i in range(0, s.shape[0], batch_size):
@@ -71,16 +58,10 @@ def fit_plain(model: AdaptiveMLP, episodes: Sequence[Episode], epochs: int = 30,
             with torch.no_grad():
                 v = float(model.loss(params, *vt))
             vhist.append(v)
-            if v < best:
-                best, best_ep = v, ep + 1
-                best_sd = {k: p.detach().clone() for k, p in params.items()}
-            elif ep + 1 - best_ep >= patience:
+            if es.update(v):
                 break
-    if best_sd is not None:
-        with torch.no_grad():
-            for k, p in params.items():
-                p.copy_(best_sd[k])
+    es.restore()
     if history is not None:
-        history.update({"val": vhist, "best_epoch": best_ep, "best_val": best if vt is not None else None,
+        history.update({"val": vhist, "best_epoch": es.best_index, "best_val": es.best if vt is not None else None,
                         "epochs_run": len(hist)})
     return hist

@@ -35,7 +35,7 @@ from hilstack.learning.adaptation.experiment import (
 )
 from hilstack.learning.adaptation.grbal import segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
-from hilstack.learning.adaptation.training import split_episodes
+from hilstack.learning.datasets import split_episodes
 from hilstack.tasks.perturbations import load_presets
 
 # variant -> (θ's meta learning rate, cap quantile or None)
@@ -44,14 +44,14 @@ VARIANTS = {"default": (1e-4, 0.5), "uncapped": (1e-3, None), "theta1e-4": (1e-4
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m hilstack.learning.adaptation.variants", description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/adapt_variants"))
     ap.add_argument("variants", nargs="+", choices=list(VARIANTS))
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
-    cfg = AdaptationConfig.quick()
+    cfg = AdaptationConfig.from_preset("quick")
     episodes = load_episodes(a.data)
     p = load_presets(cfg.presets)
     a.cache.mkdir(parents=True, exist_ok=True)

@@ -29,6 +29,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from hilstack.learning.early_stopping import EarlyStopping, due
+
 StepFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
@@ -97,7 +99,7 @@ def fit_mlp(x: np.ndarray, y: np.ndarray, width: int = 64, layers: int = 2, step
     xv, yv = torch.as_tensor(x[va], dtype=torch.float32), torch.as_tensor(y[va], dtype=torch.float32)
     opt = torch.optim.Adam(m.net.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
-    every, best, best_state = max(1, steps // 20), float("inf"), None
+    every, es = max(1, steps // 20), EarlyStopping(m, patience=None)  # keeps the best, never stops
     for k in range(steps):
         i = rng.integers(0, len(xt), min(batch, len(xt)))
         loss = (((m.forward(xt[i]) - yt[i]) / m.ys) ** 2).mean()
@@ -105,13 +107,10 @@ def fit_mlp(x: np.ndarray, y: np.ndarray, width: int = 64, layers: int = 2, step
         loss.backward()
         opt.step()
         sched.step()
-        if len(va) and ((k + 1) % every == 0 or k + 1 == steps):
+        if len(va) and due(k, steps, every):
             with torch.no_grad():
-                v = float((((m.forward(xv) - yv) / m.ys) ** 2).mean())
-            if v < best:
-                best, best_state = v, {n: t.clone() for n, t in m.state_dict().items()}
-    if best_state is not None:
-        m.load_state_dict(best_state)
+                es.update(float((((m.forward(xv) - yv) / m.ys) ** 2).mean()))
+    es.restore()
     return m
 
 

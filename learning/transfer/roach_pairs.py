@@ -133,7 +133,7 @@ def first_minutes(r: Rollouts, minutes: float) -> Rollouts:
 
 @dataclass(frozen=True)
 class SidmExperiment:
-    """The SIDM sweep on the VelociRoACH pairs (docs/transfer.md lists what each run used)."""
+    """The SIDM sweep on an expert/novice setting (docs/transfer.md lists what each run used)."""
 
     expert_minutes: float = 20.0
     novice_minutes: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0, 15.0, 30.0, 60.0, 120.0)
@@ -144,52 +144,71 @@ class SidmExperiment:
     episode_s: float = 10.0
     #: sizes where SIDM is also trained without distribution matching (match_iters 0): an ablation
     ablation_minutes: tuple[float, ...] = ()
+    #: also train SIDM as the paper defines it (no warm start: ``warm_rounds`` 0), key "sidm_paper"
+    paper_sidm: bool = False
+    #: also fine-tune the expert's own model on the novice data (``train_sidm(init=...)``), key "finetune"
+    finetune: bool = False
     seed: int = 0
 
 
-def run_sidm(exp: SidmExperiment, cfg, log=print) -> dict:
+def run_sidm(exp: SidmExperiment, cfg, log=print, setting=None) -> dict:
     """For each pair: validation error (normalised MSE of Δs on separate novice data) against
     novice minutes with and without SIDM (median and interquartile range over trials), the data
-    multiplier, and the 25-step open-loop drift [m]. ``cfg`` is the ``SidmConfig`` (p_e is set
-    per pair). Trials differ in the training seed and in which novice episodes form each size."""
+    multiplier per size, and (where the setting has ``features``) the open-loop drift [m].
+    ``cfg`` is the ``SidmConfig`` (p_e is set per pair; "with_sidm" uses its ``warm_rounds``).
+    ``setting``: a module with ``EXPERT``, ``PAIRS``, ``collect`` and ``transitions`` (this one,
+    the VelociRoACH, by default; ``wheeled_pairs`` for the paper's wheeled robots). Trials differ
+    in the training seed and in which novice episodes form each size."""
+    import sys
     from dataclasses import replace
 
     from hilstack.learning.transfer.sidm import (
         data_multiplier,
-    data_multipliers,
+        data_multipliers,
         open_loop_drift,
         target_scale,
         train_sidm,
         validation_mse,
     )
 
-    expert_r = collect(EXPERT, exp.expert_minutes, exp.seed, exp.episode_s)
-    expert = transitions(expert_r)
+    S = setting or sys.modules[__name__]
+    drift = getattr(S, "features", None) is not None and exp.drift_steps > 0
+    expert_r = S.collect(S.EXPERT, exp.expert_minutes, exp.seed, exp.episode_s)
+    expert = S.transitions(expert_r)
     log(f"sidm: expert {expert_r.minutes():.1f} min")
-    # the expert's own model (no novice data), one per trial: how different each pair really is
+    # the expert's own model (no novice data), one per trial: how different each pair really is,
+    # and where fine-tuning starts
     expert_models = [train_sidm(expert, replace(cfg, seed=exp.seed + trial)) for trial in range(exp.trials)]
-    out: dict = {"pairs": {}}
+    variants = ["with_sidm", "without_sidm"] + (["sidm_paper"] if exp.paper_sidm else []) + (
+        ["finetune"] if exp.finetune else [])
+    out: dict = {"pairs": {}, "variants": variants}
     for pi, (pair, p_e) in enumerate(exp.p_e):
-        ov = PAIRS[pair]
-        nov_all = collect(ov, max(exp.novice_minutes), exp.seed + 100 + pi, exp.episode_s)
-        val_r = collect(ov, exp.validation_minutes, exp.seed + 200 + pi, exp.episode_s)
-        val = transitions(val_r)
+        ov = S.PAIRS[pair]
+        nov_all = S.collect(ov, max(exp.novice_minutes), exp.seed + 100 + pi, exp.episode_s)
+        val_r = S.collect(ov, exp.validation_minutes, exp.seed + 200 + pi, exp.episode_s)
+        val = S.transitions(val_r)
         scale = target_scale(val)  # one fixed error scale for every model of this pair
         expert_only = [validation_mse(m, val, scale=scale) for m in expert_models]
         curve = []
         for minutes in exp.novice_minutes:
-            runs: dict[str, list[float]] = {"with_sidm": [], "without_sidm": [], "drift_with_m": [], "drift_without_m": []}
+            runs: dict[str, list[float]] = {k: [] for k in variants}
             for trial in range(exp.trials):
                 perm = np.random.default_rng(exp.seed + trial).permutation(len(nov_all.actions))
                 shuffled = Rollouts(nov_all.states[perm], nov_all.actions[perm], nov_all.patches[perm])
-                nov = transitions(first_minutes(shuffled, minutes))
+                nov = S.transitions(first_minutes(shuffled, minutes))
                 c = replace(cfg, p_e=p_e, seed=exp.seed + trial)
-                for key, expert_data in (("with_sidm", expert), ("without_sidm", None)):
-                    model = train_sidm(nov, c, expert_data)
+                models = {"with_sidm": lambda c=c, nov=nov: train_sidm(nov, c, expert),
+                          "without_sidm": lambda c=c, nov=nov: train_sidm(nov, c, None),
+                          "sidm_paper": lambda c=c, nov=nov: train_sidm(nov, replace(c, warm_rounds=0), expert),
+                          "finetune": lambda c=c, nov=nov, t=trial: train_sidm(nov, c, None, init=expert_models[t])}
+                for key in variants:
+                    model = models[key]()
                     runs[key].append(validation_mse(model, val, scale=scale))
-                    drift = np.mean([open_loop_drift(model, extras(val_r)[e], val_r.states[e], features,
+                    if drift and key in ("with_sidm", "without_sidm"):
+                        d = np.mean([open_loop_drift(model, S.extras(val_r)[e], val_r.states[e], S.features,
                                                      exp.drift_steps) for e in range(len(val_r.states))])
-                    runs["drift_with_m" if key == "with_sidm" else "drift_without_m"].append(float(drift))
+                        runs.setdefault("drift_with_m" if key == "with_sidm" else "drift_without_m", []).append(
+                            float(d))
                 if minutes in exp.ablation_minutes:
                     model = train_sidm(nov, replace(c, match_iters=0), expert)
                     runs.setdefault("with_sidm_no_matching", []).append(validation_mse(model, val, scale=scale))
@@ -197,25 +216,27 @@ def run_sidm(exp: SidmExperiment, cfg, log=print) -> dict:
             for k, v in runs.items():
                 row[k] = float(np.median(v))
                 row[k + "_iqr"] = [float(np.percentile(v, 25)), float(np.percentile(v, 75))]
-            log(f"sidm {pair}: {minutes:g} min novice: val MSE with {row['with_sidm']:.4f} "
-                f"without {row['without_sidm']:.4f}; 25-step drift with {row['drift_with_m']:.3f} m "
-                f"without {row['drift_without_m']:.3f} m"
-                + (f"; no matching {row['with_sidm_no_matching']:.4f}" if "with_sidm_no_matching" in row else ""))
+                row[k + "_trials"] = [float(x) for x in v]
+            log(f"sidm {pair}: {minutes:g} min novice: val MSE " + "  ".join(
+                f"{k} {row[k]:.4f}" for k in runs if not k.startswith("drift")))
             curve.append(row)
-        mult = data_multiplier([r["minutes"] for r in curve], [r["with_sidm"] for r in curve],
-                               [r["without_sidm"] for r in curve])
-        no_model_drift = float(np.mean([open_loop_drift(None, extras(val_r)[e], val_r.states[e], features,
-                                                        exp.drift_steps) for e in range(len(val_r.states))]))
-        log(f"sidm {pair}: multiplier {mult}; expert's own model on novice validation "
-            f"{float(np.median(expert_only)):.4f} (novice-only at {curve[-1]['minutes']:g} min: "
+        minutes_ = [r["minutes"] for r in curve]
+        base = [r["without_sidm"] for r in curve]
+        res = {"curve": curve, "p_e": p_e, "overrides": ov,
+               "expert_model_on_novice": float(np.median(expert_only)),
+               "expert_model_on_novice_iqr": [float(np.percentile(expert_only, 25)),
+                                              float(np.percentile(expert_only, 75))]}
+        for k in variants[2:] + ["with_sidm"]:
+            tag = "" if k == "with_sidm" else f"_{k}"
+            res["data_multiplier" + tag] = data_multiplier(minutes_, [r[k] for r in curve], base)
+            res["data_multiplier_per_size" + tag] = data_multipliers(minutes_, [r[k] for r in curve], base)
+        if drift:
+            res["drift_no_motion_m"] = float(np.mean([open_loop_drift(None, S.extras(val_r)[e], val_r.states[e],
+                                                                      S.features, exp.drift_steps)
+                                                      for e in range(len(val_r.states))]))
+        log(f"sidm {pair}: multiplier {res['data_multiplier']}; expert's own model on novice validation "
+            f"{res['expert_model_on_novice']:.4f} (novice-only at {curve[-1]['minutes']:g} min: "
             f"{curve[-1]['without_sidm']:.4f})")
-        per_size = data_multipliers([r["minutes"] for r in curve], [r["with_sidm"] for r in curve],
-                                    [r["without_sidm"] for r in curve])
-        out["pairs"][pair] = {"curve": curve, "data_multiplier": mult, "data_multiplier_per_size": per_size,
-                              "p_e": p_e,
-                              "expert_model_on_novice": float(np.median(expert_only)),
-                              "expert_model_on_novice_iqr": [float(np.percentile(expert_only, 25)),
-                                                             float(np.percentile(expert_only, 75))],
-                              "drift_no_motion_m": no_model_drift, "overrides": ov}
+        out["pairs"][pair] = res
     out["expert_minutes"] = expert_r.minutes()
     return out

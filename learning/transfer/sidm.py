@@ -25,13 +25,14 @@ system's units never leak into the shared network.
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
+
+from hilstack.learning.early_stopping import EarlyStopping
 
 
 @dataclass(frozen=True)
@@ -176,13 +177,20 @@ def split(data: Transitions, test_fraction: float, rng: np.random.Generator) -> 
     return data.subset(idx[n_test:]), data.subset(idx[:n_test])
 
 
-def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None = None) -> Sidm:
+def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None = None,
+               init: Sidm | None = None) -> Sidm:
     """Train SIDM (``expert`` given, ``p_e`` > 0) or the novice-only baseline
     (``expert`` None or ``p_e`` == 0: no expert batches and no matching). Early stopping on
-    the novice test split; the best model is returned."""
+    the novice test split; the best model is returned.
+
+    ``init`` (novice-only training only): fine-tuning. The network starts from ``init``'s
+    weights (its ``"novice"`` system: e.g. a model trained on the expert's data alone) instead
+    of at random; the novice keeps its own input/target normalisation, as in the warm start."""
     if len(novice) < 2:
         raise ValueError(f"train_sidm: need at least 2 novice transitions, got {len(novice)}")
     use_expert = expert is not None and cfg.p_e > 0
+    if init is not None and use_expert:
+        raise ValueError("train_sidm: init (fine-tuning) is for the novice-only network, not with an expert")
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     n_train, n_test = split(novice, cfg.test_fraction, rng)
@@ -191,6 +199,11 @@ def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None 
     model.set_norm("novice", n_train)
     if use_expert:
         model.set_norm("expert", expert)
+    if init is not None:
+        src = "novice" if "novice" in init.systems else init.systems[0]
+        model.enc["novice"].load_state_dict(init.enc[src].state_dict())
+        model.dec["novice"].load_state_dict(init.dec[src].state_dict())
+        model.dyn.load_state_dict(init.dyn.state_dict())
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     disc = discriminator(cfg.latent_dim)
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.disc_lr)
@@ -216,7 +229,7 @@ def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None 
             opt.step()
         model.enc["novice"].load_state_dict(model.enc["expert"].state_dict())
         model.dec["novice"].load_state_dict(model.dec["expert"].state_dict())
-    best, best_state, stale = math.inf, copy.deepcopy(model.state_dict()), 0
+    es = EarlyStopping(model, patience=cfg.patience_rounds, min_delta=1e-6, keep_initial=True)
     for _ in range(cfg.max_rounds):
         model.train()
         for _ in range(cfg.pred_iters):
@@ -231,13 +244,9 @@ def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None 
                 adversarial_step(model, disc, opt_d, opt_enc, batch("expert")[0], batch("novice")[0], cfg.adv_weight)
         with torch.no_grad():
             test = float(model.loss("novice", tx, ty))
-        if test < best - 1e-6:
-            best, best_state, stale = test, copy.deepcopy(model.state_dict()), 0
-        else:
-            stale += 1
-            if stale >= cfg.patience_rounds:
-                break
-    model.load_state_dict(best_state)
+        if es.update(test):
+            break
+    es.restore()
     model.eval()
     return model
 
@@ -269,34 +278,53 @@ def latent_mean_distance(model: Sidm, xe: np.ndarray, xn: np.ndarray) -> float:
         return float((ze.mean(0) - zn.mean(0)).norm() / scale)
 
 
-def data_multiplier(minutes: list[float], with_sidm: list[float], without_sidm: list[float]) -> float | None:
-    """The median over sizes of ``data_multipliers`` (None if nothing is measurable)."""
-    out = data_multipliers(minutes, with_sidm, without_sidm)
-    return float(np.median(out)) if out else None
+def data_multiplier(minutes: list[float], with_sidm: list[float], without_sidm: list[float]) -> dict:
+    """Summary of ``data_multipliers``: the median of the sizes where the multiplier was
+    interpolated (None if none was), and how many sizes fell beyond or below the grid."""
+    per = data_multipliers(minutes, with_sidm, without_sidm)
+    inside = [p["multiplier"] for p in per if p["where"] == "interpolated"]
+    return {"median_interpolated": float(np.median(inside)) if inside else None,
+            "interpolated": len(inside),
+            "beyond_grid": sum(p["where"] == "beyond" for p in per),
+            "below_grid": sum(p["where"] == "below" for p in per)}
 
 
-def data_multipliers(minutes: list[float], with_sidm: list[float], without_sidm: list[float]) -> list[float]:
+def data_multipliers(minutes: list[float], with_sidm: list[float], without_sidm: list[float]) -> list[dict]:
     """How much more novice data the baseline needs to reach SIDM's error, at each size.
 
     For each size m_i, the baseline's error curve (made monotone by a running minimum,
     interpolated linearly in log error vs log minutes) is inverted at SIDM's error e_i; the
-    multiplier is m_needed / m_i. Sizes where SIDM's error is below the baseline's best are
-    counted at the largest size measured (a lower bound); sizes where SIDM is worse than the
-    baseline at the smallest size give m_needed < m_i (a multiplier below 1 is reported as is)."""
+    multiplier is m_needed / m_i (``where`` "interpolated"). Nothing is capped: when e_i is
+    below the baseline's best, the baseline does not reach it on the grid and the entry is
+    ``where`` "beyond" with ``multiplier`` None and ``at_least`` = largest size / m_i; when e_i
+    is above the baseline's error at the smallest size, ``where`` "below" with ``at_most`` =
+    smallest size / m_i. Each entry: {minutes, where, multiplier, at_least, at_most}."""
     m = np.log(np.asarray(minutes, float))
     b = np.minimum.accumulate(np.log(np.asarray(without_sidm, float)))
     out = []
-    for mi, e in zip(m, np.log(np.asarray(with_sidm, float)), strict=True):
-        if e <= b[-1]:
-            need = m[-1]
-        elif e >= b[0]:
-            need = m[0]
+    for mi, e, mins in zip(m, np.log(np.asarray(with_sidm, float)), minutes, strict=True):
+        row = {"minutes": float(mins), "where": "interpolated", "multiplier": None, "at_least": None, "at_most": None}
+        if e < b[-1]:
+            row.update(where="beyond", at_least=math.exp(m[-1] - mi))
+        elif e > b[0]:
+            row.update(where="below", at_most=math.exp(m[0] - mi))
+        elif e == b[0]:
+            row["multiplier"] = math.exp(m[0] - mi)
         else:
             j = int(np.argmax(b <= e))  # first size where the baseline reaches e
             t = (e - b[j - 1]) / (b[j] - b[j - 1]) if b[j] != b[j - 1] else 1.0
-            need = m[j - 1] + t * (m[j] - m[j - 1])
-        out.append(math.exp(need - mi))
+            row["multiplier"] = math.exp(m[j - 1] + t * (m[j] - m[j - 1]) - mi)
+        out.append(row)
     return out
+
+
+def multiplier_text(p: dict) -> str:
+    """One entry of ``data_multipliers`` as text: "2.3x", "beyond the grid (> 4x)", "< 0.5x"."""
+    if p["where"] == "beyond":
+        return f"beyond the grid (> {p['at_least']:.2g}x)"
+    if p["where"] == "below":
+        return f"< {p['at_most']:.2g}x (below the grid)"
+    return f"{p['multiplier']:.2g}x"
 
 
 def open_loop_drift(model: Sidm | None, x0_seq: np.ndarray, s_seq: np.ndarray, features, horizon: int,

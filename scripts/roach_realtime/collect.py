@@ -15,7 +15,7 @@ from tests.helpers import free_port
 
 torch.set_num_threads(1)
 rig, n, out = sys.argv[1], int(sys.argv[2]), Path(sys.argv[3])
-run = MbrlRun(MbrlConfig.quick(rig=rig, random_rollouts=n), out, BusConfig(endpoint=f"tcp/127.0.0.1:{free_port()}"))
+run = MbrlRun(MbrlConfig.from_preset("quick", rig=rig, random_rollouts=n), out, BusConfig(endpoint=f"tcp/127.0.0.1:{free_port()}"))
 t0 = time.monotonic()
 with run.session():
     p = run.collect_random(n, "000-random")

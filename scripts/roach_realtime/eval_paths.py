@@ -20,7 +20,7 @@ torch.set_num_threads(1)
 rig, model_path, speed, paths = sys.argv[1], sys.argv[2], float(sys.argv[3]), tuple(sys.argv[4].split(","))
 which = sys.argv[5].split(",") if len(sys.argv) > 5 else ["mpc", "dd"]
 out = Path(sys.argv[6]) if len(sys.argv) > 6 else Path("/tmp/roach_realtime_eval")
-run = MbrlRun(MbrlConfig.quick(rig=rig, progress=False), out, BusConfig(endpoint=f"tcp/127.0.0.1:{free_port()}"))
+run = MbrlRun(MbrlConfig.from_preset("quick", rig=rig, progress=False), out, BusConfig(endpoint=f"tcp/127.0.0.1:{free_port()}"))
 model = load_dynamics(model_path)
 t0 = time.monotonic()
 res = {}

@@ -11,8 +11,8 @@ It must be a separate process: dynamixel-sdk busy-polls the port and starves any
 of its own process (docs/arms.md).
 
 On start it prints one JSON line ``{"pty": ..., "pid": ...}`` on stdout; logs go to
-stderr. It stops on SIGTERM, on SIGINT unless it has a ``--parent-pid`` (Ctrl-C in the
-driver's terminal must not cut the bus before the driver's stop), or when the parent dies.
+stderr. It stops on SIGTERM, on SIGINT unless a parent started it (bus/lifetime.py: Ctrl-C
+in the driver's terminal must not cut the bus before the driver's stop), or when the parent dies.
 
 Fault injection (config keys): ``missing_ids`` (these IDs never answer, as an unplugged
 servo), ``hardware_errors`` ({id: bits}: latched at power-on, cleared by a reboot
@@ -35,11 +35,14 @@ import os
 import select
 import signal
 import sys
+import threading
 import time
 import tty
 from collections.abc import Callable
 from typing import Any
 
+from hilstack.bus.cycle import Rate
+from hilstack.bus.lifetime import exit_with_parent
 from hilstack.drivers.dynamixel import protocol as p
 from hilstack.sim_backends.base import RealtimePacer
 from hilstack.sim_backends.dynamixel.firmware import TICK_S
@@ -160,22 +163,22 @@ def servo_states(world: ServoWorld) -> dict[str, list[float]]:
     return out
 
 
-def run(bus: BusEmulator, fd: int, parent_pid: int | None, running: list[bool], rtf: float = 1.0,
+def run(bus: BusEmulator, fd: int, parent_gone: threading.Event, running: list[bool], rtf: float = 1.0,
         state_file: str | None = None, state_every_s: float = 0.02, linger_s: float = 0.0) -> None:
+    """Serve the pty until stopped (``running[0]`` False), or ``linger_s`` after ``parent_gone``
+    is set (bus/lifetime.py)."""
     pacer = RealtimePacer(bus.world.time_s, TICK_S, MAX_CATCHUP_S, rtf, now_s=time.monotonic())
     states = open(state_file, "a", buffering=1) if state_file else None  # noqa: SIM115 - closed below
     try:
-        _loop(bus, fd, parent_pid, running, pacer, states, state_every_s, linger_s)
+        _loop(bus, fd, parent_gone, running, pacer, states, state_every_s, linger_s)
     finally:
         if states is not None:
             states.close()
 
 
-def _loop(bus, fd, parent_pid, running, pacer, states, state_every_s, linger_s) -> None:
+def _loop(bus, fd, parent_gone, running, pacer, states, state_every_s, linger_s) -> None:
     world = bus.world
-    now = time.monotonic()
-    next_parent_check = now + 0.5
-    next_state = now
+    state_rate = Rate(state_every_s, time.monotonic())  # the state file's lines (bus/cycle.py)
     exit_at: float | None = None
     while running[0]:
         now = time.monotonic()
@@ -195,20 +198,17 @@ def _loop(bus, fd, parent_pid, running, pacer, states, state_every_s, linger_s) 
         if pacer.due(now, world.time_s) >= 1:
             world.step()
         bus.realtime_slip_s = pacer.slip_s
-        if states is not None and now >= next_state:
-            next_state = now + state_every_s
+        if states is not None and state_rate.due(now):
             states.write(json.dumps({"t": now, "sim_t": round(world.time_s, 4), "servos": servo_states(world)}) + "\n")
         if exit_at is not None and now >= exit_at:
             log("lingered after the parent: exiting")
             return
-        if parent_pid and exit_at is None and now >= next_parent_check:
-            next_parent_check = now + 0.5
-            if os.getppid() != parent_pid:
-                if linger_s <= 0:
-                    log("parent process is gone: exiting")
-                    return
-                log(f"parent process is gone: the servos run on for {linger_s:g} s")
-                exit_at = now + linger_s
+        if exit_at is None and parent_gone.is_set():
+            if linger_s <= 0:
+                log("parent process is gone: exiting")
+                return
+            log(f"parent process is gone: the servos run on for {linger_s:g} s")
+            exit_at = now + linger_s
 
 
 def main(argv: list[str] | None, make_world: Callable[[dict[str, Any]], ServoWorld], prog: str) -> int:
@@ -216,10 +216,13 @@ def main(argv: list[str] | None, make_world: Callable[[dict[str, Any]], ServoWor
     ap = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
     ap.add_argument("--print-pty", action="store_true", required=True, help="create a pty and print its path")
     ap.add_argument("--config", default="{}", help="JSON: the bench's keys, missing_ids, hardware_errors, ...")
-    ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args(argv)
     cfg = json.loads(args.config)
-    world = make_world(cfg)
+    try:
+        world = make_world(cfg)
+    except ValueError as e:  # a bad bench key (effects, mjcf, ...): one line, exit 2
+        print(f"error: --config {str(e).splitlines()[0]}", file=sys.stderr)
+        return 2
     bus = BusEmulator(world, missing_ids=[int(i) for i in cfg.get("missing_ids", [])],
                       hardware_errors={int(k): int(v) for k, v in cfg.get("hardware_errors", {}).items()},
                       persistent_errors=bool(cfg.get("persistent_errors", False)),
@@ -233,14 +236,16 @@ def main(argv: list[str] | None, make_world: Callable[[dict[str, Any]], ServoWor
     def _stop(signum, frame):  # noqa: ARG001
         running[0] = False
 
+    parent_gone = threading.Event()
+    parent = exit_with_parent(parent_gone.set)
     signal.signal(signal.SIGTERM, _stop)
-    # started by a driver (--parent-pid): Ctrl-C in its terminal reaches us too, but the
+    # started by a driver (bus/lifetime.py): Ctrl-C in its terminal reaches us too, but the
     # driver must still send its stop over the bus; it ends us (SIGTERM) when it is done
-    signal.signal(signal.SIGINT, signal.SIG_IGN if args.parent_pid else _stop)
+    signal.signal(signal.SIGINT, signal.SIG_IGN if parent is not None else _stop)
     print(json.dumps({"pty": path, "pid": os.getpid()}), flush=True)
     log(f"serving {path}: IDs {sorted(world.servos)}, missing {sorted(bus.missing)}")
     try:
-        run(bus, master, args.parent_pid, running, float(cfg.get("realtime_factor", 1.0)),
+        run(bus, master, parent_gone, running, float(cfg.get("realtime_factor", 1.0)),
             state_file=cfg.get("state_file"), state_every_s=float(cfg.get("state_every_s", 0.02)),
             linger_s=float(cfg.get("linger_s", 0.0)))
     finally:

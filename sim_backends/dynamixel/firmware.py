@@ -82,6 +82,39 @@ class ServoPhysics:
     thermal_tau_s: float = 600.0        # winding to ambient
     thermal_c_per_a2: float = 15.0      # steady-state rise per A² of current
     supply_v: float = 12.0
+    # effects the sim's MuJoCo model lacks (the emulator's ``effects`` option; 0 = absent):
+    #: Coulomb friction in the gearbox [N·m], opposing the output shaft's motion
+    friction_nm: float = 0.0
+    #: viscous friction in the gearbox [N·m·s/rad]
+    damping_nm_s: float = 0.0
+    #: a goal (velocity/position) takes effect this long after it was written [s]
+    input_delay_s: float = 0.0
+
+
+#: ``effects`` keys -> (ServoPhysics field, upper bound): what the emulator can add to the sim
+EFFECTS = {"joint_friction_nm": ("friction_nm", 2.0), "joint_damping_nm_s": ("damping_nm_s", 5.0),
+           "input_delay_s": ("input_delay_s", 0.5)}
+#: the Coulomb friction's sign function is linear below this speed (a smooth stick, stable at 1 kHz)
+FRICTION_V_EPS_RAD_S = 0.02
+
+
+def effect_fields(effects: dict | None) -> dict[str, float]:
+    """Validate an ``effects`` mapping (emulator config / sim params) into ServoPhysics fields.
+
+    Raises ValueError naming the bad key or value (unknown, not finite, out of [0, bound])."""
+    out = {}
+    for key, value in (effects or {}).items():
+        if key not in EFFECTS:
+            raise ValueError(f"effects: unknown effect {key!r}; known: {sorted(EFFECTS)}")
+        field, bound = EFFECTS[key]
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"effects.{key}: not a number: {value!r}") from None
+        if not (math.isfinite(v) and 0.0 <= v <= bound):
+            raise ValueError(f"effects.{key}: {value!r} is outside [0, {bound:g}]")
+        out[field] = v
+    return out
 
 
 class Servo:
@@ -141,6 +174,9 @@ class Servo:
         self._idle_s = 0.0  # since the last instruction packet (Bus Watchdog)
         self._present = (0.0, 0.0, 0.0)  # q [rad], qd [rad/s], current [A] of the last tick
         self._dirty = False
+        self._clock_s = 0.0  # servo time [s] (ticks), for the input delay
+        #: (due [s], the goals the loop keeps using until then) of delayed goal writes
+        self._pending: list[tuple[float, dict[str, float]]] = []
         self._refresh()
 
     def _refresh(self) -> None:
@@ -242,9 +278,15 @@ class Servo:
             self._integral = 0.0
         if "Operating Mode" in new:
             self._integral = 0.0
+        if self.phys.input_delay_s > 0 and any(n in GOAL_ITEMS for n in new):
+            # the register reads back at once; the loop sees the goal input_delay_s later
+            self._pending.append((self._clock_s + self.phys.input_delay_s, dict(self._goals())))
         self.mem[address:address + len(data)] = data
         self._refresh()
         return 0
+
+    def _goals(self) -> dict[str, float]:
+        return {"vel": self._goal_vel_rad_s, "pos": self._goal_pos_rad}
 
     def _check(self, new: dict[str, int]) -> int:
         if "Bus Watchdog" in new:
@@ -273,17 +315,24 @@ class Servo:
         """One control step from the measured joint state; returns the torque [N·m]."""
         ph = self.phys
         tau = 0.0
+        self._clock_s += dt_s
+        goal_vel, goal_pos = self._goal_vel_rad_s, self._goal_pos_rad
+        if self._pending:
+            while self._pending and self._pending[0][0] <= self._clock_s + 1e-12:
+                self._pending.pop(0)
+            if self._pending:  # a goal written less than input_delay_s ago: the older one still acts
+                goal_vel, goal_pos = self._pending[0][1]["vel"], self._pending[0][1]["pos"]
         if self._torque_on and self._watchdog > 0:
             self._idle_s += dt_s
             if self._idle_s > self._watchdog * BUS_WATCHDOG_UNIT_S + 1e-9:
                 self._trip_watchdog()
         if self._torque_on and not self._hw_error:
             if self._mode == VELOCITY_MODE:
-                e = self._goal_vel_rad_s - qd_rad_s
+                e = goal_vel - qd_rad_s
                 tau_p = ph.vel_kp_nm_s * e
                 gain_i = ph.vel_ki_nm
             else:
-                e = self._goal_pos_rad - q_rad
+                e = goal_pos - q_rad
                 tau_p = ph.pos_kp_nm_per_rad * e - ph.pos_kd_nm_s * qd_rad_s
                 gain_i = ph.pos_ki_nm_per_rad_s
             tau_max = self._tau_max
@@ -299,6 +348,8 @@ class Servo:
                 self.inject_hardware_error(HW_OVERLOAD)
                 tau = 0.0
         current_a = tau / ph.kt_nm_per_a
+        if ph.friction_nm or ph.damping_nm_s:  # losses between the motor and the output shaft
+            tau -= ph.friction_nm * max(-1.0, min(1.0, qd_rad_s / FRICTION_V_EPS_RAD_S)) + ph.damping_nm_s * qd_rad_s
         # thermal model: dT/dt = (ambient + k·I² − T) / tau
         self.temperature_c += dt_s * (ph.ambient_c + ph.thermal_c_per_a2 * current_a * current_a
                                       - self.temperature_c) / ph.thermal_tau_s

@@ -16,6 +16,12 @@ from hilstack.sim_backends.sawyer.controller import SawyerArm
 
 
 class SawyerSim(LockstepSim):
+    """``params.sim.cameras: true`` adds ``extras["image"]``: a fixed camera (metaworld's
+    ``corner``) and the wrist camera (``gripperPOV``), ``params.sim.camera_px`` square each,
+    side by side (64×128 RGB by default), rendered at every read (shadows off)."""
+
+    CAMERAS = ("corner", "gripperPOV")
+
     def __init__(self, params: SawyerParams | None = None, source: str | None = None):
         super().__init__()
         self.params = params or SawyerParams()
@@ -25,6 +31,7 @@ class SawyerSim(LockstepSim):
         self.spec = sawyer_spec(self.params)
         self.arm: SawyerArm | None = None
         self._seq = 0
+        self._renderer = None
 
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> SawyerSim:
@@ -38,7 +45,18 @@ class SawyerSim(LockstepSim):
         self.arm = SawyerArm()
 
     def _on_cleanup(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
         self.arm = None
+
+    def _image(self) -> np.ndarray:
+        if self._renderer is None:
+            from hilstack.sim_backends.rendering import OffscreenRenderer
+
+            px = int(self.params.sim.get("camera_px", 64))
+            self._renderer = OffscreenRenderer(self.arm.model, px, px)
+        return np.concatenate([self._renderer.render(self.arm.data, c) for c in self.CAMERAS], axis=1)
 
     def _advance(self, duration_s: float) -> None:
         self.arm.advance(duration_s)
@@ -51,8 +69,11 @@ class SawyerSim(LockstepSim):
         s = np.concatenate([a.q(), a.qd(), a.effort()])
         finite = bool(np.all(np.isfinite(s)))
         self._seq += 1
+        extras: dict[str, Any] = {"ee_pos_m": a.ee_pos().tolist()}
+        if self.params.sim.get("cameras"):
+            extras["image"] = self._image()
         return Observation(t_s=a.time_s, state=s, seq=self._seq, ok=finite, flags={"stale_telemetry": False,
-                           "nonfinite_input": not finite}, extras={"ee_pos_m": a.ee_pos().tolist()})
+                           "nonfinite_input": not finite}, extras=extras)
 
     def _hold_command(self, obs: Observation) -> np.ndarray:
         if self._position_hold:  # after a stop the controller holds position: zero velocity

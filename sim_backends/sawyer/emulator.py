@@ -23,6 +23,8 @@ import time
 
 import zenoh
 
+from hilstack.bus.cycle import Rate
+from hilstack.bus.lifetime import exit_with_parent
 from hilstack.drivers.sawyer import ros
 from hilstack.sim_backends.sawyer.controller import SawyerArm
 from hilstack.sim_backends.sawyer.model import JOINTS
@@ -38,7 +40,6 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m hilstack.sim_backends.sawyer.emulator")
     ap.add_argument("--listen", required=True, help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7461")
     ap.add_argument("--config", default="{}", help="JSON: namespace, joint_states_topic, joint_command_topic")
-    ap.add_argument("--parent-pid", type=int, default=None)
     args = ap.parse_args(argv)
     cfg = json.loads(args.config)
     ns = cfg.get("namespace", "")
@@ -60,11 +61,11 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
+    exit_with_parent(lambda: (log("parent process is gone: exiting"), _stop(None, None)))
     print(json.dumps({"listen": args.listen, "pid": os.getpid()}), flush=True)
     dt = arm.model.opt.timestep
     t0 = time.monotonic()
-    next_state = t0
-    next_parent = t0 + 0.5
+    states = Rate(STATE_PERIOD_S, t0)  # a late state skips the boundaries it passed (bus/cycle.py)
     bad = 0
     try:
         while running[0]:
@@ -79,19 +80,11 @@ def main(argv: list[str] | None = None) -> int:
                     log(f"bad JointCommand: {type(e).__name__}: {e}")
             while arm.time_s < now - t0:
                 arm.step(now - t0)
-            if now >= next_state:
+            if states.due(now):
                 pub.put(ros.encode_joint_state(JOINTS, arm.q(), arm.qd(), arm.effort()))
-                next_state += STATE_PERIOD_S
-                if next_state < now:
-                    next_state = now + STATE_PERIOD_S
-            if args.parent_pid and now >= next_parent:
-                next_parent = now + 0.5
-                if os.getppid() != args.parent_pid:
-                    log("parent process is gone: exiting")
-                    break
-            time.sleep(max(0.0, min(next_state, t0 + arm.time_s + dt) - time.monotonic()))
+            time.sleep(max(0.0, min(states.next_s, t0 + arm.time_s + dt) - time.monotonic()))
     finally:
-        log(f"summary {json.dumps({'sim_time_s': round(arm.time_s, 3), 'timeouts': arm.timeouts, 'rejected': arm.rejected, 'bad': bad})}")
+        log(f"summary {json.dumps({'sim_time_s': round(arm.time_s, 3), 'timeouts': arm.timeouts, 'rejected': arm.rejected, 'bad': bad, **states.counts('state')})}")
         sub.undeclare()
         pub.undeclare()
         session.close()

@@ -10,7 +10,6 @@ as metaworld's Sawyer tasks use.
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import mujoco
@@ -22,9 +21,11 @@ ASSET = "sawyer_xyz/sawyer_reach_v3.xml"
 
 
 def asset_path(name: str = ASSET) -> Path:
-    spec = importlib.util.find_spec("metaworld")
-    if spec is None or spec.origin is None:
-        raise RuntimeError("the Sawyer model needs metaworld's assets: pip install --no-deps metaworld")
+    from hilstack.configs.extras import missing_extra, require
+
+    spec = require("metaworld", "the Sawyer model (metaworld's assets)", load=False)
+    if spec.origin is None:
+        raise missing_extra("the Sawyer model (metaworld's assets)", "metaworld")
     return Path(spec.origin).parent / "assets" / name
 
 

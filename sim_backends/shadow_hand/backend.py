@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import threading
 import weakref
+from dataclasses import replace
 
 import mujoco
 import numpy as np
@@ -48,6 +49,10 @@ from hilstack.tasks.baoding import BaodingTask
 #: backend (sim_backends/reset_arm/backend.py) joins the scene of the one it names
 SCENES: weakref.WeakValueDictionary[str, ShadowHandSim] = weakref.WeakValueDictionary()
 
+#: where the balls come to rest in the held hand, in the palm's frame (palm position, its
+#: rotation): found once per scene settings by letting them settle (:meth:`ShadowHandSim._rest_balls`)
+_BALL_REST: dict[str, np.ndarray] = {}
+
 #: J0 ≈ this · J1 for the coupled distal joints (tendon coefficients 0.00805 / 0.00705)
 COUPLING_RATIO = 0.00805 / 0.00705
 
@@ -58,6 +63,9 @@ class SimParams(Params):
     seed: int = 0
     palm_tilt_rad: float = Field(0.15, ge=-0.5, le=0.5, description="mount tilt about world x (+: fingertips up)")
     balls: bool = Field(True, description="put the two Baoding balls in the palm at reset")
+    balls_settle_s: float = Field(10.0, ge=0, le=60, description="place the balls where they come to rest in the "
+                                  "held hand after this long (found once per scene); 0: at the palm centre, "
+                                  "where they roll away (and the pair turns by itself) in the first seconds")
     # the MJCF's servo gains (OpenAI's model): kp 5 N·m/rad wrist, 1 N·m/rad fingers; the
     # joints' own damping (0.5 / 0.1 N·m·s/rad) stays in the model
     kp_wrist_nm_per_rad: float = Field(5.0, gt=0)
@@ -215,15 +223,25 @@ class ShadowHandSim(LockstepSim):
         rot = d.xmat[self._palm].reshape(3, 3).copy()
         normal = -rot[:, 1]  # the palm faces its local -y
         center = palm + rot @ np.array([0.0, -0.03, 0.05])
+        # the balls across the palm centre (where they start rolling), or where they rest
+        balls = center + np.array([[-0.022, 0.0, 0.0], [0.022, 0.0, 0.0]])
+        rest = self._rest_balls(q_rad, balls) if self.sim.balls else None
+        if rest is not None:
+            balls = palm + rest @ rot.T
         for i, adr in enumerate(h.ball_qpos_adr):
             if self.sim.balls:
-                d.qpos[adr:adr + 3] = center + np.array([0.022 * (2 * i - 1), 0.0, 0.0])
+                d.qpos[adr:adr + 3] = balls[i]
             else:  # parked far below the hand: out of the way, still simulated
                 d.qpos[adr:adr + 3] = (5.0 * (i + 1), 5.0, -1.0)
             d.qpos[adr + 3:adr + 7] = (1.0, 0.0, 0.0, 0.0)
         mujoco.mj_forward(m, d)
-        self.task = BaodingTask(center_m=center, axis=normal, radius_m=self.sim.ball_target_radius_m,
-                                radius_v_m=self.sim.ball_target_radius_v_m, rate_rad_s=self.sim.ball_target_rate_rad_s)
+        task = BaodingTask(center_m=center, axis=normal, radius_m=self.sim.ball_target_radius_m,
+                           radius_v_m=self.sim.ball_target_radius_v_m, rate_rad_s=self.sim.ball_target_rate_rad_s)
+        if rest is not None:  # the targets' ellipse about the resting pair, starting where it rests
+            mid = balls.mean(0) - center
+            task = replace(task, center_m=center + mid - normal * (mid @ normal))
+            task = replace(task, phase0_rad=task.pair_phase(balls))
+        self.task = task
         self.firmware.reset(d.qpos[self._act_qadr].copy())
         # the hand has been holding this pose: the loops' integrals carry the gravity load
         self.firmware.preload(d.qfrc_bias[self._act_dadr])
@@ -231,6 +249,36 @@ class ShadowHandSim(LockstepSim):
         self._rehold()  # the firmware rebooted holding this pose: the contract's held command is it too
         if self.tracker is not None:
             self.tracker.start(self.sim_time_s)
+
+    def _rest_balls(self, q_rad: np.ndarray | None, start_m: np.ndarray) -> np.ndarray | None:
+        """(2, 3) where the balls come to rest in the hand holding its hold pose, in the palm's
+        frame (offset from the palm body, its axes), or None (``balls_settle_s`` 0, or a reset
+        to another pose). Placed across the palm centre the balls roll for a few seconds
+        before they settle, and their rolling turns the pair ~60° with the hand still (the
+        reference code starts from a keyframe with the balls at rest: google-research/pddm
+        ``baoding_env.py``, ``init_qpos = key_qpos[0]``). Found once per scene settings by
+        letting them settle from ``start_m`` (world) for ``balls_settle_s`` in the held hand
+        (under the world lock)."""
+        s = self.sim
+        if s.balls_settle_s <= 0 or q_rad is not None:
+            return None
+        key = s.model_dump_json(exclude={"seed", "world", "tracker"})
+        if key not in _BALL_REST:
+            m, d, h = self.model, self.data, self.hand
+            for i, adr in enumerate(h.ball_qpos_adr):
+                d.qpos[adr:adr + 3] = start_m[i]
+                d.qpos[adr + 3:adr + 7] = (1.0, 0.0, 0.0, 0.0)
+            mujoco.mj_forward(m, d)
+            self.firmware.reset(d.qpos[self._act_qadr].copy())
+            self.firmware.preload(d.qfrc_bias[self._act_dadr])
+            self._advance_locked(s.balls_settle_s)
+            palm, rot = d.xpos[self._palm].copy(), d.xmat[self._palm].reshape(3, 3).copy()
+            _BALL_REST[key] = (self.balls_m() - palm) @ rot
+            mujoco.mj_resetData(m, d)  # back to the reset's start: the hand at its pose, time 0
+            self._badqacc_seen = 0
+            d.qpos[h.qpos_adr] = np.clip(hold_pose_q(), h.joint_low, h.joint_high)
+            mujoco.mj_forward(m, d)
+        return _BALL_REST[key]
 
     # ------------------------------------------------------------------ physics
     def advance(self, duration_s: float) -> None:

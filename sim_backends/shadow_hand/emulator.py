@@ -19,7 +19,8 @@ With the reset station in the scene (``params.sim.reset_station``) and
 (sim_backends/reset_arm/server.py), in the same world as the hand.
 
 On start it prints one JSON line on stdout (``{"transport", "channel", "port", "pid"}``)
-and then logs to stderr. It stops on SIGTERM/SIGINT or when ``--parent-pid`` dies.
+and then logs to stderr. It stops on SIGTERM/SIGINT or when the process that started it dies
+(bus/lifetime.py).
 
 Fault injection (flags or the config's ``emulator`` section), counted from the first
 target frame: ``corrupt_every`` N (every N-th telemetry frame is broken: alternately a
@@ -43,6 +44,8 @@ import time
 import tty
 from typing import Any
 
+from hilstack.bus.cycle import Rate
+from hilstack.bus.lifetime import exit_with_parent
 from hilstack.drivers.shadow_hand.config import ShadowHandParams
 from hilstack.drivers.shadow_hand.protocol import (
     HOST_IDS,
@@ -198,6 +201,7 @@ class Emulator:
         self.motor_fault_after_s = e.motor_fault_after_s
         self.motor_fault_joint = e.motor_fault_joint
         self.running = True
+        self.tel_rate: Rate | None = None
         self.first_cmd_t: float | None = None
         self.cycle = 0
         self.rx_error_count = 0
@@ -278,18 +282,18 @@ class Emulator:
             self.dev.send(mid, data[:-1])  # one byte short of what the DBC says
 
     # ------------------------------------------------------------------ loop
-    def run(self, parent_pid: int | None = None) -> None:
+    def run(self) -> None:
+        """Serve until stopped (SIGTERM, or the parent gone: bus/lifetime.py). Telemetry is a
+        :class:`~hilstack.bus.cycle.Rate` deadline (a late one skips the boundaries it passed,
+        counted in :meth:`summary`)."""
         t0 = time.monotonic()
         pacer = RealtimePacer(self.sim.sim_time_s, FW_DT_S, MAX_CATCHUP_S, now_s=t0)
-        tel_period = 1.0 / self.p.telemetry_hz
-        next_tel = t0
-        next_parent_check = t0 + 0.5
+        self.tel_rate = tel = Rate(1.0 / self.p.telemetry_hz, t0)
         was_off = False
         fw = self.sim.firmware
         while self.running:
             now = time.monotonic()
-            wait = max(0.0, min(next_tel, now + FW_DT_S) - now)
-            r, _, _ = select.select([self.dev], [], [], wait)
+            r, _, _ = select.select([self.dev], [], [], min(tel.left_s(now), FW_DT_S))
             frames = self.dev.recv() if r else []
             now = time.monotonic()
             off = self.bus_off(now)
@@ -315,24 +319,19 @@ class Emulator:
             if n > 0:
                 self.sim.advance(n * FW_DT_S)
             now = time.monotonic()
-            if now >= next_tel:
+            if tel.due(now):
                 if not off:
                     self.send_telemetry()
                 self.send_balls()  # the camera tracker is its own system: bus-off does not stop it
                 if self.arm is not None:
                     self.arm.send_state()  # the arm has its own controller and link
-                next_tel = next_tel + tel_period if now - next_tel < tel_period else now + tel_period
-            if parent_pid and now >= next_parent_check:
-                next_parent_check = now + 0.5
-                if os.getppid() != parent_pid:
-                    log("parent process is gone: exiting")
-                    break
 
     def summary(self) -> dict[str, Any]:
         return {"telemetry_frames": self.tel_frames, "tx_overflows": getattr(self.dev, "tx_overflows", 0), "injected_corrupt": self.injected_corrupt,
                 "injected_drop": self.injected_drop, "bus_off_events": self.bus_off_events,
                 "rx_error_count": self.rx_error_count, "realtime_slip_s": round(self.realtime_slip_s, 4),
-                "sim_time_s": round(self.sim.sim_time_s, 3)}
+                "sim_time_s": round(self.sim.sim_time_s, 3),
+                **(self.tel_rate.counts("telemetry") if self.tel_rate else {})}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -345,7 +344,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--udp-port", type=int, default=43113, help="udp_multicast: UDP port")
     ap.add_argument("--config", help="ShadowHandParams as inline JSON")
     ap.add_argument("--ball-ports", help="P0,P1: stream the two ball positions to these UDP ports (hilstack.drivers.mocap.udp)")
-    ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args(argv)
 
     params = ShadowHandParams(**(json.loads(args.config) if args.config else {}))
@@ -395,10 +393,11 @@ def main(argv: list[str] | None = None) -> int:
     faulthandler.register(signal.SIGUSR1)  # `kill -USR1 PID`: where is it stuck (stderr)
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
+    exit_with_parent(lambda: (log("parent process is gone: exiting"), _stop(None, None)))
     print(json.dumps({"transport": args.transport, "channel": channel, "port": port, "pid": os.getpid()}), flush=True)
     log(f"serving {args.transport} on {channel}{'' if port is None else f':{port}'}")
     try:
-        em.run(args.parent_pid)
+        em.run()
     finally:
         log(f"summary {json.dumps(em.summary())}")
         dev.close()

@@ -30,7 +30,15 @@ from hilstack.configs.schema import ConfigError, Params, RobotConfig, parse_mode
 from hilstack.drivers.base import Flag, Freshness, Health, Inputs, Observation
 from hilstack.drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
 from hilstack.sim_backends.base import LockstepSim
-from hilstack.sim_backends.velociroach.firmware import TICK_S, Firmware, FirmwareConfig, default_ff_v_per_rps
+from hilstack.sim_backends.velociroach.firmware import (
+    FAULT_LOW_BATTERY,
+    FAULT_MOTOR,
+    TICK_S,
+    Firmware,
+    FirmwareConfig,
+    default_ff_v_per_rps,
+)
+from hilstack.sim_backends.velociroach.firmware import TICK_HZ as FW_TICK_HZ
 from hilstack.sim_backends.velociroach.model import (
     LEG_NAMES,
     Geometry,
@@ -131,6 +139,10 @@ def parse_sim_params(sim: dict, source: str | None) -> SimParams:
 
 class VelociRoachSim(LockstepSim):
     """The VelociRoACH in MuJoCo behind the driver contract."""
+
+    #: run the firmware's leg-velocity PID inlined in the stepping loop (False: every tick
+    #: through Firmware.tick; the same floats, about a third slower: tools/bench_sim.py)
+    inline_firmware = True
 
     def __init__(self, params: VelociRoachParams | None = None, source: str | None = None):
         super().__init__()
@@ -281,7 +293,7 @@ class VelociRoachSim(LockstepSim):
         self._mocap_period = 1.0 / s.mocap_rate_hz
         self._mocap_next_t = 0.0
         self._mocap_queue: collections.deque = collections.deque()
-        self._mocap_latest: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._mocap_latest: tuple[float, tuple[float, ...], tuple[float, ...]] | None = None
         self._mocap_latest_ok = False
         self.inputs.start(self.sim_time_s)
         self._mocap_sample()
@@ -378,7 +390,8 @@ class VelociRoachSim(LockstepSim):
         m, d, s, fw = self.model, self.data, self.sim, self.firmware
         n = max(1, round(duration_s / TICK_S))
         substeps = max(1, round(TICK_S / s.physics_dt_s))
-        # hot loop: locals, scalar floats (see tools/bench_sim.py for the profile)
+        # hot loop: locals, Python floats (``.item``: numpy scalars are several times slower in
+        # arithmetic), the firmware's velocity PID inlined while it runs (see tools/bench_sim.py)
         qvel, ctrl = d.qvel, d.ctrl
         vl_i, vr_i = self._v_l, self._v_r
         r_m = s.motor_resistance_ohm
@@ -395,10 +408,51 @@ class VelociRoachSim(LockstepSim):
         tick = fw.tick
         inv2pi = 1.0 / TWO_PI
         t = self._t
+        mocap_next = self._mocap_next_t - 1e-9
+        # The firmware's leg-velocity PID (Firmware.tick, same operations in the same order),
+        # inlined for as long as nothing but the PID runs: leg-velocity mode, commanded, the
+        # watchdog not tripped. A tick on which the watchdog would trip, and every tick after
+        # it, goes through Firmware.tick. tests/velociroach: both paths give identical floats.
+        fast = (self.inline_firmware and fw.mode == "leg_velocity" and fw.last_cmd_s is not None
+                and not fw.watchdog_tripped)
+        if fast:
+            c = fw.config
+            sp_l, sp_r = fw.setpoint_l, fw.setpoint_r
+            kp, ki, ff_v = c.kp_duty_per_rps, c.ki_duty_per_rev, c.ff_v_per_rps
+            kd = c.kd_duty_per_rps2 * FW_TICK_HZ
+            lim = c.i_limit_duty / ki if ki > 0.0 else 0.0
+            max_duty = c.max_duty
+            last_cmd, wd = fw.last_cmd_s, c.watchdog_s  # trips on the first tick with now - last > wd
+            int_l, int_r, pe_l, pe_r = fw._int_l, fw._int_r, fw._prev_e_l, fw._prev_e_r
+            dl = dr = 0.0
+            vin = vbat
+            ci_l = ci_r = 0.0
+            k_fast = 0
         for _ in range(n):
-            wl = qvel[vl_i]
-            wr = qvel[vr_i]
-            dl, dr = tick(t, wl * inv2pi, wr * inv2pi, vbat, i_l, i_r)
+            wl = qvel.item(vl_i)
+            wr = qvel.item(vr_i)
+            if fast and t - last_cmd <= wd:
+                vin, ci_l, ci_r = vbat, i_l, i_r
+                vb = vbat if vbat > 1.0 else 1.0
+                ff = ff_v / vb
+                el = sp_l - wl * inv2pi
+                er = sp_r - wr * inv2pi
+                if ki > 0.0:
+                    il = int_l + el * TICK_S
+                    ir = int_r + er * TICK_S
+                    int_l = lim if il > lim else (-lim if il < -lim else il)
+                    int_r = lim if ir > lim else (-lim if ir < -lim else ir)
+                dl = ff * sp_l + kp * el + ki * int_l + kd * (el - pe_l)
+                dr = ff * sp_r + kp * er + ki * int_r + kd * (er - pe_r)
+                pe_l, pe_r = el, er
+                dl = max_duty if dl > max_duty else (-max_duty if dl < -max_duty else dl)
+                dr = max_duty if dr > max_duty else (-max_duty if dr < -max_duty else dr)
+                k_fast += 1
+            else:
+                if fast:  # hand the firmware its state back; Firmware.tick from here on
+                    self._fw_writeback(k_fast, int_l, int_r, pe_l, pe_r, dl, dr, vin, ci_l, ci_r)
+                    fast = False
+                dl, dr = tick(t, wl * inv2pi, wr * inv2pi, vbat, i_l, i_r)
             # battery: open-circuit voltage minus the IR drop of the last tick's draw
             # (a 1 ms lag instead of solving the algebraic loop; the drop is small)
             i_tot = abs(i_l) + abs(i_r) + idle
@@ -417,11 +471,14 @@ class VelociRoachSim(LockstepSim):
                 self._tow(payload)
             step(m, d, substeps)
             t += TICK_S
-            if t >= self._mocap_next_t - 1e-9:
+            if t >= mocap_next:
                 self._t = t
                 self._wrap()
                 self._mocap_sample()
                 self._mocap_next_t += self._mocap_period
+                mocap_next = self._mocap_next_t - 1e-9
+        if fast:
+            self._fw_writeback(k_fast, int_l, int_r, pe_l, pe_r, dl, dr, vin, ci_l, ci_r)
         self._t = t
         self._soc, self._vbat, self._i_l, self._i_r = soc, vbat, i_l, i_r
         # MuJoCo resets the state itself when the integration blows up; a reading taken
@@ -432,6 +489,23 @@ class VelociRoachSim(LockstepSim):
             self._badqacc_seen = bad
             self.divergences += 1
             self._diverged_pending = True
+
+    def _fw_writeback(self, ticks: int, int_l: float, int_r: float, pe_l: float, pe_r: float, dl: float, dr: float,
+                      vbat_v: float, current_l_a: float, current_r_a: float) -> None:
+        """The firmware state after ``ticks`` inlined PID ticks, as Firmware.tick leaves it
+        (its clock, integrals, last errors, duties and the last tick's fault bits)."""
+        if ticks == 0:
+            return
+        fw, c = self.firmware, self.firmware.config
+        fw.t_fw_ms += ticks
+        fw._int_l, fw._int_r, fw._prev_e_l, fw._prev_e_r = int_l, int_r, pe_l, pe_r
+        fw.duty_l, fw.duty_r = dl, dr
+        faults = 0
+        if vbat_v < c.low_battery_v:
+            faults |= FAULT_LOW_BATTERY
+        if abs(current_l_a) > c.overcurrent_a or abs(current_r_a) > c.overcurrent_a:
+            faults |= FAULT_MOTOR
+        fw.faults = faults
 
     def _tow(self, payload_kg: float) -> None:
         """Sliding friction of a towed payload, applied at the rear of the chassis (world frame)."""
@@ -455,9 +529,11 @@ class VelociRoachSim(LockstepSim):
     def _mocap_sample(self) -> None:
         """Take one mocap sample now; it is delivered ``mocap_latency_s`` later.
 
-        Scalar math on purpose: this runs at the mocap rate inside the stepping loop
-        (numpy/mju per-call overhead was ~15% of the loop in the profile)."""
-        s, qpos = self.sim, self.data.qpos
+        Scalar math on Python floats on purpose: this runs at the mocap rate inside the stepping
+        loop (numpy/mju per-call overhead was ~15% of the loop in the profile); the sample is
+        kept as tuples and becomes arrays only when read."""
+        s = self.sim
+        q0, q1, q2, w, x, y, z = self.data.qpos[:7].tolist()
         self.mocap_samples += 1
         # draw every random number whether or not the sample drops, so that changing the
         # dropout probability does not change the noise sequence
@@ -466,10 +542,9 @@ class VelociRoachSim(LockstepSim):
         ok = u >= s.mocap_dropout
         if not ok:
             self.mocap_dropped += 1
-        off = self.perturbations["mocap_offset_m"] + self._tile_offset
+        off = (self.perturbations["mocap_offset_m"] + self._tile_offset).tolist()
         sp, sr = s.mocap_noise_m, s.mocap_noise_rad
-        pos = np.array([qpos[0] + off[0] + sp * n[0], qpos[1] + off[1] + sp * n[1], qpos[2] + off[2] + sp * n[2]])
-        w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
+        pos = (q0 + off[0] + sp * n[0], q1 + off[1] + sp * n[1], q2 + off[2] + sp * n[2])
         if sr > 0.0:
             # small rotation noise (rotation vector sr·n[3:6], world frame) applied on the left
             vx, vy, vz = sr * n[3], sr * n[4], sr * n[5]
@@ -487,7 +562,7 @@ class VelociRoachSim(LockstepSim):
             # miscalibrated heading: rotate the reported orientation about world z (left product)
             hc, hs = math.cos(0.5 * math.radians(h)), math.sin(0.5 * math.radians(h))
             w, x, y, z = hc * w - hs * z, hc * x - hs * y, hc * y + hs * x, hc * z + hs * w
-        self._mocap_queue.append((self._t + s.mocap_latency_s, self._t, pos, np.array([w, x, y, z]), ok))
+        self._mocap_queue.append((self._t + s.mocap_latency_s, self._t, pos, (w, x, y, z), ok))
 
     def _deliver_mocap(self, now_s: float) -> None:
         qd = self._mocap_queue
@@ -495,7 +570,8 @@ class VelociRoachSim(LockstepSim):
             t_arrive, ts, pos, q, ok = qd.popleft()
             self._mocap_latest_ok = ok
             if ok:
-                finite = bool(np.all(np.isfinite(pos)) and np.all(np.isfinite(q)))
+                isfinite = math.isfinite
+                finite = all(isfinite(v) for v in pos) and all(isfinite(v) for v in q)
                 self.inputs["pose"].update(min(t_arrive, now_s), finite)
                 if finite:
                     self._mocap_latest = (ts, pos, q)
@@ -507,7 +583,7 @@ class VelociRoachSim(LockstepSim):
         if not self._mocap_latest_ok or self._mocap_latest is None:
             return None
         ts, pos, q = self._mocap_latest
-        return ts, pos.copy(), q.copy()
+        return ts, np.array(pos), np.array(q)
 
     def _crank_angles(self) -> tuple[float, float]:
         """Encoder readings [rad] in [0, 2π), quantized to 14 bits (fore-leg hinge = crank)."""

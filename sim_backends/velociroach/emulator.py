@@ -10,8 +10,8 @@ on the MuJoCo model in real time. The robot's mocap pose is served over UDP
     python -m hilstack.sim_backends.velociroach.emulator --print-pty --pose-port 0 --config '{"telemetry_hz": 100}'
 
 On start it prints one JSON line on stdout, ``{"pty": ..., "pose_port": ..., "pid": ...}``,
-then stays quiet on stdout (logs go to stderr). It stops on SIGTERM/SIGINT or when
-``--parent-pid`` dies.
+then stays quiet on stdout (logs go to stderr). It stops on SIGTERM/SIGINT or when the
+process that started it dies (bus/lifetime.py).
 
 Fault injection (for tests of the driver's fault handling), as flags or in the config's
 ``emulator`` section: ``--corrupt-every N`` (every N-th frame sent is broken, alternating
@@ -46,6 +46,8 @@ import tty
 from pathlib import Path
 from typing import Any
 
+from hilstack.bus.cycle import Rate
+from hilstack.bus.lifetime import exit_with_parent
 from hilstack.drivers import fixture as fixture_proto
 from hilstack.drivers.velociroach.config import VelociRoachParams, quat_to_rpy
 from hilstack.drivers.velociroach.link import FdPort, RadioLink, open_serial, xbee_rx64
@@ -167,6 +169,8 @@ class Emulator:
         self.pose_period_s = 1.0 / pose_hz
         self.rng = random.Random(seed)
         self.running = True
+        self.tel_rate: Rate | None = None
+        self.pose_rate: Rate | None = None
         self.last_cmd_seq = 0
         self.last_cmd_t: float | None = None
         self.first_cmd_t: float | None = None
@@ -298,15 +302,18 @@ class Emulator:
             self.pose_server.send(t_s, pos, quat)
 
     # ------------------------------------------------------------------ loop
-    def run(self, parent_pid: int | None = None) -> None:
+    def run(self) -> None:
+        """Serve until stopped (SIGTERM, or the parent gone: bus/lifetime.py). Telemetry, pose
+        and heartbeat are :class:`~hilstack.bus.cycle.Rate` deadlines (late ones skip the
+        boundaries they passed, counted in :meth:`summary`)."""
         t0 = time.monotonic()
         pacer = RealtimePacer(self.sim.sim_time_s, FW_DT_S, MAX_CATCHUP_S, self.rtf, now_s=t0)
-        tel_period = 1.0 / self.p.telemetry_hz
-        next_tel = next_hb = next_pose = t0
-        next_parent_check = t0 + 0.5
+        self.tel_rate = tel = Rate(1.0 / self.p.telemetry_hz, t0)
+        self.pose_rate = pose = Rate(self.pose_period_s, t0)
+        hb = Rate(1.0, t0)
         while self.running:
             now = time.monotonic()
-            wait = max(0.0, min(next_tel, next_pose, now + FW_DT_S) - now)
+            wait = min(tel.left_s(now), pose.left_s(now), FW_DT_S)
             msgs = self.link.receive(timeout_s=wait)
             if not self.silent:  # radio loss is both ways: the robot hears nothing either
                 for m in msgs:
@@ -321,21 +328,12 @@ class Emulator:
             if n > 0:
                 self.sim.advance(n * FW_DT_S)
             now = time.monotonic()
-            if now >= next_tel:
+            if tel.due(now):
                 self.send_telemetry()
-                next_tel = next_tel + tel_period if now - next_tel < tel_period else now + tel_period
-            if now >= next_pose:
+            if pose.due(now):
                 self.send_pose()
-                next_pose = next_pose + self.pose_period_s if now - next_pose < self.pose_period_s \
-                    else now + self.pose_period_s
-            if now >= next_hb:
+            if hb.due(now):
                 self.send(self.enc.heartbeat(robot=True, faults=self.faults()))
-                next_hb = now + 1.0
-            if parent_pid and now >= next_parent_check:
-                next_parent_check = now + 0.5
-                if os.getppid() != parent_pid:
-                    log("parent process is gone: exiting")
-                    break
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -346,6 +344,8 @@ class Emulator:
             "rx_corrupt": self.link.corrupt_frames,
             "realtime_slip_s": round(self.realtime_slip_s, 4),
             "sim_time_s": round(self.sim.sim_time_s, 3),
+            **(self.tel_rate.counts("telemetry") if self.tel_rate else {}),
+            **(self.pose_rate.counts("pose") if self.pose_rate else {}),
             **({"fixture_recoveries": self.fixture.recoveries, "fixture_requests": self.fixture.requests}
                if self.fixture is not None else {}),
         }
@@ -380,7 +380,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--silence-after", type=float, default=None, help="stop transmitting S s after the first command")
     ap.add_argument("--fixture-port", type=int, default=None,
                     help="serve the lab fixture on this UDP port (0: any free port; drivers/fixture.py)")
-    ap.add_argument("--parent-pid", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args(argv)
 
     params = VelociRoachParams(**_load_config(args.config))
@@ -452,12 +451,13 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
+    exit_with_parent(lambda: (log("parent process is gone: exiting"), _stop(None, None)))
     print(json.dumps({"pty": path, "pose_port": pose_port, "fixture_port": fixture_port, "pid": os.getpid()}),
           flush=True)
     log(f"serving {path}, pose udp port {pose_port}, telemetry {params.telemetry_hz} Hz, "
         f"watchdog {params.firmware_watchdog_s} s")
     try:
-        em.run(parent_pid=args.parent_pid)
+        em.run()
     except Exception as e:  # a LinkError here means the pty is gone: nothing left to serve
         log(f"stopped: {type(e).__name__}: {e}")
     finally:

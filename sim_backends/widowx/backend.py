@@ -7,6 +7,8 @@ moves). Each robot's ``tick()`` advances that world by its own period.
 
 from __future__ import annotations
 
+from typing import Any
+
 from hilstack.configs.schema import RobotConfig, parse_params
 from hilstack.drivers.widowx.config import MechanismParams, WidowXParams
 from hilstack.drivers.widowx.driver import MechanismDriver, WidowXDriver
@@ -43,8 +45,37 @@ class WidowXSim(DynamixelSim, WidowXDriver):
     def from_config(cls, cfg: RobotConfig) -> WidowXSim:
         return cls(parse_params(cfg, WidowXParams), source=cfg.source)
 
+    @classmethod
+    def calibration_bench(cls, params: WidowXParams | None = None) -> dict[str, Any]:
+        """What `hil calibrate --model <widowx config>` needs to replay a recording through the
+        bench's MuJoCo model (hilstack.calibration.mjcf_robot): the bench's MjSpec (``params.sim.mjcf``
+        if set, else the built one), how each arm joint is driven (velocity-mode PI loop: P on
+        velocity error [N·m·s/rad], I [N·m/rad], torque limit [N·m], torque constant [N·m/A]),
+        which state columns hold position, velocity and current, and that actions are goal
+        velocities [rad/s] of the joints in that order."""
+        import mujoco
+
+        from hilstack.drivers.widowx.config import JOINTS
+        from hilstack.sim_backends.dynamixel.firmware import ServoPhysics
+        from hilstack.sim_backends.widowx.model import build_spec
+
+        params = params or WidowXParams()
+        torques = {n: t for n, _, _, t in JOINTS}
+        mjcf = params.sim.get("mjcf")
+        spec = mujoco.MjSpec.from_file(str(mjcf)) if mjcf else build_spec(torques)
+        names = [n for n, _, _, _ in JOINTS]
+        loops = {}
+        for n in names:
+            ph = ServoPhysics(stall_torque_nm=torques[n])
+            loops[n] = {"mode": "velocity", "kp_nm_s": ph.vel_kp_nm_s, "ki_nm": ph.vel_ki_nm,
+                        "tau_max_nm": ph.stall_torque_nm, "kt_nm_per_a": ph.kt_nm_per_a}
+        k = len(names)
+        return {"spec": spec, "joints": names, "loops": loops, "q": list(range(0, k)), "qd": list(range(k, 2 * k)),
+                "current": list(range(2 * k, 3 * k)), "action": "goal_velocity"}
+
     def _world(self) -> ArmWorld:
-        return shared_world(self.params.bus_name, arm_ids=self.ids, start_holding=self.params.sim.get("start_holding"))
+        return shared_world(self.params.bus_name, arm_ids=self.ids, start_holding=self.params.sim.get("start_holding"),
+                            effects=self.params.sim.get("effects"), mjcf=self.params.sim.get("mjcf"))
 
 
 class MechanismSim(DynamixelSim, MechanismDriver):

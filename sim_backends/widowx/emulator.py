@@ -12,8 +12,8 @@ of its own process (docs/arms.md).
     python -m hilstack.sim_backends.widowx.emulator --print-pty --config '{"missing_ids": [8]}'
 
 On start it prints one JSON line ``{"pty": ..., "pid": ...}`` on stdout; logs go to
-stderr. It stops on SIGTERM, on SIGINT unless it has a ``--parent-pid`` (Ctrl-C in the
-driver's terminal must not cut the bus before the driver's stop), or when the parent dies.
+stderr. It stops on SIGTERM, on SIGINT unless a parent started it (bus/lifetime.py: Ctrl-C
+in the driver's terminal must not cut the bus before the driver's stop), or when the parent dies.
 
 Fault injection (config keys): ``missing_ids`` (these IDs never answer, as an unplugged
 servo), ``hardware_errors`` ({id: bits}: latched at power-on, cleared by a reboot
@@ -21,6 +21,11 @@ unless ``persistent_errors``), ``corrupt_every`` (every N-th status packet gets 
 CRC), ``garbage_every`` (noise bytes before every N-th status packet). ``start_holding``
 ({joint: rad}) starts the arm torqued in position mode at that pose instead of limp in
 its sleep pose.
+
+Effects the MuJoCo model lacks (config ``effects``, on the arm's servos; for calibration,
+docs/calibration.md "The robots' own MuJoCo models"): ``joint_friction_nm`` (Coulomb
+friction in each gearbox), ``joint_damping_nm_s`` (viscous), ``input_delay_s`` (a goal acts
+this long after it was written). ``mjcf``: the bench from an MJCF file (a calibrated one).
 
 Host death (tests): ``state_file`` (a path) gets one JSON line every ``state_every_s``
 wall-clock seconds: ``{"t": monotonic [s], "sim_t": [s], "servos": {id: [position
@@ -40,7 +45,8 @@ from hilstack.sim_backends.widowx.world import ArmWorld
 
 
 def make_world(cfg: dict[str, Any]) -> ArmWorld:
-    return ArmWorld(cfg.get("arm_ids"), cfg.get("mech_ids"), start_holding=cfg.get("start_holding"))
+    return ArmWorld(cfg.get("arm_ids"), cfg.get("mech_ids"), start_holding=cfg.get("start_holding"),
+                    effects=cfg.get("effects"), mjcf=cfg.get("mjcf"))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -6,6 +6,7 @@ import inspect
 import json
 
 import numpy as np
+import pytest
 
 from hilstack.learning.adaptation import load_adapter
 from hilstack.learning.adaptation.experiment import METHODS, SWITCHING_METHODS, load_episodes
@@ -16,7 +17,7 @@ from hilstack.tools.demo_adaptation import cli_adaptation, ranking_line, report_
 def test_registered_with_the_demo_signature():
     module, fn, _ = OTHER_DEMOS["adaptation"]
     assert (module, fn) == ("hilstack.tools.demo_adaptation", "cli_adaptation")
-    assert list(inspect.signature(cli_adaptation).parameters) == ["out", "quick", "full", "seed", "suite"]
+    assert list(inspect.signature(cli_adaptation).parameters) == ["out", "quick", "full", "seed", "suite", "ray", "workers"]
 
 
 def test_tiny_run_writes_the_issue_report(tmp_path):
@@ -72,7 +73,7 @@ def test_oracle_is_an_mb_model_of_the_tested_condition():
     names = ["x", "y", "vx", "vy", "cos_yaw", "sin_yaw"]
     plain, oracle = AdaptiveMLP(names, 2, hidden=(8,), seed=0), AdaptiveMLP(names, 2, hidden=(8,), seed=1)
     tr = Trained(plain, plain, {}, plain, None, np.ones(6))
-    cfg = AdaptationConfig.tiny()
+    cfg = AdaptationConfig.from_preset("tiny")
     assert "oracle" in METHODS
     with pytest.raises(ValueError, match="no oracle model"):
         tr.adapter("oracle", cfg)
@@ -119,7 +120,7 @@ def test_time_limits_leave_headroom_below_random_shootings_speed():
     decided completions; the presets run the paths with at least 1.5x that time."""
     from hilstack.learning.adaptation.experiment import RANDOM_SHOOTING_SPEED_MPS, AdaptationConfig
 
-    for cfg in (AdaptationConfig.quick(), AdaptationConfig.full()):
+    for cfg in (AdaptationConfig.from_preset("quick"), AdaptationConfig.from_preset("full")):
         assert cfg.time_limit_speed_mps * 1.5 <= RANDOM_SHOOTING_SPEED_MPS
 
 
@@ -140,3 +141,23 @@ def test_every_method_meets_the_same_noise_from_the_same_start():
             env.step(a.astype(np.float32))
     env.close()
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_report_benchmarks_are_progress_normalized_by_the_oracle_of_the_same_seed():
+    from hilstack.learning.adaptation.experiment import benchmarks
+
+    def seed(prog: dict[str, float], oracle_slope: float, oracle_normal: float) -> dict:
+        p = {"normal": {m: {"progress_m": prog[m] if m in prog else 1.0} for m in METHODS},
+             "slope": {m: {"progress_m": 0.5} for m in METHODS}}
+        p["normal"]["oracle"]["progress_m"] = oracle_normal
+        p["slope"]["oracle"]["progress_m"] = oracle_slope
+        return {"perturbations": p, "switching": {m: {"reward_per_segment": [0.5, 0.25]} for m in SWITCHING_METHODS}}
+
+    b = benchmarks([seed({"grbal": 1.0}, 1.0, 2.0), seed({"grbal": 3.0}, 0.0, 4.0)])
+    g = b["normal"]["grbal"]
+    assert g["seeds"] == [1.0, 3.0] and g["return_mean"] == 2.0 and g["return_std"] == pytest.approx(2 ** 0.5)
+    # the mean of the per-seed ratios (0.5, 0.75), not the ratio of the means (2 / 3)
+    assert g["normalized"] == pytest.approx(0.625) and g["normalized_std"] == pytest.approx(0.125 * 2 ** 0.5)
+    assert b["normal"]["oracle"]["normalized"] == 1.0
+    assert all(c["normalized"] is None for c in b["slope"].values())  # an oracle that made no progress: no ratio
+    assert b["switching"]["mole"]["return_mean"] == 0.75 and b["switching"]["mole"]["normalized"] is None

@@ -9,20 +9,21 @@ from hilstack.learning.adaptation import grbal, rebal
 from hilstack.learning.adaptation.grbal import segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.rebal import ContextEncoder
-from hilstack.learning.adaptation.training import fit_plain, split_episodes, transitions
+from hilstack.learning.adaptation.training import fit_plain, transitions
+from hilstack.learning.datasets import split_episodes
 from tests.adaptation import toy
 
 
 def test_split_holds_out_whole_rollouts():
     eps = toy.episodes(20, 5, seed=0)
-    tr, va = split_episodes(eps, 0.25, seed=1)
+    tr, va = split_episodes(eps, 0.25, 1)
     assert len(va) == 5 and len(tr) == 15
     assert {e.name for e in tr}.isdisjoint({e.name for e in va})
-    assert split_episodes(eps, 0.25, seed=1)[1][0].name == va[0].name  # deterministic per seed
-    assert len(split_episodes(eps[:2], 0.01, seed=0)[1]) == 1  # at least one held out
-    assert split_episodes(eps, 0.0, seed=0)[1] == []
+    assert split_episodes(eps, 0.25, 1)[1][0].name == va[0].name  # deterministic per seed
+    assert len(split_episodes(eps[:2], 0.01, 0)[1]) == 1  # at least one held out
+    assert split_episodes(eps, 0.0, 0)[1] == []
     with pytest.raises(ValueError, match="val_fraction"):
-        split_episodes(eps, 1.0, seed=0)
+        split_episodes(eps, 1.0, 0)
 
 
 def test_fit_plain_stops_early_and_keeps_the_best_held_out_epoch():

@@ -74,8 +74,13 @@ def test_tiny_gym_suite_writes_the_issue_report(tmp_path):
     run_gym_demo(tmp_path, tiny=True)
     r = json.loads((tmp_path / "report.json").read_text())
     b = r["benchmarks"]
-    assert set(b) == {"hc_disabled_joint", "hc_malfunction_switch", "hc_disabled_joint_next_k"}
-    assert set(b["hc_disabled_joint"]) == set(gym_suite.JOINT_METHODS)
+    assert set(b) == {"hc_normal", "hc_disabled_joint", "hc_malfunction_switch", "hc_disabled_joint_next_k"}
+    assert set(b["hc_disabled_joint"]) == {*gym_suite.JOINT_METHODS, "zero_action"}
+    # the sanity check: MB on the unperturbed robot beside the do-nothing floor (no oracle: no ratio)
+    assert set(b["hc_normal"]) == {"mb", "zero_action"}
+    assert all(c["normalized"] is None for c in b["hc_normal"].values())
+    # iterated on-policy rounds: one mean return of MB's MPC rollouts per round
+    assert len(r["per_seed"][0]["training"]["disabled_joint"]["mb"]["onpolicy_returns"]) == r["config"]["onpolicy_rounds"] == 2
     assert set(b["hc_malfunction_switch"]) == set(gym_suite.MOLE_METHODS)
     nk = b.pop("hc_disabled_joint_next_k")
     assert set(nk) == set(gym_suite.JOINT_METHODS)
@@ -95,7 +100,7 @@ def test_tiny_gym_suite_writes_the_issue_report(tmp_path):
     assert (tmp_path / "gym_mole_posterior.png").is_file() and (tmp_path / "report.md").is_file()
     # what the CLI prints: one line per benchmark, open-loop rows included
     lines = gym_suite.summary_lines(json.loads((tmp_path / "report.json").read_text()))
-    assert len(lines) == 3 and any(ln.startswith("hc_disabled_joint_next_k: mb ") for ln in lines)
+    assert len(lines) == 4 and any(ln.startswith("hc_disabled_joint_next_k: mb ") for ln in lines)
     assert "| grbal |" in (tmp_path / "report.md").read_text()
 
 
@@ -108,3 +113,15 @@ def test_cli_refuses_an_unknown_suite(tmp_path):
     assert res.exit_code == 2 and "unknown --suite 'mars'" in res.output
     res = CliRunner().invoke(app, ["demo", "transfer", "--suite", "gym", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "--suite is for the adaptation demo only" in res.output
+
+
+def test_part_overrides_are_typed_like_the_config_and_refuse_unknown_fields():
+    o = gym_suite.parse_overrides(["onpolicy_rounds=4", "hidden=256,256", "gamma=10"])
+    assert o == {"onpolicy_rounds": 4, "hidden": (256, 256), "gamma": 10.0}
+    assert gym_suite.GymSuiteConfig(**o).hidden == (256, 256)
+    with pytest.raises(ValueError, match="FIELD one of"):
+        gym_suite.parse_overrides(["epoch=3"])
+    with pytest.raises(ValueError, match="is not a int"):
+        gym_suite.parse_overrides(["onpolicy_rounds=many"])
+    with pytest.raises(ValueError, match="not finite"):
+        gym_suite.parse_overrides(["gamma=nan"])

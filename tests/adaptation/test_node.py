@@ -17,6 +17,7 @@ from hilstack.bus.node import Node
 from hilstack.bus.schemas import EStop, ModelUpdate, ResetEvent, RobotState, SpecMsg
 from hilstack.control.planners import RandomShooting
 from hilstack.control.policies import MpcPolicy
+from hilstack.drivers.base import RobotSpec, Space
 from hilstack.learning.adaptation.baselines import MbDeAdapter
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.node import AdaptationNode, AdaptationStats, ModelSwap, TransitionBuilder
@@ -24,8 +25,9 @@ from tests.helpers import wait_for
 
 RIG, ROBOT = "adapt_t", "pm"
 NAMES = ["x", "y", "vx", "vy"]
-SPEC = {"period_s": 0.1, "state": {"names": NAMES}, "action": {"names": ["fx", "fy"], "low": [-2.0, -2.0],
-                                                              "high": [2.0, 2.0]}}
+TYPED_SPEC = RobotSpec("pm", Space.build([(n, "m", -np.inf, np.inf) for n in NAMES]),
+                       Space.build([("fx", "N", -2.0, 2.0), ("fy", "N", -2.0, 2.0)]), period_s=0.1)
+SPEC = TYPED_SPEC.to_dict()  # as it crosses the bus
 
 
 def linear_adapter(gain: float = 1.0, window: int = 8, cls=MbDeAdapter) -> MbDeAdapter:
@@ -46,7 +48,7 @@ def state(seq: int, t_s: float, x: float = 0.0, action=(1.0, 0.0), **kw) -> Robo
 # ----------------------------------------------------------------------------- transitions
 def test_builder_makes_one_step_transitions_in_model_units_and_counts_what_it_skips():
     st = AdaptationStats()
-    b = TransitionBuilder(SPEC, st)
+    b = TransitionBuilder(TYPED_SPEC, st)
     seq = [
         state(1, 0.0),
         state(2, 0.1, x=0.1),                      # transition 1; action 1 N of ±2 N → 0.5

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from hilstack.bus.cycle import CycleTimer
+from hilstack.bus.cycle import CycleTimer, Rate
 
 
 class FakeClock:
@@ -139,3 +139,35 @@ def test_node_run_is_paced_and_timed(bus):
         calls = []
         assert n.run(lambda: calls.append(1), 0.001, max_steps=3) == 3
         assert n.cycle.summary()["step"]["n"] == 3 and n.cycle.cycles == 2
+
+
+# -- Rate: the same rule for a deadline a loop polls among others -------------------------------
+def _firings(rate: Rate, times: list[float]) -> list[float]:
+    return [t for t in times if rate.due(t)]
+
+
+def test_rate_fires_once_per_boundary_on_the_grid():
+    r = Rate(0.1, first_s=10.0)
+    # polled every 10 ms for half a second: one firing per boundary, at the first poll past it
+    polls = [10.0 + 0.01 * k for k in range(51)]
+    fired = _firings(r, polls)
+    assert fired == pytest.approx([10.0 + 0.1 * k for k in range(6)])
+    assert r.fired == 6 and r.missed == 0 and r.overruns == 0
+    assert r.left_s(10.52) == pytest.approx(0.08)
+
+
+def test_rate_after_a_stall_fires_once_skips_the_rest_and_keeps_the_phase():
+    r = Rate(0.1, first_s=0.0)
+    assert r.due(0.0)
+    # the loop stalls until 0.47: boundaries 0.1 .. 0.4 passed; one firing, three skipped
+    polls = [0.47, 0.47, 0.48, 0.49, 0.5, 0.51, 0.6]
+    fired = _firings(r, polls)
+    assert fired == pytest.approx([0.47, 0.5, 0.6])  # no burst: the next one waits for 0.5
+    assert r.missed == 3 and r.overruns == 1 and r.fired == 4
+    assert r.counts("telemetry") == {"telemetry_missed": 3, "telemetry_overruns": 1}
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("inf"), float("nan")])
+def test_rate_bad_period_is_refused(bad):
+    with pytest.raises(ValueError, match="period_s"):
+        Rate(bad, 0.0)

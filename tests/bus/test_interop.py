@@ -21,11 +21,12 @@ from hilstack.bus.recording import (
     summarize,
 )
 from hilstack.bus.schemas import ALL_TYPES, Command, Image, Plan, RobotState, SpecMsg, json_schema, type_name
+from tests.helpers import spec_dict
 
 RIG = "fox"
 NAMES = ["x", "y", "cos_yaw", "sin_yaw", "v"]
-SPEC = {"name": "bot", "state": {"names": NAMES, "units": ["m", "m", "1", "1", "m/s"]},
-        "action": {"names": ["u"], "low": [-1.0], "high": [1.0]}}
+SPEC = {**spec_dict("bot", NAMES, ["u"]),
+        "state": {"names": NAMES, "units": ["m", "m", "1", "1", "m/s"], "low": [-1e9] * 5, "high": [1e9] * 5}}
 
 
 # --------------------------------------------------------------------------- Foxglove's rules
@@ -231,7 +232,29 @@ def test_our_readers_ignore_the_foxglove_channels(tmp_path, bus):
     assert r.exit_code == 0, r.output
     assert f"{len(msgs)} messages" in r.output
     derived = [line for line in r.output.splitlines() if "(derived, not replayed)" in line]
-    assert len(derived) == 2 and any("foxglove.PoseInFrame" in line and " 20 " in line for line in derived)
+    assert len(derived) == 3 and any("foxglove.PoseInFrame" in line and " 20 " in line for line in derived)
+    assert any("hil.StateFields/bot" in line and " 20 " in line for line in derived)
+
+
+def test_state_fields_are_named_for_foxglove(tmp_path):
+    """Foxglove plots ``state.v`` from the per-robot fields channel: its schema names every
+    state and action channel (parsed by the port of Foxglove's rules) and the values are the state's."""
+    from hilstack.bus.recording import state_fields_topic
+
+    path = tmp_path / "fields.mcap"
+    msgs = _recording(path)
+    states = [m for _, m in msgs if isinstance(m, RobotState)]
+    got = []
+    with open(path, "rb") as f:
+        for schema, _channel, message in make_reader(f).iter_messages(topics=[state_fields_topic(RIG, "bot")]):
+            dt = foxglove_parse_json_schema(json.loads(schema.data), schema.name)
+            got.append(json.loads(message.data))
+    assert schema.name == "hil.StateFields/bot"
+    assert [f["name"] for f in dt["hil.StateFields/bot.state"]] == NAMES
+    assert [f["name"] for f in dt["hil.StateFields/bot.action"]] == ["u"]
+    assert len(got) == len(states)
+    for rec, st in zip(got, states, strict=True):
+        assert rec["state"] == dict(zip(NAMES, st.state, strict=True)) and rec["action"] == {"u": 0.5}
 
 
 def test_rerun_loads_the_recording(tmp_path):
@@ -252,7 +275,7 @@ def test_rerun_loads_the_recording(tmp_path):
                        text=True, timeout=120, env={**os.environ, "RERUN_ANALYTICS": "off"})
     assert p.returncode == 0, p.stderr
     status = {line.split()[-2]: line.split()[0] for line in p.stdout.splitlines() if "/hil/" in line}
-    assert len(status) == 7 and set(status.values()) == {"ok"}, p.stdout
+    assert len(status) == 8 and set(status.values()) == {"ok"}, p.stdout  # 8: with the state fields channel
 
 
 def test_nan_state_survives_and_a_bad_message_does_not_end_reading(tmp_path):

@@ -7,6 +7,7 @@ import json
 from hilstack.bus import keys
 from hilstack.bus.recording import McapLog
 from hilstack.bus.schemas import Command, Image, Plan, RobotState, SpecMsg
+from tests.helpers import spec_dict
 
 
 def _entities(rrd) -> set[str]:
@@ -21,7 +22,7 @@ def test_viz_recording_to_rrd_with_layout(tmp_path):
     from hilstack.tools.cli import app
 
     mc = tmp_path / "a.mcap"
-    spec = {"state": {"names": ["x", "y", "vx", "vy"]}, "action": {"names": ["fx", "fy"]}}
+    spec = spec_dict("pm", ["x", "y", "vx", "vy"], ["fx", "fy"])
     with McapLog(mc) as log:
         log.write(keys.spec("r", "pm"), SpecMsg(robot="pm", spec=spec))
         for i in range(20):
@@ -42,7 +43,7 @@ def test_bench_bus_prints_json_with_ratio():
 
     from hilstack.tools.cli import app
 
-    r = CliRunner().invoke(app, ["bench", "bus", "--n", "100", "--json"])
+    r = CliRunner().invoke(app, ["bench", "bus", "--n", "100", "--via-router", "--json"])
     assert r.exit_code == 0, r.output
     out = json.loads(r.stdout.strip().splitlines()[-1])
     for size in ("64B", "4096B"):
@@ -51,4 +52,6 @@ def test_bench_bus_prints_json_with_ratio():
         assert row["ratio_p50"] == row["node"]["p50_us"] / row["raw"]["p50_us"]
         assert row["ratio_p99"] == row["node"]["p99_us"] / row["raw"]["p99_us"]
         assert row["raw_over_tcp_p50"] == row["raw"]["p50_us"] / row["tcp"]["p50_us"] and row["tcp"]["p50_us"] > 0
+        # --via-router: the extra hop through a router process, beside the direct peer hop
+        assert row["router_over_raw_p50"] == row["router"]["p50_us"] / row["raw"]["p50_us"] > 0
     assert "ratio_p50" in out and "ratio_p99" in out and out["loadavg_1min"] >= 0

@@ -19,6 +19,7 @@ from hilstack.calibration.learned import CheckpointError, load_augmented
 from hilstack.calibration.selection import SelectionConfig
 from hilstack.calibration.synthetic_learned import generate, train_checkpoint, write_csv
 from hilstack.tools.cli import app
+from tests.helpers import spec_dict
 
 # The tests check behaviour, not tight intervals: fewer bootstrap replicates and short retrains.
 CFG = SelectionConfig(n_boot=12)
@@ -159,7 +160,7 @@ def _write_mcap(episodes, path, high: float):
     from hilstack.bus.recording import McapLog
     from hilstack.bus.schemas import RobotState, SpecMsg
 
-    spec = {"state": {"names": ["x", "v", "vbat"]}, "action": {"names": ["u"], "low": [-high], "high": [high]}}
+    spec = spec_dict("mass", ["x", "v", "vbat"], ["u"], -high, high)
     seq, t_base = 0, 0.0
     with McapLog(path) as log:
         log.write(keys.spec("calib", "mass"), SpecMsg(robot="mass", spec=spec, seq=1))

@@ -58,7 +58,7 @@ def test_missing_column_names_column_and_file(tmp_path):
 
 def test_mcap_recording_loads_as_episodes(tmp_path):
     """A rig recording (spec + RobotState per period, episode counter) loads through
-    hilstack.learning.recordings: one Episode per recorded episode, commands in robot units, the
+    hilstack.learning.recordings: one Recording per recorded episode, commands in robot units, the
     action of state k+1 held from t_k to t_{k+1}, channel names from the recorded spec."""
     from hilstack.calibration.synthetic_velociroach import RoachSynthConfig, write_mcap
     from hilstack.calibration.synthetic_velociroach import generate as roach_generate

@@ -8,7 +8,7 @@ import numpy as np
 from hilstack.calibration import run_calibration
 from hilstack.calibration.data import segment_episodes
 from hilstack.calibration.models import AxisModel
-from hilstack.calibration.selection import Folds, SelectionConfig, purge_neighbours, split_episodes
+from hilstack.calibration.selection import Folds, SelectionConfig, cv_split, purge_neighbours
 from hilstack.calibration.synthetic import SynthConfig, generate
 
 CHEAP = SelectionConfig(n_boot=15)
@@ -33,7 +33,7 @@ def test_held_out_blocks_have_a_gap_in_time():
     units, plan = segment_episodes(eps, 20, 100, 20)
     preps = AxisModel().prepare(units)
     locked = np.array([bool(u.meta.get("locked_test")) for u in units])
-    _, folds = split_episodes(len(units), SelectionConfig(), 0, locked)
+    _, folds = cv_split(len(units), SelectionConfig(), 0, locked)
     purge = purge_neighbours(preps, folds, 1)
     f = Folds(folds, purge)
     for i, held in enumerate(folds):
@@ -43,7 +43,7 @@ def test_held_out_blocks_have_a_gap_in_time():
         assert not (set(f.train(i)) & (expect | set(held.tolist())))
     # episodes that are not cut from one recording are independent: nothing purged
     whole = AxisModel().prepare(generate(SynthConfig(n_episodes=10, duration_s=2.0, seed=2)))
-    _, folds = split_episodes(len(whole), SelectionConfig(), 0)
+    _, folds = cv_split(len(whole), SelectionConfig(), 0)
     assert all(not v for v in purge_neighbours(whole, folds, 1).values())
 
 

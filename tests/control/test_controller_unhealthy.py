@@ -178,7 +178,7 @@ def test_late_plans_on_the_hand_sim_hold_its_targets(bus, spawn, tmp_path):
         spec = ctl.wait_ready(60)
         wait_for(lambda: ctl._state.poll() is not None, 30, "states")
         held = np.asarray(ctl.next_state().action)
-        held_norm = ctl.scale.to_norm(held)
+        held_norm = ctl.spec.action.normalize(held)
         assert np.abs(held_norm).max() > 0.3  # the hold pose is far from the middle of the ranges
 
         class LatePlanner:
@@ -187,7 +187,7 @@ def test_late_plans_on_the_hand_sim_hold_its_targets(bus, spawn, tmp_path):
             def __call__(self, s):
                 self.calls += 1
                 if self.calls == 1:
-                    time.sleep(5 * spec["period_s"])
+                    time.sleep(5 * spec.period_s)
                 return held_norm  # then: hold where it is
 
         log = ctl.run_realtime(LatePlanner(), 8)

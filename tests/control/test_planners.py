@@ -364,3 +364,49 @@ def test_random_shooting_samples_within_the_reachable_set():
     assert seen[2][:, 0, 0].min() < -0.9  # reset forgets the previous action
     with pytest.raises(ValueError, match="max_step"):
         RandomShooting(-1.0, 1.0, action_dim=2, max_step=0.0)
+
+
+# -- moving in time: the planner owns its shift -------------------------------------------------
+def test_shift_moves_the_warm_start_along_the_last_plan():
+    """After a plan the warm start is ``plan[1:]`` (last step repeated); ``shift(n)`` (the plan
+    was applied n periods late) moves it to ``plan[n+1:]`` and anchors a rate-limited sampler
+    at ``plan[n]``, the step acting now; shifts add up; past the end the last step repeats."""
+    H = 5
+    for cls, kw in ((CEM, dict(elites=2, iterations=1)), (PDDM, dict(gamma=1.0, beta=1.0))):
+        p = cls(-5.0, 5.0, horizon=H, samples=8, action_dim=1, seed=0, **kw)
+        p.shift(3)  # before any plan: nothing to move along
+        assert torch.equal(p.mean, ((p.action_low + p.action_high) / 2).expand(H, -1))
+        p(identity_dynamics, zero_cost, np.zeros(1))
+        plan = p.last_plan.clone()
+        assert torch.equal(p.mean, torch.cat([plan[1:], plan[-1:]]))
+        p.shift(2)
+        assert torch.equal(p.mean, torch.cat([plan[3:]] + [plan[-1:]] * 3))
+        if cls is PDDM:
+            assert torch.equal(p.previous, plan[2])
+        p.shift(1)
+        assert torch.equal(p.mean, torch.cat([plan[4:]] + [plan[-1:]] * 4))
+        p.shift(10)
+        assert torch.equal(p.mean, plan[-1:].expand(H, -1))
+        with pytest.raises(ValueError, match="n >= 0"):
+            p.shift(-1)
+    rs = RandomShooting(-1.0, 1.0, horizon=H, samples=8, action_dim=1, seed=0, max_step=0.1)
+    rs(identity_dynamics, zero_cost, np.zeros(1))
+    rs.shift(2)
+    assert torch.equal(rs.previous, rs.last_plan[2])
+
+
+def test_a_late_plan_in_the_realtime_loop_shifts_the_planner():
+    """run_realtime tells the policy how many cycles its plan missed (MpcPolicy.shift ->
+    Planner.shift), so the next plan is warm-started from where the robot now is on it."""
+    from hilstack.control.policies import MpcPolicy
+
+    class Model:
+        def predict(self, s, a):
+            return s.clone()
+
+    p = CEM(-1.0, 1.0, horizon=4, samples=8, elites=2, action_dim=1, seed=0)
+    pol = MpcPolicy(Model(), p, zero_cost)
+    pol(np.zeros(1))
+    plan = p.last_plan.clone()
+    pol.shift(2)
+    assert torch.equal(p.mean, torch.cat([plan[3:]] + [plan[-1:]] * 3))

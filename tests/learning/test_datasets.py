@@ -5,6 +5,7 @@ import pandas as pd
 import pytest
 
 from hilstack.learning.datasets import Episode, TransitionDataset, episodes_from_table, load_episodes
+from tests.helpers import spec_dict
 
 
 def make_episode(T, offset, name=""):
@@ -107,7 +108,7 @@ def test_mcap_recordings_load_through_the_same_entry_point(tmp_path):
     from hilstack.bus.recording import McapLog
     from hilstack.bus.schemas import RobotState, SpecMsg
 
-    spec = {"state": {"names": ["x"]}, "action": {"names": ["u"], "low": [-1.0], "high": [1.0]}}
+    spec = spec_dict("roach", ["x"], ["u"])
     with McapLog(tmp_path / "session.mcap") as log:
         log.write(keys.spec("r", "roach"), SpecMsg(robot="roach", spec=spec))
         for i in range(5):
@@ -116,3 +117,26 @@ def test_mcap_recordings_load_through_the_same_entry_point(tmp_path):
     (ep,) = load_episodes(tmp_path / "session.mcap", robot="roach")
     np.testing.assert_allclose(ep.states[:, 0], np.arange(5))
     np.testing.assert_allclose(ep.actions[:, 0], 0.5)
+
+
+def test_action_alignment_actions_t_leads_from_states_t_to_states_t_plus_1():
+    """The one alignment of learning's Episode (and of a calibration recording's transitions):
+    ``actions[t]`` is applied at ``states[t]`` and leads to ``states[t+1]``. On s' = s + a the
+    deltas equal the actions exactly; any off-by-one pairing breaks that."""
+    from hilstack.calibration.data import Recording
+    from hilstack.learning.datasets import Episode as Ep
+    from hilstack.learning.datasets import TransitionDataset as TD
+
+    rng = np.random.default_rng(0)
+    a = rng.integers(-5, 6, size=(12, 2)).astype(np.float32)
+    s = np.concatenate([np.zeros((1, 2), np.float32), np.cumsum(a, axis=0)])  # s[t+1] = s[t] + a[t]
+    ds = TD([Ep(s, a, name="e")])
+    np.testing.assert_array_equal(ds.deltas, ds.actions)
+    np.testing.assert_array_equal(ds.states, s[:-1])
+    # a recording holds one action per sample, actions[k] from t_k to t_{k+1}, the last row repeated
+    rec = Recording(name="r", t_s=np.arange(13) * 0.1, u=np.zeros(13), x=np.zeros(13), states=s,
+                    actions=np.concatenate([a, a[-1:]]), state_names=("p", "q"), action_names=("u", "v"))
+    tr = rec.transitions()
+    np.testing.assert_array_equal(tr.actions, a)
+    np.testing.assert_array_equal(TD([tr]).deltas, a)
+    np.testing.assert_array_equal(rec.transitions(("q",), ("v",)).actions[:, 0], a[:, 1])

@@ -198,3 +198,27 @@ def test_model_plugs_into_planner():
     p = PDDM(-1.0, 1.0, horizon=4, samples=32, action_dim=1)
     a = p(m, lambda st, ac: st[..., -1, 0] ** 2, np.zeros(2, np.float32))
     assert a.shape == (1,) and p.last_predicted_states.shape == (3, 5, 2)
+
+
+@pytest.mark.skipif(cpu_bf16_support() is None, reason="no native bf16 on this CPU: inference stays fp32")
+def test_bf16_inference_keeps_the_resolution_of_states_far_from_zero():
+    """States like world-frame ball positions (~1 m, moving by mm): bf16 has 8 bits of
+    mantissa, so casting the raw state (4-8 mm steps at 1 m) before normalising loses the
+    motion; the inference path normalises in fp32 first. The prediction of two states 1 mm
+    apart must differ as in fp32."""
+    torch.manual_seed(0)
+    s = 1.0 + 0.01 * torch.randn(256, 3)
+    a = torch.randn(256, 2)
+    nxt = s + 0.1 * (s - 1.0) + 0.01 * a[:, :1]
+    m = EnsembleDynamics(3, 2, ensemble=2, hidden=(32, 32), seed=3)
+    m.fit([Episode(states=torch.cat([s[:1], nxt]).numpy()[:2], actions=a[:1].numpy())] +
+          [Episode(states=np.stack([s[i].numpy(), nxt[i].numpy()]), actions=a[i:i + 1].numpy()) for i in range(256)],
+          epochs=1, batch_size=64, progress=False)
+    probe = s[:64].clone()
+    probe2 = probe + torch.tensor([1e-3, 0.0, 0.0])
+    with torch.inference_mode():
+        ref = m.predict(probe2, a[:64]) - m.predict(probe, a[:64])
+        m.set_inference_dtype("bf16")
+        out = m.predict(probe2, a[:64]) - m.predict(probe, a[:64])
+    err = (out - ref).abs().max().item()
+    assert err < 0.2 * ref.abs().max().item() + 1e-4, (err, ref.abs().max().item())

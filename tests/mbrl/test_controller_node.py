@@ -10,17 +10,9 @@ import numpy as np
 import pytest
 
 from hilstack.bus.recording import Recorder
-from hilstack.control.controller_node import ActionScale, ControllerNode
+from hilstack.control.controller_node import ControllerNode
 from hilstack.learning.recordings import episodes_from_mcap
 from tests.helpers import wait_for
-
-
-def test_action_scale_round_trip():
-    s = ActionScale([-2.0, 0.0], [2.0, 10.0])
-    a = np.array([0.5, -1.0])
-    np.testing.assert_allclose(s.to_robot(a), [1.0, 0.0])
-    np.testing.assert_allclose(s.to_norm(s.to_robot(a)), a)
-    np.testing.assert_allclose(s.to_robot([5.0, 5.0]), [2.0, 10.0])  # clipped
 
 
 def test_lockstep_episodes_resets_and_recorded_transitions(bus, spawn, tmp_path):
@@ -30,7 +22,7 @@ def test_lockstep_episodes_resets_and_recorded_transitions(bus, spawn, tmp_path)
     th.start()
     with ControllerNode("pointmass_lockstep", "pm", bus, handle_signals=False, state_timeout_s=20) as ctl:
         spec = ctl.wait_ready(30)
-        assert spec["action"]["names"] == ["fx", "fy"]
+        assert spec.action.names == ("fx", "fy")
         logs = []
         for ep, x0 in enumerate((0.5, -0.5)):
             first = ctl.reset(x=x0, y=0.0)

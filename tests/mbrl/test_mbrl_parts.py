@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from hilstack.learning.datasets import Episode
+from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.mbrl import (
     BASELINE_SEARCH,
     baseline_candidates,
     default_baseline_params,
-    split_episodes,
 )
 
 
@@ -56,14 +56,15 @@ def test_baseline_candidates_start_at_the_default_and_cover_the_ranges():
 
 
 def test_rate_limit_in_normalized_units_per_step():
+    from hilstack.drivers.base import RobotSpec
     from hilstack.drivers.velociroach.config import VelociRoachParams, velociroach_spec
-    from hilstack.learning.mbrl import MbrlConfig, make_planner, max_step_normalized
+    from hilstack.learning.mbrl import MbrlConfig, make_planner
 
-    spec = velociroach_spec(VelociRoachParams(max_leg_accel_rps2=60.0, max_leg_vel_rps=15.0)).to_dict()
-    # 60 rev/s² for 0.1 s is 6 rev/s, and [-1, 1] spans ±15 rev/s
-    np.testing.assert_allclose(max_step_normalized(spec), [0.4, 0.4])
-    spec["action_rate_per_s"] = None
-    assert max_step_normalized(spec) is None
+    spec = velociroach_spec(VelociRoachParams(max_leg_accel_rps2=60.0, max_leg_vel_rps=15.0))
+    # 60 rev/s² for 0.1 s is 6 rev/s, and [-1, 1] spans ±15 rev/s; the same after the bus
+    np.testing.assert_allclose(spec.max_step_normalized(), [0.4, 0.4])
+    np.testing.assert_allclose(RobotSpec.from_dict(spec.to_dict()).max_step_normalized(), [0.4, 0.4])
+    assert dataclasses.replace(spec, action_rate_per_s=None).max_step_normalized() is None
     rs = make_planner(MbrlConfig(planner="random_shooting"), 0.5, 2, np.array([0.4, 0.4]))
     np.testing.assert_allclose(rs.max_step.numpy(), [0.4, 0.4])
     assert make_planner(MbrlConfig(planner="random_shooting", reachable_set=False), 0.5, 2,
@@ -112,7 +113,7 @@ def test_full_config_runs_every_experiment_over_three_seeds():
     from hilstack.learning.experiments import EXPERIMENTS
     from hilstack.learning.mbrl import MbrlConfig
 
-    cfg = MbrlConfig.full()
+    cfg = MbrlConfig.from_preset("full")
     assert set(cfg.experiments) == set(EXPERIMENTS) and len(cfg.seeds) >= 3
     assert cfg.table_sizes == (50, 200, 400) and cfg.random_rollouts >= max(cfg.table_sizes)
     assert len(cfg.sweep_speeds) >= 4 and cfg.terrains == ("carpet", "styrofoam")
@@ -261,7 +262,7 @@ def test_a_supervisor_timeout_shorter_than_a_path_is_refused_before_the_rig_star
     assert "max_s: 60" in src  # the shipped rig leaves the figure-8 its 45.7 s
     rig = tmp_path / "roach_emulated_short.yaml"
     rig.write_text(src.replace("max_s: 60", "max_s: 30").replace("name: roach_emulated", "name: roach_emu_short"))
-    run = MbrlRun(MbrlConfig.quick(rig=str(rig), progress=False), tmp_path / "out", BusConfig())
+    run = MbrlRun(MbrlConfig.from_preset("quick", rig=str(rig), progress=False), tmp_path / "out", BusConfig())
     with pytest.raises(RigError, match=r"timeout, max_s 30 s\) would end the figure8 path before its time limit "
                                        r"of 45\.7 s"):
         run.run()

@@ -9,8 +9,9 @@ from hilstack.bus import keys
 from hilstack.bus.recording import McapLog
 from hilstack.bus.schemas import RobotState, SpecMsg
 from hilstack.learning.recordings import episodes_from_mcap
+from tests.helpers import spec_dict
 
-SPEC = {"state": {"names": ["x", "v"]}, "action": {"names": ["u"], "low": [-2.0], "high": [2.0]}}
+SPEC = spec_dict("bot", ["x", "v"], ["u"], -2.0, 2.0)
 
 
 def _write(path, states):

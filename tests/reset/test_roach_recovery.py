@@ -166,7 +166,7 @@ def test_quick_on_a_wall_clock_rig_tunes_fewer_candidates_and_the_sim_quick_run_
     from hilstack.tools.demo import quick_wall_clock
 
     assert quick_wall_clock("roach_sim") == {}
-    assert MbrlConfig.quick(**quick_wall_clock("roach_sim")).baseline_candidates == 20
+    assert MbrlConfig.from_preset("quick", **quick_wall_clock("roach_sim")).baseline_candidates == 20
     assert quick_wall_clock("roach_emulated") == {"baseline_candidates": 6}
 
 

@@ -100,7 +100,7 @@ def test_the_planner_plans_from_the_balls_velocities():
 def test_the_run_trains_and_plans_on_the_features(bus, tmp_path):
     from hilstack.learning.baoding import BaodingConfig, BaodingRun
 
-    run = BaodingRun(BaodingConfig.tiny(), tmp_path, bus)
+    run = BaodingRun(BaodingConfig.from_preset("tiny"), tmp_path, bus)
     run.state_names = NAMES
     run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
     assert run.pddm_config().state_dim == 36
@@ -119,7 +119,7 @@ def test_the_baoding_run_starts_every_pddm_rollout_at_the_hold_pose(bus, tmp_pat
     from hilstack.learning.baoding import BaodingConfig, BaodingRun
 
     for init, want in (("hold", hold_pose_action()), ("mid", np.zeros(20))):
-        run = BaodingRun(BaodingConfig.tiny(init_mean=init), tmp_path / init, bus)
+        run = BaodingRun(BaodingConfig.from_preset("tiny", init_mean=init), tmp_path / init, bus)
         run.state_names = NAMES
         run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
         pol = run.pddm_policy(model=None, seed=0)
@@ -254,10 +254,10 @@ def test_fixed_gradient_steps_per_iteration_do_not_grow_with_the_data(bus, tmp_p
     from hilstack.learning.baoding import BaodingConfig, BaodingRun
 
     ep = lambda n: Episode(states=np.zeros((n + 1, 3)), actions=np.zeros((n, 1)), name="e")  # noqa: E731
-    run = BaodingRun(BaodingConfig.tiny(train_steps=100, batch_size=500), tmp_path, bus)
+    run = BaodingRun(BaodingConfig.from_preset("tiny", train_steps=100, batch_size=500), tmp_path, bus)
     small, big = run.epochs_for([ep(1000)], 1), run.epochs_for([ep(100_000)], 5)
     assert small == int(np.ceil(100 * 500 / 900)) and big == 1  # ~100 steps either way
-    assert BaodingRun(BaodingConfig.tiny(epochs=7, retrain_epochs=3), tmp_path / "b", bus).epochs_for([ep(10)], 2) == 3
+    assert BaodingRun(BaodingConfig.from_preset("tiny", epochs=7, retrain_epochs=3), tmp_path / "b", bus).epochs_for([ep(10)], 2) == 3
     with pytest.raises(ValueError, match="train_steps"):
         BaodingConfig(train_steps=0)
 
@@ -280,7 +280,7 @@ def test_every_ablation_is_a_valid_config():
     from hilstack.tools.demo_baoding import ABLATIONS
 
     for name, kw in ABLATIONS.items():
-        c = BaodingConfig.quick(**kw)
+        c = BaodingConfig.from_preset("quick", **kw)
         replace_task = kw.get("task_overrides", {})
         from dataclasses import replace
 
@@ -288,13 +288,42 @@ def test_every_ablation_is_a_valid_config():
         assert c.preset == "quick", name
 
 
-def test_the_quick_preset_is_the_old_sampler_ablation_and_ref_the_reference_sampler():
-    """The docs' quick numbers are the `old_sampler` row: the same config as the preset."""
+def test_the_quick_preset_is_the_gamma_100_ablation_and_ref_the_reference_sampler():
+    """The docs' quick numbers are the `gamma_100` row (the same config as the preset), and
+    `old_sampler` is the quick preset of before, with the thesis' γ 20."""
     from hilstack.learning.baoding import BaodingConfig
     from hilstack.tools.demo_baoding import ABLATIONS
 
-    assert BaodingConfig.quick() == BaodingConfig.quick(**ABLATIONS["old_sampler"])
-    ref = BaodingConfig.quick(**ABLATIONS["ref"])
-    assert (ref.sigma, ref.filter, ref.beta, ref.low_noise_fraction) == (0.9, "actions", 0.6, 0.1)
+    assert BaodingConfig.from_preset("quick") == BaodingConfig.from_preset("quick", **ABLATIONS["gamma_100"])
+    assert BaodingConfig.from_preset("quick", **ABLATIONS["old_sampler"]).gamma == 20.0
+    ref = BaodingConfig.from_preset("quick", **ABLATIONS["ref"])
+    assert (ref.sigma, ref.filter, ref.beta, ref.low_noise_fraction, ref.gamma) == (0.9, "actions", 0.6, 0.1, 20.0)
     d = BaodingConfig()
-    assert (d.sigma, d.filter, d.beta, d.low_noise_fraction) == (0.9, "actions", 0.6, 0.1)
+    assert (d.sigma, d.filter, d.beta, d.low_noise_fraction, d.gamma) == (0.9, "actions", 0.6, 0.1, 20.0)
+
+
+def test_a_run_stopped_after_an_iteration_keeps_that_iteration_in_report_json(bus, tmp_path):
+    """A thesis-scale run takes hours: report.json is rewritten after every iteration
+    (``partial: true``), so a run stopped early keeps its curve so far."""
+    import json
+
+    from hilstack.learning.baoding import BaodingConfig, BaodingRun
+
+    run = BaodingRun(BaodingConfig.from_preset("tiny", iterations=3), tmp_path, bus)
+    real_train, calls = run.train, []
+
+    def train(*a, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # stopped during the second iteration's training
+        return real_train(*a, **kw)
+
+    run.train = train
+    with pytest.raises(KeyboardInterrupt):
+        run.run()
+    r = json.loads((tmp_path / "report.json").read_text())
+    assert r["partial"] is True and [it["iteration"] for it in r["iterations"]] == [1]
+    it = r["iterations"][0]
+    assert it["episodes"] == 2 and {"success_90", "mean_rotation_deg", "points"} <= set(it)
+    assert 0 < it["wall_s"]["train"] <= it["wall_s"]["iteration"] <= it["wall_s"]["since_start"]
+    assert r["hold_policy"]["episodes"] == 2 and any(p.endswith("001-mpc.mcap") for p in r["recordings"])

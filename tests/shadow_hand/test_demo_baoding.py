@@ -113,7 +113,7 @@ def test_balls_in_the_state_on_the_demo_rig_and_the_drop_threshold_matches_the_t
 
 # ---------------------------------------------------------------------------- over the bus
 def test_a_drop_ends_the_episode_through_the_supervisor(bus, tmp_path):
-    run = BaodingRun(BaodingConfig.tiny(), tmp_path, bus)
+    run = BaodingRun(BaodingConfig.from_preset("tiny"), tmp_path, bus)
     with run.session():
         transitions = run.ctl.subscribe(f"hil/{run.rig.name}/reset/transition", ResetTransition, latest=False,
                                         capacity=256)
@@ -251,7 +251,7 @@ def test_the_pddm_policy_plans_from_the_state_after_the_sent_command_on_a_wall_c
     from hilstack.learning.mbrl import command_delay_steps
 
     for rig, delay in (("hand_emulated", 1), ("hand_sim", 0)):
-        run = BaodingRun(BaodingConfig.tiny(rig=rig), tmp_path / rig, bus)
+        run = BaodingRun(BaodingConfig.from_preset("tiny", rig=rig), tmp_path / rig, bus)
         run.state_names = NAMES
         run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
         run.command_delay = command_delay_steps(run.rig, "hand")  # what session() sets
@@ -268,7 +268,7 @@ def test_a_wall_clock_hand_fits_pddm_k_to_the_period_and_the_sim_keeps_it(bus, t
     from hilstack.learning.mbrl import make_model
 
     for rig, want in (("hand_emulated", 50), ("hand_sim", None)):
-        run = BaodingRun(BaodingConfig.tiny(rig=rig, samples=200), tmp_path / rig, bus)
+        run = BaodingRun(BaodingConfig.from_preset("tiny", rig=rig, samples=200), tmp_path / rig, bus)
         run.state_names = NAMES
         run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
         run.ctl = SimpleNamespace(next_state=lambda: SimpleNamespace(state=np.zeros(len(NAMES))))
@@ -290,7 +290,7 @@ def test_a_hand_state_without_the_balls_is_refused_before_any_episode(bus, tmp_p
 
     from hilstack.learning.mbrl import RigError
 
-    run = BaodingRun(BaodingConfig.tiny(rig="hand_emulated_arm"), tmp_path, bus)
+    run = BaodingRun(BaodingConfig.from_preset("tiny", rig="hand_emulated_arm"), tmp_path, bus)
     run.session = contextlib.nullcontext  # the rig is up; its hand publishes joints only
     run.state_names = [n for n in NAMES if not n.startswith("ball")]
     run.run_episodes = lambda *a, **k: pytest.fail("an episode ran")

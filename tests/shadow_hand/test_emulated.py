@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hilstack.bus.lifetime import child_env
 from hilstack.configs.schema import ConfigError
 from hilstack.drivers.base import Lifecycle, LinkError
 from hilstack.drivers.shadow_hand.config import ACT_INDEX, ShadowHandParams, to_action, to_joint_rad
@@ -48,11 +49,11 @@ def wait_for(cond, timeout_s: float, what: str, step=None):
 def slcan_emulator(tmp_path_factory):
     """A clean emulator serving SLCAN on a pty; yields the pty path."""
     cfg = json.dumps(ShadowHandParams(transport="slcan").model_dump(mode="json"))
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env = child_env({**os.environ, "PYTHONPATH": str(REPO)})
     log = tmp_path_factory.mktemp("emu") / "emulator.log"
     with open(log, "wb") as errf:
         p = subprocess.Popen([sys.executable, "-m", "hilstack.sim_backends.shadow_hand.emulator", "--transport", "slcan",
-                              "--print-pty", "--config", cfg, "--parent-pid", str(os.getpid())],
+                              "--print-pty", "--config", cfg],
                              stdout=subprocess.PIPE, stderr=errf, cwd=REPO, env=env)
     try:
         info = json.loads(p.stdout.readline())

@@ -194,3 +194,36 @@ def test_baoding_targets_rotate_and_drop_geometry():
     side[1, 0] = 0.2
     assert task.dropped(side)
     assert not task.dropped(t1)
+
+
+def _hold_still_rotation_deg(sim: ShadowHandSim) -> tuple[float, float]:
+    """(the pair's turn in the targets' direction [deg], the farthest a ball moved [m]) over
+    10 s of holding the reset pose."""
+    from hilstack.control.costs import baoding_episode_metrics
+
+    sim.reset()
+    held = sim.held_command
+    balls = [sim.balls_m()]
+    for _ in range(100):
+        sim.write(held)
+        sim.tick()
+        sim.read()
+        balls.append(sim.balls_m())
+    b = np.array(balls)
+    m = baoding_episode_metrics(sim.task, b, None, period_s=0.1)
+    return m["rotation_deg"], float(np.linalg.norm(b - b[0], axis=2).max())
+
+
+def test_a_hand_holding_still_does_not_turn_the_pair():
+    """The balls start where they rest in the held hand (as the reference's keyframe): a
+    do-nothing controller turns nothing and the targets start on the balls. Placed across
+    the palm centre (balls_settle_s 0, the earlier reset) they roll ~5 cm and the pair turns
+    by itself, so "hold still" scored a 40-65° turn."""
+    with ShadowHandSim(ShadowHandParams(sim={"balls_settle_s": 0})) as placed:
+        rot0, moved0 = _hold_still_rotation_deg(placed)
+    assert rot0 > 30 and moved0 > 0.02  # what the fix is for
+    with ShadowHandSim() as sim:
+        rot, moved = _hold_still_rotation_deg(sim)
+        t = sim.task
+        np.testing.assert_allclose(t.targets_at(t.phase0_rad), sim.balls_m(), atol=0.012)
+    assert abs(rot) < 3 and moved < 0.003

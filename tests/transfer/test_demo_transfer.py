@@ -33,7 +33,7 @@ def test_demo_transfer_writes_the_report_and_plots(tmp_path, monkeypatch):
     assert rep["garat"]["pendulum"]["seeds"] == [0]
     for f in rep["plots"]:
         assert (tmp_path / f).read_bytes()[:4] == b"\x89PNG"
-    assert "sidm similar: data multiplier" in r.output and "pendulum grounding error" in r.output
+    assert "sidm similar with_sidm: data multiplier per size" in r.output and "pendulum grounding error" in r.output
 
 
 def test_part_runs_only_that_half(tmp_path, monkeypatch):
@@ -59,17 +59,26 @@ def test_unknown_demo_is_a_one_line_error():
 
 
 @pytest.mark.slow
-def test_demo_transfer_sidm_part_only(tmp_path, monkeypatch):
+def test_demo_transfer_sidm_part_on_the_wheeled_setting(tmp_path, monkeypatch):
     monkeypatch.setenv("HIL_TRANSFER_PRESET", "tiny")
-    r = CliRunner().invoke(app, ["demo", "transfer", "--part", "sidm", "--out", str(tmp_path)])
+    r = CliRunner().invoke(app, ["demo", "transfer", "--part", "sidm", "--setting", "wheeled", "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
     rep = json.loads((tmp_path / "report.json").read_text())
-    assert "garat" not in rep and rep["part"] == "sidm" and rep["plots"] == ["sidm_validation.png"]
+    assert "garat" not in rep and rep["part"] == "sidm" and rep["setting"] == "wheeled"
+    assert rep["plots"] == ["sidm_validation.png"]
     assert set(rep["checks"]) == {"sidm_multiplier_above_1_on_a_pair"}
-    p = rep["sidm"]["pairs"]["similar"]
-    assert p["expert_model_on_novice"] > 0 and p["curve"][0]["with_sidm_no_matching"] > 0
-    assert len(p["data_multiplier_per_size"]) == len(p["curve"])
-    assert "pendulum" not in r.output
+    assert rep["sidm"]["variants"] == ["with_sidm", "without_sidm", "sidm_paper", "finetune"]
+    p = rep["sidm"]["pairs"]["dissimilar"]
+    assert p["overrides"]["stiffness_n_per_m"] == 400.0 * 667  # the paper's pair, not the roach's
+    assert p["expert_model_on_novice"] > 0
+    for row in p["curve"]:
+        assert all(row[k] > 0 for k in rep["sidm"]["variants"])
+    for tag in ("", "_sidm_paper", "_finetune"):
+        per = p["data_multiplier_per_size" + tag]
+        assert len(per) == len(p["curve"]) and {e["where"] for e in per} <= {"interpolated", "beyond", "below"}
+    assert "sidm similar sidm_paper: data multiplier per size" in r.output and "pendulum" not in r.output
+    r = CliRunner().invoke(app, ["demo", "transfer", "--setting", "wheeled", "--out", str(tmp_path)])
+    assert r.exit_code != 0 and "--setting is for `hil demo transfer --part sidm` only" in r.output
 
 
 def test_demo_transfer_unknown_part_is_a_clear_error(tmp_path, monkeypatch):

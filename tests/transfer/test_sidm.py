@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -15,6 +17,7 @@ from hilstack.learning.transfer.sidm import (
     data_multipliers,
     discriminator,
     latent_mean_distance,
+    multiplier_text,
     target_scale,
     train_sidm,
     validation_mse,
@@ -101,14 +104,46 @@ def test_baseline_ignores_expert_data_when_p_e_is_zero():
 def test_data_multiplier_on_known_curves():
     minutes = [1.0, 2.0, 4.0, 8.0]
     baseline = [8.0, 4.0, 2.0, 1.0]  # error halves per doubling
-    # SIDM reaches at m what the baseline reaches at 4m
-    assert data_multiplier(minutes, [4.0, 2.0, 1.0, 1.0], baseline) == pytest.approx(2.0, rel=1e-6)
-    # per size: 4x, 4x, 2x (8 min is the largest measured: a lower bound), 1x
-    np.testing.assert_allclose(data_multipliers(minutes, [2.0, 1.0, 1.0, 1.0], baseline), [4.0, 4.0, 2.0, 1.0])
-    assert data_multiplier(minutes, baseline, baseline) == pytest.approx(1.0)
+    # SIDM reaches at m what the baseline reaches at 4m (the last size: at 8 min, 1.0 = baseline's best)
+    per = data_multipliers(minutes, [2.0, 1.0, 1.0, 1.0], baseline)
+    assert [p["where"] for p in per] == ["interpolated"] * 4
+    np.testing.assert_allclose([p["multiplier"] for p in per], [4.0, 4.0, 2.0, 1.0])
+    assert data_multiplier(minutes, baseline, baseline)["median_interpolated"] == pytest.approx(1.0)
     # between grid points: error 2*sqrt(2) is reached at 2*sqrt(2) minutes
-    assert data_multiplier([1.0, 2.0, 4.0], [2 * np.sqrt(2)] * 3, [8.0, 4.0, 2.0]) == pytest.approx(
-        np.sqrt(2), rel=1e-6)
+    per = data_multipliers([1.0, 2.0, 4.0], [2 * np.sqrt(2)] * 3, [8.0, 4.0, 2.0])
+    np.testing.assert_allclose([p["multiplier"] for p in per], [2 * np.sqrt(2), np.sqrt(2), np.sqrt(2) / 2])
+
+
+def test_data_multiplier_is_not_capped_by_the_grid():
+    """The review's case: SIDM beats the baseline's best at every size. Capping at the largest
+    size gave [4, 2, 1] and a median of 2 by construction; now no number is made up."""
+    minutes = [1.0, 2.0, 4.0]
+    per = data_multipliers(minutes, [0.5, 0.4, 0.3], [8.0, 4.0, 2.0])
+    assert [p["where"] for p in per] == ["beyond"] * 3
+    assert all(p["multiplier"] is None for p in per)
+    np.testing.assert_allclose([p["at_least"] for p in per], [4.0, 2.0, 1.0])
+    assert data_multiplier(minutes, [0.5, 0.4, 0.3], [8.0, 4.0, 2.0]) == {
+        "median_interpolated": None, "interpolated": 0, "beyond_grid": 3, "below_grid": 0}
+    # SIDM worse than the baseline's smallest size: an upper bound, not a multiplier of 1
+    per = data_multipliers(minutes, [9.0, 3.0, 3.0], [8.0, 4.0, 2.0])
+    assert per[0]["where"] == "below" and per[0]["at_most"] == pytest.approx(1.0)
+    assert per[1]["where"] == "interpolated" and per[1]["multiplier"] == pytest.approx(2 ** (np.log2(8 / 3)) / 2)
+    assert multiplier_text(per[0]) == "< 1x (below the grid)"
+    assert multiplier_text({"where": "beyond", "at_least": 4.0}) == "beyond the grid (> 4x)"
+
+
+def test_finetuning_starts_from_the_given_model():
+    expert, nov, _ = pair(600, 40)
+    cfg = SidmConfig(**{**TINY.__dict__, "p_e": 0.0, "max_rounds": 3})
+    em = train_sidm(expert, cfg)
+    ft = train_sidm(nov, replace(cfg, lr=1e-12), None, init=em)  # no learning: the start is what is kept
+    for a, b in zip(ft.dyn.parameters(), em.dyn.parameters(), strict=True):
+        torch.testing.assert_close(a, b)
+    torch.testing.assert_close(ft.enc["novice"][0].weight, em.enc["novice"][0].weight)
+    scratch = train_sidm(nov, replace(cfg, lr=1e-12), None)
+    assert not torch.allclose(scratch.dyn[0].weight, em.dyn[0].weight)
+    with pytest.raises(ValueError, match="init"):
+        train_sidm(nov, replace(cfg, p_e=0.5), expert, init=em)
 
 
 def test_bad_inputs_are_refused():

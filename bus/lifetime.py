@@ -1,0 +1,53 @@
+"""Exit with the parent: the one convention of every process a hilstack process starts.
+
+The parent puts its pid in the child's environment (:func:`child_env`, variable
+:data:`PARENT_PID_ENV`): a driver's device emulator (drivers/emulator_process.py), a demo's
+or `hil mbrl`'s rig process, `hil up`'s per-robot processes. The child calls
+:func:`exit_with_parent` once at start: a daemon thread polls ``os.getppid()`` and, once
+the parent is gone (killed with SIGKILL, crashed: its cleanup never ran), calls
+``on_gone`` (default: SIGTERM to itself, so a driver node stops its robot and exits as on
+Ctrl-C, and an emulator ends its loop as on ``EmulatorProcess.stop()``). The variable is
+taken out of the environment: a process the child starts is watched only if it sets it
+again. Pure standard library: it lives in ``bus/``, the layer every package may import.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+
+#: environment variable holding the pid of the process that started this one
+PARENT_PID_ENV = "HIL_PARENT_PID"
+
+
+def child_env(env: dict[str, str] | None = None) -> dict[str, str]:
+    """``env`` (default: this process's environment) with this process as the child's parent."""
+    return {**(os.environ if env is None else env), PARENT_PID_ENV: str(os.getpid())}
+
+
+def _terminate_self() -> None:
+    logging.getLogger("hil").warning("the process that started this one is gone: stopping")
+    os.kill(os.getpid(), signal.SIGTERM)
+
+
+def exit_with_parent(on_gone: Callable[[], None] | None = None, poll_s: float = 0.5) -> int | None:
+    """Watch the parent named in :data:`PARENT_PID_ENV` (popped from the environment); call
+    ``on_gone`` (default: SIGTERM to this process) once it is gone. Returns the parent's pid,
+    or None when this process was not started with the variable (nothing is watched)."""
+    pid = os.environ.pop(PARENT_PID_ENV, None)
+    if not pid:
+        return None
+    parent = int(pid)
+    act = on_gone or _terminate_self
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_s)
+        act()
+
+    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
+    return parent

@@ -1,0 +1,603 @@
+"""Calibrate a robot's own MuJoCo model (its MJCF) against a rig recording, and name the effect it lacks.
+
+`hil calibrate --model configs/robots/widowx.yaml --data REC.mcap` (docs/calibration.md, "The
+robots' own MuJoCo models"). The parameter fit is MuJoCo's own ``mujoco.sysid``
+(``sysid.optimize``: box-constrained Gauss-Newton; ``sysid.calculate_intervals``: confidence
+intervals from the Jacobian at the optimum; ``sysid.Parameter`` modifiers write each value into an
+``MjSpec``), the rollouts are ``mujoco.rollout`` (threaded, many models in one call). hilstack's
+part is choosing *which* effect is missing:
+
+* Candidates are expressed in the MJCF: joint ``frictionloss``, ``damping``, ``armature``, the
+  servo loop's gain, an input delay (one parameter per arm joint, the delay shared).
+* Each candidate is fitted alone (then, stepwise, together with the effects already accepted,
+  all refitted) on training time blocks; it is scored by the open-loop (multi-step) error on
+  held-out time blocks, with a gap of one block between a held-out block and any training block,
+  and selected by the same evidence rule as the axis model (:func:`selection.gain_evidence`:
+  held-out gain ≥ 0.02 and a bootstrap interval above 0; "moderate" or better enters).
+* A pruning pass drops an accepted effect whose removal (and refit of the rest) costs less than
+  the minimum gain.
+
+The robot's sim backend says how its joints are driven (``calibration_bench()``, found through
+the driver registry): for the WidowX, each servo's velocity-mode PI loop, expressed in the
+rollout model as an ``intvelocity`` actuator (the I part on the integrated goal, plus the P
+part's damping) beside a ``motor`` carrying the P part's feed-forward, with the joint's
+``actuatorfrcrange`` as the stall torque. The integrator's state at the start of a block is
+recovered from the measured current (torque = kt·I = P part + I part).
+
+The calibrated MJCF written is the backend's own bench model with the identified joint values
+(and an input delay as ``<custom><numeric name="hilstack_input_delay_s">``, which the bench
+applies to its servos); ``params.sim.mjcf`` in the robot config points the sim backend at it.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hilstack.calibration.data import DataError, Episode
+
+#: the candidate effects, in the order ties are broken (simplest physics first)
+CANDIDATES = ("joint_frictionloss", "joint_damping", "joint_armature", "input_delay", "servo_gain")
+#: effects that may each look useless alone and only help together; tried jointly when no single one enters
+PAIRS = (("joint_frictionloss", "input_delay"), ("joint_frictionloss", "joint_damping"))
+#: the bench turns this numeric into its servos' goal delay (sim_backends/widowx/world.py DELAY_NUMERIC)
+DELAY_NUMERIC = "hilstack_input_delay_s"
+
+
+class SysidNotAvailable(RuntimeError):
+    """``mujoco.sysid`` needs the ``mujoco[sysid]`` extra (absl-py, ...)."""
+
+
+def _sysid():
+    try:
+        from mujoco import sysid
+        sysid.optimize  # noqa: B018 - the package imports empty without its extra
+    except (ImportError, AttributeError):
+        raise SysidNotAvailable("calibrating a robot's MJCF needs mujoco.sysid: install hilstack[calib] "
+                                "(mujoco[sysid])") from None
+    return sysid
+
+
+@dataclass
+class Bench:
+    """A robot's bench as calibration sees it (from its sim backend's ``calibration_bench()``)."""
+
+    spec: object  # mujoco.MjSpec of the backend's model
+    joints: list[str]
+    loops: dict[str, dict]
+    q: list[int]
+    qd: list[int]
+    current: list[int]
+    #: the goal delay a calibrated MJCF carries (its DELAY_NUMERIC) [s]
+    input_delay_s: float = 0.0
+
+    @classmethod
+    def from_layout(cls, layout: dict) -> Bench:
+        if layout.get("action") != "goal_velocity":
+            raise DataError(f"calibration bench: actions {layout.get('action')!r} are not supported (goal_velocity)")
+        spec = layout["spec"]
+        delay = 0.0
+        for n in [n for n in spec.numerics if n.name == DELAY_NUMERIC]:
+            delay = float(list(n.data)[0])
+            spec.delete(n)  # the rollout model applies it to the recorded goals instead
+        return cls(spec, list(layout["joints"]), dict(layout["loops"]), list(layout["q"]),
+                   list(layout["qd"]), list(layout["current"]), delay)
+
+
+@dataclass
+class Blocks:
+    """Contiguous time blocks of the recording (open-loop horizon each), split into train/test."""
+
+    episodes: list[Episode]
+    #: (episode index, first sample, samples) per block
+    spans: list[tuple[int, int, int]]
+    train: list[int]
+    test: list[int]
+    dt_s: float
+    period_s: float
+    #: per-joint scale of position / velocity residuals (their std over the recording)
+    q_scale: np.ndarray
+    qd_scale: np.ndarray
+
+
+def make_blocks(episodes: list[Episode], bench: Bench, dt_s: float, horizon_s: float = 2.0,
+                gap_blocks: int = 1, split: bool = True) -> Blocks:
+    """Cut episodes into blocks of ``horizon_s``; blocks alternate train, gap, test, gap (a block
+    next to a held-out block never trains: its samples are correlated with the test's)."""
+    if not episodes:
+        raise DataError("no episodes in the recording")
+    period = float(np.median(np.concatenate([np.diff(e.t_s) for e in episodes])))
+    h = max(2, int(round(horizon_s / period)))
+    spans = []
+    for i, e in enumerate(episodes):
+        if e.states is None or e.actions is None:
+            raise DataError(f"episode {e.name}: no full state/actions (a rig .mcap recording is needed)")
+        need = max(bench.current[-1], bench.qd[-1], bench.q[-1]) + 1
+        if e.states.shape[1] < need:
+            raise DataError(f"episode {e.name}: {e.states.shape[1]} state columns, the bench needs {need} "
+                            "(positions, velocities, currents)")
+        for s in range(0, e.n - h, h):
+            spans.append((i, s, h))
+    cycle = 2 * (gap_blocks + 1)
+    train = [k for k in range(len(spans)) if k % cycle == 0]
+    test = [k for k in range(len(spans)) if k % cycle == gap_blocks + 1]
+    if not split:  # score every block (a new recording: nothing trains)
+        train, test = [], list(range(len(spans)))
+        if not test:
+            raise DataError(f"recording shorter than one block of {horizon_s:g} s")
+    elif len(test) < 4 or len(train) < 2:
+        raise DataError(f"recording too short: {len(spans)} blocks of {horizon_s:g} s; need at least "
+                        f"{4 * cycle} (≈{4 * cycle * horizon_s:g} s) for 4 held-out blocks")
+    allq = np.concatenate([e.states[:, bench.q] for e in episodes])
+    allqd = np.concatenate([e.states[:, bench.qd] for e in episodes])
+    return Blocks(episodes, spans, train, test, dt_s, period, np.maximum(allq.std(0), 1e-3),
+                  np.maximum(allqd.std(0), 1e-3))
+
+
+# ----------------------------------------------------------------------------- the rollout model
+
+
+def servo_spec(bench: Bench):
+    """A copy of the bench spec whose arm actuators are the servos' loops in MJCF (see module doc)."""
+    import mujoco
+
+    spec = bench.spec.copy()
+    for j in bench.joints:
+        lp = bench.loops[j]
+        act = spec.actuator(j)
+        act.set_to_intvelocity(kp=lp["ki_nm"], kv=lp["kp_nm_s"])
+        act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
+        act.forcelimited = mujoco.mjtLimited.mjLIMITED_FALSE
+        act.actlimited = mujoco.mjtLimited.mjLIMITED_FALSE
+        spec.add_actuator(name=f"{j}_ff", target=j, trntype=mujoco.mjtTrn.mjTRN_JOINT,
+                          gear=[lp["kp_nm_s"], 0, 0, 0, 0, 0])
+        jt = spec.joint(j)
+        jt.actfrcrange = [-lp["tau_max_nm"], lp["tau_max_nm"]]
+        jt.actfrclimited = mujoco.mjtLimited.mjLIMITED_TRUE
+    return spec
+
+
+@dataclass
+class Candidate:
+    name: str
+    describe: str
+    #: (bench, accepted values) -> sysid Parameters
+    params: Callable
+
+
+def get_joint_attr(joint, attr: str) -> float:
+    """A joint's scalar value; MuJoCo 4's ``damping`` is a polynomial (linear term first)."""
+    return float(np.ravel(getattr(joint, attr))[0])
+
+
+def set_joint_attr(joint, attr: str, value: float) -> None:
+    cur = getattr(joint, attr)
+    if np.ndim(cur):
+        new = np.array(cur, float)
+        new.flat[0] = value
+        setattr(joint, attr, new)
+    else:
+        setattr(joint, attr, float(value))
+
+
+def _joint_attr(attr: str, lo: float, hi: float, what: str):
+    def make(bench: Bench, sysid):
+        base = np.array([get_joint_attr(bench.spec.joint(j), attr) for j in bench.joints], float)
+
+        def mod(spec, p, attr=attr):
+            for j, v in zip(bench.joints, p.value, strict=True):
+                set_joint_attr(spec.joint(j), attr, float(v))
+
+        start = np.clip(base, lo + 0.02 * (hi - lo), hi)
+        p = sysid.Parameter(f"joint_{attr}", nominal=base, min_value=np.full_like(base, lo),
+                            max_value=np.full_like(base, hi), modifier=mod)
+        p.value = start.copy()
+        return p
+    return Candidate(f"joint_{attr}", what, make)
+
+
+def _servo_gain(bench: Bench, sysid):
+    n = len(bench.joints)
+
+    def mod(spec, p):
+        for j, g in zip(bench.joints, p.value, strict=True):
+            lp = bench.loops[j]
+            spec.actuator(j).set_to_intvelocity(kp=lp["ki_nm"] * float(g), kv=lp["kp_nm_s"] * float(g))
+            spec.actuator(f"{j}_ff").gear = [lp["kp_nm_s"] * float(g), 0, 0, 0, 0, 0]
+    return sysid.Parameter("servo_gain", nominal=np.ones(n), min_value=np.full(n, 0.3), max_value=np.full(n, 3.0),
+                           modifier=mod)
+
+
+def _input_delay(bench: Bench, sysid):
+    p = sysid.Parameter("input_delay", nominal=0.0, min_value=0.0, max_value=0.15, modifier=None)
+    p.value = np.array([0.004])
+    return p
+
+
+CATALOGUE: dict[str, Candidate] = {
+    "joint_frictionloss": _joint_attr("frictionloss", 0.0, 2.0, "dry (Coulomb) friction at each joint [N·m]"),
+    "joint_damping": _joint_attr("damping", 0.0, 5.0, "viscous friction at each joint [N·m·s/rad]"),
+    "joint_armature": _joint_attr("armature", 0.001, 0.2, "reflected rotor inertia at each joint [kg·m²]"),
+    "input_delay": Candidate("input_delay", "a pure delay of the goals [s]", _input_delay),
+    "servo_gain": Candidate("servo_gain", "the servo loop's gain, a factor per joint", _servo_gain),
+}
+
+
+class Replay:
+    """Replays blocks of a recording through a model built from sysid parameters."""
+
+    def __init__(self, bench: Bench, blocks: Blocks, n_threads: int = 2):
+        import mujoco
+
+        self.bench = bench
+        self.blocks = blocks
+        self.base = servo_spec(bench)
+        m0 = self.base.compile()
+        self.dt = float(m0.opt.timestep)
+        self.sub = max(1, int(round(blocks.period_s / self.dt)))
+        self.nu = m0.nu
+        self.i_int = [mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_ACTUATOR, j) for j in bench.joints]
+        self.i_ff = [mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_ACTUATOR, f"{j}_ff") for j in bench.joints]
+        self.qadr = [int(m0.jnt_qposadr[m0.joint(j).id]) for j in bench.joints]
+        self.vadr = [int(m0.jnt_dofadr[m0.joint(j).id]) for j in bench.joints]
+        self.n_threads = n_threads
+        self._datas: list = []
+
+    def build(self, params) -> object:
+        spec = self.base.copy()
+        for p in params.values():
+            p.apply_modifier(spec)
+        return spec.compile()
+
+    def delay_of(self, params) -> float:
+        return float(params["input_delay"].value[0]) if "input_delay" in params else self.bench.input_delay_s
+
+    def _controls(self, blocks: list[int], delay_s: float) -> np.ndarray:
+        """(blocks, steps, nu): each block's recorded goals, zero-order held and delayed by ``delay_s``
+        (linear between neighbouring whole steps, so the fit sees a smooth function of the delay)."""
+        b = self.blocks
+        rows = []
+        m, frac = divmod(delay_s / self.dt, 1.0)
+        m = int(m)
+        for k in blocks:
+            ei, s, h = b.spans[k]
+            e = b.episodes[ei]
+            steps = (h - 1) * self.sub
+            t = e.t_s[s] + np.arange(steps) * self.dt
+
+            def goals(shift_steps: int, t=t, e=e):
+                idx = np.searchsorted(e.t_s, t - shift_steps * self.dt, side="right") - 1
+                return e.actions[np.clip(idx, 0, e.n - 1)]
+            u = (1 - frac) * goals(m) + frac * goals(m + 1)
+            c = np.zeros((steps, self.nu))
+            c[:, self.i_int] = u
+            c[:, self.i_ff] = u
+            rows.append(c)
+        return np.stack(rows) if rows else np.zeros((0, 0, self.nu))
+
+    def _initial(self, model, blocks: list[int], delay_s: float) -> np.ndarray:
+        """Full-physics states at the blocks' first samples: measured q, qd; the PI integrator from the
+        measured current: act = q + (kt·I − kp·(goal − qd)) / ki."""
+        import mujoco
+
+        d = mujoco.MjData(model)
+        spec_ = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        out = np.zeros((len(blocks), mujoco.mj_stateSize(model, spec_)))
+        b = self.blocks
+        ki = np.array([model.actuator_gainprm[i, 0] for i in self.i_int])
+        kp = np.array([model.actuator_gear[i, 0] for i in self.i_ff])
+        kt = np.array([self.bench.loops[j]["kt_nm_per_a"] for j in self.bench.joints])
+        for r, k in enumerate(blocks):
+            ei, s, _ = b.spans[k]
+            e = b.episodes[ei]
+            mujoco.mj_resetData(model, d)
+            q = e.states[s, self.bench.q]
+            qd = e.states[s, self.bench.qd]
+            cur = e.states[s, self.bench.current]
+            # the goal acting at the sample (the previous period's, ``delay_s`` back)
+            kg = int(np.searchsorted(e.t_s, e.t_s[s] - delay_s - 1e-9, side="right")) - 2
+            goal = e.actions[max(kg, 0)]
+            d.qpos[self.qadr] = q
+            d.qvel[self.vadr] = qd
+            d.act[[int(model.actuator_actadr[i]) for i in self.i_int]] = q + (kt * cur - kp * (goal - qd)) / ki
+            mujoco.mj_getState(model, d, out[r], spec_)
+        return out
+
+    def predict(self, models: list, delays: list[float], blocks: list[int]) -> np.ndarray:
+        """(models, blocks, samples-1, 2·joints): predicted q, qd at the blocks' later samples."""
+        import mujoco
+        from mujoco import rollout
+
+        if len(self._datas) < self.n_threads:
+            self._datas = [mujoco.MjData(models[0]) for _ in range(self.n_threads)]
+        states, ctrls, mods = [], [], []
+        for m, dl in zip(models, delays, strict=True):
+            states.append(self._initial(m, blocks, dl))
+            ctrls.append(self._controls(blocks, dl))
+            mods += [m] * len(blocks)
+        st, _ = rollout.rollout(mods, self._datas, np.concatenate(states), np.concatenate(ctrls))
+        # state layout (FULLPHYSICS): time, qpos, qvel, act, ...
+        nq = models[0].nq
+        pick = st[:, self.sub - 1::self.sub, :]  # after sub, 2·sub, ... steps: the next samples
+        q = pick[:, :, 1 + np.array(self.qadr)]
+        qd = pick[:, :, 1 + nq + np.array(self.vadr)]
+        return np.concatenate([q, qd], axis=2).reshape(len(models), len(blocks), -1, 2 * len(self.qadr))
+
+    def measured(self, blocks: list[int]) -> np.ndarray:
+        b = self.blocks
+        out = []
+        for k in blocks:
+            ei, s, h = b.spans[k]
+            e = b.episodes[ei]
+            out.append(np.concatenate([e.states[s + 1:s + h, self.bench.q], e.states[s + 1:s + h, self.bench.qd]], 1))
+        return np.stack(out)
+
+    def scale(self) -> np.ndarray:
+        return np.concatenate([self.blocks.q_scale, self.blocks.qd_scale])
+
+
+# ----------------------------------------------------------------------------- fit and score
+
+
+@dataclass
+class Fit:
+    effects: list[str]
+    params: object  # sysid.ParameterDict
+    values: dict[str, list[float]] = field(default_factory=dict)
+    intervals: dict[str, list[float]] = field(default_factory=dict)
+    unidentifiable: dict[str, list[str]] = field(default_factory=dict)
+    fit_s: float = 0.0
+    fit_cpu_s: float = 0.0
+    #: held-out per block and joint: sum of squared position errors (scaled)
+    test_sse: np.ndarray | None = None
+
+
+def _param_dict(sysid, bench: Bench, effects: list[str], start: dict | None = None):
+    pd = sysid.ParameterDict()
+    for name in effects:
+        p = CATALOGUE[name].params(bench, sysid)
+        if start and name in start:
+            p.value = np.clip(np.asarray(start[name], float), p.min_value, p.max_value)
+        pd.add(p)
+    return pd
+
+
+def fit_effects(replay: Replay, effects: list[str], max_fit_blocks: int = 8, max_iters: int = 12,
+                start: dict | None = None, seed: int = 0) -> Fit:
+    """Fit the parameters of ``effects`` together on (up to ``max_fit_blocks``) training blocks with
+    ``mujoco.sysid``; confidence intervals from its Jacobian; held-out errors on the test blocks."""
+    sysid = _sysid()
+    t0, c0 = time.perf_counter(), time.process_time()
+    b = replay.blocks
+    rng = np.random.default_rng(seed)
+    train = sorted(rng.choice(b.train, min(max_fit_blocks, len(b.train)), replace=False).tolist())
+    meas = replay.measured(train)
+    scale = replay.scale()
+    params = _param_dict(sysid, replay.bench, effects, start)
+
+    def residual_fn(x, pd):
+        x2 = x.reshape(len(x), -1) if x.ndim > 1 else x[:, None]
+        models, delays = [], []
+        for c in range(x2.shape[1]):
+            pd.update_from_vector(x2[:, c])
+            models.append(replay.build(pd))
+            delays.append(replay.delay_of(pd))
+        pred = replay.predict(models, delays, train)
+        r = ((pred - meas[None]) / scale).reshape(x2.shape[1], -1)
+        if x.ndim > 1:
+            return [r.T], None, None
+        return [r[0]], None, None
+
+    fit = Fit(list(effects), params)
+    if effects:
+        # xtol 1e-4: parameters to 0.01 % (their intervals are far wider); the backend's log to a buffer
+        opt, res = sysid.optimize(params, residual_fn, optimizer="mujoco", verbose=False, max_iters=max_iters,
+                                  xtol=1e-4, output=io.StringIO())
+        r_star = residual_fn(opt.as_vector(), opt)[0]
+        jac = np.asarray(res.jac)
+        _, half = sysid.calculate_intervals(r_star, jac)
+        fit.params = opt
+        k = 0
+        for name, p in opt.items():
+            v = p.value.ravel()
+            hw = np.asarray(half[k:k + v.size], float)
+            k += v.size
+            fit.values[name] = [float(a) for a in v]
+            fit.intervals[name] = [float(a) for a in hw]
+            lo, hi = p.min_value.ravel(), p.max_value.ravel()
+            labels = replay.bench.joints if v.size == len(replay.bench.joints) else [name]
+            # unidentifiable: the interval is unbounded or wider than the box, or the value sits on a bound
+            bad = [lab for lab, vi, hi_, lo_, up_ in zip(labels, v, hw, lo, hi, strict=True)
+                   if not np.isfinite(hi_) or hi_ > 0.5 * (up_ - lo_) or vi <= lo_ + 1e-9 or vi >= up_ - 1e-9]
+            if bad:
+                fit.unidentifiable[name] = bad
+    fit.fit_s = time.perf_counter() - t0
+    fit.fit_cpu_s = time.process_time() - c0
+    fit.test_sse = heldout_sse(replay, fit.params)
+    return fit
+
+
+def heldout_sse(replay: Replay, params) -> np.ndarray:
+    """(test blocks, joints): open-loop squared position error summed over each block, scaled."""
+    b = replay.blocks
+    model = replay.build(params)
+    pred = replay.predict([model], [replay.delay_of(params)], b.test)[0]
+    meas = replay.measured(b.test)
+    nj = len(replay.bench.joints)
+    err = (pred[..., :nj] - meas[..., :nj]) / b.q_scale
+    return (err ** 2).sum(1)
+
+
+def nrmse(sse: np.ndarray, samples: int) -> float:
+    """Multi-step position NRMSE (per joint, normalised by the joint's std), mean over joints."""
+    return float(np.mean(np.sqrt(sse.sum(0) / (sse.shape[0] * samples))))
+
+
+# ----------------------------------------------------------------------------- selection
+
+
+def select(replay: Replay, candidates: tuple[str, ...] = CANDIDATES, max_rounds: int = 3, seed: int = 0,
+           log: Callable[[str], None] = lambda m: None, max_fit_blocks: int = 8) -> dict:
+    """Stepwise: each round fits every remaining candidate together with the accepted effects (all
+    refitted), accepts the best at "moderate" or better; then a pruning pass. Returns the report."""
+    from hilstack.calibration.selection import LEVELS, SelectionConfig, gain_evidence
+
+    cfg = SelectionConfig()
+    sysid = _sysid()
+    nominal = Fit([], _param_dict(sysid, replay.bench, []))
+    nominal.test_sse = heldout_sse(replay, nominal.params)
+    current = nominal
+    rounds = []
+    for r in range(max_rounds):
+        tried = []
+        for name in candidates:
+            if name in current.effects:
+                continue
+            f = fit_effects(replay, current.effects + [name], max_fit_blocks=max_fit_blocks,
+                            start=current.values, seed=seed)
+            ev = gain_evidence(current.test_sse, f.test_sse, cfg, seed=seed)
+            log(f"round {r + 1}: {'+'.join(f.effects)}: held-out gain {ev.gain:+.3f} "
+                f"[{ev.interval[0]:+.3f}, {ev.interval[1]:+.3f}] {ev.level} ({f.fit_s:.1f} s, cpu {f.fit_cpu_s:.1f} s)")
+            tried.append((f, ev))
+        if not tried:
+            break
+        # best by evidence level, then gain; ties within 1e-6 go to the catalogue's order
+        tried.sort(key=lambda fe: (LEVELS.index(fe[1].level), -round(fe[1].gain, 6)))
+        rounds.append([{"effects": f.effects, "added": f.effects[-1], "evidence": ev.to_dict()} for f, ev in tried])
+        best, ev = tried[0]
+        if not ev.at_least("moderate"):
+            # effects that may only show together (friction + delay, friction + damping): fitted jointly
+            pairs = [pr for pr in PAIRS if all(e in candidates and e not in current.effects for e in pr)]
+            for pr in pairs:
+                f = fit_effects(replay, current.effects + list(pr), max_fit_blocks=max_fit_blocks,
+                                start=current.values, seed=seed)
+                pev = gain_evidence(current.test_sse, f.test_sse, cfg, seed=seed)
+                log(f"round {r + 1} pair: {'+'.join(f.effects)}: held-out gain {pev.gain:+.3f} {pev.level}")
+                rounds[-1].append({"effects": f.effects, "added": "+".join(pr), "evidence": pev.to_dict()})
+                if pev.at_least("moderate") and (not ev.at_least("moderate") or pev.gain > ev.gain):
+                    best, ev = f, pev
+            if not ev.at_least("moderate"):
+                break
+        current = best
+    pruned = []
+    if len(current.effects) > 1:
+        for name in list(current.effects):
+            rest = [e for e in current.effects if e != name]
+            f = fit_effects(replay, rest, max_fit_blocks=max_fit_blocks, start=current.values, seed=seed)
+            ev = gain_evidence(f.test_sse, current.test_sse, cfg, seed=seed)
+            log(f"prune {name}: keeping it gains {ev.gain:+.3f} over {'+'.join(rest)} ({ev.level})")
+            if not ev.at_least("moderate"):
+                pruned.append(name)
+                current = f
+    ns = replay.blocks.spans[replay.blocks.test[0]][2] - 1
+    before = nrmse(nominal.test_sse, ns)
+    after = nrmse(current.test_sse, ns)
+    return {"effects": current.effects, "values": current.values, "intervals_95": current.intervals,
+            "unidentifiable": current.unidentifiable, "rounds": rounds, "pruned": pruned,
+            "before_multi_step_nrmse": before, "after_multi_step_nrmse": after,
+            "ratio": after / before if before > 0 else math.nan, "fit": current}
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def calibrated_spec(bench: Bench, values: dict[str, list[float]]):
+    """The backend's bench spec with the identified joint values (and the delay as a custom numeric)."""
+    spec = bench.spec.copy()
+    for name, v in values.items():
+        if name.startswith("joint_"):
+            attr = name[len("joint_"):]
+            for j, x in zip(bench.joints, v, strict=True):
+                set_joint_attr(spec.joint(j), attr, float(x))
+        elif name == "input_delay":
+            spec.add_numeric(name=DELAY_NUMERIC, data=[float(v[0])])
+    return spec
+
+
+def evaluate(bench: Bench, episodes: list[Episode], values: dict[str, list[float]] | None = None,
+             horizon_s: float = 2.0) -> float:
+    """Multi-step position NRMSE of the bench model (with ``values`` applied) on every block of
+    ``episodes`` (e.g. a NEW recording): all blocks are scored, none trains."""
+    sysid = _sysid()
+    blocks = make_blocks(episodes, bench, float(bench.spec.option.timestep), horizon_s=horizon_s, split=False)
+    rp = Replay(bench, blocks)
+    pd = _param_dict(sysid, bench, list((values or {}).keys()), values)
+    sse = heldout_sse(rp, pd)
+    return nrmse(sse, blocks.spans[0][2] - 1)
+
+
+def run_mjcf_calibration(data_path: str | Path, robot_config: str | Path, out_dir: str | Path, seed: int = 0,
+                         progress: bool = True, horizon_s: float = 2.0, force: bool = False,
+                         candidates: tuple[str, ...] = CANDIDATES, max_rounds: int = 3,
+                         max_fit_blocks: int = 8) -> dict:
+    """`hil calibrate --model <robot config>`: select and fit the missing effect, write
+    ``calibrated.xml``, ``report.json`` and ``report.md`` to ``out_dir``."""
+    import sys
+
+    from hilstack.calibration.data import load_episodes
+    from hilstack.drivers.registry import make_driver
+
+    def log(msg: str) -> None:
+        if progress:
+            print(f"[calibrate] {msg}", file=sys.stderr, flush=True)
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    driver = make_driver(str(robot_config), backend="sim")
+    if not hasattr(driver, "calibration_bench"):
+        raise DataError(f"{robot_config}: robot {driver.spec.name!r}'s sim backend has no calibration_bench() "
+                        "(the MJCF calibration needs it)")
+    bench = Bench.from_layout(driver.calibration_bench(driver.params))
+    out = Path(out_dir)
+    xml_path = out / "calibrated.xml"
+    if xml_path.exists() and not force:
+        raise DataError(f"{xml_path} exists (pass --force to overwrite)")
+    episodes = load_episodes(data_path, robot=None, warn=lambda m: log(f"warning: {m}"))
+    blocks = make_blocks(episodes, bench, float(bench.spec.option.timestep), horizon_s=horizon_s)
+    log(f"{sum(e.n for e in episodes)} samples, {len(blocks.spans)} blocks of {horizon_s:g} s: "
+        f"{len(blocks.train)} train, {len(blocks.test)} held out")
+    replay = Replay(bench, blocks)
+    unknown = [c for c in candidates if c not in CATALOGUE]
+    if unknown:
+        raise DataError(f"unknown candidate effects {unknown}; the catalogue: {list(CATALOGUE)}")
+    rep = select(replay, candidates=tuple(candidates), max_rounds=max_rounds, seed=seed, log=log,
+                 max_fit_blocks=max_fit_blocks)
+    fit = rep.pop("fit")
+    out.mkdir(parents=True, exist_ok=True)
+    xml_path.write_text(calibrated_spec(bench, fit.values).to_xml())
+    rep.update({"model": str(robot_config), "data": str(data_path), "samples": int(sum(e.n for e in episodes)),
+                "calibrated_mjcf": str(xml_path), "wall_s": round(time.perf_counter() - t0, 2), "cpu_s": round(time.process_time() - c0, 2),
+                "catalogue": {k: c.describe for k, c in CATALOGUE.items()}, "joints": bench.joints,
+                "horizon_s": horizon_s, "blocks": {"train": len(blocks.train), "test": len(blocks.test)}})
+    (out / "report.json").write_text(json.dumps(rep, indent=1))
+    (out / "report.md").write_text(_markdown(rep))
+    return rep
+
+
+def _markdown(rep: dict) -> str:
+    lines = [f"# MJCF calibration of {rep['model']}", "", f"data: {rep['data']} ({rep['samples']} samples)", "",
+             f"effects: {', '.join(rep['effects']) or 'none'}", "",
+             f"held-out multi-step (open-loop, {rep['horizon_s']:g} s) position NRMSE: "
+             f"{rep['before_multi_step_nrmse']:.4f} → {rep['after_multi_step_nrmse']:.4f} "
+             f"(×{rep['ratio']:.3f})", "", "| effect | joint | value | ±95 % | identifiable |", "|---|---|---|---|---|"]
+    for name, vals in rep["values"].items():
+        labels = rep["joints"] if len(vals) == len(rep["joints"]) else [name]
+        for lab, v, h in zip(labels, vals, rep["intervals_95"][name], strict=True):
+            ok = "no" if lab in rep["unidentifiable"].get(name, []) else "yes"
+            lines.append(f"| {name} | {lab} | {v:.4g} | {h:.2g} | {ok} |")
+    lines += ["", "## Rounds", ""]
+    for i, rnd in enumerate(rep["rounds"]):
+        for c in rnd:
+            ev = c["evidence"]
+            lines.append(f"- round {i + 1}: {'+'.join(c['effects'])}: gain {ev['gain']:+.3f} "
+                         f"[{ev['interval'][0]:+.3f}, {ev['interval'][1]:+.3f}] {ev['level']}")
+    if rep["pruned"]:
+        lines += ["", f"pruned: {', '.join(rep['pruned'])}"]
+    lines += ["", f"calibrated MJCF: {rep['calibrated_mjcf']} (set `params.sim.mjcf` in the robot config to use it)"]
+    return "\n".join(lines) + "\n"

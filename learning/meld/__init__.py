@@ -1,0 +1,8 @@
+"""MELD: meta-RL from images as latent state estimation (thesis ch. 7; docs/meld.md).
+
+model.py (latent variable model, ELBO of Eq. 7.4, online belief filter), sac.py (SAC on a
+feature vector), replay.py (per-task episode buffers), agents.py (MELD, SLAC, SAC on a history),
+train.py (Algorithms 7 and 8), toy.py (a point reacher drawn in tiny images, for tests).
+The robots' tasks (WidowX and the task-reset mechanism, the Sawyer reacher) are wired in
+tools/demo_meld.py.
+"""

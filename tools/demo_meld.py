@@ -1,0 +1,386 @@
+"""`hil demo meld`: MELD vs SLAC (no reward evidence) vs SAC on a history of images and rewards,
+meta-trained on the training tasks and tested on held-out tasks (thesis Algorithms 7 and 8), on
+the WidowX reach-to-port (tasks set by the task-reset mechanism) and the Sawyer reacher, from
+the sim backends' fixed + wrist cameras (docs/meld.md).
+
+Writes ``OUT/report.json`` ``{task: {method: {success_rate, reward, episodes, seeds, samples, ...}}}``,
+``OUT/report.md``, ``OUT/curves.png`` (held-out success against environment samples, beside the
+thesis' WidowX figure) and ``OUT/belief.png`` (MELD's task estimate over a held-out episode).
+
+Every method gets the same budget per task and seed: the same random episodes to start from
+(collected once), then the same environment samples or the same wall time, whichever ends first,
+and the same gradient steps per collected epoch.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: the thesis' WidowX cable insertion (Fig. 7.13): success on 10 unseen tasks after 50k samples
+THESIS_WIDOWX = {"samples": 50_000, "success_rate": 0.96, "source": "thesis Fig. 7.13 / MELD (Zhao et al. 2020)"}
+METHODS = ("meld", "slac", "sac_history")
+
+
+@dataclass
+class DemoConfig:
+    tasks: tuple[str, ...] = ("sawyer_reach", "widowx_port")
+    methods: tuple[str, ...] = METHODS
+    seeds: tuple[int, ...] = (0,)
+    camera_px: int = 32                  #: per view; the image is camera_px × 2·camera_px
+    env_samples: int = 50_000
+    time_budget_s: float | None = 900.0  #: per method, task and seed (training + collection)
+    initial_episodes: int = 1
+    tasks_per_epoch: int = 4
+    train_steps_per_epoch: int = 40
+    eval_every: int = 5
+    batch: int = 32
+    seq_len: int = 8
+    threads: int = 2
+
+    @classmethod
+    def quick(cls, **kw: Any) -> DemoConfig:
+        return replace(cls(time_budget_s=60.0, eval_every=1000, train_steps_per_epoch=20), **kw)
+
+    @classmethod
+    def full(cls, **kw: Any) -> DemoConfig:
+        return replace(cls(seeds=(0, 1, 2), camera_px=64, time_budget_s=None, batch=64, seq_len=8), **kw)
+
+
+class DoNothing:
+    """The do-nothing reference: zero joint velocity, the arm stays at its start pose."""
+
+    name = "do_nothing"
+
+    def __init__(self, action_dim: int):
+        self.dim = action_dim
+
+    def reset(self) -> None:
+        pass
+
+    def observe(self, image_u8: np.ndarray, reward: float) -> None:
+        pass
+
+    def act(self, deterministic: bool = False) -> np.ndarray:
+        return np.zeros(self.dim)
+
+
+def do_nothing_scores(tasks: tuple[str, ...] = ("sawyer_reach", "widowx_port"), seed: int = 0,
+                      camera_px: int = 32) -> dict[str, Any]:
+    """Held-out success and reward of :class:`DoNothing` on each task (Algorithm 8's episodes)."""
+    from hilstack.learning.meld.train import meta_test
+    from hilstack.tools.meld_tasks import TASKS
+
+    out = {}
+    for name in tasks:
+        env = TASKS[name](camera_px=camera_px, seed=seed)
+        try:
+            out[name] = meta_test(env, DoNothing(env.action_dim), env.test_tasks)
+        finally:
+            env.close()
+    return out
+
+
+def reproduce_command(out: Path, quick: bool, full: bool, seed: int) -> str:
+    flags = " --quick" if quick else " --full" if full else ""
+    return f"MUJOCO_GL=egl hil demo meld{flags} --seed {seed} --out {out}"
+
+
+def _agent_config(env: Any, cfg: DemoConfig):
+    from hilstack.learning.meld.agents import AgentConfig
+    from hilstack.learning.meld.model import LatentConfig
+
+    return AgentConfig(latent=LatentConfig(image_hw=(cfg.camera_px, 2 * cfg.camera_px), action_dim=env.action_dim),
+                       batch=cfg.batch, seq_len=cfg.seq_len)
+
+
+def belief_trace(env: Any, agent: Any, held_out: int) -> dict[str, Any]:
+    """MELD's task estimate over one held-out episode: a linear probe from the belief mean to
+    the task parameters, fitted on the belief at every step of one episode on each of the first 10
+    training tasks (10 × 41 beliefs; fewer episodes keep ``--quick`` short)."""
+    from hilstack.learning.meld.train import apply_probe, run_episode, task_probe
+
+    feats, params = [], []
+    for task in list(env.train_tasks)[:10]:
+        run_episode(env, task, lambda: agent.act(deterministic=True), agent)
+        f = agent.task_features()
+        feats.append(f), params.append(np.repeat(env.task_params[task][None], len(f), 0))
+    params = np.concatenate(params)
+    mu, sd = params.mean(0), params.std(0) + 1e-12  # the probe on standardized parameters
+    w = task_probe(np.concatenate(feats), (params - mu) / sd)
+    ep, info = run_episode(env, held_out, lambda: agent.act(deterministic=True), agent)
+    est = apply_probe(w, agent.task_features()) * sd + mu
+    return {"task": held_out, "names": list(env.task_param_names), "true": env.task_params[held_out].tolist(),
+            "estimate": est.tolist(),
+            "success": ep.success, "final_distance_m": info.get("distance_m")}
+
+
+def run_meld_demo(out: Path, cfg: DemoConfig, command: str, log=print) -> dict[str, Any]:
+    import torch
+
+    from hilstack.learning.meld.agents import AGENTS
+    from hilstack.learning.meld.replay import TaskReplay
+    from hilstack.learning.meld.train import MetaTrainConfig, meta_train, run_episode
+    from hilstack.tools.meld_tasks import TASKS
+
+    torch.set_num_threads(cfg.threads)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.monotonic()
+    report: dict[str, Any] = {}
+    runs: dict[str, Any] = {}
+    traces: dict[str, Any] = {}
+    for task_name in cfg.tasks:
+        report[task_name], runs[task_name] = {}, {}
+        still: list[dict[str, Any]] = []
+        for seed in cfg.seeds:
+            env = TASKS[task_name](camera_px=cfg.camera_px, seed=seed)
+            try:
+                rng = np.random.default_rng([seed, 1])
+                t0 = time.monotonic()
+                shared = TaskReplay()  # the same random start for every method
+                for task in env.train_tasks:
+                    for _ in range(cfg.initial_episodes):
+                        shared.add(run_episode(env, task, None, rng=rng)[0])
+                random_s = time.monotonic() - t0
+                from hilstack.learning.meld.train import meta_test
+
+                still.append({"seed": seed, **meta_test(env, DoNothing(env.action_dim), env.test_tasks)})
+                spread = np.linalg.norm(_goals(env) - _goals(env).mean(0), axis=1)
+                log(f"[meld demo] {task_name} seed {seed}: {shared.n_samples} random samples in {random_s:.0f} s")
+                for method in cfg.methods:
+                    torch.manual_seed(seed)
+                    agent = AGENTS[method](_agent_config(env, cfg))
+                    mt = MetaTrainConfig(env_samples=cfg.env_samples, initial_episodes=0,
+                                         tasks_per_epoch=cfg.tasks_per_epoch,
+                                         train_steps_per_epoch=cfg.train_steps_per_epoch, eval_every=cfg.eval_every,
+                                         time_budget_s=cfg.time_budget_s, seed=seed)
+                    res = meta_train(env, agent, mt, log=log, initial_replay=copy.deepcopy(shared))
+                    res.pop("replay")
+                    res["random_collect_s"] = random_s
+                    runs[task_name].setdefault(method, []).append({"seed": seed, **res})
+                    if method == "meld" and seed == cfg.seeds[0]:
+                        traces[task_name] = belief_trace(env, agent, env.test_tasks[0])
+                report[task_name]["task_spread_m"] = {"max": float(spread.max()), "mean": float(spread.mean())}
+                report[task_name]["success_m"] = env.success_m
+            finally:
+                env.close()
+        report[task_name]["do_nothing"] = {
+            "success_rate": float(np.mean([r["success_rate"] for r in still])),
+            "reward": float(np.mean([r["reward"] for r in still])), "reward_std": float(np.std([r["reward"] for r in still])),
+            "final_distance_m": float(np.mean([r["final_distance_m"] for r in still])),
+            "episodes": int(sum(r["episodes"] for r in still)), "seeds": [r["seed"] for r in still], "samples": 0}
+        for method, rs in runs[task_name].items():
+            fin = [r["final"] for r in rs]
+            sr = np.array([f["success_rate"] for f in fin])
+            rw = np.array([f["reward"] for f in fin])
+            report[task_name][method] = {
+                "success_rate": float(sr.mean()), "success_rate_std": float(sr.std()),
+                "reward": float(rw.mean()), "reward_std": float(rw.std()),
+                "episodes": int(sum(f["episodes"] for f in fin)), "seeds": [r["seed"] for r in rs],
+                "samples": int(np.mean([r["samples"] for r in rs])),
+                "gradient_steps": int(np.mean([r["gradient_steps"] for r in rs])),
+                "final_distance_m": float(np.mean([f.get("final_distance_m", np.nan) for f in fin])),
+                "stopped_by_time": any(r["stopped_by_time"] for r in rs),
+                "wall_s": {k: float(np.mean([r["wall_s"][k] for r in rs])) for k in rs[0]["wall_s"]},
+            }
+    meta = {"command": command, "config": asdict(cfg), "wall_s": time.monotonic() - t_start,
+            "created": time.strftime("%Y-%m-%d %H:%M:%S"), "thesis": THESIS_WIDOWX,
+            "curves": {t: {m: [{"seed": r["seed"], "curve": r["curve"]} for r in rs] for m, rs in v.items()}
+                       for t, v in runs.items()},
+            "belief": traces}
+    (out / "report.json").write_text(json.dumps({**report, "_meta": meta}, indent=1, default=float))
+    (out / "report.md").write_text(markdown(report, meta))
+    _plots(out, meta)
+    return {**report, "_meta": meta}
+
+
+def _goals(env: Any) -> np.ndarray:
+    """Goal positions [m] of all tasks (the WidowX's port per mechanism pose)."""
+    if hasattr(env, "port_fk"):
+        p = env.task_params
+        return np.stack([env.port_fk.position(np.array([o, r])) for r, o in p])
+    return env.task_params
+
+
+def markdown(report: dict[str, Any], meta: dict[str, Any]) -> str:
+    cfg = meta["config"]
+    lines = ["# MELD from images", "", f"Reproduce: `{meta['command']}` ({meta['wall_s']:.0f} s wall clock, "
+             f"{meta['created']}). Images {cfg['camera_px']}×{2 * cfg['camera_px']} (fixed | wrist); seeds "
+             f"{list(cfg['seeds'])}; budget per method: {cfg['env_samples']} samples or "
+             f"{cfg['time_budget_s']} s.", ""]
+    names = {"meld": "MELD", "slac": "SLAC (no reward evidence)", "sac_history": "SAC on image+reward history"}
+    for task, v in report.items():
+        lines += [f"## {task}", "", f"Success: within {100 * v['success_m']:.0f} cm at the end of a 40-step episode on "
+                  f"10 held-out tasks. Goals spread {100 * v['task_spread_m']['mean']:.1f} cm (mean) / "
+                  f"{100 * v['task_spread_m']['max']:.1f} cm (max) from their mean.", "",
+                  "| method | held-out success (mean ± std) | reward | final distance (cm) | samples | gradient steps |",
+                  "|---|---|---|---|---|---|"]
+        for m in cfg["methods"]:
+            r = v[m]
+            lines.append(f"| {names[m]} | {100 * r['success_rate']:.0f} ± {100 * r['success_rate_std']:.0f} % | "
+                         f"{r['reward']:.1f} ± {r['reward_std']:.1f} | {100 * r['final_distance_m']:.1f} | "
+                         f"{r['samples']} | {r['gradient_steps']} |")
+        d = v["do_nothing"]
+        lines += [f"| do nothing (zero velocity) | {100 * d['success_rate']:.0f} % | {d['reward']:.1f} | "
+                  f"{100 * d['final_distance_m']:.1f} | 0 | 0 |", ""]
+    lines.append(f"Thesis reference: WidowX cable insertion {100 * THESIS_WIDOWX['success_rate']:.0f} % on 10 unseen tasks "
+                 f"after {THESIS_WIDOWX['samples']} samples ({THESIS_WIDOWX['source']}).")
+    return "\n".join(lines) + "\n"
+
+
+def _plots(out: Path, meta: dict[str, Any]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = meta["curves"]
+    fig, axes = plt.subplots(2, len(curves), figsize=(5.5 * len(curves), 7), squeeze=False)
+    for col, (task, by_method) in enumerate(curves.items()):
+        ax, axr = axes[0][col], axes[1][col]
+        for m, rs in by_method.items():
+            for r in rs:
+                c = r["curve"]
+                x = [p["samples"] for p in c]
+                ax.plot(x, [p["success_rate"] for p in c], marker="o", label=f"{m} s{r['seed']}")
+                axr.plot(x, [p["reward"] for p in c], marker="o", label=f"{m} s{r['seed']}")
+        if task == "widowx_port":
+            ax.scatter([THESIS_WIDOWX["samples"]], [THESIS_WIDOWX["success_rate"]], marker="*", s=150, c="k",
+                       label="thesis WidowX insertion (Fig. 7.13)")
+            ax.set_xscale("symlog", linthresh=1000)
+        ax.set(title=task, ylabel="held-out success", ylim=(-0.05, 1.05))
+        axr.set(xlabel="environment samples", ylabel="held-out episode reward")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "curves.png", dpi=100)
+    plt.close(fig)
+    if meta["belief"]:
+        fig, axes = plt.subplots(1, len(meta["belief"]), figsize=(5.5 * len(meta["belief"]), 4), squeeze=False)
+        for ax, (task, tr) in zip(axes[0], meta["belief"].items(), strict=True):
+            est = np.asarray(tr["estimate"])
+            for i in range(est.shape[1]):
+                line, = ax.plot(est[:, i], label=tr.get("names", [f"parameter {j}" for j in range(est.shape[1])])[i])
+                ax.axhline(tr["true"][i], ls="--", c=line.get_color())
+            ax.set(title=f"{task}: MELD belief's task estimate (held-out task {tr['task']})", xlabel="step",
+                   ylabel="task parameter (dashed: true)")
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "belief.png", dpi=100)
+        plt.close(fig)
+
+
+def cli_meld(out: Path, quick: bool = False, full: bool = False, seed: int = 0) -> None:
+    """`hil demo meld` (tools/cmd_demo.py's OTHER_DEMOS)."""
+    import typer
+
+    from hilstack.tools.common import UserError
+
+    out = Path(out)
+    if (out / "report.json").exists():
+        raise UserError(f"hil demo meld: {out / 'report.json'} exists; choose another --out")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    seeds = (seed, seed + 1, seed + 2) if full else (seed,)
+    cfg = DemoConfig.quick(seeds=seeds) if quick else DemoConfig.full(seeds=seeds) if full else DemoConfig(seeds=seeds)
+    rep = run_meld_demo(out, cfg, reproduce_command(out, quick, full, seed),
+                        log=lambda m: typer.echo(m, err=True))
+    for task, v in rep.items():
+        if task.startswith("_"):
+            continue
+        typer.echo(f"{task}: held-out success " + ", ".join(
+            f"{m} {100 * v[m]['success_rate']:.0f} %" for m in cfg.methods) + f" ({v[cfg.methods[0]]['samples']} samples)")
+    typer.echo(f"report: {out / 'report.md'}")
+
+
+
+def run_task_inference(seeds: tuple[int, ...] = (0, 1), steps: int = 200, log=print) -> dict[str, Any]:
+    """MELD's premise, measured on the toy reacher (goal invisible, tasks told apart only by the
+    reward): train the latent model alone (ELBO, no RL) on random episodes of 8 training goals,
+    then read the goal linearly from the belief at the end of random episodes on 4 held-out goals.
+    With reward evidence (MELD) vs without (SLAC); the reference is the training goals' mean
+    (what a belief that knows nothing of the task gives). Error = RMS over held-out episodes [goal units]."""
+    import torch
+
+    from hilstack.learning.meld.model import BeliefFilter, LatentConfig, LatentModel
+    from hilstack.learning.meld.replay import TaskReplay
+    from hilstack.learning.meld.toy import ToyReach
+    from hilstack.learning.meld.train import apply_probe, run_episode, task_probe
+
+    torch.set_num_threads(1)
+    out: dict[str, Any] = {"steps": steps, "seeds": list(seeds), "by_seed": []}
+    for seed in seeds:
+        env = ToyReach(hw=(16, 32), episode_steps=20, n_train=32, n_test=8, seed=seed)
+        rng = np.random.default_rng(seed)
+        train = [run_episode(env, t, None, rng=rng)[0] for t in env.train_tasks for _ in range(3)]
+        test = [run_episode(env, t, None, rng=rng)[0] for t in env.test_tasks for _ in range(2)]
+        rp = TaskReplay()
+        for ep in train:
+            rp.add(ep)
+        row: dict[str, Any] = {"seed": seed}
+        goals_tr = np.stack([env.task_params[e.task] for e in train])
+        goals_te = np.stack([env.task_params[e.task] for e in test])
+        row["reference_rms"] = float(np.sqrt(((goals_te - goals_tr.mean(0)) ** 2).sum(1).mean()))
+        for name, evidence in (("meld", True), ("slac", False)):
+            torch.manual_seed(seed)
+            m = LatentModel(LatentConfig(image_hw=(16, 32), action_dim=2, channels=(16, 32), reward_evidence=evidence))
+            opt = torch.optim.Adam(m.parameters(), lr=1e-3)
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                b = rp.sample(rng, 32, 8)
+                terms, _ = m.elbo(torch.as_tensor(b["images"], dtype=torch.float32) / 255.0,
+                                  torch.as_tensor(b["rewards"]), torch.as_tensor(b["actions"]))
+                opt.zero_grad()
+                (-terms["elbo"].mean() / 8).backward()
+                opt.step()
+            f = BeliefFilter(m)
+
+            def final_belief(ep, f=f):
+                f.reset()
+                for i in range(len(ep.images)):
+                    f.update(ep.images[i], float(ep.rewards[i]))
+                    if i < len(ep.actions):
+                        f.act(ep.actions[i])
+                return f.mu[0].numpy()
+
+            ftr, fte = np.stack([final_belief(e) for e in train]), np.stack([final_belief(e) for e in test])
+            mu, sd = ftr.mean(0), ftr.std(0) + 1e-6
+            w = task_probe((ftr - mu) / sd, goals_tr, ridge=1.0)
+            est = apply_probe(w, (fte - mu) / sd)
+            row[name] = {"held_out_rms": float(np.sqrt(((est - goals_te) ** 2).sum(1).mean())),
+                         "train_s": time.perf_counter() - t0}
+            log(f"[task inference] seed {seed} {name}: held-out goal RMS {row[name]['held_out_rms']:.3f} "
+                f"(reference {row['reference_rms']:.3f})")
+        out["by_seed"].append(row)
+    for name in ("meld", "slac"):
+        v = np.array([r[name]["held_out_rms"] for r in out["by_seed"]])
+        out[name] = {"held_out_rms_mean": float(v.mean()), "held_out_rms_std": float(v.std())}
+    ref = np.array([r["reference_rms"] for r in out["by_seed"]])
+    out["reference"] = {"held_out_rms_mean": float(ref.mean()), "held_out_rms_std": float(ref.std())}
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The probes behind docs/meld.md: task inference without RL (toy) and the do-nothing scores (still)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_meld", description=main.__doc__)
+    ap.add_argument("probe", choices=("toy", "still"))
+    ap.add_argument("out", type=Path, help="JSON file to write (never overwritten)")
+    ap.add_argument("steps", type=int, nargs="?", default=200, help="model-only training steps (toy)")
+    args = ap.parse_args(argv)
+    if args.out.exists():
+        raise SystemExit(f"{args.out} exists; choose another path")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    res = do_nothing_scores() if args.probe == "still" else run_task_inference(steps=args.steps)
+    args.out.write_text(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()
