@@ -20,9 +20,9 @@ def register(app: typer.Typer) -> None:
         """A terminal console of a live rig: its nodes, each robot's health (ok/stale, stopped
         reason, link counters, rate, deadline overruns), the reset supervisor and the e-stop.
 
-        Keys: e engages the rig's e-stop, r releases it in this bus user's name (the rig's access
-        control applies), q quits. The console never commands a robot. Needs the operator extra
-        (textual)."""
+        Keys: e engages the rig's e-stop, r releases it in this bus user's name (the rig's access control applies), q quits.
+
+        The console never commands a robot. Needs the operator extra (textual)."""
         from hilstack.configs.extras import require
 
         require("textual", "hil console")
