@@ -677,7 +677,7 @@ def beam_sets(model, preps, folds, pool_idx, effects, nm, horizon, current, resu
     tried: list[dict] = []
     doc = {"beam_width": cfg.beam_width, "tried": tried, "beams": [[_by_order(s, order) for s in beam]]}
     round_doc["set_search"] = doc
-    for size in range(2, max_size + 1):
+    for _size in range(2, max_size + 1):
         children: dict[frozenset, float] = {}
         for s in beam:
             for n in names:

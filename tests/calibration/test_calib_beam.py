@@ -64,10 +64,10 @@ class _Regression:
         if not effects:
             return _Fitted([], {})
         w = np.ones(len(units)) if weights is None else np.asarray(weights, float)
-        X = np.concatenate([np.stack([u.F[e] for e in effects], 1) * np.sqrt(wi) for u, wi in zip(units, w)])
-        y = np.concatenate([u.y * np.sqrt(wi) for u, wi in zip(units, w)])
+        X = np.concatenate([np.stack([u.F[e] for e in effects], 1) * np.sqrt(wi) for u, wi in zip(units, w, strict=True)])
+        y = np.concatenate([u.y * np.sqrt(wi) for u, wi in zip(units, w, strict=True)])
         beta = np.linalg.lstsq(X, y, rcond=None)[0]
-        return _Fitted(effects, dict(zip(effects, beta.tolist())))
+        return _Fitted(effects, dict(zip(effects, beta.tolist(), strict=True)))
 
     def _loss(self, u, fitted):
         pred = sum((fitted.coef[e] * u.F[e] for e in fitted.effects), np.zeros_like(u.y))
