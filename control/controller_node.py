@@ -140,7 +140,11 @@ class ControllerNode(Node):
         return self.held_norm(s) if held else None
 
     def send(self, action_norm: np.ndarray, state_seq: int) -> np.ndarray:
-        a = self.spec.action.denormalize(action_norm)
+        return self.send_action(self.spec.action.denormalize(action_norm), state_seq)
+
+    def send_action(self, action: np.ndarray, state_seq: int) -> np.ndarray:
+        """Publish a command in the robot's units (the driver node applies the contract's limits)."""
+        a = np.asarray(action, dtype=np.float64)
         self._cmd.put(Command(robot=self.robot, action=a.tolist(), state_seq=state_seq, source=self.name))
         return a
 

@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
-# One-shot setup: Debian packages (Mesa for offscreen MuJoCo, socat), .venv/, hilstack + deps.
+# One-shot setup: Debian packages (Mesa for offscreen MuJoCo, socat, tmux for the terminal tests), .venv/, hilstack + deps.
 # Idempotent: re-running only installs what is missing.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 
-debs=(libegl1 libgl1-mesa-dri libosmesa6 socat)
+debs=(libegl1 libgl1-mesa-dri libosmesa6 socat tmux)
 missing=()
 for d in "${debs[@]}"; do dpkg -s "$d" >/dev/null 2>&1 || missing+=("$d"); done
 if [ "${#missing[@]}" -gt 0 ]; then

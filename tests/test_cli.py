@@ -13,10 +13,28 @@ def test_help_lists_the_verbs():
     r = CliRunner().invoke(app, ["--help"])
     assert r.exit_code == 0
     for verb in ("demo", "drive", "record", "replay", "inspect", "viz", "calibrate", "bench", "up", "estop",
-                 "nodes", "mpc", "find-port", "data"):
+                 "nodes", "mpc", "teleop", "find-port", "data"):
         assert f" {verb} " in r.output, verb
     r = CliRunner().invoke(app, ["bench", "--help"])
     assert all(w in r.output for w in ("bus", "plan", "sim"))
+
+
+def test_boolean_flags_are_shown_as_flags():
+    """Issue 27 item 6: `--json`, not `--json <bool>` (typer 0.29 gives flags a type column)."""
+    import typer
+
+    def leaves(cmd, path):
+        subs = getattr(cmd, "commands", None)
+        return [x for n, c in subs.items() for x in leaves(c, [*path, n])] if subs else [path]
+
+    verbs = leaves(typer.main.get_command(app), [])
+    assert ["teleop"] in verbs and ["bench", "bus"] in verbs
+    for verb in verbs:
+        r = CliRunner().invoke(app, [*verb, "--help"], env={"COLUMNS": "200"})
+        assert r.exit_code == 0 and "--help" in r.output
+        assert "<bool>" not in r.output, verb
+    r = CliRunner().invoke(app, ["mpc", "--help"], env={"COLUMNS": "200"})
+    assert "--json" in r.output and "--no-reset" in r.output and "<int>" in r.output  # values keep their type
 
 
 def test_user_errors_are_one_line_exit_2():
@@ -179,7 +197,8 @@ def test_required_dependencies_are_imported_somewhere():
     names = [re.split(r"[<>=!~\[ ;]", d)[0].lower() for d in deps]
     import_name = {"eclipse-zenoh": "zenoh", "rerun-sdk": "rerun", "pyserial": "serial", "digi-xbee": "digi",
                    "python-can": "can", "pyyaml": "yaml", "scipy": "scipy", "pyarrow": "pyarrow",
-                   "foxglove-sdk": "foxglove", "dynamixel-sdk": "dynamixel_sdk", "stable-baselines3": "stable_baselines3"}
+                   "foxglove-sdk": "foxglove", "dynamixel-sdk": "dynamixel_sdk", "stable-baselines3": "stable_baselines3",
+                   "sb3-contrib": "sb3_contrib"}
     src = "\n".join(p.read_text() for pkg in ("drivers", "sim_backends", "control", "learning", "calibration",
                                               "bus", "tools", "configs") for p in (root / pkg).rglob("*.py"))
     unused = [n for n in names

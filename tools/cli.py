@@ -16,6 +16,26 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # platform when imported, so set it before any verb imports MuJoCo (PLATFORM_NOTES: EGL works headless).
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+
+def _flags_shown_as_flags() -> None:
+    """typer 0.29's help gives every boolean flag a type column (``--json <bool>``), as if it
+    took a value; it takes none (``--json``, ``--reset/--no-reset``). Flags get no type column;
+    every other option keeps its own (``--steps <int>``)."""
+    from typer.core import TyperOption
+
+    shown = TyperOption.display_type_rich
+    if getattr(shown, "hil_flags", False):
+        return
+
+    def display_type_rich(self: TyperOption, ctx: typer.Context):  # noqa: ANN202 - typer's signature
+        return None if self.is_flag else shown(self, ctx)
+
+    display_type_rich.hil_flags = True  # type: ignore[attr-defined]
+    TyperOption.display_type_rich = display_type_rich  # type: ignore[method-assign]
+
+
+_flags_shown_as_flags()
+
 app = typer.Typer(
     help="hilstack: hardware-in-the-loop robot stack for model-based learning and control.",
     no_args_is_help=True,
@@ -28,6 +48,8 @@ _VERB_MODULES = [
     "hilstack.tools.cmd_demo",
     "hilstack.tools.cmd_drive",
     "hilstack.tools.cmd_mpc",
+    "hilstack.tools.cmd_teleop",
+    "hilstack.tools.cmd_console",
     "hilstack.tools.cmd_adapt",
     "hilstack.tools.cmd_record",
     "hilstack.tools.cmd_export",

@@ -128,6 +128,21 @@ class WidowXPortTask(_DriverTask):
 #: Sawyer goal region [m, world]: in front of the start hand position (0.0, 0.59, 0.18)
 SAWYER_GOAL_LO = np.array([-0.25, 0.55, 0.08])
 SAWYER_GOAL_HI = np.array([0.25, 0.85, 0.30])
+SAWYER_START_M = np.array([0.0, 0.59, 0.18])
+#: no goal within this distance of the start: holding still must never succeed (0.10 m success + margin)
+SAWYER_GOAL_MIN_TRAVEL_M = 0.15
+
+
+def sawyer_goals(seed: int, n: int = 30) -> np.ndarray:
+    """``n`` goals uniform in the goal box, each at least ``SAWYER_GOAL_MIN_TRAVEL_M`` from the start
+    hand position (in a box that held the start, doing nothing succeeded on 20 % of held-out goals)."""
+    rng = np.random.default_rng([seed, 7])
+    goals = []
+    while len(goals) < n:
+        g = rng.uniform(SAWYER_GOAL_LO, SAWYER_GOAL_HI)
+        if np.linalg.norm(g - SAWYER_START_M) >= SAWYER_GOAL_MIN_TRAVEL_M:
+            goals.append(g)
+    return np.array(goals)
 
 
 class SawyerReachTask(_DriverTask):
@@ -140,8 +155,7 @@ class SawyerReachTask(_DriverTask):
         self.arm = make_driver("sawyer", backend="sim", sim=self._setup_images(camera_px, cameras))
         self.arm.configure()
         self.arm.activate()
-        rng = np.random.default_rng([seed, 7])
-        self.task_params = rng.uniform(SAWYER_GOAL_LO, SAWYER_GOAL_HI, size=(30, 3))
+        self.task_params = sawyer_goals(seed)
         self.train_tasks, self.test_tasks = list(range(20)), list(range(20, 30))
         self.action_dim = self.arm.spec.action.dim
         names = list(self.arm.spec.state.names)
