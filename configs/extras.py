@@ -21,6 +21,7 @@ OPTIONAL: dict[str, tuple[str, str]] = {
     "natnet": ("natnet", "pip install 'hilstack[mocap]'"),
     "pytorch_mppi": ("pytorch-mppi", "pip install 'hilstack[bench]'"),
     "atheris": ("atheris", "pip install 'hilstack[fuzz]'"),
+    "textual": ("textual", "pip install 'hilstack[operator]'"),
     "metaworld": ("metaworld", "pip install --no-deps metaworld==3.1.1 (no extra: its pins would "
                                "downgrade MuJoCo; scripts/setup.sh installs it)"),
 }

@@ -251,6 +251,21 @@ def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str])
     return model
 
 
+def fit_episodes(model, eps: list[Episode], epochs: int, batch_size: int, val_fraction: float,
+                 rng: np.random.Generator, assigned: dict[str, bool], horizon: int = 10,
+                 progress: bool = False) -> dict[str, float]:
+    """One (re)fit of the MBRL loop: split ``eps`` by episode once and for good
+    (:func:`split_episodes`), fit ``model`` on the training episodes (warm start when it was
+    fitted before) and return the last epoch's losses (with the held-out one-step and
+    ``horizon``-step errors when there is a validation episode). The roach's loop
+    (:meth:`MbrlRun.train`) and the gym benchmarks' (``learning/mbmf.py``) both train this way."""
+    train, val = split_episodes(eps, val_fraction, rng, assigned)
+    hist = model.fit(train, epochs=epochs, batch_size=batch_size, val=val or None, horizon=horizon,
+                     progress=progress)
+    last = hist[-1] if hist else {}
+    return {k: float(v) for k, v in last.items() if isinstance(v, (int, float))}
+
+
 #: differential-drive search space: (low, high, scaled by the speed setting?). Gains in
 #: normalized action per rad (k_heading) and per m (k_perp); omega_nom and d_max are
 #: fractions of the speed setting, which also clips the commands (the bound MPC plans in).
@@ -424,7 +439,8 @@ class MbrlRun:
                 if proc.poll() is not None:
                     raise self._rig_exited(proc) from None
                 if time.monotonic() > deadline:
-                    raise
+                    raise RigError(f"the rig's driver node sent no spec within rig_timeout_s = "
+                                   f"{self.cfg.rig_timeout_s:g} s (driver log: {self.out / 'logs' / 'driver.log'})") from None
 
     def _rig_exited(self, proc: subprocess.Popen) -> RigError:
         log = self.out / "logs" / "driver.log"
@@ -670,11 +686,8 @@ class MbrlRun:
 
     # -- training --------------------------------------------------------------------------
     def train(self, model, eps: list[Episode], epochs: int) -> dict[str, float]:
-        train, val = split_episodes(eps, self.cfg.val_fraction, self.split_rng, self.val_assigned)
-        hist = model.fit(train, epochs=epochs, batch_size=self.cfg.batch_size, val=val or None,
-                         horizon=self.cfg.horizon, progress=self.cfg.progress)
-        last = hist[-1] if hist else {}
-        return {k: float(v) for k, v in last.items() if isinstance(v, (int, float))}
+        return fit_episodes(model, eps, epochs, self.cfg.batch_size, self.cfg.val_fraction, self.split_rng,
+                            self.val_assigned, horizon=self.cfg.horizon, progress=self.cfg.progress)
 
     # -- everything -------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:

@@ -197,7 +197,8 @@ def test_required_dependencies_are_imported_somewhere():
     names = [re.split(r"[<>=!~\[ ;]", d)[0].lower() for d in deps]
     import_name = {"eclipse-zenoh": "zenoh", "rerun-sdk": "rerun", "pyserial": "serial", "digi-xbee": "digi",
                    "python-can": "can", "pyyaml": "yaml", "scipy": "scipy", "pyarrow": "pyarrow",
-                   "foxglove-sdk": "foxglove", "dynamixel-sdk": "dynamixel_sdk", "stable-baselines3": "stable_baselines3"}
+                   "foxglove-sdk": "foxglove", "dynamixel-sdk": "dynamixel_sdk", "stable-baselines3": "stable_baselines3",
+                   "sb3-contrib": "sb3_contrib"}
     src = "\n".join(p.read_text() for pkg in ("drivers", "sim_backends", "control", "learning", "calibration",
                                               "bus", "tools", "configs") for p in (root / pkg).rglob("*.py"))
     unused = [n for n in names

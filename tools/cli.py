@@ -49,6 +49,7 @@ _VERB_MODULES = [
     "hilstack.tools.cmd_drive",
     "hilstack.tools.cmd_mpc",
     "hilstack.tools.cmd_teleop",
+    "hilstack.tools.cmd_console",
     "hilstack.tools.cmd_adapt",
     "hilstack.tools.cmd_record",
     "hilstack.tools.cmd_export",

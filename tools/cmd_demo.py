@@ -16,6 +16,8 @@ OTHER_DEMOS: dict[str, tuple[str, str, str]] = {
     "baoding": ("hilstack.tools.demo_baoding", "cli_baoding", "PDDM on the Shadow Hand's Baoding balls (docs/baoding.md)"),
     "arms": ("hilstack.tools.demo_arms", "cli_arms", "reach with a learned model + MPC vs IK and random, WidowX and Sawyer (docs/arms.md)"),
     "meld": ("hilstack.tools.demo_meld", "cli_meld", "MELD vs SLAC and SAC on image history, WidowX port and Sawyer reacher from cameras (docs/meld.md)"),
+    "mbrl-gym": ("hilstack.tools.demo_mbmf", "cli_mbrl_gym", "MB, MF (TRPO) and Mb-Mf on swimmer, half-cheetah, hopper, "
+                 "ant (docs/mbrl.md)"),
 }
 
 
@@ -40,6 +42,8 @@ def register(app: typer.Typer) -> None:
                                     "wheeled (the SIDM paper's wheeled robots with suspension)"),
         suite: str = typer.Option("roach", "--suite", help="adaptation only: roach (the sim VelociRoACH) | gym "
                                   "(half-cheetah benchmarks of the thesis)"),
+        envs: str = typer.Option("", "--envs", help="mbrl-gym only: comma-separated swimmer, half_cheetah, hopper, "
+                                 "ant (default: all four; --quick: half_cheetah)"),
         planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
         rig: str = typer.Option("roach_sim", "--rig", help="rig config: roach_sim (lockstep), roach_emulated, roach_real"),
         operator_resets: bool = typer.Option(False, "--operator-resets",
@@ -64,6 +68,8 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"hil demo {what}: --suite is for the adaptation demo only")
         if suite not in ("roach", "gym"):
             raise UserError(f"hil demo adaptation: unknown --suite {suite!r} (roach | gym)")
+        if envs and what != "mbrl-gym":
+            raise UserError(f"hil demo {what}: --envs is for the mbrl-gym demo only")
         if ray is not None and what not in ("adaptation", "transfer"):
             raise UserError(f"hil demo {what}: --ray is for the adaptation and transfer demos only so far "
                             "(docs/scaling.md)")
@@ -75,6 +81,14 @@ def register(app: typer.Typer) -> None:
             module, fn, _ = OTHER_DEMOS[what]
             kw = {"part": part, "setting": setting, "ray": ray, "workers": workers} if what == "transfer" else (
                 {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else {})
+            if what == "mbrl-gym":
+                from hilstack.tools.demo_mbmf import parse_envs
+
+                try:
+                    parse_envs(envs, quick)
+                except ValueError as e:
+                    raise UserError(f"hil demo mbrl-gym: {e}") from None
+                kw = {"envs": envs or None}
             return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed, **kw)
         if what != "roach":
             raise UserError(f"hil demo: unknown demo {what!r} ({' | '.join(['roach', *OTHER_DEMOS])})")

@@ -120,7 +120,10 @@ def register(app: typer.Typer) -> None:
         seconds: float = typer.Option(None, "--seconds", help="stop after this long (default: until Ctrl-C)"),
         endpoint: str = EndpointOpt,
     ) -> None:
-        """Live view of a rig in Foxglove (WebSocket server; robots in the 3D panel)."""
+        """Live view of a rig in Foxglove (WebSocket server; robots in the 3D panel).
+
+        Foxglove's panels may publish teleop commands on hil/<rig>/<robot>/cmd and an e-stop
+        engage on hil/<rig>/estop, in this bus user's name (the rig's access control applies)."""
         from hilstack.tools.foxglove_live import FoxgloveLive
 
         if not 0 <= port <= 65535:
@@ -133,7 +136,9 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"serving hil/{rig}/** to Foxglove at {live.url} "
                    "(Foxglove: Open connection -> Foxglove WebSocket; Ctrl-C to stop)", err=True)
         n = live.serve(seconds)
-        typer.echo(f"forwarded {n} messages ({live.malformed} malformed payloads skipped)", err=True)
+        typer.echo(f"forwarded {n} messages ({live.malformed} malformed payloads skipped); from clients: "
+                   f"{live.client_commands} commands, {live.client_estops} e-stop engages, "
+                   f"{len(live.refused)} refused", err=True)
 
     @app.command()
     @user_errors
