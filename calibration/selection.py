@@ -59,6 +59,9 @@ class SelectionConfig:
     weak_quantile: float = 0.2
     #: units of the same recording next to a held-out block that are left out of its training set
     purge_gap: int = 1
+    #: search over sets (axis model): how many sets the beam keeps per size, and the largest set
+    beam_width: int = 3
+    max_set_size: int = 3
 
 
 @dataclass
@@ -571,15 +574,15 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
         lead = next((r for r in results if "edge of its search range" not in r.verdict), None)
         if (winner is None and getattr(model, "pair_tests", False) and len(results) > 1 and used < cfg.max_rounds
                 and lead is not None and lead.gain >= cfg.min_gain and lead.evidence.at_least("weak")):
-            used += 1
-            pair = try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, results, base_loss,
-                            cfg, seed + rnd, round_doc, log, ev)
-            if pair:
-                current = model.fit(pool, effects + [r.name for r in pair], refine=True, start=current)
-                for r in pair:
+            found = beam_sets(model, preps, folds, pool_idx, effects, nm, horizon, current, results, base_loss,
+                              cfg, seed + rnd, round_doc, log, ev, min(cfg.max_set_size, cfg.max_rounds - used + 1))
+            if found:
+                used += len(found) - 1  # a set of k effects uses k rounds
+                current = model.fit(pool, effects + [r.name for r in found], refine=True, start=current)
+                for r in found:
                     r.fitted = current
                     accepted.append(r)
-                log(f"accepted the pair {pair[0].name} + {pair[1].name}")
+                log(f"accepted the set {' + '.join(r.name for r in found)}")
                 continue
         if winner is None:
             # Nothing enters the model: what the data hint at is still reported, with its numbers.
@@ -637,45 +640,82 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
                            findings)
 
 
-def try_pair(model, preps, folds, pool_idx, effects, nm, horizon, current, results: list[CandidateResult],
-             base_loss, cfg: SelectionConfig, seed: int, round_doc: dict, log, ev):
-    """When no single candidate enters: the best one together with each other candidate.
+def _by_order(names, order: list[str]) -> list[str]:
+    return sorted(names, key=lambda n: (order.index(n) if n in order else len(order), n))
 
-    Tried when the best candidate helps on its own at least weakly (gain ≥ ``min_gain``, evidence
-    weak or better). Two effects may only help together (on EMPS, Coulomb friction alone makes
-    some open-loop windows worse; with the force offset it explains the data). The pair is fitted
-    jointly and accepted when it has moderate evidence against the model without both, each member
-    has moderate evidence in the presence of the other, and both pass the bootstrap checks with the
-    other in the model. Returns the two accepted CandidateResults, or None.
+
+def beam_sets(model, preps, folds, pool_idx, effects, nm, horizon, current, results: list[CandidateResult],
+              base_loss, cfg: SelectionConfig, seed: int, round_doc: dict, log, ev, max_size: int):
+    """When no single candidate enters: a beam search over sets of candidates.
+
+    Effects may only help together (on EMPS, Coulomb friction alone makes some open-loop windows
+    worse; with the force offset it explains the data; a delay and Coulomb friction, a lag and
+    friction). The beam starts from the ``cfg.beam_width`` best single candidates (by held-out gain,
+    whether or not they passed) and grows each set by every other candidate, up to ``max_size``
+    effects; every child set is fitted jointly (the hyper-parameters of all its members searched
+    together, the linear coefficients of the whole model by least squares) and scored by the same
+    cross-validated held-out losses. The ``beam_width`` best children of one size seed the next.
+    A set enters when, at the smallest size where any does, (a) it has moderate evidence against
+    the model without it, (b) every member has moderate evidence against the set without that
+    member (each is needed in the presence of the others), and (c) every member passes the
+    bootstrap checks with the others in the model. With ``beam_width`` 1 this is the former
+    "pair move" (the best single candidate with each other one). Returns the accepted
+    CandidateResults, or None.
     """
-    lead = next(r for r in results if "edge of its search range" not in r.verdict)
-    tried, best = [], None
-    for other in [r for r in results if r is not lead]:
-        both = crossval_losses(model, preps, folds, effects + [lead.name, other.name], nm, horizon, current,
-                               [lead.name, other.name])
-        e_pair, e_lead, e_other = ev(base_loss, both, 31), ev(other.losses, both, 37), ev(lead.losses, both, 41)
-        gain = e_pair.gain
-        tried.append({"effects": [lead.name, other.name], "heldout_gain": gain, "evidence": e_pair.to_dict(),
-                      "adding": {lead.name: e_lead.to_dict(), other.name: e_other.to_dict()}})
-        if (e_pair.at_least("moderate") and e_lead.at_least("moderate") and e_other.at_least("moderate")
-                and (best is None or gain > best[1])):
-            best = (other, gain, e_pair, both)
-    round_doc["pair_fallback"] = {"tried": tried}
-    if best is None:
-        return None
-    other, gain, e_pair, _ = best
-    out = []
-    for r, partner in ((lead, other), (other, lead)):
-        res = CandidateResult(r.name, best[3], gain, paired_p(base_loss, best[3]), evidence=e_pair)
-        res.interval, res.stability, res.boot_values = bootstrap_effect(
-            model, preps, pool_idx, current, effects + [partner.name], r.name, cfg.n_boot, seed, nm)
-        ok = _excludes(res.interval, model.catalogue[r.name].no_effect) and res.stability >= cfg.min_stability
-        res.verdict = "accepted (as a pair with " + partner.name + ")" if ok else "rejected: pair member fails the bootstrap"
-        log(f"  pair {lead.name} + {other.name}: {r.name} interval {res.interval}, stability {res.stability:.2f}")
-        out.append(res)
-    round_doc["pair_fallback"]["decision"] = [{"name": r.name, "verdict": r.verdict, "interval": r.interval,
-                                               "stability": r.stability} for r in out]
-    return out if all(r.verdict.startswith("accepted") for r in out) else None
+    order = list(model.catalogue)
+    names = [r.name for r in results if "edge of its search range" not in r.verdict and r.tied_with is None]
+    losses: dict[frozenset, np.ndarray] = {frozenset([r.name]): r.losses for r in results}
+    losses[frozenset()] = base_loss
+
+    def loss_of(key: frozenset) -> np.ndarray:
+        if key not in losses:
+            members = _by_order(key, order)
+            losses[key] = crossval_losses(model, preps, folds, effects + members, nm, horizon, current, members)
+        return losses[key]
+
+    beam = [frozenset([n]) for n in names][: max(1, cfg.beam_width)]
+    tried: list[dict] = []
+    doc = {"beam_width": cfg.beam_width, "tried": tried, "beams": [[_by_order(s, order) for s in beam]]}
+    round_doc["set_search"] = doc
+    for _size in range(2, max_size + 1):
+        children: dict[frozenset, float] = {}
+        for s in beam:
+            for n in names:
+                key = s | {n}
+                if n in s or key in children:
+                    continue
+                children[key] = heldout_gain(base_loss, loss_of(key))
+        if not children:
+            break
+        ranked = sorted(children, key=lambda k: (-children[k], _by_order(k, order)))
+        passing = []
+        for key in ranked:
+            e_set = ev(base_loss, losses[key], 31)
+            adding = {m: ev(loss_of(key - {m}), losses[key], 37 + i) for i, m in enumerate(_by_order(key, order))}
+            tried.append({"effects": _by_order(key, order), "heldout_gain": e_set.gain, "evidence": e_set.to_dict(),
+                          "adding": {m: e.to_dict() for m, e in adding.items()}})
+            if e_set.at_least("moderate") and all(e.at_least("moderate") for e in adding.values()):
+                passing.append((key, e_set))
+        for key, e_set in passing:
+            members = _by_order(key, order)
+            out = []
+            for m in members:
+                others = [o for o in members if o != m]
+                res = CandidateResult(m, losses[key], e_set.gain, paired_p(base_loss, losses[key]), evidence=e_set)
+                res.interval, res.stability, res.boot_values = bootstrap_effect(
+                    model, preps, pool_idx, current, effects + others, m, cfg.n_boot, seed, nm)
+                ok = _excludes(res.interval, model.catalogue[m].no_effect) and res.stability >= cfg.min_stability
+                res.verdict = (f"accepted (in the set {' + '.join(members)})" if ok
+                               else "rejected: set member fails the bootstrap")
+                log(f"  set {' + '.join(members)}: {m} interval {res.interval}, stability {res.stability:.2f}")
+                out.append(res)
+            doc["decision"] = [{"name": r.name, "verdict": r.verdict, "interval": r.interval,
+                                "stability": r.stability} for r in out]
+            if all(r.verdict.startswith("accepted") for r in out):
+                return out
+        beam = ranked[: max(1, cfg.beam_width)]
+        doc["beams"].append([_by_order(s, order) for s in beam])
+    return None
 
 
 def swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, horizon, cfg, log, ev) -> list[dict]:

@@ -467,7 +467,8 @@ class MbrlRun:
                 if proc.poll() is not None:
                     raise self._rig_exited(proc) from None
                 if time.monotonic() > deadline:
-                    raise
+                    raise RigError(f"the rig's driver node sent no spec within rig_timeout_s = "
+                                   f"{self.cfg.rig_timeout_s:g} s (driver log: {self.out / 'logs' / 'driver.log'})") from None
 
     def _rig_exited(self, proc: subprocess.Popen) -> RigError:
         log = self.out / "logs" / "driver.log"

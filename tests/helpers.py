@@ -48,12 +48,26 @@ def wait_for(cond, timeout_s: float = 10.0, what: str = "condition"):
     raise AssertionError(f"timed out waiting for {what}")
 
 
+def _readline_within(p: subprocess.Popen, timeout_s: float) -> str:
+    """One line of ``p``'s stdout, or "" at EOF or after ``timeout_s``."""
+    import selectors
+
+    with selectors.DefaultSelector() as sel:
+        sel.register(p.stdout, selectors.EVENT_READ)
+        if not sel.select(timeout_s):
+            return ""
+    return p.stdout.readline()
+
+
 def hil_drive_with_device_signal(robot: str, emulator_module: str, sig: int, timeout_s: float = 120.0,
                                  settle_s: float = 1.5) -> subprocess.CompletedProcess:
-    """``hil drive ROBOT --backend emulated`` for long; once the driver talks to its emulator
-    process (the emulator keeps reading bytes from the host, then ``settle_s`` more), that
-    process gets ``sig`` (SIGSTOP: frozen; SIGKILL: dead). Returns the finished ``hil drive``.
-    A frozen emulator is continued and killed afterwards if it is still there."""
+    """``hil drive ROBOT --backend emulated`` for long; once the driver is active and driving
+    (its "driving for" line on stdout), then ``settle_s`` more, its emulator process gets
+    ``sig`` (SIGSTOP: frozen; SIGKILL: dead). Returns the finished ``hil drive``.
+    A frozen emulator is continued and killed afterwards if it is still there.
+
+    The driver's own line is the readiness signal: activity of the emulator process (bytes
+    it reads) also counts its imports, so a freeze could land before it serves the link."""
     p = subprocess.Popen([sys.executable, "-m", "hilstack.tools.cli", "drive", robot, "--backend", "emulated",
                           "--seconds", "600"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     emu = None
@@ -65,20 +79,11 @@ def hil_drive_with_device_signal(robot: str, emulator_module: str, sig: int, tim
                     return int(k)
             return None
 
-        def rchar(pid: int) -> int:
-            line = next(ln for ln in Path(f"/proc/{pid}/io").read_text().splitlines() if ln.startswith("rchar"))
-            return int(line.split()[1])
-
-        emu = wait_for(lambda: p.poll() is None and child(), 60.0, f"{robot}'s emulator process")
-        last = rchar(emu)
-        deadline = time.monotonic() + 60.0
-        while True:  # the host is sending to it: the driver configured and drives
-            time.sleep(0.5)
-            now = rchar(emu)
-            if now > last:
-                break
-            assert time.monotonic() < deadline and p.poll() is None, "the driver never talked to its emulator"
-            last = now
+        # blocks until the line (or EOF: hil drive failed before driving); `timeout_s` bounds it
+        line = _readline_within(p, timeout_s)
+        assert "driving for" in line, (line, p.poll(), p.poll() is not None and p.communicate())
+        emu = child()
+        assert emu is not None, f"{robot}'s emulator process is not a child of hil drive"
         time.sleep(settle_s)
         assert p.poll() is None, p.communicate()
         os.kill(emu, sig)

@@ -12,12 +12,14 @@ Actions are normalized: -1..1 maps onto each action channel's [low, high] from t
 read → write → tick at the control period, so it runs unchanged on every backend.
 Without --action every channel gets 0.3. Where an action channel is also a state channel
 (an arm's joint velocities), the summary reports the tracking error: the RMS of applied
-minus measured over the run.
+minus measured over the run. Without --json, one line says when the driver is active and
+driving (a long run is not silent until its summary).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import typer
@@ -55,12 +57,14 @@ DEFAULT_ACTION = 0.3
 
 
 def drive_run(robot: str, backend: str | None, action: str | None, seconds: float, port: str | None = None,
-              tlog: str | None = None) -> dict[str, Any]:
+              tlog: str | None = None, on_active: Callable[[Any], None] | None = None) -> dict[str, Any]:
     """Drive open loop; returns the summary printed by `hil drive --json`.
 
     ``backend`` None: the one the robot config names (``backend:`` in the YAML).
     ``tlog``: append every MAVLink frame of the radio link to this file (real and
-    emulated backends of a MAVLink robot; the sim backend has no link)."""
+    emulated backends of a MAVLink robot; the sim backend has no link).
+    ``on_active(driver)``: called once the driver is active and its first reading is in,
+    before the first command."""
     import numpy as np
 
     from hilstack.drivers.registry import make_driver
@@ -94,6 +98,8 @@ def drive_run(robot: str, backend: str | None, action: str | None, seconds: floa
     n_steps = max(1, round(seconds / sp.period_s))
     with drv:
         first = drv.read()
+        if on_active is not None:
+            on_active(drv)
         start = _pose(sp.state.names, first.state)
         path_m = 0.0
         prev = start
@@ -161,7 +167,12 @@ def register(app: typer.Typer) -> None:
         """Drive a robot open loop and report distance, final pose and link statistics."""
         if backend is not None and backend not in ("sim", "emulated", "real"):
             raise UserError(f"--backend {backend!r}: expected sim, emulated or real")
-        res = drive_run(robot, backend, action, seconds, port=port, tlog=tlog)
+        def started(drv: Any) -> None:
+            # a long run says at once that it is driving (the summary comes at the end)
+            typer.echo(f"{drv.spec.name} ({drv.backend}): driving for {seconds:g} s")  # click flushes
+
+        res = drive_run(robot, backend, action, seconds, port=port, tlog=tlog,
+                        on_active=None if json_out else started)
         if json_out:
             echo_json(res)
             return

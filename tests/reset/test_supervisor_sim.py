@@ -227,9 +227,14 @@ def test_teleport_step_puts_the_sim_robot_at_the_pose_through_the_driver_node(su
 def test_a_lockstep_controller_may_pause_longer_than_the_state_timeout_before_asking(supervised_rig):
     """A lockstep robot publishes nothing while its controller trains between episodes; the
     supervisor's no-state clock starts at the request, not at the last state before the pause."""
-    rig = supervised_rig(steps=[{"kind": "teleport", "timeout_s": 5}], detectors=[], state_timeout_s=0.5)
+    # the default no-state limit (2 s): every lockstep round trip of the reset (a command, the
+    # state it steps to) must fit in it, on a loaded machine too (0.5 s did not: one verifying
+    # round trip took longer at a load of ~20 on 2 cores). The pause exceeds it, so a clock
+    # counted from the last state before the pause fails at the request, every time.
+    timeout_s = 2.0
+    rig = supervised_rig(steps=[{"kind": "teleport", "timeout_s": 5}], detectors=[], state_timeout_s=timeout_s)
     drive_out(rig, steps=5)
-    time.sleep(1.0)  # the controller trains a model: longer than state_timeout_s
+    time.sleep(timeout_s + 0.5)  # the controller trains a model: longer than state_timeout_s
     first = rig.ctl.reset(timeout_s=30, x=0.0, y=0.0, yaw=0.0)
     assert first.episode == 1
     assert rig.sup.stats["failed"] == 0 and rig.dests() == FULL_CYCLE

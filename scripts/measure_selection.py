@@ -1,0 +1,81 @@
+"""Before/after measurement of the axis model's effect search (docs/calibration.md, "Search over sets").
+
+Runs the calibration on synthetic cases with two effects (and a clean one) over a few seeds, and on
+the three real data sets in ../shared/data/real, and prints one JSON line per run: the effects named
+with their evidence level, the verdict, the locked-test multi-step NRMSE before/after, CPU seconds.
+
+    PYTHONPATH=. nice -n 10 python scripts/measure_selection.py --seeds 0,1,2 [--beam-width 3] [--real]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+import warnings
+
+import torch
+
+CASES = {
+    "delay+coulomb": {"delay": {}, "coulomb_friction": {}},
+    "backlash": {"backlash": {}},
+    "gravity+friction": {"gravity_load": {}, "coulomb_friction": {}},
+    "friction+lag": {"coulomb_friction": {}, "actuator_lag": {}},
+    "clean": {},
+}
+
+
+def _summary(name, seed, r, cpu):
+    return {"case": name, "seed": seed, "verdict": r["verdict"],
+            "effects": {e["name"]: e["evidence"]["level"] for e in r["effects"]},
+            "findings": {f["name"]: f["level"] for f in r.get("findings", [])},
+            "nrmse_before": r["before"]["multi_step_nrmse"]["mean"],
+            "nrmse_after": r["after"]["multi_step_nrmse"]["mean"], "cpu_s": round(cpu, 1)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--real", action="store_true", help="also the real data sets (dfki, dart, emps)")
+    ap.add_argument("--beam-width", type=int, default=None, help="(after the beam search) its width")
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    from hilstack.calibration import run_calibration
+    from hilstack.calibration.selection import SelectionConfig
+    from hilstack.calibration.synthetic import SynthConfig, generate
+
+    kw = {"n_boot": 25}
+    if a.beam_width is not None:
+        kw["beam_width"] = a.beam_width
+    cfg = SelectionConfig(**kw)
+    tmp = tempfile.mkdtemp()
+
+    def run(name, seed, data, **extra):
+        t0 = time.process_time()
+        r = run_calibration(data, out_dir=f"{tmp}/{name}_{seed}", seed=seed, progress=False, plots=False,
+                            config=SelectionConfig(**{**kw, "n_boot": 20}) if extra.pop("real", False) else cfg,
+                            **extra)
+        print(json.dumps(_summary(name, seed, r, time.process_time() - t0)), flush=True)
+
+    for name in [c for c in a.cases.split(",") if c]:
+        for seed in [int(s) for s in a.seeds.split(",")]:
+            run(name, seed, generate(SynthConfig(effects=CASES[name], seed=seed)))
+    if a.real:
+        from hilstack.calibration.emps import EMPS_GTAU_N_PER_V, emps_to_csv
+        from hilstack.calibration.realdata import dart_episodes, dfki_episodes, find_real
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            dfki = dfki_episodes(find_real("dfki_pendulum"))
+            dart = dart_episodes(find_real("dart_rccar"))
+        run("dfki", 0, dfki, real=True)
+        run("dart", 0, dart, real=True)
+        csv = emps_to_csv(find_real("emps") / "DATA_EMPS.mat", f"{tmp}/emps.csv")
+        run("emps", 0, csv, real=True, column_map="t=time,u=volts,x=position", k_u=EMPS_GTAU_N_PER_V)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
