@@ -68,8 +68,11 @@ def test_the_emulated_hand_resets_itself_through_the_arm_on_the_wall_clock(rig_b
                                                  "running"]
         assert sup.stats["completed"] == 1 and sup.stats["failed"] == 0
         balls = np.asarray(sup.links["arm"].state().state[15:21]).reshape(2, 3)
-        assert np.all(np.linalg.norm(balls - [1.0, 0.9108, 0.1190], axis=1) < 0.06)
-        assert sup.steps[0].script.log.count("release") == 2
+        palm = sup.steps[0].script.center  # the rig's palm_center_m: both balls are back in the palm
+        assert np.all(np.linalg.norm(balls - palm, axis=1) < 0.06)
+        # the arm put back what fell: on the wall clock the episode ends at the first drop, and the
+        # ball nestled deeper in the palm may stay there (one pick) or follow it (two)
+        assert sup.steps[0].script.log.count("release") in (1, 2)
     finally:
         if ctl is not None:
             ctl.close()
