@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hilstack.calibration.data import DataError, Episode
+from hilstack.calibration.data import DataError, Recording
 
 #: the candidate effects, in the order ties are broken (simplest physics first)
 CANDIDATES = ("joint_frictionloss", "joint_damping", "joint_armature", "input_delay", "servo_gain")
@@ -95,7 +95,7 @@ class Bench:
 class Blocks:
     """Contiguous time blocks of the recording (open-loop horizon each), split into train/test."""
 
-    episodes: list[Episode]
+    episodes: list[Recording]
     #: (episode index, first sample, samples) per block
     spans: list[tuple[int, int, int]]
     train: list[int]
@@ -107,7 +107,7 @@ class Blocks:
     qd_scale: np.ndarray
 
 
-def make_blocks(episodes: list[Episode], bench: Bench, dt_s: float, horizon_s: float = 2.0,
+def make_blocks(episodes: list[Recording], bench: Bench, dt_s: float, horizon_s: float = 2.0,
                 gap_blocks: int = 1, split: bool = True) -> Blocks:
     """Cut episodes into blocks of ``horizon_s``; blocks alternate train, gap, test, gap (a block
     next to a held-out block never trains: its samples are correlated with the test's)."""
@@ -521,7 +521,7 @@ def calibrated_spec(bench: Bench, values: dict[str, list[float]]):
     return spec
 
 
-def evaluate(bench: Bench, episodes: list[Episode], values: dict[str, list[float]] | None = None,
+def evaluate(bench: Bench, episodes: list[Recording], values: dict[str, list[float]] | None = None,
              horizon_s: float = 2.0) -> float:
     """Multi-step position NRMSE of the bench model (with ``values`` applied) on every block of
     ``episodes`` (e.g. a NEW recording): all blocks are scored, none trains."""

@@ -11,6 +11,7 @@ import os
 import numpy as np
 import pytest
 
+from hilstack.calibration import mjcf_robot as M  # an import error here is a failure, never a skip
 from hilstack.calibration.data import DataError, load_episodes
 from hilstack.calibration.robot_rig import record_excitation
 from hilstack.drivers.dynamixel.control_table import OPERATING_MODES
@@ -19,11 +20,9 @@ from hilstack.sim_backends.dynamixel.firmware import Servo, ServoPhysics, effect
 from hilstack.sim_backends.widowx import emulator
 
 try:
-    from hilstack.calibration import mjcf_robot as M
-
     M._sysid()
     HAVE_SYSID = True
-except Exception:  # SysidNotAvailable
+except M.SysidNotAvailable:
     HAVE_SYSID = False
 needs_sysid = pytest.mark.skipif(not HAVE_SYSID, reason="mujoco.sysid not installed (pip install hilstack[calib])")
 
