@@ -12,7 +12,7 @@ class LockstepSim(Driver):
     """A simulated backend whose clock advances only in ``tick()``.
 
     Subclasses implement ``_advance(duration_s)`` to integrate physics with the held
-    command and ``sim_time_s``.
+    command; the clock is ``self.data.time`` unless they override ``sim_time_s``.
     """
 
     backend = "sim"
@@ -24,9 +24,13 @@ class LockstepSim(Driver):
     def now(self) -> float:
         return self.sim_time_s
 
+    #: the MuJoCo data of a backend that integrates one model itself (None until configured);
+    #: a backend whose clock lives elsewhere (a servo world, a scene) overrides ``sim_time_s``
+    data: Any = None
+
     @property
     def sim_time_s(self) -> float:
-        raise NotImplementedError
+        return 0.0 if self.data is None else float(self.data.time)
 
     def tick(self) -> None:
         self._advance(self.spec.period_s)

@@ -80,10 +80,6 @@ class PointMassSim(LockstepSim):
     def from_config(cls, cfg: RobotConfig) -> PointMassSim:
         return cls(parse_params(cfg, PointMassParams))
 
-    @property
-    def sim_time_s(self) -> float:
-        return 0.0 if self.data is None else float(self.data.time)
-
     def _on_configure(self) -> None:
         p = self.params
         xml = _XML.format(dt=p.physics_dt_s, damping=p.damping_ns_per_m, mass=p.mass_kg)

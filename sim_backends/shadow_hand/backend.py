@@ -141,10 +141,6 @@ class ShadowHandSim(LockstepSim):
     def from_config(cls, cfg: RobotConfig) -> ShadowHandSim:
         return cls(parse_params(cfg, ShadowHandParams), source=cfg.source)
 
-    @property
-    def sim_time_s(self) -> float:
-        return 0.0 if self.data is None else float(self.data.time)
-
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:
         s = self.sim

@@ -190,10 +190,6 @@ class VelociRoachSim(LockstepSim):
         return cls(parse_params(cfg, VelociRoachParams), source=cfg.source)
 
     # ------------------------------------------------------------------ model
-    @property
-    def sim_time_s(self) -> float:
-        return 0.0 if self.data is None else float(self.data.time)
-
     def terrain(self) -> dict[str, Any]:
         """The effective terrain settings (preset with overrides)."""
         s = self.sim

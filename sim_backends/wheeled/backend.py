@@ -169,10 +169,6 @@ class WheeledSim(LockstepSim):
     def from_config(cls, cfg: RobotConfig) -> WheeledSim:
         return cls(parse_params(cfg, WheeledParams))
 
-    @property
-    def sim_time_s(self) -> float:
-        return 0.0 if self.data is None else float(self.data.time)
-
     def _on_configure(self) -> None:
         p = self.params
         h = terrain_heights(p)
