@@ -324,7 +324,8 @@ class BaodingCost:
     """PDDM's Baoding cost (Nagabandi et al. 2019; thesis ch. 4) over predicted states:
     ``cost(states [E,N,H+1,S], actions [N,H,A]) -> [E,N]`` = −Σ_{h=1..H} r(s_h, φ_h) with
 
-        r(s, φ) = −5·Σ_i d(ball_i, target_i(φ)) − 500·1(drop) − 10·1(WRJ0 > limit)
+        r(s, φ) = −5·Σ_i d(ball_i, target_i(φ)) − 10·1(WRJ0 > limit),  or −500 from the
+                  first predicted drop on (the reference code's sticky "done")
 
     the reward of :class:`hilstack.tasks.baoding.BaodingTask` (targets, distance,
     drop rule and wrist term from it), evaluated on the ball channels ``ball{0,1}_{x,y,z}``
@@ -380,6 +381,11 @@ class BaodingCost:
     def step_reward(self, balls: torch.Tensor, targets: torch.Tensor, wrist: torch.Tensor | None = None) -> torch.Tensor:
         """r for balls ``[..., 2, 3]``, targets broadcastable to them and the wrist angle
         ``[...]`` (rad; None: no wrist term) -> ``[...]``."""
+        r, drop = self._terms(balls, targets, wrist)
+        return r - self.w_drop * drop.to(r.dtype)
+
+    def _terms(self, balls: torch.Tensor, targets: torch.Tensor, wrist: torch.Tensor | None):
+        """(r without the drop term, drop [bool]) per step."""
         diff = balls - targets
         if self.task.distance == "plane":
             diff = diff - (diff @ self.normal).unsqueeze(-1) * self.normal
@@ -388,17 +394,24 @@ class BaodingCost:
         h = d @ self.normal  # height above the palm centre along its normal [..., 2]
         side = torch.linalg.vector_norm(d - h.unsqueeze(-1) * self.normal, dim=-1)
         drop = ((h < -self.task.drop_below_m) | (side > self.task.drop_radius_m)).any(-1)
-        r = -self.w_dist * dist - self.w_drop * drop.to(dist.dtype)
+        r = -self.w_dist * dist
         if wrist is not None and self.task.wrist_limit_rad is not None:
             r = r - self.w_wrist * (wrist > self.task.wrist_limit_rad).to(dist.dtype)
-        return r
+        return r, drop
 
     def __call__(self, states: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
+        """Σ_h cost of the predicted steps 1..H. A predicted drop ends the prediction as it ends
+        the episode: from the first predicted drop on, every step costs the drop penalty alone,
+        whatever the model predicts after it (the reference code's sticky ``dones``,
+        google-research/pddm ``calculate_costs.py``), so a model that lets a fallen ball bounce
+        back into the palm cannot buy the penalty back."""
         H = states.shape[-2] - 1
         nxt = states[..., 1:, :]
         balls = nxt[..., self.idx].reshape(*states.shape[:-2], H, 2, 3)
         wrist = None if self.wrist is None else nxt[..., self.wrist]
-        return -self.step_reward(balls, self.targets(H), wrist).sum(-1)
+        r, drop = self._terms(balls, self.targets(H), wrist)
+        done = drop.cumsum(-1) > 0
+        return -torch.where(done, torch.full_like(r, -self.w_drop), r).sum(-1)
 
 
 def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float = 0.1) -> dict[str, float]:

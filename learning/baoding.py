@@ -219,6 +219,15 @@ class BaodingFeatures:
         self._prev = balls.copy()
         return self._assemble(x[None, self.joint_idx], balls[None], vel[None])[0]
 
+    def swap_balls(self, ep: Episode) -> Episode:
+        """``ep`` (feature states) with ball 0's and ball 1's channels (position and velocity)
+        exchanged: the same physics with the balls' labels swapped (the reference code's
+        ``duplicateData_switchObjs``). Named ``<name>#swapped``."""
+        i0, i1 = self.names.index("ball0_x"), self.names.index("ball1_x")
+        st = np.array(ep.states, copy=True)
+        st[:, i0:i0 + 6], st[:, i1:i1 + 6] = ep.states[:, i1:i1 + 6], ep.states[:, i0:i0 + 6]
+        return Episode(states=st, actions=ep.actions, times=ep.times, name=f"{ep.name}#swapped", meta=ep.meta)
+
     def episode(self, ep: Episode, amap: HoldActionMap | None = None) -> Episode:
         """``ep`` with feature states (and actions in the planner's units through ``amap``)."""
         acts = ep.actions if amap is None else amap.from_driver(ep.actions)
@@ -293,6 +302,7 @@ class BaodingConfig(Presets):
         # weights went soft (ESS 91-164 of 200) and the pair turned half as far.
         "quick": dict(random_rollouts=200, random_eval_rollouts=10, iterations=6, rollouts_per_iteration=5,
                       samples=200, hidden=(250, 250), epochs=30, retrain_epochs=20, train_steps=None, preset="quick",
+                      random_rollouts_per_iteration=0, swap_balls=False,
                       sigma=0.05, filter="noise", beta=0.7, low_noise_fraction=0.0, gamma=100.0,
                       notes=["scaled down from the thesis to fit 10 min on 2 cores: 200 random-walk rollouts x 30 "
                              "steps, K=200 (thesis 700), 2x250 (thesis 2x500), 6 iterations x 5 rollouts (thesis R=30 "
@@ -303,7 +313,7 @@ class BaodingConfig(Presets):
                              "to move the mean (ESS rose to 91-164 of 200); gamma 100 turned the pair 2x further, "
                              "3 seeds (docs/baoding.md)"]),
         # A seconds-long smoke run of every stage (tests).
-        "tiny": dict(random_rollouts=3, random_steps=8, random_eval_rollouts=2, episode_steps=12, iterations=1,
+        "tiny": dict(random_rollouts=3, random_steps=8, random_eval_rollouts=2, random_rollouts_per_iteration=1, episode_steps=12, iterations=1,
                      rollouts_per_iteration=2, samples=16, hidden=(16, 16), epochs=2, retrain_epochs=1,
                      train_steps=None, batch_size=64, preset="tiny", progress=False, notes=["smoke-test scale, not a result"]),
     }
@@ -316,6 +326,12 @@ class BaodingConfig(Presets):
     #: (reference code: 100 x 30 steps)
     random_rollouts: int = 100
     random_steps: int = 30
+    #: random-walk rollouts of ``episode_steps`` recorded after every iteration's PDDM rollouts
+    #: and trained on from the next iteration (the reference code's train.py: 5 per iteration)
+    random_rollouts_per_iteration: int = 5
+    #: train on every episode twice, the second time with ball 0 and ball 1 swapped (the balls
+    #: are alike; the reference code's ``duplicateData_switchObjs``); validation stays unswapped
+    swap_balls: bool = True
     #: random-policy episodes scored as the `random_policy` baseline (not trained on)
     random_eval_rollouts: int = 10
     #: 10 s at 10 Hz (T=100); the supervisor's timeout ends episodes at 10 s too
@@ -394,6 +410,8 @@ class BaodingConfig(Presets):
             problems.append(f"torch_threads must be >= 1 or None, got {self.torch_threads}")
         if self.train_steps is not None and self.train_steps < 1:
             problems.append(f"train_steps must be >= 1 or None, got {self.train_steps}")
+        if self.random_rollouts_per_iteration < 0:
+            problems.append(f"random_rollouts_per_iteration must be >= 0, got {self.random_rollouts_per_iteration}")
         for f in ("random_rollouts", "episode_steps", "horizon", "samples", "ensemble", "rollouts_per_iteration"):
             if getattr(self, f) < 1:
                 problems.append(f"{f} must be >= 1, got {getattr(self, f)}")
@@ -469,9 +487,11 @@ def drop_prediction(model, episodes, task, ball_idx: list[int], horizon: int) ->
 class BaodingRun(MbrlRun):
     """The MBRL loop of :class:`MbrlRun` with the Baoding task (see the module docstring)."""
 
-    def __init__(self, cfg: BaodingConfig, out_dir: Path, bus: BusConfig):
+    def __init__(self, cfg: BaodingConfig, out_dir: Path, bus: BusConfig, resume: bool = False):
         super().__init__(cfg.mbrl(), out_dir, bus)
         self.bcfg = cfg
+        #: continue the stopped run in ``out_dir`` after its last finished iteration (:meth:`load_checkpoint`)
+        self.resume = bool(resume)
         self.task = replace(load_baoding_task(cfg.task), **cfg.task_overrides)
         self.plan_times_s: list[float] = []
         #: (ESS, mean shift) of every PDDM plan of the current phase (run_episodes)
@@ -589,8 +609,21 @@ class BaodingRun(MbrlRun):
         c = self.bcfg
         if c.train_steps is None:
             return c.epochs if iteration == 1 else c.retrain_epochs
-        points = max(1, int(sum(len(e) for e in data) * (1.0 - self.cfg.val_fraction)))
-        return max(1, int(np.ceil(c.train_steps * c.batch_size / points)))
+        points = int(sum(len(e) for e in data) * (1.0 - self.cfg.val_fraction)) * (2 if c.swap_balls else 1)
+        return max(1, int(np.ceil(c.train_steps * c.batch_size / max(1, points))))
+
+    def train(self, model, eps: list[Episode], epochs: int) -> dict[str, float]:
+        """One (re)fit on ``eps`` (model episodes): the fixed episode split of the MBRL loop,
+        the training side doubled with the balls swapped (``swap_balls``), validation unswapped."""
+        from hilstack.learning.datasets import split_episodes
+
+        train, val = split_episodes(eps, self.cfg.val_fraction, self.split_rng, self.val_assigned)
+        if self.bcfg.swap_balls:
+            train = train + [self.features.swap_balls(e) for e in train]
+        hist = model.fit(train, epochs=epochs, batch_size=self.cfg.batch_size, val=val or None,
+                         horizon=self.cfg.horizon, progress=self.cfg.progress)
+        last = hist[-1] if hist else {}
+        return {k: float(v) for k, v in last.items() if isinstance(v, (int, float))}
 
     def plan_summary(self) -> dict[str, float]:
         """Per-plan weighting of the phase just run: effective sample size (mean, and as a
@@ -630,61 +663,178 @@ class BaodingRun(MbrlRun):
         except TimeoutError as e:
             raise RigError(f"{e} (driver log: {self.out / 'logs' / 'driver.log'})") from None
 
+    # -- checkpoints: a stopped run resumes after its last finished iteration -------------------
+    @property
+    def ckpt_dir(self) -> Path:
+        return self.out / "checkpoint"
+
+    def save_checkpoint(self, model, iteration: int, data_recordings: list[str], elapsed_s: float) -> None:
+        """After iteration ``iteration``: the model (weights, normalisation, Adam's state, the
+        bootstrap generator), the data's recordings, the fixed validation split and the time
+        spent. ``state.json`` is written last (atomically): it is the commit point."""
+        import json
+
+        d = self.ckpt_dir
+        d.mkdir(parents=True, exist_ok=True)
+        model.save(d / "model.pt.tmp")
+        (d / "model.pt.tmp").replace(d / "model.pt")
+        opt = model._optimizer.state_dict() if model._optimizer is not None else None
+        torch.save({"optimizer": opt, "generator": model._gen.get_state()}, d / "train_state.pt.tmp")
+        (d / "train_state.pt.tmp").replace(d / "train_state.pt")
+        state = {"iteration": iteration, "data_recordings": list(data_recordings), "recordings": list(self.recordings),
+                 "val_assigned": self.val_assigned, "split_rng": self.split_rng.bit_generator.state,
+                 "elapsed_s": elapsed_s, "plan_times_s": list(self.plan_times_s)}
+        (d / "state.json.tmp").write_text(json.dumps(_jsonable(state)))
+        (d / "state.json.tmp").replace(d / "state.json")
+
+    def load_checkpoint(self) -> dict[str, Any]:
+        """The saved state of a stopped run in ``out`` (:meth:`save_checkpoint`) and its
+        partial report; ValueError naming what is missing or what differs in the config."""
+        import json
+
+        sp, rp = self.ckpt_dir / "state.json", self.out / "report.json"
+        if not sp.exists() or not rp.exists():
+            raise ValueError(f"--resume: {self.out} holds no finished iteration to resume from "
+                             f"({'no ' + str(sp) if not sp.exists() else 'no ' + str(rp)})")
+        state, report = json.loads(sp.read_text()), json.loads(rp.read_text())
+        # the run's settings must be the same (more iterations, or another progress display, are fine)
+        now = _jsonable(asdict(self.bcfg))
+        diff = sorted(k for k in set(now) | set(report["config"])
+                      if k not in ("iterations", "progress") and now.get(k) != report["config"].get(k))
+        if diff:
+            raise ValueError(f"--resume: {self.out} was run with other settings ({', '.join(diff)}); "
+                             "resume with the same preset and seed")
+        return {"state": state, "report": report}
+
+    def _set_aside_unfinished(self, keep: list[str]) -> list[str]:
+        """Recordings in ``rec_dir`` that no finished iteration holds (the iteration that was
+        stopped) are renamed ``<name>.unfinished[-k].mcap``, never overwritten or deleted."""
+        kept = {Path(k).resolve() for k in keep}
+        moved = []
+        for f in sorted(self.rec_dir.glob("*.mcap")):
+            if f.resolve() in kept or ".unfinished" in f.name:
+                continue
+            k, dst = 0, f.with_name(f"{f.stem}.unfinished.mcap")
+            while dst.exists():
+                k += 1
+                dst = f.with_name(f"{f.stem}.unfinished-{k}.mcap")
+            f.rename(dst)
+            moved.append(str(dst))
+        return moved
+
+    def _baseline_phases(self, report: dict[str, Any]) -> list[str]:
+        """The random-walk data and the two scored baselines; returns the data's recordings."""
+        c = self.bcfg
+        _log(self.cfg, f"collecting {c.random_rollouts} random-walk rollouts x ≤{c.random_steps} steps")
+        rand_path, walk = self.run_episodes(self.random_walk, c.random_rollouts, "000-random",
+                                            "random-walk rollouts", steps=c.random_steps)
+        report["random_data"] = {"policy": "random walk from the hold pose (reference code's velocity sampling: "
+                                           "|v| in [0.05, 0.15] per step, held 2 steps)",
+                                 "rollouts": len(walk), "steps": c.random_steps,
+                                 "points": int(sum(len(e) for e in episodes_from_mcap(rand_path, self.cfg.robot))),
+                                 "drop_rate": float(np.mean([m["dropped"] for m in walk]))}
+        _, rand_scores = self.run_episodes(self.random_policy, c.random_eval_rollouts,
+                                           "001-random-eval", "uniform random policy (scored)")
+        report["random_policy"] = summarize(rand_scores)
+        # the do-nothing reference (as many episodes as PDDM's): a planner that only holds the grasp scores this
+        _, hold_scores = self.run_episodes(self.hold_policy, c.rollouts_per_iteration,
+                                           "002-hold-eval", "hold policy (scored)")
+        report["hold_policy"] = summarize(hold_scores)
+        _log(self.cfg, f"random policy: {report['random_policy']['mean_return']:.1f} mean return, "
+                       f"{report['random_policy']['drops']} drops")
+        return [str(rand_path)]
+
     def _baoding(self, report: dict[str, Any], t0: float) -> dict[str, Any]:
         c = self.bcfg
+        resumed = self.load_checkpoint() if self.resume else None
+        if resumed is None and (self.out / "report.json").exists():
+            raise ValueError(f"{self.out} already holds a run (report.json): resume it (--resume) or choose another "
+                             "--out; its recordings are not overwritten")
         with self.session():
             missing = [n for n in BALL_NAMES if n not in self.state_names]
             if missing:
                 raise RigError(f"rig {self.rig.name}: robot {self.cfg.robot}'s state has no {', '.join(missing)}: "
                                "Baoding needs the balls' positions in the hand's state (objects_in_state: true "
                                "and ball trackers; docs/baoding.md, 'Connecting a real hand')")
-            _log(self.cfg, f"collecting {c.random_rollouts} random-walk rollouts x ≤{c.random_steps} steps")
-            rand_path, walk = self.run_episodes(self.random_walk, c.random_rollouts, "000-random",
-                                                "random-walk rollouts", steps=c.random_steps)
-            data = episodes_from_mcap(rand_path, self.cfg.robot)
-            report["random_data"] = {"policy": "random walk from the hold pose (reference code's velocity sampling: "
-                                               "|v| in [0.05, 0.15] per step, held 2 steps)",
-                                     "rollouts": len(walk), "steps": c.random_steps,
-                                     "points": int(sum(len(e) for e in data)),
-                                     "drop_rate": float(np.mean([m["dropped"] for m in walk]))}
-            _, rand_scores = self.run_episodes(self.random_policy, c.random_eval_rollouts,
-                                               "001-random-eval", "uniform random policy (scored)")
-            report["random_policy"] = summarize(rand_scores)
-            # the do-nothing reference (as many episodes as PDDM's): a planner that only holds
-            # the grasp scores this
-            _, hold_scores = self.run_episodes(self.hold_policy, c.rollouts_per_iteration,
-                                               "002-hold-eval", "hold policy (scored)")
-            report["hold_policy"] = summarize(hold_scores)
-            _log(self.cfg, f"random policy: {report['random_policy']['mean_return']:.1f} mean return, "
-                           f"{report['random_policy']['drops']} drops")
             model = make_model(self.cfg, self.features.names, self.action_names)
+            if resumed is None:
+                data_recs, first_it = self._baseline_phases(report), 1
+            else:
+                st, old = resumed["state"], resumed["report"]
+                for k in ("random_data", "random_policy", "hold_policy", "inference_dtype"):
+                    if k in old:
+                        report[k] = old[k]
+                report["iterations"] = old.get("iterations", [])[:st["iteration"]]
+                report["resumed"] = [*old.get("resumed", []), {"after_iteration": st["iteration"],
+                                                               "at": time.strftime("%Y-%m-%dT%H:%M:%S")}]
+                self.recordings = list(st["recordings"])
+                data_recs = list(st["data_recordings"])
+                report["set_aside"] = [*old.get("set_aside", []), *self._set_aside_unfinished(self.recordings)]
+                self.val_assigned = dict(st["val_assigned"])
+                self.split_rng.bit_generator.state = st["split_rng"]
+                self.plan_times_s = list(st.get("plan_times_s", []))
+                t0 -= st["elapsed_s"]
+                model = type(model).load(self.ckpt_dir / "model.pt")
+                ts = torch.load(self.ckpt_dir / "train_state.pt", weights_only=False)
+                if ts["optimizer"] is not None:
+                    model._optimizer = torch.optim.Adam(model.parameters(), lr=model.config["lr"],
+                                                        weight_decay=model.config["weight_decay"])
+                    model._optimizer.load_state_dict(ts["optimizer"])
+                model._gen.set_state(ts["generator"])
+                first_it = st["iteration"] + 1
+                _log(self.cfg, f"resuming after iteration {st['iteration']} ({len(data_recs)} recordings of data)")
+            data = [e for r in data_recs for e in episodes_from_mcap(r, self.cfg.robot)]
             report["inference_dtype"] = str(model.set_inference_dtype(c.inference_dtype)).removeprefix("torch.")
             samples = self.fit_pddm_to_period(model)  # timing needs the architecture, not trained weights
-            report["iterations"] = iterations = []
-            for it in range(1, c.iterations + 1):
+            iterations = report.setdefault("iterations", [])
+            for it in range(first_it, c.iterations + 1):
                 t_it = time.monotonic()
                 train = self.train(model, self.model_episodes(data), self.epochs_for(data, it))
                 t_train = time.monotonic() - t_it
+                n_plans = len(self.plan_times_s)
+                t_roll = time.monotonic()
                 path, scores = self.run_episodes(
                     lambda i, m=model, it=it: self.pddm_policy(m, self._seed(10 + it, i), samples),
                     c.rollouts_per_iteration, f"{it:03d}-mpc", f"iteration {it}: PDDM rollouts")
+                t_roll = time.monotonic() - t_roll
                 new = episodes_from_mcap(path, self.cfg.robot)
                 val = self.model_episodes([e for e in data if self.val_assigned.get(e.name)])
                 idx = [self.features.names.index(n) for n in BALL_NAMES]
+                steps = int(sum(m["steps"] for m in scores))
+                pt = np.asarray(self.plan_times_s[n_plans:]) * 1e3
                 row = {"iteration": it, "points": int(sum(len(e) for e in data)),
                        "model": {**{k: train[k] for k in ("train_loss", "val_1step", "val_h") if k in train},
                                  **drop_prediction(model, val, self.task, idx, c.horizon)},
                        **summarize(scores), "weights": self.plan_summary(),
-                       "wall_s": {"train": t_train, "iteration": time.monotonic() - t_it,
-                                  "since_start": time.monotonic() - t0}}
+                       # where the iteration's time went: training; per PDDM step, the plan and the
+                       # rest (sim, bus round trip, policy wrapper, recording, resets)
+                       "timing": {"plan_ms_p50": float(np.percentile(pt, 50)) if pt.size else None,
+                                  "plan_ms_p99": float(np.percentile(pt, 99)) if pt.size else None,
+                                  "steps": steps, "ms_per_step": 1e3 * t_roll / max(1, steps),
+                                  "plan_ms_mean": float(pt.mean()) if pt.size else None,
+                                  "loadavg": open("/proc/loadavg").read().split()[:3]
+                                  if Path("/proc/loadavg").exists() else None},
+                       "wall_s": {"train": t_train, "rollouts": t_roll}}
+                data += new
+                data_recs.append(str(path))
+                if c.random_rollouts_per_iteration:
+                    rpath, walk = self.run_episodes(lambda i, it=it: self.random_walk(1000 * it + i),
+                                                    c.random_rollouts_per_iteration, f"{it:03d}-random",
+                                                    f"iteration {it}: random-walk rollouts")
+                    data += episodes_from_mcap(rpath, self.cfg.robot)
+                    data_recs.append(str(rpath))
+                    row["random_walk"] = {"rollouts": len(walk), "drop_rate": float(np.mean([m["dropped"] for m in walk])),
+                                          "points": int(sum(m["steps"] for m in walk))}
+                row["wall_s"].update(iteration=time.monotonic() - t_it, since_start=time.monotonic() - t0)
                 iterations.append(row)
                 self.write_partial(report, t0)
-                data += new
+                self.save_checkpoint(model, it, data_recs, time.monotonic() - t0)
                 _log(self.cfg, f"iteration {it}: trained on {row['points']} points (val_h {train.get('val_h', float('nan')):.3f}); "
                                f"PDDM {row['mean_return']:.1f} mean return, {row['drops']}/{len(scores)} drops, "
                                f"{row['mean_rotation_deg']:.0f}° mean rotation, success_90 {row['success_90']:.2f}, "
                                f"ESS {row['weights'].get('ess_mean', float('nan')):.1f}, "
-                               f"shift {row['weights'].get('mean_shift_rms', float('nan')):.3f}")
+                               f"shift {row['weights'].get('mean_shift_rms', float('nan')):.3f}, "
+                               f"{row['timing']['ms_per_step']:.0f} ms/step (plan p50 {row['timing']['plan_ms_p50'] or 0:.0f} ms)")
             model.save(self.out / "model.pt")
         pc = self.pddm_config(samples)
         pt = np.asarray(self.plan_times_s) * 1e3

@@ -53,6 +53,8 @@ def register(app: typer.Typer) -> None:
                                              help="rigs without a reset: section (docs/reset.md): prompt an operator to place the robot"),
         ray: str | None = RAY_OPTION,
         workers: int = typer.Option(1, "--workers", help="with --ray local: the local runtime's CPUs"),
+        resume: bool = typer.Option(False, "--resume", help="baoding only: continue the stopped run in --out "
+                                    "after its last finished iteration (same preset and seed)"),
     ) -> None:
         """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
 
@@ -82,8 +84,11 @@ def register(app: typer.Typer) -> None:
             import importlib
 
             module, fn, _ = OTHER_DEMOS[what]
+            if resume and what != "baoding":
+                raise UserError(f"hil demo {what}: --resume is for the baoding demo only")
             kw = {"part": part, "setting": setting, "ray": ray, "workers": workers} if what == "transfer" else (
-                {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else {})
+                {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else (
+                    {"resume": resume} if what == "baoding" else {}))
             if what == "mbrl-gym":
                 from hilstack.tools.demo_mbmf import parse_envs
 
@@ -95,6 +100,8 @@ def register(app: typer.Typer) -> None:
             return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed, **kw)
         if what != "roach":
             raise UserError(f"hil demo: unknown demo {what!r} ({' | '.join(['roach', *OTHER_DEMOS])})")
+        if resume:
+            raise UserError("hil demo roach: --resume is for the baoding demo only")
         from hilstack.learning.mbrl import RigError
         from hilstack.tools.demo import run_demo
 

@@ -39,8 +39,9 @@ def make_config(preset: str, seed: int, **overrides: Any) -> BaodingConfig:
 
 
 def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusConfig | None = None,
-                     **overrides: Any) -> dict[str, Any]:
-    """One run of PDDM on Baoding; writes the report to ``out`` and returns it."""
+                     resume: bool = False, **overrides: Any) -> dict[str, Any]:
+    """One run of PDDM on Baoding; writes the report to ``out`` and returns it. ``resume``:
+    continue the stopped run in ``out`` after its last finished iteration (same preset and seed)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg = make_config(preset, seed, **overrides)
@@ -53,7 +54,7 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
         rig_cfg = load_rig(cfg.rig)
         bus = with_endpoint(rig_cfg.bus, free_endpoint())
         provision_credentials(rig_cfg.name, bus, rig_cfg)
-    report = BaodingRun(cfg, out, bus).run()
+    report = BaodingRun(cfg, out, bus, resume=resume).run()
     report["command"] = f"hil demo baoding{' --quick' if preset == 'quick' else ''} --seed {seed} --out {out}"
     report["created"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     report["plots"] = [write_plot(report, out)]
@@ -69,11 +70,22 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
 
 
 def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thesis", rig: str = FULL_RIG,
-             **overrides: Any) -> dict[str, Any]:
+             resume: bool = False, **overrides: Any) -> dict[str, Any]:
     """The thesis' settings over ``seeds``: per-seed reports in ``out/seed_<k>`` and the
-    final iteration's metrics as mean ± std across seeds, on :data:`FULL_RIG` by default."""
+    final iteration's metrics as mean ± std across seeds, on :data:`FULL_RIG` by default.
+    ``resume``: seeds already finished are read back, a stopped one continues, the rest start."""
     out = Path(out)
-    runs = [run_baoding_demo(out / f"seed_{s}", preset=preset, seed=s, rig=rig, **overrides) for s in seeds]
+
+    def one(s: int) -> dict[str, Any]:
+        d = out / f"seed_{s}"
+        if resume and (d / "report.json").exists():
+            r = json.loads((d / "report.json").read_text())
+            if not r.get("partial"):
+                return r
+            return run_baoding_demo(d, preset=preset, seed=s, rig=rig, resume=True, **overrides)
+        return run_baoding_demo(d, preset=preset, seed=s, rig=rig, **overrides)
+
+    runs = [one(s) for s in seeds]
 
     def across(key: str, pick) -> dict[str, float]:
         v = np.array([pick(r) for r in runs], dtype=np.float64)
@@ -189,7 +201,7 @@ def report_markdown(r: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def cli_baoding(out: Path, quick: bool, full: bool, seed: int) -> None:
+def cli_baoding(out: Path, quick: bool, full: bool, seed: int, resume: bool = False) -> None:
     """The `hil demo baoding` verb (registered in tools/cmd_demo.py)."""
     import typer
 
@@ -201,14 +213,14 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int) -> None:
         out = Path("out/baoding")
     try:
         if full:
-            s = run_full(out)
+            s = run_full(out, resume=resume)
             typer.echo(f"final PDDM success_90 {100 * s['final_success_90']['mean']:.0f} ± "
                        f"{100 * s['final_success_90']['std']:.0f} %, success_180 {100 * s['final_success_180']['mean']:.0f} %, "
                        f"rotation {s['final_mean_rotation_deg']['mean']:.0f}°, drop rate "
                        f"{s['final_drop_rate']['mean']:.2f} over seeds {s['seeds']}")
             typer.echo(f"report: {out / 'report.json'}")
             return
-        r = run_baoding_demo(out, preset="quick" if quick else "thesis", seed=seed)
+        r = run_baoding_demo(out, preset="quick" if quick else "thesis", seed=seed, resume=resume)
     except (RigError, ValueError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from None

@@ -254,9 +254,12 @@ def test_fixed_gradient_steps_per_iteration_do_not_grow_with_the_data(bus, tmp_p
     from hilstack.learning.baoding import BaodingConfig, BaodingRun
 
     ep = lambda n: Episode(states=np.zeros((n + 1, 3)), actions=np.zeros((n, 1)), name="e")  # noqa: E731
-    run = BaodingRun(BaodingConfig.from_preset("tiny", train_steps=100, batch_size=500), tmp_path, bus)
+    run = BaodingRun(BaodingConfig.from_preset("tiny", train_steps=100, batch_size=500, swap_balls=False), tmp_path, bus)
     small, big = run.epochs_for([ep(1000)], 1), run.epochs_for([ep(100_000)], 5)
     assert small == int(np.ceil(100 * 500 / 900)) and big == 1  # ~100 steps either way
+    # with the balls swapped every training episode counts twice
+    swapped = BaodingRun(BaodingConfig.from_preset("tiny", train_steps=100, batch_size=500), tmp_path / "s", bus)
+    assert swapped.epochs_for([ep(1000)], 1) == int(np.ceil(100 * 500 / 1800))
     assert BaodingRun(BaodingConfig.from_preset("tiny", epochs=7, retrain_epochs=3), tmp_path / "b", bus).epochs_for([ep(10)], 2) == 3
     with pytest.raises(ValueError, match="train_steps"):
         BaodingConfig(train_steps=0)

@@ -34,7 +34,9 @@ def state_with(balls: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- reward math
-def test_cost_is_minus_the_task_reward_summed_over_the_horizon():
+def test_cost_is_minus_the_task_reward_summed_over_the_horizon_and_a_predicted_drop_sticks():
+    """−Σ r over the predicted steps; from a predicted drop on every step costs 500, even when
+    the model has the ball back in the palm a step later (the reference's sticky dones)."""
     tk, dt, H = task(), 0.1, 4
     cost = BaodingCost(tk, NAMES, dt)
     cost.reset()
@@ -45,10 +47,18 @@ def test_cost_is_minus_the_task_reward_summed_over_the_horizon():
     balls[1, 3, 0, 2] = 0.0  # one predicted state with a dropped ball
     states = torch.tensor(np.stack([[state_with(b) for b in seq] for seq in balls]), dtype=torch.float32)[None]
     got = cost(states, None)  # [E=1, N=2]
-    want = [-sum(tk.reward(balls[n, h], (2 + h) * dt) for h in range(1, H + 1)) for n in range(2)]
+
+    def want(n: int) -> float:
+        total, done = 0.0, False
+        for h in range(1, H + 1):
+            done = done or tk.dropped(balls[n, h])
+            total += 500.0 if done else -tk.reward(balls[n, h], (2 + h) * dt)
+        return total
+
+    assert not tk.dropped(balls[1, 4])  # the model has the ball back up after the drop
     assert got.shape == (1, 2)
-    np.testing.assert_allclose(got[0].numpy(), want, rtol=1e-5, atol=1e-4)
-    assert got[0, 1] > 500  # the drop is in it
+    np.testing.assert_allclose(got[0].numpy(), [want(0), want(1)], rtol=1e-5, atol=1e-4)
+    assert got[0, 1] > 1000  # the drop at step 3 costs steps 3 and 4
 
 
 def test_reward_by_hand():
@@ -64,8 +74,8 @@ def test_reward_by_hand():
     off[0, 2] += 0.1  # one ball 10 cm above its target: 5 · 0.1
     assert c(off) == pytest.approx(0.5, abs=1e-4)
     fell = on.copy()
-    fell[1, 2] -= 0.05  # 5 cm below the palm centre: a drop (0.04 m) and 5 · 0.05
-    assert c(fell) == pytest.approx(500.25, abs=1e-3)
+    fell[1, 2] -= 0.05  # 5 cm below the palm centre: a drop (0.04 m); a dropped step costs the penalty alone
+    assert c(fell) == pytest.approx(500.0, abs=1e-3)
 
 
 def test_episode_metrics_turns_drop_and_return():
@@ -164,11 +174,16 @@ def test_demo_baoding_tiny_end_to_end(tmp_path):
     assert (p["horizon"], p["samples"], p["ensemble"], p["hidden"]) == (7, 16, 3, (16, 16))
     assert p["plans"] > 0 and 0 < p["plan_ms_p50"] <= p["plan_ms_p99"]
     rs = r["resets"]
-    assert rs["requested"] >= 3 + 2 + 2 + 2  # one per episode: random walk, random, hold, PDDM
+    assert rs["requested"] >= 3 + 2 + 2 + 2 + 1  # one per episode: random walk, random, hold, PDDM, random walk
     assert rs["completed"] == rs["requested"] and rs["failed"] == 0 and rs["mean_duration_s"] > 0
     for f in ("report.md", "turns.png", "demo.rrd", "model.pt"):
         assert (tmp_path / f).is_file(), f
-    assert all(p.endswith(".mcap") for p in r["recordings"]) and len(r["recordings"]) == 4
+    # random walk, random, hold, PDDM, and the iteration's random walk (the reference aggregates 5 each)
+    assert all(p.endswith(".mcap") for p in r["recordings"]) and len(r["recordings"]) == 5
+    it = r["iterations"][0]
+    assert it["random_walk"]["rollouts"] == 1 and r["recordings"][-1].endswith("001-random.mcap")
+    t = it["timing"]  # where the iteration's time went
+    assert 0 < t["plan_ms_p50"] <= t["plan_ms_p99"] and t["steps"] > 0 and t["ms_per_step"] >= t["plan_ms_mean"] > 0
 
 
 def test_reset_handshake_and_lockstep_messages_wait_for_a_full_send_queue(bus):
