@@ -112,6 +112,43 @@ def test_the_run_trains_and_plans_on_the_features(bus, tmp_path):
     np.testing.assert_allclose(m.actions, 0.0, atol=1e-6)  # the hold pose is z = 0
 
 
+def test_training_doubles_the_data_with_the_balls_swapped_and_validates_unswapped(bus, tmp_path):
+    """The reference code's data doubling (``duplicateData_switchObjs``): every training
+    episode once more with ball 0's and ball 1's position and velocity exchanged; validation
+    episodes are never swapped (nor their swapped copies trained on)."""
+    from hilstack.learning.baoding import BaodingConfig, BaodingRun
+
+    f = BaodingFeatures(NAMES, DT)
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(4, f.dim))
+    ep = Episode(states=x, actions=np.zeros((3, 20)), name="e")
+    sw = f.swap_balls(ep)
+    b0, b1 = f.names.index("ball0_x"), f.names.index("ball1_x")
+    np.testing.assert_array_equal(sw.states[:, :b0], ep.states[:, :b0])  # joints as they were
+    np.testing.assert_array_equal(sw.states[:, b0:b0 + 6], ep.states[:, b1:b1 + 6])
+    np.testing.assert_array_equal(sw.states[:, b1:b1 + 6], ep.states[:, b0:b0 + 6])
+    assert f.names[b0:b0 + 6] == ["ball0_x", "ball0_y", "ball0_z", "ball0_vx", "ball0_vy", "ball0_vz"]
+    np.testing.assert_array_equal(f.swap_balls(sw).states, ep.states)
+
+    seen = {}
+
+    class Model:
+        def fit(self, train, epochs, batch_size, val, horizon, progress):
+            seen.update(train=[e.name for e in train], val=[e.name for e in val or []])
+            return [{"train_loss": 1.0}]
+
+    for swap in (True, False):
+        run = BaodingRun(BaodingConfig.from_preset("tiny", swap_balls=swap), tmp_path / str(swap), bus)
+        run.state_names = NAMES
+        eps = [Episode(states=rng.normal(size=(4, f.dim)), actions=np.zeros((3, 20)), name=f"e{i}") for i in range(10)]
+        run.train(Model(), eps, 1)
+        plain = [n for n in seen["train"] if not n.endswith("#swapped")]
+        assert len(seen["val"]) == 1 and not any(n.endswith("#swapped") for n in seen["val"])
+        assert sorted(plain + seen["val"]) == sorted(e.name for e in eps)
+        assert sorted(n for n in seen["train"] if n.endswith("#swapped")) == (
+            sorted(f"{n}#swapped" for n in plain) if swap else [])
+
+
 # ---------------------------------------------------------------------------- actions about the hold pose
 def test_the_baoding_run_starts_every_pddm_rollout_at_the_hold_pose(bus, tmp_path):
     """learning/baoding.py gives the planner init_mean: z = 0, the hold pose in the planner's
@@ -305,23 +342,29 @@ def test_the_quick_preset_is_the_gamma_100_ablation_and_ref_the_reference_sample
     assert (d.sigma, d.filter, d.beta, d.low_noise_fraction, d.gamma) == (0.9, "actions", 0.6, 0.1, 20.0)
 
 
-def test_a_run_stopped_after_an_iteration_keeps_that_iteration_in_report_json(bus, tmp_path):
+def test_a_stopped_run_resumes_after_its_last_finished_iteration(bus, tmp_path):
     """A thesis-scale run takes hours: report.json is rewritten after every iteration
-    (``partial: true``), so a run stopped early keeps its curve so far."""
+    (``partial: true``) and a checkpoint written, so a run stopped in its second iteration keeps
+    its curve and `--resume` goes on from there: the data read back from the recordings, the
+    model, Adam and the validation split as they were, the stopped iteration's recording set
+    aside (not overwritten)."""
     import json
+    from dataclasses import replace
 
     from hilstack.learning.baoding import BaodingConfig, BaodingRun
+    from hilstack.learning.recordings import episodes_from_mcap
 
-    run = BaodingRun(BaodingConfig.from_preset("tiny", iterations=3), tmp_path, bus)
-    real_train, calls = run.train, []
+    cfg = BaodingConfig.from_preset("tiny", iterations=2, random_rollouts_per_iteration=0)  # those: the end-to-end test
+    run = BaodingRun(cfg, tmp_path, bus)
+    real, calls = run.pddm_policy, []
 
-    def train(*a, **kw):
+    def pddm_policy(*a, **kw):
         calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt  # stopped during the second iteration's training
-        return real_train(*a, **kw)
+        if len(calls) == 4:  # the second episode of iteration 2: its recording is half written
+            raise KeyboardInterrupt
+        return real(*a, **kw)
 
-    run.train = train
+    run.pddm_policy = pddm_policy
     with pytest.raises(KeyboardInterrupt):
         run.run()
     r = json.loads((tmp_path / "report.json").read_text())
@@ -330,3 +373,30 @@ def test_a_run_stopped_after_an_iteration_keeps_that_iteration_in_report_json(bu
     assert it["episodes"] == 2 and {"success_90", "mean_rotation_deg", "points"} <= set(it)
     assert 0 < it["wall_s"]["train"] <= it["wall_s"]["iteration"] <= it["wall_s"]["since_start"]
     assert r["hold_policy"]["episodes"] == 2 and any(p.endswith("001-mpc.mcap") for p in r["recordings"])
+    state = json.loads((tmp_path / "checkpoint" / "state.json").read_text())
+    assert state["iteration"] == 1 and (tmp_path / "recordings" / "002-mpc.mcap").exists()
+    points = sum(len(e) for p in state["data_recordings"] for e in episodes_from_mcap(p, "hand"))
+
+    with pytest.raises(ValueError, match="--resume"):  # never over a run without being asked
+        BaodingRun(cfg, tmp_path, bus).run()
+    with pytest.raises(ValueError, match="seed"):  # not with other settings
+        BaodingRun(replace(cfg, seed=1), tmp_path, bus, resume=True).run()
+
+    again = BaodingRun(cfg, tmp_path, bus, resume=True)
+    fits = []
+    real_fit = again.train
+
+    def train(model, eps, epochs):
+        fits.append((len(model.history), len(model._optimizer.state)))  # the checkpoint's model and Adam
+        return real_fit(model, eps, epochs)
+
+    again.train = train
+    r2 = again.run()
+    assert [it["iteration"] for it in r2["iterations"]] == [1, 2] and r2["resumed"][0]["after_iteration"] == 1
+    assert json.dumps(r2["iterations"][0], sort_keys=True) == json.dumps(r["iterations"][0], sort_keys=True)
+    assert r2["iterations"][1]["points"] == points  # everything recorded up to iteration 1, read back
+    assert fits == [(fits[0][0], fits[0][1])] and fits[0][0] > 0 and fits[0][1] > 0
+    assert again.val_assigned == {**state["val_assigned"], **again.val_assigned}
+    unfinished = tmp_path / "recordings" / "002-mpc.unfinished.mcap"
+    assert unfinished.exists() and str(unfinished) in r2["set_aside"]
+    assert (tmp_path / "recordings" / "002-mpc.mcap").exists() and r2["wall_s"] > it["wall_s"]["since_start"]
