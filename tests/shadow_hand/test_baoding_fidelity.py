@@ -387,7 +387,8 @@ def test_a_stopped_run_resumes_after_its_last_finished_iteration(bus, tmp_path):
     real_fit = again.train
 
     def train(model, eps, epochs):
-        fits.append((len(model.history), len(model._optimizer.state)))  # the checkpoint's model and Adam
+        # the checkpoint's model, Adam and split generator (new episodes are drawn as they would have been)
+        fits.append((len(model.history), len(model._optimizer.state), again.split_rng.bit_generator.state))
         return real_fit(model, eps, epochs)
 
     again.train = train
@@ -395,7 +396,7 @@ def test_a_stopped_run_resumes_after_its_last_finished_iteration(bus, tmp_path):
     assert [it["iteration"] for it in r2["iterations"]] == [1, 2] and r2["resumed"][0]["after_iteration"] == 1
     assert json.dumps(r2["iterations"][0], sort_keys=True) == json.dumps(r["iterations"][0], sort_keys=True)
     assert r2["iterations"][1]["points"] == points  # everything recorded up to iteration 1, read back
-    assert fits == [(fits[0][0], fits[0][1])] and fits[0][0] > 0 and fits[0][1] > 0
+    assert len(fits) == 1 and fits[0][0] > 0 and fits[0][1] > 0 and fits[0][2] == state["split_rng"]
     assert again.val_assigned == {**state["val_assigned"], **again.val_assigned}
     unfinished = tmp_path / "recordings" / "002-mpc.unfinished.mcap"
     assert unfinished.exists() and str(unfinished) in r2["set_aside"]
