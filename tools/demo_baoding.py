@@ -442,7 +442,7 @@ def thesis_scale_cost(calls: int = 15, sizes: tuple[int, ...] = (700, 400, 200),
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | ablate OUT [NAME...]``."""
+    """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...]``."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_baoding",
@@ -451,12 +451,16 @@ def main(argv: list[str] | None = None) -> None:
     c = sub.add_parser("compare", help="compare the sampler choices of a finished run")
     c.add_argument("run_dir", type=Path)
     sub.add_parser("cost", help="what the thesis-scale run would cost here")
+    pl = sub.add_parser("plot", help="turns.png of a run's report.json, a stopped (partial) one too")
+    pl.add_argument("run_dir", type=Path)
     ab = sub.add_parser("ablate", help="run the ablations (all when no NAME is given)")
     ab.add_argument("out", type=Path)
     ab.add_argument("names", nargs="*", metavar="NAME", help="ablation names")
     a = ap.parse_args(argv)
     if a.cmd == "cost":
         print(json.dumps(thesis_scale_cost(), indent=1))
+    elif a.cmd == "plot":
+        print(write_plot(json.loads((a.run_dir / "report.json").read_text()), a.run_dir))
     elif a.cmd == "ablate":
         unknown = [n for n in a.names if n not in ABLATIONS]
         if unknown:

@@ -376,6 +376,10 @@ def test_a_stopped_run_resumes_after_its_last_finished_iteration(bus, tmp_path):
     state = json.loads((tmp_path / "checkpoint" / "state.json").read_text())
     assert state["iteration"] == 1 and (tmp_path / "recordings" / "002-mpc.mcap").exists()
     points = sum(len(e) for p in state["data_recordings"] for e in episodes_from_mcap(p, "hand"))
+    from hilstack.tools.demo_baoding import main
+
+    main(["plot", str(tmp_path)])  # the curve so far, of a stopped run
+    assert (tmp_path / "turns.png").stat().st_size > 0
 
     with pytest.raises(ValueError, match="--resume"):  # never over a run without being asked
         BaodingRun(cfg, tmp_path, bus).run()
