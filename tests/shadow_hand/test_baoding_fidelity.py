@@ -405,3 +405,30 @@ def test_a_stopped_run_resumes_after_its_last_finished_iteration(bus, tmp_path):
     unfinished = tmp_path / "recordings" / "002-mpc.unfinished.mcap"
     assert unfinished.exists() and str(unfinished) in r2["set_aside"]
     assert (tmp_path / "recordings" / "002-mpc.mcap").exists() and r2["wall_s"] > it["wall_s"]["since_start"]
+
+
+def test_full_resume_reads_finished_seeds_resumes_the_stopped_one_and_starts_the_rest(tmp_path, monkeypatch):
+    import json
+
+    import hilstack.tools.demo_baoding as demo
+
+    def report(s90):
+        it = {"mean_rotation_deg": 1.0, "mean_steps": 100.0, "mean_return": -1.0, "drop_rate": 0.0,
+              "success_90": s90, "success_180": 0.0}
+        return {"iterations": [it], "hold_policy": {"success_90": 0.0, "mean_rotation_deg": 0.0},
+                "random_policy": {"mean_return": -500.0}}
+
+    (tmp_path / "seed_0").mkdir()
+    (tmp_path / "seed_0" / "report.json").write_text(json.dumps(report(0.5)))  # finished
+    (tmp_path / "seed_1").mkdir()
+    (tmp_path / "seed_1" / "report.json").write_text(json.dumps({**report(0.0), "partial": True}))  # stopped
+    calls = []
+
+    def fake(out, preset, seed, rig, resume=False, **kw):
+        calls.append((seed, resume))
+        return report(0.25)
+
+    monkeypatch.setattr(demo, "run_baoding_demo", fake)
+    s = demo.run_full(tmp_path, resume=True)
+    assert calls == [(1, True), (2, False)]
+    assert s["final_success_90"]["per_seed"] == [0.5, 0.25, 0.25]
