@@ -311,7 +311,9 @@ class BaodingConfig(Presets):
                              "filter dropped 28 of 30 episodes at this data size; docs/baoding.md)",
                              "gamma 100 (thesis 20): with sigma 0.05 the samples' returns differ too little for gamma 20 "
                              "to move the mean (ESS rose to 91-164 of 200); gamma 100 turned the pair 2x further, "
-                             "3 seeds (docs/baoding.md)"]),
+                             "3 seeds (docs/baoding.md)",
+                             "no ball-swap doubling and no per-iteration random walks (the thesis preset has both, "
+                             "as the reference code): the quick numbers were measured without them"]),
         # A seconds-long smoke run of every stage (tests).
         "tiny": dict(random_rollouts=3, random_steps=8, random_eval_rollouts=2, random_rollouts_per_iteration=1, episode_steps=12, iterations=1,
                      rollouts_per_iteration=2, samples=16, hidden=(16, 16), epochs=2, retrain_epochs=1,
