@@ -777,7 +777,7 @@ class BaodingRun(MbrlRun):
                 self.plan_times_s = list(st.get("plan_times_s", []))
                 t0 -= st["elapsed_s"]
                 model = type(model).load(self.ckpt_dir / "model.pt")
-                ts = torch.load(self.ckpt_dir / "train_state.pt", weights_only=False)
+                ts = torch.load(self.ckpt_dir / "train_state.pt", weights_only=True)
                 if ts["optimizer"] is not None:
                     model._optimizer = torch.optim.Adam(model.parameters(), lr=model.config["lr"],
                                                         weight_decay=model.config["weight_decay"])
