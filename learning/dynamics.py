@@ -95,7 +95,8 @@ def _resolve_inference_dtype(choice: str) -> torch.dtype:
 def _relu_(h: torch.Tensor) -> torch.Tensor:
     """In-place ReLU. For bfloat16, on the bits seen as int16: a bf16 number is sign and
     magnitude, so ``max(x, 0)`` keeps every number with the sign bit clear and maps every
-    negative (and −0) to +0, which is ``clamp_min(0)`` on the int16 view. Exact, and measured
+    negative (and −0) to +0, which is ``clamp_min(0)`` on the int16 view. Exact for every
+    non-NaN value (a NaN with the sign bit set becomes 0, where torch keeps NaN), and measured
     3.4x faster than bf16 ``relu_`` on a [12, 175, 500] planning batch (one thread, AMX CPU),
     where torch's bf16 element-wise kernels convert to fp32 and back."""
     if h.dtype == torch.bfloat16:

@@ -231,7 +231,7 @@ def test_the_bf16_relu_on_the_int16_view_is_exactly_relu():
 
     bits = torch.arange(-32768, 32768, dtype=torch.int32).to(torch.int16)  # every bf16 bit pattern
     x = bits.view(torch.bfloat16)
-    x = x[~torch.isnan(x)]  # relu of a NaN is NaN either way; not a planner value
+    x = x[~torch.isnan(x)]  # a NaN with the sign bit set becomes 0 here (torch keeps it NaN): not a planner value
     want = torch.relu(x.float()).to(torch.bfloat16)
     got = _relu_(x.clone())
     assert torch.equal(got.float(), want.float())  # −0 and +0 compare equal; every other value exactly
