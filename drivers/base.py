@@ -50,7 +50,7 @@ import math
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field, replace
-from typing import Any, NoReturn, Protocol, runtime_checkable
+from typing import Any, ClassVar, NoReturn, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -574,10 +574,18 @@ def perturbable(driver: Driver) -> Perturbable | None:
 
 
 class Driver(ABC):
-    """Base of every backend. Subclasses set ``spec`` in ``__init__`` (no I/O there)."""
+    """Base of every backend. Subclasses set ``spec`` in ``__init__`` (no I/O there).
+
+    A backend registered for a config (``hilstack.backends`` entry points) names its params
+    model in ``params_type``; :meth:`from_config` is then written once, here. Its
+    constructor takes ``(params, backend=..., source=...)`` (a real driver serves "real"
+    and "emulated"), or ``(params, source=...)`` for a sim backend (class ``backend = "sim"``)."""
 
     #: "real", "emulated" or "sim"
     backend: str = "real"
+    #: the pydantic model of the robot config's ``params:`` section (configs/schema.py:
+    #: ``Params``); None for a backend that is not built from a config
+    params_type: ClassVar[type | None] = None
     #: the inputs the backend fuses (None: none). Any of them past its ``fail_after_s`` is a
     #: dead device: ``read()`` and ``write()`` take the error path (:meth:`_expire_inputs`)
     inputs: Inputs | None = None
@@ -596,6 +604,20 @@ class Driver(ABC):
         self._rate_max: np.ndarray | None = None
         self._cycle: CycleTimer | None = None  # paces tick() on the wall clock
         self.last_error: str | None = None
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> Driver:
+        """The backend of a validated robot config (``configs.schema.RobotConfig``): its
+        ``params`` parsed into :attr:`params_type` (errors name the file and
+        ``params.<field>``), its backend kind and source file passed on."""
+        if cls.params_type is None:
+            raise TypeError(f"{cls.__name__} cannot be built from a config: it sets no params_type")
+        from hilstack.configs.schema import parse_params
+
+        params = parse_params(cfg, cls.params_type)
+        if cls.backend == "sim":  # a sim backend is one kind only
+            return cls(params, source=cfg.source)
+        return cls(params, backend=cfg.backend, source=cfg.source)
 
     # ------------------------------------------------------------------ spec
     @property

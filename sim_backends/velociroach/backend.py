@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from hilstack.configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
+from hilstack.configs.schema import ConfigError, Params, parse_model
 from hilstack.drivers.base import Flag, Freshness, Health, Inputs, Observation
 from hilstack.drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
 from hilstack.sim_backends.base import LockstepSim
@@ -139,6 +139,7 @@ def parse_sim_params(sim: dict, source: str | None) -> SimParams:
 
 class VelociRoachSim(LockstepSim):
     """The VelociRoACH in MuJoCo behind the driver contract."""
+    params_type = VelociRoachParams
 
     #: run the firmware's leg-velocity PID inlined in the stepping loop (False: every tick
     #: through Firmware.tick; the same floats, about a third slower: tools/bench_sim.py)
@@ -147,6 +148,7 @@ class VelociRoachSim(LockstepSim):
     def __init__(self, params: VelociRoachParams | None = None, source: str | None = None):
         super().__init__()
         self.params = p = params or VelociRoachParams()
+        self.source = source
         self.sim = parse_sim_params(p.sim, source)
         self.spec = velociroach_spec(p)
         s = self.sim
@@ -184,10 +186,6 @@ class VelociRoachSim(LockstepSim):
             Freshness("pose", p.pose_deadline_s, Flag.STALE_POSE),
             Freshness("telemetry", p.telemetry_deadline_s, Flag.STALE_TELEMETRY),
         )
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> VelociRoachSim:
-        return cls(parse_params(cfg, VelociRoachParams), source=cfg.source)
 
     # ------------------------------------------------------------------ model
     def terrain(self) -> dict[str, Any]:
