@@ -623,14 +623,15 @@ class Driver(ABC):
     @property
     def spec(self) -> RobotSpec:
         """The robot's spec with this backend's :attr:`pacing` (readable before connecting)."""
-        s = self._spec
-        if s.pacing is not (p := self.pacing):
-            s = self._spec = s.with_pacing(p)
-        return s
+        if self._spec_backend != self.backend:  # stamped once per backend kind (read in every write)
+            self._spec = self._spec.with_pacing(self.pacing)
+            self._spec_backend = self.backend
+        return self._spec
 
     @spec.setter
     def spec(self, value: RobotSpec) -> None:
         self._spec = value
+        self._spec_backend: str | None = None
 
     # ------------------------------------------------------------------ lifecycle
     @property
