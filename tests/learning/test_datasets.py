@@ -4,7 +4,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from hilstack.learning.datasets import Episode, TransitionDataset, Transitions, episodes_from_table, load_episodes
+from hilstack.learning.datasets import (
+    Episode,
+    TransitionDataset,
+    Transitions,
+    episodes_from_table,
+    load_episodes,
+)
 from tests.helpers import spec_dict
 
 
