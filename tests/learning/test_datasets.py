@@ -39,7 +39,9 @@ def test_the_transition_record_pairs_each_action_with_its_state_and_the_next():
     np.testing.assert_array_equal(tr.actions[:, 0], [0, 0, 0, 100, 100])
     np.testing.assert_allclose(tr.deltas, np.full((5, 2), 2.0))
     sub = tr.subset(np.array([1, 3]))
-    np.testing.assert_array_equal(sub.states, tr.states[[1, 3]]) and sub.state_names == ("p", "v")
+    np.testing.assert_array_equal(sub.states, tr.states[[1, 3]])
+    np.testing.assert_array_equal(sub.next_states, tr.next_states[[1, 3]])
+    assert sub.state_names == ("p", "v") and len(sub) == 2
     assert a.transitions().arrays()[0].shape == (3, 2)
     with pytest.raises(ValueError, match=r"next_states \(4, 2\) must be"):
         Transitions(np.zeros((5, 2)), np.zeros((5, 1)), np.zeros((4, 2)))
