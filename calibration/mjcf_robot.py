@@ -51,6 +51,8 @@ PAIRS = (("joint_frictionloss", "input_delay"), ("joint_frictionloss", "joint_da
 DELAY_NUMERIC = "hilstack_input_delay_s"
 #: the first blocks start this far into each episode [s]
 START_S = 1.0
+#: a sample period longer than this many median periods is a stall no block spans
+STALL_PERIODS = 2.0
 
 
 class SysidNotAvailable(RuntimeError):
@@ -164,8 +166,15 @@ def make_blocks(episodes: list[Recording], bench: Bench, dt_s: float, horizon_s:
         # after the first second: the goal acting at a block's start (two samples back) is recorded, and
         # the rig has left its hold (the hand's first block, started as the targets leave the hold
         # pose, was replayed 30x worse than the others on a clean recording)
-        for s in range(max(2, int(round(START_S / period))), e.n - h, h):
-            spans.append((i, s, h))
+        # no block spans a stall: a period longer than STALL_PERIODS median periods (a wall-clock rig
+        # whose emulator or host fell behind: the emulator's physics gives up the time it could not
+        # catch up with, so the samples after it are not the physics of the time between the stamps)
+        stalls = np.flatnonzero(np.diff(e.t_s) > STALL_PERIODS * period)
+        starts = [max(2, int(round(START_S / period)))] + [int(g) + 3 for g in stalls]
+        ends = [int(g) + 1 for g in stalls] + [e.n]
+        for a, z in zip(starts, ends, strict=True):
+            for s in range(a, z - h, h):
+                spans.append((i, s, h))
     cycle = 2 * (gap_blocks + 1)
     train = [k for k in range(len(spans)) if k % cycle == 0]
     test = [k for k in range(len(spans)) if k % cycle == gap_blocks + 1]
