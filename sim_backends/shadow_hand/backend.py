@@ -203,6 +203,7 @@ class ShadowHandSim(LockstepSim):
                 # go to params.sim on both backends; balls parked; targets on a multi-sine about the
                 # hold pose (normalized units); the motors' efforts recorded after the joint channels
                 "excite": {"place": {"sim": "sim", "emulated": "sim"}, "bench": {"balls": False},
+                           "driver": {"objects_in_state": False},  # parked balls: the efforts follow the joints
                            "mid": hold_pose_action().tolist(), "command": "position", "amplitude": 0.25,
                            "extra_state": "effort_nm", "extra_names": [f"{j}_effort" for j in ACTUATED_JOINTS],
                            "extra_unit": "N·m"}}
