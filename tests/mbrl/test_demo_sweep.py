@@ -1,0 +1,71 @@
+"""`hil demo --full --ray` (tools/demo_sweep.py): the main run and each seed's experiments as
+sweep tasks with their own rig processes; serial == Ray for the same seeds; resume."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from hilstack.learning.mbrl import MbrlConfig
+from hilstack.tools.demo_sweep import full_tasks, run_full_on_sweep
+
+#: the smallest run with both seeds' Table 3.1 and the speed sweep (2 x 30 steps per
+#: recording: every recording spans > 50 steps, so it holds a spec message)
+TINY = dict(random_rollouts=2, rollout_steps=30, epochs=2, retrain_epochs=1, samples=32, speeds={"high_speed": 1.0},
+            paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.4, tune_paths=("right",),
+            tune_path_scale=0.2, baseline_candidates=2, seeds=(0, 1), table_sizes=(2,), table_paths=("straight",),
+            sweep_speeds=(1.0,), experiments=("table_3_1", "speed_sweep"), progress=False)
+TABLES = ("table_3_1", "speed_sweep")
+
+
+def test_tasks_cover_every_experiment():
+    cfg = MbrlConfig.from_preset("full", seeds=(0, 1), sweep_speeds=(0.4, 1.0))
+    keys = [t.key for t in full_tasks(cfg, "unused")]
+    assert keys == ["main", "seed0", "seed1", "sweep-dd-0.40", "sweep-dd-1.00", "terrain-seed0", "terrain-seed1",
+                    "terrain-dd-carpet", "terrain-dd-styrofoam"]
+    # each task works in its own folder, so two on one machine never share a recording
+    outs = [t.kwargs["out"] for t in full_tasks(cfg, "unused")]
+    assert len(set(outs)) == len(outs)
+
+
+@pytest.mark.slow
+def test_serial_and_ray_give_the_same_tables_and_a_stopped_run_resumes(tmp_path):
+    cfg = MbrlConfig.from_preset("full", **TINY)
+    serial = run_full_on_sweep(cfg, tmp_path / "serial", None, log=lambda s: None)
+    t31 = serial["table_3_1"]
+    assert t31["seeds"] == [0, 1] and list(t31["rows"]) == ["2", "2+on-policy"]
+    # the cells over seeds are the per-seed tasks' values in seed order, with their mean and sample std
+    per_seed = [json.loads((tmp_path / f"serial/tasks/seed{s}.json").read_text())["result"] for s in (0, 1)]
+    cell = t31["rows"]["2"]["paths"]["straight"]["cost"]
+    assert cell["values"] == [p["table_3_1"]["rows"]["2"]["paths"]["straight"]["cost"]["values"][0] for p in per_seed]
+    assert cell["mean"] == pytest.approx(np.mean(cell["values"])) and cell["n"] == 2
+    assert cell["std"] == pytest.approx(np.std(cell["values"], ddof=1))
+    assert t31["rows"]["2"]["paths"]["straight"]["runs"] == 2
+    row = serial["speed_sweep"]["rows"][0]
+    assert row["speed"] == 1.0 and row["mpc"]["cost_per_m"]["n"] == 2 and row["differential_drive"]["cost_per_m"]["n"] == 1
+    # each seed ran on its own rig: its own driver log and recordings
+    for s in (0, 1):
+        assert (tmp_path / f"serial/tasks/seed{s}/logs/driver.log").is_file()
+        assert str(tmp_path / f"serial/tasks/seed{s}/recordings/330-sweep-1.00-seed{s}.mcap") in serial["recordings"]
+
+    # a run stopped while both seeds ran (no results, seed 1's files half written), re-run on a
+    # local Ray runtime with 2 workers: only the two seeds run, side by side, each on its own rig;
+    # the half-written files are kept aside, not overwritten; the tables are the serial run's
+    pytest.importorskip("ray", reason="Ray is the cluster extra (pip install hilstack[cluster])")
+    shutil.copytree(tmp_path / "serial", tmp_path / "ray")
+    for s in (0, 1):
+        (tmp_path / f"ray/tasks/seed{s}.json").unlink()
+    shutil.rmtree(tmp_path / "ray/tasks/seed0")
+    par = run_full_on_sweep(cfg, tmp_path / "ray", "local", workers=2, log=lambda s: None)
+    sw = par["sweep"]
+    assert sw["executor"] == "ray" and sw["workers"] == 2 and sw["resumed"] == 2 and sw["tasks"] == 4
+    assert (tmp_path / "ray/tasks/seed1.interrupted-1/logs/driver.log").is_file()
+    assert not (tmp_path / "ray/tasks/seed0.interrupted-1").exists()
+    assert {k: par[k] for k in TABLES} == {k: serial[k] for k in TABLES}
+    for s in (0, 1):  # the seeds really ran again
+        assert json.loads((tmp_path / f"ray/tasks/seed{s}.json").read_text())["host"]
+        assert (tmp_path / f"ray/tasks/seed{s}/logs/driver.log").stat().st_mtime > \
+            (tmp_path / "serial/tasks/sweep-dd-1.00.json").stat().st_mtime
