@@ -297,3 +297,35 @@ def run_full_on_sweep(cfg: MbrlConfig, out: Path, ray: str | None, workers: int 
     report["config"] = report.get("config") | {"experiments": list(cfg.experiments)}
     report["wall_s"] = time.monotonic() - t0
     return report
+
+
+#: ``--small``: the full run's every experiment at a size that takes minutes, for measuring the
+#: executors against each other (docs/scaling.md); not the thesis' numbers
+SMALL: dict[str, Any] = dict(random_rollouts=40, epochs=30, retrain_epochs=10, baseline_candidates=4,
+                             paths=("straight", "left", "right"), seeds=(0, 1), table_sizes=(20, 40),
+                             sweep_speeds=(0.5, 1.0), terrain_rollouts=20)
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+    import json
+
+    from hilstack.tools.demo import write_report
+
+    ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_sweep",
+                                 description="hil demo --full as sweep tasks, serial without --ray; --small: "
+                                             "every experiment at a size of minutes (the executors' comparison "
+                                             "in docs/scaling.md)")
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--small", action="store_true")
+    ap.add_argument("--ray", default=None, help="local | a Ray cluster's address (default: serial, in-process)")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args(argv)
+    cfg = MbrlConfig.from_preset("full", seed=a.seed, progress=False, **(SMALL if a.small else {}))
+    report = write_report(run_full_on_sweep(cfg, a.out, a.ray, a.workers), a.out, quick=False, full=True)
+    print(json.dumps({"wall_s": report["wall_s"], "sweep": report["sweep"]}))
+
+
+if __name__ == "__main__":
+    main()

@@ -31,6 +31,18 @@ def test_tasks_cover_every_experiment():
     assert len(set(outs)) == len(outs)
 
 
+def test_merged_cells_are_the_cells_over_all_seeds():
+    """Cells of one seed each, merged, equal the serial run's cells over the seeds at once."""
+    from hilstack.learning.experiments import _cells, _summary
+    from hilstack.tools.demo_sweep import merge_cells, merge_summary
+
+    rng = np.random.default_rng(3)
+    per_seed = [{p: {"cost": float(rng.normal(50, 20)), "cost_per_m": float(rng.normal(10, 5)), "progress_m": 1.0,
+                     "completed": bool(rng.random() < 0.5)} for p in ("straight", "left")} for _ in range(3)]
+    assert merge_cells([_cells([r]) for r in per_seed]) == _cells(per_seed)
+    assert merge_summary([_summary([r]) for r in per_seed]) == _summary(per_seed)
+
+
 @pytest.mark.slow
 def test_serial_and_ray_give_the_same_tables_and_a_stopped_run_resumes(tmp_path):
     cfg = MbrlConfig.from_preset("full", **TINY)
