@@ -5,7 +5,9 @@ One file per session; one channel per key expression; one schema per message typ
 messages JSON-encoded so any MCAP tool (the ``mcap`` reader, Foxglove, rerun's MCAP
 importer) decodes them. Robot poses are also written on Foxglove's well-known
 ``PoseInFrame``/``FrameTransform`` schemas, and JPEG/PNG camera images as
-``CompressedImage`` (derived channels, not replayed).
+``CompressedImage`` (derived channels, not replayed). A JPEG/PNG image's bytes are stored
+once, in its ``CompressedImage``: its ``hil.Image`` record keeps the metadata with empty
+``data``, and :func:`iter_messages` puts the bytes back (:func:`compressed_image_data`).
 Chunks are closed, flushed and fsync'ed by time (every ``FLUSH_PERIOD_S``), so a crash
 loses at most that much data; :func:`read_messages` reads a truncated file up to the
 damage.
@@ -27,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import foxglove.messages as fg
+import msgspec
 import zenoh
 from mcap.exceptions import McapError
 from mcap.stream_reader import StreamReader
@@ -203,6 +206,42 @@ def foxglove_image(topic: str, msg: Msg, log_ns: int) -> tuple[str, Any, int] | 
             fg.CompressedImage(timestamp=ts, frame_id=msg.camera, data=msg.data,
                                format=COMPRESSED_IMAGE_FORMATS[msg.encoding]),
             stamp_ns)
+
+
+def _varint(buf: bytes, i: int) -> tuple[int, int]:
+    v = shift = 0
+    while True:
+        b = buf[i]
+        i += 1
+        v |= (b & 0x7F) << shift
+        if b < 0x80:
+            return v, i
+        shift += 7
+
+
+def compressed_image_data(payload: bytes) -> bytes:
+    """The ``data`` field (number 2, bytes) of a protobuf ``foxglove.CompressedImage``.
+
+    The protobuf wire format read directly (varint keys; wire types 0, 1, 2 and 5), so
+    reading a recording needs no protobuf runtime; the foxglove SDK only encodes."""
+    i, n = 0, len(payload)
+    while i < n:
+        key, i = _varint(payload, i)
+        field_no, wire = key >> 3, key & 7
+        if wire == 0:
+            _, i = _varint(payload, i)
+        elif wire == 1:
+            i += 8
+        elif wire == 5:
+            i += 4
+        elif wire == 2:
+            ln, i = _varint(payload, i)
+            if field_no == 2:
+                return bytes(payload[i:i + ln])
+            i += ln
+        else:
+            raise ValueError(f"CompressedImage: unsupported protobuf wire type {wire}")
+    return b""
 
 
 def state_fields_topic(rig: str, robot: str) -> str:
@@ -433,7 +472,11 @@ class McapLog:
         cid = self._channel(topic, type(msg))
         log_ns = time.time_ns() if log_time_ns is None else log_time_ns
         pub_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
-        self._w.add_message(cid, log_time=log_ns, data=encode_json(msg), publish_time=pub_ns, sequence=msg.seq)
+        record = msg
+        if self._fox is not None and isinstance(msg, Image) and msg.encoding in COMPRESSED_IMAGE_FORMATS:
+            # the bytes go once, into the CompressedImage written right after (iter_messages rejoins them)
+            record = msgspec.structs.replace(msg, data=b"")
+        self._w.add_message(cid, log_time=log_ns, data=encode_json(record), publish_time=pub_ns, sequence=msg.seq)
         self.count += 1
         self.pending += 1
         if self._fox is not None:
@@ -505,6 +548,9 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
     check_mcap(path)
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, int]] = {}
+    #: JPEG/PNG images written without their bytes, waiting for their CompressedImage (the next
+    #: message on the camera's Foxglove channel): that channel's topic -> the message
+    held: dict[str, RecordedMessage] = {}
     with open(path, "rb") as f:
         try:
             for rec in StreamReader(f, skip_magic=False).records:
@@ -519,6 +565,14 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
                     if typ is None:
                         other = res.foreign.setdefault(topic, {"schema": schemas.get(sid, ""), "count": 0})
                         other["count"] += 1
+                        waiting = held.pop(topic, None)
+                        if waiting is not None:
+                            try:
+                                data = compressed_image_data(rec.data)
+                            except (ValueError, IndexError):
+                                data = b""
+                            waiting.msg = msgspec.structs.replace(waiting.msg, data=data)
+                            yield waiting
                         continue
                     try:
                         msg = decode_json(rec.data, typ)
@@ -526,10 +580,20 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
                         res.undecodable += 1
                         res.undecodable_error = res.undecodable_error or f"{topic}: {e}"
                         continue
-                    yield RecordedMessage(topic, rec.log_time, rec.publish_time, msg)
+                    out = RecordedMessage(topic, rec.log_time, rec.publish_time, msg)
+                    if isinstance(msg, Image) and not msg.data and msg.encoding in COMPRESSED_IMAGE_FORMATS:
+                        parts = topic.split("/")
+                        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+                        fox = foxglove_image_topic(rig, msg.camera)
+                        if fox in held:  # its bytes never came (cannot happen in a file we wrote)
+                            yield held.pop(fox)
+                        held[fox] = out
+                        continue
+                    yield out
         except _DAMAGE as e:
             res.truncated = True
             res.error = f"{type(e).__name__}: {e}"
+    yield from held.values()  # a file cut between an image and its bytes: the image without them
 
 
 @dataclass

@@ -301,9 +301,9 @@ def run_full_on_sweep(cfg: MbrlConfig, out: Path, ray: str | None, workers: int 
 
 #: ``--small``: the full run's every experiment at a size that takes minutes, for measuring the
 #: executors against each other (docs/scaling.md); not the thesis' numbers
-SMALL: dict[str, Any] = dict(random_rollouts=40, epochs=30, retrain_epochs=10, baseline_candidates=4,
-                             paths=("straight", "left", "right"), seeds=(0, 1), table_sizes=(20, 40),
-                             sweep_speeds=(0.5, 1.0), terrain_rollouts=20)
+SMALL: dict[str, Any] = dict(random_rollouts=20, epochs=20, retrain_epochs=5, baseline_candidates=2,
+                             paths=("straight", "left"), seeds=(0, 1), table_sizes=(10, 20),
+                             sweep_speeds=(0.5, 1.0), terrain_rollouts=10)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -468,3 +468,31 @@ def test_recordings_made_before_the_row_format_still_read(tmp_path):
         log._w.add_message(cid, log_time=1, data=msgspec.json.encode(plan), publish_time=1)
     back = read_messages(path)
     assert [r.msg for r in back.messages] == [plan] and back.undecodable == 0
+
+
+def test_a_jpeg_frame_is_stored_once_and_reads_back_whole(tmp_path):
+    """Each JPEG/PNG frame's bytes are in the MCAP once (the CompressedImage Foxglove and rerun
+    show), not also as base64 in the hil.Image JSON; our reader gives the image back whole."""
+    import numpy as np
+    from mcap.reader import make_reader
+
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 256, 3000, dtype=np.uint8).tobytes() for _ in range(5)]  # incompressible, as JPEG
+    path = tmp_path / "cam.mcap"
+    with McapLog(path) as log:
+        for i, data in enumerate(frames):
+            log.write(keys.image(RIG, "cam"), Image(camera="cam", t_s=0.1 * i, width=40, height=25, encoding="jpeg",
+                                                    data=data, seq=i), log_time_ns=10**9 + i)
+        log.write(keys.image(RIG, "raw"), Image(camera="raw", t_s=0.0, width=2, height=1, data=bytes(range(6))))
+    with open(path, "rb") as f:
+        payloads = [(ch.topic, m.data) for _, ch, m in make_reader(f).iter_messages()]
+    for data in frames:
+        b64 = base64.b64encode(data)
+        assert sum(p.count(data) for _, p in payloads) == 1
+        assert sum(p.count(b64) for _, p in payloads) == 0
+    assert sum(t == foxglove_image_topic(RIG, "cam") for t, _ in payloads) == 5
+    # the file is about the frames' size once (it was about twice with the base64 copy)
+    assert path.stat().st_size < 1.3 * sum(map(len, frames))
+    got = [m.msg for m in read_messages(path).messages if isinstance(m.msg, Image)]
+    assert [g.data for g in got] == [*frames, bytes(range(6))]  # the raw frame is kept as it was
+    assert [(g.seq, g.encoding, g.width) for g in got[:5]] == [(i, "jpeg", 40) for i in range(5)]
