@@ -100,7 +100,9 @@ class FoxglovePoses:
     ``SpecMsg``, and for a ``RobotState`` of a robot whose names include x/y(/yaw) it
     returns a ``foxglove.PoseInFrame`` in ``world`` (on :func:`foxglove_pose_topic`) and a
     ``foxglove.FrameTransform`` world -> <robot> (on :func:`foxglove_tf_topic`), stamped
-    with the state's ``stamp_s`` (else ``log_ns``). Messages are foxglove-sdk's classes
+    with the state's ``stamp_s`` (else ``log_ns``); for a robot with a kinematic chain (an
+    arm), its links' FrameTransforms on each state and its 3-D model (:func:`foxglove_model`
+    on :func:`foxglove_model_topic`) on each spec. Messages are foxglove-sdk's classes
     (protobuf: ``.encode()``, schema from ``type(m).get_schema()``)."""
 
     def __init__(self) -> None:
@@ -115,8 +117,17 @@ class FoxglovePoses:
                 if msg.spec.get("chain"):
                     self._chains[msg.robot] = list(msg.spec["chain"])
             except (KeyError, TypeError, AttributeError):
-                pass  # a spec without state names: no pose for this robot
-            return []
+                return []  # a spec without state names: no pose for this robot
+            chain = self._chains.get(msg.robot)
+            if not chain:
+                return []
+            parts = topic.split("/")
+            rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+            stamp_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+            try:  # each spec: a viewer that joins late gets the model with the next one
+                return [(foxglove_model_topic(rig, msg.robot), foxglove_model(msg.robot, chain, stamp_ns), stamp_ns)]
+            except (KeyError, TypeError, ValueError):
+                return []
         if not isinstance(msg, RobotState) or msg.robot not in self._names:
             return []
         links = self._links(topic, msg, log_ns)
@@ -182,6 +193,75 @@ def chain_transforms(robot: str, chain: list[dict[str, Any]], names: list[str] |
         out.append((parent, child, tuple(link["xyz"]), (ax[0] / norm * s, ax[1] / norm * s, ax[2] / norm * s, c)))
         parent = child
     return out
+
+
+#: the links' drawn radius [m]: the WidowX sim's capsules (sim_backends/widowx/model.py)
+LINK_RADIUS_M = 0.018
+#: the last link has no next link to reach: a stub this long along its joint axis [m]
+TOOL_STUB_M = 0.06
+
+
+def foxglove_model_topic(rig: str, robot: str) -> str:
+    """Channel of a robot's 3-D model (``foxglove.SceneUpdate``, entities locked to its link frames)."""
+    return f"{keys.root(rig)}/foxglove/{robot}/model"
+
+
+def chain_segments(robot: str, chain: list[dict[str, Any]]) -> list[tuple[str, tuple[float, float, float],
+                                                                           tuple[float, float, float]]]:
+    """The robot drawn from its spec's kinematic ``chain`` alone, as capsules (as the sim's MJCF
+    draws the WidowX, there to twice each link's centre of mass, which the spec does not
+    carry): (frame, start, end) in that frame [m]. The base, in the
+    robot's frame, from its origin to the first joint; each link, in its own frame
+    (:func:`chain_transforms`), from its origin to the next link's offset; the last link a
+    :data:`TOOL_STUB_M` stub along its joint axis."""
+    out = []
+    parent = robot
+    for i, link in enumerate(chain):
+        out.append((parent, (0.0, 0.0, 0.0), tuple(float(v) for v in link["xyz"])))
+        parent = f"{robot}/{link['joint']}_link"
+        if i == len(chain) - 1:
+            ax = link["axis"]
+            norm = math.sqrt(sum(a * a for a in ax)) or 1.0
+            out.append((parent, (0.0, 0.0, 0.0), tuple(TOOL_STUB_M * a / norm for a in ax)))
+    return out
+
+
+def quat_z_to(d: tuple[float, float, float]) -> tuple[float, float, float, float]:
+    """The quaternion (x, y, z, w) turning +z onto the direction ``d``."""
+    n = math.sqrt(sum(v * v for v in d)) or 1.0
+    x, y, z = (v / n for v in d)
+    # half-way vector between +z and d (d = -z: a half turn about x)
+    hx, hy, hz = x, y, z + 1.0
+    hn = math.sqrt(hx * hx + hy * hy + hz * hz)
+    if hn < 1e-9:
+        return (1.0, 0.0, 0.0, 0.0)
+    hx, hy, hz = hx / hn, hy / hn, hz / hn
+    # q = (z x h, z . h)
+    return (-hy, hx, 0.0, hz)
+
+
+def foxglove_model(robot: str, chain: list[dict[str, Any]], stamp_ns: int) -> Any:
+    """A ``foxglove.SceneUpdate``: one entity per segment of :func:`chain_segments`, a cylinder
+    with spheres at both ends (Foxglove has no capsule), ``frame_locked`` to its link's frame so
+    the 3D panel moves it with the link's FrameTransforms."""
+    ts = fg.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+    color = fg.Color(r=0.15, g=0.15, b=0.15, a=1.0)
+    d = 2 * LINK_RADIUS_M
+    entities = []
+    for i, (frame, a, b) in enumerate(chain_segments(robot, chain)):
+        seg = tuple(bb - aa for aa, bb in zip(a, b, strict=True))
+        length = math.sqrt(sum(v * v for v in seg))
+        mid = fg.Vector3(x=(a[0] + b[0]) / 2, y=(a[1] + b[1]) / 2, z=(a[2] + b[2]) / 2)
+        q = quat_z_to(seg)
+        ends = [fg.SpherePrimitive(pose=fg.Pose(position=fg.Vector3(x=p[0], y=p[1], z=p[2]),
+                                                orientation=fg.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+                                   size=fg.Vector3(x=d, y=d, z=d), color=color) for p in (a, b)]
+        cyl = fg.CylinderPrimitive(pose=fg.Pose(position=mid, orientation=fg.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])),
+                                   size=fg.Vector3(x=d, y=d, z=length), bottom_scale=1.0, top_scale=1.0, color=color)
+        entities.append(fg.SceneEntity(timestamp=ts, frame_id=frame, id=f"{robot}/segment{i}",
+                                       lifetime=fg.Duration(sec=0, nsec=0), frame_locked=True,
+                                       cylinders=[cyl] if length > 0 else [], spheres=ends))
+    return fg.SceneUpdate(entities=entities)
 
 
 def foxglove_image_topic(rig: str, camera: str) -> str:

@@ -19,7 +19,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from hilstack.bus import keys
-from hilstack.bus.recording import chain_transforms
+from hilstack.bus.recording import LINK_RADIUS_M, chain_segments, chain_transforms, quat_z_to
 from hilstack.bus.schemas import (
     AnyMsg,
     Command,
@@ -110,13 +110,29 @@ class RigVisualizer:
             path += "/" + link
             self.rec.log(path, rr.Transform3D(translation=t, quaternion=rr.Quaternion(xyzw=q)))
 
+    def _model(self, robot: str, chain: list[dict]) -> None:
+        """The arm's 3-D model (``chain_segments``: a capsule per link), static, each capsule under
+        its link's entity so it moves with the link's ``Transform3D`` (:meth:`_links`)."""
+        path = f"world/{robot}/links"
+        paths = {robot: path}
+        for link in chain:
+            path += f"/{link['joint']}_link"
+            paths[f"{robot}/{link['joint']}_link"] = path
+        for frame, a, b in chain_segments(robot, chain):
+            seg = [bb - aa for aa, bb in zip(a, b, strict=True)]
+            length = float(np.linalg.norm(seg))
+            self.rec.log(f"{paths[frame]}/body", rr.Capsules3D(
+                lengths=[length], radii=[LINK_RADIUS_M], translations=[list(a)],
+                quaternions=[rr.Quaternion(xyzw=quat_z_to(tuple(seg)))], colors=[[40, 40, 40]]), static=True)
+
     def log(self, topic: str, msg: Msg) -> None:
         if isinstance(msg, SpecMsg):
             spec = RobotSpec.from_dict(msg.spec)
             self.names[msg.robot] = spec.state.names
             self.action_names[msg.robot] = spec.action.names
-            if spec.chain:
+            if spec.chain and msg.robot not in self.chains:
                 self.chains[msg.robot] = msg.spec["chain"]
+                self._model(msg.robot, msg.spec["chain"])
             return
         if isinstance(msg, RobotState):
             self._time(msg, msg.t_s)
