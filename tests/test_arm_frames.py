@@ -6,8 +6,8 @@ from __future__ import annotations
 import json
 
 import mujoco
-import pytest
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
@@ -147,3 +147,28 @@ def test_the_arm_model_sits_on_mujoco_links_in_foxglove_and_rerun(tmp_path):
     for i, lp in enumerate(link_paths[:-1]):
         length = next(v for k, v in bodies[f"{lp}/body"].items() if k.endswith("lengths"))
         assert np.ravel(length)[0] == pytest.approx(np.linalg.norm(spec["chain"][i]["xyz"]), abs=1e-6)
+
+
+def test_the_rerun_layout_has_a_tab_per_robot_by_its_kind():
+    """tools/viz.py: an arm's tab plots its joint angles beside its 3-D model, the roach's its speeds
+    in the world view, the tracker's its confidences, the hand (joints, no chain) its joint angles."""
+    from hilstack.drivers.registry import spec_of
+    from hilstack.tools.viz import blueprint, robot_kind, robot_view
+
+    specs = {r: spec_of(r, "sim") for r in ("widowx", "velociroach", "camera", "shadow_hand")}
+    assert [robot_kind(s) for s in specs.values()] == ["arm", "mobile", "tracker", "joints"]
+
+    def views(r):
+        tab = robot_view(r, specs[r])
+        world, right = tab.contents
+        return world, right.contents
+
+    world, (key, *_rest) = views("widowx")
+    assert world.origin == "world/widowx" and key.contents == [f"state/widowx/{j}_pos" for j in JOINT_NAMES]
+    world, (key, *_rest) = views("velociroach")
+    assert world.origin == "world" and key.contents == [f"state/velociroach/{n}" for n in ("vx", "vy", "wz")]
+    assert views("camera")[1][0].contents == ["state/camera/ball0_conf", "state/camera/ball1_conf"]
+    assert len(views("shadow_hand")[1][0].contents) == 24
+    tabs = blueprint(specs=specs).root_container
+    assert [t.name for t in tabs.contents] == ["widowx (arm)", "velociroach (mobile)", "camera (tracker)",
+                                               "shadow_hand (joints)", "all robots"]
