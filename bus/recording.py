@@ -383,6 +383,63 @@ class StateFields:
         return state_fields_topic(rig, msg.robot), f"hil.StateFields/{msg.robot}", schema, json.dumps(payload).encode()
 
 
+def timing_topic(rig: str, robot: str) -> str:
+    """Channel of a robot's timing counters (:class:`TimingCounters`), beside its named fields."""
+    return f"{keys.root(rig)}/foxglove/{robot}/timing"
+
+
+class TimingCounters:
+    """Each robot's timing as the recorder saw it, one JSON message per state on
+    :func:`timing_topic` (schema ``hil.Timing``; derived, not replayed): ``rate_hz``, states per
+    second over the last :attr:`WINDOW_S` of the states' stamps; ``period_max_ms``, the longest
+    gap between two of them in that window; ``dropped_states``, states missing from the
+    recording (gaps in the driver's ``obs_seq``, counted since the recording started; a
+    sequence that starts again, a restarted driver, is not a gap); and the driver node's own
+    deadline counters from its health (``cycle_late``: periods started late, ``cycle_missed``:
+    periods skipped after a stall; bus/cycle.py), absent on lockstep rigs. Like the named
+    fields, only for robots whose spec the recording holds (every driver node sends one)."""
+
+    WINDOW_S = 1.0
+    SCHEMA: dict[str, Any] = {"type": "object", "title": "hil.Timing", "properties": {
+        "robot": {"type": "string"}, "rate_hz": {"type": "number"}, "period_max_ms": {"type": "number"},
+        "dropped_states": {"type": "integer"}, "cycle_late": {"type": "integer"}, "cycle_missed": {"type": "integer"}}}
+
+    def __init__(self) -> None:
+        self._stamps: dict[str, list[float]] = {}
+        self._seq: dict[str, int] = {}
+        self._dropped: dict[str, int] = {}
+        self._robots: set[str] = set()
+
+    def derive(self, topic: str, msg: Msg, log_ns: int) -> tuple[str, bytes] | None:
+        """(topic, JSON payload) for a ``RobotState`` of a robot with a spec, else None."""
+        if isinstance(msg, SpecMsg):
+            self._robots.add(msg.robot)
+        if not isinstance(msg, RobotState) or msg.robot not in self._robots:
+            return None
+        r = msg.robot
+        t = msg.stamp_s if msg.stamp_s else log_ns * 1e-9
+        st = self._stamps.setdefault(r, [])
+        st.append(t)
+        while st and st[0] < t - self.WINDOW_S:
+            del st[0]
+        last = self._seq.get(r)
+        if last is not None and msg.obs_seq > last + 1:
+            self._dropped[r] = self._dropped.get(r, 0) + msg.obs_seq - last - 1
+        self._seq[r] = msg.obs_seq
+        span = st[-1] - st[0]
+        payload: dict[str, Any] = {
+            "robot": r, "rate_hz": (len(st) - 1) / span if span > 0 else None,
+            "period_max_ms": max((b - a for a, b in zip(st, st[1:], strict=False)), default=0.0) * 1e3 if len(st) > 1
+            else None, "dropped_states": self._dropped.get(r, 0)}
+        for k in ("cycle_late", "cycle_missed"):
+            v = msg.health.get(k)
+            if isinstance(v, int) and not isinstance(v, bool):
+                payload[k] = v
+        parts = topic.split("/")
+        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+        return timing_topic(rig, r), json.dumps(payload).encode()
+
+
 class _McapFoxglovePoses:
     """Writes :class:`FoxglovePoses` messages to an mcap ``Writer`` (protobuf channels)."""
 
@@ -392,6 +449,8 @@ class _McapFoxglovePoses:
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._fields = StateFields()
+        self._timing = TimingCounters()
+        self._timing_schema: int | None = None
 
     def _channel(self, topic: str, cls: Any) -> int:
         cid = self._channels.get(topic)
@@ -411,6 +470,17 @@ class _McapFoxglovePoses:
             out.append(img)
         for t, m, stamp_ns in out:
             self._w.add_message(self._channel(t, type(m)), log_time=log_ns, data=m.encode(), publish_time=stamp_ns)
+        timing = self._timing.derive(topic, msg, log_ns)
+        if timing is not None:
+            t, data = timing
+            if t not in self._channels:
+                if self._timing_schema is None:
+                    self._timing_schema = self._w.register_schema(
+                        "hil.Timing", "jsonschema", json.dumps(TimingCounters.SCHEMA).encode())
+                self._channels[t] = self._w.register_channel(t, "json", self._timing_schema)
+            pub = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+            self._w.add_message(self._channels[t], log_time=log_ns, data=data, publish_time=pub)
+            out = [*out, timing]  # counted below
         fields = self._fields.derive(topic, msg)
         if fields is not None:
             t, name, schema, data = fields
