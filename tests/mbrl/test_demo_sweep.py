@@ -81,3 +81,16 @@ def test_serial_and_ray_give_the_same_tables_and_a_stopped_run_resumes(tmp_path)
         assert json.loads((tmp_path / f"ray/tasks/seed{s}.json").read_text())["host"]
         assert (tmp_path / f"ray/tasks/seed{s}/logs/driver.log").stat().st_mtime > \
             (tmp_path / "serial/tasks/sweep-dd-1.00.json").stat().st_mtime
+
+
+def test_ray_is_refused_where_there_is_nothing_to_split(tmp_path):
+    from typer.testing import CliRunner
+
+    from hilstack.tools.cli import app
+
+    for args, why in ((["demo", "--ray", "local"], "--ray is for the full run"),
+                      (["demo", "baoding", "--ray", "local"], "--ray is for the full run"),
+                      (["demo", "meld", "--ray", "local"], "--ray is for the roach and baoding")):
+        r = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "o")])
+        assert r.exit_code == 2 and why in r.output, (args, r.output)
+    assert not (tmp_path / "o").exists()
