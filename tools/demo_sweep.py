@@ -180,8 +180,8 @@ def task_terrain_seed(cfg: dict[str, Any], out: str, seed: int) -> dict[str, Any
             recordings += run.recordings
     models = {}
     matrix: dict[str, dict[str, Any]] = {}
-    for t in c.terrains:
-        with _session(c, out_p / f"terrain_{t}", rigs[t]) as run:
+    for t in c.terrains:  # a folder of its own: the second session's driver log beside the first's
+        with _session(c, out_p / f"terrain_{t}_eval", rigs[t]) as run:
             if not models:  # the session gives the state and action names
                 models = {a: fit_model(run, data[a], seed), b: fit_model(run, data[b], seed),
                           "both": fit_model(run, data[a] + data[b], seed)}
