@@ -149,3 +149,20 @@ def test_excite_refuses_bad_input_in_one_line(tmp_path):
     (ep,) = load_episodes(tmp_path / "s.mcap")
     assert ep.n == 21 and ep.states.shape[1] == 18 and ep.actions.shape[1] == 6
     assert np.all(np.abs(ep.actions) <= 1.0 + 1e-9) and np.ptp(ep.actions, axis=0).min() > 0
+
+
+def test_no_block_spans_a_stall_of_a_wall_clock_rig():
+    """A period longer than 2 median periods (the emulator gave up time it could not catch up
+    with) starts new blocks after it; remove the rule and a block spans the stall."""
+    from hilstack.calibration.data import Recording
+
+    t = np.arange(400) * 0.05
+    t[205:] += 0.3  # a 0.35 s period before sample 205
+    states = np.zeros((400, 3))
+    rec = Recording(name="r", t_s=t, u=np.zeros(400), x=np.zeros(400), states=states, actions=np.zeros((400, 1)))
+    bench = M.Bench(spec=None, joints=["j"], loops={}, q=[0], qd=[1], current=[2])
+    blocks = M.make_blocks([rec], bench, 0.001, horizon_s=0.5)
+    assert blocks.spans, "no blocks"
+    for _, s, h in blocks.spans:
+        assert not (s < 205 <= s + h - 1), (s, h)  # no block holds both sides of the stall
+    assert any(s >= 205 for _, s, _ in blocks.spans) and any(s + h <= 205 for _, s, h in blocks.spans)
