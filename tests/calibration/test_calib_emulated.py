@@ -103,7 +103,7 @@ def test_hand_rollout_model_is_the_firmware():
 #: --seconds 80 --period 0.05 --seed 0 [--effect input_delay_s=0.03]` (33.5-44 s and 24-34.5 s;
 #: docs/calibration.md, "Results on the emulated rigs"). Recorded, not generated here: on this loaded
 #: 2-core machine the real-time emulator stalls the pty (write timeouts) at random.
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data" / "calibration"  # real emulated-rig recordings (.gitignore keeps tests/data/**)
 KW = dict(horizon_s=0.5, max_rounds=1, max_fit_blocks=4, progress=False)
 
 
