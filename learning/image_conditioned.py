@@ -382,7 +382,7 @@ def run_seed(cfg: TerrainConfig, seed: int, encoder) -> dict[str, Any]:
                 f"{r} {matrix[r][t]['summary']['cost_per_m']:.1f}/m ({matrix[r][t]['summary']['completed']}"
                 f"/{len(cfg.paths)})" for r in ROWS))
         return {"seed": seed, "matrix": matrix, "training": training,
-                "images": {t: np.stack(v[:4]).tolist() for t, v in images.items()},
+                "images": {t: np.stack(v[:4]) for t, v in images.items()},  # what the camera saw
                 "wall_s": {"data": t_data, "train": t_train, "total": time.monotonic() - t0}}
     finally:
         env.close()
@@ -425,6 +425,8 @@ def run_terrain_experiment(cfg: TerrainConfig) -> dict[str, Any]:
     t0 = time.monotonic()
     encoder = RandomConvEncoder(cfg.features, seed=cfg.encoder_seed)
     per_seed = [run_seed(cfg, s, encoder) for s in cfg.seeds]
+    for r in per_seed:
+        r.pop("images")
     cfg_dict = dataclasses.asdict(cfg)
     return {"config": cfg_dict, "rows": list(ROWS), "terrains": list(cfg.terrains), "seeds": list(cfg.seeds),
             "encoder": {"kind": "fixed random conv net + fixed random projection (perception/terrain_features.py)",
