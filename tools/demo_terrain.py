@@ -87,9 +87,11 @@ def run(out: Path, cfg: TerrainConfig, wait_s: float = 4 * 3600.0) -> dict[str, 
     runs.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
     encoder = RandomConvEncoder(cfg.features, seed=cfg.encoder_seed)
+    # first every seed no other process holds, then wait for those another one computes
+    got = {s: _seed_result(cfg, s, runs, encoder, 0.0) for s in cfg.seeds}
     per_seed = []
     for s in cfg.seeds:
-        r = _seed_result(cfg, s, runs, encoder, wait_s)
+        r = got[s] or _seed_result(cfg, s, runs, encoder, wait_s)
         if r is None:
             raise TimeoutError(f"seed {s} is claimed by another process that has not finished within "
                                f"{wait_s:.0f} s ({runs / f'seed{s}.claim'}; delete it if that process died)")

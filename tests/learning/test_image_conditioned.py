@@ -115,3 +115,35 @@ def test_aggregate_checks_rank_completions_before_cost():
     assert agg["table"]["per-terrain"]["a"]["cost_per_m"]["values"] == [10, 12]
     with pytest.raises(ValueError, match="at least two distinct terrains"):
         TerrainConfig(terrains=("a",))
+
+
+def test_demo_seed_files_are_reused_claimed_and_never_overwritten(tmp_path, monkeypatch):
+    from hilstack.tools import demo_terrain as dt
+
+    cfg = TerrainConfig(terrains=("a", "b"), seeds=(0, 1), paths=("straight",))
+    ran = []
+
+    def fake_run_seed(c, seed, encoder):
+        ran.append(seed)
+        m = {r: {t: {"summary": {"cost_per_m": 1.0 + seed, "completed": 1, "cost": 1.0}, "paths": {}}
+                 for t in c.terrains} for r in ("per-terrain", "all data, no images", "image-conditioned",
+                                                "image-conditioned, another terrain's images")}
+        return {"seed": seed, "matrix": m, "training": {}, "images": {t: np.zeros((1, 8, 8, 3), np.uint8)
+                                                                     for t in c.terrains},
+                "wall_s": {"data": 0.0, "train": 0.0, "total": 0.0}}
+
+    monkeypatch.setattr(dt, "run_seed", fake_run_seed)
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    (runs / "seed1.claim").write_text("12345\n")  # another process computes seed 1
+    with pytest.raises(TimeoutError, match="seed 1 is claimed"):
+        dt.run(tmp_path, cfg, wait_s=0.0)
+    assert ran == [0] and (runs / "seed0.json").exists() and not (runs / "seed0.claim").exists()
+    (runs / "seed1.claim").unlink()  # it died: the claim is removed, the seed is computed here
+    rep = dt.run(tmp_path, cfg, wait_s=0.0)
+    assert ran == [0, 1]  # seed 0 reused from its file
+    assert rep["table"]["per-terrain"]["a"]["cost_per_m"]["values"] == [1.0, 2.0]
+    assert (tmp_path / "report.md").exists() and (tmp_path / "camera.png").exists()
+    other = TerrainConfig(terrains=("a", "b"), seeds=(0, 1), paths=("left",))
+    with pytest.raises(ValueError, match="another configuration"):
+        dt.run(tmp_path, other, wait_s=0.0)
