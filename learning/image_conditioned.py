@@ -11,7 +11,8 @@ model reads but does not predict (:class:`HeldInputs`): during a plan they stay 
 of the image the robot sees now, as the thesis conditions every step of a plan on the current
 image (a future image cannot be known).
 
-The experiment (:func:`run_terrain_experiment`, ``hil demo roach --part terrain``): per seed,
+The experiment (:func:`run_seed` per seed and :func:`aggregate`, run by ``hil demo roach --part
+terrain``, tools/demo_terrain.py): per seed,
 random rollouts on every terrain with the camera on (the same data for every model), then
 
 * a **per-terrain** model for each terrain, trained on that terrain's data only;
@@ -56,7 +57,7 @@ from hilstack.learning.mbrl import (
     task_cost,
 )
 
-__all__ = ["HeldInputs", "TerrainConfig", "TerrainSim", "run_terrain_experiment", "with_features"]
+__all__ = ["HeldInputs", "TerrainConfig", "TerrainSim", "aggregate", "run_seed", "with_features"]
 
 
 # ---------------------------------------------------------------------------- the model
@@ -415,20 +416,3 @@ def aggregate(cfg: TerrainConfig, per_seed: list[dict[str, Any]]) -> dict[str, A
     return {"table": table, "checks": checks,
             "within_spread_terrains": [t for t, c in checks.items() if c["within_per_terrain_spread"]],
             "better_than_all_data_terrains": [t for t, c in checks.items() if c["better_than_all_data"]]}
-
-
-def run_terrain_experiment(cfg: TerrainConfig) -> dict[str, Any]:
-    """Every seed of :func:`run_seed` and :func:`aggregate`; the report's dict."""
-    from hilstack.perception.terrain_features import RandomConvEncoder
-
-    torch.set_num_threads(cfg.threads)
-    t0 = time.monotonic()
-    encoder = RandomConvEncoder(cfg.features, seed=cfg.encoder_seed)
-    per_seed = [run_seed(cfg, s, encoder) for s in cfg.seeds]
-    for r in per_seed:
-        r.pop("images")
-    cfg_dict = dataclasses.asdict(cfg)
-    return {"config": cfg_dict, "rows": list(ROWS), "terrains": list(cfg.terrains), "seeds": list(cfg.seeds),
-            "encoder": {"kind": "fixed random conv net + fixed random projection (perception/terrain_features.py)",
-                        "features": cfg.features, "seed": cfg.encoder_seed, "channels": list(encoder.channels)},
-            **aggregate(cfg, per_seed), "per_seed": per_seed, "wall_s": time.monotonic() - t0}
