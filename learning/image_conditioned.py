@@ -162,6 +162,8 @@ class TerrainConfig(Presets):
     seeds: tuple[int, ...] = (0, 1, 2)
     rollouts_per_terrain: int = 100
     rollout_steps: int = 50
+    #: further random rollouts per terrain no model trains on: each model's open-loop error there
+    heldout_rollouts: int = 5
     epochs: int = 60
     # the camera and the encoder
     camera_px: int = 64
@@ -252,8 +254,8 @@ class TerrainSim:
 
 
 def random_episodes(env: TerrainSim, terrain: str, encoder, cfg: TerrainConfig, seed: int,
-                    keep_images: int = 0) -> tuple[list[Episode], list[np.ndarray]]:
-    """``cfg.rollouts_per_terrain`` random rollouts on ``terrain`` (the MBRL loop's safe random
+                    keep_images: int = 0, n: int | None = None) -> tuple[list[Episode], list[np.ndarray]]:
+    """``n`` (default ``cfg.rollouts_per_terrain``) random rollouts on ``terrain`` (the MBRL loop's safe random
     policy, its defaults), each image encoded (``meta["features"]``). Returns the episodes and
     up to ``keep_images`` images (for the report and the wrong-image control)."""
     m = cfg.mbrl
@@ -261,7 +263,7 @@ def random_episodes(env: TerrainSim, terrain: str, encoder, cfg: TerrainConfig, 
                            hold_steps=m.random_hold_steps, forward_fraction=m.random_forward_fraction, seed=seed)
     rng = np.random.default_rng([seed, 5])
     out, kept = [], []
-    for i in range(cfg.rollouts_per_terrain):
+    for i in range(cfg.rollouts_per_terrain if n is None else n):
         s, img = env.start(terrain, {"x": 0.0, "y": 0.0, "yaw": float(rng.uniform(-np.pi, np.pi))})
         if hasattr(pol, "reset"):
             pol.reset()
@@ -330,6 +332,18 @@ def _fit(cfg: TerrainConfig, seed: int, episodes: list[Episode], state_names: li
     return model, info
 
 
+def h_step_xy_mse(model, episodes: Sequence[Episode], horizon: int) -> float:
+    """Mean squared error [m²] of the position ``horizon`` steps ahead, open loop from every
+    start of ``episodes`` with their logged actions (thesis Eqn 2.2's windows; channels 0, 1 are
+    x, y; image features, if any, stay at the start's: :class:`HeldInputs`)."""
+    start, actions, truth = h_step_windows(episodes, horizon, max_starts=None)
+    with torch.inference_mode():
+        x = torch.as_tensor(start)
+        for h in range(horizon):
+            x = model.predict(x, torch.as_tensor(actions[:, h])).mean(0)
+    return float(((x.numpy()[:, :2] - truth[:, -1, :2]) ** 2).sum(-1).mean())
+
+
 def mean_std(values) -> dict[str, Any]:
     v = [float(x) for x in values]
     return {"mean": float(np.mean(v)) if v else float("nan"),
@@ -350,6 +364,8 @@ def run_seed(cfg: TerrainConfig, seed: int, encoder) -> dict[str, Any]:
         for i, t in enumerate(cfg.terrains):
             data[t], images[t] = random_episodes(env, t, encoder, cfg, seed=int(1000 * seed + i), keep_images=8)
             _log(cfg, f"seed {seed}: {len(data[t])} random rollouts on {t}")
+        heldout = {t: random_episodes(env, t, encoder, cfg, seed=int(1000 * seed + 500 + i), n=cfg.heldout_rollouts)[0]
+                   for i, t in enumerate(cfg.terrains)} if cfg.heldout_rollouts > 0 else {}
         t_data = time.monotonic() - t0
         names, acts = env.state_names, list(env.action_space.names)
         feat_names = encoder.names
@@ -364,6 +380,21 @@ def run_seed(cfg: TerrainConfig, seed: int, encoder) -> dict[str, Any]:
         _log(cfg, f"seed {seed}: trained {len(models)} models ({t_train:.0f} s)")
         wrong = {t: encoder.encode(np.stack(images[cfg.terrains[(i + 1) % len(cfg.terrains)]]))
                  for i, t in enumerate(cfg.terrains)}
+        prediction: dict[str, dict[str, float]] = {r: {} for r in ROWS}
+        for t, eps in heldout.items():  # open-loop error on rollouts no model trained on
+            H = cfg.mbrl.horizon
+            seen = [with_features(e) for e in eps]
+            rng = np.random.default_rng([seed, 8])
+            other = [Episode(e.states.copy(), e.actions, name=e.name) for e in seen]
+            for e in other:
+                e.states[:, len(names):] = wrong[t][rng.integers(len(wrong[t]), size=len(e.states))]
+            prediction["per-terrain"][t] = h_step_xy_mse(models[("per-terrain", t)], eps, H)
+            prediction["all data, no images"][t] = h_step_xy_mse(models["all"], eps, H)
+            prediction["image-conditioned"][t] = h_step_xy_mse(models["image"], seen, H)
+            prediction["image-conditioned, another terrain's images"][t] = h_step_xy_mse(models["image"], other, H)
+        if heldout:
+            _log(cfg, f"seed {seed}: {H}-step position error (mm RMS) on held-out rollouts: " + "; ".join(
+                f"{t} " + "/".join(f"{1e3 * prediction[r][t] ** 0.5:.0f}" for r in ROWS) for t in heldout))
         matrix: dict[str, dict[str, Any]] = {r: {} for r in ROWS}
         for t in cfg.terrains:
             rng = np.random.default_rng([seed, 9])
@@ -382,7 +413,7 @@ def run_seed(cfg: TerrainConfig, seed: int, encoder) -> dict[str, Any]:
             _log(cfg, f"seed {seed} on {t}: " + "; ".join(
                 f"{r} {matrix[r][t]['summary']['cost_per_m']:.1f}/m ({matrix[r][t]['summary']['completed']}"
                 f"/{len(cfg.paths)})" for r in ROWS))
-        return {"seed": seed, "matrix": matrix, "training": training,
+        return {"seed": seed, "matrix": matrix, "training": training, "prediction_xy_mse_m2": prediction,
                 "images": {t: np.stack(v[:4]) for t, v in images.items()},  # what the camera saw
                 "wall_s": {"data": t_data, "train": t_train, "total": time.monotonic() - t0}}
     finally:
@@ -413,6 +444,10 @@ def aggregate(cfg: TerrainConfig, per_seed: list[dict[str, Any]]) -> dict[str, A
             "better_than_all_data": bool((ci, -mi) > (ca, -ma)),
             "seeds_image_better_than_all_data": int(sum(paired)),
         }
-    return {"table": table, "checks": checks,
+    pred = {}
+    if all(r.get("prediction_xy_mse_m2", {}).get(ROWS[0]) for r in per_seed):
+        pred = {row: {t: mean_std(1e3 * r["prediction_xy_mse_m2"][row][t] ** 0.5 for r in per_seed)
+                      for t in cfg.terrains} for row in ROWS}
+    return {"table": table, "checks": checks, "prediction_rms_mm": pred,
             "within_spread_terrains": [t for t, c in checks.items() if c["within_per_terrain_spread"]],
             "better_than_all_data_terrains": [t for t, c in checks.items() if c["better_than_all_data"]]}

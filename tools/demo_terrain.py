@@ -159,6 +159,14 @@ def report_markdown(r: dict[str, Any], files: list[str]) -> str:
              "| model | " + " | ".join(r["terrains"]) + " |", "|---|" + "---|" * len(r["terrains"])]
     for row in r["rows"]:
         lines.append(f"| {row} | " + " | ".join(_cell(r["table"][row][t]) for t in r["terrains"]) + " |")
+    if r.get("prediction_rms_mm"):
+        pr = r["prediction_rms_mm"]
+        lines += ["", f"Open-loop position error {c['mbrl']['horizon']} steps ahead on {c['heldout_rollouts']} held-out "
+                  "random rollouts per terrain (RMS, mm; mean ± std over seeds; the planner's horizon):", "",
+                  "| model | " + " | ".join(r["terrains"]) + " |", "|---|" + "---|" * len(r["terrains"])]
+        for row in r["rows"]:
+            lines.append(f"| {row} | " + " | ".join(f"{pr[row][t]['mean']:.1f} ± {pr[row][t]['std']:.1f}"
+                                                    for t in r["terrains"]) + " |")
     ch = r["checks"]
     lines += ["", "Checks (issue 29): the image-conditioned model within the per-terrain model's spread "
               "(as many completions, |mean difference| ≤ the per-terrain std) and better than the all-data "
