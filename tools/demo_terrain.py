@@ -123,6 +123,7 @@ def write_plots(report: dict[str, Any], out: Path, runs: Path) -> list[str]:
         ax.bar(x + (i - (len(rows) - 1) / 2) * w, [c["mean"] for c in cells], w,
                yerr=[c["std"] for c in cells], capsize=3, label=row)
     ax.set_xticks(x, terrains)
+    ax.set_yscale("log")  # a failing controller costs 100x a completing one
     ax.set_ylabel("cost per metre (mean ± std over seeds; lower is better)")
     ax.set_title("Table 3.2, terrains: per-terrain vs all-data vs image-conditioned")
     ax.legend(fontsize=7)
