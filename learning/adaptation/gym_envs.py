@@ -25,7 +25,7 @@ step**, (x_after − x_before)/dt, the displacement the reward pays for (gymnasi
 its planner's reward is the predicted change of it over dt). ``velocity_index`` is that
 channel; the planners' cost reads it from the predicted states, so the model predicts the
 rewarded quantity itself, not the instantaneous qvel[0], which swings within a gait cycle
-(docs/adaptation.md, "What made MB run"). At reset the channel holds qvel[0].
+(docs/adaptation.md, "The reference code's settings line by line"). At reset the channel holds qvel[0].
 """
 
 from __future__ import annotations

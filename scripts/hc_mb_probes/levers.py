@@ -1,5 +1,5 @@
-"""Which change makes MB drive the unperturbed half-cheetah (issue 24, docs/adaptation.md "What
-made MB run"): one setting at a time against the reference code's (iclavera/learning_to_adapt).
+"""Which change makes MB drive the unperturbed half-cheetah (issue 24, docs/adaptation.md "The
+reference code's settings line by line"): one setting at a time against the reference code's (iclavera/learning_to_adapt).
 
     python scripts/hc_mb_probes/levers.py seed=0 vi=17 random=40 len=100 rounds=3 onpol=4 \
         hidden=128,128,128 planner=rs N=1000 H=10 ens=1 steps=200
