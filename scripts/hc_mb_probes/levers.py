@@ -59,8 +59,8 @@ def dynamics(models):
             if len(models) == 1:
                 return models[0].step(ps[0], s, a)
             if s.dim() == 2:
-                return torch.stack([m.step(p, s, a) for m, p in zip(models, ps)])
-            return torch.stack([m.step(p, s[i], a) for i, (m, p) in enumerate(zip(models, ps))])
+                return torch.stack([m.step(p, s, a) for m, p in zip(models, ps, strict=True)])
+            return torch.stack([m.step(p, s[i], a) for i, (m, p) in enumerate(zip(models, ps, strict=True))])
     return dyn
 
 
