@@ -393,14 +393,27 @@ class CandidateResult:
 def crossval_losses(model: Model, preps, folds, effects, nm, horizon: int,
                     start: FittedModel | None, search: list[str] | None) -> np.ndarray:
     """Held-out loss of every training-pool episode (pool order = concatenated folds)."""
-    out = []
+    jobs = []
     for i, held in enumerate(folds):
         idx = folds.train(i) if isinstance(folds, Folds) else [j for f, fold in enumerate(folds) if f != i
                                                                for j in fold]
         train = [preps[j] for j in idx]
         fitted = model.fit(train, effects, refine=False, start=start, search=search)
-        out.extend(model.episode_loss(preps[j], fitted, horizon, nm) for j in held)
-    return np.asarray(out)
+        jobs.extend((preps[j], fitted) for j in held)
+    return np.asarray(_episode_losses(model, jobs, horizon, nm))
+
+
+def _episode_losses(model: Model, jobs, horizon: int, nm) -> list:
+    """Held-out losses of (episode, fitted) pairs: in one batch when the model can (axis), else one by one."""
+    if hasattr(model, "episode_losses"):
+        return model.episode_losses(jobs, horizon, nm)
+    return [model.episode_loss(p, f, horizon, nm) for p, f in jobs]
+
+
+def _oob_losses(model: Model, jobs, nm) -> list:
+    if hasattr(model, "oob_losses"):
+        return model.oob_losses(jobs, nm)
+    return [model.oob_loss(p, f, nm) for p, f in jobs]
 
 
 def _excludes(interval: list[float], no_effect: float) -> bool:
@@ -423,6 +436,7 @@ def bootstrap_effect(model: Model, preps, pool_idx: np.ndarray, base: FittedMode
     # replicate cannot flip its sign by moving to the other representation of the same load.
     ref = (model.fit(pool, effects + [name], refine=False, start=base, search=[name])
            if hasattr(base, "primary_along") and name in axis.PHASE_OF else None)
+    reps = []  # (out-of-bag episodes, fit without, fit with) per replicate, scored in one batch below
     for _ in range(n_boot):
         counts = np.bincount(rng.integers(0, len(pool), len(pool)), minlength=len(pool)).astype(float)
         b = model.fit(pool, effects, weights=counts, refine=False, start=base, search=[])
@@ -430,10 +444,14 @@ def bootstrap_effect(model: Model, preps, pool_idx: np.ndarray, base: FittedMode
         vals.append(c.primary(name) if ref is None else c.primary_along(name, ref))
         oob = np.flatnonzero(counts == 0)
         if oob.size:
-            tried += 1
-            lb = np.sum([np.atleast_1d(model.oob_loss(pool[i], b, nm)) for i in oob], axis=0)
-            lc = np.sum([np.atleast_1d(model.oob_loss(pool[i], c, nm)) for i in oob], axis=0)
-            wins += heldout_gain(lb[None], lc[None]) > 0
+            reps.append((oob, b, c))
+    jobs = [(pool[i], fit) for oob, b, c in reps for fit in (b, c) for i in oob]
+    losses = iter(_oob_losses(model, jobs, nm))
+    for oob, _b, _c in reps:
+        tried += 1
+        lb = np.sum([np.atleast_1d(next(losses)) for _ in oob], axis=0)
+        lc = np.sum([np.atleast_1d(next(losses)) for _ in oob], axis=0)
+        wins += heldout_gain(lb[None], lc[None]) > 0
     arr = np.asarray(vals, float)
     interval = [float(np.nanpercentile(arr, 2.5)), float(np.nanpercentile(arr, 97.5))]
     return interval, (wins / tried if tried else 0.0), [float(v) for v in arr]
