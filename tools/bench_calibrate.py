@@ -21,6 +21,7 @@ Cases (``CASES``):
 | ``cogging_joint`` | rotary joint (rad), 16 episodes, encoder 0.5 mrad | cogging 2 rad/s²·sin(6q − φ), φ drawn per seed |
 | ``asymmetric_friction`` | 14 episodes | Coulomb friction 2.0 ± 0.8 by direction |
 | ``backlash_quantised`` | 16 episodes, encoder quantised to 1 mm, velocity logged as its finite difference | load-side play 8 mm |
+| ``backlash_command`` | 14 episodes, encoder 0.5 mm | command-side play 0.2 V (half-width) |
 | ``servo_vehicle`` | forward-only speed commands (unbounded position), quantised odometry 1 cm | transport delay 100 ms |
 | ``velociroach`` | MuJoCo sim recordings through MCAP (sensor noise on) | payload 40 g |
 
@@ -57,6 +58,7 @@ CASES: dict[str, Case] = {c.name: c for c in [
     Case("asymmetric_friction", "asymmetric_friction", artefacts="friction 2.8 forward, 1.2 backward"),
     Case("backlash_quantised", "load_backlash",
          artefacts="1 mm encoder on the load; velocity = finite difference of the quantised position"),
+    Case("backlash_command", "backlash", artefacts="play of 0.2 V on the command (gear before the drive); 0.5 mm encoder"),
     Case("servo_vehicle", "delay", artefacts="forward-only speed commands, unbounded position; 1 cm odometry"),
     Case("velociroach", "payload_mass", model="velociroach", artefacts="MuJoCo sim, MCAP, sensor noise"),
 ]}
@@ -108,6 +110,11 @@ def _axis_files(case: str, seed: int, hidden: bool, out: Path) -> tuple[Path, st
                                    effects={"load_backlash": {"halfwidth_x": 0.008}} if hidden else {}))
         write_csv(eps, path)
         return path, "t=time,u=volts,x=position,v=velocity"
+    if case == "backlash_command":
+        eps = generate(SynthConfig(n_episodes=14, duration_s=6.0, seed=seed, x_quant=5e-4,
+                                   effects={"backlash": {"halfwidth_u": 0.2}} if hidden else {}))
+        write_csv(eps, path)
+        return path, "t=time,u=volts,x=position"
     if case == "servo_vehicle":
         # v follows the speed command (first-order servo, gain 1, time constant 0.25 s)
         eps = generate(SynthConfig(n_episodes=14, duration_s=6.0, seed=seed, a=4.0, c_per_s=4.0, u_max=2.0,
