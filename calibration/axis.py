@@ -55,6 +55,7 @@ COEF_OF: dict[str, str] = {
     "force_offset": "offset_acc",
     "slope": "gravity_acc",
     "battery_sag": "kb",
+    "back_emf": "kemf",
     "asymmetric_friction": "fa_acc",
     "gravity_load": "gl_acc",
     "cogging": "gc_acc",
@@ -417,6 +418,9 @@ def raw_features(p: Prepared, params: AxisParams, v: np.ndarray, smooth: bool) -
         w = input_chain(p.ep.u, p.period_s, pre_lag) * _rel_vbat(p, params.vbat_ref_v)
         fb = input_chain(w, p.period_s, {"tau_s": hp.get("tau_s", 0.0)})
         feats["kb"] = sm(fb * one)
+    if "back_emf" in eff:
+        # (a − kemf·v)·u: the drive falls with speed while driven (back-EMF under PWM)
+        feats["kemf"] = sm(-fu * one * v)
     feats["c_per_s"] = -v * one
     sgn = np.tanh(v / params.eps_v)
     if "coulomb_friction" in eff:
@@ -928,6 +932,7 @@ def _replay_job(p: Prepared, params: AxisParams, horizon: int, starts, play) -> 
 
     fs = c.get("fs_extra_acc", 0.0)
     return {"p": p, "params": params, "horizon": horizon, "starts": starts, "drive": drive, "g": g,
+            "u_in": feats["a"], "kemf": per_window(c.get("kemf", 0.0)),
             "x_load": x0, "x": motor0, "v": v_true[starts].astype(float).copy(),
             "has_play": np.full(w, has_play), "play": play_w,
             "c_per_s": per_window(c["c_per_s"]), "fc": per_window(c.get("fc_acc", 0.0)),
@@ -935,6 +940,12 @@ def _replay_job(p: Prepared, params: AxisParams, horizon: int, starts, play) -> 
             "gl": per_window(c.get("gl_acc", 0.0)), "q0": per_window(hp.get("q0_rad", 0.0)),
             "gc": per_window(c.get("gc_acc", 0.0)), "cog_k": per_window(hp.get("cog_k", 1.0)),
             "cog_phase": per_window(hp.get("cog_phase", 0.0))}
+
+
+#: How many replay jobs :func:`simulate_many` stacks into one vectorised replay (None: all of them).
+#: 1 replays one episode at a time, as before the batching: `hil bench calibrate --speed` runs that
+#: as the peer of the batched replay in the same process.
+REPLAY_BATCH_JOBS: int | None = None
 
 
 def simulate_many(jobs, horizon: int) -> list[dict[str, np.ndarray]]:
@@ -950,9 +961,12 @@ def simulate_many(jobs, horizon: int) -> list[dict[str, np.ndarray]]:
     groups: dict[tuple, list[int]] = {}
     for i, b in enumerate(built):
         groups.setdefault((b["horizon"], b["p"].period_s), []).append(i)
+    step = REPLAY_BATCH_JOBS or len(built) or 1
     for (hz, dt), members in groups.items():
-        for i, res in zip(members, _replay_group([built[i] for i in members], hz, dt), strict=True):
-            out[i] = res
+        for lo in range(0, len(members), step):
+            chunk = members[lo: lo + step]
+            for i, res in zip(chunk, _replay_group([built[i] for i in chunk], hz, dt), strict=True):
+                out[i] = res
     return out
 
 
@@ -961,6 +975,7 @@ def _replay_group(built: list[dict], horizon: int, dt: float) -> list[dict[str, 
     offsets = np.cumsum([0] + [b["drive"].size for b in built[:-1]])
     drive = np.concatenate([b["drive"] for b in built])
     g = np.concatenate([b["g"] for b in built])
+    u_in = np.concatenate([b["u_in"] for b in built])
     idx = np.concatenate([b["starts"] + o for b, o in zip(built, offsets, strict=True)])
 
     def cat(key):
@@ -970,7 +985,9 @@ def _replay_group(built: list[dict], horizon: int, dt: float) -> list[dict[str, 
     has_play, play = cat("has_play"), cat("play")
     cps, fc, fs, vs, fa = cat("c_per_s"), cat("fc"), cat("fs"), cat("vs"), cat("fa")
     gl, q0, gc, cog_k, cog_phase = cat("gl"), cat("q0"), cat("gc"), cat("cog_k"), cat("cog_phase")
+    kemf = cat("kemf")
     any_gl, any_gc, any_play = bool(np.any(gl)), bool(np.any(gc)), bool(np.any(has_play))
+    any_emf = bool(np.any(kemf))
     # friction, per window exactly as the single replay: applied only where fc, fs or fa is set
     fric = (fc != 0) | (fs != 0) | (fa != 0)
     any_fric, any_fs = bool(np.any(fric)), bool(np.any(fs))
@@ -980,6 +997,8 @@ def _replay_group(built: list[dict], horizon: int, dt: float) -> list[dict[str, 
     for h in range(horizon):
         gk = g[idx]
         v_pred = v + dt * (drive[idx] - cps * gk * v)
+        if any_emf:
+            v_pred = np.where(kemf != 0, v_pred - dt * kemf * u_in[idx] * v, v_pred)
         if any_gl:
             v_pred = np.where(gl != 0, v_pred - dt * gk * gl * np.sin(x - q0), v_pred)
         if any_gc:

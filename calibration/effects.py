@@ -75,6 +75,9 @@ CATALOGUE: dict[str, EffectSpec] = {
                                        "with every candidate, so a viscous error is a tuning error, not an effect"),
         EffectSpec("force_offset", "constant force (e.g. cable drag, bias in the amplifier), d/J",
                    "offset_acc", "x/s^2", 0.0, diagnostic="mean residual"),
+        EffectSpec("back_emf", "drive force that falls with speed while driven, (a - kemf·v)·u (back-EMF of a "
+                   "PWM-driven DC motor: it opposes the supply only during the on-time, a share u of the period)",
+                   "kemf", "x/s^2 per (u·x/s)", 0.0, diagnostic="residual vs command × velocity"),
         EffectSpec("battery_sag", "actuator gain scales with measured supply voltage: (1+k(vbat-vref)/vref)",
                    "gain_per_rel_v", "1", 0.0, needs=("vbat",), diagnostic="residual vs battery voltage"),
         EffectSpec("saturation", "command clipped at ±limit", "limit_u", "u", float("inf"),
@@ -132,6 +135,11 @@ LOOK_ALIKES: dict[frozenset, str] = {
         "on which way it moves)",
     frozenset({"cogging", "force_offset"}):
         "motion over more periods of the load (a periodic load averages out over a period, an offset does not)",
+    frozenset({"back_emf", "saturation"}):
+        "the same large command held at several speeds (back-EMF cuts the drive as the speed rises, a saturation "
+        "at any speed)",
+    frozenset({"back_emf", "stribeck_friction"}):
+        "coasting at several speeds with the command at zero (back-EMF acts only while driven, friction always)",
     frozenset({"gravity_load", "slope"}):
         "motion over a wider range of positions (a gravity load changes with the angle, a slope does not)",
 }
