@@ -420,6 +420,12 @@ def _oob_losses(model: Model, jobs, nm) -> list:
     return [model.oob_loss(p, f, nm) for p, f in jobs]
 
 
+def _wrong_sign(interval: list[float], spec) -> bool:
+    """The whole interval lies on the side of the no-effect value that has no physical meaning."""
+    sign = getattr(spec, "physical_sign", 0)
+    return bool(sign) and (interval[1] < spec.no_effect if sign > 0 else interval[0] > spec.no_effect)
+
+
 def _excludes(interval: list[float], no_effect: float) -> bool:
     lo, hi = interval
     if math.isinf(no_effect):
@@ -603,8 +609,10 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
                 cfg.min_stability)
             ok_int = _excludes(r.interval, model.catalogue[r.name].no_effect)
             ok_stab = r.stability >= cfg.min_stability
-            r.verdict = "accepted" if ok_int and ok_stab else (
+            bad_sign = _wrong_sign(r.interval, model.catalogue[r.name])
+            r.verdict = "accepted" if ok_int and ok_stab and not bad_sign else (
                 "rejected: bootstrap interval includes the no-effect value" if not ok_int
+                else "rejected: the estimate has the sign without physical meaning" if bad_sign
                 else f"rejected: unstable under episode bootstrap ({r.stability:.2f})")
             log(f"  round {rnd + 1}: {r.name}: interval {r.interval}, stability {r.stability:.2f} -> {r.verdict}")
             if r.verdict == "accepted":
@@ -756,7 +764,8 @@ def beam_sets(model, preps, folds, pool_idx, effects, nm, horizon, current, resu
                 res.interval, res.stability, res.boot_values = bootstrap_effect(
                     model, preps, pool_idx, current, effects + others, m, cfg.n_boot, seed, nm, cfg.n_boot_max,
                     cfg.min_stability)
-                ok = _excludes(res.interval, model.catalogue[m].no_effect) and res.stability >= cfg.min_stability
+                ok = (_excludes(res.interval, model.catalogue[m].no_effect) and res.stability >= cfg.min_stability
+                      and not _wrong_sign(res.interval, model.catalogue[m]))
                 res.verdict = (f"accepted (in the set {' + '.join(members)})" if ok
                                else "rejected: set member fails the bootstrap")
                 log(f"  set {' + '.join(members)}: {m} interval {res.interval}, stability {res.stability:.2f}")

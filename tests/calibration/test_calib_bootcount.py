@@ -73,3 +73,15 @@ def test_wilson_interval():
     lo, hi = wilson_interval(8, 10)
     assert 0.49 < lo < 0.5 and 0.94 < hi < 0.95  # Wilson 1927, z = 1.96
     assert wilson_interval(0, 0) == (0.0, 1.0)
+
+
+def test_an_interval_of_the_unphysical_sign_is_rejected():
+    """back_emf means a drive that falls with speed (kemf > 0): on EMPS an unconstrained u·v term came
+    out at kemf = -0.26 (a drive rising with speed) and displaced the published offset."""
+    from hilstack.calibration.effects import CATALOGUE
+    from hilstack.calibration.selection import _wrong_sign
+
+    emf = CATALOGUE["back_emf"]
+    assert _wrong_sign([-0.3, -0.2], emf)
+    assert not _wrong_sign([0.2, 0.3], emf) and not _wrong_sign([-0.1, 0.3], emf)
+    assert not _wrong_sign([-0.3, -0.2], CATALOGUE["coulomb_friction"])  # no sign imposed there
