@@ -73,9 +73,11 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"hil demo adaptation: unknown --suite {suite!r} (roach | gym)")
         if envs and what != "mbrl-gym":
             raise UserError(f"hil demo {what}: --envs is for the mbrl-gym demo only")
-        if ray is not None and what not in ("adaptation", "transfer"):
-            raise UserError(f"hil demo {what}: --ray is for the adaptation and transfer demos only so far "
-                            "(docs/scaling.md)")
+        if ray is not None and what not in ("roach", "baoding", "adaptation", "transfer"):
+            raise UserError(f"hil demo {what}: --ray is for the roach and baoding (--full), adaptation and "
+                            "transfer demos only so far (docs/scaling.md)")
+        if ray is not None and what in ("roach", "baoding") and not full:
+            raise UserError(f"hil demo {what}: --ray is for the full run (--full); the other runs are one task")
         if ray is not None and suite == "gym":
             raise UserError("hil demo adaptation --suite gym: --ray is for the roach suite only so far")
         if what in OTHER_DEMOS:
@@ -83,7 +85,8 @@ def register(app: typer.Typer) -> None:
 
             module, fn, _ = OTHER_DEMOS[what]
             kw = {"part": part, "setting": setting, "ray": ray, "workers": workers} if what == "transfer" else (
-                {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else {})
+                {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else (
+                    {"ray": ray, "workers": workers} if what == "baoding" else {}))
             if what == "mbrl-gym":
                 from hilstack.tools.demo_mbmf import parse_envs
 
@@ -107,7 +110,7 @@ def register(app: typer.Typer) -> None:
             variant.update(random_hold_steps=1, random_forward_fraction=0.0, reachable_set=False)
         try:
             r = run_demo(out, quick=quick, full=full, seed=seed, planner=planner, rig=rig,
-                         operator_resets=operator_resets, **variant)
+                         operator_resets=operator_resets, ray=ray, workers=workers, **variant)
         except (RigError, ValueError) as e:
             typer.echo(f"error: {e}", err=True)
             raise typer.Exit(1) from None
