@@ -40,7 +40,9 @@ def register(app: typer.Typer) -> None:
         tip_weight: float | None = typer.Option(None, "--tip-weight",
                                                 help="roach: weight (1/rad) of the planner's tipping term "
                                                      "(docs/mbrl.md; 0 = the thesis' cost) [default: 50]"),
-        part: str = typer.Option("all", "--part", help="transfer only: all | sidm | garat (one half of the demo)"),
+        part: str = typer.Option("all", "--part", help="transfer: all | sidm | garat (one half of the demo); "
+                                 "roach: terrain (the image-conditioned model on four terrains, Table 3.2, "
+                                 "docs/mbrl.md)"),
         setting: str = typer.Option("roach", "--setting", help="transfer --part sidm only: roach (VelociRoACH pairs) | "
                                     "wheeled (the SIDM paper's wheeled robots with suspension)"),
         suite: str = typer.Option("roach", "--suite", help="adaptation only: roach (the sim VelociRoACH) | gym "
@@ -59,8 +61,17 @@ def register(app: typer.Typer) -> None:
         Collects random data through the driver bridge, trains a dynamics model, runs MPC
         and the differential-drive baseline on five paths at a low and a high speed.
         The other demos (`hil demo transfer`, ...) are listed in OTHER_DEMOS."""
+        if what == "roach" and part == "terrain":
+            from hilstack.tools.demo_terrain import cli_terrain
+
+            try:
+                cli_terrain(out, quick=quick, full=full, seed=seed)
+            except (ValueError, TimeoutError) as e:
+                raise UserError(f"hil demo roach --part terrain: {e}") from None
+            return
         if part != "all" and what != "transfer":
-            raise UserError(f"hil demo {what}: --part is for the transfer demo only")
+            raise UserError(f"hil demo {what}: --part is for the transfer demo only "
+                            "(besides `hil demo roach --part terrain`)")
         if part not in ("all", "sidm", "garat"):
             raise UserError(f"hil demo transfer: unknown --part {part!r} (all | sidm | garat)")
         if setting not in ("roach", "wheeled"):

@@ -141,3 +141,22 @@ def test_ray_is_refused_where_there_is_nothing_to_split(tmp_path):
         r = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "o")])
         assert r.exit_code == 2 and why in r.output, (args, r.output)
     assert not (tmp_path / "o").exists()
+
+
+def test_a_seeds_validation_split_does_not_depend_on_the_seeds_before_it(tmp_path, monkeypatch):
+    """The serial --full run trains every seed in one process; a sweep task trains one seed alone.
+    Each seed draws its train/validation split from its own generator, so both give one table."""
+    import hilstack.learning.mbrl as mbrl
+    from hilstack.configs.schema import BusConfig
+    from hilstack.learning.mbrl import MbrlRun
+
+    draws = []
+    monkeypatch.setattr(mbrl, "fit_episodes", lambda m, e, ep, bs, vf, rng, *a, **k: draws.append(int(rng.integers(1 << 30))))
+    cfg = MbrlConfig.from_preset("full", **TINY)
+    serial = MbrlRun(cfg, tmp_path / "serial", BusConfig())
+    serial.train(None, [], 1)  # the main run's model
+    serial.train(None, [], 1, seed=0)
+    serial.train(None, [], 1, seed=1)
+    alone = MbrlRun(cfg, tmp_path / "alone", BusConfig())
+    alone.train(None, [], 1, seed=1)
+    assert draws[2] == draws[3] and len(set(draws[:3])) == 3
