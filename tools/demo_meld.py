@@ -457,22 +457,47 @@ def run_task_inference(seeds: tuple[int, ...] = (0, 1), steps: int = 200, log=pr
 
 
 def main(argv: list[str] | None = None) -> None:
-    """The probes behind docs/meld.md: task inference without RL (toy) and the do-nothing scores (still)."""
+    """The probes behind docs/meld.md: task inference without RL (toy), the do-nothing scores (still),
+    SAC on the true state and goal of a robot task (oracle: the lower bound MELD is measured against)."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_meld", description=main.__doc__)
-    ap.add_argument("probe", choices=("toy", "still"))
+    ap.add_argument("probe", choices=("toy", "still", "oracle"))
     ap.add_argument("out", type=Path, help="JSON file to write (never overwritten)")
     ap.add_argument("steps", type=int, nargs="?", default=200, help="model-only training steps (toy)")
     ap.add_argument("--reward-std", type=float, default=0.5, help="toy: σ of the reward likelihood")
     ap.add_argument("--latent-dim", type=int, default=32, help="toy: latent size")
+    ap.add_argument("--task", default="sawyer_reach", help="oracle: the robot task")
+    ap.add_argument("--samples", type=int, default=8000, help="oracle: environment samples")
+    ap.add_argument("--updates-per-sample", type=float, default=1.0, help="oracle: gradient steps per sample")
+    ap.add_argument("--seed", type=int, default=0, help="oracle: seed (also draws the Sawyer's goals)")
     args = ap.parse_args(argv)
     if args.out.exists():
         raise SystemExit(f"{args.out} exists; choose another path")
     os.environ.setdefault("MUJOCO_GL", "egl")
-    res = do_nothing_scores() if args.probe == "still" else run_task_inference(
-        steps=args.steps, reward_std=args.reward_std, latent_dim=args.latent_dim)
+    if args.probe == "oracle":
+        res = run_oracle(args.task, args.samples, args.updates_per_sample, args.seed)
+    elif args.probe == "still":
+        res = do_nothing_scores()
+    else:
+        res = run_task_inference(steps=args.steps, reward_std=args.reward_std, latent_dim=args.latent_dim)
     args.out.write_text(json.dumps(res, indent=1))
+
+
+def run_oracle(task: str, samples: int, updates_per_sample: float, seed: int) -> dict[str, Any]:
+    """SAC on the true joint angles and goal of ``task`` (cameras off, one torch thread)."""
+    import torch
+
+    from hilstack.learning.meld.diagnose import StateSacConfig, state_sac
+    from hilstack.tools.meld_tasks import TASKS
+
+    torch.set_num_threads(1)
+    env = TASKS[task](camera_px=32, seed=seed, cameras=False)
+    try:
+        return state_sac(env, StateSacConfig(samples=samples, updates_per_sample=updates_per_sample, seed=seed),
+                         log=lambda m: print(m, flush=True))
+    finally:
+        env.close()
 
 
 if __name__ == "__main__":
