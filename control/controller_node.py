@@ -5,18 +5,20 @@ spec's limits, as the research normalizes actions); the node scales to the spec'
 units on the way out. A policy may expose ``last_plan``/``last_predicted_states`` (the
 MPC policy does) and the node publishes them for rerun on ``hil/<rig>/mpc/plan``.
 
-Two timing modes, same node:
+Two timing modes, same node; :meth:`ControllerNode.run_episode` picks the one the robot's
+spec says (``RobotSpec.pacing``, published by its driver node):
 
-* **realtime** (real and emulated robots, or a sim paced on the wall clock): commands go
-  out at a fixed rate whatever the planning time. Planning runs in a worker thread; if
-  the plan for the newest state is not ready by the deadline, the next action of the
-  last good plan (shifted one step) is sent instead, or, when none is left, what the
-  robot's stop holds (the spec's ``safe_action``, else, for a position-controlled robot, the
-  command it holds, ``RobotState.action``; never a normalized zero, which is the middle of
-  the range: a jump for a position-controlled robot), and the late plan is counted.
-* **lockstep** (sim rigs with ``pace: lockstep``): the node answers each published state
-  with one command tagged with that state's sequence number, and the sim advances when
-  it arrives, so a rig runs faster than real time with the same nodes.
+* **realtime** (``WALL_CLOCK``: real and emulated robots; ``STEPPED``: a sim paced on the
+  wall clock): commands go out at a fixed rate whatever the planning time. Planning runs
+  in a worker thread; if the plan for the newest state is not ready by the deadline, the
+  next action of the last good plan (shifted one step) is sent instead, or, when none is
+  left, what the robot's stop holds (the spec's ``safe_action``, else, for a
+  position-controlled robot, the command it holds, ``RobotState.action``; never a
+  normalized zero, which is the middle of the range: a jump for a position-controlled
+  robot), and the late plan is counted.
+* **lockstep** (``LOCKSTEP``: sim rigs with ``pace: lockstep``): the node answers each
+  published state with one command tagged with that state's sequence number, and the sim
+  advances when it arrives, so a rig runs faster than real time with the same nodes.
 
 A state that is not ok (``RobotState.ok``: a stale or non-finite input) is never planned
 from: realtime sends nothing for it (the driver node holds the robot), lockstep answers it
@@ -39,7 +41,7 @@ from hilstack.bus.cycle import CycleTimer
 from hilstack.bus.node import Node
 from hilstack.bus.schemas import Command, Plan, ResetEvent, ResetPhase, RobotState, SpecMsg
 from hilstack.configs.schema import BusConfig
-from hilstack.drivers.base import RobotSpec
+from hilstack.drivers.base import Pacing, RobotSpec
 
 Policy = Callable[[np.ndarray], np.ndarray]
 
@@ -103,6 +105,17 @@ class ControllerNode(Node):
                     f"no spec from {keys.spec(self.rig, self.robot)} within {timeout_s} s: is the driver node up?"
                 )
         return self.spec
+
+    @property
+    def pacing(self) -> Pacing:
+        """The robot's time model, from its spec (:class:`~hilstack.drivers.base.Pacing`):
+        lockstep or not, and ``command_delay_periods``, the commands already on their way
+        when a state arrives (what an MPC predicts through)."""
+        p = self.wait_ready().pacing
+        if p is None:
+            raise ValueError(f"the spec of {self.robot} on {keys.spec(self.rig, self.robot)} carries no pacing "
+                             "(a driver node of an older hilstack?)")
+        return p
 
     def state_names(self) -> tuple[str, ...]:
         return self.wait_ready().state.names
@@ -186,6 +199,16 @@ class ControllerNode(Node):
         )
 
     # ------------------------------------------------------------------ episodes
+    def run_episode(self, policy: Policy, steps: int, first: RobotState | None = None,
+                    stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
+        """Run ``policy`` for up to ``steps`` states in the robot's time model (the spec's
+        :attr:`pacing`): :meth:`run_lockstep` on a ``LOCKSTEP`` sim, :meth:`run_realtime`
+        otherwise (``first``, a state already taken, is where a lockstep episode starts; the
+        realtime loop starts on fresh states)."""
+        if self.pacing is Pacing.LOCKSTEP:
+            return self.run_lockstep(policy, steps, first, stop_if=stop_if)
+        return self.run_realtime(policy, steps, stop_if=stop_if)
+
     def run_lockstep(self, policy: Policy, steps: int, first: RobotState | None = None,
                      stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
         """Answer ``steps`` states with ``policy``; the sim advances on each answer."""

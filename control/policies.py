@@ -103,8 +103,8 @@ class MpcPolicy:
             raise ValueError(f"delay_steps must be >= 0, got {delay_steps}")
         #: commands already on their way when a state is measured: on a wall-clock robot
         #: (real, emulated) the command planned from a state is applied at the driver
-        #: node's next period, while the one sent before acts (1; ``command_delay_steps``
-        #: of learning/mbrl.py). The plan then starts from the state the model predicts
+        #: node's next period, while the one sent before acts (1: the spec's
+        #: ``pacing.command_delay_periods``, ``ControllerNode.pacing``). The plan then starts from the state the model predicts
         #: after those (``committed`` of :meth:`__call__`, given by the controller node).
         self.delay_steps = int(delay_steps)
         self.model = model

@@ -49,8 +49,8 @@ import enum
 import math
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
-from typing import Any, NoReturn, Protocol, runtime_checkable
+from dataclasses import dataclass, field, replace
+from typing import Any, ClassVar, NoReturn, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -249,17 +249,26 @@ class Inputs:
 
 
 class Pacing(enum.StrEnum):
-    """The time model of a backend: when its robot moves relative to the contract's calls.
+    """The time model of a robot as a rig runs it: when it moves relative to the contract's
+    calls, and who paces the driver node's loop. The spec carries it (``RobotSpec.pacing``:
+    the driver stamps its backend's, the driver node the one it runs, on the bus), so
+    nodes above the bus read it from the spec instead of deciding it again.
 
     One read → update → write loop runs every backend (the driver node's ``step``,
-    drivers/bridge.py); the pacing decides only the order of its parts and how many
-    control periods a command lands after the state it was planned from (as ros2_control
-    puts blocking, simulated or periodic time in a pacing policy, not in the loop).
+    drivers/bridge.py); the pacing decides only the order of its parts, what paces it and
+    how many control periods a command lands after the state it was planned from (as
+    ros2_control puts blocking, simulated or periodic time in a pacing policy, not in the
+    loop).
 
-    * ``STEPPED`` (sim backends): the world stands still between calls and advances one
-      period in ``tick()``. The loop applies the newest command, ticks, then reads: the
-      state published at period k+1 is the effect of the command planned from the state of
-      period k. Command delay 0.
+    * ``STEPPED`` (sim backends; a rig's ``pace: realtime``): the world stands still between
+      calls and advances one period in ``tick()``; the driver node ticks on the wall clock.
+      The loop applies the newest command, ticks, then reads: the state published at
+      period k+1 is the effect of the command planned from the state of period k. Command
+      delay 0.
+    * ``LOCKSTEP`` (sim backends; a rig's ``pace: lockstep``): stepped as above, but the
+      driver node ticks when the command answering the last published state arrives, so a
+      rig runs as fast as its nodes answer. The controller answers every state. Command
+      delay 0.
     * ``WALL_CLOCK`` (real, emulated): the device moves on its own clock, under the command
       it holds. The loop reads and publishes first (the state the previous period's command
       produced), then applies the newest command, which acts during the next period: the
@@ -269,12 +278,23 @@ class Pacing(enum.StrEnum):
     """
 
     STEPPED = "stepped"
+    LOCKSTEP = "lockstep"
     WALL_CLOCK = "wall_clock"
 
     @classmethod
-    def of_backend(cls, backend: str) -> Pacing:
-        """The pacing of a backend kind ("sim", "emulated", "real"): the one place that maps them."""
-        return cls.STEPPED if backend == "sim" else cls.WALL_CLOCK
+    def of_backend(cls, backend: str, pace: str = "realtime") -> Pacing:
+        """The pacing of a backend kind ("sim", "emulated", "real") run at a rig's ``pace``
+        ("realtime" or "lockstep"): the one place that maps them. Lockstep needs a sim."""
+        if backend == "sim":
+            return cls.LOCKSTEP if pace == "lockstep" else cls.STEPPED
+        if pace == "lockstep":
+            raise ValueError(f"pace 'lockstep' needs a sim backend, not {backend!r}")
+        return cls.WALL_CLOCK
+
+    @property
+    def stepped(self) -> bool:
+        """The world advances only in ``tick()`` (a sim backend, lockstep or not)."""
+        return self is not Pacing.WALL_CLOCK
 
     @property
     def read_before_apply(self) -> bool:
@@ -383,10 +403,17 @@ class RobotSpec:
     #: link [m], rotation axis); joint angles are the state channels ``<joint>_pos`` (or
     #: ``<joint>``) in rad. Recordings derive each link's frame transform from it (bus/recording.py)
     chain: tuple[tuple[str, tuple[float, float, float], tuple[float, float, float]], ...] = ()
+    #: the time model the robot runs in (:class:`Pacing`): a driver's spec carries its
+    #: backend's (``Driver.spec``), the spec a driver node publishes the one it runs (lockstep
+    #: or not); None only in a spec built by hand or read from a recording made before
+    #: specs carried it
+    pacing: Pacing | None = None
 
     def __post_init__(self) -> None:
         if not (self.period_s > 0 and math.isfinite(self.period_s)):
             raise ValueError(f"period_s must be a positive number, got {self.period_s}")
+        if self.pacing is not None:
+            object.__setattr__(self, "pacing", Pacing(self.pacing))
         for attr in ("action_rate_per_s", "safe_action", "home_action"):
             v = getattr(self, attr)
             if v is not None:
@@ -419,6 +446,7 @@ class RobotSpec:
             "home_action": None if self.home_action is None else [float(x) for x in self.home_action],
             **({"chain": [{"joint": j, "xyz": [float(v) for v in xyz], "axis": [float(v) for v in ax]}
                           for j, xyz, ax in self.chain]} if self.chain else {}),
+            **({"pacing": self.pacing.value} if self.pacing is not None else {}),
         }
 
     @classmethod
@@ -438,15 +466,27 @@ class RobotSpec:
                 description=str(d.get("description", "")),
                 chain=tuple((str(c["joint"]), tuple(float(v) for v in c["xyz"]), tuple(float(v) for v in c["axis"]))
                             for c in d.get("chain") or ()),
+                pacing=None if d.get("pacing") is None else _pacing(d["pacing"]),
             )
         except KeyError as e:
             raise ValueError(f"robot spec {d.get('name', '?')!r}: missing {e}") from None
         except (TypeError, ValueError) as e:
             raise ValueError(f"robot spec {d.get('name', '?') if isinstance(d, dict) else d!r}: {e}") from None
 
+    def with_pacing(self, pacing: Pacing) -> RobotSpec:
+        """The same spec in another time model (the driver node's lockstep pace)."""
+        return self if self.pacing is pacing else replace(self, pacing=pacing)
+
     def joint_names(self) -> list[str]:
         """The joints of a joint-space robot: the state channels ``<joint>_pos``, in order."""
         return [n[: -len("_pos")] for n in self.state.names if n.endswith("_pos")]
+
+
+def _pacing(value: Any) -> Pacing:
+    try:
+        return Pacing(value)
+    except ValueError:
+        raise ValueError(f"pacing {value!r} is not one of {[p.value for p in Pacing]}") from None
 
 
 @dataclass
@@ -534,11 +574,18 @@ def perturbable(driver: Driver) -> Perturbable | None:
 
 
 class Driver(ABC):
-    """Base of every backend. Subclasses set ``spec`` in ``__init__`` (no I/O there)."""
+    """Base of every backend. Subclasses set ``spec`` in ``__init__`` (no I/O there).
 
-    spec: RobotSpec
+    A backend registered for a config (``hilstack.backends`` entry points) names its params
+    model in ``params_type``; :meth:`from_config` is then written once, here. Its
+    constructor takes ``(params, backend=..., source=...)`` (a real driver serves "real"
+    and "emulated"), or ``(params, source=...)`` for a sim backend (class ``backend = "sim"``)."""
+
     #: "real", "emulated" or "sim"
     backend: str = "real"
+    #: the pydantic model of the robot config's ``params:`` section (configs/schema.py:
+    #: ``Params``); None for a backend that is not built from a config
+    params_type: ClassVar[type | None] = None
     #: the inputs the backend fuses (None: none). Any of them past its ``fail_after_s`` is a
     #: dead device: ``read()`` and ``write()`` take the error path (:meth:`_expire_inputs`)
     inputs: Inputs | None = None
@@ -557,6 +604,34 @@ class Driver(ABC):
         self._rate_max: np.ndarray | None = None
         self._cycle: CycleTimer | None = None  # paces tick() on the wall clock
         self.last_error: str | None = None
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> Driver:
+        """The backend of a validated robot config (``configs.schema.RobotConfig``): its
+        ``params`` parsed into :attr:`params_type` (errors name the file and
+        ``params.<field>``), its backend kind and source file passed on."""
+        if cls.params_type is None:
+            raise TypeError(f"{cls.__name__} cannot be built from a config: it sets no params_type")
+        from hilstack.configs.schema import parse_params
+
+        params = parse_params(cfg, cls.params_type)
+        if cls.backend == "sim":  # a sim backend is one kind only
+            return cls(params, source=cfg.source)
+        return cls(params, backend=cfg.backend, source=cfg.source)
+
+    # ------------------------------------------------------------------ spec
+    @property
+    def spec(self) -> RobotSpec:
+        """The robot's spec with this backend's :attr:`pacing` (readable before connecting)."""
+        if self._spec_backend != self.backend:  # stamped once per backend kind (read in every write)
+            self._spec = self._spec.with_pacing(self.pacing)
+            self._spec_backend = self.backend
+        return self._spec
+
+    @spec.setter
+    def spec(self, value: RobotSpec) -> None:
+        self._spec = value
+        self._spec_backend: str | None = None
 
     # ------------------------------------------------------------------ lifecycle
     @property

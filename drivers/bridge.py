@@ -10,10 +10,11 @@ consecutive readings are ok again, default 3), whatever other nodes do. At start
 node asks the rig's other nodes for a latched e-stop (``estop_sync_s``) and, when one
 is engaged, starts stopped and refuses commands until a release (bus/estop.py).
 
-One loop, ``step()`` (read → update → write); the driver's
-:class:`~hilstack.drivers.base.Pacing` orders it (docs/platform.md, "Time model").
-Wall-clock backends (real, emulated) and sim backends in ``realtime`` pace
-run on the wall clock. In ``lockstep`` pace (sim only) the simulation advances one
+One loop, ``step()`` (read → update → write); the node's
+:class:`~hilstack.drivers.base.Pacing` (the driver's, or ``LOCKSTEP`` for a sim in the rig's
+``pace: lockstep``) orders and paces it, and the spec the node publishes carries it
+(docs/platform.md, "Time model"). ``WALL_CLOCK`` (real, emulated) and ``STEPPED`` (a sim in
+``pace: realtime``) run on the wall clock. In ``LOCKSTEP`` the simulation advances one
 period when the command answering the last published state arrives, so a whole rig
 runs faster than real time with the same nodes; staleness is then counted in
 published states without an answer.
@@ -45,7 +46,7 @@ from hilstack.bus.schemas import (
     decode,
 )
 from hilstack.configs.schema import BusConfig
-from hilstack.drivers.base import CommandError, Driver, LinkError, Pacing, sim_controls
+from hilstack.drivers.base import CommandError, Driver, LinkError, Pacing, RobotSpec, sim_controls
 
 log = logging.getLogger(__name__)
 
@@ -99,8 +100,10 @@ class DriverNode(Node):
         if not (isinstance(resume_ok_readings, int) and 1 <= resume_ok_readings <= MAX_RESUME_OK_READINGS):
             raise ValueError(f"resume_ok_readings must be an integer in [1, {MAX_RESUME_OK_READINGS}], "
                              f"got {resume_ok_readings!r}")
-        if pace == "lockstep" and driver.pacing is not Pacing.STEPPED:  # before the session opens
-            raise ValueError(f"pace 'lockstep' needs a sim backend; {robot} is {driver.backend}")
+        try:  # before the session opens
+            pacing = Pacing.of_backend(driver.backend, pace)
+        except ValueError:
+            raise ValueError(f"pace {pace!r} needs a sim backend; {robot} is {driver.backend}") from None
         access = bus is not None and bus.access is not None
         if driver.backend in ("real", "emulated") and not access:
             # who may command and release a real robot, or one behind a device emulator, is not
@@ -116,7 +119,9 @@ class DriverNode(Node):
         super().__init__(keys.driver_node(robot), rig, bus, **node_kw)
         self.driver = driver
         self.robot = robot
-        self.pace = pace
+        #: the time model this node runs its robot in (the driver's, lockstep for a sim in
+        #: ``pace: lockstep``); the spec it publishes carries it
+        self.pacing = pacing
         self.watchdog_s = watchdog_periods * driver.spec.period_s
         # a sim that follows another robot's clock (the hand's reset arm, whose world the
         # hand's node advances) must not hold its own states back while nobody commands it
@@ -133,7 +138,7 @@ class DriverNode(Node):
         self.unhealthy = False
         self._ok_run = 0
         # lockstep: the controller answers every state, a lost one stalls the loop
-        self._state_pub = self.publisher(keys.state(rig, robot), RobotState, reliable=pace == "lockstep")
+        self._state_pub = self.publisher(keys.state(rig, robot), RobotState, reliable=pacing is Pacing.LOCKSTEP)
         self._spec_pub = self.publisher(keys.spec(rig, robot), SpecMsg, reliable=True)  # rare; every reader needs it
         self._cmd = self.subscribe(keys.cmd(rig, robot), Command)
         self._estop_ack = self.publisher(keys.estop_ack(rig), EStopAck)
@@ -159,7 +164,7 @@ class DriverNode(Node):
     # ------------------------------------------------------------------ pieces
     def _clock(self) -> float:
         # lockstep staleness is measured in robot time, realtime in wall time
-        return self.driver.now() if self.pace == "lockstep" else time.monotonic()
+        return self.driver.now() if self.pacing is Pacing.LOCKSTEP else time.monotonic()
 
     def _engage(self, m: EStop) -> None:
         if self.estopped:
@@ -377,8 +382,13 @@ class DriverNode(Node):
                                       encoding=enc, data=data))
         return msg
 
+    @property
+    def spec(self) -> RobotSpec:
+        """The driver's spec in the time model this node runs it in (what it publishes)."""
+        return self.driver.spec.with_pacing(self.pacing)
+
     def publish_spec(self) -> None:
-        self._spec_pub.put(SpecMsg(robot=self.robot, spec=self.driver.spec.to_dict()))
+        self._spec_pub.put(SpecMsg(robot=self.robot, spec=self.spec.to_dict()))
         self._spec_t = time.monotonic()
 
     def _maybe_publish_spec(self) -> None:
@@ -389,14 +399,14 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------------ loops
     def step(self) -> None:
-        """One period: read → update → write, in the order the driver's pacing says.
+        """One period: read → update → write, in the order the node's pacing says.
 
         Sections are timed by the cycle timer of ``run()`` (``hil up`` prints them). Each
         published state carries the action held during the period that ended with it
         (``RobotState.action``; ``learning/recordings.py`` pairs ``(s_t, s_{t+1}.action,
-        s_{t+1})``). The driver's :class:`~hilstack.drivers.base.Pacing` decides the order:
+        s_{t+1})``). The node's :class:`~hilstack.drivers.base.Pacing` decides the order:
 
-        * ``STEPPED`` (sim): apply the newest command, ``tick()`` (physics advances one
+        * ``STEPPED``, ``LOCKSTEP`` (sim): apply the newest command, ``tick()`` (physics advances one
           period under it), read and publish.
         * ``WALL_CLOCK`` (real, emulated): the robot moved during the period before this
           step, under the command held then: read and publish *first*, then apply the newest
@@ -404,13 +414,13 @@ class DriverNode(Node):
           yet: the recorded transitions were one period off and a model trained on them
           learned a wrong action effect; docs/mbrl.md.)
 
-        The rig's pace only decides where the command comes from: ``realtime`` takes the
-        newest one (the loop is paced on the wall clock by ``run()``), ``lockstep`` (sim only)
-        waits for the answer to the last published state (``lockstep_timeout_s``).
+        It also decides where the command comes from: ``STEPPED`` and ``WALL_CLOCK`` take the
+        newest one (the loop is paced on the wall clock by ``run()``), ``LOCKSTEP`` waits for
+        the answer to the last published state (``lockstep_timeout_s``).
         """
         timer = self.cycle
-        read_first = self.driver.pacing.read_before_apply
-        lockstep = self.pace == "lockstep"
+        read_first = self.pacing.read_before_apply
+        lockstep = self.pacing is Pacing.LOCKSTEP
         if lockstep:
             if self._last_state is None:
                 self.publish_state()
@@ -466,7 +476,7 @@ class DriverNode(Node):
                 d.activate()
             d.stop()  # nothing moves until the first command
             self.publish_spec()
-            if self.pace == "lockstep":  # paced by the answers, not by a clock
+            if self.pacing is Pacing.LOCKSTEP:  # paced by the answers, not by a clock
                 n = 0
                 while not self.stop_event.is_set() and (max_steps is None or n < max_steps):
                     self.step()

@@ -28,6 +28,7 @@ __all__ = [
     "Episode",
     "NormStats",
     "TransitionDataset",
+    "Transitions",
     "episodes_from_table",
     "load_episodes",
     "split_episodes",
@@ -84,6 +85,75 @@ class Episode:
     def action_dim(self) -> int:
         return self.actions.shape[1]
 
+    def transitions(self) -> Transitions:
+        """This episode's ``T`` transitions (:class:`Transitions`)."""
+        return Transitions.from_episodes([self])
+
+
+@dataclass(frozen=True)
+class Transitions:
+    """``N`` transitions ``(s, a, s')``: ``actions[i]`` applied at ``states[i]`` led to
+    ``next_states[i]``, one control period later. The one transition record of learning and
+    calibration (issue 23): a trainer, a grounding step or a fit takes this, not three
+    parallel arrays. ``from_episodes`` stacks episodes; episode boundaries are not kept
+    (:class:`TransitionDataset` keeps them, for splits by episode).
+
+    Attributes: ``states [N, S]``, ``actions [N, A]``, ``next_states [N, S]``, float32 (the
+    episodes' dtype) or float64 as given; ``state_names`` / ``action_names`` when known.
+    """
+
+    states: np.ndarray
+    actions: np.ndarray
+    next_states: np.ndarray
+    state_names: tuple[str, ...] | None = None
+    action_names: tuple[str, ...] | None = None
+
+    def __post_init__(self) -> None:
+        s, a, n = (np.asarray(v) for v in (self.states, self.actions, self.next_states))
+        s, a, n = (v if v.dtype in (np.float32, np.float64) else v.astype(np.float64) for v in (s, a, n))
+        if s.ndim != 2 or a.ndim != 2 or n.shape != s.shape or len(a) != len(s):
+            raise ValueError(f"transitions: states {s.shape}, actions {a.shape} and next_states {n.shape} must be "
+                             "[N, S], [N, A] and [N, S]")
+        for label, names, dim in (("state_names", self.state_names, s.shape[1]),
+                                  ("action_names", self.action_names, a.shape[1])):
+            if names is not None and len(names) != dim:
+                raise ValueError(f"transitions: {label} has {len(names)} entries, the data {dim} channels")
+        object.__setattr__(self, "states", s)
+        object.__setattr__(self, "actions", a)
+        object.__setattr__(self, "next_states", n)
+        for attr in ("state_names", "action_names"):
+            if getattr(self, attr) is not None:
+                object.__setattr__(self, attr, tuple(getattr(self, attr)))
+
+    @classmethod
+    def from_episodes(cls, episodes: Sequence[Episode]) -> Transitions:
+        """Every ``(s_t, a_t, s_{t+1})`` of the episodes, stacked in order (names from the first
+        episode's ``meta``)."""
+        episodes = list(episodes)
+        if not episodes:
+            raise ValueError("transitions: no episodes")
+        meta = episodes[0].meta
+        return cls(np.concatenate([e.states[:-1] for e in episodes]),
+                   np.concatenate([e.actions for e in episodes]),
+                   np.concatenate([e.states[1:] for e in episodes]),
+                   _opt_tuple(meta.get("state_names")), _opt_tuple(meta.get("action_names")))
+
+    def __len__(self) -> int:
+        return self.states.shape[0]
+
+    @property
+    def deltas(self) -> np.ndarray:
+        """``s' − s`` ``[N, S]`` (what the dynamics models predict)."""
+        return self.next_states - self.states
+
+    def subset(self, idx: np.ndarray | slice) -> Transitions:
+        """The transitions at ``idx`` (an index array, a mask or a slice)."""
+        return Transitions(self.states[idx], self.actions[idx], self.next_states[idx], self.state_names,
+                           self.action_names)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(states, actions, next_states)``, for code that takes them apart."""
+        return self.states, self.actions, self.next_states
 
 
 def split_episodes(episodes: Sequence[Episode], val_fraction: float, rng: np.random.Generator | int,
@@ -183,9 +253,10 @@ class TransitionDataset:
         ):
             if names is not None and len(names) != dim:
                 raise ValueError(f"{label} has {len(names)} entries, data has {dim} channels")
-        self.states = np.concatenate([ep.states[:-1] for ep in episodes]).astype(np.float32)
-        self.actions = np.concatenate([ep.actions for ep in episodes]).astype(np.float32)
-        self.deltas = np.concatenate([ep.states[1:] - ep.states[:-1] for ep in episodes]).astype(np.float32)
+        tr = Transitions.from_episodes(episodes)
+        self.states = tr.states.astype(np.float32)
+        self.actions = tr.actions.astype(np.float32)
+        self.deltas = tr.deltas.astype(np.float32)
         self.episode_index = np.concatenate(
             [np.full(len(ep), i, dtype=np.int64) for i, ep in enumerate(episodes)]
         )
@@ -263,6 +334,10 @@ class TransitionDataset:
 
 def _opt_list(x: Sequence[str] | None) -> list[str] | None:
     return None if x is None else [str(v) for v in x]
+
+
+def _opt_tuple(x: Sequence[str] | None) -> tuple[str, ...] | None:
+    return None if x is None else tuple(str(v) for v in x)
 
 
 # -- tabular loading ------------------------------------------------------------------------

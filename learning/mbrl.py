@@ -48,7 +48,7 @@ from hilstack.control.planners import CEM, PDDM, RandomShooting
 from hilstack.control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from hilstack.control.reset.config import ResetConfig, ResetUnavailable, require_reset
 from hilstack.control.reset.supervisor import ResetSupervisor
-from hilstack.drivers.base import RobotSpec
+from hilstack.drivers.base import Pacing, RobotSpec
 from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.dynamics import EnsembleDynamics
 from hilstack.learning.frames import BodyFrameDynamics
@@ -413,21 +413,6 @@ def fit_planner_samples(make, samples: int, predict, cost, state: np.ndarray, bu
     return fit_samples_to_budget(plan_time_s, samples, budget_s, min_samples)
 
 
-def command_delay_steps(rig: Any, robot: str) -> int:
-    """Control periods between the state a realtime plan starts from and the period its
-    command acts in, minus one: the robot's pacing says it
-    (:attr:`hilstack.drivers.base.Pacing.command_delay_periods`: 0 on sim backends, which
-    advance right after applying the command, lockstep or realtime; 1 on wall-clock
-    robots, real or emulated, whose driver node publishes the state of period k and
-    applies the command planned from it at period k+1). The MPC then plans from the state
-    its model predicts after the command already sent
-    (:class:`hilstack.control.policies.MpcPolicy`)."""
-    from hilstack.configs.schema import rig_robot_config
-    from hilstack.drivers.base import Pacing
-
-    return Pacing.of_backend(rig_robot_config(rig, robot).backend).command_delay_periods
-
-
 # ---------------------------------------------------------------------------- the loop
 class MbrlRun:
     def __init__(self, cfg: MbrlConfig, out_dir: Path, bus: BusConfig):
@@ -446,7 +431,9 @@ class MbrlRun:
         self.val_assigned: dict[str, bool] = {}
         self.period_s = 0.1
         self.max_step: np.ndarray | None = None
-        self.command_delay = 0
+        #: the robot's time model, from the spec its driver node publishes (session()): lockstep
+        #: or not, and the command delay the MPC predicts through
+        self.pacing: Pacing | None = None
         #: wall-clock rigs: the planner's fitted sample count and its measurements (realtime_samples)
         self.planner_fit: dict[str, Any] | None = None
         self.supervisor: ResetSupervisor | None = None
@@ -512,7 +499,7 @@ class MbrlRun:
             self.action_names = list(spec.action.names)
             self.period_s = spec.period_s
             self.max_step = spec.max_step_normalized()
-            self.command_delay = command_delay_steps(self.rig, cfg.robot)
+            self.pacing = ctl.pacing
             try:
                 yield ctl
             finally:
@@ -534,6 +521,15 @@ class MbrlRun:
                                f"{d.max_s:g} s) would end the {longest} path before its time limit of "
                                f"{limits[longest]:.1f} s; raise max_s above it")
 
+    @property
+    def command_delay(self) -> int:
+        """Control periods a command planned from a state lands after it (the spec's pacing:
+        0 on sim backends, lockstep or realtime; 1 on wall-clock robots, real or emulated,
+        whose driver node publishes the state of period k and applies the command planned
+        from it at period k+1). The MPC plans from the state its model predicts after the
+        command already sent (:class:`hilstack.control.policies.MpcPolicy`)."""
+        return 0 if self.pacing is None else self.pacing.command_delay_periods
+
     # -- episodes over the bus ------------------------------------------------------------
     def episode(self, policy: Any, steps: int, pose: dict[str, float], stop_if=None) -> EpisodeLog:
         """Reset (the sim puts the robot at ``pose``; a real robot is placed by an operator)
@@ -547,9 +543,7 @@ class MbrlRun:
             policy.reset()
         if self.supervisor is not None:  # the supervisor's detectors end episodes too
             stop_if = _or_stop(stop_if, self._episode_ended)
-        if self.rig.pace == "lockstep":
-            return self.ctl.run_lockstep(policy, steps, first, stop_if=stop_if)
-        return self.ctl.run_realtime(policy, steps, stop_if=stop_if)
+        return self.ctl.run_episode(policy, steps, first, stop_if=stop_if)
 
     def _episode_ended(self, state) -> bool:
         """The reset supervisor's detectors ended the episode (arena left, timeout...)."""
@@ -666,7 +660,7 @@ class MbrlRun:
         ``make(n)`` / ``cost``: the planner with ``n`` samples and its cost (default: the
         path-tracking planner on a straight path at the top speed). None on lockstep rigs
         (the configured samples)."""
-        if self.rig.pace == "lockstep":
+        if self.pacing is Pacing.LOCKSTEP:
             return None
         if self.planner_fit is None:
             cfg = self.cfg

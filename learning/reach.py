@@ -352,7 +352,7 @@ class ReachRun:
         at the pose it measures."""
         if self.task.mechanism:
             target = np.asarray(g["mechanism_target"], dtype=np.float64)
-            log = self.mech.run_lockstep(lambda s: target, self.cfg.mechanism_settle_steps)
+            log = self.mech.run_episode(lambda s: target, self.cfg.mechanism_settle_steps)
             rotate, offset = (float(v) for v in log.states[-1][:2])
             g["mechanism_pose"] = {"rotate_rad": rotate, "offset_m": offset}
             return self.port_fk.position(np.array([offset, rotate]))

@@ -23,7 +23,7 @@ py="${PYTHON:-python3}"
 # torch is pinned for these machines (a local CPU wheel); the package itself only asks for a range.
 .venv/bin/python -m pip install -q "torch==${HIL_TORCH_VERSION:-2.13.0}"
 # dev = test tools + the extras the suite exercises (bench: pytorch-mppi, mocap: natnet, fuzz: atheris,
-# camera: opencv, calib: mujoco[sysid], cluster: ray)
+# camera: opencv, calib: mujoco[sysid], cluster: ray, speed: numba)
 .venv/bin/python -m pip install -q -e ".[dev]"
 # the Sawyer's MJCF ships in metaworld's wheel; its own pins would drag MuJoCo down to 3.x,
 # so it is installed without dependencies and used for its assets only (sim_backends/sawyer)

@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from hilstack.configs.schema import Params, PeriodS, RobotConfig, finite, parse_params
+from hilstack.configs.schema import Params, PeriodS, finite
 from hilstack.drivers.base import Health, Observation, RobotSpec, Space
 from hilstack.sim_backends.base import LockstepSim
 
@@ -54,8 +54,11 @@ class PointMassParams(Params):
 
 
 class PointMassSim(LockstepSim):
-    def __init__(self, params: PointMassParams | None = None):
+    params_type = PointMassParams
+
+    def __init__(self, params: PointMassParams | None = None, source: str | None = None):
         super().__init__()
+        self.source = source
         self.params = p = params or PointMassParams()
         f = p.max_force_n
         self.spec = RobotSpec(
@@ -75,10 +78,6 @@ class PointMassSim(LockstepSim):
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._seq = 0
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> PointMassSim:
-        return cls(parse_params(cfg, PointMassParams))
 
     def _on_configure(self) -> None:
         p = self.params

@@ -142,3 +142,12 @@ def spec_dict(name: str, state: list[str], action: list[str], low: float | list[
     lo, hi = np.broadcast_to(np.asarray(low, float), (n,)), np.broadcast_to(np.asarray(high, float), (n,))
     return RobotSpec(name, Space.build([(s, "", -np.inf, np.inf) for s in state]),
                      Space.build([(a, "", lo[i], hi[i]) for i, a in enumerate(action)]), period_s, **kw).to_dict()
+
+
+def rig_pacing(rig_name, robot):
+    """The pacing a rig's driver node runs ``robot`` in (and publishes in its spec)."""
+    from hilstack.configs.schema import load_rig, rig_robot_config
+    from hilstack.drivers.base import Pacing
+
+    rig = load_rig(rig_name)
+    return Pacing.of_backend(rig_robot_config(rig, robot).backend, rig.pace)

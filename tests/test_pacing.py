@@ -3,8 +3,9 @@
 Measured through the bus, the way a controller sees it: a command sent in answer to the
 state of period k is first carried (``RobotState.action``, the command held during the
 period that ended with the state) by the state of period k + 1 + delay. The delay must be
-the pacing's ``command_delay_periods`` on a sim backend and on an emulated one, and what
-the MPC is told (``learning/mbrl.py: command_delay_steps``).
+the pacing's ``command_delay_periods`` on a sim backend and on an emulated one, and the
+controller must read that pacing from the spec the driver node publishes (what the MPC is
+told: ``ControllerNode.pacing``, ``MbrlRun.command_delay``).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import pytest
 from hilstack.drivers.base import Pacing
 
 
-def _measured_delay(rig_name: str, bus) -> tuple[int, Pacing]:
+def _measured_delay(rig_name: str, bus) -> tuple[int, Pacing, Pacing]:
     from hilstack.configs.schema import load_rig, rig_robot_config
     from hilstack.control.controller_node import ControllerNode
     from hilstack.drivers.bridge import DriverNode
@@ -57,7 +58,7 @@ def _measured_delay(rig_name: str, bus) -> tuple[int, Pacing]:
                 if carried_at is None and m.action and m.action[0] > 1e-6:  # any of it (rate limited)
                     carried_at = m.seq
             assert carried_at is not None, "the command never reached a state"
-            return carried_at - answered - 1, drv.pacing
+            return carried_at - answered - 1, drv.pacing, ctl.pacing
     finally:
         try:
             drv.cleanup()
@@ -67,18 +68,39 @@ def _measured_delay(rig_name: str, bus) -> tuple[int, Pacing]:
 
 @pytest.mark.parametrize("rig_name", ["roach_sim", "roach_emulated"])
 def test_command_delay_is_the_pacings(rig_name, rig_bus):
-    from hilstack.configs.schema import load_rig
-    from hilstack.learning.mbrl import command_delay_steps
-
-    delay, pacing = _measured_delay(rig_name, rig_bus(rig_name))
+    delay, pacing, on_the_bus = _measured_delay(rig_name, rig_bus(rig_name))
     assert pacing is (Pacing.STEPPED if rig_name == "roach_sim" else Pacing.WALL_CLOCK)
     assert delay == pacing.command_delay_periods
-    assert command_delay_steps(load_rig(rig_name), "roach") == delay
+    assert on_the_bus is pacing  # the controller learns it from the spec, not from the rig file
 
 
-def test_pacing_of_each_backend_kind():
+def test_pacing_of_each_backend_kind_and_pace():
     assert Pacing.of_backend("sim") is Pacing.STEPPED
+    assert Pacing.of_backend("sim", "lockstep") is Pacing.LOCKSTEP
     for b in ("real", "emulated"):
         p = Pacing.of_backend(b)
-        assert p is Pacing.WALL_CLOCK and p.read_before_apply and p.command_delay_periods == 1
-    assert not Pacing.STEPPED.read_before_apply and Pacing.STEPPED.command_delay_periods == 0
+        assert p is Pacing.WALL_CLOCK and p.read_before_apply and p.command_delay_periods == 1 and not p.stepped
+        with pytest.raises(ValueError, match="lockstep.*needs a sim"):
+            Pacing.of_backend(b, "lockstep")
+    for p in (Pacing.STEPPED, Pacing.LOCKSTEP):
+        assert p.stepped and not p.read_before_apply and p.command_delay_periods == 0
+
+
+def test_the_spec_carries_the_pacing_across_the_bus():
+    """A driver's spec carries its backend's pacing (before connecting); the driver node's
+    spec the one it runs (lockstep for a sim in ``pace: lockstep``); the dict on the bus
+    round-trips it, and a bad value is a one-line error naming it."""
+    from hilstack.drivers.base import RobotSpec
+    from hilstack.drivers.bridge import DriverNode
+    from hilstack.drivers.registry import make_driver
+
+    sim, emu = make_driver("pointmass", "sim"), make_driver("velociroach", "emulated")
+    assert sim.spec.pacing is Pacing.STEPPED and emu.spec.pacing is Pacing.WALL_CLOCK
+    d = sim.spec.with_pacing(Pacing.LOCKSTEP).to_dict()
+    assert d["pacing"] == "lockstep" and RobotSpec.from_dict(d).pacing is Pacing.LOCKSTEP
+    del d["pacing"]
+    assert RobotSpec.from_dict(d).pacing is None  # a recording from before specs carried it
+    with pytest.raises(ValueError, match="pacing 'sometimes' is not one of"):
+        RobotSpec.from_dict({**d, "pacing": "sometimes"})
+    with pytest.raises(ValueError, match="pace 'lockstep' needs a sim backend; roach is emulated"):
+        DriverNode(emu, "r", "roach", pace="lockstep")

@@ -57,3 +57,28 @@ def test_sim_controls_are_a_declared_capability_of_sim_backends_only():
     sim_controls(sim).reset(x=0.2, y=-0.1, yaw=0.0)
     np.testing.assert_allclose(sim.read().state[:2], [0.2, -0.1], atol=0.01)
     sim.cleanup()
+
+
+def test_every_backend_is_built_from_its_config_by_the_one_from_config():
+    """``Driver.from_config`` is written once: each registered class names its params model
+    (``params_type``) and gets its config's backend kind, source file and parsed params; a
+    bad value is a ConfigError naming the file and ``params.<field>``; a class without a
+    params model says so."""
+    from hilstack.configs.schema import load_robot
+    from hilstack.drivers.base import Driver
+
+    for robot, backend in sorted(registry.BACKENDS):
+        cls = registry.resolve(robot, backend)
+        assert "from_config" not in cls.__dict__, f"{cls.__name__} writes its own from_config"
+        cfg = load_robot(robot, backend=backend)
+        d = cls.from_config(cfg)
+        assert isinstance(d.params, cls.params_type) and d.backend == backend, (robot, backend)
+        assert str(d.source) == str(cfg.source), (robot, backend)
+    with pytest.raises(ConfigError, match=r"pan_unit\.yaml.*params\.pan_rate_rad_s"):
+        registry.make_driver("pan_unit", "emulated", pan_rate_rad_s=float("nan"))
+
+    class NoParams(Driver):
+        _read = _write = _stop = None
+
+    with pytest.raises(TypeError, match="NoParams cannot be built from a config: it sets no params_type"):
+        NoParams.from_config(load_robot("pan_unit"))

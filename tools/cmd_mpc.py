@@ -42,11 +42,11 @@ def register(app: typer.Typer) -> None:
         from hilstack.control.costs import PathCost, evaluate_path_following
         from hilstack.control.paths import fillet, make_path
         from hilstack.control.policies import MpcPolicy
+        from hilstack.drivers.base import Pacing
         from hilstack.learning.frames import load_dynamics
         from hilstack.learning.mbrl import (
             MbrlConfig,
             PathEnd,
-            command_delay_steps,
             fit_planner_to_period,
             make_planner,
             path_start_pose,
@@ -102,17 +102,16 @@ def register(app: typer.Typer) -> None:
             ref = task_cost(mcfg, fillet(wp, mcfg.reference_corner_radius_m), names)
             n_act, max_step = spec.action.dim, spec.max_step_normalized()
             samples = None
-            if cfg.pace != "lockstep":  # as in `hil demo`: the planner must fit the period on this machine
+            lockstep = ctl.pacing is Pacing.LOCKSTEP  # the robot's time model, from its spec
+            if not lockstep:  # as in `hil demo`: the planner must fit the period on this machine
                 timing_cost = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
                 samples, _ = fit_planner_to_period(mcfg, speed, n_act, max_step, dyn.predict, timing_cost,
                                                    np.asarray(ctl.next_state().state), spec.period_s)
             planner_ = make_planner(mcfg, speed, n_act, max_step, samples)
-            pol = MpcPolicy(dyn, planner_, ref, model_source=swap, delay_steps=command_delay_steps(cfg, robot))
+            pol = MpcPolicy(dyn, planner_, ref, model_source=swap, delay_steps=ctl.pacing.command_delay_periods)
             first = ctl.reset(**path_start_pose(wp)) if reset else None
-            if cfg.pace == "lockstep":
-                log = ctl.run_lockstep(pol, steps, first, stop_if=PathEnd(PathCost(wp, names)))
-            else:
-                log = ctl.run_realtime(pol, steps)
+            # lockstep: the episode ends at the path's end; realtime runs its steps
+            log = ctl.run_episode(pol, steps, first, stop_if=PathEnd(PathCost(wp, names)) if lockstep else None)
         m = evaluate_path_following(np.array(log.states), cost, period_s=spec.period_s)
         m.update(samples=planner_.samples, late_plans=log.late_plans, plan_ms_p50=float(np.percentile(log.plan_times_s, 50) * 1e3)
                  if log.plan_times_s else None)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 
-from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.configs.schema import ConfigError
 from hilstack.drivers.base import Driver, Health, LinkError, Observation
 from hilstack.drivers.camera.config import CameraParams, camera_spec
 from hilstack.drivers.camera.pipeline import CameraPipeline, FramePair
@@ -21,22 +21,17 @@ from hilstack.perception.geometry import StereoCalibration
 
 
 class StereoCameraDriver(Driver):
-    backend = "real"
+    params_type = CameraParams
 
-    def __init__(self, params: CameraParams | None = None, source: str | None = None):
+    def __init__(self, params: CameraParams | None = None, backend: str = "real", source: str | None = None):
         super().__init__()
         self.params = params or CameraParams()
+        self.backend = backend
         self.source = source
         self.spec = camera_spec(self.params)
         self.pipeline: CameraPipeline | None = None
         self.uvc = None
         self._seq = 0
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> StereoCameraDriver:
-        d = cls(parse_params(cfg, CameraParams), source=cfg.source)
-        d.backend = cfg.backend
-        return d
 
     def _on_configure(self) -> None:
         from hilstack.drivers.camera.uvc import StereoUvc

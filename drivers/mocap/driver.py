@@ -26,7 +26,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from hilstack.configs.schema import Params, PeriodS, Periods, RobotConfig, StaleS, finite, parse_params
+from hilstack.configs.schema import Params, PeriodS, Periods, StaleS, finite
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, Observation, RobotSpec, Space
 from hilstack.drivers.mocap.base import PoseSource
 
@@ -97,24 +97,20 @@ def mocap_spec(p: MocapParams) -> RobotSpec:
 
 
 class MocapDriver(Driver):
-    backend = "real"
+    params_type = MocapParams
 
-    def __init__(self, params: MocapParams | None = None):
+    def __init__(self, params: MocapParams | None = None, backend: str = "real", source: str | None = None):
         super().__init__()
         self.params = params or MocapParams()
+        self.backend = backend
+        self.source = source
         self.spec = mocap_spec(self.params)
-        self.source: PoseSource | None = None
+        self.pose_source: PoseSource | None = None
         self._seq = 0
         self.inputs = Inputs(Freshness.fail_after_periods("pose", self.params.stale_after_s, Flag.STALE_POSE,
                                                           self.params.link_timeout_periods, self.params.period_s))
         self._pose = None  # the newest finite sample
         self._seen = None  # the newest sample looked at (finite or not)
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> MocapDriver:
-        d = cls(parse_params(cfg, MocapParams))
-        d.backend = cfg.backend
-        return d
 
     def _on_configure(self) -> None:
         p = self.params
@@ -123,28 +119,28 @@ class MocapDriver(Driver):
         if p.source == "udp":
             from hilstack.drivers.mocap.udp import UdpPoseClient
 
-            self.source = UdpPoseClient(p.host, p.port, body_id=p.rigid_body_id)
+            self.pose_source = UdpPoseClient(p.host, p.port, body_id=p.rigid_body_id)
         else:
             from hilstack.drivers.mocap.natnet_client import NatNetPoseSource
 
             src = NatNetPoseSource(p.server_ip, p.local_ip, p.rigid_body_id, use_multicast=p.multicast,
                                    up_axis=p.up_axis)
             src.connect()
-            self.source = src
+            self.pose_source = src
 
     def _on_cleanup(self) -> None:
-        if self.source is not None:
-            self.source.close()
-            self.source = None
+        if self.pose_source is not None:
+            self.pose_source.close()
+            self.pose_source = None
 
     @property
     def port(self) -> int | None:
         """The UDP port actually bound (useful with ``port: 0``)."""
-        return getattr(self.source, "port", None)
+        return getattr(self.pose_source, "port", None)
 
     def _poll(self) -> float:
         """Take the source's newest sample into the freshness record; returns now [s]."""
-        s = self.source.latest() if self.source is not None else None
+        s = self.pose_source.latest() if self.pose_source is not None else None
         now = time.monotonic()
         if s is not None and s is not self._seen:
             self._seen = s
@@ -183,17 +179,17 @@ class MocapDriver(Driver):
         pass
 
     def _health(self) -> Health:
-        st = self.source.stats() if hasattr(self.source, "stats") else {}
+        st = self.pose_source.stats() if hasattr(self.pose_source, "stats") else {}
         now = self._poll()
         ok, _ = self.inputs.assess(now)
         age = self.inputs["pose"].age_s(now)
         n = max(1, st.get("received", 0) + st.get("dropped", 0))
         return Health(
-            ok=ok and self.source is not None,
+            ok=ok and self.pose_source is not None,
             link_quality=st.get("received", 0) / n if st else (1.0 if self._pose is not None else 0.0),
-            frames_received=st.get("received", getattr(self.source, "frames", 0)),
+            frames_received=st.get("received", getattr(self.pose_source, "frames", 0)),
             corrupt_frames=st.get("corrupt", 0),
-            dropped_frames=st.get("dropped", getattr(self.source, "dropped", 0)),
+            dropped_frames=st.get("dropped", getattr(self.pose_source, "dropped", 0)),
             latency_s=age,
             last_error=self.last_error,
             extra=self.inputs.ages(now),

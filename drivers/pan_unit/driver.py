@@ -7,12 +7,12 @@ backend (sim_backends/pan_unit/backend.py) runs this code over an in-process bus
 
 from __future__ import annotations
 
-from hilstack.configs.schema import RobotConfig, parse_params
 from hilstack.drivers.dynamixel.position import PositionRobot
 from hilstack.drivers.pan_unit.config import PanUnitParams, pan_unit_spec
 
 
 class PanUnitDriver(PositionRobot):
+    params_type = PanUnitParams
     EMULATOR = "pan_unit"
     BUS_NAME = "pan_unit"
 
@@ -21,10 +21,6 @@ class PanUnitDriver(PositionRobot):
         self.ids = dict(params.ids)
         self.spec = pan_unit_spec(params)
         super().__init__(params, backend, source)
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> PanUnitDriver:
-        return cls(parse_params(cfg, PanUnitParams), backend=cfg.backend, source=cfg.source)
 
     def _emulator_config(self) -> dict:
         return {"pan_id": self.ids["pan"]}

@@ -20,13 +20,15 @@ import time
 
 import numpy as np
 
-from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.configs.schema import ConfigError
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
 from hilstack.drivers.reset_arm.config import ResetArmParams, reset_arm_spec
 from hilstack.drivers.reset_arm.protocol import QUERY, ProtocolError, decode_state, encode_command
 
 
 class ResetArmDriver(Driver):
+    params_type = ResetArmParams
+
     def __init__(self, params: ResetArmParams | None = None, backend: str = "real", source: str | None = None):
         super().__init__()
         self.params = params or ResetArmParams()
@@ -43,10 +45,6 @@ class ResetArmDriver(Driver):
         self.sent = 0
         self.inputs = Inputs(Freshness.fail_after_periods("state", self.params.state_deadline_s, Flag.STALE_TELEMETRY,
                                                           self.params.link_timeout_periods, self.params.period_s))
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> ResetArmDriver:
-        return cls(parse_params(cfg, ResetArmParams), backend=cfg.backend, source=cfg.source)
 
     def now(self) -> float:
         return time.monotonic()

@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.configs.schema import ConfigError
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
 from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
 from hilstack.drivers.sawyer import ros
@@ -42,6 +42,8 @@ INBOX_SIZE = 64
 
 
 class SawyerDriver(Driver):
+    params_type = SawyerParams
+
     def __init__(self, params: SawyerParams | None = None, backend: str = "real", source: str | None = None):
         super().__init__()
         self.params = params or SawyerParams()
@@ -68,10 +70,6 @@ class SawyerDriver(Driver):
         self._state_t: float | None = None
         self._stamp_s: float | None = None
         self._seq = 0
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> SawyerDriver:
-        return cls(parse_params(cfg, SawyerParams), backend=cfg.backend, source=cfg.source)
 
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:

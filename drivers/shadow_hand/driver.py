@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from hilstack.bus.cycle import Rate
-from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.configs.schema import ConfigError
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
 from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
 from hilstack.drivers.shadow_hand.config import (
@@ -76,6 +76,8 @@ def free_udp_port() -> int:
 
 
 class ShadowHandDriver(Driver):
+    params_type = ShadowHandParams
+
     def __init__(self, params: ShadowHandParams | None = None, backend: str = "real", source: str | None = None):
         super().__init__()
         params = params or ShadowHandParams()
@@ -118,10 +120,6 @@ class ShadowHandDriver(Driver):
 
     #: measured − commanded actuated joint angles (used by `hil drive`)
     tracking_error = staticmethod(joint_tracking_error)
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> ShadowHandDriver:
-        return cls(parse_params(cfg, ShadowHandParams), backend=cfg.backend, source=cfg.source)
 
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:

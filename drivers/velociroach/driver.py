@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from hilstack.bus.cycle import Rate
-from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.configs.schema import ConfigError
 from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
 from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
 from hilstack.drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
@@ -79,6 +79,8 @@ class PoseFilter:
 
 
 class VelociRoachDriver(Driver):
+    params_type = VelociRoachParams
+
     def __init__(self, params: VelociRoachParams | None = None, backend: str = "real", source: str | None = None):
         super().__init__()
         self.params = params or VelociRoachParams()
@@ -117,10 +119,6 @@ class VelociRoachDriver(Driver):
         self._reader_error: str | None = None
         self._seq = 0
         self._rid = 0
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> VelociRoachDriver:
-        return cls(parse_params(cfg, VelociRoachParams), backend=cfg.backend, source=cfg.source)
 
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:

@@ -24,7 +24,6 @@ import math
 
 import numpy as np
 
-from hilstack.configs.schema import RobotConfig, parse_params
 from hilstack.drivers.base import Observation
 from hilstack.drivers.dynamixel.control_table import OPERATING_MODES, pos_counts, vel_counts
 from hilstack.drivers.dynamixel.position import PositionRobot
@@ -43,6 +42,8 @@ VELOCITY = OPERATING_MODES["velocity"]
 
 
 class WidowXDriver(DynamixelRobot):
+    params_type = WidowXParams
+
     def __init__(self, params: WidowXParams | None = None, backend: str = "real", source: str | None = None):
         params = params or WidowXParams()
         self.ids = {n: params.ids[n] for n in JOINT_NAMES}
@@ -52,10 +53,6 @@ class WidowXDriver(DynamixelRobot):
         self._lo = np.array([lim[n][0] for n in JOINT_NAMES])
         self._hi = np.array([lim[n][1] for n in JOINT_NAMES])
         self._vel_limit_counts: dict[int, int] = {}
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> WidowXDriver:
-        return cls(parse_params(cfg, WidowXParams), backend=cfg.backend, source=cfg.source)
 
     def _emulator_config(self) -> dict:
         return {"arm_ids": self.ids}
@@ -128,6 +125,8 @@ class WidowXDriver(DynamixelRobot):
 
 
 class MechanismDriver(PositionRobot):
+    params_type = MechanismParams
+
     def __init__(self, params: MechanismParams | None = None, backend: str = "real", source: str | None = None):
         params = params or MechanismParams()
         self.ids = {n: params.ids[n] for n in MECH_JOINTS}
@@ -135,10 +134,6 @@ class MechanismDriver(PositionRobot):
         super().__init__(params, backend, source)
         #: servo shaft angle per unit of each action channel (rad per rad, rad per m)
         self._scale = np.array([1.0, 1.0 / params.rail_pinion_radius_m])
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> MechanismDriver:
-        return cls(parse_params(cfg, MechanismParams), backend=cfg.backend, source=cfg.source)
 
     def _emulator_config(self) -> dict:
         return {"mech_ids": self.ids}

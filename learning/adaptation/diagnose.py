@@ -63,13 +63,13 @@ def closed_loop(ckpt_dir: str, names: list[str], seed: int, cache: Path) -> None
     from hilstack.learning.adaptation import load_adapter
     from hilstack.learning.adaptation.baselines import MbAdapter
     from hilstack.learning.adaptation.experiment import Trained, run_paths
-    from hilstack.learning.adaptation.training import transitions
+    from hilstack.learning.datasets import Transitions
 
     cfg = AdaptationConfig.from_preset("full")
     train, _, _ = data(AdaptationConfig.from_preset("quick"), seed, cache)
     plain = load_adapter(Path(ckpt_dir) / f"seed{seed}_mb_de.pt").model
     g = load_adapter(Path(ckpt_dir) / f"seed{seed}_grbal.pt")
-    s, _, n = transitions(train)
+    s, _, n = Transitions.from_episodes(train).arrays()
 
     class T(Trained):
         def adapter(self, method, cfg):

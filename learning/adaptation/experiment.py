@@ -43,8 +43,8 @@ from hilstack.learning.adaptation.grbal import GrbalAdapter, segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.mole import MoleAdapter
 from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from hilstack.learning.adaptation.training import fit_plain, transitions
-from hilstack.learning.datasets import Episode, split_episodes
+from hilstack.learning.adaptation.training import fit_plain
+from hilstack.learning.datasets import Episode, Transitions, split_episodes
 from hilstack.learning.experiments import mean_std
 from hilstack.learning.mbrl import MbrlConfig, PathEnd, _jsonable, make_planner, path_start_pose
 from hilstack.tasks.perturbations import (
@@ -404,7 +404,7 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
     last = h_rebal[-1] if h_rebal else {}
     log(f"ReBAL training: {last.get('best_step', last.get('step'))} steps kept, held-out loss "
         f"{last.get('val_loss', float('nan')):.4f} ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s)")
-    s, _, n = transitions(episodes)
+    s, _, n = Transitions.from_episodes(episodes).arrays()
     tr = Trained(plain, meta, psi, rm, enc, np.maximum((n - s).std(0), 1e-6),
                  {"plain": h_plain, "grbal": h_meta, "rebal": h_rebal}, adapt_params=adapt_params, clip=clip)
     for m in ("mb_de", "grbal", "rebal", "mole"):

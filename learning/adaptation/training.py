@@ -1,27 +1,19 @@
 """Supervised training of the plain model (θ* of MB and MB+DE) and data helpers.
 
-Transitions are numpy arrays ``states [N, S]``, ``actions [N, A]``, ``next_states [N, S]``
-(spec units; actions normalized). Episodes are :class:`hilstack.learning.datasets.Episode`.
+Transitions are :class:`hilstack.learning.datasets.Transitions` (``states [N, S]``,
+``actions [N, A]``, ``next_states [N, S]``; spec units, actions normalized). Episodes are
+:class:`hilstack.learning.datasets.Episode`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
 import torch
 
 from hilstack.learning.adaptation.model import AdaptiveMLP
-from hilstack.learning.datasets import Episode
+from hilstack.learning.datasets import Episode, Transitions
 from hilstack.learning.early_stopping import EarlyStopping
-
-
-def transitions(episodes: Sequence[Episode]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """All ``(s, a, s')`` of the episodes, stacked (float32)."""
-    s = np.concatenate([e.states[:-1] for e in episodes]).astype(np.float32)
-    a = np.concatenate([e.actions for e in episodes]).astype(np.float32)
-    n = np.concatenate([e.states[1:] for e in episodes]).astype(np.float32)
-    return s, a, n
 
 
 def fit_plain(model: AdaptiveMLP, episodes: Sequence[Episode], epochs: int = 30, batch_size: int = 256,
@@ -33,13 +25,13 @@ def fit_plain(model: AdaptiveMLP, episodes: Sequence[Episode], epochs: int = 30,
     ``val`` is measured, training stops after ``patience`` epochs without a new best, and
     the model keeps the best epoch's weights (early stopping). ``history`` (a dict) receives
     ``val`` (loss per epoch), ``best_epoch`` and ``best_val``."""
-    s, a, n = (torch.as_tensor(x) for x in transitions(episodes))
+    s, a, n = (torch.as_tensor(x) for x in Transitions.from_episodes(episodes).arrays())
     if normalize:
         model.set_normalization(s.numpy(), a.numpy(), n.numpy())
     opt = torch.optim.Adam(model.net.parameters(), lr=lr)
     gen = torch.Generator().manual_seed(seed)
     params = dict(model.net.named_parameters())
-    vt = None if not val else tuple(torch.as_tensor(x) for x in transitions(val))
+    vt = None if not val else tuple(torch.as_tensor(x) for x in Transitions.from_episodes(val).arrays())
     es, vhist = EarlyStopping(params, patience=patience), []
     hist = []
     for _ in range(epochs):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-from hilstack.configs.schema import RobotConfig, parse_params
 from hilstack.drivers.pan_unit.config import PanUnitParams
 from hilstack.drivers.pan_unit.driver import PanUnitDriver
 from hilstack.sim_backends.dynamixel.backend import DynamixelSim
@@ -15,10 +14,6 @@ class PanUnitSim(DynamixelSim, PanUnitDriver):
     def __init__(self, params: PanUnitParams | None = None, source: str | None = None):
         PanUnitDriver.__init__(self, params, backend="sim", source=source)
         self.steps = 0
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> PanUnitSim:
-        return cls(parse_params(cfg, PanUnitParams), source=cfg.source)
 
     def _world(self) -> PanWorld:
         return shared_world(self.params.bus_name, self.ids["pan"], math.radians(self.params.pan_half_range_deg))

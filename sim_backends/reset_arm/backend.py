@@ -21,7 +21,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from hilstack.configs.schema import ConfigError, RobotConfig, parse_params
+from hilstack.configs.schema import ConfigError
 from hilstack.drivers.base import Health, LinkError, Observation
 from hilstack.drivers.reset_arm.config import ResetArmParams, reset_arm_spec
 from hilstack.sim_backends.base import LockstepSim
@@ -53,6 +53,7 @@ def arm_hold(scene, ix: ArmIndex) -> np.ndarray:
 
 
 class ResetArmSim(LockstepSim):
+    params_type = ResetArmParams
     #: it works in another sim's world: ``hil up`` runs it in one process with the rig's sims
     world_follower = True
     #: in lockstep its driver node waits this long [s, wall] for a command before it holds
@@ -72,10 +73,6 @@ class ResetArmSim(LockstepSim):
         self.follow_timeouts = 0
         #: while ``tick()`` waits: the scene time [s] it waits for (None otherwise)
         self.waiting_for_s: float | None = None
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> ResetArmSim:
-        return cls(parse_params(cfg, ResetArmParams), source=cfg.source)
 
     @property
     def sim_time_s(self) -> float:

@@ -7,7 +7,6 @@ from typing import Any
 
 import numpy as np
 
-from hilstack.configs.schema import RobotConfig, parse_params
 from hilstack.drivers.base import Health, Observation
 from hilstack.drivers.sawyer.config import JOINTS, SawyerParams, sawyer_spec
 from hilstack.drivers.sawyer.ros import POSITION_MODE, VELOCITY_MODE
@@ -19,6 +18,7 @@ class SawyerSim(LockstepSim):
     """``params.sim.cameras: true`` adds ``extras["image"]``: a fixed camera (metaworld's
     ``corner``) and the wrist camera (``gripperPOV``), ``params.sim.camera_px`` square each,
     side by side (64×128 RGB by default), rendered at every read (shadows off)."""
+    params_type = SawyerParams
 
     CAMERAS = ("corner", "gripperPOV")
 
@@ -32,10 +32,6 @@ class SawyerSim(LockstepSim):
         self.arm: SawyerArm | None = None
         self._seq = 0
         self._renderer = None
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> SawyerSim:
-        return cls(parse_params(cfg, SawyerParams), source=cfg.source)
 
     @property
     def sim_time_s(self) -> float:

@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from hilstack.configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
+from hilstack.configs.schema import ConfigError, Params, parse_model
 from hilstack.drivers.base import Health, Observation
 from hilstack.drivers.shadow_hand.config import (
     ACT_INDEX,
@@ -104,6 +104,7 @@ def hold_pose_q() -> np.ndarray:
 
 class ShadowHandSim(LockstepSim):
     """The Shadow Hand with two Baoding balls in MuJoCo behind the driver contract."""
+    params_type = ShadowHandParams
 
     def __init__(self, params: ShadowHandParams | None = None, source: str | None = None):
         super().__init__()
@@ -136,10 +137,6 @@ class ShadowHandSim(LockstepSim):
 
     #: measured − commanded actuated joint angles (used by `hil drive`)
     tracking_error = staticmethod(joint_tracking_error)
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> ShadowHandSim:
-        return cls(parse_params(cfg, ShadowHandParams), source=cfg.source)
 
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:

@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from hilstack.configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
+from hilstack.configs.schema import ConfigError, Params, parse_model
 from hilstack.drivers.base import Health, Observation
 from hilstack.drivers.camera.config import CameraParams, camera_spec
 from hilstack.drivers.camera.pipeline import CameraPipeline, FramePair
@@ -234,6 +234,7 @@ class StereoCameraSim(LockstepSim):
     The calibration is the exact one of the rendered pair unless ``params.calibration``
     names a file (e.g. one ``hil calibrate camera`` produced from rendered boards).
     ``extras["balls_true_m"]`` holds the truth (hand frame) for evaluation."""
+    params_type = CameraParams
 
     def __init__(self, params: CameraParams | None = None, source: str | None = None):
         super().__init__()
@@ -250,10 +251,6 @@ class StereoCameraSim(LockstepSim):
         self._seq = 0
         self._rendered_t: float | None = None
         self._truth = np.zeros((2, 3))
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> StereoCameraSim:
-        return cls(parse_params(cfg, CameraParams), source=cfg.source)
 
     @property
     def sim_time_s(self) -> float:

@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from hilstack.configs.schema import ConfigError, Params, RobotConfig, parse_model, parse_params
+from hilstack.configs.schema import ConfigError, Params, parse_model
 from hilstack.drivers.base import Flag, Freshness, Health, Inputs, Observation
 from hilstack.drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
 from hilstack.sim_backends.base import LockstepSim
@@ -139,14 +139,20 @@ def parse_sim_params(sim: dict, source: str | None) -> SimParams:
 
 class VelociRoachSim(LockstepSim):
     """The VelociRoACH in MuJoCo behind the driver contract."""
+    params_type = VelociRoachParams
 
     #: run the firmware's leg-velocity PID inlined in the stepping loop (False: every tick
     #: through Firmware.tick; the same floats, about a third slower: tools/bench_sim.py)
     inline_firmware = True
+    #: run the inlined loop compiled by numba when it is installed (the ``speed`` extra;
+    #: compiled.py): the same floats; False: in Python (the emulator, which runs at 1x real
+    #: time and must not stall on a first compile)
+    compiled_firmware = True
 
     def __init__(self, params: VelociRoachParams | None = None, source: str | None = None):
         super().__init__()
         self.params = p = params or VelociRoachParams()
+        self.source = source
         self.sim = parse_sim_params(p.sim, source)
         self.spec = velociroach_spec(p)
         s = self.sim
@@ -184,10 +190,6 @@ class VelociRoachSim(LockstepSim):
             Freshness("pose", p.pose_deadline_s, Flag.STALE_POSE),
             Freshness("telemetry", p.telemetry_deadline_s, Flag.STALE_TELEMETRY),
         )
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> VelociRoachSim:
-        return cls(parse_params(cfg, VelociRoachParams), source=cfg.source)
 
     # ------------------------------------------------------------------ model
     def terrain(self) -> dict[str, Any]:
@@ -245,6 +247,7 @@ class VelociRoachSim(LockstepSim):
             self._hfield_zmax = 0.0
         self.model = m
         self.data = mujoco.MjData(m)
+        self._views = (self.data.qvel, self.data.ctrl)  # views of the data's memory, for the compiled loop
         self._q_l = [m.joint(f"hip_l{o}").qposadr[0] for o in "fma"]
         self._q_r = [m.joint(f"hip_r{o}").qposadr[0] for o in "fma"]
         self._v_l = m.joint("hip_lm").dofadr[0]
@@ -424,7 +427,33 @@ class VelociRoachSim(LockstepSim):
             vin = vbat
             ci_l = ci_r = 0.0
             k_fast = 0
-        for _ in range(n):
+        done = 0
+        kern = self._kernel() if fast and payload <= 0.0 else None
+        if kern is not None:
+            # the same loop compiled (compiled.py) while no Python work is due; a mocap sample
+            # is taken between its runs, the rest of the period (watchdog) runs below
+            run, step_fn = kern
+            st = np.array([int_l, int_r, pe_l, pe_r, dl, dr, vin, ci_l, ci_r, soc, vbat, i_l, i_r, t])
+            cst = np.array([sp_l, sp_r, kp, ki, ff_v, kd, lim, max_duty, last_cmd, wd, r_m, ke, i_max, r_b, cap_as,
+                            idle, v_empty, v_span, TICK_S, inv2pi])
+            m_ptr, d_ptr = m._address, d._address
+            # the same array objects every call: numba types a fresh view of MjData slowly (~0.1 ms)
+            qv, ct = self._views
+            while done < n:
+                k = run(step_fn, m_ptr, d_ptr, qv, ct, vl_i, vr_i, n - done, substeps, mocap_next, st, cst)
+                if k == 0:
+                    break
+                done += k
+                k_fast += k
+                t = st.item(13)
+                if t >= mocap_next:
+                    self._t = t
+                    self._wrap()
+                    self._mocap_sample()
+                    self._mocap_next_t += self._mocap_period
+                    mocap_next = self._mocap_next_t - 1e-9
+            int_l, int_r, pe_l, pe_r, dl, dr, vin, ci_l, ci_r, soc, vbat, i_l, i_r, t = st.tolist()
+        for _ in range(n - done):
             wl = qvel.item(vl_i)
             wr = qvel.item(vr_i)
             if fast and t - last_cmd <= wd:
@@ -485,6 +514,14 @@ class VelociRoachSim(LockstepSim):
             self._badqacc_seen = bad
             self.divergences += 1
             self._diverged_pending = True
+
+    def _kernel(self):
+        """The compiled loop (``(run, mj_step address)``), or None: not wanted, or no numba."""
+        if not self.compiled_firmware:
+            return None
+        from hilstack.sim_backends.velociroach.compiled import kernel
+
+        return kernel()
 
     def _fw_writeback(self, ticks: int, int_l: float, int_r: float, pe_l: float, pe_r: float, dl: float, dr: float,
                       vbat_v: float, current_l_a: float, current_r_a: float) -> None:

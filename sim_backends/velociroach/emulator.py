@@ -144,7 +144,10 @@ class LabFixture:
 
 def load_physics(target: str, params: VelociRoachParams):
     mod, _, cls = target.partition(":")
-    return getattr(importlib.import_module(mod), cls)(params)
+    physics = getattr(importlib.import_module(mod), cls)(params)
+    if hasattr(physics, "compiled_firmware"):
+        physics.compiled_firmware = False  # 1x real time: Python keeps up, and a first compile would stall it
+    return physics
 
 
 class Emulator:

@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from hilstack.configs.schema import Params, PeriodS, RobotConfig, finite, parse_params
+from hilstack.configs.schema import Params, PeriodS, finite
 from hilstack.drivers.base import Health, Observation, RobotSpec, Space
 from hilstack.sim_backends.base import LockstepSim
 
@@ -137,9 +137,11 @@ def _quat_to_rpy(q: np.ndarray) -> tuple[float, float, float]:
 
 class WheeledSim(LockstepSim):
     """The wheeled robot (module docstring) behind the driver contract, in lockstep."""
+    params_type = WheeledParams
 
-    def __init__(self, params: WheeledParams | None = None):
+    def __init__(self, params: WheeledParams | None = None, source: str | None = None):
         super().__init__()
+        self.source = source
         self.params = p = params or WheeledParams()
         if not (p.wheelbase_m / 2 + p.wheel_radius_m < p.terrain_size_m / 4):
             raise ValueError("WheeledParams: the robot must be small against terrain_size_m")
@@ -164,10 +166,6 @@ class WheeledSim(LockstepSim):
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._seq = 0
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> WheeledSim:
-        return cls(parse_params(cfg, WheeledParams))
 
     def _on_configure(self) -> None:
         p = self.params

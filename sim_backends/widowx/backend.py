@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from hilstack.configs.schema import RobotConfig, parse_params
 from hilstack.drivers.widowx.config import MechanismParams, WidowXParams
 from hilstack.drivers.widowx.driver import MechanismDriver, WidowXDriver
 from hilstack.sim_backends.dynamixel.backend import DynamixelSim
@@ -40,10 +39,6 @@ class WidowXSim(DynamixelSim, WidowXDriver):
             self._cameras.close()
             self._cameras = None
         super()._close_bus()
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> WidowXSim:
-        return cls(parse_params(cfg, WidowXParams), source=cfg.source)
 
     @classmethod
     def calibration_bench(cls, params: WidowXParams | None = None) -> dict[str, Any]:
@@ -82,10 +77,6 @@ class MechanismSim(DynamixelSim, MechanismDriver):
     def __init__(self, params: MechanismParams | None = None, source: str | None = None):
         MechanismDriver.__init__(self, params, backend="sim", source=source)
         self.steps = 0
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> MechanismSim:
-        return cls(parse_params(cfg, MechanismParams), source=cfg.source)
 
     def _world(self) -> ArmWorld:
         return shared_world(self.params.bus_name, mech_ids=self.ids)

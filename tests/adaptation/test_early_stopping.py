@@ -9,8 +9,8 @@ from hilstack.learning.adaptation import grbal, rebal
 from hilstack.learning.adaptation.grbal import segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.rebal import ContextEncoder
-from hilstack.learning.adaptation.training import fit_plain, transitions
-from hilstack.learning.datasets import split_episodes
+from hilstack.learning.adaptation.training import fit_plain
+from hilstack.learning.datasets import Transitions, split_episodes
 from tests.adaptation import toy
 
 
@@ -37,7 +37,7 @@ def test_fit_plain_stops_early_and_keeps_the_best_held_out_epoch():
     assert len(hist) == h["epochs_run"] == len(h["val"])
     assert h["epochs_run"] < 60 and h["epochs_run"] - h["best_epoch"] == 3
     with torch.no_grad():
-        now = float(m.loss(m.params(), *(torch.as_tensor(x) for x in transitions(val))))
+        now = float(m.loss(m.params(), *(torch.as_tensor(x) for x in Transitions.from_episodes(val).arrays())))
     assert now == pytest.approx(min(h["val"]), rel=1e-5)
     assert now < h["val"][-1]  # the weights are the best epoch's, not the last
 

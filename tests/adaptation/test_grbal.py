@@ -9,7 +9,6 @@ import torch
 from hilstack.learning.adaptation import load_adapter
 from hilstack.learning.adaptation.grbal import GrbalAdapter, adapt, evaluate, gradient_norms, segments
 from hilstack.learning.adaptation.model import AdaptiveMLP
-from hilstack.learning.adaptation.training import transitions
 from tests.adaptation import toy
 from tests.adaptation.conftest import K, M
 
@@ -40,7 +39,7 @@ def test_inner_step_is_theta_star_minus_psi_times_gradient(meta):
     ep = toy.episodes(1, 12, seed=5, gain=0.4)[0]
     for t in range(12):
         ad.observe(ep.states[t], ep.actions[t], ep.states[t + 1])
-    s, a, n = (torch.as_tensor(x)[-M:] for x in transitions([ep]))
+    s, a, n = (torch.as_tensor(x)[-M:] for x in ep.transitions().arrays())
     theta = {k: v.clone().requires_grad_(True) for k, v in model.params().items()}
     g = dict(zip(theta, torch.autograd.grad(model.loss(theta, s, a, n), list(theta.values())), strict=True))
     u = ad.update()
@@ -141,7 +140,7 @@ def test_clipped_step_caps_the_gradient_norm_and_is_kept_in_the_checkpoint(meta,
     last = ["4.weight", "4.bias"]
     one = {k: torch.ones_like(v) for k, v in psi.items()}  # ψ = 1: the step is the (capped) gradient itself
     ep = toy.episodes(1, M, seed=7, gain=0.3, turn_bias=1.5)[0]  # far outside training: a large gradient
-    s, a, n = (torch.as_tensor(x) for x in transitions([ep]))
+    s, a, n = (torch.as_tensor(x) for x in ep.transitions().arrays())
     theta = model.params()
     g_full = {k: theta[k] - v for k, v in adapt(model, theta, one, s, a, n, last).items() if k in last}
     norm = float(torch.sqrt(sum((v * v).sum() for v in g_full.values())))

@@ -10,7 +10,7 @@ from hilstack.learning.adaptation import load_adapter
 from hilstack.learning.adaptation.base import ModelUpdate
 from hilstack.learning.adaptation.baselines import MbAdapter, MbDeAdapter
 from hilstack.learning.adaptation.model import AdaptiveMLP
-from hilstack.learning.adaptation.training import fit_plain, transitions
+from hilstack.learning.adaptation.training import fit_plain
 from tests.adaptation import toy
 
 
@@ -50,7 +50,7 @@ def test_mb_de_is_one_sgd_step_per_update_continuing(trained):
     ep = toy.episodes(1, 20, seed=2, gain=0.4)[0]  # a perturbed robot
     for t in range(20):
         a.observe(ep.states[t], ep.actions[t], ep.states[t + 1])
-    s, act, n = (torch.as_tensor(x) for x in transitions([ep]))
+    s, act, n = (torch.as_tensor(x) for x in ep.transitions().arrays())
     s, act, n = s[-16:], act[-16:], n[-16:]  # the window keeps the last M
     theta = {k: v.clone().requires_grad_(True) for k, v in trained.params().items()}
     g = torch.autograd.grad(trained.loss(theta, s, act, n), list(theta.values()))

@@ -4,7 +4,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from hilstack.learning.datasets import Episode, TransitionDataset, episodes_from_table, load_episodes
+from hilstack.learning.datasets import (
+    Episode,
+    TransitionDataset,
+    Transitions,
+    episodes_from_table,
+    load_episodes,
+)
 from tests.helpers import spec_dict
 
 
@@ -20,6 +26,27 @@ def test_episode_validates_shapes():
     with pytest.raises(ValueError):
         Episode(np.zeros((5, 2)), np.zeros((4, 1)), times=np.zeros(4))
     assert len(make_episode(4, 0.0)) == 4
+
+
+def test_the_transition_record_pairs_each_action_with_its_state_and_the_next():
+    a = make_episode(3, 0.0, "a")
+    a.meta.update(state_names=["p", "v"], action_names=["u"])
+    tr = Transitions.from_episodes([a, make_episode(2, 100.0, "b")])
+    assert len(tr) == 5 and tr.state_names == ("p", "v") and tr.action_names == ("u",)
+    np.testing.assert_array_equal(tr.states[2], a.states[2])
+    np.testing.assert_array_equal(tr.next_states[2], a.states[3])  # a's last transition, not b's first state
+    np.testing.assert_array_equal(tr.states[3], [100.0, 101.0])
+    np.testing.assert_array_equal(tr.actions[:, 0], [0, 0, 0, 100, 100])
+    np.testing.assert_allclose(tr.deltas, np.full((5, 2), 2.0))
+    sub = tr.subset(np.array([1, 3]))
+    np.testing.assert_array_equal(sub.states, tr.states[[1, 3]])
+    np.testing.assert_array_equal(sub.next_states, tr.next_states[[1, 3]])
+    assert sub.state_names == ("p", "v") and len(sub) == 2
+    assert a.transitions().arrays()[0].shape == (3, 2)
+    with pytest.raises(ValueError, match=r"next_states \(4, 2\) must be"):
+        Transitions(np.zeros((5, 2)), np.zeros((5, 1)), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="action_names has 2 entries, the data 1 channels"):
+        Transitions(np.zeros((5, 2)), np.zeros((5, 1)), np.zeros((5, 2)), action_names=("u", "w"))
 
 
 def test_transitions_and_deltas():

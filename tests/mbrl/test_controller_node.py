@@ -11,6 +11,7 @@ import pytest
 
 from hilstack.bus.recording import Recorder
 from hilstack.control.controller_node import ControllerNode
+from hilstack.drivers.base import Pacing
 from hilstack.learning.recordings import episodes_from_mcap
 from tests.helpers import wait_for
 
@@ -23,11 +24,12 @@ def test_lockstep_episodes_resets_and_recorded_transitions(bus, spawn, tmp_path)
     with ControllerNode("pointmass_lockstep", "pm", bus, handle_signals=False, state_timeout_s=20) as ctl:
         spec = ctl.wait_ready(30)
         assert spec.action.names == ("fx", "fy")
+        assert ctl.pacing is Pacing.LOCKSTEP  # the spec on the bus says how the rig runs it
         logs = []
         for ep, x0 in enumerate((0.5, -0.5)):
             first = ctl.reset(x=x0, y=0.0)
             assert first.episode == ep + 1 and first.state[0] == pytest.approx(x0)
-            logs.append(ctl.run_lockstep(lambda s: np.array([0.5, -0.25]), 20, first))
+            logs.append(ctl.run_episode(lambda s: np.array([0.5, -0.25]), 20, first))
         time.sleep(0.5)
     rec.stop_event.set()
     th.join(5)
@@ -67,9 +69,10 @@ def test_realtime_mode_counts_late_plans_and_keeps_rate(bus, spawn):
 
     with ControllerNode("pointmass_sim", "pm", bus, handle_signals=False, state_timeout_s=20) as ctl:
         ctl.wait_ready(30)
+        assert ctl.pacing is Pacing.STEPPED  # a sim in pace: realtime
         wait_for(lambda: ctl._state.poll() is not None, 20, "states")
         t0 = time.monotonic()
-        log = ctl.run_realtime(SlowPlanner(), 40)
+        log = ctl.run_episode(SlowPlanner(), 40)  # the realtime loop: the spec's pacing chooses it
         wall = time.monotonic() - t0
     assert log.late_plans >= 5
     assert len(log.actions) == 40

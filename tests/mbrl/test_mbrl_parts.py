@@ -14,6 +14,7 @@ from hilstack.learning.mbrl import (
     baseline_candidates,
     default_baseline_params,
 )
+from tests.helpers import rig_pacing
 
 
 def eps(names):
@@ -197,17 +198,18 @@ def test_the_configured_planner_is_timed_on_the_model_and_fitted_to_the_period()
     assert n == 200 and len(trials) == 1
 
 
-def test_realtime_planner_delay_and_elites():
-    from types import SimpleNamespace
+def test_realtime_planner_delay_and_elites(tmp_path):
+    from hilstack.configs.schema import BusConfig
+    from hilstack.drivers.base import Pacing
+    from hilstack.learning.mbrl import MbrlConfig, MbrlRun, make_planner
 
-    from hilstack.configs.schema import load_rig
-    from hilstack.learning.mbrl import MbrlConfig, command_delay_steps, make_planner
-
-    assert command_delay_steps(load_rig("roach_emulated"), "roach") == 1
-    assert command_delay_steps(load_rig("roach_sim"), "roach") == 0
-    assert command_delay_steps(load_rig("pointmass_sim"), "pm") == 0  # a realtime sim advances after applying
-    assert command_delay_steps(SimpleNamespace(pace="realtime", robots=load_rig("roach_emulated").robots,
-                                               source=load_rig("roach_emulated").source), "roach") == 1
+    for rig, robot, pacing, delay in (("roach_emulated", "roach", Pacing.WALL_CLOCK, 1),
+                                      ("roach_sim", "roach", Pacing.LOCKSTEP, 0),
+                                      ("pointmass_sim", "pm", Pacing.STEPPED, 0)):  # a realtime sim advances after applying
+        run = MbrlRun(MbrlConfig(rig=rig), tmp_path / rig, BusConfig())
+        assert run.command_delay == 0 and run.pacing is None  # before the spec arrived
+        run.pacing = rig_pacing(rig, robot)
+        assert run.pacing is pacing and run.command_delay == delay
     cfg = MbrlConfig()
     assert make_planner(cfg, 1.0, 2).elites == 50  # the thesis' CEM as before
     small = make_planner(cfg, 1.0, 2, samples=120)
@@ -294,6 +296,7 @@ def test_realtime_samples_fits_the_given_planner_once_on_a_wall_clock_rig_only(t
     def run_on(rig, period_s):
         run = MbrlRun(MbrlConfig(rig=rig, samples=200, realtime_min_samples=20), tmp_path / rig, BusConfig())
         run.ctl = SimpleNamespace(next_state=lambda: SimpleNamespace(state=np.zeros(3)))
+        run.pacing = rig_pacing(rig, "roach")  # what session() takes from the spec on the bus
         run.period_s = period_s
         return run
 
@@ -342,8 +345,8 @@ def test_the_supervisor_ends_an_episode_by_its_detectors_in_that_episode_only(tm
     for before, during, ended in (([stale, *the_reset], [], False), ([*the_reset, fired], [], True),
                                   ([stale, *the_reset], [fired], True)):
         queue[:] = before
-        run.ctl.run_lockstep = lambda policy, steps, first, stop_if, d=during: [stop_if(first), queue.extend(d),
-                                                                                 stop_if(first)]
+        run.ctl.run_episode = lambda policy, steps, first, stop_if, d=during: [stop_if(first), queue.extend(d),
+                                                                                stop_if(first)]
         first_look, _, second_look = run.episode(lambda s: s, 10, {})
         assert second_look == ended and first_look == (ended and not during)
         assert run.last_end_reason == ("supervisor: left_arena" if ended else "")

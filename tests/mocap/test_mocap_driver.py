@@ -113,7 +113,7 @@ def test_impossible_poses_from_natnet_are_rejected(monkeypatch):
     monkeypatch.setattr(NatNetPoseSource, "connect", lambda self, timeout_s=5.0: None)
     monkeypatch.setattr(NatNetPoseSource, "close", lambda self: None)
     with make_driver("mocap", source="natnet", up_axis="z", stale_after_s=0.5) as d:
-        src = d.source
+        src = d.pose_source
 
         def frame(n, pos, rot_xyzw):
             rb = SimpleNamespace(id_num=1, pos=pos, rot=rot_xyzw, tracking_valid=True)

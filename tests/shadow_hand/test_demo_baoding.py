@@ -247,14 +247,14 @@ def test_a_sim_reset_holds_the_pose_it_resets_to():
 
 def test_the_pddm_policy_plans_from_the_state_after_the_sent_command_on_a_wall_clock_hand(bus, tmp_path):
     """The emulated (and real) hand applies a command one period after the state it was
-    planned from (hilstack.learning.mbrl.command_delay_steps); the lockstep sim does not."""
-    from hilstack.learning.mbrl import command_delay_steps
+    planned from (the spec's pacing, MbrlRun.command_delay); the lockstep sim does not."""
+    from tests.helpers import rig_pacing
 
     for rig, delay in (("hand_emulated", 1), ("hand_sim", 0)):
         run = BaodingRun(BaodingConfig.from_preset("tiny", rig=rig), tmp_path / rig, bus)
         run.state_names = NAMES
         run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
-        run.command_delay = command_delay_steps(run.rig, "hand")  # what session() sets
+        run.pacing = rig_pacing(rig, "hand")  # what session() takes from the spec on the bus
         assert run.command_delay == delay
         assert run.pddm_policy(model=None, seed=0).delay_steps == delay
 
@@ -266,12 +266,14 @@ def test_a_wall_clock_hand_fits_pddm_k_to_the_period_and_the_sim_keeps_it(bus, t
     from types import SimpleNamespace
 
     from hilstack.learning.mbrl import make_model
+    from tests.helpers import rig_pacing
 
     for rig, want in (("hand_emulated", 50), ("hand_sim", None)):
         run = BaodingRun(BaodingConfig.from_preset("tiny", rig=rig, samples=200), tmp_path / rig, bus)
         run.state_names = NAMES
         run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
         run.ctl = SimpleNamespace(next_state=lambda: SimpleNamespace(state=np.zeros(len(NAMES))))
+        run.pacing = rig_pacing(rig, "hand")
         run.period_s = 1e-9
         model = make_model(run.cfg, run.features.names, run.action_names)  # the model's state: the features
         k = run.fit_pddm_to_period(model)

@@ -341,11 +341,13 @@ def test_leg_speed_scale_slows_one_side_and_default_is_unchanged():
         make(leg_speed_scale=(0.0, 1.0))
 
 
-def _fingerprint(inline: bool, action_mode: str = "leg_velocity", **sim) -> list:
+def _fingerprint(inline: bool, action_mode: str = "leg_velocity", compiled: bool = False, **sim) -> list:
     """Every reading of a run that drives, goes quiet past the watchdog (it trips inside a
-    tick), drives again and tows a payload; with the PID inlined or through Firmware.tick."""
+    tick), drives again and tows a payload; with the PID inlined (in Python, or compiled by
+    numba) or through Firmware.tick."""
     s = VelociRoachSim(VelociRoachParams(action_mode=action_mode, sim={"seed": 2, **sim}))
     s.inline_firmware = inline
+    s.compiled_firmware = compiled
     s.configure()
     s.activate()
     rng = np.random.default_rng(0)
@@ -373,3 +375,40 @@ def test_inlined_firmware_pid_gives_the_same_floats_as_firmware_tick(action_mode
     if sim:
         assert any(x[6] & ~FAULT_WATCHDOG for x in a)  # an empty battery: low-battery / motor faults set
     assert a == b
+    if action_mode == "leg_velocity" and compiled_loop() is not None:  # the speed extra: the same floats
+        assert _fingerprint(True, action_mode, compiled=True, **sim) == a
+
+
+def compiled_loop():
+    from hilstack.sim_backends.velociroach.compiled import kernel
+
+    return kernel()
+
+
+def test_the_compiled_loop_runs_when_numba_is_installed():
+    """With numba (the speed extra) the sim's 1 kHz loop runs compiled; without it, in Python."""
+    pytest.importorskip("numba", reason="numba (hilstack[speed]) is not installed: the loop runs in Python")
+    s = VelociRoachSim(VelociRoachParams(sim={"seed": 2}))
+    s.configure()
+    s.activate()
+    assert s._kernel() is not None
+    s.write(np.array([3.0, 3.0]))
+    for _ in range(5):
+        s.tick()
+    assert s.firmware.t_fw_ms == 500 and s.read().state[0] > 0.0  # ran the ticks, walked forward
+    s.cleanup()
+
+
+def test_bench_sim_times_each_part_of_a_period_against_the_raw_peer(monkeypatch):
+    """`hil bench sim`: the backend, the same loop in Python and raw mj_step take turns; the
+    CPU-time ratios are raw / contract over the same periods, and each part is reported."""
+    from hilstack.tools import bench_sim
+
+    monkeypatch.setattr(bench_sim, "run_bench_batch", lambda **kw: {})
+    r = bench_sim.run_bench_sim(0.4, block_s=0.2)
+    assert r["blocks"] == 2 and r["robot_s"] == pytest.approx(0.4)
+    per = r["cpu"]["per_period"]
+    assert set(per) == {"read", "write", "tick", "raw", "read_python_loop", "write_python_loop", "tick_python_loop"}
+    assert all(0 < v["p50_us"] <= v["p99_us"] for v in per.values())
+    assert 0 < r["cpu"]["ratio"] < 2 and 0 < r["cpu"]["ratio_python_loop"] < 2
+    assert r["compiled_loop"] is True or "hilstack[speed]" in r["compiled_loop"]
