@@ -5,7 +5,9 @@ One file per session; one channel per key expression; one schema per message typ
 messages JSON-encoded so any MCAP tool (the ``mcap`` reader, Foxglove, rerun's MCAP
 importer) decodes them. Robot poses are also written on Foxglove's well-known
 ``PoseInFrame``/``FrameTransform`` schemas, and JPEG/PNG camera images as
-``CompressedImage`` (derived channels, not replayed).
+``CompressedImage`` (derived channels, not replayed). A JPEG/PNG image's bytes are stored
+once, in its ``CompressedImage``: its ``hil.Image`` record keeps the metadata with empty
+``data``, and :func:`iter_messages` puts the bytes back (:func:`compressed_image_data`).
 Chunks are closed, flushed and fsync'ed by time (every ``FLUSH_PERIOD_S``), so a crash
 loses at most that much data; :func:`read_messages` reads a truncated file up to the
 damage.
@@ -27,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import foxglove.messages as fg
+import msgspec
 import zenoh
 from mcap.exceptions import McapError
 from mcap.stream_reader import StreamReader
@@ -97,7 +100,9 @@ class FoxglovePoses:
     ``SpecMsg``, and for a ``RobotState`` of a robot whose names include x/y(/yaw) it
     returns a ``foxglove.PoseInFrame`` in ``world`` (on :func:`foxglove_pose_topic`) and a
     ``foxglove.FrameTransform`` world -> <robot> (on :func:`foxglove_tf_topic`), stamped
-    with the state's ``stamp_s`` (else ``log_ns``). Messages are foxglove-sdk's classes
+    with the state's ``stamp_s`` (else ``log_ns``); for a robot with a kinematic chain (an
+    arm), its links' FrameTransforms on each state and its 3-D model (:func:`foxglove_model`
+    on :func:`foxglove_model_topic`) on each spec. Messages are foxglove-sdk's classes
     (protobuf: ``.encode()``, schema from ``type(m).get_schema()``)."""
 
     def __init__(self) -> None:
@@ -112,8 +117,17 @@ class FoxglovePoses:
                 if msg.spec.get("chain"):
                     self._chains[msg.robot] = list(msg.spec["chain"])
             except (KeyError, TypeError, AttributeError):
-                pass  # a spec without state names: no pose for this robot
-            return []
+                return []  # a spec without state names: no pose for this robot
+            chain = self._chains.get(msg.robot)
+            if not chain:
+                return []
+            parts = topic.split("/")
+            rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+            stamp_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+            try:  # each spec: a viewer that joins late gets the model with the next one
+                return [(foxglove_model_topic(rig, msg.robot), foxglove_model(msg.robot, chain, stamp_ns), stamp_ns)]
+            except (KeyError, TypeError, ValueError):
+                return []
         if not isinstance(msg, RobotState) or msg.robot not in self._names:
             return []
         links = self._links(topic, msg, log_ns)
@@ -181,6 +195,75 @@ def chain_transforms(robot: str, chain: list[dict[str, Any]], names: list[str] |
     return out
 
 
+#: the links' drawn radius [m]: the WidowX sim's capsules (sim_backends/widowx/model.py)
+LINK_RADIUS_M = 0.018
+#: the last link has no next link to reach: a stub this long along its joint axis [m]
+TOOL_STUB_M = 0.06
+
+
+def foxglove_model_topic(rig: str, robot: str) -> str:
+    """Channel of a robot's 3-D model (``foxglove.SceneUpdate``, entities locked to its link frames)."""
+    return f"{keys.root(rig)}/foxglove/{robot}/model"
+
+
+def chain_segments(robot: str, chain: list[dict[str, Any]]) -> list[tuple[str, tuple[float, float, float],
+                                                                           tuple[float, float, float]]]:
+    """The robot drawn from its spec's kinematic ``chain`` alone, as capsules (as the sim's MJCF
+    draws the WidowX, there to twice each link's centre of mass, which the spec does not
+    carry): (frame, start, end) in that frame [m]. The base, in the
+    robot's frame, from its origin to the first joint; each link, in its own frame
+    (:func:`chain_transforms`), from its origin to the next link's offset; the last link a
+    :data:`TOOL_STUB_M` stub along its joint axis."""
+    out = []
+    parent = robot
+    for i, link in enumerate(chain):
+        out.append((parent, (0.0, 0.0, 0.0), tuple(float(v) for v in link["xyz"])))
+        parent = f"{robot}/{link['joint']}_link"
+        if i == len(chain) - 1:
+            ax = link["axis"]
+            norm = math.sqrt(sum(a * a for a in ax)) or 1.0
+            out.append((parent, (0.0, 0.0, 0.0), tuple(TOOL_STUB_M * a / norm for a in ax)))
+    return out
+
+
+def quat_z_to(d: tuple[float, float, float]) -> tuple[float, float, float, float]:
+    """The quaternion (x, y, z, w) turning +z onto the direction ``d``."""
+    n = math.sqrt(sum(v * v for v in d)) or 1.0
+    x, y, z = (v / n for v in d)
+    # half-way vector between +z and d (d = -z: a half turn about x)
+    hx, hy, hz = x, y, z + 1.0
+    hn = math.sqrt(hx * hx + hy * hy + hz * hz)
+    if hn < 1e-9:
+        return (1.0, 0.0, 0.0, 0.0)
+    hx, hy, hz = hx / hn, hy / hn, hz / hn
+    # q = (z x h, z . h)
+    return (-hy, hx, 0.0, hz)
+
+
+def foxglove_model(robot: str, chain: list[dict[str, Any]], stamp_ns: int) -> Any:
+    """A ``foxglove.SceneUpdate``: one entity per segment of :func:`chain_segments`, a cylinder
+    with spheres at both ends (Foxglove has no capsule), ``frame_locked`` to its link's frame so
+    the 3D panel moves it with the link's FrameTransforms."""
+    ts = fg.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+    color = fg.Color(r=0.15, g=0.15, b=0.15, a=1.0)
+    d = 2 * LINK_RADIUS_M
+    entities = []
+    for i, (frame, a, b) in enumerate(chain_segments(robot, chain)):
+        seg = tuple(bb - aa for aa, bb in zip(a, b, strict=True))
+        length = math.sqrt(sum(v * v for v in seg))
+        mid = fg.Vector3(x=(a[0] + b[0]) / 2, y=(a[1] + b[1]) / 2, z=(a[2] + b[2]) / 2)
+        q = quat_z_to(seg)
+        ends = [fg.SpherePrimitive(pose=fg.Pose(position=fg.Vector3(x=p[0], y=p[1], z=p[2]),
+                                                orientation=fg.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+                                   size=fg.Vector3(x=d, y=d, z=d), color=color) for p in (a, b)]
+        cyl = fg.CylinderPrimitive(pose=fg.Pose(position=mid, orientation=fg.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])),
+                                   size=fg.Vector3(x=d, y=d, z=length), bottom_scale=1.0, top_scale=1.0, color=color)
+        entities.append(fg.SceneEntity(timestamp=ts, frame_id=frame, id=f"{robot}/segment{i}",
+                                       lifetime=fg.Duration(sec=0, nsec=0), frame_locked=True,
+                                       cylinders=[cyl] if length > 0 else [], spheres=ends))
+    return fg.SceneUpdate(entities=entities)
+
+
 def foxglove_image_topic(rig: str, camera: str) -> str:
     """Channel of a camera's ``foxglove.CompressedImage`` (beside ``hil/<rig>/<camera>/image``)."""
     return f"{keys.root(rig)}/foxglove/{camera}/image"
@@ -203,6 +286,42 @@ def foxglove_image(topic: str, msg: Msg, log_ns: int) -> tuple[str, Any, int] | 
             fg.CompressedImage(timestamp=ts, frame_id=msg.camera, data=msg.data,
                                format=COMPRESSED_IMAGE_FORMATS[msg.encoding]),
             stamp_ns)
+
+
+def _varint(buf: bytes, i: int) -> tuple[int, int]:
+    v = shift = 0
+    while True:
+        b = buf[i]
+        i += 1
+        v |= (b & 0x7F) << shift
+        if b < 0x80:
+            return v, i
+        shift += 7
+
+
+def compressed_image_data(payload: bytes) -> bytes:
+    """The ``data`` field (number 2, bytes) of a protobuf ``foxglove.CompressedImage``.
+
+    The protobuf wire format read directly (varint keys; wire types 0, 1, 2 and 5), so
+    reading a recording needs no protobuf runtime; the foxglove SDK only encodes."""
+    i, n = 0, len(payload)
+    while i < n:
+        key, i = _varint(payload, i)
+        field_no, wire = key >> 3, key & 7
+        if wire == 0:
+            _, i = _varint(payload, i)
+        elif wire == 1:
+            i += 8
+        elif wire == 5:
+            i += 4
+        elif wire == 2:
+            ln, i = _varint(payload, i)
+            if field_no == 2:
+                return bytes(payload[i:i + ln])
+            i += ln
+        else:
+            raise ValueError(f"CompressedImage: unsupported protobuf wire type {wire}")
+    return b""
 
 
 def state_fields_topic(rig: str, robot: str) -> str:
@@ -264,6 +383,63 @@ class StateFields:
         return state_fields_topic(rig, msg.robot), f"hil.StateFields/{msg.robot}", schema, json.dumps(payload).encode()
 
 
+def timing_topic(rig: str, robot: str) -> str:
+    """Channel of a robot's timing counters (:class:`TimingCounters`), beside its named fields."""
+    return f"{keys.root(rig)}/foxglove/{robot}/timing"
+
+
+class TimingCounters:
+    """Each robot's timing as the recorder saw it, one JSON message per state on
+    :func:`timing_topic` (schema ``hil.Timing``; derived, not replayed): ``rate_hz``, states per
+    second over the last :attr:`WINDOW_S` of the states' stamps; ``period_max_ms``, the longest
+    gap between two of them in that window; ``dropped_states``, states missing from the
+    recording (gaps in the driver's ``obs_seq``, counted since the recording started; a
+    sequence that starts again, a restarted driver, is not a gap); and the driver node's own
+    deadline counters from its health (``cycle_late``: periods started late, ``cycle_missed``:
+    periods skipped after a stall; bus/cycle.py), absent on lockstep rigs. Like the named
+    fields, only for robots whose spec the recording holds (every driver node sends one)."""
+
+    WINDOW_S = 1.0
+    SCHEMA: dict[str, Any] = {"type": "object", "title": "hil.Timing", "properties": {
+        "robot": {"type": "string"}, "rate_hz": {"type": "number"}, "period_max_ms": {"type": "number"},
+        "dropped_states": {"type": "integer"}, "cycle_late": {"type": "integer"}, "cycle_missed": {"type": "integer"}}}
+
+    def __init__(self) -> None:
+        self._stamps: dict[str, list[float]] = {}
+        self._seq: dict[str, int] = {}
+        self._dropped: dict[str, int] = {}
+        self._robots: set[str] = set()
+
+    def derive(self, topic: str, msg: Msg, log_ns: int) -> tuple[str, bytes] | None:
+        """(topic, JSON payload) for a ``RobotState`` of a robot with a spec, else None."""
+        if isinstance(msg, SpecMsg):
+            self._robots.add(msg.robot)
+        if not isinstance(msg, RobotState) or msg.robot not in self._robots:
+            return None
+        r = msg.robot
+        t = msg.stamp_s if msg.stamp_s else log_ns * 1e-9
+        st = self._stamps.setdefault(r, [])
+        st.append(t)
+        while st and st[0] < t - self.WINDOW_S:
+            del st[0]
+        last = self._seq.get(r)
+        if last is not None and msg.obs_seq > last + 1:
+            self._dropped[r] = self._dropped.get(r, 0) + msg.obs_seq - last - 1
+        self._seq[r] = msg.obs_seq
+        span = st[-1] - st[0]
+        payload: dict[str, Any] = {
+            "robot": r, "rate_hz": (len(st) - 1) / span if span > 0 else None,
+            "period_max_ms": max((b - a for a, b in zip(st, st[1:], strict=False)), default=0.0) * 1e3 if len(st) > 1
+            else None, "dropped_states": self._dropped.get(r, 0)}
+        for k in ("cycle_late", "cycle_missed"):
+            v = msg.health.get(k)
+            if isinstance(v, int) and not isinstance(v, bool):
+                payload[k] = v
+        parts = topic.split("/")
+        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+        return timing_topic(rig, r), json.dumps(payload).encode()
+
+
 class _McapFoxglovePoses:
     """Writes :class:`FoxglovePoses` messages to an mcap ``Writer`` (protobuf channels)."""
 
@@ -273,6 +449,8 @@ class _McapFoxglovePoses:
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._fields = StateFields()
+        self._timing = TimingCounters()
+        self._timing_schema: int | None = None
 
     def _channel(self, topic: str, cls: Any) -> int:
         cid = self._channels.get(topic)
@@ -292,6 +470,17 @@ class _McapFoxglovePoses:
             out.append(img)
         for t, m, stamp_ns in out:
             self._w.add_message(self._channel(t, type(m)), log_time=log_ns, data=m.encode(), publish_time=stamp_ns)
+        timing = self._timing.derive(topic, msg, log_ns)
+        if timing is not None:
+            t, data = timing
+            if t not in self._channels:
+                if self._timing_schema is None:
+                    self._timing_schema = self._w.register_schema(
+                        "hil.Timing", "jsonschema", json.dumps(TimingCounters.SCHEMA).encode())
+                self._channels[t] = self._w.register_channel(t, "json", self._timing_schema)
+            pub = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
+            self._w.add_message(self._channels[t], log_time=log_ns, data=data, publish_time=pub)
+            out = [*out, timing]  # counted below
         fields = self._fields.derive(topic, msg)
         if fields is not None:
             t, name, schema, data = fields
@@ -433,7 +622,11 @@ class McapLog:
         cid = self._channel(topic, type(msg))
         log_ns = time.time_ns() if log_time_ns is None else log_time_ns
         pub_ns = int(msg.stamp_s * 1e9) if msg.stamp_s else log_ns
-        self._w.add_message(cid, log_time=log_ns, data=encode_json(msg), publish_time=pub_ns, sequence=msg.seq)
+        record = msg
+        if self._fox is not None and isinstance(msg, Image) and msg.encoding in COMPRESSED_IMAGE_FORMATS:
+            # the bytes go once, into the CompressedImage written right after (iter_messages rejoins them)
+            record = msgspec.structs.replace(msg, data=b"")
+        self._w.add_message(cid, log_time=log_ns, data=encode_json(record), publish_time=pub_ns, sequence=msg.seq)
         self.count += 1
         self.pending += 1
         if self._fox is not None:
@@ -505,6 +698,9 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
     check_mcap(path)
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, int]] = {}
+    #: JPEG/PNG images written without their bytes, waiting for their CompressedImage (the next
+    #: message on the camera's Foxglove channel): that channel's topic -> the message
+    held: dict[str, RecordedMessage] = {}
     with open(path, "rb") as f:
         try:
             for rec in StreamReader(f, skip_magic=False).records:
@@ -519,6 +715,14 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
                     if typ is None:
                         other = res.foreign.setdefault(topic, {"schema": schemas.get(sid, ""), "count": 0})
                         other["count"] += 1
+                        waiting = held.pop(topic, None)
+                        if waiting is not None:
+                            try:
+                                data = compressed_image_data(rec.data)
+                            except (ValueError, IndexError):
+                                data = b""
+                            waiting.msg = msgspec.structs.replace(waiting.msg, data=data)
+                            yield waiting
                         continue
                     try:
                         msg = decode_json(rec.data, typ)
@@ -526,10 +730,20 @@ def iter_messages(path: str | Path, result: ReadResult | None = None) -> Iterato
                         res.undecodable += 1
                         res.undecodable_error = res.undecodable_error or f"{topic}: {e}"
                         continue
-                    yield RecordedMessage(topic, rec.log_time, rec.publish_time, msg)
+                    out = RecordedMessage(topic, rec.log_time, rec.publish_time, msg)
+                    if isinstance(msg, Image) and not msg.data and msg.encoding in COMPRESSED_IMAGE_FORMATS:
+                        parts = topic.split("/")
+                        rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
+                        fox = foxglove_image_topic(rig, msg.camera)
+                        if fox in held:  # its bytes never came (cannot happen in a file we wrote)
+                            yield held.pop(fox)
+                        held[fox] = out
+                        continue
+                    yield out
         except _DAMAGE as e:
             res.truncated = True
             res.error = f"{type(e).__name__}: {e}"
+    yield from held.values()  # a file cut between an image and its bytes: the image without them
 
 
 @dataclass

@@ -49,6 +49,10 @@ CANDIDATES = ("joint_frictionloss", "joint_damping", "joint_armature", "input_de
 PAIRS = (("joint_frictionloss", "input_delay"), ("joint_frictionloss", "joint_damping"))
 #: the bench turns this numeric into its servos' goal delay (sim_backends/widowx/world.py DELAY_NUMERIC)
 DELAY_NUMERIC = "hilstack_input_delay_s"
+#: the first blocks start this far into each episode [s]
+START_S = 1.0
+#: a sample period longer than this many median periods is a stall no block spans
+STALL_PERIODS = 2.0
 
 
 class SysidNotAvailable(RuntimeError):
@@ -65,9 +69,17 @@ def _sysid():
     return sysid
 
 
+ACTIONS = ("goal_velocity", "goal_position_normalized")
+
+
 @dataclass
 class Bench:
-    """A robot's bench as calibration sees it (from its sim backend's ``calibration_bench()``)."""
+    """A robot's bench as calibration sees it (from its sim backend's ``calibration_bench()``).
+
+    ``joints`` are fitted and scored; ``loop_joints`` (default: ``joints``) are every joint a
+    firmware loop drives (the hand: all 20 actuated, the wrist fitted); ``loop_q``/``loop_qd``
+    their state columns, ``current`` the columns of what each loop's motor reports (WidowX: current
+    [A]; the hand: effort [N·m]), from which the loops' integrators start."""
 
     spec: object  # mujoco.MjSpec of the backend's model
     joints: list[str]
@@ -77,18 +89,46 @@ class Bench:
     current: list[int]
     #: the goal delay a calibrated MJCF carries (its DELAY_NUMERIC) [s]
     input_delay_s: float = 0.0
+    action: str = "goal_velocity"
+    loop_joints: list[str] = field(default_factory=list)
+    loop_q: list[int] = field(default_factory=list)
+    loop_qd: list[int] = field(default_factory=list)
+    #: goal_position_normalized: the targets' range in rad ([-1, 1] maps onto [low, high])
+    low: np.ndarray | None = None
+    high: np.ndarray | None = None
+    #: bodies the rollout model leaves out (the hand's balls, parked away from it while recording)
+    drop_bodies: list[str] = field(default_factory=list)
+    #: state columns of measured joint positions (then velocities) set at each block's start, by joint name
+    state_joints: dict[str, tuple[int, int]] = field(default_factory=dict)
 
     @classmethod
     def from_layout(cls, layout: dict) -> Bench:
-        if layout.get("action") != "goal_velocity":
-            raise DataError(f"calibration bench: actions {layout.get('action')!r} are not supported (goal_velocity)")
+        action = layout.get("action")
+        if action not in ACTIONS:
+            raise DataError(f"calibration bench: actions {action!r} are not supported ({', '.join(ACTIONS)})")
         spec = layout["spec"]
         delay = 0.0
-        for n in [n for n in spec.numerics if n.name == DELAY_NUMERIC]:
+        for n in [n for n in spec.numerics if n.name == layout.get("delay_numeric", DELAY_NUMERIC)]:
             delay = float(list(n.data)[0])
             spec.delete(n)  # the rollout model applies it to the recorded goals instead
-        return cls(spec, list(layout["joints"]), dict(layout["loops"]), list(layout["q"]),
-                   list(layout["qd"]), list(layout["current"]), delay)
+        joints = list(layout["joints"])
+        loop_joints = list(layout.get("loop_joints", joints))
+        loop_q = list(layout.get("loop_q", layout["q"]))
+        loop_qd = list(layout.get("loop_qd", layout["qd"]))
+        state_joints = {j: (a, b) for j, a, b in zip(loop_joints, loop_q, loop_qd, strict=True)}
+        state_joints.update({j: (a, b) for j, a, b in zip(joints, layout["q"], layout["qd"], strict=True)})
+        state_joints.update(layout.get("state_joints", {}))
+        lo, hi = layout.get("low"), layout.get("high")
+        return cls(spec, joints, dict(layout["loops"]), list(layout["q"]), list(layout["qd"]),
+                   list(layout["current"]), delay, action, loop_joints, loop_q, loop_qd,
+                   None if lo is None else np.asarray(lo, float), None if hi is None else np.asarray(hi, float),
+                   list(layout.get("drop_bodies", [])), state_joints)
+
+    def goals(self, actions: np.ndarray) -> np.ndarray:
+        """Recorded actions -> the loops' goals (rad/s for velocity loops, rad for position loops)."""
+        if self.action == "goal_position_normalized":
+            return self.low + (np.asarray(actions, float) + 1.0) * 0.5 * (self.high - self.low)
+        return np.asarray(actions, float)
 
 
 @dataclass
@@ -119,12 +159,22 @@ def make_blocks(episodes: list[Recording], bench: Bench, dt_s: float, horizon_s:
     for i, e in enumerate(episodes):
         if e.states is None or e.actions is None:
             raise DataError(f"episode {e.name}: no full state/actions (a rig .mcap recording is needed)")
-        need = max(bench.current[-1], bench.qd[-1], bench.q[-1]) + 1
+        need = max(bench.current + bench.qd + bench.q + bench.loop_q + bench.loop_qd) + 1
         if e.states.shape[1] < need:
             raise DataError(f"episode {e.name}: {e.states.shape[1]} state columns, the bench needs {need} "
                             "(positions, velocities, currents)")
-        for s in range(0, e.n - h, h):
-            spans.append((i, s, h))
+        # after the first second: the goal acting at a block's start (two samples back) is recorded, and
+        # the rig has left its hold (the hand's first block, started as the targets leave the hold
+        # pose, was replayed 30x worse than the others on a clean recording)
+        # no block spans a stall: a period longer than STALL_PERIODS median periods (a wall-clock rig
+        # whose emulator or host fell behind: the emulator's physics gives up the time it could not
+        # catch up with, so the samples after it are not the physics of the time between the stamps)
+        stalls = np.flatnonzero(np.diff(e.t_s) > STALL_PERIODS * period)
+        starts = [max(2, int(round(START_S / period)))] + [int(g) + 3 for g in stalls]
+        ends = [int(g) + 1 for g in stalls] + [e.n]
+        for a, z in zip(starts, ends, strict=True):
+            for s in range(a, z - h, h):
+                spans.append((i, s, h))
     cycle = 2 * (gap_blocks + 1)
     train = [k for k in range(len(spans)) if k % cycle == 0]
     test = [k for k in range(len(spans)) if k % cycle == gap_blocks + 1]
@@ -145,12 +195,23 @@ def make_blocks(episodes: list[Recording], bench: Bench, dt_s: float, horizon_s:
 
 
 def servo_spec(bench: Bench):
-    """A copy of the bench spec whose arm actuators are the servos' loops in MJCF (see module doc)."""
+    """A copy of the bench spec whose loop actuators are the firmware's loops in MJCF: velocity
+    PI (the WidowX's servos) as an ``intvelocity`` actuator plus a feed-forward ``motor``;
+    position PID (the hand's motor boards) as MuJoCo's ``mujoco.pid`` actuator plugin (integral
+    clamped at the torque limit, as the firmware's). Dropped bodies are deleted."""
     import mujoco
 
     spec = bench.spec.copy()
-    for j in bench.joints:
+    for b in bench.drop_bodies:
+        spec.delete(spec.body(b))
+    if bench.action == "goal_position_normalized":
+        spec.activate_plugin("mujoco.pid")
+    for j in bench.loop_joints:
         lp = bench.loops[j]
+        if lp.get("mode", "velocity") == "position":
+            act = spec.actuator(lp["actuator"])
+            set_pid(spec, act, j, lp["kp_nm_per_rad"], lp["ki_nm_per_rad_s"], lp["kd_nm_s"], lp["tau_max_nm"])
+            continue
         act = spec.actuator(j)
         act.set_to_intvelocity(kp=lp["ki_nm"], kv=lp["kp_nm_s"])
         act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
@@ -162,6 +223,29 @@ def servo_spec(bench: Bench):
         jt.actfrcrange = [-lp["tau_max_nm"], lp["tau_max_nm"]]
         jt.actfrclimited = mujoco.mjtLimited.mjLIMITED_TRUE
     return spec
+
+
+def _pid_instance(joint: str) -> str:
+    return f"pid:{joint}"
+
+
+def set_pid(spec, act, joint: str, kp: float, ki: float, kd: float, tau_max: float) -> None:
+    """Make ``act`` a ``mujoco.pid`` plugin actuator (one plugin instance per joint, so gains can be
+    fitted per joint): force = clip(kp·e + ki·∫e − kd·q̇, ±tau_max), ki·∫e clamped at ±tau_max."""
+    import mujoco
+
+    name = _pid_instance(joint)
+    inst = next((p for p in spec.plugins if p.name == name), None)
+    if inst is None:
+        inst = spec.add_plugin(name=name, plugin_name="mujoco.pid")
+    inst.config = {"kp": repr(float(kp)), "ki": repr(float(ki)), "kd": repr(float(kd)), "imax": repr(float(tau_max))}
+    act.plugin.plugin_name = "mujoco.pid"
+    act.plugin.name = name
+    act.plugin.active = True
+    act.actdim = 1
+    act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
+    act.forcerange = [-tau_max, tau_max]
+    act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
 
 
 @dataclass
@@ -209,6 +293,10 @@ def _servo_gain(bench: Bench, sysid):
     def mod(spec, p):
         for j, g in zip(bench.joints, p.value, strict=True):
             lp = bench.loops[j]
+            if lp.get("mode", "velocity") == "position":
+                set_pid(spec, spec.actuator(lp["actuator"]), j, lp["kp_nm_per_rad"] * float(g),
+                        lp["ki_nm_per_rad_s"] * float(g), lp["kd_nm_s"] * float(g), lp["tau_max_nm"])
+                continue
             spec.actuator(j).set_to_intvelocity(kp=lp["ki_nm"] * float(g), kv=lp["kp_nm_s"] * float(g))
             spec.actuator(f"{j}_ff").gear = [lp["kp_nm_s"] * float(g), 0, 0, 0, 0, 0]
     return sysid.Parameter("servo_gain", nominal=np.ones(n), min_value=np.full(n, 0.3), max_value=np.full(n, 3.0),
@@ -241,14 +329,34 @@ class Replay:
         self.base = servo_spec(bench)
         m0 = self.base.compile()
         self.dt = float(m0.opt.timestep)
-        self.sub = max(1, int(round(blocks.period_s / self.dt)))
         self.nu = m0.nu
-        self.i_int = [mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_ACTUATOR, j) for j in bench.joints]
-        self.i_ff = [mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_ACTUATOR, f"{j}_ff") for j in bench.joints]
+        self.position = bench.action == "goal_position_normalized"
+        self.goal_lag = 2
+        lj = bench.loop_joints or bench.joints
+        self.i_int = [mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_ACTUATOR, bench.loops[j].get("actuator", j))
+                      for j in lj]
+        self.i_ff = [] if self.position else [mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_ACTUATOR, f"{j}_ff")
+                                              for j in lj]
+        self.act_adr = [int(m0.actuator_actadr[i]) for i in self.i_int]
+        self.loop_cols = (list(bench.loop_q or bench.q), list(bench.loop_qd or bench.qd))
+        self.loop_fitted = [lj.index(j) for j in bench.joints]
         self.qadr = [int(m0.jnt_qposadr[m0.joint(j).id]) for j in bench.joints]
         self.vadr = [int(m0.jnt_dofadr[m0.joint(j).id]) for j in bench.joints]
+        sj = bench.state_joints or {j: (a, b) for j, a, b in zip(bench.joints, bench.q, bench.qd, strict=True)}
+        self.state_cols = (np.array([a for a, _ in sj.values()]), np.array([b for _, b in sj.values()]))
+        self.state_adr = (np.array([int(m0.jnt_qposadr[m0.joint(j).id]) for j in sj]),
+                          np.array([int(m0.jnt_dofadr[m0.joint(j).id]) for j in sj]))
         self.n_threads = n_threads
         self._datas: list = []
+        # the rollout step after which each later sample of a block was measured: from the samples'
+        # own stamps (a wall-clock rig's periods jitter), at least one step past the previous sample
+        self._after: dict[int, np.ndarray] = {}
+        for k, (ei, s, h) in enumerate(blocks.spans):
+            rel = blocks.episodes[ei].t_s[s:s + h] - blocks.episodes[ei].t_s[s]
+            n = np.round(rel[1:] / self.dt).astype(int)
+            for i in range(n.size):  # strictly increasing (two stamps within one step stay apart)
+                n[i] = max(n[i], n[i - 1] + 1 if i else 1)
+            self._after[k] = n
 
     def build(self, params) -> object:
         spec = self.base.copy()
@@ -259,6 +367,13 @@ class Replay:
     def delay_of(self, params) -> float:
         return float(params["input_delay"].value[0]) if "input_delay" in params else self.bench.input_delay_s
 
+    def gain_of(self, params) -> np.ndarray:
+        """The loops' gain factors (1 but where ``servo_gain`` is fitted)."""
+        g = np.ones(len(self.i_int))
+        if "servo_gain" in params:
+            g[self.loop_fitted] = np.asarray(params["servo_gain"].value, float).ravel()
+        return g
+
     def _controls(self, blocks: list[int], delay_s: float) -> np.ndarray:
         """(blocks, steps, nu): each block's recorded goals, zero-order held and delayed by ``delay_s``
         (linear between neighbouring whole steps, so the fit sees a smooth function of the delay)."""
@@ -266,51 +381,71 @@ class Replay:
         rows = []
         m, frac = divmod(delay_s / self.dt, 1.0)
         m = int(m)
+        steps = self.steps(blocks)
         for k in blocks:
             ei, s, h = b.spans[k]
             e = b.episodes[ei]
-            steps = (h - 1) * self.sub
             t = e.t_s[s] + np.arange(steps) * self.dt
 
             def goals(shift_steps: int, t=t, e=e):
                 idx = np.searchsorted(e.t_s, t - shift_steps * self.dt, side="right") - 1
-                return e.actions[np.clip(idx, 0, e.n - 1)]
+                return self.bench.goals(e.actions[np.clip(idx, 0, e.n - 1)])
             u = (1 - frac) * goals(m) + frac * goals(m + 1)
             c = np.zeros((steps, self.nu))
             c[:, self.i_int] = u
-            c[:, self.i_ff] = u
+            if self.i_ff:
+                c[:, self.i_ff] = u
             rows.append(c)
         return np.stack(rows) if rows else np.zeros((0, 0, self.nu))
 
-    def _initial(self, model, blocks: list[int], delay_s: float) -> np.ndarray:
-        """Full-physics states at the blocks' first samples: measured q, qd; the PI integrator from the
-        measured current: act = q + (kt·I − kp·(goal − qd)) / ki."""
+    def steps(self, blocks: list[int]) -> int:
+        """Rollout length (physics steps) that reaches every block's last sample."""
+        return int(max(self._after[k][-1] for k in blocks)) if blocks else 0
+
+    def _initial(self, model, blocks: list[int], delay_s: float, gain: np.ndarray | None = None) -> np.ndarray:
+        """Full-physics states at the blocks' first samples: measured q, qd; each loop's integrator
+        from what its motor reported (the goal acting then is the previous period's, ``delay_s``
+        back). Velocity PI (current I): act = q + (kt·I − kp·(goal − q̇)) / ki. Position PID
+        (effort E): act = ∫e = (E − kp·(goal − q) + kd·q̇) / ki, clamped as the firmware clamps it."""
         import mujoco
 
         d = mujoco.MjData(model)
         spec_ = mujoco.mjtState.mjSTATE_FULLPHYSICS
         out = np.zeros((len(blocks), mujoco.mj_stateSize(model, spec_)))
         b = self.blocks
-        ki = np.array([model.actuator_gainprm[i, 0] for i in self.i_int])
-        kp = np.array([model.actuator_gear[i, 0] for i in self.i_ff])
-        kt = np.array([self.bench.loops[j]["kt_nm_per_a"] for j in self.bench.joints])
+        lj = self.bench.loop_joints or self.bench.joints
+        loops = [self.bench.loops[j] for j in lj]
+        if self.position:
+            g = np.ones(len(lj)) if gain is None else gain
+            kp = g * np.array([lp["kp_nm_per_rad"] for lp in loops])
+            ki = g * np.array([lp["ki_nm_per_rad_s"] for lp in loops])
+            kd = g * np.array([lp["kd_nm_s"] for lp in loops])
+            tau = np.array([lp["tau_max_nm"] for lp in loops])
+        else:
+            ki = np.array([model.actuator_gainprm[i, 0] for i in self.i_int])
+            kp = np.array([model.actuator_gear[i, 0] for i in self.i_ff])
+            kt = np.array([lp["kt_nm_per_a"] for lp in loops])
+        cq, cqd = self.loop_cols
         for r, k in enumerate(blocks):
             ei, s, _ = b.spans[k]
             e = b.episodes[ei]
             mujoco.mj_resetData(model, d)
-            q = e.states[s, self.bench.q]
-            qd = e.states[s, self.bench.qd]
+            d.qpos[self.state_adr[0]] = e.states[s, self.state_cols[0]]
+            d.qvel[self.state_adr[1]] = e.states[s, self.state_cols[1]]
+            q, qd = e.states[s, cq], e.states[s, cqd]
             cur = e.states[s, self.bench.current]
-            # the goal acting at the sample (the previous period's, ``delay_s`` back)
-            kg = int(np.searchsorted(e.t_s, e.t_s[s] - delay_s - 1e-9, side="right")) - 2
-            goal = e.actions[max(kg, 0)]
-            d.qpos[self.qadr] = q
-            d.qvel[self.vadr] = qd
-            d.act[[int(model.actuator_actadr[i]) for i in self.i_int]] = q + (kt * cur - kp * (goal - qd)) / ki
+            kg = int(np.searchsorted(e.t_s, e.t_s[s] - delay_s - 1e-9, side="right")) - self.goal_lag
+            goal = self.bench.goals(e.actions[max(kg, 0)])
+            if self.position:
+                integ = np.divide(cur - kp * (goal - q) + kd * qd, ki, out=np.zeros(len(ki)), where=ki > 0)
+                lim = np.divide(tau, ki, out=np.zeros(len(ki)), where=ki > 0)
+                d.act[self.act_adr] = np.clip(integ, -lim, lim)
+            else:
+                d.act[self.act_adr] = q + (kt * cur - kp * (goal - qd)) / ki
             mujoco.mj_getState(model, d, out[r], spec_)
         return out
 
-    def predict(self, models: list, delays: list[float], blocks: list[int]) -> np.ndarray:
+    def predict(self, models: list, delays: list[float], blocks: list[int], gains: list | None = None) -> np.ndarray:
         """(models, blocks, samples-1, 2·joints): predicted q, qd at the blocks' later samples."""
         import mujoco
         from mujoco import rollout
@@ -318,14 +453,16 @@ class Replay:
         if len(self._datas) < self.n_threads:
             self._datas = [mujoco.MjData(models[0]) for _ in range(self.n_threads)]
         states, ctrls, mods = [], [], []
-        for m, dl in zip(models, delays, strict=True):
-            states.append(self._initial(m, blocks, dl))
+        for i, (m, dl) in enumerate(zip(models, delays, strict=True)):
+            states.append(self._initial(m, blocks, dl, None if gains is None else gains[i]))
             ctrls.append(self._controls(blocks, dl))
             mods += [m] * len(blocks)
         st, _ = rollout.rollout(mods, self._datas, np.concatenate(states), np.concatenate(ctrls))
         # state layout (FULLPHYSICS): time, qpos, qvel, act, ...
         nq = models[0].nq
-        pick = st[:, self.sub - 1::self.sub, :]  # after sub, 2·sub, ... steps: the next samples
+        # the state after n steps is row n-1: each block's later samples at their own stamps
+        idx = np.stack([self._after[k] - 1 for k in blocks])
+        pick = st[np.arange(st.shape[0])[:, None], np.tile(idx, (len(models), 1))]
         q = pick[:, :, 1 + np.array(self.qadr)]
         qd = pick[:, :, 1 + nq + np.array(self.vadr)]
         return np.concatenate([q, qd], axis=2).reshape(len(models), len(blocks), -1, 2 * len(self.qadr))
@@ -384,12 +521,13 @@ def fit_effects(replay: Replay, effects: list[str], max_fit_blocks: int = 8, max
 
     def residual_fn(x, pd):
         x2 = x.reshape(len(x), -1) if x.ndim > 1 else x[:, None]
-        models, delays = [], []
+        models, delays, gains = [], [], []
         for c in range(x2.shape[1]):
             pd.update_from_vector(x2[:, c])
             models.append(replay.build(pd))
             delays.append(replay.delay_of(pd))
-        pred = replay.predict(models, delays, train)
+            gains.append(replay.gain_of(pd))
+        pred = replay.predict(models, delays, train, gains)
         r = ((pred - meas[None]) / scale).reshape(x2.shape[1], -1)
         if x.ndim > 1:
             return [r.T], None, None
@@ -428,7 +566,7 @@ def heldout_sse(replay: Replay, params) -> np.ndarray:
     """(test blocks, joints): open-loop squared position error summed over each block, scaled."""
     b = replay.blocks
     model = replay.build(params)
-    pred = replay.predict([model], [replay.delay_of(params)], b.test)[0]
+    pred = replay.predict([model], [replay.delay_of(params)], b.test, [replay.gain_of(params)])[0]
     meas = replay.measured(b.test)
     nj = len(replay.bench.joints)
     err = (pred[..., :nj] - meas[..., :nj]) / b.q_scale
@@ -510,7 +648,14 @@ def select(replay: Replay, candidates: tuple[str, ...] = CANDIDATES, max_rounds:
 
 def calibrated_spec(bench: Bench, values: dict[str, list[float]]):
     """The backend's bench spec with the identified joint values (and the delay as a custom numeric)."""
+    import os
+
     spec = bench.spec.copy()
+    base = getattr(spec, "modelfiledir", "") or ""
+    for attr in ("meshdir", "texturedir"):  # the file is written elsewhere: asset paths made absolute
+        d = getattr(spec, attr, "")
+        if d and base and not os.path.isabs(d):
+            setattr(spec, attr, os.path.normpath(os.path.join(base, d)))
     for name, v in values.items():
         if name.startswith("joint_"):
             attr = name[len("joint_"):]

@@ -9,8 +9,12 @@ The bench can carry effects its MuJoCo model lacks (``effects``: for the WidowX,
 friction, damping, an input delay, see :data:`hilstack.sim_backends.dynamixel.firmware.EFFECTS`),
 so that calibration has something to find.
 
-The robot comes from the driver registry, so this works for any robot whose sim backend
-takes ``params.sim.effects`` and has joint-velocity actions over position/velocity state.
+The robot comes from the driver registry; what its bench needs is its sim backend's
+``calibration_bench()["excite"]`` (where its effects go per backend, the driver settings and
+bench options of an excitation, its mid pose): the WidowX (joint-velocity actions tracking the
+multi-sine) and the Shadow Hand (normalized joint-position targets on the multi-sine, balls
+parked; the efforts its motors report are appended to the recorded state, as the calibration
+needs them to start the firmware loops' integrators).
 """
 
 from __future__ import annotations
@@ -18,10 +22,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-#: a mid-range pose of the WidowX (rad), away from the limits, torqued at start
-WIDOWX_MID_POSE = {"waist": 0.0, "shoulder": -0.3, "elbow": 0.3, "forearm_roll": 0.0, "wrist_angle": 0.4,
-                   "wrist_rotate": 0.0}
 
 
 def excitation_targets(n_joints: int, duration_s: float, seed: int, amplitude_rad: float = 0.35,
@@ -43,53 +43,89 @@ def excitation_targets(n_joints: int, duration_s: float, seed: int, amplitude_ra
     return ref
 
 
-def record_excitation(path: str | Path, duration_s: float = 60.0, seed: int = 0, robot: str = "widowx",
-                      effects: dict[str, float] | None = None, period_s: float = 0.02, gain_1_s: float = 2.0,
-                      rig: str = "calib", overwrite: bool = False, mjcf: str | None = None,
-                      backend: str = "sim") -> Path:
-    """Drive ``robot``'s sim bench with a random multi-sine for ``duration_s`` (sim time) and write
-    the rig recording to ``path`` (an existing file is refused unless ``overwrite``).
+def record_excitation(path: str | Path, duration_s: float = 60.0, seed: int = 0, robot: object = "widowx",
+                      effects: dict[str, float] | None = None, period_s: float | None = 0.02,
+                      gain_1_s: float = 2.0, rig: str = "calib", overwrite: bool = False, mjcf: str | None = None,
+                      backend: str | None = None, progress=None) -> Path:
+    """Drive ``robot``'s bench with a random multi-sine for ``duration_s`` and write the rig
+    recording to ``path`` (an existing file is refused unless ``overwrite``).
 
-    Commands: joint velocities ``dq_ref + gain_1_s·(q_mid + q_ref − q)``, within the driver's
-    limits (the driver clamps and rate-limits them as on the rig; the applied action is recorded).
+    ``robot``: a robot config name or path, or a ``RobotConfig`` (a rig's entry,
+    ``configs.schema.rig_robot_config``: its backend and params are kept). ``backend``: sim
+    (default for a name; lockstep, ``duration_s`` of sim time) or emulated (the real driver over
+    a pty to the bus emulator process, whose servos carry ``effects`` as
+    ``params.emulator.effects``; paced on the wall clock, ``duration_s`` of it).
 
-    ``backend="emulated"``: the real driver over a pty to the bus emulator process, whose servos
-    carry ``effects`` (``params.emulator.effects``); paced in real time (``duration_s`` of wall clock).
+    Commands: joint velocities ``dq_ref + gain_1_s·(q_mid + q_ref − q)`` (the WidowX) or position
+    targets ``q_mid + q_ref`` (the hand, normalized), within the driver's limits (the driver clamps
+    and rate-limits them as on the rig; the applied action is recorded).
+    ``period_s`` None: the robot config's control period. ``progress(k, steps)`` is called every
+    50 periods.
     """
     from hilstack.bus import keys
     from hilstack.bus.recording import McapLog
     from hilstack.bus.schemas import RobotState, SpecMsg
-    from hilstack.drivers.registry import make_driver
+    from hilstack.configs.schema import RobotConfig, load_robot
+    from hilstack.drivers.registry import make_driver, resolve
 
-    bench = {"start_holding": WIDOWX_MID_POSE, "effects": dict(effects or {})}
+    cfg = robot if isinstance(robot, RobotConfig) else load_robot(str(robot), backend=backend or "sim")
+    backend = backend or cfg.backend
+    if backend not in ("sim", "emulated"):
+        raise ValueError(f"backend must be 'sim' or 'emulated' (an excitation with effects injected), got {backend!r}")
+    sim_cls = resolve(cfg.robot, "sim")
+    if not hasattr(sim_cls, "calibration_bench"):
+        raise ValueError(f"robot {cfg.robot!r}: its sim backend has no calibration_bench() (nothing to excite for)")
+    layout = sim_cls.calibration_bench()
+    ex = layout["excite"]
+    place = ex["place"][backend]
+    own = dict(cfg.params.get(place) or {})
+    bench = {**own, **ex.get("bench", {}), "effects": {**(own.get("effects") or {}), **(effects or {})}}
     if mjcf is not None:
         bench["mjcf"] = str(mjcf)
-    if backend not in ("sim", "emulated"):
-        raise ValueError(f"backend must be 'sim' or 'emulated', got {backend!r}")
-    # a bus name of its own: never share a world with another robot of this process
-    # a reading older than 5 periods is stale (it must be shorter than the link's error deadline)
-    d = make_driver(robot, backend=backend, bus_name=f"excite-{seed}-{id(bench)}", period_s=period_s,
-                    telemetry_stale_s=min(0.25, 5 * period_s),
-                    **({"sim": bench} if backend == "sim" else {"emulator": bench}))
-    names = list(d.spec.state.names)
+    period_s = float(period_s or cfg.params.get("period_s") or 0.02)
+    drv_params = {k: (v.format(seed=seed, uid=id(bench)) if isinstance(v, str) else v)
+                  for k, v in ex.get("driver", {}).items()}
+    if "telemetry_stale_s" in drv_params:  # a reading older than 5 periods is stale (before the link's error deadline)
+        drv_params["telemetry_stale_s"] = min(float(drv_params["telemetry_stale_s"]), 5 * period_s)
+    d = make_driver(cfg, backend=backend, period_s=period_s, **drv_params, **{place: bench})
+    name = cfg.robot
+    spec = d.spec.to_dict()
+    extra = ex.get("extra_state")  # an Observation.extras entry appended to the state (the hand's efforts)
+    if extra:
+        spec["state"]["names"] = list(spec["state"]["names"]) + list(ex["extra_names"])
+        for key, fill in (("units", ex.get("extra_unit", "")), ("low", -np.inf), ("high", np.inf)):
+            spec["state"][key] = list(spec["state"][key]) + [fill] * len(ex["extra_names"])
     n = d.spec.action.dim
-    mid = np.array([WIDOWX_MID_POSE.get(nm, 0.0) for nm in names[:n]])
-    ref = excitation_targets(n, duration_s, seed)
+    mid = np.asarray(ex["mid"], float)
+    position = ex["command"] == "position"
+    ref = excitation_targets(n, duration_s, seed, amplitude_rad=float(ex.get("amplitude", 0.35)))
     steps = int(round(duration_s / period_s))
+
+    def state_of(obs) -> list[float]:
+        st = [float(v) for v in obs.state]
+        if extra:
+            st += [float(v) for v in np.ravel(obs.extras[extra])]
+        return st
+
     with d, McapLog(path, overwrite=overwrite, foxglove=False) as log:
-        log.write(keys.spec(rig, robot), SpecMsg(robot=robot, spec=d.spec.to_dict(), seq=1))
+        log.write(keys.spec(rig, name), SpecMsg(robot=name, spec=spec, seq=1))
         obs = d.read()
         t0 = obs.t_s
         applied: list[float] = []
         for k in range(steps + 1):
-            log.write(keys.state(rig, robot),
-                      RobotState(robot=robot, t_s=obs.t_s - t0, state=[float(v) for v in obs.state],
+            log.write(keys.state(rig, name),
+                      RobotState(robot=name, t_s=obs.t_s - t0, state=state_of(obs),
                                  action=applied, episode=0, seq=k + 2, stamp_s=1000.0 + obs.t_s - t0,
                                  active=True, ok=obs.ok))
             if k == steps:
                 break
+            if progress is not None and k % 50 == 0:
+                progress(k, steps)
             q_off, dq = ref(obs.t_s - t0)
-            u = dq + gain_1_s * (mid + q_off - np.asarray(obs.state[:n]))
+            if position:  # targets on the multi-sine (normalized), the driver rate-limits them
+                u = mid + q_off
+            else:  # joint velocities tracking it
+                u = dq + gain_1_s * (mid + q_off - np.asarray(obs.state[:n]))
             applied = [float(v) for v in d.write(u)]
             d.tick()
             obs = d.read()

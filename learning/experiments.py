@@ -63,7 +63,7 @@ def fit_model(run: MbrlRun, episodes: list[Episode], seed: int, epochs: int | No
     """A fresh model (initialized from ``seed``) trained on ``episodes``."""
     cfg = dataclasses.replace(run.cfg, seed=seed)
     model = make_model(cfg, run.state_names, run.action_names)
-    run.train(model, episodes, epochs or run.cfg.epochs)
+    run.train(model, episodes, epochs or run.cfg.epochs, seed=seed)
     return model
 
 

@@ -428,6 +428,10 @@ class MbrlRun:
         self.recordings: list[str] = []
         self.rng = np.random.default_rng(cfg.seed)
         self.split_rng = np.random.default_rng([cfg.seed, 1])
+        #: per-seed train/validation split generators of the seeded experiments (experiments.py):
+        #: a seed's split never depends on which seeds ran before it in this process, so a seed run
+        #: alone (a sweep task) gives the serial run's numbers
+        self.seed_split_rngs: dict[int, np.random.Generator] = {}
         self.val_assigned: dict[str, bool] = {}
         self.period_s = 0.1
         self.max_step: np.ndarray | None = None
@@ -714,8 +718,11 @@ class MbrlRun:
         }
 
     # -- training --------------------------------------------------------------------------
-    def train(self, model, eps: list[Episode], epochs: int) -> dict[str, float]:
-        return fit_episodes(model, eps, epochs, self.cfg.batch_size, self.cfg.val_fraction, self.split_rng,
+    def train(self, model, eps: list[Episode], epochs: int, seed: int | None = None) -> dict[str, float]:
+        """Fit ``model``; ``seed`` draws the split from that seed's own generator (see seed_split_rngs)."""
+        rng = self.split_rng if seed is None else self.seed_split_rngs.setdefault(
+            seed, np.random.default_rng([seed, 2]))
+        return fit_episodes(model, eps, epochs, self.cfg.batch_size, self.cfg.val_fraction, rng,
                             self.val_assigned, horizon=self.cfg.horizon, progress=self.cfg.progress)
 
     # -- everything -------------------------------------------------------------------------

@@ -3,8 +3,9 @@
 A *condition* (:class:`PerturbationSettings`) is what the thesis' adaptation experiments
 change on the robot (ch. 5, real VelociRoACH): a disabled leg, a slope, a miscalibrated
 pose, a payload. The sim backend applies one at any time, mid-episode included
-(``VelociRoachSim.apply_perturbations``). Terrains change contact physics and the ground
-mesh, so they are chosen when the sim is built (``params.sim.terrain``), not switched.
+(``VelociRoachSim.apply_perturbations``). A terrain changes contact physics, the ground mesh
+and its look, so it takes effect at the next reset (per episode; default: the sim's
+``params.sim.terrain``), never mid-episode.
 
 Presets live in ``configs/perturbations/<name>.yaml`` (:class:`PerturbationPresets`,
 loaded by name with :func:`load_presets`): the training terrains and the training range of
@@ -36,12 +37,13 @@ class PerturbationSettings(Params):
     slope_deg: float = Field(0.0, ge=-30, le=30, description="ground slope, + uphill along world +x")
     heading_offset_deg: float = Field(0.0, ge=-180, le=180, description="reported minus true heading (pose miscalibration)")
     mocap_offset_m: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="reported minus true position [m]")
+    terrain: Terrain | None = Field(None, description="the ground from the next reset on (None: the sim's own)")
 
     def as_backend(self) -> dict[str, Any]:
         """``name → value`` for ``VelociRoachSim.set_perturbation`` (every perturbation, unset = none)."""
         return {"missing_leg": list(self.missing_leg) or None, "payload_kg": self.payload_kg,
                 "slope_deg": self.slope_deg, "heading_offset_deg": self.heading_offset_deg,
-                "mocap_offset_m": np.asarray(self.mocap_offset_m, dtype=float)}
+                "mocap_offset_m": np.asarray(self.mocap_offset_m, dtype=float), "terrain": self.terrain}
 
 
 class TrainingRange(Params):

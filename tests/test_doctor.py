@@ -84,3 +84,6 @@ def test_doctor_on_this_machine_reports_missing_hardware():
     assert lines[-1] == "roach_real: not ready (1 to fix)"
     r = CliRunner().invoke(app, ["doctor", "roach_sim", "--json"])
     assert r.exit_code == 0 and '"ok": true' in r.output
+    # a rig that cannot be read is a usage error (2), not a rig that is not ready (1)
+    r = CliRunner().invoke(app, ["doctor", "no_such_rig"])
+    assert r.exit_code == 2 and "no such rig config" in r.output

@@ -55,6 +55,8 @@ def test_serial_resume_and_failure(tmp_path):
     r2 = run_sweep(_tasks(calls), tmp_path / "out", log=lines.append)
     assert len(list(calls.iterdir())) == 3
     assert r2["sweep"]["resumed"] == 1 and (tmp_path / "out/tasks/fit-seed0.json").read_text() == kept
+    rec = json.loads((tmp_path / "out/sweep.json").read_text())  # the first run's record is kept beside
+    assert [e["resumed"] for e in rec["earlier_runs"]] == [0] and rec["earlier_runs"][0]["wall_s"] > 0
     assert r2["results"] == r["results"]
     # a failing task: reported with its log tail, the others still run, re-run next time
     bad = [Task("bad-seed3", broken, {"seed": 3}), *_tasks(calls)]

@@ -55,6 +55,7 @@ _VERB_MODULES = [
     "hilstack.tools.cmd_export",
     "hilstack.tools.cmd_viz",
     "hilstack.tools.cmd_calibrate",
+    "hilstack.tools.cmd_excite",
     "hilstack.tools.cmd_data",
     "hilstack.tools.cmd_bench",
     "hilstack.tools.cmd_misc",

@@ -40,7 +40,9 @@ def register(app: typer.Typer) -> None:
         tip_weight: float | None = typer.Option(None, "--tip-weight",
                                                 help="roach: weight (1/rad) of the planner's tipping term "
                                                      "(docs/mbrl.md; 0 = the thesis' cost) [default: 50]"),
-        part: str = typer.Option("all", "--part", help="transfer only: all | sidm | garat (one half of the demo)"),
+        part: str = typer.Option("all", "--part", help="transfer: all | sidm | garat (one half of the demo); "
+                                 "roach: terrain (the image-conditioned model on four terrains, Table 3.2, "
+                                 "docs/mbrl.md)"),
         setting: str = typer.Option("roach", "--setting", help="transfer --part sidm only: roach (VelociRoACH pairs) | "
                                     "wheeled (the SIDM paper's wheeled robots with suspension)"),
         suite: str = typer.Option("roach", "--suite", help="adaptation only: roach (the sim VelociRoACH) | gym "
@@ -59,8 +61,17 @@ def register(app: typer.Typer) -> None:
         Collects random data through the driver bridge, trains a dynamics model, runs MPC
         and the differential-drive baseline on five paths at a low and a high speed.
         The other demos (`hil demo transfer`, ...) are listed in OTHER_DEMOS."""
+        if what == "roach" and part == "terrain":
+            from hilstack.tools.demo_terrain import cli_terrain
+
+            try:
+                cli_terrain(out, quick=quick, full=full, seed=seed)
+            except (ValueError, TimeoutError) as e:
+                raise UserError(f"hil demo roach --part terrain: {e}") from None
+            return
         if part != "all" and what != "transfer":
-            raise UserError(f"hil demo {what}: --part is for the transfer demo only")
+            raise UserError(f"hil demo {what}: --part is for the transfer demo only "
+                            "(besides `hil demo roach --part terrain`)")
         if part not in ("all", "sidm", "garat"):
             raise UserError(f"hil demo transfer: unknown --part {part!r} (all | sidm | garat)")
         if setting not in ("roach", "wheeled"):
@@ -73,9 +84,11 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"hil demo adaptation: unknown --suite {suite!r} (roach | gym)")
         if envs and what != "mbrl-gym":
             raise UserError(f"hil demo {what}: --envs is for the mbrl-gym demo only")
-        if ray is not None and what not in ("adaptation", "transfer"):
-            raise UserError(f"hil demo {what}: --ray is for the adaptation and transfer demos only so far "
-                            "(docs/scaling.md)")
+        if ray is not None and what not in ("roach", "baoding", "adaptation", "transfer"):
+            raise UserError(f"hil demo {what}: --ray is for the roach and baoding (--full), adaptation and "
+                            "transfer demos only so far (docs/scaling.md)")
+        if ray is not None and what in ("roach", "baoding") and not full:
+            raise UserError(f"hil demo {what}: --ray is for the full run (--full); the other runs are one task")
         if ray is not None and suite == "gym":
             raise UserError("hil demo adaptation --suite gym: --ray is for the roach suite only so far")
         if what in OTHER_DEMOS:
@@ -83,7 +96,8 @@ def register(app: typer.Typer) -> None:
 
             module, fn, _ = OTHER_DEMOS[what]
             kw = {"part": part, "setting": setting, "ray": ray, "workers": workers} if what == "transfer" else (
-                {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else {})
+                {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else (
+                    {"ray": ray, "workers": workers} if what == "baoding" else {}))
             if what == "mbrl-gym":
                 from hilstack.tools.demo_mbmf import parse_envs
 
@@ -107,7 +121,7 @@ def register(app: typer.Typer) -> None:
             variant.update(random_hold_steps=1, random_forward_fraction=0.0, reachable_set=False)
         try:
             r = run_demo(out, quick=quick, full=full, seed=seed, planner=planner, rig=rig,
-                         operator_resets=operator_resets, **variant)
+                         operator_resets=operator_resets, ray=ray, workers=workers, **variant)
         except (RigError, ValueError) as e:
             typer.echo(f"error: {e}", err=True)
             raise typer.Exit(1) from None

@@ -39,11 +39,15 @@ def quick_wall_clock(rig: str) -> dict[str, Any]:
 
 
 def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full: bool = False,
-             **overrides: Any) -> dict[str, Any]:
+             ray: str | None = None, workers: int = 1, **overrides: Any) -> dict[str, Any]:
     """Run the MBRL loop (``quick``: the README's few-minute run; ``full``: also the thesis'
-    experiments over seeds, :mod:`hilstack.learning.experiments`) and write the report to ``out``."""
+    experiments over seeds, :mod:`hilstack.learning.experiments`) and write the report to ``out``.
+    ``ray`` (``full`` only): ``local`` or a Ray cluster's address: the main run and every seed's
+    experiments as sweep tasks, each with its own rig processes (:mod:`hilstack.tools.demo_sweep`)."""
     if quick and full:
         raise ValueError("choose --quick or --full, not both")
+    if ray is not None and not full:
+        raise ValueError("--ray is for the full run (--full): the other runs are one task")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if quick:
@@ -58,11 +62,21 @@ def run_demo(out: Path, quick: bool = False, bus: BusConfig | None = None, full:
     from hilstack.tools.common import provision_credentials, with_endpoint
 
     rig_cfg = load_rig(cfg.rig)
+    if ray is not None:  # every task makes its own endpoint and credentials
+        from hilstack.tools.demo_sweep import run_full_on_sweep
+
+        report = run_full_on_sweep(cfg, out, ray, workers)
+        return write_report(report, out, quick=quick, full=full)
     if bus is None:
         bus = with_endpoint(rig_cfg.bus, free_endpoint())
     # an emulated rig's credentials, made here when missing: every node of the demo needs them
     provision_credentials(rig_cfg.name, bus, rig_cfg)
     report = MbrlRun(cfg, out, bus).run()
+    return write_report(report, out, quick=quick, full=full)
+
+
+def write_report(report: dict[str, Any], out: Path, quick: bool, full: bool) -> dict[str, Any]:
+    """``report.json``, ``report.md``, the plots and the rerun file of the evaluation."""
     report["quick"] = quick
     report["full"] = full
     report["created"] = time.strftime("%Y-%m-%dT%H:%M:%S")
@@ -232,7 +246,11 @@ def report_markdown(r: dict[str, Any]) -> str:
         "# hilstack demo: model-based RL on the simulated VelociRoACH",
         "",
         f"Rig `{r['rig']}`, {'quick' if r.get('quick') else 'full' if r.get('full') else 'default'} run, {r['wall_s']:.0f} s wall clock, "
-        f"created {r.get('created', '')}.",
+        f"created {r.get('created', '')}." + (
+            f" Run as {r['sweep']['tasks']} sweep tasks ({r['sweep']['executor']}"
+            f"{', Ray ' + r['sweep']['ray_version'] if r['sweep'].get('ray_version') else ''}, "
+            f"{r['sweep']['workers']} workers, {r['sweep']['resumed']} from an earlier run; docs/scaling.md)."
+            if r.get("sweep") else ""),
         f"Random data: {cfg['random_rollouts']} rollouts x {cfg['rollout_steps']} steps; model "
         f"{cfg['ensemble']}x MLP {cfg['hidden']}; planner {cfg['planner']} N={cfg['samples']} H={cfg['horizon']}; "
         f"{cfg['iterations']} on-policy iteration(s).",

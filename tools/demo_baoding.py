@@ -68,12 +68,45 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
     return report
 
 
+def seed_task(out: str, preset: str, seed: int, rig: str, overrides: dict[str, Any]) -> dict[str, Any]:
+    """One seed of the full run as a sweep task (tools/sweep.py): its report (``run_baoding_demo``
+    makes the seed's own bus endpoint and rig processes)."""
+    return run_baoding_demo(Path(out), preset=preset, seed=seed, rig=rig, **overrides)
+
+
+def seeds_on_sweep(out: Path, seeds: tuple[int, ...], preset: str, rig: str, overrides: dict[str, Any],
+                   executor: str | None, workers: int = 1) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Every seed a sweep task (``executor``: None serial, ``local``, an address): the seeds'
+    reports in ``seeds`` order and the sweep's record."""
+    from hilstack.tools.common import UserError
+    from hilstack.tools.sweep import Task, run_sweep
+
+    tasks = [Task(f"seed{s}", seed_task, {"out": str(out / f"seed_{s}"), "preset": preset, "seed": s, "rig": rig,
+                                           "overrides": overrides}) for s in seeds]
+    sw = run_sweep(tasks, out, executor=executor, workers=workers)
+    if sw["failed"]:
+        raise UserError(f"seeds {sorted(sw['failed'])} failed (their log tails above; {out / 'tasks'}); "
+                        "the same command again re-runs only those")
+    return [sw["results"][t.key] for t in tasks], sw["sweep"]
+
+
 def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thesis", rig: str = FULL_RIG,
-             **overrides: Any) -> dict[str, Any]:
+             ray: str | None = None, workers: int = 1, **overrides: Any) -> dict[str, Any]:
     """The thesis' settings over ``seeds``: per-seed reports in ``out/seed_<k>`` and the
-    final iteration's metrics as mean ± std across seeds, on :data:`FULL_RIG` by default."""
+    final iteration's metrics as mean ± std across seeds, on :data:`FULL_RIG` by default.
+    ``ray`` (``local`` or a Ray cluster's address): every seed a sweep task, results in
+    ``out/tasks/`` as each finishes, a re-run does only the seeds missing (docs/scaling.md).
+    Each seed's run is already independent (its own rig, endpoint and seeded generators), so
+    the numbers are the serial run's."""
     out = Path(out)
-    runs = [run_baoding_demo(out / f"seed_{s}", preset=preset, seed=s, rig=rig, **overrides) for s in seeds]
+    out.mkdir(parents=True, exist_ok=True)
+    sweep = None
+    if ray is None:
+        runs = [run_baoding_demo(out / f"seed_{s}", preset=preset, seed=s, rig=rig, **overrides) for s in seeds]
+    else:
+        from hilstack.tools.sweep import executor_from
+
+        runs, sweep = seeds_on_sweep(out, seeds, preset, rig, overrides, executor_from(ray), workers)
 
     def across(key: str, pick) -> dict[str, float]:
         v = np.array([pick(r) for r in runs], dtype=np.float64)
@@ -92,6 +125,8 @@ def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thes
         "random_mean_return": across("rr", lambda r: r["random_policy"]["mean_return"]),
         "runs": [str(out / f"seed_{s}" / "report.json") for s in seeds],
     }
+    if sweep is not None:
+        summary["sweep"] = sweep
     (out / "report.json").write_text(json.dumps(summary, indent=1))
     return summary
 
@@ -189,19 +224,21 @@ def report_markdown(r: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def cli_baoding(out: Path, quick: bool, full: bool, seed: int) -> None:
-    """The `hil demo baoding` verb (registered in tools/cmd_demo.py)."""
+def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None = None, workers: int = 1) -> None:
+    """The `hil demo baoding` verb (registered in tools/cmd_demo.py); ``ray``: ``--full`` only."""
     import typer
 
     from hilstack.learning.mbrl import RigError
 
     if quick and full:
         raise typer.BadParameter("choose --quick or --full, not both")
+    if ray is not None and not full:
+        raise typer.BadParameter("--ray is for the full run (--full): the other runs are one seed")
     if out == Path("out/demo"):
         out = Path("out/baoding")
     try:
         if full:
-            s = run_full(out)
+            s = run_full(out, ray=ray, workers=workers)
             typer.echo(f"final PDDM success_90 {100 * s['final_success_90']['mean']:.0f} ± "
                        f"{100 * s['final_success_90']['std']:.0f} %, success_180 {100 * s['final_success_180']['mean']:.0f} %, "
                        f"rotation {s['final_mean_rotation_deg']['mean']:.0f}°, drop rate "

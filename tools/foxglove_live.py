@@ -40,7 +40,12 @@ from typing import Any
 
 import foxglove
 import foxglove.messages as fg
-from foxglove.channels import CompressedImageChannel, FrameTransformChannel, PoseInFrameChannel
+from foxglove.channels import (
+    CompressedImageChannel,
+    FrameTransformChannel,
+    PoseInFrameChannel,
+    SceneUpdateChannel,
+)
 from foxglove.websocket import Capability, Client, ClientChannel, ServerListener, StatusLevel
 
 from hilstack.bus import keys
@@ -62,7 +67,7 @@ from hilstack.configs.schema import BusConfig
 
 #: the Foxglove messages derived from bus messages, and their typed channels
 _DERIVED_CHANNELS: dict[type, Any] = {fg.PoseInFrame: PoseInFrameChannel, fg.FrameTransform: FrameTransformChannel,
-                                      fg.CompressedImage: CompressedImageChannel}
+                                      fg.CompressedImage: CompressedImageChannel, fg.SceneUpdate: SceneUpdateChannel}
 
 
 log = logging.getLogger(__name__)

@@ -206,7 +206,14 @@ def run_sweep(tasks: Iterable[Task], out: str | Path, executor: str | None = Non
                 ray.shutdown()
     record["wall_s"] = time.perf_counter() - t0
     record["failed"] = len(failed)
-    _write(out / "sweep.json", record)
+    rec_path = out / "sweep.json"
+    if rec_path.exists():  # a resumed sweep: the earlier runs' records (their wall times) are kept
+        try:
+            before = json.loads(rec_path.read_text())
+        except (OSError, ValueError):
+            before = {}
+        record["earlier_runs"] = [*before.pop("earlier_runs", []), before] if before else []
+    _write(rec_path, record)
     results = {}
     for k in keys:
         p = tdir / f"{k}.json"

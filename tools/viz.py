@@ -1,6 +1,8 @@
 """Rerun visualization of a rig: live from the bus, or from an MCAP recording.
 
-Layout (fixed blueprint): a 3-D view of the world (robot path, current pose, planned
+Layout (blueprint): a tab per robot by its kind, read from its spec (:func:`robot_kind`: an
+arm's 3-D model and joint angles, a mobile robot's path and speeds, a tracker's balls and
+confidences), then a 3-D view of the world (robot path, current pose, planned
 trajectory), time series of the state and of the commands, and the camera images
 when a rig has them (raw RGB, or JPEG/PNG as the camera tracker sends them). Entity paths:
 ``world/<robot>/{path,pose,plan,balls}`` (``balls``: a camera tracker's ball positions),
@@ -19,7 +21,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from hilstack.bus import keys
-from hilstack.bus.recording import chain_transforms
+from hilstack.bus.recording import LINK_RADIUS_M, chain_segments, chain_transforms, quat_z_to
 from hilstack.bus.schemas import (
     AnyMsg,
     Command,
@@ -35,7 +37,57 @@ from hilstack.bus.schemas import (
 from hilstack.drivers.base import RobotSpec
 
 
-def blueprint(has_images: bool = True) -> rrb.Blueprint:
+def robot_kind(spec: RobotSpec) -> str:
+    """What a robot is to a viewer, read from its spec alone: ``arm`` (a kinematic chain),
+    ``tracker`` (ball positions ``ball<i>_x/y/z``), ``mobile`` (a planar pose ``x``, ``y``),
+    ``joints`` (joint angles ``<joint>_pos`` without a chain: the hand, the Sawyer), ``other``."""
+    names = set(spec.state.names)
+    if spec.chain:
+        return "arm"
+    if {"ball0_x", "ball0_y", "ball0_z"} <= names:
+        return "tracker"
+    if {"x", "y"} <= names:
+        return "mobile"
+    if any(n.endswith("_pos") for n in names):
+        return "joints"
+    return "other"
+
+
+#: per kind: the state channels worth a plot of their own (the rest stay in the robot's "all state" view)
+def _key_channels(kind: str, spec: RobotSpec) -> list[str]:
+    names = list(spec.state.names)
+    if kind == "arm":  # the joint angles
+        angles = [f"{j}_pos" if f"{j}_pos" in names else j for j, *_ in spec.chain]
+        return [n for n in angles if n in names]
+    if kind == "joints":
+        return [n for n in names if n.endswith("_pos")]
+    if kind == "tracker":
+        return [n for n in names if n.endswith("_conf")]
+    if kind == "mobile":  # speeds and turning rates
+        return [n for n in names if n in ("vx", "vy", "v", "speed", "yaw_rate", "wz", "omega", "yaw")]
+    return []
+
+
+def robot_view(robot: str, spec: RobotSpec) -> Any:
+    """One robot's tab: its 3-D view (an arm's model, a mobile robot's path in the world, a
+    tracker's balls), its key channels (:func:`_key_channels`), all its state and its commands."""
+    kind = robot_kind(spec)
+    world = rrb.Spatial3DView(origin="world" if kind == "mobile" else f"world/{robot}", name=f"{robot}: 3-D")
+    key = _key_channels(kind, spec)
+    title = {"arm": "joint angles (rad)", "joints": "joint angles (rad)", "tracker": "confidence",
+             "mobile": "speeds"}.get(kind, "")
+    series: list[Any] = []
+    if key:
+        series.append(rrb.TimeSeriesView(origin=f"state/{robot}", contents=[f"state/{robot}/{n}" for n in key],
+                                         name=f"{robot}: {title}"))
+    series += [rrb.TimeSeriesView(origin=f"state/{robot}", name=f"{robot}: state"),
+               rrb.TimeSeriesView(origin=f"cmd/{robot}", name=f"{robot}: commands")]
+    return rrb.Horizontal(world, rrb.Vertical(*series), column_shares=[3, 2], name=f"{robot} ({kind})")
+
+
+def blueprint(has_images: bool = True, specs: dict[str, RobotSpec] | None = None) -> rrb.Blueprint:
+    """The layout: a tab per robot of the rig whose spec is known (:func:`robot_view`, by kind),
+    then the generic view of every robot (world, state, commands) and the cameras."""
     right = [
         rrb.TimeSeriesView(origin="state", name="state"),
         rrb.TimeSeriesView(origin="cmd", name="commands"),
@@ -43,10 +95,9 @@ def blueprint(has_images: bool = True) -> rrb.Blueprint:
     left: list[Any] = [rrb.Spatial3DView(origin="world", name="world")]
     if has_images:
         left.append(rrb.Spatial2DView(origin="camera", name="camera"))
-    return rrb.Blueprint(
-        rrb.Horizontal(rrb.Vertical(*left), rrb.Vertical(*right), column_shares=[3, 2]),
-        collapse_panels=True,
-    )
+    every = rrb.Horizontal(rrb.Vertical(*left), rrb.Vertical(*right), column_shares=[3, 2], name="all robots")
+    tabs = [robot_view(r, sp) for r, sp in (specs or {}).items()]
+    return rrb.Blueprint(rrb.Tabs(*tabs, every) if tabs else every, collapse_panels=True)
 
 
 class RigVisualizer:
@@ -65,6 +116,8 @@ class RigVisualizer:
         self.rec.send_blueprint(blueprint())
         self.names: dict[str, tuple[str, ...]] = {}
         self.action_names: dict[str, tuple[str, ...]] = {}
+        #: each robot's spec, as first seen: the blueprint's tabs (one per robot, by kind)
+        self.specs: dict[str, RobotSpec] = {}
         self.chains: dict[str, list[dict]] = {}
         self._path: dict[str, list[list[float]]] = {}
         self.logged = 0
@@ -110,13 +163,32 @@ class RigVisualizer:
             path += "/" + link
             self.rec.log(path, rr.Transform3D(translation=t, quaternion=rr.Quaternion(xyzw=q)))
 
+    def _model(self, robot: str, chain: list[dict]) -> None:
+        """The arm's 3-D model (``chain_segments``: a capsule per link), static, each capsule under
+        its link's entity so it moves with the link's ``Transform3D`` (:meth:`_links`)."""
+        path = f"world/{robot}/links"
+        paths = {robot: path}
+        for link in chain:
+            path += f"/{link['joint']}_link"
+            paths[f"{robot}/{link['joint']}_link"] = path
+        for frame, a, b in chain_segments(robot, chain):
+            seg = [bb - aa for aa, bb in zip(a, b, strict=True)]
+            length = float(np.linalg.norm(seg))
+            self.rec.log(f"{paths[frame]}/body", rr.Capsules3D(
+                lengths=[length], radii=[LINK_RADIUS_M], translations=[list(a)],
+                quaternions=[rr.Quaternion(xyzw=quat_z_to(tuple(seg)))], colors=[[40, 40, 40]]), static=True)
+
     def log(self, topic: str, msg: Msg) -> None:
         if isinstance(msg, SpecMsg):
             spec = RobotSpec.from_dict(msg.spec)
             self.names[msg.robot] = spec.state.names
             self.action_names[msg.robot] = spec.action.names
-            if spec.chain:
+            if msg.robot not in self.specs:  # a new robot: its tab joins the layout
+                self.specs[msg.robot] = spec
+                self.rec.send_blueprint(blueprint(specs=self.specs))
+            if spec.chain and msg.robot not in self.chains:
                 self.chains[msg.robot] = msg.spec["chain"]
+                self._model(msg.robot, msg.spec["chain"])
             return
         if isinstance(msg, RobotState):
             self._time(msg, msg.t_s)

@@ -40,8 +40,8 @@ from hilstack.drivers.shadow_hand.config import (
     to_joint_rad,
 )
 from hilstack.sim_backends.base import LockstepSim
-from hilstack.sim_backends.shadow_hand.firmware import TICK_S, FirmwareConfig, HandFirmware
-from hilstack.sim_backends.shadow_hand.model import PHYSICS_DT_S, build_scene
+from hilstack.sim_backends.shadow_hand.firmware import TICK_S, FirmwareConfig, HandFirmware, effect_fields
+from hilstack.sim_backends.shadow_hand.model import PHYSICS_DT_S, build_scene, index_scene
 from hilstack.sim_backends.shadow_hand.station import StationGeometry
 from hilstack.tasks.baoding import BaodingTask
 
@@ -83,13 +83,32 @@ class SimParams(Params):
     reset_station: bool = Field(False, description="add the ramp and the reset arm to the scene (docs/reset.md)")
     world: str = Field("hand", description="name under which the reset arm's sim backend finds this scene")
     gripper_force_n: float = Field(10.0, gt=0, le=40, description="the reset arm's jaw force limit [N] (sim_backends/reset_arm/model.py)")
+    effects: dict[str, float] = Field(default_factory=dict, description="for calibration: what the hand's drives "
+                                      "have that the MuJoCo model lacks (joint_friction_nm, joint_damping_nm_s, "
+                                      "input_delay_s; checked by sim_backends/shadow_hand/firmware.py)")
+    mjcf: str | None = Field(None, description="the scene from this MJCF file (a calibrated one: `hil calibrate "
+                                               "--model <hand config>` writes it) instead of the built one")
 
 
 def parse_sim_params(sim: dict, source: str | None) -> SimParams:
     try:
-        return parse_model(SimParams, dict(sim), source)
+        out = parse_model(SimParams, dict(sim), source)
     except ConfigError as e:
         raise ConfigError(source, [(f"params.sim.{f}" if f else "params.sim", m) for f, m in e.problems]) from None
+    try:
+        effect_fields(out.effects)
+    except ValueError as e:
+        raise ConfigError(source, [("params.sim.effects", str(e))]) from None
+    if out.mjcf is not None and out.reset_station:
+        raise ConfigError(source, [("params.sim.mjcf", "a calibrated scene has no reset station; "
+                                                       "set reset_station: false")])
+    return out
+
+
+#: MJCF custom numeric: the drives' target delay [s] (hilstack.calibration.mjcf_robot writes it)
+DELAY_NUMERIC = "hilstack_input_delay_s"
+#: the joints `hil calibrate --model <hand config>` fits by default: the wrist (the largest loads)
+CALIBRATION_JOINTS = ("WRJ1", "WRJ0")
 
 
 def hold_pose_q() -> np.ndarray:
@@ -138,6 +157,57 @@ class ShadowHandSim(LockstepSim):
     #: measured − commanded actuated joint angles (used by `hil drive`)
     tracking_error = staticmethod(joint_tracking_error)
 
+    @classmethod
+    def calibration_bench(cls, params: ShadowHandParams | None = None) -> dict:
+        """What `hil calibrate --model <hand config>` needs (hilstack.calibration.mjcf_robot): the
+        scene's MjSpec (``params.sim.mjcf`` if set), each actuated joint's firmware loop (position
+        PID: kp [N·m/rad], ki [N·m/(rad·s)], kd [N·m·s/rad], torque limit [N·m]; the integral
+        clamped at the torque limit), the joints fitted (:data:`CALIBRATION_JOINTS`, the wrist: a
+        fit over all 20 is 10x slower), the state columns of their positions and velocities and
+        of every motor's reported effort (appended by the excitation recorder after the 48 joint
+        channels), and that actions are normalized position targets (``low``/``high``: their
+        [-1, 1] range in rad)."""
+        from hilstack.drivers.shadow_hand.config import (
+            ACTUATED_JOINTS,
+            JOINT_HIGH_RAD,
+            JOINT_LOW_RAD,
+            hold_pose_action,
+        )
+        from hilstack.sim_backends.shadow_hand.model import scene_spec
+
+        p = params or ShadowHandParams()
+        s = parse_sim_params(p.sim, None)
+        spec = mujoco.MjSpec.from_file(str(s.mjcf)) if s.mjcf else scene_spec(s.palm_tilt_rad)
+        m = spec.compile()
+        lim = m.actuator_ctrlrange[:len(ACTUATED_JOINTS), 1]
+        loops = {}
+        for i, j in enumerate(ACTUATED_JOINTS):
+            wrist = j.startswith("WR")
+            loops[f"robot0:{j}"] = {
+                "mode": "position", "actuator": m.actuator(i).name,
+                "kp_nm_per_rad": s.kp_wrist_nm_per_rad if wrist else s.kp_finger_nm_per_rad,
+                "ki_nm_per_rad_s": s.ki_wrist_nm_per_rad_s if wrist else s.ki_finger_nm_per_rad_s,
+                "kd_nm_s": s.kd_nms_per_rad, "tau_max_nm": float(lim[i])}
+        nj = len(JOINT_NAMES)
+        act = [JOINT_NAMES.index(j) for j in ACTUATED_JOINTS]
+        fit = [JOINT_NAMES.index(j) for j in CALIBRATION_JOINTS]
+        return {"spec": spec, "joints": [f"robot0:{j}" for j in CALIBRATION_JOINTS], "loops": loops,
+                "loop_joints": [f"robot0:{j}" for j in ACTUATED_JOINTS],
+                "q": fit, "qd": [nj + k for k in fit], "current": list(range(2 * nj, 2 * nj + len(act))),
+                "loop_q": act, "loop_qd": [nj + k for k in act],
+                "state_joints": {f"robot0:{j}": (i, nj + i) for i, j in enumerate(JOINT_NAMES)},
+                "action": "goal_position_normalized", "low": JOINT_LOW_RAD[ACT_INDEX].tolist(),
+                "high": JOINT_HIGH_RAD[ACT_INDEX].tolist(), "drop_bodies": ["ball0", "ball1"],
+                "delay_numeric": DELAY_NUMERIC,
+                # an excitation (hilstack.calibration.robot_rig): the emulator runs this sim, so effects
+                # go to params.sim on both backends; balls parked; targets on a multi-sine about the
+                # hold pose (normalized units); the motors' efforts recorded after the joint channels
+                "excite": {"place": {"sim": "sim", "emulated": "sim"}, "bench": {"balls": False},
+                           "driver": {"objects_in_state": False},  # parked balls: the efforts follow the joints
+                           "mid": hold_pose_action().tolist(), "command": "position", "amplitude": 0.25,
+                           "extra_state": "effort_nm", "extra_names": [f"{j}_effort" for j in ACTUATED_JOINTS],
+                           "extra_unit": "N·m"}}
+
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:
         s = self.sim
@@ -151,8 +221,21 @@ class ShadowHandSim(LockstepSim):
         if other is not None and other is not self and other.data is not None:
             raise ConfigError(self.source, [("params.sim.world", f"a hand scene named {s.world!r} is already "
                                              "running in this process; give each its own world name")])
-        self.hand = h = build_scene(s.palm_tilt_rad, station, s.gripper_force_n, edit=edit)
+        if s.mjcf is not None:
+            spec = mujoco.MjSpec.from_file(str(s.mjcf))
+            if edit is not None:
+                edit(spec)
+            try:
+                self.hand = h = index_scene(spec)
+            except (ValueError, KeyError) as e:
+                raise ConfigError(self.source, [("params.sim.mjcf", f"{s.mjcf}: not a hand scene ({e})")]) from None
+        else:
+            self.hand = h = build_scene(s.palm_tilt_rad, station, s.gripper_force_n, edit=edit)
         self.model = h.model
+        effects = dict(s.effects)
+        nid = mujoco.mj_name2id(h.model, mujoco.mjtObj.mjOBJ_NUMERIC, DELAY_NUMERIC)
+        if nid >= 0 and "input_delay_s" not in effects:  # a calibrated MJCF's identified target delay
+            effects["input_delay_s"] = float(h.model.numeric_data[h.model.numeric_adr[nid]])
         self.data = mujoco.MjData(h.model)
         n = len(h.act_joint)
         kp = np.full(n, s.kp_finger_nm_per_rad)
@@ -167,6 +250,7 @@ class ShadowHandSim(LockstepSim):
             joint_low_rad=h.joint_low[h.act_joint],
             joint_high_rad=h.joint_high[h.act_joint],
             watchdog_s=self.params.firmware_watchdog_s,
+            **effect_fields(effects),
         ))
         self._act_qadr = h.qpos_adr[h.act_joint]
         self._act_dadr = h.dof_adr[h.act_joint]

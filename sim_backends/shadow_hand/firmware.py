@@ -24,6 +24,11 @@ the sim backend, the emulator's clock in the emulator):
   are ignored until the host releases it.
 * **motor fault** (injected): a faulted motor's effort is 0 (limp); the bit stays set.
 
+Effects the hand's MuJoCo model lacks (``FirmwareConfig``'s ``friction_nm``, ``damping_nm_s``,
+``input_delay_s``; the sim's and the emulator's ``params.sim.effects``, for calibration:
+docs/calibration.md): Coulomb and viscous losses in the tendon drive between the motor, whose
+effort is reported, and the joint, and a delay before a target frame takes effect.
+
 Pure Python/numpy, no I/O, no threads (the caller owns the clock and the loop).
 """
 
@@ -60,6 +65,39 @@ class FirmwareConfig:
     joint_low_rad: np.ndarray
     joint_high_rad: np.ndarray
     watchdog_s: float = 0.5
+    #: Coulomb friction in each joint's drive [N·m], opposing the joint's motion (0: absent)
+    friction_nm: float = 0.0
+    #: viscous friction in each joint's drive [N·m·s/rad]
+    damping_nm_s: float = 0.0
+    #: a target frame takes effect this long after it arrived [s]
+    input_delay_s: float = 0.0
+
+
+#: ``effects`` keys -> (FirmwareConfig field, upper bound): what the sim/emulator can add to the hand
+EFFECTS = {"joint_friction_nm": ("friction_nm", 0.5), "joint_damping_nm_s": ("damping_nm_s", 2.0),
+           "input_delay_s": ("input_delay_s", 0.5)}
+#: the Coulomb friction's sign function is linear below this speed (a smooth stick, stable at 1 kHz)
+FRICTION_V_EPS_RAD_S = 0.02
+
+
+def effect_fields(effects: dict | None) -> dict[str, float]:
+    """Validate an ``effects`` mapping (``params.sim.effects``) into FirmwareConfig fields; a
+    ValueError names the bad key or value (unknown, not finite, out of [0, bound])."""
+    import math
+
+    out = {}
+    for key, value in (effects or {}).items():
+        if key not in EFFECTS:
+            raise ValueError(f"effects: unknown effect {key!r}; known: {sorted(EFFECTS)}")
+        field, bound = EFFECTS[key]
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"effects.{key}: not a number: {value!r}") from None
+        if not (math.isfinite(v) and 0.0 <= v <= bound):
+            raise ValueError(f"effects.{key}: {value!r} is outside [0, {bound:g}]")
+        out[field] = v
+    return out
 
 
 class HandFirmware:
@@ -86,6 +124,8 @@ class HandFirmware:
         self.commands_received = 0
         self.commands_refused = 0
         self._q = self.target_rad.copy()
+        #: (due [s], the targets the loops keep using until then) of delayed target frames
+        self._pending: list[tuple[float, np.ndarray]] = []
 
     def preload(self, effort_nm: np.ndarray) -> None:
         """Start as if the hand had been holding its pose: the integral term carries
@@ -106,6 +146,8 @@ class HandFirmware:
             return False
         c = self.config
         sl = slice(first, first + t.size)
+        if c.input_delay_s > 0:  # the loops see this frame input_delay_s later
+            self._pending.append((float(now_s) + c.input_delay_s, self.target_rad.copy()))
         self.target_rad[sl] = np.clip(t, c.joint_low_rad[sl], c.joint_high_rad[sl])
         self.mode = MODE_POSITION
         self._fed(now_s)
@@ -119,6 +161,7 @@ class HandFirmware:
     def set_estop(self, engaged: bool) -> None:
         """Engage (latched hold at the measured position) or release (hold, wait for targets)."""
         if engaged and not self.estop:
+            self._pending.clear()  # an e-stop acts at once, whatever the drive's delay
             self.target_rad = self._q.copy()
             self.mode = MODE_ESTOP
         elif not engaged and self.estop:
@@ -147,7 +190,14 @@ class HandFirmware:
             self.watchdog_tripped = True
             self.mode = MODE_HOLD
             self.target_rad = np.array(q_rad, dtype=np.float64)
-        err = self.target_rad - q_rad
+            self._pending.clear()
+        target = self.target_rad
+        if self._pending:
+            while self._pending and self._pending[0][0] <= now_s + 1e-12:
+                self._pending.pop(0)
+            if self._pending:  # a frame that arrived less than input_delay_s ago: the older targets act
+                target = self._pending[0][1]
+        err = target - q_rad
         ki = c.ki_nm_per_rad_s
         lim_i = np.divide(c.torque_limit_nm, ki, out=np.zeros(self.n), where=ki > 0)
         self.integral_rad_s = np.clip(self.integral_rad_s + err * TICK_S, -lim_i, lim_i)
@@ -158,6 +208,9 @@ class HandFirmware:
                 if self.motor_fault_mask >> i & 1:
                     e[i] = 0.0
         self.effort_nm = e
+        if c.friction_nm or c.damping_nm_s:  # losses between the motor (its effort is reported) and the joint
+            qd = np.asarray(qd_rad_s, dtype=np.float64)
+            return e - c.friction_nm * np.clip(qd / FRICTION_V_EPS_RAD_S, -1.0, 1.0) - c.damping_nm_s * qd
         return e
 
     @property

@@ -75,6 +75,13 @@ def build_scene(palm_tilt_rad: float = 0.0, station: StationGeometry | None = No
     its actuators come after the hand's 20. ``edit`` adds to the spec before it is
     compiled (the stereo cameras and the calibration board of
     :mod:`hilstack.sim_backends.shadow_hand.cameras`)."""
+    return index_scene(scene_spec(palm_tilt_rad, station, gripper_force_n, edit), station)
+
+
+def scene_spec(palm_tilt_rad: float = 0.0, station: StationGeometry | None = None,
+               gripper_force_n: float = DEFAULT_GRIPPER_FORCE_N,
+               edit: Callable[[mujoco.MjSpec], None] | None = None) -> mujoco.MjSpec:
+    """The scene of :func:`build_scene` as an ``MjSpec``, not compiled (calibration edits it)."""
     spec = mujoco.MjSpec.from_file(str(hand_asset_path()))
     for name in ("object", "target"):
         spec.delete(spec.body(name))
@@ -104,6 +111,11 @@ def build_scene(palm_tilt_rad: float = 0.0, station: StationGeometry | None = No
         add_station(spec, station, gripper_force_n)
     if edit is not None:
         edit(spec)
+    return spec
+
+
+def index_scene(spec: mujoco.MjSpec, station: StationGeometry | None = None) -> HandModel:
+    """Compile a scene spec (:func:`scene_spec`, or one calibrated from it) with its index maps."""
     m = spec.compile()
     qadr = np.array([m.joint(f"robot0:{j}").qposadr[0] for j in JOINT_NAMES])
     dadr = np.array([m.joint(f"robot0:{j}").dofadr[0] for j in JOINT_NAMES])

@@ -42,6 +42,7 @@ from hilstack.sim_backends.velociroach.firmware import TICK_HZ as FW_TICK_HZ
 from hilstack.sim_backends.velociroach.model import (
     LEG_NAMES,
     Geometry,
+    GroundLook,
     build_mjcf,
     heightfield,
     initial_crank_angles_rad,
@@ -51,18 +52,24 @@ TWO_PI = 2.0 * math.pi
 ENCODER_COUNTS = 1 << 14  # 14-bit magnetic crank encoders
 
 #: terrain presets: Coulomb friction, contact softness (solref time constant [s], damping ratio),
-#: roughness (RMS height [m] of a seeded heightfield, 0 = plane) and its correlation length [m]
+#: roughness (RMS height [m] of a seeded heightfield, 0 = plane) and its correlation length [m],
+#: and how it looks to the chassis camera (colours of the ground texture; docs/mbrl.md, "Terrains
+#: the robot can see")
 TERRAINS: dict[str, dict[str, Any]] = {
-    "carpet": {"friction": 1.0, "solref": (0.02, 1.0), "roughness_m": 0.0, "correlation_m": 0.0},
-    "styrofoam": {"friction": 0.6, "solref": (0.005, 1.0), "roughness_m": 0.0, "correlation_m": 0.0},
-    "gravel": {"friction": 0.8, "solref": (0.006, 1.0), "roughness_m": 0.003, "correlation_m": 0.02},
-    "turf": {"friction": 0.9, "solref": (0.015, 1.0), "roughness_m": 0.002, "correlation_m": 0.03},
+    "carpet": {"friction": 1.0, "solref": (0.02, 1.0), "roughness_m": 0.0, "correlation_m": 0.0,
+               "look": GroundLook(rgb=(0.45, 0.14, 0.12), mark_rgb=(0.28, 0.08, 0.07), marks=0.4)},
+    "styrofoam": {"friction": 0.6, "solref": (0.005, 1.0), "roughness_m": 0.0, "correlation_m": 0.0,
+                  "look": GroundLook(rgb=(0.90, 0.90, 0.87), mark_rgb=(0.78, 0.78, 0.75), marks=0.15)},
+    "gravel": {"friction": 0.8, "solref": (0.006, 1.0), "roughness_m": 0.003, "correlation_m": 0.02,
+               "look": GroundLook(rgb=(0.55, 0.53, 0.50), mark_rgb=(0.30, 0.29, 0.27), marks=0.45)},
+    "turf": {"friction": 0.9, "solref": (0.015, 1.0), "roughness_m": 0.002, "correlation_m": 0.03,
+             "look": GroundLook(rgb=(0.20, 0.50, 0.18), mark_rgb=(0.12, 0.35, 0.10), marks=0.4)},
 }
 
 #: rough terrain: map beyond ±period/2 so the robot (±7 cm) always stands on it
 _WRAP_MARGIN_M = 0.25
 
-PERTURBATIONS = ("missing_leg", "payload_kg", "mocap_offset_m", "slope_deg", "heading_offset_deg")
+PERTURBATIONS = ("missing_leg", "payload_kg", "mocap_offset_m", "slope_deg", "heading_offset_deg", "terrain")
 
 
 _Scale = Annotated[float, Field(gt=0, le=2, allow_inf_nan=False)]
@@ -81,6 +88,9 @@ class SimParams(Params):
     slope_deg: float = Field(0.0, ge=-30, le=30, description="ground slope, + is uphill along world +x")
     terrain_half_size_m: float = Field(2.0, gt=0, description="rough terrains: half the period of the (endless) map")
     terrain_cell_m: float = Field(0.01, gt=0)
+    # camera
+    camera_px: int = Field(0, ge=0, le=256, description="side of the square RGB image of the chassis camera "
+                           "('front') in Observation.extras['image'] at every read (0: no images)")
     # body
     chassis_mass_kg: float = Field(0.030, gt=0)
     leg_mass_kg: float = Field(0.001, gt=0)
@@ -178,7 +188,10 @@ class VelociRoachSim(LockstepSim):
             "mocap_offset_m": np.zeros(3),
             "slope_deg": s.slope_deg,
             "heading_offset_deg": 0.0,
+            "terrain": None,  # None: params.sim.terrain; another preset takes effect at the next reset
         }
+        self._built_terrain: str | None = None
+        self._camera = None  # OffscreenRenderer of the chassis camera (camera_px > 0), made on first read
         self._seq = 0
         self.mocap_samples = 0
         self.mocap_dropped = 0
@@ -192,10 +205,18 @@ class VelociRoachSim(LockstepSim):
         )
 
     # ------------------------------------------------------------------ model
+    def terrain_name(self) -> str:
+        """The terrain the next reset builds: the ``terrain`` perturbation, else ``params.sim.terrain``."""
+        return self.perturbations["terrain"] or self.sim.terrain
+
     def terrain(self) -> dict[str, Any]:
-        """The effective terrain settings (preset with overrides)."""
+        """The effective terrain settings: the preset of :meth:`terrain_name`, with the
+        ``params.sim`` overrides (friction, solref, roughness) when it is the configured one."""
         s = self.sim
-        t = dict(TERRAINS[s.terrain])
+        name = self.terrain_name()
+        t = dict(TERRAINS[name])
+        if name != s.terrain:
+            return t
         if s.friction is not None:
             t["friction"] = s.friction
         if s.solref is not None:
@@ -205,6 +226,11 @@ class VelociRoachSim(LockstepSim):
         return t
 
     def _on_configure(self) -> None:
+        self._build()
+        self.reset()
+
+    def _build(self) -> None:
+        """The MuJoCo model and data of the current terrain (:meth:`terrain_name`)."""
         s = self.sim
         k, gr, eta, r = s.motor_k_v_s_per_rad, s.gear_ratio, s.gear_efficiency, s.motor_resistance_ohm
         # crank torque = gain·V − damping·ω_crank (the DC motor through the gearbox)
@@ -237,6 +263,7 @@ class VelociRoachSim(LockstepSim):
             slope_deg=self.perturbations["slope_deg"],
             hfield=hf,
             geometry=geom,
+            look=terr["look"],
         )
         m = mujoco.MjModel.from_xml_string(xml)
         if hf is not None:
@@ -258,14 +285,35 @@ class VelociRoachSim(LockstepSim):
         self._sensor_flag = int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
         m.opt.disableflags |= self._sensor_flag  # sensors are evaluated on demand in telemetry()
         self._apply_missing_leg()
-        self.reset()
+        self._built_terrain = self.terrain_name()
+        self._close_camera()  # its GL context holds the old model's textures
 
     def _on_cleanup(self) -> None:
+        self._close_camera()
         self.model = self.data = None
+
+    def _close_camera(self) -> None:
+        if self._camera is not None:
+            self._camera.close()
+            self._camera = None
+
+    def render_camera(self, px: int | None = None) -> np.ndarray:
+        """(px, px, 3) uint8 RGB of the chassis camera ``front`` at the current state
+        (default size ``params.sim.camera_px``); needs an offscreen GL (``MUJOCO_GL=egl``)."""
+        px = int(px or self.sim.camera_px or 64)
+        if self._camera is None or self._camera.height_px != px:
+            from hilstack.sim_backends.rendering import OffscreenRenderer
+
+            self._close_camera()
+            self._camera = OffscreenRenderer(self.model, px, px)
+        return self._camera.render(self.data, "front")
 
     def reset(self, x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> None:
         """Robot at (x, y) [m] heading ``yaw`` [rad], legs in tripod stance, battery at its
-        initial charge, firmware rebooted, sensor noise streams reseeded."""
+        initial charge, firmware rebooted, sensor noise streams reseeded; on the terrain the
+        ``terrain`` perturbation names (the world is rebuilt when it changed)."""
+        if self.terrain_name() != self._built_terrain:
+            self._build()
         m, d, s = self.model, self.data, self.sim
         mujoco.mj_resetData(m, d)
         self._badqacc_seen = 0  # mj_resetData clears MuJoCo's warning counters
@@ -335,6 +383,9 @@ class VelociRoachSim(LockstepSim):
         * ``heading_offset_deg``: pose miscalibration, the reported heading minus the true
           one (the mocap orientation is rotated about world z; position and velocities stay
           true).
+        * ``terrain``: a preset of :data:`TERRAINS` (None: ``params.sim.terrain``). The one
+          perturbation that waits for the next :meth:`reset`: a new ground under a robot
+          standing on the old one could put its feet inside it, so terrains change per episode.
         """
         if name not in PERTURBATIONS:
             raise KeyError(f"unknown perturbation {name!r}; known: {list(PERTURBATIONS)}")
@@ -359,6 +410,10 @@ class VelociRoachSim(LockstepSim):
             if self.model is not None:
                 a = math.radians(float(value))
                 self.model.opt.gravity[:] = (-9.81 * math.sin(a), 0.0, -9.81 * math.cos(a))
+        elif name == "terrain":
+            if value not in (None, "") and value not in TERRAINS:
+                raise ValueError(f"unknown terrain {value!r}; terrains are {list(TERRAINS)}")
+            self.perturbations[name] = value or None
         elif name == "heading_offset_deg":
             if not math.isfinite(float(value)):
                 raise ValueError(f"heading_offset_deg must be finite, got {value!r}")
@@ -687,8 +742,11 @@ class VelociRoachSim(LockstepSim):
         diverged, self._diverged_pending = self._diverged_pending, False
         flags[Flag.SIM_DIVERGED.value] = diverged
         flags.update(fault_flags(fw.faults))
+        extras = {"duty": (fw.duty_l, fw.duty_r), "t_fw_ms": fw.t_fw_ms}
+        if self.sim.camera_px:
+            extras["image"] = self.render_camera()
         return Observation(t_s=now, state=state, seq=self._seq, flags=flags, ok=ok and not diverged,
-                           extras={"duty": (fw.duty_l, fw.duty_r), "t_fw_ms": fw.t_fw_ms})
+                           extras=extras)
 
     def _hold_command(self, obs: Observation) -> np.ndarray:
         """What the firmware runs now: its setpoint (zero after a watchdog trip or a reboot)

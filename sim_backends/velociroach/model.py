@@ -24,10 +24,15 @@ Geometry (body frame: x forward, y left, z up; SI units):
   electrical damping is stiff at 1 ms. ``forcerange`` is the crank torque limit
   (current limit of the H-bridge).
 * ground: a plane for flat terrains or a heightfield generated from a seed for rough
-  ones; slope is applied by tilting gravity (the world frame stays level with the
-  ground, +x uphill), which keeps the heightfield and the mocap frame unchanged.
-  The heightfield is periodic: the backend moves the robot by one period when it nears
-  an edge and adds the shift back to every reported position (an endless terrain).
+  ones, drawn with the terrain's look (:class:`GroundLook`: a colour with random marks of
+  another, a MuJoCo builtin texture), so a camera tells the terrains apart. Slope is
+  applied by tilting gravity (the world frame stays level with the ground, +x uphill),
+  which keeps the heightfield and the mocap frame unchanged. The heightfield is periodic:
+  the backend moves the robot by one period when it nears an edge and adds the shift back
+  to every reported position (an endless terrain).
+* camera: ``front``, on the chassis' nose looking forward and down (``CAMERA_PITCH_DEG``)
+  at the ground just ahead of the legs, like the thesis' 3.4 g monocular camera (ch. 3.3);
+  rendered only when the backend's ``params.sim.camera_px`` asks for images.
 
 Contact filtering: legs and chassis collide with the ground only (contype/conaffinity).
 """
@@ -52,6 +57,23 @@ LEGS: tuple[tuple[str, int, float, float], ...] = (
 )
 LEG_NAMES = tuple(n for n, *_ in LEGS)
 assert LEG_NAMES == perturbations.LEG_NAMES  # one list of legs (the conditions name them)
+
+
+#: the chassis camera: pitched down by this much from the body's x axis, vertical field of view
+CAMERA_PITCH_DEG = 60.0
+CAMERA_FOVY_DEG = 50.0
+
+
+@dataclass(frozen=True)
+class GroundLook:
+    """How a terrain looks: a base colour ``rgb`` with random marks of ``mark_rgb`` covering
+    the fraction ``marks`` of a ``texture_px``² texture repeated every ``tile_m`` metres."""
+
+    rgb: tuple[float, float, float] = (0.5, 0.5, 0.5)
+    mark_rgb: tuple[float, float, float] = (0.3, 0.3, 0.3)
+    marks: float = 0.2
+    tile_m: float = 0.1
+    texture_px: int = 128
 
 
 @dataclass(frozen=True)
@@ -106,14 +128,17 @@ def build_mjcf(
     slope_deg: float,
     hfield: tuple[int, float, float] | None,
     geometry: Geometry | None = None,
+    look: GroundLook | None = None,
 ) -> str:
     """The MJCF string.
 
     ``motor_gain_nm_per_v`` = k_t·G·η/R (crank torque per terminal volt),
     ``motor_damping_nms`` = k_t·k_e·G²·η/R (back-EMF damping at the crank),
-    ``hfield`` = (n, half size [m], max height [m]) or None for a plane.
+    ``hfield`` = (n, half size [m], max height [m]) or None for a plane,
+    ``look``: the ground's texture (default: a plain grey :class:`GroundLook`).
     """
     g = geometry or Geometry()
+    lk = look or GroundLook()
     slope = math.radians(slope_deg)
     grav = (-9.81 * math.sin(slope), 0.0, -9.81 * math.cos(slope))
     legs = "\n".join(_leg_xml(n, s, xs, ph, g) for n, s, xs, ph in LEGS)
@@ -136,16 +161,26 @@ def build_mjcf(
         f'ctrllimited="false"/>'
         for side in "lr"
     )
+    # texuniform: texrepeat is repetitions per metre (the look does not depend on the map's size)
+    ground_asset = (
+        f'<texture name="ground" type="2d" builtin="flat" rgb1="{_fmt(lk.rgb)}" rgb2="{_fmt(lk.rgb)}" '
+        f'mark="random" random="{lk.marks:.6g}" markrgb="{_fmt(lk.mark_rgb)}" width="{lk.texture_px}" '
+        f'height="{lk.texture_px}"/>\n'
+        f'    <material name="ground" texture="ground" texuniform="true" texrepeat="{1 / lk.tile_m:.6g} '
+        f'{1 / lk.tile_m:.6g}" specular="0" shininess="0" reflectance="0"/>'
+    )
     if hfield is None:
-        ground_asset = ""
-        ground = '<geom name="ground" type="plane" size="0 0 0.05" class="ground"/>'
+        ground = '<geom name="ground" type="plane" size="0 0 0.05" material="ground" class="ground"/>'
     else:
         n, half, zmax = hfield
-        ground_asset = (
-            f'<hfield name="terrain" nrow="{n}" ncol="{n}" size="{half:.6g} {half:.6g} {zmax:.6g} 0.005"/>'
+        ground_asset += (
+            f'\n    <hfield name="terrain" nrow="{n}" ncol="{n}" size="{half:.6g} {half:.6g} {zmax:.6g} 0.005"/>'
         )
-        ground = '<geom name="ground" type="hfield" hfield="terrain" class="ground"/>'
+        ground = '<geom name="ground" type="hfield" hfield="terrain" material="ground" class="ground"/>'
     hx, hy, hz = g.chassis_half_m
+    pitch = math.radians(CAMERA_PITCH_DEG)
+    # image right = the body's -y, image up = the body's +z tilted forward by the pitch
+    cam_axes = (0.0, -1.0, 0.0, math.sin(pitch), 0.0, math.cos(pitch))
     return f"""
 <mujoco model="velociroach">
   <compiler angle="radian" autolimits="true"/>
@@ -154,6 +189,12 @@ def build_mjcf(
     <flag energy="disable" filterparent="enable"/>
   </option>
   <size memory="2M"/>
+  <!-- the chassis camera sees ground 2-3 cm away: a near clipping plane below that (znear is a
+       fraction of the model's extent, metres on a large heightfield); a bright, even headlight -->
+  <visual>
+    <map znear="0.0002"/>
+    <headlight ambient="0.45 0.45 0.45" diffuse="0.55 0.55 0.55" specular="0 0 0"/>
+  </visual>
   <default>
     <default class="ground">
       <geom contype="1" conaffinity="1" friction="{friction:.6g} 0.005 0.0001"
@@ -172,6 +213,7 @@ def build_mjcf(
       <geom name="chassis" type="box" size="{hx} {hy} {hz}" mass="{g.chassis_mass_kg}"
             contype="1" conaffinity="0" friction="0.3 0.005 0.0001" rgba=".8 .5 .1 1"/>
       <site name="imu" pos="0 0 0"/>
+      <camera name="front" pos="{hx:.6g} 0 {hz:.6g}" xyaxes="{_fmt(cam_axes)}" fovy="{CAMERA_FOVY_DEG:.6g}"/>
 {legs}
     </body>
   </worldbody>

@@ -14,6 +14,10 @@ from hilstack.drivers.widowx.driver import MechanismDriver, WidowXDriver
 from hilstack.sim_backends.dynamixel.backend import DynamixelSim
 from hilstack.sim_backends.widowx.world import ArmWorld, shared_world
 
+#: a mid-range pose of the arm (rad), away from the limits: calibration excitations move about it
+MID_POSE_RAD = {"waist": 0.0, "shoulder": -0.3, "elbow": 0.3, "forearm_roll": 0.0, "wrist_angle": 0.4,
+                "wrist_rotate": 0.0}
+
 
 class WidowXSim(DynamixelSim, WidowXDriver):
     """``params.sim.cameras: true`` adds ``extras["image"]``: the fixed and wrist cameras,
@@ -65,8 +69,13 @@ class WidowXSim(DynamixelSim, WidowXDriver):
             loops[n] = {"mode": "velocity", "kp_nm_s": ph.vel_kp_nm_s, "ki_nm": ph.vel_ki_nm,
                         "tau_max_nm": ph.stall_torque_nm, "kt_nm_per_a": ph.kt_nm_per_a}
         k = len(names)
+        # an excitation (hilstack.calibration.robot_rig): effects go to the sim world or the bus emulator;
+        # the bench starts holding the mid pose; a bus of its own; joint velocities track the multi-sine
+        excite = {"place": {"sim": "sim", "emulated": "emulator"}, "bench": {"start_holding": dict(MID_POSE_RAD)},
+                  "driver": {"bus_name": "excite-{seed}-{uid}", "telemetry_stale_s": 0.25},
+                  "mid": [MID_POSE_RAD[n] for n in names], "command": "velocity", "amplitude": 0.35}
         return {"spec": spec, "joints": names, "loops": loops, "q": list(range(0, k)), "qd": list(range(k, 2 * k)),
-                "current": list(range(2 * k, 3 * k)), "action": "goal_velocity"}
+                "current": list(range(2 * k, 3 * k)), "action": "goal_velocity", "excite": excite}
 
     def _world(self) -> ArmWorld:
         return shared_world(self.params.bus_name, arm_ids=self.ids, start_holding=self.params.sim.get("start_holding"),

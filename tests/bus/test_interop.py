@@ -232,8 +232,9 @@ def test_our_readers_ignore_the_foxglove_channels(tmp_path, bus):
     assert r.exit_code == 0, r.output
     assert f"{len(msgs)} messages" in r.output
     derived = [line for line in r.output.splitlines() if "(derived, not replayed)" in line]
-    assert len(derived) == 3 and any("foxglove.PoseInFrame" in line and " 20 " in line for line in derived)
+    assert len(derived) == 4 and any("foxglove.PoseInFrame" in line and " 20 " in line for line in derived)
     assert any("hil.StateFields/bot" in line and " 20 " in line for line in derived)
+    assert any("hil.Timing" in line and " 20 " in line for line in derived)
 
 
 def test_state_fields_are_named_for_foxglove(tmp_path):
@@ -275,7 +276,7 @@ def test_rerun_loads_the_recording(tmp_path):
                        text=True, timeout=120, env={**os.environ, "RERUN_ANALYTICS": "off"})
     assert p.returncode == 0, p.stderr
     status = {line.split()[-2]: line.split()[0] for line in p.stdout.splitlines() if "/hil/" in line}
-    assert len(status) == 8 and set(status.values()) == {"ok"}, p.stdout  # 8: with the state fields channel
+    assert len(status) == 9 and set(status.values()) == {"ok"}, p.stdout  # 9: with the state fields and timing
 
 
 def test_nan_state_survives_and_a_bad_message_does_not_end_reading(tmp_path):
@@ -468,3 +469,62 @@ def test_recordings_made_before_the_row_format_still_read(tmp_path):
         log._w.add_message(cid, log_time=1, data=msgspec.json.encode(plan), publish_time=1)
     back = read_messages(path)
     assert [r.msg for r in back.messages] == [plan] and back.undecodable == 0
+
+
+def test_a_jpeg_frame_is_stored_once_and_reads_back_whole(tmp_path):
+    """Each JPEG/PNG frame's bytes are in the MCAP once (the CompressedImage Foxglove and rerun
+    show), not also as base64 in the hil.Image JSON; our reader gives the image back whole."""
+    import numpy as np
+    from mcap.reader import make_reader
+
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 256, 3000, dtype=np.uint8).tobytes() for _ in range(5)]  # incompressible, as JPEG
+    path = tmp_path / "cam.mcap"
+    with McapLog(path) as log:
+        for i, data in enumerate(frames):
+            log.write(keys.image(RIG, "cam"), Image(camera="cam", t_s=0.1 * i, width=40, height=25, encoding="jpeg",
+                                                    data=data, seq=i), log_time_ns=10**9 + i)
+        log.write(keys.image(RIG, "raw"), Image(camera="raw", t_s=0.0, width=2, height=1, data=bytes(range(6))))
+    with open(path, "rb") as f:
+        payloads = [(ch.topic, m.data) for _, ch, m in make_reader(f).iter_messages()]
+    for data in frames:
+        b64 = base64.b64encode(data)
+        assert sum(p.count(data) for _, p in payloads) == 1
+        assert sum(p.count(b64) for _, p in payloads) == 0
+    assert sum(t == foxglove_image_topic(RIG, "cam") for t, _ in payloads) == 5
+    # the file is about the frames' size once (it was about twice with the base64 copy)
+    assert path.stat().st_size < 1.3 * sum(map(len, frames))
+    got = [m.msg for m in read_messages(path).messages if isinstance(m.msg, Image)]
+    assert [g.data for g in got] == [*frames, bytes(range(6))]  # the raw frame is kept as it was
+    assert [(g.seq, g.encoding, g.width) for g in got[:5]] == [(i, "jpeg", 40) for i in range(5)]
+
+
+def test_timing_counters_are_recorded_per_robot(tmp_path):
+    """hil.Timing beside each robot's states: loop rate, the longest period, states missing from
+    the recording (obs_seq gaps) and the driver node's deadline counters, plottable in Foxglove."""
+    from mcap.reader import make_reader
+
+    from hilstack.bus.recording import TimingCounters, timing_topic
+
+    path = tmp_path / "t.mcap"
+    seqs = [*range(0, 10), *range(12, 30)]  # states 10 and 11 never reached the recorder
+    with McapLog(path) as log:
+        log.write(keys.state(RIG, "nospec"), RobotState(robot="nospec", t_s=0.0, state=[0.0]), 0)  # no spec: none
+        log.write(keys.spec(RIG, "bot"), SpecMsg(robot="bot", spec=SPEC), 0)
+        for i, seq in enumerate(seqs):
+            stamp = 100.0 + 0.1 * seq + (0.25 if seq >= 25 else 0.0)  # 10 Hz, one 350 ms period at 25
+            log.write(keys.state(RIG, "bot"), RobotState(robot="bot", t_s=0.1 * seq, state=[0.0] * 5, obs_seq=seq,
+                                                         stamp_s=stamp, health={"cycle_late": i // 10}), 1 + i)
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        got = [(sch.name, json.loads(m.data)) for sch, _, m in reader.iter_messages(topics=[timing_topic(RIG, "bot")])]
+    assert len(got) == len(seqs) and {n for n, _ in got} == {"hil.Timing"}
+    assert timing_topic(RIG, "nospec") not in {c.topic for c in reader.get_summary().channels.values()}
+    t = [g for _, g in got]
+    assert t[0]["rate_hz"] is None and t[0]["dropped_states"] == 0
+    assert t[9]["rate_hz"] == pytest.approx(10.0) and t[9]["dropped_states"] == 0
+    assert t[10]["dropped_states"] == 2 and t[-1]["dropped_states"] == 2
+    assert t[10]["period_max_ms"] == pytest.approx(300.0)  # the gap of the two lost states
+    assert t[-1]["period_max_ms"] == pytest.approx(350.0) and t[-1]["cycle_late"] == 2
+    assert "cycle_missed" not in t[-1]  # the driver did not say: not made up
+    assert foxglove_parse_json_schema(TimingCounters.SCHEMA, "hil.Timing")
