@@ -55,6 +55,7 @@ COEF_OF: dict[str, str] = {
     "force_offset": "offset_acc",
     "slope": "gravity_acc",
     "battery_sag": "kb",
+    "back_emf": "kemf",
     "asymmetric_friction": "fa_acc",
     "gravity_load": "gl_acc",
     "cogging": "gc_acc",
@@ -417,6 +418,9 @@ def raw_features(p: Prepared, params: AxisParams, v: np.ndarray, smooth: bool) -
         w = input_chain(p.ep.u, p.period_s, pre_lag) * _rel_vbat(p, params.vbat_ref_v)
         fb = input_chain(w, p.period_s, {"tau_s": hp.get("tau_s", 0.0)})
         feats["kb"] = sm(fb * one)
+    if "back_emf" in eff:
+        # (a − kemf·v)·u: the drive falls with speed while driven (back-EMF under PWM)
+        feats["kemf"] = sm(-fu * one * v)
     feats["c_per_s"] = -v * one
     sgn = np.tanh(v / params.eps_v)
     if "coulomb_friction" in eff:
@@ -804,14 +808,16 @@ def _window_sse_grid(preps: list[Prepared], params: AxisParams, h: str, grid: np
     ws = np.ones(len(preps)) if weights is None else weights
     horizon = max(2, int(round(OUTPUT_FIT_HORIZON_S / preps[0].period_s)))
     total = np.zeros(len(grid))
+    jobs, used = [], []
     for wi, p in zip(ws, preps, strict=True):
         if not wi:
             continue
         hz = max(1, min(horizon, p.n - 2 * p.margin - 2))
         starts = window_starts(p, hz)
-        sim = simulate_windows(p, params, hz, starts=np.tile(starts, len(grid)),
-                               play=np.repeat(np.asarray(grid, float), starts.size))
-        err = np.sum((sim["x_pred"] - sim["x_true"]) ** 2, axis=1).reshape(len(grid), starts.size)
+        jobs.append((p, params, np.tile(starts, len(grid)), np.repeat(np.asarray(grid, float), starts.size)))
+        used.append((wi, starts.size))
+    for (wi, n_starts), sim in zip(used, simulate_many(jobs, horizon), strict=True):
+        err = np.sum((sim["x_pred"] - sim["x_true"]) ** 2, axis=1).reshape(len(grid), n_starts)
         total += wi * err.sum(axis=1)
     return total
 
@@ -893,10 +899,15 @@ def simulate_windows(p: Prepared, params: AxisParams, horizon: int,
     by the model, and the load follows only while pushed at one end of the gap (its velocity is
     the motor's then, zero in the gap).
     """
-    horizon = min(horizon, p.n - 2 * p.margin - 2)
-    horizon = max(horizon, 1)
+    return simulate_many([(p, params, starts, play)], horizon)[0]
+
+
+def _replay_job(p: Prepared, params: AxisParams, horizon: int, starts, play) -> dict:
+    """Everything one (episode, parameters) replay needs: series over the episode, values per window."""
+    horizon = max(1, min(horizon, p.n - 2 * p.margin - 2))
     if starts is None:
         starts = window_starts(p, horizon)
+    starts = np.asarray(starts, dtype=int)
     v_true = state_velocity(p, params.sensor)
     feats = raw_features(p, params, v_true, smooth=False)  # only command-side columns used below
     c = params.coef
@@ -908,60 +919,140 @@ def simulate_windows(p: Prepared, params: AxisParams, horizon: int,
         force_in = force_in + c["kb"] * feats["kb"]
     # Command-side terms were multiplied by g in raw_features; offset/friction get g below.
     drive = force_in + c.get("offset_acc", 0.0) * g + c.get("gravity_acc", 0.0)
-    fc, fs = c.get("fc_acc", 0.0), c.get("fs_extra_acc", 0.0)
-    vs = hp.get("vs", 1.0)
-    dt = p.period_s
-    x = p.ep.x[starts].astype(float).copy()
-    v = v_true[starts].astype(float).copy()
+    w = starts.size
     if play is None and hp.get("halfwidth_x", 0.0) > 0:
-        play = np.full(starts.size, hp["halfwidth_x"])
-    if play is not None:
-        x_load = x
-        x = x_load + play * motion_direction(v_true, p.v_min)[starts]
-    xs = np.empty((starts.size, horizon))
-    vs_out = np.empty((starts.size, horizon))
-    idx = starts.copy()
-    fa, gl, q0 = c.get("fa_acc", 0.0), c.get("gl_acc", 0.0), hp.get("q0_rad", 0.0)
-    gc, cog_k, cog_phase = c.get("gc_acc", 0.0), hp.get("cog_k", 1.0), hp.get("cog_phase", 0.0)
+        play = np.full(w, hp["halfwidth_x"])
+    x0 = p.ep.x[starts].astype(float)
+    has_play = play is not None
+    play_w = np.zeros(w) if play is None else np.broadcast_to(np.asarray(play, float), (w,))
+    motor0 = x0 + play_w * motion_direction(v_true, p.v_min)[starts] if has_play else x0.copy()
+
+    def per_window(value):
+        return np.full(w, float(value))
+
+    fs = c.get("fs_extra_acc", 0.0)
+    return {"p": p, "params": params, "horizon": horizon, "starts": starts, "drive": drive, "g": g,
+            "u_in": feats["a"], "kemf": per_window(c.get("kemf", 0.0)),
+            "x_load": x0, "x": motor0, "v": v_true[starts].astype(float).copy(),
+            "has_play": np.full(w, has_play), "play": play_w,
+            "c_per_s": per_window(c["c_per_s"]), "fc": per_window(c.get("fc_acc", 0.0)),
+            "fs": per_window(fs), "vs": per_window(hp.get("vs", 1.0)), "fa": per_window(c.get("fa_acc", 0.0)),
+            "gl": per_window(c.get("gl_acc", 0.0)), "q0": per_window(hp.get("q0_rad", 0.0)),
+            "gc": per_window(c.get("gc_acc", 0.0)), "cog_k": per_window(hp.get("cog_k", 1.0)),
+            "cog_phase": per_window(hp.get("cog_phase", 0.0))}
+
+
+#: How many replay jobs :func:`simulate_many` stacks into one vectorised replay (None: all of them).
+#: 1 replays one episode at a time, as before the batching: `hil bench calibrate --speed` runs that
+#: as the peer of the batched replay in the same process.
+REPLAY_BATCH_JOBS: int | None = None
+
+
+def simulate_many(jobs, horizon: int) -> list[dict[str, np.ndarray]]:
+    """:func:`simulate_windows` for many (episode, params, starts, play) jobs in one vectorised replay.
+
+    The replay loop runs once per step of the horizon for all windows of all jobs (jobs with the
+    same sample period and horizon are stacked; each window carries its own coefficients), so the
+    per-step Python overhead is paid once instead of once per episode and per parameter set. Each
+    window's arithmetic is that of the single-episode replay, so the results are the same.
+    """
+    built = [_replay_job(p, params, horizon, starts, play) for p, params, starts, play in jobs]
+    out: list[dict | None] = [None] * len(built)
+    groups: dict[tuple, list[int]] = {}
+    for i, b in enumerate(built):
+        groups.setdefault((b["horizon"], b["p"].period_s), []).append(i)
+    step = REPLAY_BATCH_JOBS or len(built) or 1
+    for (hz, dt), members in groups.items():
+        for lo in range(0, len(members), step):
+            chunk = members[lo: lo + step]
+            for i, res in zip(chunk, _replay_group([built[i] for i in chunk], hz, dt), strict=True):
+                out[i] = res
+    return out
+
+
+def _replay_group(built: list[dict], horizon: int, dt: float) -> list[dict[str, np.ndarray]]:
+    # Series of all jobs end to end; a window indexes them through its job's offset.
+    offsets = np.cumsum([0] + [b["drive"].size for b in built[:-1]])
+    drive = np.concatenate([b["drive"] for b in built])
+    g = np.concatenate([b["g"] for b in built])
+    u_in = np.concatenate([b["u_in"] for b in built])
+    idx = np.concatenate([b["starts"] + o for b, o in zip(built, offsets, strict=True)])
+
+    def cat(key):
+        return np.concatenate([b[key] for b in built])
+
+    x, v, x_load = cat("x"), cat("v"), cat("x_load")
+    has_play, play = cat("has_play"), cat("play")
+    cps, fc, fs, vs, fa = cat("c_per_s"), cat("fc"), cat("fs"), cat("vs"), cat("fa")
+    gl, q0, gc, cog_k, cog_phase = cat("gl"), cat("q0"), cat("gc"), cat("cog_k"), cat("cog_phase")
+    kemf = cat("kemf")
+    any_gl, any_gc, any_play = bool(np.any(gl)), bool(np.any(gc)), bool(np.any(has_play))
+    any_emf = bool(np.any(kemf))
+    # friction, per window exactly as the single replay: applied only where fc, fs or fa is set
+    fric = (fc != 0) | (fs != 0) | (fa != 0)
+    any_fric, any_fs = bool(np.any(fric)), bool(np.any(fs))
+    n_w = idx.size
+    xs = np.empty((n_w, horizon))
+    vs_out = np.empty((n_w, horizon))
     for h in range(horizon):
         gk = g[idx]
-        v_pred = v + dt * (drive[idx] - c["c_per_s"] * gk * v)
-        if gl:
-            v_pred = v_pred - dt * gk * gl * np.sin(x - q0)
-        if gc:
-            v_pred = v_pred - dt * gk * gc * np.sin(cog_k * x - cog_phase)
-        if fc or fs or fa:
+        v_pred = v + dt * (drive[idx] - cps * gk * v)
+        if any_emf:
+            v_pred = np.where(kemf != 0, v_pred - dt * kemf * u_in[idx] * v, v_pred)
+        if any_gl:
+            v_pred = np.where(gl != 0, v_pred - dt * gk * gl * np.sin(x - q0), v_pred)
+        if any_gc:
+            v_pred = np.where(gc != 0, v_pred - dt * gk * gc * np.sin(cog_k * x - cog_phase), v_pred)
+        if any_fric:
             # friction magnitude in the direction the axis would move (fa: forward/backward asymmetry)
-            step = dt * gk * (fc + fa * np.sign(v_pred) + (fs * np.exp(-((v / vs) ** 2)) if fs else 0.0))
+            mag = fc + fa * np.sign(v_pred)
+            if any_fs:
+                mag = np.where(fs != 0, mag + fs * np.exp(-((v / vs) ** 2)), mag + 0.0)
+            step = dt * gk * mag
             # Implicit (Moreau) friction: stick when the other forces cannot overcome it. A negative
             # fitted friction (no friction in the data, noise) is applied explicitly instead.
             stick = (step > 0) & (np.abs(v_pred) <= step)
             sgn = np.where(step > 0, np.sign(v_pred), np.sign(v))
-            v_new = np.where(stick, 0.0, v_pred - step * sgn)
+            v_new = np.where(fric, np.where(stick, 0.0, v_pred - step * sgn), v_pred)
         else:
             v_new = v_pred
         x = x + dt * 0.5 * (v + v_new)
         v = v_new
         idx = idx + 1
-        if play is None:
+        if any_play:
+            x_next = np.minimum(np.maximum(x_load, x - play), x + play)
+            vs_out[:, h] = np.where(has_play, np.where(x_next != x_load, v, 0.0), v)  # the load moves only pushed
+            x_load = np.where(has_play, x_next, x_load)
+            xs[:, h] = np.where(has_play, x_load, x)
+        else:
             xs[:, h] = x
             vs_out[:, h] = v
-        else:
-            x_next = np.minimum(np.maximum(x_load, x - play), x + play)
-            vs_out[:, h] = np.where(x_next != x_load, v, 0.0)  # the load moves only while pushed
-            x_load = x_next
-            xs[:, h] = x_load
-    ks = starts[:, None] + 1 + np.arange(horizon)[None, :]
-    s, b = params.sensor["scale_v"], params.sensor["bias_v"]
-    return {"x_pred": xs, "x_true": p.ep.x[ks], "v_pred": s * vs_out + b, "v_true": p.v_obs[ks], "k": ks}
+    res, lo = [], 0
+    for b in built:
+        p, params, starts = b["p"], b["params"], b["starts"]
+        hi = lo + starts.size
+        ks = starts[:, None] + 1 + np.arange(horizon)[None, :]
+        s, bias = params.sensor["scale_v"], params.sensor["bias_v"]
+        res.append({"x_pred": xs[lo:hi], "x_true": p.ep.x[ks], "v_pred": s * vs_out[lo:hi] + bias,
+                    "v_true": p.v_obs[ks], "k": ks})
+        lo = hi
+    return res
 
 
 def score(p: Prepared, params: AxisParams, horizon: int) -> Scores:
-    one = predict_one_step(p, params)
-    ms = simulate_windows(p, params, horizon)
-    return Scores(
-        one_sse={ch: float(np.sum((one[f"{ch}_pred"] - one[f"{ch}_true"]) ** 2)) for ch in ("x", "v")},
-        one_n=int(one["k"].size),
-        multi_sse={ch: float(np.sum((ms[f"{ch}_pred"] - ms[f"{ch}_true"]) ** 2)) for ch in ("x", "v")},
-        multi_n=int(ms["k"].size),
-    )
+    return score_many([(p, params)], horizon)[0]
+
+
+def score_many(pairs, horizon: int) -> list[Scores]:
+    """:func:`score` of many (episode, params) pairs, their open-loop windows replayed in one batch."""
+    sims = simulate_many([(p, params, None, None) for p, params in pairs], horizon)
+    out = []
+    for (p, params), ms in zip(pairs, sims, strict=True):
+        one = predict_one_step(p, params)
+        out.append(Scores(
+            one_sse={ch: float(np.sum((one[f"{ch}_pred"] - one[f"{ch}_true"]) ** 2)) for ch in ("x", "v")},
+            one_n=int(one["k"].size),
+            multi_sse={ch: float(np.sum((ms[f"{ch}_pred"] - ms[f"{ch}_true"]) ** 2)) for ch in ("x", "v")},
+            multi_n=int(ms["k"].size),
+        ))
+    return out

@@ -38,6 +38,9 @@ class EffectSpec:
     needs: tuple[str, ...] = ()
     diagnostic: str = ""
     absorbed_by_nominal: str = ""
+    #: +1 when only a positive primary parameter has the physical meaning (a back-EMF that
+    #: lowers the drive as speed rises); an interval wholly on the other side is rejected
+    physical_sign: int = 0
 
 
 CATALOGUE: dict[str, EffectSpec] = {
@@ -75,6 +78,10 @@ CATALOGUE: dict[str, EffectSpec] = {
                                        "with every candidate, so a viscous error is a tuning error, not an effect"),
         EffectSpec("force_offset", "constant force (e.g. cable drag, bias in the amplifier), d/J",
                    "offset_acc", "x/s^2", 0.0, diagnostic="mean residual"),
+        EffectSpec("back_emf", "drive force that falls with speed while driven, (a - kemf·v)·u (back-EMF of a "
+                   "PWM-driven DC motor: it opposes the supply only during the on-time, a share u of the period)",
+                   "kemf", "x/s^2 per (u·x/s)", 0.0, diagnostic="residual vs command × velocity",
+                   physical_sign=1),
         EffectSpec("battery_sag", "actuator gain scales with measured supply voltage: (1+k(vbat-vref)/vref)",
                    "gain_per_rel_v", "1", 0.0, needs=("vbat",), diagnostic="residual vs battery voltage"),
         EffectSpec("saturation", "command clipped at ±limit", "limit_u", "u", float("inf"),
@@ -121,7 +128,10 @@ LOOK_ALIKES: dict[frozenset, str] = {
     frozenset({"asymmetric_friction", "coulomb_friction"}):
         "motion in both directions at similar speeds (the asymmetry is the difference between them)",
     frozenset({"asymmetric_friction", "force_offset"}):
-        "holding still under small commands (an offset pushes at rest, direction-dependent friction does not)",
+        "none on the axis alone while the offset is below the Coulomb level: Coulomb friction fc plus an offset "
+        "-fa moves, sticks and breaks away exactly as friction fc ± fa by direction for every command; a force "
+        "sensor, or a run with the load turned round (an offset from gravity or a cable changes sign, friction "
+        "does not)",
     frozenset({"gravity_load", "force_offset"}):
         "motion over a wider range of positions (a gravity load changes with the angle, an offset does not)",
     frozenset({"cogging", "gravity_load"}):
@@ -132,6 +142,11 @@ LOOK_ALIKES: dict[frozenset, str] = {
         "on which way it moves)",
     frozenset({"cogging", "force_offset"}):
         "motion over more periods of the load (a periodic load averages out over a period, an offset does not)",
+    frozenset({"back_emf", "saturation"}):
+        "the same large command held at several speeds (back-EMF cuts the drive as the speed rises, a saturation "
+        "at any speed)",
+    frozenset({"back_emf", "stribeck_friction"}):
+        "coasting at several speeds with the command at zero (back-EMF acts only while driven, friction always)",
     frozenset({"gravity_load", "slope"}):
         "motion over a wider range of positions (a gravity load changes with the angle, a slope does not)",
 }

@@ -195,6 +195,21 @@ class AxisModel:
     def score(self, prep: axis.Prepared, fitted: FittedAxis, horizon: int) -> axis.Scores:
         return axis.score(prep, fitted.params, horizon)
 
+    def episode_losses(self, pairs, horizon: int, nm) -> list:
+        """:meth:`episode_loss` of many (episode, fitted) pairs, replayed in one vectorised batch."""
+        from hilstack.calibration.selection import episode_loss
+
+        scores = axis.score_many([(p, f.params) for p, f in pairs], horizon)
+        return [episode_loss(s, nm) for s in scores]
+
+    def oob_losses(self, pairs, nm) -> list:
+        """:meth:`oob_loss` of many (episode, fitted) pairs, replayed in one vectorised batch."""
+        import numpy as np
+
+        scores = axis.score_many([(p, f.params) for p, f in pairs], max(nm.horizon, 2))
+        return [np.array([s.one_sse["x"] / nm.one_x, s.one_sse["v"] / nm.one_v,
+                          s.multi_sse["x"] / nm.multi_x, s.multi_sse["v"] / nm.multi_v]) for s in scores]
+
     def channel_sd(self, preps: list[axis.Prepared]) -> dict[str, dict[str, float]]:
         """Report normalizers: std of the one-step increment and of the channel itself."""
         import numpy as np

@@ -44,6 +44,10 @@ class SelectionConfig:
     min_gain: float = 0.02  # relative reduction of the held-out loss
     n_boot: int = 40
     min_stability: float = 0.8
+    #: the stability check's replicates are extended (to 40, 80, 160, ... up to this many) while
+    #: the 95 % Monte Carlo interval of the stability still contains ``min_stability``, so the
+    #: verdict does not depend on how many replicates were asked for (see :func:`bootstrap_effect`)
+    n_boot_max: int = 160
     horizon_s: float = 1.0
     min_episodes: int = 20
     max_rounds: int = 6
@@ -393,14 +397,33 @@ class CandidateResult:
 def crossval_losses(model: Model, preps, folds, effects, nm, horizon: int,
                     start: FittedModel | None, search: list[str] | None) -> np.ndarray:
     """Held-out loss of every training-pool episode (pool order = concatenated folds)."""
-    out = []
+    jobs = []
     for i, held in enumerate(folds):
         idx = folds.train(i) if isinstance(folds, Folds) else [j for f, fold in enumerate(folds) if f != i
                                                                for j in fold]
         train = [preps[j] for j in idx]
         fitted = model.fit(train, effects, refine=False, start=start, search=search)
-        out.extend(model.episode_loss(preps[j], fitted, horizon, nm) for j in held)
-    return np.asarray(out)
+        jobs.extend((preps[j], fitted) for j in held)
+    return np.asarray(_episode_losses(model, jobs, horizon, nm))
+
+
+def _episode_losses(model: Model, jobs, horizon: int, nm) -> list:
+    """Held-out losses of (episode, fitted) pairs: in one batch when the model can (axis), else one by one."""
+    if hasattr(model, "episode_losses"):
+        return model.episode_losses(jobs, horizon, nm)
+    return [model.episode_loss(p, f, horizon, nm) for p, f in jobs]
+
+
+def _oob_losses(model: Model, jobs, nm) -> list:
+    if hasattr(model, "oob_losses"):
+        return model.oob_losses(jobs, nm)
+    return [model.oob_loss(p, f, nm) for p, f in jobs]
+
+
+def _wrong_sign(interval: list[float], spec) -> bool:
+    """The whole interval lies on the side of the no-effect value that has no physical meaning."""
+    sign = getattr(spec, "physical_sign", 0)
+    return bool(sign) and (interval[1] < spec.no_effect if sign > 0 else interval[0] > spec.no_effect)
 
 
 def _excludes(interval: list[float], no_effect: float) -> bool:
@@ -410,11 +433,34 @@ def _excludes(interval: list[float], no_effect: float) -> bool:
     return lo > no_effect or hi < no_effect
 
 
+def wilson_interval(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of a proportion k/n (the Monte Carlo error of a bootstrap share)."""
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    d = 1 + z * z / n
+    mid = (p + z * z / (2 * n)) / d
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return mid - half, mid + half
+
+
+#: replicate counts the stability check may extend to (each a prefix of the next: same seed)
+BOOT_SCHEDULE = (40, 80, 160, 320, 640)
+
+
 def bootstrap_effect(model: Model, preps, pool_idx: np.ndarray, base: FittedModel, effects: list[str],
-                     name: str, n_boot: int, seed: int, nm) -> tuple[list[float], float, list[float]]:
+                     name: str, n_boot: int, seed: int, nm, n_boot_max: int | None = None,
+                     min_stability: float = 0.8) -> tuple[list[float], float, list[float]]:
     """Episode bootstrap of the candidate's primary parameter and its out-of-bag stability.
 
-    Returns (95 % interval, fraction of replicates whose out-of-bag one-step loss improves, values).
+    Returns (95 % interval, fraction of replicates whose out-of-bag loss improves, values).
+
+    Sequential Monte Carlo (Gandy 2009): after ``n_boot`` replicates, while the 95 % Wilson
+    interval of the stability still contains ``min_stability`` (the verdict is within Monte Carlo
+    error of its threshold), the replicates are extended to the next count of
+    :data:`BOOT_SCHEDULE` up to ``n_boot_max``. Replicates are drawn from one seeded stream, so
+    20 replicates are the first 20 of 40: runs asked for 20, 25 or 40 replicates that are still
+    undecided continue on the same replicates and reach the same verdict.
     """
     rng = np.random.default_rng(seed + 7919)
     pool = [preps[i] for i in pool_idx]
@@ -423,17 +469,27 @@ def bootstrap_effect(model: Model, preps, pool_idx: np.ndarray, base: FittedMode
     # replicate cannot flip its sign by moving to the other representation of the same load.
     ref = (model.fit(pool, effects + [name], refine=False, start=base, search=[name])
            if hasattr(base, "primary_along") and name in axis.PHASE_OF else None)
-    for _ in range(n_boot):
-        counts = np.bincount(rng.integers(0, len(pool), len(pool)), minlength=len(pool)).astype(float)
-        b = model.fit(pool, effects, weights=counts, refine=False, start=base, search=[])
-        c = model.fit(pool, effects + [name], weights=counts, refine=False, start=base, search=[name])
-        vals.append(c.primary(name) if ref is None else c.primary_along(name, ref))
-        oob = np.flatnonzero(counts == 0)
-        if oob.size:
+    targets = [n_boot] + [n for n in BOOT_SCHEDULE if n_boot < n <= (n_boot_max or n_boot)]
+    for target in targets:
+        reps = []  # (out-of-bag episodes, fit without, fit with) per replicate, scored in one batch below
+        while len(vals) < target:
+            counts = np.bincount(rng.integers(0, len(pool), len(pool)), minlength=len(pool)).astype(float)
+            b = model.fit(pool, effects, weights=counts, refine=False, start=base, search=[])
+            c = model.fit(pool, effects + [name], weights=counts, refine=False, start=base, search=[name])
+            vals.append(c.primary(name) if ref is None else c.primary_along(name, ref))
+            oob = np.flatnonzero(counts == 0)
+            if oob.size:
+                reps.append((oob, b, c))
+        jobs = [(pool[i], fit) for oob, b, c in reps for fit in (b, c) for i in oob]
+        losses = iter(_oob_losses(model, jobs, nm))
+        for oob, _b, _c in reps:
             tried += 1
-            lb = np.sum([np.atleast_1d(model.oob_loss(pool[i], b, nm)) for i in oob], axis=0)
-            lc = np.sum([np.atleast_1d(model.oob_loss(pool[i], c, nm)) for i in oob], axis=0)
+            lb = np.sum([np.atleast_1d(next(losses)) for _ in oob], axis=0)
+            lc = np.sum([np.atleast_1d(next(losses)) for _ in oob], axis=0)
             wins += heldout_gain(lb[None], lc[None]) > 0
+        lo, hi = wilson_interval(wins, tried)
+        if not lo <= min_stability <= hi:
+            break  # the stability is clear of its threshold beyond Monte Carlo error
     arr = np.asarray(vals, float)
     interval = [float(np.nanpercentile(arr, 2.5)), float(np.nanpercentile(arr, 97.5))]
     return interval, (wins / tried if tried else 0.0), [float(v) for v in arr]
@@ -549,11 +605,14 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
                 log(f"  round {rnd + 1}: {r.name}: {r.verdict}")
                 continue
             r.interval, r.stability, r.boot_values = bootstrap_effect(
-                model, preps, pool_idx, current, effects, r.name, cfg.n_boot, seed + rnd, nm)
+                model, preps, pool_idx, current, effects, r.name, cfg.n_boot, seed + rnd, nm, cfg.n_boot_max,
+                cfg.min_stability)
             ok_int = _excludes(r.interval, model.catalogue[r.name].no_effect)
             ok_stab = r.stability >= cfg.min_stability
-            r.verdict = "accepted" if ok_int and ok_stab else (
+            bad_sign = _wrong_sign(r.interval, model.catalogue[r.name])
+            r.verdict = "accepted" if ok_int and ok_stab and not bad_sign else (
                 "rejected: bootstrap interval includes the no-effect value" if not ok_int
+                else "rejected: the estimate has the sign without physical meaning" if bad_sign
                 else f"rejected: unstable under episode bootstrap ({r.stability:.2f})")
             log(f"  round {rnd + 1}: {r.name}: interval {r.interval}, stability {r.stability:.2f} -> {r.verdict}")
             if r.verdict == "accepted":
@@ -703,8 +762,10 @@ def beam_sets(model, preps, folds, pool_idx, effects, nm, horizon, current, resu
                 others = [o for o in members if o != m]
                 res = CandidateResult(m, losses[key], e_set.gain, paired_p(base_loss, losses[key]), evidence=e_set)
                 res.interval, res.stability, res.boot_values = bootstrap_effect(
-                    model, preps, pool_idx, current, effects + others, m, cfg.n_boot, seed, nm)
-                ok = _excludes(res.interval, model.catalogue[m].no_effect) and res.stability >= cfg.min_stability
+                    model, preps, pool_idx, current, effects + others, m, cfg.n_boot, seed, nm, cfg.n_boot_max,
+                    cfg.min_stability)
+                ok = (_excludes(res.interval, model.catalogue[m].no_effect) and res.stability >= cfg.min_stability
+                      and not _wrong_sign(res.interval, model.catalogue[m]))
                 res.verdict = (f"accepted (in the set {' + '.join(members)})" if ok
                                else "rejected: set member fails the bootstrap")
                 log(f"  set {' + '.join(members)}: {m} interval {res.interval}, stability {res.stability:.2f}")

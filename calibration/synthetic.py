@@ -78,6 +78,7 @@ DEFAULTS: dict[str, dict[str, float]] = {
     "viscous_friction": {"c_per_s": 9.0},  # replaces the nominal c: a tuning error, absorbed by refit
     "force_offset": {"offset_acc": 1.0},
     "battery_sag": {"gain_per_rel_v": 1.0},
+    "back_emf": {"kemf": 2.0},  # (a - kemf·v)·u
     "saturation": {"limit_u": 1.0},
     "payload_mass": {"mu_per_unit": 0.6},
     "slope": {"gravity_acc": 1.0},
@@ -193,6 +194,7 @@ def generate(cfg: SynthConfig) -> list[Recording]:
     alpha = math.exp(-dts / tau) if tau > 0 else 0.0
 
     hl = eff.get("load_backlash", {}).get("halfwidth_x", 0.0)
+    kemf = eff.get("back_emf", {}).get("kemf", 0.0)
 
     x = np.zeros(E)
     v = np.zeros(E)
@@ -207,7 +209,7 @@ def generate(cfg: SynthConfig) -> list[Recording]:
         for j in range(S):
             i = k * S + j
             f_act = alpha * f_act + (1 - alpha) * us[:, i] if tau > 0 else us[:, i]
-            drive = g * (cfg.a * f_act - c * v + d_off - cog_amp * np.sin(cog_k * x - cog_phase)
+            drive = g * (cfg.a * f_act - kemf * f_act * v - c * v + d_off - cog_amp * np.sin(cog_k * x - cog_phase)
                          - gl * np.sin(x - q0) - ts_amp * np.exp(-(((x - ts_x0) / ts_w) ** 2))) + slope
             v_pred = v + dts * drive
             step = dts * g * (fc + fa * np.sign(v_pred) + fs * np.exp(-((v / vs) ** 2)))

@@ -5,6 +5,7 @@ the three real data sets in ../shared/data/real, and prints one JSON line per ru
 with their evidence level, the verdict, the locked-test multi-step NRMSE before/after, CPU seconds.
 
     PYTHONPATH=. nice -n 10 python scripts/measure_selection.py --seeds 0,1,2 [--beam-width 3] [--real]
+    PYTHONPATH=. nice -n 10 python scripts/measure_selection.py --cases "" --real --sets dfki --real-n-boot 20,25,40
 """
 
 from __future__ import annotations
@@ -28,7 +29,10 @@ CASES = {
 
 
 def _summary(name, seed, r, cpu):
-    return {"case": name, "seed": seed, "verdict": r["verdict"],
+    decisions = {d["name"]: [d["verdict"], d.get("stability")] for rd in r.get("rounds", [])
+                 for d in rd.get("decisions", []) if d.get("stability") is not None}
+    return {"case": name, "seed": seed, "n_boot": r["config"].get("n_boot"), "verdict": r["verdict"],
+            "decisions": decisions,
             "effects": {e["name"]: e["evidence"]["level"] for e in r["effects"]},
             "findings": {f["name"]: f["level"] for f in r.get("findings", [])},
             "nrmse_before": r["before"]["multi_step_nrmse"]["mean"],
@@ -41,6 +45,8 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--real", action="store_true", help="also the real data sets (dfki, dart, emps)")
     ap.add_argument("--beam-width", type=int, default=None, help="(after the beam search) its width")
+    ap.add_argument("--sets", default="dfki,dart,emps", help="which real data sets (with --real)")
+    ap.add_argument("--real-n-boot", default="20", help="bootstrap replicates for the real data sets (a list: each)")
     a = ap.parse_args()
     torch.set_num_threads(1)
     from hilstack.calibration import run_calibration
@@ -53,11 +59,10 @@ def main() -> None:
     cfg = SelectionConfig(**kw)
     tmp = tempfile.mkdtemp()
 
-    def run(name, seed, data, **extra):
+    def run(name, seed, data, n_boot=None, **extra):
         t0 = time.process_time()
-        r = run_calibration(data, out_dir=f"{tmp}/{name}_{seed}", seed=seed, progress=False, plots=False,
-                            config=SelectionConfig(**{**kw, "n_boot": 20}) if extra.pop("real", False) else cfg,
-                            **extra)
+        r = run_calibration(data, out_dir=f"{tmp}/{name}_{seed}_{n_boot}", seed=seed, progress=False, plots=False,
+                            config=SelectionConfig(**{**kw, "n_boot": n_boot}) if n_boot else cfg, **extra)
         print(json.dumps(_summary(name, seed, r, time.process_time() - t0)), flush=True)
 
     for name in [c for c in a.cases.split(",") if c]:
@@ -71,10 +76,15 @@ def main() -> None:
             warnings.simplefilter("ignore")
             dfki = dfki_episodes(find_real("dfki_pendulum"))
             dart = dart_episodes(find_real("dart_rccar"))
-        run("dfki", 0, dfki, real=True)
-        run("dart", 0, dart, real=True)
-        csv = emps_to_csv(find_real("emps") / "DATA_EMPS.mat", f"{tmp}/emps.csv")
-        run("emps", 0, csv, real=True, column_map="t=time,u=volts,x=position", k_u=EMPS_GTAU_N_PER_V)
+        sets = a.sets.split(",")
+        for nb in [int(n) for n in a.real_n_boot.split(",")]:
+            if "dfki" in sets:
+                run("dfki", 0, dfki, n_boot=nb)
+            if "dart" in sets:
+                run("dart", 0, dart, n_boot=nb)
+            if "emps" in sets:
+                csv = emps_to_csv(find_real("emps") / "DATA_EMPS.mat", f"{tmp}/emps.csv")
+                run("emps", 0, csv, n_boot=nb, column_map="t=time,u=volts,x=position", k_u=EMPS_GTAU_N_PER_V)
 
 
 if __name__ == "__main__":

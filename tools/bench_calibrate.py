@@ -21,6 +21,7 @@ Cases (``CASES``):
 | ``cogging_joint`` | rotary joint (rad), 16 episodes, encoder 0.5 mrad | cogging 2 rad/s²·sin(6q − φ), φ drawn per seed |
 | ``asymmetric_friction`` | 14 episodes | Coulomb friction 2.0 ± 0.8 by direction |
 | ``backlash_quantised`` | 16 episodes, encoder quantised to 1 mm, velocity logged as its finite difference | load-side play 8 mm |
+| ``backlash_command`` | 14 episodes, encoder 0.5 mm | command-side play 0.2 V (half-width) |
 | ``servo_vehicle`` | forward-only speed commands (unbounded position), quantised odometry 1 cm | transport delay 100 ms |
 | ``velociroach`` | MuJoCo sim recordings through MCAP (sensor noise on) | payload 40 g |
 
@@ -57,6 +58,7 @@ CASES: dict[str, Case] = {c.name: c for c in [
     Case("asymmetric_friction", "asymmetric_friction", artefacts="friction 2.8 forward, 1.2 backward"),
     Case("backlash_quantised", "load_backlash",
          artefacts="1 mm encoder on the load; velocity = finite difference of the quantised position"),
+    Case("backlash_command", "backlash", artefacts="play of 0.2 V on the command (gear before the drive); 0.5 mm encoder"),
     Case("servo_vehicle", "delay", artefacts="forward-only speed commands, unbounded position; 1 cm odometry"),
     Case("velociroach", "payload_mass", model="velociroach", artefacts="MuJoCo sim, MCAP, sensor noise"),
 ]}
@@ -108,6 +110,11 @@ def _axis_files(case: str, seed: int, hidden: bool, out: Path) -> tuple[Path, st
                                    effects={"load_backlash": {"halfwidth_x": 0.008}} if hidden else {}))
         write_csv(eps, path)
         return path, "t=time,u=volts,x=position,v=velocity"
+    if case == "backlash_command":
+        eps = generate(SynthConfig(n_episodes=14, duration_s=6.0, seed=seed, x_quant=5e-4,
+                                   effects={"backlash": {"halfwidth_u": 0.2}} if hidden else {}))
+        write_csv(eps, path)
+        return path, "t=time,u=volts,x=position"
     if case == "servo_vehicle":
         # v follows the speed command (first-order servo, gain 1, time constant 0.25 s)
         eps = generate(SynthConfig(n_episodes=14, duration_s=6.0, seed=seed, a=4.0, c_per_s=4.0, u_max=2.0,
@@ -197,6 +204,81 @@ def run_bench_calibrate(seeds: int = 20, cases: list[str] | None = None, out_dir
     (Path(out_dir) / f"gauntlet_seeds{first_seed}-{first_seed + seeds - 1}.json").write_text(
         json.dumps(result, indent=1, default=str))
     return result
+
+
+SPEED_SAMPLES = 10_000
+
+
+def speed_recording(out: Path) -> tuple[Path, str, str, float | None]:
+    """A ~10,000-sample recording for the speed mode: (CSV, column map, what it is, k_u).
+
+    The first 10 s (10,000 samples at 1 kHz) of the real EMPS recording when it is found
+    (``calibration.emps``'s data path), else 100 s of the synthetic axis at 100 Hz with Coulomb
+    friction (the same size)."""
+    import pandas as pd
+
+    from hilstack.calibration.emps import EMPS_GTAU_N_PER_V, DataNotFound, emps_to_csv
+    from hilstack.calibration.realdata import find_real
+
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        full = emps_to_csv(find_real("emps") / "DATA_EMPS.mat", out / "emps_full.csv")
+        df = pd.read_csv(full).iloc[:SPEED_SAMPLES]
+        df.to_csv(out / "speed.csv", index=False)
+        return out / "speed.csv", "t=time,u=volts,x=position", "EMPS (real), first 10,000 samples", EMPS_GTAU_N_PER_V
+    except DataNotFound:
+        from hilstack.calibration.synthetic import SynthConfig, generate, write_csv
+
+        eps = generate(SynthConfig(n_episodes=1, duration_s=SPEED_SAMPLES * 0.01, seed=0,
+                                   effects={"coulomb_friction": {}}))
+        write_csv(eps, out / "speed.csv")
+        return out / "speed.csv", "t=time,u=volts,x=position", "synthetic axis (EMPS not found), 10,000 samples", None
+
+
+def run_speed(out_dir: str | Path = "bench_calibrate_speed", log=print) -> dict:
+    """`hil bench calibrate --speed`: one calibration of a ~10,000-sample recording, batched replay
+    against its peer (the same selection replaying one episode at a time), in this process.
+
+    Returns CPU and wall seconds of both, their ratios (peer / batched) and whether the two reports
+    agree (verdict, effects and locked-test errors must be identical: the batching changes no number).
+    """
+    from hilstack.calibration import axis, run_calibration
+
+    out = Path(out_dir)
+    path, cmap, what, k_u = speed_recording(out)
+    n = sum(1 for _ in open(path)) - 1
+    res = {"recording": what, "samples": n}
+    reports = {}
+    for label, batch in (("batched", None), ("peer_one_episode_at_a_time", 1)):
+        axis.REPLAY_BATCH_JOBS = batch
+        try:
+            t0, c0 = time.perf_counter(), time.process_time()
+            r = run_calibration(path, column_map=cmap, out_dir=out / label, seed=0, k_u=k_u, progress=False,
+                                plots=False)
+            res[label] = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+        finally:
+            axis.REPLAY_BATCH_JOBS = None
+        reports[label] = r
+        log(f"{label}: {res[label]['cpu_s']:.1f} CPU s, {res[label]['wall_s']:.1f} s wall; verdict {r['verdict']}, "
+            f"effects {[e['name'] for e in r['effects']]}")
+    a, b = reports["batched"], reports["peer_one_episode_at_a_time"]
+    res["identical"] = (a["verdict"] == b["verdict"] and a["effects"] == b["effects"]
+                        and a["before"] == b["before"] and a["after"] == b["after"])
+    res["verdict"], res["effects"] = a["verdict"], [e["name"] for e in a["effects"]]
+    res["multi_step_nrmse"] = [a["before"]["multi_step_nrmse"]["mean"], a["after"]["multi_step_nrmse"]["mean"]]
+    for k in ("cpu_s", "wall_s"):
+        res[f"{k}_ratio_peer_over_batched"] = res["peer_one_episode_at_a_time"][k] / max(res["batched"][k], 1e-9)
+    return res
+
+
+def format_speed(res: dict) -> str:
+    return (f"{res['recording']} ({res['samples']} samples): verdict {res['verdict']} {res['effects']}, "
+            f"multi-step NRMSE {res['multi_step_nrmse'][0]:.4f} -> {res['multi_step_nrmse'][1]:.4f}\n"
+            f"batched replay: {res['batched']['cpu_s']:.1f} CPU s ({res['batched']['wall_s']:.1f} s wall); "
+            f"peer, one episode at a time: {res['peer_one_episode_at_a_time']['cpu_s']:.1f} CPU s "
+            f"({res['peer_one_episode_at_a_time']['wall_s']:.1f} s wall)\n"
+            f"peer / batched: {res['cpu_s_ratio_peer_over_batched']:.2f}x CPU, "
+            f"{res['wall_s_ratio_peer_over_batched']:.2f}x wall; reports identical: {res['identical']}")
 
 
 def _percentiles(values: list[float]) -> dict:

@@ -138,11 +138,20 @@ def bench_calibrate(
                                 "a local Ray runtime)"),
     ray: str | None = RAY_OPTION,
     first_seed: int = typer.Option(0, "--first-seed", help="first seed (to run the seeds in batches)"),
+    speed: bool = typer.Option(False, "--speed", help="instead of the gauntlet: the run time of one calibration of "
+                               "a 10,000-sample recording (EMPS when found), batched replay vs one episode at a time"),
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """Realistic-data gauntlet for `hil calibrate`: hits, misses and false alarms over seeds."""
-    from hilstack.tools.bench_calibrate import format_table, run_bench_calibrate
+    from hilstack.tools.bench_calibrate import format_speed, format_table, run_bench_calibrate, run_speed
 
+    if speed:
+        res = run_speed(out, log=lambda s: typer.echo(s, err=True))
+        if json_out:
+            echo_json(res)
+        else:
+            typer.echo(format_speed(res))
+        return
     try:
         r = run_bench_calibrate(seeds=seeds, cases=cases.split(",") if cases else None, out_dir=out, workers=workers,
                                 first_seed=first_seed, ray=ray, log=lambda s: typer.echo(s, err=True))

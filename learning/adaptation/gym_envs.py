@@ -19,8 +19,13 @@ velocity of the root minus ``ctrl_cost`` · Σ a² of the *applied* action (HC 0
 0.05 for staying alive). Episodes have a fixed length (the ant's unhealthy-termination is off).
 
 The state the models see is gymnasium's v5 observation (positions without the root x, then
-velocities); ``velocity_index`` is the root's forward velocity in it, which the planners'
-cost reads from the predicted states.
+velocities) followed by one channel more: the root's **mean forward velocity over the last
+step**, (x_after − x_before)/dt, the displacement the reward pays for (gymnasium's own
+``forward_reward``; the reference code puts the torso's centre of mass in its observation and
+its planner's reward is the predicted change of it over dt). ``velocity_index`` is that
+channel; the planners' cost reads it from the predicted states, so the model predicts the
+rewarded quantity itself, not the instantaneous qvel[0], which swings within a gait cycle
+(docs/adaptation.md, "The reference code's settings line by line"). At reset the channel holds qvel[0].
 """
 
 from __future__ import annotations
@@ -44,10 +49,10 @@ class EnvSpec:
 
 
 ENVS: dict[str, EnvSpec] = {
-    # obs: qpos[1:] (8) then qvel (9); qvel[0] is the root's forward velocity
-    "half_cheetah": EnvSpec("HalfCheetah-v5", 17, 6, 8, 0.05, 0.0),
-    # obs: qpos[2:] (13) then qvel (14); qvel[0] at 13. No termination, no contact forces.
-    "ant": EnvSpec("Ant-v5", 27, 8, 13, 0.0, 0.05,
+    # obs: qpos[1:] (8) then qvel (9), then the mean forward velocity over the last step (17)
+    "half_cheetah": EnvSpec("HalfCheetah-v5", 18, 6, 17, 0.05, 0.0),
+    # obs: qpos[2:] (13) then qvel (14), then the mean forward velocity (27). No termination, no contact forces.
+    "ant": EnvSpec("Ant-v5", 28, 8, 27, 0.0, 0.05,
                    (("terminate_when_unhealthy", False), ("include_cfrc_ext_in_observation", False))),
 }
 
@@ -93,16 +98,21 @@ class GymBenchmarkEnv:
     [-1, 1] (both envs' action bounds).
     """
 
-    def __init__(self, name: str):
+    def __init__(self, name: str, frame_skip: int | None = None):
         import gymnasium as gym
 
         if name not in ENVS:
             raise ValueError(f"unknown benchmark env {name!r}; known: {sorted(ENVS)}")
+        if frame_skip is not None and not (isinstance(frame_skip, int) and 1 <= frame_skip <= 50):
+            raise ValueError(f"frame_skip must be an int in [1, 50] (MuJoCo steps per action), got {frame_skip!r}")
         self.name, self.spec = name, ENVS[name]
-        self.env = gym.make(self.spec.gym_id, **dict(self.spec.kwargs)).unwrapped
-        if self.env.observation_space.shape != (self.spec.state_dim,):
+        kw = dict(self.spec.kwargs)
+        if frame_skip is not None:
+            kw["frame_skip"] = frame_skip
+        self.env = gym.make(self.spec.gym_id, **kw).unwrapped
+        if self.env.observation_space.shape != (self.spec.state_dim - 1,):
             raise RuntimeError(f"{self.spec.gym_id} observation is {self.env.observation_space.shape}, "
-                               f"this module expects ({self.spec.state_dim},)")
+                               f"this module expects ({self.spec.state_dim - 1},) plus its forward-velocity channel")
         self.condition = np.ones(self.spec.action_dim, dtype=np.float32)
 
     def set_condition(self, multipliers: np.ndarray) -> None:
@@ -113,13 +123,16 @@ class GymBenchmarkEnv:
 
     def reset(self, seed: int) -> np.ndarray:
         obs, _ = self.env.reset(seed=int(seed))
-        return obs.astype(np.float32)
+        return np.append(obs, self.env.data.qvel[0]).astype(np.float32)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float]:
+        """``(next_state, reward)``: reward = (x_after − x_before)/dt − ctrl_cost·Σ a² (+ alive)."""
         a = np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0) * self.condition
+        x0 = float(self.env.data.qpos[0])
         obs, _, _, _, _ = self.env.step(a)
-        v = float(self.env.data.qvel[0])
-        return obs.astype(np.float32), v - self.spec.ctrl_cost * float(np.sum(a * a)) + self.spec.alive_bonus
+        v = (float(self.env.data.qpos[0]) - x0) / self.env.dt
+        return (np.append(obs, v).astype(np.float32),
+                v - self.spec.ctrl_cost * float(np.sum(a * a)) + self.spec.alive_bonus)
 
     def close(self) -> None:
         self.env.close()

@@ -37,11 +37,12 @@ class Truth:
             for i, (si, ai) in enumerate(zip(s.numpy(), a.numpy(), strict=True)):
                 d.qpos[0] = 0
                 d.qpos[1:] = si[:8]
-                d.qvel[:] = si[8:]
+                d.qvel[:] = si[8:17]
                 d.ctrl[:] = np.clip(ai, -1, 1)
                 mujoco.mj_step(m, d, nstep=5)
                 out[i, :8] = d.qpos[1:]
-                out[i, 8:] = d.qvel
+                out[i, 8:17] = d.qvel
+                out[i, 17] = d.qpos[0] / 0.05  # the mean forward velocity over the step (x started at 0)
             return torch.as_tensor(out)
 
         return dyn

@@ -42,7 +42,7 @@ for k in range(12):
     for _ in range(int(rng.integers(0, 60))):
         env.step(rng.uniform(-1, 1, 6))
     q0, v0 = d.qpos.copy(), d.qvel.copy()
-    s0 = env.env._get_obs().astype(np.float32)
+    s0 = np.append(env.env._get_obs(), d.qvel[0]).astype(np.float32)  # the suite's state (18)
     A = rng.uniform(-1, 1, (200, 10, 6)).astype(np.float32)
     R = np.zeros(200)
     for n in range(200):

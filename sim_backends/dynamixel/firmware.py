@@ -51,6 +51,7 @@ from hilstack.drivers.dynamixel.control_table import (
     ControlTable,
     control_table,
 )
+from hilstack.sim_backends.effects import FRICTION_V_EPS_RAD_S, validate_effects
 
 TICK_S = 0.001
 MODEL_NUMBERS = {"XM430-W350": 1020, "XM540-W270": 1120, "XL430-W250": 1060}
@@ -94,27 +95,11 @@ class ServoPhysics:
 #: ``effects`` keys -> (ServoPhysics field, upper bound): what the emulator can add to the sim
 EFFECTS = {"joint_friction_nm": ("friction_nm", 2.0), "joint_damping_nm_s": ("damping_nm_s", 5.0),
            "input_delay_s": ("input_delay_s", 0.5)}
-#: the Coulomb friction's sign function is linear below this speed (a smooth stick, stable at 1 kHz)
-FRICTION_V_EPS_RAD_S = 0.02
 
 
 def effect_fields(effects: dict | None) -> dict[str, float]:
-    """Validate an ``effects`` mapping (emulator config / sim params) into ServoPhysics fields.
-
-    Raises ValueError naming the bad key or value (unknown, not finite, out of [0, bound])."""
-    out = {}
-    for key, value in (effects or {}).items():
-        if key not in EFFECTS:
-            raise ValueError(f"effects: unknown effect {key!r}; known: {sorted(EFFECTS)}")
-        field, bound = EFFECTS[key]
-        try:
-            v = float(value)
-        except (TypeError, ValueError):
-            raise ValueError(f"effects.{key}: not a number: {value!r}") from None
-        if not (math.isfinite(v) and 0.0 <= v <= bound):
-            raise ValueError(f"effects.{key}: {value!r} is outside [0, {bound:g}]")
-        out[field] = v
-    return out
+    """Validate an ``effects`` mapping into ServoPhysics fields (a ValueError names the bad key or value)."""
+    return validate_effects(effects, EFFECTS)
 
 
 class Servo:

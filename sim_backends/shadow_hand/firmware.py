@@ -48,6 +48,7 @@ from hilstack.drivers.shadow_hand.protocol import (  # noqa: F401 - re-exported 
     MODE_HOLD,
     MODE_POSITION,
 )
+from hilstack.sim_backends.effects import FRICTION_V_EPS_RAD_S, validate_effects
 
 TICK_S = 0.001
 
@@ -76,28 +77,11 @@ class FirmwareConfig:
 #: ``effects`` keys -> (FirmwareConfig field, upper bound): what the sim/emulator can add to the hand
 EFFECTS = {"joint_friction_nm": ("friction_nm", 0.5), "joint_damping_nm_s": ("damping_nm_s", 2.0),
            "input_delay_s": ("input_delay_s", 0.5)}
-#: the Coulomb friction's sign function is linear below this speed (a smooth stick, stable at 1 kHz)
-FRICTION_V_EPS_RAD_S = 0.02
 
 
 def effect_fields(effects: dict | None) -> dict[str, float]:
-    """Validate an ``effects`` mapping (``params.sim.effects``) into FirmwareConfig fields; a
-    ValueError names the bad key or value (unknown, not finite, out of [0, bound])."""
-    import math
-
-    out = {}
-    for key, value in (effects or {}).items():
-        if key not in EFFECTS:
-            raise ValueError(f"effects: unknown effect {key!r}; known: {sorted(EFFECTS)}")
-        field, bound = EFFECTS[key]
-        try:
-            v = float(value)
-        except (TypeError, ValueError):
-            raise ValueError(f"effects.{key}: not a number: {value!r}") from None
-        if not (math.isfinite(v) and 0.0 <= v <= bound):
-            raise ValueError(f"effects.{key}: {value!r} is outside [0, {bound:g}]")
-        out[field] = v
-    return out
+    """Validate an ``effects`` mapping into FirmwareConfig fields (a ValueError names the bad key or value)."""
+    return validate_effects(effects, EFFECTS)
 
 
 class HandFirmware:

@@ -44,6 +44,27 @@ def test_conditions_act_on_the_commands(name):
     env.close()
 
 
+@pytest.mark.parametrize("name", ["half_cheetah", "ant"])
+def test_forward_channel_is_the_rewarded_displacement_over_the_step(name):
+    env = GymBenchmarkEnv(name)
+    sp = env.spec
+    s = env.reset(4)
+    assert s.shape == (sp.state_dim,) and s[sp.velocity_index] == pytest.approx(env.env.data.qvel[0], abs=1e-6)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        x0 = float(env.env.data.qpos[0])
+        a = rng.uniform(-1, 1, sp.action_dim).astype(np.float32)
+        s, r = env.step(a)
+        v = (float(env.env.data.qpos[0]) - x0) / env.env.dt
+        assert s[sp.velocity_index] == pytest.approx(v, rel=1e-5, abs=1e-5)
+        assert r == pytest.approx(v - sp.ctrl_cost * float(np.sum(a * a)) + sp.alive_bonus, rel=1e-5, abs=1e-5)
+        # the rest of the state is gymnasium's observation
+        np.testing.assert_allclose(s[:-1], env.env._get_obs(), rtol=1e-6, atol=1e-6)
+    # not the instantaneous velocity: within a gait they differ
+    assert s[sp.velocity_index] != pytest.approx(float(env.env.data.qvel[0]), abs=1e-3)
+    env.close()
+
+
 def test_switch_mid_rollout_changes_the_condition_at_that_step():
     env = GymBenchmarkEnv("half_cheetah")
     seen = []
@@ -59,8 +80,9 @@ def test_switch_mid_rollout_changes_the_condition_at_that_step():
 
 def test_cost_prefers_forward_velocity_and_small_actions():
     cost = gym_suite.reward_cost("half_cheetah")
-    st = torch.zeros(1, 2, 4, 17)
-    st[0, 0, 1:, 8] = 1.0  # candidate 0 runs forward at 1 m/s
+    st = torch.zeros(1, 2, 4, 18)
+    st[0, 0, 1:, 17] = 1.0  # candidate 0 runs forward at 1 m/s (mean over each step)
+    st[0, 1, 1:, 8] = 5.0   # candidate 1's instantaneous qvel[0] is not what the reward pays
     act = torch.zeros(2, 3, 6)
     c = cost(st, act)
     assert c.shape == (1, 2) and c[0, 0] == pytest.approx(-3.0) and c[0, 1] == 0

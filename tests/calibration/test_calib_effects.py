@@ -19,6 +19,7 @@ CASES = [
     ("coulomb_friction", 0.1),
     ("force_offset", 0.1),
     ("battery_sag", 0.15),
+    ("back_emf", 0.1),
     ("saturation", 0.1),
     ("payload_mass", 0.15),
     ("sensor_bias", 0.1),

@@ -63,14 +63,19 @@ def test_dfki_pendulum_gravity_found_strong_and_error_cut(dfki_report):
     assert r["after"]["multi_step_nrmse"]["mean"] <= 0.75 * r["before"]["multi_step_nrmse"]["mean"]
 
 
-def test_dart_car_friction_named_and_error_cut(dart_report):
-    """39 throttle-step runs (u = throttle, v = encoder speed): a speed-dependent friction (Coulomb +
-    Stribeck) enters at strong evidence and the locked test error falls (measured 0.093 -> 0.068)."""
+def test_dart_car_friction_and_back_emf_named_and_error_cut_by_30_percent(dart_report):
+    """39 throttle-step runs (u = throttle, v = encoder speed): the source's rolling friction (Coulomb)
+    and its motor curve's back-EMF, F = (a - b·v)·throttle, enter at moderate or better and the locked
+    test error falls by at least 30 % (issue 28; measured 0.093 -> 0.028, -69 %; without the back-EMF
+    term in the catalogue it was 0.093 -> 0.067, -28 %)."""
     r = dart_report
-    names = {e["name"] for e in r["effects"]}
-    assert names & {"coulomb_friction", "stribeck_friction"}, (names, r["findings"])
+    lv = {e["name"]: e["evidence"]["level"] for e in r["effects"]}
+    assert lv.get("coulomb_friction") in ("strong", "moderate"), (lv, r["findings"])
+    assert lv.get("back_emf") in ("strong", "moderate"), (lv, r["findings"])
+    emf = next(e for e in r["effects"] if e["name"] == "back_emf")
+    assert emf["params"]["kemf"] > 0  # the drive falls with speed, as the source's (a - b·v)
     assert r["verdict"] == "found"
-    assert r["after"]["multi_step_nrmse"]["mean"] < 0.85 * r["before"]["multi_step_nrmse"]["mean"]
+    assert r["after"]["multi_step_nrmse"]["mean"] <= 0.7 * r["before"]["multi_step_nrmse"]["mean"]
 
 
 def test_real_data_path_names_the_places_looked(monkeypatch, tmp_path):
