@@ -735,7 +735,10 @@ class Driver(ABC):
     def read(self) -> Observation:
         if self._lifecycle is Lifecycle.UNCONFIGURED:
             raise LifecycleError(f"{self.spec.name}: read() needs configure() first")
-        obs = self._read()
+        try:
+            obs = self._read()
+        except LinkError as e:  # a backend whose link died mid-call: the error path, whoever raised
+            self.fail_link(e)
         self._expire_inputs()
         if not np.all(np.isfinite(obs.state)):
             # whatever the backend missed: NaN/inf in the state is never a healthy reading
@@ -843,7 +846,10 @@ class Driver(ABC):
         self._expire_inputs()  # never command a robot that stopped answering
         now = self.now()
         a = self.limit(a, now)
-        self._write(a)
+        try:
+            self._write(a)
+        except LinkError as e:  # e.g. the port's write failed (device killed): stop, UNCONFIGURED
+            self.fail_link(e)
         self._record_applied(a, now)
         return a.copy()
 

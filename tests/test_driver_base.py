@@ -378,3 +378,40 @@ def test_an_input_silent_for_its_periods_takes_the_error_path_from_read_and_writ
     with pytest.raises(LinkError, match="frozen, switched off or unreachable"):
         d.read()
     assert d.lifecycle is Lifecycle.UNCONFIGURED and d.stopped == 1
+
+
+@pytest.mark.parametrize("where", ["read", "write"])
+def test_a_link_error_raised_inside_a_backend_call_takes_the_error_path(where):
+    """A device killed mid-write (the port's write fails with EIO) surfaces as a LinkError raised
+    by the backend's own _write/_read, not through fail_link: the contract still stops the robot,
+    goes UNCONFIGURED, keeps last_error, and never commands the dead device again."""
+    from hilstack.drivers.base import LifecycleError, LinkError
+
+    class DiesMidCall(Fake):
+        dead = False
+
+        def _read(self):
+            if self.dead and where == "read":
+                raise LinkError("serial port: read failed (EIO)")
+            return super()._read()
+
+        def _write(self, a):
+            if self.dead and where == "write":
+                raise LinkError("serial port: write failed (EIO)")
+            super()._write(a)
+
+    d = DiesMidCall()
+    with d:
+        d.write([0.3])
+        d.dead = True
+        with pytest.raises(LinkError, match="failed"):
+            d.read() if where == "read" else d.write([0.3])
+        assert d.lifecycle is Lifecycle.UNCONFIGURED and "EIO" in d.last_error
+        if where == "read":  # the port still writes: the held target was re-sent as the stop
+            assert len(d.sent) == 2
+        else:  # the stop was tried on the dead port, and that is reported
+            assert "the stop was not sent" in d.last_error
+        n_sent = len(d.sent)
+        with pytest.raises(LifecycleError):
+            d.write([0.3])
+        assert len(d.sent) == n_sent
