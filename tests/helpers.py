@@ -11,10 +11,43 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _port_range() -> tuple[int, int]:
+    """Ports the OS never hands out by itself: below its ephemeral range (Linux default
+    32768-60999), from which every outgoing connection and every ``:0`` listener draws."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    return max(1024, low - 12768), low
+
+
+_next_port: int | None = None
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A port free now that no other socket can take meanwhile by chance.
+
+    A port from ``bind(0)`` is in the ephemeral range: between this call and the test's node
+    listening on it, any Zenoh session's ephemeral listener or outgoing connection (another
+    test's, another worker's) may take it, and a peer whose rendezvous listen fails joins that
+    stranger's session instead. So: a port below the ephemeral range, each pytest-xdist worker
+    in its own quarter of it, handed out in turn from a per-process start."""
+    global _next_port
+    lo, hi = _port_range()
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]
+    span = (hi - lo) // 4
+    base = lo + (int(worker) % 4 if worker.isdigit() else 0) * span
+    if _next_port is None:
+        _next_port = base + os.getpid() % span
+    for _ in range(span):
+        port, _next_port = _next_port, base + (_next_port - base + 1) % span
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError(f"no free port in {base}-{base + span - 1}")
 
 
 class Proc:
