@@ -409,6 +409,12 @@ class PDDM(Planner):
         init_mean: first mean action ``[A]`` (default: middle of the bounds).
         filter: ``"noise"`` or ``"actions"`` (above).
         low_noise_fraction, low_noise_scale: the low-noise share of the samples (above).
+        reachable: the actuator's reachable set, ``prev [N, A] -> (lo, hi)`` (each ``[N, A]``):
+            the actions it can execute one step after ``prev``. Given, every sampled sequence
+            is projected into it step by step from the action executed last
+            (``a_{n,t} ← clip(a_{n,t}, lo(a_{n,t-1}), hi(a_{n,t-1}))``, after the filter), so
+            no candidate is scored with a jump a rate-limited actuator would cut; the
+            weighted mean of reachable sequences stays reachable (the set is a box per step).
     """
 
     name = "pddm"
@@ -416,7 +422,9 @@ class PDDM(Planner):
     def __init__(self, *args, gamma: float = 20.0, beta: float = 0.7,
                  sigma: float | Sequence[float] | None = None,
                  init_mean: Sequence[float] | None = None, filter: str = "noise",
-                 low_noise_fraction: float = 0.0, low_noise_scale: float = 0.3, **kwargs) -> None:
+                 low_noise_fraction: float = 0.0, low_noise_scale: float = 0.3,
+                 reachable: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]] | None = None,
+                 **kwargs) -> None:
         if not 0.0 < beta <= 1.0:
             raise ValueError(f"beta must be in (0, 1], got {beta}")
         if filter not in ("noise", "actions"):
@@ -430,6 +438,7 @@ class PDDM(Planner):
         self.filter = filter
         self.low_noise_fraction = float(low_noise_fraction)
         self.low_noise_scale = float(low_noise_scale)
+        self.reachable = reachable
         self._sigma_arg = sigma
         self._init_mean = init_mean
         super().__init__(*args, **kwargs)
@@ -467,13 +476,24 @@ class PDDM(Planner):
             for t in range(H):
                 prev = b * (mean[t] + u[:, t]) + (1.0 - b) * prev
                 actions[:, t] = prev
-            return self._clip(actions)
+            return self._reach(self._clip(actions))
         # smooth the noise, written straight into the action buffer, then shifted by the mean
         prev = torch.zeros(N, A)
         for t in range(H):
             prev = b * u[:, t] + (1.0 - b) * prev
             actions[:, t] = prev
-        return self._clip(actions.add_(mean))
+        return self._reach(self._clip(actions.add_(mean)))
+
+    def _reach(self, actions: torch.Tensor) -> torch.Tensor:
+        """``actions`` projected into :attr:`reachable` step by step from the action executed last."""
+        if self.reachable is None:
+            return actions
+        prev = self.previous.expand(actions.shape[0], -1)
+        for t in range(actions.shape[1]):
+            lo, hi = self.reachable(prev)
+            actions[:, t] = torch.minimum(torch.maximum(actions[:, t], lo), hi)
+            prev = actions[:, t]
+        return actions
 
     def _plan(self, dynamics, cost, s0):
         mean = self.mean
@@ -520,12 +540,15 @@ class PddmConfig:
     low_noise_fraction: float = 0.0
     low_noise_scale: float = 0.3
 
-    def planner(self, seed: int | None = 0, init_mean: Sequence[float] | None = None) -> PDDM:
-        """The planner; ``init_mean``: its first mean action (default the middle of the bounds)."""
+    def planner(self, seed: int | None = 0, init_mean: Sequence[float] | None = None,
+                reachable: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]] | None = None) -> PDDM:
+        """The planner; ``init_mean``: its first mean action (default the middle of the bounds);
+        ``reachable``: the actuator's reachable set (:class:`PDDM`)."""
         return PDDM(self.action_low, self.action_high, horizon=self.horizon, samples=self.samples,
                     gamma=self.gamma, beta=self.beta, sigma=self.sigma, action_dim=self.action_dim,
                     seed=seed, init_mean=init_mean, filter=self.filter,
-                    low_noise_fraction=self.low_noise_fraction, low_noise_scale=self.low_noise_scale)
+                    low_noise_fraction=self.low_noise_fraction, low_noise_scale=self.low_noise_scale,
+                    reachable=reachable)
 
     def model_kwargs(self) -> dict:
         return {"state_dim": self.state_dim, "action_dim": self.action_dim,

@@ -150,6 +150,27 @@ class HoldActionMap:
         z = np.where(d > 0, d / np.maximum(self.up, 1e-9), d / np.maximum(self.down, 1e-9))
         return np.clip(z, -1.0, 1.0)
 
+    def reachable(self, step: np.ndarray):
+        """The planner's reachable set under a driver rate limit of ``step`` per control step
+        (driver units, ``action_rate_per_s · period_s``), as :class:`~hilstack.control.planners.PDDM`
+        takes it: ``prev z [N, A] -> (lo, hi)``, the z whose driver action is within ``step``
+        of ``prev``'s (exact: the map is monotone, piecewise linear)."""
+        h = torch.as_tensor(self.hold, dtype=torch.float32)
+        up = torch.as_tensor(np.maximum(self.up, 1e-9), dtype=torch.float32)
+        down = torch.as_tensor(np.maximum(self.down, 1e-9), dtype=torch.float32)
+        s = torch.as_tensor(np.broadcast_to(np.asarray(step, dtype=np.float64), self.hold.shape).copy(),
+                            dtype=torch.float32)
+
+        def to_z(a: torch.Tensor) -> torch.Tensor:
+            d = a - h
+            return torch.where(d > 0, d / up, d / down).clamp(-1.0, 1.0)
+
+        def bounds(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            a = h + torch.where(z > 0, z * up, z * down)
+            return to_z((a - s).clamp(min=-1.0)), to_z((a + s).clamp(max=1.0))
+
+        return bounds
+
 
 #: the robot config the Baoding task runs on (its spec gives the joints and the hold pose)
 HAND = "shadow_hand"
@@ -364,6 +385,11 @@ class BaodingConfig(Presets):
     action_units: str = "hold"
     #: the model's state: the joint velocities too (the reference code has none)
     joint_velocities: bool = False
+    #: sample only what the hand can execute: every candidate sequence projected into the
+    #: driver's rate limit (``action_rate_per_s``: a joint's full range in 0.5 s) from the
+    #: action executed last (:meth:`HoldActionMap.reachable`); the reference code's hand has
+    #: no rate limit, ours cuts the sampler's jumps, which the model then never saw executed
+    rate_aware: bool = False
     #: the plan's first mean: "hold" = the hold pose (z = 0; the reference code's zeros),
     #: "mid" = the middle of every joint's range
     init_mean: str = "hold"
@@ -575,12 +601,27 @@ class BaodingRun(MbrlRun):
 
     def pddm_policy(self, model, seed: int, samples: int | None = None) -> BaodingPolicy:
         """PDDM through ``model``; ``samples``: instead of the configured K (:meth:`fit_pddm_to_period`)."""
-        planner = self.pddm_config(samples).planner(seed=seed, init_mean=self._init_mean())  # a seed per rollout
+        planner = self.pddm_config(samples).planner(seed=seed, init_mean=self._init_mean(),  # a seed per rollout
+                                                    reachable=self.reachable())
         feats = BaodingFeatures(self.state_names, self.period_s, self.bcfg.joint_velocities)
         # on a wall-clock rig the plan starts from the state after the command already sent
         mpc = MpcPolicy(model, planner, BaodingCost(self.task, feats.names, self.period_s),
                         delay_steps=self.command_delay)
         return BaodingPolicy(mpc, feats, self.amap or HoldActionMap(np.zeros(len(self.action_names)), 1.0))
+
+    def reachable(self):
+        """The planner's reachable set (``rate_aware``), or None: the driver's rate limit per
+        control step in the planner's units (:meth:`HoldActionMap.reachable`)."""
+        from hilstack.drivers.registry import spec_of
+
+        if not self.bcfg.rate_aware:
+            return None
+        # the rig's spec once connected (a real hand's own limit), else the hand's config
+        step = self.max_step if self.max_step is not None else spec_of(HAND).max_step_normalized()
+        if step is None:
+            return None
+        step = np.where(np.isfinite(step), step, 2.0)
+        return (self.amap or HoldActionMap(np.zeros(len(self.action_names)), 1.0)).reachable(step)
 
     def fit_pddm_to_period(self, model) -> int | None:
         """Wall-clock hands: PDDM's K cut until its median plan fits the period's budget on

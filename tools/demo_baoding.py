@@ -484,8 +484,385 @@ def thesis_scale_cost(calls: int = 15, sizes: tuple[int, ...] = (700, 400, 200),
     return out
 
 
+#: the two presets' samplers (issue 30, the diagnosis of docs/baoding.md): the thesis-scale
+#: default's (the reference code's: K 700, sigma 0.9, the action filter, beta 0.6, gamma 20, 10 %
+#: low noise) and the quick preset's (K 200, sigma 0.05, the noise filter, beta 0.7, gamma 100)
+SAMPLERS: dict[str, dict[str, Any]] = {
+    "thesis": {"samples": 700, "sigma": 0.9, "filter": "actions", "beta": 0.6, "gamma": 20.0,
+               "low_noise_fraction": 0.1},
+    "quick": {"samples": 200, "sigma": 0.05, "filter": "noise", "beta": 0.7, "gamma": 100.0,
+              "low_noise_fraction": 0.0},
+}
+#: the thesis-scale sampler with its candidates projected into the hand's rate limit (``rate_aware``)
+SAMPLERS["thesis_rate"] = {**SAMPLERS["thesis"], "rate_aware": True}
+
+
+def run_episodes(run_dir: Path, stems: list[str] | None = None) -> dict[str, list]:
+    """The raw episodes of a run's recordings (``run_dir/recordings``), by recording stem
+    (``000-random``, ``012-mpc``...); eval and set-aside recordings are left out."""
+    from hilstack.learning.recordings import episodes_from_mcap
+
+    out: dict[str, list] = {}
+    for f in sorted((Path(run_dir) / "recordings").glob("*.mcap")):
+        if "eval" in f.name or "unfinished" in f.name or (stems is not None and f.stem not in stems):
+            continue
+        out[f.stem] = episodes_from_mcap(f, "hand")
+    return out
+
+
+def probe_model(model, episodes: list, task, horizon: int = 7, period_s: float = 0.1) -> dict[str, float]:
+    """How well ``model`` predicts what the Baoding planner needs, on held-out model episodes
+    (features; actions in the planner's units), in physical units so that models with other
+    normalisations compare: the balls' one-step position error (mm RMS per ball) beside
+    "the balls stay" and "the balls keep their velocity"; the joints' one-step error (rad RMS)
+    beside "the joints stay"; over every ``horizon``-step open-loop window replaying the logged
+    actions with both balls in the palm throughout, the balls' position error at step H beside
+    "the balls stay", and how well the predicted turn of the pair over the window (Δ of
+    ``task.pair_phase``) matches the true one: ``turn_r2`` (1 − SSE/SST; 0 = no better than
+    predicting the mean turn, < 0 worse) and ``turn_corr``. A planner can only turn the pair
+    with a model whose ``turn_r2`` is well above 0."""
+    import torch
+
+    from hilstack.learning.dynamics import h_step_windows
+
+    names = list(episodes[0].meta["state_names"])
+    bp = [names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"]
+    bv = [names.index(f"ball{i}_v{c}") for i in range(2) for c in "xyz"]
+    jn = [i for i, n in enumerate(names) if n.endswith("_pos") and not n.startswith("ball")]
+    s = np.concatenate([e.states[:-1] for e in episodes])
+    a = np.concatenate([e.actions for e in episodes])
+    y = np.concatenate([e.states[1:] for e in episodes])
+    with torch.inference_mode():
+        p = model.predict(torch.from_numpy(s).float(), torch.from_numpy(a).float()).mean(0).double().numpy()
+
+    def ball_rms_mm(x: np.ndarray) -> float:  # x: [N, 6] position errors → RMS per-ball distance
+        return 1e3 * float(np.sqrt(np.mean(np.sum(x.reshape(-1, 2, 3) ** 2, -1))))
+
+    out = {"transitions": int(len(s)),
+           "ball_1step_mm": ball_rms_mm(p[:, bp] - y[:, bp]),
+           "ball_1step_stay_mm": ball_rms_mm(s[:, bp] - y[:, bp]),
+           "ball_1step_constvel_mm": ball_rms_mm(s[:, bp] + period_s * s[:, bv] - y[:, bp]),
+           "joint_1step_rad": float(np.sqrt(np.mean((p[:, jn] - y[:, jn]) ** 2))),
+           "joint_1step_stay_rad": float(np.sqrt(np.mean((s[:, jn] - y[:, jn]) ** 2)))}
+    start, acts, truth = h_step_windows(episodes, horizon, max_starts=None)
+    keep = np.array([all(task.in_palm(t[bp].reshape(2, 3)) for t in (st, *tr)) for st, tr in zip(start, truth, strict=True)])
+    start, acts, truth = start[keep], acts[keep], truth[keep]
+    with torch.inference_mode():
+        cur = torch.from_numpy(start).float()
+        for h in range(horizon):
+            cur = model.predict(cur, torch.from_numpy(np.ascontiguousarray(acts[:, h])).float())
+        end = cur.mean(0).double().numpy()
+
+    def turn(b0: np.ndarray, b1: np.ndarray) -> np.ndarray:
+        d = np.array([task.pair_phase(x[bp]) - task.pair_phase(z[bp]) for x, z in zip(b1, b0, strict=True)])
+        return (d + np.pi) % (2 * np.pi) - np.pi
+
+    true_turn, pred_turn = turn(start, truth[:, -1]), turn(start, end)
+    sst = float(np.sum((true_turn - true_turn.mean()) ** 2))
+    out.update({"windows": int(len(start)), "horizon": horizon,
+                "ball_hstep_mm": ball_rms_mm(end[:, bp] - truth[:, -1, bp]),
+                "ball_hstep_stay_mm": ball_rms_mm(start[:, bp] - truth[:, -1, bp]),
+                "turn_true_std_deg": float(np.degrees(true_turn.std())),
+                "turn_rmse_deg": float(np.degrees(np.sqrt(np.mean((pred_turn - true_turn) ** 2)))),
+                "turn_r2": 1.0 - float(np.sum((pred_turn - true_turn) ** 2)) / max(sst, 1e-12),
+                "turn_corr": float(np.corrcoef(pred_turn, true_turn)[0, 1]) if len(start) > 2 else float("nan")})
+    return out
+
+
+def closed_loop(model, sampler: dict[str, Any], episodes: int, seed: int = 0, steps: int = 100,
+                sim=None) -> dict[str, Any]:
+    """PDDM through ``model`` on the MuJoCo hand in-process (the sim the rig runs, without the
+    bus: the planner and the model are what is compared), ``episodes`` episodes of at most
+    ``steps`` from the reset (hold pose, balls at rest), the planner's sampler from
+    ``sampler`` (:data:`SAMPLERS`' keys over :data:`~hilstack.control.planners.BAODING_PDDM`),
+    episode ``e`` planned with seed ``(seed, e)``; scored with the task's metrics
+    (:func:`~hilstack.learning.baoding.summarize`), with the plan time p50."""
+    from hilstack.control.costs import BaodingCost, baoding_episode_metrics
+    from hilstack.control.planners import BAODING_PDDM
+    from hilstack.control.policies import MpcPolicy
+    from hilstack.drivers.registry import make_backend
+    from hilstack.learning.baoding import (
+        BaodingFeatures,
+        BaodingPolicy,
+        hold_action_map,
+        load_baoding_task,
+        summarize,
+    )
+
+    own = sim is None
+    if own:
+        sim = make_backend("shadow_hand", "sim", objects_in_state=True)
+        sim.configure()
+        sim.activate()
+    task, amap = load_baoding_task(), hold_action_map()
+    raw = list(sim.spec.state.names)
+    wrist = raw.index("WRJ0_pos")
+    sampler = dict(sampler)
+    reach = amap.reachable(sim.spec.action_rate_per_s * sim.spec.period_s) if sampler.pop("rate_aware", False) else None
+    pc = replace(BAODING_PDDM, **sampler)
+    scores, plan_s, cut = [], [], []
+    try:
+        for e in range(episodes):
+            sim.reset()
+            feats = BaodingFeatures(raw, 0.1)
+            planner = pc.planner(seed=int(np.random.SeedSequence([seed, e]).generate_state(1)[0]),
+                                 init_mean=np.zeros(pc.action_dim), reachable=reach)
+            pol = BaodingPolicy(MpcPolicy(model, planner, BaodingCost(task, feats.names, 0.1)), feats, amap)
+            pol.reset()
+            o = sim.read()
+            states = [o.state]
+            for _ in range(steps):
+                t0 = time.perf_counter()
+                act = pol(o.state)
+                plan_s.append(time.perf_counter() - t0)
+                cut.append(np.abs(sim.write(act) - act))  # what the driver's rate limit took off
+                sim.tick()
+                o = sim.read()
+                states.append(o.state)
+                if task.dropped(o.state[-6:].reshape(2, 3)):
+                    break
+            st = np.array(states)
+            scores.append(baoding_episode_metrics(task, st[:, -6:].reshape(-1, 2, 3), None,
+                                                  wrist_rad=st[:, wrist], period_s=0.1))
+    finally:
+        if own:
+            sim.cleanup()
+    cut_a = np.array(cut)
+    return {**summarize(scores), "rotation_per_episode_deg": [float(m["rotation_deg"]) for m in scores],
+            "plan_ms_p50": 1e3 * float(np.median(plan_s)), "sampler": dict(sampler), "rate_aware": reach is not None,
+            # the share of commanded joint steps the driver's rate limit cut, and by how much (driver units)
+            "rate_cut_share": float((cut_a > 1e-6).mean()), "rate_cut_mean": float(cut_a.mean())}
+
+
+class SimOracle:
+    """A perfect model for the planner: the MuJoCo hand itself. Each plan's first call
+    (:meth:`begin` before it) copies the hand's true state (MuJoCo's data and the firmware's
+    loops) into one copy per candidate; each call then steps every copy one control period
+    with its candidate's action (planner units, mapped to the driver's) and returns the
+    copies' model states (:class:`~hilstack.learning.baoding.BaodingFeatures`); each copy's
+    command goes through the driver's rate limit (``action_rate_per_s``, one write per period,
+    from the command the hand holds), as the hand's own writes do. What PDDM
+    scores with it is what the hand would do: an upper bound on what a learned model buys."""
+
+    def __init__(self, sim, features, amap, period_s: float = 0.1):
+        self.sim, self.features, self.amap, self.period_s = sim, features, amap, float(period_s)
+        self.copies: list = []
+        self.fresh = True
+
+    def begin(self) -> None:
+        self.fresh = True
+
+    def _raw(self) -> np.ndarray:
+        q, qd, _ = self.sim.joint_state()
+        return np.concatenate([q, qd, self.sim.balls_m().reshape(-1)])
+
+    def predict(self, state, action):
+        import copy
+
+        import mujoco
+        import torch
+
+        sim = self.sim
+        a = np.asarray(action, dtype=np.float64)
+        n = a.shape[0]
+        if self.fresh:
+            while len(self.copies) < n:
+                self.copies.append([mujoco.MjData(sim.model), None, None, None])
+            raw0 = self._raw()
+            for c in self.copies[:n]:
+                mujoco.mj_copyData(c[0], sim.model, sim.data)
+                c[1], c[2] = copy.deepcopy(sim.firmware), raw0
+                c[3] = None if sim._held is None else np.array(sim._held)
+            self.fresh = False
+        rate = sim.spec.action_rate_per_s
+        step = None if rate is None else np.where(np.isfinite(rate), rate * sim.spec.period_s, np.inf)
+        real = sim.data, sim.firmware, sim._badqacc_seen, sim._diverged_pending
+        out = np.empty((n, self.features.dim))
+        try:
+            for k, c in enumerate(self.copies[:n]):
+                sim.data, sim.firmware = c[0], c[1]
+                cmd = self.amap.to_driver(a[k])
+                if c[3] is not None and rate is not None:  # the driver's rate limit, one write per period
+                    cmd = np.clip(cmd, c[3] - step, c[3] + step)
+                cmd = np.clip(cmd, sim.spec.action.low, sim.spec.action.high)
+                sim._write(cmd)
+                c[3] = cmd
+                sim._advance_locked(self.period_s)
+                raw = self._raw()
+                out[k] = self.features.transform(np.stack([c[2], raw]))[1]
+                c[2] = raw
+        finally:
+            sim.data, sim.firmware, sim._badqacc_seen, sim._diverged_pending = real
+        return torch.from_numpy(out).float()
+
+
+def oracle_closed_loop(sampler: dict[str, Any], episodes: int, samples: int, seed: int = 0,
+                       steps: int = 40) -> dict[str, Any]:
+    """PDDM planning through the hand itself (:class:`SimOracle`) with ``sampler`` at
+    ``samples`` candidates, in-process, ``episodes`` episodes of ``steps``: can the task's
+    cost and this sampler turn the pair at all when the model is perfect?"""
+    from hilstack.control.costs import BaodingCost, baoding_episode_metrics
+    from hilstack.control.planners import BAODING_PDDM
+    from hilstack.control.policies import MpcPolicy
+    from hilstack.drivers.registry import make_backend
+    from hilstack.learning.baoding import (
+        BaodingFeatures,
+        BaodingPolicy,
+        hold_action_map,
+        load_baoding_task,
+        summarize,
+    )
+
+    sim = make_backend("shadow_hand", "sim", objects_in_state=True)
+    sim.configure()
+    sim.activate()
+    task, amap = load_baoding_task(), hold_action_map()
+    raw = list(sim.spec.state.names)
+    wrist = raw.index("WRJ0_pos")
+    sampler = dict(sampler)
+    reach = amap.reachable(sim.spec.action_rate_per_s * sim.spec.period_s) if sampler.pop("rate_aware", False) else None
+    pc = replace(BAODING_PDDM, **{**sampler, "samples": samples})
+    scores, plan_s = [], []
+    try:
+        for e in range(episodes):
+            sim.reset()
+            feats = BaodingFeatures(raw, 0.1)
+            oracle = SimOracle(sim, BaodingFeatures(raw, 0.1), amap)
+            planner = pc.planner(seed=int(np.random.SeedSequence([seed, e]).generate_state(1)[0]),
+                                 init_mean=np.zeros(pc.action_dim), reachable=reach)
+            pol = BaodingPolicy(MpcPolicy(oracle, planner, BaodingCost(task, feats.names, 0.1)), feats, amap)
+            pol.reset()
+            o = sim.read()
+            states = [o.state]
+            for _ in range(steps):
+                oracle.begin()
+                t0 = time.perf_counter()
+                act = pol(o.state)
+                plan_s.append(time.perf_counter() - t0)
+                sim.write(act)
+                sim.tick()
+                o = sim.read()
+                states.append(o.state)
+                if task.dropped(o.state[-6:].reshape(2, 3)):
+                    break
+            st = np.array(states)
+            scores.append(baoding_episode_metrics(task, st[:, -6:].reshape(-1, 2, 3), None,
+                                                  wrist_rad=st[:, wrist], period_s=0.1))
+    finally:
+        sim.cleanup()
+    return {**summarize(scores), "rotation_per_episode_deg": [float(m["rotation_deg"]) for m in scores],
+            "max_rotation_per_episode_deg": [float(m["max_rotation_deg"]) for m in scores],
+            "plan_ms_p50": 1e3 * float(np.median(plan_s)), "sampler": dict(sampler), "samples": samples,
+            "steps": steps}
+
+
+def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, quick_run: Path | None = None,
+             episodes: int = 6, seeds: tuple[int, ...] = (0, 1), samplers: tuple[str, ...] = ("thesis", "quick"),
+             steps: int = 100) -> dict[str, Any]:
+    """Why the thesis-scale run turns the pair no further than the quick one (docs/baoding.md,
+    "Why success_90 stays at 0"). On a stopped thesis-scale run's checkpoint after
+    ``iteration`` (``run_dir/checkpoint``): the model the run planned with, and the same model
+    trained ``extra_steps`` more gradient steps on the same training episodes (the run's
+    split, the balls-swapped doubling, its Adam state): does the fixed 200 steps per
+    iteration underfit? With ``quick_run``: that run's final model too. Each is probed
+    (:func:`probe_model`) on the held-out on-policy episodes of iteration ``iteration``
+    (``<iteration>-mpc``: recorded after that model was trained, never trained on), and run
+    closed loop (:func:`closed_loop`) with each sampler of :data:`SAMPLERS`, ``episodes``
+    episodes per seed in ``seeds``. Appends one JSON line per result to ``out/results.jsonl``."""
+    import json
+
+    import torch
+
+    from hilstack.learning.baoding import BaodingFeatures, hold_action_map, load_baoding_task
+    from hilstack.learning.dynamics import EnsembleDynamics
+
+    run_dir, out = Path(run_dir), Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    state = json.loads((run_dir / "checkpoint" / "state.json").read_text())
+    if state["iteration"] != iteration:
+        raise ValueError(f"{run_dir}: its checkpoint is after iteration {state['iteration']}, not {iteration}")
+    stems = [Path(r).stem for r in state["data_recordings"]]
+    held = f"{iteration:03d}-mpc"
+    data = run_episodes(run_dir, stems)
+    raw = list(next(iter(data.values()))[0].meta["state_names"])
+    feats, amap, task = BaodingFeatures(raw, 0.1), hold_action_map(), load_baoding_task()
+    heldout = [feats.episode(e, amap) for e in data.pop(held)]
+    train = [feats.episode(e, amap) for k, v in data.items() if k != f"{iteration:03d}-random" for e in v
+             if not state["val_assigned"].get(e.name)]
+    train = train + [feats.swap_balls(e) for e in train]
+
+    def log(row: dict[str, Any]) -> None:
+        row["loadavg"] = open("/proc/loadavg").read().split()[:3]
+        with open(out / "results.jsonl", "a") as f:
+            f.write(json.dumps(row) + "\n")
+        print(json.dumps(row), flush=True)
+
+    def checkpoint_model() -> EnsembleDynamics:
+        m = EnsembleDynamics.load(run_dir / "checkpoint" / "model.pt")
+        ts = torch.load(run_dir / "checkpoint" / "train_state.pt", weights_only=True)
+        m._optimizer = torch.optim.Adam(m.parameters(), lr=m.config["lr"], weight_decay=m.config["weight_decay"])
+        m._optimizer.load_state_dict(ts["optimizer"])
+        m._gen.set_state(ts["generator"])
+        return m
+
+    models: dict[str, Any] = {"run": checkpoint_model()}
+    if extra_steps:
+        m = checkpoint_model()
+        n = sum(len(e) for e in train)
+        epochs = max(1, int(np.ceil(extra_steps * 500 / n)))
+        t0 = time.perf_counter()
+        hist = m.fit(train, epochs=epochs, batch_size=500, progress=False)
+        log({"what": "extra training", "model": f"run+{extra_steps}", "epochs": epochs, "train_points": n,
+             "train_loss_first": hist[0]["train_loss"], "train_loss_last": hist[-1]["train_loss"],
+             "wall_s": time.perf_counter() - t0})
+        models[f"run+{extra_steps}"] = m
+    if quick_run is not None:
+        models["quick_final"] = EnsembleDynamics.load(Path(quick_run) / "model.pt")
+    probes = {f"{run_dir.name}:{held}": heldout}
+    if quick_run is not None:  # its last PDDM rollouts: recorded after its final model was trained
+        qlast = sorted(f.stem for f in (Path(quick_run) / "recordings").glob("*-mpc.mcap"))[-1]
+        probes[f"{Path(quick_run).name}:{qlast}"] = [feats.episode(e, amap)
+                                                     for e in run_episodes(Path(quick_run), [qlast])[qlast]]
+    rows = []
+    for name, m in models.items():
+        m.set_inference_dtype("auto")
+        for pname, eps in probes.items():
+            row = {"what": "probe", "model": name, "heldout": pname, **probe_model(m, eps, task)}
+            log(row)
+            rows.append(row)
+    sim = None
+    from hilstack.drivers.registry import make_backend
+
+    sim = make_backend("shadow_hand", "sim", objects_in_state=True)
+    sim.configure()
+    sim.activate()
+    try:
+        for name, m in models.items():
+            for sname in samplers:
+                for sd in seeds:
+                    t0 = time.perf_counter()
+                    r = closed_loop(m, SAMPLERS[sname], episodes, seed=sd, steps=steps, sim=sim)
+                    row = {"what": "closed loop", "model": name, "sampler": sname, "seed": sd, "wall_s":
+                           time.perf_counter() - t0, **{k: r[k] for k in ("episodes", "success_90", "success_180",
+                                                                           "mean_rotation_deg", "drops", "mean_steps",
+                                                                           "plan_ms_p50", "rotation_per_episode_deg",
+                                                                           "rate_cut_share", "rate_cut_mean")}}
+                    log(row)
+                    rows.append(row)
+    finally:
+        sim.cleanup()
+    return {"rows": rows}
+
+
+def torch_threads(n: int) -> None:
+    import torch
+
+    torch.set_num_threads(n)
+
+
 def main(argv: list[str] | None = None) -> None:
-    """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...]``."""
+    """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...]
+    | diagnose RUN_DIR OUT --iteration N``."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_baoding",
@@ -499,9 +876,40 @@ def main(argv: list[str] | None = None) -> None:
     ab = sub.add_parser("ablate", help="run the ablations (all when no NAME is given)")
     ab.add_argument("out", type=Path)
     ab.add_argument("names", nargs="*", metavar="NAME", help="ablation names")
+    dg = sub.add_parser("diagnose", help="a stopped thesis-scale run's model: held-out probe and closed loop")
+    dg.add_argument("run_dir", type=Path)
+    dg.add_argument("out", type=Path)
+    dg.add_argument("--iteration", type=int, required=True, help="the checkpoint's iteration")
+    dg.add_argument("--extra-steps", type=int, default=1000)
+    dg.add_argument("--quick-run", type=Path, default=None, help="a finished quick run: its final model too")
+    dg.add_argument("--episodes", type=int, default=6, help="closed-loop episodes per seed and setting")
+    dg.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    dg.add_argument("--samplers", nargs="+", default=list(SAMPLERS), choices=list(SAMPLERS))
+    dg.add_argument("--steps", type=int, default=100)
+    orc = sub.add_parser("oracle", help="PDDM planning through the hand itself (a perfect model)")
+    orc.add_argument("out", type=Path)
+    orc.add_argument("--samplers", nargs="+", default=list(SAMPLERS), choices=list(SAMPLERS))
+    orc.add_argument("--samples", type=int, default=48)
+    orc.add_argument("--episodes", type=int, default=2)
+    orc.add_argument("--steps", type=int, default=40)
+    orc.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
     if a.cmd == "cost":
         print(json.dumps(thesis_scale_cost(), indent=1))
+    elif a.cmd == "diagnose":
+        torch_threads(1)
+        diagnose(a.run_dir, a.out, a.iteration, a.extra_steps, a.quick_run, a.episodes, tuple(a.seeds),
+                 tuple(a.samplers), a.steps)
+    elif a.cmd == "oracle":
+        torch_threads(1)
+        a.out.mkdir(parents=True, exist_ok=True)
+        for sname in a.samplers:
+            t0 = time.perf_counter()
+            r = oracle_closed_loop(SAMPLERS[sname], a.episodes, a.samples, a.seed, a.steps)
+            row = {"sampler_name": sname, "wall_s": time.perf_counter() - t0, **r}
+            with open(a.out / "oracle.jsonl", "a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(json.dumps(row), flush=True)
     elif a.cmd == "plot":
         print(write_plot(json.loads((a.run_dir / "report.json").read_text()), a.run_dir))
     elif a.cmd == "ablate":

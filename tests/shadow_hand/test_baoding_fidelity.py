@@ -432,3 +432,34 @@ def test_full_resume_reads_finished_seeds_resumes_the_stopped_one_and_starts_the
     s = demo.run_full(tmp_path, resume=True)
     assert calls == [(1, True), (2, False)]
     assert s["final_success_90"]["per_seed"] == [0.5, 0.25, 0.25]
+
+
+def test_the_reachable_set_in_planner_units_is_the_drivers_rate_limit():
+    """HoldActionMap.reachable: the z reachable one step after z_prev are exactly those whose
+    driver action is within the rate limit's step of z_prev's (either side of the hold pose,
+    and clipped at the joint limits)."""
+    amap = hold_action_map()
+    step = 0.4  # shadow_hand.yaml: 4 per s x 0.1 s
+    bounds = amap.reachable(np.full(20, step))
+    rng = np.random.default_rng(0)
+    z = rng.uniform(-1, 1, (200, 20))
+    lo, hi = (t.double().numpy() for t in bounds(torch.from_numpy(z).float()))
+    a, a_lo, a_hi = amap.to_driver(z), amap.to_driver(lo), amap.to_driver(hi)
+    top, bottom = amap.to_driver(np.ones(20)), amap.to_driver(-np.ones(20))  # z = ±1: 0.9 of the way to a limit
+    np.testing.assert_allclose(a_hi, np.minimum(a + step, top), atol=1e-5)
+    np.testing.assert_allclose(a_lo, np.maximum(a - step, bottom), atol=1e-5)
+    assert np.all(lo <= z + 1e-6) and np.all(hi >= z - 1e-6)
+
+
+def test_a_rate_aware_run_plans_with_the_drivers_rate_limit(bus, tmp_path):
+    from hilstack.learning.baoding import BaodingConfig, BaodingRun
+
+    run = BaodingRun(BaodingConfig.from_preset("tiny", rate_aware=True), tmp_path, bus)
+    run.state_names = NAMES
+    run.action_names = [f"a{i}" for i in range(20)]
+    reach = run.reachable()
+    lo, hi = reach(torch.zeros(1, 20))
+    a_hi = hold_action_map().to_driver(hi.double().numpy()[0])
+    top = hold_action_map().to_driver(np.ones(20))
+    np.testing.assert_allclose(a_hi, np.minimum(hold_pose_action() + 0.4, top), atol=1e-5)
+    assert BaodingRun(BaodingConfig.from_preset("tiny"), tmp_path, bus).reachable() is None

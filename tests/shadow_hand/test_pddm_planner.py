@@ -98,3 +98,35 @@ def test_pddm_config_carries_the_filter_and_the_low_noise_share():
     assert (cfg["filter"], cfg["low_noise_fraction"], cfg["sigma"]) == ("actions", 0.1, pytest.approx([0.9, 0.9]))
     with pytest.raises(ValueError, match="filter"):
         PDDM(-1.0, 1.0, action_dim=1, filter="wrong")
+
+
+def test_a_reachable_set_bounds_every_sampled_step_from_the_action_executed_last():
+    """``reachable`` (the actuator's rate limit): each candidate's first step lies within the
+    set of the action executed last, each later step within the set of the step before, and
+    the plan (a weighted mean of reachable sequences) is reachable too; without it the same
+    sampler jumps further."""
+    r = 0.1
+
+    def reach(prev):
+        return (prev - r).clamp(min=-1.0), (prev + r).clamp(max=1.0)
+
+    def prefers_high(states, actions):  # a cost that pulls the first action up
+        return -actions[:, 0, 0].expand(states.shape[0], -1)
+
+    for filt in ("noise", "actions"):
+        p = PDDM(-1.0, 1.0, horizon=5, samples=300, gamma=20.0, beta=0.6, sigma=0.9, action_dim=3, seed=0,
+                 init_mean=[0.2, 0.0, -0.2], filter=filt, reachable=reach)
+        free = PDDM(-1.0, 1.0, horizon=5, samples=300, gamma=20.0, beta=0.6, sigma=0.9, action_dim=3, seed=0,
+                    init_mean=[0.2, 0.0, -0.2], filter=filt)
+        prev = p.previous.clone()
+        a = p.sample(p.mean.clone())
+        steps = torch.cat([(a[:, :1] - prev).abs(), (a[:, 1:] - a[:, :-1]).abs()], 1)
+        assert float(steps.max()) <= r + 1e-6
+        b = free.sample(free.mean.clone())
+        assert float(torch.cat([(b[:, :1] - prev).abs(), (b[:, 1:] - b[:, :-1]).abs()], 1).max()) > 3 * r
+        for _ in range(3):
+            prev = p.previous.clone()
+            act = p(still, prefers_high, np.zeros(2))
+            assert np.all(np.abs(act - prev.numpy()) <= r + 1e-6)
+            np.testing.assert_allclose(p.previous.numpy(), act, atol=1e-6)
+        assert act[0] > 0.2 + 2 * r  # it moved up, a step of r at most per plan

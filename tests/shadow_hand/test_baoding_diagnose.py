@@ -1,0 +1,111 @@
+"""The Baoding diagnosis tools (tools/demo_baoding.py, docs/baoding.md "Why success_90 stays
+at 0"): the model probe scores the turn a model predicts against the true one, and the
+sim oracle predicts exactly what the hand does."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from hilstack.drivers.shadow_hand.config import ShadowHandParams, shadow_hand_spec
+from hilstack.learning.baoding import BaodingFeatures, hold_action_map, load_baoding_task
+from hilstack.learning.datasets import Episode
+from hilstack.tools.demo_baoding import SimOracle, probe_model
+
+NAMES = list(shadow_hand_spec(ShadowHandParams(objects_in_state=True)).state.names)
+DT = 0.1
+
+
+def turning_episodes(task, n: int = 4, T: int = 20, seed: int = 0):
+    """Model episodes whose pair turns about the task's centre by 0.1·a_0 rad per step (a
+    the action), joints still: a known dynamics for the probe."""
+    f = BaodingFeatures(NAMES, DT)
+    rng = np.random.default_rng(seed)
+    u, v = task._basis()[:2]
+    eps = []
+    for k in range(n):
+        th = rng.uniform(-np.pi, np.pi)
+        acts = rng.uniform(-1, 1, (T, 20))
+        raw = []
+        for t in range(T + 1):
+            d = 0.015 * (np.cos(th) * u + np.sin(th) * v)
+            s = np.full(len(NAMES), 0.1)
+            s[-6:] = np.concatenate([task.center_m + d, task.center_m - d])
+            raw.append(s)
+            if t < T:
+                th += 0.1 * acts[t, 0]
+        eps.append(f.episode(Episode(states=np.array(raw), actions=acts, times=np.arange(T + 1) * DT, name=f"e{k}")))
+    return eps
+
+
+class Exact:
+    """The turning episodes' dynamics, exactly (features: ball velocity by finite difference)."""
+
+    def __init__(self, task, names):
+        self.task, self.bp = task, [names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"]
+        self.bv = [names.index(f"ball{i}_v{c}") for i in range(2) for c in "xyz"]
+
+    def predict(self, s, a):
+        s = s.double().numpy().reshape(-1, s.shape[-1])
+        a = a.double().numpy().reshape(-1, a.shape[-1])
+        out = s.copy()
+        n = self.task._basis()[2]
+        for i in range(len(s)):
+            b = s[i, self.bp].reshape(2, 3)
+            d = 0.5 * (b[0] - b[1])
+            ang = 0.1 * a[i, 0]  # Rodrigues about the palm normal
+            d2 = d * np.cos(ang) + np.cross(n, d) * np.sin(ang) + n * (n @ d) * (1 - np.cos(ang))
+            nb = np.concatenate([self.task.center_m + d2, self.task.center_m - d2])
+            out[i, self.bv] = (nb - s[i, self.bp]) / DT
+            out[i, self.bp] = nb
+        return torch.from_numpy(out).float()[None]
+
+
+class Still:
+    def predict(self, s, a):
+        return (s if s.dim() == 3 else s[None]).clone()
+
+
+def test_the_probe_scores_the_predicted_turn_against_the_true_one():
+    task = load_baoding_task()
+    eps = turning_episodes(task)
+    exact = probe_model(Exact(task, eps[0].meta["state_names"]), eps, task, horizon=5)
+    still = probe_model(Still(), eps, task, horizon=5)
+    assert exact["windows"] == still["windows"] == 4 * 16 and exact["turn_true_std_deg"] > 5
+    assert exact["turn_r2"] > 0.99 and exact["turn_corr"] > 0.99 and exact["ball_1step_mm"] < 0.05
+    # a model that predicts no motion: the balls' error is "the balls stay", no turn predicted
+    assert still["turn_r2"] <= 0.0
+    np.testing.assert_allclose(still["ball_1step_mm"], still["ball_1step_stay_mm"], rtol=1e-5)
+    np.testing.assert_allclose(still["ball_hstep_mm"], still["ball_hstep_stay_mm"], rtol=1e-5)
+    assert still["ball_1step_mm"] > 0.5
+
+
+def test_the_sim_oracle_predicts_what_the_hand_does():
+    from hilstack.drivers.registry import make_backend
+
+    sim = make_backend("shadow_hand", "sim", objects_in_state=True)
+    sim.configure()
+    sim.activate()
+    try:
+        f, amap = BaodingFeatures(NAMES, DT), hold_action_map()
+        oracle = SimOracle(sim, BaodingFeatures(NAMES, DT), amap)
+        rng = np.random.default_rng(0)
+        o = sim.read()
+        f(o.state)
+        for _ in range(3):
+            z = rng.uniform(-0.5, 0.5, (3, 20))
+            oracle.begin()
+            s0 = torch.from_numpy(f.transform(o.state[None])).float().expand(3, -1)
+            p1 = oracle.predict(s0, torch.from_numpy(z).float())
+            p2 = oracle.predict(p1, torch.from_numpy(z[::-1].copy()).float())
+            t_before = sim.sim_time_s
+            sim.write(amap.to_driver(z[1]))
+            sim.tick()
+            o = sim.read()
+            x = f(o.state)
+            assert sim.sim_time_s > t_before  # the oracle's copies did not move the hand's clock
+            np.testing.assert_allclose(p1[1].numpy(), x, atol=1e-5)  # candidate 1's step is the hand's
+            assert np.abs(p1[0].numpy() - x)[:24].max() > 1e-4  # another action, another state
+            assert p2.shape == (3, 36) and np.isfinite(p2.numpy()).all()
+    finally:
+        sim.cleanup()
