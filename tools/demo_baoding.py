@@ -758,7 +758,7 @@ def oracle_closed_loop(sampler: dict[str, Any], episodes: int, samples: int, see
 
 def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, quick_run: Path | None = None,
              episodes: int = 6, seeds: tuple[int, ...] = (0, 1), samplers: tuple[str, ...] = ("thesis", "quick"),
-             steps: int = 100) -> dict[str, Any]:
+             steps: int = 100, closed_loop_models: tuple[str, ...] | None = None) -> dict[str, Any]:
     """Why the thesis-scale run turns the pair no further than the quick one (docs/baoding.md,
     "Why success_90 stays at 0"). On a stopped thesis-scale run's checkpoint after
     ``iteration`` (``run_dir/checkpoint``): the model the run planned with, and the same model
@@ -768,7 +768,9 @@ def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, 
     (:func:`probe_model`) on the held-out on-policy episodes of iteration ``iteration``
     (``<iteration>-mpc``: recorded after that model was trained, never trained on), and run
     closed loop (:func:`closed_loop`) with each sampler of :data:`SAMPLERS`, ``episodes``
-    episodes per seed in ``seeds``. Appends one JSON line per result to ``out/results.jsonl``."""
+    episodes per seed in ``seeds`` (only the models named in ``closed_loop_models``, when
+    given: ``run``, ``run+<extra_steps>``, ``quick_final``). Appends one JSON line per result
+    to ``out/results.jsonl``."""
     import json
 
     import torch
@@ -815,6 +817,7 @@ def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, 
         log({"what": "extra training", "model": f"run+{extra_steps}", "epochs": epochs, "train_points": n,
              "train_loss_first": hist[0]["train_loss"], "train_loss_last": hist[-1]["train_loss"],
              "wall_s": time.perf_counter() - t0})
+        m.save(out / f"model_run+{extra_steps}.pt")
         models[f"run+{extra_steps}"] = m
     if quick_run is not None:
         models["quick_final"] = EnsembleDynamics.load(Path(quick_run) / "model.pt")
@@ -838,6 +841,8 @@ def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, 
     sim.activate()
     try:
         for name, m in models.items():
+            if closed_loop_models is not None and name not in closed_loop_models:
+                continue
             for sname in samplers:
                 for sd in seeds:
                     t0 = time.perf_counter()
@@ -886,6 +891,7 @@ def main(argv: list[str] | None = None) -> None:
     dg.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     dg.add_argument("--samplers", nargs="+", default=list(SAMPLERS), choices=list(SAMPLERS))
     dg.add_argument("--steps", type=int, default=100)
+    dg.add_argument("--closed-loop-models", nargs="+", default=None, help="run, run+N, quick_final (default all)")
     orc = sub.add_parser("oracle", help="PDDM planning through the hand itself (a perfect model)")
     orc.add_argument("out", type=Path)
     orc.add_argument("--samplers", nargs="+", default=list(SAMPLERS), choices=list(SAMPLERS))
@@ -899,7 +905,7 @@ def main(argv: list[str] | None = None) -> None:
     elif a.cmd == "diagnose":
         torch_threads(1)
         diagnose(a.run_dir, a.out, a.iteration, a.extra_steps, a.quick_run, a.episodes, tuple(a.seeds),
-                 tuple(a.samplers), a.steps)
+                 tuple(a.samplers), a.steps, None if a.closed_loop_models is None else tuple(a.closed_loop_models))
     elif a.cmd == "oracle":
         torch_threads(1)
         a.out.mkdir(parents=True, exist_ok=True)
