@@ -559,13 +559,16 @@ def probe_model(model, episodes: list, task, horizon: int = 7, period_s: float =
 
     true_turn, pred_turn = turn(start, truth[:, -1]), turn(start, end)
     sst = float(np.sum((true_turn - true_turn.mean()) ** 2))
+    corr = float("nan")  # undefined when either side does not vary (a model predicting no turn)
+    if len(start) > 2 and true_turn.std() > 0 and pred_turn.std() > 0:
+        corr = float(np.corrcoef(pred_turn, true_turn)[0, 1])
     out.update({"windows": int(len(start)), "horizon": horizon,
                 "ball_hstep_mm": ball_rms_mm(end[:, bp] - truth[:, -1, bp]),
                 "ball_hstep_stay_mm": ball_rms_mm(start[:, bp] - truth[:, -1, bp]),
                 "turn_true_std_deg": float(np.degrees(true_turn.std())),
                 "turn_rmse_deg": float(np.degrees(np.sqrt(np.mean((pred_turn - true_turn) ** 2)))),
                 "turn_r2": 1.0 - float(np.sum((pred_turn - true_turn) ** 2)) / max(sst, 1e-12),
-                "turn_corr": float(np.corrcoef(pred_turn, true_turn)[0, 1]) if len(start) > 2 else float("nan")})
+                "turn_corr": corr})
     return out
 
 
