@@ -765,7 +765,7 @@ def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, 
     """Why the thesis-scale run turns the pair no further than the quick one (docs/baoding.md,
     "Why success_90 stays at 0"). On a stopped thesis-scale run's checkpoint after
     ``iteration`` (``run_dir/checkpoint``): the model the run planned with, and the same model
-    trained ``extra_steps`` more gradient steps on the same training episodes (the run's
+    trained about ``extra_steps`` more gradient steps (rounded up to whole epochs) on the same training episodes (the run's
     split, the balls-swapped doubling, its Adam state): does the fixed 200 steps per
     iteration underfit? With ``quick_run``: that run's final model too. Each is probed
     (:func:`probe_model`) on the held-out on-policy episodes of iteration ``iteration``
