@@ -288,3 +288,22 @@ def test_endpoint_override_keeps_the_rigs_access_control(tmp_path):
     rig.write_text("name: r\nrobots:\n  pm:\n    config: pointmass\nbus:\n  access: {credentials: /x/creds}\n")
     _, bus, _ = rig_bus(str(rig), "tcp/127.0.0.1:9")
     assert bus.endpoint == "tcp/127.0.0.1:9" and bus.access is not None and bus.access.credentials == "/x/creds"
+
+
+def test_shell_completion_names_verbs_rigs_robots_and_rig_files():
+    """Issue 27 item 6: `hil --install-completion` (typer's); what bash asks of `hil` completes."""
+
+    def complete(words: str) -> list[str]:
+        env = {"_HIL_COMPLETE": "complete_bash", "COMP_WORDS": words, "COMP_CWORD": str(len(words.split()) - 1)}
+        r = CliRunner().invoke(app, [], prog_name="hil", env=env)
+        assert r.exit_code == 0, r.output
+        return r.output.split()
+
+    assert complete("hil mp") == ["mpc"]
+    assert complete("hil up arm_wid") == ["arm_widowx_emulated", "arm_widowx_sim"]
+    assert "roach_emulated_router" in complete("hil router roach_") and "velociroach" not in complete("hil up v")
+    assert complete("hil drive velo") == ["velociroach"]  # a robot, not a rig
+    assert complete("hil teleop ./configs/rigs/roach_s") == ["./configs/rigs/roach_sim.yaml"]
+    assert complete("hil console no_such_rig") == []
+    r = CliRunner().invoke(app, ["--show-completion", "bash"], prog_name="hil")
+    assert r.exit_code == 0 and "_HIL_COMPLETE=complete_bash" in r.output and "complete " in r.output

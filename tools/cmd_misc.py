@@ -15,6 +15,7 @@ from hilstack.bus.lifetime import child_env, exit_with_parent
 from hilstack.tools.common import (
     EndpointOpt,
     UserError,
+    complete_rig,
     echo_json,
     provision_credentials,
     rig_bus,
@@ -186,7 +187,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def router(
-        rig: str = typer.Argument(..., help="rig config name or path whose bus.router this router serves"),
+        rig: str = typer.Argument(..., help="rig config name or path whose bus.router this router serves", autocompletion=complete_rig),
         tls_cert: str = typer.Option(None, "--tls-cert", help="TLS certificate (PEM) for tls/ endpoints"),
         tls_key: str = typer.Option(None, "--tls-key", help="its private key (PEM)"),
         tls_ca: str = typer.Option(None, "--tls-ca", help="CA (PEM) that signed the clients' certificates: mutual TLS"),
@@ -227,7 +228,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def up(
-        rig: str = typer.Argument(..., help="rig config name or path (configs/rigs/)"),
+        rig: str = typer.Argument(..., help="rig config name or path (configs/rigs/)", autocompletion=complete_rig),
         robot: str = typer.Option(None, "--robot", help="only this robot of the rig, or several: a,b (default: all)"),
         steps: int = typer.Option(None, "--steps", help="stop after this many control periods"),
         endpoint: str = EndpointOpt,
@@ -299,7 +300,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def estop(
-        rig: str = typer.Argument(..., help="rig config name or file (its bus settings are used), or a rig name"),
+        rig: str = typer.Argument(..., help="rig config name or file (its bus settings are used), or a rig name", autocompletion=complete_rig),
         release: bool = typer.Option(False, "--release", help="release a latched e-stop (in this user's name)"),
         reason: str = typer.Option("operator", "--reason"),
         timeout_s: float = typer.Option(
@@ -363,7 +364,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def nodes(
-        rig: str = typer.Argument(..., help="rig config name or file (its bus settings are used), or a rig name"),
+        rig: str = typer.Argument(..., help="rig config name or file (its bus settings are used), or a rig name", autocompletion=complete_rig),
         json_out: bool = typer.Option(False, "--json"),
         endpoint: str = EndpointOpt,
     ) -> None:
@@ -407,7 +408,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def credentials(
-        rig: str = typer.Argument(..., help="rig config name or file with a bus.access section"),
+        rig: str = typer.Argument(..., help="rig config name or file with a bus.access section", autocompletion=complete_rig),
         users: list[str] = typer.Option(None, "--user", help="add this user (repeatable; default: the rig's "
                                                              "command and release users and bus.access.user)"),
     ) -> None:

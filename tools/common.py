@@ -210,3 +210,32 @@ def setup_logging(verbose: bool = False) -> None:
 
 
 EndpointOpt = typer.Option(None, "--endpoint", help="Zenoh rendezvous endpoint (default tcp/127.0.0.1:7447)")
+
+
+def config_completer(kind: str) -> Callable[[str], list[str]]:
+    """Shell completion (``hil --install-completion``) of a config argument: the names under
+    ``configs/<kind>/`` that start with what was typed; once it looks like a path (``/``, ``.``), the
+    YAML files and folders there."""
+
+    def complete(incomplete: str) -> list[str]:
+        from pathlib import Path
+
+        from hilstack.configs.schema import CONFIG_ROOT
+
+        if "/" in incomplete or incomplete.startswith("."):
+            folder, _, stem = incomplete.rpartition("/")
+            base = Path(folder or ".")
+            try:
+                found = [p for p in base.iterdir() if p.name.startswith(stem)
+                         and (p.is_dir() or p.suffix in (".yaml", ".yml"))]
+            except OSError:
+                return []
+            return sorted(f"{folder}/{p.name}/" if p.is_dir() else f"{folder}/{p.name}" if folder else p.name
+                          for p in found)
+        return sorted(p.stem for p in (CONFIG_ROOT / kind).glob("*.yaml") if p.stem.startswith(incomplete))
+
+    return complete
+
+
+complete_rig = config_completer("rigs")
+complete_robot = config_completer("robots")
