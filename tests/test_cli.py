@@ -307,3 +307,23 @@ def test_shell_completion_names_verbs_rigs_robots_and_rig_files():
     assert complete("hil console no_such_rig") == []
     r = CliRunner().invoke(app, ["--show-completion", "bash"], prog_name="hil")
     assert r.exit_code == 0 and "_HIL_COMPLETE=complete_bash" in r.output and "complete " in r.output
+
+
+def test_up_set_overrides_rig_values_checked_by_the_schema():
+    """Issue 27 item 6: `hil up RIG --set key=value`, bounded like the file's own values."""
+    from hilstack.configs.schema import rig_robot_config
+    from hilstack.tools.common import rig_bus
+
+    _, bus, cfg = rig_bus("pointmass_sim", sets=["watchdog_periods=5", "pm.params.mass_kg=2.5",
+                                                 "bus.endpoint=tcp/127.0.0.1:17001"])
+    assert cfg.watchdog_periods == 5 and bus.endpoint == "tcp/127.0.0.1:17001"
+    assert rig_robot_config(cfg, "pm").params["mass_kg"] == 2.5  # what make_driver gets
+    assert rig_bus("pointmass_sim")[2].watchdog_periods == 3  # the file is unchanged
+    for bad, says in (("watchdog_periods=50", "watchdog_periods: Input should be less than or equal to 10"),
+                      ("watchdog_periods=.nan", "finite"),
+                      ("nosuch=1", "nosuch: unknown field"),
+                      ("pm.params.bogus=3", "robots.pm.params.bogus: unknown field"),
+                      ("watchdog_periods", "expected key=value"),
+                      ("pm.config.x=1", "robots.pm.config is not a mapping")):
+        r = CliRunner().invoke(app, ["up", "pointmass_sim", "--set", bad, "--steps", "1"])
+        assert r.exit_code == 2 and says in r.output and len(r.output.strip().splitlines()) == 1, (bad, r.output)

@@ -232,6 +232,9 @@ def register(app: typer.Typer) -> None:
         robot: str = typer.Option(None, "--robot", help="only this robot of the rig, or several: a,b (default: all)"),
         steps: int = typer.Option(None, "--steps", help="stop after this many control periods"),
         endpoint: str = EndpointOpt,
+        sets: list[str] = typer.Option(None, "--set", metavar="KEY=VALUE",
+                                       help="override a value of the rig file, checked like the file: "
+                                            "watchdog_periods=5, roach.params.port=/dev/ttyUSB1 (repeatable)"),
     ) -> None:
         """Bring a rig's robots onto the bus (one driver bridge node per robot)."""
         from hilstack.configs.schema import rig_robot_config
@@ -242,7 +245,7 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"--steps {steps}: expected a number of control periods >= 1")
         setup_logging()
         exit_with_parent()
-        _, bus, cfg = rig_bus(rig, endpoint, need_config=True)
+        _, bus, cfg = rig_bus(rig, endpoint, need_config=True, sets=sets)
         provision_credentials(cfg.name, bus, cfg)
         names = robot.split(",") if robot else list(cfg.robots)
         for n in names:
@@ -272,6 +275,8 @@ def register(app: typer.Typer) -> None:
                     cmd += ["--steps", str(steps)]
                 if endpoint:
                     cmd += ["--endpoint", endpoint]
+                for x in sets or []:
+                    cmd += ["--set", x]
                 procs.append(subprocess.Popen(cmd, env=child_env()))
 
             raise typer.Exit(_run_robot_processes(procs, [",".join(g) for g in groups]))
