@@ -4,8 +4,9 @@ then a Ray run stopped after its first finished seed and run again (docs/scaling
     PYTHONPATH=. .venv/bin/python scripts/compare_baoding_sweep.py OUT_DIR [SEEDS]   # SEEDS: 0,1
 
 Prints, per step, the wall time and the CPU seconds of this process and its children, then
-EQUAL or DIFF for the summaries (every field but the file paths and the sweep record) and the
-per-seed final metrics; for the resume, which seeds ran again.
+EQUAL or DIFF for the summaries (every field but the file paths and the sweep record) of the serial
+run against a second serial run (the control) and against Ray, with the per-seed final metrics;
+for the resume, which seeds ran again.
 """
 
 from __future__ import annotations
@@ -53,15 +54,16 @@ def main(out: Path, seeds: tuple[int, ...]) -> None:
     if out.exists():
         shutil.rmtree(out)
     res: dict[str, dict] = {}
-    for name, ray in (("serial", None), ("ray", "local")):
+    for name, ray in (("serial", None), ("serial_again", None), ("ray", "local")):
         t0, c0, load0 = time.perf_counter(), _cpu_s(), os.getloadavg()[0]
         res[name] = _run(out / name, seeds, ray)
         print(f"{name}: wall {time.perf_counter() - t0:.1f} s, cpu {_cpu_s() - c0:.1f} s (this process and "
               f"waited-for children), load {load0:.0f}->{os.getloadavg()[0]:.0f}", flush=True)
-    a, b = _comparable(res["serial"]), _comparable(res["ray"])
-    print("serial vs ray:", "EQUAL" if a == b else "DIFF")
+    a, a2, b = (_comparable(res[k]) for k in ("serial", "serial_again", "ray"))
+    # the control: the same seeds serially twice (a run that differs from itself cannot equal Ray's)
+    print("serial vs serial again:", "EQUAL" if a == a2 else "DIFF", "| serial vs ray:", "EQUAL" if a == b else "DIFF")
     for k in ("final_mean_rotation_deg", "final_success_90", "final_mean_return", "final_drop_rate"):
-        print(f"  {k}: serial {a[k]['per_seed']} ray {b[k]['per_seed']}")
+        print(f"  {k}: serial {a[k]['per_seed']} again {a2[k]['per_seed']} ray {b[k]['per_seed']}")
     # the interruption: the first finished seed is kept, the re-run does only the rest
     stopped = out / "stopped"
     _stopped_run(stopped, seeds)
