@@ -39,15 +39,27 @@ def _run(out: Path, seeds: tuple[int, ...], ray: str | None) -> dict:
 
 
 def _stopped_run(out: Path, seeds: tuple[int, ...]) -> None:
-    """A Ray sweep in its own process, killed (SIGKILL) as soon as its first seed's result is written."""
+    """A Ray sweep in its own process, killed (SIGKILL) as soon as its first seed's result is written,
+    with every process it started (its local Ray runtime, the seeds' rigs), each by its pid: never
+    `ray stop`, which would end every Ray runtime on the host."""
+    import psutil
+
     p = mp.get_context("spawn").Process(target=_run, args=(out, seeds, "local"))
     p.start()
     tasks = out / "tasks"
     while p.is_alive() and not (tasks.is_dir() and any(tasks.glob("seed*.json"))):
         time.sleep(0.2)
+    try:
+        family = psutil.Process(p.pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        family = []
     p.kill()
     p.join()
-    os.system("ray stop --force >/dev/null 2>&1")  # noqa: S605 - the killed driver's local runtime
+    for q in family:
+        try:
+            q.kill()
+        except psutil.NoSuchProcess:
+            pass
 
 
 def main(out: Path, seeds: tuple[int, ...]) -> None:
