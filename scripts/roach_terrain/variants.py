@@ -7,7 +7,7 @@ per-terrain and all-data models, and the image-conditioned model with its featur
 * ``raw``: the encoder's 16 features of the current image (the demo before this change);
 * ``pca``: the same, projected on the training features' principal directions that carry
   ≥ 1 % of their variance and whitened (the network's first layer sees a few unit-variance
-  inputs instead of 16 near-collinear copies);
+  inputs instead of 16 near-collinear copies; ``perception.terrain_features.FeatureWhitening``);
 * ``avg<k>``: the raw features averaged over the episode's last k images;
 * ``pcaavg<k>``: both.
 Each model drives the paths straight, left, right on every terrain; prints cost per metre
@@ -32,34 +32,16 @@ from hilstack.control.costs import summarize_paths  # noqa: E402
 from hilstack.control.paths import make_path  # noqa: E402
 from hilstack.learning.datasets import Episode  # noqa: E402
 from hilstack.learning.image_conditioned import (  # noqa: E402
+    FeatureStream,
     TerrainConfig,
     TerrainSim,
     _fit,
     _mpc,
     drive_path,
+    running_mean,
     with_features,
 )
-from hilstack.perception.terrain_features import RandomConvEncoder  # noqa: E402
-
-
-def running_mean(f: np.ndarray, k: int) -> np.ndarray:
-    c = np.cumsum(np.vstack([np.zeros((1, f.shape[1])), f]), axis=0)
-    t = np.arange(1, len(f) + 1)
-    lo = np.maximum(0, t - k)
-    return ((c[t] - c[lo]) / (t - lo)[:, None]).astype(np.float32)
-
-
-class Pca:
-    def __init__(self, feats: np.ndarray, min_share: float = 0.01):
-        self.mu = feats.mean(0)
-        u, s, vt = np.linalg.svd(feats - self.mu, full_matrices=False)
-        share = s**2 / (s**2).sum()
-        k = int(max(1, (share >= min_share).sum()))
-        self.w = (vt[:k].T / (s[:k] / np.sqrt(len(feats)))).astype(np.float32)
-        self.k = k
-
-    def __call__(self, f):
-        return ((f - self.mu) @ self.w).astype(np.float32)
+from hilstack.perception.terrain_features import FeatureWhitening, RandomConvEncoder  # noqa: E402
 
 
 def main():
@@ -86,10 +68,9 @@ def main():
     for t in cfg.terrains:
         rows[("per-terrain", t)] = (_fit(cfg, seed, eps[t], names, acts)[0], names, None)
     rows["all"] = (_fit(cfg, seed, every, names, acts)[0], names, None)
-    allf = np.concatenate([e.meta["features"] for e in every])
     for v in variants:
         k = int(v.split("avg")[1]) if "avg" in v else 1
-        pca = Pca(np.concatenate([running_mean(e.meta["features"], k) for e in every])) if v.startswith("pca") else None
+        pca = FeatureWhitening(np.concatenate([running_mean(e.meta["features"], k) for e in every])) if v.startswith("pca") else None
         tr = (lambda f: f) if pca is None else pca
 
         def feat_eps(es, k=k, tr=tr):
@@ -100,15 +81,9 @@ def main():
         model = _fit(cfg, seed, [with_features(e) for e in fe], names + fn, acts, held=fn)[0]
 
         def make_feats(k=k, tr=tr):
-            hist = []
-
-            def f(img):
-                hist.append(enc.encode(img))
-                return tr(np.mean(hist[-k:], axis=0))
-            return f
+            return FeatureStream(enc.encode, tr, k)
         rows[v] = (model, names + fn, make_feats)
         print(f"seed {seed} {v}: {len(fn)} features", flush=True)
-    del allf
     res = {}
     t0 = time.monotonic()
     try:
