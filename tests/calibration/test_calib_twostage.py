@@ -51,6 +51,7 @@ def test_clean_stage_fits_the_rigs_own_lag(tmp):
 
 
 def test_effect_is_named_against_the_clean_fit_and_not_without_it(tmp):
+    clean = _clean(tmp)
     rec = _rec(tmp, 0.3, 1)
     # one stage (the MJCF as shipped): the rig's own lag outscores the injected friction
     one = M.run_mjcf_calibration(rec, "widowx", f"{tmp}/one", **KW)
@@ -64,7 +65,7 @@ def test_effect_is_named_against_the_clean_fit_and_not_without_it(tmp):
     assert two["ratio"] <= 0.5, (two["before_multi_step_nrmse"], two["after_multi_step_nrmse"])
     # the written MJCF keeps the base's delay (it was not refitted) beside the new friction
     bench = M.bench_of("widowx", base=two["calibrated_mjcf"])
-    assert bench.input_delay_s == pytest.approx(_clean(tmp)["values"]["input_delay"][0], rel=1e-5)
+    assert bench.input_delay_s == pytest.approx(clean["values"]["input_delay"][0], rel=1e-5)
     assert two["base"].endswith("clean/calibrated.xml")
 
 
