@@ -44,6 +44,7 @@ from hilstack.bus.schemas import (
     Image,
     MalformedMessage,
     Msg,
+    Plan,
     RobotState,
     SpecMsg,
     decode,
@@ -396,24 +397,31 @@ class TimingCounters:
     recording (gaps in the driver's ``obs_seq``, counted since the recording started; a
     sequence that starts again, a restarted driver, is not a gap); and the driver node's own
     deadline counters from its health (``cycle_late``: periods started late, ``cycle_missed``:
-    periods skipped after a stall; bus/cycle.py), absent on lockstep rigs. Like the named
-    fields, only for robots whose spec the recording holds (every driver node sends one)."""
+    periods skipped after a stall; bus/cycle.py), absent on lockstep rigs; ``late_plans``, the
+    plans of the robot's MPC controller that missed their period (``Plan.late_count`` of its
+    latest plan on ``hil/<rig>/mpc/plan``: steps sent from the shifted last plan instead), from
+    the first plan recorded on. Like the named fields, only for robots whose spec the recording
+    holds (every driver node sends one)."""
 
     WINDOW_S = 1.0
     SCHEMA: dict[str, Any] = {"type": "object", "title": "hil.Timing", "properties": {
         "robot": {"type": "string"}, "rate_hz": {"type": "number"}, "period_max_ms": {"type": "number"},
-        "dropped_states": {"type": "integer"}, "cycle_late": {"type": "integer"}, "cycle_missed": {"type": "integer"}}}
+        "dropped_states": {"type": "integer"}, "cycle_late": {"type": "integer"}, "cycle_missed": {"type": "integer"},
+        "late_plans": {"type": "integer"}}}
 
     def __init__(self) -> None:
         self._stamps: dict[str, list[float]] = {}
         self._seq: dict[str, int] = {}
         self._dropped: dict[str, int] = {}
         self._robots: set[str] = set()
+        self._late_plans: dict[str, int] = {}
 
     def derive(self, topic: str, msg: Msg, log_ns: int) -> tuple[str, bytes] | None:
         """(topic, JSON payload) for a ``RobotState`` of a robot with a spec, else None."""
         if isinstance(msg, SpecMsg):
             self._robots.add(msg.robot)
+        if isinstance(msg, Plan):
+            self._late_plans[msg.robot] = msg.late_count
         if not isinstance(msg, RobotState) or msg.robot not in self._robots:
             return None
         r = msg.robot
@@ -435,6 +443,8 @@ class TimingCounters:
             v = msg.health.get(k)
             if isinstance(v, int) and not isinstance(v, bool):
                 payload[k] = v
+        if r in self._late_plans:
+            payload["late_plans"] = self._late_plans[r]
         parts = topic.split("/")
         rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
         return timing_topic(rig, r), json.dumps(payload).encode()
