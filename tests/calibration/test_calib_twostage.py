@@ -76,3 +76,9 @@ def test_bad_base_is_a_one_line_error(tmp, tmp_path):
     bad.write_text("<mujoco><worldbody/></mujoco>")
     with pytest.raises(DataError, match="no joint named 'waist'"):
         M.bench_of("widowx", base=bad)
+    from typer.testing import CliRunner
+
+    from hilstack.tools.cli import app
+
+    res = CliRunner().invoke(app, ["calibrate", "--data", str(bad), "--model", "axis", "--base", str(tmp_path)])
+    assert res.exit_code == 2 and "--base and --current are for --model <robot config>" in res.output, res.output
