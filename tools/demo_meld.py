@@ -493,13 +493,72 @@ def run_curve(task: str, method: str, seed: int, samples: int, updates_per_sampl
             "gradient_steps_per_s": res["gradient_steps"] / max(w["train"], 1e-9)}
 
 
+def run_cost(sizes: tuple[int, ...] = (16, 32, 64), batches: tuple[int, ...] = (32, 128, 512), steps: int = 3,
+             log=print) -> dict[str, Any]:
+    """What MELD and its baselines cost on this CPU, in *CPU seconds* of one process on one torch
+    thread (``time.process_time``: on a shared machine the wall clock measures the other jobs;
+    CPU time does not, to first order): per gradient step of each learner at each image size
+    (batch 32 sequences of 8), per MELD step at larger batches (Table 7.1's 512) at 32×64, and per
+    collected sample of each robot task with the cameras at each size and without (rendering's share)."""
+    import torch
+
+    from hilstack.learning.meld.agents import AGENTS, AgentConfig
+    from hilstack.learning.meld.model import LatentConfig
+    from hilstack.learning.meld.replay import ImageEpisode, TaskReplay
+    from hilstack.learning.meld.train import run_episode
+    from hilstack.tools.meld_tasks import TASKS
+
+    torch.set_num_threads(1)
+    out: dict[str, Any] = {"load_avg": os.getloadavg(), "cpu_s_per_step": {}, "cpu_s_per_sample": {}}
+
+    def step_cost(method: str, px: int, batch: int) -> float:
+        rng = np.random.default_rng(0)
+        rp, hw = TaskReplay(), (px, 2 * px)
+        for task in range(4):
+            rp.add(ImageEpisode(rng.integers(0, 255, (41, *hw, 3), dtype=np.uint8),
+                                rng.normal(size=41).astype(np.float32), rng.uniform(-1, 1, (40, 7)).astype(np.float32),
+                                task))
+        torch.manual_seed(0)
+        agent = AGENTS[method](AgentConfig(latent=LatentConfig(image_hw=hw, action_dim=7), batch=batch))
+        agent.train_step(rp, rng)  # warm-up (optimizers, allocations)
+        n = steps if batch <= 128 else 1
+        t = time.process_time()
+        for _ in range(n):
+            agent.train_step(rp, rng)
+        return (time.process_time() - t) / n
+
+    for px in sizes:
+        for m in ("meld", "sac_history"):
+            out["cpu_s_per_step"][f"{m}_{px}x{2 * px}_b32"] = v = step_cost(m, px, 32)
+            log(f"[cost] {m} {px}x{2 * px} batch 32: {v:.3f} CPU s per gradient step")
+    for b in batches:
+        if b != 32:
+            out["cpu_s_per_step"][f"meld_32x64_b{b}"] = v = step_cost("meld", 32, b)
+            log(f"[cost] meld 32x64 batch {b}: {v:.3f} CPU s per gradient step")
+    for task in ("sawyer_reach", "widowx_port"):
+        for px in (None, *sizes):
+            env = TASKS[task](camera_px=px or sizes[0], cameras=px is not None)
+            try:
+                rng = np.random.default_rng(0)
+                run_episode(env, env.train_tasks[0], None, rng=rng)  # warm-up (renderer, first task)
+                t = time.process_time()
+                run_episode(env, env.train_tasks[1], None, rng=rng)
+                key = f"{task}_{px}x{2 * px}" if px else f"{task}_no_cameras"
+                out["cpu_s_per_sample"][key] = v = (time.process_time() - t) / env.episode_steps
+                log(f"[cost] {key}: {1e3 * v:.1f} CPU ms per sample")
+            finally:
+                env.close()
+    out["load_avg_after"] = os.getloadavg()
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     """The probes behind docs/meld.md: task inference without RL (toy), the do-nothing scores (still),
     SAC on the true state and goal of a robot task (oracle: the lower bound MELD is measured against)."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_meld", description=main.__doc__)
-    ap.add_argument("probe", choices=("toy", "still", "oracle", "curve"))
+    ap.add_argument("probe", choices=("toy", "still", "oracle", "curve", "cost"))
     ap.add_argument("out", type=Path, help="JSON file to write (never overwritten)")
     ap.add_argument("steps", type=int, nargs="?", default=200, help="model-only training steps (toy)")
     ap.add_argument("--reward-std", type=float, default=0.5, help="toy, curve: σ of the reward likelihood")
@@ -520,7 +579,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.out.exists():
         raise SystemExit(f"{args.out} exists; choose another path")
     os.environ.setdefault("MUJOCO_GL", "egl")
-    if args.probe == "curve":
+    if args.probe == "cost":
+        res = run_cost(log=lambda m: print(m, flush=True))
+    elif args.probe == "curve":
         res = run_curve(args.task, args.method, args.seed, args.samples, args.updates_per_sample, args.camera_px,
                         args.batch, args.latent_dim, args.reward_std, args.entropy_per_dim, args.reward_scale,
                         args.eval_every, args.time_budget, args.threads, log=lambda m: print(m, flush=True))
