@@ -270,7 +270,7 @@ def run_on_emulated_rig(agent: Any, task_params: np.ndarray, camera_px: int, ste
     from hilstack.drivers.registry import skill, spec_of
     from hilstack.learning.meld.node import meld_rig
     from hilstack.tools.common import provision_credentials, rig_bus
-    from hilstack.tools.demo import free_endpoint
+    from hilstack.bus.ports import free_endpoint
     from hilstack.tools.meld_tasks import BenchView
 
     name, bus, cfg = rig_bus(RIG, free_endpoint(), need_config=True)
