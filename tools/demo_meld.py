@@ -267,10 +267,10 @@ def run_on_emulated_rig(agent: Any, task_params: np.ndarray, camera_px: int, ste
     The rig comes up in this process through :func:`~hilstack.learning.meld.node.meld_rig` (its
     driver nodes on one server session, as `hil up` runs a one-bus rig) on a free local endpoint.
     Returns success, final plug error, inference time (p50/p99 [ms]) and the policy period achieved."""
+    from hilstack.bus.ports import free_endpoint
     from hilstack.drivers.registry import skill, spec_of
     from hilstack.learning.meld.node import meld_rig
     from hilstack.tools.common import provision_credentials, rig_bus
-    from hilstack.bus.ports import free_endpoint
     from hilstack.tools.meld_tasks import BenchView
 
     name, bus, cfg = rig_bus(RIG, free_endpoint(), need_config=True)
