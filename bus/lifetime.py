@@ -13,6 +13,7 @@ again. Pure standard library: it lives in ``bus/``, the layer every package may 
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import os
 import signal
@@ -22,6 +23,16 @@ from collections.abc import Callable
 
 #: environment variable holding the pid of the process that started this one
 PARENT_PID_ENV = "HIL_PARENT_PID"
+
+
+#: the signal that makes a hilstack process print every thread's Python stack to stderr
+DUMP_STACKS_SIGNAL = signal.SIGUSR1
+
+
+def dump_stacks_on_signal() -> None:
+    """`kill -USR1 PID` prints where every thread of this process is (stderr, faulthandler):
+    how `hil up` and the tests say where a node that did not stop in time was stuck."""
+    faulthandler.register(DUMP_STACKS_SIGNAL, all_threads=True)
 
 
 def child_env(env: dict[str, str] | None = None) -> dict[str, str]:
@@ -39,6 +50,7 @@ def exit_with_parent(on_gone: Callable[[], None] | None = None, poll_s: float = 
     ``on_gone`` (default: SIGTERM to this process) once it is gone. Returns the parent's pid,
     or None when this process was not started with the variable (nothing is watched)."""
     pid = os.environ.pop(PARENT_PID_ENV, None)
+    dump_stacks_on_signal()
     if not pid:
         return None
     parent = int(pid)

@@ -151,6 +151,14 @@ class Transitions:
         return Transitions(self.states[idx], self.actions[idx], self.next_states[idx], self.state_names,
                            self.action_names)
 
+    def finite(self) -> Transitions:
+        """These transitions, after checking that no value is NaN or inf (a one-line error)."""
+        for label, v in (("states", self.states), ("actions", self.actions), ("next_states", self.next_states)):
+            if not np.isfinite(v).all():
+                rows = np.flatnonzero(~np.isfinite(v).all(axis=1))
+                raise ValueError(f"transitions: NaN or inf in {label} (row {rows[0]} and {len(rows) - 1} more)")
+        return self
+
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(states, actions, next_states)``, for code that takes them apart."""
         return self.states, self.actions, self.next_states

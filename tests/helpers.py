@@ -2,7 +2,6 @@
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -11,43 +10,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _port_range() -> tuple[int, int]:
-    """Ports the OS never hands out by itself: below its ephemeral range (Linux default
-    32768-60999), from which every outgoing connection and every ``:0`` listener draws."""
-    try:
-        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        low = 32768
-    return max(1024, low - 12768), low
-
-
-_next_port: int | None = None
-
-
 def free_port() -> int:
-    """A port free now that no other socket can take meanwhile by chance.
+    """A port below the OS's ephemeral range (hilstack.bus.ports), each pytest-xdist worker
+    drawing from its own quarter of it."""
+    from hilstack.bus.ports import free_port as _free_port
 
-    A port from ``bind(0)`` is in the ephemeral range: between this call and the test's node
-    listening on it, any Zenoh session's ephemeral listener or outgoing connection (another
-    test's, another worker's) may take it, and a peer whose rendezvous listen fails joins that
-    stranger's session instead. So: a port below the ephemeral range, each pytest-xdist worker
-    in its own quarter of it, handed out in turn from a per-process start."""
-    global _next_port
-    lo, hi = _port_range()
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]
-    span = (hi - lo) // 4
-    base = lo + (int(worker) % 4 if worker.isdigit() else 0) * span
-    if _next_port is None:
-        _next_port = base + os.getpid() % span
-    for _ in range(span):
-        port, _next_port = _next_port, base + (_next_port - base + 1) % span
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return port
-    raise RuntimeError(f"no free port in {base}-{base + span - 1}")
+    return _free_port(slot=int(worker) % 4 if worker.isdigit() else 0, slots=4)
 
 
 class Proc:
@@ -69,6 +38,32 @@ class Proc:
         except subprocess.TimeoutExpired:
             self.p.kill()
             raise
+
+
+def wait_or_dump(p: subprocess.Popen, timeout_s: float, what: str = "the process") -> int:
+    """``p.wait(timeout_s)``; past it, every process of ``p``'s tree prints its stacks
+    (SIGUSR1: bus/lifetime.dump_stacks_on_signal) before it is killed, and the test fails with
+    ``p``'s stderr (where a stop hung, instead of a bare timeout). ``p`` has stderr=PIPE."""
+    import psutil
+    import pytest
+
+    try:
+        return p.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        tree = [p.pid] + [c.pid for c in psutil.Process(p.pid).children(recursive=True)]
+        for pid in tree:
+            try:
+                os.kill(pid, signal.SIGUSR1)
+            except ProcessLookupError:
+                pass
+        time.sleep(1.0)
+        for pid in reversed(tree):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        _, err = p.communicate(timeout=30)
+        pytest.fail(f"{what} still running {timeout_s:g} s after the signal; stderr with its stacks:\n{err[-8000:]}")
 
 
 def wait_for(cond, timeout_s: float = 10.0, what: str = "condition"):

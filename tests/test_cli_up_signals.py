@@ -128,3 +128,36 @@ def test_background_up_stops_on_sigint():
     time.sleep(0.2)
     assert code == 0, up.err
     assert "arm down:" in up.err and "mechanism down:" in up.err and "link error" not in up.err, up.err
+
+
+_STUCK_RIG = """
+import subprocess, sys
+from hilstack.tools.cmd_misc import _run_robot_processes
+child = "from hilstack.bus.lifetime import dump_stacks_on_signal\\nimport signal, sys, time\\n"
+ok = child + "signal.signal(signal.SIGTERM, lambda *a: sys.exit(0))\\nprint('ready', flush=True)\\ntime.sleep(60)"
+stuck = child + ("dump_stacks_on_signal()\\nsignal.signal(signal.SIGTERM, signal.SIG_IGN)\\n"
+                 "def stuck_in_device_close():\\n    time.sleep(60)\\n"
+                 "print('ready', flush=True)\\nstuck_in_device_close()")
+procs = [subprocess.Popen([sys.executable, "-c", c]) for c in (ok, stuck)]
+sys.exit(_run_robot_processes(procs, ["arm", "mechanism"], grace_s=1.0))
+"""
+
+
+def test_a_robot_node_that_does_not_stop_is_dumped_and_killed_after_the_grace():
+    """One robot's node ignores the stop (hung in its device's close, say): `hil up` must not
+    wait for it for ever (CI saw `hil up` of a two-robot rig still running 30 s after SIGTERM).
+    After the grace it prints that node's stacks, kills it, names the robot and exits 1; the
+    node that stopped stops as before."""
+    p = subprocess.Popen([sys.executable, "-c", _STUCK_RIG], cwd=ROOT, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        assert [p.stdout.readline().strip() for _ in range(2)] == ["ready", "ready"]
+        p.send_signal(signal.SIGTERM)
+        code = p.wait(STOP_BOUND_S)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    err = p.stderr.read()
+    assert code == 1, err
+    assert "robot mechanism: its node did not stop within 1 s" in err and "robot arm" not in err, err
+    assert "stuck_in_device_close" in err, err  # the stuck node's own stack, for the log

@@ -40,6 +40,7 @@ import yaml
 
 from hilstack.bus import keys
 from hilstack.bus.node import alive_nodes
+from hilstack.bus.ports import free_port
 from hilstack.bus.schemas import ModelUpdate
 from hilstack.configs.schema import load_rig, rig_robot_config
 from hilstack.control.controller_node import ControllerNode
@@ -50,7 +51,7 @@ from hilstack.learning.adaptation.grbal import GrbalAdapter
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.node import ModelSwap, last_layer
 from hilstack.learning.adaptation.rebal import ContextEncoder, RebalAdapter
-from hilstack.tools.bench_bus import free_port, run_bench_bus
+from hilstack.tools.bench_bus import run_bench_bus
 
 PAYLOADS = ("full", "last_layer", "context")
 #: channels of a planar robot (body-frame model, the safe random policy's arena)

@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 from hilstack.bus.node import Node
+from hilstack.bus.ports import free_port
 from hilstack.bus.schemas import Ping
 from hilstack.bus.session import open_session
 from hilstack.configs.schema import BusConfig
@@ -27,10 +28,6 @@ from hilstack.configs.schema import BusConfig
 PING, PONG = "hil/bench/ping", "hil/bench/pong"
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _recv_exact(conn: socket.socket, n: int) -> bytes:
@@ -197,7 +194,7 @@ def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: in
             for mode in modes:
                 ep = f"tcp/127.0.0.1:{free_port()}"
                 if mode == "router":
-                    ep = f"tcp/127.0.0.2:{free_port()}"
+                    ep = f"tcp/127.0.0.2:{free_port('127.0.0.2')}"
                     rp = subprocess.Popen([sys.executable, "-m", "hilstack.tools.bench_bus", "router", ep],
                                           stdout=subprocess.PIPE, text=True)
                     procs.append(rp)

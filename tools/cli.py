@@ -96,8 +96,10 @@ for _mod in _VERB_MODULES:
 
 
 def main() -> None:
+    from hilstack.bus.lifetime import dump_stacks_on_signal
     from hilstack.tools import common
 
+    dump_stacks_on_signal()  # `kill -USR1 PID`: where a stuck `hil` process is (stderr)
     common.HARD_EXIT_AFTER_ERROR = True  # after an error the process ends, whatever is left open
     app()
 

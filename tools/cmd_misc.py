@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import signal
 import subprocess
@@ -125,6 +126,62 @@ def _merge_shared_buses(groups: list[list[str]], keys: dict[str, str | None]) ->
     return out
 
 
+log = logging.getLogger("hil")
+
+#: how long `hil up` waits for a robot's node to stop its robot and exit after Ctrl-C/SIGTERM
+#: before it dumps the node's stacks and kills it (its device's own watchdog then stops the robot)
+STOP_GRACE_S = 10.0
+
+
+def _run_robot_processes(procs: list, names: list[str], grace_s: float = STOP_GRACE_S) -> int:
+    """Wait for `hil up`'s per-robot processes; Ctrl-C or SIGTERM is forwarded to each (every
+    node stops its robot and exits). A node not gone ``grace_s`` after the signal is stuck: its
+    stacks are dumped into the log (SIGUSR1, bus/lifetime.py) and it is killed, naming the
+    robots; a stuck node cannot hold the rig's other robots or the operator hostage. Returns
+    the rig's exit code: 0; a robot's node's own (1 link, 2 input); 1 for a killed node."""
+    import time
+
+    from hilstack.bus.lifetime import DUMP_STACKS_SIGNAL
+
+    asked: list[float] = []  # when the first stop signal came
+    forwarded: set[int] = set()  # signals a node may die of before it has its handlers
+
+    def forward(signum, _frame):  # Ctrl-C, or a supervisor's SIGTERM: every robot's node stops its robot
+        asked.append(time.monotonic())
+        forwarded.add(-signum)
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signum)
+
+    # installed explicitly: a `hil up` started in the background inherits SIGINT ignored
+    before = {sig: signal.signal(sig, forward) for sig in (signal.SIGINT, signal.SIGTERM)}
+    killed: list[str] = []
+    try:
+        while any(p.poll() is None for p in procs):
+            time.sleep(0.1)
+            if asked and time.monotonic() - asked[0] > grace_s:
+                for p, n in zip(procs, names, strict=True):
+                    if p.poll() is None:
+                        log.error("robot %s: its node did not stop within %.0f s of the stop signal; its stacks "
+                                  "follow, then it is killed (the device's own watchdog stops the robot)",
+                                  n, grace_s)
+                        p.send_signal(DUMP_STACKS_SIGNAL)
+                        time.sleep(0.5)
+                        p.kill()
+                        p.wait()
+                        killed.append(n)
+    finally:
+        for sig, h in before.items():
+            signal.signal(sig, h)
+    if killed:
+        return 1
+    # the rig failed if one robot's node did: its exit code (1 link, 2 input) is ours; a node
+    # that died of the forwarded signal itself had not started its robot (no handlers yet)
+    failed = [p.returncode for p in procs if p.returncode != 0 and p.returncode not in forwarded]
+    codes = [c if c > 0 else 1 for c in failed]  # killed by another signal: a failure
+    return (1 if 1 in codes else max(codes)) if codes else 0
+
+
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
@@ -216,21 +273,7 @@ def register(app: typer.Typer) -> None:
                     cmd += ["--endpoint", endpoint]
                 procs.append(subprocess.Popen(cmd, env=child_env()))
 
-            def forward(signum, _frame):  # Ctrl-C, or a supervisor's SIGTERM: every robot's node stops its robot
-                for p in procs:
-                    if p.poll() is None:
-                        p.send_signal(signum)
-
-            # installed explicitly: a `hil up` started in the background inherits SIGINT ignored
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(sig, forward)
-            for p in procs:
-                p.wait()  # each node stops its robot and exits; we wait for all of them
-            # the rig failed if one robot's node did: its exit code (1 link, 2 input) is ours
-            failed = [p.returncode for p in procs if p.returncode not in (0, None)]
-            if failed:
-                raise typer.Exit(1 if 1 in failed else max(failed))
-            return
+            raise typer.Exit(_run_robot_processes(procs, [",".join(g) for g in groups]))
         if len(names) > 1:
             _up_together(cfg, names, bus, steps)
             return

@@ -7,22 +7,15 @@ every phase and a rerun ``OUT/demo.rrd`` of the evaluation.
 from __future__ import annotations
 
 import json
-import socket
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from hilstack.bus.ports import free_endpoint  # noqa: F401  (the demos' rig endpoints)
 from hilstack.configs.schema import BusConfig
 from hilstack.learning.mbrl import MbrlConfig, MbrlRun
-
-
-def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
-
 
 #: `--quick` on a wall-clock rig (emulated, real): fewer differential-drive candidates. The
 #: baseline's random search is the longest phase there (candidates x 3 tuning paths x 2

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from hilstack.bus.ports import free_endpoint
 from hilstack.configs.schema import BusConfig
 
 ARM_ORDER = ("widowx", "sawyer")
@@ -61,7 +62,7 @@ def run_arms(out: Path, quick: bool = False, full: bool = False, seed: int = 0,
         kw.setdefault("seeds", (seed, seed + 1, seed + 2) if full else (seed,))
         cfg = ReachConfig.from_preset("quick", **kw) if quick else ReachConfig.from_preset("full", **kw) if full else ReachConfig(**kw)
         t0 = time.monotonic()
-        r = run_arm(cfg, out / arm, bus or BusConfig(endpoint=_free_endpoint()))
+        r = run_arm(cfg, out / arm, bus or BusConfig(endpoint=free_endpoint()))
         r.update(command=cmd, wall_s=time.monotonic() - t0, created=time.strftime("%Y-%m-%d %H:%M:%S"),
                  quick=quick, full=full)
         (out / arm).mkdir(parents=True, exist_ok=True)
@@ -70,15 +71,6 @@ def run_arms(out: Path, quick: bool = False, full: bool = False, seed: int = 0,
         reports[arm] = r
     (out / "report.md").write_text("\n".join(arm_markdown(reports[a]) for a in arms))
     return reports
-
-
-def _free_endpoint() -> str:
-    """A loopback endpoint of its own for the demo's rig (several demos may run at once)."""
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
 def cli_arms(out: Path, quick: bool = False, full: bool = False, seed: int = 0) -> None:

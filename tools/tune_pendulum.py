@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> None:
             for w, layers, steps, lr, vf in GAT_GRID:
                 out = []
                 for n in cfg.target_sizes:
-                    g = Gat(source, target.head(n), low, high, width=w, layers=layers, steps=steps, lr=lr,
+                    g = Gat(source, target.subset(slice(0, n)), low, high, width=w, layers=layers, steps=steps, lr=lr,
                             seed=cfg.seed, val_frac=vf)
                     alphas = (1.0, 0.5, 0.8) if vf > 0 else (1.0,)
                     errs = []
@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> None:
             for i in range(len(GARAT_GRID))[sl]:
                 kw, errs = GARAT_GRID[i], []
                 for n in sizes:
-                    g = train_garat(src, target.head(n), src.reset_state, agent, done, low, high,
+                    g = train_garat(src, target.subset(slice(0, n)), src.reset_state, agent, done, low, high,
                                     cfg.max_episode_steps, replace(cfg.garat, **kw, seed=cfg.seed))
                     errs.append(transition_error(src, val, g))
                     print(f"garat #{i} {json.dumps(kw)} {n}: {errs[-1]:.4f} (kept π_g after {g.selected_update} "
@@ -160,7 +160,7 @@ def main(argv: list[str] | None = None) -> None:
             sizes = [int(x) for x in argv[2].split(",")] if len(argv) > 2 else [max(cfg.target_sizes)]
             for n in sizes:
                 gcfg = replace(cfg.garat, **kw, seed=cfg.seed)
-                g = train_garat(src, target.head(n), src.reset_state, agent, done, low, high, cfg.max_episode_steps,
+                g = train_garat(src, target.subset(slice(0, n)), src.reset_state, agent, done, low, high, cfg.max_episode_steps,
                                 gcfg)
                 print(f"garat {json.dumps(kw)} {n}: {transition_error(src, val, g):.4f}", flush=True)
         else:

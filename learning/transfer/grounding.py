@@ -29,31 +29,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from hilstack.learning.datasets import Transitions
 from hilstack.learning.early_stopping import EarlyStopping, due
 
 StepFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
-
-
-@dataclass
-class TransitionSet:
-    """Transitions (s [N, n], a [N, m], s' [N, n])."""
-
-    s: np.ndarray
-    a: np.ndarray
-    s1: np.ndarray
-
-    def __post_init__(self) -> None:
-        self.s, self.a, self.s1 = (np.asarray(v, np.float64) for v in (self.s, self.a, self.s1))
-        if not (len(self.s) == len(self.a) == len(self.s1)):
-            raise ValueError(f"TransitionSet: s {self.s.shape}, a {self.a.shape}, s' {self.s1.shape} differ in length")
-        if not all(np.isfinite(v).all() for v in (self.s, self.a, self.s1)):
-            raise ValueError("TransitionSet: NaN or inf in the transitions")
-
-    def __len__(self) -> int:
-        return len(self.s)
-
-    def head(self, n: int) -> TransitionSet:
-        return TransitionSet(self.s[:n], self.a[:n], self.s1[:n])
 
 
 class Mlp(nn.Module):
@@ -117,7 +96,7 @@ def fit_mlp(x: np.ndarray, y: np.ndarray, width: int = 64, layers: int = 2, step
 class Gat:
     """GAT's action transformer: inverse source model ∘ forward target model."""
 
-    def __init__(self, source: TransitionSet, target: TransitionSet, a_low: np.ndarray, a_high: np.ndarray,
+    def __init__(self, source: Transitions, target: Transitions, a_low: np.ndarray, a_high: np.ndarray,
                  width: int = 64, layers: int = 2, steps: int = 2000, seed: int = 0, lr: float = 3e-3,
                  alpha: float = 1.0, val_frac: float = 0.0):
         if not 0.0 <= alpha <= 1.0:
@@ -125,10 +104,11 @@ class Gat:
         self.alpha = alpha  # Hanna & Stone's action smoothing: ã = α·g(s, f(s, a)) + (1 − α)·a
         # forward target model: Δs = f(s, a); inverse source model: a = g(s, Δs)
         # (val_frac: early stopping of both on a held-out share of their data)
-        self.fwd = fit_mlp(np.hstack([target.s, target.a]), target.s1 - target.s, width, layers, steps, lr, seed=seed,
-                           val_frac=val_frac)
-        self.inv = fit_mlp(np.hstack([source.s, source.s1 - source.s]), source.a, width, layers, steps, lr, seed=seed,
-                           val_frac=val_frac)
+        source, target = source.finite(), target.finite()
+        self.fwd = fit_mlp(np.hstack([target.states, target.actions]), target.deltas, width, layers, steps, lr,
+                           seed=seed, val_frac=val_frac)
+        self.inv = fit_mlp(np.hstack([source.states, source.deltas]), source.actions, width, layers, steps, lr,
+                           seed=seed, val_frac=val_frac)
         self.a_low, self.a_high = np.asarray(a_low, float), np.asarray(a_high, float)
 
     def __call__(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
@@ -138,10 +118,10 @@ class Gat:
         return np.clip(at, self.a_low, self.a_high)
 
 
-def transition_error(step: StepFn, data: TransitionSet, transform: Callable | None = None) -> float:
+def transition_error(step: StepFn, data: Transitions, transform: Callable | None = None) -> float:
     """Mean ‖step(s, π_g(s, a)) − s'‖ over ``data`` (π_g = identity when ``transform`` is None)."""
     errs = []
-    for s, a, s1 in zip(data.s, data.a, data.s1, strict=True):
+    for s, a, s1 in zip(data.states, data.actions, data.next_states, strict=True):
         at = a if transform is None else np.asarray(transform(s[None], a[None]))[0]
         errs.append(np.linalg.norm(step(s, at) - s1))
     return float(np.mean(errs))
@@ -150,7 +130,7 @@ def transition_error(step: StepFn, data: TransitionSet, transform: Callable | No
 class Discriminator(nn.Module):
     """Logit of "this (s, a, s') came from the grounded source" (GAIfO-style, with the action)."""
 
-    def __init__(self, target: TransitionSet, width: int = 64):
+    def __init__(self, target: Transitions, width: int = 64):
         super().__init__()
         x = self.inputs(target)
         self.register_buffer("xm", torch.as_tensor(x.mean(0), dtype=torch.float32))
@@ -159,20 +139,20 @@ class Discriminator(nn.Module):
                                  nn.Linear(width, 1))
 
     @staticmethod
-    def inputs(t: TransitionSet) -> np.ndarray:
-        return np.hstack([t.s, t.a, t.s1 - t.s]).astype(np.float32)
+    def inputs(t: Transitions) -> np.ndarray:
+        return np.hstack([t.states, t.actions, t.next_states - t.states]).astype(np.float32)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net((x - self.xm) / self.xs)
 
     @torch.no_grad()
-    def reward(self, t: TransitionSet) -> np.ndarray:
+    def reward(self, t: Transitions) -> np.ndarray:
         """−log D(s, a, s') = softplus(−logit): high where the transition looks like the target's."""
         return nn.functional.softplus(-self.forward(torch.as_tensor(self.inputs(t)))).numpy()[:, 0]
 
 
-def discriminator_update(disc: Discriminator, opt: torch.optim.Optimizer, grounded: TransitionSet,
-                         target: TransitionSet, steps: int, rng: np.random.Generator, batch: int = 256,
+def discriminator_update(disc: Discriminator, opt: torch.optim.Optimizer, grounded: Transitions,
+                         target: Transitions, steps: int, rng: np.random.Generator, batch: int = 256,
                          label_smoothing: float = 0.0, grad_penalty: float = 0.0) -> float:
     """``steps`` minibatch steps of binary cross-entropy: grounded source 1, target 0.
 
@@ -245,7 +225,7 @@ class GroundingEnv(gym.Env):
         s, a = self._s, self._a
         s1 = np.asarray(self._step(s, self.transform(a, np.asarray(action, float))), float)
         self.buffer.append((s, a, s1))
-        r = float(self.disc.reward(TransitionSet(s[None], a[None], s1[None]))[0])
+        r = float(self.disc.reward(Transitions(s[None], a[None], s1[None]))[0])
         self._t += 1
         self._s = s1
         self._a = np.asarray(self._agent(s1, self.rng), float)
@@ -282,8 +262,8 @@ class _DiscCallback:
     """Built lazily so that importing this module does not import stable-baselines3."""
 
     @staticmethod
-    def make(env: GroundingEnv, target: TransitionSet, cfg: GaratConfig, step: StepFn | None = None,
-             held_out: TransitionSet | None = None):
+    def make(env: GroundingEnv, target: Transitions, cfg: GaratConfig, step: StepFn | None = None,
+             held_out: Transitions | None = None):
         from stable_baselines3.common.callbacks import BaseCallback
 
         class DiscUpdate(BaseCallback):
@@ -301,7 +281,7 @@ class _DiscCallback:
             def _on_rollout_end(self) -> None:  # once per π_g update
                 s, a, s1 = (np.asarray(v) for v in zip(*env.buffer, strict=True))
                 env.buffer.clear()
-                discriminator_update(env.disc, self.opt, TransitionSet(s, a, s1), target, cfg.disc_steps, self.rng,
+                discriminator_update(env.disc, self.opt, Transitions(s, a, s1), target, cfg.disc_steps, self.rng,
                                      label_smoothing=cfg.disc_label_smoothing, grad_penalty=cfg.disc_grad_penalty)
                 self.updates += 1
                 # the π_g about to be updated is the one trained by ``updates − 1`` PPO updates
@@ -333,7 +313,7 @@ class Garat:
         return self.env.transform(a, delta)
 
 
-def train_garat(step: StepFn, target: TransitionSet, reset_state: Callable, agent: Callable,
+def train_garat(step: StepFn, target: Transitions, reset_state: Callable, agent: Callable,
                 done: Callable[[np.ndarray], bool], a_low, a_high, max_steps: int, cfg: GaratConfig) -> Garat:
     """Train π_g with PPO against a discriminator updated once per PPO update.
 
@@ -346,14 +326,14 @@ def train_garat(step: StepFn, target: TransitionSet, reset_state: Callable, agen
     if cfg.select_every < 1:
         raise ValueError(f"select_every must be >= 1, got {cfg.select_every}")
     torch.manual_seed(cfg.seed)
+    target = target.finite()
     held_out = None
     n_sel = int(round(cfg.select_frac * len(target)))
     if n_sel > 0:
         idx = np.random.default_rng(cfg.seed + 7919).permutation(len(target))
-        held_out = TransitionSet(target.s[idx[:n_sel]], target.a[idx[:n_sel]], target.s1[idx[:n_sel]])
-        target = TransitionSet(target.s[idx[n_sel:]], target.a[idx[n_sel:]], target.s1[idx[n_sel:]])
+        held_out, target = target.subset(idx[:n_sel]), target.subset(idx[n_sel:])
     disc = Discriminator(target, cfg.disc_width or cfg.width)
-    env = GroundingEnv(step, reset_state, agent, done, disc, a_low, a_high, target.s.shape[1], max_steps, cfg.seed)
+    env = GroundingEnv(step, reset_state, agent, done, disc, a_low, a_high, target.states.shape[1], max_steps, cfg.seed)
     cb = _DiscCallback.make(env, target, cfg, step, held_out)
     model = PPO("MlpPolicy", env, n_steps=cfg.n_steps, batch_size=cfg.batch_size, n_epochs=cfg.n_epochs,
                 learning_rate=cfg.learning_rate, gamma=cfg.gamma, ent_coef=cfg.ent_coef, seed=cfg.seed, device="cpu",
@@ -390,12 +370,12 @@ def best_action(step: StepFn, s: np.ndarray, s1: np.ndarray, a_low: float, a_hig
     return float(xs[k]), float(es[k])
 
 
-def floor_error(step: StepFn, data: TransitionSet, a_low, a_high, grid: int = 61, iters: int = 40) -> float:
+def floor_error(step: StepFn, data: Transitions, a_low, a_high, grid: int = 61, iters: int = 40) -> float:
     """The floor of the per-step transition error: mean over ``data`` of min over ã of
     ‖step(s, ã) − s'‖ (1-D action; ``best_action`` per transition). No action transform, of
     any form, can have a lower mean error on ``data``."""
-    if data.a.shape[1] != 1:
-        raise ValueError(f"floor_error searches a 1-D action, got {data.a.shape[1]}-D")
+    if data.actions.shape[1] != 1:
+        raise ValueError(f"floor_error searches a 1-D action, got {data.actions.shape[1]}-D")
     lo, hi = float(np.ravel(a_low)[0]), float(np.ravel(a_high)[0])
-    return float(np.mean([best_action(step, s, s1, lo, hi, grid, iters)[1] for s, s1 in zip(data.s, data.s1,
+    return float(np.mean([best_action(step, s, s1, lo, hi, grid, iters)[1] for s, s1 in zip(data.states, data.next_states,
                                                                                              strict=True)]))

@@ -21,10 +21,10 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from hilstack.learning.datasets import Transitions
 from hilstack.learning.transfer.grounding import (
     GaratConfig,
     Gat,
-    TransitionSet,
     floor_error,
     train_garat,
     transition_error,
@@ -107,7 +107,7 @@ class Agent:
         return np.clip(a, -3.0, 3.0)
 
 
-def collect(step: StepFrom, agent: Agent, n: int, max_steps: int, seed: int) -> TransitionSet:
+def collect(step: StepFrom, agent: Agent, n: int, max_steps: int, seed: int) -> Transitions:
     """``n`` transitions of ``agent`` (with its noise), episodes ending as the env's do."""
     rng = np.random.default_rng(seed)
     S, A, S1 = [], [], []
@@ -121,7 +121,7 @@ def collect(step: StepFrom, agent: Agent, n: int, max_steps: int, seed: int) -> 
             s, t = step.reset_state(rng), 0
         else:
             s = s1
-    return TransitionSet(np.array(S), np.array(A), np.array(S1))
+    return Transitions(np.array(S), np.array(A), np.array(S1))
 
 
 def train_agent(env: gym.Env, timesteps: int, seed: int):
@@ -167,7 +167,7 @@ def run(cfg: PendulumConfig, log=print) -> dict:
         curve = []
         gat = garat = None
         for n in sorted(cfg.target_sizes):
-            target = target_all.head(n)
+            target = target_all.subset(slice(0, n))
             gat = Gat(source, target, low, high, width=cfg.gat_width, layers=cfg.gat_layers, steps=cfg.gat_fit_steps,
                       seed=cfg.seed, lr=cfg.gat_lr, alpha=cfg.gat_alpha, val_frac=cfg.gat_val_frac)
             garat = train_garat(src, target, src.reset_state, agent, done, low, high, cfg.max_episode_steps,

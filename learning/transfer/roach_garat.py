@@ -37,7 +37,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from hilstack.drivers.registry import make_backend, spec_of
-from hilstack.learning.transfer.grounding import GaratConfig, Gat, TransitionSet, train_garat
+from hilstack.learning.datasets import Transitions
+from hilstack.learning.transfer.grounding import GaratConfig, Gat, train_garat
 from hilstack.tasks.perturbations import LEG_NAMES
 
 #: the roach's state channel -> index (its spec's, filled on first use: the registry builds its driver)
@@ -200,7 +201,7 @@ def cem(step: RoachStep, cfg: RoachGaratConfig, seed: int, transform: Callable |
     return gait_commands(mean, cfg)
 
 
-def collect(step: RoachStep, gait: Gait, n: int, episode_steps: int, seed: int) -> TransitionSet:
+def collect(step: RoachStep, gait: Gait, n: int, episode_steps: int, seed: int) -> Transitions:
     """``n`` feature transitions of the noisy gait, episodes of ``episode_steps``."""
     rng = np.random.default_rng(seed)
     S, A, S1 = [], [], []
@@ -211,7 +212,7 @@ def collect(step: RoachStep, gait: Gait, n: int, episode_steps: int, seed: int) 
             s1 = step(s, a)
             S.append(s), A.append(a), S1.append(s1)
             s = s1
-    return TransitionSet(np.array(S), np.array(A), np.array(S1))
+    return Transitions(np.array(S), np.array(A), np.array(S1))
 
 
 def run_seed(cfg: RoachGaratConfig, log=print) -> dict:

@@ -117,11 +117,11 @@ def extras(r: Rollouts) -> np.ndarray:
 
 def transitions(r: Rollouts):
     """(x [N, 33], Δs [N, 24]) over all episodes."""
-    from hilstack.learning.transfer.sidm import Transitions
+    from hilstack.learning.transfer.sidm import ModelSamples
 
     s0 = r.states[:, :-1].reshape(-1, r.states.shape[2])
     s1 = r.states[:, 1:].reshape(-1, r.states.shape[2])
-    return Transitions(features(s0, extras(r).reshape(-1, extras(r).shape[2])), s1 - s0)
+    return ModelSamples(features(s0, extras(r).reshape(-1, extras(r).shape[2])), s1 - s0)
 
 
 def first_minutes(r: Rollouts, minutes: float) -> Rollouts:

@@ -77,9 +77,11 @@ def _mlp(n_in: int, n_out: int, width: int, layers: int) -> nn.Sequential:
 
 
 @dataclass
-class Transitions:
-    """One system's data: inputs ``x`` [N, n_in] (state features and action) and targets
-    ``y`` [N, n_out] (state change over one control period)."""
+class ModelSamples:
+    """One system's regression data for the SIDM: inputs ``x`` [N, n_in] (state features and
+    action) and targets ``y`` [N, n_out] (state change over one control period), built from a
+    system's transitions (hilstack.learning.datasets.Transitions) by a pairs module's
+    feature map (roach_pairs, wheeled_pairs)."""
 
     x: np.ndarray
     y: np.ndarray
@@ -88,15 +90,15 @@ class Transitions:
         self.x = np.asarray(self.x, dtype=np.float32)
         self.y = np.asarray(self.y, dtype=np.float32)
         if self.x.ndim != 2 or self.y.ndim != 2 or len(self.x) != len(self.y):
-            raise ValueError(f"Transitions: x {self.x.shape} and y {self.y.shape} must be 2-D with equal rows")
+            raise ValueError(f"ModelSamples: x {self.x.shape} and y {self.y.shape} must be 2-D with equal rows")
         if not (np.isfinite(self.x).all() and np.isfinite(self.y).all()):
-            raise ValueError("Transitions: x or y contains NaN or inf")
+            raise ValueError("ModelSamples: x or y contains NaN or inf")
 
     def __len__(self) -> int:
         return len(self.x)
 
-    def subset(self, idx: np.ndarray) -> Transitions:
-        return Transitions(self.x[idx], self.y[idx])
+    def subset(self, idx: np.ndarray) -> ModelSamples:
+        return ModelSamples(self.x[idx], self.y[idx])
 
 
 class _Norm(nn.Module):
@@ -121,7 +123,7 @@ class Sidm(nn.Module):
         self.xn = nn.ModuleDict()
         self.yn = nn.ModuleDict()
 
-    def set_norm(self, system: str, data: Transitions) -> None:
+    def set_norm(self, system: str, data: ModelSamples) -> None:
         self.xn[system] = _Norm(data.x)
         self.yn[system] = _Norm(data.y)
 
@@ -170,14 +172,14 @@ def adversarial_step(model: Sidm, disc: nn.Module, opt_d: torch.optim.Optimizer,
     return float(ld.detach()), float(lg.detach())
 
 
-def split(data: Transitions, test_fraction: float, rng: np.random.Generator) -> tuple[Transitions, Transitions]:
+def split(data: ModelSamples, test_fraction: float, rng: np.random.Generator) -> tuple[ModelSamples, ModelSamples]:
     """Random train/test split (paper: 75/25) with at least one sample on each side."""
     idx = rng.permutation(len(data))
     n_test = min(max(1, int(round(test_fraction * len(data)))), len(data) - 1)
     return data.subset(idx[n_test:]), data.subset(idx[:n_test])
 
 
-def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None = None,
+def train_sidm(novice: ModelSamples, cfg: SidmConfig, expert: ModelSamples | None = None,
                init: Sidm | None = None) -> Sidm:
     """Train SIDM (``expert`` given, ``p_e`` > 0) or the novice-only baseline
     (``expert`` None or ``p_e`` == 0: no expert batches and no matching). Early stopping on
@@ -251,7 +253,7 @@ def train_sidm(novice: Transitions, cfg: SidmConfig, expert: Transitions | None 
     return model
 
 
-def validation_mse(model: Sidm, data: Transitions, system: str = "novice", scale: np.ndarray | None = None) -> float:
+def validation_mse(model: Sidm, data: ModelSamples, system: str = "novice", scale: np.ndarray | None = None) -> float:
     """Mean squared error of the state change divided by ``scale`` per channel (default: the
     model's own target scale for ``system``, i.e. its training data's std). Give a fixed
     ``scale`` (e.g. the validation data's std) to compare models trained on different data."""
@@ -264,7 +266,7 @@ def validation_mse(model: Sidm, data: Transitions, system: str = "novice", scale
         return float((((model.predict(system, data.x) - data.y) / sc) ** 2).mean())
 
 
-def target_scale(data: Transitions) -> np.ndarray:
+def target_scale(data: ModelSamples) -> np.ndarray:
     """Per-channel std of the state change (floored at 1e-6): the fixed scale of the validation error."""
     return np.maximum(data.y.std(0), 1e-6).astype(np.float32)
 

@@ -82,10 +82,10 @@ def state_change(s0: np.ndarray, s1: np.ndarray) -> np.ndarray:
 
 def transitions(r: Rollouts):
     """(x [N, 31], Δs [N, 24]) over all episodes."""
-    from hilstack.learning.transfer.sidm import Transitions
+    from hilstack.learning.transfer.sidm import ModelSamples
 
     n = r.states.shape[2]
     s0 = r.states[:, :-1].reshape(-1, n)
     s1 = r.states[:, 1:].reshape(-1, n)
     x = np.concatenate([s0[:, INPUT_CHANNELS], r.patches.reshape(len(s0), -1), r.actions.reshape(len(s0), -1)], 1)
-    return Transitions(x, state_change(s0, s1))
+    return ModelSamples(x, state_change(s0, s1))

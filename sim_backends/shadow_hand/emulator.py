@@ -34,7 +34,6 @@ recovers and reports FAULT_BUS_OFF once), ``motor_fault_after_s`` / ``motor_faul
 from __future__ import annotations
 
 import argparse
-import faulthandler
 import json
 import os
 import select
@@ -390,9 +389,9 @@ def main(argv: list[str] | None = None) -> int:
     def _stop(signum, frame):  # noqa: ARG001
         em.running = False
 
-    faulthandler.register(signal.SIGUSR1)  # `kill -USR1 PID`: where is it stuck (stderr)
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
+    # also `kill -USR1 PID`: where is it stuck (stderr; bus/lifetime.dump_stacks_on_signal)
     exit_with_parent(lambda: (log("parent process is gone: exiting"), _stop(None, None)))
     print(json.dumps({"transport": args.transport, "channel": channel, "port": port, "pid": os.getpid()}), flush=True)
     log(f"serving {args.transport} on {channel}{'' if port is None else f':{port}'}")

@@ -42,7 +42,7 @@ from hilstack.drivers.dynamixel.control_table import OPERATING_MODES, control_ta
 from hilstack.drivers.registry import make_driver
 from hilstack.sim_backends.dynamixel.firmware import Servo
 from hilstack.tools.cli import app
-from tests.helpers import ROOT, wait_for, wait_rig_router
+from tests.helpers import ROOT, wait_for, wait_or_dump, wait_rig_router
 
 ARM_IDS = ["1", "2", "4", "6", "7", "8"]
 MECH_IDS = ["10", "11"]
@@ -306,7 +306,7 @@ def test_ctrl_c_of_hil_drive_still_sends_the_stop_over_the_bus(tmp_path):
     try:
         wait_for(lambda: any(s["servos"]["1"][1] > 0.2 for s in _states(states)), 90, "the waist moving")
         os.killpg(host.pid, signal.SIGINT)  # what Ctrl-C in its terminal does
-        rc = host.wait(30)
+        rc = wait_or_dump(host, 60, "hil drive")
     finally:
         if host.poll() is None:
             os.killpg(host.pid, signal.SIGKILL)

@@ -5,7 +5,6 @@ must stop them all, not leave them running."""
 from __future__ import annotations
 
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -13,15 +12,17 @@ from pathlib import Path
 
 import psutil
 
+from tests.helpers import free_port
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_sigterm_to_a_multi_robot_rig_stops_every_robot_process():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
-    parent = subprocess.Popen([sys.executable, "-m", "hilstack.tools.cli", "up", "arm_widowx_sim", "--endpoint", endpoint],
-                              cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def test_sigterm_to_a_multi_robot_rig_stops_every_robot_process(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    log = tmp_path / "up.log"
+    with log.open("w") as err:
+        parent = subprocess.Popen([sys.executable, "-m", "hilstack.tools.cli", "up", "arm_widowx_sim", "--endpoint",
+                                   endpoint], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err)
     children: list[psutil.Process] = []
     try:
         deadline = time.monotonic() + 60
@@ -31,9 +32,11 @@ def test_sigterm_to_a_multi_robot_rig_stops_every_robot_process():
         assert len(children) == 2, "the rig should start one process per robot"
         time.sleep(1.0)  # let them install their own signal handlers
         parent.send_signal(signal.SIGTERM)
-        parent.wait(30)
+        # a node stuck past `hil up`'s grace is dumped and killed: exit 1 and its stacks in the log
+        code = parent.wait(60)
         gone, alive = psutil.wait_procs(children, timeout=20)
         assert alive == [], f"robot processes left running: {[p.pid for p in alive]}"
+        assert code == 0, log.read_text()
     finally:
         for c in children:
             if c.is_running():

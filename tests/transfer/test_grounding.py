@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from hilstack.learning.datasets import Transitions
 from hilstack.learning.transfer.grounding import (
     Discriminator,
     GaratConfig,
     Gat,
-    TransitionSet,
     discriminator_update,
     fit_mlp,
     train_garat,
@@ -53,15 +53,15 @@ def rollouts(step, n, seed):
         s1 = step(s, a)
         S.append(s), Acts.append(a), S1.append(s1)
         s = reset_state(rng) if done(s1) or t % 50 == 49 else s1
-    return TransitionSet(np.array(S), np.array(Acts), np.array(S1))
+    return Transitions(np.array(S), np.array(Acts), np.array(S1))
 
 
 def test_gat_transformed_action_reproduces_the_target_transition():
     tgt, src, val = rollouts(target, 800, 0), rollouts(source, 800, 1), rollouts(target, 200, 2)
     gat = Gat(src, tgt, LOW, HIGH, steps=800)
     # the exact answer is ã = 2a (inside the limits here)
-    inside = np.abs(val.a[:, 0]) < 1.0
-    np.testing.assert_allclose(gat(val.s[inside], val.a[inside])[:, 0], 2 * val.a[inside, 0], atol=0.15)
+    inside = np.abs(val.actions[:, 0]) < 1.0
+    np.testing.assert_allclose(gat(val.states[inside], val.actions[inside])[:, 0], 2 * val.actions[inside, 0], atol=0.15)
     none, grounded = transition_error(source, val), transition_error(source, val, gat)
     assert grounded < 0.15 * none
 
@@ -92,8 +92,14 @@ def test_garat_grounds_the_source_towards_the_target():
 
 
 def test_bad_transitions_are_refused():
-    with pytest.raises(ValueError, match="NaN"):
-        TransitionSet(np.array([[np.nan]]), np.zeros((1, 1)), np.zeros((1, 1)))
+    """A NaN in the recorded target data (a dropped sensor sample) is refused in one line
+    naming where, before any model is fitted on it."""
+    good = Transitions(np.zeros((8, 1)), np.zeros((8, 1)), np.zeros((8, 1)))
+    bad = Transitions(np.zeros((8, 1)), np.zeros((8, 1)), np.where(np.arange(8)[:, None] == 5, np.nan, 0.0))
+    with pytest.raises(ValueError, match=r"NaN or inf in next_states \(row 5 and 0 more\)"):
+        Gat(good, bad, LOW, HIGH, steps=1)
+    with pytest.raises(ValueError, match="NaN or inf in next_states"):
+        train_garat(lambda s, a: s, bad, None, None, None, LOW, HIGH, max_steps=1, cfg=GaratConfig())
 
 
 def test_gat_smoothing_alpha_blends_with_the_identity():
@@ -101,7 +107,7 @@ def test_gat_smoothing_alpha_blends_with_the_identity():
     full = Gat(src, tgt, LOW, HIGH, steps=100)
     half, zero = copy.copy(full), copy.copy(full)
     half.alpha, zero.alpha = 0.5, 0.0
-    s, a = val.s[:10], np.clip(val.a[:10], -1, 1)
+    s, a = val.states[:10], np.clip(val.actions[:10], -1, 1)
     assert np.abs(full(s, a) - a).max() > 0.1  # the fitted transform is not the identity
     np.testing.assert_allclose(half(s, a), np.clip(0.5 * full(s, a) + 0.5 * a, LOW, HIGH), atol=1e-6)
     np.testing.assert_allclose(zero(s, a), a, atol=1e-12)
@@ -127,7 +133,7 @@ def test_floor_is_zero_where_an_exact_mapping_exists_and_below_none_and_gat():
     from hilstack.learning.transfer.grounding import floor_error
 
     tgt, src, val = rollouts(target, 300, 0), rollouts(source, 300, 1), rollouts(target, 40, 2)
-    inside = TransitionSet(*(v[np.abs(val.a[:, 0]) < 1.4] for v in (val.s, val.a, val.s1)))
+    inside = Transitions(*(v[np.abs(val.actions[:, 0]) < 1.4] for v in (val.states, val.actions, val.next_states)))
     assert len(inside) > 20
     # the exact mapping ã = 2a reproduces every target transition whose 2a is inside the limits
     exact = transition_error(source, inside, lambda s, a: np.clip(2 * a, LOW, HIGH))
@@ -183,7 +189,7 @@ def test_garat_checkpoint_selection_keeps_the_best_held_out_policy():
     assert g.selected_update == best_n
     # the returned π_g is that checkpoint: its error on the held-out 20 % (same draw) is the best one
     idx = np.random.default_rng(cfg.seed + 7919).permutation(len(tgt))[:100]
-    held = TransitionSet(tgt.s[idx], tgt.a[idx], tgt.s1[idx])
+    held = Transitions(tgt.states[idx], tgt.actions[idx], tgt.next_states[idx])
     assert transition_error(source, held, g) == pytest.approx(best_e, abs=1e-9)
     with pytest.raises(ValueError, match="select_frac"):
         train_garat(source, tgt, reset_state, agent, done, LOW, HIGH, 50, GaratConfig(select_frac=1.0))

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from hilstack.learning.transfer.sidm import (
+    ModelSamples,
     Sidm,
     SidmConfig,
-    Transitions,
     adversarial_step,
     data_multiplier,
     data_multipliers,
@@ -24,7 +24,7 @@ from hilstack.learning.transfer.sidm import (
 )
 
 
-def pair(n_expert: int, n_novice: int, seed: int = 0) -> tuple[Transitions, Transitions, Transitions]:
+def pair(n_expert: int, n_novice: int, seed: int = 0) -> tuple[ModelSamples, ModelSamples, ModelSamples]:
     """Expert and novice share nonlinear dynamics Δs = f(s, a) but see them through different
     linear sensors/actuators: x_n = M x_e, Δs_n = P Δs_e (a "different calibration" pair)."""
     rng = np.random.default_rng(seed)
@@ -37,8 +37,8 @@ def pair(n_expert: int, n_novice: int, seed: int = 0) -> tuple[Transitions, Tran
     p = np.diag([2.0, -1.0, 0.5])
     xe = rng.uniform(-1.5, 1.5, (n_expert, 5))
     xn = rng.uniform(-1.5, 1.5, (2 * n_novice + 400, 5))
-    nov = Transitions(xn @ m.T, f(xn) @ p.T)
-    return Transitions(xe, f(xe)), nov.subset(np.arange(n_novice)), nov.subset(np.arange(n_novice, len(nov)))
+    nov = ModelSamples(xn @ m.T, f(xn) @ p.T)
+    return ModelSamples(xe, f(xe)), nov.subset(np.arange(n_novice)), nov.subset(np.arange(n_novice, len(nov)))
 
 
 TINY = SidmConfig(latent_dim=16, width=32, enc_layers=0, pred_iters=100, match_iters=20, batch=64, max_rounds=15,
@@ -69,8 +69,8 @@ def test_adversarial_steps_pull_novice_latents_onto_the_expert_ones():
     xe = rng.normal(0, 1, (256, 3)).astype(np.float32)
     xn = (rng.normal(0, 1, (256, 3)) * 3 + 5).astype(np.float32)
     model = Sidm(3, 2, ("expert", "novice"), cfg)
-    model.set_norm("expert", Transitions(xe, np.zeros((256, 2))))
-    model.set_norm("novice", Transitions(xn, np.zeros((256, 2))))
+    model.set_norm("expert", ModelSamples(xe, np.zeros((256, 2))))
+    model.set_norm("novice", ModelSamples(xn, np.zeros((256, 2))))
     with torch.no_grad():  # start the novice encoder far away from the expert's
         model.enc["novice"][-1].bias += 3.0
     expert_before = [p.clone() for p in model.enc["expert"].parameters()]
@@ -148,7 +148,7 @@ def test_finetuning_starts_from_the_given_model():
 
 def test_bad_inputs_are_refused():
     with pytest.raises(ValueError, match="NaN"):
-        Transitions(np.array([[np.nan, 1.0]]), np.zeros((1, 1)))
+        ModelSamples(np.array([[np.nan, 1.0]]), np.zeros((1, 1)))
     with pytest.raises(ValueError, match="p_e"):
         SidmConfig(p_e=1.5)
 
@@ -196,7 +196,7 @@ def test_warm_started_sidm_on_an_identical_novice_is_near_the_experts_own_model(
         return np.stack([np.sin(2 * x[:, 1]) + x[:, 3], x[:, 0] * x[:, 4], np.cos(x[:, 2] + x[:, 0]) * x[:, 3]], 1)
 
     xe, xn, xv = (rng.uniform(-1.5, 1.5, (n, 5)) for n in (1500, 48, 1000))
-    expert, novice, val = Transitions(xe, f(xe)), Transitions(xn, f(xn)), Transitions(xv, f(xv))
+    expert, novice, val = ModelSamples(xe, f(xe)), ModelSamples(xn, f(xn)), ModelSamples(xv, f(xv))
     cfg = SidmConfig(**{**TINY.__dict__, "pred_iters": 50, "match_iters": 10, "warm_rounds": 8,
                         "max_rounds": 4, "patience_rounds": 4})
     scale = target_scale(val)
@@ -212,7 +212,7 @@ def test_validation_mse_on_a_fixed_scale():
         def predict(self, system, x):
             return np.ones((len(x), 2), np.float32)
 
-    data = Transitions(np.zeros((4, 3)), np.array([[1.0, 3.0], [1.0, 3.0], [3.0, 1.0], [3.0, 1.0]]))
+    data = ModelSamples(np.zeros((4, 3)), np.array([[1.0, 3.0], [1.0, 3.0], [3.0, 1.0], [3.0, 1.0]]))
     scale = target_scale(data)  # std 1 per channel
     np.testing.assert_allclose(scale, [1.0, 1.0])
     # errors: channel 0 (0, 0, 2, 2), channel 1 (2, 2, 0, 0) → mean of squares 2

@@ -1,0 +1,54 @@
+"""Loopback ports for a rig's own bus endpoint (a demo's rig, a test's, a sweep worker's).
+
+A port from ``bind(0)`` comes from the OS's ephemeral range (Linux default 32768-60999), the
+range every outgoing connection and every ``:0`` listener draws from. Between choosing it and
+the rig's first node listening on it, any other Zenoh session on the host (its ephemeral
+listener, an outgoing link) may take it; the rig's peers, whose rendezvous listen then fails,
+would join that stranger's session instead of their own (bus/session.py: peers connect to
+whoever holds the rendezvous endpoint). So a rig's port is chosen below the ephemeral range,
+where the OS never hands one out by itself, checked free by binding it, and handed out in turn
+from a per-process start (processes started together do not collide). Pure standard library.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+
+_next: dict[tuple[int, int], int] = {}
+
+
+def _unassigned_range() -> tuple[int, int]:
+    """[lo, hi): ports the OS does not assign by itself (below its ephemeral range)."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    return max(1024, low - 12768), low
+
+
+def free_port(host: str = "127.0.0.1", slot: int = 0, slots: int = 1) -> int:
+    """A port free on ``host`` now, below the ephemeral range. ``slots`` > 1 splits the range
+    into that many parts and draws from part ``slot`` (parallel test workers: one part each)."""
+    if not (1 <= slots <= 64 and 0 <= slot < slots):
+        raise ValueError(f"slot {slot} of {slots}: expected 0 <= slot < slots <= 64")
+    lo, hi = _unassigned_range()
+    span = (hi - lo) // slots
+    base = lo + slot * span
+    nxt = _next.get((slot, slots), base + os.getpid() % span)
+    for _ in range(span):
+        port, nxt = nxt, base + (nxt - base + 1) % span
+        with socket.socket() as s:
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+        _next[(slot, slots)] = nxt
+        return port
+    raise RuntimeError(f"no free port on {host} in {base}-{base + span - 1}")
+
+
+def free_endpoint(host: str = "127.0.0.1") -> str:
+    """``tcp/HOST:PORT`` with :func:`free_port`: a rig endpoint of its own on this host."""
+    return f"tcp/{host}:{free_port(host)}"
