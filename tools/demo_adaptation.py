@@ -4,8 +4,8 @@ Meta-trains on the training terrains, runs MB, MB+DE, GrBAL, ReBAL and MOLe on e
 perturbation with the same planner and paths, and a switching scenario for MOLe against
 k-shot and continued adaptation (learning/adaptation/experiment.py). Writes
 ``report.json`` (keys of issue 12), ``report.md``, PNG plots and the checkpoints.
-Presets: default and ``--full`` (the quick run over 3 seeds, ≈ 40 min on one core), ``--quick``
-(seed 0 of it; ≤ 15 min on 2 cores) and ``tiny`` (the CLI test). docs/adaptation.md.
+Presets: default and ``--full`` (the quick run over 3 seeds), ``--quick``
+(seed 0 of it; ≈ 9-15 CPU-min, estimated from the phases measured in docs/adaptation.md) and ``tiny`` (the CLI test). docs/adaptation.md.
 
 ``--suite gym``: the thesis' half-cheetah benchmarks instead (``learning/adaptation/gym_suite.py``;
 report.json ``benchmarks: {env: {method: {return_mean, return_std, normalized, seeds}}}``).

@@ -60,19 +60,21 @@ RANDOM_SHOOTING_SPEED_MPS = 0.19
 SWITCHING_METHODS = ("mole", "k_shot", "continued")
 
 
-#: the data and training sizes of the quick and full presets: 15 min of random robot time per
-#: training terrain (12 conditions x 15 rollouts x 5 s, half of the conditions unperturbed;
-#: the thesis: ~30 min, terrains only), 10 % of the rollouts held out for early stopping of MB,
-#: GrBAL and ReBAL; the oracle gets 100 rollouts (8.3 min) of its one condition. GrBAL: its
+#: the data and training sizes of the quick and full presets: 8 min of random robot time per
+#: training terrain (12 conditions x 8 rollouts x 5 s, half of the conditions unperturbed;
+#: the thesis: ~30 min, terrains only; 15 rollouts before issue 24's fourth session, cut with
+#: the 10 starts per condition so that --quick fits 20 min of 2 cores), 10 % of the rollouts
+#: held out for early stopping of MB, GrBAL and ReBAL; the oracle gets 50 rollouts (4.2 min)
+#: of its one condition; paths at scale 0.5 (about 1 m), 5 starts each. GrBAL: its
 #: inner gradient's norm capped at the median of the training windows' (``grbal_clip_quantile``),
 #: θ's meta learning rate 1e-4 (ψ's 1e-2): the open-loop screen in docs/adaptation.md, "Why one
 #: GrBAL step ...". docs/adaptation.md, "Sizes".
 _SCALED: dict[str, Any] = dict(
-    conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=15, hidden=(256, 256, 256),
+    conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=8, hidden=(256, 256, 256),
     plain_epochs=200, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
-    meta_eval_every=50, meta_patience=4, oracle_rollouts=100, paths=("straight", "left"),
-    path_scale=1.0, before_after_rollouts=10, switching_every_steps=100, switching_segments=4,
-    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4, starts_per_path=5, rate_grid=(0.25, 1.0, 4.0), tune_rollouts=10)
+    meta_eval_every=50, meta_patience=4, oracle_rollouts=50, paths=("straight", "left"),
+    path_scale=0.5, before_after_rollouts=10, switching_every_steps=50, switching_segments=4,
+    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4, starts_per_path=5, rate_grid=(0.25, 1.0, 4.0), tune_rollouts=4)
 
 
 @dataclass
@@ -80,7 +82,7 @@ class AdaptationConfig(Presets):
     """Sizes of one run. ``AdaptationConfig.from_preset("quick" | "full" | "tiny")`` are the demo's presets."""
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
-        # quick over 3 seeds (≈ 40 min on one core; seed 0 is the quick run exactly): the
+        # quick over 3 seeds (≈ 30-45 CPU-min, estimated; seed 0 is the quick run exactly): the
         # dataclass defaults (3 x 512, 3 paths, switching every 500 steps) take hours here
         "full": {**_SCALED, "seeds": (0, 1, 2)},
         "quick": {**_SCALED, "seeds": (0,)},
