@@ -14,9 +14,11 @@ again. Pure standard library: it lives in ``bus/``, the layer every package may 
 from __future__ import annotations
 
 import faulthandler
+import io
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -31,8 +33,12 @@ DUMP_STACKS_SIGNAL = signal.SIGUSR1
 
 def dump_stacks_on_signal() -> None:
     """`kill -USR1 PID` prints where every thread of this process is (stderr, faulthandler):
-    how `hil up` and the tests say where a node that did not stop in time was stuck."""
-    faulthandler.register(DUMP_STACKS_SIGNAL, all_threads=True)
+    how `hil up` and the tests say where a node that did not stop in time was stuck. Where
+    ``sys.stderr`` is no file (a verb run in-process by typer's CliRunner), the process's own."""
+    try:
+        faulthandler.register(DUMP_STACKS_SIGNAL, all_threads=True)
+    except (io.UnsupportedOperation, AttributeError, ValueError):
+        faulthandler.register(DUMP_STACKS_SIGNAL, file=sys.__stderr__, all_threads=True)
 
 
 def child_env(env: dict[str, str] | None = None) -> dict[str, str]:

@@ -44,6 +44,7 @@ from hilstack.bus.schemas import (
     Image,
     MalformedMessage,
     Msg,
+    Plan,
     RobotState,
     SpecMsg,
     decode,
@@ -396,24 +397,31 @@ class TimingCounters:
     recording (gaps in the driver's ``obs_seq``, counted since the recording started; a
     sequence that starts again, a restarted driver, is not a gap); and the driver node's own
     deadline counters from its health (``cycle_late``: periods started late, ``cycle_missed``:
-    periods skipped after a stall; bus/cycle.py), absent on lockstep rigs. Like the named
-    fields, only for robots whose spec the recording holds (every driver node sends one)."""
+    periods skipped after a stall; bus/cycle.py), absent on lockstep rigs; ``late_plans``, the
+    plans of the robot's MPC controller that missed their period (``Plan.late_count`` of its
+    latest plan on ``hil/<rig>/mpc/plan``: steps sent from the shifted last plan instead), from
+    the first plan recorded on. Like the named fields, only for robots whose spec the recording
+    holds (every driver node sends one)."""
 
     WINDOW_S = 1.0
     SCHEMA: dict[str, Any] = {"type": "object", "title": "hil.Timing", "properties": {
         "robot": {"type": "string"}, "rate_hz": {"type": "number"}, "period_max_ms": {"type": "number"},
-        "dropped_states": {"type": "integer"}, "cycle_late": {"type": "integer"}, "cycle_missed": {"type": "integer"}}}
+        "dropped_states": {"type": "integer"}, "cycle_late": {"type": "integer"}, "cycle_missed": {"type": "integer"},
+        "late_plans": {"type": "integer"}}}
 
     def __init__(self) -> None:
         self._stamps: dict[str, list[float]] = {}
         self._seq: dict[str, int] = {}
         self._dropped: dict[str, int] = {}
         self._robots: set[str] = set()
+        self._late_plans: dict[str, int] = {}
 
     def derive(self, topic: str, msg: Msg, log_ns: int) -> tuple[str, bytes] | None:
         """(topic, JSON payload) for a ``RobotState`` of a robot with a spec, else None."""
         if isinstance(msg, SpecMsg):
             self._robots.add(msg.robot)
+        if isinstance(msg, Plan):
+            self._late_plans[msg.robot] = msg.late_count
         if not isinstance(msg, RobotState) or msg.robot not in self._robots:
             return None
         r = msg.robot
@@ -435,6 +443,8 @@ class TimingCounters:
             v = msg.health.get(k)
             if isinstance(v, int) and not isinstance(v, bool):
                 payload[k] = v
+        if r in self._late_plans:
+            payload["late_plans"] = self._late_plans[r]
         parts = topic.split("/")
         rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
         return timing_topic(rig, r), json.dumps(payload).encode()
@@ -920,6 +930,10 @@ class Recorder(Node):
             super().close()
 
 
+#: how long a replay waits for its link to a rig that listens at the endpoint before it checks
+#: that rig for live driver nodes [s]
+LINK_WAIT_S = 5.0
+
 #: Message types :func:`replay` publishes by default: what sensors and driver nodes
 #: report. Everything else (e-stop commands and acks, robot commands, reset requests,
 #: MPC plans, model updates, pings) can change what a live rig does and needs
@@ -1002,11 +1016,20 @@ def replay(
     byte-identical to what was recorded (same stamps and sequence numbers).
     """
     from hilstack.bus.node import alive_nodes
-    from hilstack.bus.session import open_session
+    from hilstack.bus.session import open_session, rendezvous_listened, wait_linked
 
     wanted = topic_filter(topics)
     own = session is None
+    # a rig is up at the endpoint: the live-driver check below must see its nodes, so it waits
+    # for this session's link to them first (under load the background connect took longer
+    # than the check's window, and a replay went ahead onto a live rig)
+    rig_up = own and rendezvous_listened(bus)
     s = session if session is not None else open_session(bus)
+    if rig_up and not wait_linked(s, bus, LINK_WAIT_S):
+        s.close()
+        where = bus.router or bus.endpoint if bus is not None else "the default endpoint"
+        raise ReplayRefused(f"a rig listens at {where} but this session found no link to it within "
+                            f"{LINK_WAIT_S:g} s: cannot check it for live driver nodes, so nothing is replayed")
     pubs: dict[str, Any] = {}
     checked_rigs: set[str] = set()
     stats = ReplayStats()

@@ -8,9 +8,13 @@ every other node is a client of it with its credentials.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
+import secrets
+import socket
+import time
 
 import zenoh
 
@@ -48,6 +52,9 @@ def zenoh_config(bus: BusConfig | None = None, server: bool = False, rig: str | 
         listen = [bus.endpoint, _ephemeral(bus.endpoint), *listen]
         connect = [bus.endpoint, *connect]
         c.insert_json5("listen/exit_on_failure", "false")
+        # a peer that failed to own the rendezvous joins whoever holds it: its Zenoh id says
+        # which bus it came for, so the one that joined can tell a stranger (check_rendezvous)
+        c.insert_json5("id", json.dumps(bus_id_prefix(bus.endpoint) + secrets.token_hex(12)))
     elif not connect:
         connect = [bus.endpoint]
     c.insert_json5("listen/endpoints", json.dumps(listen))
@@ -124,6 +131,80 @@ def router_config(bus: BusConfig, rig: str, robots: list[str], tls: dict[str, st
     return c
 
 
+def _locator(endpoint: str) -> tuple[str, str, str]:
+    """(protocol, address, port) of an endpoint, its host resolved, Zenoh's ``#``/``?`` parts dropped."""
+    proto, _, addr = re.split(r"[#?]", endpoint, maxsplit=1)[0].partition("/")
+    host, _, port = addr.rpartition(":")
+    host = host.strip("[]")
+    try:
+        host = socket.getaddrinfo(host, None)[0][4][0]
+    except (OSError, UnicodeError):
+        pass
+    return proto, host, port
+
+
+def bus_id_prefix(endpoint: str) -> str:
+    """The first 8 hex digits of the Zenoh id of every peer that came for the bus at ``endpoint``
+    (a digest of the endpoint; the rest of the id is random, so ids stay unique)."""
+    proto, host, port = _locator(endpoint)
+    digest = int(hashlib.sha256(f"{proto}/{host}:{port}".encode()).hexdigest()[:8], 16)
+    return f"{digest | 0x10000000:08x}"  # Zenoh refuses an id with a leading 0
+
+
+def check_rendezvous(session: zenoh.Session, bus: BusConfig) -> None:
+    """Refuse a peer session that joined a stranger at the rig's rendezvous endpoint.
+
+    A peer's listen on ``bus.endpoint`` may fail (the port is taken) and is not fatal, since
+    the rig's first node holds it and the others connect to it; but the holder may be any Zenoh
+    session of this host (another rig's ephemeral listener, a plain ``zenohd``), and joining it
+    puts this node on that stranger's bus (its commands, its e-stops, none of its own rig's
+    nodes). The link this session opened to the endpoint names the holder's Zenoh id: a peer
+    that came for the same bus carries :func:`bus_id_prefix` of the endpoint. One look at the
+    session's links, no message exchanged: a holder with another id is :class:`BusUnavailable`
+    and the session is closed."""
+    want = _locator(bus.endpoint)
+    mine = bus_id_prefix(bus.endpoint)
+    for link in session.info.links():
+        if _locator(str(link.dst)) != want:
+            continue
+        holder = str(link.zid)
+        if not holder.startswith(mine):
+            session.close()
+            raise BusUnavailable(
+                f"the rig's endpoint {bus.endpoint} is held by a Zenoh session that did not come for this bus "
+                f"(id {holder}: another rig's or program's on this host); refusing to join it: stop that "
+                "process or give the rig a free bus.endpoint")
+
+
+def rendezvous_listened(bus: BusConfig | None) -> bool:
+    """Something listens at the bus's rendezvous (its router, else its endpoint) now (tcp only):
+    a session opened next will link to it, not hold it itself."""
+    bus = bus or BusConfig()
+    proto, host, port = _locator(bus.router or bus.endpoint)
+    if proto != "tcp" or not port.isdigit():
+        return False
+    try:
+        with socket.create_connection((host, int(port)), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+def wait_linked(session: zenoh.Session, bus: BusConfig | None, timeout_s: float = 5.0) -> bool:
+    """Wait (bounded) until ``session`` has its link to the bus's rendezvous (a peer's connect
+    runs in the background: right after opening, the rig's nodes may not be known yet, and a
+    liveliness query then sees none of them). True once linked."""
+    bus = bus or BusConfig()
+    want = _locator(bus.router or bus.endpoint)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if any(_locator(str(link.dst)) == want for link in session.info.links()):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.02)
+
+
 def _ephemeral(endpoint: str) -> str:
     proto, _, addr = endpoint.partition("/")
     host = addr.rsplit(":", 1)[0] if ":" in addr else addr
@@ -133,10 +214,15 @@ def _ephemeral(endpoint: str) -> str:
 def open_session(bus: BusConfig | None = None, server: bool = False, rig: str | None = None,
                  robots: list[str] | None = None) -> zenoh.Session:
     """A session on the rig's bus. On an access rig a failure to open is :class:`BusUnavailable`
-    (one line naming the endpoint and, for a client, the user)."""
+    (one line naming the endpoint and, for a client, the user); so is, for a peer, a rendezvous
+    endpoint held by a stranger (:func:`check_rendezvous`)."""
     cfg = zenoh_config(bus, server, rig, robots)
     if bus is None or bus.access is None:
-        return zenoh.open(cfg)
+        s = zenoh.open(cfg)
+        bus = bus or BusConfig()
+        if bus.router is None and bus.mode == "peer":
+            check_rendezvous(s, bus)
+        return s
     try:
         return zenoh.open(cfg)
     except Exception as e:  # zenoh.ZError; the message ends with a Rust source location

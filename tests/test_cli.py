@@ -288,3 +288,42 @@ def test_endpoint_override_keeps_the_rigs_access_control(tmp_path):
     rig.write_text("name: r\nrobots:\n  pm:\n    config: pointmass\nbus:\n  access: {credentials: /x/creds}\n")
     _, bus, _ = rig_bus(str(rig), "tcp/127.0.0.1:9")
     assert bus.endpoint == "tcp/127.0.0.1:9" and bus.access is not None and bus.access.credentials == "/x/creds"
+
+
+def test_shell_completion_names_verbs_rigs_robots_and_rig_files():
+    """Issue 27 item 6: `hil --install-completion` (typer's); what bash asks of `hil` completes."""
+
+    def complete(words: str) -> list[str]:
+        env = {"_HIL_COMPLETE": "complete_bash", "COMP_WORDS": words, "COMP_CWORD": str(len(words.split()) - 1)}
+        r = CliRunner().invoke(app, [], prog_name="hil", env=env)
+        assert r.exit_code == 0, r.output
+        return r.output.split()
+
+    assert complete("hil mp") == ["mpc"]
+    assert complete("hil up arm_wid") == ["arm_widowx_emulated", "arm_widowx_sim"]
+    assert "roach_emulated_router" in complete("hil router roach_") and "velociroach" not in complete("hil up v")
+    assert complete("hil drive velo") == ["velociroach"]  # a robot, not a rig
+    assert complete("hil teleop ./configs/rigs/roach_s") == ["./configs/rigs/roach_sim.yaml"]
+    assert complete("hil console no_such_rig") == []
+    r = CliRunner().invoke(app, ["--show-completion", "bash"], prog_name="hil")
+    assert r.exit_code == 0 and "_HIL_COMPLETE=complete_bash" in r.output and "complete " in r.output
+
+
+def test_up_set_overrides_rig_values_checked_by_the_schema():
+    """Issue 27 item 6: `hil up RIG --set key=value`, bounded like the file's own values."""
+    from hilstack.configs.schema import rig_robot_config
+    from hilstack.tools.common import rig_bus
+
+    _, bus, cfg = rig_bus("pointmass_sim", sets=["watchdog_periods=5", "pm.params.mass_kg=2.5",
+                                                 "bus.endpoint=tcp/127.0.0.1:17001"])
+    assert cfg.watchdog_periods == 5 and bus.endpoint == "tcp/127.0.0.1:17001"
+    assert rig_robot_config(cfg, "pm").params["mass_kg"] == 2.5  # what make_driver gets
+    assert rig_bus("pointmass_sim")[2].watchdog_periods == 3  # the file is unchanged
+    for bad, says in (("watchdog_periods=50", "watchdog_periods: Input should be less than or equal to 10"),
+                      ("watchdog_periods=.nan", "finite"),
+                      ("nosuch=1", "nosuch: unknown field"),
+                      ("pm.params.bogus=3", "robots.pm.params.bogus: unknown field"),
+                      ("watchdog_periods", "expected key=value"),
+                      ("pm.config.x=1", "robots.pm.config is not a mapping")):
+        r = CliRunner().invoke(app, ["up", "pointmass_sim", "--set", bad, "--steps", "1"])
+        assert r.exit_code == 2 and says in r.output and len(r.output.strip().splitlines()) == 1, (bad, r.output)

@@ -114,3 +114,35 @@ def test_arm_joints_pair_positions_with_velocities():
     assert lay["pose"] is None and lay["twist"] is None
     joints = {j: (st["names"][src[1]], st["names"][vel[0]]) for j, src, vel in lay["joints"]}
     assert joints["waist"] == ("waist_pos", "waist_vel") and len(joints) == 6
+
+
+def test_rerun_converts_the_exported_joint_states_to_plottable_scalars(recording, tmp_path):
+    """Issue 27: rerun's own conversion (`rerun mcap convert`, its ROS 2 decoders) of the exported
+    bag gives the roach's joints as named Scalars, their values those recorded."""
+    import os
+    import subprocess
+    import sys
+
+    import rerun as rr
+
+    bag = tmp_path / "bag"
+    assert CliRunner().invoke(app, ["export", "ros2", str(recording), "--out", str(bag)]).exit_code == 0
+    (mcap,) = bag.glob("*.mcap")
+    rrd = tmp_path / "bag.rrd"
+    p = subprocess.run([sys.executable, "-m", "rerun", "mcap", "convert", "-d", "ros2msg", "-d", "ros2_reflection",
+                        "-o", str(rrd), str(mcap)], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "RERUN_ANALYTICS": "off"})
+    assert p.returncode == 0, p.stderr
+    cols: dict[str, list] = {}
+    for c in rr.chunk.RrdReader(str(rrd)).stream().to_chunks():
+        if "joint_states" in str(c.entity_path):
+            rb = c.to_record_batch()
+            for f in rb.schema:
+                if "Scalars" in f.name:
+                    cols.setdefault(f"{c.entity_path}:{f.name}", []).extend(rb.column(f.name).to_pylist())
+    pos = [v for k, v in cols.items() if k.split(":")[0].endswith("joint_states/position")]
+    assert len(pos) == 1, sorted(cols)
+    want = _read(bag)["/r/roach/joint_states"]
+    assert len(pos[0]) == len(want) == 5
+    assert [x for row in pos[0] for x in row] == pytest.approx([x for _, m in want for x in m.position])
+    assert len({x for row in pos[0] for x in row}) == 5  # the crank turned: not one value repeated

@@ -39,7 +39,7 @@ _flags_shown_as_flags()
 app = typer.Typer(
     help="hilstack: hardware-in-the-loop robot stack for model-based learning and control.",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,  # --install-completion / --show-completion (bash, zsh, fish, PowerShell)
     pretty_exceptions_enable=False,
 )
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, echo_json, rig_bus, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, complete_rig, echo_json, rig_bus, user_errors
 
 
 def send_names(send: str, adapter) -> list[str] | None:
@@ -29,7 +29,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def adapt(
-        rig: str = typer.Argument(..., help="rig config (its driver node must be up: `hil up RIG`)"),
+        rig: str = typer.Argument(..., help="rig config (its driver node must be up: `hil up RIG`)", autocompletion=complete_rig),
         checkpoint: Path = typer.Option(..., "--checkpoint", exists=True, dir_okay=False,
                                         help="adaptation checkpoint (learning/adaptation; the MPC loads the same)"),
         method: str = typer.Option(None, "--method", help="override the checkpoint's method: mb | mb_de | grbal | "

@@ -6,14 +6,14 @@ import sys
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, rig_bus, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, complete_rig, rig_bus, user_errors
 
 
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def console(
-        rig: str = typer.Argument(..., help="rig config (its nodes are up: `hil up RIG`)"),
+        rig: str = typer.Argument(..., help="rig config (its nodes are up: `hil up RIG`)", autocompletion=complete_rig),
         robots: list[str] = typer.Option(None, "--robot", help="robot to show (repeatable; default: the rig's robots)"),
         endpoint: str = EndpointOpt,
     ) -> None:

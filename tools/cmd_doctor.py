@@ -12,14 +12,14 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EXIT_RUNTIME, echo_json, user_errors
+from hilstack.tools.common import EXIT_RUNTIME, complete_rig, echo_json, user_errors
 
 
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def doctor(
-        rig: str = typer.Argument(..., help="rig name (configs/rigs) or YAML path"),
+        rig: str = typer.Argument(..., help="rig name (configs/rigs) or YAML path", autocompletion=complete_rig),
         scan: bool = typer.Option(False, "--scan", help="open the ports and ask the devices (Dynamixel IDs by a "
                                                         "broadcast ping, XBee AT settings)"),
         json_out: bool = typer.Option(False, "--json", help="print one JSON line"),

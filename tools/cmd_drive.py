@@ -24,7 +24,7 @@ from typing import Any
 
 import typer
 
-from hilstack.tools.common import UserError, echo_json, user_errors
+from hilstack.tools.common import UserError, complete_robot, echo_json, user_errors
 
 
 def parse_action(text: str, dim: int, names: tuple[str, ...]) -> list[float]:
@@ -152,7 +152,8 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def drive(
-        robot: str = typer.Argument(..., help="robot config name or path (configs/robots/), e.g. velociroach"),
+        robot: str = typer.Argument(..., help="robot config name or path (configs/robots/), e.g. velociroach",
+                                   autocompletion=complete_robot),
         backend: str = typer.Option(None, "--backend",
                                     help="sim | emulated | real (default: the config's backend:)"),
         action: str = typer.Option(None, "--action", help="normalized action per channel in [-1, 1], e.g. 0.6,0.6; "

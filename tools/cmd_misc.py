@@ -15,6 +15,7 @@ from hilstack.bus.lifetime import child_env, exit_with_parent
 from hilstack.tools.common import (
     EndpointOpt,
     UserError,
+    complete_rig,
     echo_json,
     provision_credentials,
     rig_bus,
@@ -166,7 +167,7 @@ def _run_robot_processes(procs: list, names: list[str], grace_s: float = STOP_GR
                                   "follow, then it is killed (the device's own watchdog stops the robot)",
                                   n, grace_s)
                         p.send_signal(DUMP_STACKS_SIGNAL)
-                        time.sleep(0.5)
+                        time.sleep(2.0)  # the dump is written when the node is next scheduled
                         p.kill()
                         p.wait()
                         killed.append(n)
@@ -186,7 +187,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def router(
-        rig: str = typer.Argument(..., help="rig config name or path whose bus.router this router serves"),
+        rig: str = typer.Argument(..., help="rig config name or path whose bus.router this router serves", autocompletion=complete_rig),
         tls_cert: str = typer.Option(None, "--tls-cert", help="TLS certificate (PEM) for tls/ endpoints"),
         tls_key: str = typer.Option(None, "--tls-key", help="its private key (PEM)"),
         tls_ca: str = typer.Option(None, "--tls-ca", help="CA (PEM) that signed the clients' certificates: mutual TLS"),
@@ -227,10 +228,13 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def up(
-        rig: str = typer.Argument(..., help="rig config name or path (configs/rigs/)"),
+        rig: str = typer.Argument(..., help="rig config name or path (configs/rigs/)", autocompletion=complete_rig),
         robot: str = typer.Option(None, "--robot", help="only this robot of the rig, or several: a,b (default: all)"),
         steps: int = typer.Option(None, "--steps", help="stop after this many control periods"),
         endpoint: str = EndpointOpt,
+        sets: list[str] = typer.Option(None, "--set", metavar="KEY=VALUE",
+                                       help="override a value of the rig file, checked like the file: "
+                                            "watchdog_periods=5, roach.params.port=/dev/ttyUSB1 (repeatable)"),
     ) -> None:
         """Bring a rig's robots onto the bus (one driver bridge node per robot)."""
         from hilstack.configs.schema import rig_robot_config
@@ -241,7 +245,7 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"--steps {steps}: expected a number of control periods >= 1")
         setup_logging()
         exit_with_parent()
-        _, bus, cfg = rig_bus(rig, endpoint, need_config=True)
+        _, bus, cfg = rig_bus(rig, endpoint, need_config=True, sets=sets)
         provision_credentials(cfg.name, bus, cfg)
         names = robot.split(",") if robot else list(cfg.robots)
         for n in names:
@@ -271,6 +275,8 @@ def register(app: typer.Typer) -> None:
                     cmd += ["--steps", str(steps)]
                 if endpoint:
                     cmd += ["--endpoint", endpoint]
+                for x in sets or []:
+                    cmd += ["--set", x]
                 procs.append(subprocess.Popen(cmd, env=child_env()))
 
             raise typer.Exit(_run_robot_processes(procs, [",".join(g) for g in groups]))
@@ -299,7 +305,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def estop(
-        rig: str = typer.Argument(..., help="rig config name or file (its bus settings are used), or a rig name"),
+        rig: str = typer.Argument(..., help="rig config name or file (its bus settings are used), or a rig name", autocompletion=complete_rig),
         release: bool = typer.Option(False, "--release", help="release a latched e-stop (in this user's name)"),
         reason: str = typer.Option("operator", "--reason"),
         timeout_s: float = typer.Option(
@@ -363,7 +369,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def nodes(
-        rig: str = typer.Argument(..., help="rig config name or file (its bus settings are used), or a rig name"),
+        rig: str = typer.Argument(..., help="rig config name or file (its bus settings are used), or a rig name", autocompletion=complete_rig),
         json_out: bool = typer.Option(False, "--json"),
         endpoint: str = EndpointOpt,
     ) -> None:
@@ -407,7 +413,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def credentials(
-        rig: str = typer.Argument(..., help="rig config name or file with a bus.access section"),
+        rig: str = typer.Argument(..., help="rig config name or file with a bus.access section", autocompletion=complete_rig),
         users: list[str] = typer.Option(None, "--user", help="add this user (repeatable; default: the rig's "
                                                              "command and release users and bus.access.user)"),
     ) -> None:

@@ -6,14 +6,22 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, echo_json, one_line, rig_bus, user_errors
+from hilstack.tools.common import (
+    EndpointOpt,
+    UserError,
+    complete_rig,
+    echo_json,
+    one_line,
+    rig_bus,
+    user_errors,
+)
 
 
 def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def mpc(
-        rig: str = typer.Argument(..., help="rig config (its driver node must be up: `hil up RIG`)"),
+        rig: str = typer.Argument(..., help="rig config (its driver node must be up: `hil up RIG`)", autocompletion=complete_rig),
         model: Path = typer.Option(None, "--model", exists=True, dir_okay=False, help="dynamics checkpoint (model.pt)"),
         adapt: Path = typer.Option(None, "--adapt", exists=True, dir_okay=False,
                                    help="adaptation checkpoint instead of --model: plan with its model and swap in "

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from hilstack.tools.common import EndpointOpt, UserError, one_line, rig_bus, user_errors
+from hilstack.tools.common import EndpointOpt, UserError, complete_rig, one_line, rig_bus, user_errors
 
 #: status line refreshes per second (the terminal is not flooded at a fast lockstep sim's rate)
 STATUS_HZ = 10.0
@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     @user_errors
     def teleop(
-        rig: str = typer.Argument(..., help="rig config (its driver node must be up: `hil up RIG`)"),
+        rig: str = typer.Argument(..., help="rig config (its driver node must be up: `hil up RIG`)", autocompletion=complete_rig),
         robot: str = typer.Option(None, "--robot", help="robot key in the rig (default: the rig's first)"),
         record: Path = typer.Option(None, "--record", dir_okay=False,
                                     help="also record the rig's bus to this MCAP file (demonstration data)"),

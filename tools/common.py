@@ -139,16 +139,52 @@ def with_endpoint(bus: BusConfig, endpoint: str | None) -> BusConfig:
         raise UserError(f"bad --endpoint {endpoint!r}: {one_line(e)}") from None
 
 
-def rig_bus(rig: str, endpoint: str | None = None, need_config: bool = False) -> tuple[str, BusConfig, Any]:
+def apply_sets(data: Any, sets: list[str], robots: Any = ()) -> list[tuple[str, Any]]:
+    """``--set key=value`` overrides applied to a rig file's parsed YAML ``data`` (in place):
+    ``key`` is a dotted path into the file (``watchdog_periods``, ``bus.endpoint``,
+    ``robots.roach.params.port``; ``roach.params.port`` for short when ``roach`` is one of the
+    rig's ``robots``), ``value`` is read as YAML (``5``, ``true``, ``[a, b]``, text). Nothing is
+    checked here but the shape: the rig's schema (and the robot's, for ``params``) checks the
+    values as it checks the file's. Returns the (path, value) pairs."""
+    import yaml
+
+    done: list[tuple[str, Any]] = []
+    for item in sets:
+        key, eq, text = item.partition("=")
+        parts = key.strip().split(".")
+        if not eq or not all(parts):
+            raise UserError(f"--set {item}: expected key=value, e.g. watchdog_periods=5 or roach.params.port=/dev/ttyUSB1")
+        if parts[0] in robots and parts[0] not in ("robots", "bus", "reset"):
+            parts = ["robots", *parts]
+        try:
+            value = yaml.safe_load(text) if text.strip() else ""
+        except yaml.YAMLError:
+            raise UserError(f"--set {item}: the value is not valid YAML") from None
+        node = data
+        for i, part in enumerate(parts[:-1]):
+            nxt = node.get(part) if isinstance(node, dict) else None
+            if nxt is None and isinstance(node, dict):
+                nxt = node[part] = {}
+            if not isinstance(nxt, dict):
+                raise UserError(f"--set {item}: {'.'.join(parts[:i + 1])} is not a mapping in the rig file")
+            node = nxt
+        node[parts[-1]] = value
+        done.append((".".join(parts), value))
+    return done
+
+
+def rig_bus(rig: str, endpoint: str | None = None, need_config: bool = False,
+            sets: list[str] | None = None) -> tuple[str, BusConfig, Any]:
     """The one way every verb that takes a rig reads it: a rig config name
     (``configs/rigs/<name>.yaml``) or file → ``(rig name, its bus settings, RigConfig)``,
-    ``--endpoint`` replacing only the endpoint. A plain name that is no config (a rig made
+    ``--endpoint`` replacing only the endpoint, ``sets`` (``--set key=value``, :func:`apply_sets`)
+    changing the file's values before the schema checks them. A plain name that is no config (a rig made
     up on the command line, e.g. a test's): that name on the default bus and None, unless
     ``need_config``."""
     from pathlib import Path
 
     from hilstack.bus.keys import _NAME
-    from hilstack.configs.schema import config_path, load_rig
+    from hilstack.configs.schema import config_path, load_rig, read_yaml, rig_config
 
     try:
         path = config_path("rigs", rig)
@@ -157,7 +193,17 @@ def rig_bus(rig: str, endpoint: str | None = None, need_config: bool = False) ->
         if need_config or p.suffix in (".yaml", ".yml") or "/" in rig or not _NAME.match(rig):
             raise
         return rig, bus_config(endpoint), None
-    cfg = load_rig(path)
+    if sets:
+        data = read_yaml(path)
+        if not isinstance(data, dict):
+            raise ConfigError(path, [("", "a rig file is a mapping (name:, robots:, ...)")])
+        apply_sets(data, sets, data.get("robots") or {})
+        try:
+            cfg = rig_config(data, path)
+        except ConfigError as e:  # the file was fine until --set changed it: say so
+            raise ConfigError(f"{path} with --set {' '.join(sets)}", e.problems) from None
+    else:
+        cfg = load_rig(path)
     return cfg.name, with_endpoint(cfg.bus, endpoint), cfg
 
 
@@ -210,3 +256,32 @@ def setup_logging(verbose: bool = False) -> None:
 
 
 EndpointOpt = typer.Option(None, "--endpoint", help="Zenoh rendezvous endpoint (default tcp/127.0.0.1:7447)")
+
+
+def config_completer(kind: str) -> Callable[[str], list[str]]:
+    """Shell completion (``hil --install-completion``) of a config argument: the names under
+    ``configs/<kind>/`` that start with what was typed; once it looks like a path (``/``, ``.``), the
+    YAML files and folders there."""
+
+    def complete(incomplete: str) -> list[str]:
+        from pathlib import Path
+
+        from hilstack.configs.schema import CONFIG_ROOT
+
+        if "/" in incomplete or incomplete.startswith("."):
+            folder, _, stem = incomplete.rpartition("/")
+            base = Path(folder or ".")
+            try:
+                found = [p for p in base.iterdir() if p.name.startswith(stem)
+                         and (p.is_dir() or p.suffix in (".yaml", ".yml"))]
+            except OSError:
+                return []
+            return sorted(f"{folder}/{p.name}/" if p.is_dir() else f"{folder}/{p.name}" if folder else p.name
+                          for p in found)
+        return sorted(p.stem for p in (CONFIG_ROOT / kind).glob("*.yaml") if p.stem.startswith(incomplete))
+
+    return complete
+
+
+complete_rig = config_completer("rigs")
+complete_robot = config_completer("robots")

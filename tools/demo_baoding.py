@@ -93,10 +93,13 @@ def seeds_on_sweep(out: Path, seeds: tuple[int, ...], preset: str, rig: str, ove
                    executor: str | None, workers: int = 1,
                    resume: bool = False) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Every seed a sweep task (``executor``: None serial, ``local``, an address): the seeds'
-    reports in ``seeds`` order and the sweep's record."""
+    reports in ``seeds`` order and the sweep's record. A re-run of a stopped sweep (``out`` holds its
+    ``tasks/``) continues each stopped seed after its last finished iteration (``resume``), as
+    ``--resume`` would: the seed's directory holds its checkpoint, which a fresh start refuses to overwrite."""
     from hilstack.tools.common import UserError
     from hilstack.tools.sweep import Task, run_sweep
 
+    resume = resume or (Path(out) / "tasks").is_dir()
     tasks = [Task(f"seed{s}", seed_task, {"out": str(out / f"seed_{s}"), "preset": preset, "seed": s, "rig": rig,
                                            "overrides": overrides, "resume": resume}) for s in seeds]
     sw = run_sweep(tasks, out, executor=executor, workers=workers)

@@ -12,7 +12,7 @@ import time
 
 from hilstack.bus import keys
 from hilstack.bus.access import acl, generate
-from hilstack.bus.node import Node
+from hilstack.bus.node import Node, alive_nodes
 from hilstack.bus.schemas import Command, RobotState, decode, encode
 from hilstack.bus.session import BusUnavailable
 from hilstack.configs.schema import BusAccess, BusConfig, load_rig
@@ -71,7 +71,9 @@ def test_rig_through_the_router(tmp_path, spawn):
 
         wait_for(lambda: new(), 60, "the driver's states through the router")
         rec = spawn("record", "--rig", rig_file, "--out", str(rec_file))
-        time.sleep(1.5)  # the recorder joins the router
+        # the recorder joins the router (its token; its subscription follows within the same start-up)
+        wait_for(lambda: "recorder" in alive_nodes(op.session, "rt_roach", timeout_s=0.3), 60, "the recorder")
+        time.sleep(0.5)
 
         # a session without the rig's credentials cannot join: its commands go nowhere
         plain = _plain_session(BusConfig(endpoint=bus.router))
@@ -99,6 +101,7 @@ def test_rig_through_the_router(tmp_path, spawn):
         t_kill = time.time()
         time.sleep(1.0)
         router2 = spawn("router", rig_file)  # the same endpoint again: the clients reconnect
+        wait_for(lambda: "recorder" in alive_nodes(op.session, "rt_roach", timeout_s=0.3), 60, "the recorder back")
         late = wait_for(lambda: [s for s in new() if s.stamp_s > t_kill + 0.5], 30, "states after the outage")
         assert all(s.stopped_reason == "stale" and all(abs(x) < 1e-9 for x in s.action) for s in late), late[0]
         rec_rc = rec.stop(20)

@@ -36,3 +36,24 @@ def test_seeds_as_sweep_tasks_give_the_serial_summary_and_resume(tmp_path, monke
     monkeypatch.setattr(demo, "run_baoding_demo", _fake_run(calls))
     again, sw2 = demo.seeds_on_sweep(tmp_path / "sweep", (0, 1, 2), "tiny", "hand_sim", {"epochs": 1}, None)
     assert calls[6:] == [1] and sw2["resumed"] == 2 and again == runs
+
+
+def test_a_stopped_seed_continues_when_the_sweep_runs_again(tmp_path, monkeypatch):
+    """A seed killed mid-run leaves its checkpoint (a partial report.json), which a fresh start
+    refuses to overwrite (as run_baoding_demo does): the sweep's re-run resumes it instead."""
+    starts: list[tuple[int, bool]] = []
+
+    def run(out: Path, preset: str, seed: int, rig: str, resume: bool = False, **overrides) -> dict:
+        if (out / "report.json").exists() and not resume:
+            raise ValueError(f"{out} already holds a run (report.json): resume it (--resume)")
+        starts.append((seed, resume))
+        return {"seed": seed, "resumed": resume}
+
+    monkeypatch.setattr(demo, "run_baoding_demo", run)
+    out = tmp_path / "sweep"
+    demo.seeds_on_sweep(out, (0, 1), "tiny", "hand_sim", {}, None)
+    (out / "tasks/seed1.json").unlink()  # seed 1 was stopped half-way: no result, its checkpoint left
+    (out / "seed_1").mkdir(parents=True, exist_ok=True)
+    (out / "seed_1/report.json").write_text('{"partial": true}')
+    runs, sw = demo.seeds_on_sweep(out, (0, 1), "tiny", "hand_sim", {}, None)
+    assert starts == [(0, False), (1, False), (1, True)] and sw["resumed"] == 1 and runs[1] == {"seed": 1, "resumed": True}
