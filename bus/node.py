@@ -221,6 +221,28 @@ class Subscription(Generic[T]):
             self._inbox.close()
 
 
+class AliveWatch:
+    """Whether one named node of the rig is alive (its liveliness token), kept by a Zenoh
+    callback: ``alive`` is None until the node was seen, then True, and False once its token
+    is gone (it exited, was killed, or lost its link)."""
+
+    def __init__(self, session: zenoh.Session, rig: str, name: str):
+        self.name = name
+        self.alive: bool | None = None
+        self._sub = session.liveliness().declare_subscriber(keys.alive(rig, name), self._on, history=True)
+
+    def _on(self, sample: zenoh.Sample) -> None:  # Zenoh callback: one attribute store, no work
+        self.alive = sample.kind == zenoh.SampleKind.PUT
+
+    @property
+    def gone(self) -> bool:
+        """Seen alive, and gone since."""
+        return self.alive is False
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
 class NodeConflict(ValueError):
     """A node that must be alone on its rig (a driver node) found its name already alive."""
 
@@ -291,6 +313,12 @@ class Node:
         s = Subscription(self.session, key, typ, latest=latest, capacity=capacity)
         self._closeables.append(s)
         return s
+
+    def watch_alive(self, name: str) -> AliveWatch:
+        """Track whether node ``name`` of this rig is alive (:class:`AliveWatch`)."""
+        w = AliveWatch(self.session, self.rig, name)
+        self._closeables.append(w)
+        return w
 
     def malformed_count(self) -> int:
         return sum(s.malformed for s in self._closeables if isinstance(s, Subscription))

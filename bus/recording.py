@@ -930,6 +930,10 @@ class Recorder(Node):
             super().close()
 
 
+#: how long a replay waits for its link to a rig that listens at the endpoint before it checks
+#: that rig for live driver nodes [s]
+LINK_WAIT_S = 5.0
+
 #: Message types :func:`replay` publishes by default: what sensors and driver nodes
 #: report. Everything else (e-stop commands and acks, robot commands, reset requests,
 #: MPC plans, model updates, pings) can change what a live rig does and needs
@@ -1012,11 +1016,20 @@ def replay(
     byte-identical to what was recorded (same stamps and sequence numbers).
     """
     from hilstack.bus.node import alive_nodes
-    from hilstack.bus.session import open_session
+    from hilstack.bus.session import open_session, rendezvous_listened, wait_linked
 
     wanted = topic_filter(topics)
     own = session is None
+    # a rig is up at the endpoint: the live-driver check below must see its nodes, so it waits
+    # for this session's link to them first (under load the background connect took longer
+    # than the check's window, and a replay went ahead onto a live rig)
+    rig_up = own and rendezvous_listened(bus)
     s = session if session is not None else open_session(bus)
+    if rig_up and not wait_linked(s, bus, LINK_WAIT_S):
+        s.close()
+        where = bus.router or bus.endpoint if bus is not None else "the default endpoint"
+        raise ReplayRefused(f"a rig listens at {where} but this session found no link to it within "
+                            f"{LINK_WAIT_S:g} s: cannot check it for live driver nodes, so nothing is replayed")
     pubs: dict[str, Any] = {}
     checked_rigs: set[str] = set()
     stats = ReplayStats()

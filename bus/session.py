@@ -14,6 +14,7 @@ import os
 import re
 import secrets
 import socket
+import time
 
 import zenoh
 
@@ -173,6 +174,35 @@ def check_rendezvous(session: zenoh.Session, bus: BusConfig) -> None:
                 f"the rig's endpoint {bus.endpoint} is held by a Zenoh session that did not come for this bus "
                 f"(id {holder}: another rig's or program's on this host); refusing to join it: stop that "
                 "process or give the rig a free bus.endpoint")
+
+
+def rendezvous_listened(bus: BusConfig | None) -> bool:
+    """Something listens at the bus's rendezvous (its router, else its endpoint) now (tcp only):
+    a session opened next will link to it, not hold it itself."""
+    bus = bus or BusConfig()
+    proto, host, port = _locator(bus.router or bus.endpoint)
+    if proto != "tcp" or not port.isdigit():
+        return False
+    try:
+        with socket.create_connection((host, int(port)), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+def wait_linked(session: zenoh.Session, bus: BusConfig | None, timeout_s: float = 5.0) -> bool:
+    """Wait (bounded) until ``session`` has its link to the bus's rendezvous (a peer's connect
+    runs in the background: right after opening, the rig's nodes may not be known yet, and a
+    liveliness query then sees none of them). True once linked."""
+    bus = bus or BusConfig()
+    want = _locator(bus.router or bus.endpoint)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if any(_locator(str(link.dst)) == want for link in session.info.links()):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.02)
 
 
 def _ephemeral(endpoint: str) -> str:

@@ -69,6 +69,15 @@ class EpisodeLog:
         return np.array(self.states), np.array(self.actions_norm)
 
 
+#: after the driver node is gone, how long a reset still waits for an answer (the reset
+#: supervisor's, saying why it failed the reset) before it raises :class:`DriverGone` [s]
+DRIVER_GONE_GRACE_S = 2.0
+
+
+class DriverGone(RuntimeError):
+    """The robot's driver node left the bus (link failure, stopped, killed) while waited for."""
+
+
 class ControllerNode(Node):
     def __init__(
         self,
@@ -88,6 +97,8 @@ class ControllerNode(Node):
         self._plan = self.publisher(keys.plan(rig), Plan)
         self._reset_req = self.publisher(keys.reset(rig, "request"), ResetEvent, reliable=True)
         self._reset_done = self.subscribe(keys.reset(rig, "done"), ResetEvent)
+        #: the robot's driver node: a wait for its answer ends once it is gone
+        self.driver = self.watch_alive(keys.driver_node(robot))
         #: the robot's spec, typed again from its driver node's SpecMsg (wait_ready)
         self.spec: RobotSpec | None = None
         self.late_count = 0
@@ -167,13 +178,24 @@ class ControllerNode(Node):
         self._reset_done.poll()
         self._reset_req.put(ResetEvent(robot=self.robot, phase=ResetPhase.REQUEST, pose={k: float(v) for k, v in pose.items()}))
         deadline = time.monotonic() + timeout_s
+        gone_by: float | None = None
         while True:
-            m = self._reset_done.wait(max(0.0, deadline - time.monotonic()))
+            m = self._reset_done.wait(min(0.5, max(0.0, deadline - time.monotonic())))
             if m is not None and m.robot == self.robot:
                 if m.phase != ResetPhase.DONE:
                     raise RuntimeError(f"reset of {self.robot} {m.phase}: {m.detail}")
                 break
-            if time.monotonic() >= deadline:
+            now = time.monotonic()
+            if self.driver.gone:
+                # its link failed or it was stopped: no DONE can come (a demo waited 352 s); a reset
+                # supervisor's own answer (why it failed the reset) still may, for DRIVER_GONE_GRACE_S
+                gone_by = now if gone_by is None else gone_by
+                if now - gone_by >= DRIVER_GONE_GRACE_S:
+                    raise DriverGone(f"the driver node of {self.robot} is gone (its link failed, or it was "
+                                     "stopped): no reset answer can come")
+            else:
+                gone_by = None
+            if now >= deadline:
                 raise TimeoutError(f"no reset answer from {self.robot} within {timeout_s} s")
         while True:
             s = self.next_state(timeout_s=timeout_s)

@@ -28,7 +28,6 @@ from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
-import zenoh
 
 from hilstack.bus import keys
 from hilstack.bus.node import Node
@@ -71,16 +70,6 @@ class BridgeStats:
     last_unhealthy: str = ""
     lockstep_timeouts: int = 0
     last_reject: str = ""
-
-
-class _Undeclare:
-    """``close()`` for a Zenoh declaration (Node.close closes what it holds)."""
-
-    def __init__(self, decl):
-        self._decl = decl
-
-    def close(self) -> None:
-        self._decl.undeclare()
 
 
 class DriverNode(Node):
@@ -151,11 +140,7 @@ class DriverNode(Node):
         # leaves controllers' requests to it and serves its teleport / new-episode requests
         self._sup_req = self.subscribe(keys.reset_driver(rig), ResetEvent, latest=False, capacity=16)
         self._sup_done = self.publisher(keys.reset_driver_done(rig), ResetEvent, reliable=True)
-        self.supervisor_alive = False
-        self._sup_token = self.session.liveliness().declare_subscriber(
-            keys.alive(rig, keys.RESET_SUPERVISOR_NODE), self._on_supervisor, history=True
-        )
-        self._closeables.append(_Undeclare(self._sup_token))
+        self._supervisor = self.watch_alive(keys.RESET_SUPERVISOR_NODE)
         self.episode = 0
         self._last_cmd_t: float | None = None  # node clock when the last command was applied
         self._last_state: RobotState | None = None
@@ -208,9 +193,9 @@ class DriverNode(Node):
                          device_confirmed=self.estopped and self.driver.stop_confirmed())
             )
 
-    def _on_supervisor(self, sample) -> None:
-        # Zenoh callback: one attribute store, no work
-        self.supervisor_alive = sample.kind == zenoh.SampleKind.PUT
+    @property
+    def supervisor_alive(self) -> bool:
+        return bool(self._supervisor.alive)
 
     def _handle_supervisor(self) -> bool:
         """Serve the reset supervisor: ``teleport`` (sim backends: put the robot at the pose)

@@ -57,7 +57,8 @@ from hilstack.learning.mbrl import (
     task_cost,
 )
 
-__all__ = ["HeldInputs", "TerrainConfig", "TerrainSim", "aggregate", "run_seed", "with_features"]
+__all__ = ["FeatureStream", "HeldInputs", "TerrainConfig", "TerrainSim", "aggregate", "feature_transform",
+           "run_seed", "running_mean", "with_features"]
 
 
 # ---------------------------------------------------------------------------- the model
@@ -138,6 +139,51 @@ class HeldInputs:
         self.model.save(path)
 
 
+def running_mean(f: np.ndarray, k: int) -> np.ndarray:
+    """``f [T, F]`` averaged over its last ``k`` rows at every step (fewer at the start)."""
+    f = np.asarray(f, dtype=np.float64)
+    c = np.cumsum(np.vstack([np.zeros((1, f.shape[1])), f]), axis=0)
+    t = np.arange(1, len(f) + 1)
+    lo = np.maximum(0, t - int(k))
+    return ((c[t] - c[lo]) / (t - lo)[:, None]).astype(np.float32)
+
+
+def feature_transform(cfg: TerrainConfig, train: Sequence[Episode]):
+    """What the model reads of the raw encoder features (``[N, F] → [N, F']``): the PCA
+    whitening fitted on ``train``'s features (averaged over ``cfg.average_frames``) when
+    ``cfg.whiten_min_share`` > 0, otherwise the features as they are."""
+    if cfg.whiten_min_share <= 0:
+        return lambda f: np.asarray(f, dtype=np.float32)
+    from hilstack.perception.terrain_features import FeatureWhitening
+
+    return FeatureWhitening(np.concatenate([running_mean(e.meta["features"], cfg.average_frames) for e in train]),
+                            min_share=cfg.whiten_min_share)
+
+
+def transformed(ep: Episode, transform, k: int) -> Episode:
+    """``ep`` with ``meta["features"]`` averaged over the last ``k`` images and transformed."""
+    return Episode(ep.states, ep.actions, ep.times, name=ep.name,
+                   meta={**ep.meta, "features": transform(running_mean(ep.meta["features"], k))})
+
+
+class FeatureStream:
+    """The features the image-conditioned model reads at each step of an episode: ``encode``
+    of the current image, averaged with the episode's previous ``k − 1`` and transformed
+    (:func:`feature_transform`); :meth:`reset` at every episode start."""
+
+    def __init__(self, encode: Callable[[np.ndarray], np.ndarray], transform, k: int = 1):
+        self.encode, self.transform, self.k = encode, transform, int(k)
+        self.history: list[np.ndarray] = []
+
+    def reset(self) -> None:
+        self.history = []
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        self.history = [*self.history[-(self.k - 1):], np.asarray(self.encode(image), np.float32)] if self.k > 1 \
+            else [np.asarray(self.encode(image), np.float32)]
+        return self.transform(np.mean(self.history, axis=0)[None])[0]
+
+
 def with_features(ep: Episode) -> Episode:
     """``ep`` with its image features (``meta["features"]``, ``[T+1, F]``) appended to the states."""
     f = ep.meta["features"]
@@ -169,6 +215,14 @@ class TerrainConfig(Presets):
     camera_px: int = 64
     features: int = 16
     encoder_seed: int = 0
+    #: the model reads the features PCA-whitened (fitted on the training data), keeping the
+    #: principal directions with at least this share of the variance (0: the raw features). The
+    #: 16 features are near-collinear (3 directions carry > 99 %), so per-channel normalisation
+    #: alone hands the network 16 copies of 3 signals (docs/mbrl.md, "Why it helped on one terrain")
+    whiten_min_share: float = 0.01
+    #: the features are averaged over the episode's last this many images (1: the current one,
+    #: as the thesis); the robot's tilt moves the view and explains ~90 % of a terrain's feature spread
+    average_frames: int = 1
     #: rough terrains' periodic map: half its period (m); 0.5 keeps rendering the heightfield at
     #: ~10 ms a frame (the backend's default 2.0 m: ~40 ms, measured); the map is endless either way
     terrain_half_size_m: float = 0.5
@@ -194,6 +248,10 @@ class TerrainConfig(Presets):
             problems.append(f"camera_px must be in [8, 256], got {self.camera_px}")
         if self.features < 1:
             problems.append(f"features must be >= 1, got {self.features}")
+        if not (math.isfinite(self.whiten_min_share) and 0 <= self.whiten_min_share < 1):
+            problems.append(f"whiten_min_share must be in [0, 1), got {self.whiten_min_share}")
+        if self.average_frames < 1:
+            problems.append(f"average_frames must be >= 1, got {self.average_frames}")
         if not (math.isfinite(self.speed) and 0 < self.speed <= 1):
             problems.append(f"speed must be in (0, 1], got {self.speed}")
         if problems:
@@ -294,6 +352,8 @@ def drive_path(env: TerrainSim, terrain: str, policy, path: str, cfg: TerrainCon
     end = PathEnd(PathCost(wp, names))
     s, img = env.start(terrain, path_start_pose(wp))
     policy.reset()
+    if hasattr(features, "reset"):
+        features.reset()
     states = [s]
     t_plan = []
     for _ in range(steps):
@@ -368,14 +428,17 @@ def run_seed(cfg: TerrainConfig, seed: int, encoder) -> dict[str, Any]:
                    for i, t in enumerate(cfg.terrains)} if cfg.heldout_rollouts > 0 else {}
         t_data = time.monotonic() - t0
         names, acts = env.state_names, list(env.action_space.names)
-        feat_names = encoder.names
+        k = cfg.average_frames
+        every = [e for t in cfg.terrains for e in data[t]]
+        transform = feature_transform(cfg, every)  # fitted on the training data's features
+        feat_names = [f"img_{i}" for i in range(transform(every[0].meta["features"][:1]).shape[1])]
         models, training = {}, {}
         for t in cfg.terrains:
             models[("per-terrain", t)], training[f"per-terrain {t}"] = _fit(cfg, seed, data[t], names, acts)
-        every = [e for t in cfg.terrains for e in data[t]]
         models["all"], training["all data, no images"] = _fit(cfg, seed, every, names, acts)
-        models["image"], training["image-conditioned"] = _fit(cfg, seed, [with_features(e) for e in every],
-                                                              names + feat_names, acts, held=feat_names)
+        models["image"], training["image-conditioned"] = _fit(
+            cfg, seed, [with_features(transformed(e, transform, k)) for e in every], names + feat_names, acts,
+            held=feat_names)
         t_train = time.monotonic() - t0 - t_data
         _log(cfg, f"seed {seed}: trained {len(models)} models ({t_train:.0f} s)")
         wrong = {t: encoder.encode(np.stack(images[cfg.terrains[(i + 1) % len(cfg.terrains)]]))
@@ -383,11 +446,12 @@ def run_seed(cfg: TerrainConfig, seed: int, encoder) -> dict[str, Any]:
         prediction: dict[str, dict[str, float]] = {r: {} for r in ROWS}
         for t, eps in heldout.items():  # open-loop error on rollouts no model trained on
             H = cfg.mbrl.horizon
-            seen = [with_features(e) for e in eps]
+            seen = [with_features(transformed(e, transform, k)) for e in eps]
             rng = np.random.default_rng([seed, 8])
             other = [Episode(e.states.copy(), e.actions, name=e.name) for e in seen]
-            for e in other:
-                e.states[:, len(names):] = wrong[t][rng.integers(len(wrong[t]), size=len(e.states))]
+            for e in other:  # another terrain's images, averaged and transformed as the right ones
+                w = wrong[t][rng.integers(len(wrong[t]), size=len(e.states))]
+                e.states[:, len(names):] = transform(running_mean(w, k))
             prediction["per-terrain"][t] = h_step_xy_mse(models[("per-terrain", t)], eps, H)
             prediction["all data, no images"][t] = h_step_xy_mse(models["all"], eps, H)
             prediction["image-conditioned"][t] = h_step_xy_mse(models["image"], seen, H)
@@ -401,9 +465,10 @@ def run_seed(cfg: TerrainConfig, seed: int, encoder) -> dict[str, Any]:
             variants = {
                 "per-terrain": (models[("per-terrain", t)], names, None),
                 "all data, no images": (models["all"], names, None),
-                "image-conditioned": (models["image"], names + feat_names, encoder.encode),
+                "image-conditioned": (models["image"], names + feat_names, FeatureStream(encoder.encode, transform, k)),
                 "image-conditioned, another terrain's images": (
-                    models["image"], names + feat_names, lambda img, t=t, rng=rng: wrong[t][rng.integers(len(wrong[t]))]),
+                    models["image"], names + feat_names,
+                    FeatureStream(lambda img, t=t, rng=rng: wrong[t][rng.integers(len(wrong[t]))], transform, k)),
             }
             for row, (model, snames, feats) in variants.items():
                 make = _mpc(model, cfg, env, snames)
@@ -414,6 +479,8 @@ def run_seed(cfg: TerrainConfig, seed: int, encoder) -> dict[str, Any]:
                 f"{r} {matrix[r][t]['summary']['cost_per_m']:.1f}/m ({matrix[r][t]['summary']['completed']}"
                 f"/{len(cfg.paths)})" for r in ROWS))
         return {"seed": seed, "matrix": matrix, "training": training, "prediction_xy_mse_m2": prediction,
+                "features": {"model_inputs": len(feat_names), "encoder_outputs": encoder.out_dim,
+                             "variance_shares": getattr(transform, "shares", None)},
                 "images": {t: np.stack(v[:4]) for t, v in images.items()},  # what the camera saw
                 "wall_s": {"data": t_data, "train": t_train, "total": time.monotonic() - t0}}
     finally:

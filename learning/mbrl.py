@@ -41,7 +41,7 @@ from hilstack.bus.session import BusUnavailable
 from hilstack.configs.presets import Presets
 from hilstack.configs.schema import BusConfig, load_rig
 from hilstack.control.baselines import DifferentialDriveController
-from hilstack.control.controller_node import ControllerNode, EpisodeLog
+from hilstack.control.controller_node import ControllerNode, DriverGone, EpisodeLog
 from hilstack.control.costs import PathCost, evaluate_path_following, rank_key, summarize_paths
 from hilstack.control.paths import fillet, make_path, path_length
 from hilstack.control.planners import CEM, PDDM, RandomShooting
@@ -587,6 +587,8 @@ class MbrlRun:
     def reset(self, pose: dict[str, float]):
         try:
             return self.ctl.reset(timeout_s=self.reset_timeout_s, **pose)
+        except DriverGone:
+            raise
         except RuntimeError as e:
             if self.supervisor is not None:  # the supervisor stopped the rig and says why
                 raise RigError(str(e)) from None
@@ -733,7 +735,7 @@ class MbrlRun:
         report: dict[str, Any] = {"config": _jsonable(asdict(cfg)), "rig": self.rig.name}
         try:
             return self._run(report, t0)
-        except TimeoutError as e:
+        except (TimeoutError, DriverGone) as e:
             raise RigError(f"{e} (driver log: {self.out / 'logs' / 'driver.log'})") from None
 
     def _run(self, report: dict[str, Any], t0: float) -> dict[str, Any]:

@@ -20,7 +20,11 @@ normal, as a network is initialised) and never trained:
 Layout: RGB in [0, 1] minus 0.5 → conv 5×5 stride 2 (16) → ReLU → conv 3×3 stride 2 (32) →
 ReLU → conv 3×3 stride 2 (64) → ReLU → mean over the image (64 numbers, invariant to where on
 the image a patch is) → a fixed Gaussian projection to ``out_dim`` (entries N(0, 1/64)).
-The dynamics model normalises its inputs, so the features' scale does not matter.
+The dynamics model normalises each input channel, but that does not make the 16 features 16
+inputs' worth of information: the mean activations of random filters move together, and on the
+roach's four terrains three principal directions carry > 99 % of the features' variance (66, 26,
+6 %; docs/mbrl.md). :class:`FeatureWhitening`, fitted on the training data, turns them into the
+few decorrelated unit-variance inputs they are.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import numpy as np
 import torch
 from torch import nn
 
-__all__ = ["RandomConvEncoder"]
+__all__ = ["FeatureWhitening", "RandomConvEncoder"]
 
 
 class RandomConvEncoder:
@@ -74,3 +78,37 @@ class RandomConvEncoder:
                 out.append((h @ self.projection).numpy())
         f = np.concatenate(out).astype(np.float32) if out else np.zeros((0, self.out_dim), np.float32)
         return f[0] if single else f
+
+
+class FeatureWhitening:
+    """PCA whitening of image features, fitted on training features: ``f ↦ (f − μ) V_k / σ_k``
+    with the principal directions ``V_k`` that carry at least ``min_share`` of the variance each.
+
+    Why: per-channel normalisation of near-collinear features (a random projection of mean
+    activations that move together) hands the network ``F`` copies of a few signals, so at the
+    first layer they weigh like ``F`` inputs against each state channel's one; whitened, each
+    independent direction is one unit-variance input, the scale of a normalised state channel.
+    """
+
+    def __init__(self, features: np.ndarray, min_share: float = 0.01):
+        f = np.asarray(features, dtype=np.float64)
+        if f.ndim != 2 or len(f) < 2:
+            raise ValueError(f"features must be [N >= 2, F], got shape {f.shape}")
+        if not 0.0 < min_share < 1.0:
+            raise ValueError(f"min_share must be in (0, 1), got {min_share}")
+        self.mean = f.mean(0)
+        _, sv, vt = np.linalg.svd(f - self.mean, full_matrices=False)
+        var = sv**2 / len(f)
+        share = var / max(var.sum(), 1e-30)
+        k = max(1, int((share >= min_share).sum()))
+        #: the variance share of every principal direction (descending), for the report
+        self.shares = share.tolist()
+        self.projection = (vt[:k].T / np.sqrt(np.maximum(var[:k], 1e-30))).astype(np.float32)
+
+    @property
+    def out_dim(self) -> int:
+        return int(self.projection.shape[1])
+
+    def __call__(self, features: np.ndarray) -> np.ndarray:
+        return ((np.asarray(features, dtype=np.float32) - self.mean.astype(np.float32)) @ self.projection).astype(
+            np.float32)

@@ -133,11 +133,11 @@ def test_background_up_stops_on_sigint():
 _STUCK_RIG = """
 import subprocess, sys
 from hilstack.tools.cmd_misc import _run_robot_processes
-child = "from hilstack.bus.lifetime import dump_stacks_on_signal\\nimport signal, sys, time\\n"
-ok = child + "signal.signal(signal.SIGTERM, lambda *a: sys.exit(0))\\nprint('ready', flush=True)\\ntime.sleep(60)"
+child = "from hilstack.bus.lifetime import dump_stacks_on_signal\\nimport os, signal, sys, time\\n"
+ok = child + "signal.signal(signal.SIGTERM, lambda *a: sys.exit(0))\\nos.write(1, b'ready\\\\n')\\ntime.sleep(60)"
 stuck = child + ("dump_stacks_on_signal()\\nsignal.signal(signal.SIGTERM, signal.SIG_IGN)\\n"
                  "def stuck_in_device_close():\\n    time.sleep(60)\\n"
-                 "print('ready', flush=True)\\nstuck_in_device_close()")
+                 "os.write(1, b'ready\\\\n')\\nstuck_in_device_close()")
 procs = [subprocess.Popen([sys.executable, "-c", c]) for c in (ok, stuck)]
 sys.exit(_run_robot_processes(procs, ["arm", "mechanism"], grace_s=1.0))
 """

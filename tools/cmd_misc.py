@@ -167,7 +167,7 @@ def _run_robot_processes(procs: list, names: list[str], grace_s: float = STOP_GR
                                   "follow, then it is killed (the device's own watchdog stops the robot)",
                                   n, grace_s)
                         p.send_signal(DUMP_STACKS_SIGNAL)
-                        time.sleep(0.5)
+                        time.sleep(2.0)  # the dump is written when the node is next scheduled
                         p.kill()
                         p.wait()
                         killed.append(n)

@@ -98,7 +98,9 @@ def run(out: Path, cfg: TerrainConfig, wait_s: float = 4 * 3600.0) -> dict[str, 
         per_seed.append(r)
     report = {"config": _conf(cfg), "rows": list(ROWS), "terrains": list(cfg.terrains), "seeds": list(cfg.seeds),
               "encoder": {"kind": "fixed random conv net + fixed random projection (perception/terrain_features.py)",
-                          "features": cfg.features, "seed": cfg.encoder_seed},
+                          "features": cfg.features, "seed": cfg.encoder_seed,
+                          "whiten_min_share": cfg.whiten_min_share, "average_frames": cfg.average_frames,
+                          "model_inputs": {str(r["seed"]): r.get("features", {}).get("model_inputs") for r in per_seed}},
               **aggregate(cfg, per_seed),
               "seed_wall_s": {str(r["seed"]): r["wall_s"] for r in per_seed},
               "wall_s": time.monotonic() - t0}
@@ -154,7 +156,11 @@ def report_markdown(r: dict[str, Any], files: list[str]) -> str:
              f"{c['rollouts_per_terrain']} random rollouts x {c['rollout_steps']} steps per terrain and seed (the "
              f"same data for every model), {c['epochs']} epochs; paths {', '.join(c['paths'])} (scale "
              f"{c['path_scale']}) at speed {c['speed']}; camera {c['camera_px']}x{c['camera_px']}, "
-             f"{c['features']} image features (fixed random conv net + random projection).", "",
+             f"{c['features']} image features (fixed random conv net + random projection)"
+             + (f", PCA-whitened to the directions with >= {c['whiten_min_share']:.0%} of their variance "
+                f"(model inputs per seed: {r['encoder']['model_inputs']})" if c.get("whiten_min_share") else "")
+             + (f", averaged over the last {c['average_frames']} images" if c.get("average_frames", 1) > 1 else "")
+             + ".", "",
              "Cost per metre of progress, mean ± std over seeds (paths completed, mean over seeds); lower is "
              "better, and more completions beat a lower cost.", "",
              "| model | " + " | ".join(r["terrains"]) + " |", "|---|" + "---|" * len(r["terrains"])]

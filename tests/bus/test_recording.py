@@ -422,6 +422,10 @@ def test_replay_refuses_a_rig_with_live_driver_nodes_unless_forced(tmp_path, bus
     try:
         with pytest.raises(ReplayRefused, match="rig 'live_rig' has live driver nodes \\(driver-pm\\)"):
             replay(path, bus, speed=0, rig="live_rig")
+        # no window at all: the check still waits for the session's link to the rig (under load a
+        # background connect took longer than the window, and a replay went onto a live rig)
+        with pytest.raises(ReplayRefused, match="rig 'live_rig' has live driver nodes"):
+            replay(path, bus, speed=0, rig="live_rig", live_check_s=0.0)
         time.sleep(0.2)
         assert lis.collect(lambda g: False, 0.2) == []  # nothing was published
         # another rig name is free; --force overrides

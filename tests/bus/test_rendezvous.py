@@ -77,3 +77,24 @@ def test_peers_of_the_same_bus_join_the_first_and_hear_it(bus):
     port = bus.endpoint.rsplit(":", 1)[1]
     assert bus_id_prefix(f"tcp/localhost:{port}") == bus_id_prefix(bus.endpoint)
     assert bus_id_prefix(f"tcp/127.0.0.1:{int(port) + 1}") != bus_id_prefix(bus.endpoint)
+
+
+def test_a_session_can_wait_for_its_link_to_a_listening_rig():
+    """What replay's live-driver check relies on (bus/recording.py): it knows a rig listens at
+    the endpoint before it opens its session, and waits for the link before it asks the rig
+    which driver nodes are alive (a background connect may take longer than the check)."""
+    from hilstack.bus.session import rendezvous_listened, wait_linked
+
+    bus = BusConfig(endpoint=f"tcp/127.0.0.1:{free_port()}")
+    assert not rendezvous_listened(bus)  # nothing there: a session opened next holds it itself
+    holder = open_session(bus)
+    try:
+        assert rendezvous_listened(bus)
+        s = open_session(bus)
+        try:
+            assert wait_linked(s, bus, 10.0)
+        finally:
+            s.close()
+        assert not wait_linked(holder, bus, 0.1)  # the holder has no link to its own endpoint
+    finally:
+        holder.close()

@@ -147,3 +147,48 @@ def test_demo_seed_files_are_reused_claimed_and_never_overwritten(tmp_path, monk
     other = TerrainConfig(terrains=("a", "b"), seeds=(0, 1), paths=("left",))
     with pytest.raises(ValueError, match="another configuration"):
         dt.run(tmp_path, other, wait_s=0.0)
+
+
+def test_whitening_turns_near_collinear_features_into_their_few_unit_variance_directions():
+    from hilstack.perception.terrain_features import FeatureWhitening
+
+    rng = np.random.default_rng(0)
+    latent = rng.standard_normal((2000, 2)) * [3.0, 0.5]  # two signals of different scale
+    mix = rng.standard_normal((2, 16))
+    feats = latent @ mix + 1e-4 * rng.standard_normal((2000, 16)) + 7.0  # 16 channels, 2 directions
+    w = FeatureWhitening(feats, min_share=0.01)
+    assert w.out_dim == 2 and sum(w.shares[:2]) > 0.999
+    z = w(feats)
+    np.testing.assert_allclose(z.mean(0), 0.0, atol=1e-4)
+    np.testing.assert_allclose(np.cov(z.T, bias=True), np.eye(2), atol=1e-3)  # decorrelated, unit variance
+    # a linear map of the latent: whitened features of new data carry the same two signals
+    new = rng.standard_normal((500, 2)) * [3.0, 0.5]
+    zn = w(new @ mix + 7.0)
+    coef, *_ = np.linalg.lstsq(np.column_stack([new, np.ones(500)]), zn, rcond=None)
+    assert np.abs(np.column_stack([new, np.ones(500)]) @ coef - zn).max() < 1e-3
+    with pytest.raises(ValueError, match="min_share"):
+        FeatureWhitening(feats, min_share=0.0)
+    with pytest.raises(ValueError, match="features must be"):
+        FeatureWhitening(feats[:1])
+
+
+def test_features_at_run_time_are_the_ones_the_model_was_trained_on():
+    """The evaluation's per-step stream (current image, averaged with the episode's last k − 1,
+    transformed) equals what training computed from the episode's images at once."""
+    from hilstack.learning.image_conditioned import FeatureStream, running_mean
+    from hilstack.perception.terrain_features import FeatureWhitening, RandomConvEncoder
+
+    rng = np.random.default_rng(1)
+    enc = RandomConvEncoder(out_dim=6, seed=0, channels=(4, 8))
+    images = rng.integers(0, 255, size=(12, 16, 16, 3), dtype=np.uint8)
+    raw = enc.encode(images)
+    np.testing.assert_allclose(running_mean(raw, 3)[5], raw[3:6].mean(0), rtol=1e-5)
+    np.testing.assert_allclose(running_mean(raw, 3)[1], raw[:2].mean(0), rtol=1e-5)
+    w = FeatureWhitening(running_mean(raw, 3), min_share=0.05)
+    stream = FeatureStream(enc.encode, w, k=3)
+    for _ in range(2):  # a second episode starts over after reset()
+        stream.reset()
+        got = np.stack([stream(img) for img in images])
+        np.testing.assert_allclose(got, w(running_mean(raw, 3)), rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="average_frames"):
+        TerrainConfig(average_frames=0)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hilstack.bus.recording import Recorder
-from hilstack.control.controller_node import ControllerNode
+from hilstack.control.controller_node import ControllerNode, DriverGone
 from hilstack.drivers.base import Pacing
 from hilstack.learning.recordings import episodes_from_mcap
 from tests.helpers import wait_for
@@ -48,6 +48,21 @@ def test_lockstep_episodes_resets_and_recorded_transitions(bus, spawn, tmp_path)
         # the recording holds the same transitions the controller saw, actions normalized
         np.testing.assert_allclose(e.states[:21], states, atol=1e-6)
         np.testing.assert_allclose(e.actions[1:20], np.tile([0.5, -0.25], (19, 1)), atol=1e-6)
+
+
+def test_a_reset_ends_when_the_driver_node_is_gone(bus, spawn):
+    """The driver node dies (its link failed; here SIGKILL) while the controller waits for a
+    reset answer: the wait ends with DriverGone, not after its whole timeout (a demo on the
+    emulated roach waited 352 s for an answer that could not come)."""
+    up = spawn("up", "pointmass_lockstep", "--endpoint", bus.endpoint)
+    with ControllerNode("pointmass_lockstep", "pm", bus, handle_signals=False, state_timeout_s=20) as ctl:
+        ctl.wait_ready(30)
+        ctl.reset(x=0.0, y=0.0)
+        wait_for(lambda: ctl.driver.alive, 10, "the driver node seen alive")
+        up.p.kill()
+        up.p.wait(10)
+        with pytest.raises(DriverGone, match="the driver node of pm is gone"):
+            ctl.reset(timeout_s=600, x=0.0, y=0.0)
 
 
 def test_realtime_mode_counts_late_plans_and_keeps_rate(bus, spawn):
@@ -121,7 +136,9 @@ def test_realtime_runs_in_phase_with_the_driver_and_passes_the_committed_command
         time.sleep(0.1)
         published = {round(m.t_s, 6): m for m in (decode(p, RobotState) for _, p in sub.drain())}
     for log, pol in zip(logs, pols, strict=True):
-        assert len(set(log.times_s[:-1])) == len(log.times_s) - 1  # never the same state twice
+        # never the same state twice, except in a cycle counted stale (its state came late: the
+        # machine's load; the newest one is used again, by design)
+        assert len(set(log.times_s[:-1])) >= len(log.times_s) - 1 - log.stale_states, log.stale_states
         on_time = 0
         for t, a in zip(log.times_s[:-1], log.actions, strict=True):
             nxt = published.get(round(t + 0.02, 6))  # the state after the next period
