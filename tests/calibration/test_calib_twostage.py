@@ -14,13 +14,9 @@ import pytest
 from hilstack.calibration import mjcf_robot as M
 from hilstack.calibration.data import DataError
 from hilstack.calibration.robot_rig import record_excitation
+from tests.calibration.sysid import needs_sysid
 
-try:
-    M._sysid()
-    HAVE_SYSID = True
-except M.SysidNotAvailable:
-    HAVE_SYSID = False
-pytestmark = pytest.mark.skipif(not HAVE_SYSID, reason="mujoco.sysid not installed (pip install hilstack[calib])")
+pytestmark = needs_sysid
 
 RIG_LAG_S = 0.02  # what the rig has, clean, that the MJCF lacks
 KW = dict(progress=False, candidates=("joint_frictionloss", "input_delay"), max_rounds=1, max_fit_blocks=4, horizon_s=1.0)
