@@ -100,6 +100,12 @@ class Bench:
     drop_bodies: list[str] = field(default_factory=list)
     #: state columns of measured joint positions (then velocities) set at each block's start, by joint name
     state_joints: dict[str, tuple[int, int]] = field(default_factory=dict)
+    #: the goal register's resolution (the WidowX: one Goal Velocity count, 0.024 rad/s): the servo
+    #: runs the recorded goal rounded to it, as the driver writes it (0: goals are not quantised)
+    goal_step: float = 0.0
+    #: samples back from a block's first sample to the goal acting on its loops then (their
+    #: integrators are started from it): 1 when a goal written after sample k acts from sample k on
+    goal_lag: int = 2
 
     @classmethod
     def from_layout(cls, layout: dict) -> Bench:
@@ -122,13 +128,15 @@ class Bench:
         return cls(spec, joints, dict(layout["loops"]), list(layout["q"]), list(layout["qd"]),
                    list(layout["current"]), delay, action, loop_joints, loop_q, loop_qd,
                    None if lo is None else np.asarray(lo, float), None if hi is None else np.asarray(hi, float),
-                   list(layout.get("drop_bodies", [])), state_joints)
+                   list(layout.get("drop_bodies", [])), state_joints, float(layout.get("goal_step", 0.0)),
+                   int(layout.get("goal_lag", 2)))
 
     def goals(self, actions: np.ndarray) -> np.ndarray:
         """Recorded actions -> the loops' goals (rad/s for velocity loops, rad for position loops)."""
         if self.action == "goal_position_normalized":
             return self.low + (np.asarray(actions, float) + 1.0) * 0.5 * (self.high - self.low)
-        return np.asarray(actions, float)
+        g = np.asarray(actions, float)
+        return np.round(g / self.goal_step) * self.goal_step if self.goal_step > 0 else g
 
 
 @dataclass
@@ -304,8 +312,9 @@ def _servo_gain(bench: Bench, sysid):
 
 
 def _input_delay(bench: Bench, sysid):
-    p = sysid.Parameter("input_delay", nominal=0.0, min_value=0.0, max_value=0.15, modifier=None)
-    p.value = np.array([0.004])
+    # the nominal: the bench's own goal delay (a base calibration's, else 0)
+    p = sysid.Parameter("input_delay", nominal=bench.input_delay_s, min_value=0.0, max_value=0.15, modifier=None)
+    p.value = np.array([max(0.004, bench.input_delay_s)])
     return p
 
 
@@ -321,7 +330,7 @@ CATALOGUE: dict[str, Candidate] = {
 class Replay:
     """Replays blocks of a recording through a model built from sysid parameters."""
 
-    def __init__(self, bench: Bench, blocks: Blocks, n_threads: int = 2):
+    def __init__(self, bench: Bench, blocks: Blocks, n_threads: int = 2, use_current: bool = False):
         import mujoco
 
         self.bench = bench
@@ -331,7 +340,7 @@ class Replay:
         self.dt = float(m0.opt.timestep)
         self.nu = m0.nu
         self.position = bench.action == "goal_position_normalized"
-        self.goal_lag = 2
+        self.goal_lag = bench.goal_lag
         lj = bench.loop_joints or bench.joints
         self.i_int = [mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_ACTUATOR, bench.loops[j].get("actuator", j))
                       for j in lj]
@@ -347,6 +356,14 @@ class Replay:
         self.state_adr = (np.array([int(m0.jnt_qposadr[m0.joint(j).id]) for j in sj]),
                           np.array([int(m0.jnt_dofadr[m0.joint(j).id]) for j in sj]))
         self.n_threads = n_threads
+        #: the reported motor current as a third output (velocity loops): fitted and scored beside q
+        self.use_current = bool(use_current) and not self.position
+        if self.use_current:
+            fl = [bench.loops[j] for j in bench.joints]
+            self.kt = np.array([lp["kt_nm_per_a"] for lp in fl])
+            self.tau_max = np.array([lp["tau_max_nm"] for lp in fl])
+            allc = np.concatenate([e.states[:, bench.current] for e in blocks.episodes])
+            self.cur_scale = np.maximum(allc.std(0), 1e-3)
         self._datas: list = []
         # the rollout step after which each later sample of a block was measured: from the samples'
         # own stamps (a wall-clock rig's periods jitter), at least one step past the previous sample
@@ -465,7 +482,21 @@ class Replay:
         pick = st[np.arange(st.shape[0])[:, None], np.tile(idx, (len(models), 1))]
         q = pick[:, :, 1 + np.array(self.qadr)]
         qd = pick[:, :, 1 + nq + np.array(self.vadr)]
-        return np.concatenate([q, qd], axis=2).reshape(len(models), len(blocks), -1, 2 * len(self.qadr))
+        cols = [q, qd]
+        if self.use_current:  # the motor current the servo reports: its loop's torque / kt (last tick's goal)
+            nv = models[0].nv
+            act = pick[:, :, 1 + nq + nv + np.array(self.act_adr)[self.loop_fitted]]
+            ctrl = np.concatenate(ctrls)
+            goal = ctrl[np.arange(ctrl.shape[0])[:, None], np.tile(idx, (len(models), 1))][:, :, np.array(self.i_int)[self.loop_fitted]]
+            cur = []
+            for i, m in enumerate(models):
+                sl = slice(i * len(blocks), (i + 1) * len(blocks))
+                ki = m.actuator_gainprm[np.array(self.i_int)[self.loop_fitted], 0]
+                kp = m.actuator_gear[np.array(self.i_ff)[self.loop_fitted], 0]
+                tau = ki * (act[sl] - q[sl]) + kp * (goal[sl] - qd[sl])
+                cur.append(np.clip(tau, -self.tau_max, self.tau_max) / self.kt)
+            cols.append(np.concatenate(cur))
+        return np.concatenate(cols, axis=2).reshape(len(models), len(blocks), -1, len(cols) * len(self.qadr))
 
     def measured(self, blocks: list[int]) -> np.ndarray:
         b = self.blocks
@@ -473,11 +504,17 @@ class Replay:
         for k in blocks:
             ei, s, h = b.spans[k]
             e = b.episodes[ei]
-            out.append(np.concatenate([e.states[s + 1:s + h, self.bench.q], e.states[s + 1:s + h, self.bench.qd]], 1))
+            cols = [e.states[s + 1:s + h, self.bench.q], e.states[s + 1:s + h, self.bench.qd]]
+            if self.use_current:
+                cols.append(e.states[s + 1:s + h, self.bench.current])
+            out.append(np.concatenate(cols, 1))
         return np.stack(out)
 
     def scale(self) -> np.ndarray:
-        return np.concatenate([self.blocks.q_scale, self.blocks.qd_scale])
+        sc = [self.blocks.q_scale, self.blocks.qd_scale]
+        if self.use_current:
+            sc.append(self.cur_scale)
+        return np.concatenate(sc)
 
 
 # ----------------------------------------------------------------------------- fit and score
@@ -570,7 +607,11 @@ def heldout_sse(replay: Replay, params) -> np.ndarray:
     meas = replay.measured(b.test)
     nj = len(replay.bench.joints)
     err = (pred[..., :nj] - meas[..., :nj]) / b.q_scale
-    return (err ** 2).sum(1)
+    sse = (err ** 2).sum(1)
+    if replay.use_current:  # position and current errors, each over its own spread
+        ec = (pred[..., 2 * nj:] - meas[..., 2 * nj:]) / replay.cur_scale
+        sse = sse + (ec ** 2).sum(1)
+    return sse
 
 
 def nrmse(sse: np.ndarray, samples: int) -> float:
@@ -637,10 +678,19 @@ def select(replay: Replay, candidates: tuple[str, ...] = CANDIDATES, max_rounds:
     ns = replay.blocks.spans[replay.blocks.test[0]][2] - 1
     before = nrmse(nominal.test_sse, ns)
     after = nrmse(current.test_sse, ns)
-    return {"effects": current.effects, "values": current.values, "intervals_95": current.intervals,
-            "unidentifiable": current.unidentifiable, "rounds": rounds, "pruned": pruned,
-            "before_multi_step_nrmse": before, "after_multi_step_nrmse": after,
-            "ratio": after / before if before > 0 else math.nan, "fit": current}
+    out = {"effects": current.effects, "values": current.values, "intervals_95": current.intervals,
+           "unidentifiable": current.unidentifiable, "rounds": rounds, "pruned": pruned,
+           "before_multi_step_nrmse": before, "after_multi_step_nrmse": after,
+           "ratio": after / before if before > 0 else math.nan, "fit": current,
+           "outputs": "position+current" if replay.use_current else "position"}
+    if replay.use_current:  # the position part alone, as without --current
+        replay.use_current = False
+        try:
+            out["before_position_nrmse"] = nrmse(heldout_sse(replay, nominal.params), ns)
+            out["after_position_nrmse"] = nrmse(heldout_sse(replay, current.params), ns)
+        finally:
+            replay.use_current = True
+    return out
 
 
 # ----------------------------------------------------------------------------- output
@@ -661,8 +711,9 @@ def calibrated_spec(bench: Bench, values: dict[str, list[float]]):
             attr = name[len("joint_"):]
             for j, x in zip(bench.joints, v, strict=True):
                 set_joint_attr(spec.joint(j), attr, float(x))
-        elif name == "input_delay":
-            spec.add_numeric(name=DELAY_NUMERIC, data=[float(v[0])])
+    delay = float(values["input_delay"][0]) if "input_delay" in values else bench.input_delay_s
+    if delay > 0:  # fitted now, or the base model's (a two-stage calibration keeps it)
+        spec.add_numeric(name=DELAY_NUMERIC, data=[delay])
     return spec
 
 
@@ -678,27 +729,64 @@ def evaluate(bench: Bench, episodes: list[Recording], values: dict[str, list[flo
     return nrmse(sse, blocks.spans[0][2] - 1)
 
 
+def base_mjcf(base: str | Path) -> Path:
+    """``--base``: a previous calibration's directory (its ``calibrated.xml``) or an MJCF file."""
+    p = Path(base)
+    xml = p / "calibrated.xml" if p.is_dir() else p
+    if not xml.is_file():
+        raise DataError(f"--base {base}: no {'calibrated.xml in that directory' if p.is_dir() else 'such file'} "
+                        "(give the directory of a previous `hil calibrate --model` run, or its calibrated.xml)")
+    return xml
+
+
+def bench_of(robot_config: str | Path, base: str | Path | None = None) -> Bench:
+    """The robot's calibration bench from its sim backend (found through the driver registry); with
+    ``base``, on that MJCF (a previous calibration's) instead of the robot's own."""
+    from hilstack.drivers.registry import make_driver
+
+    driver = make_driver(str(robot_config), backend="sim")
+    if not hasattr(driver, "calibration_bench"):
+        raise DataError(f"{robot_config}: robot {driver.spec.name!r}'s sim backend has no calibration_bench() "
+                        "(the MJCF calibration needs it)")
+    params = driver.params
+    if base is not None:
+        params = params.model_copy(update={"sim": {**dict(params.sim or {}), "mjcf": str(base_mjcf(base))}})
+    try:
+        layout = driver.calibration_bench(params)
+    except ValueError as e:  # an MJCF MuJoCo cannot load
+        raise DataError(f"--base {base}: {str(e).splitlines()[0]}") from None
+    if base is not None:
+        for j in list(layout["joints"]) + list(layout.get("loop_joints", [])):
+            if layout["spec"].joint(j) is None:
+                raise DataError(f"--base {base_mjcf(base)}: no joint named {j!r} (not a calibration of this robot)")
+    return Bench.from_layout(layout)
+
+
 def run_mjcf_calibration(data_path: str | Path, robot_config: str | Path, out_dir: str | Path, seed: int = 0,
                          progress: bool = True, horizon_s: float = 2.0, force: bool = False,
                          candidates: tuple[str, ...] = CANDIDATES, max_rounds: int = 3,
-                         max_fit_blocks: int = 8) -> dict:
+                         max_fit_blocks: int = 8, base: str | Path | None = None, current: bool = False) -> dict:
     """`hil calibrate --model <robot config>`: select and fit the missing effect, write
-    ``calibrated.xml``, ``report.json`` and ``report.md`` to ``out_dir``."""
+    ``calibrated.xml``, ``report.json`` and ``report.md`` to ``out_dir``.
+
+    ``base`` (``--base``): judge the candidates against a previous calibration (its directory or
+    ``calibrated.xml``) instead of the MJCF as shipped: calibrate the rig clean first, then look for
+    what an effect adds on top of it (a wall-clock rig's link gives the clean rig a lag of its own;
+    docs/calibration.md, "Two-stage calibration").
+
+    ``current`` (``--current``; velocity-loop benches, the WidowX): the motor current the servos
+    report is a model output beside the joint positions, fitted and scored (each over its spread):
+    a servo's velocity loop hides a viscous loss in the motion but not in the current."""
     import sys
 
     from hilstack.calibration.data import load_episodes
-    from hilstack.drivers.registry import make_driver
 
     def log(msg: str) -> None:
         if progress:
             print(f"[calibrate] {msg}", file=sys.stderr, flush=True)
 
     t0, c0 = time.perf_counter(), time.process_time()
-    driver = make_driver(str(robot_config), backend="sim")
-    if not hasattr(driver, "calibration_bench"):
-        raise DataError(f"{robot_config}: robot {driver.spec.name!r}'s sim backend has no calibration_bench() "
-                        "(the MJCF calibration needs it)")
-    bench = Bench.from_layout(driver.calibration_bench(driver.params))
+    bench = bench_of(robot_config, base)
     out = Path(out_dir)
     xml_path = out / "calibrated.xml"
     if xml_path.exists() and not force:
@@ -707,7 +795,10 @@ def run_mjcf_calibration(data_path: str | Path, robot_config: str | Path, out_di
     blocks = make_blocks(episodes, bench, float(bench.spec.option.timestep), horizon_s=horizon_s)
     log(f"{sum(e.n for e in episodes)} samples, {len(blocks.spans)} blocks of {horizon_s:g} s: "
         f"{len(blocks.train)} train, {len(blocks.test)} held out")
-    replay = Replay(bench, blocks)
+    if current and bench.action != "goal_velocity":
+        raise DataError(f"--current: {robot_config}'s loops are position loops; the current output is for "
+                        "velocity-loop servos (the WidowX)")
+    replay = Replay(bench, blocks, use_current=current)
     unknown = [c for c in candidates if c not in CATALOGUE]
     if unknown:
         raise DataError(f"unknown candidate effects {unknown}; the catalogue: {list(CATALOGUE)}")
@@ -717,7 +808,7 @@ def run_mjcf_calibration(data_path: str | Path, robot_config: str | Path, out_di
     out.mkdir(parents=True, exist_ok=True)
     xml_path.write_text(calibrated_spec(bench, fit.values).to_xml())
     rep.update({"model": str(robot_config), "data": str(data_path), "samples": int(sum(e.n for e in episodes)),
-                "calibrated_mjcf": str(xml_path), "wall_s": round(time.perf_counter() - t0, 2), "cpu_s": round(time.process_time() - c0, 2),
+                "calibrated_mjcf": str(xml_path), "base": None if base is None else str(base_mjcf(base)), "wall_s": round(time.perf_counter() - t0, 2), "cpu_s": round(time.process_time() - c0, 2),
                 "catalogue": {k: c.describe for k, c in CATALOGUE.items()}, "joints": bench.joints,
                 "horizon_s": horizon_s, "blocks": {"train": len(blocks.train), "test": len(blocks.test)}})
     (out / "report.json").write_text(json.dumps(rep, indent=1))
@@ -727,10 +818,14 @@ def run_mjcf_calibration(data_path: str | Path, robot_config: str | Path, out_di
 
 def _markdown(rep: dict) -> str:
     lines = [f"# MJCF calibration of {rep['model']}", "", f"data: {rep['data']} ({rep['samples']} samples)", "",
+             f"nominal (the model effects are judged against): {rep.get('base') or 'the MJCF as shipped'}", "",
              f"effects: {', '.join(rep['effects']) or 'none'}", "",
              f"held-out multi-step (open-loop, {rep['horizon_s']:g} s) position NRMSE: "
              f"{rep['before_multi_step_nrmse']:.4f} → {rep['after_multi_step_nrmse']:.4f} "
-             f"(×{rep['ratio']:.3f})", "", "| effect | joint | value | ±95 % | identifiable |", "|---|---|---|---|---|"]
+             f"(×{rep['ratio']:.3f})" + (f"; outputs {rep['outputs']}, the position alone "
+                                          f"{rep['before_position_nrmse']:.4f} → {rep['after_position_nrmse']:.4f}"
+                                          if rep.get("outputs") == "position+current" else ""),
+             "", "| effect | joint | value | ±95 % | identifiable |", "|---|---|---|---|---|"]
     for name, vals in rep["values"].items():
         labels = rep["joints"] if len(vals) == len(rep["joints"]) else [name]
         for lab, v, h in zip(labels, vals, rep["intervals_95"][name], strict=True):

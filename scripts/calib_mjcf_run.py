@@ -25,12 +25,16 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--force", action="store_true")
+    ap.add_argument("--current", action="store_true", help="fit and score the motor current too (WidowX)")
+    ap.add_argument("--base", default=None, help="a previous calibration (directory or calibrated.xml) as the nominal")
     a = ap.parse_args()
     rep = run_mjcf_calibration(a.data, a.model, a.out, seed=a.seed, force=a.force, candidates=tuple(a.candidates),
-                               max_rounds=a.rounds, max_fit_blocks=a.fit_blocks)
+                               max_rounds=a.rounds, max_fit_blocks=a.fit_blocks, base=a.base,
+                               current=a.current)
     print(json.dumps({k: rep[k] for k in ("effects", "values", "intervals_95", "unidentifiable", "pruned",
                                           "before_multi_step_nrmse", "after_multi_step_nrmse", "ratio", "samples",
-                                          "wall_s", "cpu_s")}), flush=True)
+                                          "wall_s", "cpu_s", "outputs")} |
+                     {k: rep[k] for k in ("before_position_nrmse", "after_position_nrmse") if k in rep}), flush=True)
 
 
 if __name__ == "__main__":

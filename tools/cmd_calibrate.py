@@ -10,7 +10,8 @@ from pathlib import Path
 import typer
 
 
-def _calibrate_mjcf(data: Path, model: str, out: Path, seed: int, quiet: bool, as_json: bool, force: bool) -> None:
+def _calibrate_mjcf(data: Path, model: str, out: Path, seed: int, quiet: bool, as_json: bool, force: bool,
+                    base: Path | None = None, current: bool = False) -> None:
     from hilstack.calibration.data import DataError
     from hilstack.calibration.mjcf_robot import SysidNotAvailable, run_mjcf_calibration
     from hilstack.configs.schema import ConfigError
@@ -18,12 +19,13 @@ def _calibrate_mjcf(data: Path, model: str, out: Path, seed: int, quiet: bool, a
     if not data.exists():
         _fail(f"--data {data}: no such file")
     try:
-        rep = run_mjcf_calibration(data, model, out, seed=seed, progress=not quiet, force=force)
+        rep = run_mjcf_calibration(data, model, out, seed=seed, progress=not quiet, force=force, base=base,
+                                   current=current)
     except (DataError, SysidNotAvailable, ConfigError, ValueError) as e:
         _fail(str(e).splitlines()[0])
     summary = {k: rep[k] for k in ("effects", "values", "intervals_95", "unidentifiable", "pruned",
                                    "before_multi_step_nrmse", "after_multi_step_nrmse", "ratio",
-                                   "calibrated_mjcf", "wall_s", "cpu_s")}
+                                   "calibrated_mjcf", "base", "outputs", "wall_s", "cpu_s")}
     if as_json:
         print(json.dumps(summary))
         return
@@ -35,6 +37,9 @@ def _calibrate_mjcf(data: Path, model: str, out: Path, seed: int, quiet: bool, a
         print(f"  {name}: {shown}{flag}")
     print(f"held-out multi-step NRMSE: {rep['before_multi_step_nrmse']:.4f} -> {rep['after_multi_step_nrmse']:.4f} "
           f"(x{rep['ratio']:.3f})")
+    if rep["outputs"] == "position+current":
+        print(f"  (position and current; the position alone: {rep['before_position_nrmse']:.4f} -> "
+              f"{rep['after_position_nrmse']:.4f})")
     print(f"calibrated MJCF: {rep['calibrated_mjcf']}; report: {out / 'report.md'}")
 
 
@@ -69,13 +74,21 @@ def register(app: typer.Typer) -> None:
         as_json: bool = typer.Option(False, "--json", help="print one JSON line instead of a summary"),
         quiet: bool = typer.Option(False, "--quiet", help="no progress on stderr"),
         force: bool = typer.Option(False, "--force", help="robot config: overwrite OUT/calibrated.xml"),
+        base: Path | None = typer.Option(
+            None, "--base", help="robot config: judge effects against a previous calibration (its OUT directory "
+                                 "or calibrated.xml), e.g. the clean rig's, instead of the MJCF as shipped"),
+        current: bool = typer.Option(
+            False, "--current", help="robot config with velocity-loop servos (WidowX): fit and score the reported "
+                                     "motor current beside the joint positions (a viscous loss shows there)"),
     ) -> None:
         """Replay measured commands through the model, test the effect catalogue, report before/after."""
         from hilstack.calibration import DataError, ModelNotAvailable, UnknownModel, run_calibration
 
         if model.endswith((".yaml", ".yml")):  # a robot config: calibrate the robot's own MJCF
-            _calibrate_mjcf(data, model, out, seed, quiet, as_json, force)
+            _calibrate_mjcf(data, model, out, seed, quiet, as_json, force, base, current)
             return
+        if base is not None or current:
+            _fail("--base and --current are for --model <robot config> (the robot's own MJCF)")
 
         if sg_window is not None and (sg_window < 5 or sg_window % 2 == 0):
             _fail("--sg-window must be an odd number of samples >= 5")

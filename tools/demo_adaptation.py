@@ -4,8 +4,8 @@ Meta-trains on the training terrains, runs MB, MB+DE, GrBAL, ReBAL and MOLe on e
 perturbation with the same planner and paths, and a switching scenario for MOLe against
 k-shot and continued adaptation (learning/adaptation/experiment.py). Writes
 ``report.json`` (keys of issue 12), ``report.md``, PNG plots and the checkpoints.
-Presets: default and ``--full`` (the quick run over 3 seeds, ≈ 40 min on one core), ``--quick``
-(seed 0 of it; ≤ 15 min on 2 cores) and ``tiny`` (the CLI test). docs/adaptation.md.
+Presets: default and ``--full`` (the quick run over 3 seeds), ``--quick``
+(seed 0 of it; ≈ 9-15 CPU-min, estimated from the phases measured in docs/adaptation.md) and ``tiny`` (the CLI test). docs/adaptation.md.
 
 ``--suite gym``: the thesis' half-cheetah benchmarks instead (``learning/adaptation/gym_suite.py``;
 report.json ``benchmarks: {env: {method: {return_mean, return_std, normalized, seeds}}}``).
@@ -42,14 +42,15 @@ def _plots(r: dict[str, Any], out: Path) -> list[str]:
 
     files = []
     perts = list(r["perturbations"])
+    methods = [m for m in METHODS if m in r["perturbations"][perts[0]]]
     fig, axes = plt.subplots(1, 2, figsize=(13, 4))
-    w = 0.8 / len(METHODS)
-    for i, m in enumerate(METHODS):
+    w = 0.8 / len(methods)
+    for i, m in enumerate(methods):
         x = np.arange(len(perts)) + i * w
-        axes[0].bar(x, [r["perturbations"][p][m]["cost_per_m"] for p in perts], w,
-                    yerr=[r["perturbations"][p][m]["cost_per_m_std"] for p in perts], label=m)
+        axes[0].bar(x, [r["perturbations"][p][m]["progress_m"] for p in perts], w,
+                    yerr=[r["perturbations"][p][m]["progress_m_std"] for p in perts], label=m)
         axes[1].bar(x, [r["perturbations"][p][m]["k_step_error"] for p in perts], w, label=m)
-    for ax, t in zip(axes, ("cost per metre (lower is better)", "online error on the next K (normalized)"), strict=True):
+    for ax, t in zip(axes, ("progress along the paths, m (higher is better)", "online error on the next K (normalized)"), strict=True):
         ax.set_xticks(np.arange(len(perts)) + 0.4 - w / 2, perts, rotation=20)
         ax.set_title(t)
     axes[0].legend(fontsize=8)
@@ -134,23 +135,33 @@ def report_from_seeds(out: Path) -> dict[str, Any]:
         raise FileNotFoundError(f"no seed*.json in {out}: no seed has finished")
     per_seed = [json.loads(f.read_text()) for f in files]
     r = {**aggregate(per_seed), "per_seed": per_seed, "seeds": [f.stem[4:] for f in files], "elapsed_s": float("nan"),
-         "config": {"paths": list(per_seed[0]["perturbations"]["normal"]["mb"]["paths"])}}
+         "config": {"paths": sorted({k.split("#")[0] for row in per_seed[0]["perturbations"].values()
+                                     for cell in row.values() for k in cell["paths"]})}}
     (out / "report_seeds.md").write_text(report_markdown(r))
     return r
 
 
 def report_markdown(r: dict[str, Any]) -> str:
     n = r["config"]["paths"]
+    first = next(iter(r["perturbations"].values()))
+    methods = [m for m in METHODS if m in first]
+    runs = first[methods[0]].get("runs", len(n))
     lines = ["# Online adaptation (hil demo adaptation)", "",
-             f"seeds {r['seeds']}, paths {n}, {r['elapsed_s'] / 60:.1f} min", "",
-             "## Perturbations: cost per metre (completed paths) [online error on the next K]", "",
-             "| perturbation | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
+             f"seeds {r['seeds']}, paths {n}, {runs} runs (starts) per condition, {r['elapsed_s'] / 60:.1f} min", "",
+             "## Perturbations: progress along the paths (m, summed over the runs; the return)", "",
+             "| perturbation | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
     for p, row in r["perturbations"].items():
-        cells = [f"{row[m]['cost_per_m']:.1f} ± {row[m]['cost_per_m_std']:.1f} ({row[m]['completed']:.1f}/{len(n)}) "
-                 f"[{row[m]['k_step_error']:.3f} ± {row[m]['k_step_error_std']:.3f}]" for m in METHODS]
+        lines.append(f"| {p} | " + " | ".join(f"{row[m]['progress_m']:.2f} ± {row[m]['progress_m_std']:.2f}"
+                                              for m in methods) + " |")
+    lines += ["", "## Perturbations: cost per metre (completed runs) [online error on the next K]", "",
+              "| perturbation | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    for p, row in r["perturbations"].items():
+        cells = [f"{row[m]['cost_per_m']:.1f} ± {row[m]['cost_per_m_std']:.1f} ({row[m]['completed']:.1f}/{runs}) "
+                 f"[{row[m]['k_step_error']:.3f} ± {row[m]['k_step_error_std']:.3f}]" for m in methods]
         lines.append(f"| {p} | " + " | ".join(cells) + " |")
-    lines += ["", ranking_line(r, "mb")]
-    lines += [""] + [ranking_line(r, m) for m in ("mb_de", "rebal", "mole", "oracle")]
+    if "grbal" in methods and "mb" in methods:
+        lines += ["", ranking_line(r, "mb")]
+        lines += [""] + [ranking_line(r, m) for m in ("mb_de", "rebal", "mole", "oracle") if m in methods]
     lines += ["", "## GrBAL: loss on the next K before / after the update", "",
               "| perturbation | before | after | change |", "|---|---|---|---|"]
     for p, v in r["k_step_error_before_after"].items():
@@ -162,6 +173,14 @@ def report_markdown(r: dict[str, Any]) -> str:
     for m, v in r["switching"].items():
         lines.append(f"| {m} | " + " | ".join(f"{x:.2f}" for x in v["reward_per_segment"]) +
                      f" | {v['tasks_created'] if v['tasks_created'] is not None else '-'} |")
+    tuned = [s["training"].get("rate_tuning") for s in r.get("per_seed", []) if s.get("training", {}).get("rate_tuning")]
+    if tuned:
+        lines += ["", "## Step sizes tuned on held-out rollouts of the training conditions (multiplier: online "
+                  "next-K error), per seed", ""]
+        for i, tu in enumerate(tuned):
+            lines.append(f"- seed {i}: " + "; ".join(
+                f"{m} x{v['rate']:g} (" + ", ".join(f"x{float(g):g}: {e:.4f}" for g, e in v["errors"].items()) + ")"
+                for m, v in tu.items()))
     lines += _training_lines(r.get("per_seed", []))
     lines += ["", "Plots: " + ", ".join(f"![]({f})" for f in r.get("plots", []))]
     return "\n".join(lines) + "\n"
@@ -292,8 +311,8 @@ def cli_adaptation(out: Path, quick: bool = False, full: bool = False, seed: int
         raise ValueError(f"unknown adaptation suite {suite!r} (roach | gym)")
     r = run_demo(out, quick=quick, full=full, seed=seed, ray=ray, workers=workers)
     for p, row in r["perturbations"].items():
-        best = min(METHODS, key=lambda m: _rank(row[m]))
-        print(f"{p}: best {best}; cost_per_m " + ", ".join(f"{m} {row[m]['cost_per_m']:.1f}" for m in METHODS))
+        best = min(row, key=lambda m: _rank(row[m]))
+        print(f"{p}: best {best}; progress m " + ", ".join(f"{m} {row[m]['progress_m']:.2f}" for m in row))
 
 
 def main(argv: list[str] | None = None) -> None:

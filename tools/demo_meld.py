@@ -263,35 +263,23 @@ def run_on_emulated_rig(agent: Any, task_params: np.ndarray, camera_px: int, ste
                         log=print) -> dict[str, Any]:
     """A MELD agent as a controller node on the emulated WidowX rig (the real Dynamixel drivers
     over a virtual link to the bench's emulator process, the rig's access control), one episode
-    per mechanism pose of ``task_params`` [(rotation rad, offset m)], the task set by the mechanism
-    (:class:`~hilstack.learning.meld.node.MeldRigController`). The rig's driver nodes run in this
-    process on one server session, as `hil up` runs a one-bus rig; the bus is a free local endpoint.
+    per mechanism pose of ``task_params`` [(rotation rad, offset m)], the task set by the mechanism.
+    The rig comes up in this process through :func:`~hilstack.learning.meld.node.meld_rig` (its
+    driver nodes on one server session, as `hil up` runs a one-bus rig) on a free local endpoint.
     Returns success, final plug error, inference time (p50/p99 [ms]) and the policy period achieved."""
-    import threading
-
-    from hilstack.bus.session import open_session
-    from hilstack.drivers.bridge import DriverNode
-    from hilstack.drivers.registry import make_driver, skill, spec_of
-    from hilstack.learning.meld.node import MeldRigController
+    from hilstack.bus.ports import free_endpoint
+    from hilstack.drivers.registry import skill, spec_of
+    from hilstack.learning.meld.node import meld_rig
     from hilstack.tools.common import provision_credentials, rig_bus
-    from hilstack.tools.demo import free_endpoint
     from hilstack.tools.meld_tasks import BenchView
 
     name, bus, cfg = rig_bus(RIG, free_endpoint(), need_config=True)
     provision_credentials(name, bus, cfg)
-    drivers = {"arm": make_driver("widowx", backend="emulated", bus_name="meld_demo", link_timeout_periods=40),
-               "mechanism": make_driver("reset_mechanism", backend="emulated", bus_name="meld_demo",
-                                        link_timeout_periods=40)}
-    session = open_session(bus, server=True, rig=name, robots=list(drivers))
-    nodes = [DriverNode(d, name, r, bus, handle_signals=False, session=session) for r, d in drivers.items()]
-    threads = [threading.Thread(target=n.serve, daemon=True, name=f"driver-{n.robot}") for n in nodes]
-    for th in threads:
-        th.start()
     view = BenchView(camera_px=camera_px)
     eps = []
     try:
-        with MeldRigController(name, agent, view, bus, state_timeout_s=30.0) as ctl:
-            ctl.wait_ready(timeout_s=120.0)
+        with meld_rig(RIG, bus, agent, view, bus_name="meld_demo", link_timeout_periods=40,
+                      ready_timeout_s=120.0) as ctl:
             # home: the sim task's start pose (the sleep pose of the bench's kinematics skill)
             sleep = skill("widowx", "kinematics").SLEEP_POSE_RAD
             q_home = np.array([sleep.get(j, 0.0) for j in spec_of("widowx").joint_names()])
@@ -307,13 +295,6 @@ def run_on_emulated_rig(agent: Any, task_params: np.ndarray, camera_px: int, ste
                     f"{info['angle_deg']:.0f}° off, period {ep['policy_period_s']:.3f} s")
     finally:
         view.close()
-        for n in nodes:
-            n.stop_event.set()
-        for th in threads:
-            th.join(30)
-        for n in nodes:
-            n.close()
-        session.close()
     inf = np.concatenate([e["inference_s"] for e in eps]) if eps else np.zeros(1)
     return {"rig": RIG, "episodes": len(eps), "success_rate": float(np.mean([e["success"] for e in eps])),
             "final_position_m": float(np.mean([e["position_m"] for e in eps])),
@@ -456,26 +437,155 @@ def run_task_inference(seeds: tuple[int, ...] = (0, 1), steps: int = 200, log=pr
     return out
 
 
+def run_curve(task: str, method: str, seed: int, samples: int, updates_per_sample: float = 0.25,
+              camera_px: int = 32, batch: int = 32, latent_dim: int = 32, reward_std: float = 0.5,
+              entropy_per_dim: float = -1.0, reward_scale: float = 1.0, eval_every_samples: int = 800,
+              time_budget_s: float | None = None, threads: int = 1, log=print) -> dict[str, Any]:
+    """One learner's held-out learning curve (Algorithms 7/8) on ``task`` with the knobs the
+    diagnostics vary: gradient steps per environment sample, batch, latent size, the reward's σ
+    in the ELBO, SAC's entropy target and reward scale. ``task="toy"``: the point reacher of
+    learning/meld/toy.py in 16×32 images (20 training / 10 held-out goals, 20 steps), seconds per
+    thousand steps; else a robot task of tools/meld_tasks.py at ``camera_px``. Returns the curve
+    (success and reward against samples and gradient steps) and the collection and learning rates."""
+    import torch
+
+    from hilstack.learning.meld.agents import AGENTS, AgentConfig
+    from hilstack.learning.meld.model import LatentConfig
+    from hilstack.learning.meld.sac import SacConfig
+    from hilstack.learning.meld.train import MetaTrainConfig, meta_train
+
+    torch.set_num_threads(threads)
+    if task == "toy":
+        from hilstack.learning.meld.toy import ToyReach
+
+        env = ToyReach(hw=(16, 32), episode_steps=20, n_train=20, n_test=10, seed=seed)
+        hw, channels = (16, 32), (16, 32)
+    else:
+        from hilstack.tools.meld_tasks import TASKS
+
+        env = TASKS[task](camera_px=camera_px, seed=seed)
+        hw, channels = (camera_px, 2 * camera_px), LatentConfig.channels
+    tasks_per_epoch = 4
+    per_epoch = tasks_per_epoch * env.episode_steps
+    steps = max(1, round(updates_per_sample * per_epoch))
+    acfg = AgentConfig(latent=LatentConfig(image_hw=hw, action_dim=env.action_dim, channels=channels,
+                                           latent_dim=latent_dim, reward_std=reward_std),
+                       sac=SacConfig(target_entropy_per_dim=entropy_per_dim, reward_scale=reward_scale), batch=batch)
+    torch.manual_seed(seed)
+    agent = AGENTS[method](acfg)
+    mt = MetaTrainConfig(env_samples=samples, tasks_per_epoch=tasks_per_epoch, train_steps_per_epoch=steps,
+                         eval_every=max(1, eval_every_samples // per_epoch), time_budget_s=time_budget_s, seed=seed)
+    try:
+        res = meta_train(env, agent, mt, log=log)
+    finally:
+        if hasattr(env, "close"):
+            env.close()
+    res.pop("replay")
+    for p in res["curve"]:
+        p["gradient_steps"] = p["epoch"] * steps
+    w = res["wall_s"]
+    collected = res["samples"]
+    return {"task": task, "method": method, "seed": seed, "updates_per_sample": updates_per_sample,
+            "train_steps_per_epoch": steps, "camera_px": camera_px, "batch": batch, "latent_dim": latent_dim,
+            "reward_std": reward_std, "entropy_per_dim": entropy_per_dim, "reward_scale": reward_scale,
+            "threads": threads, "load_avg": os.getloadavg(), **res,
+            "samples_per_s": collected / max(w["collect"], 1e-9),
+            "gradient_steps_per_s": res["gradient_steps"] / max(w["train"], 1e-9)}
+
+
+def run_cost(sizes: tuple[int, ...] = (16, 32, 64), batches: tuple[int, ...] = (32, 128, 512), steps: int = 3,
+             log=print) -> dict[str, Any]:
+    """What MELD and its baselines cost on this CPU, in *CPU seconds* of one process on one torch
+    thread (``time.process_time``: on a shared machine the wall clock measures the other jobs;
+    CPU time does not, to first order): per gradient step of each learner at each image size
+    (batch 32 sequences of 8), per MELD step at larger batches (Table 7.1's 512) at 32×64, and per
+    collected sample of each robot task with the cameras at each size and without (rendering's share)."""
+    import torch
+
+    from hilstack.learning.meld.agents import AGENTS, AgentConfig
+    from hilstack.learning.meld.model import LatentConfig
+    from hilstack.learning.meld.replay import ImageEpisode, TaskReplay
+    from hilstack.learning.meld.train import run_episode
+    from hilstack.tools.meld_tasks import TASKS
+
+    torch.set_num_threads(1)
+    out: dict[str, Any] = {"load_avg": os.getloadavg(), "cpu_s_per_step": {}, "cpu_s_per_sample": {}}
+
+    def step_cost(method: str, px: int, batch: int) -> float:
+        rng = np.random.default_rng(0)
+        rp, hw = TaskReplay(), (px, 2 * px)
+        for task in range(4):
+            rp.add(ImageEpisode(rng.integers(0, 255, (41, *hw, 3), dtype=np.uint8),
+                                rng.normal(size=41).astype(np.float32), rng.uniform(-1, 1, (40, 7)).astype(np.float32),
+                                task))
+        torch.manual_seed(0)
+        agent = AGENTS[method](AgentConfig(latent=LatentConfig(image_hw=hw, action_dim=7), batch=batch))
+        agent.train_step(rp, rng)  # warm-up (optimizers, allocations)
+        n = steps if batch <= 128 else 1
+        t = time.process_time()
+        for _ in range(n):
+            agent.train_step(rp, rng)
+        return (time.process_time() - t) / n
+
+    for px in sizes:
+        for m in ("meld", "sac_history"):
+            out["cpu_s_per_step"][f"{m}_{px}x{2 * px}_b32"] = v = step_cost(m, px, 32)
+            log(f"[cost] {m} {px}x{2 * px} batch 32: {v:.3f} CPU s per gradient step")
+    for b in batches:
+        if b != 32:
+            out["cpu_s_per_step"][f"meld_32x64_b{b}"] = v = step_cost("meld", 32, b)
+            log(f"[cost] meld 32x64 batch {b}: {v:.3f} CPU s per gradient step")
+    for task in ("sawyer_reach", "widowx_port"):
+        for px in (None, *sizes):
+            env = TASKS[task](camera_px=px or sizes[0], cameras=px is not None)
+            try:
+                rng = np.random.default_rng(0)
+                run_episode(env, env.train_tasks[0], None, rng=rng)  # warm-up (renderer, first task)
+                t = time.process_time()
+                run_episode(env, env.train_tasks[1], None, rng=rng)
+                key = f"{task}_{px}x{2 * px}" if px else f"{task}_no_cameras"
+                out["cpu_s_per_sample"][key] = v = (time.process_time() - t) / env.episode_steps
+                log(f"[cost] {key}: {1e3 * v:.1f} CPU ms per sample")
+            finally:
+                env.close()
+    out["load_avg_after"] = os.getloadavg()
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     """The probes behind docs/meld.md: task inference without RL (toy), the do-nothing scores (still),
     SAC on the true state and goal of a robot task (oracle: the lower bound MELD is measured against)."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_meld", description=main.__doc__)
-    ap.add_argument("probe", choices=("toy", "still", "oracle"))
+    ap.add_argument("probe", choices=("toy", "still", "oracle", "curve", "cost"))
     ap.add_argument("out", type=Path, help="JSON file to write (never overwritten)")
     ap.add_argument("steps", type=int, nargs="?", default=200, help="model-only training steps (toy)")
-    ap.add_argument("--reward-std", type=float, default=0.5, help="toy: σ of the reward likelihood")
-    ap.add_argument("--latent-dim", type=int, default=32, help="toy: latent size")
-    ap.add_argument("--task", default="sawyer_reach", help="oracle: the robot task")
+    ap.add_argument("--reward-std", type=float, default=0.5, help="toy, curve: σ of the reward likelihood")
+    ap.add_argument("--latent-dim", type=int, default=32, help="toy, curve: latent size")
+    ap.add_argument("--task", default="sawyer_reach", help="oracle, curve: the robot task (curve: or toy)")
     ap.add_argument("--samples", type=int, default=8000, help="oracle: environment samples")
-    ap.add_argument("--updates-per-sample", type=float, default=1.0, help="oracle: gradient steps per sample")
-    ap.add_argument("--seed", type=int, default=0, help="oracle: seed (also draws the Sawyer's goals)")
+    ap.add_argument("--updates-per-sample", type=float, default=1.0, help="oracle, curve: gradient steps per sample")
+    ap.add_argument("--seed", type=int, default=0, help="oracle, curve: seed (also draws the Sawyer's goals)")
+    ap.add_argument("--method", choices=("meld", "slac", "sac_history"), default="meld", help="curve: the learner")
+    ap.add_argument("--camera-px", type=int, default=32, help="curve: image height (width twice)")
+    ap.add_argument("--batch", type=int, default=32, help="curve: sequences per gradient step")
+    ap.add_argument("--entropy-per-dim", type=float, default=-1.0, help="curve: SAC's target entropy per action dim")
+    ap.add_argument("--reward-scale", type=float, default=1.0, help="curve: SAC's reward scale")
+    ap.add_argument("--eval-every", type=int, default=800, help="curve: samples between held-out evaluations")
+    ap.add_argument("--time-budget", type=float, default=None, help="curve: stop after this much learning [s]")
+    ap.add_argument("--threads", type=int, default=1, help="curve: torch threads")
     args = ap.parse_args(argv)
     if args.out.exists():
         raise SystemExit(f"{args.out} exists; choose another path")
     os.environ.setdefault("MUJOCO_GL", "egl")
-    if args.probe == "oracle":
+    if args.probe == "cost":
+        res = run_cost(log=lambda m: print(m, flush=True))
+    elif args.probe == "curve":
+        res = run_curve(args.task, args.method, args.seed, args.samples, args.updates_per_sample, args.camera_px,
+                        args.batch, args.latent_dim, args.reward_std, args.entropy_per_dim, args.reward_scale,
+                        args.eval_every, args.time_budget, args.threads, log=lambda m: print(m, flush=True))
+    elif args.probe == "oracle":
         res = run_oracle(args.task, args.samples, args.updates_per_sample, args.seed)
     elif args.probe == "still":
         res = do_nothing_scores()

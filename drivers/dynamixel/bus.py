@@ -39,6 +39,7 @@ from serial import SerialException
 from hilstack.drivers.base import LinkError
 from hilstack.drivers.dynamixel.control_table import ControlTable, control_table, describe_status_error
 from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
+from hilstack.drivers.fdio import write_all
 
 EMULATOR_START_TIMEOUT_S = 30.0
 # dynamixel-sdk packet layout offsets (status packet: ... INST ERROR PARAMS)
@@ -65,6 +66,10 @@ class _Port(PortHandler):
     def setPacketTimeout(self, packet_length):  # noqa: N802 - the SDK's name
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = self.tx_time_per_byte * packet_length + self.timeout_margin_ms
+
+    def writePort(self, packet):  # noqa: N802 - the SDK's name
+        # not pyserial's write: a complete write counts as done however late (drivers/fdio.py)
+        return write_all(self.ser.fileno(), bytes(packet), WRITE_TIMEOUT_S, f"Dynamixel port {self.port_name}")
 
     def setupPort(self, cflag_baud):  # noqa: N802 - the SDK's name
         """The SDK's setup, but the port is locked for this process (``exclusive``) and

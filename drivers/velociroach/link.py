@@ -39,6 +39,7 @@ from digi.xbee.packets import factory
 from digi.xbee.packets.raw import RX64Packet, TX64Packet
 
 from hilstack.drivers.base import LinkError
+from hilstack.drivers.fdio import write_all
 from hilstack.drivers.velociroach.mavlink import MavDecoder
 
 START = 0x7E
@@ -247,18 +248,7 @@ class FdPort:
             raise
 
     def write(self, data: bytes) -> int:
-        view = memoryview(data)
-        deadline = time.monotonic() + self.write_timeout
-        while view:
-            try:
-                n = os.write(self.fd, view)
-                view = view[n:]
-            except BlockingIOError:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise TimeoutError(f"{self.name}: write timed out (nobody reading the pty?)") from None
-                select.select([], [self.fd], [], left)
-        return len(data)
+        return write_all(self.fd, data, self.write_timeout, self.name)
 
     def close(self) -> None:
         try:

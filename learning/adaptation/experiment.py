@@ -60,19 +60,21 @@ RANDOM_SHOOTING_SPEED_MPS = 0.19
 SWITCHING_METHODS = ("mole", "k_shot", "continued")
 
 
-#: the data and training sizes of the quick and full presets: 15 min of random robot time per
-#: training terrain (12 conditions x 15 rollouts x 5 s, half of the conditions unperturbed;
-#: the thesis: ~30 min, terrains only), 10 % of the rollouts held out for early stopping of MB,
-#: GrBAL and ReBAL; the oracle gets 100 rollouts (8.3 min) of its one condition. GrBAL: its
+#: the data and training sizes of the quick and full presets: 8 min of random robot time per
+#: training terrain (12 conditions x 8 rollouts x 5 s, half of the conditions unperturbed;
+#: the thesis: ~30 min, terrains only; 15 rollouts before issue 24's fourth session, cut with
+#: the 10 starts per condition so that --quick fits 20 min of 2 cores), 10 % of the rollouts
+#: held out for early stopping of MB, GrBAL and ReBAL; the oracle gets 50 rollouts (4.2 min)
+#: of its one condition; paths at scale 0.5 (about 1 m), 5 starts each. GrBAL: its
 #: inner gradient's norm capped at the median of the training windows' (``grbal_clip_quantile``),
 #: θ's meta learning rate 1e-4 (ψ's 1e-2): the open-loop screen in docs/adaptation.md, "Why one
 #: GrBAL step ...". docs/adaptation.md, "Sizes".
 _SCALED: dict[str, Any] = dict(
-    conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=15, hidden=(256, 256, 256),
+    conditions_per_terrain=12, unperturbed_fraction=0.5, rollouts_per_condition=8, hidden=(256, 256, 256),
     plain_epochs=200, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
-    meta_eval_every=50, meta_patience=4, oracle_rollouts=100, paths=("straight", "left"),
-    path_scale=1.0, before_after_rollouts=10, switching_every_steps=100, switching_segments=4,
-    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4)
+    meta_eval_every=50, meta_patience=4, oracle_rollouts=50, paths=("straight", "left"),
+    path_scale=0.5, before_after_rollouts=10, switching_every_steps=50, switching_segments=4,
+    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4, starts_per_path=5, rate_grid=(0.25, 1.0, 4.0), tune_rollouts=4)
 
 
 @dataclass
@@ -80,7 +82,7 @@ class AdaptationConfig(Presets):
     """Sizes of one run. ``AdaptationConfig.from_preset("quick" | "full" | "tiny")`` are the demo's presets."""
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
-        # quick over 3 seeds (≈ 40 min on one core; seed 0 is the quick run exactly): the
+        # quick over 3 seeds (≈ 30-45 CPU-min, estimated; seed 0 is the quick run exactly): the
         # dataclass defaults (3 x 512, 3 paths, switching every 500 steps) take hours here
         "full": {**_SCALED, "seeds": (0, 1, 2)},
         "quick": {**_SCALED, "seeds": (0,)},
@@ -89,7 +91,7 @@ class AdaptationConfig(Presets):
                      before_after_rollouts=1, hidden=(16, 16), M=4, K=4, plain_epochs=2, meta_steps=2, rebal_steps=2,
                      context_dim=4, samples=32, paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.5,
                      switching_every_steps=4, switching_segments=2, grbal_clip_quantile=0.5,
-                     train_leg_speed_scale=(0.8, 1.2)),
+                     train_leg_speed_scale=(0.8, 1.2), rate_grid=(0.5, 2.0), tune_rollouts=1),
     }
 
     presets: str = "velociroach"
@@ -145,6 +147,26 @@ class AdaptationConfig(Presets):
     # the time limit is the path's length at this speed: about half random shooting's speed
     # on the roach (RANDOM_SHOOTING_SPEED_MPS), so the limit does not decide completions (issue 24, item 3)
     time_limit_speed_mps: float = 0.1
+    # starts per path (issue 24: >= 10 starts per condition): the first at the path's start
+    # pose, the others offset sideways by up to start_offset_m and turned by up to
+    # start_yaw_deg, drawn once per seed: every method meets the same starts
+    starts_per_path: int = 1
+    start_offset_m: float = 0.05
+    start_yaw_deg: float = 15.0
+    # weight (1/rad) of the cost's heading term, in the planner's cost and the evaluation
+    # alike (control/costs.py: thesis f_h = 5). 0: the cost reads only the positions, which the
+    # pose miscalibration (a rotated reported heading) leaves true; with 5 an accurate model
+    # under the miscalibration parks (docs/adaptation.md, "The roach suite's design")
+    heading_weight: float = 0.0
+    # equal adaptation budgets (issue 24, item 4): every adaptive method's step size (MB+DE's
+    # and continued adaptation's lr, GrBAL's ψ, MOLe's M-step lr) is scaled by the multiplier
+    # of this grid with the lowest online next-K error on tune_rollouts held-out rollouts of
+    # the *training* conditions (the same grid, data and criterion for every method); None: x1
+    rate_grid: tuple[float, ...] | None = None
+    tune_rollouts: int = 10
+    # subsets (None: all): the test conditions run, and the methods run on them
+    conditions: tuple[str, ...] | None = None
+    methods: tuple[str, ...] | None = None
     # switching (None: the presets' every_steps / segments)
     switching_every_steps: int | None = None
     switching_segments: int | None = None
@@ -320,8 +342,12 @@ class Trained:
     oracle: AdaptiveMLP | None = None
     adapt_params: list[str] | None = None  # GrBAL's adapted subset (None: all)
     clip: float | None = None  # GrBAL's inner-gradient norm cap (None: none)
+    # each adaptive method's step-size multiplier (tune_rates; missing: 1)
+    rates: dict[str, float] = field(default_factory=dict)
 
-    def adapter(self, method: str, cfg: AdaptationConfig) -> Adapter:
+    def adapter(self, method: str, cfg: AdaptationConfig, rate: float | None = None) -> Adapter:
+        """``method``'s adapter; ``rate``: its step-size multiplier (None: the tuned one, :func:`tune_rates`)."""
+        g = float(self.rates.get(RATE_KEY.get(method, method), 1.0) if rate is None else rate)
         if method == "mb":
             return MbAdapter(self.plain, window=cfg.M)
         if method == "oracle":
@@ -329,17 +355,60 @@ class Trained:
                 raise ValueError("no oracle model trained for this condition")
             return MbAdapter(self.oracle, window=cfg.M)
         if method == "mb_de":
-            return MbDeAdapter(self.plain, window=cfg.M, lr=cfg.de_lr)
+            return MbDeAdapter(self.plain, window=cfg.M, lr=cfg.de_lr * g)
         if method in ("grbal", "k_shot"):
-            return GrbalAdapter(self.meta, self.psi, window=cfg.M, adapt_params=self.adapt_params, clip=self.clip)
+            psi = self.psi if g == 1.0 else {k: v * g for k, v in self.psi.items()}
+            return GrbalAdapter(self.meta, psi, window=cfg.M, adapt_params=self.adapt_params, clip=self.clip)
         if method == "rebal":
             return RebalAdapter(self.rebal_model, self.encoder, window=cfg.M)
         if method == "mole":
-            return MoleAdapter(self.meta, self.psi, window=cfg.K, lr=cfg.mole_lr, alpha=1.0,
+            return MoleAdapter(self.meta, self.psi, window=cfg.K, lr=cfg.mole_lr * g, alpha=1.0,
                                adapt_params=self.adapt_params, clip=self.clip)
         if method == "continued":
-            return MbDeAdapter(self.meta, window=cfg.K, lr=cfg.mole_lr)
+            return MbDeAdapter(self.meta, window=cfg.K, lr=cfg.mole_lr * g)
         raise ValueError(f"unknown method {method!r}")
+
+
+#: the methods whose step size :func:`tune_rates` tunes, and whose tuned rate each method uses
+#: (k-shot is GrBAL's step from θ* every step)
+TUNED_METHODS = ("mb_de", "grbal", "mole", "continued")
+RATE_KEY = {"k_shot": "grbal"}
+
+
+def online_error(adapter: Adapter, episodes: list[Episode], K: int, scale: np.ndarray) -> float:
+    """The adapter replayed over recorded rollouts as in :func:`drive` (observe → update →
+    publish, per step): the mean error of every published model on the K transitions that
+    followed it (:class:`KStepError`), averaged over the rollouts."""
+    errs = []
+    for ep in episodes:
+        adapter.reset()
+        kerr = KStepError(K, scale)
+        for t in range(len(ep.actions)):
+            s, a, n = ep.states[t], ep.actions[t], ep.states[t + 1]
+            kerr.add(adapter.dynamics(adapter.update(state_stamp_ns=t)))
+            kerr.observe(s, a, n)
+            adapter.observe(s, a, n)
+        errs.append(kerr.mean())
+    return float(np.mean(errs))
+
+
+def tune_rates(cfg: AdaptationConfig, tr: Trained, episodes: list[Episode],
+               methods: tuple[str, ...] = TUNED_METHODS) -> dict[str, Any]:
+    """Equal adaptation budgets (issue 24, item 4): each method's step-size multiplier from
+    ``cfg.rate_grid``, the one with the lowest :func:`online_error` on ``episodes`` (held-out
+    rollouts of the training conditions: never a test condition). The same grid, rollouts and
+    criterion for every method. Returns ``{method: {"rate": chosen, "errors": {rate: error}}}``
+    and sets ``tr.rates``."""
+    grid = tuple(cfg.rate_grid or (1.0,))
+    if not grid or not all(np.isfinite(g) and g > 0 for g in grid):
+        raise ValueError(f"rate_grid must be positive finite multipliers, got {grid}")
+    out = {}
+    for m in methods:
+        errs = {float(g): online_error(tr.adapter(m, cfg, rate=g), episodes, cfg.K, tr.delta_scale) for g in grid}
+        best = min(errs, key=lambda g: (errs[g] if np.isfinite(errs[g]) else np.inf, abs(np.log(g))))
+        out[m] = {"rate": best, "errors": errs}
+        tr.rates[m] = best
+    return out
 
 
 def fit_mb(cfg: AdaptationConfig, model: AdaptiveMLP, tr_eps: list[Episode], va_eps: list[Episode],
@@ -486,8 +555,28 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
         f"{n_steps * env(p.training_terrains[0]).period_s / 60:.0f} min of robot time) in {ph.wall:.0f} s, cpu {ph.cpu:.0f} s")
     save_episodes(out / "data" / f"seed{seed}_training.npz", episodes)
     tr = train(cfg, episodes, names, seed, out / "checkpoints", log, phases)
+    tuning = {}
+    if cfg.rate_grid is not None:
+        with phases("rate_tuning") as ph:
+            # held-out rollouts of the training conditions (the split train() made): never a test condition
+            va_eps = split_episodes(episodes, cfg.val_fraction, seed)[1][:cfg.tune_rollouts]
+            if not va_eps:
+                raise ValueError("rate tuning needs held-out training rollouts: val_fraction is 0 or too small")
+            tuning = tune_rates(cfg, tr, va_eps)
+        for m in ("mb_de", "grbal", "mole"):  # the checkpoints carry the tuned step sizes
+            tr.adapter(m, cfg).save(out / "checkpoints" / f"seed{seed}_{m}.pt")
+        log(f"rate tuning on {len(va_eps)} held-out training rollouts ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s): " +
+            ", ".join(f"{m} x{v['rate']:g} " + "/".join(f"{e:.4f}" for e in v["errors"].values())
+                      for m, v in tuning.items()))
 
     conds = _conditions(p)
+    if cfg.conditions is not None:
+        unknown = set(cfg.conditions) - set(conds)
+        if unknown:
+            raise ValueError(f"unknown conditions {sorted(unknown)}; known: {list(conds)}")
+        conds = {k: v for k, v in conds.items() if k in cfg.conditions}
+    methods = method_list(cfg)
+    starts = start_poses(cfg, seed)
     before_after, results, oracle_hist = {}, {}, {}
     for name, (terrain, settings) in conds.items():
         with phases("before_after"):
@@ -510,12 +599,12 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
             f"{h_or['epochs_run']} epochs (best {h_or['best_epoch']}), held-out {h_or['best_val'] or float('nan'):.4f} "
             f"({ph_t.wall:.0f} s, cpu {ph_t.cpu:.0f} s)")
         results[name] = {}
-        for method in METHODS:
+        for method in methods:
             with phases("closed_loop") as ph:
-                results[name][method] = run_paths(cfg, env(terrain), settings, tr, method)
+                results[name][method] = run_paths(cfg, env(terrain), settings, tr, method, starts)
             r = results[name][method]
-            log(f"  {name:>16} {method:>6}: completed {r['completed']}/{len(cfg.paths)} cost_per_m "
-                f"{r['cost_per_m']:.1f} k_step_error {r['k_step_error']:.3f} ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s)")
+            log(f"  {name:>16} {method:>6}: completed {r['completed']}/{r['runs']} progress {r['progress_m']:.2f} m "
+                f"cost_per_m {r['cost_per_m']:.1f} k_step_error {r['k_step_error']:.3f} ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s)")
     with phases("switching"):
         switching = run_switching(cfg, p, env(p.training_terrains[0]), tr, log)
     for e in envs.values():
@@ -526,11 +615,55 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
             "training": {"rollouts": len(episodes), "steps": int(n_steps), "plain_history": tr.history["plain"],
                          "oracle_history": oracle_hist,
                          "grbal_history": tr.history["grbal"], "rebal_history": tr.history["rebal"],
-                         "psi_mean": {k: float(v.mean()) for k, v in tr.psi.items()}, "grbal_clip": tr.clip}}
+                         "psi_mean": {k: float(v.mean()) for k, v in tr.psi.items()}, "grbal_clip": tr.clip,
+                         "rate_tuning": tuning, "rates": dict(tr.rates)}}
+
+
+def method_list(cfg: AdaptationConfig) -> tuple[str, ...]:
+    """The methods run on every condition (``cfg.methods``, default :data:`METHODS`)."""
+    ms = tuple(cfg.methods) if cfg.methods is not None else METHODS
+    unknown = set(ms) - set(METHODS)
+    if unknown or not ms:
+        raise ValueError(f"methods must be a non-empty subset of {list(METHODS)}, got {list(ms)}")
+    return ms
+
+
+def start_poses(cfg: AdaptationConfig, seed: int) -> dict[str, list[dict[str, float]]]:
+    """Per path, ``starts_per_path`` start poses: the path's start pose, then poses offset
+    sideways (uniform within ±``start_offset_m``, perpendicular to the first segment) and
+    turned (±``start_yaw_deg``), drawn from the seed alone: every method meets the same starts."""
+    if cfg.starts_per_path < 1:
+        raise ValueError(f"starts_per_path must be >= 1, got {cfg.starts_per_path}")
+    if not (0 <= cfg.start_offset_m <= 0.5 and 0 <= cfg.start_yaw_deg <= 90):
+        raise ValueError(f"start offsets must be in [0, 0.5] m and [0, 90] deg, got {cfg.start_offset_m}, "
+                         f"{cfg.start_yaw_deg}")
+    rng = np.random.default_rng([seed, 24])
+    out = {}
+    for path in cfg.paths:
+        wp = make_path(path, scale=cfg.path_scale)
+        p0 = path_start_pose(wp)
+        poses = [p0]
+        for _ in range(cfg.starts_per_path - 1):
+            off = float(rng.uniform(-cfg.start_offset_m, cfg.start_offset_m))
+            dyaw = float(np.radians(rng.uniform(-cfg.start_yaw_deg, cfg.start_yaw_deg)))
+            poses.append({"x": p0["x"] - off * np.sin(p0["yaw"]), "y": p0["y"] + off * np.cos(p0["yaw"]),
+                          "yaw": p0["yaw"] + dyaw})
+        out[path] = poses
+    return out
+
+
+def path_cost(cfg: AdaptationConfig, waypoints, state_names) -> PathCost:
+    """The suite's path cost (planner and evaluation): the thesis' weights, the heading term's ``cfg.heading_weight``."""
+    if not (np.isfinite(cfg.heading_weight) and cfg.heading_weight >= 0):
+        raise ValueError(f"heading_weight must be finite and >= 0, got {cfg.heading_weight}")
+    return PathCost(waypoints, state_names, f_h=cfg.heading_weight)
 
 
 def run_paths(cfg: AdaptationConfig, env: RoachSim, settings: PerturbationSettings, tr: Trained,
-              method: str) -> dict[str, Any]:
+              method: str, starts: dict[str, list[dict[str, float]]] | None = None) -> dict[str, Any]:
+    """``method`` from every start of every path (``starts``: :func:`start_poses`; None: each
+    path's start pose). Every run resets the sim (its noise streams reseeded) and the
+    planner (its generator reseeded): common random numbers across methods."""
     per_path, kerrs, timing = {}, [], []
     mcfg = MbrlConfig(planner="random_shooting", samples=cfg.samples, horizon=cfg.horizon, seed=0)
     for path in cfg.paths:
@@ -538,18 +671,23 @@ def run_paths(cfg: AdaptationConfig, env: RoachSim, settings: PerturbationSettin
         ref = fillet(wp, mcfg.reference_corner_radius_m)
         limit_s = path_length(wp) / cfg.time_limit_speed_mps
         steps = int(np.ceil(limit_s / env.period_s - 1e-9))
-        planner = make_planner(mcfg, cfg.speed, 2, env.max_step)
-        kerr = KStepError(cfg.K, tr.delta_scale)
-        s = env.start(path_start_pose(wp), settings)
-        states, tm = drive(env, tr.adapter(method, cfg), planner, PathCost(ref, env.state_names), s, steps, kerr,
-                           stop_if=PathEnd(PathCost(wp, env.state_names)))
-        m = evaluate_path_following(states, PathCost(wp, env.state_names), period_s=env.period_s, time_limit_s=limit_s)
-        m["xy"] = states[:, :2].tolist()
-        per_path[path] = m
-        kerrs.append(kerr.mean())
-        timing.append(tm)
+        poses = starts[path] if starts is not None else [path_start_pose(wp)]
+        for i, pose in enumerate(poses):
+            planner = make_planner(mcfg, cfg.speed, 2, env.max_step)
+            kerr = KStepError(cfg.K, tr.delta_scale)
+            s = env.start(pose, settings)
+            states, tm = drive(env, tr.adapter(method, cfg), planner, path_cost(cfg, ref, env.state_names), s, steps,
+                               kerr, stop_if=PathEnd(path_cost(cfg, wp, env.state_names)))
+            m = evaluate_path_following(states, path_cost(cfg, wp, env.state_names), period_s=env.period_s,
+                                        time_limit_s=limit_s)
+            m["xy"] = states[:, :2].tolist()
+            m["start"] = pose
+            per_path[path if len(poses) == 1 else f"{path}#{i}"] = m
+            kerrs.append(kerr.mean())
+            timing.append(tm)
     sm = summarize_paths(per_path)
-    return {"cost_per_m": sm["cost_per_m"], "completed": sm["completed"], "k_step_error": float(np.mean(kerrs)),
+    return {"cost_per_m": sm["cost_per_m"], "completed": sm["completed"], "runs": len(per_path),
+            "k_step_error": float(np.mean(kerrs)),
             "progress_m": float(sum(m["progress_m"] for m in per_path.values())),
             "adapt_ms_p50": float(np.median([t["adapt_ms_p50"] for t in timing])),
             "plan_ms_p50": float(np.median([t["plan_ms_p50"] for t in timing])), "paths": per_path}
@@ -581,7 +719,7 @@ def run_switching(cfg: AdaptationConfig, p: PerturbationPresets, env: RoachSim, 
             tasks.append(upd.info.get("task", 0))
 
         adapter = tr.adapter(method, cfg)
-        states, tm = drive(env, adapter, planner, PathCost(wp, env.state_names), s, steps, kerr, on_step=on_step)
+        states, tm = drive(env, adapter, planner, path_cost(cfg, wp, env.state_names), s, steps, kerr, on_step=on_step)
         track = PathCost(wp, env.state_names)
         arc = []
         for st in states:
@@ -608,6 +746,7 @@ def _cell(vals: list[dict[str, Any]]) -> dict[str, Any]:
         out[k] = ms["mean"]
         out[f"{k}_std"] = ms["std"]
     out["seeds"] = len(vals)
+    out["runs"] = vals[0].get("runs", len(vals[0].get("paths", {})))
     return out
 
 
@@ -629,7 +768,7 @@ def run(cfg: AdaptationConfig, out: Path, log: Callable[[str], None] = print) ->
 def aggregate(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
     """Means and sample stds over seeds of :func:`run_seed`'s results (the report's tables)."""
     first = per_seed[0]
-    perts = {name: {m: _cell([r["perturbations"][name][m] for r in per_seed]) for m in METHODS}
+    perts = {name: {m: _cell([r["perturbations"][name][m] for r in per_seed]) for m in first["perturbations"][name]}
              for name in first["perturbations"]}
     ba = {}
     for name in first["k_step_error_before_after"]:
@@ -648,6 +787,11 @@ def aggregate(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
             "benchmarks": benchmarks(per_seed)}
 
 
+def mean_std_cell(ret: list[float]) -> dict[str, float]:
+    ms = mean_std(ret)
+    return {"return_mean": ms["mean"], "return_std": ms["std"]}
+
+
 def benchmarks(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
     """Issue 24's cross-suite view: ``{condition: {method: {return_mean, return_std,
     normalized, normalized_std, seeds}}}``. The roach's return is the progress along the
@@ -658,8 +802,11 @@ def benchmarks(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name in per_seed[0]["perturbations"]:
         row = {}
-        for m in METHODS:
+        for m in per_seed[0]["perturbations"][name]:
             ret = [float(r["perturbations"][name][m]["progress_m"]) for r in per_seed]
+            if "oracle" not in per_seed[0]["perturbations"][name]:
+                row[m] = {**mean_std_cell(ret), "seeds": ret, "normalized": None}
+                continue
             orc = [float(r["perturbations"][name]["oracle"]["progress_m"]) for r in per_seed]
             ms = mean_std(ret)
             cell = {"return_mean": ms["mean"], "return_std": ms["std"], "seeds": ret, "normalized": None}
@@ -679,4 +826,5 @@ def benchmarks(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 
-__all__ = ["AdaptationConfig", "run", "aggregate", "METHODS", "SWITCHING_METHODS"]
+__all__ = ["AdaptationConfig", "run", "aggregate", "METHODS", "SWITCHING_METHODS", "tune_rates", "online_error",
+           "start_poses", "path_cost"]

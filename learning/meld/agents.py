@@ -12,6 +12,7 @@ Interface: ``reset()`` at an episode start, ``observe(image_u8, reward)`` after 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -45,9 +46,13 @@ class MeldAgent:
         self.name = "meld" if reward_evidence else "slac"
         self.model = LatentModel(self.cfg.latent)
         self.sac = Sac(self.model.belief_dim, self.cfg.latent.action_dim, self.cfg.sac)
-        self.opt_model = torch.optim.Adam(self.model.parameters(), lr=self.cfg.model_lr)
         self.filter = BeliefFilter(self.model)
         self.beliefs: list[np.ndarray] = []
+
+    @functools.cached_property
+    def opt_model(self) -> torch.optim.Optimizer:
+        """Made on the first train step (see :class:`~.sac.Sac`: an acting-only agent needs none)."""
+        return torch.optim.Adam(self.model.parameters(), lr=self.cfg.model_lr)
 
     def reset(self) -> None:
         self.filter.reset()
@@ -106,8 +111,11 @@ class HistorySacAgent:
         self.k = cfg.history
         self.encoder = HistoryEncoder(cfg.latent, self.k)
         self.sac = Sac(self.encoder.dim, cfg.latent.action_dim, cfg.sac)
-        self.opt_encoder = torch.optim.Adam(self.encoder.parameters(), lr=cfg.sac.lr)
         self.reset()
+
+    @functools.cached_property
+    def opt_encoder(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.encoder.parameters(), lr=self.cfg.sac.lr)
 
     def reset(self) -> None:
         self.images: list[np.ndarray] = []

@@ -8,6 +8,7 @@ Actions are normalized to [−1, 1]; the environment scales them.
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from dataclasses import dataclass
 
@@ -23,6 +24,8 @@ class SacConfig:
     gamma: float = 0.99
     tau: float = 0.005
     init_alpha: float = 0.1
+    target_entropy_per_dim: float = -1.0  #: the temperature's target entropy per action dimension
+    reward_scale: float = 1.0             #: rewards are multiplied by this in the critic's target
 
 
 def mlp2(n_in: int, hidden: int, n_out: int) -> nn.Sequential:
@@ -66,10 +69,22 @@ class Sac(nn.Module):
         self.critic = TwinQ(obs_dim, action_dim, self.cfg.hidden)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.log_alpha = nn.Parameter(torch.tensor(math.log(self.cfg.init_alpha)))
-        self.target_entropy = -float(action_dim)
-        self.opt_actor = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.lr)
-        self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.lr)
-        self.opt_alpha = torch.optim.Adam([self.log_alpha], lr=self.cfg.lr)
+        self.target_entropy = self.cfg.target_entropy_per_dim * float(action_dim)
+
+    # Optimizers are made on the first update: the first one a process makes imports
+    # torch._dynamo (seconds; 12 s at load 39 on 2 cores), which a policy that only acts (a
+    # controller node, a meta-test) never needs.
+    @functools.cached_property
+    def opt_actor(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.actor.parameters(), lr=self.cfg.lr)
+
+    @functools.cached_property
+    def opt_critic(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.critic.parameters(), lr=self.cfg.lr)
+
+    @functools.cached_property
+    def opt_alpha(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam([self.log_alpha], lr=self.cfg.lr)
 
     @property
     def alpha(self) -> torch.Tensor:
@@ -79,7 +94,7 @@ class Sac(nn.Module):
         with torch.no_grad():
             a2, logp2 = self.actor(next_obs)
             q1t, q2t = self.critic_target(next_obs, a2)
-            target = r + self.cfg.gamma * not_done * (torch.min(q1t, q2t) - self.alpha * logp2)
+            target = self.cfg.reward_scale * r + self.cfg.gamma * not_done * (torch.min(q1t, q2t) - self.alpha * logp2)
         q1, q2 = self.critic(obs, a)
         return F.mse_loss(q1, target) + F.mse_loss(q2, target)
 

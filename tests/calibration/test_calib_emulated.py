@@ -14,14 +14,7 @@ from hilstack.calibration.data import load_episodes
 from hilstack.configs.schema import ConfigError
 from hilstack.drivers.registry import make_driver
 from hilstack.sim_backends.shadow_hand.firmware import FirmwareConfig, HandFirmware
-
-try:
-    M._sysid()
-    HAVE_SYSID = True
-except M.SysidNotAvailable:
-    HAVE_SYSID = False
-needs_sysid = pytest.mark.skipif(not HAVE_SYSID, reason="mujoco.sysid not installed (pip install hilstack[calib])")
-
+from tests.calibration.sysid import needs_sysid
 
 # ----------------------------------------------------------------------------- the hand's drive effects
 

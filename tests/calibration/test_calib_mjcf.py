@@ -18,14 +18,7 @@ from hilstack.drivers.dynamixel.control_table import OPERATING_MODES
 from hilstack.drivers.registry import make_driver
 from hilstack.sim_backends.dynamixel.firmware import Servo, ServoPhysics, effect_fields
 from hilstack.sim_backends.widowx import emulator
-
-try:
-    M._sysid()
-    HAVE_SYSID = True
-except M.SysidNotAvailable:
-    HAVE_SYSID = False
-needs_sysid = pytest.mark.skipif(not HAVE_SYSID, reason="mujoco.sysid not installed (pip install hilstack[calib])")
-
+from tests.calibration.sysid import needs_sysid
 
 # ----------------------------------------------------------------------------- the bench's effects
 

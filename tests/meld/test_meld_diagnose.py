@@ -48,3 +48,17 @@ def test_state_sac_spends_the_configured_updates_and_evaluates_held_out_tasks():
     # one reset to size the observation, 6 training episodes, one episode per held-out task per evaluation
     assert env.resets == 1 + 6 + 2 * len(env.test_tasks)
     assert 0.0 <= res["final"]["success_rate"] <= 1.0 and res["final"]["final_distance_m"] > 0
+
+
+def test_curve_probe_spends_the_updates_per_sample_and_reports_rates():
+    """``demo_meld curve``: gradient steps per epoch = updates per sample × samples per epoch, the
+    held-out curve records samples and gradient steps at each evaluation."""
+    from hilstack.tools.demo_meld import run_curve
+
+    # toy: 20 training tasks × 20 steps of random start, then epochs of 4 episodes (80 samples)
+    res = run_curve("toy", "sac_history", seed=0, samples=560, updates_per_sample=0.025, eval_every_samples=160,
+                    log=lambda m: None)
+    assert res["train_steps_per_epoch"] == 2 and res["epochs"] == 2 and res["gradient_steps"] == 4
+    assert [(p["samples"], p["gradient_steps"]) for p in res["curve"]] == [(400, 0), (560, 4)]
+    assert res["samples_per_s"] > 0 and res["gradient_steps_per_s"] > 0
+    assert 0.0 <= res["final"]["success_rate"] <= 1.0 and res["final"]["episodes"] == 10

@@ -16,7 +16,7 @@ from hilstack.learning.meld.model import (
     gaussian_log_lik,
 )
 from hilstack.learning.meld.replay import ImageEpisode, TaskReplay
-from hilstack.learning.meld.sac import Actor, Sac
+from hilstack.learning.meld.sac import Actor, Sac, SacConfig
 
 TINY = dict(image_hw=(8, 16), action_dim=2, channels=(4, 8), feature_dim=16, latent_dim=4, hidden=8)
 
@@ -132,6 +132,19 @@ def test_sac_entropy_temperature_moves_towards_the_target():
     losses = [sac.update(obs, a, r, obs, torch.zeros(64))["critic_loss"] for _ in range(30)]
     assert sac.alpha.item() > alpha0
     assert losses[-1] < losses[0]
+
+
+def test_sac_reward_scale_and_entropy_target_are_what_the_config_says():
+    """The diagnostics' knobs: the critic's target is ``scale · r + γ (min Q' − α log π')``
+    (with done, ``scale · r`` alone), and the temperature's target is the per-dimension value × |A|."""
+    torch.manual_seed(0)
+    sac = Sac(4, 3, SacConfig(reward_scale=2.5, target_entropy_per_dim=-0.5))
+    assert sac.target_entropy == -1.5
+    obs, a, r = torch.randn(16, 4), torch.rand(16, 3) * 2 - 1, torch.randn(16)
+    with torch.no_grad():
+        q1, q2 = sac.critic(obs, a)
+    want = ((q1 - 2.5 * r) ** 2).mean() + ((q2 - 2.5 * r) ** 2).mean()  # not_done = 0: the target is scale · r
+    assert sac.critic_loss(obs, a, r, obs, torch.zeros(16)).item() == pytest.approx(want.item(), rel=1e-6)
 
 
 def test_replay_keeps_tasks_apart_and_pads_history():
