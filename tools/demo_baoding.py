@@ -575,6 +575,33 @@ def probe_model(model, episodes: list, task, horizon: int = 7, period_s: float =
     return out
 
 
+def _episode(sim, pol, task, steps: int, wrist: int, plan_s: list, before_plan=None, cut: list | None = None) -> dict:
+    """One in-process episode of ``pol`` on ``sim`` (a hand driver), until ``steps`` or a drop:
+    its turn metrics. Appends each plan's time to ``plan_s`` and, with ``cut``, what the
+    driver's rate limit took off each command; ``before_plan`` runs before each plan."""
+    from hilstack.control.costs import baoding_episode_metrics
+
+    pol.reset()
+    o = sim.read()
+    states = [o.state]
+    for _ in range(steps):
+        if before_plan is not None:
+            before_plan()
+        t0 = time.perf_counter()
+        act = pol(o.state)
+        plan_s.append(time.perf_counter() - t0)
+        applied = sim.write(act)
+        if cut is not None:
+            cut.append(np.abs(applied - act))  # what the driver's rate limit took off
+        sim.tick()
+        o = sim.read()
+        states.append(o.state)
+        if task.dropped(o.state[-6:].reshape(2, 3)):
+            break
+    st = np.array(states)
+    return baoding_episode_metrics(task, st[:, -6:].reshape(-1, 2, 3), None, wrist_rad=st[:, wrist], period_s=0.1)
+
+
 def closed_loop(model, sampler: dict[str, Any], episodes: int, seed: int = 0, steps: int = 100,
                 sim=None) -> dict[str, Any]:
     """PDDM through ``model`` on the MuJoCo hand in-process (the sim the rig runs, without the
@@ -583,7 +610,7 @@ def closed_loop(model, sampler: dict[str, Any], episodes: int, seed: int = 0, st
     ``sampler`` (:data:`SAMPLERS`' keys over :data:`~hilstack.control.planners.BAODING_PDDM`),
     episode ``e`` planned with seed ``(seed, e)``; scored with the task's metrics
     (:func:`~hilstack.learning.baoding.summarize`), with the plan time p50."""
-    from hilstack.control.costs import BaodingCost, baoding_episode_metrics
+    from hilstack.control.costs import BaodingCost
     from hilstack.control.planners import BAODING_PDDM
     from hilstack.control.policies import MpcPolicy
     from hilstack.drivers.registry import make_backend
@@ -614,22 +641,7 @@ def closed_loop(model, sampler: dict[str, Any], episodes: int, seed: int = 0, st
             planner = pc.planner(seed=int(np.random.SeedSequence([seed, e]).generate_state(1)[0]),
                                  init_mean=np.zeros(pc.action_dim), reachable=reach)
             pol = BaodingPolicy(MpcPolicy(model, planner, BaodingCost(task, feats.names, 0.1)), feats, amap)
-            pol.reset()
-            o = sim.read()
-            states = [o.state]
-            for _ in range(steps):
-                t0 = time.perf_counter()
-                act = pol(o.state)
-                plan_s.append(time.perf_counter() - t0)
-                cut.append(np.abs(sim.write(act) - act))  # what the driver's rate limit took off
-                sim.tick()
-                o = sim.read()
-                states.append(o.state)
-                if task.dropped(o.state[-6:].reshape(2, 3)):
-                    break
-            st = np.array(states)
-            scores.append(baoding_episode_metrics(task, st[:, -6:].reshape(-1, 2, 3), None,
-                                                  wrist_rad=st[:, wrist], period_s=0.1))
+            scores.append(_episode(sim, pol, task, steps, wrist, plan_s, cut=cut))
     finally:
         if own:
             sim.cleanup()
@@ -707,7 +719,7 @@ def oracle_closed_loop(sampler: dict[str, Any], episodes: int, samples: int, see
     """PDDM planning through the hand itself (:class:`SimOracle`) with ``sampler`` at
     ``samples`` candidates, in-process, ``episodes`` episodes of ``steps``: can the task's
     cost and this sampler turn the pair at all when the model is perfect?"""
-    from hilstack.control.costs import BaodingCost, baoding_episode_metrics
+    from hilstack.control.costs import BaodingCost
     from hilstack.control.planners import BAODING_PDDM
     from hilstack.control.policies import MpcPolicy
     from hilstack.drivers.registry import make_backend
@@ -737,23 +749,7 @@ def oracle_closed_loop(sampler: dict[str, Any], episodes: int, samples: int, see
             planner = pc.planner(seed=int(np.random.SeedSequence([seed, e]).generate_state(1)[0]),
                                  init_mean=np.zeros(pc.action_dim), reachable=reach)
             pol = BaodingPolicy(MpcPolicy(oracle, planner, BaodingCost(task, feats.names, 0.1)), feats, amap)
-            pol.reset()
-            o = sim.read()
-            states = [o.state]
-            for _ in range(steps):
-                oracle.begin()
-                t0 = time.perf_counter()
-                act = pol(o.state)
-                plan_s.append(time.perf_counter() - t0)
-                sim.write(act)
-                sim.tick()
-                o = sim.read()
-                states.append(o.state)
-                if task.dropped(o.state[-6:].reshape(2, 3)):
-                    break
-            st = np.array(states)
-            scores.append(baoding_episode_metrics(task, st[:, -6:].reshape(-1, 2, 3), None,
-                                                  wrist_rad=st[:, wrist], period_s=0.1))
+            scores.append(_episode(sim, pol, task, steps, wrist, plan_s, before_plan=oracle.begin))
     finally:
         sim.cleanup()
     return {**summarize(scores), "rotation_per_episode_deg": [float(m["rotation_deg"]) for m in scores],
