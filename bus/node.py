@@ -8,6 +8,7 @@ dropped without disturbing the node.
 
 from __future__ import annotations
 
+import logging
 import queue
 import signal
 import threading
@@ -23,8 +24,10 @@ from hilstack.bus.access import identity
 from hilstack.bus.cycle import CycleTimer
 from hilstack.bus.estop import EStopLatch
 from hilstack.bus.schemas import MalformedMessage, Msg, decode, encode
-from hilstack.bus.session import open_session
+from hilstack.bus.session import open_session, rendezvous_listened, wait_linked
 from hilstack.configs.schema import BusConfig
+
+log = logging.getLogger("hil")
 
 T = TypeVar("T", bound=Msg)
 
@@ -267,6 +270,7 @@ class Node:
         server: bool = False,
         robots: list[str] | None = None,
         unique: bool = False,
+        join_wait_s: float = 0.0,
     ):
         self.name = name
         self.rig = rig
@@ -274,7 +278,14 @@ class Node:
         self.user = identity(bus)
         self._own_session = session is None
         # ``server`` (a driver node on a rig with access control): the rig's router, ACL for ``robots``
+        # ``join_wait_s`` > 0 (a recorder, a viewer: whose ``--seconds`` count from here): when a rig
+        # listens at the endpoint, wait (bounded) for this session's link to it, so that its first
+        # messages are not lost to the background connect (a 1-s viewer logged nothing under load)
+        rig_up = session is None and join_wait_s > 0 and rendezvous_listened(bus)
         self.session = session if session is not None else open_session(bus, server=server, rig=rig, robots=robots)
+        if rig_up and not wait_linked(self.session, bus, join_wait_s):
+            log.warning("%s: no link to the rig listening at %s within %.0f s; going on", name,
+                        (bus or BusConfig()).router or (bus or BusConfig()).endpoint, join_wait_s)
         self.stop_event = threading.Event()
         if unique:
             # a driver node is one per robot and rig: a second one on the same endpoint is another

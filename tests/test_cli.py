@@ -266,9 +266,8 @@ def test_every_rig_verb_takes_a_name_or_a_file_and_uses_its_bus_section(tmp_path
         assert r.exit_code == 2 and "rig 'own_ep' has live driver nodes (driver-pm)" in r.output, r.output
         r = CliRunner().invoke(app, ["foxglove", "--rig", "own_ep", "--seconds", "1", "--port", "0"])
         assert r.exit_code == 0 and int(re.search(r"forwarded (\d+)", r.output).group(1)) > 0, r.output
-        # 3 s: the viewer's clock starts when its session opens, before its background connect to the
-        # rig is done (1 s logged nothing once under load; see the note on `Node` joining a rig)
-        r = CliRunner().invoke(app, ["viz", "--rig", str(rig), "--seconds", "3", "--save", str(tmp_path / "v.rrd")])
+        # its 1 s counts once it is linked to the rig (Node join_wait_s: 1 s logged nothing once under load)
+        r = CliRunner().invoke(app, ["viz", "--rig", str(rig), "--seconds", "1", "--save", str(tmp_path / "v.rrd")])
         assert r.exit_code == 0 and int(re.search(r"logged (\d+)", r.output).group(1)) > 0, r.output
     finally:
         assert up.stop(20) == 0

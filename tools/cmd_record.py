@@ -96,7 +96,7 @@ def register(app: typer.Typer) -> None:
         name, bus, _ = rig_bus(rig, endpoint, need_config=True)
         out = out or _default_out(name)
         try:
-            rec = Recorder(name, out, bus, topics=topics, overwrite=force)
+            rec = Recorder(name, out, bus, topics=topics, overwrite=force, join_wait_s=5.0)  # --seconds count once joined
         except ValueError as e:
             raise UserError(str(e)) from None
         except OSError as e:

@@ -248,12 +248,16 @@ class RigVisualizer:
         self.rec.disconnect()
 
 
+#: a live viewer waits at most this long for its link to a listening rig before its clock starts [s]
+JOIN_WAIT_S = 5.0
+
+
 def viz_live(rig: str, bus: Any = None, seconds: float | None = None, **viz_kw: Any) -> RigVisualizer:
     """Subscribe to everything on the rig and log it until stopped or ``seconds`` pass."""
     from hilstack.bus.node import Node
 
     v = RigVisualizer(rig, **viz_kw)
-    node = Node("viz", rig, bus)
+    node = Node("viz", rig, bus, join_wait_s=JOIN_WAIT_S)
     sub = node.subscribe(keys.all_of(rig), AnyMsg, latest=False, capacity=1 << 14)
     t_end = None if seconds is None else time.monotonic() + seconds
     try:

@@ -98,3 +98,20 @@ def test_a_session_can_wait_for_its_link_to_a_listening_rig():
         assert not wait_linked(holder, bus, 0.1)  # the holder has no link to its own endpoint
     finally:
         holder.close()
+
+
+def test_a_node_that_asks_to_join_is_linked_to_the_rig_when_constructed():
+    """A recorder or viewer (`join_wait_s`) starts its `--seconds` only once linked to a rig that
+    listens at the endpoint."""
+    from hilstack.bus.session import wait_linked
+
+    bus = BusConfig(endpoint=f"tcp/127.0.0.1:{free_port()}")
+    holder = Node("driver-x", "join_rig", bus, handle_signals=False)
+    try:
+        n = Node("viewer", "join_rig", bus, handle_signals=False, join_wait_s=10.0)
+        try:
+            assert wait_linked(n.session, bus, 0.0)  # linked already, no further wait
+        finally:
+            n.close()
+    finally:
+        holder.close()
