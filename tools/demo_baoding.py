@@ -575,6 +575,24 @@ def probe_model(model, episodes: list, task, horizon: int = 7, period_s: float =
     return out
 
 
+def _hand_for_closed_loop(sim, sampler: dict):
+    """The in-process hand (``sim``, or a new active sim hand with the balls in its state), the
+    task, its action map, the state names, the wrist's index, the sampler settings without
+    ``rate_aware`` and, with it, the rate-aware reachable set (else None)."""
+    from hilstack.drivers.registry import make_backend
+    from hilstack.learning.baoding import hold_action_map, load_baoding_task
+
+    if sim is None:
+        sim = make_backend("shadow_hand", "sim", objects_in_state=True)
+        sim.configure()
+        sim.activate()
+    task, amap = load_baoding_task(), hold_action_map()
+    raw = list(sim.spec.state.names)
+    sampler = dict(sampler)
+    reach = amap.reachable(sim.spec.action_rate_per_s * sim.spec.period_s) if sampler.pop("rate_aware", False) else None
+    return sim, task, amap, raw, raw.index("WRJ0_pos"), sampler, reach
+
+
 def _episode(sim, pol, task, steps: int, wrist: int, plan_s: list, before_plan=None, cut: list | None = None) -> dict:
     """One in-process episode of ``pol`` on ``sim`` (a hand driver), until ``steps`` or a drop:
     its turn metrics. Appends each plan's time to ``plan_s`` and, with ``cut``, what the
@@ -613,25 +631,14 @@ def closed_loop(model, sampler: dict[str, Any], episodes: int, seed: int = 0, st
     from hilstack.control.costs import BaodingCost
     from hilstack.control.planners import BAODING_PDDM
     from hilstack.control.policies import MpcPolicy
-    from hilstack.drivers.registry import make_backend
     from hilstack.learning.baoding import (
         BaodingFeatures,
         BaodingPolicy,
-        hold_action_map,
-        load_baoding_task,
         summarize,
     )
 
     own = sim is None
-    if own:
-        sim = make_backend("shadow_hand", "sim", objects_in_state=True)
-        sim.configure()
-        sim.activate()
-    task, amap = load_baoding_task(), hold_action_map()
-    raw = list(sim.spec.state.names)
-    wrist = raw.index("WRJ0_pos")
-    sampler = dict(sampler)
-    reach = amap.reachable(sim.spec.action_rate_per_s * sim.spec.period_s) if sampler.pop("rate_aware", False) else None
+    sim, task, amap, raw, wrist, sampler, reach = _hand_for_closed_loop(sim, sampler)
     pc = replace(BAODING_PDDM, **sampler)
     scores, plan_s, cut = [], [], []
     try:
@@ -722,23 +729,13 @@ def oracle_closed_loop(sampler: dict[str, Any], episodes: int, samples: int, see
     from hilstack.control.costs import BaodingCost
     from hilstack.control.planners import BAODING_PDDM
     from hilstack.control.policies import MpcPolicy
-    from hilstack.drivers.registry import make_backend
     from hilstack.learning.baoding import (
         BaodingFeatures,
         BaodingPolicy,
-        hold_action_map,
-        load_baoding_task,
         summarize,
     )
 
-    sim = make_backend("shadow_hand", "sim", objects_in_state=True)
-    sim.configure()
-    sim.activate()
-    task, amap = load_baoding_task(), hold_action_map()
-    raw = list(sim.spec.state.names)
-    wrist = raw.index("WRJ0_pos")
-    sampler = dict(sampler)
-    reach = amap.reachable(sim.spec.action_rate_per_s * sim.spec.period_s) if sampler.pop("rate_aware", False) else None
+    sim, task, amap, raw, wrist, sampler, reach = _hand_for_closed_loop(None, sampler)
     pc = replace(BAODING_PDDM, **{**sampler, "samples": samples})
     scores, plan_s = [], []
     try:
