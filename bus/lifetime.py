@@ -41,6 +41,54 @@ def dump_stacks_on_signal() -> None:
         faulthandler.register(DUMP_STACKS_SIGNAL, file=sys.__stderr__, all_threads=True)
 
 
+#: set once SIGINT or SIGTERM reached this process (after :func:`catch_stop_signals`)
+_stop_signalled = threading.Event()
+#: what a stop signal does: one callback per node that handles signals (:func:`on_stop_signal`)
+_on_stop: list[Callable[[], None]] = []
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _stop_handler(signum: int, frame: object) -> None:  # noqa: ARG001
+    _stop_signalled.set()
+    for cb in list(_on_stop):
+        cb()
+
+
+def catch_stop_signals() -> None:
+    """From now on SIGINT and SIGTERM ask this process to stop, whatever it inherited.
+
+    A process started in the background or by a supervisor may inherit SIGTERM (or SIGINT)
+    *ignored*, and an ignored disposition survives ``exec``: a stop sent to such a `hil up`
+    robot process before its node existed was lost, and the robot ran on until killed (CI stops
+    33 and 34; tests/test_cli_up_signals.py). Called first by every verb that drives a robot,
+    so a stop that comes while it loads is kept (:func:`stop_signalled`) and honoured by the
+    node it then creates. Main thread only (Python's rule for signal handlers)."""
+    if threading.current_thread() is threading.main_thread():
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, _stop_handler)
+
+
+def stop_signalled() -> bool:
+    """Whether a stop signal reached this process since :func:`catch_stop_signals`."""
+    return _stop_signalled.is_set()
+
+
+def on_stop_signal(cb: Callable[[], None]) -> Callable[[], None]:
+    """Call ``cb`` on SIGINT/SIGTERM, at once if one came already (while the process loaded).
+    Every registered callback runs (several nodes in one process all stop). Installs the
+    handlers (:func:`catch_stop_signals`). Returns the function that unregisters ``cb``."""
+    catch_stop_signals()
+    _on_stop.append(cb)
+    if _stop_signalled.is_set():
+        cb()
+
+    def forget() -> None:
+        if cb in _on_stop:
+            _on_stop.remove(cb)
+
+    return forget
+
+
 def child_env(env: dict[str, str] | None = None) -> dict[str, str]:
     """``env`` (default: this process's environment) with this process as the child's parent."""
     return {**(os.environ if env is None else env), PARENT_PID_ENV: str(os.getpid())}

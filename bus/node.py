@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import logging
 import queue
-import signal
 import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
@@ -23,11 +23,25 @@ from hilstack.bus import keys
 from hilstack.bus.access import identity
 from hilstack.bus.cycle import CycleTimer
 from hilstack.bus.estop import EStopLatch
+from hilstack.bus.lifetime import on_stop_signal
 from hilstack.bus.schemas import MalformedMessage, Msg, decode, encode
 from hilstack.bus.session import open_session, rendezvous_listened, wait_linked
 from hilstack.configs.schema import BusConfig
 
 log = logging.getLogger("hil")
+
+#: nodes not closed yet: closed when the interpreter exits, *before* it joins non-daemon
+#: threads (zenoh's callback threads are such threads: a process that ended with a node still
+#: open waited for them forever instead of exiting)
+_open_nodes: weakref.WeakSet[Node] = weakref.WeakSet()
+
+
+def _close_open_nodes() -> None:
+    for node in list(_open_nodes):
+        node.close()
+
+
+threading._register_atexit(_close_open_nodes)  # noqa: SLF001 - the hook concurrent.futures uses for the same reason
 
 T = TypeVar("T", bound=Msg)
 
@@ -306,12 +320,11 @@ class Node:
         self._closeables.append(self.estop)
         #: the timer of the last ``run()`` (timing summary)
         self.cycle: CycleTimer | None = None
-        if handle_signals and threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(sig, self._on_signal)
-
-    def _on_signal(self, signum: int, frame: Any) -> None:
-        self.stop_event.set()
+        # Ctrl-C/SIGTERM stop this node, also one that came while the process loaded
+        # (bus/lifetime.py: a supervisor's SIGTERM may arrive before the node exists)
+        self._forget_signals = (on_stop_signal(self.stop_event.set)
+                                if handle_signals and threading.current_thread() is threading.main_thread() else None)
+        _open_nodes.add(self)
 
     # -------------------------------------------------------------- pub/sub
     def publisher(self, key: str, typ: type[T], reliable: bool = False) -> Publisher[T]:
@@ -359,6 +372,8 @@ class Node:
             return
         self._closed = True
         self.stop_event.set()
+        if self._forget_signals is not None:
+            self._forget_signals()
         for c in reversed(self._closeables):
             try:
                 c.close()

@@ -457,7 +457,7 @@ class DriverNode(Node):
                 self.estopped = True
                 self.stopped_reason = StoppedReason.ESTOP
                 log.warning("starting with the rig's e-stop engaged (%s: %s)", latched.source or "?", latched.reason)
-            else:
+            elif not self.stop_event.is_set():  # a stop asked while it loaded: never activated
                 d.activate()
             d.stop()  # nothing moves until the first command
             self.publish_spec()

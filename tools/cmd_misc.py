@@ -8,10 +8,17 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 import typer
 
-from hilstack.bus.lifetime import child_env, exit_with_parent
+from hilstack.bus.lifetime import (
+    DUMP_STACKS_SIGNAL,
+    catch_stop_signals,
+    child_env,
+    exit_with_parent,
+    stop_signalled,
+)
 from hilstack.tools.common import (
     EndpointOpt,
     UserError,
@@ -88,6 +95,8 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, stop_all)
+    if stop_signalled():  # it came while the drivers loaded
+        stop_all(signal.SIGTERM, None)
     threads = [threading.Thread(target=serve, args=(nd,), name=f"driver-{nd.robot}") for nd in nodes]
     for th in threads:
         th.start()
@@ -140,9 +149,6 @@ def _run_robot_processes(procs: list, names: list[str], grace_s: float = STOP_GR
     stacks are dumped into the log (SIGUSR1, bus/lifetime.py) and it is killed, naming the
     robots; a stuck node cannot hold the rig's other robots or the operator hostage. Returns
     the rig's exit code: 0; a robot's node's own (1 link, 2 input); 1 for a killed node."""
-    import time
-
-    from hilstack.bus.lifetime import DUMP_STACKS_SIGNAL
 
     asked: list[float] = []  # when the first stop signal came
     forwarded: set[int] = set()  # signals a node may die of before it has its handlers
@@ -156,6 +162,8 @@ def _run_robot_processes(procs: list, names: list[str], grace_s: float = STOP_GR
 
     # installed explicitly: a `hil up` started in the background inherits SIGINT ignored
     before = {sig: signal.signal(sig, forward) for sig in (signal.SIGINT, signal.SIGTERM)}
+    if stop_signalled():  # it came while the rig loaded, before the processes started
+        forward(signal.SIGTERM, None)
     killed: list[str] = []
     try:
         while any(p.poll() is None for p in procs):
@@ -241,6 +249,7 @@ def register(app: typer.Typer) -> None:
         from hilstack.drivers.bridge import DriverNode
         from hilstack.drivers.registry import make_driver
 
+        catch_stop_signals()  # first: a stop that comes while the drivers load is kept (bus/lifetime.py)
         if steps is not None and steps < 1:
             raise UserError(f"--steps {steps}: expected a number of control periods >= 1")
         setup_logging()
