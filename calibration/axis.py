@@ -706,6 +706,8 @@ def fit_axis(preps: list[Prepared], effects: list[str], weights: np.ndarray | No
     params.coef = dict(zip(coef_names(effects), map(float, theta), strict=True))
     for h in output_names:
         _fit_output_hyper(preps, params, h, weights)
+    if OUTPUT_ERROR_REFINE:
+        refine_output_error(preps, params, weights)
     return params
 
 
@@ -840,6 +842,119 @@ def _fit_output_hyper(preps: list[Prepared], params: AxisParams, h: str, weights
     params.hyper[h] = float(fine[j]) if fine_sses[j] <= sses[i] else float(grid[i])
 
 
+# ----------------------------------------------------------------------------- output-error refinement
+
+#: Refine the linear coefficients by output error after the equation-error fit (see
+#: :func:`refine_output_error`). False: equation error only (the behaviour before issue 28's round 5).
+OUTPUT_ERROR_REFINE = True
+#: Open-loop windows of the output-error fit: horizon [s] (at most ``OE_MAX_STEPS`` samples), at
+#: most ``OE_MAX_WINDOWS`` windows spread evenly over the weighted episodes, and the solver budget.
+OE_HORIZON_S = 1.0
+OE_MAX_STEPS = 200
+OE_MAX_WINDOWS = 64
+OE_MAX_NFEV = 8
+
+
+def _oe_jobs(preps: list[Prepared], params: AxisParams, weights: np.ndarray | None) -> tuple[list[dict], np.ndarray]:
+    """Replay jobs (features built once) on a subset of open-loop windows, and each job's weight."""
+    ws = np.ones(len(preps)) if weights is None else np.asarray(weights, float)
+    horizon = max(2, min(int(round(OE_HORIZON_S / preps[0].period_s)), OE_MAX_STEPS))
+    starts = {}
+    for i, (wi, p) in enumerate(zip(ws, preps, strict=True)):
+        if wi > 0:
+            starts[i] = window_starts(p, max(1, min(horizon, p.n - 2 * p.margin - 2)))
+    total = sum(s.size for s in starts.values())
+    stride = max(1, math.ceil(total / OE_MAX_WINDOWS))
+    jobs, wts, seen = [], [], 0
+    for i, st in starts.items():
+        pick = st[(np.arange(st.size) + seen) % stride == 0]  # every stride-th window across episodes
+        seen += st.size
+        if pick.size:
+            jobs.append(_replay_job(preps[i], params, horizon, pick, None))
+            wts.append(ws[i])
+    return jobs, np.asarray(wts, float)
+
+
+def refine_output_error(preps: list[Prepared], params: AxisParams, weights: np.ndarray | None = None) -> bool:
+    """Refine the linear coefficients (a, c and every effect's) by output error, in place.
+
+    Equation error regresses (v_{k+1} − v_k)/Δt on features of the measured v_k. When v is a
+    noisy estimate (the Savitzky-Golay derivative of a coarsely quantised position: 1 cm
+    odometry), the same noise sits in the regressor −c·v_k and, with the opposite sign, in the
+    target, which biases c (and a with it) upwards: an errors-in-variables bias. Output error
+    simulates the model open loop over windows of the recording (``OE_HORIZON_S`` from each
+    window's measured state, the logged commands replayed) and minimises the position and
+    velocity errors of the simulation, whose noise is in the output only, so it has no such bias
+    (Ljung, *System Identification*, 2nd ed., §7.3 and §8.3: output-error models are consistent
+    under white measurement noise where equation error is not). Started from the equation-error
+    fit; scipy's ``least_squares`` (trust region) with a finite-difference Jacobian whose columns
+    are replayed in one vectorised batch. Each channel is scaled by its error at the start, a
+    Gaussian likelihood with one noise variance per channel, as the selection scores channels.
+    The hyper-parameters (delay, lag, widths) stay at their equation-error values. The result is
+    kept only when it lowers the error and is finite. Returns whether the coefficients changed.
+    """
+    from scipy.optimize import least_squares
+
+    names = coef_names(params.effects)
+    theta0 = np.array([params.coef[n] for n in names], float)
+    jobs, wts = _oe_jobs(preps, params, weights)
+    if not jobs or not np.all(np.isfinite(theta0)):
+        return False
+    sw = np.sqrt(wts)
+
+    def errors(thetas: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+        built = [_with_coef(j, dict(zip(names, th, strict=True))) for th in thetas for j in jobs]
+        with np.errstate(all="ignore"):
+            sims = _replay_built(built)
+        out = []
+        for t in range(len(thetas)):
+            chunk = sims[t * len(jobs):(t + 1) * len(jobs)]
+            ex = np.concatenate([w * (s["x_pred"] - s["x_true"]).ravel() for w, s in zip(sw, chunk, strict=True)])
+            ev = np.concatenate([w * (s["v_pred"] - s["v_true"]).ravel() for w, s in zip(sw, chunk, strict=True)])
+            out.append((ex, ev))
+        return out
+
+    ex0, ev0 = errors([theta0])[0]
+    sx = float(np.sqrt(np.mean(ex0**2))) or 1.0
+    sv = float(np.sqrt(np.mean(ev0**2))) or 1.0
+    big = 1e6
+
+    def resid(pair):
+        r = np.concatenate([pair[0] / sx, pair[1] / sv])
+        return np.where(np.isfinite(r), np.clip(r, -big, big), big)
+
+    cache: dict[bytes, np.ndarray] = {}
+
+    def fun(th):
+        r = resid(errors([th])[0])
+        cache.clear()
+        cache[th.tobytes()] = r
+        return r
+
+    scale = np.maximum(np.abs(theta0), 1e-3 * (np.max(np.abs(theta0)) + 1e-12))
+    steps = 1e-4 * scale
+
+    def jac(th):
+        r0 = cache.get(th.tobytes())
+        if r0 is None:
+            r0 = fun(th)
+        pert = [th + steps[j] * np.eye(th.size)[j] for j in range(th.size)]
+        cols = [(resid(e) - r0) / steps[j] for j, e in enumerate(errors(pert))]
+        return np.stack(cols, axis=1)
+
+    r_start = resid((ex0, ev0))
+    cost0 = float(r_start @ r_start)
+    try:
+        sol = least_squares(fun, theta0, jac=jac, method="trf", x_scale="jac", max_nfev=OE_MAX_NFEV,
+                            ftol=1e-4, xtol=1e-4)
+    except (ValueError, np.linalg.LinAlgError):
+        return False
+    if not np.all(np.isfinite(sol.x)) or 2 * sol.cost >= cost0:
+        return False
+    params.coef = dict(zip(names, map(float, sol.x), strict=True))
+    return True
+
+
 # ----------------------------------------------------------------------------- prediction
 
 
@@ -914,11 +1029,6 @@ def _replay_job(p: Prepared, params: AxisParams, horizon: int, starts, play) -> 
     hp = params.hyper
     g = _payload_factor(p, hp)
     g = np.ones(p.n) if g is None else g
-    force_in = c["a"] * feats["a"]
-    if "kb" in feats:
-        force_in = force_in + c["kb"] * feats["kb"]
-    # Command-side terms were multiplied by g in raw_features; offset/friction get g below.
-    drive = force_in + c.get("offset_acc", 0.0) * g + c.get("gravity_acc", 0.0)
     w = starts.size
     if play is None and hp.get("halfwidth_x", 0.0) > 0:
         play = np.full(w, hp["halfwidth_x"])
@@ -927,19 +1037,33 @@ def _replay_job(p: Prepared, params: AxisParams, horizon: int, starts, play) -> 
     play_w = np.zeros(w) if play is None else np.broadcast_to(np.asarray(play, float), (w,))
     motor0 = x0 + play_w * motion_direction(v_true, p.v_min)[starts] if has_play else x0.copy()
 
+    job = {"p": p, "params": params, "horizon": horizon, "starts": starts, "g": g,
+           "u_in": feats["a"], "kb_in": feats.get("kb"),
+           "x_load": x0, "x": motor0, "v": v_true[starts].astype(float).copy(),
+           "has_play": np.full(w, has_play), "play": play_w,
+           "vs": np.full(w, float(hp.get("vs", 1.0))), "q0": np.full(w, float(hp.get("q0_rad", 0.0))),
+           "cog_k": np.full(w, float(hp.get("cog_k", 1.0))), "cog_phase": np.full(w, float(hp.get("cog_phase", 0.0)))}
+    return _with_coef(job, c)
+
+
+def _with_coef(job: dict, c: dict[str, float]) -> dict:
+    """A replay job with the linear coefficients ``c`` (the features, which depend only on the
+    hyper-parameters, are shared with ``job``)."""
+    w = job["starts"].size
+
     def per_window(value):
         return np.full(w, float(value))
 
-    fs = c.get("fs_extra_acc", 0.0)
-    return {"p": p, "params": params, "horizon": horizon, "starts": starts, "drive": drive, "g": g,
-            "u_in": feats["a"], "kemf": per_window(c.get("kemf", 0.0)),
-            "x_load": x0, "x": motor0, "v": v_true[starts].astype(float).copy(),
-            "has_play": np.full(w, has_play), "play": play_w,
+    g = job["g"]
+    force_in = c["a"] * job["u_in"]
+    if job["kb_in"] is not None:
+        force_in = force_in + c["kb"] * job["kb_in"]
+    # Command-side terms were multiplied by g in raw_features; offset/friction get g in the replay.
+    drive = force_in + c.get("offset_acc", 0.0) * g + c.get("gravity_acc", 0.0)
+    return {**job, "drive": drive, "kemf": per_window(c.get("kemf", 0.0)),
             "c_per_s": per_window(c["c_per_s"]), "fc": per_window(c.get("fc_acc", 0.0)),
-            "fs": per_window(fs), "vs": per_window(hp.get("vs", 1.0)), "fa": per_window(c.get("fa_acc", 0.0)),
-            "gl": per_window(c.get("gl_acc", 0.0)), "q0": per_window(hp.get("q0_rad", 0.0)),
-            "gc": per_window(c.get("gc_acc", 0.0)), "cog_k": per_window(hp.get("cog_k", 1.0)),
-            "cog_phase": per_window(hp.get("cog_phase", 0.0))}
+            "fs": per_window(c.get("fs_extra_acc", 0.0)), "fa": per_window(c.get("fa_acc", 0.0)),
+            "gl": per_window(c.get("gl_acc", 0.0)), "gc": per_window(c.get("gc_acc", 0.0))}
 
 
 #: How many replay jobs :func:`simulate_many` stacks into one vectorised replay (None: all of them).
@@ -957,6 +1081,10 @@ def simulate_many(jobs, horizon: int) -> list[dict[str, np.ndarray]]:
     window's arithmetic is that of the single-episode replay, so the results are the same.
     """
     built = [_replay_job(p, params, horizon, starts, play) for p, params, starts, play in jobs]
+    return _replay_built(built)
+
+
+def _replay_built(built: list[dict]) -> list[dict[str, np.ndarray]]:
     out: list[dict | None] = [None] * len(built)
     groups: dict[tuple, list[int]] = {}
     for i, b in enumerate(built):
