@@ -62,6 +62,10 @@ class ResetPhase(enum.StrEnum):
     UNSUPPORTED = "unsupported"
 
 
+#: RobotState.device_t_s of a reading without a device clock
+NO_DEVICE_CLOCK = -1.0
+
+
 class RobotState(Msg, tag="hil.RobotState/1"):
     robot: str
     #: robot clock at measurement (wall clock for real/emulated, sim time for sim) [s]
@@ -79,6 +83,11 @@ class RobotState(Msg, tag="hil.RobotState/1"):
     #: incremented by each completed reset; splits recordings into episodes
     episode: int = 0
     health: dict[str, Any] = {}
+    #: the device's own clock when the state was sampled [s, >= 0] (Observation.device_t_s: a
+    #: Dynamixel's Realtime Tick, unwrapped), NO_DEVICE_CLOCK (-1) when the device has none. Its origin
+    #: is the device's; ``t_s`` stays the host's stamp. Added to version 1 with a default (older readers
+    #: ignore it; one JSON type, as Foxglove's schemas need).
+    device_t_s: float = -1.0
 
 
 class Command(Msg, tag="hil.Command/1"):

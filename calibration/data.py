@@ -396,7 +396,9 @@ def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None,
     if magic != MCAP_MAGIC:
         raise DataError(f"{path} is not an MCAP file (its first bytes are not the MCAP magic {MCAP_MAGIC!r})")
     try:
-        raw = episodes_from_mcap(path, robot=robot, normalize=normalize_actions)
+        # the device's own sample clock where the robot reports one (a Dynamixel's Realtime Tick):
+        # the host's stamps carry the link's latency and jitter
+        raw = episodes_from_mcap(path, robot=robot, normalize=normalize_actions, clock="device")
     except ValueError as e:
         if "robots []" in str(e):
             raise DataError(f"{path}: no robot state messages in the recording (not a hilstack rig recording, or "
@@ -448,7 +450,7 @@ def _load_mcap(path: Path, mapping: dict[str, str], robot: str | None = None,
             vbat_v=channel("vbat", "vbat" if "vbat" in snames else None),
             payload=channel("m", None),
             meta={"source": str(path), "robot": le.meta.get("robot"), "episode": le.meta.get("episode"),
-                  "actions_normalized": normalize_actions},
+                  "actions_normalized": normalize_actions, "clock": le.meta.get("clock", "host")},
             states=states,
             actions=actions,
             state_names=snames,

@@ -64,7 +64,7 @@ def record_excitation(path: str | Path, duration_s: float = 60.0, seed: int = 0,
     """
     from hilstack.bus import keys
     from hilstack.bus.recording import McapLog
-    from hilstack.bus.schemas import RobotState, SpecMsg
+    from hilstack.bus.schemas import NO_DEVICE_CLOCK, RobotState, SpecMsg
     from hilstack.configs.schema import RobotConfig, load_robot
     from hilstack.drivers.registry import make_driver, resolve
 
@@ -111,10 +111,12 @@ def record_excitation(path: str | Path, duration_s: float = 60.0, seed: int = 0,
         log.write(keys.spec(rig, name), SpecMsg(robot=name, spec=spec, seq=1))
         obs = d.read()
         t0 = obs.t_s
+        dev0 = obs.device_t_s
         applied: list[float] = []
         for k in range(steps + 1):
+            dev = NO_DEVICE_CLOCK if dev0 is None or obs.device_t_s is None else obs.device_t_s - dev0
             log.write(keys.state(rig, name),
-                      RobotState(robot=name, t_s=obs.t_s - t0, state=state_of(obs),
+                      RobotState(robot=name, t_s=obs.t_s - t0, state=state_of(obs), device_t_s=dev,
                                  action=applied, episode=0, seq=k + 2, stamp_s=1000.0 + obs.t_s - t0,
                                  active=True, ok=obs.ok))
             if k == steps:

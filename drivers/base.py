@@ -501,6 +501,11 @@ class Observation:
     flags: dict[str, bool] = field(default_factory=dict)
     #: extra sensor data: images (H×W×3 uint8), raw IMU, mocap pose...
     extras: dict[str, Any] = field(default_factory=dict)
+    #: the device's own clock when its data were sampled [s], for devices that report one (a
+    #: Dynamixel's Realtime Tick, unwrapped); None otherwise. Its origin is the device's, not
+    #: ``t_s``'s: differences between readings are exact where ``t_s`` (stamped by the host when
+    #: a read returns) carries the link's latency and jitter.
+    device_t_s: float | None = None
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.flags) - FLAG_NAMES)

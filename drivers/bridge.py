@@ -32,6 +32,7 @@ import numpy as np
 from hilstack.bus import keys
 from hilstack.bus.node import Node
 from hilstack.bus.schemas import (
+    NO_DEVICE_CLOCK,
     Command,
     EStop,
     EStopAck,
@@ -343,6 +344,7 @@ class DriverNode(Node):
             stopped_reason=self.stopped_reason,
             action=[] if held is None else held.tolist(),
             episode=self.episode,
+            device_t_s=NO_DEVICE_CLOCK if obs.device_t_s is None else obs.device_t_s,
             health={
                 **h.to_dict(),
                 "bus_malformed": self.malformed_count(),

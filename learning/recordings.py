@@ -33,8 +33,18 @@ def episodes_from_mcap(
     normalize: bool = True,
     min_steps: int = 2,
     episodes: set[int] | None = None,
+    clock: str = "host",
 ) -> list[Episode]:
-    """Split a recording into episodes of one robot (the only one, or ``robot``)."""
+    """Split a recording into episodes of one robot (the only one, or ``robot``).
+
+    ``clock``: the episode's ``times``. "host": ``RobotState.t_s``, the host's stamp when the reading
+    returned. "device": ``RobotState.device_t_s`` (the device's own clock when the data were sampled:
+    a Dynamixel's Realtime Tick) for every segment whose states all carry one, else the host's;
+    ``meta["clock"]`` says which, and ``meta["host_times"]`` keeps the host stamps. A state whose
+    time does not advance on that clock (the same reading stamped twice) is dropped.
+    """
+    if clock not in ("host", "device"):
+        raise ValueError(f"clock must be 'host' or 'device', got {clock!r}")
     states: dict[tuple[str, int], list[RobotState]] = {}
     specs: dict[str, dict] = {}
     #: per robot, once it has a reset transition in this file: inside a reset now
@@ -79,10 +89,15 @@ def episodes_from_mcap(
         if r != robot or (episodes is not None and ep not in episodes):
             continue
         msgs.sort(key=lambda m: m.seq)
+        on_device = clock == "device" and all(m.device_t_s >= 0 for m in msgs)
+
+        def t_of(m: RobotState, on_device: bool = on_device) -> float:
+            return m.device_t_s if on_device else m.t_s
+
         # consecutive duplicates (a state re-published without a step) carry no transition
         uniq = [msgs[0]]
         for m in msgs[1:]:
-            if m.t_s > uniq[-1].t_s:
+            if t_of(m) > t_of(uniq[-1]):
                 uniq.append(m)
         # a reading flagged not ok (link trouble, sim blow-up) ends a segment: transitions
         # into or out of it are not trustworthy; so does a reset (its motion is not the
@@ -104,7 +119,7 @@ def episodes_from_mcap(
                 Episode(
                     states=st,
                     actions=act,
-                    times=np.array([m.t_s for m in seg]),
+                    times=np.array([t_of(m) for m in seg]),
                     name=f"{Path(path).stem}:{robot}:{ep}" + (f".{k}" if k else ""),
                     meta={
                         "robot": robot,
@@ -112,6 +127,8 @@ def episodes_from_mcap(
                         "state_names": None if spec is None else list(spec.state.names),
                         "action_names": None if spec is None else list(spec.action.names),
                         "actions_normalized": normalize,
+                        "clock": "device" if on_device else "host",
+                        **({"host_times": np.array([m.t_s for m in seg])} if on_device else {}),
                     },
                 )
             )

@@ -3,7 +3,9 @@
 with the emulator's state file on (every 2 ms: wall clock, sim time, servo positions), then prints the
 emulator's slip behind the wall clock, the per-period difference between stamped and simulated time,
 the read/write timing, and how far each sample's stamp is from the physics time of its data (each
-sample matched to the state-file line with the same joint positions).
+sample matched to the state-file line with the same joint positions). Each of those is given for the
+host's stamp (``Observation.t_s``, ``RobotState.t_s``) and for the servos' own clock (the first joint's
+Realtime Tick, unwrapped: ``Observation.device_t_s``, ``RobotState.device_t_s``).
 
     PYTHONPATH=. nice -n 10 python scripts/emulated_link_timing.py 30 0.05 /tmp/timing
 """
@@ -40,7 +42,8 @@ def record(dur: float, period: float, out: str) -> None:
             u = dq + 2.0 * (mid + q_off - np.asarray(obs.state[:6]))
             tw0 = time.monotonic()
             d.write(u)
-            rows.append([t_r0, t_r1, obs.t_s, tw0, time.monotonic(), *obs.state[:6]])
+            rows.append([t_r0, t_r1, obs.t_s, tw0, time.monotonic(), *obs.state[:6],
+                         np.nan if obs.device_t_s is None else obs.device_t_s])
             d.tick()
             t_r0 = time.monotonic()
             obs = d.read()
@@ -72,10 +75,26 @@ def analyse(out: str, block_samples: int = 40) -> None:
             phys[k] = sim[idx[np.argmin(np.abs(q[idx] - h[k, 5:11]).max(1))]]
     age = np.interp(stamps, t, sim) - phys
     print(f"data age at its stamp (sim time) p5/p50/p95 {np.round(np.nanpercentile(age, [5, 50, 95]) * 1e3, 1)} ms")
-    drift = [np.nanmax(np.abs((stamps[a:a + block_samples] - stamps[a]) - (phys[a:a + block_samples] - phys[a])))
-             for a in range(0, len(h) - block_samples, block_samples)]
+
+    def block_drift(clock):
+        return [np.nanmax(np.abs((clock[a:a + block_samples] - clock[a]) - (phys[a:a + block_samples] - phys[a])))
+                for a in range(0, len(h) - block_samples, block_samples)]
+
+    drift = block_drift(stamps)
     print(f"per {block_samples}-sample block, max |stamped - physics time|: p50 {np.median(drift) * 1e3:.1f} ms, "
           f"max {np.max(drift) * 1e3:.1f} ms")
+    if h.shape[1] > 11 and np.isfinite(h[:, 11]).any():
+        dev = h[:, 11]
+        # the servo clock's origin is the servo's: its error is the spread of (device - physics) time
+        off = dev - phys
+        err = off - np.nanmedian(off)
+        print(f"device clock (Realtime Tick): |device - physics time| about its median offset p50/p95/max "
+              f"{np.round(np.nanpercentile(np.abs(err), [50, 95, 100]) * 1e3, 2)} ms; per period "
+              f"|d device - d physics| p50 {np.nanmedian(np.abs(np.diff(dev) - np.diff(phys))) * 1e3:.2f} ms "
+              f"p95 {np.nanpercentile(np.abs(np.diff(dev) - np.diff(phys)), 95) * 1e3:.2f} ms")
+        dd = block_drift(dev)
+        print(f"per {block_samples}-sample block, max |device - physics time|: p50 {np.median(dd) * 1e3:.1f} ms, "
+              f"max {np.max(dd) * 1e3:.1f} ms")
 
 
 if __name__ == "__main__":

@@ -6,11 +6,14 @@ with their evidence level, the verdict, the locked-test multi-step NRMSE before/
 
     PYTHONPATH=. nice -n 10 python scripts/measure_selection.py --seeds 0,1,2 [--beam-width 3] [--real]
     PYTHONPATH=. nice -n 10 python scripts/measure_selection.py --cases "" --real --sets dfki --real-n-boot 20,25,40
+    PYTHONPATH=. nice -n 10 python scripts/measure_selection.py --cases "" --real --sets dfki,dart,emps,emps10k \
+        --equation-error-only      # the axis fit before its output-error refinement (the "before" of round 5)
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import tempfile
@@ -45,14 +48,19 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--real", action="store_true", help="also the real data sets (dfki, dart, emps)")
     ap.add_argument("--beam-width", type=int, default=None, help="(after the beam search) its width")
-    ap.add_argument("--sets", default="dfki,dart,emps", help="which real data sets (with --real)")
+    ap.add_argument("--sets", default="dfki,dart,emps",
+                    help="which real data sets (with --real): dfki, dart, emps, emps10k (EMPS's first 10,000 samples)")
+    ap.add_argument("--equation-error-only", action="store_true",
+                    help="fit the axis model by equation error only (axis.OUTPUT_ERROR_REFINE = False)")
     ap.add_argument("--real-n-boot", default="20", help="bootstrap replicates for the real data sets (a list: each)")
     a = ap.parse_args()
     torch.set_num_threads(1)
-    from hilstack.calibration import run_calibration
+    from hilstack.calibration import axis, run_calibration
     from hilstack.calibration.selection import SelectionConfig
     from hilstack.calibration.synthetic import SynthConfig, generate
 
+    if a.equation_error_only:
+        axis.OUTPUT_ERROR_REFINE = False
     kw = {"n_boot": 25}
     if a.beam_width is not None:
         kw["beam_width"] = a.beam_width
@@ -82,9 +90,15 @@ def main() -> None:
                 run("dfki", 0, dfki, n_boot=nb)
             if "dart" in sets:
                 run("dart", 0, dart, n_boot=nb)
-            if "emps" in sets:
+            if "emps" in sets or "emps10k" in sets:
                 csv = emps_to_csv(find_real("emps") / "DATA_EMPS.mat", f"{tmp}/emps.csv")
+            if "emps" in sets:
                 run("emps", 0, csv, n_boot=nb, column_map="t=time,u=volts,x=position", k_u=EMPS_GTAU_N_PER_V)
+            if "emps10k" in sets:
+                with open(csv) as f, open(f"{tmp}/emps10k.csv", "w") as g:  # head -10001: header + 10,000 rows
+                    g.writelines(itertools.islice(f, 10001))
+                run("emps10k", 0, f"{tmp}/emps10k.csv", n_boot=nb, column_map="t=time,u=volts,x=position",
+                    k_u=EMPS_GTAU_N_PER_V)
 
 
 if __name__ == "__main__":

@@ -55,6 +55,24 @@ BUS_WATCHDOG_TRIPPED = -1
 BUS_WATCHDOG_MIN_FIRMWARE = 38
 GOAL_ITEMS = ("Goal PWM", "Goal Current", "Goal Velocity", "Goal Position")
 
+#: Realtime Tick (120, 2 bytes): the servo's own clock, 1 ms per count, 0..32,767, back to 0 after
+#: 32,767 (X-series e-Manual, "Realtime Tick(120)"; address and size from the SDK's model file)
+REALTIME_TICK_S = 0.001
+REALTIME_TICK_MODULUS = 32768
+
+
+def unwrap_tick(last_raw: int | None, raw: int, total: int) -> int:
+    """The servo clock in ticks since its first reading, continued across the 32,767 -> 0 wrap.
+
+    ``total`` is the unwrapped count at ``last_raw`` (0 at the first reading, ``last_raw`` None).
+    Readings must come less than 32.768 s apart (at the control rate they are a period apart);
+    a reboot, which restarts the clock at 0, reads as one step forward.
+    """
+    if last_raw is None:
+        return 0
+    return total + (int(raw) - int(last_raw)) % REALTIME_TICK_MODULUS
+
+
 #: Hardware Error Status bits
 HARDWARE_ERROR_BITS = {0: "input voltage", 2: "overheating", 3: "motor encoder",
                        4: "electrical shock", 5: "overload"}

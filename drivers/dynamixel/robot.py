@@ -47,10 +47,12 @@ from hilstack.drivers.dynamixel.control_table import (
     BUS_WATCHDOG_TRIPPED,
     BUS_WATCHDOG_UNIT_S,
     OPERATING_MODES,
+    REALTIME_TICK_S,
     STATUS_ALERT_BIT,
     VOLT_PER_COUNT,
     describe_hardware_error,
     pos_rad,
+    unwrap_tick,
     vel_rad_s,
 )
 from hilstack.drivers.emulator_process import emulator_module
@@ -85,6 +87,9 @@ class DynamixelRobot(Driver):
         self._temp_c = np.full(n, np.nan)
         self._volt = np.full(n, np.nan)
         self._t_joint = np.full(n, -np.inf)  # when each joint last answered (self.now())
+        # each servo's Realtime Tick: the last raw value and the unwrapped count since the first read
+        self._tick_raw: list[int | None] = [None] * n
+        self._tick_total = np.zeros(n, dtype=np.int64)
         self._hw_errors: dict[str, str] = {}
         self._mode: int | None = None
         self._seq = 0
@@ -284,6 +289,9 @@ class DynamixelRobot(Driver):
             self._temp_c[k] = dec(raw, BLOCK[0], "Present Temperature")
             self._volt[k] = dec(raw, BLOCK[0], "Present Input Voltage") * VOLT_PER_COUNT
             self._t_joint[k] = now
+            tick = dec(raw, BLOCK[0], "Realtime Tick")
+            self._tick_total[k] = unwrap_tick(self._tick_raw[k], tick, int(self._tick_total[k]))
+            self._tick_raw[k] = tick
             if errors.get(dxl_id, 0) & STATUS_ALERT_BIT and name not in self._hw_errors:
                 try:
                     bits = self.bus.read(dxl_id, "Hardware Error Status")
@@ -309,7 +317,17 @@ class DynamixelRobot(Driver):
         return Observation(t_s=self.now(), state=state, seq=self._seq, ok=not stale and finite,
                            flags={"stale_telemetry": stale, "nonfinite_input": not finite,
                                   "hardware_error": bool(self._hw_errors), "watchdog": self.watchdog_tripped},
-                           extras={"telemetry_age_s": age, **extras})
+                           extras={"telemetry_age_s": age, **extras}, device_t_s=self.device_t_s())
+
+    def device_t_s(self) -> float | None:
+        """The first joint's servo clock at its last reading [s since that servo's first reading].
+
+        Every servo keeps its own Realtime Tick (ms, wrapping after 32,767), and their origins
+        differ on a real bus, so one servo (the first joint) is the clock of the sample: the
+        present values of one sync read are sampled within a fraction of a millisecond of each
+        other. None before that servo answered.
+        """
+        return None if self._tick_raw[0] is None else float(self._tick_total[0]) * REALTIME_TICK_S
 
     def _read_bus(self) -> None:
         if self.bus is None or self.bus.closed:

@@ -18,7 +18,8 @@ What is modelled (XM430-W350 e-Manual, "Control Table" and "Operating Mode"):
   error turns the torque off and sets the alert bit of every status packet; Torque
   Enable = 1 is then refused until a reboot clears the error.
 * Present Current from the torque (torque constant ``kt``), Present Temperature, Present
-  Input Voltage, Moving.
+  Input Voltage, Moving, and Realtime Tick (120): the servo's clock in ms (simulated time: the
+  ticks run, wrapping after 32,767) at the tick whose present values a read returns.
 * Bus Watchdog (98), as the e-Manual describes it: 1..127 arms it (unit 20 ms); with
   torque on, no instruction packet for longer than that stops the servo (velocity mode:
   Goal Velocity becomes 0; position mode: the servo stops its profile where it is, and
@@ -48,6 +49,8 @@ from hilstack.drivers.dynamixel.control_table import (
     GOAL_ITEMS,
     OPERATING_MODES,
     RAD_PER_COUNT,
+    REALTIME_TICK_MODULUS,
+    REALTIME_TICK_S,
     ControlTable,
     control_table,
 )
@@ -203,6 +206,8 @@ class Servo:
         self.set("Present Current", int(round(cur / AMP_PER_COUNT)))
         self.set("Present Temperature", int(round(self.temperature_c)))
         self.set("Moving", int(abs(qd) > self._moving_threshold_rad_s))
+        # the servo's clock at that tick (ms, wraps after 32,767): the time of the present values
+        self.set("Realtime Tick", int(round(self._clock_s / REALTIME_TICK_S)) % REALTIME_TICK_MODULUS)
         self._dirty = False
 
     def _pos_counts(self, rad: float) -> int:
