@@ -51,7 +51,7 @@ def record(dur: float, period: float, out: str) -> None:
     np.save(out + ".host.npy", np.array(rows))
 
 
-def analyse(out: str, block_samples: int = 40) -> None:
+def analyse(out: str, block_samples: int = 40, look_back_s: float = 0.5) -> None:
     h = np.load(out + ".host.npy")
     st = [json.loads(line) for line in open(out + ".state.jsonl")]
     t = np.array([s["t"] for s in st])
@@ -70,7 +70,9 @@ def analyse(out: str, block_samples: int = 40) -> None:
           f"p95 {np.percentile(h[:, 4] - h[:, 2], 95) * 1e3:.2f} ms")
     phys = np.full(len(h), np.nan)  # the sim time of each sample's data: the state line with its positions
     for k in range(len(h)):
-        idx = np.flatnonzero((t >= h[k, 0] - 0.03) & (t <= h[k, 1] + 0.005))
+        # the state lines from look_back_s before the read was sent to just after it returned (under
+        # load a reading's data can be older than the read: the emulator answers from its last tick)
+        idx = np.flatnonzero((t >= h[k, 0] - look_back_s) & (t <= h[k, 1] + 0.005))
         if idx.size:
             phys[k] = sim[idx[np.argmin(np.abs(q[idx] - h[k, 5:11]).max(1))]]
     age = np.interp(stamps, t, sim) - phys
@@ -98,6 +100,10 @@ def analyse(out: str, block_samples: int = 40) -> None:
 
 
 if __name__ == "__main__":
-    dur, period, out = float(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
-    record(dur, period, out)
-    analyse(out, int(round(2.0 / period)))
+    if sys.argv[1] == "--analyse":  # an earlier run again: --analyse PERIOD OUT [LOOK_BACK_S]
+        period, out = float(sys.argv[2]), sys.argv[3]
+        analyse(out, int(round(2.0 / period)), *(float(a) for a in sys.argv[4:5]))
+    else:
+        dur, period, out = float(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
+        record(dur, period, out)
+        analyse(out, int(round(2.0 / period)))
