@@ -30,7 +30,11 @@ def test_load_backlash_is_found_in_the_multistep_position_error(tmp_path):
     cand = next(c for c in r["rounds"][0]["candidates"] if c["name"] == "load_backlash")
     gain = dict(zip(LOSS_CHANNELS, cand["channel_gain"], strict=True))
     assert gain["multi_step_x"] > 0.1 and abs(gain["one_step_x"]) < 0.02
-    assert r["after"]["multi_step_nrmse"]["per_channel"]["x"] < 0.8 * r["before"]["multi_step_nrmse"]["per_channel"]["x"]
+    # Locked-test open-loop x error, measured: 0.00686 -> 0.00552 (x0.80). Before the output-error
+    # refinement (round 5) it was 0.0141 -> 0.0065 (x0.46, this bound was 0.8): the refined nominal
+    # without play is half as wrong in open loop (it takes part of the play's lag into a and c), so the
+    # play's share of what is left is smaller; the play's model itself improved (0.0065 -> 0.0055).
+    assert r["after"]["multi_step_nrmse"]["per_channel"]["x"] < 0.9 * r["before"]["multi_step_nrmse"]["per_channel"]["x"]
 
 
 def test_load_backlash_replay_holds_the_load_in_the_gap():
