@@ -407,6 +407,8 @@ def test_the_wall_clock_mpc_refits_its_samples_between_episodes_and_reports_them
     assert len(run.planner_fit["refits"]) == n_refits  # the baseline's episode refitted nothing
     run, _, seen = run_with(False)
     assert seen == [500] * 4 and run.planner_fit["refits"] == []
+    with pytest.raises(ValueError, match="realtime_max_late_share"):
+        MbrlConfig(realtime_max_late_share=1.0)
 
 
 def test_the_supervisor_ends_an_episode_by_its_detectors_in_that_episode_only(tmp_path):
