@@ -39,7 +39,7 @@ def episodes_from_mcap(
 
     ``clock``: the episode's ``times``. "host": ``RobotState.t_s``, the host's stamp when the reading
     returned. "device": ``RobotState.device_t_s`` (the device's own clock when the data were sampled:
-    a Dynamixel's Realtime Tick) for every segment whose states all carry one, else the host's;
+    a Dynamixel's Realtime Tick) for every episode whose states all carry one, else the host's;
     ``meta["clock"]`` says which, and ``meta["host_times"]`` keeps the host stamps. A state whose
     time does not advance on that clock (the same reading stamped twice) is dropped.
     """
