@@ -181,6 +181,9 @@ def report_markdown(r: dict[str, Any]) -> str:
             lines.append(f"- seed {i}: " + "; ".join(
                 f"{m} x{v['rate']:g} (" + ", ".join(f"x{float(g):g}: {e:.4f}" for g, e in v["errors"].items()) + ")"
                 for m, v in tu.items()))
+        # a step on the grid's edge: its optimum may lie beyond the grid (x0: none is wanted)
+        lines += [f"- **warning**, seed {i}: {v['warning']}" for i, tu in enumerate(tuned)
+                  for v in tu.values() if v.get("warning")]
     lines += _training_lines(r.get("per_seed", []))
     lines += ["", "Plots: " + ", ".join(f"![]({f})" for f in r.get("plots", []))]
     return "\n".join(lines) + "\n"
