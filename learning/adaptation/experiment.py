@@ -170,7 +170,7 @@ class AdaptationConfig(Presets):
     # the *training* conditions (the same grid, data and criterion for every method); None: x1
     rate_grid: tuple[float, ...] | None = None
     tune_rollouts: int = 10
-    # subsets (None: all): the test conditions run, and the methods run on them
+    # subsets (None: all): the test conditions run (in this order), and the methods run on them
     conditions: tuple[str, ...] | None = None
     methods: tuple[str, ...] | None = None
     # switching (None: the presets' every_steps / segments)
@@ -610,7 +610,7 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
         unknown = set(cfg.conditions) - set(conds)
         if unknown:
             raise ValueError(f"unknown conditions {sorted(unknown)}; known: {list(conds)}")
-        conds = {k: v for k, v in conds.items() if k in cfg.conditions}
+        conds = {k: conds[k] for k in dict.fromkeys(cfg.conditions)}  # in the order asked for
     methods = method_list(cfg)
     starts = start_poses(cfg, seed)
     before_after, results, oracle_hist = {}, {}, {}
