@@ -85,6 +85,11 @@ REALTIME_DEADLINE_FRAC = 0.8
 DRIVER_GONE_GRACE_S = 2.0
 
 
+class ResetFailed(RuntimeError):
+    """The rig answered a reset request with a failure (no reset supervisor for a robot that
+    cannot reset itself, the e-stop engaged, a refused teleport): ``str()`` says why."""
+
+
 class DriverGone(RuntimeError):
     """The robot's driver node left the bus (link failure, stopped, killed) while waited for."""
 
@@ -194,7 +199,7 @@ class ControllerNode(Node):
             m = self._reset_done.wait(min(0.5, max(0.0, deadline - time.monotonic())))
             if m is not None and m.robot == self.robot:
                 if m.phase != ResetPhase.DONE:
-                    raise RuntimeError(f"reset of {self.robot} {m.phase}: {m.detail}")
+                    raise ResetFailed(f"reset of {self.robot} {m.phase}: {m.detail}")
                 break
             now = time.monotonic()
             if self.driver.gone:

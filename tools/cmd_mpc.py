@@ -50,7 +50,12 @@ def register(app: typer.Typer) -> None:
 
         import numpy as np
 
-        from hilstack.control.controller_node import REALTIME_DEADLINE_FRAC, ControllerNode
+        from hilstack.control.controller_node import (
+            REALTIME_DEADLINE_FRAC,
+            ControllerNode,
+            DriverGone,
+            ResetFailed,
+        )
         from hilstack.control.costs import PathCost, evaluate_path_following
         from hilstack.control.paths import fillet, make_path
         from hilstack.control.policies import MpcPolicy
@@ -111,7 +116,11 @@ def register(app: typer.Typer) -> None:
             names = list(spec.state.names)
             if adapter is not None and list(adapter.model.state_names) != names:
                 raise UserError(f"{adapt} models states {list(adapter.model.state_names)}; robot {robot} has {names}")
-            cost = PathCost(wp, names)
+            try:
+                cost = PathCost(wp, names)
+            except KeyError as e:  # a robot with no planar pose (an arm, the point mass's x, y only)
+                raise UserError(f"rig {cfg.name} robot {robot}: `hil mpc` follows a planar path and needs the "
+                                f"robot's position and heading in its state ({one_line(e)})") from None
             # as in `hil demo`: track the path with rounded corners, score on the path itself
             mcfg = MbrlConfig(planner=planner)
             ref = task_cost(mcfg, fillet(wp, mcfg.reference_corner_radius_m), names)
@@ -130,7 +139,12 @@ def register(app: typer.Typer) -> None:
                                         every_steps=max(1, round(refit_every / spec.period_s)))
             planner_ = make_planner(mcfg, speed, n_act, max_step, samples)
             pol = MpcPolicy(dyn, planner_, ref, model_source=swap, delay_steps=ctl.pacing.command_delay_periods)
-            first = ctl.reset(**path_start_pose(wp)) if reset else None
+            try:
+                first = ctl.reset(**path_start_pose(wp)) if reset else None
+            except (ResetFailed, DriverGone, TimeoutError) as e:  # nothing was commanded: the robot is still
+                typer.echo(f"error: {one_line(e)}; nothing was sent to the robot (start it where the path "
+                           "starts and give --no-reset, or run the rig's reset supervisor)", err=True)
+                raise typer.Exit(1) from None
             # lockstep: the episode ends at the path's end; realtime runs its steps
             log = ctl.run_episode(pol, steps, first, stop_if=PathEnd(PathCost(wp, names)) if lockstep else None,
                                   refit=refit)
