@@ -176,7 +176,9 @@ class ControllerNode(Node):
         """Ask the driver node to reset the robot (sim) and return the first state of the new episode."""
         self.wait_ready()
         self._reset_done.poll()
-        self._reset_req.put(ResetEvent(robot=self.robot, phase=ResetPhase.REQUEST, pose={k: float(v) for k, v in pose.items()}))
+        last = self._state.last  # the episode it ends: its newest state
+        self._reset_req.put(ResetEvent(robot=self.robot, phase=ResetPhase.REQUEST, pose={k: float(v) for k, v in pose.items()},
+                                       state_seq=-1 if last is None else last.seq))
         deadline = time.monotonic() + timeout_s
         gone_by: float | None = None
         while True:
@@ -222,18 +224,24 @@ class ControllerNode(Node):
 
     # ------------------------------------------------------------------ episodes
     def run_episode(self, policy: Policy, steps: int, first: RobotState | None = None,
-                    stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
+                    stop_if: Callable[[np.ndarray], bool] | None = None,
+                    end_if: Callable[[RobotState], bool] | None = None) -> EpisodeLog:
         """Run ``policy`` for up to ``steps`` states in the robot's time model (the spec's
         :attr:`pacing`): :meth:`run_lockstep` on a ``LOCKSTEP`` sim, :meth:`run_realtime`
         otherwise (``first``, a state already taken, is where a lockstep episode starts; the
-        realtime loop starts on fresh states)."""
+        realtime loop starts on fresh states). ``end_if`` (lockstep): see :meth:`run_lockstep`."""
         if self.pacing is Pacing.LOCKSTEP:
-            return self.run_lockstep(policy, steps, first, stop_if=stop_if)
+            return self.run_lockstep(policy, steps, first, stop_if=stop_if, end_if=end_if)
         return self.run_realtime(policy, steps, stop_if=stop_if)
 
     def run_lockstep(self, policy: Policy, steps: int, first: RobotState | None = None,
-                     stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
-        """Answer ``steps`` states with ``policy``; the sim advances on each answer."""
+                     stop_if: Callable[[np.ndarray], bool] | None = None,
+                     end_if: Callable[[RobotState], bool] | None = None) -> EpisodeLog:
+        """Answer ``steps`` states with ``policy``; the sim advances on each answer.
+        ``stop_if(state array)`` and ``end_if(RobotState)`` are asked about every state after
+        the first before it is answered; the episode ends, unanswered, on the first one either
+        says is the end (the rig's episode-end rules judged here make the end a property of the
+        states, not of when another node's word arrives)."""
         self.wait_ready()
         log = EpisodeLog()
         s = first or self.next_state()
@@ -258,6 +266,8 @@ class ControllerNode(Node):
             log.times_s.append(s.t_s)
             log.plan_times_s.append(dt)
             s = self.next_state(after_seq=s.seq)
+            if end_if is not None and end_if(s):
+                break
             if stop_if is not None and stop_if(np.asarray(s.state)):
                 break
         log.states.append(np.asarray(s.state))

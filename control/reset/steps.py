@@ -45,6 +45,11 @@ from hilstack.drivers.base import RobotSpec
 #: ``update`` results besides an action: the step is over / hold (safe action or held command)
 DONE = "done"
 HOLD = "hold"
+#: the step waits for the driver node's answer and leaves the state unanswered: a lockstep
+#: driver node serves the request while it waits for that answer, so the sim does not advance
+#: between the request and its effect (a hold sent meanwhile stepped it a period or not,
+#: depending on which message came first)
+WAIT = "wait"
 
 StepResult = np.ndarray | str
 
@@ -421,7 +426,7 @@ class Teleport(ResetStep):
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
         ans = ctx.driver_answer()
         if ans is None:
-            return HOLD
+            return WAIT
         if ans.phase != ResetPhase.DONE:
             raise StepError(f"teleport {ans.phase}: {ans.detail}")
         return DONE
