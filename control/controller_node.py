@@ -253,7 +253,7 @@ class ControllerNode(Node):
                 hold = self.safe_norm(s)
                 if hold is not None:
                     self.send(hold, s.seq)
-                s = self.next_state(after_seq=s.seq)
+                s = self._answered(s, None if hold is None else self.spec.action.denormalize(hold))
                 continue
             t0 = time.perf_counter()
             a_norm = np.asarray(policy(x), dtype=np.float64)
@@ -265,7 +265,7 @@ class ControllerNode(Node):
             log.actions_norm.append(self.spec.action.normalize(a))
             log.times_s.append(s.t_s)
             log.plan_times_s.append(dt)
-            s = self.next_state(after_seq=s.seq)
+            s = self._answered(s, a)
             if end_if is not None and end_if(s):
                 break
             if stop_if is not None and stop_if(np.asarray(s.state)):
@@ -273,6 +273,22 @@ class ControllerNode(Node):
         log.states.append(np.asarray(s.state))
         log.times_s.append(s.t_s)
         return log
+
+    def _answered(self, s: RobotState, action: np.ndarray | None, resend_s: float = 1.0) -> RobotState:
+        """Lockstep: the state after ``s``, which the driver node publishes once our answer to
+        ``s`` arrives. The answer is sent again every ``resend_s`` until then (same
+        ``state_seq``: once the sim has stepped on it, the driver node ignores it): a command
+        sent just after joining can reach no one, and a lockstep sim no longer steps on its
+        own to hide that."""
+        deadline = time.monotonic() + self.state_timeout_s
+        while True:
+            try:
+                return self.next_state(after_seq=s.seq, timeout_s=min(resend_s, max(0.0, deadline - time.monotonic())))
+            except TimeoutError:
+                if time.monotonic() >= deadline:
+                    raise TimeoutError(f"no new state from {self.robot} within {self.state_timeout_s} s") from None
+                if action is not None:
+                    self.send_action(action, s.seq)
 
     def run_realtime(self, policy: Policy, steps: int, period_s: float | None = None,
                      deadline_frac: float = 0.8,

@@ -446,9 +446,11 @@ class DriverNode(Node):
 
         The simulation never advances without that answer (a timeout that stepped it with the
         held command made episode lengths depend on the machine's load): after
-        ``lockstep_timeout_s`` without one the node counts it (``lockstep_timeouts``), sends
-        the same state again (same sequence number: a node that has it sees nothing new, one
-        that missed it can answer) and waits on. A sim that follows another robot's clock
+        ``lockstep_timeout_s`` without one the node counts it (``lockstep_timeouts``) and waits
+        on; meanwhile, once a second, it sends its spec and the same state again (same sequence
+        number: a node that has it sees nothing new, one that joined late or missed it can answer),
+        and when its status changes (an e-stop) the state as it is now (a new message; an answer
+        to either is taken). A sim that follows another robot's clock
         (``lockstep_command_wait_s``: the hand's reset arm, whose world the hand's node
         advances) returns None instead, so its states keep coming while nobody commands it.
         A reset request that came before the command is served first: the command then
@@ -463,6 +465,14 @@ class DriverNode(Node):
                 want = self._last_state.seq
                 deadline = time.monotonic() + self.lockstep_timeout_s
                 continue
+            last = self._last_state
+            if last.stopped_reason != self.stopped_reason or last.active != self.driver.active:
+                # its status changed while it waits (an e-stop engaged or released): the rig sees the
+                # robot as it is now (the same instant, a new message), not a stale picture of it
+                self.publish_state()
+            elif time.monotonic() - self._spec_t > 1.0:  # a late joiner gets the spec and the state
+                self.publish_spec()
+                self._state_pub.resend(last)
             m = self._cmd.wait(min(0.05, max(0.0, deadline - time.monotonic())))
             if m is not None and m.state_seq >= want:
                 if self._handle_reset(publish_first=True):  # a reset asked before this command came
@@ -476,9 +486,8 @@ class DriverNode(Node):
                     return None
                 if self.stats.lockstep_timeouts in (1, 10, 100) or self.stats.lockstep_timeouts % 1000 == 0:
                     log.warning("%s: no answer to state %d for %.1f s (%d times so far): the sim waits, "
-                                "its state sent again", self.robot, want, self.lockstep_timeout_s,
+                                "its state is sent again once a second", self.robot, want, self.lockstep_timeout_s,
                                 self.stats.lockstep_timeouts)
-                self._state_pub.resend(self._last_state)
                 deadline = time.monotonic() + self.lockstep_timeout_s
         return None
 
