@@ -366,7 +366,8 @@ class LabFixture:
             if req is None or req["op"] != "place":
                 self.bad_requests += 1
                 why = why or f"the hand's lab fixture only places the balls (op 'place'), not {req['op']!r}"
-                reply = {"ok": False, "detail": f"bad lab-fixture request: {why}"}
+                reply = {"ok": False, "detail": f"bad lab-fixture request: {why}",
+                         **({"id": req.get("id", 0)} if req is not None else {})}
             else:
                 self.sim.place_balls()
                 self.placements += 1
