@@ -46,6 +46,8 @@ _stop_signalled = threading.Event()
 #: what a stop signal does: one callback per node that handles signals (:func:`on_stop_signal`)
 _on_stop: list[Callable[[], None]] = []
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: the handlers :func:`on_stop_signal` replaced (None: it installed none, or put them back)
+_saved: dict[int, object] | None = None
 
 
 def _stop_handler(signum: int, frame: object) -> None:  # noqa: ARG001
@@ -76,15 +78,28 @@ def stop_signalled() -> bool:
 def on_stop_signal(cb: Callable[[], None]) -> Callable[[], None]:
     """Call ``cb`` on SIGINT/SIGTERM, at once if one came already (while the process loaded).
     Every registered callback runs (several nodes in one process all stop). Installs the
-    handlers (:func:`catch_stop_signals`). Returns the function that unregisters ``cb``."""
-    catch_stop_signals()
+    handlers if this process does not catch stop signals yet, and then puts the previous
+    ones back once the last callback is forgotten (a library user's Ctrl-C is theirs again;
+    a `hil up` that called :func:`catch_stop_signals` keeps catching). Returns the function
+    that forgets ``cb``."""
+    global _saved
+    main = threading.current_thread() is threading.main_thread()
+    if main and _saved is None and signal.getsignal(signal.SIGTERM) is not _stop_handler:
+        _saved = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+        catch_stop_signals()
     _on_stop.append(cb)
     if _stop_signalled.is_set():
         cb()
 
     def forget() -> None:
+        global _saved
         if cb in _on_stop:
             _on_stop.remove(cb)
+        if not _on_stop and _saved is not None and threading.current_thread() is threading.main_thread():
+            for sig, h in _saved.items():
+                signal.signal(sig, h if h is not None else signal.SIG_DFL)
+            _saved = None
+            _stop_signalled.clear()  # taken by the callbacks that were running
 
     return forget
 

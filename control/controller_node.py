@@ -69,6 +69,10 @@ class EpisodeLog:
         return np.array(self.states), np.array(self.actions_norm)
 
 
+#: realtime mode: a plan not back within this fraction of the period is late (the shifted
+#: last plan is sent); the rest of the period carries the command to the driver node
+REALTIME_DEADLINE_FRAC = 0.8
+
 #: after the driver node is gone, how long a reset still waits for an answer (the reset
 #: supervisor's, saying why it failed the reset) before it raises :class:`DriverGone` [s]
 DRIVER_GONE_GRACE_S = 2.0
@@ -291,7 +295,7 @@ class ControllerNode(Node):
                     self.send_action(action, s.seq)
 
     def run_realtime(self, policy: Policy, steps: int, period_s: float | None = None,
-                     deadline_frac: float = 0.8,
+                     deadline_frac: float = REALTIME_DEADLINE_FRAC,
                      stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
         """Fixed-rate commands; planning in a worker with a deadline of ``deadline_frac`` periods.
 

@@ -41,7 +41,7 @@ from hilstack.bus.session import BusUnavailable
 from hilstack.configs.presets import Presets
 from hilstack.configs.schema import BusConfig, load_rig
 from hilstack.control.baselines import DifferentialDriveController
-from hilstack.control.controller_node import ControllerNode, DriverGone, EpisodeLog
+from hilstack.control.controller_node import REALTIME_DEADLINE_FRAC, ControllerNode, DriverGone, EpisodeLog
 from hilstack.control.costs import PathCost, evaluate_path_following, rank_key, summarize_paths
 from hilstack.control.paths import fillet, make_path, path_length
 from hilstack.control.planners import CEM, PDDM, RandomShooting
@@ -145,6 +145,11 @@ class MbrlConfig(Presets):
     #: never below realtime_min_samples (fit_samples_to_budget). Lockstep sims: no limit
     realtime_plan_budget: float = 0.4
     realtime_min_samples: int = 50
+    #: wall-clock rigs: after every MPC episode the sample count is refitted from its plan
+    #: times and late-plan share (refit_samples; the load changes within minutes), at most
+    #: this share of late plans wanted. False: the start's fit is kept for the whole run
+    realtime_refit: bool = True
+    realtime_max_late_share: float = 0.05
     #: how long to wait for the driver node to come up (emulator start, radio link)
     rig_timeout_s: float = 60.0
     #: real rigs: when the driver cannot reset itself, ask an operator on the terminal
@@ -158,6 +163,8 @@ class MbrlConfig(Presets):
                             f"choose from {list(EXPERIMENTS)}")
         if self.time_limit_speed_mps <= 0:
             problems.append(f"time_limit_speed_mps must be > 0, got {self.time_limit_speed_mps}")
+        if not 0.0 <= self.realtime_max_late_share < 1.0:
+            problems.append(f"realtime_max_late_share must be in [0, 1), got {self.realtime_max_late_share}")
         if not 0 < self.realtime_plan_budget <= 1 or self.realtime_min_samples < 1:
             problems.append(f"realtime_plan_budget must be in (0, 1] and realtime_min_samples >= 1, got "
                             f"{self.realtime_plan_budget} and {self.realtime_min_samples}")
@@ -387,6 +394,59 @@ def fit_samples_to_budget(plan_time_s, samples: int, budget_s: float, min_sample
             break
         n = n_new
     return n, trials
+
+
+def refit_samples(samples: int, plan_times_s, late_plans: int, steps: int, *, max_samples: int,
+                  min_samples: int, budget_s: float, deadline_s: float, max_late_share: float = 0.05,
+                  max_growth: float = 2.0, min_change: float = 0.1) -> tuple[int, dict[str, Any]]:
+    """The planner's sample count refitted from one episode on the wall clock: the plan
+    times it measured (``plan_times_s``, seconds) and its late-plan share (``late_plans``
+    of ``steps`` commands sent the shifted last plan: ``EpisodeLog.late_plans``).
+
+    :func:`fit_samples_to_budget` fits the count once, at the start; the load of a shared
+    machine changes within minutes (issue 29: a run that kept N = 500 from a 29 ms plan at
+    a quiet moment then planned 274-542 ms median against the 80 ms deadline). The count is
+    scaled by the smallest of ``budget_s / p50`` (the median plan within the budget, as the
+    first fit) and ``deadline_s / p_tail``, the plan-time quantile ``1 - max_late_share``
+    within the deadline (plan time taken as proportional to the samples: with a fixed
+    overhead a cut falls short and the next episode cuts again). A late share above
+    ``max_late_share`` cuts by at least a quarter (cycles were late for reasons the plan
+    times alone do not show: the planner's thread waiting for the core) and never grows.
+    Growth is at most ``max_growth`` times per refit; the result stays within
+    [``min_samples``, ``max_samples``] (the configured count), and a growth under
+    ``min_change`` of the count is not made (no churn on noise); a plan over the budget or
+    the deadline is always cut.
+
+    Returns the new count and a record: ``from``, ``to``, ``plan_ms_p50``, ``plan_ms_tail``,
+    ``late_share``, ``reason``."""
+    n = int(samples)
+    t = np.asarray(list(plan_times_s), dtype=float)
+    late_share = float(late_plans) / steps if steps > 0 else 0.0
+    rec: dict[str, Any] = {"from": n, "to": n, "plans": int(t.size), "late_share": late_share,
+                           "plan_ms_p50": None, "plan_ms_tail": None, "reason": "no plans measured"}
+    if t.size == 0:
+        return n, rec
+    p50 = float(np.median(t))
+    tail = float(np.quantile(t, 1.0 - max_late_share))
+    rec.update(plan_ms_p50=p50 * 1e3, plan_ms_tail=tail * 1e3)
+    r_med = budget_s / max(p50, 1e-9)
+    r_tail = deadline_s / max(tail, 1e-9)
+    r = min(r_med, r_tail)
+    reason = "median over the budget" if r_med <= r_tail else f"p{100 * (1 - max_late_share):.0f} over the deadline"
+    if late_share > max_late_share:
+        r = min(r, 0.75)
+        reason = f"late share {late_share:.0%} over {max_late_share:.0%}"
+    elif r > 1.0:
+        r = min(r, max_growth)
+        reason = "plans within budget and deadline: room to grow"
+    else:
+        reason = reason if r < 1.0 else "plans at the budget"
+    target = int(min(max_samples, max(min_samples, math.floor(n * r))))
+    if n < target < (1.0 + min_change) * n and target != max_samples:
+        rec["reason"] = f"{reason} (growth under {min_change:.0%}: kept)"
+        return n, rec
+    rec.update(to=target, reason=reason)
+    return target, rec
 
 
 def fit_planner_to_period(cfg: MbrlConfig, speed: float, action_dim: int, max_step: np.ndarray | None,
@@ -661,8 +721,8 @@ class MbrlRun:
             ref = fillet(wp, self.cfg.reference_corner_radius_m)  # what the controllers track
             limit_s = self.time_limit_s(wp)
             steps = int(np.ceil(limit_s / self.period_s - 1e-9))
-            log = self.episode(policy_for(ref, self.task_cost(ref), speed), steps, path_start_pose(wp),
-                               stop_if=PathEnd(PathCost(wp, self.state_names)))
+            policy = policy_for(ref, self.task_cost(ref), speed)
+            log = self.episode(policy, steps, path_start_pose(wp), stop_if=PathEnd(PathCost(wp, self.state_names)))
             states = np.array(log.states)
             m = evaluate_path_following(states, cost, period_s=self.period_s, time_limit_s=limit_s)
             m["time_limit_s"] = limit_s
@@ -675,6 +735,9 @@ class MbrlRun:
             m["xy"] = states[:, [self.state_names.index("x"), self.state_names.index("y")]].tolist()
             m["max_tilt_deg"] = max_tilt_deg(states, self.state_names)
             m["waypoints"] = wp.tolist()
+            if isinstance(policy, MpcPolicy):
+                m["samples"] = policy.planner.samples
+                self.refit_samples(log, f"{name} at {speed:g}")
             out[name] = m
         return out
 
@@ -683,17 +746,43 @@ class MbrlRun:
         return task_cost(self.cfg, waypoints, self.state_names)
 
     def mpc_for(self, model):
-        samples = self.realtime_samples(model)
+        """The MPC on ``model`` for each path; on a wall-clock rig each one gets the sample
+        count of the moment (:meth:`realtime_samples`, refitted after every MPC episode)."""
+        self.realtime_samples(model)
 
         def make(wp, cost, speed):
+            samples = None if self.planner_fit is None else self.planner_fit["current_samples"]
             return MpcPolicy(model, make_planner(self.cfg, speed, len(self.action_names), self.max_step, samples),
                              cost, delay_steps=self.command_delay)
         return make
 
+    def refit_samples(self, log: EpisodeLog, label: str) -> int | None:
+        """Wall-clock rigs: the sample count refitted from the episode just run (its plan
+        times and late plans, :func:`refit_samples`), for the next one; a change is logged and
+        recorded in ``planner_fit["refits"]`` (the report's ``planner_realtime``). None
+        on lockstep rigs, and when ``realtime_refit`` is off."""
+        cfg, fit = self.cfg, self.planner_fit
+        if fit is None or not cfg.realtime_refit:
+            return None
+        n, rec = refit_samples(fit["current_samples"], log.plan_times_s, log.late_plans,
+                               len(log.actions), max_samples=cfg.samples, min_samples=cfg.realtime_min_samples,
+                               budget_s=cfg.realtime_plan_budget * self.period_s,
+                               deadline_s=REALTIME_DEADLINE_FRAC * self.period_s,
+                               max_late_share=cfg.realtime_max_late_share)
+        if n != fit["current_samples"]:
+            rec["after"] = label
+            fit["refits"].append(rec)
+            fit["current_samples"] = n
+            _log(cfg, f"planner samples {rec['from']} → {n} after {label}: plan p50 {rec['plan_ms_p50']:.0f} ms, "
+                      f"p{100 * (1 - cfg.realtime_max_late_share):.0f} {rec['plan_ms_tail']:.0f} ms, "
+                      f"late {rec['late_share']:.0%} ({rec['reason']})")
+        return n
+
     def realtime_samples(self, model, make=None, cost=None) -> int | None:
         """Wall-clock rigs: the planner's sample count fitted to the control period on this
         machine, measured once with ``model`` from the robot's current state
-        (:func:`fit_planner_samples`; ``self.planner_fit`` records it for the report).
+        (:func:`fit_planner_samples`; ``self.planner_fit`` records it for the report), then
+        refitted after every MPC episode (:meth:`refit_samples`): the count of the moment.
         ``make(n)`` / ``cost``: the planner with ``n`` samples and its cost (default: the
         path-tracking planner on a straight path at the top speed). None on lockstep rigs
         (the configured samples)."""
@@ -710,9 +799,11 @@ class MbrlRun:
             n, trials = fit_planner_samples(make, cfg.samples, model.predict, cost, x, budget,
                                             cfg.realtime_min_samples)
             self.planner_fit = {"samples": n, "configured_samples": cfg.samples, "budget_ms": budget * 1e3,
-                                "torch_threads": torch.get_num_threads(), "trials": trials}
+                                "torch_threads": torch.get_num_threads(), "trials": trials,
+                                # refitted after every MPC episode (refit_samples): the count now, its changes
+                                "current_samples": n, "refits": []}
             _log(cfg, f"planner on the wall clock: {n} samples (median plan within {budget * 1e3:.0f} ms: {trials})")
-        return self.planner_fit["samples"]
+        return self.planner_fit["current_samples"]
 
     def baseline_for(self, params: dict[str, float] | None = None):
         """Differential drive with ``params`` (gains; default: the untuned defaults scaled to the speed)."""

@@ -1,6 +1,8 @@
 """bus/lifetime.py's stop signals, in a child process of its own (signal handlers are the
-process's): every signal-handling node stops, and a node created after the signal (it came
-while the process loaded its drivers) starts stopped, also where SIGTERM was inherited ignored."""
+process's): every signal-handling node stops; the process's own handlers come back when its
+last node closes; and in a process that catches stop signals from its start (`hil up`), a node
+created after the signal (it came while the drivers loaded) starts stopped, also where SIGTERM
+was inherited ignored."""
 
 from __future__ import annotations
 
@@ -21,6 +23,9 @@ b = Node("b", "t", bus)
 os.kill(os.getpid(), signal.SIGTERM)
 print("both stopped", a.stop_event.wait(5) and b.stop_event.wait(5))
 a.close(); b.close()
+print("handler given back", signal.getsignal(signal.SIGTERM) is signal.SIG_IGN)
+catch_stop_signals()  # as `hil up` does first
+os.kill(os.getpid(), signal.SIGTERM)  # while it loads: no node yet
 c = Node("c", "t", bus)  # made after the signal: starts stopped
 print("late stopped", c.stop_event.is_set())
 quiet = Node("q", "t", bus, handle_signals=False)
@@ -33,7 +38,8 @@ def test_a_stop_signal_stops_every_node_and_the_nodes_made_after_it():
     out = subprocess.run([sys.executable, "-c", CHILD.format(port=free_port())], cwd=ROOT, capture_output=True,
                          text=True, timeout=60)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split("\n")[:3] == ["both stopped True", "late stopped True", "quiet stopped False"], out.stdout
+    assert out.stdout.split("\n")[:4] == ["both stopped True", "handler given back True", "late stopped True",
+                                           "quiet stopped False"], out.stdout
 
 
 def test_a_process_that_ends_with_a_node_open_exits():

@@ -65,6 +65,25 @@ def drive_run(robot: str, backend: str | None, action: str | None, seconds: floa
     emulated backends of a MAVLink robot; the sim backend has no link).
     ``on_active(driver)``: called once the driver is active and its first reading is in,
     before the first command."""
+    import threading
+
+    from hilstack.bus.lifetime import on_stop_signal
+
+    # Ctrl-C/SIGTERM end the drive early: the robot is stopped by the driver and the summary
+    # still printed (before: SIGTERM ended the process with the robot moving, left to its
+    # device's watchdog); kept also when it comes while the driver loads (bus/lifetime.py)
+    asked = threading.Event()
+    forget = on_stop_signal(asked.set) if threading.current_thread() is threading.main_thread() else None
+    try:
+        return _drive(robot, backend, action, seconds, port, tlog, on_active, asked)
+    finally:
+        if forget is not None:
+            forget()
+
+
+def _drive(robot: str, backend: str | None, action: str | None, seconds: float, port: str | None, tlog: str | None,
+           on_active: Callable[[Any], None] | None, asked: Any) -> dict[str, Any]:
+    """:func:`drive_run`'s drive; ``asked`` (an Event) set: stop the robot and summarise now."""
     import numpy as np
 
     from hilstack.drivers.registry import make_driver
@@ -103,7 +122,11 @@ def drive_run(robot: str, backend: str | None, action: str | None, seconds: floa
         start = _pose(sp.state.names, first.state)
         path_m = 0.0
         prev = start
+        done = 0
         for _ in range(n_steps):
+            if asked.is_set():
+                break
+            done += 1
             obs = drv.read()
             p = _pose(sp.state.names, obs.state)
             if p["x"] is not None and prev["x"] is not None:
@@ -121,7 +144,7 @@ def drive_run(robot: str, backend: str | None, action: str | None, seconds: floa
         drv.stop()
         health = drv.health().to_dict()
     end = _pose(sp.state.names, last.state)
-    out: dict[str, Any] = {"robot": sp.name, "backend": drv.backend, "seconds": seconds, "steps": n_steps,
+    out: dict[str, Any] = {"robot": sp.name, "backend": drv.backend, "seconds": seconds, "steps": done,
                            "action": applied.tolist(),
                            "action_normalized": None if a_norm is None else a_norm.tolist()}
     if tracking is not None:
@@ -143,6 +166,8 @@ def drive_run(robot: str, backend: str | None, action: str | None, seconds: floa
     else:
         out["final_state"] = {n: float(v) for n, v in zip(sp.state.names, last.state, strict=True)}
     out["link"] = health
+    if asked.is_set():
+        out["stopped_by"] = "signal"  # ended early by Ctrl-C/SIGTERM; the robot was stopped
     if tlog:
         out["tlog"] = str(tlog)
     return out
@@ -179,6 +204,8 @@ def register(app: typer.Typer) -> None:
             return
         act = [round(v, 3) for v in res["action"]]
         typer.echo(f"{res['robot']} ({res['backend']}): action {act} for {seconds:g} s ({res['steps']} steps)")
+        if res.get("stopped_by") == "signal":
+            typer.echo(f"  stopped early by a stop signal after {res['steps']} steps; the robot was stopped")
         if "tracking_error" in res:
             te = res["tracking_error"]
             typer.echo(f"  joint tracking error: max {te['max_rad']:.4f} rad ({te['worst_joint']}), "

@@ -311,6 +311,106 @@ def test_realtime_samples_fits_the_given_planner_once_on_a_wall_clock_rig_only(t
     assert run_on("roach_sim", 1e-9).realtime_samples(model, make=make, cost=cost) is None  # lockstep
 
 
+def _slow_planner_episode(n, load, plans=50, per_sample_s=0.00005, overhead_s=0.005, deadline_s=0.08):
+    """What one wall-clock episode measures of a planner whose plan takes ``load`` times
+    (overhead + n × per-sample) seconds, with a 20 % tail: its plan times and late plans."""
+    base = load * (overhead_s + per_sample_s * n)
+    times = [base * (1.25 if i % 5 == 0 else 0.95) for i in range(plans)]
+    late = sum(int(t // deadline_s) for t in times)  # each period a plan overruns sends the shifted last plan
+    return times, late
+
+
+def test_refit_samples_follows_the_load_from_measured_plan_times():
+    """refit_samples: the count follows an injected slow planner as the load rises and falls,
+    within [floor, configured], growing at most 2x per refit; no wall clock (plan times given)."""
+    from hilstack.learning.mbrl import refit_samples
+
+    kw = dict(max_samples=500, min_samples=50, budget_s=0.04, deadline_s=0.08, max_late_share=0.05)
+    n, p50s = 500, {}
+    for load in (1.0, 4.0, 4.0, 4.0, 4.0, 1.0, 1.0, 1.0, 1.0, 1.0):  # quiet, a load for minutes, quiet again
+        times, late = _slow_planner_episode(n, load)
+        n_new, rec = refit_samples(n, times, late, steps=len(times), **kw)
+        assert 50 <= n_new <= 500 and n_new <= 2 * n
+        assert rec["from"] == n and rec["to"] == n_new and rec["plan_ms_p50"] == pytest.approx(np.median(times) * 1e3)
+        n = n_new
+        p50s.setdefault(load, []).append((n, _slow_planner_episode(n, load)[0]))
+    # under the load (4x, 500 samples: 120 ms p50): cut, each refit closer (proportional: the
+    # fixed overhead leaves each cut short), within 10 % of the 40 ms budget after 4 episodes
+    # and every plan within the 80 ms deadline
+    n_loaded, t_loaded = p50s[4.0][-1]
+    gaps = [np.median(t) - 0.04 for _, t in p50s[4.0]]
+    assert all(a > b > 0 for a, b in zip(gaps, gaps[1:], strict=False))
+    assert np.median(t_loaded) <= 1.1 * 0.04 and max(t_loaded) <= 0.08
+    assert n_loaded > 50  # not thrown to the floor: the cut is proportional
+    # quiet again (500 samples plan 30 ms p50, 37.5 ms at the tail): back up to the configured count
+    assert p50s[1.0][0][0] == 500 and p50s[1.0][-1][0] == 500
+
+    # a planner slower than anything: the floor; plans far within budget: the configured count
+    assert refit_samples(60, [1.0] * 10, 50, 10, **kw)[0] == 50
+    assert refit_samples(100, [1e-4] * 10, 0, 10, **kw)[0] == 200  # at most 2x per refit
+    assert refit_samples(400, [1e-4] * 10, 0, 10, **kw)[0] == 500  # capped at the configured count
+    # plans within budget but a quarter of the cycles late (the thread starved): cut, never grown
+    n2, rec = refit_samples(400, [0.001] * 40, 10, 40, **kw)
+    assert n2 == 300 and "late share" in rec["reason"]
+    # noise: a growth under 10 % is not made, a cut however small is; nothing measured: kept
+    assert refit_samples(400, [0.038] * 20, 0, 20, **kw)[0] == 400
+    assert refit_samples(400, [0.042] * 20, 0, 20, **kw)[0] == 380
+    assert refit_samples(400, [], 0, 0, **kw) == (400, pytest.approx({"from": 400, "to": 400, "plans": 0, "late_share": 0.0,
+                                                                      "plan_ms_p50": None, "plan_ms_tail": None,
+                                                                      "reason": "no plans measured"}))
+
+
+def test_the_wall_clock_mpc_refits_its_samples_between_episodes_and_reports_them(tmp_path):
+    """MbrlRun.run_paths on a wall-clock rig: after each MPC episode the count is refitted
+    from that episode's plan times (an injected slow planner whose load rises after the
+    first path), the next path's planner gets it, the change is in ``planner_fit["refits"]``;
+    the baseline's episodes refit nothing; with ``realtime_refit=False`` the start's fit stays."""
+    from types import SimpleNamespace
+
+    from hilstack.configs.schema import BusConfig
+    from hilstack.control.controller_node import EpisodeLog
+    from hilstack.control.paths import make_path
+    from hilstack.learning.mbrl import MbrlConfig, MbrlRun, path_start_pose
+
+    names = ["x", "y", "cos_yaw", "sin_yaw"]
+    model = SimpleNamespace(predict=lambda s, a: s.unsqueeze(0))
+
+    def run_with(refit):
+        run = MbrlRun(MbrlConfig(rig="roach_emulated", samples=500, realtime_refit=refit, tip_weight=0.0, progress=False),
+                      tmp_path / str(refit), BusConfig())
+        run.pacing, run.period_s, run.state_names, run.action_names = rig_pacing("roach_emulated", "roach"), 0.1, names, ["l", "r"]
+        run.planner_fit = {"samples": 500, "configured_samples": 500, "trials": [], "current_samples": 500, "refits": []}
+        seen, loads = [], iter([1.0, 6.0, 6.0, 6.0])
+
+        def episode(policy, steps, pose, stop_if=None):
+            p = path_start_pose(make_path("straight"))
+            x = np.array([p["x"], p["y"], np.cos(p["yaw"]), np.sin(p["yaw"])])
+            log = EpisodeLog(states=[x] * 3, actions=[np.zeros(2)] * 2, actions_norm=[np.zeros(2)] * 2)
+            if hasattr(policy, "planner"):
+                seen.append(policy.planner.samples)
+                log.plan_times_s, log.late_plans = _slow_planner_episode(policy.planner.samples, next(loads))
+                log.actions = [np.zeros(2)] * len(log.plan_times_s)
+            return log
+
+        run.episode = episode
+        res = run.run_paths(run.mpc_for(model), 1.0, paths=("straight", "left", "right", "zigzag"))
+        run.run_paths(run.baseline_for(), 1.0, paths=("straight",))
+        return run, res, seen
+
+    run, res, seen = run_with(True)
+    assert seen[0] == seen[1] == 500  # quiet: 500 samples fit (30 ms p50); cut only once the load says so
+    assert seen[-1] < seen[1] and [res[p]["samples"] for p in res] == seen
+    refits = run.planner_fit["refits"]
+    assert refits and refits[-1]["to"] == run.planner_fit["current_samples"] == run.refit_samples(EpisodeLog(), "x")
+    assert all(r["after"].endswith("at 1") for r in refits) and refits[0]["from"] == 500
+    n_refits = len(refits)
+    assert len(run.planner_fit["refits"]) == n_refits  # the baseline's episode refitted nothing
+    run, _, seen = run_with(False)
+    assert seen == [500] * 4 and run.planner_fit["refits"] == []
+    with pytest.raises(ValueError, match="realtime_max_late_share"):
+        MbrlConfig(realtime_max_late_share=1.0)
+
+
 def test_the_supervisor_ends_an_episode_by_its_detectors_in_that_episode_only(tmp_path):
     """A detector that fires on the first state after the reset (before the loop's first
     look) ends the new episode; a detector's end left over from the episode before, and the

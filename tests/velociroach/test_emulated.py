@@ -194,6 +194,33 @@ def test_hil_drive_emulated_moves_forward_with_a_clean_link():
     assert "dropped_frames" in link
 
 
+def test_sigterm_to_hil_drive_stops_the_robot_and_still_reports(tmp_path):
+    """SIGTERM (a supervisor, `timeout`, a CI runner) ended `hil drive` with the robot
+    moving, left to its device's watchdog; now it ends the drive: the stop goes out over the
+    link and the summary is printed, exit 0."""
+    import signal
+
+    tlog = tmp_path / "drive.tlog"
+    p = subprocess.Popen([sys.executable, "-m", "hilstack.tools.cli", "drive", "velociroach", "--backend", "emulated",
+                          "--action", "0.6,0.6", "--seconds", "120", "--tlog", str(tlog)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+                         env={**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"})
+    try:
+        first = p.stdout.readline()  # "velociroach (emulated): driving for 120 s" once active
+        assert "driving for 120 s" in first, p.stderr.read() if p.poll() is not None else first
+        time.sleep(1.0)
+        p.send_signal(signal.SIGTERM)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, err
+    assert "stopped early by a stop signal" in out and "link ok=" in out, out
+    cmds = last_leg_commands(tlog)
+    assert any(a > 0 for a, _ in cmds), "it drove before the signal"
+    assert cmds[-1] == (0.0, 0.0), "the last command on the link must be the stop"
+
+
 def last_leg_commands(tlog: Path) -> list[tuple[float, float]]:
     from pymavlink import mavutil
 
