@@ -81,6 +81,9 @@ logging.getLogger("transitions").setLevel(logging.WARNING)  # it logs every call
 #: how long a detector watching another robot waits for that robot's state of the same
 #: instant as the reset robot's [s, wall clock]; then it sees the newest it has
 LINK_SYNC_S = 0.05
+#: how long a reset request waits for the state its sender saw last (``ResetEvent.state_seq``)
+#: to be judged by the detectors before the episode ends as "request" [s, wall clock]
+REQUEST_STATE_WAIT_S = 1.0
 
 STATES = ["running", "episode_end", "paused", "resetting", "verifying", "resumed", "failed", "estopped"]
 _RESETTING = ["episode_end", "paused", "resetting", "verifying", "resumed"]
@@ -501,29 +504,33 @@ class ResetSupervisor(Node):
         self._pending = None
 
     def _running(self, s: RobotState | None) -> None:
+        if s is not None:
+            if s.episode != self._episode:
+                self._start_episode(s)
+            # nothing drives the robot when it is not active and running: no episode is running
+            if s.active and s.stopped_reason == StoppedReason.RUNNING:
+                for d in self.detectors:
+                    ds = self._detector_state(d, s)
+                    if ds is None:
+                        continue
+                    why = d(ds)
+                    if why:
+                        self.ended_by[d.name] = self.ended_by.get(d.name, 0) + 1
+                        self._reason = why
+                        self._end_seq = s.seq
+                        self._fire("end_episode", detail=why)
+                        return
         if self._pending is not None:
+            newest = self._last.seq if self._last else -1
+            if self._pending.state_seq > newest and time.monotonic() - self._reset_t0_wall < REQUEST_STATE_WAIT_S:
+                # the requester's last state is on its way: judged first, so an episode a detector
+                # ended is said to be ended by it even when the request came first (a lockstep
+                # controller judges the same detectors and asks at once)
+                return
             self._reason = "request"
             # the episode's last state: the requester's newest (it may be ahead of ours)
-            self._end_seq = max(self._last.seq if self._last else -1, self._pending.state_seq)
+            self._end_seq = max(newest, self._pending.state_seq)
             self._fire("end_episode")
-            return
-        if s is None:
-            return
-        if s.episode != self._episode:
-            self._start_episode(s)
-        if not (s.active and s.stopped_reason == StoppedReason.RUNNING):
-            return  # nothing is driving the robot: no episode is running
-        for d in self.detectors:
-            ds = self._detector_state(d, s)
-            if ds is None:
-                continue
-            why = d(ds)
-            if why:
-                self.ended_by[d.name] = self.ended_by.get(d.name, 0) + 1
-                self._reason = why
-                self._end_seq = s.seq
-                self._fire("end_episode", detail=why)
-                return
 
     def _start_episode(self, s: RobotState) -> None:
         """``s`` is the first state of a new episode: the detectors start on it."""
