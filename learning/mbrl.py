@@ -614,7 +614,8 @@ class MbrlRun:
             stop_if = _or_stop(stop_if, self._episode_ended)
             if self.pacing is Pacing.LOCKSTEP:
                 end_if = self._rig_detectors(first)
-        return self.ctl.run_episode(policy, steps, first, stop_if=stop_if, end_if=end_if)
+        return self.ctl.run_episode(policy, steps, first, stop_if=stop_if,
+                                    **({"end_if": end_if} if end_if is not None else {}))
 
     def _rig_detectors(self, first: RobotState):
         """Lockstep rigs: the rig's episode-end detectors (those on this robot's state) judged
