@@ -429,7 +429,12 @@ class ResetSupervisor(Node):
             if m is not None:
                 self._bind_spec(m.spec)
         s = self._state.wait(wait_s)
-        if s is not None:
+        if s is not None and self._last is not None and s.seq == self._last.seq:
+            # a lockstep driver node sending its state again while it waits for an answer: the
+            # same instant, judged and answered already (a step's update must not run twice on it)
+            self._last_rx_wall = time.monotonic()
+            s = None
+        elif s is not None:
             self._last, self._last_rx_wall = s, time.monotonic()
         self._take_requests()
         # the e-stop wins over everything
