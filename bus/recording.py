@@ -400,14 +400,15 @@ class TimingCounters:
     periods skipped after a stall; bus/cycle.py), absent on lockstep rigs; ``late_plans``, the
     plans of the robot's MPC controller that missed their period (``Plan.late_count`` of its
     latest plan on ``hil/<rig>/mpc/plan``: steps sent from the shifted last plan instead), from
-    the first plan recorded on. Like the named fields, only for robots whose spec the recording
+    the first plan recorded on, and ``plan_samples``, the sample count of that latest plan (on a
+    wall-clock rig it follows the load). Like the named fields, only for robots whose spec the recording
     holds (every driver node sends one)."""
 
     WINDOW_S = 1.0
     SCHEMA: dict[str, Any] = {"type": "object", "title": "hil.Timing", "properties": {
         "robot": {"type": "string"}, "rate_hz": {"type": "number"}, "period_max_ms": {"type": "number"},
         "dropped_states": {"type": "integer"}, "cycle_late": {"type": "integer"}, "cycle_missed": {"type": "integer"},
-        "late_plans": {"type": "integer"}}}
+        "late_plans": {"type": "integer"}, "plan_samples": {"type": "integer"}}}
 
     def __init__(self) -> None:
         self._stamps: dict[str, list[float]] = {}
@@ -415,6 +416,7 @@ class TimingCounters:
         self._dropped: dict[str, int] = {}
         self._robots: set[str] = set()
         self._late_plans: dict[str, int] = {}
+        self._plan_samples: dict[str, int] = {}
 
     def derive(self, topic: str, msg: Msg, log_ns: int) -> tuple[str, bytes] | None:
         """(topic, JSON payload) for a ``RobotState`` of a robot with a spec, else None."""
@@ -422,6 +424,7 @@ class TimingCounters:
             self._robots.add(msg.robot)
         if isinstance(msg, Plan):
             self._late_plans[msg.robot] = msg.late_count
+            self._plan_samples[msg.robot] = msg.samples
         if not isinstance(msg, RobotState) or msg.robot not in self._robots:
             return None
         r = msg.robot
@@ -445,6 +448,8 @@ class TimingCounters:
                 payload[k] = v
         if r in self._late_plans:
             payload["late_plans"] = self._late_plans[r]
+            if self._plan_samples.get(r):
+                payload["plan_samples"] = self._plan_samples[r]
         parts = topic.split("/")
         rig = parts[1] if len(parts) > 2 and parts[0] == "hil" else "unknown"
         return timing_topic(rig, r), json.dumps(payload).encode()

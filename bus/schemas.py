@@ -131,6 +131,9 @@ class Plan(Msg, tag="hil.Plan/1"):
     plan_time_s: float = 0.0
     late: bool = False
     late_count: int = 0
+    #: the planner's sample count for this plan (0: not a sampling planner); on a wall-clock
+    #: rig it follows the load (hilstack.control.sample_refit)
+    samples: int = 0
 
 
 class Image(Msg, tag="hil.Image/1"):

@@ -28,6 +28,7 @@ robot is not ok); both count it in ``EpisodeLog.unhealthy_states`` and leave it 
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -41,9 +42,11 @@ from hilstack.bus.cycle import CycleTimer
 from hilstack.bus.node import Node
 from hilstack.bus.schemas import Command, Plan, ResetEvent, ResetPhase, RobotState, SpecMsg
 from hilstack.configs.schema import BusConfig
+from hilstack.control.sample_refit import SampleRefit
 from hilstack.drivers.base import Pacing, RobotSpec
 
 Policy = Callable[[np.ndarray], np.ndarray]
+_log = logging.getLogger("hil")
 
 
 @dataclass
@@ -64,6 +67,10 @@ class EpisodeLog:
     timeouts: int = 0
     #: realtime mode: the cycle timer's summary (late/missed periods, p50/p99 per section)
     timing: dict[str, Any] = field(default_factory=dict)
+    #: realtime mode with a :class:`SampleRefit`: the planner's sample count at the end, and
+    #: its changes during the episode (refit_samples' records, with ``at_step``)
+    samples: int | None = None
+    sample_refits: list[dict[str, Any]] = field(default_factory=list)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         return np.array(self.states), np.array(self.actions_norm)
@@ -76,6 +83,11 @@ REALTIME_DEADLINE_FRAC = 0.8
 #: after the driver node is gone, how long a reset still waits for an answer (the reset
 #: supervisor's, saying why it failed the reset) before it raises :class:`DriverGone` [s]
 DRIVER_GONE_GRACE_S = 2.0
+
+
+class ResetFailed(RuntimeError):
+    """The rig answered a reset request with a failure (no reset supervisor for a robot that
+    cannot reset itself, the e-stop engaged, a refused teleport): ``str()`` says why."""
 
 
 class DriverGone(RuntimeError):
@@ -189,7 +201,7 @@ class ControllerNode(Node):
             m = self._reset_done.wait(min(0.5, max(0.0, deadline - time.monotonic())))
             if m is not None and m.robot == self.robot:
                 if m.phase != ResetPhase.DONE:
-                    raise RuntimeError(f"reset of {self.robot} {m.phase}: {m.detail}")
+                    raise ResetFailed(f"reset of {self.robot} {m.phase}: {m.detail}")
                 break
             now = time.monotonic()
             if self.driver.gone:
@@ -223,20 +235,24 @@ class ControllerNode(Node):
                 plan_time_s=plan_time_s,
                 late=late,
                 late_count=self.late_count,
+                samples=int(getattr(getattr(policy, "planner", None), "samples", 0) or 0),
             )
         )
 
     # ------------------------------------------------------------------ episodes
     def run_episode(self, policy: Policy, steps: int, first: RobotState | None = None,
                     stop_if: Callable[[np.ndarray], bool] | None = None,
-                    end_if: Callable[[RobotState], bool] | None = None) -> EpisodeLog:
+                    end_if: Callable[[RobotState], bool] | None = None,
+                    refit: SampleRefit | None = None) -> EpisodeLog:
         """Run ``policy`` for up to ``steps`` states in the robot's time model (the spec's
         :attr:`pacing`): :meth:`run_lockstep` on a ``LOCKSTEP`` sim, :meth:`run_realtime`
         otherwise (``first``, a state already taken, is where a lockstep episode starts; the
-        realtime loop starts on fresh states). ``end_if`` (lockstep): see :meth:`run_lockstep`."""
+        realtime loop starts on fresh states). ``end_if`` (lockstep): see :meth:`run_lockstep`.
+        ``refit``: realtime only (the sample count follows the load); a lockstep sim has no
+        deadline and ignores it."""
         if self.pacing is Pacing.LOCKSTEP:
             return self.run_lockstep(policy, steps, first, stop_if=stop_if, end_if=end_if)
-        return self.run_realtime(policy, steps, stop_if=stop_if)
+        return self.run_realtime(policy, steps, stop_if=stop_if, refit=refit)
 
     def run_lockstep(self, policy: Policy, steps: int, first: RobotState | None = None,
                      stop_if: Callable[[np.ndarray], bool] | None = None,
@@ -296,7 +312,8 @@ class ControllerNode(Node):
 
     def run_realtime(self, policy: Policy, steps: int, period_s: float | None = None,
                      deadline_frac: float = REALTIME_DEADLINE_FRAC,
-                     stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
+                     stop_if: Callable[[np.ndarray], bool] | None = None,
+                     refit: SampleRefit | None = None) -> EpisodeLog:
         """Fixed-rate commands; planning in a worker with a deadline of ``deadline_frac`` periods.
 
         Paced by :class:`hilstack.bus.cycle.CycleTimer` (``self.cycle`` afterwards: late and
@@ -315,6 +332,12 @@ class ControllerNode(Node):
         ``delay_steps`` commands sent (normalized, oldest first): those act before the one
         it plans. A plan that comes in late is used shifted by the cycles it missed, and the
         policy's ``shift(n)`` (the planner's warm start) is told so.
+
+        ``refit`` (:class:`hilstack.control.sample_refit.SampleRefit`; the policy has a
+        ``planner`` with ``set_samples``): the planner's sample count follows the load during the
+        episode, refitted from the plan times and late plans measured, applied between two
+        plans (while the worker is idle) and logged when it changes; ``log.samples`` and
+        ``log.sample_refits`` say the count at the end and its changes.
         """
         spec = self.wait_ready()
         period = period_s or spec.period_s
@@ -355,6 +378,9 @@ class ControllerNode(Node):
         sent: list[np.ndarray] = [] if held is None else [held]
         timer = self.cycle = CycleTimer(period, sleep=self.stop_event.wait)
         timer.start(at_s=min(phase) + 2 * period)
+        planner = getattr(policy, "planner", None) if refit is not None else None
+        if planner is not None:
+            refit.start(planner.samples)
         try:
             for i in range(steps):
                 if i:
@@ -379,6 +405,14 @@ class ControllerNode(Node):
                 if stop_if is not None and log.states and stop_if(x):
                     break
                 if not busy:
+                    if planner is not None:  # between two plans: the worker is idle
+                        n = refit.update(log, planner.samples)
+                        if n != planner.samples:
+                            r = refit.refits[-1]
+                            _log.info("%s: planner samples %d -> %d at step %d: plan p50 %.0f ms, tail %.0f ms, "
+                                      "late %.0f%% (%s)", self.robot, r["from"], n, r["at_step"], r["plan_ms_p50"],
+                                      r["plan_ms_tail"], 100 * r["late_share"], r["reason"])
+                            planner.set_samples(n)
                     job["x"], job["seq"], job["cycle"] = x, s.seq, i
                     job["committed"] = [a.copy() for a in sent[-delay:]] if delay else []
                     ready.clear()
@@ -419,6 +453,8 @@ class ControllerNode(Node):
             done.set()
             th.join(1.0)
             log.timing = timer.summary()
+            if planner is not None:
+                log.samples, log.sample_refits = planner.samples, list(refit.refits)
         s = self.next_state()
         log.states.append(np.asarray(s.state))
         log.times_s.append(s.t_s)

@@ -175,6 +175,13 @@ class Planner:
             "seed": self.seed,
         }
 
+    def set_samples(self, samples: int) -> None:
+        """Plan with ``samples`` candidate sequences from the next call on (a wall-clock
+        refit, :mod:`hilstack.control.sample_refit`); the warm start is kept."""
+        if int(samples) < 1:
+            raise ValueError(f"samples must be >= 1, got {samples}")
+        self.samples = int(samples)
+
     def _buffer(self, key: str, shape: tuple[int, ...]) -> torch.Tensor:
         buf = self._buffers.get(key)
         if buf is None or buf.shape != shape:
@@ -352,6 +359,12 @@ class CEM(Planner):
         super().__init__(*args, iterations=iterations, **kwargs)
         if not 1 <= self.elites <= self.samples:
             raise ValueError(f"elites must be in [1, samples={self.samples}], got {self.elites}")
+        self._elite_share = self.elites / self.samples
+
+    def set_samples(self, samples: int) -> None:
+        """As :meth:`Planner.set_samples`; the elites keep their share of the samples."""
+        super().set_samples(samples)
+        self.elites = max(1, min(self.samples, round(self._elite_share * self.samples)))
 
     def _reset_distribution(self) -> None:
         rng = self.action_high - self.action_low

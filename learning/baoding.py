@@ -523,8 +523,8 @@ class BaodingRun(MbrlRun):
         self.resume = bool(resume)
         self.task = replace(load_baoding_task(cfg.task), **cfg.task_overrides)
         self.plan_times_s: list[float] = []
-        #: (ESS, mean shift) of every PDDM plan of the current phase (run_episodes)
-        self.plan_stats: list[tuple[float, float]] = []
+        #: (ESS, mean shift, K) of every PDDM plan of the current phase (run_episodes)
+        self.plan_stats: list[tuple[float, float, int]] = []
         self.amap = hold_action_map() if cfg.action_units == "hold" else None
         self._features: BaodingFeatures | None = None
 
@@ -550,7 +550,10 @@ class BaodingRun(MbrlRun):
     def run_episodes(self, make_policy, n: int, name: str, desc: str,
                      steps: int | None = None) -> tuple[Path, list[dict[str, float]]]:
         """``n`` episodes of at most ``steps`` (default ``episode_steps``) recorded to
-        ``rec_dir/name.mcap``, each scored with the task's reward."""
+        ``rec_dir/name.mcap``, each scored with the task's reward. PDDM episodes on a
+        wall-clock hand refit K after each one (:meth:`MbrlRun.refit_samples`, from its plan
+        times and late plans); the next episode's policy is made with the count of the moment
+        (:meth:`pddm_samples`)."""
         path = self.rec_dir / f"{name}.mcap"
         scores = []
         self.plan_stats = []
@@ -565,7 +568,10 @@ class BaodingRun(MbrlRun):
                 scores.append(m)
                 if log.plan_times_s and "mpc" in name:
                     self.plan_times_s += log.plan_times_s
-                self.plan_stats += getattr(policy, "plan_stats", [])
+                k = getattr(getattr(policy, "planner", None), "samples", None)
+                self.plan_stats += [(*p, k) for p in getattr(policy, "plan_stats", [])]  # K per plan: it may change
+                if k is not None:
+                    self.refit_samples(log, f"{name} episode {i}")
         self.recordings.append(str(path))
         return path, scores
 
@@ -598,6 +604,11 @@ class BaodingRun(MbrlRun):
         else:
             a = np.zeros(len(self.action_names))  # the middle of every joint's range
         return a if self.amap is None else self.amap.from_driver(a)
+
+    def pddm_samples(self) -> int | None:
+        """K of the moment on a wall-clock hand (fitted at the start, refitted after every PDDM
+        episode); None on lockstep rigs (the configured K)."""
+        return None if self.planner_fit is None else self.planner_fit["current_samples"]
 
     def pddm_policy(self, model, seed: int, samples: int | None = None) -> BaodingPolicy:
         """PDDM through ``model``; ``samples``: instead of the configured K (:meth:`fit_pddm_to_period`)."""
@@ -675,9 +686,8 @@ class BaodingRun(MbrlRun):
         if not self.plan_stats:
             return {"plans": 0}
         a = np.asarray(self.plan_stats, dtype=np.float64)
-        k = self.pddm_config(self.planner_fit["samples"] if self.planner_fit else None).samples
         return {"plans": int(len(a)), "ess_mean": float(a[:, 0].mean()), "ess_p10": float(np.percentile(a[:, 0], 10)),
-                "ess_frac_mean": float(a[:, 0].mean() / k), "mean_shift_rms": float(a[:, 1].mean())}
+                "ess_frac_mean": float((a[:, 0] / a[:, 2]).mean()), "mean_shift_rms": float(a[:, 1].mean())}
 
     def write_partial(self, report: dict[str, Any], t0: float) -> None:
         """``OUT/report.json`` after every iteration (``"partial": true``), so a run stopped
@@ -838,7 +848,7 @@ class BaodingRun(MbrlRun):
                 n_plans = len(self.plan_times_s)
                 t_roll = time.monotonic()
                 path, scores = self.run_episodes(
-                    lambda i, m=model, it=it: self.pddm_policy(m, self._seed(10 + it, i), samples),
+                    lambda i, m=model, it=it: self.pddm_policy(m, self._seed(10 + it, i), self.pddm_samples()),
                     c.rollouts_per_iteration, f"{it:03d}-mpc", f"iteration {it}: PDDM rollouts")
                 t_roll = time.monotonic() - t_roll
                 new = episodes_from_mcap(path, self.cfg.robot)

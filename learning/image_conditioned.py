@@ -489,8 +489,10 @@ def run_seed(cfg: TerrainConfig, seed: int, encoder) -> dict[str, Any]:
 
 def aggregate(cfg: TerrainConfig, per_seed: list[dict[str, Any]]) -> dict[str, Any]:
     """Per row and terrain over seeds: cost per metre and completions (mean ± std), and the
-    issue's checks: on which terrains the image-conditioned model's mean cost per metre is
-    within the per-terrain model's spread (mean ± std) and below the all-data model's."""
+    issue's checks: on which terrains the image-conditioned model completes as many paths as
+    the per-terrain model and its mean cost per metre is not worse than the per-terrain model's
+    by more than that model's std (one-sided: a better image model passes), and on which it
+    beats the all-data model."""
     table: dict[str, dict[str, Any]] = {}
     for row in ROWS:
         table[row] = {}
@@ -507,7 +509,8 @@ def aggregate(cfg: TerrainConfig, per_seed: list[dict[str, Any]]) -> dict[str, A
         paired = [rank_key(a["matrix"]["image-conditioned"][t]["summary"])
                   < rank_key(a["matrix"]["all data, no images"][t]["summary"]) for a in per_seed]
         checks[t] = {
-            "within_per_terrain_spread": bool(ci >= cp and abs(mi - mp) <= table["per-terrain"][t]["cost_per_m"]["std"]),
+            # one-sided: as many completions and not worse by more than the per-terrain std
+            "within_per_terrain_spread": bool(ci >= cp and mi - mp <= table["per-terrain"][t]["cost_per_m"]["std"]),
             "better_than_all_data": bool((ci, -mi) > (ca, -ma)),
             "seeds_image_better_than_all_data": int(sum(paired)),
         }

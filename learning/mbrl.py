@@ -49,6 +49,7 @@ from hilstack.control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolic
 from hilstack.control.reset.config import ResetConfig, ResetUnavailable, require_reset
 from hilstack.control.reset.detectors import make_detector
 from hilstack.control.reset.supervisor import ResetSupervisor
+from hilstack.control.sample_refit import refit_samples
 from hilstack.drivers.base import Pacing, RobotSpec
 from hilstack.learning.datasets import Episode, split_episodes
 from hilstack.learning.dynamics import EnsembleDynamics
@@ -394,59 +395,6 @@ def fit_samples_to_budget(plan_time_s, samples: int, budget_s: float, min_sample
             break
         n = n_new
     return n, trials
-
-
-def refit_samples(samples: int, plan_times_s, late_plans: int, steps: int, *, max_samples: int,
-                  min_samples: int, budget_s: float, deadline_s: float, max_late_share: float = 0.05,
-                  max_growth: float = 2.0, min_change: float = 0.1) -> tuple[int, dict[str, Any]]:
-    """The planner's sample count refitted from one episode on the wall clock: the plan
-    times it measured (``plan_times_s``, seconds) and its late-plan share (``late_plans``
-    of ``steps`` commands sent the shifted last plan: ``EpisodeLog.late_plans``).
-
-    :func:`fit_samples_to_budget` fits the count once, at the start; the load of a shared
-    machine changes within minutes (issue 29: a run that kept N = 500 from a 29 ms plan at
-    a quiet moment then planned 274-542 ms median against the 80 ms deadline). The count is
-    scaled by the smallest of ``budget_s / p50`` (the median plan within the budget, as the
-    first fit) and ``deadline_s / p_tail``, the plan-time quantile ``1 - max_late_share``
-    within the deadline (plan time taken as proportional to the samples: with a fixed
-    overhead a cut falls short and the next episode cuts again). A late share above
-    ``max_late_share`` cuts by at least a quarter (cycles were late for reasons the plan
-    times alone do not show: the planner's thread waiting for the core) and never grows.
-    Growth is at most ``max_growth`` times per refit; the result stays within
-    [``min_samples``, ``max_samples``] (the configured count), and a growth under
-    ``min_change`` of the count is not made (no churn on noise); a plan over the budget or
-    the deadline is always cut.
-
-    Returns the new count and a record: ``from``, ``to``, ``plan_ms_p50``, ``plan_ms_tail``,
-    ``late_share``, ``reason``."""
-    n = int(samples)
-    t = np.asarray(list(plan_times_s), dtype=float)
-    late_share = float(late_plans) / steps if steps > 0 else 0.0
-    rec: dict[str, Any] = {"from": n, "to": n, "plans": int(t.size), "late_share": late_share,
-                           "plan_ms_p50": None, "plan_ms_tail": None, "reason": "no plans measured"}
-    if t.size == 0:
-        return n, rec
-    p50 = float(np.median(t))
-    tail = float(np.quantile(t, 1.0 - max_late_share))
-    rec.update(plan_ms_p50=p50 * 1e3, plan_ms_tail=tail * 1e3)
-    r_med = budget_s / max(p50, 1e-9)
-    r_tail = deadline_s / max(tail, 1e-9)
-    r = min(r_med, r_tail)
-    reason = "median over the budget" if r_med <= r_tail else f"p{100 * (1 - max_late_share):.0f} over the deadline"
-    if late_share > max_late_share:
-        r = min(r, 0.75)
-        reason = f"late share {late_share:.0%} over {max_late_share:.0%}"
-    elif r > 1.0:
-        r = min(r, max_growth)
-        reason = "plans within budget and deadline: room to grow"
-    else:
-        reason = reason if r < 1.0 else "plans at the budget"
-    target = int(min(max_samples, max(min_samples, math.floor(n * r))))
-    if n < target < (1.0 + min_change) * n and target != max_samples:
-        rec["reason"] = f"{reason} (growth under {min_change:.0%}: kept)"
-        return n, rec
-    rec.update(to=target, reason=reason)
-    return target, rec
 
 
 def fit_planner_to_period(cfg: MbrlConfig, speed: float, action_dim: int, max_step: np.ndarray | None,

@@ -32,7 +32,9 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -365,7 +367,7 @@ class ReachRun:
         log = self.loop.episode(pol, self.cfg.episode_steps * self.hold, {})
         states = np.asarray(log.states)[:: self.hold][:, self.channels]
         # the policy's own steps only: the held steps in between take no planning
-        return {"q": states[:, : self.n_joints], "plan_s": log.plan_times_s[:: self.hold]}
+        return {"q": states[:, : self.n_joints], "plan_s": log.plan_times_s[:: self.hold], "late_plans": log.late_plans}
 
     def score(self, q: np.ndarray, goal: np.ndarray) -> dict[str, Any]:
         d = np.linalg.norm(self.fk.position(q) - goal, axis=-1)
@@ -383,15 +385,28 @@ class ReachRun:
         eps = episodes_from_mcap(path, self.task.robot)
         return [policy_rate_episode(e, self.hold, self.channels) for e in eps]
 
-    def evaluate(self, make_inner, goals: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    def evaluate(self, make_inner, goals: list[dict[str, Any]], after=None) -> list[dict[str, Any]]:
+        """One episode per goal, scored; ``after(r, i)`` is told each episode's result."""
         out = []
-        for g in goals:
+        for i, g in enumerate(goals):
             goal = self.apply_goal(g)
             r = self.run_episode(make_inner(goal))
+            if after is not None:
+                after(r, i)
             out.append({**g, "goal_m": goal.round(4).tolist(),
                         **self.score(r["q"], goal),
                         "plan_ms_p50": float(np.percentile(r["plan_s"], 50) * 1e3) if r["plan_s"] else 0.0})
         return out
+
+    def refit_mpc(self, planner: Any, r: dict[str, Any], i: int) -> int | None:
+        """Wall-clock arms: the MPC's sample count follows the load, refitted after every MPC
+        episode ``r`` (:meth:`run_episode`'s result: its policy steps' plan times and late plans;
+        :meth:`MbrlRun.refit_samples`) and set on ``planner`` for the next goal. None on lockstep."""
+        n = self.loop.refit_samples(SimpleNamespace(plan_times_s=r["plan_s"], late_plans=r["late_plans"],
+                                                    actions=r["plan_s"]), f"mpc goal {i}")
+        if n is not None:
+            planner.set_samples(n)
+        return n
 
     def tune_ik(self, goals: list[dict[str, Any]]) -> dict[str, Any]:
         """Random search over the IK gains on ``goals``: ranked by successes, then mean final distance."""
@@ -459,7 +474,8 @@ class ReachRun:
             with recording(self.loop.rig.name, eval_path, self.loop.bus):
                 rep["episodes"] = {}
                 for name, make in controllers.items():
-                    rep["episodes"][name] = self.evaluate(make, [dict(g) for g in eval_goals])
+                    rep["episodes"][name] = self.evaluate(make, [dict(g) for g in eval_goals],
+                                                          after=partial(self.refit_mpc, planner) if name == "mpc" else None)
                     self._log(f"{name}: {summarize([e['final_distance_m'] for e in rep['episodes'][name]])}")
             self.loop.recordings.append(str(eval_path))
         rep["recordings"] = self.loop.recordings

@@ -61,3 +61,11 @@ except typer.Exit as e:
         pytest.fail("the process did not exit within 60 s after its error")
     print(f"exited {r.returncode} {time.monotonic() - t0:.2f} s after start (grace 5 s)")
     assert r.returncode == 2 and "error: bad input" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("every", ["nan", "-1", "inf"])
+def test_mpc_refit_period_is_bounded(tmp_path, every):
+    f = tmp_path / "model.pt"
+    f.write_bytes(b"x")
+    r = CliRunner().invoke(app, ["mpc", "pointmass_sim", "--model", str(f), "--refit-every", every])
+    assert r.exit_code == 2 and "--refit-every" in r.output and r.output.strip().count("\n") == 0, (r.output, r.exception)

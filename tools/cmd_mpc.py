@@ -34,6 +34,8 @@ def register(app: typer.Typer) -> None:
         planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
         robot: str = typer.Option(None, "--robot", help="robot key in the rig (default: the only one)"),
         reset: bool = typer.Option(True, "--reset/--no-reset", help="ask the driver to reset to the path start (sim)"),
+        refit_every: float = typer.Option(5.0, "--refit-every", help="realtime rigs: refit the planner's sample count "
+                                          "to the load every this many seconds of control (0: keep the start's fit)"),
         json_out: bool = typer.Option(False, "--json"),
         endpoint: str = EndpointOpt,
     ) -> None:
@@ -41,15 +43,23 @@ def register(app: typer.Typer) -> None:
 
         Commands are published at the control rate; on realtime rigs late plans are
         replaced by the shifted last plan and counted. With --adapt, each plan starts with the
-        newest model from hil/<rig>/model/update (run `hil adapt RIG --checkpoint C` beside it)."""
+        newest model from hil/<rig>/model/update (run `hil adapt RIG --checkpoint C` beside it).
+        On realtime rigs the planner's sample count is fitted to the period at the start and
+        refitted to the measured plan times every --refit-every seconds (docs/mbrl.md)."""
         from types import SimpleNamespace
 
         import numpy as np
 
-        from hilstack.control.controller_node import ControllerNode
+        from hilstack.control.controller_node import (
+            REALTIME_DEADLINE_FRAC,
+            ControllerNode,
+            DriverGone,
+            ResetFailed,
+        )
         from hilstack.control.costs import PathCost, evaluate_path_following
         from hilstack.control.paths import fillet, make_path
         from hilstack.control.policies import MpcPolicy
+        from hilstack.control.sample_refit import SampleRefit
         from hilstack.drivers.base import Pacing
         from hilstack.learning.frames import load_dynamics
         from hilstack.learning.mbrl import (
@@ -67,6 +77,8 @@ def register(app: typer.Typer) -> None:
             raise UserError("--method needs --adapt")
         if not 0 < speed <= 1:
             raise UserError("--speed must be in (0, 1]")
+        if not (np.isfinite(refit_every) and 0 <= refit_every <= 3600):
+            raise UserError(f"--refit-every must be in [0, 3600] s, got {refit_every}")
         _, bus, cfg = rig_bus(rig, endpoint, need_config=True)
         robot = robot or next(iter(cfg.robots))
         if robot not in cfg.robots:
@@ -104,28 +116,45 @@ def register(app: typer.Typer) -> None:
             names = list(spec.state.names)
             if adapter is not None and list(adapter.model.state_names) != names:
                 raise UserError(f"{adapt} models states {list(adapter.model.state_names)}; robot {robot} has {names}")
-            cost = PathCost(wp, names)
+            try:
+                cost = PathCost(wp, names)
+            except KeyError as e:  # a robot with no planar pose (an arm, the point mass's x, y only)
+                raise UserError(f"rig {cfg.name} robot {robot}: `hil mpc` follows a planar path and needs the "
+                                f"robot's position and heading in its state ({one_line(e)})") from None
             # as in `hil demo`: track the path with rounded corners, score on the path itself
             mcfg = MbrlConfig(planner=planner)
             ref = task_cost(mcfg, fillet(wp, mcfg.reference_corner_radius_m), names)
             n_act, max_step = spec.action.dim, spec.max_step_normalized()
-            samples = None
+            samples = refit = None
             lockstep = ctl.pacing is Pacing.LOCKSTEP  # the robot's time model, from its spec
             if not lockstep:  # as in `hil demo`: the planner must fit the period on this machine
                 timing_cost = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
                 samples, _ = fit_planner_to_period(mcfg, speed, n_act, max_step, dyn.predict, timing_cost,
                                                    np.asarray(ctl.next_state().state), spec.period_s)
+                if refit_every > 0:  # the load changes within minutes: the count follows it
+                    refit = SampleRefit(max_samples=mcfg.samples, min_samples=mcfg.realtime_min_samples,
+                                        budget_s=mcfg.realtime_plan_budget * spec.period_s,
+                                        deadline_s=REALTIME_DEADLINE_FRAC * spec.period_s,
+                                        max_late_share=mcfg.realtime_max_late_share,
+                                        every_steps=max(1, round(refit_every / spec.period_s)))
             planner_ = make_planner(mcfg, speed, n_act, max_step, samples)
             pol = MpcPolicy(dyn, planner_, ref, model_source=swap, delay_steps=ctl.pacing.command_delay_periods)
-            first = ctl.reset(**path_start_pose(wp)) if reset else None
+            try:
+                first = ctl.reset(**path_start_pose(wp)) if reset else None
+            except (ResetFailed, DriverGone, TimeoutError) as e:  # nothing was commanded: the robot is still
+                typer.echo(f"error: {one_line(e)}; nothing was sent to the robot (start it where the path "
+                           "starts and give --no-reset, or run the rig's reset supervisor)", err=True)
+                raise typer.Exit(1) from None
             # lockstep: the episode ends at the path's end; realtime runs its steps
-            log = ctl.run_episode(pol, steps, first, stop_if=PathEnd(PathCost(wp, names)) if lockstep else None)
+            log = ctl.run_episode(pol, steps, first, stop_if=PathEnd(PathCost(wp, names)) if lockstep else None,
+                                  refit=refit)
         m = evaluate_path_following(np.array(log.states), cost, period_s=spec.period_s)
-        m.update(samples=planner_.samples, late_plans=log.late_plans, plan_ms_p50=float(np.percentile(log.plan_times_s, 50) * 1e3)
+        m.update(samples=planner_.samples, samples_start=samples if samples is not None else planner_.samples,
+                 sample_refits=len(log.sample_refits), late_plans=log.late_plans, plan_ms_p50=float(np.percentile(log.plan_times_s, 50) * 1e3)
                  if log.plan_times_s else None)
         if swap is not None:
             m["model_updates"] = swap.summary()
         if json_out:
-            echo_json(m)
+            echo_json({**m, "sample_refit_log": log.sample_refits})
         else:
             typer.echo(" ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in m.items()))

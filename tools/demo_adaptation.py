@@ -172,15 +172,22 @@ def report_markdown(r: dict[str, Any]) -> str:
               "|---" * (len(r["switching"]["mole"]["conditions"]) + 2) + "|"]
     for m, v in r["switching"].items():
         lines.append(f"| {m} | " + " | ".join(f"{x:.2f}" for x in v["reward_per_segment"]) +
-                     f" | {v['tasks_created'] if v['tasks_created'] is not None else '-'} |")
-    tuned = [s["training"].get("rate_tuning") for s in r.get("per_seed", []) if s.get("training", {}).get("rate_tuning")]
+                     f" | {format(v['tasks_created'], '.3g') if v['tasks_created'] is not None else '-'} |")
+    per_seed = r.get("per_seed", [])
+    # each seed by its own number (r["seeds"] lists them in run order), not its place in the list
+    seeds = r.get("seeds", list(range(len(per_seed))))
+    tuned = [(seed, s["training"]["rate_tuning"]) for seed, s in zip(seeds, per_seed, strict=False)
+             if s.get("training", {}).get("rate_tuning")]
     if tuned:
         lines += ["", "## Step sizes tuned on held-out rollouts of the training conditions (multiplier: online "
                   "next-K error), per seed", ""]
-        for i, tu in enumerate(tuned):
+        for i, tu in tuned:
             lines.append(f"- seed {i}: " + "; ".join(
                 f"{m} x{v['rate']:g} (" + ", ".join(f"x{float(g):g}: {e:.4f}" for g, e in v["errors"].items()) + ")"
                 for m, v in tu.items()))
+        # a step on the grid's edge: its optimum may lie beyond the grid (x0: none is wanted)
+        lines += [f"- **warning**, seed {i}: {v['warning']}" for i, tu in tuned
+                  for v in tu.values() if v.get("warning")]
     lines += _training_lines(r.get("per_seed", []))
     lines += ["", "Plots: " + ", ".join(f"![]({f})" for f in r.get("plots", []))]
     return "\n".join(lines) + "\n"

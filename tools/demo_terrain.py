@@ -28,8 +28,9 @@ from hilstack.learning.image_conditioned import ROWS, TerrainConfig, aggregate, 
 
 
 def config_for(quick: bool, full: bool, seed: int) -> TerrainConfig:
-    """The demo's config: ``--quick``/``--full`` presets (default: the quick data sizes with
-    the full paths), seeds ``seed, seed+1, seed+2``."""
+    """The demo's config: ``--quick``/``--full`` presets, else the default ``TerrainConfig``
+    (100 rollouts per terrain, half ``--full``'s 200; 60 epochs; the full paths straight, left
+    and right), seeds ``seed, seed+1, seed+2``."""
     seeds = (seed, seed + 1, seed + 2)
     if quick:
         return TerrainConfig.from_preset("quick", seeds=seeds)

@@ -52,6 +52,7 @@ import torch
 
 from hilstack.control.planners import DynamicsFn
 from hilstack.learning.adaptation.model import AdaptiveMLP, Params
+from hilstack.learning.datasets import Transitions
 
 __all__ = ["ModelUpdate", "Adapter", "DynamicsFn", "ADAPTERS", "load_adapter", "save_checkpoint",
            "CHECKPOINT_FORMAT"]
@@ -125,6 +126,20 @@ class Adapter(abc.ABC):
     def observe(self, state: np.ndarray, action: np.ndarray, next_state: np.ndarray) -> None:
         """One transition (numpy; state in spec units, action normalized). Non-finite or
         wrongly shaped input is refused with a one-line error (the window stays clean)."""
+        self._buf.append(self._checked(state, action, next_state))
+
+    def observe_transitions(self, tr: Transitions) -> None:
+        """Every transition of the record (:class:`hilstack.learning.datasets.Transitions`, the
+        one transition record; what the adaptation node builds), in order. Its channel names,
+        when it carries them, must be the model's; a bad row (non-finite, wrong shape) refuses
+        the whole record with a one-line error and the window stays as it was."""
+        if tr.state_names is not None and list(tr.state_names) != list(self.model.state_names):
+            raise ValueError(f"{self.name}.observe_transitions: states {list(tr.state_names)}, "
+                             f"the model's are {list(self.model.state_names)}")
+        rows = [self._checked(s, a, n) for s, a, n in zip(*tr.arrays(), strict=True)]
+        self._buf.extend(rows)
+
+    def _checked(self, state, action, next_state) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         s = np.asarray(state, dtype=np.float32).reshape(-1)
         a = np.asarray(action, dtype=np.float32).reshape(-1)
         n = np.asarray(next_state, dtype=np.float32).reshape(-1)
@@ -135,7 +150,7 @@ class Adapter(abc.ABC):
         for what, v in (("state", s), ("action", a), ("next_state", n)):
             if not np.all(np.isfinite(v)):
                 raise ValueError(f"{self.name}.observe: non-finite {what} {v.tolist()}")
-        self._buf.append((s, a, n))
+        return s, a, n
 
     def update(self, state_stamp_ns: int = 0) -> ModelUpdate:
         """Adapt from the last M transitions now and say what changed."""

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -33,15 +34,15 @@ class MbDeAdapter(Adapter):
 
     Args:
         lr: step size of the gradient step on the normalized-delta MSE (thesis half-cheetah
-            inner lr: 0.01).
+            inner lr: 0.01); 0 is MB (no adaptation), the lower end of the demo's step-size grid.
     """
 
     name = "mb_de"
 
     def __init__(self, model: AdaptiveMLP, window: int = 16, lr: float = 0.01):
         super().__init__(model, window)
-        if not lr > 0:
-            raise ValueError(f"mb_de lr must be > 0, got {lr}")
+        if not (math.isfinite(lr) and lr >= 0):
+            raise ValueError(f"mb_de lr must be finite and >= 0, got {lr}")
         self.lr = float(lr)
         self.current: Params = dict(self.theta_star)
         self._grad = grad(model.loss)

@@ -60,6 +60,12 @@ RANDOM_SHOOTING_SPEED_MPS = 0.19
 SWITCHING_METHODS = ("mole", "k_shot", "continued")
 
 
+#: the presets' step-size multipliers (:func:`tune_rates`): x0 is no adaptation (MB+DE at x0 is
+#: MB; GrBAL, MOLe and continued adaptation at x0 plan with θ* unchanged), so every adaptive
+#: method can fall back to it; ×0.25 / ×1 / ×4 until issue 24's fifth session, where ×0.25
+#: (the lowest) won nearly every time
+RATE_GRID = (0.0, 0.0625, 0.125, 0.25, 1.0, 4.0)
+
 #: the data and training sizes of the quick and full presets: 8 min of random robot time per
 #: training terrain (12 conditions x 8 rollouts x 5 s, half of the conditions unperturbed;
 #: the thesis: ~30 min, terrains only; 15 rollouts before issue 24's fourth session, cut with
@@ -74,7 +80,7 @@ _SCALED: dict[str, Any] = dict(
     plain_epochs=200, plain_batch=512, plain_patience=5, meta_steps=1500, rebal_steps=1500,
     meta_eval_every=50, meta_patience=4, oracle_rollouts=50, paths=("straight", "left"),
     path_scale=0.5, before_after_rollouts=10, switching_every_steps=50, switching_segments=4,
-    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4, starts_per_path=5, rate_grid=(0.25, 1.0, 4.0), tune_rollouts=4)
+    grbal_clip_quantile=0.5, grbal_meta_lr=1e-4, starts_per_path=5, rate_grid=RATE_GRID, tune_rollouts=4)
 
 
 @dataclass
@@ -164,7 +170,7 @@ class AdaptationConfig(Presets):
     # the *training* conditions (the same grid, data and criterion for every method); None: x1
     rate_grid: tuple[float, ...] | None = None
     tune_rollouts: int = 10
-    # subsets (None: all): the test conditions run, and the methods run on them
+    # subsets (None: all): the test conditions run (in this order), and the methods run on them
     conditions: tuple[str, ...] | None = None
     methods: tuple[str, ...] | None = None
     # switching (None: the presets' every_steps / segments)
@@ -397,18 +403,45 @@ def tune_rates(cfg: AdaptationConfig, tr: Trained, episodes: list[Episode],
     """Equal adaptation budgets (issue 24, item 4): each method's step-size multiplier from
     ``cfg.rate_grid``, the one with the lowest :func:`online_error` on ``episodes`` (held-out
     rollouts of the training conditions: never a test condition). The same grid, rollouts and
-    criterion for every method. Returns ``{method: {"rate": chosen, "errors": {rate: error}}}``
-    and sets ``tr.rates``."""
-    grid = tuple(cfg.rate_grid or (1.0,))
-    if not grid or not all(np.isfinite(g) and g > 0 for g in grid):
-        raise ValueError(f"rate_grid must be positive finite multipliers, got {grid}")
+    criterion for every method. x0 (no adaptation) may be a grid point.
+
+    Returns ``{method: {"rate": chosen, "errors": {rate: error}, "edge": "lower" | "upper" | None,
+    "warning": str | None}}`` and sets ``tr.rates``. A choice on the grid's edge is reported as
+    such (``edge`` and a one-line ``warning``): the optimum may lie beyond the grid, except at
+    x0, below which there is nothing (the training conditions then ask for no adaptation)."""
+    grid = tuple(float(g) for g in (cfg.rate_grid or (1.0,)))
+    if not grid or not all(np.isfinite(g) and g >= 0 for g in grid) or len(set(grid)) != len(grid):
+        raise ValueError(f"rate_grid must be distinct finite multipliers >= 0, got {grid}")
     out = {}
     for m in methods:
-        errs = {float(g): online_error(tr.adapter(m, cfg, rate=g), episodes, cfg.K, tr.delta_scale) for g in grid}
-        best = min(errs, key=lambda g: (errs[g] if np.isfinite(errs[g]) else np.inf, abs(np.log(g))))
-        out[m] = {"rate": best, "errors": errs}
+        errs = {g: online_error(tr.adapter(m, cfg, rate=g), episodes, cfg.K, tr.delta_scale) for g in grid}
+        # ties: the multiplier nearest x1 (in log; x0 last)
+        best = min(errs, key=lambda g: (errs[g] if np.isfinite(errs[g]) else np.inf,
+                                        abs(np.log(g)) if g > 0 else np.inf))
+        edge = rate_edge(grid, best)
+        out[m] = {"rate": best, "errors": errs, "edge": edge, "warning": rate_edge_warning(m, best, edge)}
         tr.rates[m] = best
     return out
+
+
+def rate_edge(grid: tuple[float, ...], rate: float) -> str | None:
+    """``"lower"`` / ``"upper"`` when ``rate`` is the grid's lowest / highest point (None inside,
+    or for a one-point grid, which tunes nothing)."""
+    if len(grid) < 2:
+        return None
+    return "lower" if rate == min(grid) else "upper" if rate == max(grid) else None
+
+
+def rate_edge_warning(method: str, rate: float, edge: str | None) -> str | None:
+    """The one-line warning for a tuned step on the grid's edge (None inside the grid)."""
+    if edge is None:
+        return None
+    if rate == 0.0:
+        return (f"{method}: x0 (no adaptation) chosen, the grid's lower edge: no step of the grid lowered the "
+                "online error on the training conditions")
+    beyond = "below" if edge == "lower" else "above"
+    return (f"{method}: x{rate:g} is the grid's {edge} edge: its best step may lie {beyond} the grid "
+            "(extend rate_grid)")
 
 
 def fit_mb(cfg: AdaptationConfig, model: AdaptiveMLP, tr_eps: list[Episode], va_eps: list[Episode],
@@ -568,13 +601,16 @@ def run_seed(cfg: AdaptationConfig, seed: int, out: Path, log: Callable[[str], N
         log(f"rate tuning on {len(va_eps)} held-out training rollouts ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s): " +
             ", ".join(f"{m} x{v['rate']:g} " + "/".join(f"{e:.4f}" for e in v["errors"].values())
                       for m, v in tuning.items()))
+        for v in tuning.values():
+            if v["warning"]:
+                log(f"WARNING rate tuning, seed {seed}: {v['warning']}")
 
     conds = _conditions(p)
     if cfg.conditions is not None:
         unknown = set(cfg.conditions) - set(conds)
         if unknown:
             raise ValueError(f"unknown conditions {sorted(unknown)}; known: {list(conds)}")
-        conds = {k: v for k, v in conds.items() if k in cfg.conditions}
+        conds = {k: conds[k] for k in dict.fromkeys(cfg.conditions)}  # in the order asked for
     methods = method_list(cfg)
     starts = start_poses(cfg, seed)
     before_after, results, oracle_hist = {}, {}, {}

@@ -33,6 +33,7 @@ the most probable task's model; the update publishes those parameters, and
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -62,7 +63,8 @@ class MoleAdapter(Adapter):
         psi: the meta-learned step size of the prior (GrBAL's ψ), for new-task candidates.
         window: K, past transitions each E/M step uses (thesis: 16).
         score: how many of the newest transitions the E-step scores (default K // 2).
-        lr: β, the M-step's step size (thesis: 0.01).
+        lr: β, the M-step's step size (thesis: 0.01); 0 turns the M-step off (tasks stay the
+            candidates they were created as).
         alpha: CRP concentration (thesis: 1).
         max_tasks: a bound on memory; past it no task is created (counted in ``info``).
         adapt_params, clip: the prior's step (GrBAL's subset and inner-gradient cap) for the
@@ -75,8 +77,8 @@ class MoleAdapter(Adapter):
                  max_tasks: int = 32, score: int | None = None, adapt_params: list[str] | None = None,
                  clip: float | None = None):
         super().__init__(model, window)
-        if not alpha > 0 or not lr > 0:
-            raise ValueError(f"mole needs alpha > 0 and lr > 0, got alpha={alpha}, lr={lr}")
+        if not alpha > 0 or not (math.isfinite(lr) and lr >= 0):
+            raise ValueError(f"mole needs alpha > 0 and a finite lr >= 0, got alpha={alpha}, lr={lr}")
         if window < 2:
             raise ValueError(f"mole needs a window of >= 2 transitions (fit and score), got {window}")
         self.psi = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in psi.items()}

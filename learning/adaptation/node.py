@@ -1,7 +1,8 @@
 """Online adaptation on the bus: the adaptation node and the MPC's model swap.
 
 :class:`AdaptationNode` (``hil adapt``) listens to a robot's state stream and turns each
-pair of consecutive states into a transition ``(s_t, a_t, s_{t+1})`` in the units of the
+pair of consecutive states into a transition ``(s_t, a_t, s_{t+1})`` (a one-row
+:class:`hilstack.learning.datasets.Transitions`, learning's one transition record) in the units of the
 adaptation model (learning/adaptation/base.py: world-frame state in spec units, action
 normalized to [-1, 1] of the spec's limits; the model does its own body-frame conversion,
 learning/frames.py). ``a_t`` is the action the driver actually applied during the period
@@ -53,6 +54,7 @@ from hilstack.configs.schema import BusConfig
 from hilstack.drivers.base import RobotSpec
 from hilstack.learning.adaptation.base import Adapter
 from hilstack.learning.adaptation.base import ModelUpdate as AdaptedModel
+from hilstack.learning.datasets import Transitions
 
 log = logging.getLogger(__name__)
 
@@ -106,14 +108,18 @@ class TransitionBuilder:
     """Consecutive ``RobotState`` messages → transitions in the adaptation model's units.
 
     Pure bookkeeping (no bus, no model): :meth:`push` takes each state in arrival order and
-    returns the transition it closes, or None; the reasons for None are counted in ``stats``.
-    ``new_episode`` is set when the state starts a new episode (the caller clears its window).
+    returns the transition it closes as a one-row :class:`~hilstack.learning.datasets.Transitions`
+    (the one transition record of learning, with the spec's channel names), or None; the
+    reasons for None are counted in ``stats``. ``new_episode`` is set when the state starts a
+    new episode (the caller clears its window).
     """
 
     def __init__(self, spec: RobotSpec, stats: AdaptationStats | None = None):
         self.action_space = spec.action
         self.period_s = spec.period_s
         self.state_dim = spec.state.dim
+        self.state_names = tuple(spec.state.names)
+        self.action_names = tuple(spec.action.names)
         self.stats = stats or AdaptationStats()
         self.prev: RobotState | None = None
         self.new_episode = False
@@ -130,7 +136,7 @@ class TransitionBuilder:
         while len(self._answers) > 64:
             self._answers.popitem(last=False)
 
-    def push(self, m: RobotState) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    def push(self, m: RobotState) -> Transitions | None:
         st = self.stats
         st.states += 1
         self.new_episode = False
@@ -161,8 +167,9 @@ class TransitionBuilder:
         if not action:
             st.skipped_no_action += 1
             return None
-        return (np.asarray(prev.state, dtype=np.float64), self.action_space.normalize(action),
-                np.asarray(m.state, dtype=np.float64))
+        return Transitions(np.asarray([prev.state], dtype=np.float64),
+                           np.asarray([self.action_space.normalize(action)], dtype=np.float64),
+                           np.asarray([m.state], dtype=np.float64), self.state_names, self.action_names)
 
 
 def last_layer(adapter: Adapter) -> list[str]:
@@ -307,12 +314,12 @@ class AdaptationNode(Node):
             if tr is None:
                 continue
             try:
-                self.adapter.observe(*tr)
+                self.adapter.observe_transitions(tr)
             except ValueError as e:
-                st.rejected += 1
+                st.rejected += len(tr)
                 st.last_error = str(e)
                 continue
-            st.transitions += 1
+            st.transitions += len(tr)
             changed = True
         if not changed:
             return None

@@ -11,7 +11,13 @@ import pytest
 from hilstack.learning.adaptation import load_adapter
 from hilstack.learning.adaptation.experiment import METHODS, SWITCHING_METHODS, load_episodes
 from hilstack.tools.cmd_demo import OTHER_DEMOS
-from hilstack.tools.demo_adaptation import cli_adaptation, ranking_line, report_from_seeds, run_demo
+from hilstack.tools.demo_adaptation import (
+    cli_adaptation,
+    ranking_line,
+    report_from_seeds,
+    report_markdown,
+    run_demo,
+)
 
 
 def test_registered_with_the_demo_signature():
@@ -49,6 +55,12 @@ def test_tiny_run_writes_the_issue_report(tmp_path):
     assert seed0["training"]["plain_history"]["epochs_run"] >= 1
     md = (tmp_path / "report.md").read_text()
     assert "Time per phase" in md and "| closed_loop |" in md and "MB epochs (best)" in md
+    # the tiny grid has two points, so every tuned step is on an edge: each one is a warning in the report
+    tuning = seed0["training"]["rate_tuning"]
+    assert tuning and all(v["edge"] in ("lower", "upper") and v["warning"] for v in tuning.values())
+    assert all(f"**warning**, seed 0: {v['warning']}" in md for v in tuning.values())
+    # each seed is named by its number, not its place in the list of seeds
+    assert "**warning**, seed 7: " in report_markdown({**r, "seeds": [7]})
     assert (tmp_path / "data" / "seed0_training.npz").is_file()
     # the tiny preset caps GrBAL's inner gradient and varies the training leg speeds: both recorded
     assert seed0["training"]["grbal_clip"] > 0

@@ -21,6 +21,7 @@ from hilstack.drivers.base import RobotSpec, Space
 from hilstack.learning.adaptation.baselines import MbDeAdapter
 from hilstack.learning.adaptation.model import AdaptiveMLP
 from hilstack.learning.adaptation.node import AdaptationNode, AdaptationStats, ModelSwap, TransitionBuilder
+from hilstack.learning.datasets import Transitions
 from tests.helpers import wait_for
 
 RIG, ROBOT = "adapt_t", "pm"
@@ -73,15 +74,38 @@ def test_builder_makes_one_step_transitions_in_model_units_and_counts_what_it_sk
             assert b.new_episode
     got = [(i, tr) for i, tr in enumerate(out) if tr is not None]
     assert [i for i, _ in got] == [1, 8, 10]
-    s, a, n = got[0][1]
-    np.testing.assert_allclose(s, [0, 0, 0, 0])
-    np.testing.assert_allclose(a, [0.5, 0.0])
-    np.testing.assert_allclose(n, [0.1, 0, 0, 0])
-    np.testing.assert_allclose(got[1][1][1], [-0.5, 0.0])  # from the command
-    np.testing.assert_allclose(got[2][1][1], [-1.0, 1.0])
+    # each is the one transition record of learning, one row, named by the spec
+    first = got[0][1]
+    assert isinstance(first, Transitions) and len(first) == 1
+    assert first.state_names == tuple(NAMES) and first.action_names == ("fx", "fy")
+    np.testing.assert_allclose(first.states, [[0, 0, 0, 0]])
+    np.testing.assert_allclose(first.actions, [[0.5, 0.0]])
+    np.testing.assert_allclose(first.next_states, [[0.1, 0, 0, 0]])
+    np.testing.assert_allclose(first.deltas, [[0.1, 0, 0, 0]])
+    np.testing.assert_allclose(got[1][1].actions, [[-0.5, 0.0]])  # from the command
+    np.testing.assert_allclose(got[2][1].actions, [[-1.0, 1.0]])
     assert (st.skipped_repeat, st.skipped_not_ok, st.skipped_gap, st.skipped_stopped, st.skipped_no_action) == \
         (1, 2, 1, 1, 1)
     assert st.states == len(seq)
+
+
+def test_an_adapter_takes_the_record_whole_or_not_at_all():
+    """``observe_transitions``: rows in order; a record named for another robot, or with a
+    non-finite row, is refused in one line and the window stays as it was."""
+    ad = linear_adapter(window=8)
+    s = np.zeros((3, 4))
+    s[:, 0] = [0.0, 0.1, 0.2]
+    n = s + [0.1, 0, 0, 0]
+    a = np.tile([0.5, 0.0], (3, 1))
+    ad.observe_transitions(Transitions(s, a, n, tuple(NAMES), ("fx", "fy")))
+    np.testing.assert_allclose(ad.window_tensors()[0][:, 0].numpy(), [0.0, 0.1, 0.2], atol=1e-7)
+    bad = n.copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match="non-finite next_state"):
+        ad.observe_transitions(Transitions(s + 1, a, bad))
+    with pytest.raises(ValueError, match=r"states \['x', 'y', 'vy', 'vx'\], the model's are"):
+        ad.observe_transitions(Transitions(s + 1, a, n + 1, ("x", "y", "vy", "vx")))
+    assert len(ad.window_tensors()[0]) == 3  # nothing of either record got in
 
 
 # ----------------------------------------------------------------------------- the node

@@ -166,6 +166,43 @@ def test_rate_tuning_gives_every_method_the_same_grid_and_never_picks_a_divergin
         assert all(torch.allclose(psi[k], tr.psi[k] * g) for k in psi)
 
 
+@pytest.mark.parametrize("grid, errors, rate, edge, says", [
+    ((0.0, 0.25, 1.0, 4.0), (0.30, 0.20, 0.25, 0.40), 0.25, None, None),       # inside: no warning
+    ((0.0, 0.25, 1.0, 4.0), (0.30, 0.29, 0.25, 0.20), 4.0, "upper", "above"),  # the highest step wins
+    ((0.0625, 0.25, 1.0), (0.20, 0.25, 0.30), 0.0625, "lower", "below"),       # the lowest positive step
+    ((0.0, 0.25, 1.0, 4.0), (0.20, 0.21, 0.25, 0.30), 0.0, "lower", "no adaptation"),  # x0: MB's fallback
+])
+def test_a_tuned_step_on_the_grids_edge_is_reported_as_such(monkeypatch, grid, errors, rate, edge, says):
+    """The criterion is replaced by a fixed error per grid point (called in grid order per method)."""
+    import hilstack.learning.adaptation.experiment as ex
+
+    calls = iter(errors * len(TUNED_METHODS))
+    monkeypatch.setattr(ex, "online_error", lambda *a, **k: next(calls))
+    tr, _, held = _toy_trained()
+    out = tune_rates(AdaptationConfig.from_preset("tiny", rate_grid=grid), tr, held)
+    for m, v in out.items():
+        assert v["rate"] == rate and v["edge"] == edge, m
+        if says is None:
+            assert v["warning"] is None
+        else:
+            assert v["warning"].startswith(f"{m}: x{rate:g}") and says in v["warning"] and "edge" in v["warning"]
+
+
+def test_x0_is_no_adaptation_so_every_method_can_fall_back_to_mb():
+    """At x0 MB+DE is MB and GrBAL and continued adaptation plan with θ* (here MB's model):
+    the same online error as MB, to the last bit; a positive step changes it."""
+    from hilstack.learning.adaptation.baselines import MbAdapter
+
+    tr, _, held = _toy_trained()
+    out = tune_rates(AdaptationConfig.from_preset("tiny", rate_grid=(0.0, 1.0), K=8, M=8), tr, held)
+    mb = online_error(MbAdapter(tr.plain, window=8), held, 8, tr.delta_scale)
+    for m in ("mb_de", "grbal", "continued"):
+        assert out[m]["errors"][0.0] == mb, m
+        assert out[m]["errors"][1.0] != mb, m
+    with pytest.raises(ValueError, match="rate_grid"):
+        tune_rates(AdaptationConfig.from_preset("tiny", rate_grid=(-0.25, 1.0)), tr, held)
+
+
 def test_online_error_scores_a_wrong_model_worst():
     """The tuning criterion ranks models: the trained model's online error is below an untrained one's."""
     from hilstack.learning.adaptation.baselines import MbAdapter

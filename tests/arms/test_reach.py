@@ -218,3 +218,38 @@ def test_widowx_goals_come_from_the_mechanism_pose(tmp_path, widowx_model):
         np.testing.assert_allclose(e["goal_m"], port.position([pose["offset_m"], pose["rotate_rad"]]), atol=1e-4)
     goals = np.array([e["goal_m"] for e in eps])
     assert np.ptp(goals[:, 1]) > 0.003  # the rail moved the port between tasks
+
+
+def test_the_reach_mpc_refits_its_samples_after_each_goal_on_a_wall_clock_arm(tmp_path):
+    """evaluate(after=refit_mpc): on a wall-clock arm the CEM's count follows the plan times
+    of the policy steps of each MPC episode (injected: 4x slower after the first goal), within
+    [floor, configured], elites kept at their share; on a lockstep rig nothing changes."""
+    from hilstack.configs.schema import BusConfig
+    from hilstack.control.planners import CEM
+    from hilstack.drivers.base import Pacing
+    from hilstack.learning.reach import ARMS, ReachRun
+
+    for pacing in (Pacing.WALL_CLOCK, Pacing.LOCKSTEP):
+        cfg = ReachConfig(arm="sawyer", samples=300, progress=False)
+        run = ReachRun(cfg, ARMS["sawyer"](), tmp_path / pacing.name, BusConfig(), 0)
+        run.loop.pacing, run.loop.period_s = pacing, 0.1
+        if pacing is Pacing.WALL_CLOCK:
+            run.loop.planner_fit = {"samples": 300, "configured_samples": 300, "trials": [], "current_samples": 300,
+                                    "refits": []}
+        planner = CEM(horizon=2, samples=300, elites=50, action_dim=7)
+        loads, seen = iter([0.5, 4.0, 4.0]), []
+
+        def episode(inner, planner=planner, loads=loads, seen=seen):
+            seen.append(planner.samples)
+            t = next(loads) * planner.samples * 1e-4  # 300 samples: 15 ms quiet, 120 ms loaded
+            return {"q": np.zeros((3, 7)), "plan_s": [t] * 10, "late_plans": 10 * int(t > 0.08)}
+
+        run.run_episode, run.apply_goal = episode, lambda g: np.zeros(3)
+        run.score = lambda q, goal: {"final_distance_m": 0.1}
+        run.evaluate(lambda goal: None, [{}, {}, {}], after=lambda r, i, run=run, p=planner: run.refit_mpc(p, r, i))
+        if pacing is Pacing.LOCKSTEP:
+            assert seen == [300] * 3
+            continue
+        assert seen[:2] == [300, 300] and seen[2] < 300 and planner.samples <= seen[2]
+        assert planner.elites == max(1, round(planner.samples / 6))
+        assert run.loop.planner_fit["refits"][0]["after"] == "mpc goal 1"

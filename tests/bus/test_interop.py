@@ -515,7 +515,7 @@ def test_timing_counters_are_recorded_per_robot(tmp_path):
             stamp = 100.0 + 0.1 * seq + (0.25 if seq >= 25 else 0.0)  # 10 Hz, one 350 ms period at 25
             if seq >= 20:  # the MPC starts at state 20; its plan for every 3rd state misses its period
                 log.write(keys.plan(RIG), Plan(robot="bot", actions=[[0.0]], late=seq % 3 == 0,
-                                               late_count=(seq - 18) // 3), 1 + i)
+                                               late_count=(seq - 18) // 3, samples=500 if seq < 26 else 180), 1 + i)
             log.write(keys.state(RIG, "bot"), RobotState(robot="bot", t_s=0.1 * seq, state=[0.0] * 5, obs_seq=seq,
                                                          stamp_s=stamp, health={"cycle_late": i // 10}), 1 + i)
     with open(path, "rb") as f:
@@ -533,4 +533,6 @@ def test_timing_counters_are_recorded_per_robot(tmp_path):
     # the controller's late plans from its first plan on, as its latest plan counted them
     assert "late_plans" not in t[19 - 2] and [g["late_plans"] for g in t[20 - 2:]] == [(s - 18) // 3 for s in seqs[18:]]
     assert t[-1]["late_plans"] == 3
+    # the planner's sample count of the latest plan (refitted to the load on the wall clock)
+    assert "plan_samples" not in t[19 - 2] and t[20 - 2]["plan_samples"] == 500 and t[-1]["plan_samples"] == 180
     assert foxglove_parse_json_schema(TimingCounters.SCHEMA, "hil.Timing")

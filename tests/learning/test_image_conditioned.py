@@ -94,24 +94,28 @@ def test_features_let_one_model_fit_two_terrains_that_the_blind_model_cannot():
 
 
 def test_aggregate_checks_rank_completions_before_cost():
-    cfg = TerrainConfig(terrains=("a", "b"), seeds=(0, 1), paths=("straight",))
+    cfg = TerrainConfig(terrains=("a", "b", "c"), seeds=(0, 1), paths=("straight",))
 
     def cell(cpm, done):
         return {"summary": {"cost_per_m": cpm, "completed": done, "cost": cpm}}
 
     # on a: the image model completes and is close to the per-terrain one; the all-data model
-    # is cheaper per metre but does not complete (a robot that stops pays nothing per metre)
+    # is cheaper per metre but does not complete (a robot that stops pays nothing per metre).
+    # the spread check is one-sided: on b the image model is worse than the per-terrain one
+    # by more than its std (fails), on c better by more than it (passes)
     per_seed = [{"matrix": {
-        "per-terrain": {"a": cell(10 + k, 1), "b": cell(10, 1)},
-        "all data, no images": {"a": cell(5, 0), "b": cell(8, 1)},
-        "image-conditioned": {"a": cell(11, 1), "b": cell(30, 1)},
-        "image-conditioned, another terrain's images": {"a": cell(40, 1), "b": cell(40, 1)},
+        "per-terrain": {"a": cell(10 + k, 1), "b": cell(10, 1), "c": cell(20 + k, 1)},
+        "all data, no images": {"a": cell(5, 0), "b": cell(8, 1), "c": cell(8, 1)},
+        "image-conditioned": {"a": cell(11, 1), "b": cell(30, 1), "c": cell(5, 1)},
+        "image-conditioned, another terrain's images": {"a": cell(40, 1), "b": cell(40, 1), "c": cell(40, 1)},
     }} for k in (0, 2)]
     agg = aggregate(cfg, per_seed)
     assert agg["checks"]["a"] == {"within_per_terrain_spread": True, "better_than_all_data": True,
                                   "seeds_image_better_than_all_data": 2}
     assert agg["checks"]["b"]["within_per_terrain_spread"] is False
     assert agg["checks"]["b"]["better_than_all_data"] is False
+    assert agg["checks"]["c"]["within_per_terrain_spread"] is True  # 5 vs 21 ± 1: better, not "outside"
+    assert agg["within_spread_terrains"] == ["a", "c"]
     assert agg["table"]["per-terrain"]["a"]["cost_per_m"]["values"] == [10, 12]
     with pytest.raises(ValueError, match="at least two distinct terrains"):
         TerrainConfig(terrains=("a",))

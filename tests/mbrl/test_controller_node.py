@@ -153,3 +153,54 @@ def test_realtime_runs_in_phase_with_the_driver_and_passes_the_committed_command
             for i in range(1, len(log.actions)):
                 np.testing.assert_allclose(pol.committed[i][0], log.actions_norm[i - 1], atol=1e-9)
     assert any(log.late_plans == 0 for log in logs)
+
+
+def test_realtime_refits_the_planner_samples_to_the_measured_plan_times(bus, spawn):
+    """``hil mpc``'s one long episode on a realtime rig: an injected planner whose plan takes
+    40 us per sample (500 samples: 20 ms, over the 16 ms deadline of the 20 ms period) is cut
+    by the node's SampleRefit from the plan times it measured; the new count is applied between
+    plans (every later plan used it), logged in ``log.sample_refits``, and published with the
+    plans (``Plan.samples``, the hil.Timing ``plan_samples``)."""
+    from hilstack.bus import keys
+    from hilstack.bus.schemas import Plan, decode
+    from hilstack.control.controller_node import REALTIME_DEADLINE_FRAC
+    from hilstack.control.sample_refit import SampleRefit
+
+    spawn("up", "pointmass_sim", "--endpoint", bus.endpoint)
+
+    class Planner:
+        def __init__(self):
+            self.samples, self.used = 500, []
+
+        def set_samples(self, n):
+            self.samples = n
+
+    class SlowPolicy:
+        def __init__(self):
+            self.planner = Planner()
+            self.last_plan = np.zeros((3, 2))
+
+        def __call__(self, s):
+            self.planner.used.append(self.planner.samples)
+            time.sleep(40e-6 * self.planner.samples)
+            return self.last_plan[0]
+
+    period = 0.02
+    refit = SampleRefit(max_samples=500, min_samples=20, budget_s=0.4 * period,
+                        deadline_s=REALTIME_DEADLINE_FRAC * period, every_steps=15)
+    pol = SlowPolicy()
+    with ControllerNode("pointmass_sim", "pm", bus, handle_signals=False, state_timeout_s=20) as ctl:
+        ctl.wait_ready(30)
+        assert ctl.spec.period_s == pytest.approx(period)
+        plans = ctl.subscribe(keys.plan("pointmass_sim"), Plan, latest=False, capacity=1024)
+        wait_for(lambda: ctl._state.poll() is not None, 20, "states")
+        log = ctl.run_episode(pol, 90, refit=refit)
+        time.sleep(0.1)
+        published = [decode(p, Plan).samples for _, p in plans.drain()]
+    assert log.sample_refits and log.sample_refits[0]["from"] == 500 and log.sample_refits[0]["to"] < 500
+    assert log.samples == log.sample_refits[-1]["to"] == pol.planner.samples
+    assert all(20 <= r["to"] <= 500 for r in log.sample_refits)
+    # every plan after the first cut used a cut count: applied between plans, never lost
+    first_cut = pol.planner.used.index(log.sample_refits[0]["to"])
+    assert max(pol.planner.used[first_cut:]) < 500 and pol.planner.used[-1] == log.samples
+    assert published and published[0] == 500 and min(published) < 500

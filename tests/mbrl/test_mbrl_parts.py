@@ -323,7 +323,7 @@ def _slow_planner_episode(n, load, plans=50, per_sample_s=0.00005, overhead_s=0.
 def test_refit_samples_follows_the_load_from_measured_plan_times():
     """refit_samples: the count follows an injected slow planner as the load rises and falls,
     within [floor, configured], growing at most 2x per refit; no wall clock (plan times given)."""
-    from hilstack.learning.mbrl import refit_samples
+    from hilstack.control.sample_refit import refit_samples
 
     kw = dict(max_samples=500, min_samples=50, budget_s=0.04, deadline_s=0.08, max_late_share=0.05)
     n, p50s = 500, {}

@@ -315,3 +315,50 @@ def test_a_hand_state_without_the_balls_is_refused_before_any_episode(bus, tmp_p
     run.run_episodes = lambda *a, **k: pytest.fail("an episode ran")
     with pytest.raises(RigError, match=r"no ball0_x, ball0_y, ball0_z, ball1_x, ball1_y, ball1_z.*objects_in_state"):
         run.run()
+
+
+def test_a_wall_clock_hand_refits_pddm_k_after_each_mpc_episode(bus, tmp_path, monkeypatch):
+    """run_episodes on a wall-clock hand: after each PDDM episode K is refitted from that
+    episode's plan times (an injected planner whose load rises after the first episode), the next
+    episode's policy gets it, the ESS share is taken per plan's own K; random episodes refit
+    nothing; the lockstep sim keeps the configured K."""
+    import contextlib
+
+    import hilstack.learning.baoding as baoding
+    from hilstack.control.controller_node import EpisodeLog
+    from tests.helpers import rig_pacing
+
+    monkeypatch.setattr(baoding, "recording", lambda *a, **k: contextlib.nullcontext())
+    monkeypatch.setattr(baoding, "baoding_episode_metrics", lambda *a, **k: {})
+    for rig in ("hand_emulated", "hand_sim"):
+        run = BaodingRun(BaodingConfig.from_preset("tiny", rig=rig, samples=400), tmp_path / rig, bus)
+        run.state_names = NAMES
+        run.action_names = list(shadow_hand_spec(ShadowHandParams()).action.names)
+        run.pacing, run.period_s = rig_pacing(rig, "hand"), 0.1
+        if rig == "hand_emulated":
+            run.planner_fit = {"samples": 400, "configured_samples": 400, "trials": [], "current_samples": 400,
+                               "refits": []}
+        loads, seen = iter([0.5, 4.0, 4.0, 4.0]), []
+
+        def episode(policy, steps, pose, seen=seen, loads=loads):
+            if not hasattr(policy, "planner"):  # a random episode: fast plans, still measured
+                return EpisodeLog(states=[np.zeros(len(NAMES))] * 3, plan_times_s=[1.0] * 20, actions=[0] * 20)
+            k = policy.planner.samples
+            seen.append(k)
+            t = next(loads) * k * 5e-5  # 400 samples: 10 ms quiet, 80 ms loaded (budget 40, deadline 80)
+            policy.planner.history = [(0.25 * k, 0.1)] * 10
+            return EpisodeLog(states=[np.zeros(len(NAMES))] * 3, plan_times_s=[t] * 20, actions=[0] * 20,
+                              late_plans=sum(int(t >= 0.08) for _ in range(20)))
+
+        run.episode = episode
+        run.run_episodes(lambda i, run=run: run.pddm_policy(None, seed=i, samples=run.pddm_samples()), 4, "001-mpc", "x")
+        assert run.plan_summary()["ess_frac_mean"] == pytest.approx(0.25)  # each plan over its own K
+        if rig == "hand_sim":
+            assert seen == [400] * 4 and run.planner_fit is None
+            continue
+        assert seen[:2] == [400, 400] and seen[2] < 400 and seen[3] <= seen[2]  # cut once the load said so
+        refits = run.planner_fit["refits"]
+        assert refits[0]["after"] == "001-mpc episode 1" and refits[-1]["to"] == run.pddm_samples()
+        n = len(refits)
+        run.run_episodes(lambda i, run=run: UniformRandomPolicy(len(run.action_names), seed=i), 1, "002-random", "x")
+        assert len(run.planner_fit["refits"]) == n
