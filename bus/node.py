@@ -69,6 +69,12 @@ class Publisher(Generic[T]):
         self._pub.put(encode(msg))
         return msg
 
+    def resend(self, msg: T) -> T:
+        """Put ``msg`` again as it was (same sequence number and stamp): a receiver that has it
+        sees nothing new, one that missed it gets it."""
+        self._pub.put(encode(msg))
+        return msg
+
     def close(self) -> None:
         self._pub.undeclare()
 

@@ -277,6 +277,9 @@ class ResetEvent(Msg, tag="hil.ResetEvent/1"):
     pose: dict[str, float] = {}
     episode: int = 0
     detail: str = ""
+    #: a request's: the sequence number of the newest state its sender saw (the last state of
+    #: the episode it ends); -1 unknown
+    state_seq: int = -1
 
 
 class ResetTransition(Msg, tag="hil.ResetTransition/1"):
@@ -298,6 +301,9 @@ class ResetTransition(Msg, tag="hil.ResetTransition/1"):
     episode: int = 0
     #: what failed, for the operator (one line)
     detail: str = ""
+    #: the robot's newest state at the transition; for ``end_episode``, the ended episode's last
+    #: state (a recording splits its episodes by it, whatever order the messages arrived in); -1 unknown
+    state_seq: int = -1
 
 
 class Ping(Msg, tag="hil.Ping/1"):

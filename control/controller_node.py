@@ -192,7 +192,9 @@ class ControllerNode(Node):
         """Ask the driver node to reset the robot (sim) and return the first state of the new episode."""
         self.wait_ready()
         self._reset_done.poll()
-        self._reset_req.put(ResetEvent(robot=self.robot, phase=ResetPhase.REQUEST, pose={k: float(v) for k, v in pose.items()}))
+        last = self._state.last  # the episode it ends: its newest state
+        self._reset_req.put(ResetEvent(robot=self.robot, phase=ResetPhase.REQUEST, pose={k: float(v) for k, v in pose.items()},
+                                       state_seq=-1 if last is None else last.seq))
         deadline = time.monotonic() + timeout_s
         gone_by: float | None = None
         while True:
@@ -240,19 +242,26 @@ class ControllerNode(Node):
     # ------------------------------------------------------------------ episodes
     def run_episode(self, policy: Policy, steps: int, first: RobotState | None = None,
                     stop_if: Callable[[np.ndarray], bool] | None = None,
+                    end_if: Callable[[RobotState], bool] | None = None,
                     refit: SampleRefit | None = None) -> EpisodeLog:
         """Run ``policy`` for up to ``steps`` states in the robot's time model (the spec's
         :attr:`pacing`): :meth:`run_lockstep` on a ``LOCKSTEP`` sim, :meth:`run_realtime`
         otherwise (``first``, a state already taken, is where a lockstep episode starts; the
-        realtime loop starts on fresh states). ``refit``: realtime only (the sample count
-        follows the load); a lockstep sim has no deadline and ignores it."""
+        realtime loop starts on fresh states). ``end_if`` (lockstep): see :meth:`run_lockstep`.
+        ``refit``: realtime only (the sample count follows the load); a lockstep sim has no
+        deadline and ignores it."""
         if self.pacing is Pacing.LOCKSTEP:
-            return self.run_lockstep(policy, steps, first, stop_if=stop_if)
+            return self.run_lockstep(policy, steps, first, stop_if=stop_if, end_if=end_if)
         return self.run_realtime(policy, steps, stop_if=stop_if, refit=refit)
 
     def run_lockstep(self, policy: Policy, steps: int, first: RobotState | None = None,
-                     stop_if: Callable[[np.ndarray], bool] | None = None) -> EpisodeLog:
-        """Answer ``steps`` states with ``policy``; the sim advances on each answer."""
+                     stop_if: Callable[[np.ndarray], bool] | None = None,
+                     end_if: Callable[[RobotState], bool] | None = None) -> EpisodeLog:
+        """Answer ``steps`` states with ``policy``; the sim advances on each answer.
+        ``stop_if(state array)`` and ``end_if(RobotState)`` are asked about every state after
+        the first before it is answered; the episode ends, unanswered, on the first one either
+        says is the end (the rig's episode-end rules judged here make the end a property of the
+        states, not of when another node's word arrives)."""
         self.wait_ready()
         log = EpisodeLog()
         s = first or self.next_state()
@@ -264,7 +273,7 @@ class ControllerNode(Node):
                 hold = self.safe_norm(s)
                 if hold is not None:
                     self.send(hold, s.seq)
-                s = self.next_state(after_seq=s.seq)
+                s = self._answered(s, None if hold is None else self.spec.action.denormalize(hold))
                 continue
             t0 = time.perf_counter()
             a_norm = np.asarray(policy(x), dtype=np.float64)
@@ -276,12 +285,30 @@ class ControllerNode(Node):
             log.actions_norm.append(self.spec.action.normalize(a))
             log.times_s.append(s.t_s)
             log.plan_times_s.append(dt)
-            s = self.next_state(after_seq=s.seq)
+            s = self._answered(s, a)
+            if end_if is not None and end_if(s):
+                break
             if stop_if is not None and stop_if(np.asarray(s.state)):
                 break
         log.states.append(np.asarray(s.state))
         log.times_s.append(s.t_s)
         return log
+
+    def _answered(self, s: RobotState, action: np.ndarray | None, resend_s: float = 1.0) -> RobotState:
+        """Lockstep: the state after ``s``, which the driver node publishes once our answer to
+        ``s`` arrives. The answer is sent again every ``resend_s`` until then (same
+        ``state_seq``: once the sim has stepped on it, the driver node ignores it): a command
+        sent just after joining can reach no one, and a lockstep sim no longer steps on its
+        own to hide that."""
+        deadline = time.monotonic() + self.state_timeout_s
+        while True:
+            try:
+                return self.next_state(after_seq=s.seq, timeout_s=min(resend_s, max(0.0, deadline - time.monotonic())))
+            except TimeoutError:
+                if time.monotonic() >= deadline:
+                    raise TimeoutError(f"no new state from {self.robot} within {self.state_timeout_s} s") from None
+                if action is not None:
+                    self.send_action(action, s.seq)
 
     def run_realtime(self, policy: Policy, steps: int, period_s: float | None = None,
                      deadline_frac: float = REALTIME_DEADLINE_FRAC,

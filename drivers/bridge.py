@@ -198,10 +198,11 @@ class DriverNode(Node):
     def supervisor_alive(self) -> bool:
         return bool(self._supervisor.alive)
 
-    def _handle_supervisor(self) -> bool:
+    def _handle_supervisor(self, answers: list) -> bool:
         """Serve the reset supervisor: ``teleport`` (sim backends: put the robot at the pose)
-        and ``episode`` (its reset was verified: a new episode starts). True when the state
-        jumped (teleport or new episode): lockstep publishes it at once."""
+        and ``episode`` (its reset was verified: a new episode starts); the answers go to
+        ``answers``. True when the state jumped (teleport or new episode): lockstep publishes
+        it at once."""
         jumped = False
         for _, payload in self._sup_req.drain():
             try:
@@ -235,20 +236,29 @@ class DriverNode(Node):
                 ans = ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, detail=f"unknown phase {m.phase!r}")
             ans.episode = self.episode
             ans.detail = ans.detail or m.detail
-            self._sup_done.put(ans)
+            answers.append((self._sup_done, ans))
         return jumped
 
-    def _handle_reset(self) -> bool:
+    def _handle_reset(self, publish_first: bool = False) -> bool:
         """Serve a reset request; True when the robot was reset (a new episode starts).
         The spec goes out again at every new episode, so a recording that starts with an
-        episode has it however short it is (the 1 Hz / 50-step repeat may not fall inside)."""
-        new_episode = self._serve_reset()
+        episode has it however short it is (the 1 Hz / 50-step repeat may not fall inside).
+        ``publish_first`` (lockstep): the state after the reset goes out before the answers,
+        so whoever acts on an answer has that state already (the supervisor times its
+        verification from it; with the answer first it sometimes took the state before a
+        teleport, whose clock had not restarted, and settled 1.4 s instead of 0.4 s)."""
+        answers: list = []
+        new_episode = self._serve_reset(answers)
         if new_episode:
             self.publish_spec()
+            if publish_first:
+                self.publish_state()
+        for pub, msg in answers:
+            pub.put(msg)
         return new_episode
 
-    def _serve_reset(self) -> bool:
-        jumped = self._handle_supervisor()
+    def _serve_reset(self, answers: list) -> bool:
+        jumped = self._handle_supervisor(answers)
         m = self._reset_req.poll()
         if m is None or m.robot != self.robot or self.supervisor_alive:
             return jumped
@@ -259,17 +269,20 @@ class DriverNode(Node):
                 f"{self.driver.backend} backend cannot reset itself and no reset supervisor is running "
                 "(add a reset: section to the rig config, docs/reset.md)"
             )
-            self._reset_done.put(ResetEvent(robot=self.robot, phase=ResetPhase.UNSUPPORTED, episode=self.episode, detail=why))
+            answers.append((self._reset_done, ResetEvent(robot=self.robot, phase=ResetPhase.UNSUPPORTED,
+                                                         episode=self.episode, detail=why)))
             return jumped
         try:
             reset(**m.pose)
         except TypeError as e:
-            self._reset_done.put(ResetEvent(robot=self.robot, phase=ResetPhase.FAILED, episode=self.episode, detail=str(e)))
-            return False
+            answers.append((self._reset_done, ResetEvent(robot=self.robot, phase=ResetPhase.FAILED,
+                                                         episode=self.episode, detail=str(e))))
+            return jumped
         self.episode += 1
         self._last_cmd_t = None
         self.stopped_reason = StoppedReason.WAITING
-        self._reset_done.put(ResetEvent(robot=self.robot, phase=ResetPhase.DONE, episode=self.episode, pose=m.pose))
+        answers.append((self._reset_done, ResetEvent(robot=self.robot, phase=ResetPhase.DONE, episode=self.episode,
+                                                     pose=m.pose)))
         return True
 
     def _apply(self, cmd: Command | None) -> None:
@@ -431,21 +444,53 @@ class DriverNode(Node):
 
     def _await_answer(self) -> Command | None:
         """Lockstep: serve e-stops and resets while waiting for the command that answers the
-        last published state; None after ``lockstep_timeout_s`` (counted)."""
+        last published state.
+
+        The simulation never advances without that answer (a timeout that stepped it with the
+        held command made episode lengths depend on the machine's load): after
+        ``lockstep_timeout_s`` without one the node counts it (``lockstep_timeouts``) and waits
+        on; meanwhile, once a second, it sends its spec and the same state again (same sequence
+        number: a node that has it sees nothing new, one that joined late or missed it can answer),
+        and when its status changes (an e-stop) the state as it is now (a new message; an answer
+        to either is taken). A sim that follows another robot's clock
+        (``lockstep_command_wait_s``: the hand's reset arm, whose world the hand's node
+        advances) returns None instead, so its states keep coming while nobody commands it.
+        A reset request that came before the command is served first: the command then
+        answers a state from before the reset and waits for its successor's answer (messages
+        of one sender arrive in order; the supervisor asks for a teleport before it answers)."""
         want = self._last_state.seq
         deadline = time.monotonic() + self.lockstep_timeout_s
+        follower = getattr(self.driver, "lockstep_command_wait_s", None) is not None
         while not self.stop_event.is_set():
             self._handle_estop()
-            if self._handle_reset():
-                self.publish_state()  # the fresh state of the new episode; wait for its answer
+            if self._handle_reset(publish_first=True):  # the fresh state of the new episode; wait for its answer
                 want = self._last_state.seq
                 deadline = time.monotonic() + self.lockstep_timeout_s
+                continue
+            last = self._last_state
+            if last.stopped_reason != self.stopped_reason or last.active != self.driver.active:
+                # its status changed while it waits (an e-stop engaged or released): the rig sees the
+                # robot as it is now (the same instant, a new message), not a stale picture of it
+                self.publish_state()
+            elif time.monotonic() - self._spec_t > 1.0:  # a late joiner gets the spec and the state
+                self.publish_spec()
+                self._state_pub.resend(last)
             m = self._cmd.wait(min(0.05, max(0.0, deadline - time.monotonic())))
             if m is not None and m.state_seq >= want:
+                if self._handle_reset(publish_first=True):  # a reset asked before this command came
+                    want = self._last_state.seq
+                    deadline = time.monotonic() + self.lockstep_timeout_s
+                    continue
                 return m
             if time.monotonic() >= deadline:
                 self.stats.lockstep_timeouts += 1
-                return None
+                if follower:
+                    return None
+                if self.stats.lockstep_timeouts in (1, 10, 100) or self.stats.lockstep_timeouts % 1000 == 0:
+                    log.warning("%s: no answer to state %d for %.1f s (%d times so far): the sim waits, "
+                                "its state is sent again once a second", self.robot, want, self.lockstep_timeout_s,
+                                self.stats.lockstep_timeouts)
+                deadline = time.monotonic() + self.lockstep_timeout_s
         return None
 
     def serve(self, max_steps: int | None = None) -> BridgeStats:

@@ -14,7 +14,9 @@ ready line and in the emulated driver's health, ``lab_fixture_port``):
 - request ``{"op": "right", "id": N}``: put the robot upright where it lies (same x, y and
   heading), at rest, standing on its legs;
 - reply ``{"id": N, "ok": true, "acted": bool, "detail": "..."}``: ``acted`` is false when
-  the robot already stood upright (nothing was touched).
+  the robot already stood upright (nothing was touched);
+- request ``{"op": "place", "id": N}`` (the Shadow Hand's emulator): put the objects back in
+  place, the Baoding balls at rest in the palm (the hand is not touched); ``acted`` true.
 
 A bad request is answered ``{"ok": false, "detail": "<what is wrong>"}``.
 """
@@ -27,8 +29,8 @@ from typing import Any
 
 #: the largest datagram either side sends or accepts [bytes]
 MAX_DATAGRAM = 512
-#: the one operation of the fixture
-OPS = ("right",)
+#: the fixture's operations: right a robot (the roach), put the objects back (the hand's balls)
+OPS = ("right", "place")
 
 
 def encode(msg: dict[str, Any]) -> bytes:

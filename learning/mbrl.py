@@ -36,7 +36,7 @@ import torch
 from hilstack.bus import keys
 from hilstack.bus.lifetime import child_env
 from hilstack.bus.recording import Recorder
-from hilstack.bus.schemas import ResetTransition, decode
+from hilstack.bus.schemas import ResetTransition, RobotState, StoppedReason, decode
 from hilstack.bus.session import BusUnavailable
 from hilstack.configs.presets import Presets
 from hilstack.configs.schema import BusConfig, load_rig
@@ -47,6 +47,7 @@ from hilstack.control.paths import fillet, make_path, path_length
 from hilstack.control.planners import CEM, PDDM, RandomShooting
 from hilstack.control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
 from hilstack.control.reset.config import ResetConfig, ResetUnavailable, require_reset
+from hilstack.control.reset.detectors import make_detector
 from hilstack.control.reset.supervisor import ResetSupervisor
 from hilstack.control.sample_refit import refit_samples
 from hilstack.drivers.base import Pacing, RobotSpec
@@ -449,6 +450,8 @@ class MbrlRun:
         #: wall-clock rigs: the planner's fitted sample count and its measurements (realtime_samples)
         self.planner_fit: dict[str, Any] | None = None
         self.supervisor: ResetSupervisor | None = None
+        #: the rig's reset procedure (None: the robot resets itself or an operator does)
+        self.reset_cfg: ResetConfig | None = None
         self.reset_timeout_s = 10.0
         #: why the last episode ended early: "supervisor: <detector's reason>", or ""
         self.last_end_reason = ""
@@ -500,6 +503,7 @@ class MbrlRun:
             reset_cfg = require_reset(self.rig, cfg.robot, cfg.operator_resets)
         except ResetUnavailable as e:
             raise RigError(str(e)) from None
+        self.reset_cfg = reset_cfg
         with rig_processes(self.rig.source or self.rig.name, self.bus, self.out / "logs") as proc, \
                 self._controller(proc) as ctl, \
                 self._supervised(reset_cfg):
@@ -553,9 +557,37 @@ class MbrlRun:
             self._scan_transitions()  # the reset's own end nothing; a detector's on the first state does
         if hasattr(policy, "reset"):
             policy.reset()
+        end_if = None
         if self.supervisor is not None:  # the supervisor's detectors end episodes too
             stop_if = _or_stop(stop_if, self._episode_ended)
-        return self.ctl.run_episode(policy, steps, first, stop_if=stop_if)
+            if self.pacing is Pacing.LOCKSTEP:
+                end_if = self._rig_detectors(first)
+        return self.ctl.run_episode(policy, steps, first, stop_if=stop_if,
+                                    **({"end_if": end_if} if end_if is not None else {}))
+
+    def _rig_detectors(self, first: RobotState):
+        """Lockstep rigs: the rig's episode-end detectors (those on this robot's state) judged
+        here on each state before it is answered, so an episode ends on the state where one
+        fires. The supervisor judges the same states, but its word reaches this loop a few
+        states later or sooner depending on the machine's load, and the episodes' lengths
+        then did too (a seed did not repeat itself). The supervisor still ends the episode
+        and resets (a request names the episode's last state, ResetEvent.state_seq)."""
+        dets = [make_detector(d) for d in self.reset_cfg.detectors if not d.robot]
+        for d in dets:
+            d.bind(self.state_names)
+            d.start(first)
+
+        def ended(s: RobotState) -> bool:
+            if not (s.active and s.stopped_reason == StoppedReason.RUNNING):
+                return False  # as the supervisor: nothing drives the robot, no episode runs
+            for d in dets:
+                why = d(s)
+                if why:
+                    self._ended, self.last_end_reason = True, f"supervisor: {why}"
+                    return True
+            return False
+
+        return ended
 
     def _episode_ended(self, state) -> bool:
         """The reset supervisor's detectors ended the episode (arena left, timeout...)."""

@@ -52,6 +52,13 @@ def episodes_from_mcap(
     in_reset: set[int] = set()  # ids of the states recorded during a reset
     #: per robot: ids of the states recorded before its first reset transition
     before_first: dict[str, list[int]] = {}
+    # transitions that name the robot's newest state (ResetTransition.state_seq) split by the
+    # states' own sequence numbers, whatever order the messages arrived in: the last state of
+    # each ended episode; for a file that opens inside a reset, the first state after it (the
+    # resume's state; None while the file has none)
+    end_seq: dict[tuple[str, int], int] = {}
+    opened_until: dict[str, int | None] = {}
+    by_seq: set[str] = set()
     for rm in iter_messages(path):
         m = rm.msg
         if isinstance(m, SpecMsg):
@@ -64,6 +71,14 @@ def episodes_from_mcap(
             if m.robot not in resetting:
                 before_first.setdefault(m.robot, []).append(id(m))
         elif isinstance(m, ResetTransition):
+            if m.state_seq >= 0:
+                if m.robot not in by_seq and m.source != "running":
+                    opened_until[m.robot] = None
+                by_seq.add(m.robot)
+                if m.source == "running" and m.dest != "running":
+                    end_seq.setdefault((m.robot, m.episode), m.state_seq)
+                elif m.dest == "running" and m.robot in opened_until and opened_until[m.robot] is None:
+                    opened_until[m.robot] = m.state_seq
             if m.robot not in resetting and m.source != "running":
                 # the recording started during a reset (the previous file holds the end of the
                 # episode that opened it): what came before is the reset's, not an episode's
@@ -89,6 +104,15 @@ def episodes_from_mcap(
         if r != robot or (episodes is not None and ep not in episodes):
             continue
         msgs.sort(key=lambda m: m.seq)
+        if r in by_seq:
+            last = end_seq.get((r, ep))
+            opened = r in opened_until
+            until = opened_until.get(r)
+            for m in msgs:
+                if (last is not None and m.seq > last) or (opened and (until is None or m.seq < until)):
+                    in_reset.add(id(m))
+                else:
+                    in_reset.discard(id(m))
         on_device = clock == "device" and all(m.device_t_s >= 0 for m in msgs)
 
         def t_of(m: RobotState, on_device: bool = on_device) -> float:

@@ -45,6 +45,11 @@ from hilstack.drivers.base import RobotSpec
 #: ``update`` results besides an action: the step is over / hold (safe action or held command)
 DONE = "done"
 HOLD = "hold"
+#: the step waits for the driver node's answer and leaves the state unanswered: a lockstep
+#: driver node serves the request while it waits for that answer, so the sim does not advance
+#: between the request and its effect (a hold sent meanwhile stepped it a period or not,
+#: depending on which message came first)
+WAIT = "wait"
 
 StepResult = np.ndarray | str
 
@@ -421,7 +426,7 @@ class Teleport(ResetStep):
     def update(self, ctx: StepContext, state: RobotState) -> StepResult:
         ans = ctx.driver_answer()
         if ans is None:
-            return HOLD
+            return WAIT
         if ans.phase != ResetPhase.DONE:
             raise StepError(f"teleport {ans.phase}: {ans.detail}")
         return DONE
@@ -597,8 +602,94 @@ class ArmPickPlace(ResetStep):
         return "; ".join(out) + f" (tolerance {self.pp_cfg.in_palm_radius_m:g} m)" if out else ""
 
 
+class LabPlace(ResetStep):
+    """The lab's hands put the Baoding balls back in the Shadow Hand's palm: the hand holds its
+    home pose (the spec's ``home_action``) for ``hold_s``, then the lab fixture puts both balls
+    at rest in the palm; done ``settle_s`` after its answer. On the emulated hand the fixture is
+    the emulator's service (drivers/fixture.py, op ``place``; its port in the driver's health,
+    ``lab_fixture_port``); a real rig has none: the step fails, the rig stops and the operator
+    is told to put the balls back (each use counts as ``fixture_recoveries``: on a real rig an
+    operator's intervention). :meth:`verify`: both balls (the hand state's ``ball0_x`` ..
+    ``ball1_z``) within ``in_palm_radius_m`` of ``palm_center_m``.
+
+    Params: ``palm_center_m`` (world, m: the Baoding task's centre), ``in_palm_radius_m``
+    (default 0.03), ``hold_s`` (default 1.0), ``settle_s`` (default 0.5), ``resend_s`` (ask
+    again when no answer came this long after a request [s], default 1.0).
+    """
+
+    kind = "lab_place"
+
+    class Params(StepParams):
+        palm_center_m: tuple[float, float, float]
+        in_palm_radius_m: float = Field(0.03, gt=0, le=0.2)
+        hold_s: float = Field(1.0, ge=0, le=30)
+        settle_s: float = Field(0.5, ge=0, le=30)
+        resend_s: float = Field(1.0, gt=0, le=30)
+
+    def __init__(self, cfg: StepConfig):
+        super().__init__(cfg)
+        self._client = None
+
+    def start(self, ctx: StepContext, state: RobotState, pose: dict[str, float]) -> None:
+        home = None if ctx.spec is None else ctx.spec.home_action
+        if home is None:
+            raise StepError("lab_place: the robot's spec has no home_action (the pose it holds while the balls "
+                            "are put back)")
+        self._hold = ctx.spec.action.normalize(home)
+        self._t0_s = state.t_s
+        self._asked_s: float | None = None
+        self._placed_s: float | None = None
+
+    def update(self, ctx: StepContext, state: RobotState) -> StepResult:
+        from hilstack.drivers.fixture import FixtureClient
+
+        t = state.t_s
+        if t - self._t0_s < self.hold_s:
+            return self._hold
+        if self._placed_s is None:
+            if self._client is not None:
+                r = self._client.reply()
+                if r is not None:
+                    if not r.get("ok"):
+                        raise StepError(f"lab fixture: {r.get('detail', 'refused')}")
+                    self._placed_s = t
+                    return self._hold
+            if self._asked_s is None or t - self._asked_s >= self.resend_s:
+                port = (state.health or {}).get("lab_fixture_port")
+                if not port:
+                    raise StepError("this rig has no lab fixture (no lab_fixture_port in the hand's health): an "
+                                    "operator must put the balls back in the palm")
+                if self._client is None or self._client.address[1] != int(port):
+                    self.abort()
+                    self._client = FixtureClient(int(port))
+                self._client.request("place")
+                self._asked_s = t
+            return self._hold
+        if t - self._placed_s < self.settle_s:
+            return self._hold
+        ctx.count("fixture_recoveries")
+        self.abort()
+        return DONE
+
+    def abort(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    def verify(self, ctx: StepContext, state: RobotState) -> str:
+        names = list(ctx.state_names)
+        try:
+            idx = [names.index(f"ball{i}_{a}") for i in range(2) for a in "xyz"]
+        except ValueError:
+            return "the hand's state has no ball positions (objects_in_state: true)"
+        balls = np.asarray(state.state)[idx].reshape(2, 3)
+        d = np.linalg.norm(balls - np.asarray(self.palm_center_m), axis=1)
+        out = [f"ball{i} is {d[i]:.3f} m from the palm centre" for i in range(2) if not d[i] <= self.in_palm_radius_m]
+        return "; ".join(out) + f" (tolerance {self.in_palm_radius_m:g} m)" if out else ""
+
+
 STEP_KINDS: dict[str, type[ResetStep]] = {
-    c.kind: c for c in (SelfRight, LabFixture, DriveToStart, TurnToYaw, Teleport, TaskReset, ArmPickPlace)
+    c.kind: c for c in (SelfRight, LabFixture, DriveToStart, TurnToYaw, Teleport, TaskReset, ArmPickPlace, LabPlace)
 }
 
 

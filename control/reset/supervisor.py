@@ -72,7 +72,7 @@ from hilstack.bus.schemas import (
 from hilstack.configs.schema import BusConfig
 from hilstack.control.reset.config import ResetConfig, VerifyConfig
 from hilstack.control.reset.detectors import EpisodeEndDetector, make_detector
-from hilstack.control.reset.steps import DONE, HOLD, ResetStep, StepError, make_step
+from hilstack.control.reset.steps import DONE, HOLD, WAIT, ResetStep, StepError, make_step
 from hilstack.drivers.base import RobotSpec, Space
 
 log = logging.getLogger(__name__)
@@ -81,6 +81,9 @@ logging.getLogger("transitions").setLevel(logging.WARNING)  # it logs every call
 #: how long a detector watching another robot waits for that robot's state of the same
 #: instant as the reset robot's [s, wall clock]; then it sees the newest it has
 LINK_SYNC_S = 0.05
+#: how long a reset request waits for the state its sender saw last (``ResetEvent.state_seq``)
+#: to be judged by the detectors before the episode ends as "request" [s, wall clock]
+REQUEST_STATE_WAIT_S = 1.0
 
 STATES = ["running", "episode_end", "paused", "resetting", "verifying", "resumed", "failed", "estopped"]
 _RESETTING = ["episode_end", "paused", "resetting", "verifying", "resumed"]
@@ -250,7 +253,8 @@ class ResetSupervisor(Node):
         self._spec = self.subscribe(keys.spec(rig, self.robot), SpecMsg)
         self._requests = self.subscribe(keys.reset(rig, "request"), ResetEvent, latest=False, capacity=64)
         self._done = self.publisher(keys.reset(rig, "done"), ResetEvent, reliable=True)
-        self._cmd = self.publisher(keys.cmd(rig, self.robot), Command)
+        # reliable: a lockstep sim advances on these answers (a lost one stalls it)
+        self._cmd = self.publisher(keys.cmd(rig, self.robot), Command, reliable=True)
         self._to_driver = self.publisher(keys.reset_driver(rig), ResetEvent, reliable=True)
         self._from_driver = self.subscribe(keys.reset_driver_done(rig), ResetEvent)
         self._transitions = self.publisher(keys.reset_transition(rig), ResetTransition)
@@ -287,6 +291,14 @@ class ResetSupervisor(Node):
         self._pose: dict[str, float] = dict(cfg.start_pose)
         self._reason = ""
         self._episode = -1
+        #: sequence number of the first state of the running episode (a request whose
+        #: requester's newest state is older asks to end an episode already over)
+        self._episode_first_seq = -1
+        #: the newest state of the episode that ended last (ResetTransition.state_seq)
+        self._end_seq = -1
+        #: the episode counter when the reset was verified (its states are answered while
+        #: the driver node starts the next one, the next one's are not)
+        self._verified_episode = -1
         self._last: RobotState | None = None
         self._last_rx_wall = time.monotonic()
         self._i = 0
@@ -294,6 +306,8 @@ class ResetSupervisor(Node):
         self._verify_attempt = 0
         self._t0_s = 0.0
         self._answer_wait_s = 0.0
+        #: the running step returned WAIT on the newest state (it waits for the driver node)
+        self._step_waits = False
 
     # ------------------------------------------------------------------ plumbing
     @property
@@ -309,6 +323,7 @@ class ResetSupervisor(Node):
             robot=self.robot, trigger=ev.event.name, source=ev.transition.source, dest=ev.transition.dest,
             reason=self._reason, step=step, attempt=self._attempt if step else 0,
             episode=self._last.episode if self._last else 0, detail=str(ev.kwargs.get("detail", "")),
+            state_seq=self._end_seq if ev.event.name == "end_episode" else (self._last.seq if self._last else -1),
         )
         self.history.append(self._transitions.put(msg))
         (log.error if msg.dest == "failed" else log.info)(
@@ -414,7 +429,12 @@ class ResetSupervisor(Node):
             if m is not None:
                 self._bind_spec(m.spec)
         s = self._state.wait(wait_s)
-        if s is not None:
+        if s is not None and self._last is not None and s.seq == self._last.seq:
+            # a lockstep driver node sending its state again while it waits for an answer: the
+            # same instant, judged and answered already (a step's update must not run twice on it)
+            self._last_rx_wall = time.monotonic()
+            s = None
+        elif s is not None:
             self._last, self._last_rx_wall = s, time.monotonic()
         self._take_requests()
         # the e-stop wins over everything
@@ -441,14 +461,19 @@ class ResetSupervisor(Node):
             if why:
                 self._fail(why)
                 return
+        if self.state == "resumed" and self._last is not None:
+            # the driver node's answer may follow the new episode's first state, after which
+            # no state comes until the controller answers it: look for the answer every spin
+            self._resumed(s or self._last, fresh=s is not None)
+            return
+        if self.state == "resetting" and s is None and self._step_waits and self._last is not None:
+            s = self._last  # its state stays unanswered: the driver node's answer is what comes next
         if s is None:
             return
         if self.state == "resetting":
             self._resetting(s)
         elif self.state == "verifying":
             self._verifying(s)
-        elif self.state == "resumed":
-            self._resumed(s)
 
     def _take_requests(self) -> None:
         for _, payload in self._requests.drain():
@@ -462,6 +487,12 @@ class ResetSupervisor(Node):
             if self.state in ("failed", "estopped"):
                 why = self.last_failure if self.state == "failed" else "e-stop engaged"
                 self._answer(ResetPhase.FAILED, f"rig stopped: {why}; release the e-stop after fixing it")
+                continue
+            if (self.state == "running" and self._pending is None and 0 <= m.state_seq < self._episode_first_seq):
+                # the requester's newest state is older than the running episode: the episode it
+                # asks to end was ended (a detector) and reset already; this one has not begun
+                # (a lockstep rig waits for the requester's answer to its first state)
+                self._answer(ResetPhase.DONE, episode=self._episode)
                 continue
             if self._pending is None and self.state in ("running", "episode_end"):
                 self._reset_t0_wall = time.monotonic()
@@ -478,30 +509,42 @@ class ResetSupervisor(Node):
         self._pending = None
 
     def _running(self, s: RobotState | None) -> None:
+        if s is not None:
+            if s.episode != self._episode:
+                self._start_episode(s)
+            # nothing drives the robot when it is not active and running: no episode is running
+            if s.active and s.stopped_reason == StoppedReason.RUNNING:
+                for d in self.detectors:
+                    ds = self._detector_state(d, s)
+                    if ds is None:
+                        continue
+                    why = d(ds)
+                    if why:
+                        self.ended_by[d.name] = self.ended_by.get(d.name, 0) + 1
+                        self._reason = why
+                        self._end_seq = s.seq
+                        self._fire("end_episode", detail=why)
+                        return
         if self._pending is not None:
+            newest = self._last.seq if self._last else -1
+            if self._pending.state_seq > newest and time.monotonic() - self._reset_t0_wall < REQUEST_STATE_WAIT_S:
+                # the requester's last state is on its way: judged first, so an episode a detector
+                # ended is said to be ended by it even when the request came first (a lockstep
+                # controller judges the same detectors and asks at once)
+                return
             self._reason = "request"
+            # the episode's last state: the requester's newest (it may be ahead of ours)
+            self._end_seq = max(newest, self._pending.state_seq)
             self._fire("end_episode")
-            return
-        if s is None:
-            return
-        if s.episode != self._episode:
-            self._episode = s.episode
-            for d in self.detectors:
-                ds = self._detector_state(d, s)
-                if ds is not None:
-                    d.start(ds)
-        if not (s.active and s.stopped_reason == StoppedReason.RUNNING):
-            return  # nothing is driving the robot: no episode is running
+
+    def _start_episode(self, s: RobotState) -> None:
+        """``s`` is the first state of a new episode: the detectors start on it."""
+        self._episode = s.episode
+        self._episode_first_seq = s.seq
         for d in self.detectors:
             ds = self._detector_state(d, s)
-            if ds is None:
-                continue
-            why = d(ds)
-            if why:
-                self.ended_by[d.name] = self.ended_by.get(d.name, 0) + 1
-                self._reason = why
-                self._fire("end_episode", detail=why)
-                return
+            if ds is not None:
+                d.start(ds)
 
     def _detector_state(self, d: EpisodeEndDetector, s: RobotState) -> RobotState | None:
         """What ``d`` watches: the robot's state, or the newest state of the robot it names
@@ -558,6 +601,7 @@ class ResetSupervisor(Node):
             self._send(s, None)
             self._attempt_failed(s, f"timed out after {step.cfg.timeout_s:g} s")
             return
+        self._step_waits = False
         try:
             r = step.update(self, s)
         except StepError as e:
@@ -571,7 +615,14 @@ class ResetSupervisor(Node):
                 return
             self._attempt_failed(s, str(e))
             return
-        if isinstance(r, str):
+        if isinstance(r, str) and r == WAIT:
+            self._step_waits = True
+        elif isinstance(r, str):
+            if r == DONE:
+                # the step's work is done (a teleport answered): go on from the newest state. A
+                # driver node sends the state after a teleport before its answer, so that state
+                # is here; verifying timed from the one before restarted the sim's clock
+                s = self._newest(s)
             self._send(s, None)
             if r == DONE:
                 self._i += 1
@@ -602,18 +653,31 @@ class ResetSupervisor(Node):
                 return why
         return ""
 
+    def _newest(self, s: RobotState) -> RobotState:
+        """``s`` or a newer state of the robot already received (taken)."""
+        m = self._state.poll()
+        if m is not None and m.seq > s.seq:
+            self._last, self._last_rx_wall = m, time.monotonic()
+            return m
+        return s
+
     def _verifying(self, s: RobotState) -> None:
-        self._send(s, None)
         if s.t_s - self._t0_s < self.settle_s:
+            self._send(s, None)
             return
         why = self.check_pose(s)
         if not why:
             self._fire("verified")
             for link in self.links.values():
                 link.outdate()
+            # this state stays unanswered: a lockstep driver node, waiting for its answer, serves
+            # the request and starts the episode on it (with a hold sent too, the sim stepped a
+            # period first or not, depending on which message came first)
             self.request_driver(ResetPhase.EPISODE, self._pose)
+            self._verified_episode = s.episode
             self._answer_wait_s = time.monotonic()
             return
+        self._send(s, None)
         if self._verify_attempt < self.cfg.verify.retries:
             self._verify_attempt += 1
             self._i = 0
@@ -622,10 +686,11 @@ class ResetSupervisor(Node):
         else:
             self._fail(f"reset of {self.robot} failed verification: {why}")
 
-    def _resumed(self, s: RobotState) -> None:
+    def _resumed(self, s: RobotState, fresh: bool = True) -> None:
         ans = self.driver_answer()
         if ans is None:
-            self._send(s, None)  # lockstep: keep the sim stepping until the driver answers
+            if fresh and s.episode <= self._verified_episode:  # the new episode's states are its controller's
+                self._send(s, None)  # lockstep: keep the sim stepping until the driver answers
             if time.monotonic() - self._answer_wait_s > self.cfg.state_timeout_s:
                 self._fail(f"driver node {keys.driver_node(self.robot)} did not start the new episode")
             return
@@ -635,6 +700,11 @@ class ResetSupervisor(Node):
         self.stats["completed"] += 1
         self.durations_s.append(time.monotonic() - self._reset_t0_wall)
         self._reason = ""
+        # the new episode's first state came before the answer: the episode starts on it (a
+        # request that arrives next, about the episode before, is then known to be answered)
+        s = self._newest(s)
+        if s.episode >= ans.episode and s.episode != self._episode:
+            self._start_episode(s)
         self._fire("resume")
         if self._pending is not None:
             self._answer(ResetPhase.DONE, episode=ans.episode)

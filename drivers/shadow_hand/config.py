@@ -117,6 +117,9 @@ class HandEmulatorParams(EmulatorParams):
     motor_fault_joint: int = Field(0, ge=0, description="index of the actuated joint whose motor fails")
     arm_port: int | None = Field(None, ge=0, le=65535, description="also run the reset arm's controller on this "
                                  "UDP port (needs params.sim.reset_station; sim_backends/reset_arm/server.py)")
+    lab_fixture: bool = Field(False, description="serve the lab fixture beside the hand (drivers/fixture.py, op "
+                              "place): the stand-in for the lab's hands that put the balls back in the palm; its UDP "
+                              "port is in the driver's health as lab_fixture_port")
 
 
 class ShadowHandParams(Params):

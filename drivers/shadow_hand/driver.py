@@ -95,6 +95,8 @@ class ShadowHandDriver(Driver):
         self._thread: threading.Thread | None = None
         self._hb_rate: Rate | None = None  # the heartbeat's deadline (reader thread)
         self._emu: EmulatorProcess | None = None
+        #: UDP port of the emulator's lab fixture (params.emulator.lab_fixture; drivers/fixture.py)
+        self._fixture_port: int | None = None
         self._balls: list[Any] = []  # UdpPoseClient per ball, when a tracker streams them
         self._asm = TelemetryAssembler()
         self._tel: Telemetry | None = None
@@ -185,6 +187,8 @@ class ShadowHandDriver(Driver):
         args = ["--transport", p.transport, "--config", json.dumps(p.model_dump(mode="json"))]
         if self._balls:
             args += ["--ball-ports", ",".join(str(c.port) for c in self._balls)]
+        if p.emulator.lab_fixture:
+            args += ["--fixture-port", "0"]
         if p.transport == "slcan":
             args.append("--print-pty")
         else:
@@ -194,6 +198,8 @@ class ShadowHandDriver(Driver):
                                     start_timeout_s=p.emulator.start_timeout_s,
                                     keep_log=p.emulator.keep_log)
         info = self._emu.start()
+        # the lab fixture is beside the hand, not on its CAN bus: the reset step finds it in the health
+        self._fixture_port = info.get("fixture_port")
         return info["channel"], info.get("port")
 
     def _emu_tail(self, n: int = 15) -> str:
@@ -457,6 +463,7 @@ class ShadowHandDriver(Driver):
             extra={
                 "backend": self.backend,
                 "transport": self.params.transport,
+                **({"lab_fixture_port": self._fixture_port} if self._fixture_port else {}),
                 **(self._hb_rate.counts("heartbeat") if self._hb_rate else {}),
                 "telemetry_age_s": age,
                 "telemetry_cycles": cycles,

@@ -327,6 +327,27 @@ class ShadowHandSim(LockstepSim):
         if self.tracker is not None:
             self.tracker.start(self.sim_time_s)
 
+    def place_balls(self) -> None:
+        """The lab's hands (the emulator's lab fixture, drivers/fixture.py ``place``): both balls
+        put down at rest where they rest in the palm of the hand holding its hold pose (the
+        reset's resting place, in the palm's frame as it is now), or across the palm centre
+        before any reset found it. The hand, its firmware and the clock run on untouched: a
+        person puts the balls back, not the hand."""
+        with self.world_lock:
+            m, d, h = self.model, self.data, self.hand
+            palm, rot = d.xpos[self._palm].copy(), d.xmat[self._palm].reshape(3, 3).copy()
+            rest = _BALL_REST.get(self.sim.model_dump_json(exclude={"seed", "world", "tracker"}))
+            if rest is None:
+                balls = palm + rot @ np.array([0.0, -0.03, 0.05]) + np.array([[-0.022, 0.0, 0.0], [0.022, 0.0, 0.0]])
+            else:
+                balls = palm + rest @ rot.T
+            for i, (qa, da) in enumerate(zip(h.ball_qpos_adr, h.ball_dof_adr, strict=True)):
+                d.qpos[qa:qa + 3] = balls[i]
+                d.qpos[qa + 3:qa + 7] = (1.0, 0.0, 0.0, 0.0)
+                d.qvel[da:da + 6] = 0.0
+            mujoco.mj_forward(m, d)
+            self.world_lock.notify_all()
+
     def _rest_balls(self, q_rad: np.ndarray | None, start_m: np.ndarray) -> np.ndarray | None:
         """(2, 3) where the balls come to rest in the hand holding its hold pose, in the palm's
         frame (offset from the palm body, its axes), or None (``balls_settle_s`` 0, or a reset

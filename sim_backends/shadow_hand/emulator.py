@@ -14,6 +14,9 @@ hand's CAN database (``drivers/shadow_hand/shadow_hand.dbc``) over one of:
 
 With ``--ball-ports P0,P1`` it also stands in for the ball tracker: each ball's
 position streams to its UDP port in the ``hilstack.drivers.mocap.udp`` format at the telemetry rate.
+With ``--fixture-port`` (``params.emulator.lab_fixture``) it serves the lab fixture
+(drivers/fixture.py, op ``place``): the lab's hands, which put the balls back at rest in the
+palm (:meth:`ShadowHandSim.place_balls`); its port is in the ready line (``fixture_port``).
 With the reset station in the scene (``params.sim.reset_station``) and
 ``params.emulator.arm_port``, it also runs the reset arm's controller on that UDP port
 (sim_backends/reset_arm/server.py), in the same world as the hand.
@@ -184,8 +187,10 @@ class UdpDevice:
 
 class Emulator:
     def __init__(self, params: ShadowHandParams, device: Any, physics: ShadowHandSim, *, transport: str,
-                 ball_servers: list | None = None, arm_server: Any = None):
+                 ball_servers: list | None = None, arm_server: Any = None, fixture: LabFixture | None = None):
         self.p = params
+        #: the lab's hands (the lab fixture's ``place``), when served
+        self.fixture = fixture
         self.ball_servers = ball_servers or []
         #: the reset arm's controller (sim_backends/reset_arm/server.py), with a reset station
         self.arm = arm_server
@@ -313,6 +318,8 @@ class Emulator:
                 log(f"motor fault injected on actuated joint {self.motor_fault_joint}")
             if self.arm is not None:
                 self.arm.poll(now)
+            if self.fixture is not None:
+                self.fixture.poll()
             n = pacer.due(now, self.sim.sim_time_s)
             self.realtime_slip_s = pacer.slip_s
             if n > 0:
@@ -333,6 +340,42 @@ class Emulator:
                 **(self.tel_rate.counts("telemetry") if self.tel_rate else {})}
 
 
+class LabFixture:
+    """The lab-fixture service (drivers/fixture.py) on the hand's MuJoCo world: like a person
+    in the lab it puts both balls back at rest in the palm (``place``). Polled from the loop."""
+
+    def __init__(self, sim: ShadowHandSim, sock: Any):
+        self.sim = sim
+        self.sock = sock
+        self.placements = 0
+        self.requests = 0
+        self.bad_requests = 0
+
+    def poll(self) -> None:
+        from hilstack.drivers import fixture as fixture_proto
+
+        while True:
+            try:
+                data, addr = self.sock.recvfrom(fixture_proto.MAX_DATAGRAM)
+            except (BlockingIOError, InterruptedError):
+                return
+            except ConnectionResetError:
+                continue
+            self.requests += 1
+            req, why = fixture_proto.decode_request(data)
+            if req is None or req["op"] != "place":
+                self.bad_requests += 1
+                why = why or f"the hand's lab fixture only places the balls (op 'place'), not {req['op']!r}"
+                reply = {"ok": False, "detail": f"bad lab-fixture request: {why}",
+                         **({"id": req.get("id", 0)} if req is not None else {})}
+            else:
+                self.sim.place_balls()
+                self.placements += 1
+                log(f"lab fixture: balls put back in the palm ({self.placements})")
+                reply = {"id": req.get("id", 0), "ok": True, "acted": True, "detail": "balls put back in the palm"}
+            self.sock.sendto(fixture_proto.encode(reply), addr)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m hilstack.sim_backends.shadow_hand.emulator",
                                  description=__doc__.split("\n")[0])
@@ -343,6 +386,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--udp-port", type=int, default=43113, help="udp_multicast: UDP port")
     ap.add_argument("--config", help="ShadowHandParams as inline JSON")
     ap.add_argument("--ball-ports", help="P0,P1: stream the two ball positions to these UDP ports (hilstack.drivers.mocap.udp)")
+    ap.add_argument("--fixture-port", type=int, default=None,
+                    help="serve the lab fixture on this UDP port (0: any free port; drivers/fixture.py)")
     args = ap.parse_args(argv)
 
     params = ShadowHandParams(**(json.loads(args.config) if args.config else {}))
@@ -384,7 +429,17 @@ def main(argv: list[str] | None = None) -> int:
         if physics.hand.station is None:
             ap.error("emulator.arm_port needs the reset station in the scene (params.sim.reset_station: true)")
         arm_server = ArmServer(physics, params.emulator.arm_port)
-    em = Emulator(params, dev, physics, transport=args.transport, ball_servers=ball_servers, arm_server=arm_server)
+    fixture, fixture_port = None, None
+    if args.fixture_port is not None:
+        import socket
+
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", args.fixture_port))
+        sock.setblocking(False)
+        fixture_port = sock.getsockname()[1]
+        fixture = LabFixture(physics, sock)
+    em = Emulator(params, dev, physics, transport=args.transport, ball_servers=ball_servers, arm_server=arm_server,
+                  fixture=fixture)
 
     def _stop(signum, frame):  # noqa: ARG001
         em.running = False
@@ -393,7 +448,8 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, _stop)
     # also `kill -USR1 PID`: where is it stuck (stderr; bus/lifetime.dump_stacks_on_signal)
     exit_with_parent(lambda: (log("parent process is gone: exiting"), _stop(None, None)))
-    print(json.dumps({"transport": args.transport, "channel": channel, "port": port, "pid": os.getpid()}), flush=True)
+    print(json.dumps({"transport": args.transport, "channel": channel, "port": port, "pid": os.getpid(),
+                      **({"fixture_port": fixture_port} if fixture_port else {})}), flush=True)
     log(f"serving {args.transport} on {channel}{'' if port is None else f':{port}'}")
     try:
         em.run()
@@ -404,6 +460,8 @@ def main(argv: list[str] | None = None) -> int:
             srv.close()
         if arm_server is not None:
             arm_server.close()
+        if fixture is not None:
+            fixture.sock.close()
         if keep_slave is not None:
             os.close(keep_slave)
     return 0
