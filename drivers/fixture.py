@@ -37,19 +37,33 @@ def encode(msg: dict[str, Any]) -> bytes:
     return json.dumps(msg, separators=(",", ":")).encode()
 
 
-def decode_request(data: bytes) -> tuple[dict[str, Any] | None, str]:
-    """(request, '') or (None, why it is not a valid request)."""
+def decode_request(data: bytes, ops: tuple[str, ...] = OPS) -> tuple[dict[str, Any] | None, str]:
+    """(request, '') or (None, why it is not a valid request); ``ops``: the operations this
+    fixture serves (the roach's rights a robot, the hand's places the balls: neither does the other's)."""
     try:
         m = json.loads(data.decode())
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         return None, f"not JSON: {e}"
     if not isinstance(m, dict):
         return None, "not a JSON object"
-    if m.get("op") not in OPS:
-        return None, f"unknown op {m.get('op')!r}; known: {list(OPS)}"
+    if m.get("op") not in ops:
+        return None, f"unknown op {m.get('op')!r}; known: {list(ops)}"
     if not isinstance(m.get("id", 0), int):
         return None, f"id must be an integer, got {m.get('id')!r}"
     return m, ""
+
+
+def refusal(data: bytes, why: str) -> dict[str, Any]:
+    """The answer to a bad request; it carries the request's id when it had one, so a
+    :class:`FixtureClient` that asked for an operation this fixture does not serve hears why."""
+    out: dict[str, Any] = {"ok": False, "detail": f"bad lab-fixture request: {why}"}
+    try:
+        m = json.loads(data.decode())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return out
+    if isinstance(m, dict) and isinstance(m.get("id"), int):
+        out["id"] = m["id"]
+    return out
 
 
 class FixtureClient:

@@ -362,12 +362,10 @@ class LabFixture:
             except ConnectionResetError:
                 continue
             self.requests += 1
-            req, why = fixture_proto.decode_request(data)
-            if req is None or req["op"] != "place":
+            req, why = fixture_proto.decode_request(data, ops=("place",))
+            if req is None:
                 self.bad_requests += 1
-                why = why or f"the hand's lab fixture only places the balls (op 'place'), not {req['op']!r}"
-                reply = {"ok": False, "detail": f"bad lab-fixture request: {why}",
-                         **({"id": req.get("id", 0)} if req is not None else {})}
+                reply = fixture_proto.refusal(data, why)
             else:
                 self.sim.place_balls()
                 self.placements += 1

@@ -131,10 +131,10 @@ class LabFixture:
             except ConnectionResetError:
                 continue
             self.requests += 1
-            req, why = fixture_proto.decode_request(data)
+            req, why = fixture_proto.decode_request(data, ops=("right",))
             if req is None:
                 self.bad_requests += 1
-                reply = {"ok": False, "detail": f"bad lab-fixture request: {why}"}
+                reply = fixture_proto.refusal(data, why)
             else:
                 acted = self.right()
                 reply = {"id": req.get("id", 0), "ok": True, "acted": acted,
