@@ -66,6 +66,51 @@ def refusal(data: bytes, why: str) -> dict[str, Any]:
     return out
 
 
+def service_socket(port: int) -> tuple[Any, int]:
+    """A non-blocking UDP socket on loopback for a fixture service, and the port it got (0: any)."""
+    import socket
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", port))
+    sock.setblocking(False)
+    return sock, sock.getsockname()[1]
+
+
+class FixtureService:
+    """The service side, on an emulator's simulated world: :meth:`poll` (non-blocking, from
+    the emulator's loop) answers every pending request on ``sock``; a subclass names its
+    ``ops`` and does the work in :meth:`act`. ``sock`` None: the placing code without a service."""
+
+    ops: tuple[str, ...] = ()
+
+    def __init__(self, sock: Any):
+        self.sock = sock
+        self.requests = 0
+        self.bad_requests = 0
+
+    def act(self, op: str) -> tuple[bool, str]:
+        """Do ``op``; (whether anything was touched, what was done)."""
+        raise NotImplementedError
+
+    def poll(self) -> None:
+        while True:
+            try:
+                data, addr = self.sock.recvfrom(MAX_DATAGRAM)
+            except (BlockingIOError, InterruptedError):
+                return
+            except ConnectionResetError:
+                continue
+            self.requests += 1
+            req, why = decode_request(data, ops=self.ops)
+            if req is None:
+                self.bad_requests += 1
+                reply = refusal(data, why)
+            else:
+                acted, detail = self.act(req["op"])
+                reply = {"id": req.get("id", 0), "ok": True, "acted": acted, "detail": detail}
+            self.sock.sendto(encode(reply), addr)
+
+
 class FixtureClient:
     """Asks a lab-fixture service (UDP, loopback) to right the robot. Non-blocking:
     :meth:`request` sends, :meth:`reply` returns the answer to the last request once it

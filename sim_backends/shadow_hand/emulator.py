@@ -48,6 +48,7 @@ from typing import Any
 
 from hilstack.bus.cycle import Rate
 from hilstack.bus.lifetime import exit_with_parent
+from hilstack.drivers.fixture import FixtureService, service_socket
 from hilstack.drivers.shadow_hand.config import ShadowHandParams
 from hilstack.drivers.shadow_hand.protocol import (
     HOST_IDS,
@@ -340,38 +341,22 @@ class Emulator:
                 **(self.tel_rate.counts("telemetry") if self.tel_rate else {})}
 
 
-class LabFixture:
+class LabFixture(FixtureService):
     """The lab-fixture service (drivers/fixture.py) on the hand's MuJoCo world: like a person
     in the lab it puts both balls back at rest in the palm (``place``). Polled from the loop."""
 
+    ops = ("place",)
+
     def __init__(self, sim: ShadowHandSim, sock: Any):
+        super().__init__(sock)
         self.sim = sim
-        self.sock = sock
         self.placements = 0
-        self.requests = 0
-        self.bad_requests = 0
 
-    def poll(self) -> None:
-        from hilstack.drivers import fixture as fixture_proto
-
-        while True:
-            try:
-                data, addr = self.sock.recvfrom(fixture_proto.MAX_DATAGRAM)
-            except (BlockingIOError, InterruptedError):
-                return
-            except ConnectionResetError:
-                continue
-            self.requests += 1
-            req, why = fixture_proto.decode_request(data, ops=("place",))
-            if req is None:
-                self.bad_requests += 1
-                reply = fixture_proto.refusal(data, why)
-            else:
-                self.sim.place_balls()
-                self.placements += 1
-                log(f"lab fixture: balls put back in the palm ({self.placements})")
-                reply = {"id": req.get("id", 0), "ok": True, "acted": True, "detail": "balls put back in the palm"}
-            self.sock.sendto(fixture_proto.encode(reply), addr)
+    def act(self, op: str) -> tuple[bool, str]:  # noqa: ARG002 - its one op
+        self.sim.place_balls()
+        self.placements += 1
+        log(f"lab fixture: balls put back in the palm ({self.placements})")
+        return True, "balls put back in the palm"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -429,12 +414,7 @@ def main(argv: list[str] | None = None) -> int:
         arm_server = ArmServer(physics, params.emulator.arm_port)
     fixture, fixture_port = None, None
     if args.fixture_port is not None:
-        import socket
-
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind(("127.0.0.1", args.fixture_port))
-        sock.setblocking(False)
-        fixture_port = sock.getsockname()[1]
+        sock, fixture_port = service_socket(args.fixture_port)
         fixture = LabFixture(physics, sock)
     em = Emulator(params, dev, physics, transport=args.transport, ball_servers=ball_servers, arm_server=arm_server,
                   fixture=fixture)

@@ -48,7 +48,7 @@ from typing import Any
 
 from hilstack.bus.cycle import Rate
 from hilstack.bus.lifetime import exit_with_parent
-from hilstack.drivers import fixture as fixture_proto
+from hilstack.drivers.fixture import FixtureService, service_socket
 from hilstack.drivers.velociroach.config import VelociRoachParams, quat_to_rpy
 from hilstack.drivers.velociroach.link import FdPort, RadioLink, open_serial, xbee_rx64
 from hilstack.drivers.velociroach.mavlink import ROBOT_COMPID, ROBOT_SYSID, EncodeError, MavEncoder, mav
@@ -69,7 +69,7 @@ def log(msg: str) -> None:
     print(f"[velociroach-emulator {os.getpid()}] {msg}", file=sys.stderr, flush=True)
 
 
-class LabFixture:
+class LabFixture(FixtureService):
     """The lab-fixture service (drivers/fixture.py) on the emulator's MuJoCo model:
     like a person in the lab it picks the robot up and sets it down on its legs at the
     same spot and heading, at rest. The firmware, battery and clock run on untouched."""
@@ -79,15 +79,15 @@ class LabFixture:
     #: set down this far above the standing height [m]: it drops onto its legs
     DROP_M = 0.003
 
+    ops = ("right",)
+
     def __init__(self, sim: Any, sock: Any):
+        super().__init__(sock)
         self.sim = sim
-        self.sock = sock
         # right after reset the robot stands on its tripod (feet straight down, the
         # lowest a foot reaches): no crank angle puts a foot below the ground from here
         self.stand_z_m = float(sim.data.qpos[2])
         self.recoveries = 0
-        self.requests = 0
-        self.bad_requests = 0
 
     def upright(self) -> bool:
         roll, pitch, _ = quat_to_rpy(self.sim.data.qpos[3:7])
@@ -121,25 +121,9 @@ class LabFixture:
         log(f"lab fixture: robot put back on its legs (recovery {self.recoveries})")
         return True
 
-    def poll(self) -> None:
-        """Serve every pending request (non-blocking; called from the emulator loop)."""
-        while True:
-            try:
-                data, addr = self.sock.recvfrom(fixture_proto.MAX_DATAGRAM)
-            except (BlockingIOError, InterruptedError):
-                return
-            except ConnectionResetError:
-                continue
-            self.requests += 1
-            req, why = fixture_proto.decode_request(data, ops=("right",))
-            if req is None:
-                self.bad_requests += 1
-                reply = fixture_proto.refusal(data, why)
-            else:
-                acted = self.right()
-                reply = {"id": req.get("id", 0), "ok": True, "acted": acted,
-                         "detail": "put back on its legs" if acted else "already upright"}
-            self.sock.sendto(fixture_proto.encode(reply), addr)
+    def act(self, op: str) -> tuple[bool, str]:  # noqa: ARG002 - its one op
+        acted = self.right()
+        return acted, "put back on its legs" if acted else "already upright"
 
 
 def load_physics(target: str, params: VelociRoachParams):
@@ -424,12 +408,7 @@ def main(argv: list[str] | None = None) -> int:
     fixture = None
     fixture_port = None
     if args.fixture_port is not None:
-        import socket
-
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind(("127.0.0.1", args.fixture_port))
-        sock.setblocking(False)
-        fixture_port = sock.getsockname()[1]
+        sock, fixture_port = service_socket(args.fixture_port)
         fixture = LabFixture(physics, sock)
     if emu.start_upside_down:
         if fixture is None:
