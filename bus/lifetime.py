@@ -62,9 +62,10 @@ def catch_stop_signals() -> None:
     A process started in the background or by a supervisor may inherit SIGTERM (or SIGINT)
     *ignored*, and an ignored disposition survives ``exec``: a stop sent to such a `hil up`
     robot process before its node existed was lost, and the robot ran on until killed (CI stops
-    33 and 34; tests/test_cli_up_signals.py). Called first by every verb that drives a robot,
-    so a stop that comes while it loads is kept (:func:`stop_signalled`) and honoured by the
-    node it then creates. Main thread only (Python's rule for signal handlers)."""
+    33 and 34; tests/arms/test_rig_up.py). Called first by `hil up`, so a stop that comes while
+    it loads is kept (:func:`stop_signalled`) and honoured by the node it then creates (other
+    verbs register through :func:`on_stop_signal` when they start driving). Main thread only
+    (Python's rule for signal handlers)."""
     if threading.current_thread() is threading.main_thread():
         for sig in STOP_SIGNALS:
             signal.signal(sig, _stop_handler)

@@ -149,7 +149,6 @@ def _run_robot_processes(procs: list, names: list[str], grace_s: float = STOP_GR
     stacks are dumped into the log (SIGUSR1, bus/lifetime.py) and it is killed, naming the
     robots; a stuck node cannot hold the rig's other robots or the operator hostage. Returns
     the rig's exit code: 0; a robot's node's own (1 link, 2 input); 1 for a killed node."""
-
     asked: list[float] = []  # when the first stop signal came
     forwarded: set[int] = set()  # signals a node may die of before it has its handlers
 
