@@ -66,8 +66,7 @@ class Publisher(Generic[T]):
         self.seq += 1
         msg.seq = self.seq
         msg.stamp_s = time.time()
-        self._pub.put(encode(msg))
-        return msg
+        return self.resend(msg)
 
     def resend(self, msg: T) -> T:
         """Put ``msg`` again as it was (same sequence number and stamp): a receiver that has it
