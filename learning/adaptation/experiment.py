@@ -454,6 +454,39 @@ def fit_mb(cfg: AdaptationConfig, model: AdaptiveMLP, tr_eps: list[Episode], va_
     return h
 
 
+def meta_train_grbal(cfg: AdaptationConfig, plain: AdaptiveMLP, seg, vseg, seed: int,
+                     clip_quantile: float | None | str = "cfg", theta_lr: float | None = None,
+                     log: Callable[[str], None] | None = None):
+    """GrBAL meta-trained from the plain model's weights (a copy; ``plain`` is left as it is).
+
+    ``clip_quantile``: the inner gradient's norm cap as this quantile of the norms on the
+    training segments' past M at the warm start (None: no cap; default ``cfg.grbal_clip_quantile``);
+    ``theta_lr``: Adam's step for θ (default ``cfg.grbal_meta_lr``, or ``cfg.meta_lr``).
+    Returns (θ* as a model, ψ, the cap, the adapted parameters' names, the history)."""
+    q = cfg.grbal_clip_quantile if clip_quantile == "cfg" else clip_quantile
+    if theta_lr is None:
+        theta_lr = cfg.meta_lr if cfg.grbal_meta_lr is None else cfg.grbal_meta_lr
+    if not (np.isfinite(theta_lr) and theta_lr >= 0):
+        raise ValueError(f"GrBAL's θ meta learning rate must be finite and >= 0, got {theta_lr}")
+    meta = AdaptiveMLP.from_checkpoint(plain.to_checkpoint())
+    if cfg.grbal_adapt not in ("all", "last"):
+        raise ValueError(f"grbal_adapt must be 'all' or 'last', got {cfg.grbal_adapt!r}")
+    adapt_params = None if cfg.grbal_adapt == "all" else list(meta.params())[-2:]
+    clip = None
+    if q is not None:
+        if not 0.0 < q <= 1.0:
+            raise ValueError(f"grbal_clip_quantile must be in (0, 1] or None, got {q}")
+        norms = grbal.gradient_norms(meta, meta.params(), seg, adapt_params)
+        clip = float(np.quantile(norms, q))
+        if log is not None:
+            log(f"GrBAL inner-gradient cap: {clip:.4f} (quantile {q} of {len(norms)} training "
+                f"windows; median {np.median(norms):.4f})")
+    psi, h_meta = grbal.meta_train(meta, seg, steps=cfg.meta_steps, meta_batch=cfg.meta_batch, lr=theta_lr,
+                                   psi_init=cfg.psi_init, psi_lr=cfg.psi_lr, seed=seed, adapt_params=adapt_params,
+                                   val=vseg, eval_every=cfg.meta_eval_every, patience=cfg.meta_patience, clip=clip)
+    return meta, psi, clip, adapt_params, h_meta
+
+
 def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str], seed: int, ckpt_dir: Path,
           log: Callable[[str], None], phases: Phases | None = None) -> Trained:
     torch.manual_seed(seed)
@@ -467,24 +500,8 @@ def train(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str]
         f"{h_plain['train'][-1]:.4f}, held-out {bv if bv is None else round(bv, 4)} ({ph.wall:.0f} s, cpu {ph.cpu:.0f} s)")
     seg = segments(tr_eps, cfg.M, cfg.K, stride=2)
     vseg = segments(va_eps, cfg.M, cfg.K, stride=4) if va_eps else None
-    meta = AdaptiveMLP.from_checkpoint(plain.to_checkpoint())
-    if cfg.grbal_adapt not in ("all", "last"):
-        raise ValueError(f"grbal_adapt must be 'all' or 'last', got {cfg.grbal_adapt!r}")
-    adapt_params = None if cfg.grbal_adapt == "all" else list(meta.params())[-2:]
-    clip = None
-    if cfg.grbal_clip_quantile is not None:
-        if not 0.0 < cfg.grbal_clip_quantile <= 1.0:
-            raise ValueError(f"grbal_clip_quantile must be in (0, 1] or None, got {cfg.grbal_clip_quantile}")
-        norms = grbal.gradient_norms(meta, meta.params(), seg, adapt_params)
-        clip = float(np.quantile(norms, cfg.grbal_clip_quantile))
-        log(f"GrBAL inner-gradient cap: {clip:.4f} (quantile {cfg.grbal_clip_quantile} of {len(norms)} training "
-            f"windows; median {np.median(norms):.4f})")
     with phases("grbal_meta_training") as ph:
-        theta_lr = cfg.meta_lr if cfg.grbal_meta_lr is None else cfg.grbal_meta_lr
-        psi, h_meta = grbal.meta_train(meta, seg, steps=cfg.meta_steps, meta_batch=cfg.meta_batch, lr=theta_lr,
-                                       psi_init=cfg.psi_init, psi_lr=cfg.psi_lr, seed=seed, adapt_params=adapt_params,
-                                       val=vseg, eval_every=cfg.meta_eval_every, patience=cfg.meta_patience,
-                                       clip=clip)
+        meta, psi, clip, adapt_params, h_meta = meta_train_grbal(cfg, plain, seg, vseg, seed, log=log)
     last = h_meta[-1]
     log(f"GrBAL meta-training: {last.get('best_step', last['step'])} steps kept of "
         f"{h_meta[-2]['step'] if 'best_step' in last else last['step']}, held-out next-K loss before/after "
