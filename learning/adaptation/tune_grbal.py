@@ -85,6 +85,20 @@ def check_training_only(episodes: Sequence[Episode], p: PerturbationPresets) -> 
                              "the choice must never see a test condition")
 
 
+def grid_points(quantiles: Sequence[float | None], meta_lrs: Sequence[float],
+                current: dict[str, Any]) -> list[tuple[float | None, float]]:
+    """Every (quantile, rate) pair, nearest the presets' point first (in grid steps; the same
+    set whatever the order): a run stopped early has compared the current values with their
+    neighbours on both axes."""
+    qi = {q: i for i, q in enumerate(quantiles)}
+    li = {lr: i for i, lr in enumerate(meta_lrs)}
+    q0, l0 = qi.get(current["clip_quantile"]), li.get(current["meta_lr"])
+    pts = [(q, lr) for q in quantiles for lr in meta_lrs]
+    if q0 is None or l0 is None:
+        return pts
+    return sorted(pts, key=lambda p: abs(qi[p[0]] - q0) + abs(li[p[1]] - l0))
+
+
 def train_plain(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str], seed: int):
     """MB exactly as ``experiment.train`` trains it: (model, train rollouts, held-out rollouts, history)."""
     torch.manual_seed(seed)
@@ -96,7 +110,8 @@ def train_plain(cfg: AdaptationConfig, episodes: list[Episode], state_names: lis
 
 def tune_grbal(cfg: AdaptationConfig, episodes: list[Episode], state_names: list[str], seed: int,
                presets: PerturbationPresets, quantiles: Sequence[float | None] = CLIP_QUANTILES,
-               meta_lrs: Sequence[float] = META_LRS, log: Callable[[str], None] = print) -> dict[str, Any]:
+               meta_lrs: Sequence[float] = META_LRS, log: Callable[[str], None] = print,
+               on_point: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
     """The grid's online errors and the choice (lowest error) on ``episodes``, training conditions only.
 
     Returns ``{"grid": [{clip_quantile, meta_lr, clip, errors: {rate: error}, rate, error,
@@ -105,7 +120,8 @@ def tune_grbal(cfg: AdaptationConfig, episodes: list[Episode], state_names: list
     the errors, "plain_history"}``. ``error`` is GrBAL's online error at its best multiplier of
     ``cfg.rate_grid`` (x1 when None). A choice on a grid's edge is flagged as ``tune_rates``
     flags a step size: the lowest cap quantile or either end of the learning rates (the optimum
-    may lie beyond); "no cap" is the cap's upper end, beyond which there is nothing."""
+    may lie beyond); "no cap" is the cap's upper end, beyond which there is nothing.
+    ``on_point(partial result)`` after each grid point (the CLI writes it to disk)."""
     check_training_only(episodes, presets)
     quantiles, meta_lrs = tuple(quantiles), tuple(float(x) for x in meta_lrs)
     if not quantiles or not meta_lrs or len(set(quantiles)) != len(quantiles) or len(set(meta_lrs)) != len(meta_lrs):
@@ -118,23 +134,26 @@ def tune_grbal(cfg: AdaptationConfig, episodes: list[Episode], state_names: list
     vseg = segments(va_eps, cfg.M, cfg.K, stride=4)
     s, _, n = Transitions.from_episodes(episodes).arrays()
     scale = np.maximum((n - s).std(0), 1e-6)
+    current = {"clip_quantile": cfg.grbal_clip_quantile,
+               "meta_lr": cfg.meta_lr if cfg.grbal_meta_lr is None else cfg.grbal_meta_lr}
     grid = []
-    for q in quantiles:
-        for lr in meta_lrs:
-            c0 = time.process_time()
-            meta, psi, clip, adapt_params, hist = meta_train_grbal(cfg, plain, seg, vseg, seed, clip_quantile=q,
-                                                                   theta_lr=lr)
-            tr = Trained(plain, meta, psi, None, None, scale, adapt_params=adapt_params, clip=clip)
-            rates = tune_rates(cfg, tr, held, methods=("grbal",))["grbal"]
-            errs = rates["errors"]
-            x1 = errs[1.0] if 1.0 in errs else None
-            row = {"clip_quantile": q, "meta_lr": lr, "clip": clip, "errors": errs, "rate": rates["rate"],
-                   "error": float(errs[rates["rate"]]), "error_x1": x1,
-                   "steps_kept": hist[-1].get("best_step", hist[-1]["step"]), "cpu_s": time.process_time() - c0}
-            grid.append(row)
-            log(f"seed {seed} cap quantile {q} θ lr {lr:g}: cap {clip if clip is None else round(clip, 4)}, "
-                f"{row['steps_kept']} steps kept, online error {row['error']:.5f} at x{row['rate']:g}"
-                + ("" if x1 is None else f" (x1 {x1:.5f})") + f" ({row['cpu_s']:.0f} s cpu)")
+    for q, lr in grid_points(quantiles, meta_lrs, current):
+        c0 = time.process_time()
+        meta, psi, clip, adapt_params, hist = meta_train_grbal(cfg, plain, seg, vseg, seed, clip_quantile=q,
+                                                               theta_lr=lr)
+        tr = Trained(plain, meta, psi, None, None, scale, adapt_params=adapt_params, clip=clip)
+        rates = tune_rates(cfg, tr, held, methods=("grbal",))["grbal"]
+        errs = rates["errors"]
+        x1 = errs[1.0] if 1.0 in errs else None
+        row = {"clip_quantile": q, "meta_lr": lr, "clip": clip, "errors": errs, "rate": rates["rate"],
+               "error": float(errs[rates["rate"]]), "error_x1": x1,
+               "steps_kept": hist[-1].get("best_step", hist[-1]["step"]), "cpu_s": time.process_time() - c0}
+        grid.append(row)
+        if on_point is not None:
+            on_point({"grid": grid, "current": current, "partial": True})
+        log(f"seed {seed} cap quantile {q} θ lr {lr:g}: cap {clip if clip is None else round(clip, 4)}, "
+            f"{row['steps_kept']} steps kept, online error {row['error']:.5f} at x{row['rate']:g} "
+            + "/".join(f"{e:.5f}" for e in errs.values()) + f" ({row['cpu_s']:.0f} s cpu)")
     best = min(grid, key=lambda r: r["error"] if np.isfinite(r["error"]) else np.inf)
     qs = [1.0 if q is None else q for q in quantiles]  # no cap sorts as the top quantile
     q_edge = rate_edge(tuple(qs), 1.0 if best["clip_quantile"] is None else best["clip_quantile"])
@@ -153,8 +172,6 @@ def tune_grbal(cfg: AdaptationConfig, episodes: list[Episode], state_names: list
     for w in warnings:
         log(f"WARNING tune_grbal, seed {seed}: {w}")
     errs = [r["error"] for r in grid if np.isfinite(r["error"])]
-    current = {"clip_quantile": cfg.grbal_clip_quantile,
-               "meta_lr": cfg.meta_lr if cfg.grbal_meta_lr is None else cfg.grbal_meta_lr}
     return {"grid": grid, "choice": {"clip_quantile": best["clip_quantile"], "meta_lr": best["meta_lr"]},
             "edge": {"clip_quantile": q_edge, "meta_lr": lr_edge}, "warnings": warnings, "current": current,
             "spread": (max(errs) - min(errs)) / min(errs) if errs else float("nan"),
@@ -162,14 +179,57 @@ def tune_grbal(cfg: AdaptationConfig, episodes: list[Episode], state_names: list
             "held_out_rollouts": [e.name for e in held]}
 
 
+def summarize(results: Sequence[dict[str, Any]]) -> str:
+    """A markdown table of several seeds' :func:`tune_grbal` results (the grid points every seed
+    has), mean ± sample std of the error, and the adoption rule: the lowest mean replaces the
+    presets' point only if it is below it on every seed (else the criterion is flat for this
+    grid and the presets stay)."""
+    seeds = [r.get("seed", i) for i, r in enumerate(results)]
+    rows = [{(g["clip_quantile"], g["meta_lr"]): g for g in r["grid"]} for r in results]
+    common = [k for k in rows[0] if all(k in rw for rw in rows)]
+    if not common:
+        raise ValueError("summarize: no grid point is in every seed's result")
+    cur = results[0]["current"]
+    cur_key = (cur["clip_quantile"], cur["meta_lr"])
+    mean = {k: float(np.mean([rw[k]["error"] for rw in rows])) for k in common}
+    lines = ["| cap quantile | θ lr | " + " | ".join(f"seed {s}: error (x rate)" for s in seeds)
+             + " | mean ± std |", "|---|---|" + "---|" * (len(seeds) + 1)]
+    for k in sorted(common, key=mean.get):
+        errs = [rw[k]["error"] for rw in rows]
+        sd = float(np.std(errs, ddof=1)) if len(errs) > 1 else 0.0
+        cells = " | ".join(f"{rw[k]['error']:.4f} (x{rw[k]['rate']:g})" for rw in rows)
+        star = " (presets)" if k == cur_key else ""
+        lines.append(f"| {k[0]}{star} | {k[1]:g} | {cells} | {mean[k]:.4f} ± {sd:.4f} |")
+    best = min(common, key=mean.get)
+    if cur_key not in common:
+        verdict = "the presets' point is not in every seed's grid: no comparison"
+    elif best == cur_key:
+        verdict = "the presets' point has the lowest mean: keep it"
+    elif all(rw[best]["error"] < rw[cur_key]["error"] for rw in rows):
+        verdict = f"adopt cap quantile {best[0]}, θ lr {best[1]:g}: below the presets' point on every seed"
+    else:
+        verdict = (f"flat: the lowest mean (cap quantile {best[0]}, θ lr {best[1]:g}) is not below the presets' "
+                   "point on every seed; keep the presets")
+    spread = (max(mean.values()) - min(mean.values())) / min(mean.values())
+    return "\n".join(lines + ["", f"{len(common)} grid points in every seed; spread of the means "
+                               f"{100 * spread:.2f} %; {verdict}"])
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m hilstack.learning.adaptation.tune_grbal",
                                  description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=Path, required=True, help="a demo run's OUT/data/seed<N>_training.npz")
-    ap.add_argument("--seed", type=int, required=True, help="the seed the data was gathered with (the demo's split)")
+    ap.add_argument("--summarize", type=Path, nargs="+", metavar="JSON",
+                    help="print the table of these --out files (one per seed) and the adoption rule, then exit")
+    ap.add_argument("--data", type=Path, help="a demo run's OUT/data/seed<N>_training.npz")
+    ap.add_argument("--seed", type=int, help="the seed the data was gathered with (the demo's split)")
     ap.add_argument("--preset", default="quick", help="the demo's preset whose sizes to use (quick | full | tiny)")
     ap.add_argument("--out", type=Path, help="write the result as JSON here (never over an existing file)")
     a = ap.parse_args(argv)
+    if a.summarize:
+        print(summarize([json.loads(f.read_text()) for f in a.summarize]))
+        return
+    if a.data is None or a.seed is None:
+        raise SystemExit("tune_grbal: --data and --seed are required (or --summarize)")
     if a.out is not None and a.out.exists():
         raise SystemExit(f"tune_grbal: {a.out} exists; pick another --out")
     torch.set_num_threads(1)
@@ -182,14 +242,23 @@ def main(argv: list[str] | None = None) -> None:
     names = env.state_names
     env.close()
     t0, c0 = time.monotonic(), time.process_time()
-    r = tune_grbal(cfg, episodes, names, a.seed, p)
+    def partial(r: dict[str, Any]) -> None:  # every grid point on disk as it ends: a run stopped early keeps them
+        if a.out is not None:
+            a.out.parent.mkdir(parents=True, exist_ok=True)
+            a.out.write_text(json.dumps({**r, "seed": a.seed, "data": str(a.data)}, default=_json, indent=1))
+
+    r = tune_grbal(cfg, episodes, names, a.seed, p, on_point=partial)
     r.update(seed=a.seed, data=str(a.data), wall_s=time.monotonic() - t0, cpu_s=time.process_time() - c0)
     print(f"choice: cap quantile {r['choice']['clip_quantile']}, θ lr {r['choice']['meta_lr']:g} "
           f"(current {r['current']}); spread of the grid's errors {100 * r['spread']:.2f} %; "
           f"{r['wall_s']:.0f} s wall, {r['cpu_s']:.0f} s cpu")
     if a.out is not None:
         a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps(r, default=lambda x: None if x is None else float(x), indent=1))
+        a.out.write_text(json.dumps(r, default=_json, indent=1))
+
+
+def _json(x: Any) -> Any:
+    return None if x is None else float(x)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ import pytest
 
 from hilstack.learning.adaptation import experiment as ex
 from hilstack.learning.adaptation.experiment import AdaptationConfig
-from hilstack.learning.adaptation.tune_grbal import check_training_only, tune_grbal
+from hilstack.learning.adaptation.tune_grbal import check_training_only, grid_points, tune_grbal
 from hilstack.tasks.perturbations import PerturbationSettings, load_presets
 from tests.adaptation import toy
 
@@ -73,23 +73,51 @@ def test_the_choice_is_the_lowest_online_error_of_the_grid_each_point_meta_train
     assert r["current"] == {"clip_quantile": CFG.grbal_clip_quantile, "meta_lr": CFG.meta_lr}
 
 
-@pytest.mark.parametrize("errors, choice, edges, says", [
-    ((0.30, 0.31, 0.32, 0.33, 0.20, 0.34, 0.35, 0.36, 0.37), (0.5, 3e-4), (None, None), []),
-    ((0.10, 0.31, 0.32, 0.33, 0.20, 0.34, 0.35, 0.36, 0.37), (0.25, 1e-4), ("lower", "lower"),
+Q, LR = (0.25, 0.5, None), (1e-4, 3e-4, 1e-3)
+
+
+@pytest.mark.parametrize("low, choice, edges, says", [
+    ({(0.5, 3e-4): 0.20}, (0.5, 3e-4), (None, None), []),
+    ({(0.5, 3e-4): 0.20, (0.25, 1e-4): 0.10}, (0.25, 1e-4), ("lower", "lower"),
      ["0.25 is the grid's lower edge", "0.0001 is the grid's lower edge", "below"]),
-    ((0.30, 0.31, 0.32, 0.33, 0.20, 0.34, 0.35, 0.36, 0.10), (None, 1e-3), ("upper", "upper"),
+    ({(0.5, 3e-4): 0.20, (None, 1e-3): 0.10}, (None, 1e-3), ("upper", "upper"),
      ["no cap chosen", "0.001 is the grid's upper edge", "above"]),
 ])
-def test_a_choice_on_the_grids_edge_is_flagged(monkeypatch, errors, choice, edges, says):
-    """The criterion replaced by a fixed error per grid point (in grid order: quantile, then rate);
+def test_a_choice_on_the_grids_edge_is_flagged(monkeypatch, low, choice, edges, says):
+    """The criterion replaced by a fixed error per grid point (0.3 and up, ``low`` where given);
     each point is still meta-trained (one step)."""
+    cfg = AdaptationConfig.from_preset("tiny", rate_grid=(1.0,), tune_rollouts=1, val_fraction=0.2, meta_steps=1)
+    current = {"clip_quantile": cfg.grbal_clip_quantile, "meta_lr": cfg.meta_lr}
+    order = grid_points(Q, LR, current)
+    assert sorted(order, key=str) == sorted([(q, lr) for q in Q for lr in LR], key=str)  # every point once
+    assert order[0] == (0.5, 1e-3)  # the presets' point first
+    errors = [low.get(p, 0.3 + 0.01 * i) for i, p in enumerate(order)]
     calls = iter(errors)
     monkeypatch.setattr(ex, "online_error", lambda *a, **k: next(calls))
-    cfg = AdaptationConfig.from_preset("tiny", rate_grid=(1.0,), tune_rollouts=1, val_fraction=0.2, meta_steps=1)
-    r = tune_grbal(cfg, _training_rollouts(), toy.NAMES, 0, P, quantiles=(0.25, 0.5, None),
-                   meta_lrs=(1e-4, 3e-4, 1e-3), log=lambda _: None)
+    r = tune_grbal(cfg, _training_rollouts(), toy.NAMES, 0, P, quantiles=Q, meta_lrs=LR, log=lambda _: None)
+    assert [(g["clip_quantile"], g["meta_lr"]) for g in r["grid"]] == order
     assert (r["choice"]["clip_quantile"], r["choice"]["meta_lr"]) == choice
     assert (r["edge"]["clip_quantile"], r["edge"]["meta_lr"]) == edges
     text = " ".join(r["warnings"])
     assert bool(r["warnings"]) == bool(says) and all(s in text for s in says)
     assert r["spread"] == pytest.approx((max(errors) - min(errors)) / min(errors))
+
+
+def _seed_result(seed: int, errors: dict) -> dict:
+    return {"seed": seed, "current": {"clip_quantile": 0.5, "meta_lr": 1e-4},
+            "grid": [{"clip_quantile": q, "meta_lr": lr, "error": e, "rate": 0.25} for (q, lr), e in errors.items()]}
+
+
+@pytest.mark.parametrize("other, verdict", [
+    ((0.20, 0.21, 0.22), "adopt cap quantile None, θ lr 0.001"),   # below the presets on every seed
+    ((0.10, 0.35, 0.22), "flat"),                                  # a lower mean, but not on every seed
+    ((0.30, 0.31, 0.32), "keep it"),                               # the presets have the lowest mean
+])
+def test_the_summary_adopts_a_point_only_if_it_is_below_the_presets_on_every_seed(other, verdict):
+    from hilstack.learning.adaptation.tune_grbal import summarize
+
+    cur = (0.25, 0.26, 0.27)
+    results = [_seed_result(s, {(0.5, 1e-4): cur[s], (None, 1e-3): other[s]}) for s in range(3)]
+    text = summarize(results)
+    assert verdict in text.splitlines()[-1]
+    assert "| 0.5 (presets) | 0.0001 | 0.2500 (x0.25)" in text
