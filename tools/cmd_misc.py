@@ -24,6 +24,7 @@ from hilstack.tools.common import (
     UserError,
     complete_rig,
     echo_json,
+    one_line,
     provision_credentials,
     rig_bus,
     setup_logging,
@@ -52,10 +53,11 @@ def _announce_when_up(node, line: str) -> threading.Event:  # noqa: ANN001 - a D
     return done
 
 
-def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
+def _up_together(cfg, names: list[str], bus, steps: int | None, sets: list[str] | None = None) -> None:
     """Several driver nodes in this process, one thread each (sims sharing one world);
-    a signal stops them all. Exit 1 when one of them failed."""
-    from hilstack.configs.schema import rig_robot_config
+    a signal stops them all. Exit 1 when one of them failed on its link, 2 when every failure
+    was a config problem (a device port that does not exist: the one code, docs/platform.md)."""
+    from hilstack.configs.schema import ConfigError, rig_robot_config
     from hilstack.drivers.bridge import DriverNode
     from hilstack.drivers.registry import make_driver
 
@@ -64,15 +66,23 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
         from hilstack.bus.session import open_session
 
         session = open_session(bus, server=True, rig=cfg.name, robots=names)
+    nodes: list[DriverNode] = []
     try:
-        nodes = [DriverNode(make_driver(rig_robot_config(cfg, n)), cfg.name, n, bus,
-                            watchdog_periods=cfg.watchdog_periods, pace=cfg.pace, handle_signals=False,
-                            **({"session": session} if session is not None else {})) for n in names]
+        for n in names:
+            try:
+                drv = make_driver(rig_robot_config(cfg, n))
+            except ConfigError as e:
+                raise _rig_error(cfg, n, e, sets) from None
+            nodes.append(DriverNode(drv, cfg.name, n, bus, watchdog_periods=cfg.watchdog_periods, pace=cfg.pace,
+                                    handle_signals=False, **({"session": session} if session is not None else {})))
     except BaseException:
+        for nd in nodes:
+            nd.close()
         if session is not None:
             session.close()
         raise
     errors: list[str] = []
+    config_errors: list[bool] = []
     stopping = threading.Event()  # a stop was asked for: what fails after it is the shutdown
 
     def serve(node: DriverNode) -> None:
@@ -81,7 +91,9 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
             typer.echo(f"{node.robot} down: {node.serve(max_steps=steps)}", err=True)
         except Exception as e:  # its own error path already stopped its robot
             if not stopping.is_set():
-                errors.append(f"{node.robot}: {e}")
+                e = _rig_error(cfg, node.robot, e, sets)
+                errors.append(f"{node.robot}: {one_line(e)}")
+                config_errors.append(isinstance(e, ConfigError))
         finally:
             announced.set()
             stopping.set()
@@ -110,7 +122,49 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
             session.close()
     if errors:
         typer.echo("error: " + "; ".join(errors), err=True)
-        raise typer.Exit(1)
+        raise typer.Exit(2 if all(config_errors) else 1)
+
+
+def _rig_error(cfg, name: str, e: Exception, sets: list[str] | None) -> Exception:  # noqa: ANN001 - a RigConfig
+    """A robot's ConfigError raised while its driver is built or configured (a port that does
+    not exist...), blamed on the rig file when the rig (or ``--set``/``--port``) set the value,
+    and naming the ``--set`` items that changed the file; other errors as they are."""
+    from hilstack.configs.schema import ConfigError, blame_rig, rig_robot_config
+
+    if not isinstance(e, ConfigError):
+        return e
+    e = blame_rig(rig_robot_config(cfg, name), e)
+    if sets and cfg.source and e.file == str(cfg.source):
+        e = ConfigError(f"{cfg.source} with --set {' '.join(sets)}", e.problems)
+    return e
+
+
+def _device_sets(cfg, names: list[str], field: str, value: str | None) -> list[str]:  # noqa: ANN001 - a RigConfig
+    """`hil up --port/--channel VALUE` as ``--set ROBOT.params.<field>=VALUE`` for the robots of
+    ``names`` whose real driver has that field (a serial port, a CAN channel). Several such
+    robots get it together only when the rig file gives them one device (the WidowX and its
+    mechanism on one U2D2; or none yet); robots on different devices need --robot to say which."""
+    if value is None:
+        return []
+    import json
+
+    from hilstack.configs.schema import rig_robot_config
+    from hilstack.drivers.registry import resolve
+
+    has = []
+    for n in names:
+        rc = rig_robot_config(cfg, n)
+        params = getattr(resolve(rc.robot, rc.backend), "params_type", None)
+        if rc.backend == "real" and params is not None and field in params.model_fields:
+            has.append((n, rc.params.get(field)))
+    if not has:
+        kinds = ", ".join(f"{n}: {rig_robot_config(cfg, n).backend}" for n in names)
+        raise UserError(f"--{field} {value}: rig {cfg.name} has no real robot with a {field} ({kinds}); "
+                        f"emulated and sim robots open their own links")
+    if len({str(v) for _, v in has if v is not None}) > 1:
+        raise UserError(f"--{field} {value}: rig {cfg.name}'s robots {', '.join(n for n, _ in has)} are on "
+                        f"different devices: pick one with --robot, or --set ROBOT.params.{field}=...")
+    return [f"{n}.params.{field}={json.dumps(value)}" for n, _ in has]
 
 
 def _bus_key(cfg, name: str) -> str | None:
@@ -242,9 +296,13 @@ def register(app: typer.Typer) -> None:
         sets: list[str] = typer.Option(None, "--set", metavar="KEY=VALUE",
                                        help="override a value of the rig file, checked like the file: "
                                             "watchdog_periods=5, roach.params.port=/dev/ttyUSB1 (repeatable)"),
+        port: str = typer.Option(None, "--port", help="the serial port of the rig's real robot that has one "
+                                 "(--robot picks among several): --set ROBOT.params.port=PORT"),
+        channel: str = typer.Option(None, "--channel", help="the CAN channel of the rig's real robot that has one "
+                                    "(can0, or an slcan adapter's /dev/ttyACM0): --set ROBOT.params.channel=CHANNEL"),
     ) -> None:
         """Bring a rig's robots onto the bus (one driver bridge node per robot)."""
-        from hilstack.configs.schema import rig_robot_config
+        from hilstack.configs.schema import ConfigError, rig_robot_config
         from hilstack.drivers.bridge import DriverNode
         from hilstack.drivers.registry import make_driver
 
@@ -254,11 +312,15 @@ def register(app: typer.Typer) -> None:
         setup_logging()
         exit_with_parent()
         _, bus, cfg = rig_bus(rig, endpoint, need_config=True, sets=sets)
-        provision_credentials(cfg.name, bus, cfg)
         names = robot.split(",") if robot else list(cfg.robots)
         for n in names:
             if n not in cfg.robots:
                 raise UserError(f"rig {cfg.name} has no robot {n!r}; has {list(cfg.robots)}")
+        extra = [*_device_sets(cfg, names, "port", port), *_device_sets(cfg, names, "channel", channel)]
+        if extra:  # the same path as --set: the rig's and the robot's schemas check the value
+            sets = [*(sets or []), *extra]
+            _, bus, cfg = rig_bus(rig, endpoint, need_config=True, sets=sets)
+        provision_credentials(cfg.name, bus, cfg)
         groups = [[n] for n in names]
         if len(names) > 1 and bus.access is not None:
             # the rig's driver nodes are its one Zenoh router (bus/session.py): one process
@@ -289,20 +351,19 @@ def register(app: typer.Typer) -> None:
 
             raise typer.Exit(_run_robot_processes(procs, [",".join(g) for g in groups]))
         if len(names) > 1:
-            _up_together(cfg, names, bus, steps)
+            _up_together(cfg, names, bus, steps, sets)
             return
         n = names[0]
-        node = DriverNode(
-            make_driver(rig_robot_config(cfg, n)),
-            cfg.name,
-            n,
-            bus,
-            watchdog_periods=cfg.watchdog_periods,
-            pace=cfg.pace,
-        )
+        try:
+            drv = make_driver(rig_robot_config(cfg, n))
+        except ConfigError as e:
+            raise _rig_error(cfg, n, e, sets) from None
+        node = DriverNode(drv, cfg.name, n, bus, watchdog_periods=cfg.watchdog_periods, pace=cfg.pace)
         announced = _announce_when_up(node, _up_line(node, cfg))
         try:
             stats = node.serve(max_steps=steps)
+        except ConfigError as e:  # found when the driver configured: a device port that does not exist...
+            raise _rig_error(cfg, n, e, sets) from None
         finally:
             announced.set()
             node.close()
