@@ -233,12 +233,12 @@ def test_hil_teleop_stops_the_roach_when_its_gamepad_is_lost(bus, monkeypatch):
 
     rig = load_rig("roach_sim")
     node = DriverNode(make_driver(rig_robot_config(rig, "roach")), rig.name, "roach", bus, pace="lockstep",
-                      handle_signals=False, estop_sync_s=0.05, watchdog_periods=3)
+                      handle_signals=False, estop_sync_s=0.05, watchdog_periods=3, lockstep_timeout_s=0.3)
     th = threading.Thread(target=node.serve, daemon=True)
     th.start()
     spy = Node("spy", rig.name, bus, handle_signals=False)
     cmds = spy.subscribe(keys.cmd(rig.name, "roach"), Command, latest=False)
-    dev = UnpluggedLater(after_s=1.0)
+    dev = UnpluggedLater(after_s=0.6)
     monkeypatch.setattr(gp, "open_gamepad", lambda device: dev)
     try:
         r = CliRunner().invoke(app, ["teleop", "roach_sim", "--gamepad", "--endpoint", bus.endpoint])

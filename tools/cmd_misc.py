@@ -36,6 +36,12 @@ def _up_line(node, cfg) -> str:  # noqa: ANN001 - a DriverNode, a RigConfig
     return f"{node.robot} up on hil/{cfg.name}/{node.robot}/{{state,cmd}} ({node.driver.backend}, {cfg.pace})"
 
 
+def _tty_line(text: str) -> str:
+    """``text`` starting on a cleared line when stderr is a terminal: a live status line (its
+    own ``hil up``'s, or the parent's of a per-robot process) is drawn there without a newline."""
+    return "\r\x1b[K" + text if sys.stderr.isatty() else text
+
+
 def _announce_when_up(node, line: str) -> threading.Event:  # noqa: ANN001 - a DriverNode
     """Print ``line`` once the node's driver is configured and active (its link is open and
     answering), or configured and held stopped by a latched e-stop; never when it fails
@@ -45,7 +51,7 @@ def _announce_when_up(node, line: str) -> threading.Event:  # noqa: ANN001 - a D
     def watch() -> None:
         while not done.is_set():
             if node.driver.active or node.estopped:
-                typer.echo(line + (" (rig e-stop engaged: stopped)" if node.estopped else ""), err=True)
+                typer.echo(_tty_line(line + (" (rig e-stop engaged: stopped)" if node.estopped else "")), err=True)
                 return
             done.wait(0.02)
 
@@ -88,7 +94,7 @@ def _up_together(cfg, names: list[str], bus, steps: int | None, sets: list[str] 
     def serve(node: DriverNode) -> None:
         announced = _announce_when_up(node, _up_line(node, cfg))
         try:
-            typer.echo(f"{node.robot} down: {node.serve(max_steps=steps)}", err=True)
+            typer.echo(_tty_line(f"{node.robot} down: {node.serve(max_steps=steps)}"), err=True)
         except Exception as e:  # its own error path already stopped its robot
             if not stopping.is_set():
                 e = _rig_error(cfg, node.robot, e, sets)
@@ -165,6 +171,78 @@ def _device_sets(cfg, names: list[str], field: str, value: str | None) -> list[s
         raise UserError(f"--{field} {value}: rig {cfg.name}'s robots {', '.join(n for n, _ in has)} are on "
                         f"different devices: pick one with --robot, or --set ROBOT.params.{field}=...")
     return [f"{n}.params.{field}={json.dumps(value)}" for n, _ in has]
+
+
+class StatusLine:
+    """`hil up`'s live status line: one line on stderr, redrawn every ``period_s``, a cell per
+    robot from its newest state on the bus (tools/console.py's :class:`RobotView`: ok/STALE,
+    active/stopped and why, the rate from the states' own clock, the link counters, the overruns
+    counted by the driver node). Read from the bus like any viewer (its own session, the rig's
+    access control), so it is the same whether the robots run in this process or in one per
+    robot. Before a robot's first state its cell says ``waiting``."""
+
+    def __init__(self, rig: str, bus, robots: list[str], period_s: float = 1.0, out=None):  # noqa: ANN001
+        self.out = out or sys.stderr
+        self.rig, self.bus, self.robots = rig, bus, robots
+        self.watch = None
+        self.period_s = period_s
+        self._stop = threading.Event()
+        self._drawn = False
+        self._thread = threading.Thread(target=self._loop, name="up-status", daemon=True)
+        self._thread.start()
+
+    def _join(self) -> bool:
+        """Join the rig's bus (on an access rig its router is the driver node: until that is up
+        the client's open fails, and it is tried again at the next redraw)."""
+        from hilstack.bus.session import BusUnavailable
+        from hilstack.tools.console import RigWatch
+
+        try:
+            self.watch = RigWatch(self.rig, self.bus, self.robots, name="up-status")
+        except BusUnavailable:
+            return False
+        return True
+
+    def text(self) -> str:
+        if self.watch is None:
+            return ""
+        self.watch.drain_states()
+        if all(v.state is None for v in self.watch.robots.values()):
+            return ""  # nothing to show before the first state (the "up" lines come first)
+        now = time.monotonic()
+        cells = []
+        for r, view in self.watch.robots.items():
+            if view.state is None:
+                cells.append(f"{r}: waiting")
+                continue
+            robot, flags, why, rate, link, over = view.row(now)
+            cell = f"{robot}: {flags}" + ("" if why == "-" else f" ({why})") + f" {rate}"
+            cell += "" if link == "-" else f" {link}"
+            cells.append(cell + ("" if over == "none" else f" overruns {over}"))
+        return " | ".join(cells)
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.period_s):
+            if self.watch is None and not self._join():
+                continue
+            try:
+                text = self.text()
+                if not text:
+                    continue
+                self.out.write("\r" + text + "\x1b[K")
+                self.out.flush()
+                self._drawn = True
+            except Exception:  # noqa: BLE001, S110 - a status line never stops the rig
+                pass
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        if self._drawn:  # the line is left empty for the shell's prompt
+            self.out.write("\r\x1b[K")
+            self.out.flush()
+        if self.watch is not None:
+            self.watch.node.close()
 
 
 def _bus_key(cfg, name: str) -> str | None:
@@ -300,11 +378,12 @@ def register(app: typer.Typer) -> None:
                                  "(--robot picks among several): --set ROBOT.params.port=PORT"),
         channel: str = typer.Option(None, "--channel", help="the CAN channel of the rig's real robot that has one "
                                     "(can0, or an slcan adapter's /dev/ttyACM0): --set ROBOT.params.channel=CHANNEL"),
+        status: bool = typer.Option(None, "--status/--no-status", help="a live status line per robot on stderr "
+                                    "(state, rate, link counters, overruns), refreshed every second "
+                                    "(default: when stderr is a terminal)"),
     ) -> None:
         """Bring a rig's robots onto the bus (one driver bridge node per robot)."""
-        from hilstack.configs.schema import ConfigError, rig_robot_config
-        from hilstack.drivers.bridge import DriverNode
-        from hilstack.drivers.registry import make_driver
+        from hilstack.configs.schema import rig_robot_config
 
         catch_stop_signals()  # first: a stop that comes while the drivers load is kept (bus/lifetime.py)
         if steps is not None and steps < 1:
@@ -337,10 +416,24 @@ def register(app: typer.Typer) -> None:
             # robots on one device bus (the WidowX and its mechanism on one Dynamixel adapter)
             # share one process: only that process may own the port (drivers/dynamixel/bus.py)
             groups = _merge_shared_buses(groups, {n: _bus_key(cfg, n) for n in names})
+        if status is None:
+            status = sys.stderr.isatty()
+        line = StatusLine(cfg.name, bus, names) if status else None
+        try:
+            _up(rig, cfg, bus, names, groups, steps, endpoint, sets, line)
+        finally:
+            if line is not None:
+                line.close()
+
+    def _up(rig, cfg, bus, names, groups, steps, endpoint, sets, line) -> None:  # noqa: ANN001 - up's own
+        from hilstack.configs.schema import ConfigError, rig_robot_config
+        from hilstack.drivers.bridge import DriverNode
+        from hilstack.drivers.registry import make_driver
+
         if len(groups) > 1:
             procs = []
             for g in groups:
-                cmd = [sys.executable, "-m", "hilstack.tools.cli", "up", rig, "--robot", ",".join(g)]
+                cmd = [sys.executable, "-m", "hilstack.tools.cli", "up", rig, "--robot", ",".join(g), "--no-status"]
                 if steps:
                     cmd += ["--steps", str(steps)]
                 if endpoint:
@@ -367,7 +460,7 @@ def register(app: typer.Typer) -> None:
         finally:
             announced.set()
             node.close()
-        typer.echo(f"{n} down: {stats}", err=True)
+        typer.echo(_tty_line(f"{n} down: {stats}"), err=True)
         if node.cycle is not None:
             typer.echo(f"{n} timing: {node.cycle.format_summary()}", err=True)
 
