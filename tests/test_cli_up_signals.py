@@ -166,7 +166,8 @@ def test_a_robot_node_that_does_not_stop_is_dumped_and_killed_after_the_grace():
 @pytest.mark.skipif(__import__("shutil").which("tmux") is None, reason="tmux not installed (scripts/setup.sh installs it)")
 def test_up_in_a_terminal_shows_a_live_status_line_after_up():
     """`hil up pointmass_sim` in a real terminal (tmux): "pm up on ..." first, then one status
-    line redrawn in place with the robot's state and rate from the bus; Ctrl-C ends it, exit 0,
+    line redrawn in place with the robot's state and rate (its driver node's newest state); Ctrl-C
+    ends it, exit 0,
     its "down" summary on a line of its own."""
     from tests.test_teleop import Tmux
 
@@ -177,7 +178,7 @@ def test_up_in_a_terminal_shows_a_live_status_line_after_up():
                f"cd {ROOT} && {env} {sys.executable} -m hilstack.tools.cli up pointmass_sim --endpoint "
                f"tcp/127.0.0.1:{free_port()}; echo UP_EXIT=$?; sleep 600")
     try:
-        wait_for(lambda: "pm: ok active" in term.screen(), START_BOUND_S, "the status line")
+        wait_for(lambda: " Hz " in term.screen(), START_BOUND_S, "the status line with the robot's rate")
         screen = term.screen()
         lines = [ln for ln in screen.splitlines() if ln.strip()]
         up_at = next(i for i, ln in enumerate(lines) if ln.startswith("pm up on hil/pointmass_sim/pm"))

@@ -59,7 +59,8 @@ def _announce_when_up(node, line: str) -> threading.Event:  # noqa: ANN001 - a D
     return done
 
 
-def _up_together(cfg, names: list[str], bus, steps: int | None, sets: list[str] | None = None) -> None:
+def _up_together(cfg, names: list[str], bus, steps: int | None, sets: list[str] | None = None,
+                 status: bool = False) -> None:
     """Several driver nodes in this process, one thread each (sims sharing one world);
     a signal stops them all. Exit 1 when one of them failed on its link, 2 when every failure
     was a config problem (a device port that does not exist: the one code, docs/platform.md)."""
@@ -118,10 +119,13 @@ def _up_together(cfg, names: list[str], bus, steps: int | None, sets: list[str] 
     threads = [threading.Thread(target=serve, args=(nd,), name=f"driver-{nd.robot}") for nd in nodes]
     for th in threads:
         th.start()
+    line = StatusLine(lambda: nodes) if status else None
     try:
         for th in threads:
             th.join()
     finally:
+        if line is not None:
+            line.close()
         for nd in nodes:
             nd.close()
         if session is not None:
@@ -175,74 +179,94 @@ def _device_sets(cfg, names: list[str], field: str, value: str | None) -> list[s
 
 class StatusLine:
     """`hil up`'s live status line: one line on stderr, redrawn every ``period_s``, a cell per
-    robot from its newest state on the bus (tools/console.py's :class:`RobotView`: ok/STALE,
-    active/stopped and why, the rate from the states' own clock, the link counters, the overruns
-    counted by the driver node). Read from the bus like any viewer (its own session, the rig's
-    access control), so it is the same whether the robots run in this process or in one per
-    robot. Before a robot's first state its cell says ``waiting``."""
+    robot from the newest state its driver node in this process published (``nodes()``: the
+    nodes, once they exist): ok/STALE, active/stopped and why, the rate (states per second of
+    the robot's clock over the last 2 s), the link counters and the overruns the driver node
+    counts (the console's columns, tools/console.py). Sampled from the nodes, not the bus: a
+    second Zenoh session in the process made 1 of 8 `hil up` runs abort at exit ("FATAL:
+    exception not rethrown"). Nothing is drawn before the first state (the "up" lines first)."""
 
-    def __init__(self, rig: str, bus, robots: list[str], period_s: float = 1.0, out=None):  # noqa: ANN001
+    #: how often the nodes' newest states are sampled (the rate is measured over RATE_WINDOW_S) [s]
+    SAMPLE_S = 0.25
+    RATE_WINDOW_S = 2.0
+
+    def __init__(self, nodes, period_s: float = 1.0, out=None):  # noqa: ANN001 - () -> list[DriverNode]
+        from collections import deque
+
+        self.nodes = nodes
         self.out = out or sys.stderr
-        self.rig, self.bus, self.robots = rig, bus, robots
-        self.watch = None
         self.period_s = period_s
+        #: robot -> recent (monotonic, seq, t_s) samples of its newest state
+        self._samples: dict[str, deque] = {}
+        self._deque = deque
         self._stop = threading.Event()
         self._drawn = False
         self._thread = threading.Thread(target=self._loop, name="up-status", daemon=True)
         self._thread.start()
 
-    def _join(self) -> bool:
-        """Join the rig's bus (on an access rig its router is the driver node: until that is up
-        the client's open fails, and it is tried again at the next redraw)."""
-        from hilstack.bus.session import BusUnavailable
-        from hilstack.tools.console import RigWatch
-
-        try:
-            self.watch = RigWatch(self.rig, self.bus, self.robots, name="up-status")
-        except BusUnavailable:
-            return False
-        return True
+    def sample(self) -> None:
+        now = time.monotonic()
+        for node in self.nodes():
+            st = getattr(node, "_last_state", None)
+            if st is None:
+                continue
+            q = self._samples.setdefault(node.robot, self._deque())
+            if not q or q[-1][1] != st.seq:
+                q.append((now, st.seq, st.t_s))
+            while q and now - q[0][0] > self.RATE_WINDOW_S:
+                q.popleft()
 
     def text(self) -> str:
-        if self.watch is None:
-            return ""
-        self.watch.drain_states()
-        if all(v.state is None for v in self.watch.robots.values()):
-            return ""  # nothing to show before the first state (the "up" lines come first)
+        from hilstack.tools.console import LINK_KEYS, OVERRUN_KEYS, STALE_S, _fmt
+
         now = time.monotonic()
         cells = []
-        for r, view in self.watch.robots.items():
-            if view.state is None:
-                cells.append(f"{r}: waiting")
+        for node in self.nodes():
+            st = getattr(node, "_last_state", None)
+            q = self._samples.get(node.robot)
+            if st is None or not q:
                 continue
-            robot, flags, why, rate, link, over = view.row(now)
-            cell = f"{robot}: {flags}" + ("" if why == "-" else f" ({why})") + f" {rate}"
-            cell += "" if link == "-" else f" {link}"
-            cells.append(cell + ("" if over == "none" else f" overruns {over}"))
+            if len(q) < 2 and now - q[0][0] < self.period_s:
+                return ""  # its rate comes with the second sample: draw then (or after a period)
+            flags = ["ok" if st.ok else "NOT OK"]
+            if now - q[-1][0] > STALE_S:
+                flags.append(f"STALE {now - q[-1][0]:.0f}s")
+            flags.append("active" if st.active else "stopped")
+            cell = f"{node.robot}: {' '.join(flags)}" + (f" ({st.stopped_reason})" if st.stopped_reason else "")
+            if len(q) >= 2 and q[-1][2] > q[0][2]:  # states per second of the robot's clock
+                cell += f" {(q[-1][1] - q[0][1]) / (q[-1][2] - q[0][2]):.1f} Hz"
+            h = st.health or {}
+            link = " ".join(f"{label}={_fmt(h[k])}" for k, label in LINK_KEYS.items() if k in h)
+            over = " ".join(f"{k}={_fmt(h[k])}" for k in OVERRUN_KEYS if k in h and h[k])
+            cells.append(cell + (f" {link}" if link else "") + (f" overruns {over}" if over else ""))
         return " | ".join(cells)
 
     def _loop(self) -> None:
-        while not self._stop.wait(self.period_s):
-            if self.watch is None and not self._join():
-                continue
+        next_draw = 0.0
+        while not self._stop.wait(self.SAMPLE_S):
             try:
+                self.sample()
+                if time.monotonic() < next_draw:
+                    continue
                 text = self.text()
                 if not text:
                     continue
                 self.out.write("\r" + text + "\x1b[K")
                 self.out.flush()
                 self._drawn = True
+                next_draw = time.monotonic() + self.period_s
             except Exception:  # noqa: BLE001, S110 - a status line never stops the rig
                 pass
 
     def close(self) -> None:
+        """Stop drawing (idempotent); the line is left empty for what follows."""
+        if self._stop.is_set():
+            return
         self._stop.set()
         self._thread.join(2.0)
-        if self._drawn:  # the line is left empty for the shell's prompt
+        if self._drawn:
             self.out.write("\r\x1b[K")
             self.out.flush()
-        if self.watch is not None:
-            self.watch.node.close()
 
 
 def _bus_key(cfg, name: str) -> str | None:
@@ -383,7 +407,9 @@ def register(app: typer.Typer) -> None:
                                     "(default: when stderr is a terminal)"),
     ) -> None:
         """Bring a rig's robots onto the bus (one driver bridge node per robot)."""
-        from hilstack.configs.schema import rig_robot_config
+        from hilstack.configs.schema import ConfigError, rig_robot_config
+        from hilstack.drivers.bridge import DriverNode
+        from hilstack.drivers.registry import make_driver
 
         catch_stop_signals()  # first: a stop that comes while the drivers load is kept (bus/lifetime.py)
         if steps is not None and steps < 1:
@@ -418,21 +444,10 @@ def register(app: typer.Typer) -> None:
             groups = _merge_shared_buses(groups, {n: _bus_key(cfg, n) for n in names})
         if status is None:
             status = sys.stderr.isatty()
-        line = StatusLine(cfg.name, bus, names) if status else None
-        try:
-            _up(rig, cfg, bus, names, groups, steps, endpoint, sets, line)
-        finally:
-            if line is not None:
-                line.close()
-
-    def _up(rig, cfg, bus, names, groups, steps, endpoint, sets, line) -> None:  # noqa: ANN001 - up's own
-        from hilstack.configs.schema import ConfigError, rig_robot_config
-        from hilstack.drivers.bridge import DriverNode
-        from hilstack.drivers.registry import make_driver
-
         if len(groups) > 1:
             procs = []
             for g in groups:
+                # no status line: several processes would overwrite each other's one line
                 cmd = [sys.executable, "-m", "hilstack.tools.cli", "up", rig, "--robot", ",".join(g), "--no-status"]
                 if steps:
                     cmd += ["--steps", str(steps)]
@@ -444,7 +459,7 @@ def register(app: typer.Typer) -> None:
 
             raise typer.Exit(_run_robot_processes(procs, [",".join(g) for g in groups]))
         if len(names) > 1:
-            _up_together(cfg, names, bus, steps, sets)
+            _up_together(cfg, names, bus, steps, sets, status)
             return
         n = names[0]
         try:
@@ -453,11 +468,14 @@ def register(app: typer.Typer) -> None:
             raise _rig_error(cfg, n, e, sets) from None
         node = DriverNode(drv, cfg.name, n, bus, watchdog_periods=cfg.watchdog_periods, pace=cfg.pace)
         announced = _announce_when_up(node, _up_line(node, cfg))
+        line = StatusLine(lambda: [node]) if status else None
         try:
             stats = node.serve(max_steps=steps)
         except ConfigError as e:  # found when the driver configured: a device port that does not exist...
             raise _rig_error(cfg, n, e, sets) from None
         finally:
+            if line is not None:
+                line.close()
             announced.set()
             node.close()
         typer.echo(_tty_line(f"{n} down: {stats}"), err=True)
