@@ -20,7 +20,7 @@ def register(app: typer.Typer) -> None:
     @user_errors
     def teleop(
         rig: str = typer.Argument(..., help="rig config (its driver node must be up: `hil up RIG`)", autocompletion=complete_rig),
-        device: str = typer.Argument(None, metavar="[DEVICE]", help="with --gamepad: the gamepad's input device "
+        device: str = typer.Argument(None, metavar="DEVICE", help="with --gamepad: the gamepad's input device "
                                      "(/dev/input/eventN); default: the first gamepad found"),
         robot: str = typer.Option(None, "--robot", help="robot key in the rig (default: the rig's first)"),
         record: Path = typer.Option(None, "--record", dir_okay=False,
