@@ -245,12 +245,13 @@ class ControllerNode(Node):
                     end_if: Callable[[RobotState], bool] | None = None,
                     refit: SampleRefit | None = None) -> EpisodeLog:
         """Run ``policy`` for up to ``steps`` states in the robot's time model (the spec's
-        :attr:`pacing`): :meth:`run_lockstep` on a ``LOCKSTEP`` sim, :meth:`run_realtime`
+        :attr:`pacing`): :meth:`run_lockstep` on a sim stepped on its answers (``LOCKSTEP``,
+        ``FOLLOWER``), :meth:`run_realtime`
         otherwise (``first``, a state already taken, is where a lockstep episode starts; the
         realtime loop starts on fresh states). ``end_if`` (lockstep): see :meth:`run_lockstep`.
         ``refit``: realtime only (the sample count follows the load); a lockstep sim has no
         deadline and ignores it."""
-        if self.pacing is Pacing.LOCKSTEP:
+        if self.pacing.answered:
             return self.run_lockstep(policy, steps, first, stop_if=stop_if, end_if=end_if)
         return self.run_realtime(policy, steps, stop_if=stop_if, refit=refit)
 

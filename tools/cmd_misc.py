@@ -270,7 +270,7 @@ def register(app: typer.Typer) -> None:
             from hilstack.drivers.registry import resolve
 
             sims = [n for n in names if cfg.robots[n].backend == "sim"]
-            if any(getattr(resolve(rig_robot_config(cfg, n).robot, "sim"), "world_follower", False) for n in sims):
+            if any(resolve(rig_robot_config(cfg, n).robot, "sim").follower is not None for n in sims):
                 groups = [sims] + [[n] for n in names if n not in sims]
             # robots on one device bus (the WidowX and its mechanism on one Dynamixel adapter)
             # share one process: only that process may own the port (drivers/dynamixel/bus.py)
