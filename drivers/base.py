@@ -613,7 +613,7 @@ class Perturbable(Protocol):
 
 def sim_controls(driver: Driver) -> SimControls | None:
     """The driver's sim controls, or None when it has none (real and emulated backends)."""
-    return driver if getattr(driver, "backend", None) == "sim" and isinstance(driver, SimControls) else None
+    return driver if driver.backend == "sim" and isinstance(driver, SimControls) else None
 
 
 def perturbable(driver: Driver) -> Perturbable | None:
@@ -1002,6 +1002,19 @@ class Driver(ABC):
         or "lockstep"; lockstep needs a sim, ValueError otherwise): ``FOLLOWER`` for a
         declared :attr:`follower` in lockstep."""
         return Pacing.of_backend(self.backend, pace, follower=self.follower is not None)
+
+    @classmethod
+    def shared_bus_key(cls, cfg: Any) -> str | None:
+        """Robots whose configs (``configs.schema.RobotConfig``) give the same key share one
+        device port and must run in one process (``hil up`` groups them: the WidowX and its
+        reset mechanism on one Dynamixel adapter); None (the default): the robot owns its link."""
+        return None
+
+    def tracking_error(self, state: np.ndarray, action: np.ndarray) -> dict | None:
+        """How well a joint-space robot tracked ``action`` (what `hil drive` prints: the
+        measured ``state`` against the commanded targets), or None (the default) when the
+        robot does not report it."""
+        return None
 
     @property
     def held_command(self) -> np.ndarray | None:

@@ -119,8 +119,7 @@ def _bus_key(cfg, name: str) -> str | None:
     from hilstack.drivers.registry import resolve
 
     rc = rig_robot_config(cfg, name)
-    key = getattr(resolve(rc.robot, rc.backend), "shared_bus_key", None)
-    return key(rc) if key is not None else None
+    return resolve(rc.robot, rc.backend).shared_bus_key(rc)
 
 
 def _merge_shared_buses(groups: list[list[str]], keys: dict[str, str | None]) -> list[list[str]]:
