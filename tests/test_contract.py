@@ -149,34 +149,33 @@ def _device_pid(d, hand, stream: subprocess.Popen | None) -> int | None:
     return None
 
 
-def test_spec_readable_before_connecting(driver):
+@pytest.mark.parametrize("robot,backend,params", CONTRACT_BACKENDS, ids=lambda p: p if isinstance(p, str) else "")
+def test_spec_readable_before_connecting(robot, backend, params):
+    """The spec, and the time model it carries, are read before connecting (so no device,
+    emulator or world is started for this test). The time model is declared, never probed:
+    a rig's lockstep pace is a sim's alone, and a sim that follows another sim's world
+    (``Driver.follower``, the hand's reset arm) declares a bounded command wait and runs as
+    ``Pacing.FOLLOWER`` in lockstep."""
+    driver = make_driver(robot, backend=backend, **params)
     sp = driver.spec
     assert driver.lifecycle is Lifecycle.UNCONFIGURED
     assert sp.state.dim == len(sp.state.names) == len(sp.state.units) > 0
     # sensors (mocap, cameras) have no action channels; actuators have finite limits
     assert np.all(np.isfinite(sp.action.low)) and np.all(np.isfinite(sp.action.high))
     assert sp.period_s > 0
-
-
-@pytest.mark.parametrize("robot,backend,params", CONTRACT_BACKENDS, ids=lambda p: p if isinstance(p, str) else "")
-def test_declared_pacing(robot, backend, params):
-    """The backend's time model is declared, never probed: its spec carries its pacing, a
-    rig's lockstep pace is a sim's alone, and a sim that follows another sim's world
-    (``Driver.follower``, the hand's reset arm) declares a bounded command wait and runs
-    as ``Pacing.FOLLOWER`` in lockstep. (Read before connecting: no device is started.)"""
-    driver = make_driver(robot, backend=backend, **params)
-    assert driver.spec.pacing is driver.pacing is driver.pacing_at("realtime") is Pacing.of_backend(driver.backend)
+    assert sp.pacing is driver.pacing is driver.pacing_at("realtime") is Pacing.of_backend(driver.backend)
     f = driver.follower
     if driver.backend != "sim":
         assert f is None
         with pytest.raises(ValueError, match="needs a sim"):
             driver.pacing_at("lockstep")
-        return
-    assert driver.pacing_at("lockstep") is (Pacing.LOCKSTEP if f is None else Pacing.FOLLOWER)
+    else:
+        assert driver.pacing_at("lockstep") is (Pacing.LOCKSTEP if f is None else Pacing.FOLLOWER)
     if f is not None:
         assert isinstance(f, Follower) and math.isfinite(f.command_wait_s)
         assert 0 < f.command_wait_s <= MAX_FOLLOW_COMMAND_WAIT_S
-        assert f.command_wait_s < driver.spec.period_s  # a wait shorter than a period of its world
+        assert f.command_wait_s < sp.period_s  # a wait shorter than a period of its world
+    assert driver.lifecycle is Lifecycle.UNCONFIGURED
 
 
 def test_lifecycle_and_refusals(driver):
