@@ -58,6 +58,16 @@ CONTRACT_BACKENDS = [
 ]
 
 
+#: the sims (whose device is the physics in the driver's process) and the backends with a device
+#: of their own (a process that can freeze or die apart from the driver's)
+SIM_BACKENDS = [b for b in CONTRACT_BACKENDS if b[1] == "sim"]
+DEVICE_BACKENDS = [b for b in CONTRACT_BACKENDS if b[1] != "sim"]
+
+
+def _backend_id(p) -> str:
+    return f"{p[0]}-{p[1]}"
+
+
 def _hand_for_the_arm(backend: str, stop: threading.Event, params: dict) -> tuple[object, dict]:
     """The reset arm's world: a simulated hand stepped whenever the arm's tick waits for it
     (as the hand's driver node does), or the emulated hand whose emulator runs the arm."""
@@ -106,7 +116,7 @@ def _pose_stream(port: int) -> subprocess.Popen:
     return p
 
 
-@pytest.fixture(params=CONTRACT_BACKENDS, ids=lambda p: f"{p[0]}-{p[1]}")
+@pytest.fixture(params=CONTRACT_BACKENDS, ids=_backend_id)
 def driver(request):
     robot, backend, params = request.param
     stop = threading.Event()
@@ -421,9 +431,9 @@ def test_both_roach_backends_report_the_same_flags():
 SIM_CANNOT_FREEZE = "a sim backend's device is the physics stepped by tick() in the driver's process"
 
 
+@pytest.mark.parametrize("driver", SIM_BACKENDS, indirect=True, ids=_backend_id)  # the others: the test below
 def test_sim_device_cannot_freeze_apart_from_its_host(driver):
-    if driver.backend != "sim":
-        return  # emulated and real backends: the freeze test below
+    assert driver.backend == "sim"
     driver.configure()
     o1, t1 = driver.read(), driver.now()
     ages1 = driver.inputs.ages(t1) if driver.inputs is not None else {}
@@ -440,6 +450,7 @@ ONE_WAY_STOP = ("shadow_hand", "sawyer", "reset_arm", "velociroach")
 
 
 @pytest.mark.parametrize("sig", ["SIGSTOP", "SIGKILL"])
+@pytest.mark.parametrize("driver", DEVICE_BACKENDS, indirect=True, ids=_backend_id)  # sims: SIM_CANNOT_FREEZE, above
 def test_frozen_or_dead_device_takes_the_error_path(driver, request, sig):
     """Issue 22: the device's process stopped (SIGSTOP: frozen, the link stays open) or killed
     (SIGKILL: dead) while the robot is driven: the reading goes stale (ok False) and, at the
@@ -447,8 +458,7 @@ def test_frozen_or_dead_device_takes_the_error_path(driver, request, sig):
     stop is sent while the port is open, UNCONFIGURED, last_error set, LinkError. A dead robot
     is never commanded again."""
     robot, backend, _ = request.node.callspec.params["driver"]
-    if driver.backend == "sim":
-        return  # cannot freeze apart from its host: SIM_CANNOT_FREEZE, checked above
+    assert driver.backend != "sim"
     sig_no = getattr(signal, sig)
     with driver:
         # the inputs the device must keep sending (a mocap pose fused by a robot may go stale
