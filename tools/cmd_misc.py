@@ -164,7 +164,7 @@ def _device_sets(cfg, names: list[str], field: str, value: str | None) -> list[s
     has = []
     for n in names:
         rc = rig_robot_config(cfg, n)
-        params = getattr(resolve(rc.robot, rc.backend), "params_type", None)
+        params = resolve(rc.robot, rc.backend).params_type  # declared on the contract (None: none)
         if rc.backend == "real" and params is not None and field in params.model_fields:
             has.append((n, rc.params.get(field)))
     if not has:
