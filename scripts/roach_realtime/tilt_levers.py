@@ -16,8 +16,8 @@ Variants (docs/velociroach.md, "A model that predicts the tilt"):
   h4             4-step open-loop loss after the one-step fit (train_horizon=4)
   h4_tiltw5      both
   ens5           an ensemble of 5 (bootstrap)
-  more_data      the current model, also trained on the baseline tuning episodes (800-tune-baseline:
-                 ~120 episodes at both speeds; what more on-policy data at speed would add)
+  more_data      the current model, then 10 more epochs with the baseline tuning episodes added
+                 (800-tune-baseline, both speeds; 36 episodes in seed 0: more data at speed)
 """
 
 import sys
@@ -26,6 +26,7 @@ import time
 import numpy as np
 import torch
 
+from hilstack.drivers.velociroach.config import STATE_NAMES
 from hilstack.learning.mbrl import MbrlConfig, fit_episodes, make_model
 from hilstack.learning.recordings import episodes_from_mcap
 
@@ -47,9 +48,6 @@ seed = int(rep["config"]["seed"])
 rnd = episodes_from_mcap(f"{out}/recordings/000-random.mcap", "roach")
 onp = episodes_from_mcap(f"{out}/recordings/001-mpc.mcap", "roach")
 ev = episodes_from_mcap(f"{out}/recordings/900-eval.mcap", "roach")
-state_names = list(rep["config"].get("state_names") or [])
-from hilstack.drivers.velociroach.config import STATE_NAMES  # noqa: E402
-
 state_names = list(STATE_NAMES)
 action_names = ["leg_vel_l", "leg_vel_r"]
 ir, ip = state_names.index("cos_roll"), state_names.index("cos_pitch")
