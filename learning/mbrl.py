@@ -580,7 +580,7 @@ class MbrlRun:
         end_if = None
         if self.supervisor is not None:  # the supervisor's detectors end episodes too
             stop_if = _or_stop(stop_if, self._episode_ended)
-            if self.pacing.answered:
+            if self.pacing is not None and self.pacing.answered:
                 end_if = self._rig_detectors(first)
         return self.ctl.run_episode(policy, steps, first, stop_if=stop_if,
                                     **({"end_if": end_if} if end_if is not None else {}))
@@ -755,7 +755,7 @@ class MbrlRun:
         ``make(n)`` / ``cost``: the planner with ``n`` samples and its cost (default: the
         path-tracking planner on a straight path at the top speed). None on lockstep rigs
         (the configured samples)."""
-        if self.pacing.answered:
+        if self.pacing is not None and self.pacing.answered:
             return None
         if self.planner_fit is None:
             cfg = self.cfg
