@@ -176,6 +176,31 @@ class HoldActionMap:
 HAND = "shadow_hand"
 
 
+def baoding_rig_problem(rig: str, robot: str = "hand") -> str | None:
+    """Why rig ``rig`` cannot run Baoding, read from its config before anything starts (None: it
+    can): no robot ``robot`` on it, or not a Shadow Hand; the hand's state without the balls'
+    positions (its driver's spec, built and never connected: ``objects_in_state`` and ball
+    trackers); no ``reset:`` section (an episode ends and the balls go back through the rig's
+    reset procedure, docs/reset.md)."""
+    from hilstack.configs.schema import load_rig, load_robot, rig_robot_config
+    from hilstack.drivers.registry import make_driver
+
+    cfg = load_rig(rig)
+    if robot not in cfg.robots:
+        return f"rig {cfg.name} has no robot {robot!r} (robots: {', '.join(cfg.robots)}): Baoding runs on a Shadow Hand"
+    rcfg = rig_robot_config(cfg, robot)
+    if rcfg.robot != load_robot(HAND).robot:
+        return f"rig {cfg.name}'s {robot} is a {rcfg.robot}, not a Shadow Hand ({HAND})"
+    missing = [n for n in BALL_NAMES if n not in make_driver(rcfg).spec.state.names]
+    if missing:
+        return (f"rig {cfg.name}: the {robot}'s state has no {', '.join(missing)} (Baoding needs the balls' positions "
+                "in the hand's state: objects_in_state: true and ball trackers; docs/baoding.md)")
+    if cfg.reset is None:
+        return (f"rig {cfg.name} has no reset: section (Baoding ends episodes on a drop or a timeout and puts the "
+                "balls back through the rig's reset procedure; docs/reset.md)")
+    return None
+
+
 def hold_pose_action() -> np.ndarray:
     """The hand's hold pose (its spec's ``home_action``) in normalized action units [-1, 1]."""
     from hilstack.drivers.registry import spec_of
