@@ -433,6 +433,11 @@ class BaodingConfig(Presets):
     torch_threads: int | None = 1
     batch_size: int = 500
     input_noise_std: float = 0.0
+    #: the reference code's supervised-learning noise (``noiseToSignal`` 0.01): while training,
+    #: Gaussian noise of this share of each channel's std on the model's state inputs and delta
+    #: targets, not the actions (the reference scales by the channel's mean; docs/baoding.md,
+    #: "Training noise"); 0 = none
+    noise_to_signal: float = 0.0
     val_fraction: float = 0.1
     progress: bool = True
     rig_timeout_s: float = 60.0
@@ -462,6 +467,8 @@ class BaodingConfig(Presets):
             problems.append(f"inference_dtype must be 'fp32', 'bf16' or 'auto', got {self.inference_dtype!r}")
         if self.torch_threads is not None and self.torch_threads < 1:
             problems.append(f"torch_threads must be >= 1 or None, got {self.torch_threads}")
+        if not (np.isfinite(self.noise_to_signal) and 0.0 <= self.noise_to_signal <= 1.0):
+            problems.append(f"noise_to_signal must be in [0, 1], got {self.noise_to_signal}")
         if self.train_steps is not None and self.train_steps < 1:
             problems.append(f"train_steps must be >= 1 or None, got {self.train_steps}")
         if self.random_rollouts_per_iteration < 0:
@@ -483,6 +490,7 @@ class BaodingConfig(Presets):
         return MbrlConfig(rig=self.rig, robot=self.robot, seed=self.seed, hidden=tuple(self.hidden),
                           ensemble=self.ensemble, epochs=self.epochs, retrain_epochs=self.retrain_epochs,
                           batch_size=self.batch_size, input_noise_std=self.input_noise_std,
+                          noise_to_signal=self.noise_to_signal,
                           val_fraction=self.val_fraction, body_frame=False, invariant_inputs=(),
                           planner="pddm", samples=self.samples, horizon=self.horizon,
                           progress=self.progress, rig_timeout_s=self.rig_timeout_s)

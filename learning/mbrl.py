@@ -95,6 +95,9 @@ class MbrlConfig(Presets):
     retrain_epochs: int = 20
     batch_size: int = 512
     input_noise_std: float = 0.01
+    #: supervised-learning noise while training, as a share of each channel's std (states and
+    #: deltas; :class:`~hilstack.learning.dynamics.EnsembleDynamics` ``noise_to_signal``)
+    noise_to_signal: float = 0.0
     val_fraction: float = 0.1
     #: learn in the robot's body frame (translation and heading invariance; hilstack.learning.frames)
     body_frame: bool = True
@@ -276,6 +279,7 @@ def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str])
         ensemble=cfg.ensemble,
         hidden=cfg.hidden,
         input_noise_std=cfg.input_noise_std,
+        noise_to_signal=cfg.noise_to_signal,
         state_names=state_names,
         action_names=action_names,
         seed=cfg.seed,

@@ -404,3 +404,14 @@ def test_demo_baoding_rig_option_reaches_the_run_and_unfit_rigs_are_refused_in_o
     assert not ran and not (tmp_path / "o").exists()
     r = CliRunner().invoke(app, ["demo", "arms", "--rig", "hand_sim", "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "--rig is for the roach and baoding demos only" in r.output
+
+
+def test_the_training_noise_setting_reaches_the_runs_model_and_is_bounded():
+    from hilstack.learning.mbrl import make_model
+
+    cfg = BaodingConfig.from_preset("tiny", noise_to_signal=0.05)
+    assert make_model(cfg.mbrl(), ["a", "b"], ["u"]).config["noise_to_signal"] == 0.05
+    assert make_model(BaodingConfig().mbrl(), ["a", "b"], ["u"]).config["noise_to_signal"] == BaodingConfig.noise_to_signal
+    for bad in (-0.1, 2.0, float("inf")):
+        with pytest.raises(ValueError, match="noise_to_signal must be in"):
+            BaodingConfig(noise_to_signal=bad)
