@@ -281,12 +281,12 @@ class _AnswerFirst:
 
 def test_settling_is_timed_from_the_state_after_the_teleport_when_its_answer_comes_first(supervised_rig):
     rig = supervised_rig(steps=[{"kind": "teleport", "timeout_s": 5}], detectors=[])
-    drive_out(rig, steps=20)  # robot time 2 s; the teleport restarts the sim's clock
+    drive_out(rig, steps=10)  # robot time 1 s; the teleport restarts the sim's clock
     gate = _AnswerFirst(rig.sup)
     rig.sup._state = gate
     first = rig.ctl.reset(timeout_s=30, x=0.0, y=0.0, yaw=0.0)
     assert gate.answered_at is not None and gate.held is None  # the answer came first, the state after it
     settle_s, period_s = rig.sup.settle_s, rig.driver.spec.period_s
-    # the new episode starts after settle_s of robot time since the teleport, not 2 s + settle_s
+    # the new episode starts after settle_s of robot time since the teleport, not 1 s + settle_s
     assert first.t_s == pytest.approx(settle_s, abs=period_s + 1e-9), first.t_s
     assert rig.sup.stats["failed"] == 0 and rig.dests() == FULL_CYCLE
