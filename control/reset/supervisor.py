@@ -664,8 +664,11 @@ class ResetSupervisor(Node):
         ``state_seq``) when ``s`` is older. That state was sent before the answer, but the two
         come through different subscriptions, each with its own receiving thread, so on a loaded
         machine the answer can be taken first: wait for the state (at most
-        ``REQUEST_STATE_WAIT_S``; then go on from ``s``, as before the answer named it)."""
+        ``REQUEST_STATE_WAIT_S``; then go on from ``s``, as before the answer named it). Each
+        wait is counted in the report's ``teleport_answer_before_its_state``."""
         want, self._jump_seq = self._jump_seq, -1
+        if s.seq < want:  # the race this waits out, counted in the resets' report
+            self.count("teleport_answer_before_its_state")
         deadline = time.monotonic() + REQUEST_STATE_WAIT_S
         while s.seq < want and (left := deadline - time.monotonic()) > 0:
             m = self._state.wait(left)

@@ -290,3 +290,4 @@ def test_settling_is_timed_from_the_state_after_the_teleport_when_its_answer_com
     # the new episode starts after settle_s of robot time since the teleport, not 1 s + settle_s
     assert first.t_s == pytest.approx(settle_s, abs=period_s + 1e-9), first.t_s
     assert rig.sup.stats["failed"] == 0 and rig.dests() == FULL_CYCLE
+    assert rig.sup.report()["teleport_answer_before_its_state"] == 1
