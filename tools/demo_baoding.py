@@ -406,6 +406,10 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "reward_3d_nowrist": {**REF_SAMPLER, "task_overrides": {"distance": "3d", "wrist_limit_rad": None}},
     "old_targets": {**REF_SAMPLER, "task_overrides": {"radius_m": 0.025, "radius_v_m": None,
                                                       "rate_rad_s": float(np.pi / 5)}},
+    # the reference's training noise (noiseToSignal 0.01), here on each channel's std, and 10x it;
+    # the quick preset otherwise (docs/baoding.md, "Training noise")
+    "noise_001": {"noise_to_signal": 0.01},
+    "noise_01": {"noise_to_signal": 0.1},
 }
 
 
@@ -879,7 +883,7 @@ def torch_threads(n: int) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...]
+    """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...] [--seed S]
     | diagnose RUN_DIR OUT --iteration N``."""
     import argparse
 
@@ -894,6 +898,7 @@ def main(argv: list[str] | None = None) -> None:
     ab = sub.add_parser("ablate", help="run the ablations (all when no NAME is given)")
     ab.add_argument("out", type=Path)
     ab.add_argument("names", nargs="*", metavar="NAME", help="ablation names")
+    ab.add_argument("--seed", type=int, default=0)
     dg = sub.add_parser("diagnose", help="a stopped thesis-scale run's model: held-out probe and closed loop")
     dg.add_argument("run_dir", type=Path)
     dg.add_argument("out", type=Path)
@@ -935,7 +940,7 @@ def main(argv: list[str] | None = None) -> None:
         unknown = [n for n in a.names if n not in ABLATIONS]
         if unknown:
             ap.error(f"unknown ablation(s) {unknown}; known: {', '.join(ABLATIONS)}")
-        print(json.dumps(ablate(a.out, tuple(a.names) or tuple(ABLATIONS)), indent=1))
+        print(json.dumps(ablate(a.out, tuple(a.names) or tuple(ABLATIONS), seed=a.seed), indent=1))
     else:
         print(json.dumps(compare_choices(a.run_dir), indent=1))
 
