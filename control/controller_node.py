@@ -39,6 +39,7 @@ import numpy as np
 
 from hilstack.bus import keys
 from hilstack.bus.cycle import CycleTimer
+from hilstack.bus.lifetime import StopRequested
 from hilstack.bus.node import Node
 from hilstack.bus.schemas import Command, Plan, ResetEvent, ResetPhase, RobotState, SpecMsg
 from hilstack.configs.schema import BusConfig
@@ -121,9 +122,14 @@ class ControllerNode(Node):
 
     # ------------------------------------------------------------------ plumbing
     def wait_ready(self, timeout_s: float = 20.0) -> RobotSpec:
-        """Wait for the robot's spec (published by its driver node)."""
+        """Wait for the robot's spec (published by its driver node). A stop of this node
+        (``stop_event``: Ctrl-C or SIGTERM when it handles signals) ends the wait within 0.1 s
+        with :class:`~hilstack.bus.lifetime.StopRequested`: before, a Ctrl-C while `hil teleop`
+        waited for a rig that was not up was ignored until ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
         while self.spec is None:
+            if self.stop_event.is_set():
+                raise StopRequested(f"stopped while waiting for the spec on {keys.spec(self.rig, self.robot)}")
             m = self._spec.wait(0.1)
             if m is not None:
                 self.spec = RobotSpec.from_dict(m.spec)

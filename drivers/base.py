@@ -69,6 +69,25 @@ class LinkError(RuntimeError):
     """The link to the device is gone or unusable (port vanished, no reply...)."""
 
 
+def require_device(path: str | None, source: Any, field: str, what: str) -> None:
+    """The one check every real driver makes before it opens a device its config names
+    (a serial port, an slcan adapter, a camera's ``/dev/videoN``): a path that does not exist
+    is a :class:`~hilstack.configs.schema.ConfigError` naming the file and ``field``, which every
+    `hil` verb reports in one line with exit 2 (docs/platform.md, "Exit codes": one code for a
+    missing device port on every robot; a port that exists but cannot be used, or stops
+    answering, is a :class:`LinkError`, exit 1). URLs (``socket://``, ``loop://``) and
+    interface names without a ``/`` (``can0``) are left to the opener."""
+    if not path or "://" in path or "/" not in path:
+        return
+    from pathlib import Path
+
+    if not Path(path).exists():
+        from hilstack.configs.schema import ConfigError
+
+        raise ConfigError(source, [(field, f"{path} does not exist ({what} unplugged?); `hil find-port` lists "
+                                           "candidates, `hil doctor RIG` checks the rig")])
+
+
 class Flag(enum.StrEnum):
     """The one vocabulary of ``Observation.flags``, shared by every backend of every robot.
 
