@@ -164,7 +164,7 @@ def _device_sets(cfg, names: list[str], field: str, value: str | None) -> list[s
     has = []
     for n in names:
         rc = rig_robot_config(cfg, n)
-        params = getattr(resolve(rc.robot, rc.backend), "params_type", None)
+        params = resolve(rc.robot, rc.backend).params_type  # declared on the contract (None: none)
         if rc.backend == "real" and params is not None and field in params.model_fields:
             has.append((n, rc.params.get(field)))
     if not has:
@@ -275,8 +275,7 @@ def _bus_key(cfg, name: str) -> str | None:
     from hilstack.drivers.registry import resolve
 
     rc = rig_robot_config(cfg, name)
-    key = getattr(resolve(rc.robot, rc.backend), "shared_bus_key", None)
-    return key(rc) if key is not None else None
+    return resolve(rc.robot, rc.backend).shared_bus_key(rc)
 
 
 def _merge_shared_buses(groups: list[list[str]], keys: dict[str, str | None]) -> list[list[str]]:
@@ -437,7 +436,7 @@ def register(app: typer.Typer) -> None:
             from hilstack.drivers.registry import resolve
 
             sims = [n for n in names if cfg.robots[n].backend == "sim"]
-            if any(getattr(resolve(rig_robot_config(cfg, n).robot, "sim"), "world_follower", False) for n in sims):
+            if any(resolve(rig_robot_config(cfg, n).robot, "sim").follower is not None for n in sims):
                 groups = [sims] + [[n] for n in names if n not in sims]
             # robots on one device bus (the WidowX and its mechanism on one Dynamixel adapter)
             # share one process: only that process may own the port (drivers/dynamixel/bus.py)
