@@ -118,14 +118,17 @@ def test_bench_speed_mode_runs_batched_and_peer_with_identical_reports(tmp_path,
     sizes = []
     real_group = axis._replay_group
     monkeypatch.setattr(bc, "speed_recording", small)
-    monkeypatch.setattr(axis, "_replay_group", lambda built, h, dt: sizes.append((axis.REPLAY_BATCH_JOBS,
-                                                                                   len(built))) or real_group(built, h, dt))
+    monkeypatch.setattr(axis, "_replay_group", lambda built, h, dt: sizes.append(
+        (axis.REPLAY_BATCH_JOBS, len(built), axis.USE_COMPILED)) or real_group(built, h, dt))
     res = bc.run_speed(tmp_path, log=lambda s: None)
     assert res["identical"] and res["verdict"] == "found" and "coulomb_friction" in res["effects"]
     assert res["cpu_s_ratio_peer_over_batched"] > 0 and "peer / batched" in bc.format_speed(res)
-    assert max(n for b, n in sizes if b is None) > 1  # batched: many jobs per replay
-    assert {n for b, n in sizes if b == 1} == {1}  # the peer: one job per replay
-    assert axis.REPLAY_BATCH_JOBS is None  # restored
+    assert max(n for b, n, c in sizes if b is None) > 1  # batched: many jobs per replay
+    assert {n for b, n, c in sizes if b == 1} == {1}  # the peer: one job per replay
+    assert {c for b, n, c in sizes if b == 1} == {False}  # ... through the numpy replay
+    assert {c for b, n, c in sizes if b is None} == {True, False}  # the replay as it runs, and numpy's
+    assert res["cpu_s_ratio_numpy_over_batched"] > 0 and "numpy / batched" in bc.format_speed(res)
+    assert axis.REPLAY_BATCH_JOBS is None and axis.USE_COMPILED is True  # restored
 
 
 def _rich_jobs():
@@ -165,27 +168,26 @@ def test_compiled_replay_equals_the_numpy_replay(monkeypatch):
 
 def test_refinement_with_stacked_windows_equals_a_replay_per_job(monkeypatch):
     """The output-error refinement replays its windows stacked once; its residual is that of replaying
-    each job with the candidate coefficients (checked on the refined fit: the same optimum)."""
+    each job on its own with the same coefficients, each job weighted by the square root of its
+    episode weight (a Gaussian likelihood with the fold/bootstrap counts as weights)."""
+    import scipy.optimize
+
     preps = axis.prepare(generate(SynthConfig(n_episodes=4, duration_s=3.0, seed=6,
                                               effects={"coulomb_friction": {}, "force_offset": {}})))
     fit = axis.fit_axis(preps, ["coulomb_friction", "force_offset"], refine=False)
-    w = np.array([1.0, 2.0, 0.0, 1.0])
+    w = np.array([1.0, 3.0, 0.0, 1.0])
     jobs, wts = axis._oe_jobs(preps, fit, w)
     sims = axis._replay_built(jobs)
-    per_job = sum(wi * float(np.sum((s["x_pred"] - s["x_true"]) ** 2)) for wi, s in zip(wts, sims, strict=True))
+    ex = np.concatenate([np.sqrt(wi) * (s["x_pred"] - s["x_true"]).ravel() for wi, s in zip(wts, sims, strict=True)])
+    ev = np.concatenate([np.sqrt(wi) * (s["v_pred"] - s["v_true"]).ravel() for wi, s in zip(wts, sims, strict=True)])
+    want = np.concatenate([ex / np.sqrt(np.mean(ex**2)), ev / np.sqrt(np.mean(ev**2))])
     seen = []
-    real = axis._replay_stacked
+    real = scipy.optimize.least_squares
 
-    def spy(st, horizon, dt):
-        xs, vs = real(st, horizon, dt)
-        seen.append((st, xs))
-        return xs, vs
+    def spy(fun, x0, **kw):
+        seen.append(fun(np.array(x0, float)))
+        return real(fun, x0, **kw)
 
-    monkeypatch.setattr(axis, "_replay_stacked", spy)
-    axis.refine_output_error(preps, fit.__class__(**{**fit.__dict__, "coef": dict(fit.coef)}), w)
-    st, xs = seen[0]  # the first evaluation: the equation-error start
-    n_w = sum(j["starts"].size for j in jobs)
-    x_true = np.concatenate([s["x_true"] for s in sims])
-    sw2 = np.concatenate([np.full(j["starts"].size, wi) for j, wi in zip(jobs, wts, strict=True)])
-    assert xs.shape[0] == n_w
-    assert float(np.sum(sw2[:, None] * (xs - x_true) ** 2)) == pytest.approx(per_job, rel=1e-12)
+    monkeypatch.setattr(scipy.optimize, "least_squares", spy)
+    axis.refine_output_error(preps, axis.AxisParams(**{**fit.__dict__, "coef": dict(fit.coef)}), w)
+    np.testing.assert_allclose(seen[0], want, rtol=1e-10, atol=1e-12)
