@@ -502,17 +502,21 @@ def _stats_key(params: AxisParams) -> tuple:
             params.sensor["scale_v"], params.eps_v, params.vbat_ref_v)
 
 
-def episode_stats(preps: list[Prepared], params: AxisParams) -> list[Stats]:
+def episode_stats(preps: list[Prepared], params: AxisParams, weights: np.ndarray | None = None) -> list[Stats | None]:
     """Per-episode regression statistics, cached on each episode.
 
     The selection fits the same episode with the same effects and hyper-parameter values many
     times (every fold that trains on it, every bootstrap replicate, the same grid point in every
     round); the statistics depend only on the episode and :func:`_stats_key`, so they are
-    computed once. Weights (folds, bootstrap counts) are applied later in :func:`solve`.
+    computed once. Weights (folds, bootstrap counts) are applied later in :func:`solve`; an episode
+    of weight 0 (held out, not drawn) gets None instead of statistics nobody reads.
     """
     key = _stats_key(params)
-    out = []
-    for p in preps:
+    out: list[Stats | None] = []
+    for i, p in enumerate(preps):
+        if weights is not None and not weights[i]:
+            out.append(None)
+            continue
         s = p.stats_cache.get(key)
         if s is None:
             X, y, _ = design(p, params)
@@ -530,7 +534,7 @@ def solve(stats: list[Stats], weights: np.ndarray | None = None) -> tuple[np.nda
     xtx = sum(wi * s.xtx for wi, s in zip(w, stats, strict=True) if wi)
     xty = sum(wi * s.xty for wi, s in zip(w, stats, strict=True) if wi)
     yty = sum(wi * s.yty for wi, s in zip(w, stats, strict=True) if wi)
-    n = int(sum(wi * s.n for wi, s in zip(w, stats, strict=True)))
+    n = int(sum(wi * s.n for wi, s in zip(w, stats, strict=True) if wi))
     ridge = 1e-10 * (np.trace(xtx) / xtx.shape[0] + 1e-30)
     theta = np.linalg.solve(xtx + ridge * np.eye(xtx.shape[0]), xty)
     sse = float(yty - 2 * theta @ xty + theta @ xtx @ theta)
@@ -667,7 +671,7 @@ def _parabola_min(x, y) -> float:
 
 
 def _sse_for(preps, params, weights):
-    stats = episode_stats(preps, params)
+    stats = episode_stats(preps, params, weights)
     theta, sse, _ = solve(stats, weights)
     return sse, theta
 
