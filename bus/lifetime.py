@@ -71,6 +71,13 @@ def catch_stop_signals() -> None:
             signal.signal(sig, _stop_handler)
 
 
+class StopRequested(Exception):
+    """A stop signal (Ctrl-C, SIGTERM) ended a wait before what it waited for came (a
+    controller waiting for its robot's spec, `hil teleop` with no rig up). Not a failure:
+    `hil` verbs end with one line and exit 0, as `hil drive` does when stopped early
+    (tools/common.py: user_errors)."""
+
+
 def stop_signalled() -> bool:
     """Whether a stop signal reached this process since :func:`catch_stop_signals`."""
     return _stop_signalled.is_set()

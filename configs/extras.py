@@ -22,6 +22,7 @@ OPTIONAL: dict[str, tuple[str, str]] = {
     "pytorch_mppi": ("pytorch-mppi", "pip install 'hilstack[bench]'"),
     "atheris": ("atheris", "pip install 'hilstack[fuzz]'"),
     "textual": ("textual", "pip install 'hilstack[operator]'"),
+    "evdev": ("evdev", "pip install 'hilstack[operator]'"),
     "numba": ("numba", "pip install 'hilstack[speed]'"),
     "metaworld": ("metaworld", "pip install --no-deps metaworld==3.1.1 (no extra: its pins would "
                                "downgrade MuJoCo; scripts/setup.sh installs it)"),

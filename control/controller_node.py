@@ -39,6 +39,7 @@ import numpy as np
 
 from hilstack.bus import keys
 from hilstack.bus.cycle import CycleTimer
+from hilstack.bus.lifetime import StopRequested
 from hilstack.bus.node import Node
 from hilstack.bus.schemas import Command, Plan, ResetEvent, ResetPhase, RobotState, SpecMsg
 from hilstack.configs.schema import BusConfig
@@ -58,7 +59,12 @@ class EpisodeLog:
     actions_norm: list[np.ndarray] = field(default_factory=list)
     times_s: list[float] = field(default_factory=list)
     episode: int = 0
+    #: how long each policy call took [s], in the order the calls were made
     plan_times_s: list[float] = field(default_factory=list)
+    #: for each entry of ``plan_times_s``, which policy call of the episode it timed (0 = the
+    #: first): a call with no time (the realtime plan still running when the episode ended)
+    #: leaves a gap here instead of shifting every later time onto the wrong call
+    plan_calls: list[int] = field(default_factory=list)
     late_plans: int = 0
     #: realtime mode: cycles whose state did not arrive within half a period (the newest was used)
     stale_states: int = 0
@@ -121,9 +127,14 @@ class ControllerNode(Node):
 
     # ------------------------------------------------------------------ plumbing
     def wait_ready(self, timeout_s: float = 20.0) -> RobotSpec:
-        """Wait for the robot's spec (published by its driver node)."""
+        """Wait for the robot's spec (published by its driver node). A stop of this node
+        (``stop_event``: Ctrl-C or SIGTERM when it handles signals) ends the wait within 0.1 s
+        with :class:`~hilstack.bus.lifetime.StopRequested`: before, a Ctrl-C while `hil teleop`
+        waited for a rig that was not up was ignored until ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
         while self.spec is None:
+            if self.stop_event.is_set():
+                raise StopRequested(f"stopped while waiting for the spec on {keys.spec(self.rig, self.robot)}")
             m = self._spec.wait(0.1)
             if m is not None:
                 self.spec = RobotSpec.from_dict(m.spec)
@@ -245,12 +256,13 @@ class ControllerNode(Node):
                     end_if: Callable[[RobotState], bool] | None = None,
                     refit: SampleRefit | None = None) -> EpisodeLog:
         """Run ``policy`` for up to ``steps`` states in the robot's time model (the spec's
-        :attr:`pacing`): :meth:`run_lockstep` on a ``LOCKSTEP`` sim, :meth:`run_realtime`
+        :attr:`pacing`): :meth:`run_lockstep` on a sim stepped on its answers (``LOCKSTEP``,
+        ``FOLLOWER``), :meth:`run_realtime`
         otherwise (``first``, a state already taken, is where a lockstep episode starts; the
         realtime loop starts on fresh states). ``end_if`` (lockstep): see :meth:`run_lockstep`.
         ``refit``: realtime only (the sample count follows the load); a lockstep sim has no
         deadline and ignores it."""
-        if self.pacing is Pacing.LOCKSTEP:
+        if self.pacing.answered:
             return self.run_lockstep(policy, steps, first, stop_if=stop_if, end_if=end_if)
         return self.run_realtime(policy, steps, stop_if=stop_if, refit=refit)
 
@@ -284,6 +296,7 @@ class ControllerNode(Node):
             log.actions.append(a)
             log.actions_norm.append(self.spec.action.normalize(a))
             log.times_s.append(s.t_s)
+            log.plan_calls.append(len(log.plan_times_s))  # lockstep: every call is timed
             log.plan_times_s.append(dt)
             s = self._answered(s, a)
             if end_if is not None and end_if(s):
@@ -366,6 +379,7 @@ class ControllerNode(Node):
         th.start()
         fallback: list[np.ndarray] = []  # remaining actions of the last good plan
         busy = False
+        calls = 0  # policy calls started (EpisodeLog.plan_calls)
         unhealthy_cycle = -1  # the last cycle whose state was not ok
         # align the grid with the state stream (see above): the least delayed of three
         # fresh arrivals marks the driver node's grid (a single one may come late)
@@ -413,7 +427,8 @@ class ControllerNode(Node):
                                       "late %.0f%% (%s)", self.robot, r["from"], n, r["at_step"], r["plan_ms_p50"],
                                       r["plan_ms_tail"], 100 * r["late_share"], r["reason"])
                             planner.set_samples(n)
-                    job["x"], job["seq"], job["cycle"] = x, s.seq, i
+                    job["x"], job["seq"], job["cycle"], job["call"] = x, s.seq, i, calls
+                    calls += 1
                     job["committed"] = [a.copy() for a in sent[-delay:]] if delay else []
                     ready.clear()
                     go.set()
@@ -423,6 +438,7 @@ class ControllerNode(Node):
                 if got and job["cycle"] <= unhealthy_cycle:  # planned before a not-ok state
                     busy, got = False, False
                     log.plan_times_s.append(job["result"][2])
+                    log.plan_calls.append(job["call"])
                 if got:
                     a, plan, dt, _ = job["result"]
                     busy = False
@@ -435,6 +451,7 @@ class ControllerNode(Node):
                     fallback = steps_left[skip + 1:]
                     self.publish_plan(policy, dt, False)
                     log.plan_times_s.append(dt)
+                    log.plan_calls.append(job["call"])
                 else:
                     if busy:
                         self.late_count += 1

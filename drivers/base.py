@@ -69,6 +69,25 @@ class LinkError(RuntimeError):
     """The link to the device is gone or unusable (port vanished, no reply...)."""
 
 
+def require_device(path: str | None, source: Any, field: str, what: str) -> None:
+    """The one check every real driver makes before it opens a device its config names
+    (a serial port, an slcan adapter, a camera's ``/dev/videoN``): a path that does not exist
+    is a :class:`~hilstack.configs.schema.ConfigError` naming the file and ``field``, which every
+    `hil` verb reports in one line with exit 2 (docs/platform.md, "Exit codes": one code for a
+    missing device port on every robot; a port that exists but cannot be used, or stops
+    answering, is a :class:`LinkError`, exit 1). URLs (``socket://``, ``loop://``) and
+    interface names without a ``/`` (``can0``) are left to the opener."""
+    if not path or "://" in path or "/" not in path:
+        return
+    from pathlib import Path
+
+    if not Path(path).exists():
+        from hilstack.configs.schema import ConfigError
+
+        raise ConfigError(source, [(field, f"{path} does not exist ({what} unplugged?); `hil find-port` lists "
+                                           "candidates, `hil doctor RIG` checks the rig")])
+
+
 class Flag(enum.StrEnum):
     """The one vocabulary of ``Observation.flags``, shared by every backend of every robot.
 
@@ -275,21 +294,39 @@ class Pacing(enum.StrEnum):
       command planned from the state of period k lands at period k+1, while the one sent
       before it acts. Command delay 1. (Applying before reading stamped every state with a
       command that had not acted yet: recorded transitions one period off; docs/mbrl.md.)
+    * ``FOLLOWER`` (a sim backend that declares a :class:`Follower`, in a rig's ``pace:
+      lockstep``): stepped as ``LOCKSTEP``, but its world is another sim's (the Shadow
+      Hand's reset arm in the hand's scene) and that sim's node advances it: ``tick()``
+      waits for the world to advance one period. The driver node waits at most the
+      follower's ``command_wait_s`` for the answer to its last state, then steps with the
+      command it holds, so its states keep coming while nobody commands it and the world's
+      time steps are the leader's alone. Command delay 0.
     """
 
     STEPPED = "stepped"
     LOCKSTEP = "lockstep"
     WALL_CLOCK = "wall_clock"
+    FOLLOWER = "follower"
 
     @classmethod
-    def of_backend(cls, backend: str, pace: str = "realtime") -> Pacing:
+    def of_backend(cls, backend: str, pace: str = "realtime", follower: bool = False) -> Pacing:
         """The pacing of a backend kind ("sim", "emulated", "real") run at a rig's ``pace``
-        ("realtime" or "lockstep"): the one place that maps them. Lockstep needs a sim."""
+        ("realtime" or "lockstep"): the one place that maps them. Lockstep needs a sim;
+        ``follower``: the backend declares a :class:`Follower` (``Driver.follower``)."""
         if backend == "sim":
-            return cls.LOCKSTEP if pace == "lockstep" else cls.STEPPED
+            if pace != "lockstep":
+                return cls.STEPPED
+            return cls.FOLLOWER if follower else cls.LOCKSTEP
         if pace == "lockstep":
             raise ValueError(f"pace 'lockstep' needs a sim backend, not {backend!r}")
         return cls.WALL_CLOCK
+
+    @property
+    def answered(self) -> bool:
+        """The driver node steps on the answer to its last published state, not on the wall
+        clock (``LOCKSTEP``; ``FOLLOWER`` waits for it at most its command wait): a controller
+        answers every state, staleness is robot time and a plan has no wall-clock deadline."""
+        return self in (Pacing.LOCKSTEP, Pacing.FOLLOWER)
 
     @property
     def stepped(self) -> bool:
@@ -482,6 +519,31 @@ class RobotSpec:
         return [n[: -len("_pos")] for n in self.state.names if n.endswith("_pos")]
 
 
+#: the longest a follower's driver node waits for a command before it steps on [s, wall]
+MAX_FOLLOW_COMMAND_WAIT_S = 1.0
+
+
+@dataclass(frozen=True)
+class Follower:
+    """Declared by a sim backend that works in another sim backend's world and follows its
+    clock (``Driver.follower``; the Shadow Hand's reset arm joins the hand's scene, and its
+    ``tick()`` waits until the hand's driver node has advanced the scene one period). A
+    driver node runs it at ``pace: lockstep`` as :attr:`Pacing.FOLLOWER`.
+
+    ``command_wait_s``: how long that node waits [s, wall clock] for the command answering
+    its last state before it steps with the one it holds; idle, it so still publishes every
+    period of the world (a drop detector watching the arm's ball channels sees a drop
+    without lag). Finite, in ``(0, MAX_FOLLOW_COMMAND_WAIT_S]``."""
+
+    command_wait_s: float
+
+    def __post_init__(self) -> None:
+        w = self.command_wait_s
+        if not (isinstance(w, (int, float)) and math.isfinite(w) and 0 < w <= MAX_FOLLOW_COMMAND_WAIT_S):
+            raise ValueError(f"Follower.command_wait_s must be a number in (0, {MAX_FOLLOW_COMMAND_WAIT_S:g}] s, "
+                             f"got {w!r}")
+
+
 def _pacing(value: Any) -> Pacing:
     try:
         return Pacing(value)
@@ -570,7 +632,7 @@ class Perturbable(Protocol):
 
 def sim_controls(driver: Driver) -> SimControls | None:
     """The driver's sim controls, or None when it has none (real and emulated backends)."""
-    return driver if getattr(driver, "backend", None) == "sim" and isinstance(driver, SimControls) else None
+    return driver if driver.backend == "sim" and isinstance(driver, SimControls) else None
 
 
 def perturbable(driver: Driver) -> Perturbable | None:
@@ -594,6 +656,16 @@ class Driver(ABC):
     #: the inputs the backend fuses (None: none). Any of them past its ``fail_after_s`` is a
     #: dead device: ``read()`` and ``write()`` take the error path (:meth:`_expire_inputs`)
     inputs: Inputs | None = None
+    #: a sim backend that works in another sim's world and follows its clock declares how
+    #: (:class:`Follower`; a driver node runs it at ``pace: lockstep`` as ``Pacing.FOLLOWER``,
+    #: and ``hil up`` runs it in one process with the rig's other sims); None: it owns its clock
+    follower: ClassVar[Follower | None] = None
+
+    def __init_subclass__(cls, **kw: Any) -> None:
+        super().__init_subclass__(**kw)
+        if cls.follower is not None and not (isinstance(cls.follower, Follower) and cls.backend == "sim"):
+            raise TypeError(f"{cls.__name__}.follower must be a Follower on a sim backend "
+                            f"(backend {cls.backend!r}, follower {cls.follower!r}): only a sim follows another's world")
 
     def __init__(self) -> None:
         self._lifecycle = Lifecycle.UNCONFIGURED
@@ -942,7 +1014,26 @@ class Driver(ABC):
     def pacing(self) -> Pacing:
         """This backend's time model (:class:`Pacing`): the driver node's loop order and the
         command delay a planner must predict through."""
-        return Pacing.of_backend(self.backend)
+        return self.pacing_at("realtime")
+
+    def pacing_at(self, pace: str) -> Pacing:
+        """The time model a driver node runs this backend in at a rig's ``pace`` ("realtime"
+        or "lockstep"; lockstep needs a sim, ValueError otherwise): ``FOLLOWER`` for a
+        declared :attr:`follower` in lockstep."""
+        return Pacing.of_backend(self.backend, pace, follower=self.follower is not None)
+
+    @classmethod
+    def shared_bus_key(cls, cfg: Any) -> str | None:
+        """Robots whose configs (``configs.schema.RobotConfig``) give the same key share one
+        device port and must run in one process (``hil up`` groups them: the WidowX and its
+        reset mechanism on one Dynamixel adapter); None (the default): the robot owns its link."""
+        return None
+
+    def tracking_error(self, state: np.ndarray, action: np.ndarray) -> dict | None:
+        """How well a joint-space robot tracked ``action`` (what `hil drive` prints: the
+        measured ``state`` against the commanded targets), or None (the default) when the
+        robot does not report it."""
+        return None
 
     @property
     def held_command(self) -> np.ndarray | None:

@@ -91,7 +91,7 @@ class DriverNode(Node):
             raise ValueError(f"resume_ok_readings must be an integer in [1, {MAX_RESUME_OK_READINGS}], "
                              f"got {resume_ok_readings!r}")
         try:  # before the session opens
-            pacing = Pacing.of_backend(driver.backend, pace)
+            pacing = driver.pacing_at(pace)
         except ValueError:
             raise ValueError(f"pace {pace!r} needs a sim backend; {robot} is {driver.backend}") from None
         access = bus is not None and bus.access is not None
@@ -115,8 +115,9 @@ class DriverNode(Node):
         self.watchdog_s = watchdog_periods * driver.spec.period_s
         # a sim that follows another robot's clock (the hand's reset arm, whose world the
         # hand's node advances) must not hold its own states back while nobody commands it
-        follow_s = getattr(driver, "lockstep_command_wait_s", None)
-        self.lockstep_timeout_s = lockstep_timeout_s if follow_s is None else min(follow_s, lockstep_timeout_s)
+        follow = driver.follower if pacing is Pacing.FOLLOWER else None
+        self.lockstep_timeout_s = lockstep_timeout_s if follow is None else min(follow.command_wait_s,
+                                                                                lockstep_timeout_s)
         #: how long a starting node asks its peers for a latched e-stop [s]
         self.estop_sync_s = estop_sync_s
         self.stats = BridgeStats()
@@ -128,7 +129,7 @@ class DriverNode(Node):
         self.unhealthy = False
         self._ok_run = 0
         # lockstep: the controller answers every state, a lost one stalls the loop
-        self._state_pub = self.publisher(keys.state(rig, robot), RobotState, reliable=pacing is Pacing.LOCKSTEP)
+        self._state_pub = self.publisher(keys.state(rig, robot), RobotState, reliable=pacing.answered)
         self._spec_pub = self.publisher(keys.spec(rig, robot), SpecMsg, reliable=True)  # rare; every reader needs it
         self._cmd = self.subscribe(keys.cmd(rig, robot), Command)
         self._estop_ack = self.publisher(keys.estop_ack(rig), EStopAck)
@@ -150,7 +151,7 @@ class DriverNode(Node):
     # ------------------------------------------------------------------ pieces
     def _clock(self) -> float:
         # lockstep staleness is measured in robot time, realtime in wall time
-        return self.driver.now() if self.pacing is Pacing.LOCKSTEP else time.monotonic()
+        return self.driver.now() if self.pacing.answered else time.monotonic()
 
     def _engage(self, m: EStop) -> None:
         if self.estopped:
@@ -406,7 +407,7 @@ class DriverNode(Node):
         (``RobotState.action``; ``learning/recordings.py`` pairs ``(s_t, s_{t+1}.action,
         s_{t+1})``). The node's :class:`~hilstack.drivers.base.Pacing` decides the order:
 
-        * ``STEPPED``, ``LOCKSTEP`` (sim): apply the newest command, ``tick()`` (physics advances one
+        * ``STEPPED``, ``LOCKSTEP``, ``FOLLOWER`` (sim): apply the newest command, ``tick()`` (physics advances one
           period under it), read and publish.
         * ``WALL_CLOCK`` (real, emulated): the robot moved during the period before this
           step, under the command held then: read and publish *first*, then apply the newest
@@ -416,11 +417,12 @@ class DriverNode(Node):
 
         It also decides where the command comes from: ``STEPPED`` and ``WALL_CLOCK`` take the
         newest one (the loop is paced on the wall clock by ``run()``), ``LOCKSTEP`` waits for
-        the answer to the last published state (``lockstep_timeout_s``).
+        the answer to the last published state (``lockstep_timeout_s``), ``FOLLOWER`` for at
+        most its declared command wait.
         """
         timer = self.cycle
         read_first = self.pacing.read_before_apply
-        lockstep = self.pacing is Pacing.LOCKSTEP
+        lockstep = self.pacing.answered
         if lockstep:
             if self._last_state is None:
                 self.publish_state()
@@ -452,15 +454,16 @@ class DriverNode(Node):
         on; meanwhile, once a second, it sends its spec and the same state again (same sequence
         number: a node that has it sees nothing new, one that joined late or missed it can answer),
         and when its status changes (an e-stop) the state as it is now (a new message; an answer
-        to either is taken). A sim that follows another robot's clock
-        (``lockstep_command_wait_s``: the hand's reset arm, whose world the hand's node
-        advances) returns None instead, so its states keep coming while nobody commands it.
+        to either is taken). A ``FOLLOWER`` (a sim in another robot's world, the hand's reset
+        arm, whose world the hand's node advances; ``lockstep_timeout_s`` is then its declared
+        ``Follower.command_wait_s``) returns None instead, so its states keep coming while
+        nobody commands it.
         A reset request that came before the command is served first: the command then
         answers a state from before the reset and waits for its successor's answer (messages
         of one sender arrive in order; the supervisor asks for a teleport before it answers)."""
         want = self._last_state.seq
         deadline = time.monotonic() + self.lockstep_timeout_s
-        follower = getattr(self.driver, "lockstep_command_wait_s", None) is not None
+        follower = self.pacing is Pacing.FOLLOWER
         while not self.stop_event.is_set():
             self._handle_estop()
             if self._handle_reset(publish_first=True):  # the fresh state of the new episode; wait for its answer
@@ -508,7 +511,7 @@ class DriverNode(Node):
                 d.activate()
             d.stop()  # nothing moves until the first command
             self.publish_spec()
-            if self.pacing is Pacing.LOCKSTEP:  # paced by the answers, not by a clock
+            if self.pacing.answered:  # paced by the answers (a follower: its world), not by a clock
                 n = 0
                 while not self.stop_event.is_set() and (max_steps is None or n < max_steps):
                     self.step()

@@ -36,7 +36,6 @@ from hilstack.configs.schema import BusConfig, Strict, load_task, parse_model
 from hilstack.control.costs import BaodingCost, baoding_episode_metrics
 from hilstack.control.planners import PddmConfig
 from hilstack.control.policies import MpcPolicy
-from hilstack.drivers.base import Pacing
 from hilstack.learning.datasets import Episode
 from hilstack.learning.mbrl import (
     MbrlConfig,
@@ -638,7 +637,7 @@ class BaodingRun(MbrlRun):
         """Wall-clock hands: PDDM's K cut until its median plan fits the period's budget on
         this machine (the thesis' K = 700 through 3 x 2x500 took ~200 ms per plan on one
         core here, twice the 100 ms period). None on lockstep rigs."""
-        if self.pacing is Pacing.LOCKSTEP:
+        if self.pacing is not None and self.pacing.answered:
             return None
         cost = BaodingCost(self.task, self.features.names, self.period_s)
         init = self._init_mean()

@@ -143,6 +143,8 @@ class EnsembleDynamics(nn.Module):
         hidden: hidden layer widths.
         lr, weight_decay: Adam settings.
         input_noise_std: std of Gaussian noise added to the normalized inputs while training.
+        loss_weights: per state channel weight of the normalized delta's squared error in the
+            training loss (default: all 1); scaled to mean 1, so the loss stays comparable.
         bootstrap: resample training data per member; default ``ensemble > 1``.
         norm_update: ``"refit"`` or ``"freeze"`` (see module docstring).
         inference_dtype: ``"fp32"`` (default), ``"bf16"`` or ``"auto"``.
@@ -160,6 +162,7 @@ class EnsembleDynamics(nn.Module):
         lr: float = 1e-3,
         weight_decay: float = 0.0,
         input_noise_std: float = 0.0,
+        loss_weights: Sequence[float] | None = None,
         bootstrap: bool | None = None,
         norm_update: str = "refit",
         inference_dtype: str = "fp32",
@@ -172,6 +175,11 @@ class EnsembleDynamics(nn.Module):
         super().__init__()
         if norm_update not in ("refit", "freeze"):
             raise ValueError(f"norm_update must be 'refit' or 'freeze', got {norm_update!r}")
+        if loss_weights is not None:
+            lw = np.asarray(loss_weights, dtype=float)
+            if lw.shape != (int(state_dim),) or not np.all(np.isfinite(lw)) or np.any(lw < 0) or lw.sum() <= 0:
+                raise ValueError(f"loss_weights must be {int(state_dim)} finite weights >= 0 (not all 0), "
+                                 f"got {list(loss_weights)}")
         self.config = dict(
             state_dim=int(state_dim),
             action_dim=int(action_dim),
@@ -180,6 +188,7 @@ class EnsembleDynamics(nn.Module):
             lr=float(lr),
             weight_decay=float(weight_decay),
             input_noise_std=float(input_noise_std),
+            loss_weights=None if loss_weights is None else [float(w) for w in loss_weights],
             bootstrap=bool(ensemble > 1) if bootstrap is None else bool(bootstrap),
             norm_update=norm_update,
             inference_dtype=inference_dtype,
@@ -507,6 +516,7 @@ class EnsembleDynamics(nn.Module):
             horizon = min(horizon, max(len(e) for e in val.episodes))
             windows = h_step_windows(val.episodes, horizon, max_val_starts)
         noise = self.config["input_noise_std"]
+        w_out = self.loss_weight_tensor()
         start_epoch = self.history[-1]["epoch"] + 1 if self.history else 0
         entries: list[dict] = []
         bar = None
@@ -527,7 +537,7 @@ class EnsembleDynamics(nn.Module):
                     xb = xb + noise * torch.randn(xb.shape, generator=self._gen)
                 pred = self.forward_normalized(xb)
                 # sum over members of each member's mean loss: members train independently
-                loss = ((pred - yb) ** 2).mean(dim=(1, 2)).sum()
+                loss = (((pred - yb) ** 2) * w_out).mean(dim=(1, 2)).sum()
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
@@ -547,6 +557,14 @@ class EnsembleDynamics(nn.Module):
             bar.close()
         self.eval()
         return entries
+
+    def loss_weight_tensor(self) -> torch.Tensor:
+        """``[S]`` training weights per state channel (``loss_weights`` scaled to mean 1; ones)."""
+        lw = self.config.get("loss_weights")
+        if lw is None:
+            return torch.ones(self.state_dim)
+        w = torch.as_tensor(lw, dtype=torch.float32)
+        return w * (len(w) / w.sum())
 
     # -- validation ------------------------------------------------------------------------
     def evaluate(

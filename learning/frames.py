@@ -76,8 +76,12 @@ class PlanarFrame:
 class BodyFrameDynamics:
     """``predict(state, action)`` like :class:`EnsembleDynamics`, learned in the body frame."""
 
-    def __init__(self, model: EnsembleDynamics, state_names: Sequence[str]):
+    def __init__(self, model: EnsembleDynamics, state_names: Sequence[str], train_horizon: int | None = None):
         self.model = model
+        if train_horizon is not None:
+            if not 1 <= int(train_horizon) <= 50:
+                raise ValueError(f"train_horizon must be in 1..50, got {train_horizon}")
+            model.config["train_horizon"] = int(train_horizon)
         self.frame = PlanarFrame(state_names)
         self.state_names = list(state_names)
         if model.state_names is None:
@@ -118,9 +122,63 @@ class BodyFrameDynamics:
         horizon = kw.pop("horizon", 4)
         hist = self.model.fit(self.body_episodes(episodes), val=self.body_episodes(val) if val else None,
                               horizon=1, **kw)
+        if self.train_horizon > 1 and hist:
+            hist[-1]["train_h_loss"] = self.fit_open_loop(episodes, self.train_horizon, kw.get("epochs", 50),
+                                                          kw.get("batch_size", 512))
         if val and hist:
             hist[-1].update(self.validation_errors(episodes, val, horizon))
         return hist
+
+    @property
+    def train_horizon(self) -> int:
+        """H of the open-loop training loss (:meth:`fit_open_loop`); 1: one-step training only."""
+        return int(self.model.config.get("train_horizon", 1))
+
+    def fit_open_loop(self, episodes: Sequence[Episode], horizon: int, epochs: int, batch_size: int = 512) -> float:
+        """Train on the ``horizon``-step open-loop error, after the one-step fit (multi-step loss).
+
+        From every start state ``s_t`` of the episodes the model is rolled out through the
+        logged actions as the planner rolls it (each step in the body frame of its own
+        predicted state), and the loss is the mean over steps of the squared error in the
+        body frame of ``s_t``, per channel divided by the one-step delta std and weighted by
+        the model's ``loss_weights``: errors that compound over the planner's horizon (a
+        roll building up in a turn) are trained on directly, not only one step at a time.
+        Uses the model's optimizer (Adam). Returns the last epoch's mean loss.
+        """
+        m = self.model
+        start, actions, truth = h_step_windows(episodes, horizon, max_starts=None)
+        s0 = torch.as_tensor(start, dtype=torch.float32)
+        a = torch.as_tensor(actions, dtype=torch.float32)
+        y = torch.as_tensor(truth, dtype=torch.float32)
+        P, E = s0.shape[0], m.ensemble
+        scale = m.delta_std.clamp_min(1e-6)
+        w = m.loss_weight_tensor()
+        opt = m._optimizer
+        if opt is None:
+            raise RuntimeError("fit_open_loop follows a one-step fit (it continues its optimizer)")
+        gen = torch.Generator().manual_seed(2 + int(m.config.get("seed") or 0))
+        last = float("nan")
+        m.train()
+        for _ in range(int(epochs)):
+            order = torch.randperm(P, generator=gen)
+            total, n = 0.0, 0
+            for i in range(0, P, batch_size):
+                idx = order[i : i + batch_size]
+                ref = s0[idx].unsqueeze(0).expand(E, -1, -1)
+                cur, loss = ref, 0.0
+                for k in range(horizon):
+                    nxt = m._predict_diff(self.frame.to_body(cur, cur), a[idx, k])
+                    cur = self.frame.to_world(nxt, cur)
+                    d = (self.frame.to_body(cur, ref) - self.frame.to_body(y[idx, k].expand(E, -1, -1), ref)) / scale
+                    loss = loss + ((d**2) * w).mean(dim=(1, 2)).sum() / horizon
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                total, n = total + float(loss.detach()) / E, n + 1
+            last = total / max(n, 1)
+        m._fast = None
+        m.eval()
+        return last
 
     def validation_errors(self, train: Sequence[Episode], val: Sequence[Episode], horizon: int) -> dict[str, float]:
         """The open-loop errors :meth:`fit` reports (see there)."""

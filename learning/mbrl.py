@@ -96,6 +96,12 @@ class MbrlConfig(Presets):
     batch_size: int = 512
     input_noise_std: float = 0.01
     val_fraction: float = 0.1
+    #: issue 29, a model that sees a tip coming: the weight of the tilt channels (cos/sin of roll
+    #: and pitch, and the body rates wx, wy) in the training loss, the others 1 (EnsembleDynamics
+    #: loss_weights); and the horizon of the open-loop training loss after the one-step fit
+    #: (BodyFrameDynamics.fit_open_loop; 1: one-step only, the thesis)
+    tilt_loss_weight: float = 1.0
+    train_horizon: int = 1
     #: learn in the robot's body frame (translation and heading invariance; hilstack.learning.frames)
     body_frame: bool = True
     #: otherwise: inputs the model ignores (planar translation invariance)
@@ -179,6 +185,12 @@ class MbrlConfig(Presets):
             problems.append(f"tip_weight must be in [0, 1e4], got {self.tip_weight}")
         if not (math.isfinite(self.tip_threshold_deg) and 0.0 < self.tip_threshold_deg < 90.0):
             problems.append(f"tip_threshold_deg must be in (0, 90), got {self.tip_threshold_deg}")
+        if not (math.isfinite(self.tilt_loss_weight) and 0.0 < self.tilt_loss_weight <= 1e3):
+            problems.append(f"tilt_loss_weight must be in (0, 1e3], got {self.tilt_loss_weight}")
+        if not 1 <= self.train_horizon <= 50:
+            problems.append(f"train_horizon must be in 1..50, got {self.train_horizon}")
+        if self.train_horizon > 1 and not self.body_frame:
+            problems.append("train_horizon > 1 needs body_frame (the open-loop loss rolls the body-frame model)")
         if self.experiments and not self.seeds:
             problems.append("seeds: the experiments need at least one seed")
         if problems:
@@ -269,19 +281,27 @@ class PathEnd:
 
 
 # ---------------------------------------------------------------------------- model
+#: the channels ``tilt_loss_weight`` weighs: roll and pitch and their rates
+TILT_CHANNELS = ("cos_roll", "sin_roll", "cos_pitch", "sin_pitch", "wx", "wy")
+
+
 def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str]):
+    weights = None
+    if cfg.tilt_loss_weight != 1.0:
+        weights = [cfg.tilt_loss_weight if n in TILT_CHANNELS else 1.0 for n in state_names]
     model = EnsembleDynamics(
         len(state_names),
         len(action_names),
         ensemble=cfg.ensemble,
         hidden=cfg.hidden,
         input_noise_std=cfg.input_noise_std,
+        loss_weights=weights,
         state_names=state_names,
         action_names=action_names,
         seed=cfg.seed,
     )
     if cfg.body_frame:
-        return BodyFrameDynamics(model, state_names)
+        return BodyFrameDynamics(model, state_names, train_horizon=cfg.train_horizon)
     ignore = [state_names.index(n) for n in cfg.invariant_inputs if n in state_names]
     if ignore:
         model.ignore_inputs(ignore)
@@ -560,7 +580,7 @@ class MbrlRun:
         end_if = None
         if self.supervisor is not None:  # the supervisor's detectors end episodes too
             stop_if = _or_stop(stop_if, self._episode_ended)
-            if self.pacing is Pacing.LOCKSTEP:
+            if self.pacing is not None and self.pacing.answered:
                 end_if = self._rig_detectors(first)
         return self.ctl.run_episode(policy, steps, first, stop_if=stop_if,
                                     **({"end_if": end_if} if end_if is not None else {}))
@@ -735,7 +755,7 @@ class MbrlRun:
         ``make(n)`` / ``cost``: the planner with ``n`` samples and its cost (default: the
         path-tracking planner on a straight path at the top speed). None on lockstep rigs
         (the configured samples)."""
-        if self.pacing is Pacing.LOCKSTEP:
+        if self.pacing is not None and self.pacing.answered:
             return None
         if self.planner_fit is None:
             cfg = self.cfg

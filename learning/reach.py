@@ -366,8 +366,11 @@ class ReachRun:
         pol = HeldPolicy(inner, self.hold, self.channels)
         log = self.loop.episode(pol, self.cfg.episode_steps * self.hold, {})
         states = np.asarray(log.states)[:: self.hold][:, self.channels]
-        # the policy's own steps only: the held steps in between take no planning
-        return {"q": states[:, : self.n_joints], "plan_s": log.plan_times_s[:: self.hold], "late_plans": log.late_plans}
+        # the policy's own steps only (HeldPolicy runs its inner policy on every hold-th call):
+        # the held calls in between take no planning. Selected by the call each time measured,
+        # not by its position in the list, which a call with no time would shift
+        plan_s = [t for t, c in zip(log.plan_times_s, log.plan_calls, strict=True) if c % self.hold == 0]
+        return {"q": states[:, : self.n_joints], "plan_s": plan_s, "late_plans": log.late_plans}
 
     def score(self, q: np.ndarray, goal: np.ndarray) -> dict[str, Any]:
         d = np.linalg.norm(self.fk.position(q) - goal, axis=-1)

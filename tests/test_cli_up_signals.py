@@ -161,3 +161,34 @@ def test_a_robot_node_that_does_not_stop_is_dumped_and_killed_after_the_grace():
     assert code == 1, err
     assert "robot mechanism: its node did not stop within 1 s" in err and "robot arm" not in err, err
     assert "stuck_in_device_close" in err, err  # the stuck node's own stack, for the log
+
+
+@pytest.mark.skipif(__import__("shutil").which("tmux") is None, reason="tmux not installed (scripts/setup.sh installs it)")
+def test_up_in_a_terminal_shows_a_live_status_line_after_up():
+    """`hil up pointmass_sim` in a real terminal (tmux): "pm up on ..." first, then one status
+    line redrawn in place with the robot's state and rate (its driver node's newest state); Ctrl-C
+    ends it, exit 0,
+    its "down" summary on a line of its own."""
+    from tests.test_teleop import Tmux
+
+    term = Tmux.__new__(Tmux)  # the same private tmux server, running `hil up` instead of teleop
+    term.sock = f"hil-up-{os.getpid()}-{free_port()}"
+    env = f"PYTHONPATH={ROOT} PYTHONUNBUFFERED=1 HOME={os.environ['HOME']}"
+    term._tmux("new-session", "-d", "-s", "t", "-x", "200", "-y", "20",
+               f"cd {ROOT} && {env} {sys.executable} -m hilstack.tools.cli up pointmass_sim --endpoint "
+               f"tcp/127.0.0.1:{free_port()}; echo UP_EXIT=$?; sleep 600")
+    try:
+        wait_for(lambda: " Hz " in term.screen(), START_BOUND_S, "the status line with the robot's rate")
+        screen = term.screen()
+        lines = [ln for ln in screen.splitlines() if ln.strip()]
+        up_at = next(i for i, ln in enumerate(lines) if ln.startswith("pm up on hil/pointmass_sim/pm"))
+        status = [ln for ln in lines if ln.startswith("pm: ok active")]
+        assert len(status) == 1 and lines.index(status[0]) > up_at, screen  # one line, redrawn in place
+        assert " Hz" in status[0] and "quality=" in status[0], status
+        term.keys("C-c")
+        wait_for(lambda: "UP_EXIT=" in term.screen(), STOP_BOUND_S, "hil up to exit")
+        screen = term.screen()
+    finally:
+        term.close()
+    assert "UP_EXIT=0" in screen, screen
+    assert any(ln.startswith("pm down: BridgeStats(") for ln in screen.splitlines()), screen

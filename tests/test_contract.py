@@ -17,7 +17,16 @@ import time
 import numpy as np
 import pytest
 
-from hilstack.drivers.base import FLAG_NAMES, CommandError, Lifecycle, LifecycleError, LinkError
+from hilstack.drivers.base import (
+    FLAG_NAMES,
+    MAX_FOLLOW_COMMAND_WAIT_S,
+    CommandError,
+    Follower,
+    Lifecycle,
+    LifecycleError,
+    LinkError,
+    Pacing,
+)
 from hilstack.drivers.registry import make_driver
 from tests.helpers import ROOT, free_port
 
@@ -47,6 +56,16 @@ CONTRACT_BACKENDS = [
     ("wheeled", "sim", {}),  # sim only: the SIDM setting (docs/transfer.md)
     ("pan_unit", "emulated", {}),
 ]
+
+
+#: the sims (whose device is the physics in the driver's process) and the backends with a device
+#: of their own (a process that can freeze or die apart from the driver's)
+SIM_BACKENDS = [b for b in CONTRACT_BACKENDS if b[1] == "sim"]
+DEVICE_BACKENDS = [b for b in CONTRACT_BACKENDS if b[1] != "sim"]
+
+
+def _backend_id(p) -> str:
+    return f"{p[0]}-{p[1]}"
 
 
 def _hand_for_the_arm(backend: str, stop: threading.Event, params: dict) -> tuple[object, dict]:
@@ -97,7 +116,7 @@ def _pose_stream(port: int) -> subprocess.Popen:
     return p
 
 
-@pytest.fixture(params=CONTRACT_BACKENDS, ids=lambda p: f"{p[0]}-{p[1]}")
+@pytest.fixture(params=CONTRACT_BACKENDS, ids=_backend_id)
 def driver(request):
     robot, backend, params = request.param
     stop = threading.Event()
@@ -140,13 +159,33 @@ def _device_pid(d, hand, stream: subprocess.Popen | None) -> int | None:
     return None
 
 
-def test_spec_readable_before_connecting(driver):
+@pytest.mark.parametrize("robot,backend,params", CONTRACT_BACKENDS, ids=lambda p: p if isinstance(p, str) else "")
+def test_spec_readable_before_connecting(robot, backend, params):
+    """The spec, and the time model it carries, are read before connecting (so no device,
+    emulator or world is started for this test). The time model is declared, never probed:
+    a rig's lockstep pace is a sim's alone, and a sim that follows another sim's world
+    (``Driver.follower``, the hand's reset arm) declares a bounded command wait and runs as
+    ``Pacing.FOLLOWER`` in lockstep."""
+    driver = make_driver(robot, backend=backend, **params)
     sp = driver.spec
     assert driver.lifecycle is Lifecycle.UNCONFIGURED
     assert sp.state.dim == len(sp.state.names) == len(sp.state.units) > 0
     # sensors (mocap, cameras) have no action channels; actuators have finite limits
     assert np.all(np.isfinite(sp.action.low)) and np.all(np.isfinite(sp.action.high))
     assert sp.period_s > 0
+    assert sp.pacing is driver.pacing is driver.pacing_at("realtime") is Pacing.of_backend(driver.backend)
+    f = driver.follower
+    if driver.backend != "sim":
+        assert f is None
+        with pytest.raises(ValueError, match="needs a sim"):
+            driver.pacing_at("lockstep")
+    else:
+        assert driver.pacing_at("lockstep") is (Pacing.LOCKSTEP if f is None else Pacing.FOLLOWER)
+    if f is not None:
+        assert isinstance(f, Follower) and math.isfinite(f.command_wait_s)
+        assert 0 < f.command_wait_s <= MAX_FOLLOW_COMMAND_WAIT_S
+        assert f.command_wait_s < sp.period_s  # a wait shorter than a period of its world
+    assert driver.lifecycle is Lifecycle.UNCONFIGURED
 
 
 def test_lifecycle_and_refusals(driver):
@@ -392,9 +431,9 @@ def test_both_roach_backends_report_the_same_flags():
 SIM_CANNOT_FREEZE = "a sim backend's device is the physics stepped by tick() in the driver's process"
 
 
+@pytest.mark.parametrize("driver", SIM_BACKENDS, indirect=True, ids=_backend_id)  # the others: the test below
 def test_sim_device_cannot_freeze_apart_from_its_host(driver):
-    if driver.backend != "sim":
-        return  # emulated and real backends: the freeze test below
+    assert driver.backend == "sim"
     driver.configure()
     o1, t1 = driver.read(), driver.now()
     ages1 = driver.inputs.ages(t1) if driver.inputs is not None else {}
@@ -411,6 +450,7 @@ ONE_WAY_STOP = ("shadow_hand", "sawyer", "reset_arm", "velociroach")
 
 
 @pytest.mark.parametrize("sig", ["SIGSTOP", "SIGKILL"])
+@pytest.mark.parametrize("driver", DEVICE_BACKENDS, indirect=True, ids=_backend_id)  # sims: SIM_CANNOT_FREEZE, above
 def test_frozen_or_dead_device_takes_the_error_path(driver, request, sig):
     """Issue 22: the device's process stopped (SIGSTOP: frozen, the link stays open) or killed
     (SIGKILL: dead) while the robot is driven: the reading goes stale (ok False) and, at the
@@ -418,8 +458,7 @@ def test_frozen_or_dead_device_takes_the_error_path(driver, request, sig):
     stop is sent while the port is open, UNCONFIGURED, last_error set, LinkError. A dead robot
     is never commanded again."""
     robot, backend, _ = request.node.callspec.params["driver"]
-    if driver.backend == "sim":
-        return  # cannot freeze apart from its host: SIM_CANNOT_FREEZE, checked above
+    assert driver.backend != "sim"
     sig_no = getattr(signal, sig)
     with driver:
         # the inputs the device must keep sending (a mocap pose fused by a robot may go stale

@@ -415,3 +415,22 @@ def test_a_link_error_raised_inside_a_backend_call_takes_the_error_path(where):
         with pytest.raises(LifecycleError):
             d.write([0.3])
         assert len(d.sent) == n_sent
+
+
+
+def test_optional_capabilities_are_declared_on_the_contract_not_probed():
+    """What `hil up` and `hil drive` ask a driver (its shared device bus, its tracking
+    error) is declared on the base class with a 'none' default, and a robot that has it
+    overrides it: the Dynamixel arms share their adapter, the hand reports its tracking."""
+    from hilstack.configs.schema import load_robot
+    from hilstack.drivers.registry import make_driver, resolve
+    from hilstack.drivers.shadow_hand.config import hold_pose_action
+
+    roach, arm = load_robot("velociroach", backend="emulated"), load_robot("widowx", backend="emulated")
+    assert resolve("velociroach", "emulated").shared_bus_key(roach) is None
+    assert resolve("widowx", "emulated").shared_bus_key(arm) == resolve("reset_mechanism", "emulated").shared_bus_key(
+        load_robot("reset_mechanism", backend="emulated"))  # one adapter, one process
+    roach_sim, hand = make_driver("velociroach", "sim"), make_driver("shadow_hand", "sim")
+    assert roach_sim.tracking_error(np.zeros(roach_sim.spec.state.dim), np.zeros(2)) is None
+    te = hand.tracking_error(np.zeros(hand.spec.state.dim), hold_pose_action())
+    assert te["max_rad"] > 0 and len(te["per_joint_rad"]) == 20

@@ -10,6 +10,7 @@ told: ``ControllerNode.pacing``, ``MbrlRun.command_delay``).
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -82,8 +83,88 @@ def test_pacing_of_each_backend_kind_and_pace():
         assert p is Pacing.WALL_CLOCK and p.read_before_apply and p.command_delay_periods == 1 and not p.stepped
         with pytest.raises(ValueError, match="lockstep.*needs a sim"):
             Pacing.of_backend(b, "lockstep")
-    for p in (Pacing.STEPPED, Pacing.LOCKSTEP):
+    assert Pacing.of_backend("sim", "lockstep", follower=True) is Pacing.FOLLOWER
+    assert Pacing.of_backend("sim", "realtime", follower=True) is Pacing.STEPPED
+    for p in (Pacing.STEPPED, Pacing.LOCKSTEP, Pacing.FOLLOWER):
         assert p.stepped and not p.read_before_apply and p.command_delay_periods == 0
+    # stepped on the answer to the last state (robot time, no wall-clock deadline) or on the clock
+    assert [p for p in Pacing if p.answered] == [Pacing.LOCKSTEP, Pacing.FOLLOWER]
+
+
+def test_a_follower_is_declared_with_a_bounded_command_wait():
+    """A sim in another sim's world declares it (``Driver.follower``), with a finite, bounded
+    command wait; only a sim may declare it (checked when the class is made)."""
+    from hilstack.drivers.base import MAX_FOLLOW_COMMAND_WAIT_S, Follower
+    from hilstack.drivers.registry import make_driver, resolve
+    from hilstack.sim_backends.pointmass import PointMassSim
+
+    for bad in (0.0, -0.01, float("nan"), float("inf"), MAX_FOLLOW_COMMAND_WAIT_S * 2, "0.01", None):
+        with pytest.raises(ValueError, match="command_wait_s must be a number in"):
+            Follower(bad)
+    assert Follower(MAX_FOLLOW_COMMAND_WAIT_S).command_wait_s == MAX_FOLLOW_COMMAND_WAIT_S
+    with pytest.raises(TypeError, match="only a sim follows"):
+        type("RealFollower", (resolve("velociroach", "emulated"),), {"follower": Follower(0.01)})
+    with pytest.raises(TypeError, match="must be a Follower"):
+        type("LooseFollower", (PointMassSim,), {"follower": 0.01})  # the old undeclared attribute's shape
+    arm, hand = make_driver("reset_arm", "sim"), make_driver("shadow_hand", "sim")
+    assert arm.follower is not None and hand.follower is None
+    assert arm.pacing_at("lockstep") is Pacing.FOLLOWER and hand.pacing_at("lockstep") is Pacing.LOCKSTEP
+    assert arm.pacing is hand.pacing is Pacing.STEPPED  # on the wall clock its tick follows the world too
+
+
+class _FollowingPointMass:
+    """A point mass declaring itself a follower (its own world: the node's rule is what is tested)."""
+
+    @staticmethod
+    def make(follower):
+        from hilstack.sim_backends.pointmass import PointMassSim
+
+        cls = type("FollowingPointMass", (PointMassSim,), {"follower": follower})
+        return cls()
+
+
+@pytest.mark.parametrize("follows", [False, True])
+def test_a_lockstep_sim_never_steps_without_an_answer_a_follower_steps_on(follows, bus):
+    """The lockstep rule holds (a ``LOCKSTEP`` node times out, counts it and waits on); a
+    ``FOLLOWER`` node steps with the command it holds after its declared command wait, and
+    its spec on the bus says it runs as a follower."""
+    from hilstack.bus import keys
+    from hilstack.bus.node import Node
+    from hilstack.bus.schemas import SpecMsg
+    from hilstack.drivers.base import Follower
+    from hilstack.drivers.bridge import DriverNode
+    from hilstack.drivers.registry import make_driver
+    from tests.helpers import wait_for
+
+    drv = _FollowingPointMass.make(Follower(0.02)) if follows else make_driver("pointmass", "sim")
+    node = DriverNode(drv, "pace", "pm", bus, pace="lockstep", lockstep_timeout_s=0.05, handle_signals=False,
+                      estop_sync_s=0.05)
+    try:
+        assert node.pacing is (Pacing.FOLLOWER if follows else Pacing.LOCKSTEP)
+        assert node.lockstep_timeout_s == (0.02 if follows else 0.05)
+        with Node("probe", "pace", bus, handle_signals=False) as probe:
+            spec = probe.subscribe(keys.spec("pace", "pm"), SpecMsg)
+            drv.configure()
+            drv.activate()
+            node.publish_spec()
+            t0 = drv.now()
+            th = threading.Thread(target=lambda: [node.step() for _ in range(4)], daemon=True)
+            th.start()  # nobody answers
+            wait_for(lambda: node.stats.lockstep_timeouts >= 4, 10, "four lockstep timeouts")
+            if follows:
+                th.join(5)
+                assert drv.now() - t0 == pytest.approx(4 * drv.spec.period_s)  # it stepped on, each time
+                assert node.stats.steps == 4
+            else:
+                assert drv.now() == t0 and node.stats.steps == 0  # the sim stood still, waiting on
+                node.stop_event.set()
+                th.join(5)
+            m = wait_for(lambda: spec.poll() or spec.last, 5, "the node's spec")
+            assert m.spec["pacing"] == ("follower" if follows else "lockstep")
+    finally:
+        node.stop_event.set()
+        drv.cleanup()
+        node.close()
 
 
 def test_the_spec_carries_the_pacing_across_the_bus():

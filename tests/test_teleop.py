@@ -217,3 +217,23 @@ def test_teleop_jogs_a_widowx_joint_in_a_terminal(spawn, bus, rig_bus, rig):
     finally:
         term.close()
         node.close()
+
+
+# ---------------------------------------------------------------- a stop while it waits for the spec
+@needs_tmux
+def test_ctrl_c_while_teleop_waits_for_the_spec_ends_it_at_once():
+    """No rig up: teleop waits for the robot's spec (--timeout-s 60). Ctrl-C typed in a real
+    terminal (tmux) ends it within 2 s, exit 0 (before: ignored until the timeout)."""
+    term = Tmux(["roach_sim", "--endpoint", f"tcp/127.0.0.1:{free_port()}", "--timeout-s", "60"])
+    try:
+        wait_for(lambda: "waiting up to 60 s" in term.screen(), 60, "teleop to wait for the spec")
+        t0 = time.monotonic()
+        term.keys("C-c")
+        wait_for(lambda: "TELEOP_EXIT=" in term.screen(), 10, "teleop to exit")
+        took = time.monotonic() - t0
+        screen = term.screen()
+    finally:
+        term.close()
+    assert "TELEOP_EXIT=0" in screen and "stopped while waiting for the spec" in screen, screen
+    assert took < 2.0, f"teleop took {took:.1f} s to end after Ctrl-C"
+

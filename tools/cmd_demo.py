@@ -40,6 +40,9 @@ def register(app: typer.Typer) -> None:
         tip_weight: float | None = typer.Option(None, "--tip-weight",
                                                 help="roach: weight (1/rad) of the planner's tipping term "
                                                      "(docs/mbrl.md; 0 = the thesis' cost) [default: 50]"),
+        tilt_loss_weight: float | None = typer.Option(None, "--tilt-loss-weight",
+                                                      help="roach: weight of the tilt channels in the model's "
+                                                           "training loss (docs/mbrl.md, Tipping) [default: 1]"),
         part: str = typer.Option("all", "--part", help="transfer: all | sidm | garat (one half of the demo); "
                                  "roach: terrain (the image-conditioned model on four terrains, Table 3.2, "
                                  "docs/mbrl.md)"),
@@ -123,6 +126,8 @@ def register(app: typer.Typer) -> None:
             variant["body_frame"] = False
         if tip_weight is not None:
             variant["tip_weight"] = tip_weight
+        if tilt_loss_weight is not None:
+            variant["tilt_loss_weight"] = tilt_loss_weight
         if thesis_sampling:
             variant.update(random_hold_steps=1, random_forward_fraction=0.0, reachable_set=False)
         try:

@@ -139,8 +139,8 @@ def _drive(robot: str, backend: str | None, action: str | None, seconds: float, 
             applied = drv.write(drv.held_command if a is None else a)
             drv.tick()
         last = drv.read()
-        # a joint-space robot reports how well it tracked the last command (optional hook)
-        tracking = drv.tracking_error(last.state, applied) if hasattr(drv, "tracking_error") else None
+        # a joint-space robot reports how well it tracked the last command (None: it reports none)
+        tracking = drv.tracking_error(last.state, applied)
         drv.stop()
         health = drv.health().to_dict()
     end = _pose(sp.state.names, last.state)

@@ -24,6 +24,7 @@ from hilstack.tools.common import (
     UserError,
     complete_rig,
     echo_json,
+    one_line,
     provision_credentials,
     rig_bus,
     setup_logging,
@@ -35,6 +36,12 @@ def _up_line(node, cfg) -> str:  # noqa: ANN001 - a DriverNode, a RigConfig
     return f"{node.robot} up on hil/{cfg.name}/{node.robot}/{{state,cmd}} ({node.driver.backend}, {cfg.pace})"
 
 
+def _tty_line(text: str) -> str:
+    """``text`` starting on a cleared line when stderr is a terminal: a live status line (its
+    own ``hil up``'s, or the parent's of a per-robot process) is drawn there without a newline."""
+    return "\r\x1b[K" + text if sys.stderr.isatty() else text
+
+
 def _announce_when_up(node, line: str) -> threading.Event:  # noqa: ANN001 - a DriverNode
     """Print ``line`` once the node's driver is configured and active (its link is open and
     answering), or configured and held stopped by a latched e-stop; never when it fails
@@ -44,7 +51,7 @@ def _announce_when_up(node, line: str) -> threading.Event:  # noqa: ANN001 - a D
     def watch() -> None:
         while not done.is_set():
             if node.driver.active or node.estopped:
-                typer.echo(line + (" (rig e-stop engaged: stopped)" if node.estopped else ""), err=True)
+                typer.echo(_tty_line(line + (" (rig e-stop engaged: stopped)" if node.estopped else "")), err=True)
                 return
             done.wait(0.02)
 
@@ -52,10 +59,12 @@ def _announce_when_up(node, line: str) -> threading.Event:  # noqa: ANN001 - a D
     return done
 
 
-def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
+def _up_together(cfg, names: list[str], bus, steps: int | None, sets: list[str] | None = None,
+                 status: bool = False) -> None:
     """Several driver nodes in this process, one thread each (sims sharing one world);
-    a signal stops them all. Exit 1 when one of them failed."""
-    from hilstack.configs.schema import rig_robot_config
+    a signal stops them all. Exit 1 when one of them failed on its link, 2 when every failure
+    was a config problem (a device port that does not exist: the one code, docs/platform.md)."""
+    from hilstack.configs.schema import ConfigError, rig_robot_config
     from hilstack.drivers.bridge import DriverNode
     from hilstack.drivers.registry import make_driver
 
@@ -64,24 +73,34 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
         from hilstack.bus.session import open_session
 
         session = open_session(bus, server=True, rig=cfg.name, robots=names)
+    nodes: list[DriverNode] = []
     try:
-        nodes = [DriverNode(make_driver(rig_robot_config(cfg, n)), cfg.name, n, bus,
-                            watchdog_periods=cfg.watchdog_periods, pace=cfg.pace, handle_signals=False,
-                            **({"session": session} if session is not None else {})) for n in names]
+        for n in names:
+            try:
+                drv = make_driver(rig_robot_config(cfg, n))
+            except ConfigError as e:
+                raise _rig_error(cfg, n, e, sets) from None
+            nodes.append(DriverNode(drv, cfg.name, n, bus, watchdog_periods=cfg.watchdog_periods, pace=cfg.pace,
+                                    handle_signals=False, **({"session": session} if session is not None else {})))
     except BaseException:
+        for nd in nodes:
+            nd.close()
         if session is not None:
             session.close()
         raise
     errors: list[str] = []
+    config_errors: list[bool] = []
     stopping = threading.Event()  # a stop was asked for: what fails after it is the shutdown
 
     def serve(node: DriverNode) -> None:
         announced = _announce_when_up(node, _up_line(node, cfg))
         try:
-            typer.echo(f"{node.robot} down: {node.serve(max_steps=steps)}", err=True)
+            typer.echo(_tty_line(f"{node.robot} down: {node.serve(max_steps=steps)}"), err=True)
         except Exception as e:  # its own error path already stopped its robot
             if not stopping.is_set():
-                errors.append(f"{node.robot}: {e}")
+                e = _rig_error(cfg, node.robot, e, sets)
+                errors.append(f"{node.robot}: {one_line(e)}")
+                config_errors.append(isinstance(e, ConfigError))
         finally:
             announced.set()
             stopping.set()
@@ -100,17 +119,154 @@ def _up_together(cfg, names: list[str], bus, steps: int | None) -> None:
     threads = [threading.Thread(target=serve, args=(nd,), name=f"driver-{nd.robot}") for nd in nodes]
     for th in threads:
         th.start()
+    line = StatusLine(lambda: nodes) if status else None
     try:
         for th in threads:
             th.join()
     finally:
+        if line is not None:
+            line.close()
         for nd in nodes:
             nd.close()
         if session is not None:
             session.close()
     if errors:
         typer.echo("error: " + "; ".join(errors), err=True)
-        raise typer.Exit(1)
+        raise typer.Exit(2 if all(config_errors) else 1)
+
+
+def _rig_error(cfg, name: str, e: Exception, sets: list[str] | None) -> Exception:  # noqa: ANN001 - a RigConfig
+    """A robot's ConfigError raised while its driver is built or configured (a port that does
+    not exist...), blamed on the rig file when the rig (or ``--set``/``--port``) set the value,
+    and naming the ``--set`` items that changed the file; other errors as they are."""
+    from hilstack.configs.schema import ConfigError, blame_rig, rig_robot_config
+
+    if not isinstance(e, ConfigError):
+        return e
+    e = blame_rig(rig_robot_config(cfg, name), e)
+    if sets and cfg.source and e.file == str(cfg.source):
+        e = ConfigError(f"{cfg.source} with --set {' '.join(sets)}", e.problems)
+    return e
+
+
+def _device_sets(cfg, names: list[str], field: str, value: str | None) -> list[str]:  # noqa: ANN001 - a RigConfig
+    """`hil up --port/--channel VALUE` as ``--set ROBOT.params.<field>=VALUE`` for the robots of
+    ``names`` whose real driver has that field (a serial port, a CAN channel). Several such
+    robots get it together only when the rig file gives them one device (the WidowX and its
+    mechanism on one U2D2; or none yet); robots on different devices need --robot to say which."""
+    if value is None:
+        return []
+    import json
+
+    from hilstack.configs.schema import rig_robot_config
+    from hilstack.drivers.registry import resolve
+
+    has = []
+    for n in names:
+        rc = rig_robot_config(cfg, n)
+        params = resolve(rc.robot, rc.backend).params_type  # declared on the contract (None: none)
+        if rc.backend == "real" and params is not None and field in params.model_fields:
+            has.append((n, rc.params.get(field)))
+    if not has:
+        kinds = ", ".join(f"{n}: {rig_robot_config(cfg, n).backend}" for n in names)
+        raise UserError(f"--{field} {value}: rig {cfg.name} has no real robot with a {field} ({kinds}); "
+                        f"emulated and sim robots open their own links")
+    if len({str(v) for _, v in has if v is not None}) > 1:
+        raise UserError(f"--{field} {value}: rig {cfg.name}'s robots {', '.join(n for n, _ in has)} are on "
+                        f"different devices: pick one with --robot, or --set ROBOT.params.{field}=...")
+    return [f"{n}.params.{field}={json.dumps(value)}" for n, _ in has]
+
+
+class StatusLine:
+    """`hil up`'s live status line: one line on stderr, redrawn every ``period_s``, a cell per
+    robot from the newest state its driver node in this process published (``nodes()``: the
+    nodes, once they exist): ok/STALE, active/stopped and why, the rate (states per second of
+    the robot's clock over the last 2 s), the link counters and the overruns the driver node
+    counts (the console's columns, tools/console.py). Sampled from the nodes, not the bus: a
+    second Zenoh session in the process made 1 of 8 `hil up` runs abort at exit ("FATAL:
+    exception not rethrown"). Nothing is drawn before the first state (the "up" lines first)."""
+
+    #: how often the nodes' newest states are sampled (the rate is measured over RATE_WINDOW_S) [s]
+    SAMPLE_S = 0.25
+    RATE_WINDOW_S = 2.0
+
+    def __init__(self, nodes, period_s: float = 1.0, out=None):  # noqa: ANN001 - () -> list[DriverNode]
+        from collections import deque
+
+        self.nodes = nodes
+        self.out = out or sys.stderr
+        self.period_s = period_s
+        #: robot -> recent (monotonic, seq, t_s) samples of its newest state
+        self._samples: dict[str, deque] = {}
+        self._deque = deque
+        self._stop = threading.Event()
+        self._drawn = False
+        self._thread = threading.Thread(target=self._loop, name="up-status", daemon=True)
+        self._thread.start()
+
+    def sample(self) -> None:
+        now = time.monotonic()
+        for node in self.nodes():
+            st = getattr(node, "_last_state", None)
+            if st is None:
+                continue
+            q = self._samples.setdefault(node.robot, self._deque())
+            if not q or q[-1][1] != st.seq:
+                q.append((now, st.seq, st.t_s))
+            while q and now - q[0][0] > self.RATE_WINDOW_S:
+                q.popleft()
+
+    def text(self) -> str:
+        from hilstack.tools.console import LINK_KEYS, OVERRUN_KEYS, STALE_S, _fmt
+
+        now = time.monotonic()
+        cells = []
+        for node in self.nodes():
+            st = getattr(node, "_last_state", None)
+            q = self._samples.get(node.robot)
+            if st is None or not q:
+                continue
+            if len(q) < 2 and now - q[0][0] < self.period_s:
+                return ""  # its rate comes with the second sample: draw then (or after a period)
+            flags = ["ok" if st.ok else "NOT OK"]
+            if now - q[-1][0] > STALE_S:
+                flags.append(f"STALE {now - q[-1][0]:.0f}s")
+            flags.append("active" if st.active else "stopped")
+            cell = f"{node.robot}: {' '.join(flags)}" + (f" ({st.stopped_reason})" if st.stopped_reason else "")
+            if len(q) >= 2 and q[-1][2] > q[0][2]:  # states per second of the robot's clock
+                cell += f" {(q[-1][1] - q[0][1]) / (q[-1][2] - q[0][2]):.1f} Hz"
+            h = st.health or {}
+            link = " ".join(f"{label}={_fmt(h[k])}" for k, label in LINK_KEYS.items() if k in h)
+            over = " ".join(f"{k}={_fmt(h[k])}" for k in OVERRUN_KEYS if k in h and h[k])
+            cells.append(cell + (f" {link}" if link else "") + (f" overruns {over}" if over else ""))
+        return " | ".join(cells)
+
+    def _loop(self) -> None:
+        next_draw = 0.0
+        while not self._stop.wait(self.SAMPLE_S):
+            try:
+                self.sample()
+                if time.monotonic() < next_draw:
+                    continue
+                text = self.text()
+                if not text:
+                    continue
+                self.out.write("\r" + text + "\x1b[K")
+                self.out.flush()
+                self._drawn = True
+                next_draw = time.monotonic() + self.period_s
+            except Exception:  # noqa: BLE001, S110 - a status line never stops the rig
+                pass
+
+    def close(self) -> None:
+        """Stop drawing (idempotent); the line is left empty for what follows."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._thread.join(2.0)
+        if self._drawn:
+            self.out.write("\r\x1b[K")
+            self.out.flush()
 
 
 def _bus_key(cfg, name: str) -> str | None:
@@ -119,8 +275,7 @@ def _bus_key(cfg, name: str) -> str | None:
     from hilstack.drivers.registry import resolve
 
     rc = rig_robot_config(cfg, name)
-    key = getattr(resolve(rc.robot, rc.backend), "shared_bus_key", None)
-    return key(rc) if key is not None else None
+    return resolve(rc.robot, rc.backend).shared_bus_key(rc)
 
 
 def _merge_shared_buses(groups: list[list[str]], keys: dict[str, str | None]) -> list[list[str]]:
@@ -242,9 +397,16 @@ def register(app: typer.Typer) -> None:
         sets: list[str] = typer.Option(None, "--set", metavar="KEY=VALUE",
                                        help="override a value of the rig file, checked like the file: "
                                             "watchdog_periods=5, roach.params.port=/dev/ttyUSB1 (repeatable)"),
+        port: str = typer.Option(None, "--port", help="the serial port of the rig's real robot that has one "
+                                 "(--robot picks among several): --set ROBOT.params.port=PORT"),
+        channel: str = typer.Option(None, "--channel", help="the CAN channel of the rig's real robot that has one "
+                                    "(can0, or an slcan adapter's /dev/ttyACM0): --set ROBOT.params.channel=CHANNEL"),
+        status: bool = typer.Option(None, "--status/--no-status", help="a live status line per robot on stderr "
+                                    "(state, rate, link counters, overruns), refreshed every second "
+                                    "(default: when stderr is a terminal)"),
     ) -> None:
         """Bring a rig's robots onto the bus (one driver bridge node per robot)."""
-        from hilstack.configs.schema import rig_robot_config
+        from hilstack.configs.schema import ConfigError, rig_robot_config
         from hilstack.drivers.bridge import DriverNode
         from hilstack.drivers.registry import make_driver
 
@@ -254,11 +416,15 @@ def register(app: typer.Typer) -> None:
         setup_logging()
         exit_with_parent()
         _, bus, cfg = rig_bus(rig, endpoint, need_config=True, sets=sets)
-        provision_credentials(cfg.name, bus, cfg)
         names = robot.split(",") if robot else list(cfg.robots)
         for n in names:
             if n not in cfg.robots:
                 raise UserError(f"rig {cfg.name} has no robot {n!r}; has {list(cfg.robots)}")
+        extra = [*_device_sets(cfg, names, "port", port), *_device_sets(cfg, names, "channel", channel)]
+        if extra:  # the same path as --set: the rig's and the robot's schemas check the value
+            sets = [*(sets or []), *extra]
+            _, bus, cfg = rig_bus(rig, endpoint, need_config=True, sets=sets)
+        provision_credentials(cfg.name, bus, cfg)
         groups = [[n] for n in names]
         if len(names) > 1 and bus.access is not None:
             # the rig's driver nodes are its one Zenoh router (bus/session.py): one process
@@ -270,15 +436,18 @@ def register(app: typer.Typer) -> None:
             from hilstack.drivers.registry import resolve
 
             sims = [n for n in names if cfg.robots[n].backend == "sim"]
-            if any(getattr(resolve(rig_robot_config(cfg, n).robot, "sim"), "world_follower", False) for n in sims):
+            if any(resolve(rig_robot_config(cfg, n).robot, "sim").follower is not None for n in sims):
                 groups = [sims] + [[n] for n in names if n not in sims]
             # robots on one device bus (the WidowX and its mechanism on one Dynamixel adapter)
             # share one process: only that process may own the port (drivers/dynamixel/bus.py)
             groups = _merge_shared_buses(groups, {n: _bus_key(cfg, n) for n in names})
+        if status is None:
+            status = sys.stderr.isatty()
         if len(groups) > 1:
             procs = []
             for g in groups:
-                cmd = [sys.executable, "-m", "hilstack.tools.cli", "up", rig, "--robot", ",".join(g)]
+                # no status line: several processes would overwrite each other's one line
+                cmd = [sys.executable, "-m", "hilstack.tools.cli", "up", rig, "--robot", ",".join(g), "--no-status"]
                 if steps:
                     cmd += ["--steps", str(steps)]
                 if endpoint:
@@ -289,24 +458,26 @@ def register(app: typer.Typer) -> None:
 
             raise typer.Exit(_run_robot_processes(procs, [",".join(g) for g in groups]))
         if len(names) > 1:
-            _up_together(cfg, names, bus, steps)
+            _up_together(cfg, names, bus, steps, sets, status)
             return
         n = names[0]
-        node = DriverNode(
-            make_driver(rig_robot_config(cfg, n)),
-            cfg.name,
-            n,
-            bus,
-            watchdog_periods=cfg.watchdog_periods,
-            pace=cfg.pace,
-        )
+        try:
+            drv = make_driver(rig_robot_config(cfg, n))
+        except ConfigError as e:
+            raise _rig_error(cfg, n, e, sets) from None
+        node = DriverNode(drv, cfg.name, n, bus, watchdog_periods=cfg.watchdog_periods, pace=cfg.pace)
         announced = _announce_when_up(node, _up_line(node, cfg))
+        line = StatusLine(lambda: [node]) if status else None
         try:
             stats = node.serve(max_steps=steps)
+        except ConfigError as e:  # found when the driver configured: a device port that does not exist...
+            raise _rig_error(cfg, n, e, sets) from None
         finally:
+            if line is not None:
+                line.close()
             announced.set()
             node.close()
-        typer.echo(f"{n} down: {stats}", err=True)
+        typer.echo(_tty_line(f"{n} down: {stats}"), err=True)
         if node.cycle is not None:
             typer.echo(f"{n} timing: {node.cycle.format_summary()}", err=True)
 

@@ -60,7 +60,6 @@ def register(app: typer.Typer) -> None:
         from hilstack.control.paths import fillet, make_path
         from hilstack.control.policies import MpcPolicy
         from hilstack.control.sample_refit import SampleRefit
-        from hilstack.drivers.base import Pacing
         from hilstack.learning.frames import load_dynamics
         from hilstack.learning.mbrl import (
             MbrlConfig,
@@ -126,7 +125,7 @@ def register(app: typer.Typer) -> None:
             ref = task_cost(mcfg, fillet(wp, mcfg.reference_corner_radius_m), names)
             n_act, max_step = spec.action.dim, spec.max_step_normalized()
             samples = refit = None
-            lockstep = ctl.pacing is Pacing.LOCKSTEP  # the robot's time model, from its spec
+            lockstep = ctl.pacing.answered  # the robot's time model, from its spec
             if not lockstep:  # as in `hil demo`: the planner must fit the period on this machine
                 timing_cost = PathCost(fillet(wp, mcfg.reference_corner_radius_m), names)
                 samples, _ = fit_planner_to_period(mcfg, speed, n_act, max_step, dyn.predict, timing_cost,

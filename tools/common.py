@@ -86,6 +86,7 @@ def user_errors(fn: F) -> F:
     its link or the rig failed while running (the robot's safety has stopped it).
     Non-finite numbers among the arguments are refused first (:func:`check_args`)."""
     from hilstack.bus.access import AccessError
+    from hilstack.bus.lifetime import StopRequested
     from hilstack.bus.node import NodeConflict
     from hilstack.bus.session import BusUnavailable
     from hilstack.configs.extras import MissingExtra, install_hint, missing_extra
@@ -109,6 +110,10 @@ def user_errors(fn: F) -> F:
             typer.echo(f"error: {one_line(hint)}", err=True)
             exit_within(EXIT_USAGE)
             raise typer.Exit(EXIT_USAGE) from None
+        except StopRequested as e:
+            # Ctrl-C/SIGTERM during a wait (for a robot's spec...): nothing ran yet, nothing to stop
+            typer.echo(f"{one_line(e)}", err=True)
+            raise typer.Exit(0) from None
         except (LinkError, LifecycleError, BusUnavailable) as e:
             what = "link error" if isinstance(e, LinkError) else "error"
             typer.echo(f"{what}: {one_line(e)}", err=True)

@@ -55,13 +55,13 @@ def config_models(sim: bool = False) -> list[type[BaseModel]]:
 
 def _registered_robot_params() -> list[type[BaseModel]]:
     """The params model of every registered robot (a robot added later is checked without an
-    edit here): its driver built from ``configs/robots/<robot>.yaml``, never connected."""
-    from hilstack.drivers.registry import backends_of, make_driver, robots
+    edit here): the one its driver class declares (``Driver.params_type``)."""
+    from hilstack.drivers.registry import backends_of, resolve, robots
 
     out = []
     for robot in robots():
         backend = "real" if "real" in backends_of(robot) else "sim"
-        model = type(getattr(make_driver(robot, backend), "params", None))
+        model = resolve(robot, backend).params_type
         if isinstance(model, type) and issubclass(model, BaseModel):
             out.append(model)
     return out

@@ -126,12 +126,15 @@ class TeleopMapper:
         self.step = step
         self.jog_frac = jog_frac
         self.jog_periods = jog_periods
+        #: the control period [s] (a continuous jog of a position channel moves its target per second)
+        self.period_s = float(spec.get("period_s") or 0.1)
         self.mode = "drive" if is_differential(self.names) else "jog"
         self.speed = 0.0  # drive: normalized forward speed, [-1, 1]
         self.turn = 0.0  # drive: normalized turn (positive: left), [-1, 1]
         self.joint = 0  # jog: selected channel
         self._jog_dir = 0.0
         self._jog_left = 0  # periods of the current velocity jog still to send
+        self._rate = 0.0  # a continuous jog (a gamepad's stick), [-1, 1]; 0: none
         self._target: np.ndarray | None = None  # jog of a position robot: the commanded target
         self.last: np.ndarray | None = None
 
@@ -142,6 +145,16 @@ class TeleopMapper:
         self.speed = self.turn = 0.0
         self._jog_left = 0
         self._jog_dir = 0.0
+        self._rate = 0.0
+
+    def set_jog(self, rate: float) -> None:
+        """A continuous jog of the selected channel (a gamepad's stick), ``rate`` in [-1, 1] of
+        the jog speed, held until changed (0: none, the channel rests). It replaces a timed
+        jog: a velocity channel moves at ``|rate|·jog_frac`` of its limit, a position channel's
+        target moves by ``rate·step`` of its range per second."""
+        self._rate = float(np.clip(rate, -1.0, 1.0))
+        if self._rate:
+            self._jog_left = 0
 
     def key(self, k: str) -> Event | None:
         if k == " ":
@@ -213,7 +226,15 @@ class TeleopMapper:
                 if self.is_velocity(j):
                     a[j] = 0.0 if self.safe is None else self.safe[j]
             i = self.joint
-            if self.is_velocity(i) and self._jog_left > 0:
+            if self._rate and self.is_velocity(i):
+                lim = self.high[i] if self._rate > 0 else self.low[i]
+                a[i] = a[i] + abs(self._rate) * self.jog_frac * (lim - a[i])
+            elif self._rate:
+                span = self.high[i] - self.low[i]
+                self._target[i] = np.clip(self._target[i] + self._rate * self.step * span * self.period_s,
+                                          self.low[i], self.high[i])
+                a[i] = self._target[i]
+            elif self.is_velocity(i) and self._jog_left > 0:
                 lim = self.high[i] if self._jog_dir > 0 else self.low[i]
                 a[i] = a[i] + self.jog_frac * (lim - a[i])
                 self._jog_left -= 1
@@ -224,6 +245,8 @@ class TeleopMapper:
         if self.mode == "drive":
             return f"speed {self.speed:+.2f} turn {self.turn:+.2f}"
         jog = f" jog {'+' if self._jog_dir > 0 else '-'}{self._jog_left}" if self._jog_left else ""
+        if self._rate:
+            jog = f" jog {self._rate:+.2f}"
         return f"joint {self.joint + 1}:{self.names[self.joint]}{jog}"
 
 

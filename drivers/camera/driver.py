@@ -14,7 +14,7 @@ from __future__ import annotations
 import time
 
 from hilstack.configs.schema import ConfigError
-from hilstack.drivers.base import Driver, Health, LinkError, Observation
+from hilstack.drivers.base import Driver, Health, LinkError, Observation, require_device
 from hilstack.drivers.camera.config import CameraParams, camera_spec
 from hilstack.drivers.camera.pipeline import CameraPipeline, FramePair
 from hilstack.perception.geometry import StereoCalibration
@@ -37,6 +37,10 @@ class StereoCameraDriver(Driver):
         from hilstack.drivers.camera.uvc import StereoUvc
 
         p = self.params
+        for fld in ("left_device", "right_device"):
+            dev = getattr(p, fld)
+            if isinstance(dev, str):
+                require_device(dev, self.source, f"params.{fld}", "the camera")
         if p.calibration is None:
             raise ConfigError(self.source, [("params.calibration", "a real stereo pair needs its calibration file "
                                                                    "(hil calibrate camera)")])

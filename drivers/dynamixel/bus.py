@@ -268,6 +268,8 @@ class DynamixelBus:
                     if result == COMM_RX_CORRUPT:
                         self.last_error = "sync read: a status packet failed its CRC"
                         corrupt += 1
+                        if len(data) + corrupt >= len(ids):
+                            break  # every servo answered once: waiting on would only time out
                         continue
                     break
                 dxl_id = pkt[_PKT_ID]

@@ -39,7 +39,17 @@ from typing import Any
 import numpy as np
 
 from hilstack.configs.schema import ConfigError
-from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, Lifecycle, LinkError, Observation
+from hilstack.drivers.base import (
+    Driver,
+    Flag,
+    Freshness,
+    Health,
+    Inputs,
+    Lifecycle,
+    LinkError,
+    Observation,
+    require_device,
+)
 from hilstack.drivers.dynamixel.bus import DynamixelBus, ServoError, acquire_bus, release_bus, start_emulator
 from hilstack.drivers.dynamixel.control_table import (
     AMP_PER_COUNT,
@@ -131,6 +141,7 @@ class DynamixelRobot(Driver):
         if not p.port:
             raise ConfigError(self.source, [("params.port", "no serial port: set params.port (e.g. /dev/ttyUSB0) "
                                                             "or pass --port; see docs/arms.md")])
+        require_device(p.port, self.source, "params.port", "the U2D2 / USB-serial adapter")
 
         def opener() -> DynamixelBus:
             b = DynamixelBus(p.port, p.baudrate, timeout_margin_ms=2.0 * p.latency_timer_ms + 2.0)

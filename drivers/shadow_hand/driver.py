@@ -34,14 +34,22 @@ import json
 import socket
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from hilstack.bus.cycle import Rate
 from hilstack.configs.schema import ConfigError
-from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
+from hilstack.drivers.base import (
+    Driver,
+    Flag,
+    Freshness,
+    Health,
+    Inputs,
+    LinkError,
+    Observation,
+    require_device,
+)
 from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
 from hilstack.drivers.shadow_hand.config import (
     ACT_INDEX,
@@ -165,9 +173,8 @@ class ShadowHandDriver(Driver):
         import can
 
         p = self.params
-        if p.transport == "slcan" and "://" not in channel and not Path(channel).exists():
-            raise ConfigError(self.source, [("params.channel", f"{channel} does not exist "
-                                             "(SLCAN adapter unplugged?)")])
+        if p.transport == "slcan":
+            require_device(channel, self.source, "params.channel", "the SLCAN adapter")
         try:
             if p.transport == "socketcan":
                 return can.Bus(interface="socketcan", channel=channel)

@@ -28,14 +28,22 @@ import json
 import math
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from hilstack.bus.cycle import Rate
 from hilstack.configs.schema import ConfigError
-from hilstack.drivers.base import Driver, Flag, Freshness, Health, Inputs, LinkError, Observation
+from hilstack.drivers.base import (
+    Driver,
+    Flag,
+    Freshness,
+    Health,
+    Inputs,
+    LinkError,
+    Observation,
+    require_device,
+)
 from hilstack.drivers.emulator_process import EmulatorProcess, emulator_module
 from hilstack.drivers.velociroach.config import VelociRoachParams, fault_flags, quat_to_rpy, velociroach_spec
 from hilstack.drivers.velociroach.link import RadioLink
@@ -126,9 +134,8 @@ class VelociRoachDriver(Driver):
         if self.backend != "emulated" and not p.port:
             raise ConfigError(self.source, [(
                 "params.port", "no serial port: set params.port or pass --port; `hil find-port` lists candidates")])
-        if self.backend != "emulated" and "://" not in p.port and not Path(p.port).exists():
-            raise ConfigError(self.source, [(
-                "params.port", f"{p.port} does not exist (robot radio unplugged?); `hil find-port` lists candidates")])
+        if self.backend != "emulated":
+            require_device(p.port, self.source, "params.port", "the base-station XBee")
         # the pose: the emulator streams its sim's mocap here; a real rig points a mocap
         # bridge at params.mocap_udp_port
         pose_port = p.mocap_udp_port

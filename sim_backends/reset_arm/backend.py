@@ -22,7 +22,7 @@ import mujoco
 import numpy as np
 
 from hilstack.configs.schema import ConfigError
-from hilstack.drivers.base import Health, LinkError, Observation
+from hilstack.drivers.base import Follower, Health, LinkError, Observation
 from hilstack.drivers.reset_arm.config import ResetArmParams, reset_arm_spec
 from hilstack.sim_backends.base import LockstepSim
 from hilstack.sim_backends.reset_arm.model import ArmIndex
@@ -54,12 +54,11 @@ def arm_hold(scene, ix: ArmIndex) -> np.ndarray:
 
 class ResetArmSim(LockstepSim):
     params_type = ResetArmParams
-    #: it works in another sim's world: ``hil up`` runs it in one process with the rig's sims
-    world_follower = True
-    #: in lockstep its driver node waits this long [s, wall] for a command before it holds
-    #: and follows the world's clock (drivers/bridge.py): idle, it still publishes every
-    #: period, so a drop detector watching its ball channels sees the drop without lag
-    lockstep_command_wait_s = 0.01
+    #: it works in the hand's world and follows its clock: ``hil up`` runs it in one process
+    #: with the rig's sims; in lockstep its driver node waits 10 ms for a command, then holds
+    #: and steps on with the world (drivers/base.py: ``Pacing.FOLLOWER``), so idle it still
+    #: publishes every period and a drop detector watching its ball channels sees a drop without lag
+    follower = Follower(command_wait_s=0.01)
 
     def __init__(self, params: ResetArmParams | None = None, source: str | None = None):
         super().__init__()

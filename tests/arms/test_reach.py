@@ -220,6 +220,27 @@ def test_widowx_goals_come_from_the_mechanism_pose(tmp_path, widowx_model):
     assert np.ptp(goals[:, 1]) > 0.003  # the rail moved the port between tasks
 
 
+def test_reach_episodes_report_the_plan_times_of_the_policy_calls_even_with_a_gap(tmp_path):
+    """HeldPolicy runs its inner policy on every hold-th call; the episode's plan times are
+    those calls' (what the report's percentiles and the sample refit use). A call that left
+    no time (one still running when a realtime episode ended) must not shift the selection
+    onto the held calls, as taking every hold-th entry of the list did."""
+    from hilstack.configs.schema import BusConfig
+    from hilstack.control.controller_node import EpisodeLog
+    from hilstack.learning.reach import ARMS, ReachRun
+
+    run = ReachRun(ReachConfig(arm="sawyer", progress=False), ARMS["sawyer"](), tmp_path, BusConfig(), 0)
+    run.hold, run.channels, run.n_joints = 3, list(range(14)), 7
+    inner = {0: 0.10, 3: 0.11, 6: 0.12, 9: 0.13}  # the policy's own calls plan; held ones take ~0
+    calls = [c for c in range(12) if c != 4]  # held call 4 left no time
+    log = EpisodeLog(states=[np.zeros(20)] * 13, plan_calls=calls, plan_times_s=[inner.get(c, 1e-5) for c in calls],
+                     late_plans=1)
+    run.loop.episode = lambda pol, steps, pose: log
+    r = run.run_episode(None)
+    assert r["plan_s"] == [0.10, 0.11, 0.12, 0.13] and r["late_plans"] == 1
+    assert r["q"].shape == (5, 7)  # every hold-th state: the policy's time grid
+
+
 def test_the_reach_mpc_refits_its_samples_after_each_goal_on_a_wall_clock_arm(tmp_path):
     """evaluate(after=refit_mpc): on a wall-clock arm the CEM's count follows the plan times
     of the policy steps of each MPC episode (injected: 4x slower after the first goal), within

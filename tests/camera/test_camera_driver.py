@@ -91,11 +91,20 @@ def test_real_backend_reads_two_streams_through_opencv(tmp_path, scene):
         assert obs.extras["skew_s"] <= 0.02
         assert d.health().frames_received > 0
 
-    bad = make_driver("camera", backend="real", left_device=str(tmp_path / "nope.avi"),
+    # a device that exists but does not open is a link error (exit 1); one that does not exist is
+    # a config error naming the field (exit 2), as a missing serial port on every robot
+    (tmp_path / "junk.avi").write_bytes(b"not a video")
+    bad = make_driver("camera", backend="real", left_device=str(tmp_path / "junk.avi"),
                       right_device=str(tmp_path / "r.avi"), calibration=str(tmp_path / "cal"))
-    with pytest.raises(LinkError, match="camera left: cannot open device .*nope.avi") as e:
+    with pytest.raises(LinkError, match="camera left: cannot open device .*junk.avi") as e:
         bad.configure()
     assert "\n" not in str(e.value)
+    from hilstack.configs.schema import ConfigError
+
+    gone = make_driver("camera", backend="real", left_device=str(tmp_path / "nope.avi"),
+                       right_device=str(tmp_path / "r.avi"), calibration=str(tmp_path / "cal"))
+    with pytest.raises(ConfigError, match="params.left_device: .*nope.avi does not exist"):
+        gone.configure()
 
 
 def test_real_backend_without_calibration_is_a_config_error():

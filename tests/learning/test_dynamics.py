@@ -237,3 +237,24 @@ def test_the_bf16_relu_on_the_int16_view_is_exactly_relu():
     assert torch.equal(got.float(), want.float())  # −0 and +0 compare equal; every other value exactly
     f = torch.randn(1000)
     assert torch.equal(_relu_(f.clone()), torch.relu(f))  # fp32: the plain relu
+
+
+def test_loss_weights_decide_which_channels_are_learned(tmp_path, data):
+    """A channel weighted 0 in the training loss is not learned; the other one is (issue 29's
+    tilt weight is this option); the weights survive a checkpoint and bad ones are refused."""
+    train, val = data
+    errs = {}
+    for w in ([1.0, 0.0], [0.0, 1.0]):
+        m = EnsembleDynamics(2, 1, hidden=(32, 32), loss_weights=w, seed=0)
+        m.fit(train, epochs=60, progress=False)
+        with torch.inference_mode():
+            pred = m.predict(torch.from_numpy(val.states), torch.from_numpy(val.actions))[0].numpy()
+        errs[tuple(w)] = np.sqrt(((pred - val.states - val.deltas) ** 2).mean(0)) / val.deltas.std(0)
+    # the learned channel's error is a small fraction of its delta's spread; the ignored one's is not
+    assert errs[(1.0, 0.0)][0] < 0.1 < errs[(1.0, 0.0)][1]
+    assert errs[(0.0, 1.0)][1] < 0.1 < errs[(0.0, 1.0)][0]
+    m.save(tmp_path / "w.pt")
+    assert EnsembleDynamics.load(tmp_path / "w.pt").config["loss_weights"] == [0.0, 1.0]
+    for bad in ([1.0], [1.0, -1.0], [0.0, 0.0], [1.0, float("nan")]):
+        with pytest.raises(ValueError, match="loss_weights"):
+            EnsembleDynamics(2, 1, loss_weights=bad)

@@ -87,9 +87,14 @@ def test_realtime_mode_counts_late_plans_and_keeps_rate(bus, spawn):
         assert ctl.pacing is Pacing.STEPPED  # a sim in pace: realtime
         wait_for(lambda: ctl._state.poll() is not None, 20, "states")
         t0 = time.monotonic()
-        log = ctl.run_episode(SlowPlanner(), 40)  # the realtime loop: the spec's pacing chooses it
+        planner = SlowPlanner()
+        log = ctl.run_episode(planner, 40)  # the realtime loop: the spec's pacing chooses it
         wall = time.monotonic() - t0
     assert log.late_plans >= 5
+    # each time says which call it measured: late plans time their own call when they come in,
+    # only the call still running at the end has none
+    assert log.plan_calls == list(range(len(log.plan_times_s))) and planner.calls - 1 <= len(log.plan_calls)
+    assert len(log.plan_calls) < 40  # fewer calls than cycles: late cycles sent the plan's tail
     assert len(log.actions) == 40
     # paced by the cycle timer: 39 waits between 40 commands, the plan wait timed per cycle
     assert log.timing["cycles"] == 39 and log.timing["plan_wait"]["n"] == 40

@@ -93,3 +93,44 @@ def test_body_frame_validation_reports_the_real_h_step_error():
     _, raw_world = h_step_error(model, *windows, state_std=torch.ones(7))
     _, raw_body = h_step_error(model, *windows, state_std=torch.ones(7), frame=model.frame.to_body)
     assert raw_body == pytest.approx(raw_world, rel=1e-4)
+
+
+def _lagged_episodes(n, T, rng):
+    """A planar robot whose heading follows the yaw rate *in the state* (w), itself the last
+    command: the position two steps on depends on w, the next step's does not."""
+    eps = []
+    for _ in range(n):
+        yaw = rng.uniform(-np.pi, np.pi)
+        s = [np.array([0.0, 0.0, 0.0, 0.0, np.cos(yaw), np.sin(yaw), 0.0])]
+        a = rng.uniform(-1, 1, (T, 2))
+        for t in range(T):
+            x, y, _, _, c, sn, w = s[-1]
+            yaw = np.arctan2(sn, c) + 3.0 * w * 0.1
+            vx, vy = a[t, 0] * np.cos(yaw), a[t, 0] * np.sin(yaw)
+            s.append(np.array([x + vx * 0.1, y + vy * 0.1, vx, vy, np.cos(yaw), np.sin(yaw), a[t, 1]]))
+        eps.append(Episode(np.array(s), a))
+    return eps
+
+
+def test_open_loop_loss_trains_what_only_later_steps_reveal():
+    """fit_open_loop's loss runs through the rollout: with w weighted 0 in the loss, one-step
+    training never learns w's next value, but the H-step loss does, because w steers the
+    heading and so the position of the steps after it (train_horizon, issue 29)."""
+    rng = np.random.default_rng(3)
+    eps, val = _lagged_episodes(30, 20, rng), _lagged_episodes(6, 20, rng)
+    w0 = [1, 1, 1, 1, 1, 1, 0]
+    errs = {}
+    for h in (1, 3):
+        torch.manual_seed(0)
+        m = BodyFrameDynamics(EnsembleDynamics(7, 2, hidden=(32, 32), loss_weights=w0, seed=0), NAMES,
+                              train_horizon=h)
+        hist = m.fit(eps, epochs=20, batch_size=64, progress=False)
+        assert ("train_h_loss" in hist[-1]) == (h > 1)
+        s = np.concatenate([e.states[:-1] for e in val])
+        a = np.concatenate([e.actions for e in val])
+        with torch.inference_mode():
+            p = m.predict(torch.tensor(s, dtype=torch.float32), torch.tensor(a, dtype=torch.float32))[0].numpy()
+        errs[h] = np.sqrt(((p[:, 6] - a[:, 1]) ** 2).mean())  # next w is the command: std 0.58
+    assert errs[3] < 0.2 and errs[1] > 0.5, errs  # measured 0.09 and 0.71
+    with pytest.raises(ValueError, match="train_horizon"):
+        BodyFrameDynamics(EnsembleDynamics(7, 2), NAMES, train_horizon=0)

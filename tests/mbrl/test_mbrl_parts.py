@@ -122,7 +122,8 @@ def test_full_config_runs_every_experiment_over_three_seeds():
 
 @pytest.mark.parametrize(("field", "value"), [("experiments", ("table_9",)), ("time_limit_speed_mps", 0.0),
                                               ("baseline_candidates", 0), ("random_forward_fraction", 1.5),
-                                              ("reference_corner_radius_m", -0.1)])
+                                              ("reference_corner_radius_m", -0.1), ("tilt_loss_weight", 0.0),
+                                              ("train_horizon", 0)])
 def test_bad_config_is_one_clear_error_naming_the_field(field, value):
     from hilstack.learning.mbrl import MbrlConfig
 
@@ -148,9 +149,10 @@ def test_demo_flags_select_the_variants(monkeypatch, tmp_path):
         raise ValueError("stop here")
 
     monkeypatch.setattr(hilstack.tools.demo, "run_demo", fake_run_demo)
-    r = CliRunner().invoke(app, ["demo", "--quick", "--world-frame", "--thesis-sampling", "--out", str(tmp_path)])
+    r = CliRunner().invoke(app, ["demo", "--quick", "--world-frame", "--thesis-sampling", "--tilt-loss-weight", "5",
+                                 "--out", str(tmp_path)])
     assert r.exit_code == 1 and "stop here" in r.output
-    assert seen["body_frame"] is False
+    assert seen["body_frame"] is False and seen["tilt_loss_weight"] == 5.0
     assert seen["random_hold_steps"] == 1 and seen["random_forward_fraction"] == 0.0 and seen["reachable_set"] is False
     monkeypatch.undo()
     r = CliRunner().invoke(app, ["demo", "--quick", "--full", "--out", str(tmp_path / "x")])
@@ -450,3 +452,18 @@ def test_the_supervisor_ends_an_episode_by_its_detectors_in_that_episode_only(tm
         first_look, _, second_look = run.episode(lambda s: s, 10, {})
         assert second_look == ended and first_look == (ended and not during)
         assert run.last_end_reason == ("supervisor: left_arena" if ended else "")
+
+
+def test_tilt_loss_weight_lands_on_the_tilt_channels():
+    """MbrlConfig.tilt_loss_weight weighs roll, pitch and their rates in the model's loss (issue
+    29); the open-loop horizon reaches the body-frame model and needs one."""
+    from hilstack.drivers.velociroach.config import STATE_NAMES
+    from hilstack.learning.mbrl import TILT_CHANNELS, MbrlConfig, make_model
+
+    m = make_model(MbrlConfig(tilt_loss_weight=5.0, train_horizon=3), list(STATE_NAMES), ["l", "r"])
+    w = dict(zip(STATE_NAMES, m.model.config["loss_weights"], strict=True))
+    assert {n for n, v in w.items() if v == 5.0} == set(TILT_CHANNELS) and len(TILT_CHANNELS) == 6
+    assert all(v == 1.0 for n, v in w.items() if n not in TILT_CHANNELS) and m.train_horizon == 3
+    assert make_model(MbrlConfig(), list(STATE_NAMES), ["l", "r"]).model.config["loss_weights"] is None
+    with pytest.raises(ValueError, match="train_horizon"):
+        MbrlConfig(train_horizon=2, body_frame=False)
