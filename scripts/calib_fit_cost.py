@@ -20,12 +20,13 @@ W = [rng.poisson(1.0, len(preps)).astype(float) for _ in range(6)]
 modes = [("as_is", True)] + ([("numpy_replay", False)] if hasattr(axis, "USE_COMPILED") else [])
 axis.fit_axis(preps, ["coulomb_friction"], weights=W[0])  # warm-up (numba compile/cache load)
 res = {}
-for rep in range(2):
+for _rep in range(2):
     for label, comp in modes:
         if hasattr(axis, "USE_COMPILED"):
             axis.USE_COMPILED = comp
         for p in preps:
-            p.stats_cache.clear(); getattr(p, "feature_cache", {}).clear()
+            p.stats_cache.clear()
+            getattr(p, "feature_cache", {}).clear()
         c0 = time.process_time()
         out = []
         for w in W:
