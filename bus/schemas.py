@@ -278,7 +278,9 @@ class ResetEvent(Msg, tag="hil.ResetEvent/1"):
     episode: int = 0
     detail: str = ""
     #: a request's: the sequence number of the newest state its sender saw (the last state of
-    #: the episode it ends); -1 unknown
+    #: the episode it ends); a driver node's answer to a teleport or a new episode: the sequence
+    #: number of the first state after it (the answer and that state come through different
+    #: subscriptions, whose order on arrival is not the order they were sent in); -1 unknown
     state_seq: int = -1
 
 

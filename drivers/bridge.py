@@ -254,6 +254,13 @@ class DriverNode(Node):
             self.publish_spec()
             if publish_first:
                 self.publish_state()
+            # the first state after the jump: the one just sent, or the next one. The answer
+            # names it: the receiver's subscriptions each run on their own thread, so the
+            # answer can be taken before that state although it was sent after it
+            first = self._state_pub.seq + (0 if publish_first else 1)
+            for _, msg in answers:
+                if msg.phase == ResetPhase.DONE:
+                    msg.state_seq = first
         for pub, msg in answers:
             pub.put(msg)
         return new_episode

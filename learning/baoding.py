@@ -175,6 +175,31 @@ class HoldActionMap:
 HAND = "shadow_hand"
 
 
+def baoding_rig_problem(rig: str, robot: str = "hand") -> str | None:
+    """Why rig ``rig`` cannot run Baoding, read from its config before anything starts (None: it
+    can): no robot ``robot`` on it, or not a Shadow Hand; the hand's state without the balls'
+    positions (its driver's spec, built and never connected: ``objects_in_state`` and ball
+    trackers); no ``reset:`` section (an episode ends and the balls go back through the rig's
+    reset procedure, docs/reset.md)."""
+    from hilstack.configs.schema import load_rig, load_robot, rig_robot_config
+    from hilstack.drivers.registry import make_driver
+
+    cfg = load_rig(rig)
+    if robot not in cfg.robots:
+        return f"rig {cfg.name} has no robot {robot!r} (robots: {', '.join(cfg.robots)}): Baoding runs on a Shadow Hand"
+    rcfg = rig_robot_config(cfg, robot)
+    if rcfg.robot != load_robot(HAND).robot:
+        return f"rig {cfg.name}'s {robot} is a {rcfg.robot}, not a Shadow Hand ({HAND})"
+    missing = [n for n in BALL_NAMES if n not in make_driver(rcfg).spec.state.names]
+    if missing:
+        return (f"rig {cfg.name}: the {robot}'s state has no {', '.join(missing)} (Baoding needs the balls' positions "
+                "in the hand's state: objects_in_state: true and ball trackers; docs/baoding.md)")
+    if cfg.reset is None:
+        return (f"rig {cfg.name} has no reset: section (Baoding ends episodes on a drop or a timeout and puts the "
+                "balls back through the rig's reset procedure; docs/reset.md)")
+    return None
+
+
 def hold_pose_action() -> np.ndarray:
     """The hand's hold pose (its spec's ``home_action``) in normalized action units [-1, 1]."""
     from hilstack.drivers.registry import spec_of
@@ -407,6 +432,11 @@ class BaodingConfig(Presets):
     torch_threads: int | None = 1
     batch_size: int = 500
     input_noise_std: float = 0.0
+    #: the reference code's supervised-learning noise (``noiseToSignal`` 0.01): while training,
+    #: Gaussian noise of this share of each channel's std on the model's state inputs and delta
+    #: targets, not the actions (the reference scales by the channel's mean; docs/baoding.md,
+    #: "Training noise"); 0 = none
+    noise_to_signal: float = 0.0
     val_fraction: float = 0.1
     progress: bool = True
     rig_timeout_s: float = 60.0
@@ -436,6 +466,8 @@ class BaodingConfig(Presets):
             problems.append(f"inference_dtype must be 'fp32', 'bf16' or 'auto', got {self.inference_dtype!r}")
         if self.torch_threads is not None and self.torch_threads < 1:
             problems.append(f"torch_threads must be >= 1 or None, got {self.torch_threads}")
+        if not (np.isfinite(self.noise_to_signal) and 0.0 <= self.noise_to_signal <= 1.0):
+            problems.append(f"noise_to_signal must be in [0, 1], got {self.noise_to_signal}")
         if self.train_steps is not None and self.train_steps < 1:
             problems.append(f"train_steps must be >= 1 or None, got {self.train_steps}")
         if self.random_rollouts_per_iteration < 0:
@@ -457,6 +489,7 @@ class BaodingConfig(Presets):
         return MbrlConfig(rig=self.rig, robot=self.robot, seed=self.seed, hidden=tuple(self.hidden),
                           ensemble=self.ensemble, epochs=self.epochs, retrain_epochs=self.retrain_epochs,
                           batch_size=self.batch_size, input_noise_std=self.input_noise_std,
+                          noise_to_signal=self.noise_to_signal,
                           val_fraction=self.val_fraction, body_frame=False, invariant_inputs=(),
                           planner="pddm", samples=self.samples, horizon=self.horizon,
                           progress=self.progress, rig_timeout_s=self.rig_timeout_s)

@@ -8,7 +8,12 @@ Model (Nagabandi et al.; thesis defaults): for each ensemble member ``e``
 
 trained with Adam (lr 1e-3) on the MSE between ``y`` and the normalized true delta
 ``(Δs - μ_Δ) / σ_Δ``. Optional Gaussian noise of std ``input_noise_std`` (in normalized
-units) is added to ``x`` during training only.
+units) is added to ``x`` during training only. Optional supervised-learning noise
+``noise_to_signal`` (google-research/pddm's ``noiseToSignal``): Gaussian noise of std
+``noise_to_signal`` × each channel's standard deviation over the training data, added to the
+state part of the inputs and to the delta targets (not to the actions), drawn afresh for every
+batch, training only. The reference scales it by each channel's *mean* (frame-dependent: see
+docs/baoding.md); here by the spread, so it is the same whatever the world frame's origin.
 
 Ensembles are ONE batched computation: layer ``l`` has weights ``[E, in, out]`` and biases
 ``[E, 1, out]`` applied with ``torch.baddbmm``; there is no Python loop over members. Each
@@ -145,6 +150,9 @@ class EnsembleDynamics(nn.Module):
         input_noise_std: std of Gaussian noise added to the normalized inputs while training.
         loss_weights: per state channel weight of the normalized delta's squared error in the
             training loss (default: all 1); scaled to mean 1, so the loss stays comparable.
+        noise_to_signal: while training, Gaussian noise of std ``noise_to_signal`` × each
+            channel's std over the training data is added to the state inputs and the delta
+            targets (not the actions); 0 = none (see the module docstring).
         bootstrap: resample training data per member; default ``ensemble > 1``.
         norm_update: ``"refit"`` or ``"freeze"`` (see module docstring).
         inference_dtype: ``"fp32"`` (default), ``"bf16"`` or ``"auto"``.
@@ -163,6 +171,7 @@ class EnsembleDynamics(nn.Module):
         weight_decay: float = 0.0,
         input_noise_std: float = 0.0,
         loss_weights: Sequence[float] | None = None,
+        noise_to_signal: float = 0.0,
         bootstrap: bool | None = None,
         norm_update: str = "refit",
         inference_dtype: str = "fp32",
@@ -180,6 +189,8 @@ class EnsembleDynamics(nn.Module):
             if lw.shape != (int(state_dim),) or not np.all(np.isfinite(lw)) or np.any(lw < 0) or lw.sum() <= 0:
                 raise ValueError(f"loss_weights must be {int(state_dim)} finite weights >= 0 (not all 0), "
                                  f"got {list(loss_weights)}")
+        if not (math.isfinite(noise_to_signal) and 0.0 <= noise_to_signal <= 1.0):
+            raise ValueError(f"noise_to_signal must be in [0, 1], got {noise_to_signal}")
         self.config = dict(
             state_dim=int(state_dim),
             action_dim=int(action_dim),
@@ -189,6 +200,7 @@ class EnsembleDynamics(nn.Module):
             weight_decay=float(weight_decay),
             input_noise_std=float(input_noise_std),
             loss_weights=None if loss_weights is None else [float(w) for w in loss_weights],
+            noise_to_signal=float(noise_to_signal),
             bootstrap=bool(ensemble > 1) if bootstrap is None else bool(bootstrap),
             norm_update=norm_update,
             inference_dtype=inference_dtype,
@@ -517,6 +529,7 @@ class EnsembleDynamics(nn.Module):
             windows = h_step_windows(val.episodes, horizon, max_val_starts)
         noise = self.config["input_noise_std"]
         w_out = self.loss_weight_tensor()
+        x_noise, y_noise = self._train_noise_scales(dataset)
         start_epoch = self.history[-1]["epoch"] + 1 if self.history else 0
         entries: list[dict] = []
         bar = None
@@ -535,6 +548,8 @@ class EnsembleDynamics(nn.Module):
                 xb, yb = x_all[idx], y_all[idx]  # [E, b, S+A], [E, b, S]
                 if noise > 0:
                     xb = xb + noise * torch.randn(xb.shape, generator=self._gen)
+                if x_noise is not None:
+                    xb, yb = self._noisy_batch(xb, yb, x_noise, y_noise)
                 pred = self.forward_normalized(xb)
                 # sum over members of each member's mean loss: members train independently
                 loss = (((pred - yb) ** 2) * w_out).mean(dim=(1, 2)).sum()
@@ -565,6 +580,26 @@ class EnsembleDynamics(nn.Module):
             return torch.ones(self.state_dim)
         w = torch.as_tensor(lw, dtype=torch.float32)
         return w * (len(w) / w.sum())
+    def _train_noise_scales(self, dataset: TransitionDataset) -> tuple[torch.Tensor, torch.Tensor] | tuple[None, None]:
+        """Per-channel std of the ``noise_to_signal`` noise in normalized units: ``[S+A]`` for
+        the inputs (0 on the actions) and ``[S]`` for the targets; ``(None, None)`` when off.
+        ``r · std_raw / σ``: r on an ordinary channel, 0 on a constant one (its σ is 1, its
+        spread 0), ~0 on an ignored one (σ = 1e12)."""
+        r = self.config["noise_to_signal"]
+        if r <= 0:
+            return None, None
+        sd_s = torch.from_numpy(np.asarray(dataset.states, dtype=np.float64).std(0)).float()
+        sd_d = torch.from_numpy(np.asarray(dataset.deltas, dtype=np.float64).std(0)).float()
+        x = torch.zeros(self.state_dim + self.action_dim)
+        x[: self.state_dim] = r * sd_s / self.input_std[: self.state_dim]
+        return x, r * sd_d / self.delta_std
+
+    def _noisy_batch(self, xb: torch.Tensor, yb: torch.Tensor, x_noise: torch.Tensor,
+                     y_noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A training batch (normalized) with the ``noise_to_signal`` noise of per-channel std
+        ``x_noise`` / ``y_noise`` (:meth:`_train_noise_scales`) added."""
+        return (xb + x_noise * torch.randn(xb.shape, generator=self._gen),
+                yb + y_noise * torch.randn(yb.shape, generator=self._gen))
 
     # -- validation ------------------------------------------------------------------------
     def evaluate(

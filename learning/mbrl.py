@@ -95,6 +95,9 @@ class MbrlConfig(Presets):
     retrain_epochs: int = 20
     batch_size: int = 512
     input_noise_std: float = 0.01
+    #: supervised-learning noise while training, as a share of each channel's std (states and
+    #: deltas; :class:`~hilstack.learning.dynamics.EnsembleDynamics` ``noise_to_signal``)
+    noise_to_signal: float = 0.0
     val_fraction: float = 0.1
     #: issue 29, a model that sees a tip coming: the weight of the tilt channels (cos/sin of roll
     #: and pitch, and the body rates wx, wy) in the training loss, the others 1 (EnsembleDynamics
@@ -296,6 +299,7 @@ def make_model(cfg: MbrlConfig, state_names: list[str], action_names: list[str])
         hidden=cfg.hidden,
         input_noise_std=cfg.input_noise_std,
         loss_weights=weights,
+        noise_to_signal=cfg.noise_to_signal,
         state_names=state_names,
         action_names=action_names,
         seed=cfg.seed,

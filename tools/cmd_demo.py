@@ -53,7 +53,9 @@ def register(app: typer.Typer) -> None:
         envs: str = typer.Option("", "--envs", help="mbrl-gym only: comma-separated swimmer, half_cheetah, hopper, "
                                  "ant (default: all four; --quick: half_cheetah)"),
         planner: str = typer.Option("cem", "--planner", help="cem | random_shooting | pddm"),
-        rig: str = typer.Option("roach_sim", "--rig", help="rig config: roach_sim (lockstep), roach_emulated, roach_real"),
+        rig: str | None = typer.Option(None, "--rig", help="rig config. roach: roach_sim (lockstep, the default), "
+                                       "roach_emulated, roach_real; baoding: hand_sim (lockstep, the default), "
+                                       "hand_sim_arm, hand_emulated (the hand in the loop, docs/baoding.md)"),
         operator_resets: bool = typer.Option(False, "--operator-resets",
                                              help="rigs without a reset: section (docs/reset.md): prompt an operator to place the robot"),
         ray: str | None = RAY_OPTION,
@@ -96,6 +98,8 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"hil demo {what}: --ray is for the full run (--full); the other runs are one task")
         if ray is not None and suite == "gym":
             raise UserError("hil demo adaptation --suite gym: --ray is for the roach suite only so far")
+        if rig is not None and what not in ("roach", "baoding"):
+            raise UserError(f"hil demo {what}: --rig is for the roach and baoding demos only")
         if what in OTHER_DEMOS:
             import importlib
 
@@ -104,7 +108,7 @@ def register(app: typer.Typer) -> None:
                 raise UserError(f"hil demo {what}: --resume is for the baoding demo only")
             kw = {"part": part, "setting": setting, "ray": ray, "workers": workers} if what == "transfer" else (
                 {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else (
-                    {"ray": ray, "workers": workers, "resume": resume} if what == "baoding" else {}))
+                    {"ray": ray, "workers": workers, "resume": resume, "rig": rig} if what == "baoding" else {}))
             if what == "mbrl-gym":
                 from hilstack.tools.demo_mbmf import parse_envs
 
@@ -131,7 +135,7 @@ def register(app: typer.Typer) -> None:
         if thesis_sampling:
             variant.update(random_hold_steps=1, random_forward_fraction=0.0, reachable_set=False)
         try:
-            r = run_demo(out, quick=quick, full=full, seed=seed, planner=planner, rig=rig,
+            r = run_demo(out, quick=quick, full=full, seed=seed, planner=planner, rig=rig or "roach_sim",
                          operator_resets=operator_resets, ray=ray, workers=workers, **variant)
         except (RigError, ValueError) as e:
             typer.echo(f"error: {e}", err=True)

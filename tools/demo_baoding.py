@@ -42,9 +42,14 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
                      resume: bool = False, **overrides: Any) -> dict[str, Any]:
     """One run of PDDM on Baoding; writes the report to ``out`` and returns it. ``resume``:
     continue the stopped run in ``out`` after its last finished iteration (same preset and seed)."""
+    from hilstack.learning.baoding import baoding_rig_problem
+
+    cfg = make_config(preset, seed, **overrides)
+    problem = baoding_rig_problem(cfg.rig, cfg.robot)
+    if problem:  # before anything starts or is written
+        raise ValueError(problem)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = make_config(preset, seed, **overrides)
     # a private rendezvous port: a demo never talks to another rig by accident; the rig's bus
     # settings otherwise (an emulated hand's access control, its credentials made when missing)
     if bus is None:
@@ -55,7 +60,8 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
         bus = with_endpoint(rig_cfg.bus, free_endpoint())
         provision_credentials(rig_cfg.name, bus, rig_cfg)
     report = BaodingRun(cfg, out, bus, resume=resume).run()
-    report["command"] = f"hil demo baoding{' --quick' if preset == 'quick' else ''} --seed {seed} --out {out}"
+    rig_arg = "" if cfg.rig == FULL_RIG else f" --rig {cfg.rig}"
+    report["command"] = f"hil demo baoding{' --quick' if preset == 'quick' else ''}{rig_arg} --seed {seed} --out {out}"
     report["created"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     report["plots"] = [write_plot(report, out)]
     last = next((r for r in reversed(report["recordings"]) if r.endswith("-mpc.mcap")), None)
@@ -245,28 +251,36 @@ def report_markdown(r: dict[str, Any]) -> str:
 
 
 def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None = None, workers: int = 1,
-                resume: bool = False) -> None:
-    """The `hil demo baoding` verb (registered in tools/cmd_demo.py); ``ray``: ``--full`` only."""
+                resume: bool = False, rig: str | None = None) -> None:
+    """The `hil demo baoding` verb (registered in tools/cmd_demo.py); ``ray``: ``--full`` only;
+    ``rig``: the rig config (default :data:`FULL_RIG`), refused at once when it cannot run
+    Baoding (:func:`~hilstack.learning.baoding.baoding_rig_problem`)."""
     import typer
 
+    from hilstack.learning.baoding import baoding_rig_problem
     from hilstack.learning.mbrl import RigError
+    from hilstack.tools.common import UserError
 
     if quick and full:
         raise typer.BadParameter("choose --quick or --full, not both")
     if ray is not None and not full:
         raise typer.BadParameter("--ray is for the full run (--full): the other runs are one seed")
+    rig = rig or FULL_RIG
+    problem = baoding_rig_problem(rig)
+    if problem:
+        raise UserError(f"hil demo baoding --rig {rig}: {problem}")
     if out == Path("out/demo"):
         out = Path("out/baoding")
     try:
         if full:
-            s = run_full(out, ray=ray, workers=workers, resume=resume)
+            s = run_full(out, rig=rig, ray=ray, workers=workers, resume=resume)
             typer.echo(f"final PDDM success_90 {100 * s['final_success_90']['mean']:.0f} ± "
                        f"{100 * s['final_success_90']['std']:.0f} %, success_180 {100 * s['final_success_180']['mean']:.0f} %, "
                        f"rotation {s['final_mean_rotation_deg']['mean']:.0f}°, drop rate "
                        f"{s['final_drop_rate']['mean']:.2f} over seeds {s['seeds']}")
             typer.echo(f"report: {out / 'report.json'}")
             return
-        r = run_baoding_demo(out, preset="quick" if quick else "thesis", seed=seed, resume=resume)
+        r = run_baoding_demo(out, preset="quick" if quick else "thesis", seed=seed, resume=resume, rig=rig)
     except (RigError, ValueError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from None
@@ -392,6 +406,10 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "reward_3d_nowrist": {**REF_SAMPLER, "task_overrides": {"distance": "3d", "wrist_limit_rad": None}},
     "old_targets": {**REF_SAMPLER, "task_overrides": {"radius_m": 0.025, "radius_v_m": None,
                                                       "rate_rad_s": float(np.pi / 5)}},
+    # the reference's training noise (noiseToSignal 0.01), here on each channel's std, and 10x it;
+    # the quick preset otherwise (docs/baoding.md, "Training noise")
+    "noise_001": {"noise_to_signal": 0.01},
+    "noise_01": {"noise_to_signal": 0.1},
 }
 
 
@@ -865,7 +883,7 @@ def torch_threads(n: int) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...]
+    """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...] [--seed S]
     | diagnose RUN_DIR OUT --iteration N``."""
     import argparse
 
@@ -880,6 +898,7 @@ def main(argv: list[str] | None = None) -> None:
     ab = sub.add_parser("ablate", help="run the ablations (all when no NAME is given)")
     ab.add_argument("out", type=Path)
     ab.add_argument("names", nargs="*", metavar="NAME", help="ablation names")
+    ab.add_argument("--seed", type=int, default=0)
     dg = sub.add_parser("diagnose", help="a stopped thesis-scale run's model: held-out probe and closed loop")
     dg.add_argument("run_dir", type=Path)
     dg.add_argument("out", type=Path)
@@ -921,7 +940,7 @@ def main(argv: list[str] | None = None) -> None:
         unknown = [n for n in a.names if n not in ABLATIONS]
         if unknown:
             ap.error(f"unknown ablation(s) {unknown}; known: {', '.join(ABLATIONS)}")
-        print(json.dumps(ablate(a.out, tuple(a.names) or tuple(ABLATIONS)), indent=1))
+        print(json.dumps(ablate(a.out, tuple(a.names) or tuple(ABLATIONS), seed=a.seed), indent=1))
     else:
         print(json.dumps(compare_choices(a.run_dir), indent=1))
 

@@ -258,3 +258,48 @@ def test_loss_weights_decide_which_channels_are_learned(tmp_path, data):
     for bad in ([1.0], [1.0, -1.0], [0.0, 0.0], [1.0, float("nan")]):
         with pytest.raises(ValueError, match="loss_weights"):
             EnsembleDynamics(2, 1, loss_weights=bad)
+def test_noise_to_signal_is_in_proportion_to_each_channels_std_on_states_and_targets_and_only_in_training():
+    """The reference code's supervised-learning noise (pddm ``noiseToSignal``), scaled by the
+    spread: each state input and delta target gets noise of std r × that channel's std over the
+    training data (raw units), the actions none, a constant channel none; prediction and
+    validation never see it."""
+    rng = np.random.default_rng(0)
+    scale = np.array([0.01, 1.0, 100.0, 0.0])  # channel 3 is constant
+    eps = []
+    for i in range(8):
+        s = rng.normal(size=(301, 4)).cumsum(0) * scale + [0.0, 5.0, -3.0, 2.0]
+        eps.append(Episode(states=s, actions=rng.normal(size=(300, 2)) * [1.0, 10.0], times=np.arange(301) * 0.1,
+                           name=f"e{i}"))
+    ds = TransitionDataset(eps)
+    r = 0.2
+    m = EnsembleDynamics(4, 2, ensemble=1, hidden=(8,), noise_to_signal=r, seed=0)
+    seen = []
+    noisy = m._noisy_batch
+
+    def record(xb, yb, xs, ys):
+        out = noisy(xb, yb, xs, ys)
+        seen.append((xb, yb, *out))
+        return out
+
+    m._noisy_batch = record
+    m.fit(ds, epochs=2, batch_size=600, progress=False)
+    assert len(seen) == 2 * int(np.ceil(len(ds) / 600))
+    dx = torch.cat([(xn - x).reshape(-1, 6) for x, _, xn, _ in seen]) * m.input_std
+    dy = torch.cat([(yn - y).reshape(-1, 4) for _, y, _, yn in seen]) * m.delta_std
+    raw_sx, raw_sd = ds.states.std(0), ds.deltas.std(0)
+    for j in range(3):  # raw units: r × the channel's spread, whatever its scale (0.01 ... 100)
+        assert float(dx[:, j].std()) == pytest.approx(r * raw_sx[j], rel=0.06)
+        assert float(dy[:, j].std()) == pytest.approx(r * raw_sd[j], rel=0.06)
+    assert float(dx[:, 3].abs().max()) == 0.0 and float(dy[:, 3].abs().max()) == 0.0  # constant channel
+    assert float(dx[:, 4:].abs().max()) == 0.0  # actions are never noised
+    # only in training: a twin without noise with the same weights predicts and validates alike
+    twin = EnsembleDynamics(4, 2, ensemble=1, hidden=(8,), seed=0)
+    twin.load_state_dict(m.state_dict())
+    n = len(seen)
+    s0, a0 = torch.from_numpy(ds.states[:50]), torch.from_numpy(ds.actions[:50])
+    with torch.inference_mode():
+        assert torch.equal(m.predict(s0, a0), twin.predict(s0, a0))
+    assert m.evaluate(eps[:2], horizon=5) == twin.evaluate(eps[:2], horizon=5)
+    assert len(seen) == n
+    with pytest.raises(ValueError, match="noise_to_signal"):
+        EnsembleDynamics(4, 2, noise_to_signal=float("nan"))

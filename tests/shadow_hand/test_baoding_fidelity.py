@@ -95,6 +95,11 @@ def test_the_planner_plans_from_the_balls_velocities():
     vx = [f.names.index(f"ball{i}_v{c}") for i in range(2) for c in "xyz"]
     np.testing.assert_allclose(seen[0][vx].numpy(), 0.0, atol=1e-6)
     np.testing.assert_allclose(seen[-1][vx].numpy(), [0, 0.03, 0, 0, -0.03, 0], atol=1e-5)
+    # a new episode (the policy reset, the balls put back elsewhere) starts at rest: no velocity
+    # from the last episode's balls to the new ones
+    pol.reset()
+    pol(raw_state(b0 + [0.0, 0.0, -0.05]))
+    np.testing.assert_allclose(seen[-1][vx].numpy(), 0.0, atol=1e-6)
 
 
 def test_the_run_trains_and_plans_on_the_features(bus, tmp_path):

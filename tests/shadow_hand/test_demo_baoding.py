@@ -362,3 +362,56 @@ def test_a_wall_clock_hand_refits_pddm_k_after_each_mpc_episode(bus, tmp_path, m
         n = len(refits)
         run.run_episodes(lambda i, run=run: UniformRandomPolicy(len(run.action_names), seed=i), 1, "002-random", "x")
         assert len(run.planner_fit["refits"]) == n
+
+
+# ---------------------------------------------------------------------------- hil demo baoding --rig
+def test_demo_baoding_rig_option_reaches_the_run_and_unfit_rigs_are_refused_in_one_line(tmp_path, monkeypatch):
+    """`hil demo baoding --rig RIG` runs on RIG (default the lockstep sim rig); a rig without a
+    hand, without the balls in the hand's state or without a reset: section is refused before
+    anything starts, in one line naming what is missing (exit 2)."""
+    import yaml
+    from typer.testing import CliRunner
+
+    import hilstack.tools.demo_baoding as demo
+    from hilstack.configs.schema import config_path
+    from hilstack.tools.cli import app
+
+    ran: list[dict] = []
+
+    def fake_run(out, preset="quick", seed=0, resume=False, **kw):
+        ran.append({"preset": preset, **kw})
+        raise ValueError("stop here")  # the run itself is test_demo_baoding_tiny_end_to_end's
+
+    monkeypatch.setattr(demo, "run_baoding_demo", fake_run)
+
+    def invoke(*args: str):
+        return CliRunner().invoke(app, ["demo", "baoding", "--quick", *args, "--out", str(tmp_path / "o")])
+
+    for args, rig in (((), "hand_sim"), (("--rig", "hand_emulated"), "hand_emulated")):
+        r = invoke(*args)
+        assert r.exit_code == 1 and "stop here" in r.output, r.output
+        assert ran.pop() == {"preset": "quick", "rig": rig}
+    no_reset = yaml.safe_load(config_path("rigs", "hand_sim").read_text())
+    del no_reset["reset"]
+    (tmp_path / "hand_noreset.yaml").write_text(yaml.safe_dump({**no_reset, "name": "hand_noreset"}))
+    for rig, why in (("roach_sim", "rig roach_sim has no robot 'hand'"),
+                     ("hand_real", "the hand's state has no ball0_x, ball0_y, ball0_z, ball1_x, ball1_y, ball1_z"),
+                     ("hand_emulated_arm", "the hand's state has no ball0_x"),
+                     (str(tmp_path / "hand_noreset.yaml"), "rig hand_noreset has no reset: section")):
+        r = invoke("--rig", rig)
+        assert r.exit_code == 2 and why in r.output, (rig, r.output)
+        assert len(r.output.strip().splitlines()) == 1, r.output
+    assert not ran and not (tmp_path / "o").exists()
+    r = CliRunner().invoke(app, ["demo", "arms", "--rig", "hand_sim", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "--rig is for the roach and baoding demos only" in r.output
+
+
+def test_the_training_noise_setting_reaches_the_runs_model_and_is_bounded():
+    from hilstack.learning.mbrl import make_model
+
+    cfg = BaodingConfig.from_preset("tiny", noise_to_signal=0.05)
+    assert make_model(cfg.mbrl(), ["a", "b"], ["u"]).config["noise_to_signal"] == 0.05
+    assert make_model(BaodingConfig().mbrl(), ["a", "b"], ["u"]).config["noise_to_signal"] == BaodingConfig.noise_to_signal
+    for bad in (-0.1, 2.0, float("inf")):
+        with pytest.raises(ValueError, match="noise_to_signal must be in"):
+            BaodingConfig(noise_to_signal=bad)
