@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
+from hilstack.calibration import compiled
+from hilstack.calibration.compiled import COEF_COLUMNS
 from hilstack.calibration.data import Recording, default_sg_window, sg_velocity, sg_velocity_kernel
 from hilstack.calibration.effects import CATALOGUE
 
@@ -102,6 +104,8 @@ class Prepared:
     v_min: float  # velocity [x/s] below which the axis counts as stopped
     #: regression statistics per model configuration (see :func:`episode_stats`)
     stats_cache: dict = field(default_factory=dict, repr=False, compare=False)
+    #: feature columns per hyper-parameter values (see :func:`raw_features`)
+    feature_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n(self) -> int:
@@ -230,6 +234,8 @@ def backlash_play(u: np.ndarray, halfwidth: float) -> np.ndarray:
     """Play (backlash) operator: output follows u only once u moved ``halfwidth`` past it."""
     if halfwidth <= 0:
         return u.copy()
+    if compiled.backlash_play is not None and USE_COMPILED:
+        return compiled.backlash_play(np.ascontiguousarray(u, dtype=float), float(halfwidth))
     # Pure-python floats: ~20x faster than indexing numpy scalars in a sequential loop.
     out = []
     prev = float(u[0])
@@ -400,6 +406,23 @@ def coef_names(effects: list[str]) -> list[str]:
     return names
 
 
+#: The input chain's hyper-parameters with their no-effect values (what :func:`input_chain` reads).
+_CHAIN_HYPERS = (("delay_s", 0.0), ("limit_u", math.inf), ("width_u", 0.0), ("halfwidth_u", 0.0), ("tau_s", 0.0))
+#: Most cached feature columns per episode before the cache is emptied (bounds memory).
+FEATURE_CACHE_MAX = 256
+
+
+def _feature_cached(p: Prepared, key: tuple, make) -> np.ndarray:
+    """A feature column of episode ``p`` from its cache, made (and kept) when missing. Columns are
+    shared between calls: nobody writes into them."""
+    col = p.feature_cache.get(key)
+    if col is None:
+        if len(p.feature_cache) >= FEATURE_CACHE_MAX:
+            p.feature_cache.clear()
+        col = p.feature_cache[key] = make()
+    return col
+
+
 def raw_features(p: Prepared, params: AxisParams, v: np.ndarray, smooth: bool) -> dict[str, np.ndarray]:
     """Per-sample features (acceleration per unit coefficient), length N.
 
@@ -411,8 +434,12 @@ def raw_features(p: Prepared, params: AxisParams, v: np.ndarray, smooth: bool) -
     one = np.ones(p.n) if g is None else g
     sm = (lambda a: _smooth(p, a)) if smooth else (lambda a: a)
     feats: dict[str, np.ndarray] = {}
-    fu = input_chain(p.ep.u, p.period_s, hp)
-    feats["a"] = sm(fu * one)
+    # The command chain and its smoothed drive column depend on the input-side hyper-parameters only;
+    # a coordinate search varies one hyper-parameter at a time, so they are cached per episode.
+    chain_key = tuple(float(hp.get(h, d)) for h, d in _CHAIN_HYPERS)
+    mu = float(hp.get("mu_per_unit", 0.0))
+    fu = _feature_cached(p, ("chain", chain_key), lambda: input_chain(p.ep.u, p.period_s, hp))
+    feats["a"] = _feature_cached(p, ("a", chain_key, mu, smooth), lambda: sm(fu * one))
     if "battery_sag" in eff:
         pre_lag = {k: v for k, v in hp.items() if k != "tau_s"}
         w = input_chain(p.ep.u, p.period_s, pre_lag) * _rel_vbat(p, params.vbat_ref_v)
@@ -428,7 +455,7 @@ def raw_features(p: Prepared, params: AxisParams, v: np.ndarray, smooth: bool) -
     if "stribeck_friction" in eff:
         feats["fs_extra_acc"] = -np.exp(-((v / hp["vs"]) ** 2)) * sgn * one
     if "force_offset" in eff:
-        feats["offset_acc"] = sm(one.copy())
+        feats["offset_acc"] = _feature_cached(p, ("offset", mu, smooth), lambda: sm(one.copy()))
     if "slope" in eff:
         feats["gravity_acc"] = np.ones(p.n)
     if "asymmetric_friction" in eff:
@@ -475,17 +502,21 @@ def _stats_key(params: AxisParams) -> tuple:
             params.sensor["scale_v"], params.eps_v, params.vbat_ref_v)
 
 
-def episode_stats(preps: list[Prepared], params: AxisParams) -> list[Stats]:
+def episode_stats(preps: list[Prepared], params: AxisParams, weights: np.ndarray | None = None) -> list[Stats | None]:
     """Per-episode regression statistics, cached on each episode.
 
     The selection fits the same episode with the same effects and hyper-parameter values many
     times (every fold that trains on it, every bootstrap replicate, the same grid point in every
     round); the statistics depend only on the episode and :func:`_stats_key`, so they are
-    computed once. Weights (folds, bootstrap counts) are applied later in :func:`solve`.
+    computed once. Weights (folds, bootstrap counts) are applied later in :func:`solve`; an episode
+    of weight 0 (held out, not drawn) gets None instead of statistics nobody reads.
     """
     key = _stats_key(params)
-    out = []
-    for p in preps:
+    out: list[Stats | None] = []
+    for i, p in enumerate(preps):
+        if weights is not None and not weights[i]:
+            out.append(None)
+            continue
         s = p.stats_cache.get(key)
         if s is None:
             X, y, _ = design(p, params)
@@ -503,7 +534,7 @@ def solve(stats: list[Stats], weights: np.ndarray | None = None) -> tuple[np.nda
     xtx = sum(wi * s.xtx for wi, s in zip(w, stats, strict=True) if wi)
     xty = sum(wi * s.xty for wi, s in zip(w, stats, strict=True) if wi)
     yty = sum(wi * s.yty for wi, s in zip(w, stats, strict=True) if wi)
-    n = int(sum(wi * s.n for wi, s in zip(w, stats, strict=True)))
+    n = int(sum(wi * s.n for wi, s in zip(w, stats, strict=True) if wi))
     ridge = 1e-10 * (np.trace(xtx) / xtx.shape[0] + 1e-30)
     theta = np.linalg.solve(xtx + ridge * np.eye(xtx.shape[0]), xty)
     sse = float(yty - 2 * theta @ xty + theta @ xtx @ theta)
@@ -640,7 +671,7 @@ def _parabola_min(x, y) -> float:
 
 
 def _sse_for(preps, params, weights):
-    stats = episode_stats(preps, params)
+    stats = episode_stats(preps, params, weights)
     theta, sse, _ = solve(stats, weights)
     return sse, theta
 
@@ -900,18 +931,36 @@ def refine_output_error(preps: list[Prepared], params: AxisParams, weights: np.n
     jobs, wts = _oe_jobs(preps, params, weights)
     if not jobs or not np.all(np.isfinite(theta0)):
         return False
-    sw = np.sqrt(wts)
+    # The windows of all jobs stacked once; each evaluation replays them for every parameter vector
+    # asked for (the Jacobian's columns together) with only the coefficient matrix rebuilt.
+    base = _stack(jobs)
+    n_w = base["idx"].size
+    sw = np.concatenate([np.full(j["starts"].size, np.sqrt(wi)) for j, wi in zip(jobs, wts, strict=True)])[:, None]
+    horizon, dt = jobs[0]["horizon"], jobs[0]["p"].period_s
+    ks = [j["starts"][:, None] + 1 + np.arange(horizon)[None, :] for j in jobs]
+    x_true = np.concatenate([j["p"].ep.x[k] for j, k in zip(jobs, ks, strict=True)])
+    v_true = np.concatenate([j["p"].v_obs[k] for j, k in zip(jobs, ks, strict=True)])
+    s_v, b_v = params.sensor["scale_v"], params.sensor["bias_v"]
+    col = [COEF_COLUMNS.index(n) for n in names]
+    fixed = base["coef"][0].copy()  # coefficients outside ``names`` (none: all linear ones are refined)
+
+    tiled: dict[int, dict[str, np.ndarray]] = {}  # the windows repeated for m parameter vectors
 
     def errors(thetas: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
-        built = [_with_coef(j, dict(zip(names, th, strict=True))) for th in thetas for j in jobs]
+        m = len(thetas)
+        if m not in tiled:
+            tiled[m] = {k: (vv if k in ("u_in", "kb_in", "g") else np.tile(vv, m)) for k, vv in base.items()
+                        if k != "coef"}
+        st = dict(tiled[m])
+        coef = np.tile(fixed, (m, 1))
+        coef[:, col] = np.asarray(thetas, float)
+        st["coef"] = np.repeat(coef, n_w, axis=0)
         with np.errstate(all="ignore"):
-            sims = _replay_built(built)
-        out = []
-        for t in range(len(thetas)):
-            chunk = sims[t * len(jobs):(t + 1) * len(jobs)]
-            ex = np.concatenate([w * (s["x_pred"] - s["x_true"]).ravel() for w, s in zip(sw, chunk, strict=True)])
-            ev = np.concatenate([w * (s["v_pred"] - s["v_true"]).ravel() for w, s in zip(sw, chunk, strict=True)])
-            out.append((ex, ev))
+            xs, vs_out = _replay_stacked(st, horizon, dt)
+            out = []
+            for t in range(m):
+                sl = slice(t * n_w, (t + 1) * n_w)
+                out.append(((sw * (xs[sl] - x_true)).ravel(), (sw * ((s_v * vs_out[sl] + b_v) - v_true)).ravel()))
         return out
 
     ex0, ev0 = errors([theta0])[0]
@@ -1025,7 +1074,6 @@ def _replay_job(p: Prepared, params: AxisParams, horizon: int, starts, play) -> 
     starts = np.asarray(starts, dtype=int)
     v_true = state_velocity(p, params.sensor)
     feats = raw_features(p, params, v_true, smooth=False)  # only command-side columns used below
-    c = params.coef
     hp = params.hyper
     g = _payload_factor(p, hp)
     g = np.ones(p.n) if g is None else g
@@ -1036,40 +1084,36 @@ def _replay_job(p: Prepared, params: AxisParams, horizon: int, starts, play) -> 
     has_play = play is not None
     play_w = np.zeros(w) if play is None else np.broadcast_to(np.asarray(play, float), (w,))
     motor0 = x0 + play_w * motion_direction(v_true, p.v_min)[starts] if has_play else x0.copy()
-
+    kb_in = feats.get("kb")
     job = {"p": p, "params": params, "horizon": horizon, "starts": starts, "g": g,
-           "u_in": feats["a"], "kb_in": feats.get("kb"),
+           "u_in": feats["a"], "kb_in": np.zeros(p.n) if kb_in is None else kb_in,
            "x_load": x0, "x": motor0, "v": v_true[starts].astype(float).copy(),
            "has_play": np.full(w, has_play), "play": play_w,
            "vs": np.full(w, float(hp.get("vs", 1.0))), "q0": np.full(w, float(hp.get("q0_rad", 0.0))),
            "cog_k": np.full(w, float(hp.get("cog_k", 1.0))), "cog_phase": np.full(w, float(hp.get("cog_phase", 0.0)))}
-    return _with_coef(job, c)
+    return _with_coef(job, params.coef)
+
+
+def _coef_vector(c: dict[str, float]) -> np.ndarray:
+    """The coefficients a replay reads, in :data:`compiled.COEF_COLUMNS` order (0 when absent)."""
+    return np.array([float(c.get(k, 0.0)) for k in COEF_COLUMNS])
 
 
 def _with_coef(job: dict, c: dict[str, float]) -> dict:
     """A replay job with the linear coefficients ``c`` (the features, which depend only on the
-    hyper-parameters, are shared with ``job``)."""
-    w = job["starts"].size
-
-    def per_window(value):
-        return np.full(w, float(value))
-
-    g = job["g"]
-    force_in = c["a"] * job["u_in"]
-    if job["kb_in"] is not None:
-        force_in = force_in + c["kb"] * job["kb_in"]
-    # Command-side terms were multiplied by g in raw_features; offset/friction get g in the replay.
-    drive = force_in + c.get("offset_acc", 0.0) * g + c.get("gravity_acc", 0.0)
-    return {**job, "drive": drive, "kemf": per_window(c.get("kemf", 0.0)),
-            "c_per_s": per_window(c["c_per_s"]), "fc": per_window(c.get("fc_acc", 0.0)),
-            "fs": per_window(c.get("fs_extra_acc", 0.0)), "fa": per_window(c.get("fa_acc", 0.0)),
-            "gl": per_window(c.get("gl_acc", 0.0)), "gc": per_window(c.get("gc_acc", 0.0))}
+    hyper-parameters, are shared with ``job``). The drive of step k is
+    a·u_k + kb·kb_k + offset·g_k + gravity_acc: command-side terms were multiplied by the payload
+    factor g in raw_features; the offset gets g here, friction and loads in the replay."""
+    return {**job, "coef": _coef_vector(c)}
 
 
 #: How many replay jobs :func:`simulate_many` stacks into one vectorised replay (None: all of them).
 #: 1 replays one episode at a time, as before the batching: `hil bench calibrate --speed` runs that
 #: as the peer of the batched replay in the same process.
 REPLAY_BATCH_JOBS: int | None = None
+#: Run the numba-compiled replay (:mod:`calibration.compiled`) when numba is installed; False: the
+#: numpy replay (`hil bench calibrate --speed` measures one against the other).
+USE_COMPILED = True
 
 
 def simulate_many(jobs, horizon: int) -> list[dict[str, np.ndarray]]:
@@ -1098,33 +1142,47 @@ def _replay_built(built: list[dict]) -> list[dict[str, np.ndarray]]:
     return out
 
 
-def _replay_group(built: list[dict], horizon: int, dt: float) -> list[dict[str, np.ndarray]]:
-    # Series of all jobs end to end; a window indexes them through its job's offset.
-    offsets = np.cumsum([0] + [b["drive"].size for b in built[:-1]])
-    drive = np.concatenate([b["drive"] for b in built])
-    g = np.concatenate([b["g"] for b in built])
-    u_in = np.concatenate([b["u_in"] for b in built])
-    idx = np.concatenate([b["starts"] + o for b, o in zip(built, offsets, strict=True)])
+_WINDOW_KEYS = ("x", "v", "x_load", "has_play", "play", "vs", "q0", "cog_k", "cog_phase")
 
-    def cat(key):
-        return np.concatenate([b[key] for b in built])
 
-    x, v, x_load = cat("x"), cat("v"), cat("x_load")
-    has_play, play = cat("has_play"), cat("play")
-    cps, fc, fs, vs, fa = cat("c_per_s"), cat("fc"), cat("fs"), cat("vs"), cat("fa")
-    gl, q0, gc, cog_k, cog_phase = cat("gl"), cat("q0"), cat("gc"), cat("cog_k"), cat("cog_phase")
-    kemf = cat("kemf")
+def _stack(built: list[dict]) -> dict[str, np.ndarray]:
+    """The jobs' series end to end and their windows' values stacked (a window indexes the series
+    through its job's offset)."""
+    offsets = np.cumsum([0] + [b["g"].size for b in built[:-1]])
+    st = {k: np.concatenate([b[k] for b in built]) for k in ("u_in", "kb_in", "g") + _WINDOW_KEYS}
+    st["idx"] = np.concatenate([b["starts"] + o for b, o in zip(built, offsets, strict=True)])
+    st["coef"] = np.concatenate([np.broadcast_to(b["coef"], (b["starts"].size, len(COEF_COLUMNS)))
+                                 for b in built])
+    return st
+
+
+def _replay_stacked(st: dict[str, np.ndarray], horizon: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Open-loop positions and velocities [windows, horizon] of stacked windows (compiled or numpy)."""
+    n_w = st["idx"].size
+    xs, vs_out = np.empty((n_w, horizon)), np.empty((n_w, horizon))
+    run = compiled.replay if USE_COMPILED else None
+    if run is None:
+        run = _replay_numpy
+    run(float(dt), int(horizon), st["idx"], st["x"], st["v"], st["x_load"], st["has_play"], st["play"], st["vs"],
+        st["q0"], st["cog_k"], st["cog_phase"], np.ascontiguousarray(st["coef"]), st["u_in"], st["kb_in"], st["g"],
+        xs, vs_out)
+    return xs, vs_out
+
+
+def _replay_numpy(dt, horizon, idx, x, v, x_load, has_play, play, vs, q0, cog_k, cog_phase, coef,
+                  u_in, kb_in, g, xs, vs_out) -> None:
+    """The replay, one step of all windows at a time (see :func:`compiled.replay`, its compiled twin)."""
+    a, kb, off, grav, cps, fc, fs, fa, gl, gc, kemf = coef.T
+    x, v, x_load = x.copy(), v.copy(), x_load.copy()
     any_gl, any_gc, any_play = bool(np.any(gl)), bool(np.any(gc)), bool(np.any(has_play))
     any_emf = bool(np.any(kemf))
-    # friction, per window exactly as the single replay: applied only where fc, fs or fa is set
+    # friction, per window: applied only where fc, fs or fa is set
     fric = (fc != 0) | (fs != 0) | (fa != 0)
     any_fric, any_fs = bool(np.any(fric)), bool(np.any(fs))
-    n_w = idx.size
-    xs = np.empty((n_w, horizon))
-    vs_out = np.empty((n_w, horizon))
     for h in range(horizon):
         gk = g[idx]
-        v_pred = v + dt * (drive[idx] - cps * gk * v)
+        drive = a * u_in[idx] + kb * kb_in[idx] + off * gk + grav
+        v_pred = v + dt * (drive - cps * gk * v)
         if any_emf:
             v_pred = np.where(kemf != 0, v_pred - dt * kemf * u_in[idx] * v, v_pred)
         if any_gl:
@@ -1135,7 +1193,7 @@ def _replay_group(built: list[dict], horizon: int, dt: float) -> list[dict[str, 
             # friction magnitude in the direction the axis would move (fa: forward/backward asymmetry)
             mag = fc + fa * np.sign(v_pred)
             if any_fs:
-                mag = np.where(fs != 0, mag + fs * np.exp(-((v / vs) ** 2)), mag + 0.0)
+                mag = np.where(fs != 0, mag + fs * np.exp(-((v / vs) ** 2)), mag)
             step = dt * gk * mag
             # Implicit (Moreau) friction: stick when the other forces cannot overcome it. A negative
             # fitted friction (no friction in the data, noise) is applied explicitly instead.
@@ -1155,6 +1213,10 @@ def _replay_group(built: list[dict], horizon: int, dt: float) -> list[dict[str, 
         else:
             xs[:, h] = x
             vs_out[:, h] = v
+
+
+def _replay_group(built: list[dict], horizon: int, dt: float) -> list[dict[str, np.ndarray]]:
+    xs, vs_out = _replay_stacked(_stack(built), horizon, dt)
     res, lo = [], 0
     for b in built:
         p, params, starts = b["p"], b["params"], b["starts"]

@@ -53,6 +53,7 @@ def main() -> None:
     ap.add_argument("--equation-error-only", action="store_true",
                     help="fit the axis model by equation error only (axis.OUTPUT_ERROR_REFINE = False)")
     ap.add_argument("--real-n-boot", default="20", help="bootstrap replicates for the real data sets (a list: each)")
+    ap.add_argument("--out", default=None, help="keep each run's report.json under this directory (default: a temp dir)")
     a = ap.parse_args()
     torch.set_num_threads(1)
     from hilstack.calibration import axis, run_calibration
@@ -65,13 +66,15 @@ def main() -> None:
     if a.beam_width is not None:
         kw["beam_width"] = a.beam_width
     cfg = SelectionConfig(**kw)
-    tmp = tempfile.mkdtemp()
+    tmp = a.out or tempfile.mkdtemp()
 
     def run(name, seed, data, n_boot=None, **extra):
-        t0 = time.process_time()
+        t0, w0 = time.process_time(), time.perf_counter()
         r = run_calibration(data, out_dir=f"{tmp}/{name}_{seed}_{n_boot}", seed=seed, progress=False, plots=False,
                             config=SelectionConfig(**{**kw, "n_boot": n_boot}) if n_boot else cfg, **extra)
-        print(json.dumps(_summary(name, seed, r, time.process_time() - t0)), flush=True)
+        row = _summary(name, seed, r, time.process_time() - t0)
+        row["wall_s"] = round(time.perf_counter() - w0, 1)
+        print(json.dumps(row), flush=True)
 
     for name in [c for c in a.cases.split(",") if c]:
         for seed in [int(s) for s in a.seeds.split(",")]:
