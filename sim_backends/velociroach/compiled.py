@@ -18,6 +18,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import glob
+import math
 import os
 from typing import Any
 
@@ -68,19 +69,32 @@ if numba is not None:
         return sig, codegen
 
     @numba.njit(cache=True, nogil=True)
-    def run(step_fn, m_ptr, d_ptr, qvel, ctrl, vl_i, vr_i, n, substeps, t_stop, st, c):  # pragma: no cover - compiled
-        """Up to ``n`` ticks; stops after the tick that reaches ``t_stop`` (a mocap sample is
-        due) or before a tick on which the watchdog would trip. Returns the ticks done.
-        ``st`` (read and written): the PID's integrals and last errors, duties, the last
-        PID tick's battery voltage and currents, state of charge, battery voltage, motor
-        currents, sim time; ``c``: setpoints, gains, limits, watchdog, motor and battery
-        constants (backend.py builds both, in that order)."""
+    def run(step_fn, m_ptr, d_ptr, qpos, qvel, ctrl, vl_i, vr_i, n, substeps, st, c, rng, mq, ist,
+            tile):  # pragma: no cover - compiled
+        """Up to ``n`` ticks; stops before a tick on which the watchdog would trip, or after the
+        tick whose mocap sample filled ``mq``. Returns the ticks done.
+
+        ``st`` (read and written): the PID's integrals and last errors, duties, the last PID
+        tick's battery voltage and currents, state of charge, battery voltage, motor currents,
+        sim time, the next mocap sample's time; ``c``: setpoints, gains, limits, watchdog, motor
+        and battery constants, then the mocap model's (period, terrain wrap period or 0, dropout,
+        latency, noise, heading offset as cos/sin of its half angle, the mocap offset); ``ist``
+        (read and written): the first free row of ``mq`` (the mocap queue), samples taken and
+        dropped; ``tile``: the terrain wrap's offset (backend.py builds all of them, in that
+        order). A mocap sample is ``VelociRoachSim._wrap`` then ``_mocap_sample``, the same
+        operations on the same doubles with the same draws from ``rng`` (the backend's mocap
+        Generator: numba draws from its bit generator as numpy does), written as one row of
+        ``mq`` (arrival time, sample time, position, quaternion wxyz, ok, finite)."""
         int_l, int_r, pe_l, pe_r = st[0], st[1], st[2], st[3]
         dl, dr, vin, ci_l, ci_r = st[4], st[5], st[6], st[7], st[8]
         soc, vbat, i_l, i_r, t = st[9], st[10], st[11], st[12], st[13]
+        mocap_t = st[14]
         sp_l, sp_r, kp, ki, ff_v, kd, lim, max_duty = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]
         last_cmd, wd, r_m, ke, i_max, r_b, cap_as, idle = c[8], c[9], c[10], c[11], c[12], c[13], c[14], c[15]
         v_empty, v_span, tick_s, inv2pi = c[16], c[17], c[18], c[19]
+        m_period, wrap, dropout, latency, s_pos, s_rot = c[20], c[21], c[22], c[23], c[24], c[25]
+        turn, hc, hs, off_x, off_y, off_z = c[26], c[27], c[28], c[29], c[30], c[31]
+        row, cap = ist[0], mq.shape[0]
         k = 0
         while k < n:
             if not (t - last_cmd <= wd):
@@ -118,9 +132,57 @@ if numba is not None:
                 _mj_step(step_fn, m_ptr, d_ptr)
             t += tick_s
             k += 1
-            if t >= t_stop:
-                break
+            if t >= mocap_t - 1e-9:
+                if wrap > 0.0:  # VelociRoachSim._wrap
+                    for i in range(2):
+                        if qpos[i] > 0.5 * wrap:
+                            qpos[i] -= wrap
+                            tile[i] += wrap
+                        elif qpos[i] < -0.5 * wrap:
+                            qpos[i] += wrap
+                            tile[i] -= wrap
+                # VelociRoachSim._mocap_sample
+                q0, q1, q2, w, x, y, z = qpos[0], qpos[1], qpos[2], qpos[3], qpos[4], qpos[5], qpos[6]
+                ist[1] += 1
+                u = rng.random()
+                n0 = rng.standard_normal()
+                n1 = rng.standard_normal()
+                n2 = rng.standard_normal()
+                n3 = rng.standard_normal()
+                n4 = rng.standard_normal()
+                n5 = rng.standard_normal()
+                ok = u >= dropout
+                if not ok:
+                    ist[2] += 1
+                p0 = q0 + (off_x + tile[0]) + s_pos * n0
+                p1 = q1 + (off_y + tile[1]) + s_pos * n1
+                p2 = q2 + (off_z + tile[2]) + s_pos * n2
+                if s_rot > 0.0:
+                    vx, vy, vz = s_rot * n3, s_rot * n4, s_rot * n5
+                    ang = math.sqrt(vx * vx + vy * vy + vz * vz)
+                    kk = math.sin(0.5 * ang) / ang if ang > 1e-12 else 0.5
+                    aw, ax, ay, az = math.cos(0.5 * ang), kk * vx, kk * vy, kk * vz
+                    w, x, y, z = (
+                        aw * w - ax * x - ay * y - az * z,
+                        aw * x + ax * w + ay * z - az * y,
+                        aw * y - ax * z + ay * w + az * x,
+                        aw * z + ax * y - ay * x + az * w,
+                    )
+                if turn != 0.0:
+                    w, x, y, z = hc * w - hs * z, hc * x - hs * y, hc * y + hs * x, hc * z + hs * w
+                r = mq[row]
+                r[0], r[1], r[2], r[3], r[4] = t + latency, t, p0, p1, p2
+                r[5], r[6], r[7], r[8] = w, x, y, z
+                r[9] = 1.0 if ok else 0.0
+                r[10] = 1.0 if (math.isfinite(p0) and math.isfinite(p1) and math.isfinite(p2) and math.isfinite(w)
+                                and math.isfinite(x) and math.isfinite(y) and math.isfinite(z)) else 0.0
+                row += 1
+                mocap_t += m_period
+                if row >= cap:
+                    break
         st[0], st[1], st[2], st[3] = int_l, int_r, pe_l, pe_r
         st[4], st[5], st[6], st[7], st[8] = dl, dr, vin, ci_l, ci_r
         st[9], st[10], st[11], st[12], st[13] = soc, vbat, i_l, i_r, t
+        st[14] = mocap_t
+        ist[0] = row
         return k
