@@ -18,6 +18,7 @@ Public API for the emulator: ``VelociRoachSim(params)``, ``configure()``, ``rese
 
 from __future__ import annotations
 
+import ctypes
 import math
 from typing import Annotated, Any, Literal
 
@@ -139,6 +140,15 @@ class SimParams(Params):
     # calibration hook (hil calibrate writes it into sim_params.yaml, docs/calibration.md):
     # the initial value of the payload_kg perturbation, so a calibrated payload loads by config
     payload_kg: float = Field(0.0, ge=0, description="towed payload at start [kg] (perturbation payload_kg)")
+
+
+def bit_generator_pointers(rng: np.random.Generator) -> tuple[int, int, int]:
+    """``(state, next_uint64, next_double)`` addresses of a Generator's bit generator (numpy's
+    public ctypes interface): the compiled loop draws from the same stream through them. The
+    Generator must outlive their use."""
+    c = rng.bit_generator.ctypes
+    return (c.state_address, ctypes.cast(c.next_uint64, ctypes.c_void_p).value,
+            ctypes.cast(c.next_double, ctypes.c_void_p).value)
 
 
 def parse_sim_params(sim: dict, source: str | None) -> SimParams:
@@ -338,6 +348,7 @@ class VelociRoachSim(LockstepSim):
         self.firmware.reset()
         ss = np.random.SeedSequence(s.seed)
         self._rng_mocap, self._rng_telem = (np.random.default_rng(c) for c in ss.spawn(2))
+        self._rng_mocap_pointers = bit_generator_pointers(self._rng_mocap)  # the compiled loop draws from it too
         self._soc = s.battery_soc
         self._i_l = self._i_r = 0.0
         self._vbat = self._ocv()
@@ -516,7 +527,7 @@ class VelociRoachSim(LockstepSim):
             while done < n:
                 ist[0] = self._mocap_room(rows_needed)
                 k = run(step_fn, m_ptr, d_ptr, qp, qv, ct, vl_i, vr_i, n - done, substeps, st, cst,
-                        self._rng_mocap, self._mocap_rows, ist, self._tile_offset)
+                        *self._rng_mocap_pointers, self._mocap_rows, ist, self._tile_offset)
                 self._mocap_tail = int(ist[0])
                 if k == 0:
                     break

@@ -27,6 +27,9 @@ try:
     from llvmlite import ir
     from numba import types
     from numba.extending import intrinsic
+
+    # numpy's ziggurat tables for the standard normal, as numba's own Generator support copies them
+    from numba.np.random._constants import fi_double, ki_double, wi_double, ziggurat_nor_inv_r, ziggurat_nor_r
 except ImportError:  # the speed extra is not installed: the backend's Python loop runs
     numba = None
 
@@ -68,9 +71,59 @@ if numba is not None:
 
         return sig, codegen
 
+    def _call_state_fn(builder, args, ret):
+        vp = ir.IntType(8).as_pointer()
+        f = builder.inttoptr(args[0], ir.FunctionType(ret, [vp]).as_pointer())
+        return builder.call(f, [builder.inttoptr(args[1], vp)])
+
+    @intrinsic
+    def _next_uint64(typingctx, fn, state):
+        """``uint64_t next_uint64(void *state)`` of a bit generator at address ``fn``."""
+        return types.uint64(types.intp, types.intp), lambda ctx, b, sig, args: _call_state_fn(b, args, ir.IntType(64))
+
+    @intrinsic
+    def _next_double(typingctx, fn, state):
+        """``double next_double(void *state)`` of a bit generator at address ``fn`` (what
+        ``Generator.random()`` returns)."""
+        return types.float64(types.intp, types.intp), lambda ctx, b, sig, args: _call_state_fn(b, args, ir.DoubleType())
+
     @numba.njit(cache=True, nogil=True)
-    def run(step_fn, m_ptr, d_ptr, qpos, qvel, ctrl, vl_i, vr_i, n, substeps, st, c, rng, mq, ist,
-            tile):  # pragma: no cover - compiled
+    def standard_normal(state, u64, f64):  # pragma: no cover - compiled
+        """One ``Generator.standard_normal()`` draw: numpy's ziggurat (random_standard_normal in
+        numpy/random/src/distributions/distributions.c) on the same bit generator, so the same
+        double from the same stream (tests/velociroach/test_sim.py compares 10^5 draws)."""
+        while True:
+            r = _next_uint64(u64, state)
+            idx = r & 0xFF
+            r >>= 8
+            sign = r & 0x1
+            rabs = (r >> 1) & 0x000FFFFFFFFFFFFF
+            x = rabs * wi_double[idx]
+            if sign & 0x1:
+                x = -x
+            if rabs < ki_double[idx]:
+                return x  # 99.3 % of the draws
+            if idx == 0:  # the tail
+                while True:
+                    xx = -ziggurat_nor_inv_r * math.log1p(-_next_double(f64, state))
+                    yy = -math.log1p(-_next_double(f64, state))
+                    if yy + yy > xx * xx:
+                        return -(ziggurat_nor_r + xx) if (rabs >> 8) & 0x1 else ziggurat_nor_r + xx
+            elif (fi_double[idx - 1] - fi_double[idx]) * _next_double(f64, state) + fi_double[idx] < \
+                    math.exp(-0.5 * x * x):
+                return x
+
+    @numba.njit(cache=True, nogil=True)
+    def draws(state, u64, f64, out):  # pragma: no cover - compiled
+        """``out[j] = (random(), standard_normal() x 6)`` for each row: the mocap sample's draws."""
+        for j in range(out.shape[0]):
+            out[j, 0] = _next_double(f64, state)
+            for i in range(1, 7):
+                out[j, i] = standard_normal(state, u64, f64)
+
+    @numba.njit(cache=True, nogil=True)
+    def run(step_fn, m_ptr, d_ptr, qpos, qvel, ctrl, vl_i, vr_i, n, substeps, st, c, rng_state, rng_u64, rng_f64,
+            mq, ist, tile):  # pragma: no cover - compiled
         """Up to ``n`` ticks; stops before a tick on which the watchdog would trip, or after the
         tick whose mocap sample filled ``mq``. Returns the ticks done.
 
@@ -82,9 +135,10 @@ if numba is not None:
         (read and written): the first free row of ``mq`` (the mocap queue), samples taken and
         dropped; ``tile``: the terrain wrap's offset (backend.py builds all of them, in that
         order). A mocap sample is ``VelociRoachSim._wrap`` then ``_mocap_sample``, the same
-        operations on the same doubles with the same draws from ``rng`` (the backend's mocap
-        Generator: numba draws from its bit generator as numpy does), written as one row of
-        ``mq`` (arrival time, sample time, position, quaternion wxyz, ok, finite)."""
+        operations on the same doubles with the same draws from the backend's mocap Generator
+        (``rng_*``: backend.py's ``bit_generator_pointers``; :func:`standard_normal` is numpy's
+        algorithm), written as one row of ``mq`` (arrival time, sample time, position,
+        quaternion wxyz, ok, finite)."""
         int_l, int_r, pe_l, pe_r = st[0], st[1], st[2], st[3]
         dl, dr, vin, ci_l, ci_r = st[4], st[5], st[6], st[7], st[8]
         soc, vbat, i_l, i_r, t = st[9], st[10], st[11], st[12], st[13]
@@ -144,13 +198,13 @@ if numba is not None:
                 # VelociRoachSim._mocap_sample
                 q0, q1, q2, w, x, y, z = qpos[0], qpos[1], qpos[2], qpos[3], qpos[4], qpos[5], qpos[6]
                 ist[1] += 1
-                u = rng.random()
-                n0 = rng.standard_normal()
-                n1 = rng.standard_normal()
-                n2 = rng.standard_normal()
-                n3 = rng.standard_normal()
-                n4 = rng.standard_normal()
-                n5 = rng.standard_normal()
+                u = _next_double(rng_f64, rng_state)  # Generator.random()
+                n0 = standard_normal(rng_state, rng_u64, rng_f64)
+                n1 = standard_normal(rng_state, rng_u64, rng_f64)
+                n2 = standard_normal(rng_state, rng_u64, rng_f64)
+                n3 = standard_normal(rng_state, rng_u64, rng_f64)
+                n4 = standard_normal(rng_state, rng_u64, rng_f64)
+                n5 = standard_normal(rng_state, rng_u64, rng_f64)
                 ok = u >= dropout
                 if not ok:
                     ist[2] += 1

@@ -463,6 +463,23 @@ def test_the_compiled_loop_runs_when_numba_is_installed():
     s.cleanup()
 
 
+def test_the_compiled_loops_draws_are_numpys_from_the_same_generator():
+    """The compiled loop draws the mocap noise through the Generator's bit generator with
+    numpy's algorithms: 15000 samples' (random, 6 x standard_normal) equal numpy's, the ziggurat's
+    rare branches included, and the Generator goes on from where they stopped."""
+    pytest.importorskip("numba", reason="numba (hilstack[speed]) is not installed: the loop runs in Python")
+    from hilstack.sim_backends.velociroach.backend import bit_generator_pointers
+    from hilstack.sim_backends.velociroach.compiled import draws
+
+    for seed in (0, 1):
+        ours, ref = np.random.default_rng(seed), np.random.default_rng(seed)
+        out = np.empty((15000, 7))
+        draws(*bit_generator_pointers(ours), out)
+        want = np.array([[ref.random(), *ref.standard_normal(6)] for _ in range(len(out))])
+        np.testing.assert_array_equal(out, want)
+        assert ours.random() == ref.random()
+
+
 def test_bench_sim_times_each_part_of_a_period_against_the_raw_peer(monkeypatch):
     """`hil bench sim`: the backend, the same loop in Python and raw mj_step take turns; the
     CPU-time ratios are raw / contract over the same periods, and each part is reported."""
