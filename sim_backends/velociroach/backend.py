@@ -647,8 +647,9 @@ class VelociRoachSim(LockstepSim):
         """Take one mocap sample now; it is delivered ``mocap_latency_s`` later.
 
         Scalar math on Python floats on purpose: this runs at the mocap rate inside the stepping
-        loop (numpy/mju per-call overhead was ~15% of the loop in the profile); the sample is
-        kept as tuples and becomes arrays only when read."""
+        loop (numpy/mju per-call overhead was ~15% of the loop in the profile). The compiled loop
+        (compiled.py) takes the same samples itself, with the same operations; both write one
+        row of the mocap queue (``_mocap_rows``)."""
         s = self.sim
         q0, q1, q2, w, x, y, z = self.data.qpos[:7].tolist()
         self.mocap_samples += 1

@@ -1,16 +1,21 @@
 """The VelociRoACH sim's 1 kHz loop compiled with numba (the ``speed`` extra), when installed.
 
 What it runs is the inlined loop of ``VelociRoachSim._advance`` (the firmware's leg-velocity
-PID, the battery and the motor currents, ``mj_step``) for as long as nothing but the PID runs
-and no Python work is due (a mocap sample, a towed payload, the watchdog): the same
-operations in the same order on the same doubles, so the floats are identical
+PID, the battery and the motor currents, ``mj_step``) and the 120 Hz mocap model (the
+terrain wrap, the sample's dropout and noise: ``_wrap`` and ``_mocap_sample``) for as long as
+nothing but the PID runs (not past a tick on which the watchdog trips, not with a towed
+payload): the same operations in the same order on the same doubles, the noise drawn from the
+backend's own numpy Generator with numpy's algorithms, so the floats are identical
 (tests/velociroach/test_sim.py). ``mj_step`` is called through its C entry point in the
-MuJoCo library the bindings loaded (``MjModel._address``/``MjData._address``), so a
-physics step costs no Python call. Without numba :func:`kernel` is None and the backend
-runs the same loop in Python.
+MuJoCo library the bindings loaded (``MjModel._address``/``MjData._address``), and the
+Generator's bit generator through its ctypes function pointers, so a control period costs
+one call from Python. Without numba :func:`kernel` is None and the backend runs the same
+loop in Python.
 
 Why: at 1 ms physics steps the Python loop (about 40 float operations and a binding call
-per step) cost as much as the physics in ``hil bench sim`` (docs/platform.md, "Sim speed").
+per step) cost as much as the physics in ``hil bench sim``; handing back to Python for each
+of the 12 mocap samples of a period cost about 40 us of the period's 750 (docs/platform.md,
+"`hil bench sim`").
 """
 
 from __future__ import annotations
