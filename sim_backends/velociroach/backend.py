@@ -216,6 +216,7 @@ class VelociRoachSim(LockstepSim):
             Freshness("telemetry", p.telemetry_deadline_s, Flag.STALE_TELEMETRY),
         )
         self._telemetry_input = self.inputs["telemetry"]
+        self._pose_input = self.inputs["pose"]
         self._telemetry_index = self.spec.state.index("wx")  # the state from here on is telemetry
         self._fault_flags: dict[int, dict[str, bool]] = {}  # fault_flags of each bitmask seen
 
@@ -360,7 +361,8 @@ class VelociRoachSim(LockstepSim):
         # ok: not dropped, finite)
         self._mocap_rows = np.empty((64, 11))
         self._mocap_head = self._mocap_tail = 0
-        self._mocap_ist = np.zeros(3, dtype=np.int64)  # the compiled loop's tail and counts
+        self._mocap_bad_end = 0  # the row after the newest lost or non-finite sample (0: none queued)
+        self._mocap_ist = np.zeros(4, dtype=np.int64)  # the compiled loop's tail, counts and bad end
         self._mocap_latest: tuple[float, tuple[float, ...], tuple[float, ...]] | None = None
         self._mocap_latest_ok = False
         self.inputs.start(self.sim_time_s)
@@ -526,9 +528,10 @@ class VelociRoachSim(LockstepSim):
             rows_needed = int((n - done) * TICK_S / self._mocap_period) + 2  # the samples due, and one
             while done < n:
                 ist[0] = self._mocap_room(rows_needed)
+                ist[3] = self._mocap_bad_end
                 k = run(step_fn, m_ptr, d_ptr, qp, qv, ct, vl_i, vr_i, n - done, substeps, st, cst,
                         *self._rng_mocap_pointers, self._mocap_rows, ist, self._tile_offset)
-                self._mocap_tail = int(ist[0])
+                self._mocap_tail, self._mocap_bad_end = int(ist[0]), int(ist[3])
                 if k == 0:
                     break
                 done += k
@@ -682,9 +685,15 @@ class VelociRoachSim(LockstepSim):
             w, x, y, z = hc * w - hs * z, hc * x - hs * y, hc * y + hs * x, hc * z + hs * w
         isfinite = math.isfinite
         finite = all(isfinite(v) for v in pos) and isfinite(w) and isfinite(x) and isfinite(y) and isfinite(z)
+        self._queue_mocap((self._t + s.mocap_latency_s, self._t, *pos, w, x, y, z, ok, finite))
+
+    def _queue_mocap(self, row: tuple) -> None:
+        """Queue one sample: (arrival time, sample time, x, y, z, qw, qx, qy, qz, ok, finite)."""
         i = self._mocap_room()
-        self._mocap_rows[i] = (self._t + s.mocap_latency_s, self._t, *pos, w, x, y, z, ok, finite)
+        self._mocap_rows[i] = row
         self._mocap_tail = i + 1
+        if not (row[9] and row[10]):
+            self._mocap_bad_end = i + 1
 
     def _mocap_room(self, rows_needed: int = 1) -> int:
         """The first free row of the mocap queue, with room for ``rows_needed`` samples after it
@@ -697,6 +706,7 @@ class VelociRoachSim(LockstepSim):
             self._mocap_rows = np.empty((2 * (n + rows_needed), rows.shape[1]))
         self._mocap_rows[:n] = rows[head:tail]
         self._mocap_head, self._mocap_tail = 0, n
+        self._mocap_bad_end = max(0, self._mocap_bad_end - head)
         return n
 
     def _deliver_mocap(self, now_s: float) -> None:
@@ -705,20 +715,21 @@ class VelociRoachSim(LockstepSim):
         head, tail = self._mocap_head, self._mocap_tail
         if head == tail:
             return
-        rows = self._mocap_rows[head:tail]
-        k = int(np.searchsorted(rows[:, 0], now_s + 1e-9, side="right"))  # arrival times only grow
-        if k == 0:
+        rows = self._mocap_rows
+        arrival, lim, end = rows.item, now_s + 1e-9, tail
+        while end > head and arrival(end - 1, 0) > lim:  # arrival times only grow: the due ones come first
+            end -= 1
+        if end == head:
             return
-        self._mocap_head = head + k
-        rows = rows[:k]
-        pose = self.inputs["pose"]
-        if rows[:, 9:11].all():  # all ok and finite: the newest sample is the one that counts
-            last = rows[k - 1].tolist()
+        self._mocap_head = end
+        pose = self._pose_input
+        if self._mocap_bad_end <= head:  # all kept and finite: the newest sample is the one that counts
+            last = rows[end - 1].tolist()
             self._mocap_latest_ok = True
             pose.update(min(last[0], now_s), True)
             self._mocap_latest = (last[1], tuple(last[2:5]), tuple(last[5:9]))
             return
-        for t_arrive, ts, p0, p1, p2, w, x, y, z, ok, finite in rows.tolist():
+        for t_arrive, ts, p0, p1, p2, w, x, y, z, ok, finite in rows[head:end].tolist():
             self._mocap_latest_ok = ok = bool(ok)
             if ok:
                 pose.update(min(t_arrive, now_s), bool(finite))

@@ -138,7 +138,7 @@ if numba is not None:
         and battery constants, then the mocap model's (period, terrain wrap period or 0, dropout,
         latency, noise, heading offset as cos/sin of its half angle, the mocap offset); ``ist``
         (read and written): the first free row of ``mq`` (the mocap queue), samples taken and
-        dropped; ``tile``: the terrain wrap's offset (backend.py builds all of them, in that
+        dropped, the row after the newest lost or non-finite sample; ``tile``: the terrain wrap's offset (backend.py builds all of them, in that
         order). A mocap sample is ``VelociRoachSim._wrap`` then ``_mocap_sample``, the same
         operations on the same doubles with the same draws from the backend's mocap Generator
         (``rng_*``: backend.py's ``bit_generator_pointers``; :func:`standard_normal` is numpy's
@@ -232,10 +232,13 @@ if numba is not None:
                 r = mq[row]
                 r[0], r[1], r[2], r[3], r[4] = t + latency, t, p0, p1, p2
                 r[5], r[6], r[7], r[8] = w, x, y, z
+                finite = (math.isfinite(p0) and math.isfinite(p1) and math.isfinite(p2) and math.isfinite(w)
+                          and math.isfinite(x) and math.isfinite(y) and math.isfinite(z))
                 r[9] = 1.0 if ok else 0.0
-                r[10] = 1.0 if (math.isfinite(p0) and math.isfinite(p1) and math.isfinite(p2) and math.isfinite(w)
-                                and math.isfinite(x) and math.isfinite(y) and math.isfinite(z)) else 0.0
+                r[10] = 1.0 if finite else 0.0
                 row += 1
+                if not (ok and finite):
+                    ist[3] = row  # the queue holds a lost or unusable sample up to here
                 mocap_t += m_period
                 if row >= cap:
                     break

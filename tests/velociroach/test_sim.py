@@ -219,7 +219,7 @@ def test_mocap_delivery_batches_give_what_sample_by_sample_delivery_gives():
     s = make(seed=1)
     rng = np.random.default_rng(7)
     for trial in range(40):
-        s.reset()
+        s.reset()  # an empty queue (the reset's own sample is delivered at once)
         ref_pose = Freshness("pose", 1.0, Flag.STALE_POSE)
         ref_pose.start(0.0)
         s.inputs["pose"].start(0.0)
@@ -231,9 +231,8 @@ def test_mocap_delivery_batches_give_what_sample_by_sample_delivery_gives():
         finite = rng.random(n) > (0.2 if trial % 3 == 0 else 0.0)
         rows = np.column_stack([ts + 0.005, ts, rng.normal(size=(n, 7)), ok, finite])
         rows[~finite, 2] = np.nan
-        i = s._mocap_room(n)
-        s._mocap_rows[i:i + n] = rows
-        s._mocap_tail = i + n
+        for row in rows.tolist():
+            s._queue_mocap(tuple(row))
         pending = rows.tolist()
         nows = np.sort(np.append(rng.uniform(0.0, ts[-1] + 0.02, 3), ts[n // 2] + 0.005 - 5e-10))  # one within
         for now in nows.tolist():  # the 1e-9 tolerance of a sample's arrival: refreshed at now, not later
