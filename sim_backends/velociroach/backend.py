@@ -523,6 +523,9 @@ class VelociRoachSim(LockstepSim):
             ist = self._mocap_ist
             ist[1] = ist[2] = 0
             m_ptr, d_ptr = m._address, d._address
+            rng_ptrs = self._rng_mocap_pointers
+            if rng_ptrs[0] != self._rng_mocap.bit_generator.ctypes.state_address:  # a copied sim: its own stream
+                rng_ptrs = self._rng_mocap_pointers = bit_generator_pointers(self._rng_mocap)
             # the same array objects every call: numba types a fresh view of MjData slowly (~0.1 ms)
             qp, qv, ct = self._views
             rows_needed = int((n - done) * TICK_S / self._mocap_period) + 2  # the samples due, and one
@@ -530,7 +533,7 @@ class VelociRoachSim(LockstepSim):
                 ist[0] = self._mocap_room(rows_needed)
                 ist[3] = self._mocap_bad_end
                 k = run(step_fn, m_ptr, d_ptr, qp, qv, ct, vl_i, vr_i, n - done, substeps, st, cst,
-                        *self._rng_mocap_pointers, self._mocap_rows, ist, self._tile_offset)
+                        *rng_ptrs, self._mocap_rows, ist, self._tile_offset)
                 self._mocap_tail, self._mocap_bad_end = int(ist[0]), int(ist[3])
                 if k == 0:
                     break
