@@ -78,3 +78,32 @@ def test_late_readings_keep_the_recording_whole_on_the_hand_clock(tmp_path):
     host = episodes_from_mcap(path, normalize=False, clock="host")
     # on the host's clock each late reading ends a segment (and short ones are dropped)
     assert len(host) > 1 or sum(len(e.times) for e in host) < rec[0].n / 2
+
+
+def test_only_readings_marked_late_keep_their_episode_and_only_on_the_device_clock(tmp_path):
+    """The loader's rule on its own: a not-ok reading splits the episode unless its recorder marked
+    it late (a WidowX stale reading, whose other servos did not answer, is not marked), and only on
+    the device clock; a late reading with a non-finite state still splits."""
+    from hilstack.bus import keys
+    from hilstack.bus.recording import McapLog
+    from hilstack.bus.schemas import RobotState
+    from hilstack.learning.recordings import episodes_from_mcap
+
+    def write(name, bad_health, bad_state=1.0):
+        path = tmp_path / f"{name}.mcap"
+        with McapLog(path) as log:
+            for k in range(12):
+                bad = k == 6
+                log.write(keys.state("rig", "arm"),
+                          RobotState(robot="arm", t_s=0.05 * k + (0.04 if bad else 0.0), state=[bad_state if bad else 0.1 * k],
+                                     action=[] if k == 0 else [0.0], seq=k + 1, ok=not bad, device_t_s=0.02 * k,
+                                     health=bad_health if bad else {}))
+        return path
+
+    late = write("late", {"late": True})
+    assert [len(e.times) for e in episodes_from_mcap(late, normalize=False, clock="device")] == [12]
+    assert [len(e.times) for e in episodes_from_mcap(late, normalize=False, clock="host")] == [6, 5]
+    unmarked = write("unmarked", {})
+    assert [len(e.times) for e in episodes_from_mcap(unmarked, normalize=False, clock="device")] == [6, 5]
+    nan = write("nan", {"late": True}, bad_state=float("nan"))
+    assert [len(e.times) for e in episodes_from_mcap(nan, normalize=False, clock="device")] == [6, 5]
