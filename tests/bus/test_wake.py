@@ -75,6 +75,15 @@ def test_a_stale_wake_is_neither_a_timeout_nor_eats_a_message(bus):
         t0 = time.monotonic()
         assert _in_thread(lambda: sub.wait(0.3)) is None
         assert time.monotonic() - t0 >= 0.29
+        # nor one that comes while the wait is blocked in Zenoh's channel (the race itself)
+        blocked = sub._token + 1  # the token the next wait takes
+        threading.Timer(0.1, lambda: sub._put_wake(blocked - 1)).start()
+        t0 = time.monotonic()
+        assert _in_thread(lambda: sub.wait(0.4)) is None
+        assert time.monotonic() - t0 >= 0.39 and sub._token == blocked
+        threading.Timer(0.1, lambda: sub._put_wake(blocked)).start()  # stale for the next wait
+        threading.Timer(0.2, lambda: node.session.put(KEY, _cmd(2.5))).start()
+        assert _in_thread(lambda: sub.wait(10.0)).action == [2.5]
         # nor pushes a message out of the ring: a message, then the ring's size less one of wake-ups
         node.session.put(KEY, _cmd(3.0))
         for _ in range(sub.LATEST_RING - 1):
