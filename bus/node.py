@@ -1,9 +1,10 @@
 """Node base: a Zenoh session, a liveliness token, typed publishers and subscribers.
 
-No work runs in Zenoh callbacks: a subscription's callback only queues the sample
-(latest value, or a bounded FIFO) and wakes the node's thread; payloads are decoded
-in the node's thread when it asks for them, and malformed ones are counted and
-dropped without disturbing the node.
+No work runs in Zenoh's threads: a latest-value subscription's node thread blocks in the
+subscriber's Zenoh ring channel (timed waits end by a session-local wake-up sample,
+:class:`_WakeTimer`); a FIFO subscription's callback only queues the sample in a bounded
+deque and wakes the node's thread. Payloads are decoded in the node's thread when it asks
+for them, and malformed ones are counted and dropped without disturbing the node.
 """
 
 from __future__ import annotations
