@@ -418,9 +418,9 @@ class Subscription(Generic[T]):
                 smp = self._recv_message(left)
                 if smp is None:
                     return None
-                samples = self._take_all()  # newer ones queued meanwhile: the newest wins
-                samples.insert(0, smp)
-                m = self._newest(samples)
+                # newer ones queued meanwhile: the newest wins (usually none: one look, no list)
+                nxt = self._try_recv_message()
+                m = self._decode(smp) if nxt is None else self._newest([smp, nxt, *self._take_all()])
                 if m is not None:
                     return m
                 left = None if deadline is None else deadline - time.monotonic()
