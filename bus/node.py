@@ -464,11 +464,11 @@ class Subscription(Generic[T]):
         return None
 
     def drain(self, max_items: int | None = None) -> list[tuple[str, bytes]]:
-        """FIFO mode: raw (key, payload) pairs, undecoded (for recorders); latest mode: what
-        Zenoh's ring holds."""
+        """FIFO mode: raw (key, payload) pairs, undecoded (for recorders); latest mode: all
+        that Zenoh's ring holds (at most ``LATEST_RING``; ``max_items`` does not apply: the rest
+        could not be put back)."""
         if self._inbox is None:
-            smps = self._take_all()
-            return [(str(s.key_expr), s.payload.to_bytes()) for s in smps[:max_items]]
+            return [(str(s.key_expr), s.payload.to_bytes()) for s in self._take_all()]
         out: list[tuple[str, bytes]] = []
         while (max_items is None or len(out) < max_items) and (smp := self._inbox.pop()) is not None:
             out.append((str(smp.key_expr), smp.payload.to_bytes()))
