@@ -924,8 +924,13 @@ def oracle_split(oracle_dir: Path, feats, amap, heldout_seeds: tuple[int, ...]) 
     return train + [feats.swap_balls(e) for e in train], held
 
 
+#: the models :func:`train_on_oracle` makes and probes
+ORACLE_MODELS = ("run", "control", "run+oracle", "oracle_only")
+
+
 def train_on_oracle(run_dir: Path, oracle_dir: Path, out: Path, iteration: int, heldout_seeds: tuple[int, ...],
-                    steps: int = 400, oracle_repeat: int = 20, seed: int = 0) -> dict[str, Any]:
+                    steps: int = 400, oracle_repeat: int = 20, seed: int = 0,
+                    models_wanted: tuple[str, ...] = ORACLE_MODELS) -> dict[str, Any]:
     """Can the model learn the turn from our features when the data hold turns (docs/baoding.md,
     "Training on the oracle's turns")? From a stopped thesis-scale run's checkpoint after
     ``iteration`` and the oracle's recordings in ``oracle_dir`` (:func:`oracle_record`), models of
@@ -938,7 +943,12 @@ def train_on_oracle(run_dir: Path, oracle_dir: Path, out: Path, iteration: int, 
     probed (:func:`probe_model`) on the held-out oracle episodes (seeds ``heldout_seeds``), on
     the run's held-out on-policy episodes (``<iteration>-mpc``) and on the oracle's training
     episodes (the fit), one JSON line each in ``out/results.jsonl``; the models are saved as
-    ``out/model_<name>.pt`` for :func:`closed_loop` (``closed-loop`` on the command line)."""
+    ``out/model_<name>.pt`` for :func:`closed_loop` (``closed-loop`` on the command line).
+    ``models_wanted``: a subset of :data:`ORACLE_MODELS` (``control`` = ``run+<steps>``), so that
+    separate processes can train them side by side."""
+    unknown = sorted(set(models_wanted) - set(ORACLE_MODELS))
+    if unknown:
+        raise ValueError(f"unknown model(s) {unknown}; known: {', '.join(ORACLE_MODELS)}")
     import torch
 
     from hilstack.learning.dynamics import EnsembleDynamics
@@ -957,6 +967,9 @@ def train_on_oracle(run_dir: Path, oracle_dir: Path, out: Path, iteration: int, 
          "oracle_train_episodes": len(o_train) // 2, "oracle_train_points": sum(len(e) for e in o_train),
          "oracle_heldout_episodes": len(o_held), "oracle_repeat": oracle_repeat, "epochs": epochs})
     models: dict[str, Any] = {"run": run_checkpoint_model(run_dir)}
+    config = models["run"].config
+    if "run" not in models_wanted:
+        del models["run"]
 
     def fit(name: str, m, eps: list, ep: int) -> None:
         t0 = time.perf_counter()
@@ -969,20 +982,21 @@ def train_on_oracle(run_dir: Path, oracle_dir: Path, out: Path, iteration: int, 
         models[name] = m
 
     control = out / f"model_run+{steps}.pt"
-    if control.is_file():  # trained already (here, or by `diagnose --extra-steps <steps>` into this OUT: the same fit)
-        from hilstack.learning.dynamics import EnsembleDynamics
-
+    if "control" not in models_wanted:
+        pass
+    elif control.is_file():  # trained already (here, or by `diagnose --extra-steps <steps>` into this OUT: the same fit)
         models[f"run+{steps}"] = EnsembleDynamics.load(control)
         log({"what": "training", "model": f"run+{steps}", "loaded": str(control)})
     else:
         fit(f"run+{steps}", run_checkpoint_model(run_dir), run_train, epochs)
-    fit(f"run+{steps}+oracle", run_checkpoint_model(run_dir), run_train + o_train * oracle_repeat, epochs)
-    c = models["run"].config
-    torch.manual_seed(seed)
-    fresh = EnsembleDynamics(feats.dim, 20, ensemble=c["ensemble"], hidden=tuple(c["hidden"]),
-                             state_names=feats.names, seed=seed, lr=c["lr"])
-    n_o = sum(len(e) for e in o_train)
-    fit("oracle_only", fresh, o_train, max(1, int(np.ceil(steps / np.ceil(n_o / 500)))))
+    if "run+oracle" in models_wanted:
+        fit(f"run+{steps}+oracle", run_checkpoint_model(run_dir), run_train + o_train * oracle_repeat, epochs)
+    if "oracle_only" in models_wanted:
+        torch.manual_seed(seed)
+        fresh = EnsembleDynamics(feats.dim, 20, ensemble=config["ensemble"], hidden=tuple(config["hidden"]),
+                                 state_names=feats.names, seed=seed, lr=config["lr"])
+        n_o = sum(len(e) for e in o_train)
+        fit("oracle_only", fresh, o_train, max(1, int(np.ceil(steps / np.ceil(n_o / 500)))))
     rows = []
     probes = {"oracle_heldout": o_held, f"run:{iteration:03d}-mpc": run_held,
               "oracle_train": o_train[:len(o_train) // 2]}
@@ -1128,6 +1142,7 @@ def main(argv: list[str] | None = None) -> None:
     ot.add_argument("--heldout-seeds", type=int, nargs="+", required=True, help="oracle seeds held out")
     ot.add_argument("--steps", type=int, default=400)
     ot.add_argument("--oracle-repeat", type=int, default=20)
+    ot.add_argument("--models", nargs="+", default=list(ORACLE_MODELS), choices=list(ORACLE_MODELS))
     cl = sub.add_parser("closed-loop", help="PDDM through saved models on the MuJoCo hand in-process")
     cl.add_argument("models", type=Path, nargs="+", help="model .pt files (EnsembleDynamics.save)")
     cl.add_argument("--out", type=Path, required=True)
@@ -1189,7 +1204,7 @@ def _run_cmd(ap, a) -> None:
     elif a.cmd == "oracle-train":
         torch_threads(1)
         train_on_oracle(a.run_dir, a.oracle_dir, a.out, a.iteration, tuple(a.heldout_seeds), a.steps,
-                        a.oracle_repeat)
+                        a.oracle_repeat, models_wanted=tuple(a.models))
     elif a.cmd == "closed-loop":
         torch_threads(1)
         closed_loop_models(a.models, a.out, a.sampler, a.episodes, tuple(a.seeds), a.steps)
