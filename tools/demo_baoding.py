@@ -1094,7 +1094,8 @@ def torch_threads(n: int) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...] [--seed S]
-    | diagnose RUN_DIR OUT --iteration N``."""
+    | diagnose RUN_DIR OUT --iteration N | oracle OUT | oracle-record OUT | oracle-train RUN_DIR ORACLE_DIR OUT
+    --iteration N --heldout-seeds S... | closed-loop MODEL... --out OUT``."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_baoding",
