@@ -953,6 +953,8 @@ def train_on_oracle(run_dir: Path, oracle_dir: Path, out: Path, iteration: int, 
 
     from hilstack.learning.dynamics import EnsembleDynamics
 
+    if not any((Path(oracle_dir) / "recordings").glob("oracle-s*.mcap")):  # before the run's data load
+        raise FileNotFoundError(f"{oracle_dir}: no oracle recordings (recordings/oracle-s*.mcap; oracle-record makes them)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     log = _jsonl_log(out / "results.jsonl")
