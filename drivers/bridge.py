@@ -445,6 +445,13 @@ class DriverNode(Node):
             self._apply(cmd if lockstep else self._cmd.poll())  # realtime: the newest, taken now
         if not read_first:
             with timer.section("sim_tick") if timer else nullcontext():
+                if self.pacing is Pacing.FOLLOWER:
+                    # its tick waits for another node to advance its world (for seconds when that
+                    # world stands still, e.g. stopped by this very e-stop): serve e-stops meanwhile
+                    while not self.driver.tick_ready(0.05):
+                        if self.stop_event.is_set():
+                            return  # stopping: no further period
+                        self._handle_estop()
                 self.driver.tick()
             with timer.section("read_publish") if timer else nullcontext():
                 self.publish_state()
