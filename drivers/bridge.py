@@ -196,6 +196,12 @@ class DriverNode(Node):
             )
 
     @property
+    def last_state(self) -> RobotState | None:
+        """The newest state this node published (None before the first): what ``hil up``'s
+        status line shows, read from another thread (one reference, replaced whole)."""
+        return self._last_state
+
+    @property
     def supervisor_alive(self) -> bool:
         return bool(self._supervisor.alive)
 
