@@ -41,6 +41,7 @@ import zenoh
 from hilstack.bus import keys
 from hilstack.bus.cycle import Rate
 from hilstack.bus.schemas import EStop, EStopAck, MalformedMessage, decode, encode
+from hilstack.bus.wake import is_wake
 
 if TYPE_CHECKING:
     from hilstack.bus.node import Node
@@ -75,6 +76,8 @@ class EStopLatch:
 
     # ------------------------------------------------------------------ callbacks
     def _on_sample(self, sample: zenoh.Sample) -> None:
+        if sample.attachment is not None and is_wake(sample):
+            return  # a timed wait's wake-up in this process (bus/node.py), not a message
         try:
             msg = decode(sample.payload.to_bytes(), EStop)
         except MalformedMessage:
@@ -88,6 +91,8 @@ class EStopLatch:
         self._take(msg)
 
     def _on_release(self, sample: zenoh.Sample) -> None:
+        if sample.attachment is not None and is_wake(sample):
+            return
         try:
             msg = decode(sample.payload.to_bytes(), EStop)
         except MalformedMessage:

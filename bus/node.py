@@ -1,14 +1,18 @@
 """Node base: a Zenoh session, a liveliness token, typed publishers and subscribers.
 
-No work runs in Zenoh callbacks: a subscription's callback only queues the sample
-(latest value, or a bounded FIFO) and wakes the node's thread; payloads are decoded
-in the node's thread when it asks for them, and malformed ones are counted and
-dropped without disturbing the node.
+No work runs in Zenoh's threads: a latest-value subscription's node thread blocks in the
+subscriber's Zenoh ring channel (timed waits end by a session-local wake-up sample,
+:class:`_WakeTimer`); a FIFO subscription's callback only queues the sample in a bounded
+deque and wakes the node's thread. Payloads are decoded in the node's thread when it asks
+for them, and malformed ones are counted and dropped without disturbing the node.
 """
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import logging
+import os
 import queue
 import threading
 import time
@@ -26,6 +30,7 @@ from hilstack.bus.estop import EStopLatch
 from hilstack.bus.lifetime import on_stop_signal
 from hilstack.bus.schemas import MalformedMessage, Msg, decode, encode
 from hilstack.bus.session import open_session, rendezvous_listened, wait_linked
+from hilstack.bus.wake import WAKE_PREFIX, is_wake, wake_key
 from hilstack.configs.schema import BusConfig
 
 log = logging.getLogger("hil")
@@ -101,6 +106,8 @@ class _Inbox:
         self.overflow = 0
 
     def push(self, sample: zenoh.Sample) -> None:
+        if sample.attachment is not None and is_wake(sample):
+            return  # a timed wait's wake-up in this process (Subscription), not a message
         if len(self._q) == self._q.maxlen:
             self.overflow += 1
         self._q.append(sample)
@@ -136,6 +143,93 @@ class _Inbox:
         self._bell.put(None)
 
 
+class _WakeTimer:
+    """One thread per process that ends timed waits: when a wait's deadline passes it puts a
+    wake-up sample, session-locally (``Locality.SESSION_LOCAL``: it never leaves the process),
+    on the subscription's key with the wait's token in the attachment; the waiter, blocked in
+    Zenoh's channel, takes it and returns.
+
+    Cheap on the hot path: a subscription records one deadline here at a time
+    (``_timer_at``); when it comes the timer re-reads the subscription's current wait
+    (``_wait``: token and deadline, or None between waits) and sleeps again if the deadline
+    moved later, so a node that waits with a fixed timeout and gets its messages in time
+    causes one timer wake-up per timeout, not per message. A wait calls :meth:`schedule` only
+    when its deadline is earlier than the recorded one (or none is recorded).
+
+    Ordering (no lost wake-up without a lock on the hot path): the waiter stores ``_wait``
+    before it reads ``_timer_at``; the timer clears ``_timer_at`` before it reads ``_wait``.
+    So either the waiter sees no recorded deadline and schedules, or the timer sees the wait.
+    """
+
+    def __init__(self) -> None:
+        self._cv = threading.Condition(threading.Lock())
+        self._heap: list[tuple[float, int, Subscription]] = []
+        self._n = 0
+        self._thread: threading.Thread | None = None
+        #: wake-ups sent (tests; a steady node sends none)
+        self.fired = 0
+        #: times the thread woke up (tests: not one per message)
+        self.rounds = 0
+
+    def schedule(self, sub: Subscription, deadline: float) -> None:
+        with self._cv:
+            self._n += 1
+            sub._timer_entry = self._n  # older entries of this subscription are void
+            sub._timer_at = deadline
+            heapq.heappush(self._heap, (deadline, self._n, sub))
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="hil-wake-timer", daemon=True)
+                self._thread.start()
+            elif self._heap[0][1] == self._n:
+                self._cv.notify()  # earlier than the thread's planned wake-up
+
+    def _run(self) -> None:
+        heap = self._heap
+        while True:
+            due: list[tuple[Subscription, int]] = []
+            with self._cv:
+                self.rounds += 1
+                now = time.monotonic()
+                while heap and heap[0][0] <= now:
+                    _, n, sub = heapq.heappop(heap)
+                    if sub._timer_entry != n:
+                        continue  # replaced by a later schedule()
+                    sub._timer_at = _NEVER  # before reading _wait (see the class docstring)
+                    sub._timer_entry = 0
+                    w = sub._wait
+                    if w is None or sub._closed:
+                        continue  # not waiting: its next wait schedules again
+                    token, deadline = w
+                    if deadline > now:
+                        self._n += 1
+                        sub._timer_entry = self._n
+                        sub._timer_at = deadline
+                        heapq.heappush(heap, (deadline, self._n, sub))
+                    elif sub._woken != token:
+                        sub._woken = token
+                        due.append((sub, token))
+                if not due:
+                    self._cv.wait(heap[0][0] - now if heap else None)
+                    continue
+            for sub, token in due:
+                self.fired += 1
+                sub._put_wake(token)
+
+
+_NEVER = float("inf")
+_TIMER = _WakeTimer()
+_SUB_IDS = itertools.count(1)
+
+
+def _new_timer_after_fork() -> None:
+    # a forked child has no timer thread (only the forking thread survives a fork)
+    global _TIMER
+    _TIMER = _WakeTimer()
+
+
+os.register_at_fork(after_in_child=_new_timer_after_fork)
+
+
 class Subscription(Generic[T]):
     """Typed subscription.
 
@@ -144,7 +238,20 @@ class Subscription(Generic[T]):
     ``latest=False``: a FIFO of ``capacity`` messages, drained with ``drain()``
     (recorders, logs); when it overflows the oldest are dropped and counted in
     ``dropped``. One consumer thread per subscription.
+
+    Latest mode hands samples over without a Python thread in between: the subscriber has a
+    Zenoh ring channel (``RingChannel(LATEST_RING)``) and the node's thread blocks in its
+    ``recv()`` (Zenoh releases the GIL), as raw zenoh-python does. zenoh-python has no receive
+    with a timeout, so a timed wait is ended by a wake-up sample the process's
+    :class:`_WakeTimer` puts session-locally on the subscription's key; a wake-up of an earlier
+    wait (it returned meanwhile) is recognised by its token and skipped. FIFO mode keeps a
+    Python callback into a bounded deque (:class:`_Inbox`: it counts overflow; Zenoh's
+    FifoChannel would block the network thread when full).
     """
+
+    #: ring size of a latest-value subscription: a wake-up takes a place in it, so more than
+    #: one, so a stale wake-up never pushes out a message (see docs/platform.md, `hil bench bus`)
+    LATEST_RING = 8
 
     def __init__(
         self,
@@ -156,10 +263,31 @@ class Subscription(Generic[T]):
     ):
         self.key = key
         self.type = typ
-        self._inbox = _Inbox(1 if latest else capacity)
-        # Zenoh runs the callback on its own Python thread (indirect callback), so the
-        # network threads never wait for the GIL; the callback only queues the sample
-        self._sub = session.declare_subscriber(key, self._inbox.push)
+        self.latest = latest
+        self._session = session
+        self._closed = False
+        self._superseded = 0
+        if latest:
+            self._inbox = None
+            self._wake_key = wake_key(key)
+            self._wake_id = WAKE_PREFIX + next(_SUB_IDS).to_bytes(8, "little")
+            self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(self.LATEST_RING))
+            # the handler, not the subscriber: undeclaring while a thread is in the subscriber's
+            # recv() raises "Already borrowed"; the handler's recv() raises ZError instead (close())
+            handler = self._sub.handler
+            self._recv, self._try_recv = handler.recv, handler.try_recv
+            self._held: zenoh.Sample | None = None  # taken by wait_queued(), not yet by poll()
+            self._token = 0
+            #: (token, deadline) of the timed wait in progress, else None (read by the timer)
+            self._wait: tuple[int, float] | None = None
+            self._timer_at = _NEVER
+            self._timer_entry = 0
+            self._woken = 0
+        else:
+            self._inbox = _Inbox(capacity)
+            # Zenoh runs the callback on its own Python thread (indirect callback), so the
+            # network threads never wait for the GIL; the callback only queues the sample
+            self._sub = session.declare_subscriber(key, self._inbox.push)
         self.last: T | None = None
         self._last_key_expr: zenoh.KeyExpr | None = None
         #: monotonic time at which ``last`` was taken from the queue
@@ -175,8 +303,10 @@ class Subscription(Generic[T]):
 
     @property
     def dropped(self) -> int:
-        """FIFO mode: samples lost because the queue was full (latest mode: superseded values)."""
-        return self._inbox.overflow
+        """FIFO mode: samples lost because the queue was full. Latest mode: values superseded by
+        a newer one when taken (a burst longer than ``LATEST_RING`` loses the older ones in
+        Zenoh's ring, uncounted)."""
+        return self._superseded if self._inbox is None else self._inbox.overflow
 
     def _decode(self, sample: zenoh.Sample) -> T | None:
         try:
@@ -191,8 +321,35 @@ class Subscription(Generic[T]):
         self.last_rx_s = time.monotonic()
         return msg
 
+    def _take_all(self) -> list[zenoh.Sample]:
+        """Latest mode: every message queued now (wake-ups left out), oldest first."""
+        out: list[zenoh.Sample] = []
+        if self._held is not None:
+            out.append(self._held)
+            self._held = None
+        try_recv = self._try_recv
+        try:
+            while (smp := try_recv()) is not None:
+                if smp.attachment is None or not is_wake(smp):
+                    out.append(smp)
+        except zenoh.ZError:
+            pass  # closed: the ring is gone
+        return out
+
+    def _newest(self, samples: list[zenoh.Sample]) -> T | None:
+        """The newest valid message of ``samples``: decoded newest first, the older ones are
+        superseded (not decoded, as a latest-value queue overwrote them before)."""
+        for i in range(len(samples) - 1, -1, -1):
+            m = self._decode(samples[i])
+            if m is not None:
+                self._superseded += i
+                return m
+        return None
+
     def poll(self) -> T | None:
         """Newest message not seen yet, or None (never blocks)."""
+        if self._inbox is None:
+            return self._newest(self._take_all())
         newest = None
         while (smp := self._inbox.pop()) is not None:
             m = self._decode(smp)
@@ -200,12 +357,75 @@ class Subscription(Generic[T]):
                 newest = m
         return newest
 
+    def _put_wake(self, token: int) -> None:
+        """(timer thread) End the wait ``token``: a wake-up sample into this process only."""
+        try:
+            self._session.put(self._wake_key, b"", attachment=self._wake_id + token.to_bytes(8, "little", signed=True),
+                              allowed_destination=zenoh.Locality.SESSION_LOCAL)
+        except Exception:  # the session closed meanwhile: nobody waits any more
+            pass
+
+    def _recv_message(self, timeout_s: float | None) -> zenoh.Sample | None:
+        """Latest mode: block in Zenoh's channel for the next message (wake-ups skipped), or
+        None once ``timeout_s`` passed or the subscription closed."""
+        if self._closed:
+            if timeout_s is not None and timeout_s > 0:
+                time.sleep(timeout_s)  # a caller looping until a deadline must not spin
+            return None
+        recv = self._recv
+        if timeout_s is None:
+            token = -1  # no deadline: no wake-up of this wait exists
+        else:
+            if timeout_s <= 0:
+                return None
+            deadline = time.monotonic() + timeout_s
+            self._token = token = self._token + 1
+            self._wait = (token, deadline)  # before reading _timer_at (see _WakeTimer)
+            if deadline < self._timer_at:
+                _TIMER.schedule(self, deadline)
+        try:
+            while True:
+                try:
+                    smp = recv()
+                except zenoh.ZError:
+                    return None  # close() undeclared the subscriber
+                a = smp.attachment
+                if a is None:
+                    return smp
+                b = a.to_bytes()
+                if not b.startswith(WAKE_PREFIX):
+                    return smp  # someone else's attachment: a message all the same
+                if b == self._wake_id + token.to_bytes(8, "little", signed=True):
+                    return None  # this wait's deadline passed
+                # a wake-up of an earlier wait, or of another subscription on this key: skip
+        finally:
+            self._wait = None
+
     def wait(self, timeout_s: float | None = None) -> T | None:
         """Block until a new valid message arrives or ``timeout_s`` passes (None: forever)
         or the subscription is closed (None).
 
-        Sleeps on a doorbell the Zenoh callback rings: no polling.
+        Latest mode: blocks in Zenoh's channel; FIFO mode: sleeps on a doorbell the Zenoh
+        callback rings. No polling in either.
         """
+        if self._inbox is None:
+            samples = self._take_all()
+            if samples and (m := self._newest(samples)) is not None:
+                return m
+            deadline = None if timeout_s is None else time.monotonic() + timeout_s
+            left = None if timeout_s is None else max(0.0, timeout_s)
+            while True:
+                smp = self._recv_message(left)
+                if smp is None:
+                    return None
+                # newer ones queued meanwhile: the newest wins (usually none: one look, no list)
+                nxt = self._try_recv_message()
+                m = self._decode(smp) if nxt is None else self._newest([smp, nxt, *self._take_all()])
+                if m is not None:
+                    return m
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    return None
         m = self.poll()
         if m is not None:
             return m
@@ -223,10 +443,32 @@ class Subscription(Generic[T]):
 
     def wait_queued(self, timeout_s: float | None) -> bool:
         """Block until a sample is queued, without taking it (True), or ``timeout_s`` passes."""
-        return self._inbox.wait(None if timeout_s is None else max(0.0, timeout_s))
+        t = None if timeout_s is None else max(0.0, timeout_s)
+        if self._inbox is not None:
+            return self._inbox.wait(t)
+        if self._held is not None:
+            return True
+        smp = self._try_recv_message()
+        if smp is None:
+            smp = self._recv_message(t)
+        self._held = smp
+        return smp is not None
+
+    def _try_recv_message(self) -> zenoh.Sample | None:
+        try:
+            while (smp := self._try_recv()) is not None:
+                if smp.attachment is None or not is_wake(smp):
+                    return smp
+        except zenoh.ZError:
+            pass
+        return None
 
     def drain(self, max_items: int | None = None) -> list[tuple[str, bytes]]:
-        """FIFO mode: raw (key, payload) pairs, undecoded (for recorders)."""
+        """FIFO mode: raw (key, payload) pairs, undecoded (for recorders); latest mode: all
+        that Zenoh's ring holds (at most ``LATEST_RING``; ``max_items`` does not apply: the rest
+        could not be put back)."""
+        if self._inbox is None:
+            return [(str(s.key_expr), s.payload.to_bytes()) for s in self._take_all()]
         out: list[tuple[str, bytes]] = []
         while (max_items is None or len(out) < max_items) and (smp := self._inbox.pop()) is not None:
             out.append((str(smp.key_expr), smp.payload.to_bytes()))
@@ -236,11 +478,14 @@ class Subscription(Generic[T]):
         return float("inf") if self.last_rx_s is None else time.monotonic() - self.last_rx_s
 
     def close(self) -> None:
-        """Stop listening; a thread blocked in :meth:`wait` returns None at once (see :class:`_Inbox`)."""
+        """Stop listening; a thread blocked in :meth:`wait` returns None at once (latest mode:
+        undeclaring ends its ``recv()`` with ZError; FIFO mode: see :class:`_Inbox`)."""
+        self._closed = True
         try:
             self._sub.undeclare()
         finally:
-            self._inbox.close()
+            if self._inbox is not None:
+                self._inbox.close()
 
 
 class AliveWatch:

@@ -793,8 +793,9 @@ def run_mjcf_calibration(data_path: str | Path, robot_config: str | Path, out_di
         raise DataError(f"{xml_path} exists (pass --force to overwrite)")
     episodes = load_episodes(data_path, robot=None, warn=lambda m: log(f"warning: {m}"))
     blocks = make_blocks(episodes, bench, float(bench.spec.option.timestep), horizon_s=horizon_s)
-    log(f"{sum(e.n for e in episodes)} samples, {len(blocks.spans)} blocks of {horizon_s:g} s: "
-        f"{len(blocks.train)} train, {len(blocks.test)} held out")
+    clocks = sorted({str(e.meta.get("clock", "host")) for e in episodes})
+    log(f"{sum(e.n for e in episodes)} samples in {len(episodes)} episode(s) on the {'/'.join(clocks)} clock, "
+        f"{len(blocks.spans)} blocks of {horizon_s:g} s: {len(blocks.train)} train, {len(blocks.test)} held out")
     if current and bench.action != "goal_velocity":
         raise DataError(f"--current: {robot_config}'s loops are position loops; the current output is for "
                         "velocity-loop servos (the WidowX)")
@@ -810,14 +811,17 @@ def run_mjcf_calibration(data_path: str | Path, robot_config: str | Path, out_di
     rep.update({"model": str(robot_config), "data": str(data_path), "samples": int(sum(e.n for e in episodes)),
                 "calibrated_mjcf": str(xml_path), "base": None if base is None else str(base_mjcf(base)), "wall_s": round(time.perf_counter() - t0, 2), "cpu_s": round(time.process_time() - c0, 2),
                 "catalogue": {k: c.describe for k, c in CATALOGUE.items()}, "joints": bench.joints,
-                "horizon_s": horizon_s, "blocks": {"train": len(blocks.train), "test": len(blocks.test)}})
+                "horizon_s": horizon_s, "blocks": {"train": len(blocks.train), "test": len(blocks.test)},
+                # the samples' time: the device's own clock where the robot reports one, else the host's
+                "clock": clocks, "episodes": len(episodes)})
     (out / "report.json").write_text(json.dumps(rep, indent=1))
     (out / "report.md").write_text(_markdown(rep))
     return rep
 
 
 def _markdown(rep: dict) -> str:
-    lines = [f"# MJCF calibration of {rep['model']}", "", f"data: {rep['data']} ({rep['samples']} samples)", "",
+    lines = [f"# MJCF calibration of {rep['model']}", "", f"data: {rep['data']} ({rep['samples']} samples, "
+             f"{rep['episodes']} episode(s) on the {'/'.join(rep['clock'])} clock)", "",
              f"nominal (the model effects are judged against): {rep.get('base') or 'the MJCF as shipped'}", "",
              f"effects: {', '.join(rep['effects']) or 'none'}", "",
              f"held-out multi-step (open-loop, {rep['horizon_s']:g} s) position NRMSE: "

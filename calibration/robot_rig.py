@@ -101,6 +101,17 @@ def record_excitation(path: str | Path, duration_s: float = 60.0, seed: int = 0,
     ref = excitation_targets(n, duration_s, seed, amplitude_rad=float(ex.get("amplitude", 0.35)))
     steps = int(round(duration_s / period_s))
 
+    # a device whose clock stamps the whole reading (the hand: one telemetry cycle, sampled at one
+    # firmware tick) can have a reading that is not ok only because it reached the host late
+    # (stale_telemetry): it stays not ok, and is marked late so that the loader keeps it on the
+    # device clock (learning/recordings.py). A WidowX reading is not: its stamp is the first
+    # servo's, and a stale reading there is one whose other servos did not all answer.
+    whole = bool(ex.get("whole_reading_clock"))
+
+    def late(obs) -> bool:
+        return (whole and not obs.ok and obs.device_t_s is not None and obs.flag("stale_telemetry")
+                and not obs.flag("nonfinite_input") and not obs.flag("invalid_input"))
+
     def state_of(obs) -> list[float]:
         st = [float(v) for v in obs.state]
         if extra:
@@ -118,7 +129,7 @@ def record_excitation(path: str | Path, duration_s: float = 60.0, seed: int = 0,
             log.write(keys.state(rig, name),
                       RobotState(robot=name, t_s=obs.t_s - t0, state=state_of(obs), device_t_s=dev,
                                  action=applied, episode=0, seq=k + 2, stamp_s=1000.0 + obs.t_s - t0,
-                                 active=True, ok=obs.ok))
+                                 active=True, ok=obs.ok, health={"late": True} if late(obs) else {}))
             if k == steps:
                 break
             if progress is not None and k % 50 == 0:

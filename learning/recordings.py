@@ -41,7 +41,9 @@ def episodes_from_mcap(
     returned. "device": ``RobotState.device_t_s`` (the device's own clock when the data were sampled:
     a Dynamixel's Realtime Tick) for every episode whose states all carry one, else the host's;
     ``meta["clock"]`` says which, and ``meta["host_times"]`` keeps the host stamps. A state whose
-    time does not advance on that clock (the same reading stamped twice) is dropped.
+    time does not advance on that clock (the same reading stamped twice) is dropped. On the
+    device clock a reading that was not ok only because it reached the host late (its recorder
+    set ``RobotState.health["late"]``) does not end the episode; any other not-ok reading does.
     """
     if clock not in ("host", "device"):
         raise ValueError(f"clock must be 'host' or 'device', got {clock!r}")
@@ -125,10 +127,18 @@ def episodes_from_mcap(
                 uniq.append(m)
         # a reading flagged not ok (link trouble, sim blow-up) ends a segment: transitions
         # into or out of it are not trustworthy; so does a reset (its motion is not the
-        # episode's, and a fixture or teleport moves the robot without a cause in the action)
+        # episode's, and a fixture or teleport moves the robot without a cause in the action).
+        # On the device clock a reading its recorder marked late (``health["late"]``: not ok
+        # only because it reached the host late, on a device whose stamp covers the whole
+        # reading; calibration/robot_rig.py) keeps its segment: its device stamp says when it
+        # was sampled, so the transitions into and out of it are timed (a gap in that clock is
+        # for the user to judge: calibration's blocks never span one, calibration/mjcf_robot.py)
+        def usable(m: RobotState, on_device: bool = on_device) -> bool:
+            return m.ok or (on_device and bool(m.health.get("late")) and bool(np.all(np.isfinite(m.state))))
+
         segments: list[list[RobotState]] = [[]]
         for m in uniq:
-            if m.ok and id(m) not in in_reset:
+            if usable(m) and id(m) not in in_reset:
                 segments[-1].append(m)
             elif segments[-1]:
                 segments.append([])

@@ -45,7 +45,23 @@ def _tcp_addr(endpoint: str) -> tuple[str, int]:
     return host, int(port)
 
 
+#: ``--pin``: the CPU the pong processes run on (the environment tells them; the ping side pins itself)
+PIN_ENV = "HIL_BENCH_PONG_CPU"
+
+
+def _pin_cpus() -> tuple[int, int]:
+    """Two CPUs for ``--pin``: the ping process on the first, every pong process on the second."""
+    if not hasattr(os, "sched_setaffinity"):
+        raise ValueError("bench bus: --pin needs os.sched_setaffinity (Linux)")
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        raise ValueError(f"bench bus: --pin needs 2 CPUs, this process may use {len(cpus)}")
+    return cpus[0], cpus[1]
+
+
 def _pong(mode: str, endpoint: str) -> None:
+    if os.environ.get(PIN_ENV):
+        os.sched_setaffinity(0, {int(os.environ[PIN_ENV])})  # before Zenoh starts its threads
     if mode == "tcp":
         # length-prefixed echo on a plain socket: the floor of a loopback round trip
         with socket.create_server(_tcp_addr(endpoint)) as srv:
@@ -181,12 +197,32 @@ def _router(endpoint: str) -> None:
 
 
 def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: int = 200, block: int = 100,
-                  via_router: bool = False) -> dict:
+                  via_router: bool = False, pin: bool = False) -> dict:
     """Per size, the stacks run at once (one pong process each) and take turns in blocks of
     ``block`` round trips, so a change of load on the machine hits each alike. ``via_router``
     adds ``router``: raw Zenoh with both ends clients of a router process on 127.0.0.2 (the
-    extra hop of a rig spread over hosts, `hil router`), beside ``raw`` (the direct peer hop)."""
-    out: dict = {"n": n}
+    extra hop of a rig spread over hosts, `hil router`), beside ``raw`` (the direct peer hop).
+
+    ``pin``: the ping side on one CPU and every pong process on another (Linux). Unpinned, each
+    stack's pair of processes lands on the same core or on two, by chance, and a round trip's
+    p50 differs about 2x between the two (45 vs 100 us on the 2-core development machine), so
+    one run's ratio said more about placement than about the stacks."""
+    out: dict = {"n": n, "pinned": pin}
+    child_env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if pin:
+        ping_cpu, pong_cpu = _pin_cpus()
+        before = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, {ping_cpu})  # this thread; the stacks' Zenoh threads inherit it
+        child_env[PIN_ENV] = str(pong_cpu)
+        try:
+            return _run(out, n, sizes, warmup, block, via_router, child_env)
+        finally:
+            os.sched_setaffinity(0, before)
+    return _run(out, n, sizes, warmup, block, via_router, child_env)
+
+
+def _run(out: dict, n: int, sizes: tuple[int, ...], warmup: int, block: int, via_router: bool,
+         child_env: dict) -> dict:
     modes = MODES + (("router",) if via_router else ())
     for size in sizes:
         procs, clients = [], {}
@@ -204,7 +240,7 @@ def run_bench_bus(n: int = 2000, sizes: tuple[int, ...] = (64, 4096), warmup: in
                     [sys.executable, "-m", "hilstack.tools.bench_bus", "pong", mode, ep],
                     stdout=subprocess.PIPE,
                     text=True,
-                    env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                    env=child_env,
                 )
                 procs.append(proc)
                 if proc.stdout.readline().strip() != "ready":
@@ -256,6 +292,7 @@ def main(argv: list[str] | None = None) -> None:
 
     ap = argparse.ArgumentParser(prog="python -m hilstack.tools.bench_bus", description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=2000, help="round trips per payload size (default 2000)")
+    ap.add_argument("--pin", action="store_true", help="ping on one CPU, the pong processes on another (Linux)")
     sub = ap.add_subparsers(dest="cmd")
     pong = sub.add_parser("pong", help="the echo process the benchmark starts itself")
     pong.add_argument("mode", choices=(*MODES, "router"))
@@ -268,7 +305,7 @@ def main(argv: list[str] | None = None) -> None:
     elif a.cmd == "router":
         _router(a.endpoint)
     else:
-        print(json.dumps(run_bench_bus(n=a.n)))
+        print(json.dumps(run_bench_bus(n=a.n, pin=a.pin)))
 
 
 if __name__ == "__main__":

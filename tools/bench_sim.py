@@ -187,8 +187,8 @@ def run_bench_batch(batch: int = 64, steps: int = 100, seed: int = 0) -> dict:
     ``data.ctrl``): transitions per second through the contract loop (read, write, tick:
     serial, one rollout after another) vs ``mujoco.rollout`` on the same rate-bounded random
     commands (sim_backends/batch.py), on 1 and 2 threads. Both give the same states
-    (tests/test_sim_batch.py). The VelociRoACH does not qualify: its firmware PID runs in
-    Python every 1 ms tick."""
+    (tests/test_sim_batch.py). The VelociRoACH does not qualify: its firmware PID runs between
+    the 1 ms physics steps (compiled or in Python), which ``mujoco.rollout`` has no place for."""
     from hilstack.sim_backends.batch import rate_bounded_walk
     from hilstack.sim_backends.pointmass import PointMassParams, PointMassSim
 

@@ -18,12 +18,17 @@ def bench_bus(
     n: int = typer.Option(2000, "--n", help="round trips per payload size"),
     via_router: bool = typer.Option(False, "--via-router", help="also raw Zenoh through a router process "
                                     "(`hil router`'s extra hop) beside the direct peer hop"),
+    pin: bool = typer.Option(False, "--pin", help="ping on one CPU, every pong process on another (Linux): "
+                             "each stack gets the same placement, so runs agree"),
     json_out: bool = typer.Option(False, "--json"),
 ) -> None:
     """Ping-pong latency: hilstack node layer vs raw zenoh-python (64 B and 4 KB)."""
     from hilstack.tools.bench_bus import run_bench_bus
 
-    r = run_bench_bus(n=n, via_router=via_router)
+    try:
+        r = run_bench_bus(n=n, via_router=via_router, pin=pin)
+    except ValueError as e:
+        raise UserError(str(e)) from e
     if json_out:
         echo_json(r)
     else:

@@ -63,6 +63,7 @@ from hilstack.drivers.shadow_hand.protocol import (
     FAULT_ESTOP,
     FAULT_MOTOR,
     FAULT_WATCHDOG,
+    FW_TICK_S,
     HAND_IDS,
     HOST_IDS,
     HOST_MODE_POSITION,
@@ -72,6 +73,7 @@ from hilstack.drivers.shadow_hand.protocol import (
     decode,
     encode,
     encode_targets,
+    unwrap_fw_clock,
 )
 
 DEFAULT_UDP_GROUP = "239.74.163.2"
@@ -109,6 +111,9 @@ class ShadowHandDriver(Driver):
         self._asm = TelemetryAssembler()
         self._tel: Telemetry | None = None
         self._tel_t: float | None = None
+        #: the hand's own clock (HAND_STATUS.t_fw_ms): the last raw count and its unwrapped total [ticks]
+        self._fw_raw: int | None = None
+        self._fw_total = 0
         #: the hand's telemetry: stale after telemetry_deadline_s, the error path after
         #: link_timeout_periods control periods without a complete cycle (a frozen or dead hand)
         self.inputs = Inputs(Freshness.fail_after_periods(
@@ -145,6 +150,7 @@ class ShadowHandDriver(Driver):
         self.bus = self._open_bus(channel, udp_port)
         with self._lock:
             self._tel = self._tel_t = None
+            self._fw_raw, self._fw_total = None, 0
             self.inputs.start(time.monotonic())
         self._stop_evt.clear()
         self._reader_error = None
@@ -324,6 +330,9 @@ class ShadowHandDriver(Driver):
             self.frames_received += 1
             tel = self._asm.feed(mid, vals)
             if tel is not None:
+                # every complete cycle advances the hand's clock (the reader sees them all, 20 ms apart)
+                self._fw_total = unwrap_fw_clock(self._fw_raw, tel.t_fw_ms, self._fw_total)
+                self._fw_raw = tel.t_fw_ms
                 self._tel, self._tel_t = tel, now
                 self.inputs["telemetry"].update(now)
 
@@ -393,6 +402,7 @@ class ShadowHandDriver(Driver):
         now = time.monotonic()
         with self._lock:
             tel, tel_t = self._tel, self._tel_t
+            dev_t = self._fw_total * FW_TICK_S
             ok, flags = self.inputs.assess(now, report=True)
         age = now - tel_t
         state = np.concatenate([tel.q_rad, tel.qd_rad_s])
@@ -422,6 +432,9 @@ class ShadowHandDriver(Driver):
             t_s=tel_t, state=state, seq=self._seq,
             ok=ok,  # device faults are flags; the reading stays valid data (docs/platform.md)
             flags=flags, extras=extras,
+            # the hand's own clock when the cycle was sampled [s since the first cycle of this
+            # configure]: t_s is the host's, stamped when the reader assembled the cycle
+            device_t_s=dev_t,
         )
 
     def _hold_command(self, obs: Observation) -> np.ndarray:

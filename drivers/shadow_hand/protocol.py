@@ -9,6 +9,11 @@ Telemetry cycle (hand → host, at ``telemetry_hz``): HAND_POS_0..5, HAND_VEL_0.
 HAND_EFFORT_0..4, then HAND_STATUS, which closes the cycle and carries an 8-bit cycle
 counter. A cycle whose frames did not all arrive is not used (its missing frames are
 counted as dropped); a gap in the cycle counter counts the whole missed cycles.
+
+HAND_STATUS also carries ``t_fw_ms``, the motor boards' free-running firmware clock (one count
+per 1 ms control tick, 16 bits: it wraps to 0 after 65,535) at the tick whose values the cycle
+carries. :func:`unwrap_fw_clock` continues it across the wrap; the driver reports it as
+``Observation.device_t_s`` (the hand's own sample time, free of the host's latency).
 """
 
 from __future__ import annotations
@@ -48,6 +53,22 @@ HOST_IDS = frozenset((ID_ESTOP, ID_HOST_HEARTBEAT, *ID_TARGET))
 HAND_IDS = frozenset((ID_STATUS, *ID_POS, *ID_VEL, *ID_EFFORT))
 #: telemetry frames in one cycle, in send order (HAND_STATUS last)
 CYCLE_IDS = (*ID_POS, *ID_VEL, *ID_EFFORT, ID_STATUS)
+
+#: HAND_STATUS.t_fw_ms: the firmware clock's period [s] and its counter's modulus (16 bits)
+FW_TICK_S = 0.001
+FW_CLOCK_MODULUS = 1 << 16
+
+
+def unwrap_fw_clock(last_raw: int | None, raw: int, total: int) -> int:
+    """The firmware clock in ticks since the first cycle seen, continued across the 65,535 -> 0 wrap.
+
+    ``total`` is the unwrapped count at ``last_raw`` (None: ``raw`` is the first cycle; 0 is
+    returned). Cycles must arrive less than 65.536 s apart: the driver's link deadline (1 s by
+    default) ends a link long before; a board reset (the clock restarts at 0) reads as one step forward.
+    """
+    if last_raw is None:
+        return 0
+    return total + (int(raw) - int(last_raw)) % FW_CLOCK_MODULUS
 
 HOST_MODE_IDLE = 0
 HOST_MODE_POSITION = 2

@@ -206,7 +206,10 @@ class ShadowHandSim(LockstepSim):
                            "driver": {"objects_in_state": False},  # parked balls: the efforts follow the joints
                            "mid": hold_pose_action().tolist(), "command": "position", "amplitude": 0.25,
                            "extra_state": "effort_nm", "extra_names": [f"{j}_effort" for j in ACTUATED_JOINTS],
-                           "extra_unit": "N·m"}}
+                           "extra_unit": "N·m",
+                           # the hand's clock (HAND_STATUS.t_fw_ms) stamps one whole telemetry cycle: a
+                           # reading that reached the host late is still a sample at its device time
+                           "whole_reading_clock": True}}
 
     # ------------------------------------------------------------------ lifecycle
     def _on_configure(self) -> None:

@@ -18,7 +18,7 @@ Public API for the emulator: ``VelociRoachSim(params)``, ``configure()``, ``rese
 
 from __future__ import annotations
 
-import collections
+import ctypes
 import math
 from typing import Annotated, Any, Literal
 
@@ -50,6 +50,7 @@ from hilstack.sim_backends.velociroach.model import (
 
 TWO_PI = 2.0 * math.pi
 ENCODER_COUNTS = 1 << 14  # 14-bit magnetic crank encoders
+_ENCODER_RES_RAD = TWO_PI / ENCODER_COUNTS
 
 #: terrain presets: Coulomb friction, contact softness (solref time constant [s], damping ratio),
 #: roughness (RMS height [m] of a seeded heightfield, 0 = plane) and its correlation length [m],
@@ -68,6 +69,8 @@ TERRAINS: dict[str, dict[str, Any]] = {
 
 #: rough terrain: map beyond ±period/2 so the robot (±7 cm) always stands on it
 _WRAP_MARGIN_M = 0.25
+
+_SIM_DIVERGED = Flag.SIM_DIVERGED.value
 
 PERTURBATIONS = ("missing_leg", "payload_kg", "mocap_offset_m", "slope_deg", "heading_offset_deg", "terrain")
 
@@ -139,6 +142,15 @@ class SimParams(Params):
     payload_kg: float = Field(0.0, ge=0, description="towed payload at start [kg] (perturbation payload_kg)")
 
 
+def bit_generator_pointers(rng: np.random.Generator) -> tuple[int, int, int]:
+    """``(state, next_uint64, next_double)`` addresses of a Generator's bit generator (numpy's
+    public ctypes interface): the compiled loop draws from the same stream through them. The
+    Generator must outlive their use."""
+    c = rng.bit_generator.ctypes
+    return (c.state_address, ctypes.cast(c.next_uint64, ctypes.c_void_p).value,
+            ctypes.cast(c.next_double, ctypes.c_void_p).value)
+
+
 def parse_sim_params(sim: dict, source: str | None) -> SimParams:
     """Validate ``params.sim``; errors name ``params.sim.<field>`` and the file."""
     try:
@@ -203,6 +215,10 @@ class VelociRoachSim(LockstepSim):
             Freshness("pose", p.pose_deadline_s, Flag.STALE_POSE),
             Freshness("telemetry", p.telemetry_deadline_s, Flag.STALE_TELEMETRY),
         )
+        self._telemetry_input = self.inputs["telemetry"]
+        self._pose_input = self.inputs["pose"]
+        self._telemetry_index = self.spec.state.index("wx")  # the state from here on is telemetry
+        self._fault_flags: dict[int, dict[str, bool]] = {}  # fault_flags of each bitmask seen
 
     # ------------------------------------------------------------------ model
     def terrain_name(self) -> str:
@@ -274,7 +290,7 @@ class VelociRoachSim(LockstepSim):
             self._hfield_zmax = 0.0
         self.model = m
         self.data = mujoco.MjData(m)
-        self._views = (self.data.qvel, self.data.ctrl)  # views of the data's memory, for the compiled loop
+        self._views = (self.data.qpos, self.data.qvel, self.data.ctrl)  # for the compiled loop
         self._q_l = [m.joint(f"hip_l{o}").qposadr[0] for o in "fma"]
         self._q_r = [m.joint(f"hip_r{o}").qposadr[0] for o in "fma"]
         self._v_l = m.joint("hip_lm").dofadr[0]
@@ -333,13 +349,20 @@ class VelociRoachSim(LockstepSim):
         self.firmware.reset()
         ss = np.random.SeedSequence(s.seed)
         self._rng_mocap, self._rng_telem = (np.random.default_rng(c) for c in ss.spawn(2))
+        self._rng_mocap_pointers = bit_generator_pointers(self._rng_mocap)  # the compiled loop draws from it too
         self._soc = s.battery_soc
         self._i_l = self._i_r = 0.0
         self._vbat = self._ocv()
         self._t = 0.0
         self._mocap_period = 1.0 / s.mocap_rate_hz
         self._mocap_next_t = 0.0
-        self._mocap_queue: collections.deque = collections.deque()
+        # the mocap samples not delivered yet, oldest first: rows [head, tail) of a buffer that
+        # the compiled loop writes too (arrival time, sample time, position, quaternion wxyz,
+        # ok: not dropped, finite)
+        self._mocap_rows = np.empty((64, 11))
+        self._mocap_head = self._mocap_tail = 0
+        self._mocap_bad_end = 0  # the row after the newest lost or non-finite sample (0: none queued)
+        self._mocap_ist = np.zeros(4, dtype=np.int64)  # the compiled loop's tail, counts and bad end
         self._mocap_latest: tuple[float, tuple[float, ...], tuple[float, ...]] | None = None
         self._mocap_latest_ok = False
         self.inputs.start(self.sim_time_s)
@@ -485,29 +508,41 @@ class VelociRoachSim(LockstepSim):
         done = 0
         kern = self._kernel() if fast and payload <= 0.0 else None
         if kern is not None:
-            # the same loop compiled (compiled.py) while no Python work is due; a mocap sample
-            # is taken between its runs, the rest of the period (watchdog) runs below
+            # the same loop compiled (compiled.py), the mocap samples and the terrain wrap
+            # included; the rest of the period (watchdog) runs below
             run, step_fn = kern
-            st = np.array([int_l, int_r, pe_l, pe_r, dl, dr, vin, ci_l, ci_r, soc, vbat, i_l, i_r, t])
+            st = np.array([int_l, int_r, pe_l, pe_r, dl, dr, vin, ci_l, ci_r, soc, vbat, i_l, i_r, t,
+                           self._mocap_next_t])
+            h = self.perturbations["heading_offset_deg"]
+            off = self.perturbations["mocap_offset_m"]
             cst = np.array([sp_l, sp_r, kp, ki, ff_v, kd, lim, max_duty, last_cmd, wd, r_m, ke, i_max, r_b, cap_as,
-                            idle, v_empty, v_span, TICK_S, inv2pi])
+                            idle, v_empty, v_span, TICK_S, inv2pi,
+                            self._mocap_period, self._period_m if self._hfield_zmax > 0.0 else 0.0, s.mocap_dropout,
+                            s.mocap_latency_s, s.mocap_noise_m, s.mocap_noise_rad, h,
+                            math.cos(0.5 * math.radians(h)), math.sin(0.5 * math.radians(h)), off[0], off[1], off[2]])
+            ist = self._mocap_ist
+            ist[1] = ist[2] = 0
             m_ptr, d_ptr = m._address, d._address
+            rng_ptrs = self._rng_mocap_pointers
+            if rng_ptrs[0] != self._rng_mocap.bit_generator.ctypes.state_address:  # a copied sim: its own stream
+                rng_ptrs = self._rng_mocap_pointers = bit_generator_pointers(self._rng_mocap)
             # the same array objects every call: numba types a fresh view of MjData slowly (~0.1 ms)
-            qv, ct = self._views
+            qp, qv, ct = self._views
+            rows_needed = int((n - done) * TICK_S / self._mocap_period) + 2  # the samples due, and one
             while done < n:
-                k = run(step_fn, m_ptr, d_ptr, qv, ct, vl_i, vr_i, n - done, substeps, mocap_next, st, cst)
+                ist[0] = self._mocap_room(rows_needed)
+                ist[3] = self._mocap_bad_end
+                k = run(step_fn, m_ptr, d_ptr, qp, qv, ct, vl_i, vr_i, n - done, substeps, st, cst,
+                        *rng_ptrs, self._mocap_rows, ist, self._tile_offset)
+                self._mocap_tail, self._mocap_bad_end = int(ist[0]), int(ist[3])
                 if k == 0:
                     break
                 done += k
                 k_fast += k
-                t = st.item(13)
-                if t >= mocap_next:
-                    self._t = t
-                    self._wrap()
-                    self._mocap_sample()
-                    self._mocap_next_t += self._mocap_period
-                    mocap_next = self._mocap_next_t - 1e-9
-            int_l, int_r, pe_l, pe_r, dl, dr, vin, ci_l, ci_r, soc, vbat, i_l, i_r, t = st.tolist()
+            int_l, int_r, pe_l, pe_r, dl, dr, vin, ci_l, ci_r, soc, vbat, i_l, i_r, t, self._mocap_next_t = st.tolist()
+            self.mocap_samples += int(ist[1])
+            self.mocap_dropped += int(ist[2])
+            mocap_next = self._mocap_next_t - 1e-9
         for _ in range(n - done):
             wl = qvel.item(vl_i)
             wr = qvel.item(vr_i)
@@ -618,8 +653,9 @@ class VelociRoachSim(LockstepSim):
         """Take one mocap sample now; it is delivered ``mocap_latency_s`` later.
 
         Scalar math on Python floats on purpose: this runs at the mocap rate inside the stepping
-        loop (numpy/mju per-call overhead was ~15% of the loop in the profile); the sample is
-        kept as tuples and becomes arrays only when read."""
+        loop (numpy/mju per-call overhead was ~15% of the loop in the profile). The compiled loop
+        (compiled.py) takes the same samples itself, with the same operations; both write one
+        row of the mocap queue (``_mocap_rows``)."""
         s = self.sim
         q0, q1, q2, w, x, y, z = self.data.qpos[:7].tolist()
         self.mocap_samples += 1
@@ -650,19 +686,58 @@ class VelociRoachSim(LockstepSim):
             # miscalibrated heading: rotate the reported orientation about world z (left product)
             hc, hs = math.cos(0.5 * math.radians(h)), math.sin(0.5 * math.radians(h))
             w, x, y, z = hc * w - hs * z, hc * x - hs * y, hc * y + hs * x, hc * z + hs * w
-        self._mocap_queue.append((self._t + s.mocap_latency_s, self._t, pos, (w, x, y, z), ok))
+        isfinite = math.isfinite
+        finite = all(isfinite(v) for v in pos) and isfinite(w) and isfinite(x) and isfinite(y) and isfinite(z)
+        self._queue_mocap((self._t + s.mocap_latency_s, self._t, *pos, w, x, y, z, ok, finite))
+
+    def _queue_mocap(self, row: tuple) -> None:
+        """Queue one sample: (arrival time, sample time, x, y, z, qw, qx, qy, qz, ok, finite)."""
+        i = self._mocap_room()
+        self._mocap_rows[i] = row
+        self._mocap_tail = i + 1
+        if not (row[9] and row[10]):
+            self._mocap_bad_end = i + 1
+
+    def _mocap_room(self, rows_needed: int = 1) -> int:
+        """The first free row of the mocap queue, with room for ``rows_needed`` samples after it
+        (the queue moved to the front of its buffer, or the buffer grown)."""
+        head, tail, rows = self._mocap_head, self._mocap_tail, self._mocap_rows
+        if tail + rows_needed <= len(rows):
+            return tail
+        n = tail - head
+        if n + rows_needed > len(rows):
+            self._mocap_rows = np.empty((2 * (n + rows_needed), rows.shape[1]))
+        self._mocap_rows[:n] = rows[head:tail]
+        self._mocap_head, self._mocap_tail = 0, n
+        self._mocap_bad_end = max(0, self._mocap_bad_end - head)
+        return n
 
     def _deliver_mocap(self, now_s: float) -> None:
-        qd = self._mocap_queue
-        while qd and qd[0][0] <= now_s + 1e-9:
-            t_arrive, ts, pos, q, ok = qd.popleft()
-            self._mocap_latest_ok = ok
+        """Hand every queued sample whose arrival time has come to the pose input, in order;
+        the newest usable one becomes the pose the state reports."""
+        head, tail = self._mocap_head, self._mocap_tail
+        if head == tail:
+            return
+        rows = self._mocap_rows
+        arrival, lim, end = rows.item, now_s + 1e-9, tail
+        while end > head and arrival(end - 1, 0) > lim:  # arrival times only grow: the due ones come first
+            end -= 1
+        if end == head:
+            return
+        self._mocap_head = end
+        pose = self._pose_input
+        if self._mocap_bad_end <= head:  # all kept and finite: the newest sample is the one that counts
+            last = rows[end - 1].tolist()
+            self._mocap_latest_ok = True
+            pose.update(min(last[0], now_s), True)
+            self._mocap_latest = (last[1], tuple(last[2:5]), tuple(last[5:9]))
+            return
+        for t_arrive, ts, p0, p1, p2, w, x, y, z, ok, finite in rows[head:end].tolist():
+            self._mocap_latest_ok = ok = bool(ok)
             if ok:
-                isfinite = math.isfinite
-                finite = all(isfinite(v) for v in pos) and all(isfinite(v) for v in q)
-                self.inputs["pose"].update(min(t_arrive, now_s), finite)
+                pose.update(min(t_arrive, now_s), bool(finite))
                 if finite:
-                    self._mocap_latest = (ts, pos, q)
+                    self._mocap_latest = (ts, (p0, p1, p2), (w, x, y, z))
 
     def mocap_pose(self) -> tuple[float, np.ndarray, np.ndarray] | None:
         """The newest delivered mocap sample: (t_s sample time, position [m] world,
@@ -675,12 +750,10 @@ class VelociRoachSim(LockstepSim):
 
     def _crank_angles(self) -> tuple[float, float]:
         """Encoder readings [rad] in [0, 2π), quantized to 14 bits (fore-leg hinge = crank)."""
-        d = self.data
-        res = TWO_PI / ENCODER_COUNTS
-        out = []
-        for a in (self._q_l[0], self._q_r[0]):
-            out.append((math.floor((d.qpos[a] % TWO_PI) / res)) * res)
-        return out[0], out[1]
+        qpos = self.data.qpos
+        res = _ENCODER_RES_RAD
+        return (math.floor((qpos.item(self._q_l[0]) % TWO_PI) / res) * res,
+                math.floor((qpos.item(self._q_r[0]) % TWO_PI) / res) * res)
 
     def telemetry(self) -> dict:
         """One telemetry packet as the firmware would send it (body-frame IMU, SI units)."""
@@ -712,23 +785,27 @@ class VelociRoachSim(LockstepSim):
         d = self.data
         self._deliver_mocap(self.sim_time_s)
         if self._mocap_latest is None:
-            pos, q = self.true_position_m(), d.qpos[3:7]
+            pos, q = self.true_position_m().tolist(), d.qpos[3:7].tolist()
         else:
             _, pos, q = self._mocap_latest
         roll, pitch, yaw = quat_to_rpy(q)
         cl, cr = self._crank_angles()
-        wl, wr = float(d.qvel[self._v_l]), float(d.qvel[self._v_r])
+        qvel = d.qvel
+        vx, vy, vz, wx, wy, wz = qvel[:6].tolist()
+        wl, wr = qvel.item(self._v_l), qvel.item(self._v_r)
         k = self._bemf_v_per_rad_s
+        cos, sin = math.cos, math.sin
+        # Python floats in, one array out (numpy scalars in the list cost as much again)
         return np.array([
             pos[0], pos[1], pos[2],
-            d.qvel[0], d.qvel[1], d.qvel[2],
-            math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw),
-            d.qvel[3], d.qvel[4], d.qvel[5],
-            math.cos(cl), math.sin(cl), math.cos(cr), math.sin(cr),
+            vx, vy, vz,
+            cos(roll), sin(roll), cos(pitch), sin(pitch), cos(yaw), sin(yaw),
+            wx, wy, wz,
+            cos(cl), sin(cl), cos(cr), sin(cr),
             wl / TWO_PI, wr / TWO_PI,
             k * wl, k * wr,
             self._vbat,
-        ], dtype=np.float64)
+        ])
 
     def _read(self) -> Observation:
         self._seq += 1
@@ -736,12 +813,15 @@ class VelociRoachSim(LockstepSim):
         now = self.sim_time_s
         state = self._state()
         # telemetry is computed on demand in the sim: fresh, unless the physics produced NaN
-        tel = self.spec.state.index("wx")
-        self.inputs["telemetry"].update(now, bool(np.all(np.isfinite(state[tel:]))))
+        self._telemetry_input.update(now, bool(np.isfinite(state[self._telemetry_index:]).all()))
         ok, flags = self.inputs.assess(now, report=True)
         diverged, self._diverged_pending = self._diverged_pending, False
-        flags[Flag.SIM_DIVERGED.value] = diverged
-        flags.update(fault_flags(fw.faults))
+        flags[_SIM_DIVERGED] = diverged
+        faults = fw.faults
+        ff = self._fault_flags.get(faults)
+        if ff is None:
+            ff = self._fault_flags[faults] = fault_flags(faults)
+        flags.update(ff)
         extras = {"duty": (fw.duty_l, fw.duty_r), "t_fw_ms": fw.t_fw_ms}
         if self.sim.camera_px:
             extras["image"] = self.render_camera()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 from hilstack.bus import keys
 from hilstack.bus.recording import McapLog
@@ -43,9 +44,15 @@ def test_bench_bus_prints_json_with_ratio():
 
     from hilstack.tools.cli import app
 
-    r = CliRunner().invoke(app, ["bench", "bus", "--n", "100", "--via-router", "--json"])
+    # --pin where there are 2 CPUs to pin to (the ping side and the pong processes on one each)
+    pin = hasattr(os, "sched_getaffinity") and len(os.sched_getaffinity(0)) >= 2
+    before = os.sched_getaffinity(0) if pin else None
+    r = CliRunner().invoke(app, ["bench", "bus", "--n", "100", "--via-router", "--json"] + (["--pin"] if pin else []))
     assert r.exit_code == 0, r.output
     out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["pinned"] is pin
+    if pin:
+        assert os.sched_getaffinity(0) == before  # the test process is given back all its CPUs
     for size in ("64B", "4096B"):
         row = out[size]
         assert row["raw"]["p50_us"] > 0 and row["node"]["p99_us"] >= row["node"]["p50_us"]

@@ -100,11 +100,12 @@ def test_tiny_full_run_writes_the_thesis_tables_with_statistics(tmp_path):
     """`hil demo --full` on a tiny configuration: Table 3.1, the speed sweep and Table 3.2
     over two seeds, with mean ± std, per-seed values and error-bar plots."""
     rep = run_demo(
-        # 2 rollouts x 30 steps: every recording spans > 50 steps, so it holds a spec message
+        # one speed and no main-run iteration: the tables below use the high speed only, and the
+        # main run's on-policy iteration is test_tiny_demo_writes_a_complete_report's
         tmp_path, full=True, random_rollouts=3, rollout_steps=30, epochs=2, retrain_epochs=1, samples=64,
         paths=("straight",), path_scale=0.2, time_limit_speed_mps=0.4, tune_paths=("right",),
         tune_path_scale=0.2, baseline_candidates=2, seeds=(0, 1), table_sizes=(2,), table_paths=("straight",),
-        sweep_speeds=(1.0,), terrain_rollouts=2, progress=False,
+        sweep_speeds=(1.0,), terrain_rollouts=2, speeds={"high_speed": 1.0}, iterations=0, progress=False,
     )
     t31 = rep["table_3_1"]
     assert list(t31["rows"]) == ["2", "2+on-policy"] and t31["seeds"] == [0, 1]

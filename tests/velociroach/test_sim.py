@@ -209,6 +209,47 @@ def test_mocap_latency_dropout_and_noise():
     assert s.health().dropped_frames == s.mocap_dropped > 0
 
 
+def test_mocap_delivery_batches_give_what_sample_by_sample_delivery_gives():
+    """The backend hands queued mocap samples to the pose input in batches (a vectorized
+    search for the arrived ones); the rule is the sample-by-sample one: in order, each arrived
+    sample sets whether the newest was lost, each kept one refreshes the input at its arrival
+    (a non-finite one is counted, not used), the newest kept finite one is the pose."""
+    from hilstack.drivers.base import Flag, Freshness
+
+    s = make(seed=1)
+    rng = np.random.default_rng(7)
+    for trial in range(40):
+        s.reset()  # an empty queue (the reset's own sample is delivered at once)
+        ref_pose = Freshness("pose", 1.0, Flag.STALE_POSE)
+        ref_pose.start(0.0)
+        s.inputs["pose"].start(0.0)
+        ref_latest, ref_ok = None, False
+        s._mocap_latest, s._mocap_latest_ok, s._mocap_head, s._mocap_tail = None, False, 0, 0
+        n = int(rng.integers(1, 40))
+        ts = np.cumsum(rng.uniform(0.001, 0.01, n))
+        ok = rng.random(n) > (0.3 if trial % 2 else 0.0)  # half the trials: every sample kept
+        finite = rng.random(n) > (0.2 if trial % 3 == 0 else 0.0)
+        rows = np.column_stack([ts + 0.005, ts, rng.normal(size=(n, 7)), ok, finite])
+        rows[~finite, 2] = np.nan
+        for row in rows.tolist():
+            s._queue_mocap(tuple(row))
+        pending = rows.tolist()
+        nows = np.sort(np.append(rng.uniform(0.0, ts[-1] + 0.02, 3), ts[n // 2] + 0.005 - 5e-10))  # one within
+        for now in nows.tolist():  # the 1e-9 tolerance of a sample's arrival: refreshed at now, not later
+            s._deliver_mocap(now)
+            while pending and pending[0][0] <= now + 1e-9:  # the rule, sample by sample
+                t_arrive, t_s, p0, p1, p2, w, x, y, z, o, f = pending.pop(0)
+                ref_ok = bool(o)
+                if o:
+                    ref_pose.update(min(t_arrive, now), bool(f))
+                    if f:
+                        ref_latest = (t_s, (p0, p1, p2), (w, x, y, z))
+            assert s._mocap_latest == ref_latest and s._mocap_latest_ok == ref_ok
+            got = s.inputs["pose"]
+            assert (got.last_t_s, got.nonfinite_samples) == (ref_pose.last_t_s, ref_pose.nonfinite_samples)
+            assert s._mocap_tail - s._mocap_head == len(pending)
+
+
 def test_telemetry_packet():
     s = make()
     s.firmware.set_leg_velocity(5.0, 5.0, 0.0)
@@ -341,19 +382,26 @@ def test_leg_speed_scale_slows_one_side_and_default_is_unchanged():
         make(leg_speed_scale=(0.0, 1.0))
 
 
-def _fingerprint(inline: bool, action_mode: str = "leg_velocity", compiled: bool = False, **sim) -> list:
+def _fingerprint(inline: bool, action_mode: str = "leg_velocity", compiled: bool = False, x0: float = 0.0,
+                 **sim) -> list:
     """Every reading of a run that drives, goes quiet past the watchdog (it trips inside a
-    tick), drives again and tows a payload; with the PID inlined (in Python, or compiled by
-    numba) or through Firmware.tick."""
+    tick), drives again, changes the mocap offset and heading miscalibration, and tows a
+    payload; with the PID inlined (in Python, or compiled by numba: its loop takes the mocap
+    samples too) or through Firmware.tick. The mocap samples taken, dropped and delivered
+    (``mocap_pose``) and the rough terrain's wrap are part of the fingerprint."""
     s = VelociRoachSim(VelociRoachParams(action_mode=action_mode, sim={"seed": 2, **sim}))
     s.inline_firmware = inline
     s.compiled_firmware = compiled
     s.configure()
     s.activate()
+    s.reset(x=x0)
     rng = np.random.default_rng(0)
     hi = s.spec.action.high
     out = []
     for i in range(40):
+        if i == 4:
+            s.set_perturbation("mocap_offset_m", [0.01, -0.02, 0.003])
+            s.set_perturbation("heading_offset_deg", 7.0)
         if i == 25:
             s.set_perturbation("payload_kg", 0.05)
         if not 8 <= i < 16:  # 0.8 s without a command: the 0.5 s watchdog trips mid-tick
@@ -362,18 +410,33 @@ def _fingerprint(inline: bool, action_mode: str = "leg_velocity", compiled: bool
         r = s.read()
         fw = s.firmware
         out.append((r.state.tolist(), r.ok, sorted(r.flags.items()), fw.t_fw_ms, fw.duty_l, fw.duty_r, fw.faults,
-                    fw.watchdog_tripped, fw._int_l, fw._int_r, fw._prev_e_l, fw._prev_e_r))
+                    fw.watchdog_tripped, fw._int_l, fw._int_r, fw._prev_e_l, fw._prev_e_r,
+                    s.mocap_samples, s.mocap_dropped, s._tile_offset.tolist(), s.data.qpos.tolist()))
+        if i % 6 == 0:  # between ticks: samples that arrive later than a read
+            s.advance(0.023)
+            p = s.mocap_pose()
+            out.append(None if p is None else (p[0], p[1].tolist(), p[2].tolist()))
     s.cleanup()
     return out
 
 
+#: a rough terrain the robot crosses the edge of (the wrap), at 333 Hz with 30 % of the samples lost
+_MOCAP_HEAVY = {"terrain": "gravel", "terrain_half_size_m": 0.2, "x0": 0.19, "mocap_rate_hz": 333.0,
+                "mocap_latency_s": 0.012, "mocap_dropout": 0.3}
+
+
 @pytest.mark.parametrize("action_mode,sim", [("leg_velocity", {}), ("pwm", {}),
-                                             ("leg_velocity", {"battery_soc": 0.0})])
+                                             ("leg_velocity", {"battery_soc": 0.0}),
+                                             ("leg_velocity", _MOCAP_HEAVY)])
 def test_inlined_firmware_pid_gives_the_same_floats_as_firmware_tick(action_mode, sim):
     a, b = _fingerprint(True, action_mode, **sim), _fingerprint(False, action_mode, **sim)
-    assert any(x[7] for x in a)  # the watchdog did trip on the way
-    if sim:
-        assert any(x[6] & ~FAULT_WATCHDOG for x in a)  # an empty battery: low-battery / motor faults set
+    assert any(x[7] for x in a if x and len(x) > 7)  # the watchdog did trip on the way
+    if "battery_soc" in sim:
+        assert any(x[6] & ~FAULT_WATCHDOG for x in a if x and len(x) > 7)  # low-battery / motor faults set
+    if "x0" in sim:
+        readings = [x for x in a if x and len(x) > 7]
+        assert any(x[14] != [0.0, 0.0, 0.0] for x in readings)  # crossed the map's edge: wrapped
+        assert 0 < readings[-1][13] < readings[-1][12]  # some samples dropped, not all
     assert a == b
     if action_mode == "leg_velocity" and compiled_loop() is not None:  # the speed extra: the same floats
         assert _fingerprint(True, action_mode, compiled=True, **sim) == a
@@ -397,6 +460,23 @@ def test_the_compiled_loop_runs_when_numba_is_installed():
         s.tick()
     assert s.firmware.t_fw_ms == 500 and s.read().state[0] > 0.0  # ran the ticks, walked forward
     s.cleanup()
+
+
+def test_the_compiled_loops_draws_are_numpys_from_the_same_generator():
+    """The compiled loop draws the mocap noise through the Generator's bit generator with
+    numpy's algorithms: 15000 samples' (random, 6 x standard_normal) equal numpy's, the ziggurat's
+    rare branches included, and the Generator goes on from where they stopped."""
+    pytest.importorskip("numba", reason="numba (hilstack[speed]) is not installed: the loop runs in Python")
+    from hilstack.sim_backends.velociroach.backend import bit_generator_pointers
+    from hilstack.sim_backends.velociroach.compiled import draws
+
+    for seed in (0, 1):
+        ours, ref = np.random.default_rng(seed), np.random.default_rng(seed)
+        out = np.empty((15000, 7))
+        draws(*bit_generator_pointers(ours), out)
+        want = np.array([[ref.random(), *ref.standard_normal(6)] for _ in range(len(out))])
+        np.testing.assert_array_equal(out, want)
+        assert ours.random() == ref.random()
 
 
 def test_bench_sim_times_each_part_of_a_period_against_the_raw_peer(monkeypatch):
