@@ -746,17 +746,27 @@ class SimOracle:
         return torch.from_numpy(out).float()
 
 
+def _oracle_policy(sim, raw, amap, task, pc, reach, seed: int, episode: int):
+    """PDDM planning through the hand itself (:class:`SimOracle`) for one episode: the policy and
+    its oracle (whose ``begin`` must run before each plan)."""
+    from hilstack.control.costs import BaodingCost
+    from hilstack.control.policies import MpcPolicy
+    from hilstack.learning.baoding import BaodingFeatures, BaodingPolicy
+
+    feats = BaodingFeatures(raw, 0.1)
+    oracle = SimOracle(sim, BaodingFeatures(raw, 0.1), amap)
+    planner = pc.planner(seed=int(np.random.SeedSequence([seed, episode]).generate_state(1)[0]),
+                         init_mean=np.zeros(pc.action_dim), reachable=reach)
+    return BaodingPolicy(MpcPolicy(oracle, planner, BaodingCost(task, feats.names, 0.1)), feats, amap), oracle
+
+
 def oracle_closed_loop(sampler: dict[str, Any], episodes: int, samples: int, seed: int = 0,
                        steps: int = 40) -> dict[str, Any]:
     """PDDM planning through the hand itself (:class:`SimOracle`) with ``sampler`` at
     ``samples`` candidates, in-process, ``episodes`` episodes of ``steps``: can the task's
     cost and this sampler turn the pair at all when the model is perfect?"""
-    from hilstack.control.costs import BaodingCost
     from hilstack.control.planners import BAODING_PDDM
-    from hilstack.control.policies import MpcPolicy
     from hilstack.learning.baoding import (
-        BaodingFeatures,
-        BaodingPolicy,
         summarize,
     )
 
@@ -766,11 +776,7 @@ def oracle_closed_loop(sampler: dict[str, Any], episodes: int, samples: int, see
     try:
         for e in range(episodes):
             sim.reset()
-            feats = BaodingFeatures(raw, 0.1)
-            oracle = SimOracle(sim, BaodingFeatures(raw, 0.1), amap)
-            planner = pc.planner(seed=int(np.random.SeedSequence([seed, e]).generate_state(1)[0]),
-                                 init_mean=np.zeros(pc.action_dim), reachable=reach)
-            pol = BaodingPolicy(MpcPolicy(oracle, planner, BaodingCost(task, feats.names, 0.1)), feats, amap)
+            pol, oracle = _oracle_policy(sim, raw, amap, task, pc, reach, seed, e)
             scores.append(_episode(sim, pol, task, steps, wrist, plan_s, before_plan=oracle.begin))
     finally:
         sim.cleanup()
@@ -820,10 +826,7 @@ def oracle_record(out: Path, sampler: str = "thesis", episodes: int = 8, samples
     ``out/recordings/oracle-s<seed>-<e>.mcap`` (:class:`EpisodeRecording`, closed when the
     episode ends, so a stopped run keeps the finished ones), and one JSON line in
     ``out/oracle_episodes.jsonl`` with its turn figures, plan time and the load average."""
-    from hilstack.control.costs import BaodingCost
     from hilstack.control.planners import BAODING_PDDM
-    from hilstack.control.policies import MpcPolicy
-    from hilstack.learning.baoding import BaodingFeatures, BaodingPolicy
 
     out = Path(out)
     (out / "recordings").mkdir(parents=True, exist_ok=True)
@@ -838,11 +841,7 @@ def oracle_record(out: Path, sampler: str = "thesis", episodes: int = 8, samples
     try:
         for e, path in enumerate(paths):
             sim.reset()
-            feats = BaodingFeatures(raw, 0.1)
-            oracle = SimOracle(sim, BaodingFeatures(raw, 0.1), amap)
-            planner = pc.planner(seed=int(np.random.SeedSequence([seed, e]).generate_state(1)[0]),
-                                 init_mean=np.zeros(pc.action_dim), reachable=reach)
-            pol = BaodingPolicy(MpcPolicy(oracle, planner, BaodingCost(task, feats.names, 0.1)), feats, amap)
+            pol, oracle = _oracle_policy(sim, raw, amap, task, pc, reach, seed, e)
             rec = EpisodeRecording(path, sim.spec)
             plan_s: list[float] = []
             t0 = time.perf_counter()
