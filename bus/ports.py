@@ -7,7 +7,10 @@ listener, an outgoing link) may take it; the rig's peers, whose rendezvous liste
 would join that stranger's session instead of their own (bus/session.py: peers connect to
 whoever holds the rendezvous endpoint). So a rig's port is chosen below the ephemeral range,
 where the OS never hands one out by itself, checked free by binding it, and handed out in turn
-from a per-process start (processes started together do not collide). Pure standard library.
+from a per-process start. Processes started together have pids a few apart: their starts are
+spread over the range by a multiplicative hash of the pid (pid mod span put them a few ports
+apart, so each walked onto the ports the next one had taken: parallel test runs collided on
+their rigs' endpoints, NodeConflict). Pure standard library.
 """
 
 from __future__ import annotations
@@ -28,6 +31,12 @@ def _unassigned_range() -> tuple[int, int]:
     return max(1024, low - 12768), low
 
 
+def _spread(pid: int, span: int) -> int:
+    """A start in [0, span) for process ``pid``: Fibonacci hashing, so pids a few apart start
+    far apart (consecutive ones about 0.38·span)."""
+    return ((pid * 0x9E3779B97F4A7C15) & (2**64 - 1)) * span >> 64
+
+
 def free_port(host: str = "127.0.0.1", slot: int = 0, slots: int = 1) -> int:
     """A port free on ``host`` now, below the ephemeral range. ``slots`` > 1 splits the range
     into that many parts and draws from part ``slot`` (parallel test workers: one part each)."""
@@ -36,7 +45,7 @@ def free_port(host: str = "127.0.0.1", slot: int = 0, slots: int = 1) -> int:
     lo, hi = _unassigned_range()
     span = (hi - lo) // slots
     base = lo + slot * span
-    nxt = _next.get((slot, slots), base + os.getpid() % span)
+    nxt = _next.get((slot, slots), base + _spread(os.getpid(), span))
     for _ in range(span):
         port, nxt = nxt, base + (nxt - base + 1) % span
         with socket.socket() as s:

@@ -890,10 +890,17 @@ def _oe_jobs(preps: list[Prepared], params: AxisParams, weights: np.ndarray | No
     """Replay jobs (features built once) on a subset of open-loop windows, and each job's weight."""
     ws = np.ones(len(preps)) if weights is None else np.asarray(weights, float)
     horizon = max(2, min(int(round(OE_HORIZON_S / preps[0].period_s)), OE_MAX_STEPS))
+    # One horizon for every window (they are replayed stacked): an episode too short to hold it
+    # is left out of the refinement (it still counts in the equation-error fit); when none holds
+    # it, the horizon is the longest any weighted episode holds.
+    usable = {i: p.n - 2 * p.margin - 2 for i, (wi, p) in enumerate(zip(ws, preps, strict=True)) if wi > 0}
+    if not usable:
+        return [], np.zeros(0)
+    horizon = min(horizon, max(max(usable.values()), 1))
     starts = {}
-    for i, (wi, p) in enumerate(zip(ws, preps, strict=True)):
-        if wi > 0:
-            starts[i] = window_starts(p, max(1, min(horizon, p.n - 2 * p.margin - 2)))
+    for i, n_use in usable.items():
+        if n_use >= horizon:
+            starts[i] = window_starts(preps[i], horizon)
     total = sum(s.size for s in starts.values())
     stride = max(1, math.ceil(total / OE_MAX_WINDOWS))
     jobs, wts, seen = [], [], 0

@@ -43,6 +43,7 @@ from hilstack.bus.lifetime import StopRequested
 from hilstack.bus.node import Node
 from hilstack.bus.schemas import Command, Plan, ResetEvent, ResetPhase, RobotState, SpecMsg
 from hilstack.configs.schema import BusConfig
+from hilstack.control.policy_api import DelayAware, HasPlanner, PlanDetails, PlanningPolicy, Shiftable
 from hilstack.control.sample_refit import SampleRefit
 from hilstack.drivers.base import Pacing, RobotSpec
 
@@ -232,21 +233,22 @@ class ControllerNode(Node):
                 return s
 
     def publish_plan(self, policy: Any, plan_time_s: float, late: bool) -> None:
-        plan = getattr(policy, "last_plan", None)
-        if plan is None:
+        if not isinstance(policy, PlanningPolicy) or policy.last_plan is None:
             return
-        states = getattr(policy, "last_predicted_states", None)
+        plan = policy.last_plan
+        states = policy.last_predicted_states if isinstance(policy, PlanDetails) else None
         st = [] if states is None else np.asarray(states).reshape(-1, np.asarray(states).shape[-1]).tolist()
         self._plan.put(
             Plan(
                 robot=self.robot,
                 actions=np.asarray(plan).tolist(),
                 states=st,
-                cost=float(getattr(policy, "last_cost", 0.0)),
+                cost=float(policy.last_cost) if isinstance(policy, PlanDetails) else 0.0,
                 plan_time_s=plan_time_s,
                 late=late,
                 late_count=self.late_count,
-                samples=int(getattr(getattr(policy, "planner", None), "samples", 0) or 0),
+                samples=int(policy.planner.samples) if isinstance(policy, HasPlanner) and policy.planner is not None
+                else 0,
             )
         )
 
@@ -359,7 +361,7 @@ class ControllerNode(Node):
         done = threading.Event()
         ready = threading.Event()
         go = threading.Event()
-        delay = int(getattr(policy, "delay_steps", 0) or 0)
+        delay = int(policy.delay_steps or 0) if isinstance(policy, DelayAware) else 0
 
         def worker() -> None:
             while not done.is_set():
@@ -371,7 +373,7 @@ class ControllerNode(Node):
                     a = np.asarray(policy(job["x"], committed=job["committed"]), dtype=np.float64)
                 else:
                     a = np.asarray(policy(job["x"]), dtype=np.float64)
-                plan = getattr(policy, "last_plan", None)
+                plan = policy.last_plan if isinstance(policy, PlanningPolicy) else None
                 job["result"] = (a, None if plan is None else np.array(plan), time.perf_counter() - t0, job["seq"])
                 ready.set()
 
@@ -392,7 +394,7 @@ class ControllerNode(Node):
         sent: list[np.ndarray] = [] if held is None else [held]
         timer = self.cycle = CycleTimer(period, sleep=self.stop_event.wait)
         timer.start(at_s=min(phase) + 2 * period)
-        planner = getattr(policy, "planner", None) if refit is not None else None
+        planner = policy.planner if isinstance(policy, HasPlanner) and refit is not None else None
         if planner is not None:
             refit.start(planner.samples)
         try:
@@ -446,7 +448,7 @@ class ControllerNode(Node):
                     steps_left = [] if plan is None else [np.asarray(p) for p in plan]
                     if skip and len(steps_left) > skip:
                         a = steps_left[skip]
-                    if skip and hasattr(policy, "shift"):
+                    if skip and isinstance(policy, Shiftable):
                         policy.shift(skip)  # the planner's warm start moves on with it
                     fallback = steps_left[skip + 1:]
                     self.publish_plan(policy, dt, False)

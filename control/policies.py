@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from hilstack.control.costs import state_index
+from hilstack.control.policy_api import Observing, Resettable
 
 
 class SafeRandomPolicy:
@@ -119,7 +120,7 @@ class MpcPolicy:
 
     def reset(self) -> None:
         self.planner.reset()
-        if hasattr(self.cost, "reset"):
+        if isinstance(self.cost, Resettable):
             self.cost.reset()
 
     def __call__(self, state: np.ndarray, committed: Sequence[np.ndarray] | None = None) -> np.ndarray:
@@ -130,7 +131,7 @@ class MpcPolicy:
             new = self.model_source()
             if new is not None:
                 self.dynamics = new
-        if hasattr(self.cost, "observe"):
+        if isinstance(self.cost, Observing):
             self.cost.observe(state)  # a path cost tracks the robot's place on the path
         dynamics = self.dynamics or self.model.predict
         start = self.predict_after(dynamics, state, committed) if committed is not None and len(committed) else state
@@ -168,7 +169,7 @@ class BaselinePolicy:
         self.controller = controller
 
     def reset(self) -> None:
-        if hasattr(self.controller, "reset"):
+        if isinstance(self.controller, Resettable):
             self.controller.reset()
 
     def __call__(self, state: np.ndarray) -> np.ndarray:

@@ -1055,6 +1055,14 @@ class Driver(ABC):
             self._cycle = CycleTimer(self.spec.period_s)
         self._cycle.wait()
 
+    def tick_ready(self, timeout_s: float) -> bool:
+        """Wait at most ``timeout_s`` [s, wall clock] until :meth:`tick` can return at once;
+        True when it can. Only a :class:`Follower` waits in ``tick()`` on something outside
+        its node (another node advancing its world), and its driver node calls this in short
+        slices first, serving e-stops between them, so a world that stands still cannot hold
+        an e-stop's acknowledgement back. The default (a backend that paces itself): True."""
+        return True
+
     # ------------------------------------------------------------------ hooks
     def _on_configure(self) -> None:  # noqa: B027 - optional hook
         pass

@@ -196,6 +196,12 @@ class DriverNode(Node):
             )
 
     @property
+    def last_state(self) -> RobotState | None:
+        """The newest state this node published (None before the first): what ``hil up``'s
+        status line shows, read from another thread (one reference, replaced whole)."""
+        return self._last_state
+
+    @property
     def supervisor_alive(self) -> bool:
         return bool(self._supervisor.alive)
 
@@ -445,6 +451,13 @@ class DriverNode(Node):
             self._apply(cmd if lockstep else self._cmd.poll())  # realtime: the newest, taken now
         if not read_first:
             with timer.section("sim_tick") if timer else nullcontext():
+                if self.pacing is Pacing.FOLLOWER:
+                    # its tick waits for another node to advance its world (for seconds when that
+                    # world stands still, e.g. stopped by this very e-stop): serve e-stops meanwhile
+                    while not self.driver.tick_ready(0.05):
+                        if self.stop_event.is_set():
+                            return  # stopping: no further period
+                        self._handle_estop()
                 self.driver.tick()
             with timer.section("read_publish") if timer else nullcontext():
                 self.publish_state()

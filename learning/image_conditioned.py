@@ -45,6 +45,7 @@ from hilstack.configs.presets import Presets
 from hilstack.control.costs import PathCost, evaluate_path_following, rank_key, summarize_paths
 from hilstack.control.paths import fillet, make_path, path_length
 from hilstack.control.policies import MpcPolicy, SafeRandomPolicy
+from hilstack.control.policy_api import Resettable
 from hilstack.learning.datasets import Episode
 from hilstack.learning.dynamics import h_step_error, h_step_windows
 from hilstack.learning.mbrl import (
@@ -323,7 +324,7 @@ def random_episodes(env: TerrainSim, terrain: str, encoder, cfg: TerrainConfig, 
     out, kept = [], []
     for i in range(cfg.rollouts_per_terrain if n is None else n):
         s, img = env.start(terrain, {"x": 0.0, "y": 0.0, "yaw": float(rng.uniform(-np.pi, np.pi))})
-        if hasattr(pol, "reset"):
+        if isinstance(pol, Resettable):
             pol.reset()
         states, actions, images = [s], [], [img]
         for _ in range(cfg.rollout_steps):
@@ -352,7 +353,7 @@ def drive_path(env: TerrainSim, terrain: str, policy, path: str, cfg: TerrainCon
     end = PathEnd(PathCost(wp, names))
     s, img = env.start(terrain, path_start_pose(wp))
     policy.reset()
-    if hasattr(features, "reset"):
+    if isinstance(features, Resettable):
         features.reset()
     states = [s]
     t_plan = []

@@ -46,6 +46,7 @@ from hilstack.control.costs import PathCost, evaluate_path_following, rank_key, 
 from hilstack.control.paths import fillet, make_path, path_length
 from hilstack.control.planners import CEM, PDDM, RandomShooting
 from hilstack.control.policies import BaselinePolicy, MpcPolicy, SafeRandomPolicy
+from hilstack.control.policy_api import Resettable
 from hilstack.control.reset.config import ResetConfig, ResetUnavailable, require_reset
 from hilstack.control.reset.detectors import make_detector
 from hilstack.control.reset.supervisor import ResetSupervisor
@@ -579,7 +580,7 @@ class MbrlRun:
         self._episode_no = int(getattr(first, "episode", 0))
         if self.supervisor is not None:
             self._scan_transitions()  # the reset's own end nothing; a detector's on the first state does
-        if hasattr(policy, "reset"):
+        if isinstance(policy, Resettable):
             policy.reset()
         end_if = None
         if self.supervisor is not None:  # the supervisor's detectors end episodes too

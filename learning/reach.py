@@ -45,6 +45,7 @@ from hilstack.configs.schema import BusConfig
 from hilstack.control.controller_node import ControllerNode
 from hilstack.control.planners import CEM
 from hilstack.control.policies import MpcPolicy
+from hilstack.control.policy_api import PlanDetails, PlanningPolicy, Resettable
 from hilstack.learning.datasets import Episode
 from hilstack.learning.kinematics import ChainKinematics
 from hilstack.learning.mbrl import MbrlConfig, MbrlRun, RigError, _jsonable, make_model, recording
@@ -187,9 +188,12 @@ class HeldPolicy:
         self._n = 0
         self._a: np.ndarray | None = None
 
+    # to the controller node it is a PlanningPolicy with PlanDetails (control/policy_api.py): the
+    # inner MPC's plan is published. It calls the inner policy with the state alone.
+
     def reset(self) -> None:
         self._n = 0
-        if hasattr(self.inner, "reset"):
+        if isinstance(self.inner, Resettable):
             self.inner.reset()
 
     def __call__(self, state: np.ndarray) -> np.ndarray:
@@ -201,11 +205,15 @@ class HeldPolicy:
     # the controller node publishes the MPC's plan when there is one
     @property
     def last_plan(self):
-        return getattr(self.inner, "last_plan", None)
+        return self.inner.last_plan if isinstance(self.inner, PlanningPolicy) else None
 
     @property
     def last_predicted_states(self):
-        return getattr(self.inner, "last_predicted_states", None)
+        return self.inner.last_predicted_states if isinstance(self.inner, PlanDetails) else None
+
+    @property
+    def last_cost(self) -> float:
+        return self.inner.last_cost if isinstance(self.inner, PlanDetails) else 0.0
 
 
 class RandomPolicy:

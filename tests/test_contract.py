@@ -258,10 +258,11 @@ def test_rate_limit_holds_for_bursts_of_writes_and_across_periods(driver):
                 hist.append((t0, driver.now(), a))
             if k == 0:
                 # a burst at one instant: all within one period's worth of the held command
-                # (on a wall clock the burst takes a few ms: T is that span)
+                # (on a wall clock the burst takes a few ms, T is that span; a loaded machine may
+                # stretch it past a period, 51-109 ms of the WidowX's 50 under load ~18: the
+                # bound counts the span, so it holds whatever the machine's speed)
                 burst = np.array([h[2] for h in hist])
                 span_s = hist[-1][1] - hist[0][0]
-                assert span_s < p
                 assert np.all(np.abs(burst - hist[0][2]) <= r * (span_s + p) + 1e-9)
                 # and it did move (by a step, or to the limit when the range is smaller)
                 assert np.any(np.abs(burst[1:] - hist[0][2]) > 0.5 * np.minimum(r * p, np.abs(target - hist[0][2])))

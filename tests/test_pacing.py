@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import threading
 import time
+import uuid
 
 import numpy as np
 import pytest
@@ -185,3 +186,43 @@ def test_the_spec_carries_the_pacing_across_the_bus():
         RobotSpec.from_dict({**d, "pacing": "sometimes"})
     with pytest.raises(ValueError, match="pace 'lockstep' needs a sim backend; roach is emulated"):
         DriverNode(emu, "r", "roach", pace="lockstep")
+
+
+def test_a_follower_in_a_world_that_stands_still_still_answers_the_estop(bus, monkeypatch):
+    """The hand's reset arm follows the hand's scene: its ``tick()`` waits for the hand's node
+    to advance it (up to its follow timeout). When that world stands still (the hand e-stopped
+    first, or nobody commands it) the arm's node still acknowledges an engage and a release at
+    once: it waits for its world in slices (``Driver.tick_ready``) and serves e-stops between.
+    The follow timeout is made long here, so a node stuck in ``tick()`` cannot answer in time."""
+    from hilstack.bus.estop import command_estop
+    from hilstack.bus.node import Node
+    from hilstack.drivers.bridge import DriverNode
+    from hilstack.drivers.registry import make_driver
+    from hilstack.sim_backends.reset_arm import backend as arm_backend
+    from tests.helpers import wait_for
+
+    monkeypatch.setattr(arm_backend, "FOLLOW_TIMEOUT_S", 60.0)
+    world = f"still-{uuid.uuid4().hex[:8]}"
+    hand = make_driver("shadow_hand", "sim", sim={"reset_station": True, "world": world})
+    hand.configure()  # nobody advances it
+    arm = make_driver("reset_arm", "sim", world=world)
+    node = DriverNode(arm, "still", "arm", bus, pace="lockstep", handle_signals=False, estop_sync_s=0.05)
+    th = threading.Thread(target=node.serve, daemon=True)
+    try:
+        assert node.pacing is Pacing.FOLLOWER
+        th.start()
+        wait_for(lambda: arm.waiting_for_s is not None, 30, "the arm waiting for its world")
+        with Node("operator", "still", bus, handle_signals=False) as op:
+            engaged = command_estop(op, True, reason="test", timeout_s=5.0)
+            assert engaged.ok, engaged
+            assert node.estopped and not arm.active
+            released = command_estop(op, False, reason="fixed", timeout_s=5.0)
+            assert released.ok, released
+            assert not node.estopped and arm.active
+        assert node.stats.steps == 0  # it never stepped: the world stood still throughout
+    finally:
+        node.stop_event.set()
+        th.join(10)
+        assert not th.is_alive(), "the node did not stop while its world stood still"
+        node.close()
+        hand.cleanup()

@@ -24,7 +24,11 @@ def register(app: typer.Typer) -> None:
                                                         "broadcast ping, XBee AT settings)"),
         json_out: bool = typer.Option(False, "--json", help="print one JSON line"),
     ) -> None:
-        """Check a rig's prerequisites (serial ports and permissions, FTDI latency, CAN, rendering, cameras)."""
+        """Check a rig's prerequisites (serial ports and permissions, FTDI latency, CAN, rendering, cameras).
+
+        Exit 0: ready. Exit 1: not ready, at least one FAIL line (a device port that does not exist
+        included: finding it is the doctor's answer, where `hil up` refuses the same rig with 2).
+        Exit 2: the check could not run (an unknown rig, a config that does not load, a bad option)."""
         from hilstack.tools import doctor as doc
 
         items = doc.check_rig(rig, scan=scan)

@@ -207,7 +207,7 @@ class StatusLine:
     def sample(self) -> None:
         now = time.monotonic()
         for node in self.nodes():
-            st = getattr(node, "_last_state", None)
+            st = node.last_state
             if st is None:
                 continue
             q = self._samples.setdefault(node.robot, self._deque())
@@ -222,7 +222,7 @@ class StatusLine:
         now = time.monotonic()
         cells = []
         for node in self.nodes():
-            st = getattr(node, "_last_state", None)
+            st = node.last_state
             q = self._samples.get(node.robot)
             if st is None or not q:
                 continue

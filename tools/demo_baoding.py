@@ -611,14 +611,19 @@ def _hand_for_closed_loop(sim, sampler: dict):
     return sim, task, amap, raw, raw.index("WRJ0_pos"), sampler, reach
 
 
-def _episode(sim, pol, task, steps: int, wrist: int, plan_s: list, before_plan=None, cut: list | None = None) -> dict:
+def _episode(sim, pol, task, steps: int, wrist: int, plan_s: list, before_plan=None, cut: list | None = None,
+             on_state=None) -> dict:
     """One in-process episode of ``pol`` on ``sim`` (a hand driver), until ``steps`` or a drop:
     its turn metrics. Appends each plan's time to ``plan_s`` and, with ``cut``, what the
-    driver's rate limit took off each command; ``before_plan`` runs before each plan."""
+    driver's rate limit took off each command; ``before_plan`` runs before each plan;
+    ``on_state(obs, applied)`` gets every reading, with the command the hand applied during
+    the period that ended with it (None for the first)."""
     from hilstack.control.costs import baoding_episode_metrics
 
     pol.reset()
     o = sim.read()
+    if on_state is not None:
+        on_state(o, None)
     states = [o.state]
     for _ in range(steps):
         if before_plan is not None:
@@ -631,6 +636,8 @@ def _episode(sim, pol, task, steps: int, wrist: int, plan_s: list, before_plan=N
             cut.append(np.abs(applied - act))  # what the driver's rate limit took off
         sim.tick()
         o = sim.read()
+        if on_state is not None:
+            on_state(o, applied)
         states.append(o.state)
         if task.dropped(o.state[-6:].reshape(2, 3)):
             break
@@ -739,17 +746,27 @@ class SimOracle:
         return torch.from_numpy(out).float()
 
 
+def _oracle_policy(sim, raw, amap, task, pc, reach, seed: int, episode: int):
+    """PDDM planning through the hand itself (:class:`SimOracle`) for one episode: the policy and
+    its oracle (whose ``begin`` must run before each plan)."""
+    from hilstack.control.costs import BaodingCost
+    from hilstack.control.policies import MpcPolicy
+    from hilstack.learning.baoding import BaodingFeatures, BaodingPolicy
+
+    feats = BaodingFeatures(raw, 0.1)
+    oracle = SimOracle(sim, BaodingFeatures(raw, 0.1), amap)
+    planner = pc.planner(seed=int(np.random.SeedSequence([seed, episode]).generate_state(1)[0]),
+                         init_mean=np.zeros(pc.action_dim), reachable=reach)
+    return BaodingPolicy(MpcPolicy(oracle, planner, BaodingCost(task, feats.names, 0.1)), feats, amap), oracle
+
+
 def oracle_closed_loop(sampler: dict[str, Any], episodes: int, samples: int, seed: int = 0,
                        steps: int = 40) -> dict[str, Any]:
     """PDDM planning through the hand itself (:class:`SimOracle`) with ``sampler`` at
     ``samples`` candidates, in-process, ``episodes`` episodes of ``steps``: can the task's
     cost and this sampler turn the pair at all when the model is perfect?"""
-    from hilstack.control.costs import BaodingCost
     from hilstack.control.planners import BAODING_PDDM
-    from hilstack.control.policies import MpcPolicy
     from hilstack.learning.baoding import (
-        BaodingFeatures,
-        BaodingPolicy,
         summarize,
     )
 
@@ -759,11 +776,7 @@ def oracle_closed_loop(sampler: dict[str, Any], episodes: int, samples: int, see
     try:
         for e in range(episodes):
             sim.reset()
-            feats = BaodingFeatures(raw, 0.1)
-            oracle = SimOracle(sim, BaodingFeatures(raw, 0.1), amap)
-            planner = pc.planner(seed=int(np.random.SeedSequence([seed, e]).generate_state(1)[0]),
-                                 init_mean=np.zeros(pc.action_dim), reachable=reach)
-            pol = BaodingPolicy(MpcPolicy(oracle, planner, BaodingCost(task, feats.names, 0.1)), feats, amap)
+            pol, oracle = _oracle_policy(sim, raw, amap, task, pc, reach, seed, e)
             scores.append(_episode(sim, pol, task, steps, wrist, plan_s, before_plan=oracle.begin))
     finally:
         sim.cleanup()
@@ -771,6 +784,230 @@ def oracle_closed_loop(sampler: dict[str, Any], episodes: int, samples: int, see
             "max_rotation_per_episode_deg": [float(m["max_rotation_deg"]) for m in scores],
             "plan_ms_p50": 1e3 * float(np.median(plan_s)), "sampler": dict(sampler), "samples": samples,
             "steps": steps}
+
+
+class EpisodeRecording:
+    """One in-process episode as the demo records it (``OUT/recordings/<stem>.mcap``): the
+    hand's spec, then one ``RobotState`` per reading with the command applied during the
+    period that ended with it (driver units), so :func:`run_episodes`,
+    :func:`~hilstack.learning.recordings.episodes_from_mcap` and :func:`probe_model` read
+    it like a rig's recording. An existing file is refused, never overwritten."""
+
+    def __init__(self, path: Path, spec, robot: str = "hand"):
+        from hilstack.bus import keys
+        from hilstack.bus.recording import McapLog
+        from hilstack.bus.schemas import SpecMsg
+
+        self.robot, self.n = robot, 0
+        self.topic = keys.state("oracle", robot)
+        self.log = McapLog(path, overwrite=False, foxglove=False)
+        self.log.write(keys.spec("oracle", robot), SpecMsg(robot=robot, spec=spec.to_dict()), log_time_ns=0)
+
+    def __call__(self, obs, applied) -> None:
+        from hilstack.bus.schemas import RobotState
+
+        self.n += 1
+        self.log.write(self.topic, RobotState(
+            robot=self.robot, t_s=float(obs.t_s), state=[float(x) for x in obs.state], obs_seq=int(obs.seq),
+            ok=bool(obs.ok), active=True, action=[] if applied is None else [float(x) for x in applied],
+            seq=self.n), log_time_ns=self.n)
+
+    def close(self) -> None:
+        self.log.close()
+
+
+def oracle_record(out: Path, sampler: str = "thesis", episodes: int = 8, samples: int = 32, seed: int = 0,
+                  steps: int = 40) -> list[dict[str, Any]]:
+    """Record PDDM episodes planned through the hand itself (:class:`SimOracle`, sampler
+    ``SAMPLERS[sampler]`` at ``samples`` candidates), in-process, ``episodes`` episodes of at most
+    ``steps`` from the reset, episode ``e`` planned with seed ``(seed, e)`` (as
+    :func:`oracle_closed_loop`): data that hold turns, to train a model on (docs/baoding.md,
+    "Training on the oracle's turns"). Each episode is one recording,
+    ``out/recordings/oracle-s<seed>-<e>.mcap`` (:class:`EpisodeRecording`, closed when the
+    episode ends, so a stopped run keeps the finished ones), and one JSON line in
+    ``out/oracle_episodes.jsonl`` with its turn figures, plan time and the load average."""
+    from hilstack.control.planners import BAODING_PDDM
+
+    out = Path(out)
+    (out / "recordings").mkdir(parents=True, exist_ok=True)
+    paths = [out / "recordings" / f"oracle-s{seed}-{e:03d}.mcap" for e in range(episodes)]
+    there = [str(p) for p in paths if p.exists()]
+    if there:  # before anything runs: recorded data are never overwritten
+        raise FileExistsError(f"oracle recordings already there: {there[0]} (and {len(there) - 1} more); "
+                              "use another --seed or OUT")
+    sim, task, amap, raw, wrist, sampler_d, reach = _hand_for_closed_loop(None, SAMPLERS[sampler])
+    pc = replace(BAODING_PDDM, **{**sampler_d, "samples": samples})
+    rows = []
+    try:
+        for e, path in enumerate(paths):
+            sim.reset()
+            pol, oracle = _oracle_policy(sim, raw, amap, task, pc, reach, seed, e)
+            rec = EpisodeRecording(path, sim.spec)
+            plan_s: list[float] = []
+            t0 = time.perf_counter()
+            try:
+                m = _episode(sim, pol, task, steps, wrist, plan_s, before_plan=oracle.begin, on_state=rec)
+            finally:
+                rec.close()
+            row = {"recording": str(path), "seed": seed, "episode": e, "sampler": sampler, "samples": samples,
+                   "steps": steps, "states": rec.n, "rotation_deg": float(m["rotation_deg"]),
+                   "max_rotation_deg": float(m["max_rotation_deg"]), "dropped": bool(m["dropped"]),
+                   "plan_ms_p50": 1e3 * float(np.median(plan_s)), "wall_s": time.perf_counter() - t0,
+                   "loadavg": open("/proc/loadavg").read().split()[:3]}
+            with open(out / "oracle_episodes.jsonl", "a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    finally:
+        sim.cleanup()
+    return rows
+
+
+def run_split(run_dir: Path, iteration: int):
+    """A stopped thesis-scale run's data as its checkpoint after ``iteration`` saw them:
+    (features, action map, task, the held-out on-policy model episodes of iteration
+    ``iteration`` (``<iteration>-mpc``: recorded after that model was trained, never trained on),
+    the training model episodes (the run's split, without that iteration's recordings, doubled
+    with the balls swapped as the run trains))."""
+    from hilstack.learning.baoding import BaodingFeatures, hold_action_map, load_baoding_task
+
+    run_dir = Path(run_dir)
+    state = json.loads((run_dir / "checkpoint" / "state.json").read_text())
+    if state["iteration"] != iteration:
+        raise ValueError(f"{run_dir}: its checkpoint is after iteration {state['iteration']}, not {iteration}")
+    stems = [Path(r).stem for r in state["data_recordings"]]
+    held = f"{iteration:03d}-mpc"
+    data = run_episodes(run_dir, stems)
+    raw = list(next(iter(data.values()))[0].meta["state_names"])
+    feats, amap, task = BaodingFeatures(raw, 0.1), hold_action_map(), load_baoding_task()
+    heldout = [feats.episode(e, amap) for e in data.pop(held)]
+    train = [feats.episode(e, amap) for k, v in data.items() if k != f"{iteration:03d}-random" for e in v
+             if not state["val_assigned"].get(e.name)]
+    return feats, amap, task, heldout, train + [feats.swap_balls(e) for e in train]
+
+
+def run_checkpoint_model(run_dir: Path):
+    """The model a stopped run's checkpoint holds, with its Adam state and bootstrap generator
+    (so more training continues the run's own)."""
+    import torch
+
+    from hilstack.learning.dynamics import EnsembleDynamics
+
+    run_dir = Path(run_dir)
+    m = EnsembleDynamics.load(run_dir / "checkpoint" / "model.pt")
+    ts = torch.load(run_dir / "checkpoint" / "train_state.pt", weights_only=True)
+    m._optimizer = torch.optim.Adam(m.parameters(), lr=m.config["lr"], weight_decay=m.config["weight_decay"])
+    m._optimizer.load_state_dict(ts["optimizer"])
+    m._gen.set_state(ts["generator"])
+    return m
+
+
+def _jsonl_log(path: Path):
+    def log(row: dict[str, Any]) -> None:
+        row["loadavg"] = open("/proc/loadavg").read().split()[:3]
+        with open(path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        print(json.dumps(row), flush=True)
+
+    return log
+
+
+def oracle_split(oracle_dir: Path, feats, amap, heldout_seeds: tuple[int, ...]) -> tuple[list, list]:
+    """The oracle's recorded episodes (:func:`oracle_record`) as model episodes: (training ones,
+    doubled with the balls swapped; held-out ones, those recorded with a seed in ``heldout_seeds``)."""
+    data = run_episodes(Path(oracle_dir))
+    train, held = [], []
+    for stem, eps in sorted(data.items()):
+        seed = int(stem.split("-")[1][1:])  # oracle-s<seed>-<episode>
+        (held if seed in heldout_seeds else train).extend(feats.episode(e, amap) for e in eps)
+    return train + [feats.swap_balls(e) for e in train], held
+
+
+#: the models :func:`train_on_oracle` makes and probes
+ORACLE_MODELS = ("run", "control", "run+oracle", "oracle_only")
+
+
+def train_on_oracle(run_dir: Path, oracle_dir: Path, out: Path, iteration: int, heldout_seeds: tuple[int, ...],
+                    steps: int = 400, oracle_repeat: int = 20, seed: int = 0,
+                    models_wanted: tuple[str, ...] = ORACLE_MODELS) -> dict[str, Any]:
+    """Can the model learn the turn from our features when the data hold turns (docs/baoding.md,
+    "Training on the oracle's turns")? From a stopped thesis-scale run's checkpoint after
+    ``iteration`` and the oracle's recordings in ``oracle_dir`` (:func:`oracle_record`), models of
+    the run's size: ``run`` (the checkpoint's), ``run+<steps>`` (``steps`` more gradient steps,
+    rounded up to whole epochs, on the run's training episodes: the same effort, no turns added;
+    read from ``out/model_run+<steps>.pt`` when there),
+    ``run+<steps>+oracle`` (the same number of epochs on the run's episodes plus the oracle's
+    training episodes repeated ``oracle_repeat`` times) and ``oracle_only`` (a fresh model of the
+    run's configuration, about ``steps`` steps on the oracle's training episodes alone). Each is
+    probed (:func:`probe_model`) on the held-out oracle episodes (seeds ``heldout_seeds``), on
+    the run's held-out on-policy episodes (``<iteration>-mpc``) and on the oracle's training
+    episodes (the fit), one JSON line each in ``out/results.jsonl``; the models are saved as
+    ``out/model_<name>.pt`` for :func:`closed_loop` (``closed-loop`` on the command line).
+    ``models_wanted``: a subset of :data:`ORACLE_MODELS` (``control`` = ``run+<steps>``), so that
+    separate processes can train them side by side."""
+    unknown = sorted(set(models_wanted) - set(ORACLE_MODELS))
+    if unknown:
+        raise ValueError(f"unknown model(s) {unknown}; known: {', '.join(ORACLE_MODELS)}")
+    import torch
+
+    from hilstack.learning.dynamics import EnsembleDynamics
+
+    if not any((Path(oracle_dir) / "recordings").glob("oracle-s*.mcap")):  # before the run's data load
+        raise FileNotFoundError(f"{oracle_dir}: no oracle recordings (recordings/oracle-s*.mcap; oracle-record makes them)")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    log = _jsonl_log(out / "results.jsonl")
+    feats, amap, task, run_held, run_train = run_split(run_dir, iteration)
+    o_train, o_held = oracle_split(oracle_dir, feats, amap, heldout_seeds)
+    if not o_train or not o_held:
+        raise ValueError(f"{oracle_dir}: {len(o_train) // 2} training and {len(o_held)} held-out oracle episodes "
+                         f"(held-out seeds {list(heldout_seeds)}); need both")
+    n_run = sum(len(e) for e in run_train)
+    epochs = max(1, int(np.ceil(steps * 500 / n_run)))
+    log({"what": "data", "run_train_points": n_run, "run_heldout_episodes": len(run_held),
+         "oracle_train_episodes": len(o_train) // 2, "oracle_train_points": sum(len(e) for e in o_train),
+         "oracle_heldout_episodes": len(o_held), "oracle_repeat": oracle_repeat, "epochs": epochs})
+    models: dict[str, Any] = {"run": run_checkpoint_model(run_dir)}
+    config = models["run"].config
+    if "run" not in models_wanted:
+        del models["run"]
+
+    def fit(name: str, m, eps: list, ep: int) -> None:
+        t0 = time.perf_counter()
+        hist = m.fit(eps, epochs=ep, batch_size=500, progress=False)
+        n = sum(len(e) for e in eps)
+        log({"what": "training", "model": name, "epochs": ep, "points": n, "steps": ep * int(np.ceil(n / 500)),
+             "train_loss_first": hist[0]["train_loss"], "train_loss_last": hist[-1]["train_loss"],
+             "wall_s": time.perf_counter() - t0})
+        m.save(out / f"model_{name}.pt")
+        models[name] = m
+
+    control = out / f"model_run+{steps}.pt"
+    if "control" not in models_wanted:
+        pass
+    elif control.is_file():  # trained already (here, or by `diagnose --extra-steps <steps>` into this OUT: the same fit)
+        models[f"run+{steps}"] = EnsembleDynamics.load(control)
+        log({"what": "training", "model": f"run+{steps}", "loaded": str(control)})
+    else:
+        fit(f"run+{steps}", run_checkpoint_model(run_dir), run_train, epochs)
+    if "run+oracle" in models_wanted:
+        fit(f"run+{steps}+oracle", run_checkpoint_model(run_dir), run_train + o_train * oracle_repeat, epochs)
+    if "oracle_only" in models_wanted:
+        torch.manual_seed(seed)
+        fresh = EnsembleDynamics(feats.dim, 20, ensemble=config["ensemble"], hidden=tuple(config["hidden"]),
+                                 state_names=feats.names, seed=seed, lr=config["lr"])
+        n_o = sum(len(e) for e in o_train)
+        fit("oracle_only", fresh, o_train, max(1, int(np.ceil(steps / np.ceil(n_o / 500)))))
+    rows = []
+    probes = {"oracle_heldout": o_held, f"run:{iteration:03d}-mpc": run_held,
+              "oracle_train": o_train[:len(o_train) // 2]}
+    for name, m in models.items():
+        m.set_inference_dtype("auto")
+        for pname, eps in probes.items():
+            row = {"what": "probe", "model": name, "heldout": pname, **probe_model(m, eps, task)}
+            log(row)
+            rows.append(row)
+    return {"rows": rows}
 
 
 def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, quick_run: Path | None = None,
@@ -788,41 +1025,15 @@ def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, 
     episodes per seed in ``seeds`` (only the models named in ``closed_loop_models``, when
     given: ``run``, ``run+<extra_steps>``, ``quick_final``). Appends one JSON line per result
     to ``out/results.jsonl``."""
-    import json
-
-    import torch
-
-    from hilstack.learning.baoding import BaodingFeatures, hold_action_map, load_baoding_task
     from hilstack.learning.dynamics import EnsembleDynamics
 
     run_dir, out = Path(run_dir), Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    state = json.loads((run_dir / "checkpoint" / "state.json").read_text())
-    if state["iteration"] != iteration:
-        raise ValueError(f"{run_dir}: its checkpoint is after iteration {state['iteration']}, not {iteration}")
-    stems = [Path(r).stem for r in state["data_recordings"]]
-    held = f"{iteration:03d}-mpc"
-    data = run_episodes(run_dir, stems)
-    raw = list(next(iter(data.values()))[0].meta["state_names"])
-    feats, amap, task = BaodingFeatures(raw, 0.1), hold_action_map(), load_baoding_task()
-    heldout = [feats.episode(e, amap) for e in data.pop(held)]
-    train = [feats.episode(e, amap) for k, v in data.items() if k != f"{iteration:03d}-random" for e in v
-             if not state["val_assigned"].get(e.name)]
-    train = train + [feats.swap_balls(e) for e in train]
-
-    def log(row: dict[str, Any]) -> None:
-        row["loadavg"] = open("/proc/loadavg").read().split()[:3]
-        with open(out / "results.jsonl", "a") as f:
-            f.write(json.dumps(row) + "\n")
-        print(json.dumps(row), flush=True)
+    feats, amap, task, heldout, train = run_split(run_dir, iteration)
+    log = _jsonl_log(out / "results.jsonl")
 
     def checkpoint_model() -> EnsembleDynamics:
-        m = EnsembleDynamics.load(run_dir / "checkpoint" / "model.pt")
-        ts = torch.load(run_dir / "checkpoint" / "train_state.pt", weights_only=True)
-        m._optimizer = torch.optim.Adam(m.parameters(), lr=m.config["lr"], weight_decay=m.config["weight_decay"])
-        m._optimizer.load_state_dict(ts["optimizer"])
-        m._gen.set_state(ts["generator"])
-        return m
+        return run_checkpoint_model(run_dir)
 
     models: dict[str, Any] = {"run": checkpoint_model()}
     if extra_steps:
@@ -838,7 +1049,7 @@ def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, 
         models[f"run+{extra_steps}"] = m
     if quick_run is not None:
         models["quick_final"] = EnsembleDynamics.load(Path(quick_run) / "model.pt")
-    probes = {f"{run_dir.name}:{held}": heldout}
+    probes = {f"{run_dir.name}:{iteration:03d}-mpc": heldout}
     if quick_run is not None:  # its last PDDM rollouts: recorded after its final model was trained
         qlast = sorted(f.stem for f in (Path(quick_run) / "recordings").glob("*-mpc.mcap"))[-1]
         probes[f"{Path(quick_run).name}:{qlast}"] = [feats.episode(e, amap)
@@ -884,7 +1095,8 @@ def torch_threads(n: int) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...] [--seed S]
-    | diagnose RUN_DIR OUT --iteration N``."""
+    | diagnose RUN_DIR OUT --iteration N | oracle OUT | oracle-record OUT | oracle-train RUN_DIR ORACLE_DIR OUT
+    --iteration N --heldout-seeds S... | closed-loop MODEL... --out OUT``."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_baoding",
@@ -917,7 +1129,64 @@ def main(argv: list[str] | None = None) -> None:
     orc.add_argument("--episodes", type=int, default=2)
     orc.add_argument("--steps", type=int, default=40)
     orc.add_argument("--seed", type=int, default=0)
+    orr = sub.add_parser("oracle-record", help="record PDDM episodes planned through the hand itself")
+    orr.add_argument("out", type=Path)
+    orr.add_argument("--sampler", default="thesis", choices=list(SAMPLERS))
+    orr.add_argument("--samples", type=int, default=32)
+    orr.add_argument("--episodes", type=int, default=8)
+    orr.add_argument("--steps", type=int, default=40)
+    orr.add_argument("--seed", type=int, default=0)
+    ot = sub.add_parser("oracle-train", help="train the run's model on the oracle's episodes and probe it")
+    ot.add_argument("run_dir", type=Path)
+    ot.add_argument("oracle_dir", type=Path, help="an oracle-record OUT")
+    ot.add_argument("out", type=Path)
+    ot.add_argument("--iteration", type=int, required=True, help="the run checkpoint's iteration")
+    ot.add_argument("--heldout-seeds", type=int, nargs="+", required=True, help="oracle seeds held out")
+    ot.add_argument("--steps", type=int, default=400)
+    ot.add_argument("--oracle-repeat", type=int, default=20)
+    ot.add_argument("--models", nargs="+", default=list(ORACLE_MODELS), choices=list(ORACLE_MODELS))
+    cl = sub.add_parser("closed-loop", help="PDDM through saved models on the MuJoCo hand in-process")
+    cl.add_argument("models", type=Path, nargs="+", help="model .pt files (EnsembleDynamics.save)")
+    cl.add_argument("--out", type=Path, required=True)
+    cl.add_argument("--sampler", default="thesis", choices=list(SAMPLERS))
+    cl.add_argument("--episodes", type=int, default=5, help="episodes per seed")
+    cl.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    cl.add_argument("--steps", type=int, default=100)
     a = ap.parse_args(argv)
+    try:
+        _run_cmd(ap, a)
+    except (FileExistsError, FileNotFoundError, ValueError) as e:  # bad input: one line, no traceback
+        raise SystemExit(f"error: {e}") from None
+
+
+def closed_loop_models(paths: list[Path], out: Path, sampler: str = "thesis", episodes: int = 5,
+                       seeds: tuple[int, ...] = (0, 1), steps: int = 100) -> list[dict[str, Any]]:
+    """:func:`closed_loop` for each saved model (``EnsembleDynamics.save``) and seed, one JSON line
+    each in ``out/closed_loop.jsonl`` (the model's file, the turn figures, wall time, load)."""
+    from hilstack.learning.dynamics import EnsembleDynamics
+
+    missing = [str(p) for p in paths if not Path(p).is_file()]
+    if missing:
+        raise FileNotFoundError(f"no model file {missing[0]}")
+    Path(out).mkdir(parents=True, exist_ok=True)
+    log = _jsonl_log(Path(out) / "closed_loop.jsonl")
+    rows = []
+    for p in paths:
+        m = EnsembleDynamics.load(p)
+        m.set_inference_dtype("auto")
+        for sd in seeds:
+            t0 = time.perf_counter()
+            r = closed_loop(m, SAMPLERS[sampler], episodes, seed=sd, steps=steps)
+            row = {"what": "closed loop", "model": str(p), "sampler": sampler, "seed": sd,
+                   "wall_s": time.perf_counter() - t0,
+                   **{k: r[k] for k in ("episodes", "success_90", "success_180", "mean_rotation_deg", "drops",
+                                        "mean_steps", "plan_ms_p50", "rotation_per_episode_deg")}}
+            log(row)
+            rows.append(row)
+    return rows
+
+
+def _run_cmd(ap, a) -> None:
     if a.cmd == "cost":
         print(json.dumps(thesis_scale_cost(), indent=1))
     elif a.cmd == "diagnose":
@@ -934,6 +1203,16 @@ def main(argv: list[str] | None = None) -> None:
             with open(a.out / "oracle.jsonl", "a") as f:
                 f.write(json.dumps(row) + "\n")
             print(json.dumps(row), flush=True)
+    elif a.cmd == "oracle-train":
+        torch_threads(1)
+        train_on_oracle(a.run_dir, a.oracle_dir, a.out, a.iteration, tuple(a.heldout_seeds), a.steps,
+                        a.oracle_repeat, models_wanted=tuple(a.models))
+    elif a.cmd == "closed-loop":
+        torch_threads(1)
+        closed_loop_models(a.models, a.out, a.sampler, a.episodes, tuple(a.seeds), a.steps)
+    elif a.cmd == "oracle-record":
+        torch_threads(1)
+        oracle_record(a.out, a.sampler, a.episodes, a.samples, a.seed, a.steps)
     elif a.cmd == "plot":
         print(write_plot(json.loads((a.run_dir / "report.json").read_text()), a.run_dir))
     elif a.cmd == "ablate":

@@ -155,7 +155,8 @@ class RobotLink:
         self._sup = sup
         self._state = sup.subscribe(keys.state(sup.rig, robot), RobotState)
         self._spec = sup.subscribe(keys.spec(sup.rig, robot), SpecMsg)
-        self._cmd = sup.publisher(keys.cmd(sup.rig, robot), Command)
+        # reliable, like the supervisor's own commands: a lost one leaves the linked robot holding a period
+        self._cmd = sup.publisher(keys.cmd(sup.rig, robot), Command, reliable=True)
         #: None until the driver node's token was seen, then True/False (Zenoh callback sets it)
         self.alive: bool | None = None
         tok = sup.session.liveliness().declare_subscriber(keys.alive(sup.rig, keys.driver_node(robot)),
@@ -257,7 +258,9 @@ class ResetSupervisor(Node):
         self._cmd = self.publisher(keys.cmd(rig, self.robot), Command, reliable=True)
         self._to_driver = self.publisher(keys.reset_driver(rig), ResetEvent, reliable=True)
         self._from_driver = self.subscribe(keys.reset_driver_done(rig), ResetEvent)
-        self._transitions = self.publisher(keys.reset_transition(rig), ResetTransition)
+        # reliable: a recording splits its episodes by these (ResetTransition.state_seq); with
+        # Zenoh's default (dropped when the send queue stays full 1 ms) a loaded machine lost one
+        self._transitions = self.publisher(keys.reset_transition(rig), ResetTransition, reliable=True)
         #: driver node liveliness: None until first seen, then True/False (Zenoh callback sets it)
         self.driver_alive: bool | None = None
         self._alive_sub = self.session.liveliness().declare_subscriber(

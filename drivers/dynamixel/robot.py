@@ -9,7 +9,7 @@ state and action):
   sim_backends/dynamixel/backend.py), shared with the other robots of the same bus;
 * at configure: pings every ID (a missing servo is a one-line error naming joint, ID and
   port), checks Hardware Error Status (reboots only if the config allows it), reads the
-  limits, does a first sync read;
+  limits, does a first sync read (waiting for it as long as for the pings);
 * ``read()``: one SYNC_READ of Bus Watchdog .. Present Temperature from every ID,
   waiting for the answers at most ``READ_TIMEOUT_PERIODS`` of a control period (so a
   device that stopped answering costs a read about one period, not the SDK's timeout);
@@ -193,7 +193,7 @@ class DynamixelRobot(Driver):
         self._pos_limits = {i: (self.bus.read(i, "Min Position Limit"), self.bus.read(i, "Max Position Limit"))
                             for i in self.ids.values()}
         self._on_bus_ready()
-        self._sync_read()
+        self._sync_read(within_period=False)
         missing = [n for n, t in zip(self.ids, self._t_joint, strict=True) if not math.isfinite(t)]
         if missing:
             raise LinkError(f"{self.spec.name}: no state from joints {missing} on {self.where}")
@@ -276,10 +276,14 @@ class DynamixelRobot(Driver):
         """True when the servos read back the hold of the last ``stop()`` (see the module)."""
         return self._stop_confirmed and self.lifecycle is not Lifecycle.UNCONFIGURED
 
-    def _sync_read(self) -> None:
+    def _sync_read(self, within_period: bool = True) -> None:
+        """Read every joint's block. ``within_period``: wait for the answers at most
+        READ_TIMEOUT_PERIODS of a period (the control loop); otherwise as long as the bus waits
+        for any answer (configure's first reading, beside the pings: on an emulator starved by a
+        loaded CPU the period's bound lost all six answers and configure failed)."""
         self._t_read_try = self.now()
-        data, errors = self.bus.sync_read(self.ids.values(), *BLOCK,
-                                          timeout_margin_ms=READ_TIMEOUT_PERIODS * self.spec.period_s * 1000.0)
+        bound_ms = READ_TIMEOUT_PERIODS * self.spec.period_s * 1000.0 if within_period else None
+        data, errors = self.bus.sync_read(self.ids.values(), *BLOCK, timeout_margin_ms=bound_ms)
         now = self.now()
         dec = self.bus.decode
         if len(data) == len(self.ids):

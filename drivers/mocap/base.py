@@ -37,8 +37,14 @@ class PoseSample:
 
 @runtime_checkable
 class PoseSource(Protocol):
-    """A latest-value pose source. ``latest()`` never blocks; None when nothing arrived yet."""
+    """A latest-value pose source. ``latest()`` never blocks; None when nothing arrived yet.
+    ``stats()``: its counters (``received``, ``corrupt``, ``dropped`` frames; the driver's health).
+    ``port``: the local UDP port it listens on, when it has one of its own (None otherwise)."""
+
+    port: int | None
 
     def latest(self) -> PoseSample | None: ...
+
+    def stats(self) -> dict[str, int]: ...
 
     def close(self) -> None: ...

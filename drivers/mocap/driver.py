@@ -136,7 +136,7 @@ class MocapDriver(Driver):
     @property
     def port(self) -> int | None:
         """The UDP port actually bound (useful with ``port: 0``)."""
-        return getattr(self.pose_source, "port", None)
+        return None if self.pose_source is None else self.pose_source.port
 
     def _poll(self) -> float:
         """Take the source's newest sample into the freshness record; returns now [s]."""
@@ -179,7 +179,7 @@ class MocapDriver(Driver):
         pass
 
     def _health(self) -> Health:
-        st = self.pose_source.stats() if hasattr(self.pose_source, "stats") else {}
+        st = self.pose_source.stats() if self.pose_source is not None else {}
         now = self._poll()
         ok, _ = self.inputs.assess(now)
         age = self.inputs["pose"].age_s(now)
@@ -187,9 +187,9 @@ class MocapDriver(Driver):
         return Health(
             ok=ok and self.pose_source is not None,
             link_quality=st.get("received", 0) / n if st else (1.0 if self._pose is not None else 0.0),
-            frames_received=st.get("received", getattr(self.pose_source, "frames", 0)),
+            frames_received=st.get("received", 0),
             corrupt_frames=st.get("corrupt", 0),
-            dropped_frames=st.get("dropped", getattr(self.pose_source, "dropped", 0)),
+            dropped_frames=st.get("dropped", 0),
             latency_s=age,
             last_error=self.last_error,
             extra=self.inputs.ages(now),

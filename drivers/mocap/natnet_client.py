@@ -121,9 +121,18 @@ class NatNetPoseSource:
                 self._latest = PoseSample(t_s, p, q, str(rb.id_num), int(fn or 0), now)
             return
 
+    #: NatNet's ports are the server's (command_port, data_port): none of its own to report
+    port = None
+
     def latest(self) -> PoseSample | None:
         with self._lock:
             return self._latest
+
+    def stats(self) -> dict[str, int]:
+        """Frames of the tracked body received, and frames missed by the frame number (NatNet
+        frames are parsed by the natnet package: no corrupt count here)."""
+        with self._lock:
+            return {"received": self.frames, "corrupt": 0, "dropped": self.dropped}
 
     def close(self) -> None:
         if self._client is not None:

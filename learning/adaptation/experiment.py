@@ -35,6 +35,7 @@ from hilstack.configs.presets import Presets
 from hilstack.control.costs import PathCost, evaluate_path_following, summarize_paths
 from hilstack.control.paths import fillet, make_path, path_length, straight
 from hilstack.control.policies import SafeRandomPolicy
+from hilstack.control.policy_api import Resettable
 from hilstack.drivers.registry import make_backend
 from hilstack.learning.adaptation import grbal, rebal
 from hilstack.learning.adaptation.base import Adapter
@@ -224,7 +225,7 @@ def random_episodes(env: RoachSim, settings: PerturbationSettings, n: int, steps
     out = []
     for i in range(n):
         s = env.start({"x": 0.0, "y": 0.0, "yaw": float(rng.uniform(-np.pi, np.pi))}, settings)
-        if hasattr(pol, "reset"):
+        if isinstance(pol, Resettable):
             pol.reset()
         states, actions = [s], []
         for _ in range(steps):

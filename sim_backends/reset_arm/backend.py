@@ -70,8 +70,11 @@ class ResetArmSim(LockstepSim):
         self._seq = 0
         self._t_ref_s = 0.0
         self.follow_timeouts = 0
-        #: while ``tick()`` waits: the scene time [s] it waits for (None otherwise)
+        #: while ``tick()`` or ``tick_ready()`` waits: the scene time [s] it waits for (None otherwise)
         self.waiting_for_s: float | None = None
+        #: when this period's wait for the scene gives up [s, monotonic]: set by its first wait,
+        #: shared by ``tick_ready()``'s slices and ``tick()``, so the period waits FOLLOW_TIMEOUT_S in all
+        self._follow_deadline: float | None = None
 
     @property
     def sim_time_s(self) -> float:
@@ -112,22 +115,43 @@ class ResetArmSim(LockstepSim):
             mujoco.mj_forward(self.scene.model, d)
 
     # ------------------------------------------------------------------ clock
-    def _advance(self, duration_s: float) -> None:
-        """Wait for the hand's scene to reach the next period (it owns the clock)."""
-        target = self._t_ref_s + duration_s
+    def _wait_scene(self, timeout_s: float) -> bool:
+        """Wait at most ``timeout_s`` (and never past this period's follow deadline) for the
+        hand's scene to reach the next arm period; True when it has or the deadline passed.
+        Caller holds no lock."""
+        now = time.monotonic()
+        if self._follow_deadline is None:
+            self._follow_deadline = now + FOLLOW_TIMEOUT_S
         cond = self.scene.world_lock
         with cond:
+            target = self._t_ref_s + self.spec.period_s
             if self.scene.sim_time_s < self._t_ref_s:
                 target = self.scene.sim_time_s  # the scene was reset: its clock went back
             self.waiting_for_s = target
             ok = cond.wait_for(lambda: self.scene.data is None or self.scene.sim_time_s >= target - 1e-9,
-                               timeout=FOLLOW_TIMEOUT_S)
+                               timeout=max(0.0, min(timeout_s, self._follow_deadline - now)))
             self.waiting_for_s = None
+        return ok or time.monotonic() >= self._follow_deadline
+
+    def tick_ready(self, timeout_s: float) -> bool:
+        """True when ``tick()`` returns at once: the hand's scene has advanced one arm period
+        past the last tick, or this period's follow timeout ran out (waits at most ``timeout_s``)."""
+        if self.scene is None:
+            return True
+        return self._wait_scene(timeout_s)
+
+    def _advance(self, duration_s: float) -> None:
+        """Wait for the hand's scene to reach the next period (it owns the clock), at most
+        FOLLOW_TIMEOUT_S since this period's first wait (``tick_ready()``'s included)."""
+        self._wait_scene(FOLLOW_TIMEOUT_S)
+        with self.scene.world_lock:
             if self.scene.data is None:
                 self.fail_link("reset arm: the hand's scene was closed")
-            if not ok:
+            target = self._t_ref_s + duration_s
+            if self.scene.sim_time_s < target - 1e-9 and self.scene.sim_time_s >= self._t_ref_s:
                 self.follow_timeouts += 1
             self._t_ref_s = self.scene.sim_time_s
+        self._follow_deadline = None
 
     # ------------------------------------------------------------------ contract
     def _read(self) -> Observation:

@@ -226,3 +226,29 @@ def test_bridge_publishes_the_camera_image_on_the_bus():
                 break
         assert got is not None and (got.height, got.width) == (64, 128)
         assert len(got.data) == 64 * 128 * 3
+
+
+def test_configure_waits_for_a_slow_first_answer_as_it_does_for_the_pings(monkeypatch):
+    """A device that answers a sync read only after 100 ms (an emulator starved by a loaded CPU;
+    the control loop waits 0.8 of the 50 ms period for it) still configures: the first reading
+    waits as long as the pings. The loop's reads stay bounded by the period."""
+    from hilstack.sim_backends.dynamixel.backend import SimBus
+
+    answer_after_ms = 100.0
+    bounds: list[float | None] = []
+    fast = SimBus.sync_read
+
+    def slow(self, ids, first, last, timeout_margin_ms=None):
+        bounds.append(timeout_margin_ms)
+        if timeout_margin_ms is not None and timeout_margin_ms < answer_after_ms:
+            return {}, {}  # given up before the answers came
+        return fast(self, ids, first, last, timeout_margin_ms)
+
+    monkeypatch.setattr(SimBus, "sync_read", slow)
+    d = _sim("slow-first")
+    d.configure()
+    try:
+        assert np.all(np.isfinite(d.read().state))  # the reading configure took
+        assert bounds[0] is None and bounds[-1] == pytest.approx(0.8 * d.spec.period_s * 1000.0)
+    finally:
+        d.cleanup()

@@ -129,6 +129,12 @@ def test_impossible_poses_from_natnet_are_rejected(monkeypatch):
             assert why in d.health().extra["pose_last_invalid"], what
             np.testing.assert_allclose(obs.state, [0.5, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0])
         assert d.health().extra["pose_invalid_samples"] == len(BAD_POSES)
+        # its counters reach the driver's health (a declared PoseSource.stats()): frames of the
+        # body, and the frames a jump in the frame number says were missed
+        frame(len(BAD_POSES) + 5, (0.5, 0.0, 0.1), (0.0, 0.0, 0.0, 1.0))
+        h = d.health()
+        assert (h.frames_received, h.dropped_frames) == (len(BAD_POSES) + 2, 3)
+        assert d.port is None  # NatNet listens on the server's ports, none of its own
 
 
 def test_volume_tolerance_and_timeout_are_bounded_config_values():

@@ -234,3 +234,25 @@ def test_tipped_detector_and_self_right_step():
     assert step.update(_RoachCtx, up) == HOLD  # upright: hold still and see that it stays so
     up.t_s = 0.6
     assert step.update(_RoachCtx, up) == DONE
+
+
+@pytest.mark.parametrize("rig_file", ["tests/reset/rig_roach_reset.yaml", "configs/rigs/hand_sim_arm.yaml"])
+def test_everything_the_supervisor_sends_is_reliable(rig_file, bus):
+    """Its commands (a lockstep robot steps on each, the linked reset arm too), its requests and
+    answers, and its transitions (a recording splits its episodes by them) wait for room in
+    Zenoh's send queue instead of being dropped: a loaded machine lost a transition from a
+    recording once (test_leaving_the_arena_ends_the_episode_and_the_robot_is_driven_back)."""
+    import zenoh
+
+    from hilstack.bus.node import Publisher
+    from hilstack.control.reset.supervisor import ResetSupervisor
+
+    root = Path(__file__).resolve().parents[2]
+    rig = load_rig(root / rig_file)
+    sup = ResetSupervisor(rig.name, load_reset(rig), bus, handle_signals=False)
+    try:
+        pubs = {p.key: p._pub.congestion_control for p in sup._closeables if isinstance(p, Publisher)}
+        assert any(k.endswith("/reset/transition") for k in pubs) and len(pubs) >= 4 + len(sup.links)
+        assert {k: c for k, c in pubs.items() if c != zenoh.CongestionControl.BLOCK} == {}
+    finally:
+        sup.close()
