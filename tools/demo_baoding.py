@@ -816,6 +816,11 @@ class EpisodeRecording:
         self.log.close()
 
 
+def _unfinished(path: Path) -> Path:
+    """Where an episode's recording is written until the episode has ended (the loaders skip it)."""
+    return path.with_name(path.stem + ".unfinished.mcap")
+
+
 def oracle_record(out: Path, sampler: str = "thesis", episodes: int = 8, samples: int = 32, seed: int = 0,
                   steps: int = 40) -> list[dict[str, Any]]:
     """Record PDDM episodes planned through the hand itself (:class:`SimOracle`, sampler
@@ -823,15 +828,16 @@ def oracle_record(out: Path, sampler: str = "thesis", episodes: int = 8, samples
     ``steps`` from the reset, episode ``e`` planned with seed ``(seed, e)`` (as
     :func:`oracle_closed_loop`): data that hold turns, to train a model on (docs/baoding.md,
     "Training on the oracle's turns"). Each episode is one recording,
-    ``out/recordings/oracle-s<seed>-<e>.mcap`` (:class:`EpisodeRecording`, closed when the
-    episode ends, so a stopped run keeps the finished ones), and one JSON line in
-    ``out/oracle_episodes.jsonl`` with its turn figures, plan time and the load average."""
+    ``out/recordings/oracle-s<seed>-<e>.mcap`` (:class:`EpisodeRecording`, written as
+    ``...-<e>.unfinished.mcap`` and given its name when the episode has ended, so a run stopped
+    or killed mid-episode keeps the finished ones and the loaders skip the partial one), and one
+    JSON line in ``out/oracle_episodes.jsonl`` with its turn figures, plan time and the load average."""
     from hilstack.control.planners import BAODING_PDDM
 
     out = Path(out)
     (out / "recordings").mkdir(parents=True, exist_ok=True)
     paths = [out / "recordings" / f"oracle-s{seed}-{e:03d}.mcap" for e in range(episodes)]
-    there = [str(p) for p in paths if p.exists()]
+    there = [str(q) for p in paths for q in (p, _unfinished(p)) if q.exists()]
     if there:  # before anything runs: recorded data are never overwritten
         raise FileExistsError(f"oracle recordings already there: {there[0]} (and {len(there) - 1} more); "
                               "use another --seed or OUT")
@@ -842,13 +848,14 @@ def oracle_record(out: Path, sampler: str = "thesis", episodes: int = 8, samples
         for e, path in enumerate(paths):
             sim.reset()
             pol, oracle = _oracle_policy(sim, raw, amap, task, pc, reach, seed, e)
-            rec = EpisodeRecording(path, sim.spec)
+            rec = EpisodeRecording(_unfinished(path), sim.spec)
             plan_s: list[float] = []
             t0 = time.perf_counter()
             try:
                 m = _episode(sim, pol, task, steps, wrist, plan_s, before_plan=oracle.begin, on_state=rec)
             finally:
                 rec.close()
+            _unfinished(path).rename(path)  # only an episode that ended gets the name the loaders read
             row = {"recording": str(path), "seed": seed, "episode": e, "sampler": sampler, "samples": samples,
                    "steps": steps, "states": rec.n, "rotation_deg": float(m["rotation_deg"]),
                    "max_rotation_deg": float(m["max_rotation_deg"]), "dropped": bool(m["dropped"]),

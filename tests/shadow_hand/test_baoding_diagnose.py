@@ -155,3 +155,28 @@ def test_oracle_episodes_are_recorded_as_the_demo_records_and_replay_on_the_hand
     np.testing.assert_allclose(train[1].states[:, 24:30], train[0].states[:, 30:36])
     with pytest.raises(FileExistsError, match="oracle-s3-000.mcap"):
         oracle_record(tmp_path, episodes=1, samples=2, seed=3, steps=3)
+
+
+def test_an_oracle_episode_stopped_midway_keeps_the_unfinished_name(tmp_path, monkeypatch):
+    """A recording gets the name the loaders read only when its episode has ended: one stopped
+    mid-episode (Ctrl-C here; a killed process likewise) stays `*.unfinished.mcap`, which the
+    loaders skip, and a new run with that seed is refused rather than writing over it."""
+    import pytest
+
+    from hilstack.tools import demo_baoding
+    from hilstack.tools.demo_baoding import oracle_record, run_episodes
+
+    real = demo_baoding._episode
+
+    def stopped(sim, pol, task, steps, wrist, plan_s, **kw):
+        real(sim, pol, task, 1, wrist, plan_s, **kw)  # one period recorded, then the stop
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(demo_baoding, "_episode", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        oracle_record(tmp_path, episodes=2, samples=2, seed=5, steps=3)
+    rec = tmp_path / "recordings"
+    assert sorted(p.name for p in rec.iterdir()) == ["oracle-s5-000.unfinished.mcap"]
+    assert run_episodes(tmp_path) == {}
+    with pytest.raises(FileExistsError, match="unfinished"):
+        oracle_record(tmp_path, episodes=1, samples=2, seed=5, steps=3)
