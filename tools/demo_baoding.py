@@ -934,6 +934,18 @@ def oracle_split(oracle_dir: Path, feats, amap, heldout_seeds: tuple[int, ...]) 
 ORACLE_MODELS = ("run", "control", "run+oracle", "oracle_only")
 
 
+def _probe_all(models: dict, probes: dict, task, log) -> list[dict[str, Any]]:
+    """:func:`probe_model` of every model on every probe set, each row logged and returned."""
+    rows = []
+    for name, m in models.items():
+        m.set_inference_dtype("auto")
+        for pname, eps in probes.items():
+            row = {"what": "probe", "model": name, "heldout": pname, **probe_model(m, eps, task)}
+            log(row)
+            rows.append(row)
+    return rows
+
+
 def train_on_oracle(run_dir: Path, oracle_dir: Path, out: Path, iteration: int, heldout_seeds: tuple[int, ...],
                     steps: int = 400, oracle_repeat: int = 20, seed: int = 0,
                     models_wanted: tuple[str, ...] = ORACLE_MODELS) -> dict[str, Any]:
@@ -1005,15 +1017,9 @@ def train_on_oracle(run_dir: Path, oracle_dir: Path, out: Path, iteration: int, 
                                  state_names=feats.names, seed=seed, lr=config["lr"])
         n_o = sum(len(e) for e in o_train)
         fit("oracle_only", fresh, o_train, max(1, int(np.ceil(steps / np.ceil(n_o / 500)))))
-    rows = []
     probes = {"oracle_heldout": o_held, f"run:{iteration:03d}-mpc": run_held,
               "oracle_train": o_train[:len(o_train) // 2]}
-    for name, m in models.items():
-        m.set_inference_dtype("auto")
-        for pname, eps in probes.items():
-            row = {"what": "probe", "model": name, "heldout": pname, **probe_model(m, eps, task)}
-            log(row)
-            rows.append(row)
+    rows = _probe_all(models, probes, task, log)
     return {"rows": rows}
 
 
@@ -1061,13 +1067,7 @@ def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, 
         qlast = sorted(f.stem for f in (Path(quick_run) / "recordings").glob("*-mpc.mcap"))[-1]
         probes[f"{Path(quick_run).name}:{qlast}"] = [feats.episode(e, amap)
                                                      for e in run_episodes(Path(quick_run), [qlast])[qlast]]
-    rows = []
-    for name, m in models.items():
-        m.set_inference_dtype("auto")
-        for pname, eps in probes.items():
-            row = {"what": "probe", "model": name, "heldout": pname, **probe_model(m, eps, task)}
-            log(row)
-            rows.append(row)
+    rows = _probe_all(models, probes, task, log)
     sim = None
     from hilstack.drivers.registry import make_backend
 
