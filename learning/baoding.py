@@ -447,6 +447,16 @@ class BaodingConfig(Presets):
     #: the label of this run's scale in the report ("thesis", "quick", "tiny")
     preset: str = "thesis"
     notes: list[str] = field(default_factory=list)
+    #: directories of recorded episodes (e.g. the oracle's turns, ``oracle-record``) mixed into
+    #: every iteration's training split, never its validation: each directory's finished
+    #: recordings (``*.mcap``, not ``*.unfinished*.mcap``). Demonstrations: not the thesis'
+    #: method (the report says so); docs/baoding.md, "Does a run whose data hold turns bootstrap?"
+    extra_recordings: list[str] = field(default_factory=list)
+    #: each of those episodes enters the training split this many times (before the ball-swap doubling)
+    extra_repeat: int = 1
+
+    #: the settings a resumed run (``--resume``) may change; any other difference is refused
+    RESUMABLE: ClassVar[tuple[str, ...]] = ("iterations", "progress", "extra_recordings", "extra_repeat")
 
     def __post_init__(self) -> None:
         problems = []
@@ -470,6 +480,8 @@ class BaodingConfig(Presets):
             problems.append(f"noise_to_signal must be in [0, 1], got {self.noise_to_signal}")
         if self.train_steps is not None and self.train_steps < 1:
             problems.append(f"train_steps must be >= 1 or None, got {self.train_steps}")
+        if self.extra_repeat < 1:
+            problems.append(f"extra_repeat must be >= 1, got {self.extra_repeat}")
         if self.random_rollouts_per_iteration < 0:
             problems.append(f"random_rollouts_per_iteration must be >= 0, got {self.random_rollouts_per_iteration}")
         for f in ("random_rollouts", "episode_steps", "horizon", "samples", "ensemble", "rollouts_per_iteration"):
@@ -545,6 +557,96 @@ def drop_prediction(model, episodes, task, ball_idx: list[int], horizon: int) ->
             "windows_with_drop": n}
 
 
+def finished_recordings(directory: str | Path) -> list[Path]:
+    """The finished recordings of ``directory`` (``*.mcap``; a ``*.unfinished*.mcap`` is a
+    partial episode or a stopped iteration, left out as every loader does); ValueError when
+    there is none."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise ValueError(f"extra data {d}: not a directory")
+    found = sorted(f for f in d.glob("*.mcap") if ".unfinished" not in f.name)
+    if not found:
+        raise ValueError(f"extra data {d}: no finished recordings (*.mcap, not *.unfinished.mcap)")
+    return found
+
+
+def probe_model(model, episodes: list, task, horizon: int = 7, period_s: float = 0.1) -> dict[str, float]:
+    """How well ``model`` predicts what the Baoding planner needs, on held-out model episodes
+    (features; actions in the planner's units), in physical units so that models with other
+    normalisations compare: the balls' one-step position error (mm RMS per ball) beside
+    "the balls stay" and "the balls keep their velocity"; the joints' one-step error (rad RMS)
+    beside "the joints stay"; over every ``horizon``-step open-loop window replaying the logged
+    actions with both balls in the palm throughout, the balls' position error at step H beside
+    "the balls stay", and how well the predicted turn of the pair over the window (Δ of
+    ``task.pair_phase``) matches the true one: ``turn_r2`` (1 − SSE/SST; 0 = no better than
+    predicting the mean turn, < 0 worse) and ``turn_corr``. A planner can only turn the pair
+    with a model whose ``turn_r2`` is well above 0."""
+    import torch
+
+    from hilstack.learning.dynamics import h_step_windows
+
+    names = list(episodes[0].meta["state_names"])
+    bp = [names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"]
+    bv = [names.index(f"ball{i}_v{c}") for i in range(2) for c in "xyz"]
+    jn = [i for i, n in enumerate(names) if n.endswith("_pos") and not n.startswith("ball")]
+    s = np.concatenate([e.states[:-1] for e in episodes])
+    a = np.concatenate([e.actions for e in episodes])
+    y = np.concatenate([e.states[1:] for e in episodes])
+    with torch.inference_mode():
+        p = model.predict(torch.from_numpy(s).float(), torch.from_numpy(a).float()).mean(0).double().numpy()
+
+    def ball_rms_mm(x: np.ndarray) -> float:  # x: [N, 6] position errors → RMS per-ball distance
+        return 1e3 * float(np.sqrt(np.mean(np.sum(x.reshape(-1, 2, 3) ** 2, -1))))
+
+    out = {"transitions": int(len(s)),
+           "ball_1step_mm": ball_rms_mm(p[:, bp] - y[:, bp]),
+           "ball_1step_stay_mm": ball_rms_mm(s[:, bp] - y[:, bp]),
+           "ball_1step_constvel_mm": ball_rms_mm(s[:, bp] + period_s * s[:, bv] - y[:, bp]),
+           "joint_1step_rad": float(np.sqrt(np.mean((p[:, jn] - y[:, jn]) ** 2))),
+           "joint_1step_stay_rad": float(np.sqrt(np.mean((s[:, jn] - y[:, jn]) ** 2)))}
+    start, acts, truth = h_step_windows(episodes, horizon, max_starts=None)
+    keep = np.array([all(task.in_palm(t[bp].reshape(2, 3)) for t in (st, *tr)) for st, tr in zip(start, truth, strict=True)])
+    start, acts, truth = start[keep], acts[keep], truth[keep]
+    if len(start) == 0:  # every window had a ball out of the palm: no turn to predict
+        out.update({"windows": 0, "horizon": horizon, "turn_r2": float("nan"), "turn_corr": float("nan")})
+        return out
+    with torch.inference_mode():
+        cur = torch.from_numpy(start).float()
+        for h in range(horizon):
+            cur = model.predict(cur, torch.from_numpy(np.ascontiguousarray(acts[:, h])).float())
+        end = cur.mean(0).double().numpy()
+
+    def turn(b0: np.ndarray, b1: np.ndarray) -> np.ndarray:
+        d = np.array([task.pair_phase(x[bp]) - task.pair_phase(z[bp]) for x, z in zip(b1, b0, strict=True)])
+        return (d + np.pi) % (2 * np.pi) - np.pi
+
+    true_turn, pred_turn = turn(start, truth[:, -1]), turn(start, end)
+    sst = float(np.sum((true_turn - true_turn.mean()) ** 2))
+    corr = float("nan")  # undefined when either side does not vary (a model predicting no turn)
+    if len(start) > 2 and true_turn.std() > 0 and pred_turn.std() > 0:
+        corr = float(np.corrcoef(pred_turn, true_turn)[0, 1])
+    out.update({"windows": int(len(start)), "horizon": horizon,
+                "ball_hstep_mm": ball_rms_mm(end[:, bp] - truth[:, -1, bp]),
+                "ball_hstep_stay_mm": ball_rms_mm(start[:, bp] - truth[:, -1, bp]),
+                "turn_true_std_deg": float(np.degrees(true_turn.std())),
+                "turn_rmse_deg": float(np.degrees(np.sqrt(np.mean((pred_turn - true_turn) ** 2)))),
+                "turn_r2": 1.0 - float(np.sum((pred_turn - true_turn) ** 2)) / max(sst, 1e-12),
+                "turn_corr": corr})
+    return out
+
+
+
+def probe_turn(model, episodes: list[Episode], task, horizon: int = 7, period_s: float = 0.1) -> dict[str, float]:
+    """The turn part of :func:`probe_model` on ``episodes`` (an iteration's own PDDM episodes,
+    recorded after the model was trained): ``turn_r2``, ``turn_corr``, the true turns' std over
+    H steps (°) and the windows; ``{"windows": 0}`` when no H-step window kept both balls in the palm."""
+    eps = [e for e in episodes if len(e) > horizon]
+    if not eps:
+        return {"windows": 0}
+    p = probe_model(model, eps, task, horizon, period_s)
+    return {k: p[k] for k in ("windows", "turn_r2", "turn_corr", "turn_true_std_deg") if k in p}
+
+
 class BaodingRun(MbrlRun):
     """The MBRL loop of :class:`MbrlRun` with the Baoding task (see the module docstring)."""
 
@@ -559,6 +661,9 @@ class BaodingRun(MbrlRun):
         self.plan_stats: list[tuple[float, float, int]] = []
         self.amap = hold_action_map() if cfg.action_units == "hold" else None
         self._features: BaodingFeatures | None = None
+        #: the recorded episodes of ``extra_recordings`` (raw; loaded by :meth:`load_extra`)
+        self.extra: list[Episode] = []
+        self._extra_model: list[Episode] | None = None
 
     def balls(self, states: np.ndarray) -> np.ndarray:
         idx = [self.state_names.index(n) for n in BALL_NAMES]
@@ -696,15 +801,50 @@ class BaodingRun(MbrlRun):
         c = self.bcfg
         if c.train_steps is None:
             return c.epochs if iteration == 1 else c.retrain_epochs
-        points = int(sum(len(e) for e in data) * (1.0 - self.cfg.val_fraction)) * (2 if c.swap_balls else 1)
+        points = (int(sum(len(e) for e in data) * (1.0 - self.cfg.val_fraction)) + self.extra_points()) \
+            * (2 if c.swap_balls else 1)
         return max(1, int(np.ceil(c.train_steps * c.batch_size / max(1, points))))
+
+    def load_extra(self) -> None:
+        """The episodes of ``extra_recordings`` (each directory's finished recordings); ValueError
+        for a directory without any. Called before the rig starts."""
+        self.extra = [e for d in self.bcfg.extra_recordings for f in finished_recordings(d)
+                      for e in episodes_from_mcap(f, self.cfg.robot)]
+        self._extra_model = None
+
+    def extra_points(self) -> int:
+        """Transitions the extra episodes add to one training split (``extra_repeat`` times)."""
+        return sum(len(e) for e in self.extra) * self.bcfg.extra_repeat
+
+    def extra_model_episodes(self) -> list[Episode]:
+        """The extra episodes as the model sees them, once (their state must be the rig's)."""
+        if self._extra_model is None:
+            for e in self.extra:
+                if list(e.meta.get("state_names", self.state_names)) != list(self.state_names):
+                    raise ValueError(f"extra data {e.meta.get('path', e.name)}: recorded with other state channels "
+                                     f"than rig {self.rig.name}'s")
+            self._extra_model = self.model_episodes(self.extra)
+        return self._extra_model
+
+    def demonstrations(self) -> dict[str, Any]:
+        """What the report says of the mixed-in episodes ({} without any)."""
+        if not self.extra:
+            return {}
+        dirs = ", ".join(self.bcfg.extra_recordings)
+        return {"episodes": len(self.extra), "dirs": list(self.bcfg.extra_recordings), "repeat": self.bcfg.extra_repeat,
+                "points": sum(len(e) for e in self.extra),
+                "text": f"demonstrations: {len(self.extra)} episodes from {dirs}, repeated {self.bcfg.extra_repeat}×"}
 
     def train(self, model, eps: list[Episode], epochs: int) -> dict[str, float]:
         """One (re)fit on ``eps`` (model episodes): the fixed episode split of the MBRL loop,
-        the training side doubled with the balls swapped (``swap_balls``), validation unswapped."""
+        the extra episodes (``extra_recordings``, ``extra_repeat`` times) added to the training
+        side only, which is then doubled with the balls swapped (``swap_balls``), validation
+        unswapped."""
         from hilstack.learning.datasets import split_episodes
 
         train, val = split_episodes(eps, self.cfg.val_fraction, self.split_rng, self.val_assigned)
+        if self.extra:
+            train = train + self.extra_model_episodes() * self.bcfg.extra_repeat
         if self.bcfg.swap_balls:
             train = train + [self.features.swap_balls(e) for e in train]
         hist = model.fit(train, epochs=epochs, batch_size=self.cfg.batch_size, val=val or None,
@@ -783,14 +923,24 @@ class BaodingRun(MbrlRun):
             raise ValueError(f"--resume: {self.out} holds no finished iteration to resume from "
                              f"({'no ' + str(sp) if not sp.exists() else 'no ' + str(rp)})")
         state, report = json.loads(sp.read_text()), json.loads(rp.read_text())
-        # the run's settings must be the same (more iterations, or another progress display, are fine)
+        # the run's settings must be the same (BaodingConfig.RESUMABLE may change); a setting the
+        # stopped run's config predates counts as its default (the behaviour before it existed)
         now = _jsonable(asdict(self.bcfg))
-        diff = sorted(k for k in set(now) | set(report["config"])
-                      if k not in ("iterations", "progress") and now.get(k) != report["config"].get(k))
+        defaults = _jsonable(asdict(type(self.bcfg)()))
+        old = {**defaults, **report["config"]}
+        diff = sorted(k for k in set(now) | set(old)
+                      if k not in self.bcfg.RESUMABLE and now.get(k) != old.get(k))
         if diff:
             raise ValueError(f"--resume: {self.out} was run with other settings ({', '.join(diff)}); "
-                             "resume with the same preset and seed")
-        return {"state": state, "report": report}
+                             f"resume with the same preset and seed (only {', '.join(self.bcfg.RESUMABLE)} may change)")
+        changed = {k: [old.get(k), now.get(k)] for k in self.bcfg.RESUMABLE
+                   if k != "progress" and old.get(k) != now.get(k)}
+        return {"state": state, "report": report, "changed": changed}
+
+    def _rebased(self, paths: list[str]) -> list[str]:
+        """A checkpoint's recordings, read from this run's ``recordings/`` where a file of that
+        name is there (a run directory copied elsewhere keeps the paths of its original)."""
+        return [str(self.rec_dir / Path(p).name) if (self.rec_dir / Path(p).name).exists() else p for p in paths]
 
     def _set_aside_unfinished(self, keep: list[str]) -> list[str]:
         """Recordings in ``rec_dir`` that no finished iteration holds (the iteration that was
@@ -836,6 +986,9 @@ class BaodingRun(MbrlRun):
         if resumed is None and (self.out / "report.json").exists():
             raise ValueError(f"{self.out} already holds a run (report.json): resume it (--resume) or choose another "
                              "--out; its recordings are not overwritten")
+        self.load_extra()  # a directory without finished recordings is refused before the rig starts
+        if self.extra:
+            report["demonstrations"] = self.demonstrations()
         with self.session():
             missing = [n for n in BALL_NAMES if n not in self.state_names]
             if missing:
@@ -852,9 +1005,11 @@ class BaodingRun(MbrlRun):
                         report[k] = old[k]
                 report["iterations"] = old.get("iterations", [])[:st["iteration"]]
                 report["resumed"] = [*old.get("resumed", []), {"after_iteration": st["iteration"],
-                                                               "at": time.strftime("%Y-%m-%dT%H:%M:%S")}]
-                self.recordings = list(st["recordings"])
-                data_recs = list(st["data_recordings"])
+                                                               "at": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                                                               **({"changed": resumed["changed"]}
+                                                                  if resumed["changed"] else {})}]
+                self.recordings = self._rebased(list(st["recordings"]))
+                data_recs = self._rebased(list(st["data_recordings"]))
                 report["set_aside"] = [*old.get("set_aside", []), *self._set_aside_unfinished(self.recordings)]
                 self.val_assigned = dict(st["val_assigned"])
                 self.split_rng.bit_generator.state = st["split_rng"]
@@ -885,13 +1040,15 @@ class BaodingRun(MbrlRun):
                 t_roll = time.monotonic() - t_roll
                 new = episodes_from_mcap(path, self.cfg.robot)
                 val = self.model_episodes([e for e in data if self.val_assigned.get(e.name)])
+                # the turn the model predicted on the episodes it has just planned (never trained on)
+                own = probe_turn(model, self.model_episodes(new), self.task, c.horizon, self.period_s)
                 idx = [self.features.names.index(n) for n in BALL_NAMES]
                 steps = int(sum(m["steps"] for m in scores))
                 pt = np.asarray(self.plan_times_s[n_plans:]) * 1e3
                 row = {"iteration": it, "points": int(sum(len(e) for e in data)),
                        "model": {**{k: train[k] for k in ("train_loss", "val_1step", "val_h") if k in train},
                                  **drop_prediction(model, val, self.task, idx, c.horizon)},
-                       **summarize(scores), "weights": self.plan_summary(),
+                       **summarize(scores), "weights": self.plan_summary(), "own_turn": own,
                        # where the iteration's time went: training; per PDDM step, the plan and the
                        # rest (sim, bus round trip, policy wrapper, recording, resets)
                        "timing": {"plan_ms_p50": float(np.percentile(pt, 50)) if pt.size else None,
@@ -911,6 +1068,10 @@ class BaodingRun(MbrlRun):
                     data_recs.append(str(rpath))
                     row["random_walk"] = {"rollouts": len(walk), "drop_rate": float(np.mean([m["dropped"] for m in walk])),
                                           "points": int(sum(m["steps"] for m in walk))}
+                if self.extra:
+                    own_pts = int(row["points"] * (1.0 - self.cfg.val_fraction))
+                    row["demonstrations"] = {"episodes": len(self.extra), "repeat": c.extra_repeat,
+                                             "share": self.extra_points() / max(1, own_pts + self.extra_points())}
                 row["wall_s"].update(iteration=time.monotonic() - t_it, since_start=time.monotonic() - t0)
                 iterations.append(row)
                 self.write_partial(report, t0)

@@ -61,7 +61,16 @@ def register(app: typer.Typer) -> None:
         ray: str | None = RAY_OPTION,
         workers: int = typer.Option(1, "--workers", help="with --ray local: the local runtime's CPUs"),
         resume: bool = typer.Option(False, "--resume", help="baoding only: continue the stopped run in --out "
-                                    "after its last finished iteration (same preset and seed)"),
+                                    "after its last finished iteration (same preset and seed; --iterations, "
+                                    "--extra-data and --extra-repeat may change)"),
+        extra_data: list[Path] | None = typer.Option(None, "--extra-data", help="baoding only: a directory of "
+                                                      "recorded episodes (its finished *.mcap) mixed into every "
+                                                      "iteration's training split, never validation; repeatable "
+                                                      "(docs/baoding.md: demonstrations, not the thesis' method)"),
+        iterations: int | None = typer.Option(None, "--iterations", help="baoding only: PDDM iterations "
+                                              "(default the preset's; a resumed run may be given more)"),
+        extra_repeat: int = typer.Option(1, "--extra-repeat", help="baoding only: each --extra-data episode this "
+                                         "many times in the training split"),
     ) -> None:
         """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
 
@@ -106,9 +115,12 @@ def register(app: typer.Typer) -> None:
             module, fn, _ = OTHER_DEMOS[what]
             if resume and what != "baoding":
                 raise UserError(f"hil demo {what}: --resume is for the baoding demo only")
+            if (extra_data or extra_repeat != 1 or iterations is not None) and what != "baoding":
+                raise UserError(f"hil demo {what}: --extra-data/--extra-repeat/--iterations are for the baoding demo only")
             kw = {"part": part, "setting": setting, "ray": ray, "workers": workers} if what == "transfer" else (
                 {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else (
-                    {"ray": ray, "workers": workers, "resume": resume, "rig": rig} if what == "baoding" else {}))
+                    {"ray": ray, "workers": workers, "resume": resume, "rig": rig, "extra_data": extra_data,
+                     "extra_repeat": extra_repeat, "iterations": iterations} if what == "baoding" else {}))
             if what == "mbrl-gym":
                 from hilstack.tools.demo_mbmf import parse_envs
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from hilstack.configs.schema import BusConfig
-from hilstack.learning.baoding import BaodingConfig, BaodingRun
+from hilstack.learning.baoding import BaodingConfig, BaodingRun, probe_model
 from hilstack.tools.demo import free_endpoint
 
 FULL_SEEDS = (0, 1, 2)
@@ -61,7 +61,11 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
         provision_credentials(rig_cfg.name, bus, rig_cfg)
     report = BaodingRun(cfg, out, bus, resume=resume).run()
     rig_arg = "" if cfg.rig == FULL_RIG else f" --rig {cfg.rig}"
-    report["command"] = f"hil demo baoding{' --quick' if preset == 'quick' else ''}{rig_arg} --seed {seed} --out {out}"
+    extra_arg = "".join(f" --extra-data {d}" for d in cfg.extra_recordings) + (
+        f" --extra-repeat {cfg.extra_repeat}" if cfg.extra_recordings else "") + (
+        f" --iterations {cfg.iterations}" if cfg.iterations != make_config(preset, seed).iterations else "")
+    report["command"] = (f"hil demo baoding{' --quick' if preset == 'quick' else ''}{rig_arg} --seed {seed} --out {out}"
+                         f"{extra_arg}{' --resume' if resume else ''}")
     report["created"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     report["plots"] = [write_plot(report, out)]
     last = next((r for r in reversed(report["recordings"]) if r.endswith("-mpc.mcap")), None)
@@ -216,6 +220,9 @@ def report_markdown(r: dict[str, Any]) -> str:
         f"Rig `{r['rig']}`, {c['preset']} preset, seed {c['seed']}, {r['wall_s']:.0f} s wall clock, created "
         f"{r.get('created', '')}. Reproduce: `{r.get('command', '')}`.",
         *[f"Note: {n}." for n in c.get("notes", [])],
+        *([f"Note: {r['demonstrations']['text']} into every iteration's training split from the iteration "
+           f"marked `+demo` on (not the thesis' method: recorded episodes the run did not collect)."]
+          if r.get("demonstrations") else []),
         "",
         f"Planner: PDDM H={p['horizon']} K={p['samples']} γ={p['gamma']:g} β={p['beta']:g}, ensemble of "
         f"{p['ensemble']} × MLP {list(p['hidden'])}, first mean `{p['init_mean']}`; plan time p50 "
@@ -238,10 +245,13 @@ def report_markdown(r: dict[str, Any]) -> str:
     ]
     for it in r["iterations"]:
         m = it.get("model", {})
-        lines.append(row(f"PDDM iteration {it['iteration']} ({it['points']} points)", it,
+        demo = f", +demo {100 * it['demonstrations']['share']:.0f} %" if it.get("demonstrations") else ""
+        own = it.get("own_turn", {})
+        own_r2 = f"; own turn R² {own['turn_r2']:.2f}" if own.get("windows") else ""
+        lines.append(row(f"PDDM iteration {it['iteration']} ({it['points']} points{demo})", it,
                          f"{m.get('val_1step', float('nan')):.3f} / {m.get('val_h', float('nan')):.3f}; "
                          f"{100 * m.get('drop_recall', float('nan')):.0f} % of {m.get('windows_with_drop', 0)}"
-                         + weights(it)))
+                         + weights(it) + own_r2))
     lines += ["", "## Files", "", *[f"- ![{f}]({f})" for f in r.get("plots", [])],
               *[f"- recording: `{f}`" for f in r["recordings"]]]
     if r.get("rerun"):
@@ -251,7 +261,8 @@ def report_markdown(r: dict[str, Any]) -> str:
 
 
 def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None = None, workers: int = 1,
-                resume: bool = False, rig: str | None = None) -> None:
+                resume: bool = False, rig: str | None = None, extra_data: list[Path] | None = None,
+                extra_repeat: int = 1, iterations: int | None = None) -> None:
     """The `hil demo baoding` verb (registered in tools/cmd_demo.py); ``ray``: ``--full`` only;
     ``rig``: the rig config (default :data:`FULL_RIG`), refused at once when it cannot run
     Baoding (:func:`~hilstack.learning.baoding.baoding_rig_problem`)."""
@@ -265,6 +276,17 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
         raise typer.BadParameter("choose --quick or --full, not both")
     if ray is not None and not full:
         raise typer.BadParameter("--ray is for the full run (--full): the other runs are one seed")
+    extra = {"extra_recordings": [str(d) for d in extra_data], "extra_repeat": extra_repeat} if extra_data else {}
+    if extra and full:
+        raise typer.BadParameter("--extra-data is for one seed's run, not --full")
+    if extra_repeat != 1 and not extra:
+        raise typer.BadParameter("--extra-repeat needs --extra-data")
+    if iterations is not None:
+        if full:
+            raise typer.BadParameter("--iterations is for one seed's run, not --full")
+        if iterations < 1:
+            raise typer.BadParameter(f"--iterations must be >= 1, got {iterations}")
+        extra["iterations"] = iterations
     rig = rig or FULL_RIG
     problem = baoding_rig_problem(rig)
     if problem:
@@ -280,7 +302,7 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
                        f"{s['final_drop_rate']['mean']:.2f} over seeds {s['seeds']}")
             typer.echo(f"report: {out / 'report.json'}")
             return
-        r = run_baoding_demo(out, preset="quick" if quick else "thesis", seed=seed, resume=resume, rig=rig)
+        r = run_baoding_demo(out, preset="quick" if quick else "thesis", seed=seed, resume=resume, rig=rig, **extra)
     except (RigError, ValueError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from None
@@ -528,68 +550,6 @@ def run_episodes(run_dir: Path, stems: list[str] | None = None) -> dict[str, lis
         if "eval" in f.name or "unfinished" in f.name or (stems is not None and f.stem not in stems):
             continue
         out[f.stem] = episodes_from_mcap(f, "hand")
-    return out
-
-
-def probe_model(model, episodes: list, task, horizon: int = 7, period_s: float = 0.1) -> dict[str, float]:
-    """How well ``model`` predicts what the Baoding planner needs, on held-out model episodes
-    (features; actions in the planner's units), in physical units so that models with other
-    normalisations compare: the balls' one-step position error (mm RMS per ball) beside
-    "the balls stay" and "the balls keep their velocity"; the joints' one-step error (rad RMS)
-    beside "the joints stay"; over every ``horizon``-step open-loop window replaying the logged
-    actions with both balls in the palm throughout, the balls' position error at step H beside
-    "the balls stay", and how well the predicted turn of the pair over the window (Δ of
-    ``task.pair_phase``) matches the true one: ``turn_r2`` (1 − SSE/SST; 0 = no better than
-    predicting the mean turn, < 0 worse) and ``turn_corr``. A planner can only turn the pair
-    with a model whose ``turn_r2`` is well above 0."""
-    import torch
-
-    from hilstack.learning.dynamics import h_step_windows
-
-    names = list(episodes[0].meta["state_names"])
-    bp = [names.index(f"ball{i}_{c}") for i in range(2) for c in "xyz"]
-    bv = [names.index(f"ball{i}_v{c}") for i in range(2) for c in "xyz"]
-    jn = [i for i, n in enumerate(names) if n.endswith("_pos") and not n.startswith("ball")]
-    s = np.concatenate([e.states[:-1] for e in episodes])
-    a = np.concatenate([e.actions for e in episodes])
-    y = np.concatenate([e.states[1:] for e in episodes])
-    with torch.inference_mode():
-        p = model.predict(torch.from_numpy(s).float(), torch.from_numpy(a).float()).mean(0).double().numpy()
-
-    def ball_rms_mm(x: np.ndarray) -> float:  # x: [N, 6] position errors → RMS per-ball distance
-        return 1e3 * float(np.sqrt(np.mean(np.sum(x.reshape(-1, 2, 3) ** 2, -1))))
-
-    out = {"transitions": int(len(s)),
-           "ball_1step_mm": ball_rms_mm(p[:, bp] - y[:, bp]),
-           "ball_1step_stay_mm": ball_rms_mm(s[:, bp] - y[:, bp]),
-           "ball_1step_constvel_mm": ball_rms_mm(s[:, bp] + period_s * s[:, bv] - y[:, bp]),
-           "joint_1step_rad": float(np.sqrt(np.mean((p[:, jn] - y[:, jn]) ** 2))),
-           "joint_1step_stay_rad": float(np.sqrt(np.mean((s[:, jn] - y[:, jn]) ** 2)))}
-    start, acts, truth = h_step_windows(episodes, horizon, max_starts=None)
-    keep = np.array([all(task.in_palm(t[bp].reshape(2, 3)) for t in (st, *tr)) for st, tr in zip(start, truth, strict=True)])
-    start, acts, truth = start[keep], acts[keep], truth[keep]
-    with torch.inference_mode():
-        cur = torch.from_numpy(start).float()
-        for h in range(horizon):
-            cur = model.predict(cur, torch.from_numpy(np.ascontiguousarray(acts[:, h])).float())
-        end = cur.mean(0).double().numpy()
-
-    def turn(b0: np.ndarray, b1: np.ndarray) -> np.ndarray:
-        d = np.array([task.pair_phase(x[bp]) - task.pair_phase(z[bp]) for x, z in zip(b1, b0, strict=True)])
-        return (d + np.pi) % (2 * np.pi) - np.pi
-
-    true_turn, pred_turn = turn(start, truth[:, -1]), turn(start, end)
-    sst = float(np.sum((true_turn - true_turn.mean()) ** 2))
-    corr = float("nan")  # undefined when either side does not vary (a model predicting no turn)
-    if len(start) > 2 and true_turn.std() > 0 and pred_turn.std() > 0:
-        corr = float(np.corrcoef(pred_turn, true_turn)[0, 1])
-    out.update({"windows": int(len(start)), "horizon": horizon,
-                "ball_hstep_mm": ball_rms_mm(end[:, bp] - truth[:, -1, bp]),
-                "ball_hstep_stay_mm": ball_rms_mm(start[:, bp] - truth[:, -1, bp]),
-                "turn_true_std_deg": float(np.degrees(true_turn.std())),
-                "turn_rmse_deg": float(np.degrees(np.sqrt(np.mean((pred_turn - true_turn) ** 2)))),
-                "turn_r2": 1.0 - float(np.sum((pred_turn - true_turn) ** 2)) / max(sst, 1e-12),
-                "turn_corr": corr})
     return out
 
 
