@@ -6,13 +6,20 @@ recordings is refused; a resumed run may add them (and more iterations), nothing
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from hilstack.drivers.shadow_hand.config import ShadowHandParams, shadow_hand_spec
-from hilstack.learning.baoding import BaodingConfig, BaodingFeatures, BaodingRun, finished_recordings, probe_turn
+from hilstack.learning.baoding import (
+    BaodingConfig,
+    BaodingFeatures,
+    BaodingRun,
+    finished_recordings,
+    probe_turn,
+)
 from hilstack.learning.datasets import Episode
 from hilstack.tools.demo_baoding import EpisodeRecording
 
@@ -84,7 +91,7 @@ def test_extra_episodes_reach_training_and_never_validation(tmp_path, bus, demo_
     # the epochs of a fixed number of steps count the extra points too
     plain = make_run(tmp_path / "p", bus, val_fraction=0.3)
     assert run.extra_points() == 3 * sum(len(e) for e in run.extra)
-    with_steps = run.bcfg.__class__.from_preset("tiny", train_steps=50, batch_size=10, val_fraction=0.3,
+    with_steps = BaodingConfig.from_preset("tiny", train_steps=50, batch_size=10, val_fraction=0.3,
                                                 extra_recordings=[str(demo_dir)], extra_repeat=3)
     run.bcfg, plain.bcfg = with_steps, BaodingConfig.from_preset("tiny", train_steps=50, batch_size=10, val_fraction=0.3)
     raw = [Episode(states=np.zeros((41, 3)), actions=np.zeros((40, 1)), times=np.arange(41) * 0.1, name="x")]
@@ -123,8 +130,6 @@ def fake_stopped_run(out, config: dict) -> None:
 
 
 def test_resume_may_add_extra_data_and_iterations_nothing_else(tmp_path, bus, demo_dir):
-    from dataclasses import asdict
-
     old = asdict(BaodingConfig.from_preset("tiny"))
     del old["noise_to_signal"], old["extra_recordings"], old["extra_repeat"]  # a run older than these settings
     out = tmp_path / "run"
@@ -149,7 +154,7 @@ def test_report_names_the_demonstrations():
          "mean_steps": 100, "return": {"mean": -1.0, "std": 0.0}}
     it = {**m, "iteration": 34, "points": 1000, "model": {}, "demonstrations": {"episodes": 72, "repeat": 4, "share": 0.11},
           "own_turn": {"windows": 50, "turn_r2": 0.25}}
-    r = {"config": asdict_tiny(), "planner": {"horizon": 7, "samples": 16, "gamma": 20, "beta": 0.6, "ensemble": 3,
+    r = {"config": asdict(BaodingConfig.from_preset("tiny")), "planner": {"horizon": 7, "samples": 16, "gamma": 20, "beta": 0.6, "ensemble": 3,
                                               "hidden": [16], "init_mean": "hold", "plan_ms_p50": 1, "plan_ms_p99": 2,
                                               "plans": 3},
          "resets": {"requested": 0, "completed": 0, "failed": 0, "mean_duration_s": 0.0}, "rig": "hand_sim",
@@ -160,12 +165,6 @@ def test_report_names_the_demonstrations():
     assert "PDDM iteration 34 (1000 points, +demo 11 %)" in md and "own turn R² 0.25" in md
     del r["demonstrations"], it["demonstrations"]
     assert "demonstrations" not in report_markdown(r) and "+demo" not in report_markdown(r)
-
-
-def asdict_tiny() -> dict:
-    from dataclasses import asdict
-
-    return asdict(BaodingConfig.from_preset("tiny"))
 
 
 def test_own_turn_probe_without_a_window_in_the_palm():
