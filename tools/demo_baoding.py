@@ -1063,7 +1063,7 @@ def torch_threads(n: int) -> None:
 def main(argv: list[str] | None = None) -> None:
     """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...] [--seed S]
     | diagnose RUN_DIR OUT --iteration N | oracle OUT | oracle-record OUT | oracle-train RUN_DIR ORACLE_DIR OUT
-    --iteration N --heldout-seeds S... | closed-loop MODEL... --out OUT``."""
+    --iteration N --heldout-seeds S... | closed-loop MODEL... --out OUT | table LABEL=RUN_DIR... [--from N]``."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_baoding",
@@ -1112,6 +1112,9 @@ def main(argv: list[str] | None = None) -> None:
     ot.add_argument("--steps", type=int, default=400)
     ot.add_argument("--oracle-repeat", type=int, default=20)
     ot.add_argument("--models", nargs="+", default=list(ORACLE_MODELS), choices=list(ORACLE_MODELS))
+    tb = sub.add_parser("table", help="a markdown table of runs' iterations (their report.json)")
+    tb.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
+    tb.add_argument("--from", dest="first", type=int, default=1, help="the first iteration listed")
     cl = sub.add_parser("closed-loop", help="PDDM through saved models on the MuJoCo hand in-process")
     cl.add_argument("models", type=Path, nargs="+", help="model .pt files (EnsembleDynamics.save)")
     cl.add_argument("--out", type=Path, required=True)
@@ -1124,6 +1127,31 @@ def main(argv: list[str] | None = None) -> None:
         _run_cmd(ap, a)
     except (FileExistsError, FileNotFoundError, ValueError) as e:  # bad input: one line, no traceback
         raise SystemExit(f"error: {e}") from None
+
+
+def iterations_table(runs: dict[str, Path], first: int = 1) -> str:
+    """A markdown table of the iterations from ``first`` on of each run (label → run directory;
+    its ``report.json``, a stopped run's partial one too): the turn figures, the model's turn R²
+    on the iteration's own PDDM episodes (``own_turn``), ESS, the demonstrations' share of the
+    training split and where the time went."""
+    lines = ["| run | iteration | points | demo share | success_90 | success_180 | mean rotation (°) | drops | "
+             "steps held | own turn R² (windows) | ESS (% of K) | wall s (load) |", "|---" * 12 + "|"]
+    for label, d in runs.items():
+        p = Path(d) / "report.json"
+        if not p.is_file():
+            raise FileNotFoundError(f"no report {p}")
+        for it in json.loads(p.read_text())["iterations"]:
+            if it["iteration"] < first:
+                continue
+            own, w, dm = it.get("own_turn", {}), it.get("weights", {}), it.get("demonstrations")
+            r2 = f"{own['turn_r2']:.2f} ({own['windows']})" if own.get("windows") else "–"
+            ess = f"{w['ess_mean']:.1f} ({100 * w['ess_frac_mean']:.0f} %)" if w.get("plans") else "–"
+            load = (it.get("timing") or {}).get("loadavg") or ["?"]
+            share = f"{100 * dm['share']:.0f} %" if dm else "–"
+            lines.append(f"| {label} | {it['iteration']} | {it['points']} | {share} | {100 * it['success_90']:.0f} % | "
+                         f"{100 * it['success_180']:.0f} % | {it['mean_rotation_deg']:+.1f} | {it['drops']}/{it['episodes']} | "
+                         f"{it['mean_steps']:.0f} | {r2} | {ess} | {it['wall_s']['iteration']:.0f} ({load[0]}) |")
+    return "\n".join(lines) + "\n"
 
 
 def closed_loop_models(paths: list[Path], out: Path, sampler: str = "thesis", episodes: int = 5,
@@ -1180,6 +1208,11 @@ def _run_cmd(ap, a) -> None:
     elif a.cmd == "oracle-record":
         torch_threads(1)
         oracle_record(a.out, a.sampler, a.episodes, a.samples, a.seed, a.steps)
+    elif a.cmd == "table":
+        bad = [r for r in a.runs if "=" not in r]
+        if bad:
+            ap.error(f"a run is LABEL=RUN_DIR, got {bad[0]!r}")
+        print(iterations_table({k: Path(v) for k, v in (r.split("=", 1) for r in a.runs)}, a.first), end="")
     elif a.cmd == "plot":
         print(write_plot(json.loads((a.run_dir / "report.json").read_text()), a.run_dir))
     elif a.cmd == "ablate":
