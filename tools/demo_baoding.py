@@ -1135,7 +1135,7 @@ def iterations_table(runs: dict[str, Path], first: int = 1) -> str:
     on the iteration's own PDDM episodes (``own_turn``), ESS, the demonstrations' share of the
     training split and where the time went."""
     lines = ["| run | iteration | points | demo share | success_90 | success_180 | mean rotation (°) | drops | "
-             "steps held | own turn R² (windows) | ESS (% of K) | wall s (load) |", "|---" * 12 + "|"]
+             "steps held | own turn R² (true 7-step turn std, windows) | ESS (% of K) | wall s (load) |", "|---" * 12 + "|"]
     for label, d in runs.items():
         p = Path(d) / "report.json"
         if not p.is_file():
@@ -1144,7 +1144,8 @@ def iterations_table(runs: dict[str, Path], first: int = 1) -> str:
             if it["iteration"] < first:
                 continue
             own, w, dm = it.get("own_turn", {}), it.get("weights", {}), it.get("demonstrations")
-            r2 = f"{own['turn_r2']:.2f} ({own['windows']})" if own.get("windows") else "–"
+            r2 = (f"{own['turn_r2']:.2f} ({own.get('turn_true_std_deg', float('nan')):.1f}°, {own['windows']})"
+                  if own.get("windows") else "–")
             ess = f"{w['ess_mean']:.1f} ({100 * w['ess_frac_mean']:.0f} %)" if w.get("plans") else "–"
             load = (it.get("timing") or {}).get("loadavg") or ["?"]
             share = f"{100 * dm['share']:.0f} %" if dm else "–"
