@@ -310,13 +310,16 @@ class Subscription(Generic[T]):
         try:
             msg = self._decode_bytes(sample.payload.to_bytes())
         except DECODE_ERRORS as e:
-            self.malformed += 1
-            self.last_error = f"{sample.key_expr}: {malformed(self.type, e)}"
+            self._malformed(sample, e)
             return None
         self.received += 1
         self.last = msg
         self.last_rx_s = time.monotonic()
         return msg
+
+    def _malformed(self, sample: zenoh.Sample, error: Exception) -> None:
+        self.malformed += 1
+        self.last_error = f"{sample.key_expr}: {malformed(self.type, error)}"
 
     def _take_all(self) -> list[zenoh.Sample]:
         """Latest mode: every message queued now (wake-ups left out), oldest first."""
@@ -416,11 +419,28 @@ class Subscription(Generic[T]):
                     smp = self._recv_message(deadline) if block else self._try_recv_message()
                     if smp is None:
                         return None
-                # newer ones queued meanwhile: the newest wins (usually none: one look, no list)
-                nxt = self._try_recv_message()
-                m = self._decode(smp) if nxt is None else self._newest([smp, nxt, *self._take_all()])
-                if m is not None:
-                    return m
+                # newer ones queued meanwhile: the newest wins (usually none: one look, no list).
+                # The usual case is written out here, not called (_try_recv_message, _decode):
+                # cold after a wake-up, each call of ours costs (`hil bench bus`)
+                try:
+                    nxt = self._try_recv()
+                except zenoh.ZError:
+                    nxt = None  # closed meanwhile
+                if nxt is None:
+                    try:
+                        m = self._decode_bytes(smp.payload.to_bytes())
+                    except DECODE_ERRORS as e:
+                        self._malformed(smp, e)
+                        m = None
+                    else:
+                        self.received += 1
+                        self.last = m
+                        self.last_rx_s = time.monotonic()
+                        return m
+                else:
+                    m = self._newest([smp, *([] if is_wake(nxt) else [nxt]), *self._take_all()])
+                    if m is not None:
+                        return m
                 # malformed: wait on for a valid one until the deadline
                 if not block or (deadline is not None and deadline <= time.monotonic()):
                     return None
