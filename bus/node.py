@@ -295,7 +295,6 @@ class Subscription(Generic[T]):
         self.last: T | None = None
         #: monotonic time at which ``last`` was taken from the queue
         self.last_rx_s: float | None = None
-        self.received = 0
         self.malformed = 0
         self.last_error: str | None = None
 
@@ -312,7 +311,6 @@ class Subscription(Generic[T]):
         except DECODE_ERRORS as e:
             self._malformed(sample, e)
             return None
-        self.received += 1
         self.last = msg
         self.last_rx_s = time.monotonic()
         return msg
@@ -373,7 +371,6 @@ class Subscription(Generic[T]):
             if deadline is not None:
                 time.sleep(max(0.0, deadline - time.monotonic()))  # a caller looping until a deadline must not spin
             return None
-        recv = self._recv
         if deadline is None:
             token = -1  # no deadline: no wake-up of this wait exists
         else:
@@ -384,7 +381,7 @@ class Subscription(Generic[T]):
         try:
             while True:
                 try:
-                    smp = recv()
+                    smp = self._recv()
                 except zenoh.ZError:
                     return None  # close() undeclared the subscriber
                 a = smp.attachment
@@ -406,44 +403,45 @@ class Subscription(Generic[T]):
         Latest mode: blocks in Zenoh's channel; FIFO mode: sleeps on a doorbell the Zenoh
         callback rings. No polling in either.
         """
-        if self._inbox is None:
-            # the hot path of every node (`hil bench bus`): one blocking receive, which returns
-            # at once when a message is queued, then one look for newer ones; no look before
-            block = timeout_s is None or timeout_s > 0  # else only what is queued now
-            deadline = None if timeout_s is None or not block else time.monotonic() + timeout_s
-            while True:
-                smp = self._held
-                if smp is not None:
-                    self._held = None
-                else:
-                    smp = self._recv_message(deadline) if block else self._try_recv_message()
-                    if smp is None:
-                        return None
-                # newer ones queued meanwhile: the newest wins (usually none: one look, no list).
-                # The usual case is written out here, not called (_try_recv_message, _decode):
-                # cold after a wake-up, each call of ours costs (`hil bench bus`)
-                try:
-                    nxt = self._try_recv()
-                except zenoh.ZError:
-                    nxt = None  # closed meanwhile
-                if nxt is None:
-                    try:
-                        m = self._decode_bytes(smp.payload.to_bytes())
-                    except DECODE_ERRORS as e:
-                        self._malformed(smp, e)
-                        m = None
-                    else:
-                        self.received += 1
-                        self.last = m
-                        self.last_rx_s = time.monotonic()
-                        return m
-                else:
-                    m = self._newest([smp, *([] if is_wake(nxt) else [nxt]), *self._take_all()])
-                    if m is not None:
-                        return m
-                # malformed: wait on for a valid one until the deadline
-                if not block or (deadline is not None and deadline <= time.monotonic()):
+        if self._inbox is not None:
+            return self._wait_fifo(timeout_s)
+        # The hot path of every node (`hil bench bus`). Cold after a blocking receive, each
+        # bytecode costs: one receive, which returns at once when a message is queued, then one
+        # look for newer ones, with the usual case written out here (not _try_recv_message, _decode)
+        if timeout_s is None:
+            deadline = None
+        elif timeout_s > 0:
+            deadline = time.monotonic() + timeout_s
+        else:
+            return self.poll()  # no wait: the newest of what is queued
+        while True:
+            smp = self._held
+            if smp is None:
+                smp = self._recv_message(deadline)
+                if smp is None:
                     return None
+            else:
+                self._held = None
+            try:
+                nxt = self._try_recv()
+            except zenoh.ZError:
+                nxt = None  # closed meanwhile
+            if nxt is None:
+                try:
+                    m = self._decode_bytes(smp.payload.to_bytes())
+                except DECODE_ERRORS as e:
+                    self._malformed(smp, e)
+                else:
+                    self.last = m
+                    self.last_rx_s = time.monotonic()
+                    return m
+            elif (m := self._newest([smp, *([] if is_wake(nxt) else [nxt]), *self._take_all()])) is not None:
+                return m
+            # malformed: wait on for a valid one until the deadline
+            if deadline is not None and deadline <= time.monotonic():
+                return None
+
+    def _wait_fifo(self, timeout_s: float | None) -> T | None:
         m = self.poll()
         if m is not None:
             return m
