@@ -269,14 +269,18 @@ class DynamixelRobot(Driver):
         read sent after it with the Goal Position ``goal`` (its ID's; a servo not in ``goal``:
         any). Reads are retried until ``params.stop_confirm_timeout_s`` has passed in all (one
         read waits at most ``READ_TIMEOUT_PERIODS`` of a period: at a load of 15 its answers
-        came late and a held stop was reported not confirmed); a failing port is False at once."""
+        came late and a held stop was reported not confirmed); a failing port is False at once.
+        A device already silent when the stop began (its telemetry stale) is read back once, as
+        before: retried, every stop of a frozen bus held the driver node's loop that long, and
+        an e-stop's acknowledgement missed ``hil estop``'s wait (1.5 s) after an unhealthy stop."""
+        retry = self.telemetry_age_s() < self.params.telemetry_stale_s
         deadline = time.monotonic() + self.params.stop_confirm_timeout_s
         ids = list(self.ids.values())
         confirmed: set[int] = set()
         while True:
             seen = self._answers.copy()
             try:
-                self._sync_read(max_wait_s=deadline - time.monotonic())
+                self._sync_read(max_wait_s=deadline - time.monotonic() if retry else None)
             except LinkError:
                 return False
             for k, dxl_id in enumerate(ids):
@@ -284,7 +288,7 @@ class DynamixelRobot(Driver):
                     confirmed.add(dxl_id)
             if len(confirmed) == len(ids):
                 return True
-            if time.monotonic() >= deadline:
+            if not retry or time.monotonic() >= deadline:
                 return False
 
     def stop_confirmed(self) -> bool:

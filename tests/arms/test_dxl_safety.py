@@ -418,11 +418,15 @@ def _freeze_after(d, method: str, freeze_s: float, log: list[str]):
     pid = d.bus.emulator.proc.pid
     inner = getattr(d, method)
 
+    def thaw():
+        if psutil.pid_exists(pid):  # not when the test's cleanup ended the emulator first
+            os.kill(pid, signal.SIGCONT)
+
     def wrapped(*a, **kw):
         out = inner(*a, **kw)
         log.append(method)
         os.kill(pid, signal.SIGSTOP)
-        threading.Timer(freeze_s, os.kill, (pid, signal.SIGCONT)).start()
+        threading.Timer(freeze_s, thaw).start()
         return out
 
     setattr(d, method, wrapped)
@@ -476,5 +480,34 @@ def test_a_stop_never_read_back_is_not_confirmed_within_its_bound():
         assert 0.2 <= took < 0.2 + 2 * d.spec.period_s
     finally:
         if pid is not None and psutil.pid_exists(pid):
+            os.kill(pid, signal.SIGCONT)
+        d.cleanup()
+
+
+def test_a_stop_of_a_device_already_silent_is_read_back_once():
+    """A bus frozen before the stop (telemetry stale): the read-back is not retried. Retried,
+    every stop of a frozen bus held the driver node's loop for ``stop_confirm_timeout_s``, and
+    an e-stop right after an unhealthy stop was not acknowledged within `hil estop`'s 1.5 s."""
+    d = make_driver("widowx", backend="emulated", bus_name="t_silent_confirm", link_timeout_periods=100,
+                    stop_confirm_timeout_s=1.0)
+    d.configure()
+    d.activate()
+    pid = d.bus.emulator.proc.pid
+    try:
+        d.write(np.zeros(6))
+        os.kill(pid, signal.SIGSTOP)
+        t = time.monotonic()
+        while time.monotonic() - t < d.params.telemetry_stale_s + 0.1:
+            obs = d.read()  # each read waits at most 0.8 period
+        assert not obs.ok and obs.flag("stale_telemetry")
+        t0 = time.monotonic()
+        d.stop()
+        took = time.monotonic() - t0
+        print(f"\nwidowx: stop with the bus silent for {t0 - t:.2f} s already: confirmed {d.stop_confirmed()}, "
+              f"{took:.3f} s")
+        assert not d.stop_confirmed()
+        assert took < 0.5 * d.params.stop_confirm_timeout_s
+    finally:
+        if psutil.pid_exists(pid):
             os.kill(pid, signal.SIGCONT)
         d.cleanup()
