@@ -45,6 +45,15 @@ import torch
 from hilstack.calibration import axis
 from hilstack.calibration.data import DataError, Recording
 from hilstack.calibration.effects import EffectSpec
+from hilstack.calibration.model_api import (
+    DescribesVelocity,
+    ExportsAugmented,
+    LoadsEpisodes,
+    NominalModel,
+    OwnDetectionLimits,
+    OwnPlots,
+    ResidualRows,
+)
 from hilstack.learning.frames import ensemble_of
 
 
@@ -361,7 +370,8 @@ def _safe_var(x: np.ndarray) -> np.ndarray:
     return np.where(v < 1e-12, 1.0, v)
 
 
-class CheckpointModel:
+class CheckpointModel(NominalModel, LoadsEpisodes, OwnDetectionLimits, ResidualRows, OwnPlots, ExportsAugmented,
+                      DescribesVelocity):
     """A learned dynamics checkpoint as calibration nominal model (see module docstring).
 
     Args:
