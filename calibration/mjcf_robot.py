@@ -713,11 +713,12 @@ def calibrated_spec(bench: Bench, values: dict[str, list[float]]):
     import os
 
     spec = bench.spec.copy()
-    base = getattr(spec, "modelfiledir", "") or ""
-    for attr in ("meshdir", "texturedir"):  # the file is written elsewhere: asset paths made absolute
-        d = getattr(spec, attr, "")
-        if d and base and not os.path.isabs(d):
-            setattr(spec, attr, os.path.normpath(os.path.join(base, d)))
+    base = spec.modelfiledir
+    if base:  # the file is written elsewhere: asset paths made absolute
+        if spec.meshdir and not os.path.isabs(spec.meshdir):
+            spec.meshdir = os.path.normpath(os.path.join(base, spec.meshdir))
+        if spec.texturedir and not os.path.isabs(spec.texturedir):
+            spec.texturedir = os.path.normpath(os.path.join(base, spec.texturedir))
     for name, v in values.items():
         if name.startswith("joint_"):
             attr = name[len("joint_"):]
