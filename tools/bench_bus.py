@@ -6,6 +6,12 @@ round trip. Both stacks run in the same invocation with the same payload sizes, 
 and load. A bare TCP ping-pong over loopback between two Python processes (``tcp``, same
 sizes) is the floor: ``raw_over_tcp_p50`` says how far raw Zenoh is above what the
 machine does with the least possible work.
+
+Two reference stacks say where the node layer's time goes (informative, not the goal's
+peer): ``ring`` is raw zenoh-python with the channel a node's subscription uses
+(``RingChannel(8)``, blocking ``recv()``) instead of the default FIFO; ``ring_typed`` is
+``ring`` plus what any typed bus does per message (msgspec encode of a :class:`Ping`,
+``to_bytes()`` and decode at both ends), without the node layer.
 """
 
 from __future__ import annotations
@@ -18,10 +24,11 @@ import sys
 import time
 
 import numpy as np
+import zenoh
 
 from hilstack.bus.node import Node
 from hilstack.bus.ports import free_port
-from hilstack.bus.schemas import Ping
+from hilstack.bus.schemas import Ping, decoder, encode
 from hilstack.bus.session import open_session
 from hilstack.configs.schema import BusConfig
 
@@ -91,10 +98,17 @@ def _pong(mode: str, endpoint: str) -> None:
         node.close()
     else:
         s = open_session(bus)
-        sub = s.declare_subscriber(PING)
+        sub = s.declare_subscriber(PING, *((zenoh.handlers.RingChannel(8),) if mode.startswith("ring") else ()))
         pub = s.declare_publisher(PONG, express=True)
         print("ready", flush=True)
-        while True:
+        if mode == "ring_typed":
+            decode = decoder(Ping)
+            while True:
+                m = decode(sub.recv().payload.to_bytes())
+                if m.data == b"quit":
+                    break
+                pub.put(encode(m))
+        while mode != "ring_typed":
             sample = sub.recv()
             payload = sample.payload.to_bytes()
             if payload == b"quit":
@@ -139,14 +153,25 @@ class _Client:
         else:
             bus = BusConfig(endpoint=endpoint) if mode != "router" else BusConfig(router=endpoint)
             self._s = open_session(bus)
-            rsub = self._s.declare_subscriber(PONG)
+            rsub = self._s.declare_subscriber(PONG, *((zenoh.handlers.RingChannel(8),) if mode.startswith("ring") else ()))
             rpub = self._rpub = self._s.declare_publisher(PING, express=True)
             payload = b"x" * size
+            msg = Ping(data=payload)
+            if mode == "ring_typed":
+                payload = encode(msg)  # the probes below: a message the pong can decode
             _wait_link(lambda: rpub.put(payload), lambda: rsub.try_recv() or (time.sleep(0.05) or rsub.try_recv()))
 
-            def rt() -> None:
-                rpub.put(payload)
-                rsub.recv()
+            if mode == "ring_typed":
+                decode = decoder(Ping)
+
+                def rt() -> None:
+                    rpub.put(encode(msg))
+                    decode(rsub.recv().payload.to_bytes())
+            else:
+
+                def rt() -> None:
+                    rpub.put(payload)
+                    rsub.recv()
         self.round_trip = rt
 
     def close(self) -> None:
@@ -158,7 +183,7 @@ class _Client:
             time.sleep(0.05)
             self._node.close()
         else:
-            self._rpub.put(b"quit")
+            self._rpub.put(b"quit" if self.mode != "ring_typed" else encode(Ping(data=b"quit")))
             time.sleep(0.05)
             self._s.close()
 
@@ -176,7 +201,7 @@ def _wait_link(send, recv, timeout_s: float = 10.0) -> None:
     raise RuntimeError("bench: no echo from the pong process (is the port free?)")
 
 
-MODES = ("tcp", "raw", "node")
+MODES = ("tcp", "raw", "ring", "ring_typed", "node")
 
 
 def _router(endpoint: str) -> None:
@@ -278,6 +303,10 @@ def _run(out: dict, n: int, sizes: tuple[int, ...], warmup: int, block: int, via
         for q in ("p50", "p99"):
             row[f"ratio_{q}"] = row["node"][f"{q}_us"] / row["raw"][f"{q}_us"]
         row["raw_over_tcp_p50"] = row["raw"]["p50_us"] / row["tcp"]["p50_us"]
+        # where the node's time goes: its channel (ring / raw), typed messages (ring_typed / ring),
+        # the node layer itself (node / ring_typed)
+        for a, b in (("ring", "raw"), ("ring_typed", "ring"), ("node", "ring_typed")):
+            row[f"{a}_over_{b}_p50"] = row[a]["p50_us"] / row[b]["p50_us"]
         if via_router:
             row["router_over_raw_p50"] = row["router"]["p50_us"] / row["raw"]["p50_us"]
         out[f"{size}B"] = row

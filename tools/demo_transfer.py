@@ -62,7 +62,7 @@ _PRESETS: dict[str, dict[str, Any]] = {
                                    trials=1, episode_s=3.0, drift_steps=5, ablation_minutes=(0.05,)),
         "sidm": SidmConfig(latent_dim=8, width=16, enc_layers=0, pred_iters=10, match_iters=2, warm_rounds=1,
                            max_rounds=2, patience_rounds=2),
-        "pendulum": PendulumConfig(agent_timesteps=256, target_sizes=(200,), source_transitions=200,
+        "pendulum": PendulumConfig(agent_timesteps=256, agent_n_steps=256, target_sizes=(200,), source_transitions=200,
                                    validation_transitions=50, gat_fit_steps=50, trace_steps=20,
                                    garat=GaratConfig(total_timesteps=256, n_steps=128, batch_size=64, n_epochs=1,
                                                      disc_steps=2)),

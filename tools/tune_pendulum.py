@@ -68,7 +68,7 @@ def data(cfg: PendulumConfig, n_target: int, tmp: Path):
     """The source step function, the agent and the data ``pendulum.run`` uses for ``cfg.seed``."""
     src_env = make_env(None, tmp)
     src, tgt = StepFrom(src_env), StepFrom(make_env(cfg.target_pole_mass_kg, tmp))
-    agent = Agent(train_agent(src_env, cfg.agent_timesteps, cfg.seed), cfg.action_noise)
+    agent = Agent(train_agent(src_env, cfg.agent_timesteps, cfg.seed, cfg.agent_n_steps), cfg.action_noise)
     target = collect(tgt, agent, n_target, cfg.max_episode_steps, cfg.seed + 1)
     val = collect(tgt, agent, cfg.validation_transitions, cfg.max_episode_steps, cfg.seed + 2)
     source = collect(src, agent, cfg.source_transitions, cfg.max_episode_steps, cfg.seed + 3)

@@ -37,6 +37,9 @@ POLE_ANGLE_MAX_RAD = 0.2  # InvertedPendulum-v5 terminates beyond this
 class PendulumConfig:
     target_pole_mass_kg: float = 15.0  # the stock pole is 5.0 kg
     agent_timesteps: int = 30000  # PPO on the source for the agent's policy
+    #: PPO's rollout length for the agent (SB3's default); PPO collects whole rollouts, so fewer
+    #: ``agent_timesteps`` than this still collect and train on this many
+    agent_n_steps: int = 2048
     target_sizes: tuple[int, ...] = (500, 2000, 5000)  # target transitions (the x axis of Fig. 1)
     source_transitions: int = 10000  # for GAT's inverse source model (source data is free)
     validation_transitions: int = 1000
@@ -124,10 +127,10 @@ def collect(step: StepFrom, agent: Agent, n: int, max_steps: int, seed: int) -> 
     return Transitions(np.array(S), np.array(A), np.array(S1))
 
 
-def train_agent(env: gym.Env, timesteps: int, seed: int):
+def train_agent(env: gym.Env, timesteps: int, seed: int, n_steps: int = 2048):
     from stable_baselines3 import PPO
 
-    model = PPO("MlpPolicy", env, seed=seed, device="cpu", verbose=0)
+    model = PPO("MlpPolicy", env, n_steps=n_steps, seed=seed, device="cpu", verbose=0)
     model.learn(timesteps)
     return model
 
@@ -152,7 +155,7 @@ def run(cfg: PendulumConfig, log=print) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         src_env, tgt_env = make_env(None, Path(tmp)), make_env(cfg.target_pole_mass_kg, Path(tmp))
         src, tgt = StepFrom(src_env), StepFrom(tgt_env)
-        agent_model = train_agent(src_env, cfg.agent_timesteps, cfg.seed)
+        agent_model = train_agent(src_env, cfg.agent_timesteps, cfg.seed, cfg.agent_n_steps)
         agent = Agent(agent_model, cfg.action_noise)
         n_max = max(cfg.target_sizes)
         target_all = collect(tgt, agent, n_max, cfg.max_episode_steps, cfg.seed + 1)

@@ -59,6 +59,9 @@ def test_bench_bus_prints_json_with_ratio():
         assert row["ratio_p50"] == row["node"]["p50_us"] / row["raw"]["p50_us"]
         assert row["ratio_p99"] == row["node"]["p99_us"] / row["raw"]["p99_us"]
         assert row["raw_over_tcp_p50"] == row["raw"]["p50_us"] / row["tcp"]["p50_us"] and row["tcp"]["p50_us"] > 0
+        # the reference stacks between raw and node: the node's channel, then typed messages
+        for a, b in (("ring", "raw"), ("ring_typed", "ring"), ("node", "ring_typed")):
+            assert row[f"{a}_over_{b}_p50"] == row[a]["p50_us"] / row[b]["p50_us"] > 0
         # --via-router: the extra hop through a router process, beside the direct peer hop
         assert row["router_over_raw_p50"] == row["router"]["p50_us"] / row["raw"]["p50_us"] > 0
     assert "ratio_p50" in out and "ratio_p99" in out and out["loadavg_1min"] >= 0

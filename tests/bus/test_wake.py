@@ -97,6 +97,42 @@ def test_a_stale_wake_is_neither_a_timeout_nor_eats_a_message(bus):
         assert sub.wait_queued(5.0) is True and sub.poll().action == [4.0] and sub.poll() is None
 
 
+def test_wait_takes_the_newest_queued_at_once_and_waits_on_past_a_malformed_one(bus):
+    """wait() blocks in Zenoh's channel without looking first (`hil bench bus`): what is queued
+    comes back at once, the newest of it, whatever the timeout; a malformed message does not
+    end a wait, a valid one after it does."""
+    with Node("sub", RIG, bus, handle_signals=False) as node:
+        sub = node.subscribe(KEY, Command)
+        fired = node_mod._TIMER.fired
+        for timeout in (None, 30.0, 0.0, -1.0):
+            for x in (1.0, 2.0, 3.0):
+                node.session.put(KEY, _cmd(x))
+            t0 = time.monotonic()
+            assert _in_thread(lambda t=timeout: sub.wait(t)).action == [3.0], timeout
+            assert time.monotonic() - t0 < 5.0 and sub.poll() is None
+        # a stale wake-up and garbage ahead of the message: skipped, the message returned
+        sub._put_wake(sub._token)
+        node.session.put(KEY, b"\x00garbage")
+        node.session.put(KEY, _cmd(4.0))
+        assert _in_thread(lambda: sub.wait(0.0)).action == [4.0]
+        # what wait_queued() took is what the next wait returns, at once
+        node.session.put(KEY, _cmd(5.0))
+        assert sub.wait_queued(0.0) is True and _in_thread(lambda: sub.wait(30.0)).action == [5.0]
+        assert sub.wait(0.0) is None and sub.wait(-1.0) is None  # nothing queued: no block
+        # only garbage: a timed wait waits on to its timeout, not to the garbage
+        malformed = sub.malformed
+        threading.Timer(0.1, lambda: node.session.put(KEY, b"\x00garbage")).start()
+        t0 = time.monotonic()
+        assert _in_thread(lambda: sub.wait(0.5)) is None
+        assert time.monotonic() - t0 >= 0.49 and sub.malformed == malformed + 1
+        # garbage, then a message: one wait returns the message
+        threading.Timer(0.1, lambda: node.session.put(KEY, b"\x00garbage")).start()
+        threading.Timer(0.3, lambda: node.session.put(KEY, _cmd(6.0))).start()
+        assert _in_thread(lambda: sub.wait(30.0)).action == [6.0]
+        assert sub.malformed == malformed + 2 and "not a valid Command" in sub.last_error
+        assert node_mod._TIMER.fired == fired + 1  # only the wait that timed out was woken
+
+
 def test_wake_ups_reach_no_recorder_no_latch_and_no_other_process(bus):
     with Node("sub", RIG, bus, handle_signals=False) as node, Node("far", RIG, bus, handle_signals=False) as far:
         rec = node.subscribe(keys.all_of(RIG), Command, latest=False, capacity=64)  # a recorder, same session

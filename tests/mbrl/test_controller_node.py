@@ -3,6 +3,8 @@ and the deadline-aware realtime mode."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 
@@ -13,7 +15,26 @@ from hilstack.bus.recording import Recorder
 from hilstack.control.controller_node import ControllerNode, DriverGone
 from hilstack.drivers.base import Pacing
 from hilstack.learning.recordings import episodes_from_mcap
-from tests.helpers import wait_for
+from tests.helpers import ROOT, free_port, wait_for
+
+
+@pytest.fixture(scope="module")
+def realtime_bus(tmp_path_factory):
+    """One ``hil up pointmass_sim`` (realtime) for the module's realtime tests, on a private
+    endpoint: they only drive it (no reset, no e-stop, nothing they check depends on the pose),
+    so they share it instead of each starting and stopping a rig process. Its output goes to a
+    file (a pipe nobody reads could fill over the module's tests)."""
+    from hilstack.configs.schema import BusConfig
+
+    bus = BusConfig(endpoint=f"tcp/127.0.0.1:{free_port()}")
+    log = tmp_path_factory.mktemp("rig") / "up.log"
+    with open(log, "w") as out:
+        up = subprocess.Popen([sys.executable, "-m", "hilstack.tools.cli", "up", "pointmass_sim", "--endpoint",
+                               bus.endpoint], cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+    yield bus
+    assert up.poll() is None, f"the shared rig exited early:\n{log.read_text()[-4000:]}"
+    up.kill()
+    up.wait()
 
 
 def test_lockstep_episodes_resets_and_recorded_transitions(bus, spawn, tmp_path):
@@ -65,8 +86,8 @@ def test_a_reset_ends_when_the_driver_node_is_gone(bus, spawn):
             ctl.reset(timeout_s=600, x=0.0, y=0.0)
 
 
-def test_realtime_mode_counts_late_plans_and_keeps_rate(bus, spawn):
-    spawn("up", "pointmass_sim", "--endpoint", bus.endpoint)
+def test_realtime_mode_counts_late_plans_and_keeps_rate(realtime_bus):
+    bus = realtime_bus
 
     class SlowPlanner:
         """Every other call takes ~2 periods; exposes a plan whose 3-step tail is the fallback."""
@@ -105,17 +126,16 @@ def test_realtime_mode_counts_late_plans_and_keeps_rate(bus, spawn):
     assert set(np.round(sent[:, 0], 3)) <= {0.2, 0.3, 0.4, 0.5}
 
 
-def test_realtime_runs_in_phase_with_the_driver_and_passes_the_committed_command(bus, spawn):
+def test_realtime_runs_in_phase_with_the_driver_and_passes_the_committed_command(realtime_bus):
     """Each cycle plans from the state the driver node just published (the grid starts on
     a state's arrival), so a plan taking half a period still reaches the driver node's next
     period: the command planned from the state at t is the one held over (t, t + period].
     A free-running grid had a random phase: half the time such a command missed that
     period and acted one later. A policy with ``delay_steps`` gets the command sent the
     cycle before (the one acting while it plans)."""
+    bus = realtime_bus
     from hilstack.bus import keys
     from hilstack.bus.schemas import RobotState, decode
-
-    spawn("up", "pointmass_sim", "--endpoint", bus.endpoint)
 
     class HalfPeriodPlanner:
         delay_steps = 1
@@ -163,18 +183,17 @@ def test_realtime_runs_in_phase_with_the_driver_and_passes_the_committed_command
     assert any(log.late_plans == 0 for log in logs)
 
 
-def test_realtime_refits_the_planner_samples_to_the_measured_plan_times(bus, spawn):
+def test_realtime_refits_the_planner_samples_to_the_measured_plan_times(realtime_bus):
     """``hil mpc``'s one long episode on a realtime rig: an injected planner whose plan takes
     40 us per sample (500 samples: 20 ms, over the 16 ms deadline of the 20 ms period) is cut
     by the node's SampleRefit from the plan times it measured; the new count is applied between
     plans (every later plan used it), logged in ``log.sample_refits``, and published with the
     plans (``Plan.samples``, the hil.Timing ``plan_samples``)."""
+    bus = realtime_bus
     from hilstack.bus import keys
     from hilstack.bus.schemas import Plan, decode
     from hilstack.control.controller_node import REALTIME_DEADLINE_FRAC
     from hilstack.control.sample_refit import SampleRefit
-
-    spawn("up", "pointmass_sim", "--endpoint", bus.endpoint)
 
     class Planner:
         def __init__(self):

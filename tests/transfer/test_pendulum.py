@@ -48,3 +48,21 @@ def test_floor_is_below_none_and_gat_on_the_pendulum(tmp_path):
     assert 0 < floor < none and floor <= transition_error(src, val, gat)
     # break-it: the coarse grid alone must not beat the refined search
     assert floor_error(src, val, low, high, grid=4, iters=0) > floor
+
+
+def test_the_agent_collects_the_rollout_length_it_is_given(tmp_path):
+    """PPO collects whole rollouts: with SB3's default 2048 steps a 64-step budget would still
+    collect (and train on) 2048, so a preset's ``agent_n_steps`` is what bounds its cost."""
+    from hilstack.learning.transfer.pendulum import train_agent
+
+    model = train_agent(make_env(None, tmp_path), 64, seed=0, n_steps=64)
+    assert model.n_steps == 64 and model.num_timesteps == 64
+
+
+def test_every_preset_agent_rollout_fits_its_timesteps():
+    """A rollout longer than the budget would be collected whole (the tiny preset paid 2048 steps for 256)."""
+    from hilstack.tools.demo_transfer import TransferDemoConfig
+
+    for name, preset in TransferDemoConfig.PRESETS.items():
+        p = preset["pendulum"]
+        assert p.agent_n_steps <= p.agent_timesteps, name
