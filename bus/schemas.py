@@ -283,6 +283,11 @@ class ResetEvent(Msg, tag="hil.ResetEvent/1"):
     #: number of the first state after it (the answer and that state come through different
     #: subscriptions, whose order on arrival is not the order they were sent in); -1 unknown
     state_seq: int = -1
+    #: a request's: its sender knows the rig has a reset supervisor (a ``reset:`` section) and
+    #: expects it to serve the request; the driver node then never serves it itself, also while
+    #: it has not seen the supervisor's liveliness token yet (it waits for it, bounded). False
+    #: (recordings from before the field): served by the driver node when no supervisor is alive
+    supervised: bool = False
 
 
 class ResetTransition(Msg, tag="hil.ResetTransition/1"):

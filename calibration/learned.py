@@ -45,6 +45,16 @@ import torch
 from hilstack.calibration import axis
 from hilstack.calibration.data import DataError, Recording
 from hilstack.calibration.effects import EffectSpec
+from hilstack.calibration.model_api import (
+    DescribesVelocity,
+    ExportsAugmented,
+    LoadsEpisodes,
+    NominalModel,
+    OwnDetectionLimits,
+    OwnPlots,
+    ResidualRows,
+)
+from hilstack.learning.frames import ensemble_of
 
 
 class CheckpointError(DataError):
@@ -183,7 +193,7 @@ class FittedLearned:
             k = p.features[e].shape[1]
             cols[e] = slice(c, c + k)
             c += k
-        E = getattr(self.net, "model", self.net).ensemble
+        E = ensemble_of(self.net).ensemble
         with torch.no_grad():
             cur = torch.from_numpy(p.states[starts]).unsqueeze(0).expand(E, -1, -1).contiguous()
             prev = torch.from_numpy(p.states[np.maximum(starts - 1, 0)]).unsqueeze(0).expand(E, -1, -1)
@@ -256,7 +266,7 @@ class FittedLearned:
     def save(self, path: str | Path) -> Path:
         """Save as a dynamics checkpoint whose config names the extra inputs (load_augmented)."""
         path = Path(path)
-        inner = getattr(self.net, "model", self.net)
+        inner = ensemble_of(self.net)
         inner.config["extra_inputs"] = self.extra_inputs()
         inner.config["base_action_dim"] = int(self.base_action_dim)
         inner.config["calibrated_from"] = self.checkpoint
@@ -278,7 +288,7 @@ class AugmentedDynamics:
         self.net = net
         self.extra_inputs = extra_inputs
         self.base_action_dim = base_action_dim
-        inner = getattr(net, "model", net)
+        inner = ensemble_of(net)
         self.state_names = list(inner.state_names or [])
         self.action_names = list(inner.action_names or [])[:base_action_dim]
         self.extra_dim = sum(len(e["columns"]) for e in extra_inputs)
@@ -329,7 +339,7 @@ def load_checkpoint(path: str | Path):
     except Exception as e:  # torch.load raises many types on foreign files (pickle, zip, key errors)
         raise CheckpointError(f"{p} is not a dynamics checkpoint (hilstack.learning.dynamics.EnsembleDynamics.save): "
                               f"{type(e).__name__}: {str(e)[:200]}") from None
-    inner = getattr(net, "model", net)
+    inner = ensemble_of(net)
     if not inner.state_names or not inner.action_names:
         raise CheckpointError(f"{p}: the checkpoint has no state_names/action_names, so recorded channels "
                               "cannot be matched to its inputs; save it from a dataset with channel names")
@@ -339,7 +349,7 @@ def load_checkpoint(path: str | Path):
 def load_augmented(path: str | Path) -> AugmentedDynamics:
     """Load ``model_augmented.pt`` written by the calibration (or any checkpoint: no extras)."""
     net = load_checkpoint(path)
-    inner = getattr(net, "model", net)
+    inner = ensemble_of(net)
     extra = list(inner.config.get("extra_inputs") or [])
     base = int(inner.config.get("base_action_dim", inner.action_dim))
     return AugmentedDynamics(net, extra, base)
@@ -360,7 +370,8 @@ def _safe_var(x: np.ndarray) -> np.ndarray:
     return np.where(v < 1e-12, 1.0, v)
 
 
-class CheckpointModel:
+class CheckpointModel(NominalModel, LoadsEpisodes, OwnDetectionLimits, ResidualRows, OwnPlots, ExportsAugmented,
+                      DescribesVelocity):
     """A learned dynamics checkpoint as calibration nominal model (see module docstring).
 
     Args:
@@ -387,7 +398,7 @@ class CheckpointModel:
                  normalized_actions: bool | None = None, max_starts: int = 16, min_episodes: int = 10):
         self.path = Path(checkpoint)
         self.net0 = load_checkpoint(self.path)
-        self.inner0 = getattr(self.net0, "model", self.net0)
+        self.inner0 = ensemble_of(self.net0)
         self.body_frame = self.inner0 is not self.net0
         self.state_names = list(self.inner0.state_names)
         self.action_names = list(self.inner0.action_names)
@@ -522,8 +533,9 @@ class CheckpointModel:
                     dst.copy_(src)
                 net.input_mean[: S + A].copy_(self.inner0.input_mean)
                 net.input_std[: S + A].copy_(self.inner0.input_std)
-                for b in ("delta_mean", "delta_std", "state_std"):
-                    getattr(net, b).copy_(getattr(self.inner0, b))
+                net.delta_mean.copy_(self.inner0.delta_mean)
+                net.delta_std.copy_(self.inner0.delta_std)
+                net.state_std.copy_(self.inner0.state_std)
                 net.fitted.fill_(True)
             net._fast = None
         return BodyFrameDynamics(net, self.state_names) if self.body_frame else net

@@ -38,6 +38,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -70,6 +71,17 @@ def _sysid():
 
 
 ACTIONS = ("goal_velocity", "goal_position_normalized")
+
+
+@runtime_checkable
+class CalibrationBench(Protocol):
+    """A sim backend class that says how its joints are driven, for calibrating its MJCF and
+    recording an excitation (the WidowX's, the hand's): ``calibration_bench(params=None)``, a
+    classmethod, returns the layout :meth:`Bench.from_layout` reads (and ``"excite"``, what
+    :func:`hilstack.calibration.robot_rig.record_excitation` needs). A backend has it by having
+    the method (sim backends sit below calibration, so they cannot name this protocol)."""
+
+    def calibration_bench(self, params: Any = None) -> dict: ...
 
 
 @dataclass
@@ -701,11 +713,12 @@ def calibrated_spec(bench: Bench, values: dict[str, list[float]]):
     import os
 
     spec = bench.spec.copy()
-    base = getattr(spec, "modelfiledir", "") or ""
-    for attr in ("meshdir", "texturedir"):  # the file is written elsewhere: asset paths made absolute
-        d = getattr(spec, attr, "")
-        if d and base and not os.path.isabs(d):
-            setattr(spec, attr, os.path.normpath(os.path.join(base, d)))
+    base = spec.modelfiledir
+    if base:  # the file is written elsewhere: asset paths made absolute
+        if spec.meshdir and not os.path.isabs(spec.meshdir):
+            spec.meshdir = os.path.normpath(os.path.join(base, spec.meshdir))
+        if spec.texturedir and not os.path.isabs(spec.texturedir):
+            spec.texturedir = os.path.normpath(os.path.join(base, spec.texturedir))
     for name, v in values.items():
         if name.startswith("joint_"):
             attr = name[len("joint_"):]
@@ -745,7 +758,7 @@ def bench_of(robot_config: str | Path, base: str | Path | None = None) -> Bench:
     from hilstack.drivers.registry import make_driver
 
     driver = make_driver(str(robot_config), backend="sim")
-    if not hasattr(driver, "calibration_bench"):
+    if not isinstance(driver, CalibrationBench):
         raise DataError(f"{robot_config}: robot {driver.spec.name!r}'s sim backend has no calibration_bench() "
                         "(the MJCF calibration needs it)")
     params = driver.params

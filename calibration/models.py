@@ -1,10 +1,12 @@
-"""Nominal models for calibration: a small protocol and a registry.
+"""Nominal models for calibration: the axis model and the registry.
 
 A nominal model is refit together with each candidate effect (grey box), replays logged
 commands open loop and predicts one step ahead. The selection code
 (:mod:`hilstack.calibration.selection`) only talks to the :class:`Model` / :class:`FittedModel`
-protocol: fitting on (weighted) episodes, a per-episode held-out loss, a cheap out-of-bag
-loss, the model's effect catalogue and look-alike table.
+protocol (:mod:`hilstack.calibration.model_api`, re-exported here): fitting on (weighted)
+episodes, a per-episode held-out loss, a cheap out-of-bag loss, the model's effect catalogue
+and look-alike table; what a model offers beyond that it declares by the optional
+capabilities there.
 
 Registered: ``axis`` (:mod:`hilstack.calibration.axis`), ``velociroach`` (the MuJoCo backend,
 :mod:`hilstack.calibration.velociroach`), ``checkpoint`` (a learned dynamics checkpoint, where an
@@ -17,13 +19,23 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from hilstack.calibration import axis
 from hilstack.calibration.data import Recording
 from hilstack.calibration.effects import CATALOGUE, LOOK_ALIKES
+from hilstack.calibration.model_api import (
+    BatchLosses,
+    FittedModel,
+    Model,
+    NominalModel,
+    PhaseAlong,
+    require_model,
+)
+
+__all__ = ["AxisModel", "FittedAxis", "FittedModel", "Model", "ModelNotAvailable", "UnknownModel", "get_model",
+           "load_model", "save_model"]
 
 
 class ModelNotAvailable(RuntimeError):
@@ -34,58 +46,8 @@ class UnknownModel(ValueError):
     """The requested nominal model name is not registered."""
 
 
-@runtime_checkable
-class FittedModel(Protocol):
-    """A nominal model with fitted parameters and a set of effects."""
-
-    effects: list[str]
-
-    def primary(self, name: str) -> float:
-        """Value of effect ``name``'s primary parameter (catalogue units)."""
-        ...
-
-    def effect_params(self, name: str) -> dict[str, float]: ...
-
-    def to_dict(self) -> dict: ...
-
-
-@runtime_checkable
-class Model(Protocol):
-    """A nominal model family: prepares data, fits parameters together with effects.
-
-    ``fit(episodes, effects, weights=None, refine=True, start=None, search=None)``: weights
-    are per-episode (bootstrap counts); ``start`` a fitted model whose values are kept for
-    effects not in ``search`` (None: search all). ``norms`` returns the normalizers that
-    ``episode_loss`` (the selection loss of one held-out episode) and ``oob_loss`` (a cheap
-    loss for the bootstrap's out-of-bag check) use; ``score`` returns per-channel squared
-    errors (:class:`hilstack.calibration.axis.Scores`) and ``channel_sd`` their report normalizers.
-    """
-
-    name: str
-    catalogue: dict
-    look_alikes: dict
-    segmentable: bool
-
-    def prepare(self, episodes: list[Recording]) -> list: ...
-
-    def fit(self, episodes: list, effects: list[str], **kw) -> FittedModel: ...
-
-    def candidate_effects(self, episodes: list, accepted: tuple[str, ...] = ()
-                          ) -> tuple[list[str], dict[str, str]]: ...
-
-    def norms(self, pool: list) -> Any: ...
-
-    def episode_loss(self, prep: Any, fitted: FittedModel, horizon: int, nm: Any) -> float: ...
-
-    def oob_loss(self, prep: Any, fitted: FittedModel, nm: Any) -> float: ...
-
-    def score(self, prep: Any, fitted: FittedModel, horizon: int) -> axis.Scores: ...
-
-    def channel_sd(self, preps: list) -> dict[str, dict[str, float]]: ...
-
-
 @dataclass
-class FittedAxis:
+class FittedAxis(PhaseAlong):
     """The axis model with its parameters (see :mod:`hilstack.calibration.axis`)."""
 
     params: axis.AxisParams
@@ -155,7 +117,7 @@ def two_way_fraction(episodes: list[axis.Prepared], n_bins: int = 50) -> float:
     return float((up & down).sum() / max(1, visited.sum()))
 
 
-class AxisModel:
+class AxisModel(NominalModel, BatchLosses):
     """Single-axis drive J·dv/dt = k_u·u − b·v, identified as dv/dt = a·u − c·v + effects."""
 
     name = "axis"
@@ -312,7 +274,7 @@ def get_model(name: str, **kw) -> Model:
         name = "checkpoint"
     if name not in MODELS:
         raise UnknownModel(f"unknown model {name!r}; known models: {', '.join(sorted(MODELS))}")
-    return MODELS[name](**{k: v for k, v in kw.items() if v is not None})
+    return require_model(MODELS[name](**{k: v for k, v in kw.items() if v is not None}), name)
 
 
 def save_model(fitted: FittedModel, path: str | Path, extra: dict | None = None) -> Path:

@@ -20,6 +20,15 @@ from hilstack.calibration.data import (
     segment_episodes,
     summarize,
 )
+from hilstack.calibration.model_api import (
+    CountsRollouts,
+    DescribesVelocity,
+    ExportsAugmented,
+    ExportsSimParams,
+    LoadsEpisodes,
+    OwnDetectionLimits,
+    OwnPlots,
+)
 from hilstack.calibration.models import FittedAxis, get_model, save_model
 from hilstack.calibration.selection import (
     SelectionConfig,
@@ -38,14 +47,16 @@ def _nrmse_table(scores: list[axis.Scores], sd: dict[str, dict[str, float]], n_b
     H-step open-loop windows over the std of the channel.
     """
     channels = list(sd["one"])
+    # (squared errors per channel, samples) of each episode, per kind
+    errors = {"one": [(s.one_sse, s.one_n) for s in scores], "multi": [(s.multi_sse, s.multi_n) for s in scores]}
 
     def table(idx: np.ndarray) -> dict:
         out = {}
         for kind in ("one", "multi"):
             per = {}
             for ch in channels:
-                sse = sum(getattr(scores[i], f"{kind}_sse")[ch] for i in idx)
-                n = sum(getattr(scores[i], f"{kind}_n") for i in idx)
+                sse = sum(errors[kind][i][0][ch] for i in idx)
+                n = sum(errors[kind][i][1] for i in idx)
                 per[ch] = math.sqrt(sse / max(n, 1)) / sd[kind][ch]
             out[kind] = {"per_channel": per, "mean": float(np.mean(list(per.values())))}
         return out
@@ -146,7 +157,7 @@ def run_calibration(
     nominal_model = get_model(model, **opts)
     if isinstance(data_path, list):
         episodes = list(data_path)
-    elif hasattr(nominal_model, "load_episodes"):  # the model knows its channels (checkpoint)
+    elif isinstance(nominal_model, LoadsEpisodes):  # the model knows its channels (checkpoint)
         episodes = nominal_model.load_episodes(data_path, column_map, robot=robot)
     else:
         episodes = load_episodes(data_path, column_map, robot=robot, warn=warn)
@@ -189,7 +200,7 @@ def run_calibration(
     log("black-box check of the remaining residual")
     bb = blackbox_check(preps, sel.folds, sel.final, cfg, seed, model=nominal_model)
     candidates, _ = nominal_model.candidate_effects(preps)
-    if hasattr(nominal_model, "detection_limits"):
+    if isinstance(nominal_model, OwnDetectionLimits):
         det = nominal_model.detection_limits(pool, sel.final, candidates, sel.skipped, cfg)
     else:
         det = detection_limits(pool, sel.final, candidates, sel.skipped, cfg)
@@ -223,7 +234,8 @@ def run_calibration(
         "model": model,
         "data": {**summarize(episodes), "segmented": bool(plan and plan.segmented), "resolution": resolution,
                  "segmentation_note": plan.note if plan else None,
-                 "velocity_source": getattr(nominal_model, "velocity_source", None) or _velocity_source(preps[0])},
+                 "velocity_source": (nominal_model.velocity_source if isinstance(nominal_model, DescribesVelocity)
+                                     else _velocity_source(preps[0]))},
         "folds": {"k": len(sel.folds), "test_episodes": [episodes[i].name for i in sel.test_idx],
                   "fold_episodes": [[episodes[i].name for i in f] for f in sel.folds],
                   "horizon_steps": sel.horizon, "horizon_s": sel.horizon * preps[0].period_s},
@@ -252,20 +264,20 @@ def run_calibration(
         "warnings": warnings,
         "elapsed_s": time.time() - t0,
     }
-    if hasattr(nominal_model, "export_augmented"):
+    if isinstance(nominal_model, ExportsAugmented):
         report["augmented_model"] = nominal_model.export_augmented(out, sel.final, report, test)
         report["channels"] = {"one_step": "one-step prediction from the logged state",
                               "multi_step": f"{sel.horizon}-step open-loop windows (logged actions replayed)"}
-    if hasattr(nominal_model, "export"):
+    if isinstance(nominal_model, ExportsSimParams):
         report["closing_the_loop"] = nominal_model.export(out, sel.final, report)
-    if hasattr(nominal_model, "n_rollouts"):
+    if isinstance(nominal_model, CountsRollouts):
         report["sim_rollouts"] = nominal_model.n_rollouts
     report = _clean(report)
     save_model(sel.final, out / "model.json", extra={"source": source, "verdict": report["verdict"]})
     (out / "report.json").write_text(json.dumps(report, indent=2))
     if plots:
         log("plots")
-        if hasattr(nominal_model, "plots"):
+        if isinstance(nominal_model, OwnPlots):
             nominal_model.plots(out, sel, preps, pool, test)
             _candidate_plot(out, sel)
         else:
@@ -315,7 +327,7 @@ def _resolution(model, preps, sel, cfg, warn) -> dict:
     meaningless, so nothing can reach "moderate".
     """
     n_units = int(sum(len(f) for f in sel.folds))
-    block = int(getattr(sel.folds, "block", 1))
+    block = int(sel.folds.block)
     n_blocks = n_units // max(1, block)
     doc = {"heldout_units": n_units, "bootstrap_block": block, "bootstrap_blocks": n_blocks,
            "can_accept": n_blocks >= MIN_HELDOUT_UNITS, "locked_test_units": int(len(sel.test_idx))}

@@ -65,6 +65,7 @@ def record_excitation(path: str | Path, duration_s: float = 60.0, seed: int = 0,
     from hilstack.bus import keys
     from hilstack.bus.recording import McapLog
     from hilstack.bus.schemas import NO_DEVICE_CLOCK, RobotState, SpecMsg
+    from hilstack.calibration.mjcf_robot import CalibrationBench
     from hilstack.configs.schema import RobotConfig, load_robot
     from hilstack.drivers.registry import make_driver, resolve
 
@@ -73,7 +74,7 @@ def record_excitation(path: str | Path, duration_s: float = 60.0, seed: int = 0,
     if backend not in ("sim", "emulated"):
         raise ValueError(f"backend must be 'sim' or 'emulated' (an excitation with effects injected), got {backend!r}")
     sim_cls = resolve(cfg.robot, "sim")
-    if not hasattr(sim_cls, "calibration_bench"):
+    if not issubclass(sim_cls, CalibrationBench):
         raise ValueError(f"robot {cfg.robot!r}: its sim backend has no calibration_bench() (nothing to excite for)")
     layout = sim_cls.calibration_bench()
     ex = layout["excite"]

@@ -31,7 +31,8 @@ from scipy import stats as st
 
 from hilstack.calibration import axis
 from hilstack.calibration.effects import CATALOGUE, is_look_alike, separating_excitation
-from hilstack.calibration.models import FittedAxis, FittedModel, Model
+from hilstack.calibration.model_api import BatchLosses, FittedModel, Model, PhaseAlong, ResidualRows
+from hilstack.calibration.models import FittedAxis
 
 
 @dataclass(frozen=True)
@@ -274,7 +275,7 @@ def _unit_order(preps) -> list[tuple[str, int] | None]:
     """(recording, start sample) of each segment cut from a recording; None for a whole episode."""
     out = []
     for p in preps:
-        meta = getattr(getattr(p, "ep", None), "meta", {}) or {}
+        meta = p.ep.meta
         out.append((str(meta["segment_of"]), int(meta.get("segment_start", 0))) if "segment_of" in meta else None)
     return out
 
@@ -409,20 +410,20 @@ def crossval_losses(model: Model, preps, folds, effects, nm, horizon: int,
 
 def _episode_losses(model: Model, jobs, horizon: int, nm) -> list:
     """Held-out losses of (episode, fitted) pairs: in one batch when the model can (axis), else one by one."""
-    if hasattr(model, "episode_losses"):
+    if isinstance(model, BatchLosses):
         return model.episode_losses(jobs, horizon, nm)
     return [model.episode_loss(p, f, horizon, nm) for p, f in jobs]
 
 
 def _oob_losses(model: Model, jobs, nm) -> list:
-    if hasattr(model, "oob_losses"):
+    if isinstance(model, BatchLosses):
         return model.oob_losses(jobs, nm)
     return [model.oob_loss(p, f, nm) for p, f in jobs]
 
 
 def _wrong_sign(interval: list[float], spec) -> bool:
     """The whole interval lies on the side of the no-effect value that has no physical meaning."""
-    sign = getattr(spec, "physical_sign", 0)
+    sign = spec.physical_sign
     return bool(sign) and (interval[1] < spec.no_effect if sign > 0 else interval[0] > spec.no_effect)
 
 
@@ -468,7 +469,7 @@ def bootstrap_effect(model: Model, preps, pool_idx: np.ndarray, base: FittedMode
     # A position-periodic load is measured along the phase of its fit on the whole pool, so a
     # replicate cannot flip its sign by moving to the other representation of the same load.
     ref = (model.fit(pool, effects + [name], refine=False, start=base, search=[name])
-           if hasattr(base, "primary_along") and name in axis.PHASE_OF else None)
+           if isinstance(base, PhaseAlong) and name in axis.PHASE_OF else None)
     targets = [n_boot] + [n for n in BOOT_SCHEDULE if n_boot < n <= (n_boot_max or n_boot)]
     for target in targets:
         reps = []  # (out-of-bag episodes, fit without, fit with) per replicate, scored in one batch below
@@ -504,7 +505,7 @@ class SelectionResult:
     nominal: FittedModel
     skipped: dict[str, str]
     test_idx: np.ndarray
-    folds: list[np.ndarray]
+    folds: Folds
     norms: Norms
     horizon: int
     #: candidates with weak or better evidence that did not enter the model (last round)
@@ -514,7 +515,7 @@ class SelectionResult:
 def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfig, seed: int = 0,
                    log: Callable[[str], None] = lambda s: None) -> SelectionResult:
     """Stepwise selection of effects by held-out evidence (see module docstring)."""
-    locked = np.array([bool(getattr(getattr(p, "ep", None), "meta", {}).get("locked_test")) for p in preps])
+    locked = np.array([bool(p.ep.meta.get("locked_test")) for p in preps])
     test_idx, raw_folds = cv_split(len(preps), cfg, seed, locked)
     pool_idx = np.concatenate(raw_folds)
     segmented = any(o is not None for o in _unit_order(preps))
@@ -578,7 +579,7 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
         # Look-alikes: test each of the best candidates in the presence of the others, so that one
         # that only mimics the true effect (a deadband for Coulomb friction) cannot block it.
         pairs = (pair_tests(model, preps, folds, effects, nm, horizon, current, results, cfg, ev)
-                 if getattr(model, "pair_tests", False) else [])
+                 if model.pair_tests else [])
         if pairs:
             round_doc["pairs"] = pairs
             dominated = {d["explained"] for d in pairs if d["explained"]
@@ -596,7 +597,7 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
                 r.verdict = f"same held-out fit as {r.tied_with} (reported as a look-alike)"
                 continue
             stuck = {}
-            if getattr(model, "reports_bounds", False):
+            if model.reports_bounds:
                 bound = model.fit(pool, effects + [r.name], refine=False, start=current, search=[r.name])
                 stuck = {h: v for h, v in bound.at_bound.items() if h == axis.HYPER_OF.get(r.name)}
             if stuck:
@@ -631,7 +632,7 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
         # The lead is the best candidate whose parameter the data bound (one at the edge of its search range
         # stays unbounded with a partner, and pairing it costs a refit per candidate).
         lead = next((r for r in results if "edge of its search range" not in r.verdict), None)
-        if (winner is None and getattr(model, "pair_tests", False) and len(results) > 1 and used < cfg.max_rounds
+        if (winner is None and model.pair_tests and len(results) > 1 and used < cfg.max_rounds
                 and lead is not None and lead.gain >= cfg.min_gain and lead.evidence.at_least("weak")):
             found = beam_sets(model, preps, folds, pool_idx, effects, nm, horizon, current, results, base_loss,
                               cfg, seed + rnd, round_doc, log, ev, min(cfg.max_set_size, cfg.max_rounds - used + 1))
@@ -677,7 +678,7 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
                     f"separate with {excitation}")
         prev = current
         current = model.fit(pool, effects + [winner.name], refine=True, start=current)
-        if getattr(model, "shift_interval_to_refined", False):
+        if model.shift_interval_to_refined:
             # The bootstrap re-fits on the cached grid (no new replays); the refined pool fit
             # replays off-grid. Centre the percentile interval on the refined estimate: shift it
             # by (refined − grid estimate on the same pool), the grid's interpolation bias.
@@ -690,7 +691,7 @@ def select_effects(model: Model, preps: list[axis.Prepared], cfg: SelectionConfi
     if len(accepted) > 1:
         current, accepted, ambiguous = prune_effects(model, preps, folds, pool, current, accepted, ambiguous, nm,
                                                      horizon, cfg, rounds, log, ev)
-    if accepted and getattr(model, "pair_tests", False):
+    if accepted and model.pair_tests:
         ambiguous += swap_look_alikes(model, preps, folds, current, accepted, ambiguous, nm, horizon, cfg, log, ev)
     if not accepted:
         log("no effect reached moderate evidence" + (
@@ -948,11 +949,11 @@ def blackbox_check(preps, pool_idx_folds: list[np.ndarray], fitted: FittedModel,
     Cross-fitted over the folds. ``unexplained_structure`` is set when the pooled held-out R²
     is at least ``bb_min_r2`` and a Wilcoxon test over held-out episodes (squared error
     against the training mean vs the regressor) gives p < ``bb_alpha``. A model with
-    ``residual_rows(prep, fitted) -> (features, residual)`` supplies its own rows; otherwise
-    the axis model's equation-error residual is used.
+    ``residual_rows(prep, fitted) -> (features, residual)`` (:class:`ResidualRows`) supplies its own
+    rows; otherwise the axis model's equation-error residual is used.
     """
     rows = {}
-    custom = model is not None and hasattr(model, "residual_rows")
+    custom = isinstance(model, ResidualRows)
     for fold in pool_idx_folds:
         for j in fold:
             p = preps[j]

@@ -47,6 +47,14 @@ import numpy as np
 from hilstack.calibration import axis
 from hilstack.calibration.data import DataError, Recording
 from hilstack.calibration.effects import GENERIC_EXCITATION, EffectSpec
+from hilstack.calibration.model_api import (
+    CountsRollouts,
+    ExportsSimParams,
+    NominalModel,
+    OwnDetectionLimits,
+    OwnPlots,
+    ResidualRows,
+)
 
 #: channels compared, with units
 CHANNELS: tuple[str, ...] = ("x", "y", "yaw", "v_fwd", "crank_vel_l", "crank_vel_r")
@@ -288,7 +296,7 @@ class _Norms:
     multi: np.ndarray
 
 
-class VelociRoachModel:
+class VelociRoachModel(NominalModel, OwnDetectionLimits, ResidualRows, OwnPlots, ExportsSimParams, CountsRollouts):
     """The VelociRoACH MuJoCo sim as a calibration nominal model (see module docstring)."""
 
     name = "velociroach"
@@ -298,6 +306,8 @@ class VelociRoachModel:
     segmentable = False
     #: bootstrap fits use the cached grid; the reported interval is centred on the refined fit
     shift_interval_to_refined = True
+    #: replays run so far (the report's ``sim_rollouts``)
+    n_rollouts: int = 0
 
     def __init__(self, nominal: str | Path | dict | None = None, refine_iters: int = 6, workers: int | None = None):
         """``nominal``: a robot config YAML (e.g. configs/robots/velociroach.yaml or a previous

@@ -109,11 +109,15 @@ class ControllerNode(Node):
         bus: BusConfig | None = None,
         name: str = "controller",
         state_timeout_s: float = 5.0,
+        supervised: bool = False,
         **kw: Any,
     ):
         super().__init__(name, rig, bus, **kw)
         self.robot = robot
         self.state_timeout_s = state_timeout_s
+        #: the rig has a reset supervisor (its ``reset:`` section; the MBRL loop runs it): every
+        #: reset request says so (``ResetEvent.supervised``) and only the supervisor serves it
+        self.supervised = supervised
         self._state = self.subscribe(keys.state(rig, robot), RobotState)
         self._spec = self.subscribe(keys.spec(rig, robot), SpecMsg)
         self._cmd = self.publisher(keys.cmd(rig, robot), Command, reliable=True)  # lockstep steps on each
@@ -206,7 +210,7 @@ class ControllerNode(Node):
         self._reset_done.poll()
         last = self._state.last  # the episode it ends: its newest state
         self._reset_req.put(ResetEvent(robot=self.robot, phase=ResetPhase.REQUEST, pose={k: float(v) for k, v in pose.items()},
-                                       state_seq=-1 if last is None else last.seq))
+                                       state_seq=-1 if last is None else last.seq, supervised=self.supervised))
         deadline = time.monotonic() + timeout_s
         gone_by: float | None = None
         while True:

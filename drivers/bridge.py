@@ -52,6 +52,9 @@ log = logging.getLogger(__name__)
 
 #: upper bound of ``resume_ok_readings`` (a node that never resumes is a config error)
 MAX_RESUME_OK_READINGS = 100
+#: upper bound of ``supervisor_wait_s`` [s]: a supervisor that is not up a minute after the
+#: request is not starting; the requester waits for the answer meanwhile
+MAX_SUPERVISOR_WAIT_S = 60.0
 
 
 @dataclass
@@ -85,11 +88,15 @@ class DriverNode(Node):
         lockstep_timeout_s: float = 5.0,
         estop_sync_s: float = 1.0,
         resume_ok_readings: int = 3,
+        supervisor_wait_s: float = 5.0,
         **node_kw,
     ):
         if not (isinstance(resume_ok_readings, int) and 1 <= resume_ok_readings <= MAX_RESUME_OK_READINGS):
             raise ValueError(f"resume_ok_readings must be an integer in [1, {MAX_RESUME_OK_READINGS}], "
                              f"got {resume_ok_readings!r}")
+        if not (isinstance(supervisor_wait_s, int | float) and 0 < supervisor_wait_s <= MAX_SUPERVISOR_WAIT_S):
+            raise ValueError(f"supervisor_wait_s must be a number of seconds in (0, {MAX_SUPERVISOR_WAIT_S:g}], "
+                             f"got {supervisor_wait_s!r}")
         try:  # before the session opens
             pacing = driver.pacing_at(pace)
         except ValueError:
@@ -143,6 +150,11 @@ class DriverNode(Node):
         self._sup_req = self.subscribe(keys.reset_driver(rig), ResetEvent, latest=False, capacity=16)
         self._sup_done = self.publisher(keys.reset_driver_done(rig), ResetEvent, reliable=True)
         self._supervisor = self.watch_alive(keys.RESET_SUPERVISOR_NODE)
+        #: how long a supervised request (``ResetEvent.supervised``) waits for the supervisor's
+        #: token before it is answered ``failed`` [s, wall clock]
+        self.supervisor_wait_s = float(supervisor_wait_s)
+        #: the supervised request waiting for the supervisor's token, and until when (monotonic)
+        self._supervised_req: tuple[ResetEvent, float] | None = None
         self.episode = 0
         self._last_cmd_t: float | None = None  # node clock when the last command was applied
         self._last_state: RobotState | None = None
@@ -274,6 +286,13 @@ class DriverNode(Node):
     def _serve_reset(self, answers: list) -> bool:
         jumped = self._handle_supervisor(answers)
         m = self._reset_req.poll()
+        if m is not None and m.robot == self.robot and m.supervised:
+            # its sender expects the rig's reset supervisor: never served here, also while this
+            # node has not seen the supervisor's token yet (at start-up the token can reach it
+            # after the first request: served here and by the supervisor, two resets)
+            self._supervised_req = (m, time.monotonic() + self.supervisor_wait_s)
+            m = None
+        self._await_supervisor(answers)
         if m is None or m.robot != self.robot or self.supervisor_alive:
             return jumped
         reset = sim.reset if (sim := sim_controls(self.driver)) is not None else None
@@ -298,6 +317,24 @@ class DriverNode(Node):
         answers.append((self._reset_done, ResetEvent(robot=self.robot, phase=ResetPhase.DONE, episode=self.episode,
                                                      pose=m.pose)))
         return True
+
+    def _await_supervisor(self, answers: list) -> None:
+        """A supervised request waits (``supervisor_wait_s``, without holding up the loop) for
+        the supervisor's token: once seen the request is the supervisor's; none in time is a
+        ``failed`` answer saying so."""
+        if self._supervised_req is None:
+            return
+        if self.supervisor_alive:
+            self._supervised_req = None  # the supervisor serves it
+            return
+        if time.monotonic() < self._supervised_req[1]:
+            return
+        self._supervised_req = None
+        why = (f"the reset request expects the rig's reset supervisor and none was alive on rig {self.rig} "
+               f"within {self.supervisor_wait_s:g} s (start it with the rig's reset: section, docs/reset.md)")
+        log.error("%s: %s", self.robot, why)
+        answers.append((self._reset_done, ResetEvent(robot=self.robot, phase=ResetPhase.FAILED,
+                                                     episode=self.episode, detail=why)))
 
     def _apply(self, cmd: Command | None) -> None:
         if self.estopped:

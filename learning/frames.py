@@ -220,6 +220,16 @@ class BodyFrameDynamics:
         self.model.save(path)
 
 
+def ensemble_of(model: EnsembleDynamics | BodyFrameDynamics) -> EnsembleDynamics:
+    """The network a dynamics model learns with: the model itself, or the one a
+    :class:`BodyFrameDynamics` wraps (its weights, normalizers, config and channel names)."""
+    if isinstance(model, BodyFrameDynamics):
+        return model.model
+    if isinstance(model, EnsembleDynamics):
+        return model
+    raise TypeError(f"expected an EnsembleDynamics or a BodyFrameDynamics, got {type(model).__name__}")
+
+
 def load_dynamics(path: str | Path):
     """Load a checkpoint; body-frame models come back wrapped."""
     m = EnsembleDynamics.load(path)

@@ -48,6 +48,7 @@ from hilstack.control.policies import MpcPolicy, SafeRandomPolicy
 from hilstack.control.policy_api import Resettable
 from hilstack.learning.datasets import Episode
 from hilstack.learning.dynamics import h_step_error, h_step_windows
+from hilstack.learning.frames import ensemble_of
 from hilstack.learning.mbrl import (
     MbrlConfig,
     PathEnd,
@@ -133,8 +134,7 @@ class HeldInputs:
 
     def input_width(self) -> int:
         """Inputs of the network's first layer: state (with the held channels) + action."""
-        inner = getattr(self.model, "model", self.model)
-        return int(inner.weights[0].shape[1])
+        return int(ensemble_of(self.model).weights[0].shape[1])
 
     def save(self, path: str | Path) -> None:
         self.model.save(path)

@@ -511,8 +511,11 @@ class MbrlRun:
         deadline = time.monotonic() + self.cfg.rig_timeout_s
         while True:
             try:
+                # a rig with a reset: section: this loop runs its supervisor (_supervised), which
+                # alone serves the resets, also before the driver node has seen it
                 return ControllerNode(self.rig.name, self.cfg.robot, self.bus, name="mbrl-controller",
-                                      handle_signals=False, state_timeout_s=20.0)
+                                      handle_signals=False, state_timeout_s=20.0,
+                                      supervised=self.reset_cfg is not None)
             except BusUnavailable:
                 if proc.poll() is not None:
                     raise self._rig_exited(proc) from None

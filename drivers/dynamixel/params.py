@@ -58,6 +58,11 @@ class BusParams(Params):
         "so a live host never trips it")) = Field(
         0.2, description="the servos' Bus Watchdog: with no instruction packet for this long they stop by "
                          "themselves (host died); rounded up to 20 ms, at least 2 control periods")
+    stop_confirm_timeout_s: finite(gt=0, le=1.0, source=(
+        "≤ 1 s: half of `hil estop`'s default wait for the acknowledgements (2 s), which carry the confirmation; "
+        "the stop's hold is written before it, so it only bounds how long the read-back is retried")) = Field(
+        0.5, description="a stop's read-back (stop_confirmed) is retried, one read at most 0.8 control period each, "
+                         "until every servo reports the hold or this much time passed in all")
     reboot_on_hardware_error: bool = Field(False, description="reboot a servo with a latched hardware error "
                                            "at configure (after the operator checked why)")
     emulator: DynamixelEmulatorParams = Field(default_factory=DynamixelEmulatorParams,

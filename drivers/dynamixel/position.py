@@ -51,9 +51,8 @@ class PositionRobot(DynamixelRobot):
 
     def _hold_target(self, target: np.ndarray) -> None:
         """The stop at the held target (``Driver.stop``), read back (``stop_confirmed``)."""
-        before = self._answers.copy()
         goal = self._send_pose(target)
-        self._stop_confirmed = self._confirm_hold(before, goal)
+        self._stop_confirmed = self._confirm_hold(goal)
 
     def _stop(self) -> np.ndarray | None:
         """Hold the measured pose, read back (``stop_confirmed``); returns it (the held
@@ -65,7 +64,6 @@ class PositionRobot(DynamixelRobot):
         pose = self._q / self._scale
         if not np.all(np.isfinite(pose)):
             return None
-        before = self._answers.copy()
         goal = self._send_pose(pose)
-        self._stop_confirmed = self._confirm_hold(before, goal)
+        self._stop_confirmed = self._confirm_hold(goal)
         return np.clip(pose, self.spec.action.low, self.spec.action.high)

@@ -24,8 +24,10 @@ state and action):
   torque on, so the servos stop by themselves when the host stops talking (its process
   died); a servo that tripped (the register reads -1) is reported as ``flags["watchdog"]``
   and re-armed before the next goal (goals are refused while it is tripped);
-* ``stop()`` reads the servos back after it: :meth:`stop_confirmed` is True only when
-  every servo answered after the stop and reports the goal the stop wrote;
+* ``stop()`` writes its hold first, then reads the servos back: :meth:`stop_confirmed` is
+  True only when every servo answered after the stop and reports the goal the stop wrote. A
+  read-back whose answers come late (a loaded machine) is retried, each read at most
+  ``READ_TIMEOUT_PERIODS`` of a period, for ``stop_confirm_timeout_s`` in all;
 * ``health()``: link counters of the bus, the round-trip time of the last sync read,
   telemetry age, servo temperatures and input voltage, latched hardware errors.
 """
@@ -262,27 +264,47 @@ class DynamixelRobot(Driver):
         self.bus.sync_write("Bus Watchdog", {i: self.watchdog_units for i in ids})
         self._wd[:] = self.watchdog_units
 
-    def _confirm_hold(self, answers_before: np.ndarray, goal: dict[int, int]) -> bool:
-        """Read the servos back: every one answered since ``answers_before`` (a copy of
-        ``self._answers`` taken before the stop's writes) and holds the Goal Position ``goal``."""
-        try:
-            self._sync_read()
-        except LinkError:
-            return False
-        return all(self._answers[k] > answers_before[k] and self._goal_pos[k] == goal.get(dxl_id, self._goal_pos[k])
-                   for k, dxl_id in enumerate(self.ids.values()))
+    def _confirm_hold(self, goal: dict[int, int]) -> bool:
+        """Read the servos back after a stop's hold was written: True once every servo answered a
+        read sent after it with the Goal Position ``goal`` (its ID's; a servo not in ``goal``:
+        any). Reads are retried until ``params.stop_confirm_timeout_s`` has passed in all (one
+        read waits at most ``READ_TIMEOUT_PERIODS`` of a period: at a load of 15 its answers
+        came late and a held stop was reported not confirmed); a failing port is False at once.
+        A device already silent when the stop began (its telemetry stale) is read back once, as
+        before: retried, every stop of a frozen bus held the driver node's loop that long, and
+        an e-stop's acknowledgement missed ``hil estop``'s wait (1.5 s) after an unhealthy stop."""
+        retry = self.telemetry_age_s() < self.params.telemetry_stale_s
+        deadline = time.monotonic() + self.params.stop_confirm_timeout_s
+        ids = list(self.ids.values())
+        confirmed: set[int] = set()
+        while True:
+            seen = self._answers.copy()
+            try:
+                self._sync_read(max_wait_s=deadline - time.monotonic() if retry else None)
+            except LinkError:
+                return False
+            for k, dxl_id in enumerate(ids):
+                if self._answers[k] > seen[k] and self._goal_pos[k] == goal.get(dxl_id, self._goal_pos[k]):
+                    confirmed.add(dxl_id)
+            if len(confirmed) == len(ids):
+                return True
+            if not retry or time.monotonic() >= deadline:
+                return False
 
     def stop_confirmed(self) -> bool:
         """True when the servos read back the hold of the last ``stop()`` (see the module)."""
         return self._stop_confirmed and self.lifecycle is not Lifecycle.UNCONFIGURED
 
-    def _sync_read(self, within_period: bool = True) -> None:
+    def _sync_read(self, within_period: bool = True, max_wait_s: float | None = None) -> None:
         """Read every joint's block. ``within_period``: wait for the answers at most
-        READ_TIMEOUT_PERIODS of a period (the control loop); otherwise as long as the bus waits
-        for any answer (configure's first reading, beside the pings: on an emulator starved by a
-        loaded CPU the period's bound lost all six answers and configure failed)."""
+        READ_TIMEOUT_PERIODS of a period (the control loop), and at most ``max_wait_s`` when
+        given (≥ 0); otherwise as long as the bus waits for any answer (configure's first reading,
+        beside the pings: on an emulator starved by a loaded CPU the period's bound lost all six
+        answers and configure failed)."""
         self._t_read_try = self.now()
         bound_ms = READ_TIMEOUT_PERIODS * self.spec.period_s * 1000.0 if within_period else None
+        if bound_ms is not None and max_wait_s is not None:
+            bound_ms = min(bound_ms, max(0.0, max_wait_s) * 1000.0)
         data, errors = self.bus.sync_read(self.ids.values(), *BLOCK, timeout_margin_ms=bound_ms)
         now = self.now()
         dec = self.bus.decode

@@ -119,9 +119,8 @@ class WidowXDriver(DynamixelRobot):
             hold = {i: ("Goal Position", self.clamp_goal_position(i, pos_counts(float(q), self.bus.table.zero_count)))
                     for i, q in zip(ids, self._q, strict=True) if math.isfinite(q)}
             if len(hold) == len(ids):
-                before = self._answers.copy()
                 self.set_mode("position", hold)
-                self._stop_confirmed = self._confirm_hold(before, {i: c for i, (_, c) in hold.items()})
+                self._stop_confirmed = self._confirm_hold({i: c for i, (_, c) in hold.items()})
 
 
 class MechanismDriver(PositionRobot):

@@ -18,6 +18,7 @@ Public API for the emulator: ``VelociRoachSim(params)``, ``configure()``, ``rese
 
 from __future__ import annotations
 
+import copy
 import ctypes
 import math
 from typing import Annotated, Any, Literal
@@ -219,6 +220,23 @@ class VelociRoachSim(LockstepSim):
         self._pose_input = self.inputs["pose"]
         self._telemetry_index = self.spec.state.index("wx")  # the state from here on is telemetry
         self._fault_flags: dict[int, dict[str, bool]] = {}  # fault_flags of each bitmask seen
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> VelociRoachSim:
+        """An independent sim at the same instant (planners and calibration copy one as an
+        oracle): everything is copied, then the compiled loop's views of MjData are made anew
+        on the copy's (copied as they were, they were arrays of their own, no longer MjData's:
+        the copy's compiled loop stepped with a stale command and state). The chassis camera's
+        GL context is not copied; the copy makes its own at its first image. (The addresses of
+        the mocap noise stream are the copy's own at its first tick, ``_advance``.)"""
+        new = type(self).__new__(type(self))
+        memo[id(self)] = new
+        for k, v in self.__dict__.items():
+            if k not in ("_camera", "_views"):
+                setattr(new, k, copy.deepcopy(v, memo))
+        new._camera = None
+        if new.data is not None:
+            new._views = (new.data.qpos, new.data.qvel, new.data.ctrl)
+        return new
 
     # ------------------------------------------------------------------ model
     def terrain_name(self) -> str:

@@ -111,6 +111,9 @@ def test_sim_driver_arms_the_watchdog_and_recovers_from_a_trip():
     ("bus_watchdog_s", 3.0, "params.bus_watchdog_s"), ("bus_watchdog_s", 0.06, "at least 2 control periods"),
     ("link_timeout_periods", 1, "params.link_timeout_periods"), ("link_timeout_periods", 1000, "params.link_timeout_periods"),
     ("period_s", float("inf"), "params.period_s"), ("telemetry_stale_s", float("inf"), "params.telemetry_stale_s"),
+    ("stop_confirm_timeout_s", float("nan"), "params.stop_confirm_timeout_s"),
+    ("stop_confirm_timeout_s", 0.0, "params.stop_confirm_timeout_s"),
+    ("stop_confirm_timeout_s", 5.0, "params.stop_confirm_timeout_s"),
 ])
 def test_safety_values_are_bounded_and_named(robot, field, bad, says):
     with pytest.raises(ConfigError, match=says.replace(".", r"\.")) as ei:
@@ -407,3 +410,104 @@ def test_estop_while_the_servo_bus_is_frozen_is_not_confirmed(rig_bus):
         node.stop_event.set()
         th.join(30)
         node.close()
+
+
+def _freeze_after(d, method: str, freeze_s: float, log: list[str]):
+    """Wrap ``d.<method>`` (the stop's hold write): right after it the emulator process freezes
+    for ``freeze_s`` (SIGSTOP, then SIGCONT from a timer), as a loaded machine starves it."""
+    pid = d.bus.emulator.proc.pid
+    inner = getattr(d, method)
+
+    def thaw():
+        if psutil.pid_exists(pid):  # not when the test's cleanup ended the emulator first
+            os.kill(pid, signal.SIGCONT)
+
+    def wrapped(*a, **kw):
+        out = inner(*a, **kw)
+        log.append(method)
+        os.kill(pid, signal.SIGSTOP)
+        threading.Timer(freeze_s, thaw).start()
+        return out
+
+    setattr(d, method, wrapped)
+    return pid
+
+
+@pytest.mark.parametrize("robot, method", [("widowx", "set_mode"), ("reset_mechanism", "_send_pose")])
+def test_a_stop_read_back_that_comes_late_is_retried_and_confirmed(robot, method):
+    """At load ≥ 15 the stop's read-back (one read, 0.8 period = 40 ms) timed out and the
+    e-stop was reported "not confirmed" although the servos held. The emulator freezes for
+    60 ms right after the hold is written: the read-back is retried (within
+    ``stop_confirm_timeout_s``) and confirms the hold; the hold itself went out first."""
+    d = make_driver(robot, backend="emulated", bus_name=f"t_late_confirm_{robot}")
+    d.configure()
+    d.activate()
+    pid = None
+    try:
+        if robot == "widowx":
+            d.write(np.zeros(6))
+        writes: list[str] = []
+        pid = _freeze_after(d, method, 0.06, writes)
+        t0 = time.monotonic()
+        d.stop()
+        took = time.monotonic() - t0
+        print(f"\n{robot}: stop with the emulator frozen 60 ms after the hold: confirmed {d.stop_confirmed()}, "
+              f"{took:.3f} s")
+        assert writes == [method], "the hold is written before any read-back"
+        assert d.stop_confirmed()
+        assert took < d.params.stop_confirm_timeout_s + 1.0
+    finally:
+        if pid is not None and psutil.pid_exists(pid):
+            os.kill(pid, signal.SIGCONT)
+        d.cleanup()
+
+
+def test_a_stop_never_read_back_is_not_confirmed_within_its_bound():
+    """A servo bus frozen for longer than ``stop_confirm_timeout_s``: the stop returns after
+    about that long (retries are bounded) and says not confirmed."""
+    d = make_driver("widowx", backend="emulated", bus_name="t_never_confirm", stop_confirm_timeout_s=0.2)
+    d.configure()
+    d.activate()
+    pid = None
+    try:
+        d.write(np.zeros(6))
+        pid = _freeze_after(d, "set_mode", 3.0, [])
+        t0 = time.monotonic()
+        d.stop()
+        took = time.monotonic() - t0
+        print(f"\nwidowx: stop with the emulator frozen 3 s: confirmed {d.stop_confirmed()}, {took:.3f} s")
+        assert not d.stop_confirmed()
+        assert 0.2 <= took < 0.2 + 2 * d.spec.period_s
+    finally:
+        if pid is not None and psutil.pid_exists(pid):
+            os.kill(pid, signal.SIGCONT)
+        d.cleanup()
+
+
+def test_a_stop_of_a_device_already_silent_is_read_back_once():
+    """A bus frozen before the stop (telemetry stale): the read-back is not retried. Retried,
+    every stop of a frozen bus held the driver node's loop for ``stop_confirm_timeout_s``, and
+    an e-stop right after an unhealthy stop was not acknowledged within `hil estop`'s 1.5 s."""
+    d = make_driver("widowx", backend="emulated", bus_name="t_silent_confirm", link_timeout_periods=100,
+                    stop_confirm_timeout_s=1.0)
+    d.configure()
+    d.activate()
+    pid = d.bus.emulator.proc.pid
+    try:
+        d.write(np.zeros(6))
+        os.kill(pid, signal.SIGSTOP)
+        t = time.monotonic()
+        while time.monotonic() - t < d.params.telemetry_stale_s + 0.1:
+            obs = d.read()  # each read waits at most 0.8 period
+        assert not obs.ok and obs.flag("stale_telemetry")
+        t0 = time.monotonic()
+        d.stop()
+        took = time.monotonic() - t0
+        print(f"\nwidowx: stop with the bus silent for {t0 - t:.2f} s already: confirmed {d.stop_confirmed()}, "
+              f"{took:.3f} s")
+        assert not d.stop_confirmed()
+        assert took < 0.5 * d.params.stop_confirm_timeout_s
+    finally:
+        if psutil.pid_exists(pid):
+            os.kill(pid, signal.SIGCONT)
+        d.cleanup()

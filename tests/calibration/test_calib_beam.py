@@ -9,17 +9,19 @@ best single candidate with each other one) misses the pair; a beam of width 3 fi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
 
+from hilstack.calibration.data import Recording
+from hilstack.calibration.effects import EffectSpec
+from hilstack.calibration.model_api import NominalModel
 from hilstack.calibration.selection import SelectionConfig, select_effects
 
 
-@dataclass
-class _Spec:
-    no_effect: float = 0.0
+def _spec(name: str) -> EffectSpec:
+    return EffectSpec(name, "a regressor", "coef", "1", 0.0)
 
 
 @dataclass
@@ -27,6 +29,7 @@ class _Unit:
     F: dict
     y: np.ndarray
     period_s: float = 0.01
+    ep: Recording = field(default_factory=lambda: Recording("unit", np.zeros(1), np.zeros(1), np.zeros(1)))
 
 
 @dataclass
@@ -41,17 +44,15 @@ class _Fitted:
         return {name: self.coef[name]}
 
 
-class _Regression:
+class _Regression(NominalModel):
     """y ≈ Σ coef·feature over the chosen effects (least squares over the training units)."""
 
     name = "toy"
     look_alikes: dict = {}
     pair_tests = True
-    reports_bounds = False
-    segmentable = False
 
     def __init__(self, names):
-        self.catalogue = {n: _Spec() for n in names}
+        self.catalogue = {n: _spec(n) for n in names}
 
     def candidate_effects(self, units, accepted=()):
         return [n for n in self.catalogue if n not in accepted], {}

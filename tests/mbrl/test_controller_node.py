@@ -150,37 +150,60 @@ def test_realtime_runs_in_phase_with_the_driver_and_passes_the_committed_command
             time.sleep(0.011)  # a bit over half the 20 ms period, within the 0.8 deadline
             return np.array([0.01 * (self.calls % 60), 0.0])
 
+    period = 0.02  # pointmass_sim's
+
+    def undisturbed(log, states) -> bool:
+        """Whether the machine's load left the episode alone, judged by what does not depend on
+        the controller's phase: no late plan, no late state (the driver node publishes a state
+        per period whatever the controller does, so even a free-running grid finds a fresh one
+        at each cycle: measured 0 stale states in 5 of 5 free-running episodes), and the driver
+        node's own states at its period (consecutive publications 0.5-1.5 periods apart on the
+        wall clock)."""
+        if log.late_plans or log.stale_states:
+            return False
+        first, last = round(log.times_s[0], 6), round(log.times_s[-1] + period, 6)
+        mine = sorted((m for t, m in states.items() if first <= t <= last), key=lambda m: m.t_s)
+        gaps = np.diff([m.stamp_s for m in mine]) / period
+        return len(mine) == round((last - first) / period) + 1 and bool(np.all((gaps > 0.5) & (gaps < 1.5)))
+
     with ControllerNode("pointmass_sim", "pm", bus, handle_signals=False, state_timeout_s=20) as ctl:
         ctl.wait_ready(30)
         wait_for(lambda: ctl._state.poll() is not None, 20, "states")
-        sub = ctl.subscribe(keys.state("pointmass_sim", "pm"), RobotState, latest=False, capacity=1024)
-        logs, pols = [], []
-        # at least three episodes (three chances for a free-running grid to be out of phase), and
-        # on until one had no late plan (the committed-command check below needs one; under load
-        # a late plan in each of three is common), at most eight
-        while len(logs) < 3 or (len(logs) < 8 and all(log.late_plans for log in logs)):
+        sub = ctl.subscribe(keys.state("pointmass_sim", "pm"), RobotState, latest=False, capacity=4096)
+        published: dict[float, RobotState] = {}
+        logs, pols, judged = [], [], []
+        # The phase is judged on episodes the machine's load left alone: on a saturated machine
+        # (three CPU hogs beside the rig, load average 10-12 on 2 cores) a plan or a state came
+        # late in every episode and the driver node's own states came 0.4-2 periods apart; the
+        # share of commands acting in the next period was 17-60 % in phase and 13-47 % with a
+        # free-running grid, so no share can tell the two apart there (the flake at load >= 15).
+        # At least three judged episodes (three chances for a free-running grid to be out of
+        # phase: it missed with 97-100 % of the commands in 4 of 5 episodes), at most 24 episodes
+        # of 15 periods (at load 10-12, 14 of 16 episodes of 30 periods had a late plan)
+        while len(judged) < 3 and len(logs) < 24:
             pols.append(HalfPeriodPlanner())
-            logs.append(ctl.run_realtime(pols[-1], 30))
-        time.sleep(0.1)
-        published = {round(m.t_s, 6): m for m in (decode(p, RobotState) for _, p in sub.drain())}
-    for log, pol in zip(logs, pols, strict=True):
-        # never the same state twice, except in a cycle counted stale (its state came late: the
-        # machine's load; the newest one is used again, by design)
-        assert len(set(log.times_s[:-1])) >= len(log.times_s) - 1 - log.stale_states, log.stale_states
+            logs.append(ctl.run_realtime(pols[-1], 15))
+            time.sleep(0.05)
+            published.update({round(m.t_s, 6): m for m in (decode(p, RobotState) for _, p in sub.drain())})
+            if undisturbed(logs[-1], published):
+                judged.append(len(logs) - 1)
+    assert len(judged) >= 3, (
+        f"the load disturbed {len(logs) - len(judged)} of {len(logs)} episodes (late plans "
+        f"{[log.late_plans for log in logs]}, stale states {[log.stale_states for log in logs]}): too loaded to judge")
+    for k in judged:
+        log, pol = logs[k], pols[k]
+        assert len(set(log.times_s)) == len(log.times_s)  # never the same state twice
         on_time = 0
         for t, a in zip(log.times_s[:-1], log.actions, strict=True):
-            nxt = published.get(round(t + 0.02, 6))  # the state after the next period
+            nxt = published.get(round(t + period, 6))  # the state after the next period
             on_time += nxt is not None and bool(np.allclose(nxt.action, a, atol=1e-9))
         # an out-of-phase grid misses the next period with (nearly) every command of an
-        # episode; in phase only a plan or state made late by the machine's load does
-        # (a loaded CI run had 6 late plans of 30), so the bound is a share, not a count
+        # episode; in phase, on an undisturbed episode, (nearly) none misses it
         assert on_time >= 0.7 * len(log.actions), (
-            f"{on_time} of {len(log.actions)} commands acted in the next period "
-            f"({log.late_plans} late plans, {log.stale_states} stale states)")
-        if log.late_plans == 0:  # one call per cycle: the command sent the cycle before is the committed one
-            for i in range(1, len(log.actions)):
-                np.testing.assert_allclose(pol.committed[i][0], log.actions_norm[i - 1], atol=1e-9)
-    assert any(log.late_plans == 0 for log in logs)
+            f"{on_time} of {len(log.actions)} commands acted in the next period in episode {k}")
+        # one call per cycle: the command sent the cycle before is the committed one
+        for i in range(1, len(log.actions)):
+            np.testing.assert_allclose(pol.committed[i][0], log.actions_norm[i - 1], atol=1e-9)
 
 
 def test_realtime_refits_the_planner_samples_to_the_measured_plan_times(realtime_bus):

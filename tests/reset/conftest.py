@@ -41,7 +41,7 @@ class SupervisedRig:
         self.crash: list[BaseException] = []
         self._st = threading.Thread(target=self._serve if serve else self._spin, daemon=True, name="supervisor")
         self._st.start()
-        self.ctl = ControllerNode(rig.name, "roach", bus, handle_signals=False, state_timeout_s=10)
+        self.ctl = ControllerNode(rig.name, "roach", bus, handle_signals=False, state_timeout_s=10, supervised=True)
         self.ctl.wait_ready(20)
 
     def _serve(self):

@@ -492,3 +492,48 @@ def test_bench_sim_times_each_part_of_a_period_against_the_raw_peer(monkeypatch)
     assert all(0 < v["p50_us"] <= v["p99_us"] for v in per.values())
     assert 0 < r["cpu"]["ratio"] < 2 and 0 < r["cpu"]["ratio_python_loop"] < 2
     assert r["compiled_loop"] is True or "hilstack[speed]" in r["compiled_loop"]
+
+
+@pytest.mark.parametrize("sim", [{}, {"camera_px": 16}, {"terrain": "gravel", "camera_px": 16}])
+def test_a_deep_copy_is_an_independent_sim_at_the_same_instant(sim):
+    """Planners and calibration copy a sim as an oracle (``copy.deepcopy``). The copy failed
+    with a camera (its GL context), and without one it ran wrong: the compiled loop kept
+    stepping through views of the original's MjData. Now the copy goes on exactly as the
+    original does under the same commands, renders its own images, and stepping it leaves
+    the original where a sim never copied is."""
+    import copy
+
+    ref, a = make(**sim), make(**sim)
+    rng = np.random.default_rng(3)
+    cmds = rng.uniform(-6.0, 9.0, size=(16, 2))
+    for c in cmds[:4]:
+        for s in (ref, a):
+            s.write(c)
+            s.tick()
+    a.read()  # a reading (with the camera's first image) before the copy
+    ref.read()
+    b = copy.deepcopy(a)
+    # the copy alone for a while: the original (and its noise streams) must not notice
+    for c in cmds[8:]:
+        b.write(c)
+        b.tick()
+    for c in cmds[4:8]:
+        for s in (ref, a):
+            s.write(c)
+            s.tick()
+    oa, oref = a.read(), ref.read()
+    np.testing.assert_array_equal(oa.state, oref.state)
+    # the copy from where it was made: as the original went, command for command
+    c2 = copy.deepcopy(a)
+    for c in cmds[8:]:
+        for s in (a, c2):
+            s.write(c)
+            s.tick()
+    o1, o2 = a.read(), c2.read()
+    np.testing.assert_array_equal(o1.state, o2.state)
+    assert o1.t_s == o2.t_s and o1.ok and o2.ok
+    if sim.get("camera_px"):
+        assert o2.extras["image"].shape == (16, 16, 3)
+        np.testing.assert_array_equal(o1.extras["image"], o2.extras["image"])
+    for s in (ref, a, b, c2):
+        s.cleanup()
