@@ -6,8 +6,8 @@ as modelled by OpenAI): 24 hinge joints, 20 position actuators. Only its asset f
 used (its ``gym.make`` environments fail on MuJoCo >= 3.12). MjSpec edits:
 
 * the bodies ``object`` and ``target`` (the egg) are deleted;
-* two free-joint spheres (radius 0.02 m, 0.05 kg: the thesis' Baoding balls) are added
-  above the palm;
+* two free-joint spheres (radius 0.02 m, 0.05 kg) are added above the palm (the PDDM
+  reference code's are larger, 0.028 m and 0.043 kg: docs/baoding.md, "The reference's balls are larger");
 * the 20 position servos become torque motors (``set_to_motor``, ctrl range = the servo's
   force range): the position loop runs in the firmware model at 1 kHz
   (:mod:`hilstack.sim_backends.shadow_hand.firmware`), as on the real hand's motor boards;
