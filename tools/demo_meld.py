@@ -180,7 +180,7 @@ def run_meld_demo(out: Path, cfg: DemoConfig, command: str, log=print) -> dict[s
                                 log(f"[meld rig] failed: {rig_runs[task_name]['error']}")
                 report[task_name]["task_spread"] = spread
                 report[task_name]["success_m"] = env.success_m
-                if hasattr(env, "success_deg"):
+                if env.success_deg is not None:
                     report[task_name]["success_deg"] = env.success_deg
             finally:
                 env.close()
@@ -478,8 +478,7 @@ def run_curve(task: str, method: str, seed: int, samples: int, updates_per_sampl
     try:
         res = meta_train(env, agent, mt, log=log)
     finally:
-        if hasattr(env, "close"):
-            env.close()
+        env.close()
     res.pop("replay")
     for p in res["curve"]:
         p["gradient_steps"] = p["epoch"] * steps

@@ -42,6 +42,8 @@ class _DriverTask:
     episode_steps = 40
     hold: int = 1
     success_m: float = 0.1
+    #: the angle criterion of a task scored by position and axis (None: position only)
+    success_deg: float | None = None
 
     def _setup_images(self, camera_px: int, cameras: bool) -> dict:
         """``cameras=False``: a constant black image (the benchmark's peer without rendering)."""

@@ -49,3 +49,6 @@ class ToyReach:
         img, r = self._obs()
         d = float(np.linalg.norm(self.p - self.goal))
         return img, r, {"success": d < self.success_d, "distance_m": d}
+
+    def close(self) -> None:
+        """Nothing to release (:class:`~hilstack.learning.meld.train.ImageTaskEnv`)."""

@@ -40,6 +40,7 @@ class ImageTaskEnv(Protocol):
     def set_task(self, task: int) -> None: ...
     def reset(self) -> tuple[np.ndarray, float]: ...          # (image u8 [H, W, 3], reward)
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, dict[str, Any]]: ...  # info: success
+    def close(self) -> None: ...                             # release renderers, drivers
 
 
 @dataclass

@@ -76,3 +76,16 @@ def test_sawyer_reach_tasks_from_images():
         assert min(np.linalg.norm(env.task_params - start, axis=1)) > env.success_m
     finally:
         env.close()
+
+
+def test_every_task_env_says_its_angle_criterion_and_closes():
+    """The demo reads ``success_deg`` and calls ``close()`` on every env (ImageTaskEnv), no probing:
+    the port is scored by position and axis, the reacher by position only."""
+    from hilstack.learning.meld.toy import ToyReach
+
+    assert TASKS["widowx_port"].success_deg == 3.0
+    assert TASKS["sawyer_reach"].success_deg is None
+    for name in TASKS:
+        env = TASKS[name](camera_px=16, cameras=False)
+        env.close()
+    ToyReach().close()
