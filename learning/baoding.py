@@ -557,6 +557,12 @@ def drop_prediction(model, episodes, task, ball_idx: list[int], horizon: int) ->
             "windows_with_drop": n}
 
 
+def is_unfinished(path: str | Path) -> bool:
+    """Whether a recording is a partial episode or a stopped iteration's (``*.unfinished*.mcap``),
+    which every loader leaves out."""
+    return ".unfinished" in Path(path).name
+
+
 def finished_recordings(directory: str | Path) -> list[Path]:
     """The finished recordings of ``directory`` (``*.mcap``; a ``*.unfinished*.mcap`` is a
     partial episode or a stopped iteration, left out as every loader does); ValueError when
@@ -564,7 +570,7 @@ def finished_recordings(directory: str | Path) -> list[Path]:
     d = Path(directory)
     if not d.is_dir():
         raise ValueError(f"extra data {d}: not a directory")
-    found = sorted(f for f in d.glob("*.mcap") if ".unfinished" not in f.name)
+    found = sorted(f for f in d.glob("*.mcap") if not is_unfinished(f))
     if not found:
         raise ValueError(f"extra data {d}: no finished recordings (*.mcap, not *.unfinished.mcap)")
     return found
@@ -948,7 +954,7 @@ class BaodingRun(MbrlRun):
         kept = {Path(k).resolve() for k in keep}
         moved = []
         for f in sorted(self.rec_dir.glob("*.mcap")):
-            if f.resolve() in kept or ".unfinished" in f.name:
+            if f.resolve() in kept or is_unfinished(f):
                 continue
             k, dst = 0, f.with_name(f"{f.stem}.unfinished.mcap")
             while dst.exists():

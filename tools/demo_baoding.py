@@ -543,11 +543,12 @@ SAMPLERS["thesis_rate"] = {**SAMPLERS["thesis"], "rate_aware": True}
 def run_episodes(run_dir: Path, stems: list[str] | None = None) -> dict[str, list]:
     """The raw episodes of a run's recordings (``run_dir/recordings``), by recording stem
     (``000-random``, ``012-mpc``...); eval and set-aside recordings are left out."""
+    from hilstack.learning.baoding import is_unfinished
     from hilstack.learning.recordings import episodes_from_mcap
 
     out: dict[str, list] = {}
     for f in sorted((Path(run_dir) / "recordings").glob("*.mcap")):
-        if "eval" in f.name or "unfinished" in f.name or (stems is not None and f.stem not in stems):
+        if "eval" in f.name or is_unfinished(f) or (stems is not None and f.stem not in stems):
             continue
         out[f.stem] = episodes_from_mcap(f, "hand")
     return out
