@@ -28,6 +28,12 @@ FULL_SEEDS = (0, 1, 2)
 FULL_RIG = "hand_sim"
 
 
+#: ``hil demo baoding --targets``: how the targets' phase moves (docs/baoding.md, "Targets that
+#: do not drag the pair backwards"): "lead" = ours, at most ``max_lead_rad`` ahead of the pair;
+#: "clock" = the reference code's, by the step counter alone
+TARGETS: dict[str, dict[str, Any]] = {"lead": {}, "clock": {"task_overrides": {"max_lead_rad": None}}}
+
+
 def make_config(preset: str, seed: int, **overrides: Any) -> BaodingConfig:
     if preset == "quick":
         return BaodingConfig.from_preset("quick", seed=seed, **overrides)
@@ -63,7 +69,8 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
     rig_arg = "" if cfg.rig == FULL_RIG else f" --rig {cfg.rig}"
     extra_arg = "".join(f" --extra-data {d}" for d in cfg.extra_recordings) + (
         f" --extra-repeat {cfg.extra_repeat}" if cfg.extra_recordings else "") + (
-        f" --iterations {cfg.iterations}" if cfg.iterations != make_config(preset, seed).iterations else "")
+        f" --iterations {cfg.iterations}" if cfg.iterations != make_config(preset, seed).iterations else "") + "".join(
+        f" --targets {k}" for k, v in TARGETS.items() if v and v.get("task_overrides") == cfg.task_overrides)
     report["command"] = (f"hil demo baoding{' --quick' if preset == 'quick' else ''}{rig_arg} --seed {seed} --out {out}"
                          f"{extra_arg}{' --resume' if resume else ''}")
     report["created"] = time.strftime("%Y-%m-%dT%H:%M:%S")
@@ -262,10 +269,11 @@ def report_markdown(r: dict[str, Any]) -> str:
 
 def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None = None, workers: int = 1,
                 resume: bool = False, rig: str | None = None, extra_data: list[Path] | None = None,
-                extra_repeat: int = 1, iterations: int | None = None) -> None:
+                extra_repeat: int = 1, iterations: int | None = None, targets: str | None = None) -> None:
     """The `hil demo baoding` verb (registered in tools/cmd_demo.py); ``ray``: ``--full`` only;
     ``rig``: the rig config (default :data:`FULL_RIG`), refused at once when it cannot run
-    Baoding (:func:`~hilstack.learning.baoding.baoding_rig_problem`)."""
+    Baoding (:func:`~hilstack.learning.baoding.baoding_rig_problem`); ``targets``: a key of
+    :data:`TARGETS`."""
     import typer
 
     from hilstack.learning.baoding import baoding_rig_problem
@@ -281,6 +289,10 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
         raise typer.BadParameter("--extra-data is for one seed's run, not --full")
     if extra_repeat != 1 and not extra:
         raise typer.BadParameter("--extra-repeat needs --extra-data")
+    if targets is not None:
+        if targets not in TARGETS:
+            raise typer.BadParameter(f"--targets must be {' or '.join(TARGETS)}, got {targets!r}")
+        extra.update(TARGETS[targets])
     if iterations is not None:
         if full:
             raise typer.BadParameter("--iterations is for one seed's run, not --full")
@@ -295,7 +307,8 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
         out = Path("out/baoding")
     try:
         if full:
-            s = run_full(out, rig=rig, ray=ray, workers=workers, resume=resume)
+            s = run_full(out, rig=rig, ray=ray, workers=workers, resume=resume,
+                         **({} if targets is None else TARGETS[targets]))
             typer.echo(f"final PDDM success_90 {100 * s['final_success_90']['mean']:.0f} ± "
                        f"{100 * s['final_success_90']['std']:.0f} %, success_180 {100 * s['final_success_180']['mean']:.0f} %, "
                        f"rotation {s['final_mean_rotation_deg']['mean']:.0f}°, drop rate "

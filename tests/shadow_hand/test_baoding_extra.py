@@ -204,3 +204,36 @@ def test_iterations_table_lists_each_runs_iterations_from_the_first_asked(tmp_pa
     assert lines[3].startswith("| CONTROL | 34 | 3400 | – | 0 % |") and "| – |" in lines[3]
     with pytest.raises(SystemExit, match="no report"):
         main(["table", f"x={tmp_path / 'none'}"])
+
+
+def test_targets_by_the_clock_from_the_command_line(tmp_path, monkeypatch):
+    """``--targets clock`` runs the reference code's targets (no lead limit), ``lead`` (the default)
+    ours; a bad value, or ``--targets`` on another demo, is refused in one line."""
+    from dataclasses import replace
+
+    from typer.testing import CliRunner
+
+    import hilstack.tools.demo_baoding as demo
+    from hilstack.learning.baoding import load_baoding_task
+    from hilstack.tools.cli import app
+
+    got: list[dict] = []
+
+    def fake_run(out, preset, seed, resume, rig, **overrides):
+        got.append(overrides)
+        raise ValueError("stopped before the rig")
+
+    monkeypatch.setattr(demo, "run_baoding_demo", fake_run)
+    for arg in ("clock", "lead", None):
+        r = CliRunner().invoke(app, ["demo", "baoding", "--quick", "--out", str(tmp_path / "o")]
+                               + ([] if arg is None else ["--targets", arg]))
+        assert r.exit_code == 1 and "stopped before the rig" in r.output, r.output
+    task = load_baoding_task()
+    assert task.max_lead_rad is not None  # ours by default
+    tasks = [replace(task, **demo.make_config("quick", 0, **o).task_overrides) for o in got]
+    assert [t.max_lead_rad for t in tasks] == [None, task.max_lead_rad, task.max_lead_rad]
+    r = CliRunner().invoke(app, ["demo", "baoding", "--quick", "--targets", "wall", "--out", str(tmp_path / "o")])
+    assert r.exit_code != 0 and "--targets must be lead or clock, got 'wall'" in r.output, r.output
+    r = CliRunner().invoke(app, ["demo", "roach", "--quick", "--targets", "clock", "--out", str(tmp_path / "r")])
+    assert r.exit_code != 0 and "--targets are for the baoding demo only" in r.output, r.output
+    assert not (tmp_path / "r").exists()
