@@ -35,4 +35,4 @@ def test_the_wheel_installs_hilstack_alone_with_its_data(tmp_path):
         assert must in names, must
     assert not any(n.startswith(("hilstack/tests/", "tests/")) for n in names)
     entry = next(n for n in names if n.endswith("entry_points.txt"))
-    assert "hil = hilstack.tools.cli:app" in zipfile.ZipFile(whl).read(entry).decode()
+    assert "hil = hilstack.tools.cli:main" in zipfile.ZipFile(whl).read(entry).decode()

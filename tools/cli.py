@@ -96,11 +96,20 @@ for _mod in _VERB_MODULES:
 
 
 def main() -> None:
+    """The `hil` program (pyproject's console script and ``python -m hilstack``): ``app`` with
+    the process-wide setup a verb run inside another process (tests' CliRunner) must not get."""
+    import signal
+
     from hilstack.bus.lifetime import dump_stacks_on_signal
     from hilstack.tools import common
 
     dump_stacks_on_signal()  # `kill -USR1 PID`: where a stuck `hil` process is (stderr)
     common.HARD_EXIT_AFTER_ERROR = True  # after an error the process ends, whatever is left open
+    # a job started in the background by a non-interactive shell inherits SIGINT ignored: Ctrl-C
+    # or `kill -INT` would not stop a `hil demo` running there (verbs that drive a robot catch
+    # stop signals themselves, bus/lifetime.py)
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     app()
 
 
