@@ -61,7 +61,8 @@ class SimParams(Params):
     """``params.sim`` of the Shadow Hand sim backend (units in names)."""
 
     seed: int = 0
-    palm_tilt_rad: float = Field(0.15, ge=-0.5, le=0.5, description="mount tilt about world x (+: fingertips up)")
+    palm_tilt_rad: float = Field(0.15, ge=-0.5, le=0.5, description="mount tilt about world x "
+                                 "(+: fingertips down; at 0.15 the fingers slope 8.6° down from the wrist)")
     balls: bool = Field(True, description="put the two Baoding balls in the palm at reset")
     balls_settle_s: float = Field(10.0, ge=0, le=60, description="place the balls where they come to rest in the "
                                   "held hand after this long (found once per scene); 0: at the palm centre, "

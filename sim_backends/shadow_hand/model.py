@@ -87,7 +87,8 @@ def scene_spec(palm_tilt_rad: float = 0.0, station: StationGeometry | None = Non
         spec.delete(spec.body(name))
     spec.option.timestep = PHYSICS_DT_S
     # palm up: palm axes in the world x_p = -x, y_p = -z (the back of the hand down),
-    # z_p = -y (fingers along -y); then tilted about world x (+ lifts the fingertips)
+    # z_p = -y (fingers along -y); then tilted about world x (+ lowers the fingertips: at 0.15 rad
+    # the fingers slope 8.6° down from the wrist, docs/baoding.md, "Where the balls sit")
     up = np.array([0.0, 0.0, np.sqrt(0.5), -np.sqrt(0.5)])
     tilt = np.array([np.cos(palm_tilt_rad / 2), np.sin(palm_tilt_rad / 2), 0.0, 0.0])
     q = np.zeros(4)

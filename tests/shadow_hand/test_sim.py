@@ -227,3 +227,22 @@ def test_a_hand_holding_still_does_not_turn_the_pair():
         t = sim.task
         np.testing.assert_allclose(t.targets_at(t.phase0_rad), sim.balls_m(), atol=0.012)
     assert abs(rot) < 3 and moved < 0.003
+
+
+def test_a_positive_palm_tilt_lowers_the_fingertips():
+    """``palm_tilt_rad`` > 0 slopes the fingers down from the wrist (8.6° at the default 0.15 rad
+    with the wrist straight); its description once said the opposite."""
+    import mujoco
+
+    from hilstack.sim_backends.shadow_hand.model import build_scene
+
+    def elevation_deg(tilt: float) -> float:
+        h = build_scene(tilt)
+        d = mujoco.MjData(h.model)
+        mujoco.mj_forward(h.model, d)
+        wrist, tip = (d.xpos[h.model.body(b).id] for b in ("robot0:wrist", "robot0:mfdistal"))
+        return float(np.degrees(np.arctan2(tip[2] - wrist[2], np.linalg.norm(tip[:2] - wrist[:2]))))
+
+    assert elevation_deg(0.0) == pytest.approx(0.0, abs=0.1)
+    assert elevation_deg(0.15) == pytest.approx(-8.6, abs=0.2)
+    assert elevation_deg(-0.15) == pytest.approx(8.6, abs=0.2)
