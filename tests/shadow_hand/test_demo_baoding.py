@@ -329,7 +329,7 @@ def test_a_wall_clock_hand_refits_pddm_k_after_each_mpc_episode(bus, tmp_path, m
     from tests.helpers import rig_pacing
 
     monkeypatch.setattr(baoding, "recording", lambda *a, **k: contextlib.nullcontext())
-    monkeypatch.setattr(baoding, "baoding_episode_metrics", lambda *a, **k: {})
+    monkeypatch.setattr(baoding, "baoding_episode_metrics", lambda *a, **k: {"dropped": 0.0})
     for rig in ("hand_emulated", "hand_sim"):
         run = BaodingRun(BaodingConfig.from_preset("tiny", rig=rig, samples=400), tmp_path / rig, bus)
         run.state_names = NAMES
