@@ -66,15 +66,22 @@ class BaodingTaskParams(Strict):
     distance: Literal["3d", "plane"] = "3d"
     wrist_limit_rad: float | None = Field(None, ge=-0.7, le=0.5, description="WRJ0's range is [-0.698, 0.489] rad")
     max_lead_rad: float | None = Field(None, gt=0, le=np.pi)
+    #: the hand's hold pose this geometry was read for (``params.hold_pose`` of the hand)
+    hold_pose: str = "cupped"
     source: str | None = None
+
+
+def baoding_task_params(name: str = "baoding") -> BaodingTaskParams:
+    """A Baoding task config, checked (``configs/tasks/<name>.yaml``)."""
+    raw = load_task(name)
+    return parse_model(BaodingTaskParams, raw.model_dump(), raw.source)
 
 
 def load_baoding_task(name: str = "baoding"):
     """The :class:`~hilstack.tasks.baoding.BaodingTask` of a task config."""
     from hilstack.tasks.baoding import BaodingTask
 
-    raw = load_task(name)
-    p = parse_model(BaodingTaskParams, raw.model_dump(), raw.source)
+    p = baoding_task_params(name)
     return BaodingTask(center_m=np.array(p.center_m), axis=np.array(p.axis), radius_m=p.radius_m,
                        radius_v_m=p.radius_v_m, rate_rad_s=p.rate_rad_s, phase0_rad=p.phase0_rad,
                        distance=p.distance, wrist_limit_rad=p.wrist_limit_rad, max_lead_rad=p.max_lead_rad)
@@ -175,12 +182,13 @@ class HoldActionMap:
 HAND = "shadow_hand"
 
 
-def baoding_rig_problem(rig: str, robot: str = "hand") -> str | None:
+def baoding_rig_problem(rig: str, robot: str = "hand", task: str = "baoding") -> str | None:
     """Why rig ``rig`` cannot run Baoding, read from its config before anything starts (None: it
     can): no robot ``robot`` on it, or not a Shadow Hand; the hand's state without the balls'
     positions (its driver's spec, built and never connected: ``objects_in_state`` and ball
     trackers); no ``reset:`` section (an episode ends and the balls go back through the rig's
-    reset procedure, docs/reset.md)."""
+    reset procedure, docs/reset.md); a hand holding another pose than the one the task's
+    geometry (targets, drop rule) was read for."""
     from hilstack.configs.schema import load_rig, load_robot, rig_robot_config
     from hilstack.drivers.registry import make_driver
 
@@ -197,20 +205,34 @@ def baoding_rig_problem(rig: str, robot: str = "hand") -> str | None:
     if cfg.reset is None:
         return (f"rig {cfg.name} has no reset: section (Baoding ends episodes on a drop or a timeout and puts the "
                 "balls back through the rig's reset procedure; docs/reset.md)")
+    pose, want = rcfg.params.get("hold_pose", "cupped"), baoding_task_params(task).hold_pose
+    if pose != want:
+        return (f"rig {cfg.name}'s {robot} holds the {pose!r} pose but task {task}'s geometry is for {want!r} "
+                f"(hil demo baoding --hold-pose {pose}; docs/baoding.md)")
     return None
 
 
-def hold_pose_action() -> np.ndarray:
-    """The hand's hold pose (its spec's ``home_action``) in normalized action units [-1, 1]."""
+def rig_hand_spec(rig: str, robot: str = "hand"):
+    """The spec of rig ``rig``'s hand with the rig's settings (its driver built, never
+    connected): its hold pose (``home_action``) is the rig's ``params.hold_pose``."""
+    from hilstack.configs.schema import load_rig, rig_robot_config
+    from hilstack.drivers.registry import make_driver
+
+    return make_driver(rig_robot_config(load_rig(rig), robot)).spec
+
+
+def hold_pose_action(spec=None) -> np.ndarray:
+    """The hand's hold pose (its spec's ``home_action``; default: the hand config's) in
+    normalized action units [-1, 1]."""
     from hilstack.drivers.registry import spec_of
 
-    spec = spec_of(HAND)
+    spec = spec or spec_of(HAND)
     low, high = spec.action.low, spec.action.high
     return (np.asarray(spec.home_action, dtype=np.float64) - (high + low) / 2) / ((high - low) / 2)
 
 
-def hold_action_map(frac: float = 0.9) -> HoldActionMap:
-    return HoldActionMap(hold_pose_action(), frac)
+def hold_action_map(frac: float = 0.9, spec=None) -> HoldActionMap:
+    return HoldActionMap(hold_pose_action(spec), frac)
 
 
 class BaodingFeatures:
@@ -665,7 +687,9 @@ class BaodingRun(MbrlRun):
         self.plan_times_s: list[float] = []
         #: (ESS, mean shift, K) of every PDDM plan of the current phase (run_episodes)
         self.plan_stats: list[tuple[float, float, int]] = []
-        self.amap = hold_action_map() if cfg.action_units == "hold" else None
+        #: the rig's hold pose in the driver's units (where every episode starts)
+        self.hold = hold_pose_action(rig_hand_spec(cfg.rig, cfg.robot))
+        self.amap = HoldActionMap(self.hold, 0.9) if cfg.action_units == "hold" else None
         self._features: BaodingFeatures | None = None
         #: the recorded episodes of ``extra_recordings`` (raw; loaded by :meth:`load_extra`)
         self.extra: list[Episode] = []
@@ -735,11 +759,11 @@ class BaodingRun(MbrlRun):
     def random_walk(self, i: int):
         """The reference code's random walk from the hold pose, in the planner's units."""
         if self.amap is None:
-            return RandomWalkPolicy(hold_pose_action(), seed=self._seed(1, i))  # where every episode starts
+            return RandomWalkPolicy(self.hold, seed=self._seed(1, i))  # where every episode starts
         return MappedPolicy(RandomWalkPolicy(np.zeros(len(self.action_names)), seed=self._seed(1, i)), self.amap)
 
     def hold_policy(self, i: int) -> ConstantPolicy:
-        return ConstantPolicy(hold_pose_action())
+        return ConstantPolicy(self.hold)
 
     def pddm_config(self, samples: int | None = None) -> PddmConfig:
         """The planner's settings; ``samples`` instead of the configured K (wall-clock rigs:
@@ -751,7 +775,7 @@ class BaodingRun(MbrlRun):
         # "hold": the first plan is centred on the pose the episode starts in, so a planner
         # with an untrained model perturbs a grasp instead of swinging every joint to mid-range
         if self.bcfg.init_mean == "hold":
-            a = hold_pose_action()
+            a = self.hold
         else:
             a = np.zeros(len(self.action_names))  # the middle of every joint's range
         return a if self.amap is None else self.amap.from_driver(a)

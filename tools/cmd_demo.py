@@ -74,6 +74,9 @@ def register(app: typer.Typer) -> None:
         targets: str | None = typer.Option(None, "--targets", help="baoding only: lead (the default: the targets "
                                            "run at most 60° ahead of the pair) | clock (the reference code's: by "
                                            "the step counter alone; docs/baoding.md)"),
+        hold_pose: str | None = typer.Option(None, "--hold-pose", help="baoding only: cupped (ours, the default) | "
+                                             "pddm (the PDDM reference code's keyframe, its rig hand_sim_pddm_pose "
+                                             "and task geometry; docs/baoding.md)"),
     ) -> None:
         """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
 
@@ -118,13 +121,15 @@ def register(app: typer.Typer) -> None:
             module, fn, _ = OTHER_DEMOS[what]
             if resume and what != "baoding":
                 raise UserError(f"hil demo {what}: --resume is for the baoding demo only")
-            if (extra_data or extra_repeat != 1 or iterations is not None or targets is not None) and what != "baoding":
-                raise UserError(f"hil demo {what}: --extra-data/--extra-repeat/--iterations/--targets are for the "
-                                "baoding demo only")
+            if (extra_data or extra_repeat != 1 or iterations is not None or targets is not None
+                    or hold_pose is not None) and what != "baoding":
+                raise UserError(f"hil demo {what}: --extra-data/--extra-repeat/--iterations/--targets/--hold-pose are "
+                                "for the baoding demo only")
             kw = {"part": part, "setting": setting, "ray": ray, "workers": workers} if what == "transfer" else (
                 {"suite": suite, "ray": ray, "workers": workers} if what == "adaptation" else (
                     {"ray": ray, "workers": workers, "resume": resume, "rig": rig, "extra_data": extra_data,
-                     "extra_repeat": extra_repeat, "iterations": iterations, "targets": targets} if what == "baoding" else {}))
+                     "extra_repeat": extra_repeat, "iterations": iterations, "targets": targets, "hold_pose": hold_pose}
+                    if what == "baoding" else {}))
             if what == "mbrl-gym":
                 from hilstack.tools.demo_mbmf import parse_envs
 
@@ -136,9 +141,10 @@ def register(app: typer.Typer) -> None:
             return getattr(importlib.import_module(module), fn)(out, quick=quick, full=full, seed=seed, **kw)
         if what != "roach":
             raise UserError(f"hil demo: unknown demo {what!r} ({' | '.join(['roach', *OTHER_DEMOS])})")
-        if resume or extra_data or extra_repeat != 1 or iterations is not None or targets is not None:
-            raise UserError("hil demo roach: --resume/--extra-data/--extra-repeat/--iterations/--targets are for the "
-                            "baoding demo only")
+        if resume or extra_data or extra_repeat != 1 or iterations is not None or targets is not None \
+                or hold_pose is not None:
+            raise UserError("hil demo roach: --resume/--extra-data/--extra-repeat/--iterations/--targets/--hold-pose "
+                            "are for the baoding demo only")
         from hilstack.learning.mbrl import RigError
         from hilstack.tools.demo import run_demo
 

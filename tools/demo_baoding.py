@@ -34,6 +34,13 @@ FULL_RIG = "hand_sim"
 TARGETS: dict[str, dict[str, Any]] = {"lead": {}, "clock": {"task_overrides": {"max_lead_rad": None}}}
 
 
+#: ``hil demo baoding --hold-pose``: the hand's hold pose (drivers/shadow_hand/config.py:
+#: ``HOLD_POSES``), its sim rig and the task geometry read for it (docs/baoding.md, "Where the
+#: balls sit")
+HOLD_POSE_RUNS: dict[str, dict[str, str]] = {"cupped": {"rig": "hand_sim", "task": "baoding"},
+                                             "pddm": {"rig": "hand_sim_pddm_pose", "task": "baoding_pddm_pose"}}
+
+
 def make_config(preset: str, seed: int, **overrides: Any) -> BaodingConfig:
     if preset == "quick":
         return BaodingConfig.from_preset("quick", seed=seed, **overrides)
@@ -51,7 +58,7 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
     from hilstack.learning.baoding import baoding_rig_problem
 
     cfg = make_config(preset, seed, **overrides)
-    problem = baoding_rig_problem(cfg.rig, cfg.robot)
+    problem = baoding_rig_problem(cfg.rig, cfg.robot, cfg.task)
     if problem:  # before anything starts or is written
         raise ValueError(problem)
     out = Path(out)
@@ -66,7 +73,9 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
         bus = with_endpoint(rig_cfg.bus, free_endpoint())
         provision_credentials(rig_cfg.name, bus, rig_cfg)
     report = BaodingRun(cfg, out, bus, resume=resume).run()
-    rig_arg = "" if cfg.rig == FULL_RIG else f" --rig {cfg.rig}"
+    pose = next((k for k, v in HOLD_POSE_RUNS.items() if v["task"] == cfg.task), None)
+    pose_arg = "" if pose in (None, "cupped") else f" --hold-pose {pose}"
+    rig_arg = pose_arg + ("" if cfg.rig == (HOLD_POSE_RUNS[pose]["rig"] if pose else FULL_RIG) else f" --rig {cfg.rig}")
     extra_arg = "".join(f" --extra-data {d}" for d in cfg.extra_recordings) + (
         f" --extra-repeat {cfg.extra_repeat}" if cfg.extra_recordings else "") + (
         f" --iterations {cfg.iterations}" if cfg.iterations != make_config(preset, seed).iterations else "") + "".join(
@@ -269,11 +278,13 @@ def report_markdown(r: dict[str, Any]) -> str:
 
 def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None = None, workers: int = 1,
                 resume: bool = False, rig: str | None = None, extra_data: list[Path] | None = None,
-                extra_repeat: int = 1, iterations: int | None = None, targets: str | None = None) -> None:
+                extra_repeat: int = 1, iterations: int | None = None, targets: str | None = None,
+                hold_pose: str | None = None) -> None:
     """The `hil demo baoding` verb (registered in tools/cmd_demo.py); ``ray``: ``--full`` only;
     ``rig``: the rig config (default :data:`FULL_RIG`), refused at once when it cannot run
     Baoding (:func:`~hilstack.learning.baoding.baoding_rig_problem`); ``targets``: a key of
-    :data:`TARGETS`."""
+    :data:`TARGETS`; ``hold_pose``: a key of :data:`HOLD_POSE_RUNS` (its rig unless ``rig``, and
+    its task geometry)."""
     import typer
 
     from hilstack.learning.baoding import baoding_rig_problem
@@ -299,8 +310,13 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
         if iterations < 1:
             raise typer.BadParameter(f"--iterations must be >= 1, got {iterations}")
         extra["iterations"] = iterations
+    if hold_pose is not None:
+        if hold_pose not in HOLD_POSE_RUNS:
+            raise typer.BadParameter(f"--hold-pose must be {' or '.join(HOLD_POSE_RUNS)}, got {hold_pose!r}")
+        extra["task"] = HOLD_POSE_RUNS[hold_pose]["task"]
+        rig = rig or HOLD_POSE_RUNS[hold_pose]["rig"]
     rig = rig or FULL_RIG
-    problem = baoding_rig_problem(rig)
+    problem = baoding_rig_problem(rig, task=extra.get("task", "baoding"))
     if problem:
         raise UserError(f"hil demo baoding --rig {rig}: {problem}")
     if out == Path("out/demo"):
@@ -308,7 +324,8 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
     try:
         if full:
             s = run_full(out, rig=rig, ray=ray, workers=workers, resume=resume,
-                         **({} if targets is None else TARGETS[targets]))
+                         **({} if targets is None else TARGETS[targets]),
+                         **({} if hold_pose is None else {"task": extra["task"]}))
             typer.echo(f"final PDDM success_90 {100 * s['final_success_90']['mean']:.0f} ± "
                        f"{100 * s['final_success_90']['std']:.0f} %, success_180 {100 * s['final_success_180']['mean']:.0f} %, "
                        f"rotation {s['final_mean_rotation_deg']['mean']:.0f}°, drop rate "

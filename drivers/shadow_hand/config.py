@@ -76,15 +76,33 @@ JOINT_HIGH_RAD = np.array([
     1.047, 1.222, 0.209, 0.524, 0.0,
 ])
 
-#: palm-up cupped hold pose [rad] (actuated joints only; the rest follow): fingers
-#: curled at J2 to make a wall at the fingertips, thumb opposed to close the side. With
-#: the sim's palm tilt (0.15 rad) two balls rest in it > 10 s under a hold
-#: (tests/shadow_hand/test_sim.py).
-HOLD_POSE_RAD: dict[str, float] = {
-    "FFJ2": 0.45, "FFJ1": 0.3, "MFJ2": 0.45, "MFJ1": 0.3, "RFJ2": 0.45, "RFJ1": 0.3,
-    "LFJ4": 0.3, "LFJ2": 0.45, "LFJ1": 0.3,
-    "THJ4": 0.9, "THJ3": 0.9, "THJ1": 0.3, "THJ0": -0.3,
+#: hold poses [rad] (actuated joints only; the rest are 0 or follow their coupling), by name:
+#: ``params.hold_pose``, the spec's ``home_action`` (where every Baoding episode starts and what
+#: the planner's action units centre on).
+#:
+#: * ``cupped`` (ours, the default): palm up, fingers curled at J2 to make a wall at the
+#:   fingertips, thumb opposed to close the side. With the sim's palm tilt (0.15 rad) two balls
+#:   rest in it > 10 s under a hold (tests/shadow_hand/test_sim.py), one behind the other in the palm.
+#: * ``pddm``: the public PDDM reference code's keyframe (google-research/pddm,
+#:   ``pddm/envs/baoding/assets/shadowhand_baoding_2.xml``, ``key_qpos[0]``; the two models share
+#:   joint order and axes) clipped to our ranges (FFJ3 0.379 → 0.349, MFJ2 −0.136 → 0, LFJ4
+#:   −0.022 → 0, LFJ3 −0.368 → −0.349), J1 kept and J0 coupled (the reference's J0 are free:
+#:   ours follow 1.142·J1, so our fingertips curl more): knuckles straight, middle joints hooked
+#:   ~1.15 rad, wrist flexed −0.398 rad (the fingers slope 23° down on a level mount). The balls
+#:   rest side by side on the fingers (docs/baoding.md, "Where the balls sit").
+HOLD_POSES: dict[str, dict[str, float]] = {
+    "cupped": {
+        "FFJ2": 0.45, "FFJ1": 0.3, "MFJ2": 0.45, "MFJ1": 0.3, "RFJ2": 0.45, "RFJ1": 0.3,
+        "LFJ4": 0.3, "LFJ2": 0.45, "LFJ1": 0.3,
+        "THJ4": 0.9, "THJ3": 0.9, "THJ1": 0.3, "THJ0": -0.3,
+    },
+    "pddm": {
+        "WRJ1": 0.0126, "WRJ0": -0.398, "FFJ3": 0.349, "FFJ2": 0.0564, "FFJ1": 1.167, "MFJ3": 0.265, "MFJ2": 0.0,
+        "MFJ1": 1.144, "RFJ3": 0.074, "RFJ2": 0.139, "RFJ1": 1.112, "LFJ4": 0.0, "LFJ3": -0.349, "LFJ2": 0.0,
+        "LFJ1": 1.25, "THJ4": -0.021, "THJ3": 0.374, "THJ2": 0.0939, "THJ1": -0.126, "THJ0": -0.536,
+    },
 }
+HoldPose = Literal["cupped", "pddm"]
 
 #: the state channels ``objects_in_state`` appends: ball 0 then ball 1, x y z [m, world frame]
 BALL_CHANNELS: tuple[str, ...] = tuple(f"ball{i}_{c}" for i in range(2) for c in "xyz")
@@ -145,6 +163,9 @@ class ShadowHandParams(Params):
     ball_tracker_ports: list[int] | None = Field(
         None, description="real: UDP ports where a ball tracker streams ball 0 and ball 1 (hilstack.drivers.mocap.udp "
                           "format); emulated: the emulator streams its sim's balls unless emulator.balls is false")
+    hold_pose: HoldPose = Field(
+        "cupped", description="the hold pose (HOLD_POSES): the spec's home_action, where the sim's reset puts the hand "
+                              "and its balls; cupped (ours) or pddm (the PDDM reference code's keyframe; docs/baoding.md)")
     objects_in_state: bool = Field(
         False, description="append the two Baoding balls' positions [m, world frame] to the state (54-D): the "
                            "task's state, for learning and the drop detector (docs/baoding.md); needs a ball source "
@@ -173,10 +194,10 @@ def to_action(q_act_rad: np.ndarray) -> np.ndarray:
     return np.clip(2.0 * (np.asarray(q_act_rad, dtype=np.float64) - lo) / (hi - lo) - 1.0, -1.0, 1.0)
 
 
-def hold_pose_action() -> np.ndarray:
-    """The cupped hold pose as a normalized action (20,)."""
+def hold_pose_action(name: HoldPose = "cupped") -> np.ndarray:
+    """A hold pose of :data:`HOLD_POSES` as a normalized action (20,)."""
     q = np.zeros(len(ACTUATED_JOINTS))
-    for k, v in HOLD_POSE_RAD.items():
+    for k, v in HOLD_POSES[name].items():
         q[ACTUATED_JOINTS.index(k)] = v
     return to_action(q)
 
@@ -196,7 +217,7 @@ def shadow_hand_spec(p: ShadowHandParams) -> RobotSpec:
         action_rate_per_s=np.full(action.dim, p.max_action_rate_per_s),
         safe_action=None,  # stop = hold the measured position
         description="Shadow Dexterous Hand, 24 joints (20 actuated), joint position control",
-        home_action=hold_pose_action(),  # where every Baoding episode starts
+        home_action=hold_pose_action(p.hold_pose),  # where every Baoding episode starts
     )
 
 

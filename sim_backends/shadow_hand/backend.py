@@ -31,7 +31,7 @@ from hilstack.drivers.base import Health, Observation
 from hilstack.drivers.shadow_hand.config import (
     ACT_INDEX,
     COUPLED_JOINTS,
-    HOLD_POSE_RAD,
+    HOLD_POSES,
     JOINT_NAMES,
     ShadowHandParams,
     joint_tracking_error,
@@ -112,10 +112,10 @@ DELAY_NUMERIC = "hilstack_input_delay_s"
 CALIBRATION_JOINTS = ("WRJ1", "WRJ0")
 
 
-def hold_pose_q() -> np.ndarray:
-    """The cupped hold pose for all 24 joints [rad] (coupled J0 follow their J1)."""
+def hold_pose_q(name: str = "cupped") -> np.ndarray:
+    """A hold pose of ``HOLD_POSES`` for all 24 joints [rad] (coupled J0 follow their J1)."""
     q = np.zeros(len(JOINT_NAMES))
-    for k, v in HOLD_POSE_RAD.items():
+    for k, v in HOLD_POSES[name].items():
         q[JOINT_NAMES.index(k)] = v
     for c, p in COUPLED_JOINTS.items():
         q[JOINT_NAMES.index(c)] = COUPLING_RATIO * q[JOINT_NAMES.index(p)]
@@ -205,7 +205,7 @@ class ShadowHandSim(LockstepSim):
                 # hold pose (normalized units); the motors' efforts recorded after the joint channels
                 "excite": {"place": {"sim": "sim", "emulated": "sim"}, "bench": {"balls": False},
                            "driver": {"objects_in_state": False},  # parked balls: the efforts follow the joints
-                           "mid": hold_pose_action().tolist(), "command": "position", "amplitude": 0.25,
+                           "mid": hold_pose_action(p.hold_pose).tolist(), "command": "position", "amplitude": 0.25,
                            "extra_state": "effort_nm", "extra_names": [f"{j}_effort" for j in ACTUATED_JOINTS],
                            "extra_unit": "N·m",
                            # the hand's clock (HAND_STATUS.t_fw_ms) stamps one whole telemetry cycle: a
@@ -297,7 +297,8 @@ class ShadowHandSim(LockstepSim):
         m, d, h = self.model, self.data, self.hand
         mujoco.mj_resetData(m, d)  # the reset arm, if any, goes back to its parked pose too
         self._badqacc_seen = 0
-        q = hold_pose_q() if q_rad is None else np.asarray(q_rad, dtype=np.float64).reshape(len(JOINT_NAMES))
+        q = hold_pose_q(self.params.hold_pose) if q_rad is None else np.asarray(q_rad, dtype=np.float64).reshape(
+            len(JOINT_NAMES))
         d.qpos[h.qpos_adr] = np.clip(q, h.joint_low, h.joint_high)
         mujoco.mj_forward(m, d)
         palm = d.xpos[self._palm].copy()
@@ -340,7 +341,7 @@ class ShadowHandSim(LockstepSim):
         with self.world_lock:
             m, d, h = self.model, self.data, self.hand
             palm, rot = d.xpos[self._palm].copy(), d.xmat[self._palm].reshape(3, 3).copy()
-            rest = _BALL_REST.get(self.sim.model_dump_json(exclude={"seed", "world", "tracker"}))
+            rest = _BALL_REST.get(self._rest_key())
             if rest is None:
                 balls = palm + rot @ np.array([0.0, -0.03, 0.05]) + np.array([[-0.022, 0.0, 0.0], [0.022, 0.0, 0.0]])
             else:
@@ -351,6 +352,10 @@ class ShadowHandSim(LockstepSim):
                 d.qvel[da:da + 6] = 0.0
             mujoco.mj_forward(m, d)
             self.world_lock.notify_all()
+
+    def _rest_key(self) -> str:
+        """What the balls' resting place depends on: the scene's settings and the hold pose."""
+        return self.params.hold_pose + self.sim.model_dump_json(exclude={"seed", "world", "tracker"})
 
     def _rest_balls(self, q_rad: np.ndarray | None, start_m: np.ndarray) -> np.ndarray | None:
         """(2, 3) where the balls come to rest in the hand holding its hold pose, in the palm's
@@ -364,7 +369,7 @@ class ShadowHandSim(LockstepSim):
         s = self.sim
         if s.balls_settle_s <= 0 or q_rad is not None:
             return None
-        key = s.model_dump_json(exclude={"seed", "world", "tracker"})
+        key = self._rest_key()
         if key not in _BALL_REST:
             m, d, h = self.model, self.data, self.hand
             for i, adr in enumerate(h.ball_qpos_adr):
@@ -378,7 +383,7 @@ class ShadowHandSim(LockstepSim):
             _BALL_REST[key] = (self.balls_m() - palm) @ rot
             mujoco.mj_resetData(m, d)  # back to the reset's start: the hand at its pose, time 0
             self._badqacc_seen = 0
-            d.qpos[h.qpos_adr] = np.clip(hold_pose_q(), h.joint_low, h.joint_high)
+            d.qpos[h.qpos_adr] = np.clip(hold_pose_q(self.params.hold_pose), h.joint_low, h.joint_high)
             mujoco.mj_forward(m, d)
         return _BALL_REST[key]
 

@@ -235,5 +235,5 @@ def test_targets_by_the_clock_from_the_command_line(tmp_path, monkeypatch):
     r = CliRunner().invoke(app, ["demo", "baoding", "--quick", "--targets", "wall", "--out", str(tmp_path / "o")])
     assert r.exit_code != 0 and "--targets must be lead or clock, got 'wall'" in r.output, r.output
     r = CliRunner().invoke(app, ["demo", "roach", "--quick", "--targets", "clock", "--out", str(tmp_path / "r")])
-    assert r.exit_code != 0 and "--targets are for the baoding demo only" in r.output, r.output
+    assert r.exit_code != 0 and "--targets/--hold-pose are for the baoding demo only" in r.output, r.output
     assert not (tmp_path / "r").exists()

@@ -1,0 +1,103 @@
+"""The hand's hold pose is a setting (``params.hold_pose``: ``cupped``, ours, or ``pddm``, the PDDM
+reference code's keyframe; drivers/shadow_hand/config.py ``HOLD_POSES``): the spec's home action,
+the sim's reset, the task geometry read for it, and a Baoding run's start and action units follow
+it; a rig and a task read for different poses are refused in one line (docs/baoding.md, "Where the
+balls sit")."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hilstack.configs.schema import load_rig, rig_robot_config
+from hilstack.drivers.registry import make_driver
+from hilstack.drivers.shadow_hand.config import ShadowHandParams, hold_pose_action
+from hilstack.learning.baoding import BaodingConfig, BaodingRun, baoding_rig_problem, load_baoding_task
+from hilstack.sim_backends.shadow_hand.backend import ShadowHandSim
+
+RIGS = {"cupped": ("hand_sim", "baoding"), "pddm": ("hand_sim_pddm_pose", "baoding_pddm_pose")}
+
+
+def rig_sim(rig: str) -> ShadowHandSim:
+    return ShadowHandSim(make_driver(rig_robot_config(load_rig(rig), "hand")).params)
+
+
+@pytest.mark.parametrize("pose", ["cupped", "pddm"])
+def test_each_pose_holds_both_balls_10_s_and_its_task_config_is_its_sims(pose):
+    rig, task = RIGS[pose]
+    sim = rig_sim(rig)
+    try:
+        assert sim.params.hold_pose == pose
+        with sim:
+            np.testing.assert_allclose(sim.held_command, hold_pose_action(pose), atol=1e-9)  # the reset's pose
+            cfg = load_baoding_task(task)
+            np.testing.assert_allclose(cfg.center_m, sim.task.center_m, atol=1e-5)
+            np.testing.assert_allclose(cfg.axis, sim.task.axis, atol=1e-5)
+            assert cfg.phase0_rad == pytest.approx(sim.task.phase0_rad, abs=1e-5)
+            held = sim.held_command
+            for _ in range(100):  # 10 s at 10 Hz
+                sim.write(held)
+                sim.tick()
+                obs = sim.read()
+                assert not obs.flags["object_dropped"], f"{pose}: a ball dropped at {obs.t_s:.1f} s"
+            balls = obs.extras["balls_m"]
+            assert not cfg.dropped(balls) and cfg.in_palm(balls)
+    finally:
+        sim.cleanup()
+
+
+def test_the_pddm_pose_holds_the_balls_side_by_side_on_the_fingers():
+    """Ours rest one behind the other in the palm; the reference's pose holds them across the
+    hand, further out along the fingers (its hooked middle joints make the wall)."""
+    out = {}
+    for pose, (rig, _) in RIGS.items():
+        sim = rig_sim(rig)
+        try:
+            with sim:
+                d, palm = sim.data, sim.model.body("robot0:palm").id
+                rot = d.xmat[palm].reshape(3, 3)
+                out[pose] = (sim.balls_m() - d.xpos[palm]) @ rot  # palm frame: x across, z along the fingers
+        finally:
+            sim.cleanup()
+    across = {k: abs(v[0, 0] - v[1, 0]) for k, v in out.items()}
+    along = {k: abs(v[0, 2] - v[1, 2]) for k, v in out.items()}
+    assert across["pddm"] > 0.04 and along["pddm"] < 0.015, out["pddm"]
+    assert along["cupped"] > 0.02, out["cupped"]
+    assert out["pddm"][:, 2].mean() > out["cupped"][:, 2].mean() + 0.02  # further out along the fingers
+
+
+def test_a_run_starts_where_its_rig_holds_and_a_mismatch_is_refused(tmp_path, bus):
+    run = BaodingRun(BaodingConfig.from_preset("tiny", rig="hand_sim_pddm_pose", task="baoding_pddm_pose"),
+                     tmp_path / "run", bus)
+    np.testing.assert_allclose(run.hold, hold_pose_action("pddm"), atol=1e-9)
+    np.testing.assert_allclose(run.amap.to_driver(np.zeros(20)), hold_pose_action("pddm"), atol=1e-9)  # z = 0 holds
+    assert not np.allclose(hold_pose_action("pddm"), hold_pose_action("cupped"))
+    assert ShadowHandParams().hold_pose == "cupped"
+    for pose, (rig, task) in RIGS.items():
+        assert baoding_rig_problem(rig, task=task) is None, pose
+    msg = baoding_rig_problem("hand_sim_pddm_pose", task="baoding")
+    assert msg == ("rig hand_sim_pddm_pose's hand holds the 'pddm' pose but task baoding's geometry is for 'cupped' "
+                   "(hil demo baoding --hold-pose pddm; docs/baoding.md)")
+    assert "holds the 'cupped' pose" in baoding_rig_problem("hand_sim", task="baoding_pddm_pose")
+
+
+def test_hold_pose_from_the_command_line(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    import hilstack.tools.demo_baoding as demo
+    from hilstack.tools.cli import app
+
+    got = []
+
+    def fake_run(out, preset, seed, resume, rig, **overrides):
+        got.append((rig, overrides.get("task")))
+        raise ValueError("stopped before the rig")
+
+    monkeypatch.setattr(demo, "run_baoding_demo", fake_run)
+    r = CliRunner().invoke(app, ["demo", "baoding", "--quick", "--hold-pose", "pddm", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 1 and got == [("hand_sim_pddm_pose", "baoding_pddm_pose")], r.output
+    r = CliRunner().invoke(app, ["demo", "baoding", "--quick", "--rig", "hand_sim_pddm_pose", "--out", str(tmp_path / "o")])
+    assert r.exit_code != 0 and "holds the 'pddm' pose but task baoding's geometry" in r.output, r.output
+    r = CliRunner().invoke(app, ["demo", "baoding", "--quick", "--hold-pose", "flat", "--out", str(tmp_path / "o")])
+    assert r.exit_code != 0 and "--hold-pose must be cupped or pddm, got 'flat'" in r.output, r.output
+    assert len(got) == 1
