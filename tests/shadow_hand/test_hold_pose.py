@@ -40,8 +40,10 @@ def test_each_pose_holds_both_balls_10_s_and_its_task_config_is_its_sims(pose):
                 sim.tick()
                 obs = sim.read()
                 assert not obs.flags["object_dropped"], f"{pose}: a ball dropped at {obs.t_s:.1f} s"
+            assert sim.tracking_error(obs.state, held)["max_rad"] < 0.01
             balls = obs.extras["balls_m"]
             assert not cfg.dropped(balls) and cfg.in_palm(balls)
+            assert -5 * 0.2 < sim.task.reward(balls, obs.t_s) < 0  # the distance term only: no drop
     finally:
         sim.cleanup()
 
