@@ -870,6 +870,11 @@ def run_split(run_dir: Path, iteration: int):
     from hilstack.learning.baoding import BaodingFeatures, hold_action_map, load_baoding_task
 
     run_dir = Path(run_dir)
+    report = run_dir / "report.json"
+    task_name = json.loads(report.read_text()).get("config", {}).get("task", "baoding") if report.exists() else "baoding"
+    if task_name != "baoding":  # the probes and closed loops here build the default (cupped) hand
+        raise ValueError(f"{run_dir} ran task {task_name}: diagnose and oracle-train model the default hold pose's "
+                         "hand (task baoding) only")
     state = json.loads((run_dir / "checkpoint" / "state.json").read_text())
     if state["iteration"] != iteration:
         raise ValueError(f"{run_dir}: its checkpoint is after iteration {state['iteration']}, not {iteration}")

@@ -5,6 +5,7 @@ sim oracle predicts exactly what the hand does."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from hilstack.drivers.shadow_hand.config import ShadowHandParams, shadow_hand_spec
@@ -180,3 +181,16 @@ def test_an_oracle_episode_stopped_midway_keeps_the_unfinished_name(tmp_path, mo
     assert run_episodes(tmp_path) == {}
     with pytest.raises(FileExistsError, match="unfinished"):
         oracle_record(tmp_path, episodes=1, samples=2, seed=5, steps=3)
+
+
+def test_the_run_tools_refuse_a_run_of_another_hold_pose(tmp_path):
+    """diagnose / oracle-train build the default (cupped) hand and its action map: a run of the
+    pddm hold pose is refused in one line, not probed with the wrong pose's action units."""
+    import json
+
+    from hilstack.tools.demo_baoding import run_split
+
+    (tmp_path / "report.json").write_text(json.dumps({"config": {"task": "baoding_pddm_pose"}}))
+    with pytest.raises(ValueError, match=r"ran task baoding_pddm_pose: diagnose and oracle-train model") as e:
+        run_split(tmp_path, 3)
+    assert "\n" not in str(e.value)
