@@ -198,14 +198,15 @@ def baoding_rig_problem(rig: str, robot: str = "hand", task: str = "baoding") ->
     rcfg = rig_robot_config(cfg, robot)
     if rcfg.robot != load_robot(HAND).robot:
         return f"rig {cfg.name}'s {robot} is a {rcfg.robot}, not a Shadow Hand ({HAND})"
-    missing = [n for n in BALL_NAMES if n not in make_driver(rcfg).spec.state.names]
+    hand = make_driver(rcfg)
+    missing = [n for n in BALL_NAMES if n not in hand.spec.state.names]
     if missing:
         return (f"rig {cfg.name}: the {robot}'s state has no {', '.join(missing)} (Baoding needs the balls' positions "
                 "in the hand's state: objects_in_state: true and ball trackers; docs/baoding.md)")
     if cfg.reset is None:
         return (f"rig {cfg.name} has no reset: section (Baoding ends episodes on a drop or a timeout and puts the "
                 "balls back through the rig's reset procedure; docs/reset.md)")
-    pose, want = rcfg.params.get("hold_pose", "cupped"), baoding_task_params(task).hold_pose
+    pose, want = hand.params.hold_pose, baoding_task_params(task).hold_pose
     if pose != want:
         return (f"rig {cfg.name}'s {robot} holds the {pose!r} pose but task {task}'s geometry is for {want!r} "
                 f"(hil demo baoding --hold-pose {pose}; docs/baoding.md)")

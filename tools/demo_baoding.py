@@ -37,7 +37,7 @@ TARGETS: dict[str, dict[str, Any]] = {"lead": {}, "clock": {"task_overrides": {"
 #: ``hil demo baoding --hold-pose``: the hand's hold pose (drivers/shadow_hand/config.py:
 #: ``HOLD_POSES``), its sim rig and the task geometry read for it (docs/baoding.md, "Where the
 #: balls sit")
-HOLD_POSE_RUNS: dict[str, dict[str, str]] = {"cupped": {"rig": "hand_sim", "task": "baoding"},
+HOLD_POSE_RUNS: dict[str, dict[str, str]] = {"cupped": {"rig": FULL_RIG, "task": "baoding"},
                                              "pddm": {"rig": "hand_sim_pddm_pose", "task": "baoding_pddm_pose"}}
 
 
@@ -73,9 +73,9 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
         bus = with_endpoint(rig_cfg.bus, free_endpoint())
         provision_credentials(rig_cfg.name, bus, rig_cfg)
     report = BaodingRun(cfg, out, bus, resume=resume).run()
-    pose = next((k for k, v in HOLD_POSE_RUNS.items() if v["task"] == cfg.task), None)
-    pose_arg = "" if pose in (None, "cupped") else f" --hold-pose {pose}"
-    rig_arg = pose_arg + ("" if cfg.rig == (HOLD_POSE_RUNS[pose]["rig"] if pose else FULL_RIG) else f" --rig {cfg.rig}")
+    pose = next((k for k, v in HOLD_POSE_RUNS.items() if v["task"] == cfg.task), "cupped")
+    rig_arg = ("" if pose == "cupped" else f" --hold-pose {pose}") + (
+        "" if cfg.rig == HOLD_POSE_RUNS[pose]["rig"] else f" --rig {cfg.rig}")
     extra_arg = "".join(f" --extra-data {d}" for d in cfg.extra_recordings) + (
         f" --extra-repeat {cfg.extra_repeat}" if cfg.extra_recordings else "") + (
         f" --iterations {cfg.iterations}" if cfg.iterations != make_config(preset, seed).iterations else "") + "".join(
@@ -323,9 +323,7 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
         out = Path("out/baoding")
     try:
         if full:
-            s = run_full(out, rig=rig, ray=ray, workers=workers, resume=resume,
-                         **({} if targets is None else TARGETS[targets]),
-                         **({} if hold_pose is None else {"task": extra["task"]}))
+            s = run_full(out, rig=rig, ray=ray, workers=workers, resume=resume, **extra)  # --targets, --hold-pose
             typer.echo(f"final PDDM success_90 {100 * s['final_success_90']['mean']:.0f} ± "
                        f"{100 * s['final_success_90']['std']:.0f} %, success_180 {100 * s['final_success_180']['mean']:.0f} %, "
                        f"rotation {s['final_mean_rotation_deg']['mean']:.0f}°, drop rate "

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from hilstack.bus.schemas import RobotState
+from hilstack.control.reset.detectors import DropDetector
 from hilstack.drivers.shadow_hand.config import ShadowHandParams, shadow_hand_spec
 from hilstack.learning.baoding import BaodingConfig, BaodingRun
 
@@ -31,7 +33,12 @@ def test_an_episode_the_rig_ended_on_a_drop_is_scored_dropped(tmp_path, bus):
     st = states_ending_at(ON_THE_FINGERTIPS)
     assert not run.task.dropped(np.asarray(ON_THE_FINGERTIPS))  # the task's rule alone misses it
     t = np.arange(6) * 0.1
-    assert run.score(st, t, "supervisor: drop: ball0_z = 0.074 m (below 0.075 m)")["dropped"] == 1.0
+    # the reason as the rig's own drop detector words it (learning/mbrl.py prefixes "supervisor: ")
+    det = DropDetector(["ball0_z", "ball1_z"], min_height_m=0.075)
+    det.bind(NAMES)
+    why = det(RobotState(robot="hand", t_s=0.5, state=st[-1].tolist()))
+    assert why, "the rig's detector fires on the last state"
+    assert run.score(st, t, f"supervisor: {why}")["dropped"] == 1.0
     assert run.score(st, t, "supervisor: timeout: 10.0 s")["dropped"] == 0.0
     assert run.score(st, t, "")["dropped"] == 0.0
     fallen = states_ending_at([[0.98, 0.88, 0.0], [1.0, 0.88, 0.115]])

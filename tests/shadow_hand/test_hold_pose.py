@@ -103,3 +103,15 @@ def test_hold_pose_from_the_command_line(tmp_path, monkeypatch):
     r = CliRunner().invoke(app, ["demo", "baoding", "--quick", "--hold-pose", "flat", "--out", str(tmp_path / "o")])
     assert r.exit_code != 0 and "--hold-pose must be cupped or pddm, got 'flat'" in r.output, r.output
     assert len(got) == 1
+    # --full passes the pose's task (and --targets) to every seed's run
+    full = []
+
+    def fake_full(out, rig, ray, workers, resume, **overrides):
+        full.append((rig, overrides))
+        raise ValueError("stopped before the rig")
+
+    monkeypatch.setattr(demo, "run_full", fake_full)
+    r = CliRunner().invoke(app, ["demo", "baoding", "--full", "--hold-pose", "pddm", "--targets", "clock",
+                                 "--out", str(tmp_path / "f")])
+    assert r.exit_code == 1 and full == [("hand_sim_pddm_pose", {"task": "baoding_pddm_pose",
+                                                                   "task_overrides": {"max_lead_rad": None}})], r.output
