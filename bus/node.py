@@ -530,10 +530,23 @@ class NodeConflict(ValueError):
     """A node that must be alone on its rig (a driver node) found its name already alive."""
 
 
-class Node:
+class _AliveOnceBuilt(type):
+    """Node's metaclass: the liveliness token goes out when the whole constructor has run, the
+    subclass's subscriptions included. Peers act on a node's token (a driver node leaves reset
+    requests to the supervisor once it sees the supervisor alive); a token declared before the
+    subscriptions let a request sent in between go unheard, at start-up, by everyone."""
+
+    def __call__(cls, *args: Any, **kwargs: Any) -> Any:
+        node = super().__call__(*args, **kwargs)
+        node._declare_alive()
+        return node
+
+
+class Node(metaclass=_AliveOnceBuilt):
     """Base of every process on the bus.
 
-    Declares the liveliness token ``hil/<rig>/alive/<name>`` and holds the rig's
+    Declares the liveliness token ``hil/<rig>/alive/<name>`` once constructed (subscribe in
+    ``__init__``: what a node subscribes to later can miss what a peer sends on seeing it alive) and holds the rig's
     e-stop latch (``self.estop``, :class:`hilstack.bus.estop.EStopLatch`: every node remembers
     the last e-stop command and tells late driver nodes); SIGINT/SIGTERM set
     ``stop_event`` (when created in the main thread) so ``run()`` loops end cleanly
@@ -578,7 +591,7 @@ class Node:
                 raise NodeConflict(f"a node {name} is already alive on rig {rig} at {where}: another process "
                                    "(another user's rig of the same name?) drives it; give each rig its own "
                                    "bus.endpoint")
-        self._token = self.session.liveliness().declare_token(keys.alive(rig, name))
+        self._token: Any = None  # declared by _declare_alive once the constructor has run
         self._closeables: list[Any] = []
         self._closed = False
         self.estop = EStopLatch(self.session, rig, name,
@@ -591,6 +604,10 @@ class Node:
         self._forget_signals = (on_stop_signal(self.stop_event.set)
                                 if handle_signals and threading.current_thread() is threading.main_thread() else None)
         _open_nodes.add(self)
+
+    def _declare_alive(self) -> None:
+        if self._token is None and not self._closed:
+            self._token = self.session.liveliness().declare_token(keys.alive(self.rig, self.name))
 
     # -------------------------------------------------------------- pub/sub
     def publisher(self, key: str, typ: type[T], reliable: bool = False) -> Publisher[T]:
@@ -645,10 +662,11 @@ class Node:
                 c.close()
             except Exception:
                 pass
-        try:
-            self._token.undeclare()
-        except Exception:
-            pass
+        if self._token is not None:
+            try:
+                self._token.undeclare()
+            except Exception:
+                pass
         if self._own_session:
             self.session.close()
 
