@@ -74,9 +74,10 @@ def register(app: typer.Typer) -> None:
         targets: str | None = typer.Option(None, "--targets", help="baoding only: lead (the default: the targets "
                                            "run at most 60° ahead of the pair) | clock (the reference code's: by "
                                            "the step counter alone; docs/baoding.md)"),
-        hold_pose: str | None = typer.Option(None, "--hold-pose", help="baoding only: cupped (ours, the default) | "
-                                             "pddm (the PDDM reference code's keyframe, its rig hand_sim_pddm_pose "
-                                             "and task geometry; docs/baoding.md)"),
+        hold_pose: str | None = typer.Option(None, "--hold-pose", help="baoding only: pddm (the PDDM reference code's keyframe, "
+                                             "rig hand_sim_pddm_pose: the thesis preset's default) | cupped (ours, "
+                                             "rig hand_sim: --quick's default); without it --rig's pose "
+                                             "(docs/baoding.md)"),
     ) -> None:
         """MBRL on the simulated VelociRoACH with every node on the bus; writes a report.
 

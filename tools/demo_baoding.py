@@ -22,10 +22,6 @@ from hilstack.learning.baoding import BaodingConfig, BaodingRun, probe_model
 from hilstack.tools.demo import free_endpoint
 
 FULL_SEEDS = (0, 1, 2)
-#: the full run's rig. The teleport rig: on the reset-arm rig (hand_sim_arm) a ball that comes to
-#: rest on the hand's edge is neither in the palm nor at the pick-up spot, and the arm's
-#: procedure cannot recover it (docs/baoding.md), so a 9-h run would stop at the first such drop
-FULL_RIG = "hand_sim"
 
 
 #: ``hil demo baoding --targets``: how the targets' phase moves (docs/baoding.md, "Targets that
@@ -36,9 +32,30 @@ TARGETS: dict[str, dict[str, Any]] = {"lead": {}, "clock": {"task_overrides": {"
 
 #: ``hil demo baoding --hold-pose``: the hand's hold pose (drivers/shadow_hand/config.py:
 #: ``HOLD_POSES``), its sim rig and the task geometry read for it (docs/baoding.md, "Where the
-#: balls sit")
-HOLD_POSE_RUNS: dict[str, dict[str, str]] = {"cupped": {"rig": FULL_RIG, "task": "baoding"},
+#: balls sit"). Without the flag a run holds its preset's pose (BaodingConfig: the thesis preset
+#: the reference's ``pddm``, quick and tiny our ``cupped``), or, given ``--rig``, that rig's. The
+#: sim rigs teleport the balls back: on the reset-arm rig (hand_sim_arm) a ball that comes to
+#: rest on the hand's edge is neither in the palm nor at the pick-up spot, and the arm's
+#: procedure cannot recover it (docs/baoding.md), so a thesis-scale run would stop at the first such drop
+HOLD_POSE_RUNS: dict[str, dict[str, str]] = {"cupped": {"rig": "hand_sim", "task": "baoding"},
                                              "pddm": {"rig": "hand_sim_pddm_pose", "task": "baoding_pddm_pose"}}
+
+
+def pose_rig_task(preset: str, rig: str | None = None, hold_pose: str | None = None) -> tuple[str, str]:
+    """The rig and task of a run: ``hold_pose`` (a key of :data:`HOLD_POSE_RUNS`) gives the task
+    and, unless ``rig``, the rig; ``rig`` alone: the task of the pose its hand holds; neither:
+    the preset's. ValueError on an unknown pose."""
+    if hold_pose is not None:
+        if hold_pose not in HOLD_POSE_RUNS:
+            raise ValueError(f"--hold-pose must be {' or '.join(HOLD_POSE_RUNS)}, got {hold_pose!r}")
+        return rig or HOLD_POSE_RUNS[hold_pose]["rig"], HOLD_POSE_RUNS[hold_pose]["task"]
+    cfg = make_config(preset, 0)
+    if rig is None:
+        return cfg.rig, cfg.task
+    from hilstack.learning.baoding import rig_hold_pose
+
+    pose = rig_hold_pose(rig, cfg.robot)
+    return rig, HOLD_POSE_RUNS[pose]["task"] if pose in HOLD_POSE_RUNS else cfg.task
 
 
 def make_config(preset: str, seed: int, **overrides: Any) -> BaodingConfig:
@@ -73,12 +90,14 @@ def run_baoding_demo(out: Path, preset: str = "quick", seed: int = 0, bus: BusCo
         bus = with_endpoint(rig_cfg.bus, free_endpoint())
         provision_credentials(rig_cfg.name, bus, rig_cfg)
     report = BaodingRun(cfg, out, bus, resume=resume).run()
-    pose = next((k for k, v in HOLD_POSE_RUNS.items() if v["task"] == cfg.task), "cupped")
-    rig_arg = ("" if pose == "cupped" else f" --hold-pose {pose}") + (
-        "" if cfg.rig == HOLD_POSE_RUNS[pose]["rig"] else f" --rig {cfg.rig}")
+    default = make_config(preset, seed)
+    pose = next((k for k, v in HOLD_POSE_RUNS.items() if v["task"] == cfg.task), None)
+    rig_arg = ("" if cfg.task == default.task or pose is None else f" --hold-pose {pose}") + (
+        "" if cfg.rig == (HOLD_POSE_RUNS[pose]["rig"] if pose and cfg.task != default.task else default.rig)
+        else f" --rig {cfg.rig}")
     extra_arg = "".join(f" --extra-data {d}" for d in cfg.extra_recordings) + (
         f" --extra-repeat {cfg.extra_repeat}" if cfg.extra_recordings else "") + (
-        f" --iterations {cfg.iterations}" if cfg.iterations != make_config(preset, seed).iterations else "") + "".join(
+        f" --iterations {cfg.iterations}" if cfg.iterations != default.iterations else "") + "".join(
         f" --targets {k}" for k, v in TARGETS.items() if v and v.get("task_overrides") == cfg.task_overrides)
     report["command"] = (f"hil demo baoding{' --quick' if preset == 'quick' else ''}{rig_arg} --seed {seed} --out {out}"
                          f"{extra_arg}{' --resume' if resume else ''}")
@@ -135,10 +154,10 @@ def seeds_on_sweep(out: Path, seeds: tuple[int, ...], preset: str, rig: str, ove
     return [sw["results"][t.key] for t in tasks], sw["sweep"]
 
 
-def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thesis", rig: str = FULL_RIG,
+def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thesis", rig: str | None = None,
              ray: str | None = None, workers: int = 1, resume: bool = False, **overrides: Any) -> dict[str, Any]:
     """The thesis' settings over ``seeds``: per-seed reports in ``out/seed_<k>`` and the
-    final iteration's metrics as mean ± std across seeds, on :data:`FULL_RIG` by default.
+    final iteration's metrics as mean ± std across seeds, on the preset's rig unless ``rig``.
     ``ray`` (``local`` or a Ray cluster's address): every seed a sweep task, results in
     ``out/tasks/`` as each finishes, a re-run does only the seeds missing (docs/scaling.md).
     Each seed's run is already independent (its own rig, endpoint and seeded generators), so
@@ -146,6 +165,7 @@ def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thes
     stopped one continues after its last finished iteration, the rest start."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    rig = rig or overrides.pop("rig", None) or make_config(preset, 0, **overrides).rig
     sweep = None
     if ray is None:
         runs = [seed_run(out / f"seed_{s}", preset, s, rig, overrides, resume) for s in seeds]
@@ -281,10 +301,10 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
                 extra_repeat: int = 1, iterations: int | None = None, targets: str | None = None,
                 hold_pose: str | None = None) -> None:
     """The `hil demo baoding` verb (registered in tools/cmd_demo.py); ``ray``: ``--full`` only;
-    ``rig``: the rig config (default :data:`FULL_RIG`), refused at once when it cannot run
+    ``rig``: the rig config (default the preset's: :func:`pose_rig_task`), refused at once when it cannot run
     Baoding (:func:`~hilstack.learning.baoding.baoding_rig_problem`); ``targets``: a key of
     :data:`TARGETS`; ``hold_pose``: a key of :data:`HOLD_POSE_RUNS` (its rig unless ``rig``, and
-    its task geometry)."""
+    its task geometry; without it the rig's pose, or the preset's)."""
     import typer
 
     from hilstack.learning.baoding import baoding_rig_problem
@@ -310,13 +330,11 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
         if iterations < 1:
             raise typer.BadParameter(f"--iterations must be >= 1, got {iterations}")
         extra["iterations"] = iterations
-    if hold_pose is not None:
-        if hold_pose not in HOLD_POSE_RUNS:
-            raise typer.BadParameter(f"--hold-pose must be {' or '.join(HOLD_POSE_RUNS)}, got {hold_pose!r}")
-        extra["task"] = HOLD_POSE_RUNS[hold_pose]["task"]
-        rig = rig or HOLD_POSE_RUNS[hold_pose]["rig"]
-    rig = rig or FULL_RIG
-    problem = baoding_rig_problem(rig, task=extra.get("task", "baoding"))
+    try:
+        rig, extra["task"] = pose_rig_task("quick" if quick else "thesis", rig, hold_pose)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
+    problem = baoding_rig_problem(rig, task=extra["task"])
     if problem:
         raise UserError(f"hil demo baoding --rig {rig}: {problem}")
     if out == Path("out/demo"):

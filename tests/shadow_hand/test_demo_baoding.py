@@ -390,7 +390,7 @@ def test_demo_baoding_rig_option_reaches_the_run_and_unfit_rigs_are_refused_in_o
     for args, rig in (((), "hand_sim"), (("--rig", "hand_emulated"), "hand_emulated")):
         r = invoke(*args)
         assert r.exit_code == 1 and "stop here" in r.output, r.output
-        assert ran.pop() == {"preset": "quick", "rig": rig}
+        assert ran.pop() == {"preset": "quick", "rig": rig, "task": "baoding"}  # both rigs hold the cupped pose
     no_reset = yaml.safe_load(config_path("rigs", "hand_sim").read_text())
     del no_reset["reset"]
     (tmp_path / "hand_noreset.yaml").write_text(yaml.safe_dump({**no_reset, "name": "hand_noreset"}))

@@ -75,6 +75,10 @@ def test_a_run_starts_where_its_rig_holds_and_a_mismatch_is_refused(tmp_path, bu
     np.testing.assert_allclose(run.amap.to_driver(np.zeros(20)), hold_pose_action("pddm"), atol=1e-9)  # z = 0 holds
     assert not np.allclose(hold_pose_action("pddm"), hold_pose_action("cupped"))
     assert ShadowHandParams().hold_pose == "cupped"
+    # the thesis preset holds the reference's pose (measured: the pair turns in it), quick and tiny ours
+    thesis, quick = BaodingConfig(), BaodingConfig.from_preset("quick")
+    assert (thesis.rig, thesis.task) == RIGS["pddm"] and (quick.rig, quick.task) == RIGS["cupped"]
+    assert (BaodingConfig.from_preset("tiny").rig, BaodingConfig.from_preset("tiny").task) == RIGS["cupped"]
     for pose, (rig, task) in RIGS.items():
         assert baoding_rig_problem(rig, task=task) is None, pose
     msg = baoding_rig_problem("hand_sim_pddm_pose", task="baoding")
@@ -98,11 +102,22 @@ def test_hold_pose_from_the_command_line(tmp_path, monkeypatch):
     monkeypatch.setattr(demo, "run_baoding_demo", fake_run)
     r = CliRunner().invoke(app, ["demo", "baoding", "--quick", "--hold-pose", "pddm", "--out", str(tmp_path / "o")])
     assert r.exit_code == 1 and got == [("hand_sim_pddm_pose", "baoding_pddm_pose")], r.output
-    r = CliRunner().invoke(app, ["demo", "baoding", "--quick", "--rig", "hand_sim_pddm_pose", "--out", str(tmp_path / "o")])
-    assert r.exit_code != 0 and "holds the 'pddm' pose but task baoding's geometry" in r.output, r.output
+    # without --hold-pose: --rig's own pose picks the task's geometry; neither: the preset's pose
+    # (the thesis preset the reference's, the quick one ours)
+    for args, want in [(["--quick", "--rig", "hand_sim_pddm_pose"], ("hand_sim_pddm_pose", "baoding_pddm_pose")),
+                       (["--rig", "hand_emulated"], ("hand_emulated", "baoding")),
+                       (["--quick"], ("hand_sim", "baoding")),
+                       ([], ("hand_sim_pddm_pose", "baoding_pddm_pose")),
+                       (["--hold-pose", "cupped"], ("hand_sim", "baoding"))]:
+        got.clear()
+        r = CliRunner().invoke(app, ["demo", "baoding", *args, "--out", str(tmp_path / "o")])
+        assert r.exit_code == 1 and got == [want], (args, r.output)
+    r = CliRunner().invoke(app, ["demo", "baoding", "--hold-pose", "pddm", "--rig", "hand_sim", "--out", str(tmp_path / "o")])
+    assert r.exit_code != 0 and "holds the 'cupped' pose but task baoding_pddm_pose's geometry" in r.output, r.output
+    got.clear()
     r = CliRunner().invoke(app, ["demo", "baoding", "--quick", "--hold-pose", "flat", "--out", str(tmp_path / "o")])
     assert r.exit_code != 0 and "--hold-pose must be cupped or pddm, got 'flat'" in r.output, r.output
-    assert len(got) == 1
+    assert not got
     # --full passes the pose's task (and --targets) to every seed's run
     full = []
 
@@ -115,3 +130,19 @@ def test_hold_pose_from_the_command_line(tmp_path, monkeypatch):
                                  "--out", str(tmp_path / "f")])
     assert r.exit_code == 1 and full == [("hand_sim_pddm_pose", {"task": "baoding_pddm_pose",
                                                                    "task_overrides": {"max_lead_rad": None}})], r.output
+
+
+def test_a_run_of_the_old_default_pose_is_told_how_to_resume(tmp_path, bus):
+    """A thesis-preset run from before its default was the reference's pose: --resume names the flag."""
+    import json
+    from dataclasses import asdict
+
+    out = tmp_path / "run"
+    (out / "checkpoint").mkdir(parents=True)
+    (out / "checkpoint" / "state.json").write_text(json.dumps({"iteration": 3}))
+    old = {**asdict(BaodingConfig()), "rig": "hand_sim", "task": "baoding"}
+    (out / "report.json").write_text(json.dumps({"config": old, "partial": True}, default=list))
+    with pytest.raises(ValueError, match=r"other settings \(rig, task\).*it held the cupped pose: add --hold-pose cupped"):
+        BaodingRun(BaodingConfig(), out, bus, resume=True).load_checkpoint()
+    run = BaodingRun(BaodingConfig(rig="hand_sim", task="baoding"), out, bus, resume=True)
+    assert run.load_checkpoint()["state"]["iteration"] == 3
