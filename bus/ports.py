@@ -10,7 +10,10 @@ where the OS never hands one out by itself, checked free by binding it, and hand
 from a per-process start. Processes started together have pids a few apart: their starts are
 spread over the range by a multiplicative hash of the pid (pid mod span put them a few ports
 apart, so each walked onto the ports the next one had taken: parallel test runs collided on
-their rigs' endpoints, NodeConflict). Pure standard library.
+their rigs' endpoints, NodeConflict). ``HIL_PORT_SLOT=k/n`` confines a process and every
+process it starts to part k of n of the range: parallel test workers set it (tests/conftest.py),
+so the ports their demos, `hil` subprocesses and Ray tasks draw never meet another worker's.
+Pure standard library.
 """
 
 from __future__ import annotations
@@ -20,6 +23,9 @@ import socket
 from pathlib import Path
 
 _next: dict[tuple[int, int], int] = {}
+
+#: ``k/n``: draw from part k of n of the range, unless a caller names its own part
+SLOT_ENV = "HIL_PORT_SLOT"
 
 
 def _unassigned_range() -> tuple[int, int]:
@@ -37,9 +43,27 @@ def _spread(pid: int, span: int) -> int:
     return ((pid * 0x9E3779B97F4A7C15) & (2**64 - 1)) * span >> 64
 
 
-def free_port(host: str = "127.0.0.1", slot: int = 0, slots: int = 1) -> int:
+def _env_slot() -> tuple[int, int]:
+    """(slot, slots) from ``$HIL_PORT_SLOT`` (``k/n``); (0, 1), the whole range, without it."""
+    v = os.environ.get(SLOT_ENV, "").strip()
+    if not v:
+        return 0, 1
+    try:
+        k, n = (int(x) for x in v.split("/"))
+    except ValueError:
+        k = n = -1
+    if not (1 <= n <= 64 and 0 <= k < n):
+        raise ValueError(f"{SLOT_ENV}={v!r}: expected k/n with 0 <= k < n <= 64, e.g. 1/4")
+    return k, n
+
+
+def free_port(host: str = "127.0.0.1", slot: int | None = None, slots: int | None = None) -> int:
     """A port free on ``host`` now, below the ephemeral range. ``slots`` > 1 splits the range
-    into that many parts and draws from part ``slot`` (parallel test workers: one part each)."""
+    into that many parts and draws from part ``slot`` (parallel test workers: one part each);
+    neither given: the part ``$HIL_PORT_SLOT`` names, else the whole range."""
+    if slot is None and slots is None:
+        slot, slots = _env_slot()
+    slot, slots = slot or 0, slots or 1
     if not (1 <= slots <= 64 and 0 <= slot < slots):
         raise ValueError(f"slot {slot} of {slots}: expected 0 <= slot < slots <= 64")
     lo, hi = _unassigned_range()

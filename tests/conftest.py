@@ -27,6 +27,17 @@ TEST_HOME = tempfile.mkdtemp(prefix="hil-test-home-")
 os.environ["HOME"] = TEST_HOME
 atexit.register(shutil.rmtree, TEST_HOME, ignore_errors=True)
 
+# Parallel runs (pytest-xdist): a worker's processes draw their rig ports from the worker's own
+# quarter of the range below the ephemeral ports (bus/ports.py), the tests' endpoints and the
+# ports its demos, `hil` subprocesses and Ray tasks draw alike: two workers never draw one port.
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]
+os.environ["HIL_PORT_SLOT"] = f"{int(_WORKER) % 4 if _WORKER.isdigit() else 0}/4"
+# Ray (the sweep tests' local runtimes) joins a cluster it finds on the host when not told an
+# address (RAY_ADDRESS, or the last `ray start` recorded in /tmp/ray): a test's never does, and
+# keeps its session files in this process's own directory.
+os.environ.pop("RAY_ADDRESS", None)
+os.environ["RAY_TMPDIR"] = TEST_HOME
+
 
 @pytest.fixture
 def bus():

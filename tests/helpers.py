@@ -12,11 +12,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def free_port() -> int:
     """A port below the OS's ephemeral range (hilstack.bus.ports), each pytest-xdist worker
-    drawing from its own quarter of it."""
+    drawing from its own quarter of it (``HIL_PORT_SLOT``, set by tests/conftest.py)."""
     from hilstack.bus.ports import free_port as _free_port
 
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]
-    return _free_port(slot=int(worker) % 4 if worker.isdigit() else 0, slots=4)
+    return _free_port()
 
 
 class Proc:

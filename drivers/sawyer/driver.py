@@ -113,12 +113,12 @@ class SawyerDriver(Driver):
                             "with NaN/inf); is the bridge running and the robot enabled?")
 
     def _start_emulator(self) -> str:
-        import socket
+        from hilstack.bus.ports import free_endpoint
 
-        with socket.socket() as s:  # a free loopback port for the emulator to listen on
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        endpoint = f"tcp/127.0.0.1:{port}"
+        # the emulator's loopback endpoint, below the ephemeral range (bus/ports.py): a bind(0)
+        # port could be taken by any Zenoh session's ephemeral listener or outgoing link while
+        # the emulator starts (seconds on a loaded machine)
+        endpoint = free_endpoint()
         cfg = {"namespace": self.params.namespace, "joint_states_topic": self.params.joint_states_topic,
                "joint_command_topic": self.params.joint_command_topic}
         e = self.params.emulator

@@ -162,8 +162,8 @@ def _states(path: Path) -> list[dict]:
     return out
 
 
-def _robot_yaml(tmp_path: Path, robot: str, bus_name: str, **emulator) -> Path:
-    cfg = {"robot": robot, "backend": "emulated", "params": {"bus_name": bus_name, "emulator": emulator}}
+def _robot_yaml(tmp_path: Path, robot: str, bus_name: str, params: dict | None = None, **emulator) -> Path:
+    cfg = {"robot": robot, "backend": "emulated", "params": {**(params or {}), "bus_name": bus_name, "emulator": emulator}}
     f = tmp_path / f"{robot}.yaml"
     f.write_text(json.dumps(cfg))  # JSON is YAML
     return f
@@ -301,9 +301,14 @@ def test_hil_drive_exits_1_when_the_emulator_freezes_or_dies(tmp_path, sig):
 def test_ctrl_c_of_hil_drive_still_sends_the_stop_over_the_bus(tmp_path):
     """Ctrl-C reaches the whole process group, the emulator too: it must not leave before
     the driver's stop (it did: `link error: ... Input/output error`, exit 1); the drive ends
-    with its summary (exit 0)."""
+    with its summary (exit 0).
+
+    A gone emulator fails the next write at once (EIO), whatever the link timeout; the
+    timeout is raised from 10 periods (0.5 s) to 100 (5 s) only so that a loaded machine
+    (two pytest-xdist workers and the emulator on 2 cores) starving the emulator for half a
+    second does not end the drive with a link error before or after the Ctrl-C."""
     states = tmp_path / "servos.jsonl"
-    cfg = _robot_yaml(tmp_path, "widowx", "t_ctrl_c", state_file=str(states))
+    cfg = _robot_yaml(tmp_path, "widowx", "t_ctrl_c", params={"link_timeout_periods": 100}, state_file=str(states))
     host = subprocess.Popen([sys.executable, "-m", "hilstack.tools.cli", "drive", str(cfg), "--action", "0.3,0,0,0,0,0",
                              "--seconds", "60"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)

@@ -38,3 +38,21 @@ def test_processes_started_together_draw_disjoint_ports(monkeypatch, slots):
     base = lo + (slots - 1) * span
     assert all(base <= p < base + span for ps in drawn.values() for p in ps)
     assert all(len(set(ps)) == len(ps) for ps in drawn.values())  # a process never repeats itself
+
+
+def test_hil_port_slot_confines_every_draw_without_a_part_of_its_own(monkeypatch):
+    """A test worker's demos, `hil` subprocesses and Ray tasks call free_port() without a part:
+    $HIL_PORT_SLOT (set per pytest-xdist worker by tests/conftest.py) keeps them in the worker's."""
+    monkeypatch.setattr(ports.socket, "socket", _AlwaysFree)
+    monkeypatch.setattr(ports, "_next", {})
+    lo, hi = ports._unassigned_range()
+    span = (hi - lo) // 4
+    monkeypatch.setenv("HIL_PORT_SLOT", "2/4")
+    assert all(lo + 2 * span <= ports.free_port() < lo + 3 * span for _ in range(50))
+    assert lo <= ports.free_port(slot=0, slots=4) < lo + span  # a caller's own part wins
+    monkeypatch.delenv("HIL_PORT_SLOT")
+    assert all(lo <= ports.free_port() < hi for _ in range(50))  # without it: the whole range
+    for bad in ("4/4", "1", "a/b", "0/0"):
+        monkeypatch.setenv("HIL_PORT_SLOT", bad)
+        with pytest.raises(ValueError, match="HIL_PORT_SLOT"):
+            ports.free_port()
