@@ -71,8 +71,12 @@ def test_late_readings_keep_the_recording_whole_on_the_hand_clock(tmp_path):
     dev = rec[0].t_s
     steps = np.diff(dev)
     # continuous: each kept reading is the next telemetry cycle, 0.2 s of the hand's clock later (the
-    # emulator's wall-clock pacing moves a cycle by a tick or two; a slip gives up time, never adds it)
-    assert np.all(steps > 0.15) and np.all(steps < 0.25), steps
+    # emulator's wall-clock pacing moves a cycle by a tick or two; a slip gives up time, never adds it).
+    # A host stalled past a whole cycle (load 6: two xdist workers beside two experiments) never read
+    # that cycle's frame: the next step is two periods, still on the hand's telemetry grid
+    cycles = np.round(steps / 0.2)
+    assert np.all(cycles >= 1) and np.all(np.abs(steps - 0.2 * cycles) < 0.05), steps
+    assert np.mean(cycles == 1) >= 0.75, steps
     # every distinct cycle is kept, the late ones too
     assert rec[0].n == len({m.device_t_s for m in states})
     host = episodes_from_mcap(path, normalize=False, clock="host")
