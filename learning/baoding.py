@@ -556,7 +556,9 @@ def _mean_std(x: list[float]) -> dict[str, float]:
 
 
 def summarize(per_episode: list[dict[str, float]]) -> dict[str, Any]:
-    """Mean ± std return, drops, rotation and 90°/180° success rates over episodes."""
+    """Mean ± std return, drops, rotation and 90°/180° success rates over episodes. ``held_90``:
+    the episodes that turned 90° and never dropped (success_90 counts a turn before a drop, so a
+    policy that turns the pair and then loses it scores there, not here)."""
     col = {k: [m[k] for m in per_episode] for k in ("return", "dropped", "rotation_deg", "turned_90", "turned_180",
                                                      "steps")}
     if not per_episode:
@@ -566,6 +568,7 @@ def summarize(per_episode: list[dict[str, float]]) -> dict[str, Any]:
             "drops": int(sum(col["dropped"])), "drop_rate": float(np.mean(col["dropped"])),
             "mean_rotation_deg": float(np.mean(col["rotation_deg"])),
             "success_90": float(np.mean(col["turned_90"])), "success_180": float(np.mean(col["turned_180"])),
+            "held_90": float(np.mean(np.asarray(col["turned_90"], float) * (1.0 - np.asarray(col["dropped"], float)))),
             "mean_steps": float(np.mean(col["steps"]))}
 
 
@@ -1145,7 +1148,8 @@ class BaodingRun(MbrlRun):
                 self.save_checkpoint(model, it, data_recs, time.monotonic() - t0)
                 _log(self.cfg, f"iteration {it}: trained on {row['points']} points (val_h {train.get('val_h', float('nan')):.3f}); "
                                f"PDDM {row['mean_return']:.1f} mean return, {row['drops']}/{len(scores)} drops, "
-                               f"{row['mean_rotation_deg']:.0f}° mean rotation, success_90 {row['success_90']:.2f}, "
+                               f"{row['mean_rotation_deg']:.0f}° mean rotation, success_90 {row['success_90']:.2f} "
+                               f"(held {row['held_90']:.2f}), "
                                f"ESS {row['weights'].get('ess_mean', float('nan')):.1f}, "
                                f"shift {row['weights'].get('mean_shift_rms', float('nan')):.3f}, "
                                f"{row['timing']['ms_per_step']:.0f} ms/step (plan p50 {row['timing']['plan_ms_p50'] or 0:.0f} ms)")

@@ -83,8 +83,11 @@ def _resolve_inference_dtype(choice: str) -> torch.dtype:
     """``"fp32"`` / ``"bf16"`` / ``"auto"``.
 
     ``"auto"`` picks bfloat16 only with AMX: on a CPU with AVX512-BF16 but no AMX, bf16
-    batched matmuls measured *slower* than fp32 (``tools/bench_plan.py`` reports both), while
-    with AMX the platform notes measured a 2.8x speed-up for this very model.
+    batched matmuls once measured *slower* than fp32 (``tools/bench_plan.py`` reports both), while
+    with AMX the platform notes measured a 2.8x speed-up for this very model. On an AMD EPYC with
+    AVX512-BF16 and no AMX the Baoding plan (K = 700, one thread) measured 2.5-2.7x faster in
+    bf16 (docs/baoding.md, "33 iterations in the reference's pose"): ``auto`` keeps fp32 there
+    until a run shows the turns unchanged in bf16.
     ``"bf16"`` forces bfloat16 whenever the CPU has any native bf16 support, else fp32.
     """
     if choice in ("fp32", "float32"):

@@ -191,6 +191,8 @@ def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thes
         "random_mean_return": across("rr", lambda r: r["random_policy"]["mean_return"]),
         "runs": [str(out / f"seed_{s}" / "report.json") for s in seeds],
     }
+    if all("held_90" in r["iterations"][-1] for r in runs):  # reports from before it have none
+        summary["final_held_90"] = across("h90", lambda r: r["iterations"][-1]["held_90"])
     if sweep is not None:
         summary["sweep"] = sweep
     (out / "report.json").write_text(json.dumps(summary, indent=1))
@@ -240,7 +242,8 @@ def report_markdown(r: dict[str, Any]) -> str:
     c, p, rs = r["config"], r["planner"], r["resets"]
 
     def row(label: str, m: dict[str, Any], extra: str = "") -> str:
-        return (f"| {label} | {m['episodes']} | {100 * m['success_90']:.0f} % | {100 * m['success_180']:.0f} % | "
+        held = f"{100 * m['held_90']:.0f} %" if "held_90" in m else "–"
+        return (f"| {label} | {m['episodes']} | {100 * m['success_90']:.0f} % | {held} | {100 * m['success_180']:.0f} % | "
                 f"{m['mean_rotation_deg']:.0f} | {m['drops']} ({100 * m['drop_rate']:.0f} %) | {m['mean_steps']:.0f} | "
                 f"{m['return']['mean']:.1f} ± {m['return']['std']:.1f} | {extra} |")
 
@@ -274,8 +277,8 @@ def report_markdown(r: dict[str, Any]) -> str:
         "whose model prediction drops too. ESS: effective sample size of PDDM's weights per plan; shift: the "
         "RMS change of the planned mean per plan (planner units).",
         "",
-        "| policy | episodes | 90° | 180° | mean rotation (°) | drops | steps held | return (mean ± std) | model val 1-step / H-step; drops foreseen; weights |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| policy | episodes | 90° | 90° held (no drop) | 180° | mean rotation (°) | drops | steps held | return (mean ± std) | model val 1-step / H-step; drops foreseen; weights |",
+        "|---|---|---|---|---|---|---|---|---|---|",
         row("random (uniform actions)", r["random_policy"]),
         row("hold (keep the start pose)", r["hold_policy"]),
     ]
@@ -343,7 +346,9 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
         if full:
             s = run_full(out, rig=rig, ray=ray, workers=workers, resume=resume, **extra)  # --targets, --hold-pose
             typer.echo(f"final PDDM success_90 {100 * s['final_success_90']['mean']:.0f} ± "
-                       f"{100 * s['final_success_90']['std']:.0f} %, success_180 {100 * s['final_success_180']['mean']:.0f} %, "
+                       f"{100 * s['final_success_90']['std']:.0f} % (held to the end "
+                       f"{100 * s.get('final_held_90', {}).get('mean', float('nan')):.0f} %), "
+                       f"success_180 {100 * s['final_success_180']['mean']:.0f} %, "
                        f"rotation {s['final_mean_rotation_deg']['mean']:.0f}°, drop rate "
                        f"{s['final_drop_rate']['mean']:.2f} over seeds {s['seeds']}")
             typer.echo(f"report: {out / 'report.json'}")
@@ -355,7 +360,8 @@ def cli_baoding(out: Path, quick: bool, full: bool, seed: int, ray: str | None =
     last = r["iterations"][-1]
     for label, m in (("random policy", r["random_policy"]), ("hold still", r["hold_policy"]),
                      (f"PDDM (iteration {last['iteration']})", last)):
-        typer.echo(f"{label}: 90° {100 * m['success_90']:.0f} %, 180° {100 * m['success_180']:.0f} %, rotation "
+        typer.echo(f"{label}: 90° {100 * m['success_90']:.0f} % ({100 * m['held_90']:.0f} % held), "
+                   f"180° {100 * m['success_180']:.0f} %, rotation "
                    f"{m['mean_rotation_deg']:.0f}°, drops {m['drops']}/{m['episodes']}, steps held "
                    f"{m['mean_steps']:.0f}, return {m['return']['mean']:.1f}")
     typer.echo(f"ranked by turns: {' > '.join(r['ranking_by_turns'])}")
@@ -1186,8 +1192,8 @@ def iterations_table(runs: dict[str, Path], first: int = 1) -> str:
     its ``report.json``, a stopped run's partial one too): the turn figures, the model's turn R²
     on the iteration's own PDDM episodes (``own_turn``), ESS, the demonstrations' share of the
     training split and where the time went."""
-    lines = ["| run | iteration | points | demo share | success_90 | success_180 | mean rotation (°) | drops | "
-             "steps held | own turn R² (true 7-step turn std, windows) | ESS (% of K) | wall s (load) |", "|---" * 12 + "|"]
+    lines = ["| run | iteration | points | demo share | success_90 | held_90 | success_180 | mean rotation (°) | drops | "
+             "steps held | own turn R² (true 7-step turn std, windows) | ESS (% of K) | wall s (load) |", "|---" * 13 + "|"]
     for label, d in runs.items():
         p = Path(d) / "report.json"
         if not p.is_file():
@@ -1201,7 +1207,8 @@ def iterations_table(runs: dict[str, Path], first: int = 1) -> str:
             ess = f"{w['ess_mean']:.1f} ({100 * w['ess_frac_mean']:.0f} %)" if w.get("plans") else "–"
             load = (it.get("timing") or {}).get("loadavg") or ["?"]
             share = f"{100 * dm['share']:.0f} %" if dm else "–"
-            lines.append(f"| {label} | {it['iteration']} | {it['points']} | {share} | {100 * it['success_90']:.0f} % | "
+            held = f"{100 * it['held_90']:.0f} %" if "held_90" in it else "–"  # runs before it was reported
+            lines.append(f"| {label} | {it['iteration']} | {it['points']} | {share} | {100 * it['success_90']:.0f} % | {held} | "
                          f"{100 * it['success_180']:.0f} % | {it['mean_rotation_deg']:+.1f} | {it['drops']}/{it['episodes']} | "
                          f"{it['mean_steps']:.0f} | {r2} | {ess} | {it['wall_s']['iteration']:.0f} ({load[0]}) |")
     return "\n".join(lines) + "\n"

@@ -193,15 +193,17 @@ def test_iterations_table_lists_each_runs_iterations_from_the_first_asked(tmp_pa
                 "timing": {"loadavg": ["9.1", "8", "7"]}, "wall_s": {"iteration": 400.0},
                 **({"demonstrations": {"share": demo}} if demo else {}), **({"own_turn": own} if own else {})}
 
-    for name, rows in (("mix", [it(33, 0.0), it(34, 0.1, 0.117, {"windows": 80, "turn_r2": 0.31, "turn_true_std_deg": 14.38})]),
+    held = {**it(34, 0.1, 0.117, {"windows": 80, "turn_r2": 0.31, "turn_true_std_deg": 14.38}), "held_90": 0.0333}
+    for name, rows in (("mix", [it(33, 0.0), held]),
                        ("control", [it(33, 0.0), it(34, 0.0, None, {"windows": 0})])):
         (tmp_path / name).mkdir()
         (tmp_path / name / "report.json").write_text(json.dumps({"iterations": rows}))
     md = iterations_table({"MIX": tmp_path / "mix", "CONTROL": tmp_path / "control"}, first=34)
     lines = md.splitlines()
     assert len(lines) == 4 and "| 33 |" not in md
-    assert lines[2] == "| MIX | 34 | 3400 | 12 % | 10 % | 0 % | +54.0 | 1/30 | 99 | 0.31 (14.4°, 80) | 40.0 (6 %) | 400 (9.1) |"
-    assert lines[3].startswith("| CONTROL | 34 | 3400 | – | 0 % |") and "| – |" in lines[3]
+    assert lines[2] == "| MIX | 34 | 3400 | 12 % | 10 % | 3 % | 0 % | +54.0 | 1/30 | 99 | 0.31 (14.4°, 80) | 40.0 (6 %) | 400 (9.1) |"
+    # a report from before held_90: a dash in its column
+    assert lines[3].startswith("| CONTROL | 34 | 3400 | – | 0 % | – | 0 % |") and "| – |" in lines[3]
     with pytest.raises(SystemExit, match="no report"):
         main(["table", f"x={tmp_path / 'none'}"])
 

@@ -270,6 +270,9 @@ def test_a_policy_that_holds_still_does_not_rank_above_one_that_turns():
     hold = summarize([baoding_episode_metrics(t, still, np.arange(n + 1) * DT)] * 3)
     turns = summarize([baoding_episode_metrics(t, turn, np.arange(42) * DT)] * 3)
     assert turns["success_90"] == 1.0 and turns["drop_rate"] == 1.0 and hold["success_90"] == 0.0
+    assert turns["held_90"] == 0.0 and hold["held_90"] == 0.0  # turned, then lost: not a held turn
+    kept = t.targets_at(np.radians(np.arange(n + 1) * 3.0))  # the same turn, the pair kept to the end
+    assert summarize([baoding_episode_metrics(t, kept, np.arange(n + 1) * DT)])["held_90"] == 1.0
     assert turns["mean_return"] < hold["mean_return"]  # the return would rank holding first
     ranked = sorted([("hold", hold), ("turns", turns)], key=lambda kv: turn_rank_key(kv[1]))
     assert ranked[0][0] == "turns"
