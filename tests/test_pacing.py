@@ -34,8 +34,18 @@ def _measured_delay(rig_name: str, bus) -> tuple[int, Pacing, Pacing]:
             drv.configure()
             drv.activate()
             drv.stop()
-            node.publish_spec()
-            ctl.wait_ready(10)
+            # the spec again until the controller has it: its subscription reaches the node's session
+            # a moment after both exist, and a spec put before that is lost (on two xdist workers
+            # beside a Baoding run, once: no spec in 10 s); the node itself repeats it only while it steps
+            deadline = time.monotonic() + 10
+            while True:
+                node.publish_spec()
+                try:
+                    ctl.wait_ready(0.5)
+                    break
+                except TimeoutError:
+                    if time.monotonic() > deadline:
+                        raise
             # settle: states flow and are ok (an emulated pose arrives after a few periods),
             # the robot holds its safe action (zero leg speeds)
             period = drv.spec.period_s
