@@ -182,6 +182,21 @@ class HoldActionMap:
 HAND = "shadow_hand"
 
 
+def _rig_hand(rig: str, robot: str = "hand"):
+    """Rig ``rig``'s config and its Shadow Hand ``robot``'s driver (built, never connected), or in
+    the driver's place the reason it has none."""
+    from hilstack.configs.schema import load_rig, load_robot, rig_robot_config
+    from hilstack.drivers.registry import make_driver
+
+    cfg = load_rig(rig)
+    if robot not in cfg.robots:
+        return cfg, f"rig {cfg.name} has no robot {robot!r} (robots: {', '.join(cfg.robots)}): Baoding runs on a Shadow Hand"
+    rcfg = rig_robot_config(cfg, robot)
+    if rcfg.robot != load_robot(HAND).robot:
+        return cfg, f"rig {cfg.name}'s {robot} is a {rcfg.robot}, not a Shadow Hand ({HAND})"
+    return cfg, make_driver(rcfg)
+
+
 def baoding_rig_problem(rig: str, robot: str = "hand", task: str = "baoding") -> str | None:
     """Why rig ``rig`` cannot run Baoding, read from its config before anything starts (None: it
     can): no robot ``robot`` on it, or not a Shadow Hand; the hand's state without the balls'
@@ -189,16 +204,9 @@ def baoding_rig_problem(rig: str, robot: str = "hand", task: str = "baoding") ->
     trackers); no ``reset:`` section (an episode ends and the balls go back through the rig's
     reset procedure, docs/reset.md); a hand holding another pose than the one the task's
     geometry (targets, drop rule) was read for."""
-    from hilstack.configs.schema import load_rig, load_robot, rig_robot_config
-    from hilstack.drivers.registry import make_driver
-
-    cfg = load_rig(rig)
-    if robot not in cfg.robots:
-        return f"rig {cfg.name} has no robot {robot!r} (robots: {', '.join(cfg.robots)}): Baoding runs on a Shadow Hand"
-    rcfg = rig_robot_config(cfg, robot)
-    if rcfg.robot != load_robot(HAND).robot:
-        return f"rig {cfg.name}'s {robot} is a {rcfg.robot}, not a Shadow Hand ({HAND})"
-    hand = make_driver(rcfg)
+    cfg, hand = _rig_hand(rig, robot)
+    if isinstance(hand, str):
+        return hand
     missing = [n for n in BALL_NAMES if n not in hand.spec.state.names]
     if missing:
         return (f"rig {cfg.name}: the {robot}'s state has no {', '.join(missing)} (Baoding needs the balls' positions "
@@ -217,16 +225,8 @@ def rig_hold_pose(rig: str, robot: str = "hand") -> str | None:
     """The hold pose (``params.hold_pose``) of rig ``rig``'s hand (its driver built, never
     connected); None when the rig has no such robot or it is not a Shadow Hand
     (:func:`baoding_rig_problem` says why)."""
-    from hilstack.configs.schema import load_rig, load_robot, rig_robot_config
-    from hilstack.drivers.registry import make_driver
-
-    cfg = load_rig(rig)
-    if robot not in cfg.robots:
-        return None
-    rcfg = rig_robot_config(cfg, robot)
-    if rcfg.robot != load_robot(HAND).robot:
-        return None
-    return make_driver(rcfg).params.hold_pose
+    hand = _rig_hand(rig, robot)[1]
+    return None if isinstance(hand, str) else hand.params.hold_pose
 
 
 def rig_hand_spec(rig: str, robot: str = "hand"):
