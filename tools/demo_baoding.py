@@ -1173,6 +1173,9 @@ def main(argv: list[str] | None = None) -> None:
     tb = sub.add_parser("table", help="a markdown table of runs' iterations (their report.json)")
     tb.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
     tb.add_argument("--from", dest="first", type=int, default=1, help="the first iteration listed")
+    tb.add_argument("--rescore", action="store_true", help="score the turns again from the recordings (held_90, "
+                    "every early end a drop): figures for runs whose report predates today's scoring")
+    tb.add_argument("--task", default=None, help="with --rescore: the task config to score with (default the run's)")
     cl = sub.add_parser("closed-loop", help="PDDM through saved models on the MuJoCo hand in-process")
     cl.add_argument("models", type=Path, nargs="+", help="model .pt files (EnsembleDynamics.save)")
     cl.add_argument("--out", type=Path, required=True)
@@ -1187,20 +1190,65 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"error: {e}") from None
 
 
-def iterations_table(runs: dict[str, Path], first: int = 1) -> str:
+def rescore_iterations(run_dir: Path, task: str | None = None, first: int = 1) -> dict[int, dict[str, Any]]:
+    """The turn figures of a run's PDDM iterations from ``first`` on, scored again from its
+    recordings (``NNN-mpc.mcap``) with today's scoring (:func:`summarize`: ``held_90``, drops):
+    iteration → summary. Reports written by older code lack ``held_90`` and counted only the
+    task's own drop rule; here an episode shorter than the run's ``episode_steps`` counts as
+    dropped, as the rig's drop detector is the only thing that ends a PDDM episode early
+    (:meth:`BaodingRun.score`). ``task``: the task config to score with (default the run's;
+    runs that edited a task in place need the name of today's equivalent). The period is the
+    recorded states' median spacing."""
+    from hilstack.control.costs import baoding_episode_metrics
+    from hilstack.learning.baoding import BALL_NAMES, load_baoding_task, summarize
+
+    report = json.loads(_report_path(run_dir).read_text())
+    cfg = report.get("config", {})
+    name = task or cfg.get("task")
+    if not name:
+        raise ValueError(f"{run_dir}: its report names no task; give one (--task)")
+    tk, steps = load_baoding_task(name), int(cfg.get("episode_steps", 100))
+    wanted = [it["iteration"] for it in report["iterations"] if it["iteration"] >= first]
+    eps = run_episodes(Path(run_dir), [f"{i:03d}-mpc" for i in wanted])
+    out = {}
+    for i in wanted:
+        scores = []
+        for e in eps.get(f"{i:03d}-mpc", []):
+            names, st = e.meta["state_names"], np.asarray(e.states)
+            period = float(np.round(np.median(np.diff(e.times)), 3)) if len(e.times) > 1 else 0.1
+            m = baoding_episode_metrics(tk, st[:, [names.index(n) for n in BALL_NAMES]].reshape(-1, 2, 3), None,
+                                        wrist_rad=st[:, names.index("WRJ0_pos")], period_s=period)
+            if len(st) < steps + 1:
+                m["dropped"] = 1.0
+            scores.append(m)
+        if not scores:
+            raise ValueError(f"{run_dir}: no recorded episodes for iteration {i} (recordings/{i:03d}-mpc.mcap)")
+        out[i] = summarize(scores)
+    return out
+
+
+def _report_path(run_dir: Path) -> Path:
+    p = Path(run_dir) / "report.json"
+    if not p.is_file():
+        raise FileNotFoundError(f"no report {p}")
+    return p
+
+
+def iterations_table(runs: dict[str, Path], first: int = 1, rescore: bool = False, task: str | None = None) -> str:
     """A markdown table of the iterations from ``first`` on of each run (label → run directory;
     its ``report.json``, a stopped run's partial one too): the turn figures, the model's turn R²
     on the iteration's own PDDM episodes (``own_turn``), ESS, the demonstrations' share of the
-    training split and where the time went."""
+    training split and where the time went. ``rescore``: the turn figures (success, held_90,
+    rotation, drops, steps held) from the recordings (:func:`rescore_iterations`, with ``task``)
+    instead of the report."""
     lines = ["| run | iteration | points | demo share | success_90 | held_90 | success_180 | mean rotation (°) | drops | "
              "steps held | own turn R² (true 7-step turn std, windows) | ESS (% of K) | wall s (load) |", "|---" * 13 + "|"]
     for label, d in runs.items():
-        p = Path(d) / "report.json"
-        if not p.is_file():
-            raise FileNotFoundError(f"no report {p}")
-        for it in json.loads(p.read_text())["iterations"]:
+        again = rescore_iterations(d, task, first) if rescore else {}
+        for it in json.loads(_report_path(d).read_text())["iterations"]:
             if it["iteration"] < first:
                 continue
+            it = {**it, **again.get(it["iteration"], {})}
             own, w, dm = it.get("own_turn", {}), it.get("weights", {}), it.get("demonstrations")
             r2 = (f"{own['turn_r2']:.2f} ({own.get('turn_true_std_deg', float('nan')):.1f}°, {own['windows']})"
                   if own.get("windows") else "–")
@@ -1272,7 +1320,8 @@ def _run_cmd(ap, a) -> None:
         bad = [r for r in a.runs if "=" not in r]
         if bad:
             ap.error(f"a run is LABEL=RUN_DIR, got {bad[0]!r}")
-        print(iterations_table({k: Path(v) for k, v in (r.split("=", 1) for r in a.runs)}, a.first), end="")
+        print(iterations_table({k: Path(v) for k, v in (r.split("=", 1) for r in a.runs)}, a.first, a.rescore, a.task),
+              end="")
     elif a.cmd == "plot":
         print(write_plot(json.loads((a.run_dir / "report.json").read_text()), a.run_dir))
     elif a.cmd == "ablate":

@@ -162,6 +162,12 @@ def test_demo_baoding_tiny_end_to_end(tmp_path):
     metrics = {"points", "mean_return", "return", "drops", "drop_rate", "mean_rotation_deg", "success_90",
                "success_180", "model"}
     assert len(r["iterations"]) == 1 and metrics <= set(r["iterations"][0])
+    # scored again from the recordings (``table --rescore``), the run's own turn figures come back
+    from hilstack.tools.demo_baoding import rescore_iterations
+
+    again = rescore_iterations(tmp_path)[1]
+    for k in ("success_90", "success_180", "held_90", "drops", "mean_rotation_deg", "mean_steps", "episodes"):
+        assert again[k] == pytest.approx(r["iterations"][0][k], abs=1e-3), k  # states recorded as float32
     assert {"val_1step", "val_h"} <= set(r["iterations"][0]["model"])
     assert metrics - {"points", "model"} <= set(r["random_policy"]) and metrics - {"points", "model"} <= set(r["hold_policy"])
     assert r["random_data"]["rollouts"] == 3 and r["random_data"]["points"] > 0
