@@ -262,6 +262,23 @@ class VelociRoachSim(LockstepSim):
     def _on_configure(self) -> None:
         self._build()
         self.reset()
+        self._load_kernel()
+
+    def _load_kernel(self) -> None:
+        """Load (or, with an empty cache, compile) the compiled loop now, for the argument types
+        :meth:`_advance` passes, without running it: lazily, the first tick took 1.3 s with the
+        cache warm (at load 3) and tens of seconds without, longer than a reset supervisor's 2 s
+        state timeout when that tick came in answer to a reset."""
+        kern = self._kernel()
+        if kern is None:
+            return
+        import numba
+
+        run, step_fn = kern
+        args = (step_fn, self.model._address, self.data._address, *self._views, self._v_l, self._v_r, 1, 1,
+                np.zeros(15), np.zeros(32), *self._rng_mocap_pointers, self._mocap_rows, self._mocap_ist,
+                self._tile_offset)
+        run.compile(tuple(numba.typeof(a) for a in args))
 
     def _build(self) -> None:
         """The MuJoCo model and data of the current terrain (:meth:`terrain_name`)."""

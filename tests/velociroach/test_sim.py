@@ -7,6 +7,8 @@ Lockstep sim only: no sleeps, no wall clock. Speeds at 9 rev/s (0.6 of max_leg_v
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -537,3 +539,30 @@ def test_a_deep_copy_is_an_independent_sim_at_the_same_instant(sim):
         np.testing.assert_array_equal(o1.extras["image"], o2.extras["image"])
     for s in (ref, a, b, c2):
         s.cleanup()
+
+
+def test_configure_loads_the_compiled_loop_before_the_first_tick():
+    """The compiled loop is loaded (or compiled) at configure, for the argument types the ticks
+    pass, so the first tick, which may answer a reset under a supervisor's 2 s state timeout,
+    does not stall on it (seconds with a warm cache, tens without). In a fresh process: one
+    that ran the loop before would pass whatever configure did."""
+    pytest.importorskip("numba")
+    code = """
+from hilstack.drivers.velociroach.config import VelociRoachParams
+from hilstack.sim_backends.velociroach.backend import VelociRoachSim
+from hilstack.sim_backends.velociroach.compiled import kernel
+run = kernel()[0]
+s = VelociRoachSim(VelociRoachParams())
+assert s.compiled_firmware and not run.signatures
+s.configure()
+loaded = list(run.signatures)
+assert loaded, "configure left the compiled loop unloaded"
+s.activate()
+for _ in range(3):
+    s.write(s.spec.action.high * 0.5)
+    s.tick()
+    s.read()
+assert list(run.signatures) == loaded, "the ticks needed another specialization"
+"""
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
