@@ -414,7 +414,8 @@ class BaodingCost:
         return -torch.where(done, torch.full_like(r, -self.w_drop), r).sum(-1)
 
 
-def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float = 0.1) -> dict[str, float]:
+def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float = 0.1,
+                            rise_limit_m: float | None = None) -> dict[str, float]:
     """Score one executed Baoding episode with the task's own reward (numpy).
 
     ``balls_m``: ``[T+1, 2, 3]`` ball positions (m, world frame) of the episode's states,
@@ -429,6 +430,10 @@ def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float 
     ``task.in_palm``, so the spin of a ball flying off is not a turn), ``max_rotation_deg`` (the most it had turned at any step)
     and ``turned_90`` / ``turned_180`` (1.0 when the pair turned at least 90° / 180° along
     the targets without a drop first: the thesis' success measure for its real-hand turns).
+    ``max_rise_m``: the most either ball rose along the palm normal above its height at the
+    first state (before any drop). ``rise_limit_m``: count a step's turn only while both balls
+    are within that rise as well (``task.in_palm`` has no upper bound: a ball lifted or thrown
+    over the other still turns the pair in the palm's plane); None = no limit.
     """
     from hilstack.tasks.baoding import TargetPhase
 
@@ -438,6 +443,9 @@ def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float 
     ret, dropped, rot, best = 0.0, False, 0.0, 0.0
     steps = 0
     ph.observe(b[0])
+    rise = (b - b[:1]) @ task.normal  # [T+1, 2] along the palm normal, from the first state
+    low = np.ones(len(b), bool) if rise_limit_m is None else (rise <= rise_limit_m).all(1)
+    max_rise = 0.0
     for k in range(1, len(b)):
         steps = k
         ret += task.reward(b[k], wrist_rad=None if wrist_rad is None else float(wrist_rad[k]),
@@ -446,9 +454,11 @@ def baoding_episode_metrics(task, balls_m, t_s, wrist_rad=None, period_s: float 
         if task.dropped(b[k]):
             dropped = True
             break
-        if task.in_palm(b[k - 1]) and task.in_palm(b[k]):  # a ball flying off spins; that is no turn
+        max_rise = max(max_rise, float(rise[k].max()))
+        # a ball flying off spins; that is no turn
+        if task.in_palm(b[k - 1]) and task.in_palm(b[k]) and low[k - 1] and low[k]:
             rot += task.rotation_rad(b[k - 1], b[k])
         best = max(best, rot)
-    return {"return": float(ret), "dropped": float(dropped), "steps": float(steps),
+    return {"return": float(ret), "dropped": float(dropped), "steps": float(steps), "max_rise_m": max_rise,
             "rotation_deg": float(np.degrees(rot)), "max_rotation_deg": float(np.degrees(best)),
             "turned_90": float(np.degrees(best) >= 90.0), "turned_180": float(np.degrees(best) >= 180.0)}

@@ -70,6 +70,11 @@ class BaodingTask:
         u /= np.linalg.norm(u)
         return u, np.cross(n, u), n
 
+    @property
+    def normal(self) -> np.ndarray:
+        """The palm's unit normal (``axis`` normalised): "up" out of the palm."""
+        return self._basis()[2]
+
     def clock_phase(self, t_s: float) -> float:
         """The targets' phase [rad] at task time ``t_s`` by the clock alone."""
         return self.phase0_rad + self.rate_rad_s * t_s

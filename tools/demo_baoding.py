@@ -1176,6 +1176,9 @@ def main(argv: list[str] | None = None) -> None:
     tb.add_argument("--rescore", action="store_true", help="score the turns again from the recordings (held_90, "
                     "every early end a drop): figures for runs whose report predates today's scoring")
     tb.add_argument("--task", default=None, help="with --rescore: the task config to score with (default the run's)")
+    tb.add_argument("--rise-limit", type=float, default=None, metavar="M",
+                    help="with --rescore: a turn counts only while both balls are within M metres above where "
+                         "they started (the palm's normal; a ball lifted or thrown turns the pair too)")
     cl = sub.add_parser("closed-loop", help="PDDM through saved models on the MuJoCo hand in-process")
     cl.add_argument("models", type=Path, nargs="+", help="model .pt files (EnsembleDynamics.save)")
     cl.add_argument("--out", type=Path, required=True)
@@ -1190,7 +1193,8 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"error: {e}") from None
 
 
-def rescore_iterations(run_dir: Path, task: str | None = None, first: int = 1) -> dict[int, dict[str, Any]]:
+def rescore_iterations(run_dir: Path, task: str | None = None, first: int = 1,
+                       rise_limit_m: float | None = None) -> dict[int, dict[str, Any]]:
     """The turn figures of a run's PDDM iterations from ``first`` on, scored again from its
     recordings (``NNN-mpc.mcap``) with today's scoring (:func:`summarize`: ``held_90``, drops):
     iteration → summary. Reports written by older code lack ``held_90`` and counted only the
@@ -1198,7 +1202,8 @@ def rescore_iterations(run_dir: Path, task: str | None = None, first: int = 1) -
     dropped, as the rig's drop detector is the only thing that ends a PDDM episode early
     (:meth:`BaodingRun.score`). ``task``: the task config to score with (default the run's;
     runs that edited a task in place need the name of today's equivalent). The period is the
-    recorded states' median spacing."""
+    recorded states' median spacing. ``rise_limit_m``: turns count only while both balls are
+    within that height above where they started (:func:`baoding_episode_metrics`)."""
     from hilstack.control.costs import baoding_episode_metrics
     from hilstack.learning.baoding import BALL_NAMES, load_baoding_task, summarize
 
@@ -1217,7 +1222,8 @@ def rescore_iterations(run_dir: Path, task: str | None = None, first: int = 1) -
             names, st = e.meta["state_names"], np.asarray(e.states)
             period = float(np.round(np.median(np.diff(e.times)), 3)) if len(e.times) > 1 else 0.1
             m = baoding_episode_metrics(tk, st[:, [names.index(n) for n in BALL_NAMES]].reshape(-1, 2, 3), None,
-                                        wrist_rad=st[:, names.index("WRJ0_pos")], period_s=period)
+                                        wrist_rad=st[:, names.index("WRJ0_pos")], period_s=period,
+                                        rise_limit_m=rise_limit_m)
             if len(st) < steps + 1:
                 m["dropped"] = 1.0
             scores.append(m)
@@ -1234,17 +1240,18 @@ def _report_path(run_dir: Path) -> Path:
     return p
 
 
-def iterations_table(runs: dict[str, Path], first: int = 1, rescore: bool = False, task: str | None = None) -> str:
+def iterations_table(runs: dict[str, Path], first: int = 1, rescore: bool = False, task: str | None = None,
+                     rise_limit_m: float | None = None) -> str:
     """A markdown table of the iterations from ``first`` on of each run (label → run directory;
     its ``report.json``, a stopped run's partial one too): the turn figures, the model's turn R²
     on the iteration's own PDDM episodes (``own_turn``), ESS, the demonstrations' share of the
     training split and where the time went. ``rescore``: the turn figures (success, held_90,
-    rotation, drops, steps held) from the recordings (:func:`rescore_iterations`, with ``task``)
-    instead of the report."""
+    rotation, drops, steps held) from the recordings (:func:`rescore_iterations`, with ``task``
+    and ``rise_limit_m``) instead of the report."""
     lines = ["| run | iteration | points | demo share | success_90 | held_90 | success_180 | mean rotation (°) | drops | "
              "steps held | own turn R² (true 7-step turn std, windows) | ESS (% of K) | wall s (load) |", "|---" * 13 + "|"]
     for label, d in runs.items():
-        again = rescore_iterations(d, task, first) if rescore else {}
+        again = rescore_iterations(d, task, first, rise_limit_m) if rescore else {}
         for it in json.loads(_report_path(d).read_text())["iterations"]:
             if it["iteration"] < first:
                 continue
@@ -1320,8 +1327,10 @@ def _run_cmd(ap, a) -> None:
         bad = [r for r in a.runs if "=" not in r]
         if bad:
             ap.error(f"a run is LABEL=RUN_DIR, got {bad[0]!r}")
-        print(iterations_table({k: Path(v) for k, v in (r.split("=", 1) for r in a.runs)}, a.first, a.rescore, a.task),
-              end="")
+        if a.rise_limit is not None and not a.rescore:
+            ap.error("--rise-limit is for --rescore")
+        print(iterations_table({k: Path(v) for k, v in (r.split("=", 1) for r in a.runs)}, a.first, a.rescore, a.task,
+                               a.rise_limit), end="")
     elif a.cmd == "plot":
         print(write_plot(json.loads((a.run_dir / "report.json").read_text()), a.run_dir))
     elif a.cmd == "ablate":

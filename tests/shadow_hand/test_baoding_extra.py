@@ -206,6 +206,8 @@ def test_iterations_table_lists_each_runs_iterations_from_the_first_asked(tmp_pa
     assert lines[3].startswith("| CONTROL | 34 | 3400 | – | 0 % | – | 0 % |") and "| – |" in lines[3]
     with pytest.raises(SystemExit, match="no report"):
         main(["table", f"x={tmp_path / 'none'}"])
+    with pytest.raises(SystemExit):  # a rise limit only means something when scoring again
+        main(["table", f"x={tmp_path / 'mix'}", "--rise-limit", "0.02"])
 
 
 def test_targets_by_the_clock_from_the_command_line(tmp_path, monkeypatch):

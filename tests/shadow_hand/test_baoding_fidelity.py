@@ -295,6 +295,21 @@ def test_a_pair_spinning_as_it_flies_off_is_not_a_turn():
     assert held["turned_90"] == 1.0 and held["rotation_deg"] == pytest.approx(165.0)
 
 
+def test_a_turn_made_with_a_ball_lifted_counts_only_without_a_rise_limit():
+    """``in_palm`` has no upper bound: a pair that turns while one ball rides 3 cm up (over the
+    other, up the fingers) turns in the palm's plane. ``rise_limit_m`` counts a step's turn only
+    while both balls stay within that rise of where they started; ``max_rise_m`` reports it."""
+    t = flat_task(radius_v_m=None)
+    ang = np.radians(np.arange(12) * 15.0)  # 165° in the palm's plane
+    b = t.targets_at(ang)
+    b[3:9, 0] += 0.03 * t.normal  # ball 0 lifted 3 cm for six steps of it
+    free = baoding_episode_metrics(t, b, None)
+    assert free["turned_90"] == 1.0 and free["max_rise_m"] == pytest.approx(0.03)
+    low = baoding_episode_metrics(t, b, None, rise_limit_m=0.02)
+    assert low["turned_90"] == 0.0 and low["rotation_deg"] == pytest.approx(165.0 - 7 * 15.0)
+    assert baoding_episode_metrics(t, b, None, rise_limit_m=0.04)["rotation_deg"] == pytest.approx(165.0)
+
+
 def test_fixed_gradient_steps_per_iteration_do_not_grow_with_the_data(bus, tmp_path):
     from hilstack.learning.baoding import BaodingConfig, BaodingRun
 

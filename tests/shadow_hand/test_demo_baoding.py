@@ -168,6 +168,8 @@ def test_demo_baoding_tiny_end_to_end(tmp_path):
     again = rescore_iterations(tmp_path)[1]
     for k in ("success_90", "success_180", "held_90", "drops", "mean_rotation_deg", "mean_steps", "episodes"):
         assert again[k] == pytest.approx(r["iterations"][0][k], abs=1e-3), k  # states recorded as float32
+    capped = rescore_iterations(tmp_path, rise_limit_m=0.0)[1]  # no turn counts once a ball rises at all
+    assert capped["success_90"] <= again["success_90"] and capped["drops"] == again["drops"]
     assert {"val_1step", "val_h"} <= set(r["iterations"][0]["model"])
     assert metrics - {"points", "model"} <= set(r["random_policy"]) and metrics - {"points", "model"} <= set(r["hold_policy"])
     assert r["random_data"]["rollouts"] == 3 and r["random_data"]["points"] > 0
