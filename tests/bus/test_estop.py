@@ -104,7 +104,7 @@ def test_estop_acked_latched_across_a_driver_restart_and_released(bus):
 
 def test_a_late_driver_adopts_an_engaged_latch_from_any_peer(bus):
     holder = Node("viz", RIG, bus, handle_signals=False)
-    holder.publisher(keys.estop(RIG), EStop).put(EStop(reason="test", source="test", id="x"))
+    holder.publisher(keys.estop(RIG), EStop, reliable=True).put(EStop(reason="test", source="test", id="x"))
     wait_for(lambda: holder.estop.engaged, 5, "the publishing node latches its own e-stop")
     drv = Driver(bus)
     try:
@@ -126,7 +126,7 @@ def test_a_late_driver_adopts_an_engaged_latch_from_any_peer(bus):
 
 def test_a_malformed_estop_never_replaces_the_latch(bus):
     with Node("a", RIG, bus, handle_signals=False) as a:
-        a.publisher(keys.estop(RIG), EStop).put(EStop(reason="r", id="1"))
+        a.publisher(keys.estop(RIG), EStop, reliable=True).put(EStop(reason="r", id="1"))
         wait_for(lambda: a.estop.engaged, 5, "latched")
         a.session.put(keys.estop(RIG), b"\xffnot an estop")
         wait_for(lambda: a.estop.malformed == 1, 5, "malformed counted")
