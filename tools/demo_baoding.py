@@ -195,6 +195,8 @@ def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thes
         summary["final_held_90"] = across("h90", lambda r: r["iterations"][-1]["held_90"])
     if sweep is not None:
         summary["sweep"] = sweep
+    summary["plot"] = Path(write_seeds_plot({f"seed {s}": r for s, r in zip(seeds, runs, strict=True)},
+                                            out / "turns.png")).name  # beside this report
     (out / "report.json").write_text(json.dumps(summary, indent=1))
     return summary
 
@@ -202,6 +204,51 @@ def run_full(out: Path, seeds: tuple[int, ...] = FULL_SEEDS, preset: str = "thes
 #: the thesis' claim for the simulated hand (ch. 4, Fig. 4.9): Baoding solved with ~100,000
 #: data points (2.7 h of data). Its curve is not reproduced here: a marker at that budget.
 THESIS_SOLVED_POINTS = 100_000
+
+
+def write_seeds_plot(runs: dict[str, dict[str, Any]], png: Path) -> str:
+    """success_90 (and held_90 where reported) of several seeds' runs (label → report) against
+    the data points trained on: each seed thin, the mean over the seeds at each iteration bold
+    (at the seeds' mean points; ± std shaded), hold still and the thesis' ~100k-points marker.
+    Returns the file written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not runs:
+        raise ValueError("write_seeds_plot: no runs")
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for i, (label, r) in enumerate(runs.items()):
+        its = r["iterations"]
+        ax.plot([it["points"] for it in its], [100 * it["success_90"] for it in its], "-", lw=0.8, alpha=0.6,
+                color=f"C{i}", label=f"{label}: success_90")
+    n = min(len(r["iterations"]) for r in runs.values())  # the iterations every seed has
+    for key, style, what in (("success_90", "o-", "turned ≥ 90° before a drop"),
+                             ("held_90", "s--", "turned ≥ 90° and kept the pair")):
+        rows = [[it.get(key) for it in r["iterations"][:n]] for r in runs.values()]
+        if n == 0 or any(v is None for row in rows for v in row):
+            continue  # reports from before held_90 have none
+        y = 100 * np.array(rows, dtype=float)
+        x = np.array([[it["points"] for it in r["iterations"][:n]] for r in runs.values()], dtype=float).mean(0)
+        ax.plot(x, y.mean(0), style, color="k", lw=1.8, ms=3, label=f"mean of {len(runs)}: {what}")
+        ax.fill_between(x, y.mean(0) - y.std(0), y.mean(0) + y.std(0), color="k", alpha=0.12)
+    hold = [r["hold_policy"]["success_90"] for r in runs.values() if "hold_policy" in r]
+    if hold:
+        ax.axhline(100 * float(np.mean(hold)), color="C2", ls="--", label="hold still: success_90")
+    ax.axvline(THESIS_SOLVED_POINTS, color="k", ls=":", label="thesis Fig. 4.9: solved at ~100k points")
+    ax.axhline(50, color="0.6", lw=0.6)
+    ax.set_xlabel("training points (transitions)")
+    ax.set_ylabel("episodes (%)")
+    ax.set_ylim(-5, 105)
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title("Baoding: turns per PDDM iteration, by seed")
+    fig.tight_layout()
+    png = Path(png)
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=80)
+    plt.close(fig)
+    return str(png)
 
 
 def write_plot(r: dict[str, Any], out: Path) -> str:
@@ -1170,6 +1217,12 @@ def main(argv: list[str] | None = None) -> None:
     ot.add_argument("--steps", type=int, default=400)
     ot.add_argument("--oracle-repeat", type=int, default=20)
     ot.add_argument("--models", nargs="+", default=list(ORACLE_MODELS), choices=list(ORACLE_MODELS))
+    ps = sub.add_parser("plot-seeds", help="success_90 / held_90 of several seeds' runs against the points, "
+                        "their mean bold, beside the thesis' ~100k marker (--full writes it too)")
+    ps.add_argument("png", type=Path)
+    ps.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
+    ps.add_argument("--rescore", action="store_true", help="the turn figures from the recordings (table --rescore)")
+    ps.add_argument("--task", default=None, help="with --rescore: the task config to score with (default the run's)")
     tb = sub.add_parser("table", help="a markdown table of runs' iterations (their report.json)")
     tb.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
     tb.add_argument("--from", dest="first", type=int, default=1, help="the first iteration listed")
@@ -1333,6 +1386,18 @@ def _run_cmd(ap, a) -> None:
                                a.rise_limit), end="")
     elif a.cmd == "plot":
         print(write_plot(json.loads((a.run_dir / "report.json").read_text()), a.run_dir))
+    elif a.cmd == "plot-seeds":
+        bad = [r for r in a.runs if "=" not in r]
+        if bad:
+            ap.error(f"a run is LABEL=RUN_DIR, got {bad[0]!r}")
+        runs = {}
+        for label, d in (r.split("=", 1) for r in a.runs):
+            rep = json.loads(_report_path(Path(d)).read_text())
+            if a.rescore:  # the turn figures again from the recordings (old reports: no held_90)
+                again = rescore_iterations(Path(d), a.task)
+                rep["iterations"] = [{**it, **again.get(it["iteration"], {})} for it in rep["iterations"]]
+            runs[label] = rep
+        print(write_seeds_plot(runs, a.png))
     elif a.cmd == "ablate":
         unknown = [n for n in a.names if n not in ABLATIONS]
         if unknown:

@@ -208,6 +208,11 @@ def test_iterations_table_lists_each_runs_iterations_from_the_first_asked(tmp_pa
         main(["table", f"x={tmp_path / 'none'}"])
     with pytest.raises(SystemExit):  # a rise limit only means something when scoring again
         main(["table", f"x={tmp_path / 'mix'}", "--rise-limit", "0.02"])
+    # the same runs as one plot of their turns against the points (what --full writes for its seeds)
+    main(["plot-seeds", str(tmp_path / "seeds.png"), f"MIX={tmp_path / 'mix'}", f"CONTROL={tmp_path / 'control'}"])
+    assert (tmp_path / "seeds.png").stat().st_size > 0
+    with pytest.raises(SystemExit):
+        main(["plot-seeds", str(tmp_path / "x.png"), str(tmp_path / "mix")])  # no LABEL=
 
 
 def test_targets_by_the_clock_from_the_command_line(tmp_path, monkeypatch):

@@ -437,7 +437,7 @@ def test_full_resume_reads_finished_seeds_resumes_the_stopped_one_and_starts_the
 
     def report(s90):
         it = {"mean_rotation_deg": 1.0, "mean_steps": 100.0, "mean_return": -1.0, "drop_rate": 0.0,
-              "success_90": s90, "success_180": 0.0}
+              "success_90": s90, "success_180": 0.0, "points": 3000}
         return {"iterations": [it], "hold_policy": {"success_90": 0.0, "mean_rotation_deg": 0.0},
                 "random_policy": {"mean_return": -500.0}}
 

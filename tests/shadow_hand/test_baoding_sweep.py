@@ -12,7 +12,7 @@ def _fake_run(calls: list):
     def run(out: Path, preset: str, seed: int, rig: str, **overrides) -> dict:
         calls.append(seed)
         m = {"mean_rotation_deg": 10.0 * seed + 3, "mean_steps": 50 + seed, "success_90": seed / 4,
-             "mean_return": -seed, "drop_rate": 0.1 * seed, "success_180": seed / 8}
+             "mean_return": -seed, "drop_rate": 0.1 * seed, "success_180": seed / 8, "points": 1000 + seed}
         return {"iterations": [m], "hold_policy": {**m, "success_90": 0.0}, "random_policy": {"mean_return": -9.0},
                 "preset": preset, "rig": rig, "overrides": overrides}
     return run
@@ -22,6 +22,7 @@ def test_seeds_as_sweep_tasks_give_the_serial_summary_and_resume(tmp_path, monke
     calls: list[int] = []
     monkeypatch.setattr(demo, "run_baoding_demo", _fake_run(calls))
     serial = demo.run_full(tmp_path / "serial", seeds=(0, 1, 2), preset="tiny", rig="hand_sim", epochs=1)
+    assert serial["plot"] == "turns.png" and (tmp_path / "serial" / "turns.png").stat().st_size > 0  # the seeds' curve
     runs, sweep = demo.seeds_on_sweep(tmp_path / "sweep", (0, 1, 2), "tiny", "hand_sim", {"epochs": 1}, None)
     assert calls == [0, 1, 2, 0, 1, 2] and sweep["tasks"] == 3
     assert runs[2]["overrides"] == {"epochs": 1} and runs[1]["rig"] == "hand_sim"
