@@ -974,6 +974,70 @@ def run_checkpoint_model(run_dir: Path):
     return m
 
 
+def eval_model(run_dir: Path, out: Path, name: str, episodes: int = 20, settings: dict[str, Any] | None = None,
+               inference_dtype: str = "auto") -> dict[str, Any]:
+    """PDDM with a run's last checkpointed model (``run_dir/checkpoint/model.pt``), no training,
+    for ``episodes`` episodes on the run's rig with its preset's settings changed by
+    ``settings`` (``BaodingConfig`` fields; ``task.FIELD`` for the task's, e.g.
+    ``task.max_lead_rad``): does a planner or cost setting alone change the turns or the drops?
+    Recorded to ``out/name/recordings``; one JSON line in ``out/eval.jsonl`` (the settings,
+    the turn figures, wall time, load). The run's rig and task unless ``settings`` names them."""
+    from hilstack.configs.schema import load_rig
+    from hilstack.learning.baoding import summarize
+    from hilstack.learning.dynamics import EnsembleDynamics
+    from hilstack.tools.common import provision_credentials, with_endpoint
+
+    cfg_run = json.loads(_report_path(run_dir).read_text()).get("config", {})
+    ckpt = Path(run_dir) / "checkpoint" / "model.pt"
+    if not ckpt.is_file():
+        raise FileNotFoundError(f"no model {ckpt} (a run's checkpoint)")
+    from dataclasses import fields
+
+    from hilstack.learning.baoding import load_baoding_task
+
+    over, task_over = {}, {}
+    for k, v in (settings or {}).items():
+        (task_over if k.startswith("task.") else over)[k.removeprefix("task.")] = v
+    known = {f.name for f in fields(BaodingConfig)}
+    task_known = {f.name for f in fields(load_baoding_task())}
+    bad = [k for k in over if k not in known] + [f"task.{k}" for k in task_over if k not in task_known]
+    if bad:
+        raise ValueError(f"eval: unknown setting {bad[0]!r} (BaodingConfig fields, or task.FIELD of "
+                         f"{', '.join(sorted(task_known))})")
+    over = {"rig": cfg_run.get("rig"), "task": cfg_run.get("task"), **over}
+    if task_over:
+        over["task_overrides"] = {**over.get("task_overrides", {}), **task_over}
+    cfg = make_config(cfg_run.get("preset", "thesis"), int(cfg_run.get("seed", 0)), **over)
+    d = Path(out) / name
+    if d.exists():
+        raise FileExistsError(f"{d} exists: choose another name (recordings are never overwritten)")
+    rig = load_rig(cfg.rig)
+    bus = with_endpoint(rig.bus, free_endpoint())
+    provision_credentials(rig.name, bus, rig)
+    run = BaodingRun(cfg, d, bus)
+    model = EnsembleDynamics.load(ckpt)
+    dtype = model.set_inference_dtype(inference_dtype)
+    import torch
+
+    threads = torch.get_num_threads()
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
+    t0 = time.perf_counter()
+    try:
+        with run.session():
+            _, scores = run.run_episodes(lambda i: run.pddm_policy(model, run._seed(77, i), run.pddm_samples()),
+                                         episodes, "eval-pddm", f"eval {name}")
+    finally:
+        torch.set_num_threads(threads)
+    s = summarize(scores)
+    row = {"what": "eval", "run": str(run_dir), "name": name, "settings": settings or {},
+           "inference_dtype": str(dtype).removeprefix("torch."), "wall_s": time.perf_counter() - t0,
+           **{k: s[k] for k in ("episodes", "success_90", "held_90", "success_180", "mean_rotation_deg", "drops",
+                                "mean_steps")}}
+    _jsonl_log(Path(out) / "eval.jsonl")(row)
+    return row
+
+
 def _jsonl_log(path: Path):
     def log(row: dict[str, Any]) -> None:
         row["loadavg"] = open("/proc/loadavg").read().split()[:3]
@@ -1168,7 +1232,8 @@ def torch_threads(n: int) -> None:
 def main(argv: list[str] | None = None) -> None:
     """``python -m hilstack.tools.demo_baoding compare RUN_DIR | cost | plot RUN_DIR | ablate OUT [NAME...] [--seed S]
     | diagnose RUN_DIR OUT --iteration N | oracle OUT | oracle-record OUT | oracle-train RUN_DIR ORACLE_DIR OUT
-    --iteration N --heldout-seeds S... | closed-loop MODEL... --out OUT | table LABEL=RUN_DIR... [--from N]``."""
+    --iteration N --heldout-seeds S... | closed-loop MODEL... --out OUT | table LABEL=RUN_DIR... [--from N]
+    | plot-seeds PNG LABEL=RUN_DIR... | eval RUN_DIR OUT NAME [KEY=VALUE...]``."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m hilstack.tools.demo_baoding",
@@ -1217,6 +1282,14 @@ def main(argv: list[str] | None = None) -> None:
     ot.add_argument("--steps", type=int, default=400)
     ot.add_argument("--oracle-repeat", type=int, default=20)
     ot.add_argument("--models", nargs="+", default=list(ORACLE_MODELS), choices=list(ORACLE_MODELS))
+    ev = sub.add_parser("eval", help="PDDM with a run's last model, no training, its settings changed "
+                        "(KEY=VALUE: a BaodingConfig field, task.FIELD for the task's; values as JSON)")
+    ev.add_argument("run_dir", type=Path)
+    ev.add_argument("out", type=Path)
+    ev.add_argument("name")
+    ev.add_argument("settings", nargs="*", metavar="KEY=VALUE")
+    ev.add_argument("--episodes", type=int, default=20)
+    ev.add_argument("--inference-dtype", default="auto", choices=("fp32", "bf16", "auto"))
     ps = sub.add_parser("plot-seeds", help="success_90 / held_90 of several seeds' runs against the points, "
                         "their mean bold, beside the thesis' ~100k marker (--full writes it too)")
     ps.add_argument("png", type=Path)
@@ -1386,6 +1459,17 @@ def _run_cmd(ap, a) -> None:
                                a.rise_limit), end="")
     elif a.cmd == "plot":
         print(write_plot(json.loads((a.run_dir / "report.json").read_text()), a.run_dir))
+    elif a.cmd == "eval":
+        bad = [kv for kv in a.settings if "=" not in kv]
+        if bad:
+            ap.error(f"a setting is KEY=VALUE, got {bad[0]!r}")
+        settings = {}
+        for k, v in (kv.split("=", 1) for kv in a.settings):
+            try:
+                settings[k] = json.loads(v)
+            except json.JSONDecodeError:
+                settings[k] = v  # a name (a rig, a task)
+        eval_model(a.run_dir, a.out, a.name, a.episodes, settings, a.inference_dtype)
     elif a.cmd == "plot-seeds":
         bad = [r for r in a.runs if "=" not in r]
         if bad:

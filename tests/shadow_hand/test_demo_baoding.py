@@ -170,6 +170,17 @@ def test_demo_baoding_tiny_end_to_end(tmp_path):
         assert again[k] == pytest.approx(r["iterations"][0][k], abs=1e-3), k  # states recorded as float32
     capped = rescore_iterations(tmp_path, rise_limit_m=0.0)[1]  # no turn counts once a ball rises at all
     assert capped["success_90"] <= again["success_90"] and capped["drops"] == again["drops"]
+    # the run's model in closed loop with a setting changed, no training (`demo_baoding eval`)
+    from hilstack.tools.demo_baoding import eval_model
+
+    row = eval_model(tmp_path, tmp_path / "ev", "lead", 1, {"task.max_lead_rad": 0.5, "horizon": 3})
+    assert row["episodes"] == 1 and row["settings"] == {"task.max_lead_rad": 0.5, "horizon": 3}
+    assert (tmp_path / "ev" / "lead" / "recordings" / "eval-pddm.mcap").is_file()
+    assert json.loads((tmp_path / "ev" / "eval.jsonl").read_text())["name"] == "lead"
+    with pytest.raises(FileExistsError):  # never over an earlier evaluation's recordings
+        eval_model(tmp_path, tmp_path / "ev", "lead", 1)
+    with pytest.raises(ValueError, match="task.lead"):
+        eval_model(tmp_path, tmp_path / "ev", "bad", 1, {"task.lead": 1.0})
     assert {"val_1step", "val_h"} <= set(r["iterations"][0]["model"])
     assert metrics - {"points", "model"} <= set(r["random_policy"]) and metrics - {"points", "model"} <= set(r["hold_policy"])
     assert r["random_data"]["rollouts"] == 3 and r["random_data"]["points"] > 0
