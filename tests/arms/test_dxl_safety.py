@@ -262,8 +262,14 @@ def test_frozen_or_dead_emulator_takes_the_error_path(robot, sig):
         if sig == "SIGSTOP":
             assert "no status from joints" in str(err) and f"{d.params.link_timeout_periods} control periods" in str(err)
             # a read waits at most READ_TIMEOUT_PERIODS (0.8) of a period for the answers
-            # (before: the SDK margin of 0.4 s per read)
-            assert statistics.median(reads) < 2 * period
+            # (before: the SDK margin of 0.4 s per read). On a loaded machine a wake-up comes
+            # late for any wait: the peer is a plain sleep of 0.8 period, timed here
+            sleeps = []
+            for _ in range(5):
+                t = time.monotonic()
+                time.sleep(0.8 * period)
+                sleeps.append(time.monotonic() - t)
+            assert statistics.median(reads) < statistics.median(sleeps) + period, (reads, sleeps)
         assert t_err < 4 * limit_s
     finally:
         if sig == "SIGSTOP" and psutil.pid_exists(pid):
