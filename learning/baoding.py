@@ -1095,7 +1095,13 @@ class BaodingRun(MbrlRun):
                 first_it = st["iteration"] + 1
                 _log(self.cfg, f"resuming after iteration {st['iteration']} ({len(data_recs)} recordings of data)")
             data = [e for r in data_recs for e in episodes_from_mcap(r, self.cfg.robot)]
-            report["inference_dtype"] = str(model.set_inference_dtype(c.inference_dtype)).removeprefix("torch.")
+            # "auto" measures (EnsembleDynamics.measure_dtypes); a resumed run keeps the precision
+            # it started with, so its plans do not change numerics half-way
+            dtype = c.inference_dtype
+            if resumed is not None and dtype == "auto" and "inference_dtype" in report:
+                dtype = "bf16" if report["inference_dtype"] == "bfloat16" else "fp32"
+            report["inference_dtype"] = str(model.set_inference_dtype(dtype)).removeprefix("torch.")
+            report["inference_dtype_measured"] = model.dtype_measurement if dtype == "auto" else None
             samples = self.fit_pddm_to_period(model)  # timing needs the architecture, not trained weights
             iterations = report.setdefault("iterations", [])
             for it in range(first_it, c.iterations + 1):
