@@ -467,8 +467,9 @@ class BaodingConfig(Presets):
     #: epochs): the epochs become ceil(train_steps · batch / points), so training does not
     #: grow with the data (a lever for the thesis' scale on 2 cores, docs/baoding.md)
     train_steps: int | None = 200
-    #: the model's inference precision in the planner: "fp32", or "auto" (bf16 where the CPU
-    #: has AMX, learning/dynamics.py: cpu_bf16_support) / "bf16"; training stays fp32
+    #: the model's inference precision in the planner: "fp32", "auto" (bf16 where the CPU has
+    #: native bf16 and the model measured >= 1.25x faster in it, EnsembleDynamics.measure_dtypes)
+    #: or "bf16"; training stays fp32
     inference_dtype: str = "auto"
     #: torch threads for the whole run (None: torch's default); on a loaded 2-core machine one
     #: thread planned 2-8x faster than two (docs/baoding.md, "The full run")
