@@ -467,8 +467,9 @@ class BaodingConfig(Presets):
     #: epochs): the epochs become ceil(train_steps · batch / points), so training does not
     #: grow with the data (a lever for the thesis' scale on 2 cores, docs/baoding.md)
     train_steps: int | None = 200
-    #: the model's inference precision in the planner: "fp32", or "auto" (bf16 where the CPU
-    #: has AMX, learning/dynamics.py: cpu_bf16_support) / "bf16"; training stays fp32
+    #: the model's inference precision in the planner: "fp32", "auto" (bf16 where the CPU has
+    #: native bf16 and the model measured >= 1.25x faster in it, EnsembleDynamics.measure_dtypes)
+    #: or "bf16"; training stays fp32
     inference_dtype: str = "auto"
     #: torch threads for the whole run (None: torch's default); on a loaded 2-core machine one
     #: thread planned 2-8x faster than two (docs/baoding.md, "The full run")
@@ -1095,7 +1096,13 @@ class BaodingRun(MbrlRun):
                 first_it = st["iteration"] + 1
                 _log(self.cfg, f"resuming after iteration {st['iteration']} ({len(data_recs)} recordings of data)")
             data = [e for r in data_recs for e in episodes_from_mcap(r, self.cfg.robot)]
-            report["inference_dtype"] = str(model.set_inference_dtype(c.inference_dtype)).removeprefix("torch.")
+            # "auto" measures (EnsembleDynamics.measure_dtypes); a resumed run keeps the precision
+            # it started with, so its plans do not change numerics half-way
+            dtype = c.inference_dtype
+            if resumed is not None and dtype == "auto" and "inference_dtype" in report:
+                dtype = "bf16" if report["inference_dtype"] == "bfloat16" else "fp32"
+            report["inference_dtype"] = str(model.set_inference_dtype(dtype)).removeprefix("torch.")
+            report["inference_dtype_measured"] = model.dtype_measurement if dtype == "auto" else None
             samples = self.fit_pddm_to_period(model)  # timing needs the architecture, not trained weights
             iterations = report.setdefault("iterations", [])
             for it in range(first_it, c.iterations + 1):

@@ -79,25 +79,31 @@ def cpu_bf16_support(cpuinfo: str | Path = "/proc/cpuinfo") -> str | None:
     return None
 
 
-def _resolve_inference_dtype(choice: str) -> torch.dtype:
+AUTO_BF16_MIN_SPEEDUP = 1.25  # "auto" takes bf16 only when it measured at least this much faster
+
+
+def _resolve_inference_dtype(choice: str, measure=None) -> torch.dtype:
     """``"fp32"`` / ``"bf16"`` / ``"auto"``.
 
-    ``"auto"`` picks bfloat16 only with AMX: on a CPU with AVX512-BF16 but no AMX, bf16
-    batched matmuls once measured *slower* than fp32 (``tools/bench_plan.py`` reports both), while
-    with AMX the platform notes measured a 2.8x speed-up for this very model. On an AMD EPYC with
-    AVX512-BF16 and no AMX the Baoding plan (K = 700, one thread) measured 2.5-2.7x faster in
-    bf16 (docs/baoding.md, "33 iterations in the reference's pose"): ``auto`` keeps fp32 there
-    until a run shows the turns unchanged in bf16.
+    ``"auto"`` measures: on a CPU with native bf16 (:func:`cpu_bf16_support`), ``measure()``
+    (:meth:`EnsembleDynamics.measure_dtypes`: the model's own inference in both precisions,
+    interleaved) must find bf16 at least ``AUTO_BF16_MIN_SPEEDUP`` times faster, else fp32. A
+    rule by CPU flag was wrong both ways on these machines: on one AVX512-BF16 CPU without AMX
+    bf16 batched matmuls measured *slower* than fp32; on another (AMD EPYC, ``avx512_bf16``, no
+    AMX) the Baoding plan (K = 700, one thread) measured 2.5-2.7x *faster*, and with AMX the
+    platform notes measured 2.8x (docs/baoding.md, "bf16 planning"). Without native support it
+    is fp32 with no measurement (emulated bf16 is slow).
     ``"bf16"`` forces bfloat16 whenever the CPU has any native bf16 support, else fp32.
     """
     if choice in ("fp32", "float32"):
         return torch.float32
-    support = cpu_bf16_support()
-    if choice in ("bf16", "bfloat16"):
-        return torch.bfloat16 if support else torch.float32
-    if choice == "auto":
-        return torch.bfloat16 if support == "amx" else torch.float32
-    raise ValueError(f"inference_dtype must be 'fp32', 'bf16' or 'auto', got {choice!r}")
+    if choice not in ("bf16", "bfloat16", "auto"):
+        raise ValueError(f"inference_dtype must be 'fp32', 'bf16' or 'auto', got {choice!r}")
+    if not cpu_bf16_support():
+        return torch.float32
+    if choice == "auto" and measure is not None:
+        return torch.bfloat16 if measure()["speedup"] >= AUTO_BF16_MIN_SPEEDUP else torch.float32
+    return torch.bfloat16
 
 
 def _relu_(h: torch.Tensor) -> torch.Tensor:
@@ -237,7 +243,9 @@ class EnsembleDynamics(nn.Module):
         self._gen = torch.Generator().manual_seed(1 + (0 if seed is None else int(seed)))
         self._fast: dict | None = None  # fused inference weights, rebuilt lazily
         self._chunks_pinned: dict[int, int] = {}  # batch size -> chunk count (tune_inference)
-        self._inference_dtype = _resolve_inference_dtype(inference_dtype)
+        self.dtype_measurement: dict | None = None  # "auto"'s timing (measure_dtypes), if it ran
+        self._inference_dtype = torch.float32
+        self._inference_dtype = _resolve_inference_dtype(inference_dtype, self.measure_dtypes)
 
     # -- sizes ---------------------------------------------------------------------------
     @property
@@ -258,7 +266,7 @@ class EnsembleDynamics(nn.Module):
 
     def set_inference_dtype(self, choice: str) -> torch.dtype:
         """Switch inference precision (``"fp32"``, ``"bf16"``, ``"auto"``); returns the dtype used."""
-        self._inference_dtype = _resolve_inference_dtype(choice)
+        self._inference_dtype = _resolve_inference_dtype(choice, self.measure_dtypes)
         self.config["inference_dtype"] = choice
         self._fast = None
         self._chunks_pinned.clear()  # measured for the old precision
@@ -375,6 +383,33 @@ class EnsembleDynamics(nn.Module):
         best = min(valid, key=lambda k: float(np.median(times[k])))
         self._chunks_pinned[batch] = best
         return best
+
+    def measure_dtypes(self, batch: int = 700, reps: int = 7) -> dict:
+        """Time :meth:`predict` on ``batch`` inputs per member in fp32 and in bf16 (``reps`` calls
+        each after a warm-up, interleaved so load from other processes hits both alike; the
+        median): ``{"batch", "fp32_ms", "bf16_ms", "speedup"}`` (fp32 / bf16), also kept in
+        :attr:`dtype_measurement`. The precision in use is restored. 700 is the Baoding
+        planner's K; the ratio, not the times, decides (``"auto"``)."""
+        keep, keep_pinned = self._inference_dtype, dict(self._chunks_pinned)
+        s, a = torch.zeros(self.ensemble, batch, self.state_dim), torch.zeros(batch, self.action_dim)
+        times: dict[torch.dtype, list[float]] = {torch.float32: [], torch.bfloat16: []}
+        fused: dict[torch.dtype, dict] = {}
+        try:
+            with torch.inference_mode():
+                for r in range(reps + 1):
+                    for dt in times:
+                        self._inference_dtype, self._fast = dt, fused.get(dt)
+                        t0 = time.perf_counter()
+                        self.predict(s, a)
+                        fused[dt] = self._fast
+                        if r:  # round 0 warms up (and casts the weights)
+                            times[dt].append(time.perf_counter() - t0)
+        finally:
+            self._inference_dtype, self._fast = keep, None
+            self._chunks_pinned = keep_pinned
+        f, b = (1e3 * float(np.median(times[d])) for d in (torch.float32, torch.bfloat16))
+        self.dtype_measurement = {"batch": int(batch), "fp32_ms": f, "bf16_ms": b, "speedup": f / b}
+        return self.dtype_measurement
 
     def predict(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Predict the next state.

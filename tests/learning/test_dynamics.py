@@ -81,6 +81,35 @@ def test_bf16_inference_is_close_when_available():
     assert torch.allclose(out, ref, atol=0.05)
 
 
+def test_auto_precision_takes_bf16_only_where_it_measured_faster(monkeypatch):
+    """``auto`` times the model in both precisions on CPUs with native bf16 and takes bf16 only
+    at >= AUTO_BF16_MIN_SPEEDUP; without native bf16 it is fp32 and measures nothing."""
+    import hilstack.learning.dynamics as dyn
+
+    m = EnsembleDynamics(4, 2, ensemble=2, hidden=(32, 32), seed=3)
+    for support, speedup, want in (("avx512", 2.0, torch.bfloat16), ("avx512", 1.1, torch.float32),
+                                   ("amx", 1.3, torch.bfloat16), ("amx", 0.5, torch.float32)):
+        monkeypatch.setattr(dyn, "cpu_bf16_support", lambda s=support: s)
+        monkeypatch.setattr(m, "measure_dtypes", lambda x=speedup: {"speedup": x})
+        assert m.set_inference_dtype("auto") == want, (support, speedup)
+    monkeypatch.setattr(dyn, "cpu_bf16_support", lambda: None)
+    monkeypatch.setattr(m, "measure_dtypes", lambda: pytest.fail("measured without native bf16"))
+    assert m.set_inference_dtype("auto") == torch.float32 and m.set_inference_dtype("bf16") == torch.float32
+
+
+def test_measure_dtypes_times_both_and_keeps_the_precision_in_use():
+    m = EnsembleDynamics(4, 2, ensemble=2, hidden=(32, 32), seed=3)
+    s, a = torch.randn(10, 4), torch.randn(10, 2)
+    with torch.inference_mode():
+        before = m.predict(s, a)
+    got = m.measure_dtypes(batch=64, reps=2)
+    assert got is m.dtype_measurement and got["batch"] == 64
+    assert got["fp32_ms"] > 0 and got["bf16_ms"] > 0 and got["speedup"] == pytest.approx(got["fp32_ms"] / got["bf16_ms"])
+    assert m.inference_dtype == torch.float32
+    with torch.inference_mode():
+        assert torch.equal(m.predict(s, a), before)  # still the fp32 weights, not a bf16 copy
+
+
 def test_cpu_flag_detection(tmp_path):
     f = tmp_path / "cpuinfo"
     f.write_text("processor: 0\nflags\t\t: fpu sse avx512f avx512_bf16\n")

@@ -409,6 +409,9 @@ def test_a_stopped_run_resumes_after_its_last_finished_iteration(bus, tmp_path):
     with pytest.raises(ValueError, match="seed"):  # not with other settings
         BaodingRun(replace(cfg, seed=1), tmp_path, bus, resume=True).run()
 
+    # as if the run had started in bf16: a resumed "auto" run keeps its precision, not measured again
+    r["inference_dtype"] = "bfloat16"
+    (tmp_path / "report.json").write_text(json.dumps(r))
     again = BaodingRun(cfg, tmp_path, bus, resume=True)
     fits = []
     real_fit = again.train
@@ -423,6 +426,10 @@ def test_a_stopped_run_resumes_after_its_last_finished_iteration(bus, tmp_path):
     assert [it["iteration"] for it in r2["iterations"]] == [1, 2] and r2["resumed"][0]["after_iteration"] == 1
     assert json.dumps(r2["iterations"][0], sort_keys=True) == json.dumps(r["iterations"][0], sort_keys=True)
     assert r2["iterations"][1]["points"] == points  # everything recorded up to iteration 1, read back
+    from hilstack.learning.dynamics import cpu_bf16_support
+
+    assert r2["inference_dtype"] == ("bfloat16" if cpu_bf16_support() else "float32")
+    assert r2["inference_dtype_measured"] is None
     assert len(fits) == 1 and fits[0][0] > 0 and fits[0][1] > 0 and fits[0][2] == state["split_rng"]
     assert again.val_assigned == {**state["val_assigned"], **again.val_assigned}
     unfinished = tmp_path / "recordings" / "002-mpc.unfinished.mcap"
