@@ -91,8 +91,8 @@ def _resolve_inference_dtype(choice: str, measure=None) -> torch.dtype:
     rule by CPU flag was wrong both ways on these machines: on one AVX512-BF16 CPU without AMX
     bf16 batched matmuls measured *slower* than fp32; on another (AMD EPYC, ``avx512_bf16``, no
     AMX) the Baoding plan (K = 700, one thread) measured 2.5-2.7x *faster*, and with AMX the
-    platform notes measured 2.8x (docs/baoding.md, "bf16 planning"). Without native support it
-    is fp32 with no measurement (emulated bf16 is slow).
+    platform notes measured 2.8x (docs/baoding.md, "Three seeds, bf16, and what keeps the pair
+    in the hand"). Without native support it is fp32 with no measurement (emulated bf16 is slow).
     ``"bf16"`` forces bfloat16 whenever the CPU has any native bf16 support, else fp32.
     """
     if choice in ("fp32", "float32"):
