@@ -39,8 +39,8 @@ class _SendOnSight:
         while self._watch.alive is not True and time.monotonic() < deadline:
             time.sleep(0.001)
         if self._watch.alive:
+            self.sent_at = time.monotonic()  # before the put: the node may have it before put returns
             self.pub.put(ResetEvent(robot="roach", phase=ResetPhase.REQUEST))
-            self.sent_at = time.monotonic()
 
     def close(self) -> None:
         self._th.join(5)
