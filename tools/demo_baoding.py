@@ -1223,6 +1223,14 @@ def diagnose(run_dir: Path, out: Path, iteration: int, extra_steps: int = 1000, 
     return {"rows": rows}
 
 
+def _pairs(ap, items: list[str], what: str) -> list[tuple[str, str]]:
+    """``A=B`` arguments split at the first ``=``; a usage error naming the first without one."""
+    bad = [x for x in items if "=" not in x]
+    if bad:
+        ap.error(f"{what}, got {bad[0]!r}")
+    return [tuple(x.split("=", 1)) for x in items]
+
+
 def torch_threads(n: int) -> None:
     import torch
 
@@ -1450,32 +1458,23 @@ def _run_cmd(ap, a) -> None:
         torch_threads(1)
         oracle_record(a.out, a.sampler, a.episodes, a.samples, a.seed, a.steps)
     elif a.cmd == "table":
-        bad = [r for r in a.runs if "=" not in r]
-        if bad:
-            ap.error(f"a run is LABEL=RUN_DIR, got {bad[0]!r}")
+        runs = _pairs(ap, a.runs, "a run is LABEL=RUN_DIR")
         if a.rise_limit is not None and not a.rescore:
             ap.error("--rise-limit is for --rescore")
-        print(iterations_table({k: Path(v) for k, v in (r.split("=", 1) for r in a.runs)}, a.first, a.rescore, a.task,
-                               a.rise_limit), end="")
+        print(iterations_table({k: Path(v) for k, v in runs}, a.first, a.rescore, a.task, a.rise_limit), end="")
     elif a.cmd == "plot":
         print(write_plot(json.loads((a.run_dir / "report.json").read_text()), a.run_dir))
     elif a.cmd == "eval":
-        bad = [kv for kv in a.settings if "=" not in kv]
-        if bad:
-            ap.error(f"a setting is KEY=VALUE, got {bad[0]!r}")
         settings = {}
-        for k, v in (kv.split("=", 1) for kv in a.settings):
+        for k, v in _pairs(ap, a.settings, "a setting is KEY=VALUE"):
             try:
                 settings[k] = json.loads(v)
             except json.JSONDecodeError:
                 settings[k] = v  # a name (a rig, a task)
         eval_model(a.run_dir, a.out, a.name, a.episodes, settings, a.inference_dtype)
     elif a.cmd == "plot-seeds":
-        bad = [r for r in a.runs if "=" not in r]
-        if bad:
-            ap.error(f"a run is LABEL=RUN_DIR, got {bad[0]!r}")
         runs = {}
-        for label, d in (r.split("=", 1) for r in a.runs):
+        for label, d in _pairs(ap, a.runs, "a run is LABEL=RUN_DIR"):
             rep = json.loads(_report_path(Path(d)).read_text())
             if a.rescore:  # the turn figures again from the recordings (old reports: no held_90)
                 again = rescore_iterations(Path(d), a.task)
