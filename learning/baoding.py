@@ -22,6 +22,7 @@ joint's limit). The driver, the recordings and the bus keep the hand's own units
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -934,14 +935,20 @@ class BaodingRun(MbrlRun):
         tmp.write_text(json.dumps(_jsonable(part), indent=1))
         tmp.replace(self.out / "report.json")
 
-    def run(self) -> dict[str, Any]:
+    @contextlib.contextmanager
+    def torch_threads(self):
+        """The configured torch thread count (``torch_threads``) inside, the caller's after."""
         threads = torch.get_num_threads()
         if self.bcfg.torch_threads is not None:
             torch.set_num_threads(self.bcfg.torch_threads)
         try:
-            return self._run_baoding()
+            yield
         finally:
             torch.set_num_threads(threads)
+
+    def run(self) -> dict[str, Any]:
+        with self.torch_threads():
+            return self._run_baoding()
 
     def _run_baoding(self) -> dict[str, Any]:
         torch.manual_seed(self.bcfg.seed)

@@ -82,7 +82,7 @@ def cpu_bf16_support(cpuinfo: str | Path = "/proc/cpuinfo") -> str | None:
 AUTO_BF16_MIN_SPEEDUP = 1.25  # "auto" takes bf16 only when it measured at least this much faster
 
 
-def _resolve_inference_dtype(choice: str, measure=None) -> torch.dtype:
+def _resolve_inference_dtype(choice: str, measure) -> torch.dtype:
     """``"fp32"`` / ``"bf16"`` / ``"auto"``.
 
     ``"auto"`` measures: on a CPU with native bf16 (:func:`cpu_bf16_support`), ``measure()``
@@ -101,7 +101,7 @@ def _resolve_inference_dtype(choice: str, measure=None) -> torch.dtype:
         raise ValueError(f"inference_dtype must be 'fp32', 'bf16' or 'auto', got {choice!r}")
     if not cpu_bf16_support():
         return torch.float32
-    if choice == "auto" and measure is not None:
+    if choice == "auto":
         return torch.bfloat16 if measure()["speedup"] >= AUTO_BF16_MIN_SPEEDUP else torch.float32
     return torch.bfloat16
 
@@ -244,7 +244,7 @@ class EnsembleDynamics(nn.Module):
         self._fast: dict | None = None  # fused inference weights, rebuilt lazily
         self._chunks_pinned: dict[int, int] = {}  # batch size -> chunk count (tune_inference)
         self.dtype_measurement: dict | None = None  # "auto"'s timing (measure_dtypes), if it ran
-        self._inference_dtype = torch.float32
+        self._inference_dtype = torch.float32  # measure_dtypes restores it: it must exist first
         self._inference_dtype = _resolve_inference_dtype(inference_dtype, self.measure_dtypes)
 
     # -- sizes ---------------------------------------------------------------------------

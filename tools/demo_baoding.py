@@ -982,8 +982,10 @@ def eval_model(run_dir: Path, out: Path, name: str, episodes: int = 20, settings
     ``task.max_lead_rad``): does a planner or cost setting alone change the turns or the drops?
     Recorded to ``out/name/recordings``; one JSON line in ``out/eval.jsonl`` (the settings,
     the turn figures, wall time, load). The run's rig and task unless ``settings`` names them."""
+    from dataclasses import fields
+
     from hilstack.configs.schema import load_rig
-    from hilstack.learning.baoding import summarize
+    from hilstack.learning.baoding import load_baoding_task, summarize
     from hilstack.learning.dynamics import EnsembleDynamics
     from hilstack.tools.common import provision_credentials, with_endpoint
 
@@ -991,10 +993,6 @@ def eval_model(run_dir: Path, out: Path, name: str, episodes: int = 20, settings
     ckpt = Path(run_dir) / "checkpoint" / "model.pt"
     if not ckpt.is_file():
         raise FileNotFoundError(f"no model {ckpt} (a run's checkpoint)")
-    from dataclasses import fields
-
-    from hilstack.learning.baoding import load_baoding_task
-
     over, task_over = {}, {}
     for k, v in (settings or {}).items():
         (task_over if k.startswith("task.") else over)[k.removeprefix("task.")] = v
@@ -1016,19 +1014,12 @@ def eval_model(run_dir: Path, out: Path, name: str, episodes: int = 20, settings
     provision_credentials(rig.name, bus, rig)
     run = BaodingRun(cfg, d, bus)
     model = EnsembleDynamics.load(ckpt)
-    dtype = model.set_inference_dtype(inference_dtype)
-    import torch
-
-    threads = torch.get_num_threads()
-    if cfg.torch_threads:
-        torch.set_num_threads(cfg.torch_threads)
     t0 = time.perf_counter()
-    try:
+    with run.torch_threads():  # before the precision's timing: the run's thread count
+        dtype = model.set_inference_dtype(inference_dtype)
         with run.session():
             _, scores = run.run_episodes(lambda i: run.pddm_policy(model, run._seed(77, i), run.pddm_samples()),
                                          episodes, "eval-pddm", f"eval {name}")
-    finally:
-        torch.set_num_threads(threads)
     s = summarize(scores)
     row = {"what": "eval", "run": str(run_dir), "name": name, "settings": settings or {},
            "inference_dtype": str(dtype).removeprefix("torch."), "wall_s": time.perf_counter() - t0,
